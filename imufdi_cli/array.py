@@ -1,0 +1,398 @@
+"""ArrayConfig: the geometry of a redundant IMU array, and its measurement matrices.
+
+Each IMU k has a rotation ``R_k`` (IMU frame -> array body frame), a position ``r_k`` in
+the body frame (metres) and, per sensor type, the axes that are present. For sensor type
+``s`` the measurement of axis ``a`` of IMU ``k`` is the projection of the body-frame
+quantity on that axis::
+
+    m_{k,a} = (R_k^T w)_a = R_k[:, a] . w        (+ lever-arm terms for accelerometers)
+
+so the measurement matrix ``H_s`` (n_s x 3) stacks the rows ``R_k[:, a]^T`` for every used
+axis, IMU by IMU, axes in x, y, z order. Sensor ids are ``imu<k>.<type>.<axis>`` in the
+same order (DESIGN.md §3). Co-aligned arrays, skewed single-axis arrays (e.g. six gyros on
+a cone) and boards with rotated chips are all the same code.
+
+The config is stored as TOML by users and as JSON in the ``imufdi.array`` metadata record
+of every MCAP imufdi writes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.errors import ArrayConfigError, UnitError
+from imufdi_cli.units import parse_quantity, sensor_dimension
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+SENSOR_TYPES: tuple[str, ...] = ("gyro", "accel", "mag")
+AXES: tuple[str, ...] = ("x", "y", "z")
+
+
+def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:
+    """Rotation matrix (3, 3) of a unit quaternion ``[w, x, y, z]`` (Hamilton, active)."""
+    w, x, y, z = (float(v) for v in q)
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    if norm == 0.0:
+        raise ArrayConfigError("quaternion [0, 0, 0, 0] is not a rotation")
+    w, x, y, z = w / norm, x / norm, y / norm, z / norm
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _check_rotation(matrix: np.ndarray, where: str) -> np.ndarray:
+    matrix = np.asarray(matrix, dtype=float)
+    if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)):
+        raise ArrayConfigError(f"{where}: rotation must be a finite 3x3 matrix")
+    if not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-6) or np.linalg.det(matrix) < 0:
+        raise ArrayConfigError(
+            f"{where}: rotation is not a proper rotation matrix (R R^T = I, det R = +1)"
+        )
+    return matrix
+
+
+def _parse_axes(value: Any, where: str) -> tuple[str, ...]:
+    if isinstance(value, str):
+        items = list(value.replace(",", "").replace(" ", ""))
+    elif isinstance(value, (list, tuple)):
+        items = [str(v) for v in value]
+    else:
+        raise ArrayConfigError(f"{where}: axes must be a string like 'xyz' or a list")
+    for item in items:
+        if item not in AXES:
+            raise ArrayConfigError(f"{where}: unknown axis {item!r}; valid: x, y, z")
+    if len(set(items)) != len(items):
+        raise ArrayConfigError(f"{where}: repeated axis in {value!r}")
+    return tuple(a for a in AXES if a in items)
+
+
+@dataclass(frozen=True, eq=False)
+class ImuSpec:
+    """One IMU of the array.
+
+    Attributes
+    ----------
+    rotation : ndarray, shape (3, 3)
+        IMU frame -> array body frame.
+    position : ndarray, shape (3,)
+        Position of the IMU in the body frame, metres.
+    axes : dict
+        Per sensor type (``gyro``, ``accel``, ``mag``) the axes present, e.g. ``("x","y","z")``;
+        an empty tuple means the IMU has no such sensor.
+    """
+
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    axes: Mapping[str, tuple[str, ...]] = field(
+        default_factory=lambda: {"gyro": AXES, "accel": AXES, "mag": ()}
+    )
+
+    def axes_of(self, sensor_type: str) -> tuple[str, ...]:
+        return tuple(self.axes.get(sensor_type, ()))
+
+
+@dataclass(frozen=True, eq=False)
+class ArrayConfig:
+    """Geometry, sample rate and nominal noise of an IMU array.
+
+    Attributes
+    ----------
+    imus : tuple of ImuSpec
+        IMU k publishes on ``/imu<k>/data_raw`` and has sensor ids ``imu<k>.<type>.<axis>``.
+    rate_hz : float
+        Nominal sample rate, Hz.
+    noise : dict
+        Nominal white-noise standard deviation per sensor type in SI units (rad/s, m/s^2,
+        tesla). Optional; detectors calibrate from data when it is absent.
+    """
+
+    imus: tuple[ImuSpec, ...]
+    rate_hz: float = 100.0
+    noise: Mapping[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if len(self.imus) == 0:
+            raise ArrayConfigError("an array needs at least one IMU")
+        if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise ArrayConfigError(f"rate_hz must be a positive number, got {self.rate_hz!r}")
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, ArrayConfig) and self.to_dict() == other.to_dict()
+
+    def __hash__(self) -> int:
+        return hash(self.to_json())
+
+    # --- construction helpers -------------------------------------------------------
+
+    @classmethod
+    def co_aligned(
+        cls,
+        n_imus: int,
+        rate_hz: float = 100.0,
+        *,
+        sensors: Sequence[str] = ("gyro", "accel"),
+        positions: np.ndarray | None = None,
+        noise: Mapping[str, float] | None = None,
+    ) -> ArrayConfig:
+        """``n_imus`` IMUs with identity rotation; positions (n_imus, 3) in metres."""
+        if n_imus < 1:
+            raise ArrayConfigError(f"number of IMUs must be >= 1, got {n_imus}")
+        pos = np.zeros((n_imus, 3)) if positions is None else np.asarray(positions, float)
+        imus = tuple(
+            ImuSpec(
+                rotation=np.eye(3),
+                position=pos[k].copy(),
+                axes={s: (AXES if s in sensors else ()) for s in SENSOR_TYPES},
+            )
+            for k in range(n_imus)
+        )
+        return cls(imus=imus, rate_hz=rate_hz, noise=dict(noise or {}))
+
+    # --- sensors --------------------------------------------------------------------
+
+    @property
+    def n_imus(self) -> int:
+        return len(self.imus)
+
+    def has(self, sensor_type: str) -> bool:
+        """Whether any IMU has at least one axis of this sensor type."""
+        return any(imu.axes_of(sensor_type) for imu in self.imus)
+
+    def sensor_types(self) -> list[str]:
+        """Sensor types present in the array, in gyro, accel, mag order."""
+        return [s for s in SENSOR_TYPES if self.has(s)]
+
+    def sensor_index(self, sensor_type: str) -> tuple[np.ndarray, np.ndarray]:
+        """IMU index and axis index (0..2) of each used sensor of a type, shapes (n,), (n,)."""
+        _check_type(sensor_type)
+        imu_idx: list[int] = []
+        axis_idx: list[int] = []
+        for k, imu in enumerate(self.imus):
+            for a in imu.axes_of(sensor_type):
+                imu_idx.append(k)
+                axis_idx.append(AXES.index(a))
+        return np.asarray(imu_idx, dtype=np.intp), np.asarray(axis_idx, dtype=np.intp)
+
+    def sensor_ids(self, sensor_type: str) -> list[str]:
+        """``imu<k>.<type>.<axis>`` for every used sensor of a type, in H row order."""
+        imu_idx, axis_idx = self.sensor_index(sensor_type)
+        return [f"imu{k}.{sensor_type}.{AXES[a]}" for k, a in zip(imu_idx, axis_idx)]
+
+    def n_sensors(self, sensor_type: str) -> int:
+        return int(self.sensor_index(sensor_type)[0].size)
+
+    def measurement_matrix(self, sensor_type: str) -> np.ndarray:
+        """H_s, shape (n_s, 3): row j is the body-frame direction of sensor j's axis."""
+        imu_idx, axis_idx = self.sensor_index(sensor_type)
+        if imu_idx.size == 0:
+            return np.zeros((0, 3))
+        rotations = np.stack([imu.rotation for imu in self.imus])  # (m, 3, 3)
+        return rotations[imu_idx, :, axis_idx]  # row j = R_k[:, a]
+
+    def positions(self) -> np.ndarray:
+        """IMU positions in the body frame, shape (m, 3), metres."""
+        return np.stack([np.asarray(imu.position, float) for imu in self.imus])
+
+    def rotations(self) -> np.ndarray:
+        """IMU -> body rotations, shape (m, 3, 3)."""
+        return np.stack([np.asarray(imu.rotation, float) for imu in self.imus])
+
+    def select(self, triads: np.ndarray, sensor_type: str) -> np.ndarray:
+        """Flatten per-IMU triads (N, m, 3) to the used sensors (N, n_s), in sensor-id order."""
+        imu_idx, axis_idx = self.sensor_index(sensor_type)
+        return np.asarray(triads)[:, imu_idx, axis_idx]
+
+    # --- serialisation --------------------------------------------------------------
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON/TOML-ready dict (SI units)."""
+        return {
+            "rate_hz": float(self.rate_hz),
+            "noise": {k: float(v) for k, v in self.noise.items()},
+            "imu": [
+                {
+                    "rotation": np.asarray(imu.rotation, float).tolist(),
+                    "position": np.asarray(imu.position, float).tolist(),
+                    **{f"{s}_axes": "".join(imu.axes_of(s)) for s in SENSOR_TYPES},
+                }
+                for imu in self.imus
+            ],
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], *, source: str = "array config") -> ArrayConfig:
+        """Build from the dict form (TOML or JSON); quantities may carry units."""
+        if not isinstance(data, Mapping):
+            raise ArrayConfigError(f"{source}: expected a table at the top level")
+        known = {"rate_hz", "rate", "noise", "imu"}
+        for key in data:
+            if key not in known:
+                raise ArrayConfigError(
+                    f"{source}: unknown key {key!r}; valid: {', '.join(sorted(known))}"
+                )
+        try:
+            if "rate" in data:
+                rate = parse_quantity(data["rate"], "frequency", name=f"{source}: rate")
+            else:
+                rate = float(data.get("rate_hz", 100.0))
+            noise_raw = data.get("noise", {})
+            if not isinstance(noise_raw, Mapping):
+                raise ArrayConfigError(
+                    f"{source}: noise must be a table like {{gyro = '0.1deg/s'}}"
+                )
+            noise: dict[str, float] = {}
+            for key, value in noise_raw.items():
+                if key not in SENSOR_TYPES:
+                    raise ArrayConfigError(
+                        f"{source}: noise.{key}: unknown sensor type; valid: gyro, accel, mag"
+                    )
+                noise[key] = parse_quantity(
+                    value, sensor_dimension(key), name=f"{source}: noise.{key}"
+                )
+        except UnitError as err:
+            raise ArrayConfigError(str(err)) from err
+        imus_raw = data.get("imu")
+        if not isinstance(imus_raw, list) or not imus_raw:
+            raise ArrayConfigError(f"{source}: needs at least one [[imu]] table")
+        imus = []
+        imu_keys = {"rotation", "quaternion", "position", *(f"{s}_axes" for s in SENSOR_TYPES)}
+        for k, item in enumerate(imus_raw):
+            where = f"{source}: imu[{k}]"
+            if not isinstance(item, Mapping):
+                raise ArrayConfigError(f"{where}: expected a table")
+            for key in item:
+                if key not in imu_keys:
+                    raise ArrayConfigError(
+                        f"{where}: unknown key {key!r}; valid: {', '.join(sorted(imu_keys))}"
+                    )
+            if "rotation" in item and "quaternion" in item:
+                raise ArrayConfigError(f"{where}: give rotation or quaternion, not both")
+            try:
+                if "quaternion" in item:
+                    quat = np.asarray(item["quaternion"], dtype=float)
+                    if quat.shape != (4,):
+                        raise ArrayConfigError(f"{where}: quaternion must be [w, x, y, z]")
+                    rotation = quaternion_to_matrix(quat)
+                else:
+                    rotation = np.asarray(item.get("rotation", np.eye(3)), dtype=float)
+                position = np.asarray(item.get("position", [0.0, 0.0, 0.0]), dtype=float)
+            except (TypeError, ValueError) as err:
+                raise ArrayConfigError(f"{where}: rotation/position must be numbers") from err
+            if position.shape != (3,) or not np.all(np.isfinite(position)):
+                raise ArrayConfigError(f"{where}: position must be [x, y, z] in metres")
+            axes = {
+                s: _parse_axes(item.get(f"{s}_axes", "xyz" if s != "mag" else ""), where)
+                for s in SENSOR_TYPES
+            }
+            imus.append(
+                ImuSpec(rotation=_check_rotation(rotation, where), position=position, axes=axes)
+            )
+        return cls(imus=tuple(imus), rate_hz=rate, noise=noise)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), separators=(",", ":"))
+
+    @classmethod
+    def from_json(cls, text: str | bytes, *, source: str = "imufdi.array metadata") -> ArrayConfig:
+        try:
+            data = json.loads(text)
+        except (ValueError, TypeError) as err:
+            raise ArrayConfigError(f"{source}: not valid JSON ({err})") from err
+        return cls.from_dict(data, source=source)
+
+    def to_toml(self) -> str:
+        """The TOML form users edit (SI numbers)."""
+        lines = [f"rate_hz = {self.rate_hz!r}", ""]
+        if self.noise:
+            lines.append("[noise]  # white-noise sigma, SI (rad/s, m/s^2, T)")
+            lines += [f"{k} = {float(v)!r}" for k, v in self.noise.items()]
+            lines.append("")
+        for imu in self.imus:
+            rot = ", ".join(
+                "[" + ", ".join(repr(float(v)) for v in row) + "]"
+                for row in np.asarray(imu.rotation)
+            )
+            pos = ", ".join(repr(float(v)) for v in np.asarray(imu.position))
+            lines += [
+                "[[imu]]",
+                f"rotation = [{rot}]  # IMU frame -> body frame",
+                f"position = [{pos}]  # m, body frame",
+            ]
+            lines += [f'{s}_axes = "{"".join(imu.axes_of(s))}"' for s in SENSOR_TYPES]
+            lines.append("")
+        return "\n".join(lines)
+
+    @classmethod
+    def load(cls, path: str | Path) -> ArrayConfig:
+        """Load a TOML (or JSON, by extension) array config file."""
+        path = Path(path)
+        try:
+            raw = path.read_bytes()
+        except OSError as err:
+            raise ArrayConfigError(f"cannot read array config {path}: {err.strerror}") from err
+        if path.suffix.lower() == ".json":
+            return cls.from_json(raw, source=str(path))
+        try:
+            data = tomllib.loads(raw.decode("utf-8"))
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+            raise ArrayConfigError(f"{path}: not valid TOML ({err})") from err
+        return cls.from_dict(data, source=str(path))
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(self.to_toml(), encoding="utf-8")
+
+    def with_imus(self, n_imus: int) -> ArrayConfig:
+        """The first ``n_imus`` IMUs of this array (used when a log has fewer topics)."""
+        return ArrayConfig(imus=self.imus[:n_imus], rate_hz=self.rate_hz, noise=dict(self.noise))
+
+
+def _check_type(sensor_type: str) -> None:
+    if sensor_type not in SENSOR_TYPES:
+        raise ArrayConfigError(
+            f"unknown sensor type {sensor_type!r}; valid: {', '.join(SENSOR_TYPES)}"
+        )
+
+
+def parse_sensor_id(text: str, array: ArrayConfig) -> tuple[int, str, tuple[str, ...]]:
+    """Parse ``imu3.gyro.z`` (one axis) or ``imu3.gyro`` (the triad's used axes).
+
+    Returns ``(imu_index, sensor_type, axes)``. Raises ArrayConfigError naming valid choices.
+    """
+    parts = text.strip().split(".")
+    if len(parts) not in (2, 3) or not parts[0].startswith("imu") or not parts[0][3:].isdigit():
+        raise ArrayConfigError(
+            f"sensor {text!r} is not of the form imu<k>.<gyro|accel|mag>[.<x|y|z>]"
+        )
+    k = int(parts[0][3:])
+    if k >= array.n_imus:
+        raise ArrayConfigError(
+            f"sensor {text!r}: IMU index {k} is past the array (imu0..imu{array.n_imus - 1})"
+        )
+    sensor_type = parts[1]
+    _check_type(sensor_type)
+    present = array.imus[k].axes_of(sensor_type)
+    if not present:
+        raise ArrayConfigError(f"sensor {text!r}: imu{k} has no {sensor_type}")
+    if len(parts) == 3:
+        if parts[2] not in present:
+            raise ArrayConfigError(
+                f"sensor {text!r}: axis {parts[2]!r} is not present; valid: {', '.join(present)}"
+            )
+        return k, sensor_type, (parts[2],)
+    return k, sensor_type, present

@@ -1,0 +1,226 @@
+"""The detector interface, its output, and typed parameters.
+
+Every detector is one module with one class that follows :class:`Detector`::
+
+    det = GltDetector(**parse_params(GltDetector.PARAMS, {"alpha": "0.001"}, "glt"))
+    det.fit(calibration_block, array)         # fault-free window: sigma, biases, ...
+    for block in blocks:                       # consecutive ImuBlocks, streaming state inside
+        out = det.process(block)               # {"gyro": DetectionBlock, "accel": ...}
+
+``process`` returns, for every sensor type the detector tests, one DetectionBlock with
+exactly one row per input sample. Sensor indices refer to
+``ArrayConfig.sensor_ids(sensor_type)`` (global, never renumbered by reconfiguration).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Protocol, runtime_checkable
+
+import numpy as np
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.errors import DetectorConfigError, UnitError
+from imufdi_cli.log import ImuBlock
+from imufdi_cli.units import parse_quantity
+
+#: ``isolated`` value when no sensor is isolated (no alarm, or not yet confirmed).
+NO_ISOLATION = -1
+#: ``isolated`` value when the configuration cannot isolate (e.g. 2 sensors on an axis).
+NOT_ISOLABLE = -2
+
+
+@dataclass
+class DetectionBlock:
+    """Per-sample output of a detector for one sensor type.
+
+    Attributes
+    ----------
+    statistic : ndarray, shape (N,), float64
+        Detection statistic (dimensionless unless the detector documents otherwise).
+    threshold : ndarray, shape (N,), float64
+        Threshold the statistic is compared to (may vary, e.g. after reconfiguration).
+    alarm : ndarray, shape (N,), bool
+        Fault declared at this sample (after any persistence logic).
+    isolated : ndarray, shape (N,), int32
+        Index of the isolated sensor in ``sensor_ids(type)``, or NO_ISOLATION (-1), or
+        NOT_ISOLABLE (-2).
+    amplitude : ndarray, shape (N,), float64
+        Estimated fault amplitude of the isolated sensor, SI units; NaN when none.
+    scores : ndarray, shape (N, n_s), float64
+        Per-sensor isolation scores (e.g. D_FI,i); NaN where not computed.
+    """
+
+    statistic: np.ndarray
+    threshold: np.ndarray
+    alarm: np.ndarray
+    isolated: np.ndarray
+    amplitude: np.ndarray
+    scores: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.statistic.shape[0])
+
+    @classmethod
+    def empty(cls, n_samples: int, n_sensors: int) -> DetectionBlock:
+        """All-quiet output: statistic 0, threshold inf, no alarm, no isolation."""
+        return cls(
+            statistic=np.zeros(n_samples),
+            threshold=np.full(n_samples, np.inf),
+            alarm=np.zeros(n_samples, dtype=bool),
+            isolated=np.full(n_samples, NO_ISOLATION, dtype=np.int32),
+            amplitude=np.full(n_samples, np.nan),
+            scores=np.full((n_samples, n_sensors), np.nan),
+        )
+
+    @classmethod
+    def concatenate(cls, blocks: list[DetectionBlock]) -> DetectionBlock:
+        return cls(
+            statistic=np.concatenate([b.statistic for b in blocks]),
+            threshold=np.concatenate([b.threshold for b in blocks]),
+            alarm=np.concatenate([b.alarm for b in blocks]),
+            isolated=np.concatenate([b.isolated for b in blocks]),
+            amplitude=np.concatenate([b.amplitude for b in blocks]),
+            scores=np.concatenate([b.scores for b in blocks], axis=0),
+        )
+
+
+@runtime_checkable
+class Detector(Protocol):
+    """What every detector implements (see module docstring)."""
+
+    name: ClassVar[str]
+    PARAMS: ClassVar[Mapping[str, Param]]
+
+    def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
+        """Learn noise, biases, thresholds from a fault-free calibration block."""
+        ...
+
+    def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
+        """Test one block; returns one DetectionBlock per tested sensor type."""
+        ...
+
+    def metadata(self) -> dict[str, Any]:
+        """JSON-ready parameters and calibration results (the ``imufdi.detect.<name>`` record)."""
+        ...
+
+
+# --- typed parameters ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Param:
+    """A detector parameter: how to parse it from a string, its default, its bounds.
+
+    ``kind`` is ``"float"``, ``"int"``, ``"bool"``, ``"str"``, ``"choice"``, ``"path"`` or a
+    unit dimension of :mod:`imufdi_cli.units` (``"time"``, ``"angular_rate"``, ...), in
+    which case strings like ``"2.5s"`` are accepted and stored in SI.
+    """
+
+    kind: str
+    default: Any
+    help: str
+    low: float | None = None  # inclusive lower bound
+    high: float | None = None  # inclusive upper bound
+    low_open: bool = False  # lower bound exclusive
+    choices: tuple[str, ...] = ()
+    check: Callable[[Any], str | None] | None = field(default=None, compare=False)
+
+    def parse(self, raw: Any, where: str) -> Any:
+        value: Any
+        try:
+            if raw is None:
+                return None
+            if self.kind == "str" or self.kind == "path":
+                value = str(raw)
+            elif self.kind == "choice":
+                value = str(raw)
+                if value not in self.choices:
+                    raise DetectorConfigError(
+                        f"{where}: {value!r} is not valid; valid: {', '.join(self.choices)}"
+                    )
+            elif self.kind == "bool":
+                if isinstance(raw, bool):
+                    value = raw
+                elif str(raw).lower() in ("1", "true", "yes", "on"):
+                    value = True
+                elif str(raw).lower() in ("0", "false", "no", "off"):
+                    value = False
+                else:
+                    raise DetectorConfigError(f"{where}: {raw!r} is not a boolean (true/false)")
+            elif self.kind == "int":
+                if isinstance(raw, float) and not raw.is_integer():
+                    raise ValueError
+                value = int(str(raw)) if not isinstance(raw, (int, float)) else int(raw)
+            elif self.kind == "float":
+                value = float(raw)
+                if not math.isfinite(value):
+                    raise ValueError
+            else:
+                value = parse_quantity(raw, self.kind, name=where)
+        except UnitError as err:
+            raise DetectorConfigError(str(err)) from err
+        except (TypeError, ValueError):
+            raise DetectorConfigError(f"{where}: {raw!r} is not a valid {self.kind}") from None
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if self.low is not None and (value < self.low or (self.low_open and value <= self.low)):
+                op = ">" if self.low_open else ">="
+                raise DetectorConfigError(f"{where}: must be {op} {self.low}, got {raw!r}")
+            if self.high is not None and value > self.high:
+                raise DetectorConfigError(f"{where}: must be <= {self.high}, got {raw!r}")
+        if self.check is not None:
+            problem = self.check(value)
+            if problem:
+                raise DetectorConfigError(f"{where}: {problem}")
+        return value
+
+
+def parse_params(
+    specs: Mapping[str, Param], raw: Mapping[str, Any], detector: str
+) -> dict[str, Any]:
+    """Typed parameter values: defaults overridden by ``raw`` (strings or values).
+
+    Raises DetectorConfigError for an unknown name (listing the valid ones) or a bad value.
+    """
+    for key in raw:
+        if key not in specs:
+            valid = ", ".join(sorted(specs)) or "(none)"
+            raise DetectorConfigError(f"unknown parameter {detector}.{key}; valid: {valid}")
+    values: dict[str, Any] = {}
+    for key, spec in specs.items():
+        if key in raw:
+            values[key] = spec.parse(raw[key], f"{detector}.{key}")
+        else:
+            values[key] = spec.default
+    return values
+
+
+ALPHA = Param("float", 0.01, "false-alarm level of the test", low=0.0, high=0.5, low_open=True)
+"""The common ``alpha`` parameter (0 < alpha <= 0.5)."""
+
+
+def calibration_stats(values: np.ndarray, min_samples: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Per-sensor mean and standard deviation of a fault-free window.
+
+    Parameters
+    ----------
+    values : ndarray, shape (N, n)
+    min_samples : int
+        Fewer samples than this raise CalibrationError.
+
+    Returns
+    -------
+    mean, std : ndarray, shape (n,)
+    """
+    from imufdi_cli.errors import CalibrationError
+
+    if values.shape[0] < min_samples:
+        raise CalibrationError(
+            f"calibration window has {values.shape[0]} samples; at least {min_samples} are needed"
+            " (use --calibrate START:END to choose a longer fault-free window)"
+        )
+    mean = values.mean(axis=0)
+    std = values.std(axis=0, ddof=1)
+    return mean, std
