@@ -40,7 +40,7 @@ SENSOR_TYPES: tuple[str, ...] = ("gyro", "accel", "mag")
 AXES: tuple[str, ...] = ("x", "y", "z")
 
 
-def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:
+def quaternion_to_matrix(q: Sequence[float] | np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) of a unit quaternion ``[w, x, y, z]`` (Hamilton, active)."""
     w, x, y, z = (float(v) for v in q)
     norm = math.sqrt(w * w + x * x + y * y + z * z)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from imufdi_cli.detectors.base import Detector, DetectionBlock, Param, parse_params
+from imufdi_cli.detectors.base import DetectionBlock, Detector, Param, parse_params
 from imufdi_cli.errors import DetectorConfigError
 
 DETECTORS: dict[str, type] = {}
