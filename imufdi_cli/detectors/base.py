@@ -7,8 +7,12 @@ Every detector is one module with one class that follows :class:`Detector`::
     for block in blocks:                       # consecutive ImuBlocks, streaming state inside
         out = det.process(block)               # {"gyro": DetectionBlock, "accel": ...}
 
-``process`` returns, for every sensor type the detector tests, one DetectionBlock with
-exactly one row per input sample. Sensor indices refer to
+``process`` returns, for every sensor type the detector tests, one DetectionBlock whose rows
+are the oldest input samples not yet reported, in order. A causal detector returns one row
+per input sample; a detector that needs look-ahead (e.g. windowed decompositions) may hold
+samples back and returns them later; ``flush()`` returns every held-back row at the end of
+the log, so that over ``process`` + ``flush`` each input sample gets exactly one row. The
+pipeline pairs rows with timestamps in order. Sensor indices refer to
 ``ArrayConfig.sensor_ids(sensor_type)`` (global, never renumbered by reconfiguration).
 """
 
@@ -100,6 +104,10 @@ class Detector(Protocol):
 
     def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
         """Test one block; returns one DetectionBlock per tested sensor type."""
+        ...
+
+    def flush(self) -> dict[str, DetectionBlock]:
+        """Rows still held back at the end of the log (empty blocks for causal detectors)."""
         ...
 
     def metadata(self) -> dict[str, Any]:
