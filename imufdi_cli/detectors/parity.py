@@ -1,0 +1,354 @@
+"""Parity space of a redundant sensor array: the shared maths of the parity detectors.
+
+For one sensor type with measurement matrix ``H`` (n, 3) the measurements are
+``m = H x + f + e`` (x the body-frame quantity, f the faults, e the noise). A parity matrix
+``V`` ((n-3), n) has rows that span the left null space of H::
+
+    V H = 0,   V V^T = I_{n-3},   V^T V = I_n - H (H^T H)^{-1} H^T           (1)
+
+so the parity vector ``p = V m = V (f + e)`` does not depend on the motion x (Potter &
+Suman, "Thresholdless redundancy management with arrays of skewed instruments",
+AGARDograph 224, 1977; Li et al., Micromachines 17(3):374, 2026, §2.1, eqs. 1-4).
+
+Construction (``parity_matrix``): the last n-3 left singular vectors of H give an
+orthonormal basis of the left null space (numerically the most robust choice: no
+inversion of H^T H, exact orthonormality to rounding). Potter's construction fixes the
+basis by requiring V^T V to equal the projector (1) and V to be upper triangular
+(``V[i, j] = 0`` for ``j < i``) with a positive diagonal; every orthonormal basis of the
+same null space satisfies (1), and two of them differ by an orthogonal (n-3)x(n-3) matrix Q.
+We compute the QR factorisation of the SVD basis' leading (n-3) square block, ``A = Q R``,
+and return ``Q^T V_svd``, whose leading block is R: upper triangular, positive diagonal.
+That is Potter's V (unique when the leading block is invertible). Any orthonormal V gives
+the same statistics (they are invariant under p -> Q p), so the choice only matters for
+reproducible parity vectors in output files.
+
+Noise whitening: with per-sensor standard deviations sigma (n,), ``H_w = H / sigma[:, None]``
+and ``m_w = m / sigma`` have unit white noise, and the parity vector of the whitened
+problem is chi-square distributed with n-3 degrees of freedom when there is no fault.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imufdi_cli.errors import ArrayConfigError, CalibrationError
+
+#: Relative tolerance on singular values for the rank test of H.
+RANK_RTOL = 1e-9
+
+
+def check_measurement_matrix(H: np.ndarray) -> np.ndarray:
+    """Validate a measurement matrix and return it as float64.
+
+    Parameters
+    ----------
+    H : array_like, shape (n, 3)
+        Row j is the body-frame direction of sensor j's sensing axis.
+
+    Raises
+    ------
+    ArrayConfigError
+        Wrong shape, non-finite values, fewer than 3 sensors, or rank < 3 (the sensors do
+        not span the three body axes).
+    """
+    H = np.asarray(H, dtype=np.float64)
+    if H.ndim != 2 or H.shape[1] != 3:
+        raise ArrayConfigError(f"measurement matrix must have shape (n, 3), got {H.shape}")
+    if not np.all(np.isfinite(H)):
+        raise ArrayConfigError("measurement matrix has non-finite entries")
+    if H.shape[0] < 3:
+        raise ArrayConfigError(
+            f"measurement matrix has {H.shape[0]} sensors; at least 3 are needed to span 3 axes"
+        )
+    singular = np.linalg.svd(H, compute_uv=False)
+    rank = int(np.sum(singular > RANK_RTOL * singular[0])) if singular[0] > 0 else 0
+    if rank < 3:
+        raise ArrayConfigError(
+            f"measurement matrix has rank {rank} < 3: the sensing axes do not span the body frame"
+        )
+    return H
+
+
+def parity_matrix(H: np.ndarray) -> np.ndarray:
+    """Potter's parity matrix V of a measurement matrix (module docstring, eq. 1).
+
+    Parameters
+    ----------
+    H : array_like, shape (n, 3)
+        Measurement matrix (whitened or not), rank 3.
+
+    Returns
+    -------
+    V : ndarray, shape (n - 3, n)
+        ``V H = 0``, ``V V^T = I``, ``V^T V = I - H (H^T H)^-1 H^T``; upper triangular
+        (``V[i, j] = 0`` for ``j < i``) with positive diagonal where the leading block is
+        invertible. Shape (0, 3) for n = 3 (no redundancy).
+    """
+    H = check_measurement_matrix(H)
+    n = H.shape[0]
+    n_parity = n - 3
+    if n_parity == 0:
+        return np.zeros((0, n))
+    left, _, _ = np.linalg.svd(H, full_matrices=True)
+    basis = left[:, 3:].T  # (n-3, n), orthonormal rows, basis @ H = 0 to rounding
+    q, r = np.linalg.qr(basis[:, :n_parity])
+    V = q.T @ basis
+    # Fix signs: positive diagonal of the leading triangular block (Potter's convention).
+    signs = np.sign(np.diag(r))
+    signs[signs == 0] = 1.0
+    V *= signs[:, None]
+    # Clean the exact zeros of the triangular structure (rounding leaves ~1e-17).
+    lower = np.tril_indices(n_parity, -1)
+    V[lower] = 0.0
+    return V
+
+
+def whiten(H: np.ndarray, sigma: np.ndarray | float) -> np.ndarray:
+    """Whitened measurement matrix ``H_w = diag(1/sigma) H``.
+
+    The matching whitened measurements are ``m / sigma`` (row-wise for (N, n) blocks), so
+    that the noise of every whitened channel has unit variance.
+
+    Parameters
+    ----------
+    H : array_like, shape (n, 3)
+    sigma : float or array_like, shape (n,)
+        Per-sensor white-noise standard deviation, SI units of the sensor, > 0.
+
+    Returns
+    -------
+    H_w : ndarray, shape (n, 3), units 1/(sensor unit)
+    """
+    H = check_measurement_matrix(H)
+    sigma_arr = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (H.shape[0],))
+    if not np.all(np.isfinite(sigma_arr)) or np.any(sigma_arr <= 0):
+        raise CalibrationError(
+            "sensor noise sigma must be finite and > 0 for every sensor"
+            f" (got min {float(np.min(sigma_arr)):.3g}); check the calibration window"
+        )
+    return H / sigma_arr[:, None]
+
+
+def fault_directions(V: np.ndarray) -> np.ndarray:
+    """Fault direction vectors v_i: the columns of V, as rows.
+
+    A fault f on sensor i moves the parity vector by ``f v_i`` (p = V (f e_i) = f V[:, i]).
+
+    Returns
+    -------
+    directions : ndarray, shape (n, n - 3)
+        Row i is v_i.
+    """
+    return np.asarray(V, dtype=np.float64).T.copy()
+
+
+def isolable_sensors(V: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    """Which sensors a single-fault isolation test can tell apart.
+
+    Sensor i is isolable iff v_i is non-zero and not parallel to any other v_j (the
+    isolation statistics of parallel directions are identical, so argmax would guess).
+    With 2 sensors on an axis and n - 3 small, their v_i are parallel.
+
+    Parameters
+    ----------
+    V : array_like, shape (k, n)
+    tol : float
+        Directions with ``1 - |cos angle| < tol`` count as parallel; norms below ``tol``
+        times the largest count as zero.
+
+    Returns
+    -------
+    isolable : ndarray, shape (n,), bool
+    """
+    directions = fault_directions(V)
+    n = directions.shape[0]
+    if directions.shape[1] == 0:
+        return np.zeros(n, dtype=bool)
+    norms = np.linalg.norm(directions, axis=1)
+    nonzero = norms > tol * max(float(norms.max()), np.finfo(float).tiny)
+    unit = np.zeros_like(directions)
+    unit[nonzero] = directions[nonzero] / norms[nonzero, None]
+    cosines = np.abs(unit @ unit.T)
+    np.fill_diagonal(cosines, 0.0)
+    parallel = (cosines > 1.0 - tol) & nonzero[:, None] & nonzero[None, :]
+    return nonzero & ~parallel.any(axis=1)
+
+
+def least_squares_matrix(H: np.ndarray, sigma: np.ndarray | float | None = None) -> np.ndarray:
+    """(Weighted) least-squares estimator ``L`` with ``x_hat = L m``.
+
+    ``L = (H^T W H)^{-1} H^T W`` with ``W = diag(1/sigma^2)`` (W = I when sigma is None).
+
+    Returns
+    -------
+    L : ndarray, shape (3, n)
+    """
+    H = check_measurement_matrix(H)
+    if sigma is None:
+        return np.linalg.pinv(H)
+    H_w = whiten(H, sigma)
+    sigma_arr = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (H.shape[0],))
+    return np.linalg.pinv(H_w) / sigma_arr[None, :]
+
+
+def least_squares_estimate(
+    H: np.ndarray, measurements: np.ndarray, sigma: np.ndarray | float | None = None
+) -> np.ndarray:
+    """Least-squares body-frame quantity from array measurements.
+
+    Parameters
+    ----------
+    H : array_like, shape (n, 3)
+    measurements : array_like, shape (N, n)
+        SI units of the sensor type.
+    sigma : optional, float or shape (n,)
+        Per-sensor noise standard deviation for weighting.
+
+    Returns
+    -------
+    x_hat : ndarray, shape (N, 3), same units.
+    """
+    return np.asarray(measurements, dtype=np.float64) @ least_squares_matrix(H, sigma).T
+
+
+def residuals(
+    H: np.ndarray, measurements: np.ndarray, sigma: np.ndarray | float | None = None
+) -> np.ndarray:
+    """Measurement residuals ``m - H x_hat`` (the part of m not explained by H).
+
+    Returns
+    -------
+    r : ndarray, shape (N, n), SI units.
+    """
+    H = check_measurement_matrix(H)
+    measurements = np.asarray(measurements, dtype=np.float64)
+    hat = H @ least_squares_matrix(H, sigma)  # (n, n)
+    return measurements - measurements @ hat.T
+
+
+def parity_vectors(V: np.ndarray, measurements: np.ndarray) -> np.ndarray:
+    """Parity vectors ``p = V m`` of a block of samples.
+
+    Parameters
+    ----------
+    V : array_like, shape (k, n)
+    measurements : array_like, shape (N, n)
+
+    Returns
+    -------
+    p : ndarray, shape (N, k)
+    """
+    return np.asarray(measurements, dtype=np.float64) @ np.asarray(V, dtype=np.float64).T
+
+
+def gram_inverse(V: np.ndarray) -> np.ndarray:
+    """``(V V^T)^{-1}``, shape (k, k) (identity for an orthonormal V)."""
+    V = np.asarray(V, dtype=np.float64)
+    return np.linalg.inv(V @ V.T)
+
+
+def detection_statistic(p: np.ndarray, V: np.ndarray | None = None) -> np.ndarray:
+    """GLT detection statistic ``D_FD = p^T (V V^T)^{-1} p`` (Li et al. 2026, eq. 5).
+
+    For whitened measurements and no fault, D_FD ~ chi2(n - 3).
+
+    Parameters
+    ----------
+    p : ndarray, shape (N, k)
+    V : optional, shape (k, n)
+        When given and not orthonormal, ``(V V^T)^{-1}`` weights the quadratic form.
+
+    Returns
+    -------
+    D_FD : ndarray, shape (N,)
+    """
+    p = np.asarray(p, dtype=np.float64)
+    if V is None:
+        return np.einsum("ij,ij->i", p, p)
+    weighted = p @ gram_inverse(V)
+    return np.einsum("ij,ij->i", weighted, p)
+
+
+def isolation_statistics(p: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """GLT isolation statistics and fault amplitudes for every sensor (Li et al., eqs. 6-7).
+
+    ``D_FI,i = (p^T G v_i)^2 / (v_i^T G v_i)`` and ``f_i = p^T G v_i / (v_i^T G v_i)`` with
+    ``G = (V V^T)^{-1}``; ``f_i`` is the maximum-likelihood amplitude of a fault on sensor i
+    (in the units of the measurements V was applied to). Sensors with a zero direction get
+    NaN.
+
+    Parameters
+    ----------
+    p : ndarray, shape (N, k)
+    V : ndarray, shape (k, n)
+
+    Returns
+    -------
+    D_FI : ndarray, shape (N, n)
+    amplitude : ndarray, shape (N, n)
+    """
+    p = np.asarray(p, dtype=np.float64)
+    V = np.asarray(V, dtype=np.float64)
+    weighted_directions = gram_inverse(V) @ V  # (k, n): column i = G v_i
+    projections = p @ weighted_directions  # (N, n): p^T G v_i
+    energies = np.einsum("ij,ij->j", V, weighted_directions)  # (n,): v_i^T G v_i
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse_energy = np.where(energies > 0, 1.0 / np.where(energies > 0, energies, 1.0), np.nan)
+    amplitude = projections * inverse_energy
+    return projections * amplitude, amplitude
+
+
+def residual_sigma(H: np.ndarray, measurements: np.ndarray) -> np.ndarray:
+    """Per-sensor white-noise sigma from the least-squares residuals of a fault-free window.
+
+    Residuals ``r = (I - S) m`` with the hat matrix ``S = H H^+`` remove any motion, and for
+    independent noise ``Var(r_i) = sum_j (I - S)_ij^2 sigma_j^2``. That linear system is
+    solved for sigma^2 (non-negative least squares). When it is rank-deficient (little
+    redundancy, e.g. n - 3 = 1) the per-sensor sigmas are not identifiable and one common
+    sigma is returned, from ``E |r|^2 = (n - 3) sigma^2``.
+
+    Parameters
+    ----------
+    H : array_like, shape (n, 3)
+    measurements : array_like, shape (N, n), fault-free, N >= 2
+
+    Returns
+    -------
+    sigma : ndarray, shape (n,), SI units of the sensor type.
+    """
+    from scipy.optimize import nnls
+
+    H = check_measurement_matrix(H)
+    measurements = np.asarray(measurements, dtype=np.float64)
+    if measurements.shape[0] < 2:
+        raise CalibrationError("calibration window needs at least 2 samples to estimate sigma")
+    n = H.shape[0]
+    n_parity = n - 3
+    if n_parity == 0:
+        raise CalibrationError("with 3 sensors there are no residuals to estimate sigma from")
+    r = residuals(H, measurements)
+    variances = r.var(axis=0, ddof=1)
+    mixing = (np.eye(n) - H @ np.linalg.pinv(H)) ** 2
+    singular = np.linalg.svd(mixing, compute_uv=False)
+    if singular[-1] > 1e-8 * singular[0]:
+        sigma2, _ = nnls(mixing, variances)
+    else:
+        sigma2 = np.full(n, variances.sum() / n_parity)
+    return np.sqrt(sigma2)
+
+
+__all__ = [
+    "check_measurement_matrix",
+    "detection_statistic",
+    "fault_directions",
+    "gram_inverse",
+    "isolable_sensors",
+    "isolation_statistics",
+    "least_squares_estimate",
+    "least_squares_matrix",
+    "parity_matrix",
+    "parity_vectors",
+    "residual_sigma",
+    "residuals",
+    "whiten",
+]

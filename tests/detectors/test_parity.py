@@ -1,0 +1,167 @@
+"""Parity-space helpers: V H = 0, V V^T = I, Potter's form, invariance, isolability."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+from scipy.stats import ortho_group
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors.parity import (
+    detection_statistic,
+    fault_directions,
+    isolable_sensors,
+    isolation_statistics,
+    least_squares_estimate,
+    parity_matrix,
+    parity_vectors,
+    residual_sigma,
+    residuals,
+    whiten,
+)
+from imufdi_cli.errors import ArrayConfigError, CalibrationError
+
+
+def conical_H(n: int = 6, half_angle_deg: float = 54.7356) -> np.ndarray:
+    """n single-axis sensors evenly spaced on a cone around z."""
+    beta = np.deg2rad(half_angle_deg)
+    azimuth = 2 * np.pi * np.arange(n) / n
+    return np.column_stack(
+        [np.sin(beta) * np.cos(azimuth), np.sin(beta) * np.sin(azimuth), np.full(n, np.cos(beta))]
+    )
+
+
+@pytest.mark.parametrize(
+    "H",
+    [
+        ArrayConfig.co_aligned(16).measurement_matrix("gyro"),
+        ArrayConfig.co_aligned(2).measurement_matrix("gyro"),
+        conical_H(6),
+        conical_H(4),
+        np.random.default_rng(3).standard_normal((9, 3)),
+    ],
+)
+def test_parity_matrix_properties(H: np.ndarray) -> None:
+    V = parity_matrix(H)
+    n = H.shape[0]
+    assert V.shape == (n - 3, n)
+    assert_allclose(V @ H, 0.0, atol=1e-12)
+    assert_allclose(V @ V.T, np.eye(n - 3), atol=1e-12)
+    projector = np.eye(n) - H @ np.linalg.solve(H.T @ H, H.T)
+    assert_allclose(V.T @ V, projector, atol=1e-12)
+    # Potter's form: leading block upper triangular with non-negative diagonal
+    lead = V[:, : n - 3]
+    assert_allclose(np.tril(lead, -1), 0.0, atol=0)
+    assert np.all(np.diag(lead) >= 0)
+
+
+def test_parity_matrix_is_potter_unique_form() -> None:
+    """Rotating the null-space basis does not change Potter's V (it is unique)."""
+    H = conical_H(6)
+    V = parity_matrix(H)
+    # Potter's V from the projector by a Cholesky factorisation of its leading block
+    projector = np.eye(6) - H @ np.linalg.solve(H.T @ H, H.T)
+    upper = np.linalg.cholesky(projector[:3, :3]).T  # V_lead^T V_lead = P_lead
+    assert_allclose(V[:, :3], upper, atol=1e-12)
+
+
+def test_statistics_invariant_under_orthogonal_rotation_of_V() -> None:
+    rng = np.random.default_rng(1)
+    H = ArrayConfig.co_aligned(5).measurement_matrix("gyro")
+    V = parity_matrix(H)
+    Q = ortho_group.rvs(V.shape[0], random_state=2)
+    V_rot = Q @ V
+    m = rng.standard_normal((50, 15)) + rng.standard_normal((50, 3)) @ H.T
+    m[:, 4] += 3.0
+    p, p_rot = parity_vectors(V, m), parity_vectors(V_rot, m)
+    assert_allclose(detection_statistic(p), detection_statistic(p_rot), rtol=1e-12)
+    d, f = isolation_statistics(p, V)
+    d_rot, f_rot = isolation_statistics(p_rot, V_rot)
+    assert_allclose(d, d_rot, rtol=1e-10, atol=1e-12)
+    assert_allclose(f, f_rot, rtol=1e-10, atol=1e-12)
+    # Non-orthonormal V (scaled rows): the (V V^T)^-1 weighting restores the same numbers
+    V_scaled = np.diag(np.linspace(0.5, 3.0, V.shape[0])) @ V
+    p_scaled = parity_vectors(V_scaled, m)
+    assert_allclose(detection_statistic(p_scaled, V_scaled), detection_statistic(p), rtol=1e-10)
+    d_s, f_s = isolation_statistics(p_scaled, V_scaled)
+    assert_allclose(d_s, d, rtol=1e-9, atol=1e-12)
+    assert_allclose(f_s, f, rtol=1e-9, atol=1e-12)
+
+
+def test_noiseless_single_fault_isolation_and_amplitude_exact() -> None:
+    H = conical_H(6)
+    V = parity_matrix(H)
+    rate = np.array([[0.3, -0.2, 1.1]])
+    m = rate @ H.T
+    m[0, 5] += 0.5
+    p = parity_vectors(V, m)
+    d_fi, amplitude = isolation_statistics(p, V)
+    assert int(np.argmax(d_fi[0])) == 5
+    assert_allclose(amplitude[0, 5], 0.5, rtol=1e-12)
+    # D_FI of the faulty sensor equals D_FD (the whole parity energy is along v_5)
+    assert_allclose(d_fi[0, 5], detection_statistic(p)[0], rtol=1e-12)
+    assert_allclose(d_fi[0, 5], 0.25 * np.sum(V[:, 5] ** 2), rtol=1e-12)
+
+
+def test_whitening_gives_chi2_statistic() -> None:
+    rng = np.random.default_rng(4)
+    H = ArrayConfig.co_aligned(4).measurement_matrix("accel")
+    sigma = np.linspace(0.01, 0.05, 12)
+    m = rng.standard_normal((40000, 12)) * sigma + rng.standard_normal((40000, 3)) @ H.T
+    V = parity_matrix(whiten(H, sigma))
+    d_fd = detection_statistic(parity_vectors(V, m / sigma))
+    assert_allclose(d_fd.mean(), 9.0, rtol=0.02)
+    assert_allclose(d_fd.var(), 18.0, rtol=0.05)
+
+
+def test_whiten_rejects_bad_sigma() -> None:
+    H = conical_H(5)
+    with pytest.raises(CalibrationError, match="sigma"):
+        whiten(H, np.array([1.0, 1.0, 0.0, 1.0, 1.0]))
+    assert_allclose(whiten(H, 2.0), H / 2.0)
+
+
+def test_bad_measurement_matrix_raises() -> None:
+    with pytest.raises(ArrayConfigError, match="rank 2"):
+        parity_matrix(np.array([[1.0, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0]]))
+    with pytest.raises(ArrayConfigError, match="shape"):
+        parity_matrix(np.ones((4, 2)))
+    assert parity_matrix(np.eye(3)).shape == (0, 3)
+
+
+def test_isolability_two_coaligned_imus_not_isolable() -> None:
+    V2 = parity_matrix(ArrayConfig.co_aligned(2).measurement_matrix("gyro"))
+    assert not isolable_sensors(V2).any()
+    V3 = parity_matrix(ArrayConfig.co_aligned(3).measurement_matrix("gyro"))
+    assert isolable_sensors(V3).all()
+    V4 = parity_matrix(conical_H(4))  # one parity dimension: all v_i parallel
+    assert not isolable_sensors(V4).any()
+    assert isolable_sensors(parity_matrix(conical_H(6))).all()
+    assert fault_directions(V3).shape == (9, 6)
+
+
+def test_least_squares_and_residuals() -> None:
+    rng = np.random.default_rng(5)
+    H = conical_H(6)
+    x = rng.standard_normal((10, 3))
+    m = x @ H.T
+    assert_allclose(least_squares_estimate(H, m), x, atol=1e-12)
+    assert_allclose(least_squares_estimate(H, m, sigma=np.arange(1.0, 7.0)), x, atol=1e-12)
+    assert_allclose(residuals(H, m), 0.0, atol=1e-12)
+    bias = np.array([0, 0, 0, 0, 0, 1.0])
+    r = residuals(H, m + bias)
+    assert_allclose(parity_vectors(parity_matrix(H), r), parity_vectors(parity_matrix(H), m + bias))
+
+
+def test_residual_sigma_recovers_per_sensor_noise_under_motion() -> None:
+    rng = np.random.default_rng(6)
+    H = ArrayConfig.co_aligned(8).measurement_matrix("gyro")
+    sigma = rng.uniform(0.5, 2.0, 24)
+    motion = 50.0 * np.sin(np.linspace(0, 20, 20000))[:, None] * np.ones((1, 3))
+    m = motion @ H.T + rng.standard_normal((20000, 24)) * sigma
+    assert_allclose(residual_sigma(H, m), sigma, rtol=0.05)
+    # one parity dimension: not identifiable per sensor -> common sigma
+    H4 = conical_H(4)
+    m4 = rng.standard_normal((20000, 4)) * 0.1 + motion @ H4.T
+    assert_allclose(residual_sigma(H4, m4), 0.1, rtol=0.05)
