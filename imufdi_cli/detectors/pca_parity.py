@@ -1,0 +1,453 @@
+"""PCA of parity vectors: moving-mean pattern test (Hao & Wang), with isolation by direction.
+
+Hao & Wang, "PCA with parity vectors for redundant IMU fault detection in vehicle
+navigation" (§2-4). For one sensor type with measurement matrix H (n, 3) and parity matrix
+V ((n-3), n), V H = 0 (:mod:`imufdi_cli.detectors.parity`):
+
+1. Training on a fault-free window (§3): parity vectors ``p = V m`` (the motion cancels),
+   their mean ``mu`` (the per-sensor biases of a real array end up here, so they raise no
+   alarm) and covariance ``C = W Lambda W^T``; the ``components`` leading eigenvectors W_k
+   are the principal components, the pattern is ``y = W_k^T (p - mu)`` (§3, PCA).
+2. Online (§4): the moving mean ``ybar_t`` of y over ``window`` samples is compared with the
+   region learned in training. We use the Mahalanobis norm of the moving mean,
+
+   ``T_t = sum_i ybar_{t,i}^2 / s_i^2``,  ``s_i^2 = lambda_i (g(rho_i, L) / L + g(rho_i, N) / N)``
+
+   where ``g(rho, L) = 1 + 2 sum_{l=1}^{L-1} (1 - l/L) rho^l`` is the variance inflation of
+   the mean of L samples of an AR(1) sequence with lag-one autocorrelation ``rho_i``
+   (estimated per component in training; 1 for white noise) and the ``1/N`` term is the
+   error of the training mean ``mu`` itself. The moving mean of a linear function of the
+   noise is Gaussian (exactly for Gaussian noise, by the central limit theorem otherwise),
+   so ``T ~ chi2(k)`` when there is no fault, and the threshold is ``chi2_{1-alpha}(k)``.
+   An empirical quantile of the training moving-mean statistic was rejected: a 2 s window
+   at 100 Hz holds only N / L (about 10) independent windows, far too few to estimate a 1 %
+   quantile.
+
+Beyond the paper:
+
+- ``residual_test`` (default on): PCA keeps the directions of largest training variance,
+  which, for white sensor noise, are arbitrary; a fault whose parity direction is nearly
+  orthogonal to them would go unseen. The discarded components are tested as well (the
+  Q statistic of PCA monitoring, whitened, ``chi2(n-3-k)``); each test runs at alpha/2
+  (Bonferroni) and the reported statistic is the larger of ``T / c_T`` and ``Q / c_Q``
+  (threshold 1).
+- ``leak`` (default ``regress``): scale-factor and misalignment errors make the parity
+  vector depend on the motion, ``p = V (S H) x + ...``. When the training window contains
+  motion, the leak matrix K ((n-3), 3) of ``p = mu + K xhat`` (xhat the least-squares
+  body-frame estimate) is fitted on the excited directions of xhat only (directions whose
+  variance exceeds ``100 x`` the noise variance of xhat), and subtracted online.
+- Isolation by fault direction: a fault f on sensor j moves the parity vector by ``f v_j``
+  (v_j = column j of V). The mean parity deviation ``dp_t`` (moving mean of p minus mu) is
+  compared to every v_j; the isolated sensor has the smallest angle
+  ``theta_j = arccos(|v_j . dp| / (|v_j| |dp|))`` (``scores`` holds theta_j in radians),
+  and the amplitude is the least-squares ``f = v_j . dp / |v_j|^2`` (SI). Sensors whose
+  directions are zero or parallel to another's are not isolable (NOT_ISOLABLE).
+- ``space=raw``: the same moving-mean PCA test on the raw measurements instead of the
+  parity vectors (a "traditional" PCA monitor). Motion is not cancelled, so it alarms as
+  soon as the motion departs from the training window: use it to see why the parity space
+  matters. No isolation in that mode (NOT_ISOLABLE).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy.stats import chi2
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors.base import (
+    ALPHA,
+    NO_ISOLATION,
+    NOT_ISOLABLE,
+    DetectionBlock,
+    Param,
+    calibration_stats,
+)
+from imufdi_cli.detectors.parity import isolable_sensors, parity_matrix
+from imufdi_cli.errors import CalibrationError, DetectorConfigError
+from imufdi_cli.log import ImuBlock
+
+#: Excitation test of the leak regression: a direction of xhat counts as excited when its
+#: training variance exceeds this multiple of the noise variance of xhat.
+EXCITATION_RATIO = 100.0
+
+
+class MovingWindow:
+    """Streaming moving sums over the last ``length`` rows, across consecutive blocks.
+
+    ``push(values)`` returns, for every new row, the sum of the rows of the window ending at
+    it and the number of rows in that window (fewer than ``length`` at the start of the log).
+    """
+
+    def __init__(self, length: int, width: int) -> None:
+        if length < 1:
+            raise ValueError("window length must be >= 1")
+        self.length = length
+        self.tail = np.zeros((0, width))
+        self.seen = 0
+
+    def push(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Moving sums (N, width) and window counts (N,) for a block of rows (N, width)."""
+        values = np.asarray(values, dtype=np.float64)
+        n_new = values.shape[0]
+        joined = np.concatenate([self.tail, values], axis=0)
+        cumulative = np.concatenate([np.zeros((1, joined.shape[1])), np.cumsum(joined, axis=0)])
+        end = np.arange(self.tail.shape[0], joined.shape[0]) + 1  # exclusive end in joined
+        start = np.maximum(end - self.length, 0)
+        sums = cumulative[end] - cumulative[start]
+        counts = np.minimum(self.seen + np.arange(1, n_new + 1), self.length)
+        self.seen += n_new
+        keep = self.length - 1
+        self.tail = joined[joined.shape[0] - keep :] if keep > 0 else joined[:0]
+        return sums, counts
+
+
+def mean_variance_inflation(rho: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """``g(rho, L) = 1 + 2 sum_{l=1}^{L-1} (1 - l/L) rho^l``: Var(mean of L) = g sigma^2 / L.
+
+    Closed form of the AR(1) sum, for every pair of ``rho`` (k,) and ``lengths`` (M,).
+
+    Returns
+    -------
+    g : ndarray, shape (M, k)
+    """
+    rho = np.asarray(rho, dtype=np.float64)[None, :]
+    length = np.asarray(lengths, dtype=np.float64)[:, None]
+    one_minus = 1.0 - rho
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # sum_{l=1}^{L-1} (1 - l/L) rho^l = rho/(1-rho) - rho (1 - rho^L) / (L (1-rho)^2)
+        tail = rho / one_minus - rho * (1.0 - rho**length) / (length * one_minus**2)
+    g = 1.0 + 2.0 * tail
+    return np.where(np.abs(one_minus) < 1e-12, length, g)
+
+
+def _lag_one_autocorrelation(y: np.ndarray) -> np.ndarray:
+    """Per-column lag-one autocorrelation of centred rows (N, k), clipped to [-0.9, 0.99]."""
+    energy = np.einsum("ij,ij->j", y, y)
+    lagged = np.einsum("ij,ij->j", y[1:], y[:-1])
+    rho = np.where(energy > 0, lagged / np.where(energy > 0, energy, 1.0), 0.0)
+    return np.clip(rho, -0.9, 0.99)
+
+
+class _TypeModel:
+    """Everything learned in training for one sensor type."""
+
+    def __init__(
+        self,
+        projection: np.ndarray,
+        estimator: np.ndarray,
+        leak: np.ndarray,
+        mean: np.ndarray,
+        eigenvalues: np.ndarray,
+        eigenvectors: np.ndarray,
+        rho: np.ndarray,
+        n_train: int,
+        window: int,
+        n_components: int,
+        isolable: np.ndarray,
+    ) -> None:
+        self.projection = projection  # (q, n): V (parity) or I (raw)
+        self.estimator = estimator  # (3, n): H^+ (least-squares body-frame estimate)
+        self.leak = leak  # (q, 3): K
+        self.mean = mean  # (q,)
+        self.eigenvalues = eigenvalues  # (q,), descending
+        self.eigenvectors = eigenvectors  # (q, q), columns
+        self.rho = rho  # (q,)
+        self.n_components = n_components
+        self.isolable = isolable  # (n,) bool
+        lengths = np.arange(1, window + 1)
+        # Variance of the moving-mean deviation of each component, per window fill (L, q).
+        self.mean_variance = eigenvalues[None, :] * (
+            mean_variance_inflation(rho, lengths) / lengths[:, None]
+            + mean_variance_inflation(rho, np.array([n_train]))[0][None, :] / n_train
+        )
+        self.window = MovingWindow(window, projection.shape[0])
+        norms = np.linalg.norm(projection, axis=0)
+        self.direction_norms = norms  # |v_j|, (n,)
+
+    def transform(self, measurements: np.ndarray) -> np.ndarray:
+        """Leak-compensated deviations ``p - K xhat - mu``, shape (N, q)."""
+        parity = measurements @ self.projection.T
+        if np.any(self.leak):
+            parity = parity - (measurements @ self.estimator.T) @ self.leak.T
+        return parity - self.mean
+
+
+class PcaParityDetector:
+    """PCA of parity vectors with a moving-mean test (Hao & Wang); see the module docstring.
+
+    Parameters
+    ----------
+    alpha : float
+        False-alarm level per sample.
+    components : int
+        Number of principal components kept (capped at n - 3, or n with ``space=raw``).
+    window : float
+        Moving-mean window, seconds.
+    space : {"parity", "raw"}
+        Test the parity vectors (default) or the raw measurements (demonstration).
+    residual_test : bool
+        Also test the discarded components (Q statistic).
+    leak : {"regress", "none"}
+        Fit and remove the motion leaking into the parity space through scale-factor and
+        misalignment errors (needs motion in the training window to have any effect).
+    sensors : str
+        Comma-separated sensor types to test (those present with enough sensors are used).
+    """
+
+    name: ClassVar[str] = "pca-parity"
+    PARAMS: ClassVar[dict[str, Param]] = {
+        "alpha": ALPHA,
+        "components": Param("int", 2, "number of principal components kept", low=1, high=64),
+        "window": Param(
+            "time", 0.2, "moving-mean window (e.g. 0.2s)", low=0.0, high=60.0, low_open=True
+        ),
+        "space": Param(
+            "choice", "parity", "test parity vectors or raw measurements", choices=("parity", "raw")
+        ),
+        "residual_test": Param("bool", True, "also test the discarded components (Q statistic)"),
+        "leak": Param(
+            "choice",
+            "regress",
+            "remove motion leaking into the parity space (scale/misalignment errors)",
+            choices=("regress", "none"),
+        ),
+        "sensors": Param("str", "gyro,accel", "sensor types to test, comma-separated"),
+    }
+
+    def __init__(
+        self,
+        alpha: float = 0.01,
+        components: int = 2,
+        window: float = 0.2,
+        space: str = "parity",
+        residual_test: bool = True,
+        leak: str = "regress",
+        sensors: str = "gyro,accel",
+    ) -> None:
+        self.alpha = float(alpha)
+        self.components = int(components)
+        self.window_s = float(window)
+        self.space = space
+        self.residual_test = bool(residual_test)
+        self.leak = leak
+        types = tuple(s.strip() for s in sensors.split(",") if s.strip())
+        for s in types:
+            if s not in ("gyro", "accel", "mag"):
+                raise DetectorConfigError(
+                    f"{self.name}.sensors: unknown sensor type {s!r}; valid: gyro, accel, mag"
+                )
+        if not types:
+            raise DetectorConfigError(f"{self.name}.sensors: give at least one of gyro, accel, mag")
+        self.sensor_types = types
+        self.array: ArrayConfig | None = None
+        self.models: dict[str, _TypeModel] = {}
+        self.window_samples = 0
+
+    # --- training ----------------------------------------------------------------------
+
+    def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
+        """Learn mean, principal components, autocorrelation and leak per sensor type.
+
+        Raises
+        ------
+        CalibrationError
+            Window too short, no testable sensor type, or degenerate (zero-variance) data.
+        """
+        self.array = array
+        self.window_samples = max(1, round(self.window_s * array.rate_hz))
+        self.models = {}
+        minimum = 3 if self.space == "parity" else 0
+        for sensor_type in self.sensor_types:
+            triads = calibration.get(sensor_type)
+            if triads is None or array.n_sensors(sensor_type) <= minimum:
+                continue
+            measurements = array.select(triads, sensor_type)
+            self.models[sensor_type] = self._fit_type(
+                measurements, array.measurement_matrix(sensor_type), sensor_type
+            )
+        if not self.models:
+            need = "at least 4 sensors of a type" if self.space == "parity" else "sensors"
+            raise CalibrationError(
+                f"{self.name}: nothing to test: the calibration block has no "
+                f"{'/'.join(self.sensor_types)} data with {need}"
+            )
+
+    def _fit_type(self, measurements: np.ndarray, H: np.ndarray, sensor_type: str) -> _TypeModel:
+        n_train = measurements.shape[0]
+        minimum = max(10, 2 * self.window_samples)
+        calibration_stats(measurements, min_samples=minimum)
+        n = H.shape[0]
+        estimator = np.linalg.pinv(H)  # (3, n)
+        if self.space == "parity":
+            projection = parity_matrix(H)  # (n-3, n), Potter's V
+            isolable = isolable_sensors(projection)
+        else:
+            projection = np.eye(n)
+            isolable = np.zeros(n, dtype=bool)
+        parity = measurements @ projection.T  # (N, q)
+        q = projection.shape[0]
+        leak = np.zeros((q, 3))
+        if self.space == "parity" and self.leak == "regress":
+            leak = self._fit_leak(parity, measurements @ estimator.T, estimator)
+        compensated = parity - (measurements @ estimator.T) @ leak.T
+        mean = compensated.mean(axis=0)
+        centred = compensated - mean
+        covariance = centred.T @ centred / (n_train - 1)
+        eigenvalues, eigenvectors = np.linalg.eigh(covariance)
+        order = np.argsort(eigenvalues)[::-1]
+        eigenvalues, eigenvectors = eigenvalues[order], eigenvectors[:, order]
+        if not np.all(np.isfinite(eigenvalues)) or eigenvalues[-1] <= 1e-30 * max(
+            float(eigenvalues[0]), 1e-300
+        ):
+            raise CalibrationError(
+                f"{self.name}: {sensor_type} training data is degenerate (a zero-variance"
+                " direction); check the calibration window"
+            )
+        rho = _lag_one_autocorrelation(centred @ eigenvectors)
+        return _TypeModel(
+            projection=projection,
+            estimator=estimator,
+            leak=leak,
+            mean=mean,
+            eigenvalues=eigenvalues,
+            eigenvectors=eigenvectors,
+            rho=rho,
+            n_train=n_train,
+            window=self.window_samples,
+            n_components=min(self.components, q),
+            isolable=isolable,
+        )
+
+    @staticmethod
+    def _fit_leak(parity: np.ndarray, estimate: np.ndarray, estimator: np.ndarray) -> np.ndarray:
+        """Least-squares leak matrix K ((q, 3)) of ``p = mu + K xhat`` on excited directions."""
+        q = parity.shape[1]
+        if q == 0:
+            return np.zeros((0, 3))
+        parity_c = parity - parity.mean(axis=0)
+        estimate_c = estimate - estimate.mean(axis=0)
+        # Noise scale: with V V^T = I the parity covariance trace is sum of noise variances
+        # (for equal sigmas q sigma^2); xhat noise covariance = sigma^2 (H^T H)^-1.
+        noise_variance = float(np.trace(parity_c.T @ parity_c)) / (parity.shape[0] - 1) / q
+        xhat_noise = noise_variance * (estimator @ estimator.T)  # (3, 3)
+        covariance = estimate_c.T @ estimate_c / (estimate.shape[0] - 1)
+        eigenvalues, directions = np.linalg.eigh(covariance)
+        noise_along = np.einsum("ij,ik,kj->j", directions, xhat_noise, directions)
+        excited = eigenvalues > EXCITATION_RATIO * noise_along
+        if not np.any(excited):
+            return np.zeros((q, 3))
+        basis = directions[:, excited]  # (3, e)
+        scores = estimate_c @ basis  # (N, e)
+        coefficients, *_ = np.linalg.lstsq(scores, parity_c, rcond=None)  # (e, q)
+        return (basis @ coefficients).T  # (q, 3)
+
+    # --- online --------------------------------------------------------------------------
+
+    def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
+        """Test one block; one row per input sample (causal)."""
+        if self.array is None:
+            raise CalibrationError(f"{self.name}: process() called before fit()")
+        out: dict[str, DetectionBlock] = {}
+        for sensor_type, model in self.models.items():
+            triads = block.get(sensor_type)
+            n_sensors = model.projection.shape[1]
+            if triads is None:
+                out[sensor_type] = DetectionBlock.empty(len(block), n_sensors)
+                continue
+            measurements = self.array.select(triads, sensor_type)
+            out[sensor_type] = self._process_type(model, measurements)
+        return out
+
+    def _process_type(self, model: _TypeModel, measurements: np.ndarray) -> DetectionBlock:
+        n_samples = measurements.shape[0]
+        n_sensors = model.projection.shape[1]
+        deviation = model.transform(measurements)  # (N, q)
+        sums, counts = model.window.push(deviation)
+        mean_deviation = sums / counts[:, None]  # dp_t, (N, q)
+        components = mean_deviation @ model.eigenvectors  # (N, q)
+        variance = model.mean_variance[counts - 1]  # (N, q)
+        normalised = components**2 / variance
+        k = model.n_components
+        q = model.projection.shape[0]
+        tests_residual = self.residual_test and q > k
+        level = self.alpha / 2.0 if tests_residual else self.alpha
+        statistic = normalised[:, :k].sum(axis=1) / chi2.ppf(1.0 - level, k)
+        if tests_residual:
+            residual = normalised[:, k:].sum(axis=1) / chi2.ppf(1.0 - level, q - k)
+            statistic = np.maximum(statistic, residual)
+        alarm = statistic > 1.0
+        scores = np.full((n_samples, n_sensors), np.nan)
+        isolated = np.full(n_samples, NO_ISOLATION, dtype=np.int32)
+        amplitude = np.full(n_samples, np.nan)
+        if self.space == "parity" and q >= 2:
+            valid = model.direction_norms > 0
+            projections = mean_deviation @ model.projection  # (N, n): v_j . dp
+            lengths = np.linalg.norm(mean_deviation, axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cosines = np.abs(projections) / (
+                    lengths[:, None] * np.where(valid, model.direction_norms, np.nan)[None, :]
+                )
+            scores = np.arccos(np.clip(cosines, 0.0, 1.0))
+            best = np.argmin(np.where(np.isnan(scores), np.inf, scores), axis=1)
+            rows = np.flatnonzero(alarm)
+            chosen = best[rows]
+            isolable = model.isolable[chosen] & np.isfinite(scores[rows, chosen])
+            isolated[rows] = np.where(isolable, chosen, NOT_ISOLABLE)
+            norms2 = model.direction_norms[chosen] ** 2
+            amplitude[rows] = np.where(isolable, projections[rows, chosen] / norms2, np.nan)
+        else:
+            isolated[alarm] = NOT_ISOLABLE
+        return DetectionBlock(
+            statistic=statistic,
+            threshold=np.ones(n_samples),
+            alarm=alarm,
+            isolated=isolated,
+            amplitude=amplitude,
+            scores=scores,
+        )
+
+    def flush(self) -> dict[str, DetectionBlock]:
+        """Causal detector: nothing is held back."""
+        return {
+            s: DetectionBlock.empty(0, model.projection.shape[1])
+            for s, model in self.models.items()
+        }
+
+    def metadata(self) -> dict[str, Any]:
+        """Parameters and training results (JSON-ready)."""
+        types: dict[str, Any] = {}
+        for sensor_type, model in self.models.items():
+            k = model.n_components
+            q = model.projection.shape[0]
+            total = float(model.eigenvalues.sum())
+            types[sensor_type] = {
+                "n_sensors": int(model.projection.shape[1]),
+                "dimension": int(q),
+                "components": int(k),
+                "eigenvalues": model.eigenvalues.tolist(),
+                "explained_variance": float(model.eigenvalues[:k].sum() / total) if total else None,
+                "lag1_autocorrelation": model.rho.tolist(),
+                "training_mean": model.mean.tolist(),
+                "leak_matrix": model.leak.tolist(),
+                "isolable": model.isolable.tolist(),
+                "residual_test": bool(self.residual_test and q > k),
+            }
+        return {
+            "detector": self.name,
+            "params": {
+                "alpha": self.alpha,
+                "components": self.components,
+                "window_s": self.window_s,
+                "window_samples": self.window_samples,
+                "space": self.space,
+                "residual_test": self.residual_test,
+                "leak": self.leak,
+                "sensors": ",".join(self.sensor_types),
+            },
+            "statistic": "max(T/chi2_{1-a}(k), Q/chi2_{1-a}(q-k)), a = alpha/2; threshold 1",
+            "scores": "angle between each sensor's parity direction and the mean parity"
+            " deviation, rad (smallest = isolated)",
+            "types": types,
+        }
