@@ -1,0 +1,633 @@
+"""The ``imufdi`` command line: thin click commands over the library.
+
+Each command parses its options, calls one library function and renders the result with
+rich. Data go to ``-o`` (``-`` = stdout); human-readable summaries go to stderr when data go
+to stdout, so commands compose in pipelines::
+
+    imufdi ingest cap.bin -o - | imufdi inject - --fault ... -o - | imufdi detect - -d glt -o - | imufdi report -
+
+Exit codes: 0 ok, 1 a CI gate failed, 2 usage error, 3 bad input data, 4 internal error.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import click
+from rich.console import Console
+from rich.table import Table
+
+from imufdi_cli import __version__
+from imufdi_cli.detectors import DETECTORS
+from imufdi_cli.errors import (
+    EXIT_BAD_INPUT,
+    EXIT_GATE_FAILED,
+    EXIT_USAGE,
+    ImufdiError,
+    UnitError,
+)
+
+EXIT_INTERNAL = 4
+
+
+def _console(to_stdout: bool) -> Console:
+    """Console for summaries: stderr when stdout carries data."""
+    return Console(stderr=not to_stdout, highlight=False, soft_wrap=True)
+
+
+def _err(message: str) -> None:
+    Console(stderr=True, highlight=False, soft_wrap=True).print(
+        f"[bold red]imufdi: error:[/] {message}", markup=True
+    ) if sys.stderr.isatty() else sys.stderr.write(f"imufdi: error: {message}\n")
+
+
+def _warn(console: Console, warnings: Sequence[str]) -> None:
+    for warning in warnings:
+        console.print(f"[yellow]warning:[/] {warning}", markup=True)
+
+
+def _time_range(text: str | None, name: str) -> tuple[float, float | None] | None:
+    from imufdi_cli.units import parse_time_range
+
+    if text is None:
+        return None
+    return parse_time_range(text, name=name)
+
+
+class _Group(click.Group):
+    def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        formatter.write_paragraph()
+        formatter.write_text(
+            "Exit codes: 0 ok, 1 CI gate failed, 2 usage error, 3 bad input data, 4 internal error."
+        )
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="imufdi")
+def cli() -> None:
+    """Fault detection and isolation for redundant MEMS IMU arrays, on MCAP logs.
+
+    Example:
+
+        imufdi simulate --preset paper-table4 --seed 1 -o run.mcap
+        imufdi inject run.mcap --fault step:imu0.gyro.x,at=2.5s,amp=0.9deg/s -o faulty.mcap
+        imufdi detect faulty.mcap -d glt -o detected.mcap
+        imufdi report detected.mcap --fail-if 'glt.gyro.far > 0.08'
+    """
+
+
+# --- simulate --------------------------------------------------------------------------
+
+
+@cli.command()
+@click.option("--preset", "preset_name", help="Reference scenario (see docs/simulate.md).")
+@click.option("--imus", type=int, help="Number of IMUs (free simulation or preset override).")
+@click.option("--rate", help="Sample rate, e.g. 100Hz, 1kHz.")
+@click.option("--duration", help="Log length, e.g. 5s, 1h.")
+@click.option("--motion", help="static, turntable, swing, vehicle, attitude.")
+@click.option("--gyro-noise", help="Gyro white noise sigma, e.g. 0.15deg/s.")
+@click.option("--accel-noise", help="Accel white noise sigma, e.g. 0.02m/s^2.")
+@click.option("--outliers/--no-outliers", default=None, help="Gyro outliers on or off.")
+@click.option("--chip-bias", help="Constant chip-to-chip gyro bias sigma, e.g. 0.5deg/s.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("-o", "--output", required=True, help="Output MCAP, or - for stdout.")
+@click.option("--capture", "capture", help="Also write a raw serial capture (mpu6500-array).")
+@click.option(
+    "--corrupt/--no-corrupt",
+    default=False,
+    help="With --capture: add a few corrupted stretches (garbage, bad CRC, cut and lost frames).",
+)
+def simulate(
+    preset_name: str | None,
+    imus: int | None,
+    rate: str | None,
+    duration: str | None,
+    motion: str | None,
+    gyro_noise: str | None,
+    accel_noise: str | None,
+    outliers: bool | None,
+    chip_bias: str | None,
+    seed: int,
+    output: str,
+    capture: str | None,
+    corrupt: bool,
+) -> None:
+    """Simulate an IMU array log from a reference scenario or free options.
+
+    Bit-reproducible for a given --seed.
+
+    Example:
+
+        imufdi simulate --preset paper-table4 --seed 3 -o table4.mcap
+        imufdi simulate --imus 16 --rate 1kHz --duration 1h --motion turntable -o long.mcap
+    """
+    from imufdi_cli.pipeline import simulate_file
+
+    options: dict[str, Any] = {
+        k: v
+        for k, v in dict(
+            imus=imus,
+            rate=rate,
+            duration=duration,
+            motion=motion,
+            gyro_noise=gyro_noise,
+            accel_noise=accel_noise,
+            outliers=outliers,
+            chip_biases=chip_bias,
+        ).items()
+        if v is not None
+    }
+    result = simulate_file(
+        preset_name, output, seed=seed, options=options, capture=capture, corrupt=corrupt
+    )
+    console = _console(output != "-")
+    console.print(
+        f"simulated {result.samples} samples of {result.n_imus} IMUs "
+        f"({result.duration_s:g} s at {result.rate_hz:g} Hz) -> {output}"
+    )
+    if capture:
+        console.print(f"raw capture -> {capture} ({result.capture_bytes} bytes)")
+
+
+# --- ingest ----------------------------------------------------------------------------
+
+
+@cli.command()
+@click.argument("capture")
+@click.option("-o", "--output", help="Output MCAP (default: CAPTURE with .mcap), - for stdout.")
+@click.option(
+    "--layout",
+    default="mpu6500-array",
+    show_default=True,
+    help="mpu6500-array, csv, or a TOML layout file.",
+)
+@click.option("--array", "array_path", help="ArrayConfig TOML (rotations, positions, axes).")
+@click.option("--rate", help="Nominal sample rate when frames carry no timestamp, e.g. 100Hz.")
+@click.option("--gyro-fs", help="Built-in layout gyro full scale: 250, 500, 1000, 2000 (deg/s).")
+@click.option("--accel-fs", help="Built-in layout accel full scale: 2, 4, 8, 16 (g).")
+@click.option("--strict", is_flag=True, help="Any dropped byte is an error (exit 3).")
+def ingest(
+    capture: str,
+    output: str | None,
+    layout: str,
+    array_path: str | None,
+    rate: str | None,
+    gyro_fs: str | None,
+    accel_fs: str | None,
+    strict: bool,
+) -> None:
+    """Convert a raw serial capture (or CSV) into an IMU array MCAP.
+
+    Resynchronises after garbage, drops frames with bad checksums, unwraps counters and
+    timestamps, counts every dropped byte, frame and gap.
+
+    Example:
+
+        imufdi ingest board.bin --layout my_board.toml --array array.toml -o board.mcap
+        cat capture.bin | imufdi ingest - -o - | imufdi info -
+    """
+    from imufdi_cli.fileio import check_input, check_output
+    from imufdi_cli.pipeline import ingest_file
+
+    check_input(capture)
+    if output is None:
+        output = "-" if capture == "-" else os.path.splitext(capture)[0] + ".mcap"
+    check_output(capture, output)
+    stats = ingest_file(
+        capture,
+        output,
+        layout=layout,
+        array_path=array_path,
+        rate=rate,
+        gyro_fs=gyro_fs,
+        accel_fs=accel_fs,
+        strict=strict,
+    )
+    console = _console(output != "-")
+    table = Table(title=f"ingest {capture} -> {output}", show_header=True)
+    table.add_column("count")
+    table.add_column("value", justify="right")
+    for key, value in stats.as_rows():
+        table.add_row(key, str(value))
+    console.print(table)
+
+
+# --- info ------------------------------------------------------------------------------
+
+
+@cli.command()
+@click.argument("log")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of tables.")
+@click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
+def info(log: str, as_json: bool, topics: tuple[str, ...]) -> None:
+    """Describe a log: topics, IMUs, rate, duration, gaps, array, faults, detectors.
+
+    Example:
+
+        imufdi info run.mcap
+        imufdi info run.mcap --json | jq .imu_count
+    """
+    from imufdi_cli.fileio import check_input
+    from imufdi_cli.pipeline import log_info
+
+    check_input(log)
+    summary = log_info(log, topics=list(topics) or None)
+    if as_json:
+        click.echo(json.dumps(summary, indent=2))
+        return
+    console = _console(True)
+    _render_info(console, summary)
+
+
+def _render_info(console: Console, s: dict[str, Any]) -> None:
+    console.print(f"[bold]{s['source']}[/]", markup=True)
+    head = Table(show_header=False, box=None)
+    head.add_column(style="bold")
+    head.add_column()
+    for key in ("imu_count", "samples", "rate_hz", "duration_s", "start_time_ns"):
+        if key in s:
+            value = s[key]
+            head.add_row(key, f"{value:.6g}" if isinstance(value, float) else str(value))
+    for key, value in s.get("alignment", {}).items():
+        head.add_row(f"alignment.{key}", str(value))
+    console.print(head)
+    topics = Table(title="topics")
+    for col in ("topic", "schema", "encoding", "messages"):
+        topics.add_column(col)
+    for t in s.get("topics", []):
+        topics.add_row(t["topic"], t["schema"], t["encoding"], str(t["messages"]))
+    console.print(topics)
+    if s.get("array"):
+        arr = s["array"]
+        console.print(
+            f"array: {len(arr['imu'])} IMUs at {arr['rate_hz']:g} Hz, sensors: "
+            + ", ".join(s.get("sensor_types", []))
+        )
+    for fault in s.get("faults", []):
+        console.print(f"fault: {fault.get('spec', fault)}")
+    for name, det in s.get("detectors", {}).items():
+        console.print(f"detector: {name} {json.dumps(det.get('params', {}))}")
+    _warn(console, s.get("warnings", []))
+
+
+# --- inject ----------------------------------------------------------------------------
+
+
+@cli.command()
+@click.argument("source", metavar="IN")
+@click.option("-o", "--output", help="Output MCAP (default: IN-faults.mcap), - for stdout.")
+@click.option(
+    "--fault",
+    "faults",
+    multiple=True,
+    help="Fault spec, e.g. step:imu0.gyro.x,at=2.5s,amp=0.9deg/s.",
+)
+@click.option("--faults", "fault_files", multiple=True, help="TOML file of [[fault]] tables.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed for random faults.")
+def inject(
+    source: str,
+    output: str | None,
+    faults: tuple[str, ...],
+    fault_files: tuple[str, ...],
+    seed: int,
+) -> None:
+    """Inject faults into a log and record their ground truth.
+
+    Models: step, drift, noise, stuck, scale, spikes; on one axis (imu3.gyro.z) or a
+    triad (imu3.gyro). Times are seconds from the start of the log.
+
+    Example:
+
+        imufdi inject run.mcap --fault step:imu0.gyro.x,at=2.5s,amp=0.9deg/s -o faulty.mcap
+        imufdi inject run.mcap --fault drift:imu1.accel.z,at=3s,until=8s,rate=0.01g/s -o -
+    """
+    from imufdi_cli.errors import FaultSpecError
+    from imufdi_cli.faults import inject_file
+    from imufdi_cli.fileio import check_input, check_output, default_output
+
+    check_input(source)
+    if not faults and not fault_files:
+        raise FaultSpecError("no fault given; use --fault SPEC or --faults FILE.toml")
+    output = output or default_output(source, "faults")
+    check_output(source, output)
+    result = inject_file(source, output, list(faults), list(fault_files), seed=seed)
+    console = _console(output != "-")
+    for fault in result.faults:
+        console.print(f"injected {fault.spec}")
+    console.print(f"-> {output}")
+
+
+# --- detect ----------------------------------------------------------------------------
+
+
+@cli.command()
+@click.argument("source", metavar="IN")
+@click.option("-o", "--output", help="Annotated MCAP (default: IN-detect.mcap), - for stdout.")
+@click.option(
+    "-d",
+    "--detector",
+    "detectors",
+    multiple=True,
+    required=True,
+    type=click.Choice(sorted(DETECTORS)),
+    help="Detector to run (repeatable).",
+)
+@click.option("--param", "params", multiple=True, help="DETECTOR.KEY=VALUE, e.g. glt.alpha=0.001.")
+@click.option(
+    "--calibrate",
+    default="0s:2s",
+    show_default=True,
+    help="Fault-free calibration window START:END, seconds from the log start.",
+)
+@click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
+@click.option("--strict", is_flag=True, help="A truncated input is an error instead of a warning.")
+def detect(
+    source: str,
+    output: str | None,
+    detectors: tuple[str, ...],
+    params: tuple[str, ...],
+    calibrate: str,
+    topics: tuple[str, ...],
+    strict: bool,
+) -> None:
+    """Run detectors and write an annotated MCAP (status channels, alarm events).
+
+    Example:
+
+        imufdi detect faulty.mcap -d glt -d woa-mvmd-glt --param glt.alpha=0.001 -o out.mcap
+        imufdi detect - -d glt -o - < faulty.mcap | imufdi report -
+    """
+    from imufdi_cli.detect import detect_file, parse_detector_params
+    from imufdi_cli.fileio import check_input, check_output, default_output
+
+    check_input(source)
+    grouped = parse_detector_params(detectors, params)
+    window = _time_range(calibrate, "--calibrate")
+    assert window is not None
+    output = output or default_output(source, "detect")
+    check_output(source, output)
+    result = detect_file(
+        source, output, grouped, calibrate=window, topics=list(topics) or None, strict=strict
+    )
+    console = _console(output != "-")
+    table = Table(title=f"detect: {result.samples} samples, {result.duration_s:.3g} s -> {output}")
+    for col in ("detector", "sensor", "alarm %", "events", "isolated (alarm samples)"):
+        table.add_column(col)
+    for name, per_type in result.summaries.items():
+        for sensor_type, s in per_type.items():
+            top = sorted(s.isolated.items(), key=lambda kv: -kv[1])[:3]
+            table.add_row(
+                name,
+                sensor_type,
+                f"{100.0 * s.alarms / max(s.samples, 1):.2f}",
+                str(s.events),
+                ", ".join(f"{k} ({v})" for k, v in top) or "-",
+            )
+    console.print(table)
+    _warn(console, result.warnings)
+
+
+# --- report ----------------------------------------------------------------------------
+
+
+@cli.command()
+@click.argument("log")
+@click.option("--json", "json_out", help="Write the JSON report here (- for stdout).")
+@click.option("--markdown", "md_out", help="Write a Markdown table here.")
+@click.option("--csv", "csv_out", help="Write a CSV table here.")
+@click.option("--junit", "junit_out", help="Write JUnit XML (one test case per gate).")
+@click.option("--plot", "plot_out", help="Write a PNG of statistics and isolation scores.")
+@click.option("--fail-if", "gates", multiple=True, help="Gate, e.g. 'glt.gyro.far > 0.01'.")
+@click.option(
+    "--persist",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Detection delay counts the first alarm lasting this many samples.",
+)
+def report(
+    log: str,
+    json_out: str | None,
+    md_out: str | None,
+    csv_out: str | None,
+    junit_out: str | None,
+    plot_out: str | None,
+    gates: tuple[str, ...],
+    persist: int,
+) -> None:
+    """Metrics per detector and sensor type: FAR, MAR, accuracy, FIR, delays.
+
+    --fail-if gates exit with code 1 when any fails (CI regression on recorded data).
+
+    Example:
+
+        imufdi report out.mcap --markdown table.md --fail-if 'glt.gyro.far > 0.08' --fail-if 'glt.gyro.mar > 0.35'
+    """
+    from imufdi_cli import report as rep
+    from imufdi_cli.fileio import check_input, write_text
+
+    check_input(log)
+    parsed = [rep.parse_gate(g, DETECTORS) for g in gates]  # bad gates fail before reading
+    result = rep.build_report(log, persist=persist)
+    gate_results = rep.evaluate_gates(result, parsed)
+    stdout_taken = "-" in (json_out, md_out, csv_out, junit_out)
+    console = _console(not stdout_taken)
+    table = Table(title=f"imufdi report: {result.source}")
+    table.add_column("detector")
+    table.add_column("sensor")
+    for _, header, _, _ in rep.TABLE_COLUMNS:
+        table.add_column(header, justify="right")
+    for row in rep.table_rows(result):
+        table.add_row(*row)
+    console.print(table)
+    for note in result.notes:
+        console.print(f"[yellow]note:[/] {note}", markup=True)
+    if json_out:
+        write_text(json_out, rep.to_json(result, gate_results))
+    if md_out:
+        write_text(md_out, rep.to_markdown(result, gate_results))
+    if csv_out:
+        write_text(csv_out, rep.to_csv(result))
+    if junit_out:
+        write_text(junit_out, rep.to_junit(result, gate_results))
+    if plot_out:
+        from imufdi_cli.fileio import atomic_path
+
+        with atomic_path(plot_out) as tmp:
+            rep.plot_report(result, tmp + ".png")
+            os.replace(tmp + ".png", tmp)
+    failed = [r for r in gate_results if r.failed]
+    for r in gate_results:
+        style = "red" if r.failed else "green"
+        console.print(f"[{style}]gate {r.message}[/]", markup=True)
+    if failed:
+        _err(
+            f"{len(failed)} of {len(gate_results)} gate(s) failed: "
+            + "; ".join(r.target for r in failed)
+        )
+        sys.exit(EXIT_GATE_FAILED)
+
+
+# --- tune ------------------------------------------------------------------------------
+
+
+@cli.command()
+@click.argument("log")
+@click.option(
+    "--segment", default="0s:2.5s", show_default=True, help="Fault-free segment START:END."
+)
+@click.option(
+    "--sensor",
+    "sensor_type",
+    default="gyro",
+    show_default=True,
+    type=click.Choice(["gyro", "accel"]),
+)
+@click.option("-o", "--output", default="-", show_default=True, help="Tuned parameters JSON.")
+@click.option(
+    "--param", "params", multiple=True, help="WOA setting KEY=VALUE (population, iterations, ...)."
+)
+@click.option("--seed", type=int, default=0, show_default=True)
+def tune(
+    log: str,
+    segment: str,
+    sensor_type: str,
+    output: str,
+    params: tuple[str, ...],
+    seed: int,
+) -> None:
+    """Choose MVMD (K, alpha) for woa-mvmd-glt with the whale optimisation algorithm.
+
+    Example:
+
+        imufdi tune run.mcap --segment 0s:2.5s -o params.json
+        imufdi detect run.mcap -d woa-mvmd-glt --param woa-mvmd-glt.params=params.json -o out.mcap
+    """
+    from imufdi_cli.fileio import check_input, write_text
+    from imufdi_cli.pipeline import tune_file
+
+    check_input(log)
+    window = _time_range(segment, "--segment")
+    assert window is not None
+    settings = {}
+    for item in params:
+        if "=" not in item:
+            raise UnitError(f"--param {item!r} is not KEY=VALUE")
+        key, value = item.split("=", 1)
+        settings[key.strip()] = value.strip()
+    result = tune_file(log, window, sensor_type=sensor_type, seed=seed, settings=settings)
+    console = _console(output != "-")
+    table = Table(title="WOA convergence (best CFV per iteration)")
+    table.add_column("iteration", justify="right")
+    table.add_column("best fitness", justify="right")
+    for i, value in enumerate(result.curve):
+        table.add_row(str(i + 1), f"{value:.6g}")
+    console.print(table)
+    console.print(f"K = {result.K}, alpha = {result.alpha:.6g}, fitness = {result.fitness:.6g}")
+    write_text(output, result.to_json())
+
+
+# --- campaign --------------------------------------------------------------------------
+
+
+@cli.command()
+@click.argument("spec")
+@click.option("-o", "--output", "results_dir", required=True, help="Results directory.")
+@click.option("--jobs", type=click.IntRange(min=1), help="Worker processes (default: all cores).")
+@click.option("--scheduler", help="dask scheduler: tcp://HOST:PORT or local:N.")
+@click.option(
+    "--resume", is_flag=True, help="Skip runs whose results are already in the directory."
+)
+@click.option(
+    "--fail-if", "gates", multiple=True, help="Gate on the summary, e.g. 'glt.gyro.far > 0.08'."
+)
+def campaign(
+    spec: str,
+    results_dir: str,
+    jobs: int | None,
+    scheduler: str | None,
+    resume: bool,
+    gates: tuple[str, ...],
+) -> None:
+    """Run a fault-injection campaign: inject + detect + report over a matrix, in parallel.
+
+    Example:
+
+        imufdi campaign docs/campaigns/compare.toml -o results/ --jobs 2
+        imufdi campaign spec.toml -o results/ --scheduler tcp://10.0.0.5:8786 --resume
+    """
+    from imufdi_cli.campaign import run_campaign_cli
+
+    code = run_campaign_cli(
+        spec,
+        results_dir,
+        jobs=jobs,
+        scheduler=scheduler,
+        resume=resume,
+        gates=list(gates),
+        console=_console(True),
+    )
+    if code:
+        sys.exit(code)
+
+
+# --- demo ------------------------------------------------------------------------------
+
+
+@cli.command()
+@click.option("--keep", "keep_dir", help="Keep the outputs in this directory.")
+def demo(keep_dir: str | None) -> None:
+    """Run the whole pipeline on the bundled sample log and print what it did.
+
+    Example:
+
+        imufdi demo
+        imufdi demo --keep demo_out/
+    """
+    from imufdi_cli.pipeline import run_demo
+
+    console = _console(True)
+    run_demo(keep_dir, console=console)
+
+
+# --- entry point -----------------------------------------------------------------------
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Console script: run the CLI, turning every error into one line and an exit code."""
+    try:
+        code = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)
+    except ImufdiError as err:
+        _err(str(err))
+        sys.exit(err.exit_code)
+    except click.exceptions.Abort:
+        _err("aborted")
+        sys.exit(130)
+    except click.ClickException as err:
+        _err(" ".join(err.format_message().split()))
+        sys.exit(EXIT_USAGE if err.exit_code == 2 else err.exit_code)
+    except KeyboardInterrupt:
+        _err("interrupted")
+        sys.exit(130)
+    except BrokenPipeError:
+        # the reader of our stdout went away (e.g. `| head`): not an error of ours
+        try:
+            sys.stdout = open(os.devnull, "w")
+        finally:
+            sys.exit(0)
+    except (MemoryError, OSError) as err:
+        _err(f"{type(err).__name__}: {err}")
+        sys.exit(EXIT_BAD_INPUT)
+    except Exception as err:  # a bug: one line, and the traceback only on request
+        if os.environ.get("IMUFDI_DEBUG"):
+            raise
+        _err(
+            f"internal error ({type(err).__name__}: {err}); "
+            "please report it with the output of IMUFDI_DEBUG=1"
+        )
+        sys.exit(EXIT_INTERNAL)
+    sys.exit(code if isinstance(code, int) else 0)

@@ -1,0 +1,365 @@
+"""``imufdi detect``: run detectors over a log and write the annotated MCAP (DESIGN.md §4).
+
+One streaming pass: every input message is copied to the output as raw bytes; the aligned
+IMU samples go through each detector; per-sample status messages (fixed-layout CDR, encoded
+in bulk) go to ``/imufdi/<detector>/<type>``, alarm start/end events to the JSON channel
+``/imufdi/events``, and each detector's parameters and calibration to the
+``imufdi.detect.<name>`` metadata record. Memory is bounded by the block size and the
+calibration window, not by the log length.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import deque
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from imufdi_cli import __version__
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors import DETECTORS, make_detector
+from imufdi_cli.detectors.base import DetectionBlock, Detector
+from imufdi_cli.errors import CalibrationError, DetectorConfigError
+from imufdi_cli.log import ImuBlock
+from imufdi_cli.mcapio import (
+    ImuArrayReader,
+    McapWriter,
+    MessageBatch,
+    encode_status,
+    register_status_channel,
+)
+
+NS_PER_S = 1_000_000_000
+EVENTS_TOPIC = "/imufdi/events"
+DEFAULT_CALIBRATION = (0.0, 2.0)
+
+
+def parse_detector_params(
+    detectors: Sequence[str], params: Iterable[str]
+) -> list[tuple[str, dict[str, str]]]:
+    """Group ``--param det.key=value`` strings by detector.
+
+    Raises DetectorConfigError for a malformed item or one naming a detector not selected.
+    """
+    if not detectors:
+        raise DetectorConfigError(
+            f"no detector selected; use -d NAME (valid: {', '.join(sorted(DETECTORS))})"
+        )
+    grouped: dict[str, dict[str, str]] = {}
+    for name in detectors:
+        if name not in DETECTORS:
+            raise DetectorConfigError(
+                f"unknown detector {name!r}; valid: {', '.join(sorted(DETECTORS))}"
+            )
+        if name in grouped:
+            raise DetectorConfigError(f"detector {name!r} selected twice")
+        grouped[name] = {}
+    for item in params:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise DetectorConfigError(
+                f"--param {item!r} is not of the form DETECTOR.KEY=VALUE (e.g. glt.alpha=0.001)"
+            )
+        key, value = item.split("=", 1)
+        detector, name = key.split(".", 1)
+        if detector not in grouped:
+            raise DetectorConfigError(
+                f"--param {item!r} names detector {detector!r}, which is not selected with -d"
+                f" (selected: {', '.join(grouped)})"
+            )
+        grouped[detector][name] = value
+    return list(grouped.items())
+
+
+@dataclass
+class TypeSummary:
+    """What one detector said about one sensor type over the whole log."""
+
+    samples: int = 0
+    alarms: int = 0
+    events: int = 0
+    isolated: dict[str, int] = field(default_factory=dict)  # sensor id -> alarm samples
+
+
+@dataclass
+class DetectResult:
+    """Summary of a detect run (the annotated log itself is the main output)."""
+
+    output: str
+    samples: int
+    duration_s: float
+    calibration_s: tuple[float, float]
+    calibration_samples: int
+    array: ArrayConfig
+    summaries: dict[str, dict[str, TypeSummary]]
+    alignment: Any
+    warnings: list[str]
+
+
+class _Track:
+    """Streaming bookkeeping for one detector: pending timestamps, alarm state, channels."""
+
+    def __init__(self, detector: Detector, array: ArrayConfig) -> None:
+        self.detector = detector
+        self.array = array
+        self.pending: deque[np.ndarray] = deque()
+        self.channels: dict[str, int] = {}
+        self.alarm_on: dict[str, bool] = {}
+        self.summary: dict[str, TypeSummary] = {}
+
+    def take_times(self, count: int) -> np.ndarray:
+        """Timestamps of the next ``count`` rows, in order."""
+        parts = []
+        while count > 0:
+            head = self.pending[0]
+            if head.size <= count:
+                parts.append(self.pending.popleft())
+                count -= head.size
+            else:
+                parts.append(head[:count])
+                self.pending[0] = head[count:]
+                count = 0
+        return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+
+def _events(
+    track: _Track, sensor_type: str, t_ns: np.ndarray, out: DetectionBlock
+) -> list[tuple[int, dict[str, Any]]]:
+    """Alarm start/end events of a block (state carried across blocks)."""
+    alarm = np.asarray(out.alarm, dtype=bool)
+    before = track.alarm_on.get(sensor_type, False)
+    previous = np.concatenate([[before], alarm[:-1]])
+    changes = np.flatnonzero(alarm != previous)
+    if alarm.size:
+        track.alarm_on[sensor_type] = bool(alarm[-1])
+    ids = track.array.sensor_ids(sensor_type)
+    events = []
+    for i in changes:
+        iso = int(out.isolated[i])
+        amp = float(out.amplitude[i])
+        events.append(
+            (
+                int(t_ns[i]),
+                {
+                    "detector": track.detector.name,
+                    "sensor_type": sensor_type,
+                    "event": "alarm_start" if alarm[i] else "alarm_end",
+                    "t_ns": int(t_ns[i]),
+                    "isolated": ids[iso] if iso >= 0 else None,
+                    "isolable": iso != -2,
+                    "amplitude": amp if np.isfinite(amp) else None,
+                    "statistic": float(out.statistic[i]),
+                },
+            )
+        )
+    return events
+
+
+def detect_file(
+    source: str | BinaryIO,
+    output: str | BinaryIO,
+    detectors: Sequence[tuple[str, Mapping[str, Any]]],
+    *,
+    calibrate: tuple[float, float | None] = DEFAULT_CALIBRATION,
+    topics: Sequence[str] | None = None,
+    strict: bool = False,
+    compression: str = "zstd",
+) -> DetectResult:
+    """Run detectors over a log and write the annotated MCAP.
+
+    Parameters
+    ----------
+    source, output : path, ``"-"`` or binary stream
+    detectors : sequence of (name, params)
+        Detector names from ``DETECTORS`` and their parameters (strings or values).
+    calibrate : (start_s, end_s or None)
+        Fault-free calibration window, seconds from the first aligned sample.
+    topics : sequence of str, optional
+        Imu topics to use, in array order (default: all, natural order).
+
+    Returns
+    -------
+    DetectResult
+    """
+    instances = [make_detector(name, dict(params)) for name, params in detectors]
+    cal_start_s, cal_end_s = calibrate
+    reader = ImuArrayReader(source, topics=topics, strict=strict)
+    array = reader.array
+    tracks = [_Track(det, array) for det in instances]
+    warnings: list[str] = []
+    n_samples = 0
+    t_first: int | None = None
+    t_last = 0
+    calibration: list[ImuBlock] = []
+    backlog: list[ImuBlock] = []
+    fitted = False
+    cal_samples = 0
+
+    with McapWriter(output, compression=compression) as writer:
+        copied: set[int] = set()
+        events_channel = writer.register_json_channel(EVENTS_TOPIC, "imufdi_msgs/FdiEvent")
+
+        rerun = {det.name for det in instances}
+        dropped: set[int] = set()  # input channels replaced by this run's output
+
+        def copy_batch(batch: MessageBatch) -> None:
+            new = {int(c) for c in np.unique(batch.channel_id)} - copied - dropped
+            for c in sorted(new):
+                topic = reader.source.channels[c].topic
+                parts = topic.split("/")
+                if topic == EVENTS_TOPIC or (
+                    len(parts) == 4 and parts[1] == "imufdi" and parts[2] in rerun
+                ):
+                    dropped.add(c)
+            new -= dropped
+            if new:
+                writer.copy_channels({c: reader.source.channels[c] for c in new})
+                copied.update(new)
+            if dropped:
+                keep = ~np.isin(batch.channel_id, list(dropped))
+                for i in np.flatnonzero(~keep):
+                    channel = reader.source.channels[int(batch.channel_id[i])]
+                    if channel.topic != EVENTS_TOPIC:
+                        continue
+                    try:
+                        event = json.loads(batch.payload(int(i)))
+                    except ValueError:
+                        continue
+                    if isinstance(event, dict) and event.get("detector") not in rerun:
+                        writer.add_json(events_channel, int(batch.log_time[i]), event)
+                batch = batch.select(keep)
+            if len(batch):
+                writer.add_batch(batch)
+
+        def emit(track: _Track, outputs: Mapping[str, DetectionBlock]) -> None:
+            rows = {len(v) for v in outputs.values()}
+            if not rows:
+                return
+            if len(rows) != 1:
+                raise DetectorConfigError(
+                    f"detector {track.detector.name} returned blocks of different lengths"
+                )
+            t_ns = track.take_times(rows.pop())
+            if t_ns.size == 0:
+                return
+            for sensor_type, out in outputs.items():
+                if sensor_type not in track.channels:
+                    track.channels[sensor_type] = register_status_channel(
+                        writer, track.detector.name, sensor_type, array.sensor_ids(sensor_type)
+                    )
+                    track.summary[sensor_type] = TypeSummary()
+                writer.add_batch(encode_status(track.channels[sensor_type], t_ns, out))
+                summary = track.summary[sensor_type]
+                summary.samples += len(out)
+                summary.alarms += int(np.count_nonzero(out.alarm))
+                ids = array.sensor_ids(sensor_type)
+                iso = out.isolated[out.alarm & (out.isolated >= 0)]
+                for index, count in zip(*np.unique(iso, return_counts=True)):
+                    sid = ids[int(index)]
+                    summary.isolated[sid] = summary.isolated.get(sid, 0) + int(count)
+                for log_time, event in _events(track, sensor_type, t_ns, out):
+                    if event["event"] == "alarm_start":
+                        summary.events += 1
+                    writer.add_json(events_channel, log_time, event)
+
+        def run(block: ImuBlock) -> None:
+            for track in tracks:
+                track.pending.append(block.t_ns)
+                emit(track, track.detector.process(block))
+
+        def fit() -> None:
+            nonlocal fitted, cal_samples
+            whole = ImuBlock.concatenate(calibration)
+            cal_samples = len(whole)
+            if cal_samples == 0:
+                raise CalibrationError(
+                    f"calibration window {cal_start_s:g}s:{'' if cal_end_s is None else f'{cal_end_s:g}s'}"
+                    " holds no samples; choose one inside the log with --calibrate START:END"
+                )
+            for track in tracks:
+                track.detector.fit(whole, array)
+            fitted = True
+            calibration.clear()
+            for pending in backlog:
+                run(pending)
+            backlog.clear()
+
+        for batch, block in reader.stream():
+            copy_batch(batch)
+            if len(block) == 0:
+                continue
+            if t_first is None:
+                t_first = int(block.t_ns[0])
+            n_samples += len(block)
+            t_last = int(block.t_ns[-1])
+            if fitted:
+                run(block)
+                continue
+            rel = (block.t_ns - t_first) / NS_PER_S
+            inside = rel >= cal_start_s
+            if cal_end_s is not None:
+                inside &= rel < cal_end_s
+            if inside.any():
+                calibration.append(block.mask(inside).copy())
+            backlog.append(block.copy())
+            if cal_end_s is not None and rel[-1] >= cal_end_s:
+                fit()
+        if not fitted:
+            if t_first is not None and cal_end_s is not None:
+                warnings.append(
+                    f"the log ({(t_last - t_first) / NS_PER_S:.3g} s) is shorter than the"
+                    f" calibration window end ({cal_end_s:g} s); calibrated on what there is"
+                )
+            fit()
+        for track in tracks:
+            emit(track, track.detector.flush())
+            if track.pending and sum(p.size for p in track.pending):
+                raise DetectorConfigError(
+                    f"detector {track.detector.name} left samples without output"
+                )
+        for track in tracks:
+            record = {
+                "detector": track.detector.name,
+                "version": __version__,
+                "calibration_s": [cal_start_s, cal_end_s],
+                "calibration_samples": cal_samples,
+                "detector_metadata": track.detector.metadata(),
+            }
+            writer.add_metadata(
+                f"imufdi.detect.{track.detector.name}",
+                {"json": json.dumps(record, default=_json_default)},
+            )
+        for name, data in reader.source.metadata.items():
+            if not name.startswith("imufdi.detect."):
+                writer.add_metadata(name, data)
+            elif name.removeprefix("imufdi.detect.") not in {t.detector.name for t in tracks}:
+                writer.add_metadata(name, data)
+        if "imufdi.array" not in reader.source.metadata:
+            writer.add_metadata("imufdi.array", {"json": array.to_json()})
+
+    warnings = list(reader.warnings) + warnings
+    return DetectResult(
+        output=output if isinstance(output, str) else "<stream>",
+        samples=n_samples,
+        duration_s=(t_last - t_first) / NS_PER_S if t_first is not None else 0.0,
+        calibration_s=(cal_start_s, cal_end_s if cal_end_s is not None else float("nan")),
+        calibration_samples=cal_samples,
+        array=array,
+        summaries={t.detector.name: t.summary for t in tracks},
+        alignment=reader.stats,
+        warnings=warnings,
+    )
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    if isinstance(value, (np.bool_,)):
+        return bool(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

@@ -1,0 +1,313 @@
+"""File-level operations behind the thin CLI commands: simulate, ingest, info, tune, demo.
+
+Each function takes paths (``-`` for stdin/stdout) and options as the CLI received them,
+does one job, and returns a result object; nothing here prints (the demo renders through a
+console passed in by the CLI).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.errors import UsageError
+from imufdi_cli.units import parse_quantity
+
+SAMPLE_LOGS = Path(__file__).resolve().parent.parent / "sample_logs"
+
+
+# --- simulate --------------------------------------------------------------------------
+
+
+@dataclass
+class SimulateResult:
+    output: str
+    samples: int
+    n_imus: int
+    rate_hz: float
+    duration_s: float
+    capture_bytes: int = 0
+
+
+def simulate_file(
+    preset_name: str | None,
+    output: str,
+    *,
+    seed: int = 0,
+    options: Mapping[str, Any] | None = None,
+    capture: str | None = None,
+    corrupt: bool = False,
+) -> SimulateResult:
+    """Simulate a log (preset or free options) into an MCAP, streaming in blocks.
+
+    With ``capture``, the same samples are also written as a raw ``mpu6500-array`` serial
+    capture (optionally with corrupted stretches), the input of ``imufdi ingest``.
+    """
+    from imufdi_cli.mcapio import ImuArrayWriter, McapWriter
+    from imufdi_cli.simulate import config_from_options, simulate
+
+    config = config_from_options(preset_name, seed=seed, **dict(options or {}))
+    array, blocks = simulate(config)
+    samples = 0
+    first = last = 0
+    capture_chunks: list[bytes] = []
+    encoder = None
+    if capture:
+        from imufdi_cli.capture import CaptureEncoder
+
+        encoder = CaptureEncoder(array, corrupt=corrupt, seed=seed)
+    metadata = {
+        "imufdi.simulate": {
+            "json": json.dumps(
+                {
+                    "preset": preset_name,
+                    "seed": seed,
+                    "options": {k: str(v) for k, v in (options or {}).items()},
+                }
+            )
+        }
+    }
+    with McapWriter(output) as writer:
+        for name, data in metadata.items():
+            writer.add_metadata(name, data)
+        imu_writer = ImuArrayWriter(writer, array)
+        for block in blocks:
+            if samples == 0 and len(block):
+                first = int(block.t_ns[0])
+            if len(block):
+                last = int(block.t_ns[-1])
+            samples += len(block)
+            imu_writer.write_block(block)
+            if encoder is not None:
+                capture_chunks.append(encoder.encode(block))
+        capture_bytes = 0
+        if capture and encoder is not None:
+            from imufdi_cli.fileio import atomic_path
+
+            with atomic_path(capture) as tmp, open(tmp, "wb") as handle:
+                for chunk in capture_chunks:
+                    handle.write(chunk)
+                    capture_bytes += len(chunk)
+                handle.write(encoder.finish())
+    return SimulateResult(
+        output=output,
+        samples=samples,
+        n_imus=array.n_imus,
+        rate_hz=array.rate_hz,
+        duration_s=(last - first) / 1e9 + 1.0 / array.rate_hz if samples else 0.0,
+        capture_bytes=capture_bytes,
+    )
+
+
+# --- ingest ----------------------------------------------------------------------------
+
+
+def ingest_file(
+    capture: str,
+    output: str,
+    *,
+    layout: str = "mpu6500-array",
+    array_path: str | None = None,
+    rate: str | None = None,
+    gyro_fs: str | None = None,
+    accel_fs: str | None = None,
+    strict: bool = False,
+) -> Any:
+    """Parse a raw capture with a layout and write the MCAP; returns the ingest stats."""
+    from imufdi_cli.capture import ingest, load_layout
+
+    builtin: dict[str, Any] = {}
+    if gyro_fs is not None:
+        builtin["gyro_fs"] = gyro_fs
+    if accel_fs is not None:
+        builtin["accel_fs"] = accel_fs
+    layout_obj = load_layout(layout, **builtin)
+    array = ArrayConfig.load(array_path) if array_path else None
+    rate_hz = parse_quantity(rate, "frequency", name="--rate") if rate else None
+    return ingest(capture, output, layout=layout_obj, array=array, rate_hz=rate_hz, strict=strict)
+
+
+# --- info ------------------------------------------------------------------------------
+
+
+def log_info(source: str, *, topics: Sequence[str] | None = None) -> dict[str, Any]:
+    """Everything ``imufdi info`` shows, as a JSON-ready dict."""
+    from imufdi_cli.mcapio import summarize
+
+    summary = summarize(source, topics=topics)
+    data: dict[str, Any] = summary.to_dict()
+    data["source"] = source
+    metadata = summary.metadata
+    if "imufdi.faults" in metadata:
+        from imufdi_cli.report import truth_windows
+
+        truth = truth_windows(metadata)
+        data["faults"] = truth.descriptions if truth else []
+    detectors = {}
+    for name, record in metadata.items():
+        if name.startswith("imufdi.detect."):
+            try:
+                content = json.loads(record.get("json", "{}"))
+            except ValueError:
+                content = {}
+            meta = content.get("detector_metadata", {})
+            detectors[name.removeprefix("imufdi.detect.")] = {
+                "params": meta.get("params", meta),
+                "calibration_s": content.get("calibration_s"),
+            }
+    if detectors:
+        data["detectors"] = detectors
+    return data
+
+
+# --- tune ------------------------------------------------------------------------------
+
+
+def tune_file(
+    source: str,
+    segment: tuple[float, float | None],
+    *,
+    sensor_type: str = "gyro",
+    seed: int = 0,
+    settings: Mapping[str, str] | None = None,
+) -> Any:
+    """Run WOA on a fault-free segment of a log; returns the tune result (K, alpha, ...)."""
+    from imufdi_cli.detectors.woa_mvmd_glt import tune
+    from imufdi_cli.mcapio import read_array
+
+    array, block = read_array(source)
+    if len(block) == 0:
+        from imufdi_cli.errors import McapInputError
+
+        raise McapInputError(f"{source}: no aligned IMU samples")
+    rel = (block.t_ns - block.t_ns[0]) / 1e9
+    keep = rel >= segment[0]
+    if segment[1] is not None:
+        keep &= rel < segment[1]
+    if not keep.any():
+        raise UsageError(
+            f"--segment {segment[0]:g}s:{segment[1] if segment[1] is not None else ''} holds no"
+            f" samples (the log lasts {rel[-1]:.3g} s)"
+        )
+    if sensor_type not in array.sensor_types():
+        raise UsageError(
+            f"--sensor {sensor_type}: the log has no {sensor_type}; present: "
+            + ", ".join(array.sensor_types())
+        )
+    return tune(block.mask(keep), array, sensor_type=sensor_type, seed=seed, **dict(settings or {}))
+
+
+# --- demo ------------------------------------------------------------------------------
+
+DEMO_FAULT = "step:imu0.gyro.x,at=2.5s,amp=0.9deg/s"
+
+
+@dataclass
+class DemoStep:
+    name: str
+    command: str
+    seconds: float
+    output: str
+
+
+@dataclass
+class DemoResult:
+    directory: str
+    steps: list[DemoStep] = field(default_factory=list)
+
+
+def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
+    """ingest (or simulate) -> inject -> detect -> report on the bundled sample, printing
+    each step as the equivalent command line."""
+    from rich.table import Table
+
+    from imufdi_cli import report as rep
+    from imufdi_cli.detect import detect_file
+    from imufdi_cli.detectors import DETECTORS
+    from imufdi_cli.faults import inject_file
+
+    if keep_dir:
+        workdir = Path(keep_dir)
+        workdir.mkdir(parents=True, exist_ok=True)
+        cleanup = False
+    else:
+        workdir = Path(tempfile.mkdtemp(prefix="imufdi-demo-"))
+        cleanup = True
+    result = DemoResult(directory=str(workdir))
+
+    def step(name: str, command: str, output: Path, fn: Any) -> Any:
+        console.print(f"[bold cyan]$ {command}[/]", markup=True)
+        start = time.perf_counter()
+        value = fn()
+        seconds = time.perf_counter() - start
+        result.steps.append(DemoStep(name, command, seconds, str(output)))
+        console.print(f"  [dim]{seconds:.2f} s -> {output}[/]", markup=True)
+        return value
+
+    try:
+        capture = SAMPLE_LOGS / "paper-table4.cap"
+        base = workdir / "table4.mcap"
+        if capture.exists():
+            stats = step(
+                "ingest",
+                f"imufdi ingest {capture.relative_to(SAMPLE_LOGS.parent)} -o {base}",
+                base,
+                lambda: ingest_file(str(capture), str(base)),
+            )
+            rows = dict(stats.as_rows())
+            console.print(
+                "  "
+                + ", ".join(
+                    f"{k}: {v}" for k, v in rows.items() if isinstance(v, (int, float)) and v
+                )
+            )
+        else:
+            sample = SAMPLE_LOGS / "paper-table4.mcap"
+            shutil.copyfile(sample, base)
+        faulty = workdir / "faulty.mcap"
+        step(
+            "inject",
+            f"imufdi inject {base} --fault {DEMO_FAULT} --seed 1 -o {faulty}",
+            faulty,
+            lambda: inject_file(str(base), str(faulty), [DEMO_FAULT], [], seed=1),
+        )
+        detected = workdir / "detected.mcap"
+        names = [
+            n for n in ("glt", "woa-mvmd-glt", "pca-parity", "bank", "noise-glr") if n in DETECTORS
+        ]
+        flags = " ".join(f"-d {n}" for n in names)
+        step(
+            "detect",
+            f"imufdi detect {faulty} {flags} -o {detected}",
+            detected,
+            lambda: detect_file(str(faulty), str(detected), [(n, {}) for n in names]),
+        )
+        md = workdir / "report.md"
+        report = step(
+            "report",
+            f"imufdi report {detected} --markdown {md}",
+            md,
+            lambda: rep.build_report(str(detected)),
+        )
+        md.write_text(rep.to_markdown(report), encoding="utf-8")
+        table = Table(title="demo: 0.9 deg/s step on imu0.gyro.x at 2.5 s (paper-table4)")
+        table.add_column("detector")
+        table.add_column("sensor")
+        for _, header, _, _ in rep.TABLE_COLUMNS:
+            table.add_column(header, justify="right")
+        for row in rep.table_rows(report):
+            table.add_row(*row)
+        console.print(table)
+        if keep_dir:
+            console.print(f"outputs kept in {workdir}")
+    finally:
+        if cleanup:
+            shutil.rmtree(workdir, ignore_errors=True)
+    return result
