@@ -298,7 +298,9 @@ def isolation_statistics(p: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.n
     return projections * amplitude, amplitude
 
 
-def residual_sigma(H: np.ndarray, measurements: np.ndarray) -> np.ndarray:
+def residual_sigma(
+    H: np.ndarray, measurements: np.ndarray, *, outlier_cut: float | None = 4.0
+) -> np.ndarray:
     """Per-sensor white-noise sigma from the least-squares residuals of a fault-free window.
 
     Residuals ``r = (I - S) m`` with the hat matrix ``S = H H^+`` remove any motion, and for
@@ -307,10 +309,18 @@ def residual_sigma(H: np.ndarray, measurements: np.ndarray) -> np.ndarray:
     redundancy, e.g. n - 3 = 1) the per-sensor sigmas are not identifiable and one common
     sigma is returned, from ``E |r|^2 = (n - 3) sigma^2``.
 
+    Sparse outliers (spikes) would inflate the variances and make the Gaussian test blind:
+    samples where any residual is further than ``outlier_cut`` robust standard deviations
+    (1.4826 median absolute deviation) from its median are left out before the variances
+    are taken (at 4, a Gaussian sample of 48 sensors is dropped with probability 0.3 %, so
+    the variance is biased by far less than its sampling error).
+
     Parameters
     ----------
     H : array_like, shape (n, 3)
     measurements : array_like, shape (N, n), fault-free, N >= 2
+    outlier_cut : float or None
+        Rejection threshold in robust standard deviations; None keeps every sample.
 
     Returns
     -------
@@ -327,6 +337,12 @@ def residual_sigma(H: np.ndarray, measurements: np.ndarray) -> np.ndarray:
     if n_parity == 0:
         raise CalibrationError("with 3 sensors there are no residuals to estimate sigma from")
     r = residuals(H, measurements)
+    if outlier_cut is not None:
+        centre = np.median(r, axis=0)
+        robust_std = 1.4826 * np.median(np.abs(r - centre), axis=0)
+        inlier = np.all(np.abs(r - centre) <= outlier_cut * robust_std, axis=1)
+        if np.count_nonzero(inlier) >= max(2, r.shape[0] // 2):
+            r = r[inlier]
     variances = r.var(axis=0, ddof=1)
     mixing = (np.eye(n) - H @ np.linalg.pinv(H)) ** 2
     singular = np.linalg.svd(mixing, compute_uv=False)

@@ -165,3 +165,19 @@ def test_residual_sigma_recovers_per_sensor_noise_under_motion() -> None:
     H4 = conical_H(4)
     m4 = rng.standard_normal((20000, 4)) * 0.1 + motion @ H4.T
     assert_allclose(residual_sigma(H4, m4), 0.1, rtol=0.05)
+
+
+def test_residual_sigma_ignores_sparse_outliers() -> None:
+    rng = np.random.default_rng(7)
+    H = ArrayConfig.co_aligned(16).measurement_matrix("gyro")
+    m = rng.standard_normal((400, 48)) * 0.15
+    spikes = rng.random((400, 48)) < 0.002
+    m_spiky = m + np.where(spikes, 1.0, 0.0) * rng.choice([-1.0, 1.0], size=m.shape)
+    robust = residual_sigma(H, m_spiky)
+    plain = residual_sigma(H, m_spiky, outlier_cut=None)
+    clean = residual_sigma(H, m)
+    assert spikes.any()
+    assert_allclose(robust.mean(), 0.15, rtol=0.03)
+    assert plain.mean() > 1.04 * clean.mean()  # spikes inflate the plain estimate
+    with pytest.raises(CalibrationError):
+        residual_sigma(H, m[:1])

@@ -1,0 +1,510 @@
+"""GLT: generalized likelihood test on the parity vector, with reconfiguration.
+
+Li et al., "...", Micromachines 17(3):374, 2026, §2.1. Per sensor type s (gyros and
+accelerometers are separate tests) with measurement matrix H (n, 3), per-sensor noise sigma
+and per-sensor bias b (from a fault-free calibration window):
+
+- whitened measurements ``m_w = (m - b) / sigma``, ``H_w = H / sigma`` (so the noise is white
+  with unit variance), Potter's parity matrix ``V`` of ``H_w`` (:mod:`.parity`), ``p = V m_w``;
+- detection (eq. 5): ``D_FD = p^T (V V^T)^-1 p`` against ``T_D = chi2_{1-alpha}(n - 3)``;
+- isolation (eq. 6): ``D_FI,i = (p^T (V V^T)^-1 v_i)^2 / (v_i^T (V V^T)^-1 v_i)``, isolated
+  sensor ``argmax_i D_FI,i``;
+- amplitude (eq. 7): ``f_i = p^T (V V^T)^-1 v_i / (v_i^T (V V^T)^-1 v_i)``, times sigma_i (SI).
+
+V is orthonormal, so with the projector ``P = V^T V = I - H_w (H_w^T H_w)^-1 H_w^T`` and
+the whitened residual ``r = P m_w``: ``D_FD = |r|^2``, ``p^T v_i = r_i``,
+``v_i^T v_i = P_ii``. One (N, n) x (n, n) product per block gives every statistic.
+
+Beyond the paper (all optional):
+
+- ``persistence``: an alarm needs that many consecutive samples over the threshold;
+- ``confirm``: an isolation is reported once the same isolable sensor has been the argmax
+  on that many consecutive over-threshold samples;
+- ``reconfigure``: after a confirmed isolation the sensor is removed, V rebuilt from the
+  remaining sensors (threshold dof n' - 3) and the removed sensor monitored against the
+  least-squares estimate of the remaining ones: normalized residual
+  ``z_j = (m_w,j - h_w,j x_hat) / sqrt(1 + h_w,j (H_w'^T H_w')^-1 h_w,j^T)`` with
+  ``z_j^2`` against ``chi2_{1-alpha}(1)``, so the alarm stays on while its fault lasts;
+- ``window``: moving average of the whitened measurements over w samples (k < w at the
+  start); statistics are multiplied by k so that they stay chi2(n - 3) / chi2(1).
+
+Isolation is impossible for a sensor whose fault direction v_i is parallel to another
+(e.g. 2 co-aligned IMUs): an alarm whose argmax is such a sensor reports NOT_ISOLABLE.
+Sensor types with fewer than 4 sensors have no parity space: they are not tested (listed
+under ``untested`` in :meth:`GltDetector.metadata`); if no type can be tested, ``fit``
+raises DetectorConfigError.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy.stats import chi2
+
+from imufdi_cli.array import SENSOR_TYPES, ArrayConfig
+from imufdi_cli.detectors.base import (
+    ALPHA,
+    NO_ISOLATION,
+    NOT_ISOLABLE,
+    DetectionBlock,
+    Param,
+)
+from imufdi_cli.detectors.parity import (
+    isolable_sensors,
+    parity_matrix,
+    residual_sigma,
+    residuals,
+    whiten,
+)
+from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
+from imufdi_cli.log import ImuBlock
+
+#: Minimum number of calibration samples.
+MIN_CALIBRATION_SAMPLES = 10
+#: Fewest sensors left after a reconfiguration (keeps one parity dimension).
+MIN_ACTIVE_SENSORS = 4
+
+
+def _check_types(value: str) -> str | None:
+    if value == "auto":
+        return None
+    for item in value.split(","):
+        if item.strip() not in SENSOR_TYPES:
+            return f"unknown sensor type {item.strip()!r}; valid: auto or a list of " + ", ".join(
+                SENSOR_TYPES
+            )
+    return None
+
+
+def _run_lengths(flag: np.ndarray, carry: int) -> np.ndarray:
+    """Length of the run of True ending at each sample (0 where False); ``carry`` continues
+    a run from the previous block."""
+    index = np.arange(flag.size)
+    last_false = np.maximum.accumulate(np.where(flag, -1, index))
+    runs = index - last_false
+    runs[last_false < 0] += carry
+    return np.where(flag, runs, 0)
+
+
+def _equal_run_lengths(key: np.ndarray, previous_key: int, carry: int) -> np.ndarray:
+    """Length of the run of equal ``key`` values ending at each sample, continuing a run of
+    ``previous_key`` of length ``carry`` from the previous block."""
+    index = np.arange(key.size)
+    change = np.empty(key.size, dtype=bool)
+    if key.size:
+        change[0] = key[0] != previous_key
+        change[1:] = key[1:] != key[:-1]
+    start = np.maximum.accumulate(np.where(change, index, -1))
+    runs = index - start + 1
+    continued = start < 0
+    runs[continued] = index[continued] + 1 + carry
+    return runs
+
+
+@dataclass
+class _Configuration:
+    """Active sensors of one type and everything derived from them (rebuilt on reconfig)."""
+
+    active: np.ndarray  # (n_a,) global sensor indices
+    excluded: np.ndarray  # (n_x,) global sensor indices, in exclusion order
+    projector: np.ndarray  # (n_a, n_a) P = V^T V of the whitened active H
+    projector_diag: np.ndarray  # (n_a,) v_i^T v_i
+    isolable: np.ndarray  # (n_a,) bool
+    threshold: float  # chi2_{1-alpha}(n_a - 3)
+    excluded_gain: np.ndarray  # (n_x, n_a): whitened residual of excluded = m_x - gain @ m_a
+    excluded_scale: np.ndarray  # (n_x,) 1/sqrt(1 + h (H^T H)^-1 h^T)
+
+    @classmethod
+    def build(
+        cls, h_white: np.ndarray, active: np.ndarray, excluded: np.ndarray, alpha: float
+    ) -> _Configuration:
+        h_active = h_white[active]
+        V = parity_matrix(h_active)  # Potter's V, (n_a - 3, n_a)
+        projector = V.T @ V
+        h_excluded = h_white[excluded]  # (n_x, 3)
+        normal_inverse = np.linalg.inv(h_active.T @ h_active)
+        gain = h_excluded @ normal_inverse @ h_active.T  # h_x x_hat = gain @ m_a
+        variance = 1.0 + np.einsum("ij,jk,ik->i", h_excluded, normal_inverse, h_excluded)
+        return cls(
+            active=active,
+            excluded=excluded,
+            projector=projector,
+            projector_diag=np.diag(projector).copy(),
+            isolable=isolable_sensors(V),
+            threshold=float(chi2.ppf(1.0 - alpha, active.size - 3)),
+            excluded_gain=gain,
+            excluded_scale=1.0 / np.sqrt(variance),
+        )
+
+
+@dataclass
+class _TypeState:
+    """Calibration and streaming state of one sensor type."""
+
+    sensor_type: str
+    sensor_ids: list[str]
+    imu_index: np.ndarray  # (n,) IMU of each sensor (ArrayConfig.sensor_index)
+    axis_index: np.ndarray  # (n,) axis 0..2 of each sensor
+    H: np.ndarray  # (n, 3)
+    sigma: np.ndarray  # (n,) SI
+    bias: np.ndarray  # (n,) SI
+    h_white: np.ndarray  # (n, 3)
+    config: _Configuration
+    history: np.ndarray  # (<= w-1, n) last whitened samples, for the moving average
+    exceed_run: int = 0
+    candidate: int = NO_ISOLATION
+    candidate_run: int = 0
+    events: list[dict[str, Any]] = field(default_factory=list)
+
+
+@dataclass
+class _Segment:
+    statistic: np.ndarray
+    alarm: np.ndarray
+    isolated: np.ndarray
+    amplitude: np.ndarray
+    scores: np.ndarray
+    exceed_runs: np.ndarray
+    keys: np.ndarray
+    key_runs: np.ndarray
+    event: int | None  # local index of the confirmed isolation that triggers reconfiguration
+
+
+class GltDetector:
+    """Generalized likelihood test on the parity vector (Li et al. 2026, §2.1).
+
+    Parameters
+    ----------
+    alpha : float
+        False-alarm level of each per-sample test (default 0.01).
+    persistence : int
+        Consecutive samples over the threshold needed to raise the alarm (1 = plain test).
+    confirm : int
+        Consecutive over-threshold samples with the same argmax sensor needed to report
+        (and, with ``reconfigure``, exclude) it; 1 = the paper's per-sample isolation.
+    reconfigure : bool
+        Remove a confirmed faulty sensor, rebuild V, keep monitoring it.
+    window : int
+        Moving average of the whitened measurements over this many samples (1 = none).
+    sigma_source : {"calibration", "config"}
+        Per-sensor sigma from the calibration residuals, or ArrayConfig.noise.
+    bias : bool
+        Remove per-sensor biases (calibration residual means); false = plain GLT.
+    types : str
+        ``auto`` (every type with >= 4 sensors) or a comma list such as ``gyro``.
+    """
+
+    name: ClassVar[str] = "glt"
+    PARAMS: ClassVar[dict[str, Param]] = {
+        "alpha": ALPHA,
+        "persistence": Param("int", 1, "consecutive samples over threshold for an alarm", low=1),
+        "confirm": Param(
+            "int", 10, "consecutive samples isolating the same sensor to confirm it", low=1
+        ),
+        "reconfigure": Param("bool", True, "exclude a confirmed faulty sensor and rebuild V"),
+        "window": Param("int", 1, "moving average of the parity vector, samples", low=1),
+        "sigma_source": Param(
+            "choice",
+            "calibration",
+            "per-sensor sigma from the calibration window or from the array config noise",
+            choices=("calibration", "config"),
+        ),
+        "bias": Param("bool", True, "remove per-sensor biases found in the calibration window"),
+        "types": Param(
+            "str", "auto", "sensor types to test: auto or e.g. gyro,accel", check=_check_types
+        ),
+    }
+
+    def __init__(
+        self,
+        alpha: float = 0.01,
+        persistence: int = 1,
+        confirm: int = 10,
+        reconfigure: bool = True,
+        window: int = 1,
+        sigma_source: str = "calibration",
+        bias: bool = True,
+        types: str = "auto",
+    ) -> None:
+        self.alpha = float(alpha)
+        self.persistence = int(persistence)
+        self.confirm = int(confirm)
+        self.reconfigure = bool(reconfigure)
+        self.window = int(window)
+        self.sigma_source = sigma_source
+        self.remove_bias = bool(bias)
+        self.types = types
+        self.threshold_excluded = float(chi2.ppf(1.0 - self.alpha, 1))
+        self._states: dict[str, _TypeState] = {}
+        self._untested: dict[str, str] = {}
+        self._samples_seen = 0
+
+    # --- calibration ----------------------------------------------------------------
+
+    def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
+        """Per-sensor sigma and bias of every tested sensor type from a fault-free block.
+
+        Raises
+        ------
+        DetectorConfigError
+            No sensor type has >= 4 sensors, a requested type is absent, or
+            ``sigma_source=config`` without ``noise.<type>`` in the array config.
+        CalibrationError
+            Fewer than 10 calibration samples, non-finite data or a zero sigma.
+        """
+        if self.types == "auto":
+            requested = array.sensor_types()
+        else:
+            requested = [item.strip() for item in self.types.split(",")]
+        self._states.clear()
+        self._untested.clear()
+        self._samples_seen = 0
+        for sensor_type in requested:
+            n = array.n_sensors(sensor_type)
+            if n < MIN_ACTIVE_SENSORS:
+                self._untested[sensor_type] = (
+                    f"{n} sensors: a parity test needs at least {MIN_ACTIVE_SENSORS}"
+                )
+                continue
+            self._states[sensor_type] = self._calibrate(calibration, array, sensor_type)
+        if not self._states:
+            counts = ", ".join(f"{s}: {array.n_sensors(s)}" for s in requested) or "none"
+            raise DetectorConfigError(
+                f"glt needs at least {MIN_ACTIVE_SENSORS} sensors of a type (parity space"
+                f" n - 3 >= 1); this array has {counts}"
+            )
+
+    def _calibrate(self, calibration: ImuBlock, array: ArrayConfig, sensor_type: str) -> _TypeState:
+        triads = calibration.get(sensor_type)
+        if triads is None:
+            raise CalibrationError(f"calibration window has no {sensor_type} data")
+        values = array.select(triads, sensor_type)
+        if values.shape[0] < MIN_CALIBRATION_SAMPLES:
+            raise CalibrationError(
+                f"calibration window has {values.shape[0]} samples; at least"
+                f" {MIN_CALIBRATION_SAMPLES} are needed (use --calibrate START:END)"
+            )
+        if not np.all(np.isfinite(values)):
+            raise CalibrationError(f"calibration window has non-finite {sensor_type} samples")
+        H = array.measurement_matrix(sensor_type)
+        imu_index, axis_index = array.sensor_index(sensor_type)
+        n = H.shape[0]
+        if self.sigma_source == "config":
+            if sensor_type not in array.noise:
+                raise DetectorConfigError(
+                    f"glt.sigma_source=config but the array config has no noise.{sensor_type};"
+                    " add it or use sigma_source=calibration"
+                )
+            sigma = np.full(n, float(array.noise[sensor_type]))
+        else:
+            sigma = residual_sigma(H, values)
+        # Bias: the part of the calibration mean not explained by H (any LS fit gives the same
+        # parity vectors, since V H = 0 for every subset of sensors).
+        bias = residuals(H, values.mean(axis=0)[None, :])[0] if self.remove_bias else np.zeros(n)
+        h_white = whiten(H, sigma)
+        config = _Configuration.build(h_white, np.arange(n), np.zeros(0, dtype=np.intp), self.alpha)
+        return _TypeState(
+            sensor_type=sensor_type,
+            sensor_ids=array.sensor_ids(sensor_type),
+            imu_index=imu_index,
+            axis_index=axis_index,
+            H=H,
+            sigma=sigma,
+            bias=bias,
+            h_white=h_white,
+            config=config,
+            history=np.zeros((0, n)),
+        )
+
+    # --- streaming ------------------------------------------------------------------
+
+    def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
+        """Test one block; one row per input sample for every tested sensor type."""
+        if not self._states:
+            raise DetectorConfigError("glt: call fit() before process()")
+        out: dict[str, DetectionBlock] = {}
+        for sensor_type, state in self._states.items():
+            triads = block.get(sensor_type)
+            if triads is None:
+                raise InputDataError(
+                    f"block has no {sensor_type} data but glt was calibrated to test it"
+                )
+            if triads.shape[1] <= int(state.imu_index.max()):
+                raise InputDataError(
+                    f"block has {triads.shape[1]} IMUs but glt was calibrated on"
+                    f" {int(state.imu_index.max()) + 1}"
+                )
+            values = triads[:, state.imu_index, state.axis_index]
+            out[sensor_type] = self._process_type(state, values)
+        self._samples_seen += len(block)
+        return out
+
+    def flush(self) -> dict[str, DetectionBlock]:
+        """GLT is causal: nothing is held back."""
+        return {s: DetectionBlock.empty(0, len(st.sensor_ids)) for s, st in self._states.items()}
+
+    def _whitened_average(
+        self, state: _TypeState, values: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened (moving-averaged) measurements (N, n) and the averaged count k (N,)."""
+        white = (values - state.bias) / state.sigma
+        n_samples = white.shape[0]
+        if self.window == 1:
+            return white, np.ones(n_samples)
+        history = state.history
+        extended = np.concatenate([history, white], axis=0)
+        cumulative = np.concatenate([np.zeros((1, white.shape[1])), np.cumsum(extended, axis=0)])
+        ends = np.arange(history.shape[0] + 1, extended.shape[0] + 1)
+        starts = np.maximum(ends - self.window, 0)
+        counts = (ends - starts).astype(np.float64)
+        averaged = (cumulative[ends] - cumulative[starts]) / counts[:, None]
+        state.history = extended[-(self.window - 1) :].copy()
+        return averaged, counts
+
+    def _process_type(self, state: _TypeState, values: np.ndarray) -> DetectionBlock:
+        n_samples, n = values.shape
+        averaged, counts = self._whitened_average(state, values)
+        pieces: list[DetectionBlock] = []
+        start = 0
+        while start < n_samples:
+            config = state.config
+            segment = self._segment(state, averaged[start:], counts[start:])
+            stop = n_samples - start if segment.event is None else segment.event + 1
+            pieces.append(
+                DetectionBlock(
+                    statistic=segment.statistic[:stop],
+                    threshold=np.full(stop, config.threshold),
+                    alarm=segment.alarm[:stop],
+                    isolated=segment.isolated[:stop],
+                    amplitude=segment.amplitude[:stop],
+                    scores=segment.scores[:stop],
+                )
+            )
+            state.exceed_run = int(segment.exceed_runs[stop - 1])
+            state.candidate = int(segment.keys[stop - 1])
+            state.candidate_run = int(segment.key_runs[stop - 1])
+            if segment.event is not None:
+                sensor = int(segment.isolated[segment.event])
+                active = config.active[config.active != sensor]
+                excluded = np.append(config.excluded, sensor).astype(np.intp)
+                state.config = _Configuration.build(state.h_white, active, excluded, self.alpha)
+                state.candidate = NO_ISOLATION
+                state.candidate_run = 0
+                state.events.append(
+                    {
+                        "sample": self._samples_seen + start + segment.event,
+                        "excluded": state.sensor_ids[sensor],
+                        "active_sensors": int(active.size),
+                    }
+                )
+            start += stop
+        if not pieces:
+            return DetectionBlock.empty(0, n)
+        return pieces[0] if len(pieces) == 1 else DetectionBlock.concatenate(pieces)
+
+    def _segment(self, state: _TypeState, averaged: np.ndarray, counts: np.ndarray) -> _Segment:
+        """All statistics of a run of samples under the current configuration."""
+        config = state.config
+        n_samples, n = averaged.shape
+        active_values = averaged[:, config.active]
+        # r = P m_w (whitened parity residual): D_FD = |r|^2, D_FI,i = r_i^2 / P_ii (eqs. 5-6)
+        parity_residual = active_values @ config.projector
+        statistic = np.einsum("ij,ij->i", parity_residual, parity_residual) * counts
+        amplitude_white = parity_residual / config.projector_diag  # eq. 7, whitened units
+        isolation_scores = parity_residual * amplitude_white * counts[:, None]
+        parity_exceed = statistic > config.threshold
+
+        scores = np.full((n_samples, n), np.nan)
+        scores[:, config.active] = isolation_scores
+        best_local = np.argmax(isolation_scores, axis=1)
+        best_sensor = config.active[best_local]
+        best_isolable = config.isolable[best_local]
+
+        exceed = parity_exceed.copy()
+        excluded_alarm = np.zeros(n_samples, dtype=bool)
+        excluded_best = np.full(n_samples, NO_ISOLATION, dtype=np.intp)
+        excluded_amplitude = np.full(n_samples, np.nan)
+        if config.excluded.size:
+            # Excluded sensors against the LS estimate of the active ones (chi2, 1 dof)
+            residual_white = averaged[:, config.excluded] - active_values @ config.excluded_gain.T
+            normalized = residual_white * config.excluded_scale
+            excluded_scores = normalized**2 * counts[:, None]
+            scores[:, config.excluded] = excluded_scores
+            worst = np.argmax(excluded_scores, axis=1)
+            rows = np.arange(n_samples)
+            excluded_alarm = excluded_scores[rows, worst] > self.threshold_excluded
+            excluded_best = config.excluded[worst]
+            excluded_amplitude = residual_white[rows, worst] * state.sigma[excluded_best]
+            exceed |= excluded_alarm
+
+        exceed_runs = _run_lengths(exceed, state.exceed_run)
+        alarm = exceed_runs >= self.persistence
+
+        keys = np.where(parity_exceed & best_isolable, best_sensor, NO_ISOLATION)
+        key_runs = _equal_run_lengths(keys, state.candidate, state.candidate_run)
+        confirmed = alarm & (keys >= 0) & (key_runs >= self.confirm)
+
+        isolated = np.full(n_samples, NO_ISOLATION, dtype=np.int32)
+        amplitude = np.full(n_samples, np.nan)
+        show_excluded = alarm & excluded_alarm & ~confirmed
+        isolated[show_excluded] = excluded_best[show_excluded]
+        amplitude[show_excluded] = excluded_amplitude[show_excluded]
+        not_isolable = alarm & parity_exceed & ~best_isolable & ~show_excluded
+        isolated[not_isolable] = NOT_ISOLABLE
+        isolated[confirmed] = best_sensor[confirmed]
+        amplitude[confirmed] = (
+            amplitude_white[confirmed, best_local[confirmed]] * state.sigma[best_sensor[confirmed]]
+        )
+
+        event: int | None = None
+        if self.reconfigure and config.active.size - 1 >= MIN_ACTIVE_SENSORS:
+            hits = np.flatnonzero(confirmed)
+            if hits.size:
+                event = int(hits[0])
+        return _Segment(
+            statistic=statistic,
+            alarm=alarm,
+            isolated=isolated,
+            amplitude=amplitude,
+            scores=scores,
+            exceed_runs=exceed_runs,
+            keys=keys,
+            key_runs=key_runs,
+            event=event,
+        )
+
+    # --- reporting ------------------------------------------------------------------
+
+    def metadata(self) -> dict[str, Any]:
+        """Parameters, calibration (sigma, bias in SI) and reconfiguration events."""
+        types: dict[str, Any] = {}
+        for sensor_type, state in self._states.items():
+            config = state.config
+            types[sensor_type] = {
+                "sensor_ids": state.sensor_ids,
+                "sigma": state.sigma.tolist(),
+                "bias": state.bias.tolist(),
+                "threshold": config.threshold,
+                "threshold_excluded": self.threshold_excluded,
+                "active": [state.sensor_ids[i] for i in config.active],
+                "excluded": [state.sensor_ids[i] for i in config.excluded],
+                "not_isolable": [state.sensor_ids[i] for i in config.active[~config.isolable]],
+                "reconfigurations": list(state.events),
+            }
+        return {
+            "detector": self.name,
+            "params": {
+                "alpha": self.alpha,
+                "persistence": self.persistence,
+                "confirm": self.confirm,
+                "reconfigure": self.reconfigure,
+                "window": self.window,
+                "sigma_source": self.sigma_source,
+                "bias": self.remove_bias,
+                "types": self.types,
+            },
+            "types": types,
+            "untested": dict(self._untested),
+        }
