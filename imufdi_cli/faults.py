@@ -621,6 +621,10 @@ class FaultInjector:
             )
             self._streams.setdefault((fault.imu, fault.sensor_type), []).append(state)
 
+    def affects(self, imu: int, sensor_type: str) -> bool:
+        """Whether any fault acts on this IMU's sensor type."""
+        return (int(imu), sensor_type) in self._streams
+
     def apply(self, imu: int, sensor_type: str, t_ns: np.ndarray, values: np.ndarray) -> np.ndarray:
         """Faulted copy of one IMU's triads of one sensor type.
 
@@ -788,3 +792,297 @@ class FaultInjector:
     def all_faults(self) -> list[Fault]:
         """Previous runs' faults followed by this run's."""
         return faults_from_metadata(self.metadata())
+
+
+# --- file level: imufdi inject -------------------------------------------------------------
+
+_IMU_SCHEMAS: Final[frozenset[str]] = frozenset({"sensor_msgs/msg/Imu", "sensor_msgs/Imu"})
+_MAG_SCHEMAS: Final[frozenset[str]] = frozenset(
+    {"sensor_msgs/msg/MagneticField", "sensor_msgs/MagneticField"}
+)
+
+
+@dataclass
+class InjectResult:
+    """What :func:`inject_file` did.
+
+    Attributes
+    ----------
+    output : str
+        Path written (``"-"`` for stdout).
+    seed : int
+    faults : list of Fault
+        Faults injected by this run (with their ids).
+    previous_faults : list of Fault
+        Faults already recorded in the input.
+    t0_ns : int
+        Log start (first IMU sample stamp), ns.
+    duration_s : float
+        Last minus first IMU sample stamp, s.
+    imu_topics : list of str
+        IMU topics in IMU index order.
+    messages : int
+        Messages copied (all channels, input only).
+    messages_patched : int
+        IMU/magnetometer messages whose values were rewritten.
+    truth_messages : int
+        Messages added to ``/imufdi/truth``.
+    """
+
+    output: str
+    seed: int
+    faults: list[Fault]
+    previous_faults: list[Fault]
+    t0_ns: int
+    duration_s: float
+    imu_topics: list[str]
+    messages: int = 0
+    messages_patched: int = 0
+    truth_messages: int = 0
+
+
+def _natural_key(text: str) -> list[Any]:
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text)]
+
+
+def _schema_name(channel: Any) -> str:
+    return "" if channel.schema is None else str(channel.schema.name)
+
+
+def topic_imu_indices(channels: Mapping[int, Any]) -> tuple[dict[int, int], dict[int, int]]:
+    """IMU index of every Imu channel and of every MagneticField channel.
+
+    Imu topics are numbered in natural sort order (``/imu2`` before ``/imu10``), the rule the
+    reader uses. A magnetometer topic belongs to the IMU whose topic shares its namespace
+    (``/imu3/mag`` with ``/imu3/data_raw``); the others follow in natural order.
+
+    Returns
+    -------
+    (imu_channels, mag_channels) : dict channel id -> IMU index
+    """
+    imu_ids = sorted(
+        (cid for cid, ch in channels.items() if _schema_name(ch) in _IMU_SCHEMAS),
+        key=lambda cid: (_natural_key(channels[cid].topic), cid),
+    )
+    imu_channels = {cid: k for k, cid in enumerate(imu_ids)}
+    namespace = {channels[cid].topic.rsplit("/", 1)[0]: k for cid, k in imu_channels.items()}
+    mag_ids = sorted(
+        (cid for cid, ch in channels.items() if _schema_name(ch) in _MAG_SCHEMAS),
+        key=lambda cid: (_natural_key(channels[cid].topic), cid),
+    )
+    mag_channels: dict[int, int] = {}
+    unmatched: list[int] = []
+    for cid in mag_ids:
+        k = namespace.get(channels[cid].topic.rsplit("/", 1)[0])
+        if k is None or k in mag_channels.values():
+            unmatched.append(cid)
+        else:
+            mag_channels[cid] = k
+    free = [k for k in range(len(imu_ids)) if k not in mag_channels.values()]
+    for cid, k in zip(unmatched, free):
+        mag_channels[cid] = k
+    return imu_channels, mag_channels
+
+
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return Path(a).resolve() == Path(b).resolve()
+    except OSError:
+        return False
+
+
+def inject_file(
+    source: str | Path,
+    output: str | Path,
+    faults_specs: Sequence[str],
+    fault_files: Sequence[str | Path],
+    *,
+    seed: int,
+    compression: str = "zstd",
+) -> InjectResult:
+    """Copy an MCAP log with faults injected into its IMU messages, plus ground truth.
+
+    Every channel, message and metadata record of the input is copied; IMU (and
+    magnetometer) messages of faulted sensors are patched in place (all other bytes
+    identical). Adds the ``/imufdi/truth`` JSON channel (one message per fault start/end)
+    and the ``imufdi.faults`` metadata record (seed, faults in SI, earlier runs under
+    ``previous``). All specs are validated against the array and the log duration before
+    anything is written; on failure no output file is left.
+
+    Parameters
+    ----------
+    source : str or Path
+        Input MCAP, or ``"-"`` for stdin (buffered in memory: the log is read twice).
+    output : str or Path
+        Output MCAP, or ``"-"`` for stdout. Must not be the input.
+    faults_specs : sequence of str
+        Specs in the ``MODEL:SENSOR,key=value,...`` grammar.
+    fault_files : sequence of path
+        TOML files of ``[[fault]]`` tables.
+    seed : int
+        Seed of the random fault models.
+    compression : {"zstd", "lz4", "none"}
+        Chunk compression of the output.
+
+    Raises
+    ------
+    FaultSpecError
+        No fault given, or a bad spec (exit code 2).
+    McapInputError
+        Unreadable input or no IMU channel (exit code 3).
+    """
+    import io
+
+    from imufdi_cli import mcapio
+    from imufdi_cli.errors import McapInputError, UsageError
+
+    if not faults_specs and not fault_files:
+        raise FaultSpecError("inject needs at least one --fault SPEC or --faults FILE")
+    source_name, output_name = str(source), str(output)
+    if output_name != "-" and source_name != "-" and _same_file(source_name, output_name):
+        raise UsageError(f"output {output_name} is the input file; inputs are never modified")
+
+    buffered: io.BytesIO | None = None
+    if source_name == "-":
+        buffered = io.BytesIO(sys.stdin.buffer.read())
+
+    def open_source() -> Any:
+        if buffered is not None:
+            buffered.seek(0)
+            return mcapio.McapSource(buffered)
+        return mcapio.McapSource(source_name)
+
+    # Pass 1: channels, metadata, the IMU time span.
+    first_ns: int | None = None
+    last_ns: int | None = None
+    with open_source() as reader:
+        for batch in reader.batches():
+            imu_channels, _ = topic_imu_indices(reader.channels)
+            for cid in np.unique(batch.channel_id):
+                if int(cid) not in imu_channels:
+                    continue
+                part = batch.select(np.flatnonzero(batch.channel_id == cid))
+                stamps = mcapio.decode_imu(part, reader.channels[int(cid)]).t_ns
+                if stamps.size:
+                    low, high = int(stamps.min()), int(stamps.max())
+                    first_ns = low if first_ns is None else min(first_ns, low)
+                    last_ns = high if last_ns is None else max(last_ns, high)
+        channels = dict(reader.channels)
+        metadata = {name: dict(values) for name, values in reader.metadata.items()}
+    imu_channels, mag_channels = topic_imu_indices(channels)
+    if not imu_channels or first_ns is None or last_ns is None:
+        raise McapInputError(f"{source_name}: no sensor_msgs/msg/Imu messages to inject into")
+    imu_topics = [channels[cid].topic for cid in sorted(imu_channels, key=imu_channels.get)]  # type: ignore[arg-type]
+
+    if "imufdi.array" in metadata and "json" in metadata["imufdi.array"]:
+        array = ArrayConfig.from_json(metadata["imufdi.array"]["json"])
+        if array.n_imus > len(imu_channels):
+            array = array.with_imus(len(imu_channels))
+        array_inferred = False
+    else:
+        if buffered is not None:
+            buffered.seek(0)
+        array = mcapio.ImuArrayReader(buffered if buffered is not None else source_name).array
+        array_inferred = True
+
+    # Validate every spec before writing anything.
+    faults = [parse_fault_spec(spec, array) for spec in faults_specs]
+    for path in fault_files:
+        faults += load_fault_file(path, array)
+    duration_s = (last_ns - first_ns) * 1e-9
+    injector = FaultInjector(
+        faults,
+        array,
+        seed=seed,
+        t0_ns=first_ns,
+        log_duration_s=duration_s,
+        previous_metadata=metadata.get(METADATA_NAME),
+    )
+    previous_faults = [
+        Fault.from_dict(item) for run in injector.previous_runs for item in run["faults"]
+    ]
+    result = InjectResult(
+        output=output_name,
+        seed=injector.seed,
+        faults=injector.faults,
+        previous_faults=previous_faults,
+        t0_ns=first_ns,
+        duration_s=duration_s,
+        imu_topics=imu_topics,
+    )
+
+    # Pass 2: copy, patching the faulted IMU messages.
+    with open_source() as reader, mcapio.McapWriter(output, compression=compression) as writer:
+        writer.copy_channels(channels)
+        for name, values in metadata.items():
+            if name != METADATA_NAME:
+                writer.add_metadata(name, values)
+        if array_inferred:
+            writer.add_metadata("imufdi.array", {"json": array.to_json()})
+        writer.add_metadata(METADATA_NAME, injector.metadata())
+        truth_ids = [cid for cid, ch in channels.items() if ch.topic == TRUTH_TOPIC]
+        truth_channel = (
+            truth_ids[0] if truth_ids else writer.register_json_channel(TRUTH_TOPIC, TRUTH_SCHEMA)
+        )
+        for event in injector.truth_events():
+            writer.add_json(truth_channel, int(event["t_ns"]), event)
+            result.truth_messages += 1
+        for batch in reader.batches():
+            result.messages += len(batch)
+            patched, count = _patch_batch(batch, channels, imu_channels, mag_channels, injector)
+            result.messages_patched += count
+            writer.add_batch(patched)
+    return result
+
+
+def _patch_batch(
+    batch: Any,
+    channels: Mapping[int, Any],
+    imu_channels: Mapping[int, int],
+    mag_channels: Mapping[int, int],
+    injector: FaultInjector,
+) -> tuple[Any, int]:
+    """The batch with faulted IMU/magnetometer messages rewritten, in the original order."""
+    from imufdi_cli import mcapio
+
+    pieces: list[Any] = []
+    positions: list[np.ndarray] = []
+    patched = 0
+    for cid in np.unique(batch.channel_id):
+        channel_id = int(cid)
+        imu = imu_channels.get(channel_id, mag_channels.get(channel_id))
+        if imu is None:
+            continue
+        is_mag = channel_id in mag_channels
+        types = ("mag",) if is_mag else ("gyro", "accel")
+        if not any(injector.affects(imu, t) for t in types):
+            continue
+        where = np.flatnonzero(batch.channel_id == cid)
+        part = batch.select(where)
+        channel = channels[channel_id]
+        if is_mag:
+            fields = mcapio.decode_mag(part, channel)
+            new_mag = injector.apply(imu, "mag", fields.t_ns, fields.mag)
+            pieces.append(mcapio.patch_mag(part, channel, mag=new_mag))
+        else:
+            fields = mcapio.decode_imu(part, channel)
+            new = {
+                t: injector.apply(imu, t, fields.t_ns, getattr(fields, t))
+                for t in types
+                if injector.affects(imu, t)
+            }
+            pieces.append(mcapio.patch_imu(part, channel, **new))
+        positions.append(where)
+        patched += len(where)
+    if not pieces:
+        return batch, 0
+    untouched = np.ones(len(batch), dtype=bool)
+    for where in positions:
+        untouched[where] = False
+    rest = np.flatnonzero(untouched)
+    if rest.size:
+        pieces.append(batch.select(rest))
+        positions.append(rest)
+    joined = mcapio.MessageBatch.concatenate(pieces)
+    order = np.argsort(np.concatenate(positions), kind="stable")
+    return joined.select(order), patched
