@@ -73,6 +73,8 @@ def cli() -> None:
 
     Example:
 
+
+    \b
         imufdi simulate --preset paper-table4 --seed 1 -o run.mcap
         imufdi inject run.mcap --fault step:imu0.gyro.x,at=2.5s,amp=0.9deg/s -o faulty.mcap
         imufdi detect faulty.mcap -d glt -o detected.mcap
@@ -122,6 +124,8 @@ def simulate(
 
     Example:
 
+
+    \b
         imufdi simulate --preset paper-table4 --seed 3 -o table4.mcap
         imufdi simulate --imus 16 --rate 1kHz --duration 1h --motion turntable -o long.mcap
     """
@@ -187,6 +191,8 @@ def ingest(
 
     Example:
 
+
+    \b
         imufdi ingest board.bin --layout my_board.toml --array array.toml -o board.mcap
         cat capture.bin | imufdi ingest - -o - | imufdi info -
     """
@@ -228,6 +234,8 @@ def info(log: str, as_json: bool, topics: tuple[str, ...]) -> None:
 
     Example:
 
+
+    \b
         imufdi info run.mcap
         imufdi info run.mcap --json | jq .imu_count
     """
@@ -302,6 +310,8 @@ def inject(
 
     Example:
 
+
+    \b
         imufdi inject run.mcap --fault step:imu0.gyro.x,at=2.5s,amp=0.9deg/s -o faulty.mcap
         imufdi inject run.mcap --fault drift:imu1.accel.z,at=3s,until=8s,rate=0.01g/s -o -
     """
@@ -358,6 +368,8 @@ def detect(
 
     Example:
 
+
+    \b
         imufdi detect faulty.mcap -d glt -d woa-mvmd-glt --param glt.alpha=0.001 -o out.mcap
         imufdi detect - -d glt -o - < faulty.mcap | imufdi report -
     """
@@ -425,6 +437,8 @@ def report(
 
     Example:
 
+
+    \b
         imufdi report out.mcap --markdown table.md --fail-if 'glt.gyro.far > 0.08' --fail-if 'glt.gyro.mar > 0.35'
     """
     from imufdi_cli import report as rep
@@ -504,6 +518,8 @@ def tune(
 
     Example:
 
+
+    \b
         imufdi tune run.mcap --segment 0s:2.5s -o params.json
         imufdi detect run.mcap -d woa-mvmd-glt --param woa-mvmd-glt.params=params.json -o out.mcap
     """
@@ -557,6 +573,8 @@ def campaign(
 
     Example:
 
+
+    \b
         imufdi campaign docs/campaigns/compare.toml -o results/ --jobs 2
         imufdi campaign spec.toml -o results/ --scheduler tcp://10.0.0.5:8786 --resume
     """
@@ -585,6 +603,8 @@ def demo(keep_dir: str | None) -> None:
 
     Example:
 
+
+    \b
         imufdi demo
         imufdi demo --keep demo_out/
     """
