@@ -198,11 +198,8 @@ def test_attitude_integrates_angular_rate(motion) -> None:
     assert_allclose(accel_fd, state.angular_acceleration, atol=1e-4)
     # specific force: dv/dt = C f + g
     accel_nav = (after.velocity - before.velocity) / (2 * h)
-    expected = np.einsum("nij,nj->ni", state.attitude, state.specific_force) + [
-        0,
-        0,
-        -STANDARD_GRAVITY,
-    ]
+    gravity = np.array([0.0, 0.0, -STANDARD_GRAVITY])
+    expected = np.einsum("nij,nj->ni", state.attitude, state.specific_force) + gravity
     assert_allclose(accel_nav, expected, atol=1e-4)
     # attitudes are rotations
     gram = np.einsum("nji,njk->nik", state.attitude, state.attitude)
