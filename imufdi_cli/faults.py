@@ -233,9 +233,12 @@ def _build_fault(
 
     def quantity(key: str, dimension: str) -> float:
         try:
-            return parse_quantity(values[key], dimension, name=key)
+            value = parse_quantity(values[key], dimension, name=key)
         except UnitError as err:
             raise FaultSpecError(f"{where}: {err}") from err
+        if not math.isfinite(value):
+            raise FaultSpecError(f"{where}: {key}: {values[key]!r} is not a finite number")
+        return value
 
     def require(*keys: str) -> None:
         if not any(k in values for k in keys):

@@ -465,3 +465,49 @@ def test_bad_metadata_is_truth_error() -> None:
         faults_from_metadata({"json": '{"faults": [{"model": "step"}]}'})
     with pytest.raises(TruthError):
         faults_from_metadata({})
+
+
+def test_non_finite_values_rejected(array: ArrayConfig) -> None:
+    with pytest.raises(FaultSpecError, match="amp: '1e999deg/s' is not a finite number"):
+        parse_fault_spec("step:imu0.gyro.x,amp=1e999deg/s", array)
+    with pytest.raises(FaultSpecError, match="at: inf is not a finite number"):
+        fault_from_table(
+            {"model": "step", "sensor": "imu0.gyro.x", "at": math.inf, "amp": 1.0},
+            array,
+            where="t",
+        )
+
+
+def test_topic_imu_indices_natural_order_and_mag_pairing() -> None:
+    from types import SimpleNamespace
+
+    from imufdi_cli.faults import topic_imu_indices
+
+    def channel(topic: str, schema: str) -> SimpleNamespace:
+        return SimpleNamespace(topic=topic, schema=SimpleNamespace(name=schema))
+
+    imu, mag = "sensor_msgs/msg/Imu", "sensor_msgs/msg/MagneticField"
+    channels = {
+        0: channel("/imu10/data_raw", imu),
+        1: channel("/imu2/data_raw", imu),
+        2: channel("/imu10/mag", mag),
+        3: channel("/imufdi/truth", "imufdi/FaultEvent"),
+        4: channel("/imu0/data_raw", imu),
+        5: channel("/compass", mag),
+    }
+    imu_channels, mag_channels = topic_imu_indices(channels)
+    assert imu_channels == {4: 0, 1: 1, 0: 2}
+    assert mag_channels == {2: 2, 5: 0}
+
+
+def test_apply_leaves_unfaulted_streams_and_empty_blocks(array: ArrayConfig) -> None:
+    injector = FaultInjector(
+        [parse_fault_spec("step:imu1.gyro.y,amp=1", array)], array, seed=0, t0_ns=0
+    )
+    values = np.arange(12.0).reshape(4, 3)
+    t_ns = np.arange(4) * 10
+    assert_array_equal(injector.apply(0, "gyro", t_ns, values), values)
+    assert_array_equal(injector.apply(1, "accel", t_ns, values), values)
+    assert injector.apply(1, "gyro", t_ns[:0], values[:0]).shape == (0, 3)
+    assert_array_equal(injector.apply(1, "gyro", t_ns, values), values + np.array([0.0, 1.0, 0.0]))
+    assert injector.affects(1, "gyro") and not injector.affects(1, "accel")
