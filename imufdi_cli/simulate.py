@@ -709,12 +709,19 @@ def _draw_static_errors(config: SimConfig) -> dict[str, _StaticErrors]:
     return result
 
 
+def _to_imu_frames(rotations: np.ndarray, body: np.ndarray) -> np.ndarray:
+    """``R_k^T x`` for every sample and IMU: rotations (m, 3, 3), body (N, m or 1, 3) ->
+    (N, m, 3). Batched matmul over IMUs (row vectors times R_k)."""
+    body_per_imu = np.broadcast_to(body, (body.shape[0], rotations.shape[0], 3))
+    return np.ascontiguousarray(np.swapaxes(np.swapaxes(body_per_imu, 0, 1) @ rotations, 0, 1))
+
+
 def _true_triads(config: SimConfig, state: MotionState) -> dict[str, np.ndarray]:
     """Error-free triads (N, m, 3) in each IMU's frame for every sensor type present."""
     rotations = config.array.rotations()  # (m, 3, 3) IMU -> body
     triads: dict[str, np.ndarray] = {}
     if config.array.has("gyro"):
-        triads["gyro"] = np.einsum("mji,nj->nmi", rotations, state.angular_rate)
+        triads["gyro"] = _to_imu_frames(rotations, state.angular_rate[:, None, :])
     if config.array.has("accel"):
         positions = config.array.positions()  # (m, 3)
         w = state.angular_rate[:, None, :]
@@ -722,12 +729,12 @@ def _true_triads(config: SimConfig, state: MotionState) -> dict[str, np.ndarray]
             w, np.cross(w, positions[None])
         )
         accel_body = state.specific_force[:, None, :] + lever  # (N, m, 3)
-        triads["accel"] = np.einsum("mji,nmj->nmi", rotations, accel_body)
+        triads["accel"] = _to_imu_frames(rotations, accel_body)
     if config.array.has("mag"):
         field_body = np.einsum(
             "nji,j->ni", state.attitude, np.asarray(config.magnetic_field, float)
         )
-        triads["mag"] = np.einsum("mji,nj->nmi", rotations, field_body)
+        triads["mag"] = _to_imu_frames(rotations, field_body[:, None, :])
     return triads
 
 
@@ -756,7 +763,8 @@ def _simulate_chunks(config: SimConfig) -> Iterator[ImuBlock]:
                 key = (1, _c, _t, component)
                 return np.random.default_rng(np.random.SeedSequence(config.seed, spawn_key=key))
 
-            measured = np.einsum("mij,nmj->nmi", fixed.misalignment, true)
+            # M_k x: rows of x times M_k^T, batched over IMUs
+            measured = _to_imu_frames(np.swapaxes(fixed.misalignment, 1, 2), true)
             measured *= 1.0 + fixed.scale[None]
             measured += fixed.bias[None]
             if errors.bias_random_walk > 0:
