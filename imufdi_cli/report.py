@@ -213,7 +213,7 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
 
 # --- gates -----------------------------------------------------------------------------
 
-_OPS: dict[str, Callable[[float, float], bool]] = {
+OPERATORS: dict[str, Callable[[float, float], bool]] = {
     ">": operator.gt,
     ">=": operator.ge,
     "<": operator.lt,
@@ -304,7 +304,7 @@ def evaluate_gates(report: Report, gates: Sequence[Gate]) -> list[GateResult]:
                     GateResult(gate, target, None, True, f"{target} is undefined on this log")
                 )
                 continue
-            failed = _OPS[gate.op](actual, gate.value)
+            failed = OPERATORS[gate.op](actual, gate.value)
             verdict = "FAILED" if failed else "passed"
             results.append(
                 GateResult(

@@ -1,0 +1,866 @@
+"""Fault-injection campaigns: inject + detect + report over a run matrix, in parallel.
+
+A campaign spec (TOML) names base logs (simulate presets with seeds, or files/globs), the
+fault matrix, the detectors with parameter grids and the metrics to aggregate. It expands
+to a list of small, JSON-able run descriptions; each run is keyed by the SHA-256 of its
+canonical description, executed in a worker (process pool or dask.distributed), and its
+result written to ``runs/<key>.json`` as soon as it finishes (atomically), so ``--resume``
+skips what is done and an interrupted campaign loses at most the runs in flight. A run
+that fails is recorded with its error and the campaign goes on.
+
+Runs use the library in memory (simulate or read the base log once, inject with
+:class:`~imufdi_cli.faults.FaultInjector`, stream blocks through the detector, score with
+:func:`~imufdi_cli.metrics.compute_metrics`): the same maths as ``inject | detect |
+report``, without writing intermediate MCAP files.
+
+Spec example::
+
+    [campaign]
+    name = "compare"
+    seeds = [0, 1, 2, 3, 4]
+    calibrate = "0s:2s"
+    metrics = ["far", "mar", "fir", "detection_delay_s"]
+
+    [[base]]
+    preset = "paper-table4"
+
+    [[fault]]
+    model = "step"
+    sensor = ["imu0.gyro.x", "imu7.gyro.z"]
+    at = "2.5s"
+    amp = ["0.3deg/s", "0.6deg/s", "0.9deg/s"]
+
+    [[detector]]
+    name = "glt"
+    params = { alpha = [0.01, 0.001] }
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import hashlib
+import io
+import itertools
+import json
+import os
+import sys
+import time
+import traceback
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.errors import CampaignSpecError, ImufdiError, UsageError
+from imufdi_cli.fileio import write_text
+from imufdi_cli.metrics import METRIC_NAMES, FaultWindow, compute_metrics, mean_metrics
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+DEFAULT_METRICS = ["far", "mar", "accuracy", "fir", "detection_delay_s", "detection_probability"]
+BLOCK_SAMPLES = 4096
+NS_PER_S = 1_000_000_000
+
+
+# --- spec ------------------------------------------------------------------------------
+
+
+@dataclass
+class CampaignSpec:
+    """A parsed, validated campaign spec."""
+
+    name: str
+    runs: list[dict[str, Any]]
+    metrics: list[str]
+    source: str
+
+
+def _as_list(value: Any) -> list[Any]:
+    return list(value) if isinstance(value, (list, tuple)) else [value]
+
+
+def _grid(params: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """Cartesian product of list-valued entries (scalars are fixed)."""
+    keys = sorted(params)
+    values = [_as_list(params[k]) for k in keys]
+    return [dict(zip(keys, combo)) for combo in itertools.product(*values)]
+
+
+def _fault_specs(table: Mapping[str, Any], where: str) -> list[str]:
+    """Expand one [[fault]] table into spec strings of the CLI grammar."""
+    if "model" not in table or "sensor" not in table:
+        raise CampaignSpecError(f"{where}: needs model and sensor")
+    specs = []
+    for combo in _grid(table):
+        model = combo.pop("model")
+        sensor = combo.pop("sensor")
+        items = ",".join(f"{k}={v}" for k, v in sorted(combo.items()))
+        specs.append(f"{model}:{sensor}" + (f",{items}" if items else ""))
+    return specs
+
+
+def load_spec(path: str | Path) -> CampaignSpec:
+    """Parse and validate a campaign spec; every problem is reported before any run."""
+    from imufdi_cli.array import ArrayConfig
+    from imufdi_cli.detectors import DETECTORS, make_detector
+    from imufdi_cli.faults import parse_fault_spec
+    from imufdi_cli.simulate import PRESETS, config_from_options
+
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as err:
+        raise CampaignSpecError(f"cannot read campaign spec {path}: {err.strerror}") from err
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise CampaignSpecError(f"{path}: not valid TOML ({err})") from err
+    known = {"campaign", "base", "fault", "detector"}
+    for key in data:
+        if key not in known:
+            raise CampaignSpecError(
+                f"{path}: unknown table {key!r}; valid: {', '.join(sorted(known))}"
+            )
+    head = data.get("campaign", {})
+    head_keys = {"name", "seeds", "calibrate", "metrics"}
+    for key in head:
+        if key not in head_keys:
+            raise CampaignSpecError(
+                f"{path}: campaign.{key}: unknown key; valid: {', '.join(sorted(head_keys))}"
+            )
+    seeds = _as_list(head.get("seeds", [0]))
+    if not seeds or not all(
+        isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds
+    ):
+        raise CampaignSpecError(f"{path}: campaign.seeds must be a non-empty list of integers >= 0")
+    calibrate = str(head.get("calibrate", "0s:2s"))
+    from imufdi_cli.units import parse_time_range
+
+    try:
+        cal = parse_time_range(calibrate, name="campaign.calibrate")
+    except ImufdiError as err:
+        raise CampaignSpecError(f"{path}: {err}") from err
+    metrics = [str(m) for m in _as_list(head.get("metrics", DEFAULT_METRICS))]
+    for metric in metrics:
+        if metric not in METRIC_NAMES:
+            raise CampaignSpecError(
+                f"{path}: campaign.metrics: unknown metric {metric!r}; valid: {', '.join(METRIC_NAMES)}"
+            )
+
+    bases: list[dict[str, Any]] = []
+    arrays: list[Any] = []
+    for i, table in enumerate(_as_list(data.get("base", []))):
+        where = f"{path}: base[{i}]"
+        if not isinstance(table, Mapping):
+            raise CampaignSpecError(f"{where}: expected a table")
+        unknown = set(table) - {"preset", "options", "files"}
+        if unknown:
+            raise CampaignSpecError(
+                f"{where}: unknown key {sorted(unknown)[0]!r}; valid: files, options, preset"
+            )
+        if ("preset" in table) == ("files" in table):
+            raise CampaignSpecError(f"{where}: give exactly one of preset or files")
+        if "preset" in table:
+            name = str(table["preset"])
+            if name not in PRESETS:
+                raise CampaignSpecError(
+                    f"{where}: unknown preset {name!r}; valid: {', '.join(sorted(PRESETS))}"
+                )
+            options = {str(k): v for k, v in dict(table.get("options", {})).items()}
+            try:
+                config = config_from_options(name, seed=0, **options)
+            except ImufdiError as err:
+                raise CampaignSpecError(f"{where}: {err}") from err
+            bases.append({"preset": name, "options": options})
+            arrays.append(config.array)
+        else:
+            matched: list[str] = []
+            for pattern in _as_list(table["files"]):
+                pattern = str(pattern)
+                full = pattern if os.path.isabs(pattern) else str(path.parent / pattern)
+                found = sorted(glob.glob(full))
+                if not found:
+                    raise CampaignSpecError(f"{where}: no file matches {pattern!r}")
+                matched += found
+            for file in matched:
+                try:
+                    array = _read_base(os.path.abspath(file))[0]
+                except ImufdiError as err:
+                    raise CampaignSpecError(f"{where}: unreadable base log {file}: {err}") from err
+                bases.append({"file": os.path.abspath(file)})
+                arrays.append(array)
+    if not bases:
+        raise CampaignSpecError(f"{path}: needs at least one [[base]] (preset or files)")
+
+    fault_sets: list[list[str]] = []
+    for i, table in enumerate(_as_list(data.get("fault", []))):
+        where = f"{path}: fault[{i}]"
+        if not isinstance(table, Mapping):
+            raise CampaignSpecError(f"{where}: expected a table")
+        fault_sets += [[spec] for spec in _fault_specs(table, where)]
+    if not fault_sets:
+        raise CampaignSpecError(f"{path}: the fault matrix is empty; add [[fault]] tables")
+
+    detectors: list[tuple[str, dict[str, Any]]] = []
+    for i, table in enumerate(_as_list(data.get("detector", []))):
+        where = f"{path}: detector[{i}]"
+        if not isinstance(table, Mapping) or "name" not in table:
+            raise CampaignSpecError(f"{where}: needs name")
+        name = str(table["name"])
+        if name not in DETECTORS:
+            raise CampaignSpecError(
+                f"{where}: unknown detector {name!r}; valid: {', '.join(sorted(DETECTORS))}"
+            )
+        for params in _grid(dict(table.get("params", {}))):
+            try:
+                make_detector(name, params)
+            except ImufdiError as err:
+                raise CampaignSpecError(f"{where}: {err}") from err
+            detectors.append((name, params))
+    if not detectors:
+        raise CampaignSpecError(f"{path}: needs at least one [[detector]]")
+
+    for base, array in zip(bases, arrays):
+        assert isinstance(array, ArrayConfig)
+        for specs in fault_sets:
+            for spec in specs:
+                try:
+                    parse_fault_spec(spec, array)
+                except ImufdiError as err:
+                    label = base.get("preset") or base.get("file")
+                    raise CampaignSpecError(
+                        f"{path}: fault {spec!r} on base {label}: {err}"
+                    ) from err
+
+    runs = []
+    for base, specs, (det, params), seed in itertools.product(bases, fault_sets, detectors, seeds):
+        runs.append(
+            {
+                "base": base,
+                "seed": int(seed),
+                "faults": specs,
+                "detector": det,
+                "params": params,
+                "calibrate": [cal[0], cal[1]],
+            }
+        )
+    return CampaignSpec(
+        name=str(head.get("name", path.stem)), runs=runs, metrics=metrics, source=str(path)
+    )
+
+
+def run_key(desc: Mapping[str, Any]) -> str:
+    """Stable key of a run: SHA-256 of its canonical JSON (first 20 hex digits)."""
+    text = json.dumps(desc, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+# --- one run ---------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=8)
+def _read_base(path: str) -> tuple[Any, Any]:
+    from imufdi_cli.mcapio import read_array
+
+    return read_array(path)
+
+
+def execute_run(desc: Mapping[str, Any]) -> dict[str, Any]:
+    """Run one campaign run in this process; never raises (errors are recorded)."""
+    start = time.perf_counter()
+    try:
+        figures = _execute(desc)
+        return {
+            "key": run_key(desc),
+            "run": dict(desc),
+            "ok": True,
+            "metrics": figures,
+            "seconds": time.perf_counter() - start,
+        }
+    except Exception as err:  # a failed run is a result, the campaign goes on
+        message = str(err) if isinstance(err, ImufdiError) else f"{type(err).__name__}: {err}"
+        return {
+            "key": run_key(desc),
+            "run": dict(desc),
+            "ok": False,
+            "error": message,
+            "traceback": "" if isinstance(err, ImufdiError) else traceback.format_exc(limit=5),
+            "seconds": time.perf_counter() - start,
+        }
+
+
+def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
+    from imufdi_cli.detectors import make_detector
+    from imufdi_cli.detectors.base import DetectionBlock
+    from imufdi_cli.faults import FaultInjector, parse_fault_spec
+    from imufdi_cli.log import iter_blocks
+    from imufdi_cli.simulate import config_from_options, simulate_block
+
+    base = desc["base"]
+    seed = int(desc["seed"])
+    if "preset" in base:
+        config = config_from_options(base["preset"], seed=seed, **base.get("options", {}))
+        array, block = simulate_block(config)
+    else:
+        array, block = _read_base(base["file"])
+    faults = [parse_fault_spec(spec, array) for spec in desc["faults"]]
+    t0 = int(block.t_ns[0])
+    injector = FaultInjector(faults, array, seed=seed, t0_ns=t0)
+    faulty = injector.apply_block(block)
+    detector = make_detector(desc["detector"], desc["params"])
+    rel = (faulty.t_ns - t0) / NS_PER_S
+    cal_start, cal_end = desc["calibrate"]
+    keep = rel >= cal_start
+    if cal_end is not None:
+        keep &= rel < cal_end
+    detector.fit(faulty.mask(keep), array)
+    outputs: dict[str, list[DetectionBlock]] = {}
+    for part in iter_blocks(faulty, BLOCK_SAMPLES):
+        for sensor_type, out in detector.process(part).items():
+            outputs.setdefault(sensor_type, []).append(out)
+    for sensor_type, out in detector.flush().items():
+        outputs.setdefault(sensor_type, []).append(out)
+    figures: dict[str, Any] = {}
+    for sensor_type, parts in outputs.items():
+        det = DetectionBlock.concatenate(parts)
+        ids = array.sensor_ids(sensor_type)
+        faulty_mask = np.zeros((len(det), len(ids)), dtype=bool)
+        windows = []
+        for fault in faults:
+            if fault.sensor_type != sensor_type:
+                continue
+            columns = [ids.index(s) for s in fault.sensors if s in ids]
+            active = fault.active(faulty.t_ns, t0)
+            faulty_mask[np.ix_(active, columns)] = True
+            end = None if fault.until_ns is None else t0 + fault.until_ns
+            windows.append(FaultWindow(fault.id, tuple(columns), t0 + fault.at_ns, end))
+        metrics = compute_metrics(faulty.t_ns, det.alarm, det.isolated, faulty_mask, windows)
+        figures[sensor_type] = {name: metrics.value(name) for name in METRIC_NAMES} | {
+            "faults": [f.to_dict() for f in metrics.faults]
+        }
+    return figures
+
+
+# --- executors -------------------------------------------------------------------------
+
+
+class _Executor:
+    """submit(desc) -> future-like; results streamed back with as_completed semantics."""
+
+    def run(self, runs: Sequence[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+class LocalExecutor(_Executor):
+    """A process pool on this machine (``--jobs``); ``jobs=1`` runs in this process."""
+
+    def __init__(self, jobs: int) -> None:
+        self.jobs = jobs
+
+    def run(self, runs: Sequence[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        if self.jobs == 1:
+            for desc in runs:
+                yield execute_run(desc)
+            return
+        import multiprocessing
+
+        context = multiprocessing.get_context("spawn" if sys.platform == "darwin" else "fork")
+        with ProcessPoolExecutor(max_workers=self.jobs, mp_context=context) as pool:
+            pending: set[Future[dict[str, Any]]] = set()
+            queue = iter(runs)
+            # keep a bounded number of runs in flight: little lost on interruption
+            for desc in itertools.islice(queue, 2 * self.jobs):
+                pending.add(pool.submit(execute_run, desc))
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in done:
+                    yield future.result()
+                    nxt = next(queue, None)
+                    if nxt is not None:
+                        pending.add(pool.submit(execute_run, nxt))
+
+
+class DaskExecutor(_Executor):
+    """dask.distributed: ``tcp://host:port`` (an existing scheduler) or ``local:N``
+    (a LocalCluster of N single-threaded worker processes on loopback)."""
+
+    def __init__(self, scheduler: str) -> None:
+        try:
+            from dask.distributed import Client, LocalCluster
+        except ImportError as err:
+            raise UsageError(
+                "--scheduler needs dask.distributed: pip install 'imufdi-cli[dask]'"
+            ) from err
+        self.cluster = None
+        if scheduler.startswith("local:"):
+            try:
+                workers = int(scheduler.split(":", 1)[1])
+                if workers < 1:
+                    raise ValueError
+            except ValueError:
+                raise UsageError(
+                    f"--scheduler {scheduler!r}: local:N needs N >= 1 workers"
+                ) from None
+            self.cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address=None,
+            )
+            self.client = Client(self.cluster)
+        elif scheduler.startswith("tcp://"):
+            try:
+                self.client = Client(scheduler, timeout=20)
+            except OSError as err:
+                raise UsageError(f"--scheduler {scheduler}: cannot connect ({err})") from err
+        else:
+            raise UsageError(
+                f"--scheduler {scheduler!r}: valid forms are tcp://HOST:PORT and local:N"
+            )
+
+    def run(self, runs: Sequence[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        from dask.distributed import as_completed
+
+        futures = [self.client.submit(execute_run, desc, pure=False) for desc in runs]
+        for future in as_completed(futures):
+            yield future.result()
+
+    def close(self) -> None:
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+# --- campaign --------------------------------------------------------------------------
+
+
+@dataclass
+class CampaignResult:
+    directory: str
+    total: int
+    executed: int
+    skipped: int
+    failed: int
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    summary: dict[str, Any] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def _write_json_atomic(path: Path, data: Any) -> None:
+    write_text(str(path), json.dumps(data, sort_keys=True, default=_jsonable) + "\n")
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    raise TypeError(type(value).__name__)
+
+
+def run_campaign(
+    spec: CampaignSpec,
+    results_dir: str | Path,
+    *,
+    jobs: int | None = None,
+    scheduler: str | None = None,
+    resume: bool = False,
+    progress: Callable[[int, int, dict[str, Any] | None], None] | None = None,
+) -> CampaignResult:
+    """Execute a campaign and write runs/, runs.csv, summary.json, summary.md.
+
+    ``progress(done, total, result)`` is called after each finished run.
+    """
+    start = time.perf_counter()
+    out = Path(results_dir)
+    runs_dir = out / "runs"
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"-o {out}: exists and is not a directory")
+    existing = sorted(runs_dir.glob("*.json")) if runs_dir.is_dir() else []
+    if existing and not resume:
+        raise UsageError(
+            f"{out} already holds {len(existing)} run results; use --resume to continue"
+            " or choose another directory"
+        )
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    keyed = {run_key(desc): desc for desc in spec.runs}
+    done_keys = {p.stem for p in existing} & set(keyed) if resume else set()
+    todo = [desc for key, desc in keyed.items() if key not in done_keys]
+    total = len(keyed)
+    executor: _Executor
+    if scheduler:
+        executor = DaskExecutor(scheduler)
+    else:
+        executor = LocalExecutor(jobs or os.cpu_count() or 1)
+    executed = 0
+    try:
+        if progress:
+            progress(len(done_keys), total, None)
+        for result in executor.run(todo):
+            _write_json_atomic(runs_dir / f"{result['key']}.json", result)
+            executed += 1
+            if progress:
+                progress(len(done_keys) + executed, total, result)
+    finally:
+        executor.close()
+    results = []
+    for key in keyed:
+        path = runs_dir / f"{key}.json"
+        if path.exists():
+            results.append(json.loads(path.read_text(encoding="utf-8")))
+    rows = _rows(results)
+    summary = summarize(spec, results)
+    write_text(str(out / "runs.csv"), _rows_csv(rows))
+    _write_json_atomic(out / "summary.json", summary)
+    write_text(str(out / "summary.md"), summary_markdown(summary))
+    try:
+        plot_curves(summary, out)
+    except UsageError:
+        pass  # matplotlib not installed: figures are optional
+    return CampaignResult(
+        directory=str(out),
+        total=total,
+        executed=executed,
+        skipped=len(done_keys),
+        failed=sum(1 for r in results if not r["ok"]),
+        rows=rows,
+        summary=summary,
+        seconds=time.perf_counter() - start,
+    )
+
+
+def _fault_model_amp(specs: Sequence[str]) -> tuple[str, str]:
+    """Model and amplitude-like parameter of a run's (first) fault spec, for grouping."""
+    spec = specs[0]
+    model, rest = spec.split(":", 1)
+    parts = rest.split(",")
+    values = dict(p.split("=", 1) for p in parts[1:] if "=" in p)
+    amp = (
+        values.get("amp") or values.get("rate") or values.get("factor") or values.get("sigma") or ""
+    )
+    return model, amp
+
+
+def _base_label(base: Mapping[str, Any]) -> str:
+    if "preset" in base:
+        opts = ",".join(f"{k}={v}" for k, v in sorted(base.get("options", {}).items()))
+        return base["preset"] + (f"[{opts}]" if opts else "")
+    return os.path.basename(base["file"])
+
+
+def _rows(results: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    rows = []
+    for r in results:
+        run = r["run"]
+        model, amp = _fault_model_amp(run["faults"])
+        common = {
+            "key": r["key"],
+            "base": _base_label(run["base"]),
+            "seed": run["seed"],
+            "faults": ";".join(run["faults"]),
+            "model": model,
+            "amplitude": amp,
+            "detector": run["detector"],
+            "params": json.dumps(run["params"], sort_keys=True),
+            "ok": r["ok"],
+            "error": r.get("error", ""),
+        }
+        if not r["ok"]:
+            rows.append(common | {"sensor_type": ""})
+            continue
+        for sensor_type, figures in sorted(r["metrics"].items()):
+            row = common | {"sensor_type": sensor_type}
+            row |= {name: figures.get(name) for name in METRIC_NAMES}
+            rows.append(row)
+    return rows
+
+
+def _rows_csv(rows: Sequence[Mapping[str, Any]]) -> str:
+    fields = [
+        "key",
+        "base",
+        "seed",
+        "faults",
+        "model",
+        "amplitude",
+        "detector",
+        "params",
+        "sensor_type",
+        "ok",
+        "error",
+        *METRIC_NAMES,
+    ]
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n")
+    writer.writeheader()
+    for row in sorted(
+        rows,
+        key=lambda r: (
+            r["base"],
+            r["detector"],
+            r["params"],
+            r["faults"],
+            r["seed"],
+            r["sensor_type"],
+        ),
+    ):
+        writer.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in fields})
+    return buffer.getvalue()
+
+
+def summarize(spec: CampaignSpec, results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Means and spreads over seeds per base x detector x params x fault model x amplitude
+    x sensor type, plus detection probability against amplitude per detector."""
+    groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
+    for row in _rows(results):
+        if not row["ok"]:
+            continue
+        fault_type = row["faults"].split(":", 1)[1].split(",")[0].split(".")[1]
+        if row["sensor_type"] != fault_type:
+            continue  # score each run on the sensor type its fault acts on
+        key = (
+            row["base"],
+            row["detector"],
+            row["params"],
+            row["model"],
+            row["amplitude"],
+            row["sensor_type"],
+        )
+        groups.setdefault(key, []).append(row)
+    table = []
+    for key, rows in sorted(groups.items()):
+        base, det, params, model, amp, sensor_type = key
+        entry: dict[str, Any] = {
+            "base": base,
+            "detector": det,
+            "params": json.loads(params),
+            "model": model,
+            "amplitude": amp,
+            "sensor_type": sensor_type,
+            "runs": len(rows),
+        }
+        for metric in spec.metrics:
+            mean, std, count = mean_metrics([r.get(metric) for r in rows])
+            entry[metric] = {"mean": mean, "std": std, "n": count}
+        table.append(entry)
+    failures = [{"key": r["key"], "error": r.get("error", "")} for r in results if not r["ok"]]
+    return {
+        "name": spec.name,
+        "spec": spec.source,
+        "runs": len(results),
+        "failed": len(failures),
+        "metrics": spec.metrics,
+        "groups": table,
+        "failures": failures[:50],
+    }
+
+
+def summary_markdown(summary: Mapping[str, Any]) -> str:
+    metrics = summary["metrics"]
+    scale = {
+        m: (
+            100.0
+            if m
+            in {
+                "far",
+                "mar",
+                "accuracy",
+                "fir",
+                "isolation_accuracy",
+                "detection_rate",
+                "detection_probability",
+                "alarm_rate",
+            }
+            else 1.0
+        )
+        for m in metrics
+    }
+    head = ["base", "detector", "params", "fault", "amplitude", "type", "runs"] + [
+        f"{m} {'%' if scale[m] == 100.0 else ''}".strip() for m in metrics
+    ]
+    lines = [
+        f"# Campaign {summary['name']}",
+        "",
+        f"{summary['runs']} runs, {summary['failed']} failed. Mean ± standard deviation over seeds.",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "|".join("---" for _ in head) + "|",
+    ]
+    for g in summary["groups"]:
+        cells = [
+            g["base"],
+            g["detector"],
+            ", ".join(f"{k}={v}" for k, v in g["params"].items()) or "default",
+            g["model"],
+            g["amplitude"],
+            g["sensor_type"],
+            str(g["runs"]),
+        ]
+        for m in metrics:
+            stat = g[m]
+            if stat["mean"] is None:
+                cells.append("undefined")
+            elif stat["std"] is None:
+                cells.append(f"{stat['mean'] * scale[m]:.3g}")
+            else:
+                cells.append(f"{stat['mean'] * scale[m]:.3g} ± {stat['std'] * scale[m]:.2g}")
+        lines.append("| " + " | ".join(cells) + " |")
+    if summary["failures"]:
+        lines += ["", "## Failed runs", ""]
+        lines += [f"- `{f['key']}`: {f['error']}" for f in summary["failures"]]
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
+    """PNG of detection probability (and MAR) against amplitude per detector (plot extra)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as err:
+        raise UsageError("plots need matplotlib") from err
+    from imufdi_cli.units import parse_quantity, sensor_dimension
+
+    curves: dict[tuple[str, str, str, str], list[tuple[float, float]]] = {}
+    for g in summary["groups"]:
+        if "detection_probability" not in g or g["detection_probability"]["mean"] is None:
+            continue
+        try:
+            x = parse_quantity(g["amplitude"], sensor_dimension(g["sensor_type"]))
+        except ImufdiError:
+            try:
+                x = float(g["amplitude"])
+            except ValueError:
+                continue
+        label = g["detector"] + ("" if not g["params"] else " " + json.dumps(g["params"]))
+        curves.setdefault((g["base"], g["model"], g["sensor_type"], label), []).append(
+            (x, g["detection_probability"]["mean"])
+        )
+    if not curves:
+        return
+    fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
+    for (base, model, _type, label), points in sorted(curves.items()):
+        points.sort()
+        xs, ys = zip(*points)
+        ax.plot(xs, ys, "o-", label=f"{label} · {model} · {base}")
+    ax.set_xlabel("fault amplitude (SI)")
+    ax.set_ylabel("detection probability")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    tmp = out / ".detection_probability.png.tmp.png"
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, out / "detection_probability.png")
+
+
+# --- gates over the summary ------------------------------------------------------------
+
+
+def evaluate_summary_gates(
+    summary: Mapping[str, Any], gates: Sequence[str]
+) -> list[tuple[str, bool, str]]:
+    """``DETECTOR.TYPE.METRIC OP NUMBER`` on the group means; a gate fails when any group
+    of that detector and type violates it (or its mean is undefined)."""
+    from imufdi_cli.detectors import DETECTORS
+    from imufdi_cli.errors import GateError
+    from imufdi_cli.report import OPERATORS, parse_gate
+
+    parsed = [parse_gate(g, DETECTORS) for g in gates]
+    outcomes = []
+    for gate in parsed:
+        groups = [
+            g
+            for g in summary["groups"]
+            if gate.detector in ("*", g["detector"]) and gate.sensor_type in ("*", g["sensor_type"])
+        ]
+        if not groups:
+            raise GateError(
+                f"--fail-if {gate.text!r}: no campaign results for {gate.detector}.{gate.sensor_type}"
+            )
+        for g in groups:
+            stat = g.get(gate.metric)
+            if stat is None:
+                raise GateError(
+                    f"--fail-if {gate.text!r}: metric {gate.metric!r} is not aggregated; add it to campaign.metrics"
+                )
+            label = f"{g['detector']}.{g['sensor_type']}.{gate.metric} [{g['base']} {g['model']} {g['amplitude']}]"
+            if stat["mean"] is None:
+                outcomes.append((label, True, f"{label} is undefined"))
+                continue
+            failed = OPERATORS[gate.op](stat["mean"], gate.value)
+            outcomes.append(
+                (
+                    label,
+                    failed,
+                    f"{'FAILED' if failed else 'passed'}: {label} = {stat['mean']:.6g} (fail if {gate.op} {gate.value:g})",
+                )
+            )
+    return outcomes
+
+
+def run_campaign_cli(
+    spec_path: str,
+    results_dir: str,
+    *,
+    jobs: int | None,
+    scheduler: str | None,
+    resume: bool,
+    gates: Sequence[str],
+    console: Any,
+) -> int:
+    """What ``imufdi campaign`` does; returns the exit code (0, or 1 when a gate fails)."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeRemainingColumn,
+    )
+
+    from imufdi_cli.detectors import DETECTORS
+    from imufdi_cli.report import parse_gate
+
+    spec = load_spec(spec_path)
+    for gate in gates:
+        parse_gate(gate, DETECTORS)  # bad gates fail before any run
+    with Progress(
+        TextColumn("[bold]campaign[/] {task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("failed {task.fields[failed]}"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=False,
+    ) as bar:
+        task = bar.add_task(spec.name, total=len({run_key(r) for r in spec.runs}), failed=0)
+        failed = 0
+
+        def progress(done: int, total: int, result: dict[str, Any] | None) -> None:
+            nonlocal failed
+            if result is not None and not result["ok"]:
+                failed += 1
+            bar.update(task, completed=done, failed=failed)
+
+        result = run_campaign(
+            spec, results_dir, jobs=jobs, scheduler=scheduler, resume=resume, progress=progress
+        )
+    console.print(
+        f"{result.total} runs ({result.executed} executed, {result.skipped} resumed, "
+        f"{result.failed} failed) in {result.seconds:.1f} s -> {result.directory}"
+    )
+    outcomes = evaluate_summary_gates(result.summary, gates)
+    for _, failed_gate, message in outcomes:
+        console.print(f"[{'red' if failed_gate else 'green'}]gate {message}[/]", markup=True)
+    return 1 if any(f for _, f, _ in outcomes) else 0
