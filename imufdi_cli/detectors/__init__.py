@@ -10,9 +10,16 @@ from __future__ import annotations
 from typing import Any
 
 from imufdi_cli.detectors.base import DetectionBlock, Detector, Param, parse_params
+from imufdi_cli.detectors.glt import GltDetector
+from imufdi_cli.detectors.noise_glr import NoiseGlrDetector
+from imufdi_cli.detectors.pca_parity import PcaParityDetector
 from imufdi_cli.errors import DetectorConfigError
 
-DETECTORS: dict[str, type] = {}
+DETECTORS: dict[str, type] = {
+    GltDetector.name: GltDetector,
+    PcaParityDetector.name: PcaParityDetector,
+    NoiseGlrDetector.name: NoiseGlrDetector,
+}
 
 
 def make_detector(name: str, raw_params: dict[str, Any] | None = None) -> Detector:
