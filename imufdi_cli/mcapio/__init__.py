@@ -1,1 +1,51 @@
-"""mcapio."""
+"""Fast MCAP I/O for IMU arrays (DESIGN.md §4).
+
+Low level: :class:`McapSource` (streaming reader, one :class:`MessageBatch` per chunk) and
+:class:`McapWriter` (bulk writer, atomic rename). IMU arrays: :class:`ImuArrayReader`,
+:class:`ImuArrayWriter`, :func:`read_array`, :func:`write_array`; per-channel codecs
+:func:`decode_imu`, :func:`patch_imu`, :func:`decode_mag`, :func:`patch_mag`. Detector
+status channels: :func:`register_status_channel`, :func:`encode_status`, :func:`read_status`.
+"""
+
+from imufdi_cli.mcapio.imu import (
+    ARRAY_METADATA,
+    AlignmentStats,
+    ImuArrayReader,
+    ImuArrayWriter,
+    ImuFields,
+    decode_imu,
+    decode_mag,
+    encode_messages,
+    is_imu_channel,
+    is_mag_channel,
+    natural_key,
+    patch_imu,
+    patch_mag,
+    read_array,
+    write_array,
+)
+from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch, SchemaInfo
+from imufdi_cli.mcapio.source import McapSource
+
+__all__ = [
+    "ARRAY_METADATA",
+    "AlignmentStats",
+    "ChannelInfo",
+    "ImuArrayReader",
+    "ImuArrayWriter",
+    "ImuFields",
+    "McapSource",
+    "McapWriter",
+    "MessageBatch",
+    "SchemaInfo",
+    "decode_imu",
+    "decode_mag",
+    "encode_messages",
+    "is_imu_channel",
+    "is_mag_channel",
+    "natural_key",
+    "patch_imu",
+    "patch_mag",
+    "read_array",
+    "write_array",
+]

@@ -1,0 +1,537 @@
+"""ros2msg schemas and bulk CDR decoding with numpy.
+
+A ``ros2msg`` schema (as ``ros2 bag record`` writes it) is the main message definition
+followed by its dependencies, each after a line of ``=`` and a ``MSG: pkg/Type`` line.
+:func:`parse_ros2msg` turns that text into message definitions; :class:`CdrLayout`
+flattens a type into a small program: runs of fixed-size fields become constant offsets
+from a per-message position, and only strings, sequences and the re-alignment after them
+cost vectorised work. :meth:`CdrLayout.locate` runs the program over N messages at once
+(one position per message), giving the byte position of every requested field.
+
+CDR (OMG CDR as used by ROS 2 / Fast-CDR): a 4-byte encapsulation header (``00 01``
+little-endian, ``00 00`` big-endian), then fields aligned to their own size (at most 8)
+counted from the end of that header; strings are ``u32 length`` (including the NUL) and
+bytes; sequences are ``u32 count`` and elements (aligned only when count > 0).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.errors import McapInputError
+from imufdi_cli.mcapio.records import MessageBatch, gather_bytes
+
+#: ROS 2 primitive type -> (numpy dtype code without byte order, size in bytes)
+PRIMITIVES: dict[str, tuple[str, int]] = {
+    "bool": ("u1", 1),
+    "byte": ("u1", 1),
+    "char": ("u1", 1),
+    "int8": ("i1", 1),
+    "uint8": ("u1", 1),
+    "int16": ("i2", 2),
+    "uint16": ("u2", 2),
+    "int32": ("i4", 4),
+    "uint32": ("u4", 4),
+    "int64": ("i8", 8),
+    "uint64": ("u8", 8),
+    "float32": ("f4", 4),
+    "float64": ("f8", 8),
+}
+STRING_TYPES = ("string", "wstring")
+
+_BUILTIN_DEFS = {
+    "builtin_interfaces/msg/Time": "int32 sec\nuint32 nanosec\n",
+    "builtin_interfaces/msg/Duration": "int32 sec\nuint32 nanosec\n",
+    "std_msgs/msg/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
+}
+
+
+@dataclass(frozen=True)
+class FieldDef:
+    """One field of a message definition.
+
+    ``type_name`` is a primitive name, ``string``/``wstring``, or a full ``pkg/msg/Type``;
+    ``array`` is None (scalar), ``"fixed"`` (``size`` elements) or ``"sequence"``.
+    """
+
+    name: str
+    type_name: str
+    array: str | None = None
+    size: int = 0
+
+
+@dataclass(frozen=True)
+class MsgDef:
+    name: str
+    fields: tuple[FieldDef, ...]
+
+
+def normalize_type(type_name: str, package: str) -> str:
+    """``Header`` -> ``std_msgs/msg/Header``, ``pkg/Type`` -> ``pkg/msg/Type``, bare names
+    resolve in ``package``."""
+    if type_name in PRIMITIVES or type_name in STRING_TYPES:
+        return type_name
+    if type_name == "Header":
+        return "std_msgs/msg/Header"
+    if type_name in ("time", "duration"):
+        return f"builtin_interfaces/msg/{type_name.capitalize()}"
+    parts = type_name.split("/")
+    if len(parts) == 1:
+        return f"{package}/msg/{parts[0]}"
+    if len(parts) == 2:
+        return f"{parts[0]}/msg/{parts[1]}"
+    return type_name
+
+
+_FIELD_RE = re.compile(r"^([A-Za-z0-9_/]+)(<=\d+)?(\[(<=)?(\d*)\])?\s+([A-Za-z_][A-Za-z0-9_]*)")
+
+
+def _parse_section(name: str, text: str) -> MsgDef:
+    package = name.split("/")[0]
+    fields = []
+    for raw_line in text.splitlines():
+        line = raw_line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        match = _FIELD_RE.match(line)
+        if match is None:
+            raise McapInputError(f"ros2msg schema {name}: cannot parse line {raw_line.strip()!r}")
+        base, _bound, array, upper, size, field_name = match.groups()
+        rest = line[match.end() :].strip()
+        if rest.startswith("="):
+            continue  # a constant, not a field
+        type_name = normalize_type(base, package)
+        if array is None:
+            fields.append(FieldDef(field_name, type_name))
+        elif size and not upper:
+            fields.append(FieldDef(field_name, type_name, "fixed", int(size)))
+        else:
+            fields.append(FieldDef(field_name, type_name, "sequence"))
+    return MsgDef(name, tuple(fields))
+
+
+def parse_ros2msg(schema_name: str, text: str | bytes) -> dict[str, MsgDef]:
+    """Parse a concatenated ros2msg schema into ``{full type name: MsgDef}``.
+
+    The main type is ``schema_name``; dependency sections start with ``MSG: pkg/Type``.
+    Missing definitions of ``builtin_interfaces/msg/Time``/``Duration`` and
+    ``std_msgs/msg/Header`` are supplied.
+    """
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", errors="replace")
+    main = normalize_type(schema_name, schema_name.split("/")[0])
+    sections = re.split(r"^=+\s*$", text, flags=re.MULTILINE)
+    defs: dict[str, MsgDef] = {}
+    defs[main] = _parse_section(main, sections[0])
+    for section in sections[1:]:
+        lines = section.strip("\n").splitlines()
+        header = next((ln for ln in lines if ln.strip()), "")
+        if not header.startswith("MSG:"):
+            raise McapInputError(f"ros2msg schema {schema_name}: section without 'MSG:' line")
+        dep = header[4:].strip()
+        dep_name = normalize_type(dep, dep.split("/")[0])
+        body = "\n".join(lines[lines.index(header) + 1 :])
+        defs[dep_name] = _parse_section(dep_name, body)
+    for name, body in _BUILTIN_DEFS.items():
+        if name not in defs:
+            defs[name] = _parse_section(name, body)
+    return defs
+
+
+# --- layout program ---------------------------------------------------------------------
+
+
+@dataclass
+class _Leaf:
+    path: str
+    dtype: str  # numpy code without byte order ("f8"), or "string"
+    count: int  # elements (fixed arrays), 1 for scalars
+    segment: int
+    offset: int  # constant offset from the segment's base position
+
+
+@dataclass
+class _Step:
+    """Runtime work between segments: advance by a constant, then align, or read a
+    string/sequence length and skip it."""
+
+    kind: str  # "align", "string", "sequence"
+    advance: int  # constant bytes added to the position first
+    align: int = 1  # alignment after advancing ("align") / element alignment ("sequence")
+    element_size: int = 0  # sequence element size
+    path: str = ""
+
+
+@dataclass
+class CdrLayout:
+    """Compiled CDR layout of a message type (see module docstring)."""
+
+    root: str
+    steps: list[_Step] = field(default_factory=list)
+    leaves: dict[str, _Leaf] = field(default_factory=dict)
+
+    @classmethod
+    def compile(cls, defs: dict[str, MsgDef], root: str) -> CdrLayout:
+        layout = cls(root)
+        state = {"segment": 0, "const": 0, "base_align": 8}
+
+        def need_runtime_align(alignment: int) -> None:
+            if alignment <= state["base_align"]:
+                state["const"] = -(-state["const"] // alignment) * alignment
+                return
+            layout.steps.append(_Step("align", state["const"], alignment))
+            state["segment"] += 1
+            state["const"] = 0
+            state["base_align"] = alignment
+
+        def primitive(path: str, type_name: str, count: int) -> None:
+            code, size = PRIMITIVES[type_name]
+            need_runtime_align(size)
+            layout.leaves[path] = _Leaf(path, code, count, state["segment"], state["const"])
+            state["const"] += size * count
+
+        def variable(path: str, kind: str, element_size: int) -> None:
+            need_runtime_align(4)
+            layout.leaves[path] = _Leaf(path, kind, 1, state["segment"], state["const"])
+            layout.steps.append(
+                _Step(kind, state["const"], max(element_size, 1), element_size, path)
+            )
+            state["segment"] += 1
+            state["const"] = 0
+            state["base_align"] = 1
+
+        def walk(type_name: str, prefix: str, depth: int) -> None:
+            if depth > 32:
+                raise McapInputError(f"ros2msg schema {root}: type nesting too deep")
+            msg = defs.get(type_name)
+            if msg is None:
+                raise McapInputError(
+                    f"ros2msg schema {root}: no definition of {type_name} in the schema text"
+                )
+            for fdef in msg.fields:
+                path = f"{prefix}{fdef.name}"
+                elem = fdef.type_name
+                if fdef.array == "sequence":
+                    if elem in PRIMITIVES:
+                        variable(path, "sequence", PRIMITIVES[elem][1])
+                        layout.leaves[path].dtype = PRIMITIVES[elem][0]
+                    else:
+                        # Sequences of strings or messages: skipping them needs a
+                        # per-message walk; the layout marks the rest as unreachable.
+                        layout.steps.append(_Step("opaque", state["const"], path=path))
+                        state["segment"] += 1
+                        state["const"] = 0
+                        return
+                elif elem in PRIMITIVES:
+                    primitive(path, elem, fdef.size if fdef.array == "fixed" else 1)
+                elif elem in STRING_TYPES:
+                    count = fdef.size if fdef.array == "fixed" else 1
+                    for i in range(count):
+                        sub = f"{path}[{i}]" if fdef.array == "fixed" else path
+                        variable(sub, "string" if elem == "string" else "wstring", 1)
+                else:
+                    if fdef.array == "fixed":
+                        for i in range(fdef.size):
+                            walk(elem, f"{path}[{i}].", depth + 1)
+                    else:
+                        walk(elem, f"{path}.", depth + 1)
+
+        walk(root, "", 0)
+        return layout
+
+    def locate(
+        self, data: np.ndarray, offsets: np.ndarray, lengths: np.ndarray, paths: Sequence[str]
+    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Byte positions of fields in N messages of the same endianness.
+
+        Parameters
+        ----------
+        data : ndarray, uint8
+        offsets, lengths : ndarray, shape (N,)
+            Payloads (with their 4-byte encapsulation header).
+        paths : sequence of str
+            Leaf paths (``angular_velocity.x``, ``header.stamp.sec``, ...).
+
+        Returns
+        -------
+        positions : dict path -> (N,) int64
+            Absolute positions in ``data`` of each requested leaf.
+        sizes : dict path -> (N,) int64
+            For sequences and strings: element count / byte length (else absent).
+        """
+        wanted = {}
+        for path in paths:
+            leaf = self.leaves.get(path)
+            if leaf is None:
+                raise McapInputError(f"{self.root} has no field {path!r}")
+            wanted[path] = leaf
+        last_segment = max((leaf.segment for leaf in wanted.values()), default=0)
+        origin = offsets.astype(np.int64) + 4
+        position = origin.copy()
+        positions: dict[str, np.ndarray] = {}
+        sizes: dict[str, np.ndarray] = {}
+        segment = 0
+        for step in self.steps:
+            if segment > last_segment:
+                break
+            for path, leaf in wanted.items():
+                if leaf.segment == segment and path not in positions:
+                    positions[path] = position + leaf.offset
+            if step.kind == "opaque":
+                raise McapInputError(
+                    f"{self.root}: fields after {step.path!r} need the general decoder"
+                )
+            position = position + step.advance
+            if step.kind == "align":
+                rel = position - origin
+                position = origin + (-(-rel // step.align)) * step.align
+            else:
+                rel = position - origin
+                position = origin + (-(-rel // 4)) * 4
+                count = self._u32(data, position, self._endian)
+                if step.kind in ("string", "wstring"):
+                    width = 4 if step.kind == "wstring" else 1
+                    sizes[step.path] = count
+                    positions[step.path] = position + 4
+                    position = position + 4 + count * width
+                else:
+                    sizes[step.path] = count
+                    position = position + 4
+                    rel = position - origin
+                    aligned = origin + (-(-rel // step.align)) * step.align
+                    position = np.where(count > 0, aligned, position)
+                    positions[step.path] = position
+                    position = position + count * step.element_size
+            segment += 1
+        for path, leaf in wanted.items():
+            if leaf.segment == segment and path not in positions:
+                positions[path] = position + leaf.offset
+        ends = {p: positions[p] + self.leaf_size(p, sizes) for p in wanted}
+        payload_end = offsets.astype(np.int64) + lengths.astype(np.int64)
+        for path, end in ends.items():
+            if end.size and bool(np.any(end > payload_end)):
+                raise McapInputError(f"{self.root}: field {path!r} lies past the message end")
+        return positions, sizes
+
+    _endian = "<"
+
+    def leaf_size(self, path: str, sizes: dict[str, np.ndarray]) -> np.ndarray | int:
+        leaf = self.leaves[path]
+        if leaf.dtype in ("string", "wstring"):
+            return sizes[path] * (4 if leaf.dtype == "wstring" else 1)
+        if path in sizes:
+            return sizes[path] * int(PRIMITIVES_BY_CODE[leaf.dtype])
+        return leaf.count * int(PRIMITIVES_BY_CODE[leaf.dtype])
+
+    @staticmethod
+    def _u32(data: np.ndarray, position: np.ndarray, endian: str) -> np.ndarray:
+        if position.size and int(position.max()) + 4 > data.shape[0]:
+            raise McapInputError("CDR length field lies past the end of the data")
+        return gather_bytes(data, position, 4).view(endian + "u4").reshape(-1).astype(np.int64)
+
+
+PRIMITIVES_BY_CODE = {code: size for code, size in PRIMITIVES.values()}
+
+
+def encapsulation_endian(batch: MessageBatch) -> np.ndarray:
+    """Per message: True for little-endian CDR, False for big-endian.
+
+    Raises McapInputError for payloads shorter than 4 bytes or other encapsulations
+    (parameter lists, XCDR2).
+    """
+    if len(batch) == 0:
+        return np.zeros(0, bool)
+    if bool(np.any(batch.length < 4)):
+        raise McapInputError("CDR message shorter than its 4-byte encapsulation header")
+    head = gather_bytes(batch.data, batch.offset, 2)
+    kind = head[:, 1]
+    if bool(np.any(head[:, 0] != 0)) or bool(np.any(kind > 1)):
+        bad = int(kind[(kind > 1) | (head[:, 0] != 0)][0]) if bool(np.any(kind > 1)) else -1
+        raise McapInputError(
+            f"unsupported CDR encapsulation (kind {bad}); supported: CDR_LE, CDR_BE"
+        )
+    return kind == 1
+
+
+class CdrCodec:
+    """Bulk field access for one ros2msg schema (cached per schema)."""
+
+    def __init__(self, schema_name: str, schema_text: bytes | str) -> None:
+        self.defs = parse_ros2msg(schema_name, schema_text)
+        self.root = normalize_type(schema_name, schema_name.split("/")[0])
+        self.layout = CdrLayout.compile(self.defs, self.root)
+
+    def positions(
+        self, batch: MessageBatch, paths: Sequence[str]
+    ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Little-endian flags (N,) and positions/sizes of ``paths`` for every message."""
+        little = encapsulation_endian(batch)
+        n = len(batch)
+        positions = {p: np.zeros(n, np.int64) for p in paths}
+        sizes: dict[str, np.ndarray] = {}
+        for flag in (True, False):
+            mask = little == flag
+            if not bool(mask.any()):
+                continue
+            full = bool(mask.all())
+            offs = batch.offset if full else batch.offset[mask]
+            lens = batch.length if full else batch.length[mask]
+            self.layout._endian = "<" if flag else ">"
+            try:
+                pos, size = self.layout.locate(batch.data, offs, lens, paths)
+            finally:
+                self.layout._endian = "<"
+            for path, value in pos.items():
+                if path not in positions:
+                    positions[path] = np.zeros(n, np.int64)
+                if full:
+                    positions[path] = value
+                else:
+                    positions[path][mask] = value
+            for path, value in size.items():
+                sizes.setdefault(path, np.zeros(n, np.int64))
+                if full:
+                    sizes[path] = value
+                else:
+                    sizes[path][mask] = value
+        return little, positions, sizes
+
+    def read(
+        self, batch: MessageBatch, little: np.ndarray, position: np.ndarray, code: str, count: int
+    ) -> np.ndarray:
+        """Values (N, count) of dtype ``code`` at per-message ``position``."""
+        size = PRIMITIVES_BY_CODE[code]
+        raw = gather_bytes(batch.data, position, size * count)
+        n = len(batch)
+        if bool(little.all()) or size == 1:
+            return raw.view("<" + code).reshape(n, count)
+        out = raw.view(">" + code).reshape(n, count).astype("<" + code)
+        if bool(little.any()):
+            out[little] = raw[little].view("<" + code).reshape(-1, count)
+        return out
+
+    def write(
+        self,
+        batch: MessageBatch,
+        little: np.ndarray,
+        position: np.ndarray,
+        code: str,
+        values: np.ndarray,
+    ) -> None:
+        """Overwrite values (N, count) at per-message ``position`` in ``batch.data``."""
+        n = len(batch)
+        values = np.asarray(values).reshape(n, -1)
+        count = values.shape[1]
+        size = PRIMITIVES_BY_CODE[code]
+        as_little = np.ascontiguousarray(values, dtype="<" + code).view(np.uint8)
+        raw = as_little.reshape(n, size * count)
+        if not bool(little.all()):
+            as_big = np.ascontiguousarray(values, dtype=">" + code).view(np.uint8)
+            raw = np.where(little[:, None], raw, as_big.reshape(n, size * count))
+        index = position[:, None] + np.arange(size * count, dtype=np.int64)[None, :]
+        batch.data[index] = raw
+
+
+_CODECS: dict[tuple[str, bytes], CdrCodec] = {}
+
+
+def codec_for(schema_name: str, schema_data: bytes) -> CdrCodec:
+    """Cached codec of a ros2msg schema."""
+    key = (schema_name, bytes(schema_data))
+    codec = _CODECS.get(key)
+    if codec is None:
+        codec = CdrCodec(schema_name, schema_data)
+        if len(_CODECS) > 64:
+            _CODECS.clear()
+        _CODECS[key] = codec
+    return codec
+
+
+# --- general per-message decoding (fallback) --------------------------------------------
+
+
+def decode_cdr_message(defs: dict[str, MsgDef], root: str, payload: bytes) -> dict[str, Any]:
+    """Decode one CDR message into nested dicts (general, slow path)."""
+    if len(payload) < 4 or payload[0] != 0 or payload[1] > 1:
+        raise McapInputError("unsupported or missing CDR encapsulation header")
+    endian = "<" if payload[1] == 1 else ">"
+    state = {"pos": 4}
+
+    def align(size: int) -> None:
+        rel = state["pos"] - 4
+        state["pos"] += (-rel) % size
+
+    def prim(type_name: str) -> Any:
+        code, size = PRIMITIVES[type_name]
+        align(size)
+        fmt = (
+            endian
+            + {
+                "u1": "B",
+                "i1": "b",
+                "i2": "h",
+                "u2": "H",
+                "i4": "i",
+                "u4": "I",
+                "i8": "q",
+                "u8": "Q",
+                "f4": "f",
+                "f8": "d",
+            }[code]
+        )
+        (value,) = struct.unpack_from(fmt, payload, state["pos"])
+        state["pos"] += size
+        return bool(value) if type_name == "bool" else value
+
+    def string() -> str:
+        align(4)
+        (length,) = struct.unpack_from(endian + "I", payload, state["pos"])
+        state["pos"] += 4
+        raw = payload[state["pos"] : state["pos"] + length]
+        state["pos"] += length
+        return raw.rstrip(b"\0").decode("utf-8", errors="replace")
+
+    def value(type_name: str) -> Any:
+        if type_name in PRIMITIVES:
+            return prim(type_name)
+        if type_name in STRING_TYPES:
+            return string()
+        return message(type_name)
+
+    def message(type_name: str) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for fdef in defs[type_name].fields:
+            if fdef.array is None:
+                out[fdef.name] = value(fdef.type_name)
+                continue
+            if fdef.array == "fixed":
+                count = fdef.size
+            else:
+                align(4)
+                (count,) = struct.unpack_from(endian + "I", payload, state["pos"])
+                state["pos"] += 4
+            out[fdef.name] = [value(fdef.type_name) for _ in range(count)]
+        return out
+
+    try:
+        return message(root)
+    except (struct.error, KeyError) as err:
+        raise McapInputError(f"malformed CDR message of type {root}: {err}") from err
+
+
+def decode_json_payloads(batch: MessageBatch) -> list[Any]:
+    """JSON-decode every payload (general path)."""
+    out = []
+    for i in range(len(batch)):
+        try:
+            out.append(json.loads(batch.payload(i)))
+        except (ValueError, UnicodeDecodeError) as err:
+            raise McapInputError(f"malformed JSON message: {err}") from err
+    return out

@@ -1,0 +1,819 @@
+"""IMU arrays in MCAP: ``sensor_msgs/msg/Imu`` / ``MagneticField`` codecs, the array writer,
+and the streaming, time-aligning array reader (DESIGN.md §4)."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections import deque
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.errors import ArrayConfigError, McapInputError, UsageError
+from imufdi_cli.log import ImuBlock, rechunk
+from imufdi_cli.mcapio.cdr import CdrCodec, codec_for, decode_json_payloads
+from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch
+from imufdi_cli.mcapio.schemas import IMU_SCHEMA, IMU_SCHEMA_NAME, MAG_SCHEMA, MAG_SCHEMA_NAME
+from imufdi_cli.mcapio.source import McapSource
+
+ARRAY_METADATA = "imufdi.array"
+IMU_TYPE_NAMES = ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")
+MAG_TYPE_NAMES = ("sensor_msgs/msg/MagneticField", "sensor_msgs/MagneticField")
+NS_PER_S = 1_000_000_000
+
+
+@dataclass
+class ImuFields:
+    """Decoded values of N Imu (or MagneticField) messages of one channel.
+
+    Attributes
+    ----------
+    t_ns : ndarray, shape (N,), int64
+        ``header.stamp`` in nanoseconds.
+    log_time : ndarray, shape (N,), int64
+        MCAP log time, nanoseconds.
+    gyro : ndarray, shape (N, 3), float64, or None
+        ``angular_velocity``, rad/s.
+    accel : ndarray, shape (N, 3), float64, or None
+        ``linear_acceleration``, m/s^2.
+    mag : ndarray, shape (N, 3), float64, or None
+        ``magnetic_field``, tesla.
+    """
+
+    t_ns: np.ndarray
+    log_time: np.ndarray
+    gyro: np.ndarray | None = None
+    accel: np.ndarray | None = None
+    mag: np.ndarray | None = None
+
+
+def natural_key(text: str) -> list[Any]:
+    """Sort key ordering ``/imu2`` before ``/imu10``."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text)]
+
+
+def schema_name(channel: ChannelInfo) -> str:
+    return channel.schema.name if channel.schema is not None else ""
+
+
+def is_imu_channel(channel: ChannelInfo) -> bool:
+    return schema_name(channel) in IMU_TYPE_NAMES and channel.message_encoding in ("cdr", "json")
+
+
+def is_mag_channel(channel: ChannelInfo) -> bool:
+    return schema_name(channel) in MAG_TYPE_NAMES and channel.message_encoding in ("cdr", "json")
+
+
+# --- decoding ---------------------------------------------------------------------------
+
+_VECTORS = {"gyro": "angular_velocity", "accel": "linear_acceleration", "mag": "magnetic_field"}
+
+
+def _codec(channel: ChannelInfo) -> CdrCodec:
+    if channel.schema is None or channel.schema.encoding != "ros2msg":
+        enc = channel.schema.encoding if channel.schema else "none"
+        raise McapInputError(
+            f"channel {channel.topic}: CDR messages need a ros2msg schema, got {enc!r}"
+        )
+    return codec_for(channel.schema.name, channel.schema.data)
+
+
+def _vector_paths(codec: CdrCodec, field_name: str) -> str:
+    """Path of ``<field>.x``, checking that y and z follow it as contiguous float64."""
+    leaves = codec.layout.leaves
+    first = leaves.get(f"{field_name}.x")
+    ok = first is not None and first.dtype == "f8"
+    for i, axis in enumerate("yz", start=1):
+        leaf = leaves.get(f"{field_name}.{axis}")
+        ok = ok and leaf is not None and first is not None
+        ok = ok and leaf.segment == first.segment and leaf.offset == first.offset + 8 * i  # type: ignore[union-attr]
+        ok = ok and leaf.dtype == "f8"  # type: ignore[union-attr]
+    if not ok:
+        raise McapInputError(f"{codec.root}: {field_name} is not a float64 x, y, z vector")
+    return f"{field_name}.x"
+
+
+def _decode_cdr(batch: MessageBatch, channel: ChannelInfo, kinds: Sequence[str]) -> ImuFields:
+    codec = _codec(channel)
+    vector_paths = {kind: _vector_paths(codec, _VECTORS[kind]) for kind in kinds}
+    paths = ["header.stamp.sec", "header.stamp.nanosec", *vector_paths.values()]
+    little, positions, _ = codec.positions(batch, paths)
+    sec = codec.read(batch, little, positions["header.stamp.sec"], "i4", 1)[:, 0]
+    nanosec = codec.read(batch, little, positions["header.stamp.nanosec"], "u4", 1)[:, 0]
+    out = ImuFields(
+        t_ns=sec.astype(np.int64) * NS_PER_S + nanosec.astype(np.int64),
+        log_time=batch.log_time.astype(np.int64),
+    )
+    for kind, path in vector_paths.items():
+        setattr(out, kind, codec.read(batch, little, positions[path], "f8", 3).astype(np.float64))
+    return out
+
+
+def _decode_json(batch: MessageBatch, channel: ChannelInfo, kinds: Sequence[str]) -> ImuFields:
+    n = len(batch)
+    t_ns = np.zeros(n, np.int64)
+    vectors = {kind: np.zeros((n, 3)) for kind in kinds}
+    for i, obj in enumerate(decode_json_payloads(batch)):
+        try:
+            stamp = obj["header"]["stamp"]
+            t_ns[i] = int(stamp["sec"]) * NS_PER_S + int(stamp.get("nanosec", stamp.get("nsec", 0)))
+            for kind in kinds:
+                vec = obj[_VECTORS[kind]]
+                vectors[kind][i] = (float(vec["x"]), float(vec["y"]), float(vec["z"]))
+        except (KeyError, TypeError, ValueError) as err:
+            raise McapInputError(
+                f"channel {channel.topic}: JSON message {i} lacks a field of {schema_name(channel)}"
+                f" ({err!r})"
+            ) from err
+    return ImuFields(t_ns=t_ns, log_time=batch.log_time.astype(np.int64), **vectors)
+
+
+def _decode(batch: MessageBatch, channel: ChannelInfo, kinds: Sequence[str]) -> ImuFields:
+    if channel.message_encoding == "cdr":
+        return _decode_cdr(batch, channel, kinds)
+    if channel.message_encoding == "json":
+        return _decode_json(batch, channel, kinds)
+    raise McapInputError(
+        f"channel {channel.topic}: message encoding {channel.message_encoding!r} is not"
+        " supported; supported: cdr, json"
+    )
+
+
+def decode_imu(batch: MessageBatch, channel: ChannelInfo) -> ImuFields:
+    """Stamps, angular velocity and linear acceleration of Imu messages (one channel).
+
+    CDR payloads are decoded in bulk (one position per message, gathers of 24 bytes);
+    JSON payloads one by one.
+    """
+    return _decode(batch, channel, ("gyro", "accel"))
+
+
+def decode_mag(batch: MessageBatch, channel: ChannelInfo) -> ImuFields:
+    """Stamps and magnetic field (tesla) of MagneticField messages (one channel)."""
+    return _decode(batch, channel, ("mag",))
+
+
+def _patch(
+    batch: MessageBatch, channel: ChannelInfo, values: dict[str, np.ndarray | None]
+) -> MessageBatch:
+    if channel.message_encoding != "cdr":
+        raise McapInputError(
+            f"channel {channel.topic}: only CDR messages can be patched in place, got"
+            f" {channel.message_encoding!r}"
+        )
+    n = len(batch)
+    # Copy the payloads into a fresh buffer so the input batch is left untouched.
+    data = batch.data.copy()
+    out = MessageBatch(
+        channel_id=batch.channel_id.copy(),
+        sequence=batch.sequence.copy(),
+        log_time=batch.log_time.copy(),
+        publish_time=batch.publish_time.copy(),
+        data=data,
+        offset=batch.offset.copy(),
+        length=batch.length.copy(),
+    )
+    codec = _codec(channel)
+    requested = {k: v for k, v in values.items() if v is not None}
+    if not requested or n == 0:
+        return out
+    paths = {kind: _vector_paths(codec, _VECTORS[kind]) for kind in requested}
+    little, positions, _ = codec.positions(out, list(paths.values()))
+    for kind, array in requested.items():
+        array = np.asarray(array, dtype=np.float64)
+        if array.shape != (n, 3):
+            raise UsageError(f"{kind} values must have shape ({n}, 3), got {array.shape}")
+        codec.write(out, little, positions[paths[kind]], "f8", array)
+    return out
+
+
+def patch_imu(
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    *,
+    gyro: np.ndarray | None = None,
+    accel: np.ndarray | None = None,
+) -> MessageBatch:
+    """The same Imu messages with angular velocity and/or linear acceleration (N, 3)
+    replaced; every other byte is identical. The input batch is not modified."""
+    return _patch(batch, channel, {"gyro": gyro, "accel": accel})
+
+
+def patch_mag(batch: MessageBatch, channel: ChannelInfo, *, mag: np.ndarray) -> MessageBatch:
+    """The same MagneticField messages with ``magnetic_field`` (N, 3) replaced."""
+    return _patch(batch, channel, {"mag": mag})
+
+
+# --- encoding ---------------------------------------------------------------------------
+
+
+def _cdr_string(text: str, position: int) -> tuple[bytes, int]:
+    raw = text.encode("utf-8") + b"\0"
+    pad = (-position) % 4
+    return b"\0" * pad + len(raw).to_bytes(4, "little") + raw, position + pad + 4 + len(raw)
+
+
+def _template(kind: str, frame_id: str) -> tuple[np.ndarray, dict[str, int]]:
+    """One CDR_LE message with zero values and the byte offsets of the stamp and vectors."""
+    body = bytearray(b"\0" * 8)  # stamp sec, nanosec (CDR positions 0..7)
+    string, position = _cdr_string(frame_id, 8)
+    body += string
+    pad = (-position) % 8
+    body += b"\0" * pad
+    position += pad
+    offsets = {"sec": 4, "nanosec": 8}
+
+    def f8(values: Sequence[float]) -> bytes:
+        return np.asarray(values, dtype="<f8").tobytes()
+
+    if kind == "imu":
+        body += f8([0.0, 0.0, 0.0, 1.0])  # orientation (unknown)
+        body += f8([-1.0] + [0.0] * 8)  # orientation_covariance[0] = -1: no orientation
+        offsets["gyro"] = 4 + position + 13 * 8
+        body += f8([0.0] * 12)
+        offsets["accel"] = 4 + position + 25 * 8
+        body += f8([0.0] * 12)
+    else:
+        offsets["mag"] = 4 + position
+        body += f8([0.0] * 12)
+    payload = b"\x00\x01\x00\x00" + bytes(body)
+    return np.frombuffer(payload, dtype=np.uint8).copy(), offsets
+
+
+def encode_messages(
+    kind: str,
+    frame_id: str,
+    channel_id: int,
+    t_ns: np.ndarray,
+    vectors: dict[str, np.ndarray | None],
+    *,
+    first_sequence: int = 0,
+) -> MessageBatch:
+    """Bulk CDR encoding of N Imu (``kind="imu"``) or MagneticField (``"mag"``) messages.
+
+    ``vectors`` maps ``gyro``/``accel`` (or ``mag``) to (N, 3) arrays in SI units; a missing
+    vector is written as NaN. Log and publish times are the stamps.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    n = t_ns.shape[0]
+    template, offsets = _template(kind, frame_id)
+    length = template.shape[0]
+    out = np.empty((n, length), dtype=np.uint8)
+    out[:] = template
+    sec = np.floor_divide(t_ns, NS_PER_S)
+    if n and (int(sec.min()) < -(2**31) or int(sec.max()) >= 2**31):
+        raise UsageError("timestamps do not fit a ROS 2 builtin_interfaces/Time (int32 seconds)")
+    out[:, offsets["sec"] : offsets["sec"] + 4] = sec.astype("<i4").view(np.uint8).reshape(n, 4)
+    nanosec = (t_ns - sec * NS_PER_S).astype("<u4")
+    out[:, offsets["nanosec"] : offsets["nanosec"] + 4] = nanosec.view(np.uint8).reshape(n, 4)
+    for name in ("gyro", "accel") if kind == "imu" else ("mag",):
+        value = vectors.get(name)
+        array = np.full((n, 3), np.nan) if value is None else np.asarray(value, dtype="<f8")
+        if array.shape != (n, 3):
+            raise UsageError(f"{name} must have shape ({n}, 3), got {array.shape}")
+        start = offsets[name]
+        out[:, start : start + 24] = (
+            np.ascontiguousarray(array, dtype="<f8").view(np.uint8).reshape(n, 24)
+        )
+    return MessageBatch(
+        channel_id=np.full(n, channel_id, np.uint16),
+        sequence=(first_sequence + np.arange(n, dtype=np.int64)).astype(np.uint32),
+        log_time=t_ns.copy(),
+        publish_time=t_ns.copy(),
+        data=out.reshape(-1),
+        offset=np.arange(n, dtype=np.int64) * length,
+        length=np.full(n, length, np.int64),
+    )
+
+
+class ImuArrayWriter:
+    """Writes an IMU array's samples as one Imu channel per IMU (and MagneticField channels
+    when the array has magnetometers), DESIGN.md §4.
+
+    Parameters
+    ----------
+    writer : McapWriter
+    array : ArrayConfig
+        Written as the ``imufdi.array`` metadata record.
+    topics : sequence of str, optional
+        Imu topic per IMU (default ``/imu<k>/data_raw``); magnetometer topics are the
+        same namespace + ``/mag``.
+    frame_ids : sequence of str, optional
+        ``header.frame_id`` per IMU (default ``imu<k>``).
+    """
+
+    def __init__(
+        self,
+        writer: McapWriter,
+        array: ArrayConfig,
+        *,
+        topics: Sequence[str] | None = None,
+        frame_ids: Sequence[str] | None = None,
+    ) -> None:
+        m = array.n_imus
+        self.writer = writer
+        self.array = array
+        self.topics = (
+            list(topics) if topics is not None else [f"/imu{k}/data_raw" for k in range(m)]
+        )
+        self.frame_ids = list(frame_ids) if frame_ids is not None else [f"imu{k}" for k in range(m)]
+        if len(self.topics) != m or len(self.frame_ids) != m:
+            raise UsageError(f"need {m} topics and frame ids (one per IMU)")
+        imu_schema = writer.register_schema(IMU_SCHEMA_NAME, "ros2msg", IMU_SCHEMA)
+        self.imu_channels = [writer.register_channel(t, "cdr", imu_schema) for t in self.topics]
+        self.mag_channels: list[int] = []
+        if array.has("mag"):
+            mag_schema = writer.register_schema(MAG_SCHEMA_NAME, "ros2msg", MAG_SCHEMA)
+            self.mag_channels = [
+                writer.register_channel(t.rsplit("/", 1)[0] + "/mag", "cdr", mag_schema)
+                for t in self.topics
+            ]
+        writer.add_metadata(ARRAY_METADATA, {"json": array.to_json()})
+        self._written = 0
+
+    def write_block(self, block: ImuBlock) -> None:
+        """Bulk-encode a block (all IMUs) and queue it, messages in time order."""
+        n = len(block)
+        if n == 0:
+            return
+        if block.n_imus != self.array.n_imus:
+            raise UsageError(f"block has {block.n_imus} IMUs but the array has {self.array.n_imus}")
+        parts = []
+        for k, channel_id in enumerate(self.imu_channels):
+            parts.append(
+                encode_messages(
+                    "imu",
+                    self.frame_ids[k],
+                    channel_id,
+                    block.t_ns,
+                    {
+                        "gyro": None if block.gyro is None else block.gyro[:, k],
+                        "accel": None if block.accel is None else block.accel[:, k],
+                    },
+                    first_sequence=self._written,
+                )
+            )
+        if self.mag_channels and block.mag is not None:
+            for k, channel_id in enumerate(self.mag_channels):
+                parts.append(
+                    encode_messages(
+                        "mag",
+                        self.frame_ids[k],
+                        channel_id,
+                        block.t_ns,
+                        {"mag": block.mag[:, k]},
+                        first_sequence=self._written,
+                    )
+                )
+        self._written += n
+        # Sample-major order: for each stamp imu0..imu(m-1) (then magnetometers).
+        lengths = {int(p.length[0]) for p in parts}
+        if len(lengths) == 1:
+            length = lengths.pop()
+            stacked = np.stack([p.data.reshape(n, length) for p in parts], axis=1)
+            c = len(parts)
+            batch = MessageBatch(
+                channel_id=np.stack([p.channel_id for p in parts], axis=1).reshape(-1),
+                sequence=np.stack([p.sequence for p in parts], axis=1).reshape(-1),
+                log_time=np.repeat(block.t_ns, c),
+                publish_time=np.repeat(block.t_ns, c),
+                data=stacked.reshape(-1),
+                offset=np.arange(n * c, dtype=np.int64) * length,
+                length=np.full(n * c, length, np.int64),
+            )
+        else:
+            joined = MessageBatch.concatenate(parts)
+            order = np.argsort(
+                np.arange(len(joined)) % n * len(parts) + np.arange(len(joined)) // n,
+                kind="stable",
+            )
+            batch = joined.select(order)
+        self.writer.add_batch(batch)
+
+
+def write_array(
+    output: str | Path | IO[bytes],
+    array: ArrayConfig,
+    block: ImuBlock,
+    *,
+    metadata: dict[str, dict[str, str]] | None = None,
+    compression: str = "zstd",
+) -> None:
+    """Write a whole in-memory array log (``imufdi.array`` metadata plus ``metadata``)."""
+    with McapWriter(output, compression=compression) as writer:
+        array_writer = ImuArrayWriter(writer, array)
+        for name, values in (metadata or {}).items():
+            writer.add_metadata(name, values)
+        array_writer.write_block(block)
+
+
+# --- alignment --------------------------------------------------------------------------
+
+
+@dataclass
+class AlignmentStats:
+    """What time alignment of the IMU topics found (nothing is filled in).
+
+    Attributes
+    ----------
+    n_aligned : int
+        Array samples produced (every topic had a sample at that time).
+    gaps : dict
+        Per topic: samples missing where other topics have one.
+    duplicates : dict
+        Per topic: extra samples in the same time slot (the first is kept).
+    misaligned : int
+        Aligned samples whose stamps matched only within the tolerance (not exactly).
+    dropped : int
+        Time slots not produced because at least one topic had no sample.
+    late : dict
+        Per topic: samples that arrived after their time slot was already produced
+        (out of order by more than the other topics' lead); dropped.
+    messages : dict
+        Per topic: messages read.
+    max_skew_ns : int
+        Largest stamp spread within an aligned sample.
+    tolerance_ns : int
+        Stamps closer than this are the same time slot.
+    """
+
+    n_aligned: int = 0
+    gaps: dict[str, int] = field(default_factory=dict)
+    duplicates: dict[str, int] = field(default_factory=dict)
+    misaligned: int = 0
+    dropped: int = 0
+    late: dict[str, int] = field(default_factory=dict)
+    messages: dict[str, int] = field(default_factory=dict)
+    max_skew_ns: int = 0
+    tolerance_ns: int = 0
+
+
+class _Aligner:
+    """Groups samples of S streams into time slots (stamps within ``tolerance``)."""
+
+    def __init__(
+        self, names: list[str], widths: list[int], tolerance: int, max_pending: int
+    ) -> None:
+        self.names = names
+        self.widths = widths
+        self.tolerance = int(tolerance)
+        self.max_pending = max_pending
+        self.pending_t: list[list[np.ndarray]] = [[] for _ in names]
+        self.pending_v: list[list[np.ndarray]] = [[] for _ in names]
+        self.boundary: int | None = None  # stamps <= boundary are resolved
+        self.stats = AlignmentStats(
+            gaps=dict.fromkeys(names, 0),
+            duplicates=dict.fromkeys(names, 0),
+            late=dict.fromkeys(names, 0),
+            messages=dict.fromkeys(names, 0),
+            tolerance_ns=self.tolerance,
+        )
+
+    def add(self, stream: int, t_ns: np.ndarray, values: np.ndarray) -> None:
+        name = self.names[stream]
+        self.stats.messages[name] += int(t_ns.shape[0])
+        if self.boundary is not None:
+            late = t_ns <= self.boundary
+            if bool(late.any()):
+                self.stats.late[name] += int(late.sum())
+                t_ns, values = t_ns[~late], values[~late]
+        if t_ns.shape[0]:
+            self.pending_t[stream].append(t_ns)
+            self.pending_v[stream].append(values)
+
+    def _collect(self, stream: int) -> tuple[np.ndarray, np.ndarray]:
+        if not self.pending_t[stream]:
+            return np.zeros(0, np.int64), np.zeros((0, self.widths[stream]))
+        t = np.concatenate(self.pending_t[stream])
+        v = np.concatenate(self.pending_v[stream])
+        if t.shape[0] > 1 and not bool(np.all(np.diff(t) >= 0)):
+            order = np.argsort(t, kind="stable")
+            t, v = t[order], v[order]
+        self.pending_t[stream] = [t]
+        self.pending_v[stream] = [v]
+        return t, v
+
+    def resolve(self, final: bool) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Stamps (K,) and per-stream values (K, width) of the time slots now complete."""
+        streams = range(len(self.names))
+        collected = [self._collect(s) for s in streams]
+        empty = (np.zeros(0, np.int64), [np.zeros((0, w)) for w in self.widths])
+        sizes = [t.shape[0] for t, _ in collected]
+        if sum(sizes) == 0:
+            return empty
+        if final:
+            horizon = None
+        else:
+            if min(sizes) == 0:
+                if max(sizes) <= self.max_pending:
+                    return empty
+                # A stream has been silent for long: resolve what the others have.
+                horizon = min(int(t[-1]) for t, _ in collected if t.shape[0])
+            else:
+                horizon = min(int(t[-1]) for t, _ in collected)
+        all_t = np.concatenate([t for t, _ in collected])
+        all_s = np.concatenate(
+            [np.full(t.shape[0], s, np.int64) for s, (t, _) in enumerate(collected)]
+        )
+        all_i = np.concatenate([np.arange(t.shape[0]) for t, _ in collected])
+        order = np.argsort(all_t, kind="stable")
+        all_t, all_s, all_i = all_t[order], all_s[order], all_i[order]
+        new_slot = np.empty(all_t.shape[0], bool)
+        new_slot[0] = True
+        np.greater(np.diff(all_t), self.tolerance, out=new_slot[1:])
+        slot = np.cumsum(new_slot) - 1
+        n_slots = int(slot[-1]) + 1
+        slot_end = np.full(n_slots, np.iinfo(np.int64).min)
+        np.maximum.at(slot_end, slot, all_t)
+        if horizon is None:
+            n_done = n_slots
+        else:
+            n_done = int(np.searchsorted(slot_end + self.tolerance, horizon, side="left"))
+        if n_done == 0:
+            return empty
+        done = slot < n_done
+        all_t, all_s, all_i, slot = all_t[done], all_s[done], all_i[done], slot[done]
+        boundary = int(slot_end[n_done - 1])
+        self.boundary = boundary if self.boundary is None else max(self.boundary, boundary)
+        n_streams = len(self.names)
+        key = slot * n_streams + all_s
+        counts = np.bincount(key, minlength=n_done * n_streams).reshape(n_done, n_streams)
+        complete = np.all(counts >= 1, axis=1)
+        missing = counts == 0
+        for s, name in enumerate(self.names):
+            self.stats.gaps[name] += int(missing[:, s].sum())
+            self.stats.duplicates[name] += int(np.maximum(counts[:, s] - 1, 0).sum())
+        self.stats.dropped += int((~complete).sum())
+        unique_keys, first = np.unique(key, return_index=True)
+        first_slot = unique_keys // n_streams
+        first_stream = unique_keys % n_streams
+        keep = complete[first_slot]
+        first, first_slot, first_stream = first[keep], first_slot[keep], first_stream[keep]
+        complete_slots = np.flatnonzero(complete)
+        rank = np.cumsum(complete) - 1
+        k = complete_slots.shape[0]
+        stamps = np.zeros((k, n_streams), np.int64)
+        stamps[rank[first_slot], first_stream] = all_t[first]
+        index = np.zeros((k, n_streams), np.int64)
+        index[rank[first_slot], first_stream] = all_i[first]
+        values = [collected[s][1][index[:, s]] for s in streams]
+        if k:
+            skew = stamps.max(axis=1) - stamps.min(axis=1)
+            self.stats.misaligned += int(np.count_nonzero(skew))
+            self.stats.max_skew_ns = max(self.stats.max_skew_ns, int(skew.max()))
+        self.stats.n_aligned += k
+        # Drop resolved samples from the pending buffers.
+        for s, (t, v) in enumerate(collected):
+            cut = int(np.searchsorted(t, boundary, side="right"))
+            self.pending_t[s] = [t[cut:]] if cut < t.shape[0] else []
+            self.pending_v[s] = [v[cut:]] if cut < t.shape[0] else []
+        return stamps[:, 0].copy(), values
+
+
+# --- reader -----------------------------------------------------------------------------
+
+
+class ImuArrayReader:
+    """Streaming reader of an IMU array from any MCAP with ``sensor_msgs/msg/Imu`` channels.
+
+    Parameters
+    ----------
+    source : path, ``"-"``, binary stream or McapSource
+    topics : sequence of str, optional
+        Imu topics to read, in array order (default: every Imu channel, sorted naturally).
+        Magnetometers are read from ``<namespace>/mag`` MagneticField topics when every
+        selected IMU has one.
+    strict : bool
+        Raise McapInputError on a truncated or corrupt file instead of adding a warning.
+    time_source : {"header", "log_time"}
+        Stamp used for alignment and output: ``header.stamp`` or the MCAP log time.
+    block_size : int
+        Samples per block yielded by :meth:`blocks`.
+    tolerance_ns : int, optional
+        Stamps of different topics closer than this are the same sample (default: 30 % of
+        the sample period).
+
+    Attributes
+    ----------
+    array : ArrayConfig
+        From the ``imufdi.array`` metadata when it matches the topics, else inferred
+        (co-aligned, one IMU per topic, measured rate).
+    """
+
+    def __init__(
+        self,
+        source: str | Path | IO[bytes] | McapSource,
+        *,
+        topics: Sequence[str] | None = None,
+        strict: bool = False,
+        time_source: str = "header",
+        block_size: int = 4096,
+        tolerance_ns: int | None = None,
+    ) -> None:
+        if time_source not in ("header", "log_time"):
+            raise UsageError(f"unknown time source {time_source!r}; valid: header, log_time")
+        if block_size < 1:
+            raise UsageError(f"block_size must be >= 1, got {block_size}")
+        self.source = (
+            source if isinstance(source, McapSource) else McapSource(source, strict=strict)
+        )
+        self.time_source = time_source
+        self.block_size = block_size
+        self.warnings = self.source.warnings
+        self._batches = self.source.batches()
+        self._prefetched: deque[MessageBatch] = deque()
+        self._exhausted = False
+        self._prefetch(1)
+        imu_channels = {c.topic: c for c in self.source.channels.values() if is_imu_channel(c)}
+        if not imu_channels:
+            topics_found = sorted({c.topic for c in self.source.channels.values()}, key=natural_key)
+            self.close()
+            raise McapInputError(
+                f"{self.source.name}: no sensor_msgs/msg/Imu channel (CDR or JSON); topics: "
+                + (", ".join(topics_found) or "none")
+            )
+        if topics is None:
+            self.imu_topics = sorted(imu_channels, key=natural_key)
+        else:
+            self.imu_topics = list(topics)
+            unknown = [t for t in self.imu_topics if t not in imu_channels]
+            if unknown or not self.imu_topics:
+                self.close()
+                raise McapInputError(
+                    f"{self.source.name}: no Imu channel on topic(s) {', '.join(unknown) or '(none)'};"
+                    f" Imu topics: {', '.join(sorted(imu_channels, key=natural_key))}"
+                )
+            if len(set(self.imu_topics)) != len(self.imu_topics):
+                self.close()
+                raise UsageError("a topic is selected twice")
+        mag_channels = {c.topic: c for c in self.source.channels.values() if is_mag_channel(c)}
+        mag_topics = [t.rsplit("/", 1)[0] + "/mag" for t in self.imu_topics]
+        self.mag_topics = mag_topics if all(t in mag_channels for t in mag_topics) else []
+        self._imu_channel = {imu_channels[t].id: k for k, t in enumerate(self.imu_topics)}
+        self._mag_channel = (
+            {mag_channels[t].id: k for k, t in enumerate(self.mag_topics)}
+            if self.mag_topics
+            else {}
+        )
+        # Enough data to measure the rate.
+        self._prefetch(64, per_channel=8)
+        self.array = self._array_config()
+        if self.array.has("mag") and not self.mag_topics:
+            self.warnings.append(
+                "array config has magnetometers but not every IMU topic has a <ns>/mag topic;"
+                " magnetometers are not read"
+            )
+        period_ns = NS_PER_S / self.array.rate_hz
+        tolerance = int(0.3 * period_ns) if tolerance_ns is None else int(tolerance_ns)
+        names = list(self.imu_topics) + list(self.mag_topics)
+        widths = [6] * len(self.imu_topics) + [3] * len(self.mag_topics)
+        self._aligner = _Aligner(names, widths, tolerance, max_pending=max(8 * block_size, 65536))
+        self.stats = self._aligner.stats
+
+    # --- setup helpers --------------------------------------------------------------------
+
+    def _prefetch(self, n_batches: int, per_channel: int = 0) -> None:
+        counts: dict[int, int] = {}
+        for batch in self._prefetched:
+            ids, n = np.unique(batch.channel_id, return_counts=True)
+            for i, c in zip(ids.tolist(), n.tolist()):
+                counts[i] = counts.get(i, 0) + c
+        while not self._exhausted and len(self._prefetched) < n_batches:
+            if per_channel and all(counts.get(cid, 0) >= per_channel for cid in self._imu_channel):
+                break
+            try:
+                batch = next(self._batches)
+            except StopIteration:
+                self._exhausted = True
+                break
+            self._prefetched.append(batch)
+            ids, n = np.unique(batch.channel_id, return_counts=True)
+            for i, c in zip(ids.tolist(), n.tolist()):
+                counts[i] = counts.get(i, 0) + c
+
+    def _array_config(self) -> ArrayConfig:
+        m = len(self.imu_topics)
+        meta = self.source.metadata.get(ARRAY_METADATA)
+        if meta is not None and "json" in meta:
+            try:
+                array = ArrayConfig.from_json(meta["json"])
+            except ArrayConfigError as err:
+                self.warnings.append(f"ignoring the imufdi.array metadata: {err}")
+            else:
+                if array.n_imus == m:
+                    return array
+                self.warnings.append(
+                    f"imufdi.array metadata describes {array.n_imus} IMUs but {m} topics are"
+                    " read; using an inferred co-aligned array"
+                )
+        rate = self._measured_rate()
+        sensors = ["gyro", "accel"] + (["mag"] if self.mag_topics else [])
+        return ArrayConfig.co_aligned(m, rate, sensors=sensors)
+
+    def _measured_rate(self) -> float:
+        channels = {c.id: c for c in self.source.channels.values()}
+        first = self.imu_topics[0]
+        cid = next(i for i, k in self._imu_channel.items() if k == 0)
+        stamps = []
+        for batch in self._prefetched:
+            sub = batch.select(batch.channel_id == cid)
+            if len(sub):
+                fields = decode_imu(sub, channels[cid])
+                stamps.append(fields.t_ns if self.time_source == "header" else fields.log_time)
+        t = np.sort(np.concatenate(stamps)) if stamps else np.zeros(0, np.int64)
+        steps = np.diff(t)
+        steps = steps[steps > 0]
+        if steps.size == 0:
+            self.warnings.append(f"cannot measure the sample rate of {first}; assuming 100 Hz")
+            return 100.0
+        rate = NS_PER_S / float(np.median(steps))
+        return float(f"{rate:.6g}") if math.isfinite(rate) and rate > 0 else 100.0
+
+    # --- reading ------------------------------------------------------------------------
+
+    def _raw_batches(self) -> Iterator[MessageBatch]:
+        while self._prefetched:
+            yield self._prefetched.popleft()
+        if not self._exhausted:
+            yield from self._batches
+            self._exhausted = True
+
+    def _feed(self, batch: MessageBatch) -> None:
+        if len(batch) == 0:
+            return
+        channels = self.source.channels
+        ids = batch.channel_id
+        order = np.argsort(ids, kind="stable")
+        sorted_ids = ids[order]
+        bounds = np.flatnonzero(np.diff(sorted_ids.astype(np.int64))) + 1
+        starts = np.concatenate([[0], bounds])
+        for group, start in zip(np.split(order, bounds), starts.tolist()):
+            cid = int(sorted_ids[start])
+            if cid in self._imu_channel:
+                fields = decode_imu(batch.select(group), channels[cid])
+                stream = self._imu_channel[cid]
+                values = np.concatenate([fields.gyro, fields.accel], axis=1)  # type: ignore[list-item]
+            elif cid in self._mag_channel:
+                fields = decode_mag(batch.select(group), channels[cid])
+                stream = len(self.imu_topics) + self._mag_channel[cid]
+                values = fields.mag  # type: ignore[assignment]
+            else:
+                continue
+            t = fields.t_ns if self.time_source == "header" else fields.log_time
+            self._aligner.add(stream, t, values)
+
+    def _block(self, t_ns: np.ndarray, values: list[np.ndarray]) -> ImuBlock:
+        m = len(self.imu_topics)
+        n = t_ns.shape[0]
+        imu = np.stack(values[:m], axis=1) if m else np.zeros((n, 0, 6))
+        gyro = imu[:, :, 0:3] if self.array.has("gyro") else None
+        accel = imu[:, :, 3:6] if self.array.has("accel") else None
+        mag = None
+        if self.mag_topics and self.array.has("mag"):
+            mag = np.stack(values[m:], axis=1)
+        return ImuBlock(
+            t_ns=t_ns,
+            gyro=None if gyro is None else np.ascontiguousarray(gyro),
+            accel=None if accel is None else np.ascontiguousarray(accel),
+            mag=mag,
+        )
+
+    def stream(self) -> Iterator[tuple[MessageBatch, ImuBlock]]:
+        """Each raw batch (all channels, for pass-through copying) with the aligned samples
+        completed by it (possibly none); a final (empty batch, rest) pair at the end."""
+        for batch in self._raw_batches():
+            self._feed(batch)
+            t_ns, values = self._aligner.resolve(final=False)
+            yield batch, self._block(t_ns, values)
+        t_ns, values = self._aligner.resolve(final=True)
+        if t_ns.shape[0]:
+            yield MessageBatch.empty(), self._block(t_ns, values)
+
+    def blocks(self) -> Iterator[ImuBlock]:
+        """Aligned array samples in blocks of ``block_size`` (the last may be shorter)."""
+        yield from rechunk((block for _, block in self.stream()), self.block_size)
+
+    def close(self) -> None:
+        self.source.close()
+
+    def __enter__(self) -> ImuArrayReader:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def read_array(source: str | Path | IO[bytes], **kw: Any) -> tuple[ArrayConfig, ImuBlock]:
+    """Read a whole log into memory: (array config, all aligned samples)."""
+    with ImuArrayReader(source, **kw) as reader:
+        blocks = [b for _, b in reader.stream() if len(b)]
+        if not blocks:
+            return reader.array, reader._block(
+                np.zeros(0, np.int64), [np.zeros((0, w)) for w in reader._aligner.widths]
+            )
+        return reader.array, ImuBlock.concatenate(blocks)

@@ -1,0 +1,771 @@
+"""MCAP record layer: message batches, schema/channel descriptions, and the bulk writer.
+
+The MCAP format (https://mcap.dev/spec) is a magic, a Header record, a data section of
+Schema, Channel, Metadata and Chunk records (each chunk holds Message records, followed by
+one MessageIndex record per channel), a DataEnd record, a summary section (Schema, Channel,
+Statistics, ChunkIndex, MetadataIndex, SummaryOffset records), a Footer and the magic again.
+Every record is ``opcode u8 | length u64 LE | content``.
+
+:class:`McapWriter` builds Message records for many messages at once with numpy (one
+structured header array, one payload copy), so writing cost does not involve per-message
+Python work.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import struct
+import sys
+import tempfile
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from imufdi_cli.errors import McapInputError, UsageError
+
+MAGIC = b"\x89MCAP0\r\n"
+
+OP_HEADER = 0x01
+OP_FOOTER = 0x02
+OP_SCHEMA = 0x03
+OP_CHANNEL = 0x04
+OP_MESSAGE = 0x05
+OP_CHUNK = 0x06
+OP_MESSAGE_INDEX = 0x07
+OP_CHUNK_INDEX = 0x08
+OP_ATTACHMENT = 0x09
+OP_ATTACHMENT_INDEX = 0x0A
+OP_STATISTICS = 0x0B
+OP_METADATA = 0x0C
+OP_METADATA_INDEX = 0x0D
+OP_SUMMARY_OFFSET = 0x0E
+OP_DATA_END = 0x0F
+
+#: Message record header: opcode, record length, channel id, sequence, log time, publish time.
+MESSAGE_HEADER_DTYPE = np.dtype(
+    [
+        ("opcode", "u1"),
+        ("record_length", "<u8"),
+        ("channel_id", "<u2"),
+        ("sequence", "<u4"),
+        ("log_time", "<u8"),
+        ("publish_time", "<u8"),
+    ]
+)
+MESSAGE_HEADER_SIZE = MESSAGE_HEADER_DTYPE.itemsize  # 31 bytes
+#: Bytes of a Message record's content before its payload.
+MESSAGE_FIXED_CONTENT = MESSAGE_HEADER_SIZE - 9  # 22 bytes
+
+COMPRESSIONS = ("zstd", "lz4", "none")
+
+
+# --- batches of raw messages ------------------------------------------------------------
+
+
+def gather_bytes(data: np.ndarray, positions: np.ndarray, n_bytes: int) -> np.ndarray:
+    """Bytes ``data[p : p + n_bytes]`` for every p in ``positions``, shape (N, n_bytes), uint8.
+
+    Uses a strided view (one copy, no index array) when positions are evenly spaced, which
+    is the case for fixed-size messages interleaved regularly in a chunk.
+    """
+    positions = np.asarray(positions, dtype=np.int64)
+    n = positions.shape[0]
+    if n == 0:
+        return np.zeros((0, n_bytes), dtype=np.uint8)
+    first = int(positions[0])
+    if n > 1:
+        step = int(positions[1] - positions[0])
+        last = int(positions[-1])
+        if (
+            step > 0
+            and last == first + (n - 1) * step
+            and last + n_bytes <= data.shape[0]
+            and first >= 0
+            and (n == 2 or bool(np.all(np.diff(positions) == step)))
+        ):
+            view = np.lib.stride_tricks.as_strided(
+                data[first:], shape=(n, n_bytes), strides=(step, 1), writeable=False
+            )
+            return np.array(view, copy=True)
+    index = positions[:, None] + np.arange(n_bytes, dtype=np.int64)[None, :]
+    return data[index]
+
+
+@dataclass
+class MessageBatch:
+    """N raw MCAP messages whose payloads live in one byte buffer.
+
+    Attributes
+    ----------
+    channel_id : ndarray, shape (N,), uint16
+    sequence : ndarray, shape (N,), uint32
+    log_time, publish_time : ndarray, shape (N,), int64
+        Nanoseconds.
+    data : ndarray, shape (B,), uint8
+        Buffer holding the payloads (may hold other bytes too).
+    offset, length : ndarray, shape (N,), int64
+        Payload i is ``data[offset[i] : offset[i] + length[i]]``.
+    """
+
+    channel_id: np.ndarray
+    sequence: np.ndarray
+    log_time: np.ndarray
+    publish_time: np.ndarray
+    data: np.ndarray
+    offset: np.ndarray
+    length: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.channel_id.shape[0])
+
+    @classmethod
+    def empty(cls) -> MessageBatch:
+        return cls(
+            channel_id=np.zeros(0, np.uint16),
+            sequence=np.zeros(0, np.uint32),
+            log_time=np.zeros(0, np.int64),
+            publish_time=np.zeros(0, np.int64),
+            data=np.zeros(0, np.uint8),
+            offset=np.zeros(0, np.int64),
+            length=np.zeros(0, np.int64),
+        )
+
+    @classmethod
+    def from_payloads(
+        cls,
+        channel_id: int | np.ndarray,
+        log_time: np.ndarray,
+        payloads: Sequence[bytes],
+        *,
+        publish_time: np.ndarray | None = None,
+        sequence: np.ndarray | None = None,
+    ) -> MessageBatch:
+        """Batch from a list of payloads (joins them in one buffer)."""
+        n = len(payloads)
+        lengths = np.fromiter((len(p) for p in payloads), dtype=np.int64, count=n)
+        offsets = np.zeros(n, np.int64)
+        if n > 1:
+            np.cumsum(lengths[:-1], out=offsets[1:])
+        log = np.asarray(log_time, dtype=np.int64).reshape(n)
+        return cls(
+            channel_id=np.broadcast_to(np.asarray(channel_id, np.uint16), (n,)).copy(),
+            sequence=(
+                np.zeros(n, np.uint32) if sequence is None else np.asarray(sequence, np.uint32)
+            ),
+            log_time=log,
+            publish_time=log.copy() if publish_time is None else np.asarray(publish_time, np.int64),
+            data=np.frombuffer(b"".join(payloads), dtype=np.uint8),
+            offset=offsets,
+            length=lengths,
+        )
+
+    def payload(self, i: int) -> bytes:
+        """Payload of message ``i`` as bytes."""
+        start = int(self.offset[i])
+        return self.data[start : start + int(self.length[i])].tobytes()
+
+    def select(self, mask_or_indices: np.ndarray | Sequence[int] | slice) -> MessageBatch:
+        """Subset of the messages (boolean mask, indices or slice); shares the buffer."""
+        key = mask_or_indices
+        if not isinstance(key, slice):
+            key = np.asarray(key)
+        return MessageBatch(
+            channel_id=self.channel_id[key],
+            sequence=self.sequence[key],
+            log_time=self.log_time[key],
+            publish_time=self.publish_time[key],
+            data=self.data,
+            offset=self.offset[key],
+            length=self.length[key],
+        )
+
+    @staticmethod
+    def concatenate(batches: list[MessageBatch]) -> MessageBatch:
+        """Join batches in order (buffers are joined unless they are all the same object)."""
+        batches = [b for b in batches if len(b)]
+        if not batches:
+            return MessageBatch.empty()
+        if len(batches) == 1:
+            return batches[0]
+        same = all(b.data is batches[0].data for b in batches)
+        if same:
+            data = batches[0].data
+            offsets = [b.offset for b in batches]
+        else:
+            starts = np.cumsum([0] + [b.data.shape[0] for b in batches[:-1]])
+            data = np.concatenate([b.data for b in batches])
+            offsets = [b.offset + int(s) for b, s in zip(batches, starts)]
+        return MessageBatch(
+            channel_id=np.concatenate([b.channel_id for b in batches]),
+            sequence=np.concatenate([b.sequence for b in batches]),
+            log_time=np.concatenate([b.log_time for b in batches]),
+            publish_time=np.concatenate([b.publish_time for b in batches]),
+            data=data,
+            offset=np.concatenate(offsets),
+            length=np.concatenate([b.length for b in batches]),
+        )
+
+    def sorted_by_time(self) -> MessageBatch:
+        """The same messages ordered by log time (stable)."""
+        if len(self) < 2 or bool(np.all(np.diff(self.log_time) >= 0)):
+            return self
+        return self.select(np.argsort(self.log_time, kind="stable"))
+
+    def payload_matrix(self) -> np.ndarray | None:
+        """(N, L) uint8 copy of the payloads when they all have the same length L, else None."""
+        if len(self) == 0:
+            return np.zeros((0, 0), np.uint8)
+        length = int(self.length[0])
+        if not bool(np.all(self.length == length)):
+            return None
+        return gather_bytes(self.data, self.offset, length)
+
+
+@dataclass(frozen=True)
+class SchemaInfo:
+    """An MCAP Schema record."""
+
+    id: int
+    name: str
+    encoding: str
+    data: bytes
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    """An MCAP Channel record, with its schema (None for schema id 0)."""
+
+    id: int
+    topic: str
+    message_encoding: str
+    metadata: dict[str, str] = field(default_factory=dict)
+    schema: SchemaInfo | None = None
+
+
+# --- record serialisation helpers -------------------------------------------------------
+
+
+def _string(text: str) -> bytes:
+    raw = text.encode("utf-8")
+    return struct.pack("<I", len(raw)) + raw
+
+
+def _bytes32(raw: bytes) -> bytes:
+    return struct.pack("<I", len(raw)) + raw
+
+
+def _string_map(mapping: dict[str, str]) -> bytes:
+    body = b"".join(_string(k) + _string(v) for k, v in sorted(mapping.items()))
+    return _bytes32(body)
+
+
+def _record(opcode: int, content: bytes) -> bytes:
+    return struct.pack("<BQ", opcode, len(content)) + content
+
+
+def schema_record(schema: SchemaInfo) -> bytes:
+    return _record(
+        OP_SCHEMA,
+        struct.pack("<H", schema.id)
+        + _string(schema.name)
+        + _string(schema.encoding)
+        + _bytes32(schema.data),
+    )
+
+
+def channel_record(channel_id: int, schema_id: int, topic: str, encoding: str, meta: dict) -> bytes:
+    return _record(
+        OP_CHANNEL,
+        struct.pack("<HH", channel_id, schema_id)
+        + _string(topic)
+        + _string(encoding)
+        + _string_map(meta),
+    )
+
+
+def build_message_records(batch: MessageBatch) -> tuple[np.ndarray, np.ndarray]:
+    """Serialise a batch as consecutive Message records.
+
+    Returns
+    -------
+    records : ndarray, shape (B,), uint8
+    record_offsets : ndarray, shape (N,), int64
+        Start of each record in ``records``.
+    """
+    n = len(batch)
+    lengths = batch.length.astype(np.int64)
+    header = np.empty(n, dtype=MESSAGE_HEADER_DTYPE)
+    header["opcode"] = OP_MESSAGE
+    header["record_length"] = lengths + MESSAGE_FIXED_CONTENT
+    header["channel_id"] = batch.channel_id
+    header["sequence"] = batch.sequence
+    header["log_time"] = batch.log_time.astype(np.uint64)
+    header["publish_time"] = batch.publish_time.astype(np.uint64)
+    header_bytes = header.view(np.uint8).reshape(n, MESSAGE_HEADER_SIZE)
+    sizes = lengths + MESSAGE_HEADER_SIZE
+    starts = np.zeros(n, np.int64)
+    if n > 1:
+        np.cumsum(sizes[:-1], out=starts[1:])
+    total = int(sizes.sum()) if n else 0
+    if n and bool(np.all(lengths == lengths[0])):
+        length = int(lengths[0])
+        out2d = np.empty((n, MESSAGE_HEADER_SIZE + length), dtype=np.uint8)
+        out2d[:, :MESSAGE_HEADER_SIZE] = header_bytes
+        out2d[:, MESSAGE_HEADER_SIZE:] = gather_bytes(batch.data, batch.offset, length)
+        return out2d.reshape(-1), starts
+    out = np.empty(total, dtype=np.uint8)
+    if n == 0:
+        return out, starts
+    head_index = starts[:, None] + np.arange(MESSAGE_HEADER_SIZE, dtype=np.int64)[None, :]
+    out[head_index] = header_bytes
+    n_payload = int(lengths.sum())
+    if n_payload:
+        # Position of every payload byte in the source and in the output.
+        payload_starts = starts + MESSAGE_HEADER_SIZE
+        delta_dst = np.repeat(payload_starts - np.cumsum(lengths) + lengths, lengths)
+        delta_src = np.repeat(batch.offset - np.cumsum(lengths) + lengths, lengths)
+        running = np.arange(n_payload, dtype=np.int64)
+        out[running + delta_dst] = batch.data[running + delta_src]
+    return out, starts
+
+
+def compress(raw: bytes | memoryview, compression: str) -> bytes:
+    if compression == "zstd":
+        import zstandard
+
+        return zstandard.ZstdCompressor(level=3).compress(raw)
+    if compression == "lz4":
+        import lz4.frame
+
+        return bytes(lz4.frame.compress(raw))
+    return bytes(raw)
+
+
+def decompress(raw: bytes, compression: str, uncompressed_size: int) -> bytes:
+    """Decompress chunk records; raises McapInputError on an unknown or corrupt compression."""
+    try:
+        if compression == "":
+            return raw
+        if compression == "zstd":
+            import zstandard
+
+            return zstandard.ZstdDecompressor().decompress(raw, max_output_size=uncompressed_size)
+        if compression == "lz4":
+            import lz4.frame
+
+            return bytes(lz4.frame.decompress(raw))
+    except Exception as err:
+        raise McapInputError(f"corrupt {compression} chunk: {err}") from err
+    raise McapInputError(f"unsupported chunk compression {compression!r}; supported: zstd, lz4")
+
+
+# --- the writer -------------------------------------------------------------------------
+
+
+@dataclass
+class _ChunkIndexEntry:
+    start_time: int
+    end_time: int
+    chunk_offset: int
+    chunk_length: int
+    message_index_offsets: dict[int, int]
+    message_index_length: int
+    compression: str
+    compressed_size: int
+    uncompressed_size: int
+
+
+class McapWriter:
+    """Bulk MCAP writer (a context manager).
+
+    Parameters
+    ----------
+    output : str, Path or binary stream
+        ``"-"`` writes straight to stdout. A path is written to a temporary file in the same
+        directory and renamed into place by :meth:`close`; if the ``with`` block raises,
+        the temporary file is removed and nothing is left behind.
+    compression : {"zstd", "lz4", "none"}
+    chunk_size : int
+        Uncompressed bytes of message records per chunk (approximate).
+    profile : str
+        The Header profile (``"ros2"`` for ROS 2 CDR messages).
+    """
+
+    def __init__(
+        self,
+        output: str | os.PathLike[str] | IO[bytes],
+        *,
+        compression: str = "zstd",
+        chunk_size: int = 1 << 20,
+        profile: str = "ros2",
+    ) -> None:
+        if compression not in COMPRESSIONS:
+            raise UsageError(
+                f"unknown MCAP compression {compression!r}; valid: {', '.join(COMPRESSIONS)}"
+            )
+        if chunk_size < 1:
+            raise UsageError(f"chunk_size must be >= 1 byte, got {chunk_size}")
+        self.compression = "" if compression == "none" else compression
+        self.chunk_size = int(chunk_size)
+        self._final_path: Path | None = None
+        self._temp_path: Path | None = None
+        self._owns_stream = False
+        if isinstance(output, (str, os.PathLike)) and os.fspath(output) == "-":
+            self._stream: IO[bytes] = sys.stdout.buffer
+        elif isinstance(output, (str, os.PathLike)):
+            final = Path(output)
+            directory = final.parent if str(final.parent) else Path(".")
+            try:
+                fd, temp = tempfile.mkstemp(dir=directory, prefix=f".{final.name}.", suffix=".tmp")
+            except OSError as err:
+                raise McapInputError(f"cannot write {final}: {err.strerror}") from err
+            self._final_path = final
+            self._temp_path = Path(temp)
+            self._stream = io.BufferedWriter(io.FileIO(fd, "wb"), buffer_size=1 << 20)
+            self._owns_stream = True
+        else:
+            self._stream = output
+        self._position = 0
+        self._data_crc = 0
+        self._closed = False
+        self.schemas: dict[int, SchemaInfo] = {}
+        self.channels: dict[int, ChannelInfo] = {}
+        self._channel_schema: dict[int, int] = {}
+        self._metadata_index: list[tuple[int, int, str]] = []
+        self._chunk_index: list[_ChunkIndexEntry] = []
+        self._pending: list[MessageBatch] = []
+        self._pending_bytes = 0
+        self._message_count = 0
+        self._channel_counts: dict[int, int] = {}
+        self._start_time: int | None = None
+        self._end_time: int | None = None
+        self._write(MAGIC)
+        self._write(_record(OP_HEADER, _string(profile) + _string("imufdi")))
+
+    # --- low level -------------------------------------------------------------------
+
+    def _write(self, raw: bytes | memoryview) -> None:
+        self._stream.write(raw)
+        self._data_crc = zlib.crc32(raw, self._data_crc)
+        self._position += len(raw)
+
+    def __enter__(self) -> McapWriter:
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+    # --- schemas, channels, metadata --------------------------------------------------
+
+    def register_schema(self, name: str, encoding: str, data: bytes) -> int:
+        """Write a Schema record (or reuse an identical one); returns its id (>= 1)."""
+        for schema in self.schemas.values():
+            if (schema.name, schema.encoding, schema.data) == (name, encoding, bytes(data)):
+                return schema.id
+        schema_id = max(self.schemas, default=0) + 1
+        self._add_schema(SchemaInfo(schema_id, name, encoding, bytes(data)))
+        return schema_id
+
+    def _add_schema(self, schema: SchemaInfo) -> None:
+        self.schemas[schema.id] = schema
+        self._write(schema_record(schema))
+
+    def register_channel(
+        self,
+        topic: str,
+        message_encoding: str,
+        schema_id: int,
+        metadata: dict[str, str] | None = None,
+    ) -> int:
+        """Write a Channel record; returns its id."""
+        if schema_id != 0 and schema_id not in self.schemas:
+            raise UsageError(f"schema id {schema_id} is not registered")
+        channel_id = max(self.channels, default=-1) + 1
+        self._add_channel(channel_id, topic, message_encoding, schema_id, metadata or {})
+        return channel_id
+
+    def _add_channel(
+        self, channel_id: int, topic: str, encoding: str, schema_id: int, meta: dict[str, str]
+    ) -> None:
+        self.channels[channel_id] = ChannelInfo(
+            channel_id, topic, encoding, dict(meta), self.schemas.get(schema_id)
+        )
+        self._channel_schema[channel_id] = schema_id
+        self._write(channel_record(channel_id, schema_id, topic, encoding, meta))
+
+    def copy_channels(self, channels: dict[int, ChannelInfo]) -> None:
+        """Register channels (and their schemas) with the SAME ids, for raw pass-through."""
+        for channel_id in sorted(channels):
+            info = channels[channel_id]
+            if channel_id in self.channels:
+                raise UsageError(f"channel id {channel_id} ({info.topic}) is already registered")
+            schema_id = 0
+            if info.schema is not None:
+                schema_id = info.schema.id
+                existing = self.schemas.get(schema_id)
+                if existing is None:
+                    self._add_schema(info.schema)
+                elif existing != info.schema:
+                    raise UsageError(f"schema id {schema_id} is already used by another schema")
+            self._add_channel(
+                channel_id, info.topic, info.message_encoding, schema_id, dict(info.metadata)
+            )
+
+    def register_json_channel(self, topic: str, schema_name: str) -> int:
+        """A JSON channel (``message_encoding="json"``) with a permissive jsonschema."""
+        schema_id = self.register_schema(schema_name, "jsonschema", b'{"type": "object"}')
+        return self.register_channel(topic, "json", schema_id)
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Write a Metadata record (values must be strings)."""
+        for key, value in data.items():
+            if not isinstance(key, str) or not isinstance(value, str):
+                raise UsageError(f"metadata {name!r}: keys and values must be strings")
+        record = _record(OP_METADATA, _string(name) + _string_map(data))
+        self._metadata_index.append((self._position, len(record), name))
+        self._write(record)
+
+    # --- messages ----------------------------------------------------------------------
+
+    def add_batch(self, batch: MessageBatch) -> None:
+        """Queue messages (any channels, file order kept); chunks are written as they fill."""
+        n = len(batch)
+        if n == 0:
+            return
+        unknown = np.setdiff1d(np.unique(batch.channel_id), list(self.channels))
+        if unknown.size:
+            raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
+        sizes = batch.length.astype(np.int64) + MESSAGE_HEADER_SIZE
+        cumulative = np.cumsum(sizes)
+        start = 0
+        consumed = 0
+        while start < n:
+            room = self.chunk_size - self._pending_bytes
+            # number of messages (at least one) that fit in the current chunk
+            stop = int(np.searchsorted(cumulative, consumed + room, side="right"))
+            stop = max(stop, start + 1)
+            stop = min(stop, n)
+            part = batch.select(slice(start, stop))
+            self._pending.append(part)
+            part_bytes = int(cumulative[stop - 1] - consumed)
+            self._pending_bytes += part_bytes
+            consumed = int(cumulative[stop - 1])
+            start = stop
+            if self._pending_bytes >= self.chunk_size:
+                self._flush_chunk()
+
+    def add_message(
+        self,
+        channel_id: int,
+        log_time: int,
+        data: bytes,
+        publish_time: int | None = None,
+        sequence: int = 0,
+    ) -> None:
+        """Queue one message."""
+        self.add_batch(
+            MessageBatch.from_payloads(
+                channel_id,
+                np.array([log_time], np.int64),
+                [bytes(data)],
+                publish_time=np.array([log_time if publish_time is None else publish_time]),
+                sequence=np.array([sequence]),
+            )
+        )
+
+    def add_json(self, channel_id: int, log_time: int, obj: Any) -> None:
+        """Queue one JSON message (compact UTF-8)."""
+        import json
+
+        self.add_message(channel_id, log_time, json.dumps(obj, separators=(",", ":")).encode())
+
+    def _flush_chunk(self) -> None:
+        if not self._pending:
+            return
+        batch = MessageBatch.concatenate(self._pending)
+        self._pending = []
+        self._pending_bytes = 0
+        records, record_offsets = build_message_records(batch)
+        raw = records.tobytes()
+        log_time = batch.log_time
+        start_time = int(log_time.min())
+        end_time = int(log_time.max())
+        payload = compress(raw, self.compression)
+        content = (
+            struct.pack("<QQQI", start_time, end_time, len(raw), zlib.crc32(raw))
+            + _string(self.compression)
+            + struct.pack("<Q", len(payload))
+        )
+        chunk_offset = self._position
+        self._write(struct.pack("<BQ", OP_CHUNK, len(content) + len(payload)))
+        self._write(content)
+        self._write(payload)
+        chunk_length = self._position - chunk_offset
+        # One MessageIndex record per channel, entries sorted by log time.
+        order = np.lexsort((log_time, batch.channel_id))
+        channels_sorted = batch.channel_id[order]
+        bounds = np.flatnonzero(np.diff(channels_sorted.astype(np.int64))) + 1
+        index_offsets: dict[int, int] = {}
+        index_start = self._position
+        entry_dtype = np.dtype([("t", "<u8"), ("offset", "<u8")])
+        for group in np.split(order, bounds):
+            channel_id = int(batch.channel_id[group[0]])
+            entries = np.empty(group.shape[0], dtype=entry_dtype)
+            entries["t"] = log_time[group].astype(np.uint64)
+            entries["offset"] = record_offsets[group].astype(np.uint64)
+            body = entries.tobytes()
+            index_offsets[channel_id] = self._position
+            self._write(
+                struct.pack("<BQHI", OP_MESSAGE_INDEX, 2 + 4 + len(body), channel_id, len(body))
+            )
+            self._write(body)
+        self._chunk_index.append(
+            _ChunkIndexEntry(
+                start_time,
+                end_time,
+                chunk_offset,
+                chunk_length,
+                index_offsets,
+                self._position - index_start,
+                self.compression,
+                len(payload),
+                len(raw),
+            )
+        )
+        counts = np.bincount(batch.channel_id.astype(np.int64))
+        for cid in np.flatnonzero(counts).tolist():
+            self._channel_counts[cid] = self._channel_counts.get(cid, 0) + int(counts[cid])
+        self._message_count += len(batch)
+        self._start_time = (
+            start_time if self._start_time is None else min(self._start_time, start_time)
+        )
+        self._end_time = end_time if self._end_time is None else max(self._end_time, end_time)
+
+    # --- finishing ---------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Write the remaining chunk, DataEnd, summary and footer; rename into place."""
+        if self._closed:
+            return
+        try:
+            self._finish()
+        except BaseException:
+            self.abort()
+            raise
+        self._closed = True
+        if self._owns_stream:
+            self._stream.close()
+        else:
+            self._stream.flush()
+        if self._temp_path is not None and self._final_path is not None:
+            os.replace(self._temp_path, self._final_path)
+
+    def abort(self) -> None:
+        """Stop writing and remove the temporary file (nothing is left behind)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._owns_stream:
+            try:
+                self._stream.close()
+            except OSError:
+                pass
+        if self._temp_path is not None:
+            try:
+                self._temp_path.unlink()
+            except FileNotFoundError:
+                pass
+
+    def _finish(self) -> None:
+        self._flush_chunk()
+        self._write(_record(OP_DATA_END, struct.pack("<I", self._data_crc)))
+        summary_start = self._position
+        groups: list[tuple[int, int, int]] = []
+        parts: list[bytes] = []
+        offset = summary_start
+
+        def group(opcode: int, records: list[bytes]) -> None:
+            nonlocal offset
+            if not records:
+                return
+            body = b"".join(records)
+            groups.append((opcode, offset, len(body)))
+            parts.append(body)
+            offset += len(body)
+
+        group(OP_SCHEMA, [schema_record(s) for _, s in sorted(self.schemas.items())])
+        group(
+            OP_CHANNEL,
+            [
+                channel_record(
+                    c.id, self._channel_schema[c.id], c.topic, c.message_encoding, c.metadata
+                )
+                for _, c in sorted(self.channels.items())
+            ],
+        )
+        counts = b"".join(
+            struct.pack("<HQ", cid, n) for cid, n in sorted(self._channel_counts.items())
+        )
+        statistics = struct.pack(
+            "<QHIIIIQQ",
+            self._message_count,
+            len(self.schemas),
+            len(self.channels),
+            0,
+            len(self._metadata_index),
+            len(self._chunk_index),
+            self._start_time or 0,
+            self._end_time or 0,
+        ) + _bytes32(counts)
+        group(OP_STATISTICS, [_record(OP_STATISTICS, statistics)])
+        chunk_records = []
+        for entry in self._chunk_index:
+            offsets = b"".join(
+                struct.pack("<HQ", cid, off)
+                for cid, off in sorted(entry.message_index_offsets.items())
+            )
+            chunk_records.append(
+                _record(
+                    OP_CHUNK_INDEX,
+                    struct.pack(
+                        "<QQQQ",
+                        entry.start_time,
+                        entry.end_time,
+                        entry.chunk_offset,
+                        entry.chunk_length,
+                    )
+                    + _bytes32(offsets)
+                    + struct.pack("<Q", entry.message_index_length)
+                    + _string(entry.compression)
+                    + struct.pack("<QQ", entry.compressed_size, entry.uncompressed_size),
+                )
+            )
+        group(OP_CHUNK_INDEX, chunk_records)
+        group(
+            OP_METADATA_INDEX,
+            [
+                _record(OP_METADATA_INDEX, struct.pack("<QQ", off, length) + _string(name))
+                for off, length, name in self._metadata_index
+            ],
+        )
+        summary_offset_start = offset
+        parts.append(
+            b"".join(
+                _record(OP_SUMMARY_OFFSET, struct.pack("<BQQ", op, start, length))
+                for op, start, length in groups
+            )
+        )
+        summary = b"".join(parts)
+        footer_head = struct.pack("<BQQQ", OP_FOOTER, 20, summary_start, summary_offset_start)
+        summary_crc = zlib.crc32(footer_head, zlib.crc32(summary))
+        self._write(summary)
+        self._write(footer_head + struct.pack("<I", summary_crc))
+        self._write(MAGIC)

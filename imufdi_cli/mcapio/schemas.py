@@ -1,0 +1,131 @@
+"""ros2msg schema texts written by imufdi (concatenated with dependencies, as
+``ros2 bag record`` stores them)."""
+
+from __future__ import annotations
+
+SEPARATOR = "=" * 80
+
+IMU_SCHEMA_NAME = "sensor_msgs/msg/Imu"
+MAG_SCHEMA_NAME = "sensor_msgs/msg/MagneticField"
+STATUS_SCHEMA_NAME = "imufdi_msgs/msg/FdiStatus"
+
+_HEADER = """# Standard metadata for higher-level stamped data types.
+# Used to communicate timestamped data in a particular coordinate frame.
+
+# Two-integer timestamp that is expressed as seconds and nanoseconds.
+builtin_interfaces/Time stamp
+
+# Transform frame with which this data is associated.
+string frame_id
+"""
+
+_TIME = """# This message communicates ROS Time, defined here:
+# https://design.ros2.org/articles/clock_and_time.html
+
+# The seconds component, valid over all int32 values.
+int32 sec
+
+# The nanoseconds component, valid in the range [0, 1e9).
+uint32 nanosec
+"""
+
+_QUATERNION = """# This represents an orientation in free space in quaternion form.
+
+float64 x 0
+float64 y 0
+float64 z 0
+float64 w 1
+"""
+
+_VECTOR3 = """# This represents a vector in free space.
+
+float64 x
+float64 y
+float64 z
+"""
+
+_IMU = """# This is a message to hold data from an IMU (Inertial Measurement Unit)
+#
+# Accelerations should be in m/s^2 (not in g's), and rotational velocity should be in rad/sec
+#
+# If the covariance of the measurement is known, it should be filled in (if all you know is the
+# variance of each measurement, e.g. from the datasheet, just put those along the diagonal)
+# A covariance matrix of all zeros will be interpreted as "covariance unknown", and to use the
+# data a covariance will have to be assumed or gotten from some other source
+#
+# If you have no estimate for one of the data elements (e.g. your IMU doesn't produce an
+# orientation estimate), please set element 0 of the associated covariance matrix to -1
+# If you are interpreting this message, please check for a value of -1 in the first element of each
+# covariance matrix, and disregard the associated estimate.
+
+std_msgs/Header header
+
+geometry_msgs/Quaternion orientation
+float64[9] orientation_covariance # Row major about x, y, z axes
+
+geometry_msgs/Vector3 angular_velocity
+float64[9] angular_velocity_covariance # Row major about x, y, z axes
+
+geometry_msgs/Vector3 linear_acceleration
+float64[9] linear_acceleration_covariance # Row major x, y z
+"""
+
+_MAG = """# Measurement of the Magnetic Field vector at a specific location.
+#
+# If the covariance of the measurement is known, it should be filled in.
+# If all you know is the variance of each measurement, e.g. from the datasheet,
+# just put those along the diagonal.
+# A covariance matrix of all zeros will be interpreted as "covariance unknown",
+# and to use the data a covariance will have to be assumed or gotten from some
+# other source.
+
+std_msgs/Header header               # timestamp is the time the
+                                     # field was measured
+                                     # frame_id is the location and orientation
+                                     # of the field measurement
+
+geometry_msgs/Vector3 magnetic_field # x, y, and z components of the
+                                     # field vector in Tesla
+                                     # If your sensor does not output 3 axes,
+                                     # put NaNs in the components not reported.
+
+float64[9] magnetic_field_covariance # Row major about x, y, z axes
+                                     # 0 is interpreted as variance unknown
+"""
+
+_STATUS = """# Per-sample output of an imufdi detector for one sensor type.
+builtin_interfaces/Time stamp
+float64 statistic   # detection statistic
+float64 threshold   # threshold it is compared to
+bool alarm          # fault declared
+int32 isolated      # index into the channel's sensor_ids; -1 none, -2 not isolable
+float64 amplitude   # estimated fault amplitude (SI), NaN when none
+float64[] scores    # per-sensor isolation scores
+"""
+
+
+def _concat(main: str, deps: list[tuple[str, str]]) -> bytes:
+    parts = [main]
+    for name, text in deps:
+        parts.append(f"{SEPARATOR}\nMSG: {name}\n{text}")
+    return "\n".join(parts).encode("utf-8")
+
+
+IMU_SCHEMA = _concat(
+    _IMU,
+    [
+        ("std_msgs/Header", _HEADER),
+        ("builtin_interfaces/Time", _TIME),
+        ("geometry_msgs/Quaternion", _QUATERNION),
+        ("geometry_msgs/Vector3", _VECTOR3),
+    ],
+)
+MAG_SCHEMA = _concat(
+    _MAG,
+    [
+        ("std_msgs/Header", _HEADER),
+        ("builtin_interfaces/Time", _TIME),
+        ("geometry_msgs/Vector3", _VECTOR3),
+    ],
+)
+STATUS_SCHEMA = _concat(_STATUS, [("builtin_interfaces/Time", _TIME)])
