@@ -7,6 +7,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 from scipy import stats
 
@@ -447,3 +449,26 @@ def test_paper_table4_plain_glt_lands_near_the_paper_row() -> None:
     assert 0.035 <= np.mean(far) <= 0.065
     assert 0.22 <= np.mean(mar) <= 0.33
     assert 0.02 <= np.mean(fir) <= 0.07
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    block_size=st.integers(min_value=1, max_value=300),
+    n_imus=st.integers(min_value=1, max_value=5),
+    rate=st.sampled_from(["50Hz", "100", "0.2kHz", "333Hz"]),
+    seed=st.integers(min_value=0, max_value=2**32),
+)
+def test_options_and_block_size_property(block_size, n_imus, rate, seed) -> None:
+    config = config_from_options(
+        None, imus=n_imus, rate=rate, duration="0.6s", motion="vehicle", seed=seed
+    )
+    expected_rate = {"50Hz": 50.0, "100": 100.0, "0.2kHz": 200.0, "333Hz": 333.0}[rate]
+    assert config.rate_hz == expected_rate
+    assert config.n_samples == round(0.6 * expected_rate)
+    _, whole = simulate_block(config)
+    _, blocks = simulate(config, block_size=block_size)
+    joined = ImuBlock.concatenate(blocks)
+    assert whole.gyro is not None and whole.gyro.shape == (config.n_samples, n_imus, 3)
+    assert_array_equal(joined.gyro, whole.gyro)
+    assert_array_equal(joined.accel, whole.accel)
+    assert np.all(np.diff(whole.t_ns) > 0)
