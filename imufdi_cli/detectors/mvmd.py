@@ -86,11 +86,11 @@ class MvmdResult:
     gains: np.ndarray
 
     @property
-    def K(self) -> int:  # noqa: N802 - the paper's name
+    def K(self) -> int:
         return int(self.omega.shape[0])
 
 
-def check_mvmd_params(K: int, alpha: float, n_samples: int | None = None) -> None:  # noqa: N803
+def check_mvmd_params(K: int, alpha: float, n_samples: int | None = None) -> None:
     """Raise DetectorConfigError for K < 1, alpha <= 0 or a signal shorter than 4 samples."""
     if int(K) != K or K < 1:
         raise DetectorConfigError(f"MVMD: number of modes K must be an integer >= 1, got {K!r}")
@@ -172,7 +172,7 @@ def _initial_omega(
 def mvmd_gains(
     power: np.ndarray,
     freqs: np.ndarray,
-    Ks: Sequence[int],  # noqa: N803
+    Ks: Sequence[int],
     alphas: Sequence[float],
     *,
     tau: float = 0.0,
@@ -218,7 +218,7 @@ def mvmd_gains(
     for b, K in enumerate(Ks):
         omega[b, :K] = _initial_omega(init, int(K), n_freqs, n_samples, dc, rng)
         used[b, :K] = True
-    alpha = np.asarray(alphas, dtype=np.float64)[:, None]
+    alpha_col = np.asarray(alphas, dtype=np.float64)[:, None]
     used_f = used.astype(np.float64)
 
     gains = np.zeros((n_cand, k_max, n_freqs))
@@ -238,7 +238,7 @@ def mvmd_gains(
         for k in range(k_max):
             old = gains[:, k]
             others = total - old
-            new = (numerator_base - others) / (1.0 + alpha * (freqs - omega[:, k, None]) ** 2)
+            new = (numerator_base - others) / (1.0 + alpha_col * (freqs - omega[:, k, None]) ** 2)
             new *= used_f[:, k, None]
             delta = new - old
             diff[:, k] = (delta * delta) @ power
@@ -281,7 +281,7 @@ def mvmd_gains(
             total = total[keep]
             lam = lam[keep]
             omega = omega[keep]
-            alpha = alpha[keep]
+            alpha_col = alpha_col[keep]
             used_f = used_f[keep]
             diff = diff[keep]
             norm = norm[keep]
@@ -290,7 +290,7 @@ def mvmd_gains(
 
 def mvmd_batch(
     signal: np.ndarray,
-    Ks: Sequence[int],  # noqa: N803
+    Ks: Sequence[int],
     alphas: Sequence[float],
     *,
     tau: float = 0.0,
@@ -331,7 +331,7 @@ def mvmd_batch(
 
 def mvmd(
     signal: np.ndarray,
-    K: int,  # noqa: N803
+    K: int,
     alpha: float,
     *,
     tau: float = 0.0,

@@ -1,0 +1,742 @@
+"""WOA-MVMD-GLT: GLT on the MVMD mode most correlated with the raw signal.
+
+Li, Sun, Tian, He, Zhu, "Fault Detection and Isolation of MEMS IMU Array Based on
+WOA-MVMD-GLT", Micromachines 17(3):374, 2026, §2.3-2.7 and §3.
+
+For one sensor type (n sensors, measurement matrix H, measurements m (N, n)):
+
+1. Windows of ``window`` samples, ``hop = window - overlap`` apart, cover the log; every
+   window is decomposed by MVMD (:mod:`imufdi_cli.detectors.mvmd`, all n channels jointly,
+   K modes sharing their centre frequencies).
+2. ``u_best``: the mode with the largest normalised inner product with the raw window,
+   ``<u_k, x> / (|u_k| |x|)`` over all channels and samples (uncentred: the mean is part of
+   the signal, so the mode that carries the rates and the biases is the one kept, §2.5).
+   Since MVMD applies one filter to all channels (mvmd.py, "exact reduction"),
+   ``V u_best`` is the same filter applied to the parity vector: the motion still cancels.
+3. GLT (§2.1, eqs. 5-7, :mod:`imufdi_cli.detectors.parity`) on u_best, whitened with the
+   per-sensor sigma and with the per-sensor biases estimated on u_best of the calibration
+   window (sigma re-estimated in the u_best domain: the filter removes most of the noise,
+   which is why the step fault is detected with a small MAR). Threshold chi2_{1-alpha}(n-3).
+4. Each sample gets its row from the window where it lies in the central ``hop`` samples
+   (``centre``), or the smallest statistic of all windows containing it (``min``: a window
+   that ends before a step onset does not see it, which sharpens the edges; default).
+   Either way the output depends only on the sample index in the log, not on how the
+   pipeline cuts blocks; the detector holds back ``window - hop`` samples at most.
+
+(K, alpha) come from the ``params`` JSON file written by ``imufdi tune`` (:func:`tune`), from
+the ``K`` and ``mvmd_alpha`` parameters, or, by default, are tuned by the whale optimization
+algorithm (:mod:`imufdi_cli.detectors.woa`) on the calibration window, minimising the
+composite fitness CFV (§2.6, :func:`cfv_components` for the exact definitions).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy.signal import hilbert
+from scipy.stats import chi2
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors.base import (
+    ALPHA,
+    NO_ISOLATION,
+    NOT_ISOLABLE,
+    DetectionBlock,
+    Param,
+)
+from imufdi_cli.detectors.mvmd import (
+    MIN_SAMPLES,
+    MvmdResult,
+    check_mvmd_params,
+    mirror_extend,
+    mvmd_batch,
+)
+from imufdi_cli.detectors.parity import (
+    isolable_sensors,
+    isolation_statistics,
+    parity_matrix,
+    residual_sigma,
+    residuals,
+    whiten,
+)
+from imufdi_cli.detectors.woa import woa
+from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
+from imufdi_cli.log import ImuBlock
+
+DEFAULT_WEIGHTS: tuple[float, float, float] = (1.0, 1.0, 1.0)
+COMBINE_CHOICES: tuple[str, ...] = ("min", "centre")
+
+
+# --- fitness (§2.6) --------------------------------------------------------------------
+
+
+def cfv_components(result: MvmdResult) -> tuple[float, float, float]:
+    """The three terms of the composite fitness value of one decomposition (§2.6).
+
+    - envelope entropy: per mode k and channel c, the Hilbert envelope e = |hilbert(u_kc)|
+      normalised to a distribution p = e / sum(e); ``H = -sum p ln p / ln T`` (in [0, 1]; 1
+      for a flat envelope). Mean over modes and channels.
+    - inter-mode correlation: ``|rho(u_kc, u_jc)|`` (Pearson) averaged over mode pairs
+      k < j and channels (0 when K = 1). In [0, 1].
+    - spectral compactness: per mode, the power-weighted spread of its spectrum around its
+      own mean frequency, ``sqrt(sum (f - fbar_k)^2 P_k(f) / sum P_k(f)) / 0.5`` with
+      ``P_k(f) = sum_c |U_kc(f)|^2`` on the rfft grid of the mode (f in cycles/sample);
+      mean over modes. In [0, 1]; small for narrow-band modes.
+
+    Returns
+    -------
+    (entropy, correlation, compactness) : floats
+    """
+    modes = result.modes
+    n_modes, _, n_samples = modes.shape
+    envelope = np.abs(hilbert(modes, axis=-1))
+    total = envelope.sum(axis=-1, keepdims=True)
+    prob = envelope / np.where(total > 0, total, 1.0)
+    logp = np.log(np.where(prob > 0, prob, 1.0))
+    entropy = float((-(prob * logp).sum(axis=-1) / np.log(n_samples)).mean())
+    if n_modes > 1:
+        centred = modes - modes.mean(axis=-1, keepdims=True)
+        norms = np.linalg.norm(centred, axis=-1, keepdims=True)
+        unit = centred / np.where(norms > 0, norms, 1.0)
+        corr = np.abs(np.einsum("kct,jct->ckj", unit, unit))
+        upper = np.triu_indices(n_modes, 1)
+        correlation = float(corr[:, upper[0], upper[1]].mean())
+    else:
+        correlation = 0.0
+    spec = np.fft.rfft(modes, axis=-1)
+    power = (spec.real**2 + spec.imag**2).sum(axis=1)  # (K, F)
+    freqs = np.arange(power.shape[1]) / n_samples
+    mass = power.sum(axis=1)
+    safe = np.where(mass > 0, mass, 1.0)
+    mean_f = power @ freqs / safe
+    spread = np.sqrt((power * (freqs[None, :] - mean_f[:, None]) ** 2).sum(axis=1) / safe)
+    compactness = float(np.where(mass > 0, spread / 0.5, 1.0).mean())
+    return entropy, correlation, compactness
+
+
+def cfv(result: MvmdResult, weights: Sequence[float] = DEFAULT_WEIGHTS) -> float:
+    """CFV = w1 * envelope entropy + w2 * inter-mode correlation + w3 * compactness (§2.6)."""
+    terms = cfv_components(result)
+    return float(sum(w * t for w, t in zip(weights, terms)))
+
+
+# --- tuning (§2.7) ---------------------------------------------------------------------
+
+
+@dataclass
+class TuneResult:
+    """(K, alpha) chosen by WOA for one sensor type (the ``imufdi tune`` output).
+
+    Attributes
+    ----------
+    K : int
+    alpha : float
+        MVMD bandwidth penalty (f in cycles/sample, see mvmd.py).
+    fitness : float
+        CFV of the best candidate.
+    curve : list of float
+        Best CFV after initialisation and after each WOA iteration.
+    evaluations : int
+        Distinct (K, alpha) candidates decomposed.
+    seconds : float
+        Wall time of the search.
+    sensor_type : str
+    settings : dict
+        WOA and MVMD settings used (population, iterations, bounds, weights, samples).
+    """
+
+    K: int
+    alpha: float
+    fitness: float
+    curve: list[float]
+    evaluations: int
+    seconds: float
+    sensor_type: str = "gyro"
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        return json.dumps({"format": "imufdi.tune/1", **asdict(self)}, indent=2)
+
+    @classmethod
+    def from_json(cls, text: str | bytes, *, source: str = "tune result") -> TuneResult:
+        try:
+            data = json.loads(text)
+            data.pop("format", None)
+            result = cls(**data)
+            result.K = int(result.K)
+            result.alpha = float(result.alpha)
+        except (ValueError, TypeError) as err:
+            raise DetectorConfigError(
+                f"{source}: not an imufdi tune result (JSON with K, alpha, fitness, curve, ...)"
+            ) from err
+        check_mvmd_params(result.K, result.alpha)
+        return result
+
+    @classmethod
+    def load(cls, path: str | Path) -> TuneResult:
+        try:
+            text = Path(path).read_text(encoding="utf-8")
+        except OSError as err:
+            raise DetectorConfigError(
+                f"cannot read tuned parameters {path}: {err.strerror}"
+            ) from err
+        return cls.from_json(text, source=str(path))
+
+
+def tune_signal(
+    signal: np.ndarray,
+    *,
+    population: int = 8,
+    iterations: int = 8,
+    k_bounds: tuple[int, int] = (2, 6),
+    alpha_bounds: tuple[float, float] = (50.0, 5000.0),
+    weights: Sequence[float] = DEFAULT_WEIGHTS,
+    seed: int = 0,
+    tol: float = 1e-6,
+    max_iter: int = 300,
+) -> TuneResult:
+    """WOA search of (K, alpha) minimising CFV for one multichannel signal (C, T).
+
+    The whole population of each WOA iteration is decomposed in one batched MVMD call.
+    """
+    if population < 2:
+        raise DetectorConfigError(f"WOA population must be >= 2, got {population}")
+    if not 1 <= k_bounds[0] <= k_bounds[1]:
+        raise DetectorConfigError(f"K bounds must satisfy 1 <= low <= high, got {k_bounds}")
+    if not 0 < alpha_bounds[0] <= alpha_bounds[1]:
+        raise DetectorConfigError(f"alpha bounds must satisfy 0 < low <= high, got {alpha_bounds}")
+    if len(weights) != 3:
+        raise DetectorConfigError("CFV needs three weights (entropy, correlation, compactness)")
+    signal = np.asarray(signal, dtype=np.float64)
+    start = time.perf_counter()
+
+    def fitness(candidates: np.ndarray) -> np.ndarray:
+        Ks = [int(k) for k in candidates[:, 0]]
+        results = mvmd_batch(signal, Ks, list(candidates[:, 1]), tol=tol, max_iter=max_iter)
+        return np.array([cfv(r, weights) for r in results])
+
+    found = woa(
+        fitness,
+        [k_bounds[0], alpha_bounds[0]],
+        [k_bounds[1], alpha_bounds[1]],
+        integer=[True, False],
+        population=population,
+        iterations=iterations,
+        rng=np.random.default_rng(seed),
+    )
+    return TuneResult(
+        K=int(found.best[0]),
+        alpha=float(found.best[1]),
+        fitness=found.best_fitness,
+        curve=[float(v) for v in found.curve],
+        evaluations=found.n_evaluations,
+        seconds=time.perf_counter() - start,
+        settings={
+            "population": population,
+            "iterations": iterations,
+            "k_bounds": list(k_bounds),
+            "alpha_bounds": list(alpha_bounds),
+            "weights": list(weights),
+            "seed": seed,
+            "samples": int(signal.shape[-1]),
+            "channels": int(signal.shape[0]) if signal.ndim == 2 else 1,
+        },
+    )
+
+
+def tune(
+    block: ImuBlock,
+    array: ArrayConfig,
+    sensor_type: str = "gyro",
+    **woa_params: Any,
+) -> TuneResult:
+    """Tune (K, alpha) on the measurements of one sensor type of a (fault-free) block.
+
+    Parameters
+    ----------
+    block : ImuBlock
+        The segment to tune on (e.g. the first 2.5 s of a log).
+    array : ArrayConfig
+    sensor_type : str
+    **woa_params
+        ``population``, ``iterations``, ``k_bounds``, ``alpha_bounds``, ``weights``, ``seed``,
+        ``tol``, ``max_iter`` (see :func:`tune_signal`).
+
+    Returns
+    -------
+    TuneResult
+    """
+    triads = block.get(sensor_type)
+    if triads is None or array.n_sensors(sensor_type) == 0:
+        raise InputDataError(f"cannot tune: the log has no {sensor_type} data")
+    values = array.select(triads, sensor_type)
+    if values.shape[0] < MIN_SAMPLES:
+        raise CalibrationError(
+            f"tuning segment has {values.shape[0]} samples; at least {MIN_SAMPLES} are needed"
+        )
+    result = tune_signal(values.T, **woa_params)
+    result.sensor_type = sensor_type
+    return result
+
+
+# --- windowed decomposition ------------------------------------------------------------
+
+
+def best_mode(result: MvmdResult, window: np.ndarray) -> int:
+    """Index of u_best: the mode with the largest uncentred normalised inner product
+    ``<u_k, x> / (|u_k| |x|)`` with the raw window (over all channels and samples).
+
+    Parameters
+    ----------
+    result : MvmdResult of ``window.T``
+    window : ndarray, shape (L, n)
+    """
+    modes = result.modes  # (K, n, L)
+    inner = np.einsum("kct,ct->k", modes, window.T)
+    norms = np.linalg.norm(modes.reshape(modes.shape[0], -1), axis=1)
+    score = inner / np.where(norms > 0, norms, np.inf)
+    return int(np.argmax(score))
+
+
+def filter_matrix(gains: np.ndarray, n_samples: int) -> np.ndarray:
+    """The linear map x -> u of one MVMD mode on a window: ``u = F x`` (per channel).
+
+    ``F = crop . irfft . diag(g) . rfft . mirror`` (mvmd.py), built by filtering the
+    identity. Row t gives the weights of output sample t: its noise variance is
+    ``sigma^2 sum_tau F[t, tau]^2`` and a constant bias b appears as ``b sum_tau F[t, tau]``.
+
+    Parameters
+    ----------
+    gains : ndarray, shape (n_samples + 1,)
+    n_samples : int
+
+    Returns
+    -------
+    F : ndarray, shape (n_samples, n_samples)
+    """
+    extended, offset = mirror_extend(np.eye(n_samples))  # (L, 2L): row tau = impulse at tau
+    response = np.fft.irfft(np.fft.rfft(extended, axis=-1) * gains, n=2 * n_samples, axis=-1)
+    return np.ascontiguousarray(response[:, offset : offset + n_samples].T)
+
+
+class _WindowStream:
+    """Overlapping windows on a stream of (N, n) rows; emits per-sample rows in order.
+
+    Windows start at ``j * hop`` (global sample index) and hold ``window`` samples. A
+    row's value is taken from the window that has it in its central ``hop`` samples
+    (``centre``) or is the row-wise choice of ``reduce`` over all windows containing it
+    (``min``), exactly as if the whole log were processed at once.
+    """
+
+    def __init__(self, window: int, hop: int, combine: str, evaluate: Any) -> None:
+        self.window = window
+        self.hop = hop
+        self.pad = (window - hop) // 2
+        self.combine = combine
+        self.evaluate = evaluate  # (L, n) -> dict of per-row arrays, "statistic" first
+        self.buffer: np.ndarray | None = None
+        self.buffer_start = 0  # global index of buffer[0]
+        self.received = 0
+        self.emitted = 0  # rows returned so far
+        self.next_window = 0  # index j of the next window to evaluate
+        self.pending: dict[str, np.ndarray] | None = None  # rows [emitted, ...) being combined
+        self.pending_count = 0  # rows of pending filled by at least one window
+
+    def _store(self, start: int, rows: dict[str, np.ndarray]) -> None:
+        """Combine a window's rows (global indices start..) into the pending rows."""
+        offset = start - self.emitted
+        length = rows["statistic"].shape[0]
+        need = offset + length
+        if self.pending is None:
+            self.pending = {key: value[:0].copy() for key, value in rows.items()}
+        have = self.pending["statistic"].shape[0]
+        if need > have:
+            for key, value in rows.items():
+                extra = np.empty((need - have, *value.shape[1:]), dtype=value.dtype)
+                if key == "statistic":
+                    extra.fill(np.inf)
+                self.pending[key] = np.concatenate([self.pending[key], extra])
+        stat = self.pending["statistic"][offset:need]
+        if self.combine == "min":
+            better = rows["statistic"] < stat
+        else:
+            better = np.ones(length, dtype=bool)
+        for key, value in rows.items():
+            target = self.pending[key][offset:need]
+            target[better] = value[better]
+
+    def _take(self, upto: int) -> dict[str, np.ndarray] | None:
+        """Emit pending rows up to global index ``upto`` (exclusive)."""
+        count = upto - self.emitted
+        if count <= 0 or self.pending is None:
+            return None
+        out = {key: value[:count] for key, value in self.pending.items()}
+        self.pending = {key: value[count:] for key, value in self.pending.items()}
+        self.emitted = upto
+        return out
+
+    def _window_rows(self, start: int, length: int) -> tuple[int, int]:
+        """Global rows [lo, hi) a window starting at ``start`` contributes."""
+        if self.combine == "min":
+            return start, start + length
+        lo = 0 if start == 0 else start + self.pad
+        return lo, start + self.pad + self.hop
+
+    def push(self, values: np.ndarray) -> list[dict[str, np.ndarray]]:
+        if self.buffer is None:
+            self.buffer = values.copy()
+        else:
+            self.buffer = np.concatenate([self.buffer, values])
+        self.received += values.shape[0]
+        outputs = []
+        while self.next_window * self.hop + self.window <= self.received:
+            start = self.next_window * self.hop
+            local = start - self.buffer_start
+            rows = self.evaluate(self.buffer[local : local + self.window])
+            lo, hi = self._window_rows(start, self.window)
+            self._store(lo, {k: v[lo - start : hi - start] for k, v in rows.items()})
+            self.next_window += 1
+            # rows before the next window's start (min) / contribution (centre) are final
+            final = self.next_window * self.hop
+            if self.combine == "centre":
+                final = self.next_window * self.hop + self.pad
+            taken = self._take(final)
+            if taken is not None:
+                outputs.append(taken)
+        # drop buffered samples no window needs any more
+        keep_from = self.next_window * self.hop
+        if keep_from > self.buffer_start:
+            self.buffer = self.buffer[keep_from - self.buffer_start :]
+            self.buffer_start = keep_from
+        return outputs
+
+    def flush(self) -> list[dict[str, np.ndarray]]:
+        """Cover the tail with one last window ending at the last sample."""
+        if self.emitted >= self.received or self.buffer is None:
+            return []
+        total = self.received
+        length = min(self.window, total)
+        start = total - length
+        if length < MIN_SAMPLES:
+            return [{"__quiet__": np.zeros(total - self.emitted)}]
+        # the tail window may start before buffer_start: keep the buffer long enough
+        if start < self.buffer_start:
+            start = self.buffer_start
+            length = total - start
+            if length < MIN_SAMPLES:
+                return [{"__quiet__": np.zeros(total - self.emitted)}]
+        rows = self.evaluate(self.buffer[start - self.buffer_start :])
+        lo = max(start, self.emitted)
+        self._store(lo, {k: v[lo - start :] for k, v in rows.items()})
+        out = self._take(total)
+        return [out] if out is not None else []
+
+
+# --- the detector ----------------------------------------------------------------------
+
+
+def _weights_check(value: Any) -> str | None:
+    try:
+        parts = [float(v) for v in str(value).split(",")]
+    except ValueError:
+        return "weights must be three comma-separated numbers, e.g. 1,1,1"
+    if len(parts) != 3 or any(not np.isfinite(p) or p < 0 for p in parts):
+        return "weights must be three comma-separated non-negative numbers, e.g. 1,1,1"
+    return None
+
+
+def _types_check(value: Any) -> str | None:
+    parts = [p.strip() for p in str(value).split(",") if p.strip()]
+    bad = [p for p in parts if p not in ("gyro", "accel", "mag")]
+    if not parts or bad:
+        return "sensor types must be a comma-separated subset of gyro, accel, mag"
+    return None
+
+
+@dataclass
+class _TypeState:
+    sensor_type: str
+    n: int
+    K: int
+    alpha: float
+    tuned: dict[str, Any] | None
+    sigma: np.ndarray
+    bias: np.ndarray
+    V: np.ndarray  # whitened parity matrix (n-3, n)
+    isolable: np.ndarray
+    threshold: float
+    stream: _WindowStream
+
+
+class WoaMvmdGltDetector:
+    """WOA-tuned MVMD + GLT detector (module docstring), CLI name ``woa-mvmd-glt``."""
+
+    name: ClassVar[str] = "woa-mvmd-glt"
+    PARAMS: ClassVar[dict[str, Param]] = {
+        "alpha": ALPHA,
+        "window": Param("int", 50, "MVMD window length, samples", low=MIN_SAMPLES),
+        "overlap": Param("int", 40, "overlap of consecutive windows, samples", low=0),
+        "combine": Param(
+            "choice",
+            "min",
+            "per-sample statistic: min over all windows containing the sample, or the "
+            "window where it is central",
+            choices=COMBINE_CHOICES,
+        ),
+        "params": Param("path", None, "JSON file of tuned (K, alpha) from `imufdi tune`"),
+        "K": Param("int", None, "number of MVMD modes (skips tuning, with mvmd_alpha)", low=1),
+        "mvmd_alpha": Param(
+            "float", None, "MVMD bandwidth penalty (f in cycles/sample)", low=0, low_open=True
+        ),
+        "population": Param("int", 8, "WOA population", low=2),
+        "iterations": Param("int", 6, "WOA iterations", low=0),
+        "k_min": Param("int", 2, "smallest K searched", low=1),
+        "k_max": Param("int", 5, "largest K searched", low=1),
+        "alpha_min": Param("float", 50.0, "smallest MVMD alpha searched", low=0, low_open=True),
+        "alpha_max": Param("float", 5000.0, "largest MVMD alpha searched", low=0, low_open=True),
+        "weights": Param(
+            "str",
+            "1,1,1",
+            "CFV weights w1,w2,w3 (entropy, correlation, compactness)",
+            check=_weights_check,
+        ),
+        "tune_samples": Param("int", 250, "calibration samples used for tuning", low=MIN_SAMPLES),
+        "seed": Param("int", 0, "seed of the WOA search", low=0),
+        "types": Param("str", "gyro,accel", "sensor types tested", check=_types_check),
+        "tol": Param("float", 1e-6, "MVMD relative convergence tolerance", low=0, low_open=True),
+        "max_iter": Param("int", 300, "MVMD iteration cap", low=1),
+    }
+
+    def __init__(self, **params: Any) -> None:
+        values = {key: spec.default for key, spec in self.PARAMS.items()}
+        unknown = set(params) - set(values)
+        if unknown:
+            raise DetectorConfigError(
+                f"unknown parameter {self.name}.{sorted(unknown)[0]};"
+                f" valid: {', '.join(sorted(values))}"
+            )
+        values.update(params)
+        self.params = values
+        window = int(values["window"])
+        overlap = int(values["overlap"])
+        if window < MIN_SAMPLES:
+            raise DetectorConfigError(
+                f"{self.name}.window: must be >= {MIN_SAMPLES} samples, got {window}"
+            )
+        if not 0 <= overlap < window:
+            raise DetectorConfigError(
+                f"{self.name}.overlap: must be >= 0 and < window ({window}), got {overlap}"
+            )
+        if int(values["population"]) < 2:
+            raise DetectorConfigError(
+                f"{self.name}.population: must be >= 2, got {values['population']}"
+            )
+        if values["k_min"] > values["k_max"]:
+            raise DetectorConfigError(f"{self.name}: k_min must be <= k_max")
+        if values["alpha_min"] > values["alpha_max"]:
+            raise DetectorConfigError(f"{self.name}: alpha_min must be <= alpha_max")
+        if (values["K"] is None) != (values["mvmd_alpha"] is None):
+            raise DetectorConfigError(f"{self.name}: give both K and mvmd_alpha, or neither")
+        if values["K"] is not None:
+            check_mvmd_params(values["K"], values["mvmd_alpha"])
+        if values["combine"] not in COMBINE_CHOICES:
+            raise DetectorConfigError(f"{self.name}.combine: valid: {', '.join(COMBINE_CHOICES)}")
+        self.window = window
+        self.hop = window - overlap
+        self.weights = tuple(float(v) for v in str(values["weights"]).split(","))
+        self.types = [p.strip() for p in str(values["types"]).split(",") if p.strip()]
+        self.tuned_file = TuneResult.load(values["params"]) if values["params"] else None
+        self._states: dict[str, _TypeState] = {}
+        self._array: ArrayConfig | None = None
+
+    # -- calibration ----------------------------------------------------------------
+
+    def _choose(self, sensor_type: str, values: np.ndarray) -> tuple[int, float, dict | None]:
+        p = self.params
+        if p["K"] is not None:
+            return int(p["K"]), float(p["mvmd_alpha"]), None
+        if self.tuned_file is not None:
+            return self.tuned_file.K, self.tuned_file.alpha, {"source": "params file"}
+        segment = values[: int(p["tune_samples"])]
+        result = tune_signal(
+            segment.T,
+            population=int(p["population"]),
+            iterations=int(p["iterations"]),
+            k_bounds=(int(p["k_min"]), int(p["k_max"])),
+            alpha_bounds=(float(p["alpha_min"]), float(p["alpha_max"])),
+            weights=self.weights,
+            seed=int(p["seed"]),
+            tol=float(p["tol"]),
+            max_iter=int(p["max_iter"]),
+        )
+        record = asdict(result)
+        record["sensor_type"] = sensor_type
+        return result.K, result.alpha, record
+
+    def _decompose(self, K: int, alpha: float) -> Any:
+        tol = float(self.params["tol"])
+        max_iter = int(self.params["max_iter"])
+
+        def u_best(window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            result = mvmd_batch(window.T, [K], [alpha], tol=tol, max_iter=max_iter)[0]
+            k = best_mode(result, window)
+            F = filter_matrix(result.gains[k], window.shape[0])
+            return np.ascontiguousarray(result.modes[k].T), F
+
+        return u_best
+
+    def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
+        self._array = array
+        self._states = {}
+        for sensor_type in self.types:
+            triads = calibration.get(sensor_type)
+            n = array.n_sensors(sensor_type)
+            if triads is None or n == 0:
+                continue
+            if n < 4:
+                raise CalibrationError(
+                    f"{self.name}: {sensor_type} has {n} sensors; the GLT needs at least 4"
+                )
+            values = array.select(triads, sensor_type)
+            if values.shape[0] < max(self.window, 10):
+                raise CalibrationError(
+                    f"calibration window has {values.shape[0]} samples; {self.name} needs at"
+                    f" least {max(self.window, 10)} (one MVMD window); use --calibrate"
+                )
+            K, alpha, tuned = self._choose(sensor_type, values)
+            decompose = self._decompose(K, alpha)
+            # sigma and biases of the raw sensors (many degrees of freedom), carried into the
+            # u_best domain exactly through each window's filter matrix (filter_matrix)
+            H = array.measurement_matrix(sensor_type)
+            sigma = residual_sigma(H, values)
+            if np.any(~np.isfinite(sigma)) or np.any(sigma <= 0):
+                raise CalibrationError(
+                    f"{self.name}: {sensor_type} noise sigma is zero or not finite;"
+                    " the calibration window is degenerate"
+                )
+            bias = residuals(H, values).mean(axis=0)
+            V = parity_matrix(whiten(H, sigma))
+            state = _TypeState(
+                sensor_type=sensor_type,
+                n=n,
+                K=K,
+                alpha=alpha,
+                tuned=tuned,
+                sigma=sigma,
+                bias=bias,
+                V=V,
+                isolable=isolable_sensors(V),
+                threshold=float(chi2.ppf(1.0 - float(self.params["alpha"]), n - 3)),
+                stream=_WindowStream(self.window, self.hop, self.params["combine"], None),
+            )
+            state.stream.evaluate = self._evaluator(state, decompose)
+            self._states[sensor_type] = state
+        if not self._states:
+            raise CalibrationError(
+                f"{self.name}: no tested sensor type ({', '.join(self.types)}) in the log"
+            )
+
+    def _evaluator(self, state: _TypeState, decompose: Any) -> Any:
+        def evaluate(window: np.ndarray) -> dict[str, np.ndarray]:
+            u, F = decompose(window)
+            noise_gain = np.sqrt(np.einsum("ij,ij->i", F, F))  # (L,): sigma_u = sigma * gain
+            dc_gain = F.sum(axis=1)  # (L,): bias_u = bias * dc_gain
+            whitened = (u - dc_gain[:, None] * state.bias) / (
+                state.sigma[None, :] * noise_gain[:, None]
+            )
+            p = whitened @ state.V.T
+            statistic = np.einsum("ij,ij->i", p, p)  # eq. 5, V V^T = I
+            d_fi, amplitude = isolation_statistics(p, state.V)  # eqs. 6-7
+            # amplitude of a step in the raw signal: undo whitening and the filter's DC gain
+            scale = (
+                state.sigma[None, :]
+                * (noise_gain / np.where(dc_gain != 0, dc_gain, np.nan))[:, None]
+            )
+            return {"statistic": statistic, "scores": d_fi, "amplitude": amplitude * scale}
+
+        return evaluate
+
+    # -- streaming ------------------------------------------------------------------
+
+    def _rows(self, state: _TypeState, parts: list[dict[str, np.ndarray]]) -> DetectionBlock:
+        blocks = []
+        for part in parts:
+            if "__quiet__" in part:
+                blocks.append(DetectionBlock.empty(part["__quiet__"].shape[0], state.n))
+                continue
+            statistic = part["statistic"]
+            count = statistic.shape[0]
+            alarm = statistic > state.threshold
+            scores = part["scores"]
+            safe_scores = np.where(np.isfinite(scores), scores, -np.inf)
+            best = np.argmax(safe_scores, axis=1).astype(np.int32)
+            isolated = np.where(
+                alarm, np.where(state.isolable[best], best, NOT_ISOLABLE), NO_ISOLATION
+            ).astype(np.int32)
+            amplitude = np.where(isolated >= 0, part["amplitude"][np.arange(count), best], np.nan)
+            blocks.append(
+                DetectionBlock(
+                    statistic=statistic,
+                    threshold=np.full(count, state.threshold),
+                    alarm=alarm,
+                    isolated=isolated,
+                    amplitude=amplitude,
+                    scores=scores,
+                )
+            )
+        if not blocks:
+            return DetectionBlock.empty(0, state.n)
+        return DetectionBlock.concatenate(blocks)
+
+    def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
+        if not self._states or self._array is None:
+            raise CalibrationError(f"{self.name}: fit() must be called before process()")
+        out = {}
+        for sensor_type, state in self._states.items():
+            triads = block.get(sensor_type)
+            if triads is None:
+                raise InputDataError(f"{self.name}: block has no {sensor_type} data")
+            values = self._array.select(triads, sensor_type)
+            out[sensor_type] = self._rows(state, state.stream.push(values))
+        return out
+
+    def flush(self) -> dict[str, DetectionBlock]:
+        return {t: self._rows(s, s.stream.flush()) for t, s in self._states.items()}
+
+    def metadata(self) -> dict[str, Any]:
+        params = {k: v for k, v in self.params.items()}
+        return {
+            "params": params,
+            "types": {
+                t: {
+                    "K": s.K,
+                    "mvmd_alpha": s.alpha,
+                    "tuning": s.tuned,
+                    "sigma_u_best": s.sigma.tolist(),
+                    "bias_u_best": s.bias.tolist(),
+                    "threshold": s.threshold,
+                    "window": self.window,
+                    "hop": self.hop,
+                }
+                for t, s in self._states.items()
+            },
+        }
+
+
+__all__ = [
+    "COMBINE_CHOICES",
+    "DEFAULT_WEIGHTS",
+    "TuneResult",
+    "WoaMvmdGltDetector",
+    "best_mode",
+    "cfv",
+    "cfv_components",
+    "tune",
+    "tune_signal",
+]
