@@ -7,7 +7,13 @@
 
 from imufdi_cli.capture.binary import BinaryFrameParser, find_sync
 from imufdi_cli.capture.checksum import CHECKSUM_KINDS, compute_checksums
-from imufdi_cli.capture.encode import Corruption, EncodedCapture, encode_capture, encode_frames
+from imufdi_cli.capture.encode import (
+    CaptureEncoder,
+    Corruption,
+    EncodedCapture,
+    encode_capture,
+    encode_frames,
+)
 from imufdi_cli.capture.layout import (
     BUILTIN_LAYOUTS,
     ChecksumSpec,
@@ -27,6 +33,7 @@ __all__ = [
     "CHECKSUM_KINDS",
     "DEFAULT_CHUNK_SIZE",
     "BinaryFrameParser",
+    "CaptureEncoder",
     "ChecksumSpec",
     "Corruption",
     "CsvMapping",

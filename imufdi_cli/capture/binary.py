@@ -277,6 +277,7 @@ class BinaryFrameParser:
 
         t_ns: np.ndarray
         if counter_raw is not None:
+            assert self._counter is not None
             counter_unwrapped, steps = self._unwrap(counter_raw[keep], self._counter, "counter")
             gaps = steps - 1
             self.stats.frames_lost += int(gaps[gaps > 0].sum())
@@ -285,7 +286,7 @@ class BinaryFrameParser:
             ticks, _ = self._unwrap(time_raw[keep], self._timestamp, "timestamp")
             tick_ns = self._timestamp.tick_s * 1e9
             if abs(tick_ns - round(tick_ns)) < 1e-9 and tick_ns >= 1:
-                t_ns = ticks * int(round(tick_ns))
+                t_ns = ticks * round(tick_ns)
             else:
                 t_ns = np.round(ticks * tick_ns).astype(np.int64)
         elif counter_raw is not None:

@@ -58,7 +58,9 @@ def parse_csv_mapping(raw: Any) -> CsvMapping:
     elif delimiter in _DELIMITERS:
         delimiter = _DELIMITERS[delimiter]
     else:
-        raise LayoutError(f"csv.delimiter: {delimiter!r} unknown; valid: auto, ',', '\\t', ';', ' '")
+        raise LayoutError(
+            f"csv.delimiter: {delimiter!r} unknown; valid: auto, ',', '\\t', ';', ' '"
+        )
     time_column = None
     time_scale_ns = 1e9
     if "time" in raw:
@@ -95,17 +97,25 @@ def parse_csv_mapping(raw: Any) -> CsvMapping:
                 and len(columns) == 3
                 and all(isinstance(c, str) for c in columns)
             ):
-                raise LayoutError(f"{where}.{sensor}.columns: expected three column names [x, y, z]")
-            entry[sensor] = CsvSensorColumns(columns=(columns[0], columns[1], columns[2]), scale=factor)
+                raise LayoutError(
+                    f"{where}.{sensor}.columns: expected three column names [x, y, z]"
+                )
+            entry[sensor] = CsvSensorColumns(
+                columns=(columns[0], columns[1], columns[2]), scale=factor
+            )
         imus.append(entry)
     if imus and templates:
-        raise LayoutError("csv: give column templates (csv.gyro ...) or [[csv.imu]] tables, not both")
+        raise LayoutError(
+            "csv: give column templates (csv.gyro ...) or [[csv.imu]] tables, not both"
+        )
     if not imus and not templates:
         raise LayoutError("csv: no sensor columns; give csv.gyro/csv.accel/csv.mag or [[csv.imu]]")
     if imus and len({frozenset(i) for i in imus}) != 1:
         raise LayoutError("csv.imu: every IMU must list the same sensor types")
     n_imus = raw.get("n_imus")
-    if n_imus is not None and (isinstance(n_imus, bool) or not isinstance(n_imus, int) or n_imus < 1):
+    if n_imus is not None and (
+        isinstance(n_imus, bool) or not isinstance(n_imus, int) or n_imus < 1
+    ):
         raise LayoutError(f"csv.n_imus: expected a positive integer, got {n_imus!r}")
     return CsvMapping(
         delimiter=delimiter,
@@ -136,7 +146,11 @@ def default_csv_layout(
     if rate_hz is not None:
         description["rate_hz"] = rate_hz
     return Layout(
-        name="csv", kind="csv", rate_hz=rate_hz, csv=parse_csv_mapping(table), description=description
+        name="csv",
+        kind="csv",
+        rate_hz=rate_hz,
+        csv=parse_csv_mapping(table),
+        description=description,
     )
 
 
@@ -157,7 +171,9 @@ def _resolve_columns(
     if mapping.imus:
         for imu in mapping.imus:
             for sensor, spec in imu.items():
-                sensors.setdefault(sensor, []).append(([index_of(c) for c in spec.columns], spec.scale))
+                sensors.setdefault(sensor, []).append(
+                    ([index_of(c) for c in spec.columns], spec.scale)
+                )
         return time_index, sensors
     k = 0
     while mapping.n_imus is None or k < mapping.n_imus:
@@ -165,10 +181,14 @@ def _resolve_columns(
             s: [template.format(k=k, axis=a) for a in "xyz"]
             for s, (template, _) in mapping.templates.items()
         }
-        if mapping.n_imus is None and not all(n in position for cols in names.values() for n in cols):
+        if mapping.n_imus is None and not all(
+            n in position for cols in names.values() for n in cols
+        ):
             break
         for sensor, cols in names.items():
-            sensors.setdefault(sensor, []).append(([index_of(c) for c in cols], mapping.templates[sensor][1]))
+            sensors.setdefault(sensor, []).append(
+                ([index_of(c) for c in cols], mapping.templates[sensor][1])
+            )
         k += 1
     if k == 0:
         first = next(iter(mapping.templates.values()))[0].format(k=0, axis="x")

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from imufdi_cli.array import ArrayConfig
 from imufdi_cli.capture.checksum import compute_checksums
 from imufdi_cli.capture.layout import Layout
 from imufdi_cli.errors import CaptureError, LayoutError
@@ -155,23 +156,23 @@ def encode_frames(
             values = np.full(n_samples, item.expect or 0, dtype=np.int64)
         _write(frames, item.offset, values, item.dtype)
     records = np.zeros((n_samples, n_imus, layout.record_size), dtype=np.uint8)
-    for item in layout.record:
-        if item.type == "pad":
+    for record_field in layout.record:
+        if record_field.type == "pad":
             continue
-        if item.name == "temperature":
+        if record_field.name == "temperature":
             raw = _to_raw(
                 np.full((n_samples, n_imus), temperature_c),
-                item.scale,
-                item.dtype,
-                item.value_offset,
+                record_field.scale,
+                record_field.dtype,
+                record_field.value_offset,
             )
         else:
-            sensor, axis = item.name.split("_")
+            sensor, axis = record_field.name.split("_")
             triads = block.get(sensor)
             if triads is None:
                 continue
-            raw = _to_raw(triads[:, :, "xyz".index(axis)], item.scale, item.dtype)
-        _write(records, item.offset, raw, item.dtype)
+            raw = _to_raw(triads[:, :, "xyz".index(axis)], record_field.scale, record_field.dtype)
+        _write(records, record_field.offset, raw, record_field.dtype)
     start = layout.header_end
     frames[:, start : start + n_imus * layout.record_size] = records.reshape(n_samples, -1)
     spec = layout.checksum
@@ -244,8 +245,10 @@ def encode_capture(
     intact[dropped] = False
 
     records_start = layout.header_end
-    records_end = frame_size - layout.trailer_size - (
-        layout.checksum.size if layout.checksum.at is None else 0
+    records_end = (
+        frame_size
+        - layout.trailer_size
+        - (layout.checksum.size if layout.checksum.at is None else 0)
     )
     sync0 = layout.sync[0]
     pieces: list[bytes] = []
@@ -287,3 +290,75 @@ def encode_capture(
         duplicated=duplicated,
         cut_bytes=cut_total,
     )
+
+
+#: corruption injected per block by ``CaptureEncoder(corrupt=True)``
+DEFAULT_CORRUPTION = Corruption(garbage=1, flipped=1, cut=1, dropped=1, duplicated=1)
+
+
+class CaptureEncoder:
+    """Streaming encoder: consecutive ImuBlocks to one continuous capture.
+
+    The counter runs on across blocks. With ``corrupt``, each block long enough for it
+    gets the given :class:`Corruption` (``True``: :data:`DEFAULT_CORRUPTION`); the
+    running totals of what a correct parser must report are in :attr:`expected`.
+
+    Parameters
+    ----------
+    array : ArrayConfig or None
+        When given, blocks must have its IMU count.
+    layout : Layout or None
+        Default: the built-in ``mpu6500-array`` (500 dps, 4 g).
+    corrupt : bool or Corruption
+    seed : int or None
+        Seed of the generator that places corruptions (ignored when ``rng`` is given).
+    rng : numpy.random.Generator or None
+    """
+
+    def __init__(
+        self,
+        array: ArrayConfig | None = None,
+        *,
+        layout: Layout | None = None,
+        corrupt: bool | Corruption = False,
+        seed: int | None = 0,
+        rng: np.random.Generator | None = None,
+    ) -> None:
+        from imufdi_cli.capture.layout import mpu6500_array
+
+        self.array = array
+        self.layout = layout if layout is not None else mpu6500_array()
+        if corrupt is True:
+            self.corruption: Corruption | None = DEFAULT_CORRUPTION
+        elif corrupt is False:
+            self.corruption = None
+        else:
+            self.corruption = corrupt
+        self.rng = rng if rng is not None else np.random.default_rng(seed)
+        self.counter = 0
+        self.expected: dict[str, int] = {}
+
+    def encode(self, block: ImuBlock) -> bytes:
+        """Bytes of the next block of the capture."""
+        if self.array is not None and len(block) and block.n_imus != self.array.n_imus:
+            raise LayoutError(
+                f"block has {block.n_imus} IMUs, the array config {self.array.n_imus}"
+            )
+        if len(block) == 0:
+            return b""
+        corruption = self.corruption
+        if corruption is not None and 3 * corruption.events + 2 > len(block):
+            corruption = None
+        encoded = encode_capture(
+            block, self.layout, corrupt=corruption, rng=self.rng, start_counter=self.counter
+        )
+        self.counter += len(block)
+        for key, value in encoded.expected_stats(
+            has_counter=self.layout.role("counter") is not None
+        ).items():
+            self.expected[key] = self.expected.get(key, 0) + value
+        return encoded.data
+
+    def finish(self) -> bytes:
+        """Bytes closing the capture (none for fixed-frame layouts)."""
+        return b""

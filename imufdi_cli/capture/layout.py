@@ -539,9 +539,7 @@ def _parse_checksum(raw: Any, default_endian: str, sync_len: int) -> ChecksumSpe
 
 def _check_frame(layout: Layout) -> None:
     """Validate offsets against the smallest and largest frames."""
-    counts = (
-        (layout.n_imus,) if layout.n_imus is not None else (1, layout.max_imus)
-    )
+    counts = (layout.n_imus,) if layout.n_imus is not None else (1, layout.max_imus)
     spec = layout.checksum
     for count in counts:
         size = layout.frame_size(count)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -30,10 +31,13 @@ def _chunks(source: CaptureSource, chunk_size: int) -> Iterator[bytes]:
         for start in range(0, len(view), chunk_size):
             yield bytes(view[start : start + chunk_size])
         return
+    if isinstance(source, str) and source == "-":
+        yield from _read(sys.stdin.buffer, chunk_size, "stdin")
+        return
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
         try:
-            handle: BinaryIO = open(path, "rb")  # noqa: SIM115 (closed below)
+            handle: BinaryIO = open(path, "rb")
         except OSError as err:
             raise CaptureError(f"cannot read capture {path}: {err.strerror}") from err
         with handle:
@@ -95,7 +99,7 @@ def parse_capture(
     stats = IngestStats()
     if rate_hz is not None and not (np.isfinite(rate_hz) and rate_hz > 0):
         raise CaptureError(f"rate_hz must be a positive number, got {rate_hz!r}")
-    if isinstance(source, (str, os.PathLike)) and not Path(source).is_file():
+    if isinstance(source, (str, os.PathLike)) and str(source) != "-" and not Path(source).is_file():
         raise CaptureError(f"capture {source} does not exist or is not a file")
     if layout.kind == "csv":
         chunks = _chunks(source, max(int(chunk_size), 1))
@@ -175,11 +179,10 @@ def ingest(
         raise CaptureError(
             f"the capture has {first.n_imus} IMUs per sample, the array config {array.n_imus}"
         )
-    writer_options: dict[str, Any] = {}
-    if compression != "zstd":
-        writer_options["compression"] = compression
+    writer_options: dict[str, Any] = {"compression": compression}
     try:
-        with mcapio.McapWriter(output, **writer_options) as writer:
+        target = Path(output) if isinstance(output, os.PathLike) else output
+        with mcapio.McapWriter(target, **writer_options) as writer:
             imu_writer = mcapio.ImuArrayWriter(writer, array)
             imu_writer.write_block(first)
             for block in blocks:
@@ -213,4 +216,3 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, bytes):
         return value.hex(" ")
     return str(value)
-

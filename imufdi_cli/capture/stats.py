@@ -57,3 +57,7 @@ class IngestStats:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+    def as_rows(self) -> list[tuple[str, int]]:
+        """(name, count) pairs for a table, without the ``complete`` flag."""
+        return [(k.replace("_", " "), v) for k, v in asdict(self).items() if k != "complete"]
