@@ -99,7 +99,7 @@ class MovingWindow:
         counts = np.minimum(self.seen + np.arange(1, n_new + 1), self.length)
         self.seen += n_new
         keep = self.length - 1
-        self.tail = joined[joined.shape[0] - keep :] if keep > 0 else joined[:0]
+        self.tail = joined[max(joined.shape[0] - keep, 0) :] if keep > 0 else joined[:0]
         return sums, counts
 
 
@@ -155,6 +155,7 @@ class _TypeModel:
         self.eigenvectors = eigenvectors  # (q, q), columns
         self.rho = rho  # (q,)
         self.n_components = n_components
+        self.n_train = n_train
         self.isolable = isolable  # (n,) bool
         lengths = np.arange(1, window + 1)
         # Variance of the moving-mean deviation of each component, per window fill (L, q).
@@ -163,8 +164,39 @@ class _TypeModel:
             + mean_variance_inflation(rho, np.array([n_train]))[0][None, :] / n_train
         )
         self.window = MovingWindow(window, projection.shape[0])
+        self.window_length = window
+        self._residual_thresholds: dict[float, np.ndarray] = {}
         norms = np.linalg.norm(projection, axis=0)
         self.direction_norms = norms  # |v_j|, (n,)
+
+    def residual_threshold(self, level: float) -> np.ndarray:
+        """Threshold of Q = |discarded components of the mean deviation|^2, per window fill.
+
+        Q is a weighted sum of chi2(1) variables with weights v_i (the moving-mean variances
+        of the discarded components); Box's approximation Q ~ g chi2(h), g = sum v^2 / sum v,
+        h = (sum v)^2 / sum v^2 (Box 1954; Jackson & Mudholkar 1979). It uses only sums of
+        eigenvalues, which are far less biased than the individual small eigenvalues of a
+        sample covariance (in high dimension the smallest ones are grossly underestimated),
+        and one pooled autocorrelation for the discarded components.
+
+        Returns
+        -------
+        ndarray, shape (window,)
+        """
+        if level not in self._residual_thresholds:
+            k = self.n_components
+            tail = self.eigenvalues[k:]
+            rho = np.array([float(np.sum(tail * self.rho[k:]) / np.sum(tail))])
+            lengths = np.arange(1, self.window_length + 1)
+            factor = (
+                mean_variance_inflation(rho, lengths)[:, 0] / lengths
+                + mean_variance_inflation(rho, np.array([self.n_train]))[0, 0] / self.n_train
+            )
+            weights = tail[None, :] * factor[:, None]  # (L, q-k)
+            scale = (weights**2).sum(axis=1) / weights.sum(axis=1)
+            dof = weights.sum(axis=1) ** 2 / (weights**2).sum(axis=1)
+            self._residual_thresholds[level] = scale * chi2.ppf(1.0 - level, dof)
+        return self._residual_thresholds[level]
 
     def transform(self, measurements: np.ndarray) -> np.ndarray:
         """Leak-compensated deviations ``p - K xhat - mu``, shape (N, q)."""
@@ -375,8 +407,10 @@ class PcaParityDetector:
         level = self.alpha / 2.0 if tests_residual else self.alpha
         statistic = normalised[:, :k].sum(axis=1) / chi2.ppf(1.0 - level, k)
         if tests_residual:
-            residual = normalised[:, k:].sum(axis=1) / chi2.ppf(1.0 - level, q - k)
-            statistic = np.maximum(statistic, residual)
+            residual = (components[:, k:] ** 2).sum(axis=1)  # Q, squared norm
+            statistic = np.maximum(
+                statistic, residual / model.residual_threshold(level)[counts - 1]
+            )
         alarm = statistic > 1.0
         scores = np.full((n_samples, n_sensors), np.nan)
         isolated = np.full(n_samples, NO_ISOLATION, dtype=np.int32)

@@ -1,0 +1,215 @@
+"""Figures of the noise-glr and pca-parity detectors on the reference scenarios, and speed.
+
+Run: ``python benchmarks/bench_noise_glr.py [--seeds 20] [--part all|noise|pca|speed]``.
+Prints the tables quoted in docs/algorithms/noise-glr.md and docs/algorithms/pca-parity.md.
+Means over seeds; "worst" is the worst seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors.base import DetectionBlock, parse_params
+from imufdi_cli.detectors.glt import GltDetector
+from imufdi_cli.detectors.noise_glr import NoiseGlrDetector, leave_one_out_operator
+from imufdi_cli.detectors.pca_parity import PcaParityDetector
+from imufdi_cli.errors import ImufdiError
+from imufdi_cli.faults import FaultInjector, parse_fault_spec
+from imufdi_cli.log import ImuBlock, iter_blocks
+from imufdi_cli.simulate import preset, simulate_block
+
+
+def make_log(name: str, seed: int, specs: tuple[str, ...] = (), **overrides: object):
+    array, block = simulate_block(preset(name, seed=seed, **overrides))
+    faults = [parse_fault_spec(s, array) for s in specs]
+    if faults:
+        block = FaultInjector(faults, array, seed=seed, t0_ns=int(block.t_ns[0])).apply_block(block)
+    return array, block
+
+
+def run(cls, params, array: ArrayConfig, block: ImuBlock, calibrate=(0.0, 2.0), block_size=250):
+    detector = cls(**parse_params(cls.PARAMS, params, cls.name))
+    t = block.t_s()
+    detector.fit(block.mask((t >= calibrate[0]) & (t < calibrate[1])), array)
+    outputs = [detector.process(b) for b in iter_blocks(block, block_size)]
+    return {s: DetectionBlock.concatenate([o[s] for o in outputs]) for s in outputs[0]}
+
+
+def event_figures(out: DetectionBlock, t: np.ndarray, start: float, end: float, sensor: int):
+    """FAR, detection delay, detection rate after first detection, recovery, isolation."""
+    alarm = out.alarm
+    fault = (t >= start) & (t < end)
+    far = float(alarm[~fault].mean())
+    hits = np.flatnonzero(alarm & fault)
+    if hits.size == 0:
+        return far, np.nan, 0.0, np.nan, np.nan
+    delay = float(t[hits[0]] - start)
+    rate = float(alarm[hits[0] : np.flatnonzero(fault)[-1] + 1].mean())
+    cleared = np.flatnonzero(~alarm & (t >= end))
+    recovery = float(t[cleared[0]] - end) if cleared.size else np.nan
+    isolation = float((out.isolated[alarm & fault] == sensor).mean())
+    return far, delay, rate, recovery, isolation
+
+
+def noise_part(seeds: int) -> None:
+    spec = "noise:imu0.accel.x,at=12s,until=18s,factor={}"
+    print("## noise-glr on wearable12, noise x3 on imu0.accel.x 12-18 s, calibration 0-2 s")
+    print("detector | FAR | delay s (worst) | rate after 1st det | recovery s (worst) | iso")
+    for label, cls, params in (
+        ("noise-glr a=0.01", NoiseGlrDetector, {}),
+        ("noise-glr a=0.001", NoiseGlrDetector, {"alpha": 0.001}),
+        ("noise-glr lever_arm=false", NoiseGlrDetector, {"lever_arm": False}),
+        ("glt (default)", GltDetector, {}),
+    ):
+        rows = []
+        try:
+            for seed in range(seeds):
+                array, block = make_log("wearable12", seed, (spec.format(3),))
+                out = run(cls, params, array, block)["accel"]
+                rows.append(event_figures(out, block.t_s(), 12.0, 18.0, 0))
+        except ImufdiError as err:
+            print(f"{label} | failed: {err}")
+            continue
+        r = np.array(rows)
+        print(
+            f"{label} | {np.nanmean(r[:, 0]):.4f} (worst {np.nanmax(r[:, 0]):.4f}) | "
+            f"{np.nanmean(r[:, 1]):.3f} ({np.nanmax(r[:, 1]):.2f}) | {np.nanmean(r[:, 2]):.4f} "
+            f"(min {np.nanmin(r[:, 2]):.4f}) | {np.nanmean(r[:, 3]):.3f} ({np.nanmax(r[:, 3]):.2f})"
+            f" | {np.nanmean(r[:, 4]):.4f}"
+        )
+    print("\n## detection delay against the noise factor (noise-glr a=0.01, mean / worst)")
+    for factor in (1.5, 2.0, 3.0, 5.0):
+        rows = []
+        for seed in range(seeds):
+            array, block = make_log("wearable12", seed, (spec.format(factor),))
+            out = run(NoiseGlrDetector, {}, array, block)["accel"]
+            rows.append(event_figures(out, block.t_s(), 12.0, 18.0, 0))
+        r = np.array(rows)
+        print(
+            f"factor {factor}: delay {np.nanmean(r[:, 1]):.3f} s (worst {np.nanmax(r[:, 1]):.2f}),"
+            f" rate {np.nanmean(r[:, 2]):.3f}, recovery {np.nanmean(r[:, 3]):.3f} s,"
+            f" iso {np.nanmean(r[:, 4]):.3f}, detected {np.isfinite(r[:, 1]).sum()}/{seeds}"
+        )
+
+
+def pca_part(seeds: int) -> None:
+    spec = ("step:imu5.gyro.z,at=6s,amp=0.5deg/s",)
+    print("\n## pca-parity on conical6, 0.5 deg/s step on imu5.gyro.z at 6 s")
+    print("params | calib | FAR 0-6 s | runs with an alarm in 0-6 s | first alarm s | delay s")
+    print("       |       | (worst) | | (mean) | (worst) | isolation | amplitude deg/s")
+    cases = (
+        ({}, (0.0, 2.0)),
+        ({}, (0.0, 5.0)),
+        ({"alpha": 0.001}, (0.0, 5.0)),
+        ({"leak": "none"}, (0.0, 5.0)),
+        ({}, (0.0, 1.0)),
+        ({"space": "raw"}, (0.0, 1.0)),
+        ({"space": "raw"}, (0.0, 2.0)),
+    )
+    for params, calibrate in cases:
+        rows = []
+        for seed in range(seeds):
+            array, block = make_log("conical6", seed, spec)
+            t = block.t_s()
+            out = run(PcaParityDetector, params, array, block, calibrate)["gyro"]
+            before = t < 6.0
+            first = t[np.flatnonzero(out.alarm)[0]] if out.alarm.any() else np.nan
+            hits = np.flatnonzero(out.alarm & ~before)
+            delay = t[hits[0]] - 6.0 if hits.size else np.nan
+            isolation = (out.isolated[hits] == 5).mean() if hits.size else np.nan
+            amplitude = np.nanmedian(np.rad2deg(out.amplitude[hits])) if hits.size else np.nan
+            rows.append(
+                (
+                    out.alarm[before].mean(),
+                    out.alarm[before].any(),
+                    first,
+                    delay,
+                    isolation,
+                    amplitude,
+                )
+            )
+        r = np.array(rows, dtype=float)
+        print(
+            f"{params or 'default'} | {calibrate[0]:g}-{calibrate[1]:g} s | "
+            f"{np.nanmean(r[:, 0]):.4f} ({np.nanmax(r[:, 0]):.4f}) | {int(r[:, 1].sum())}/{seeds} | "
+            f"{np.nanmean(r[:, 2]):.2f} | {np.nanmean(r[:, 3]):.3f} ({np.nanmax(r[:, 3]):.2f}) | "
+            f"{np.nanmean(r[:, 4]):.3f} | {np.nanmean(r[:, 5]):.3f}"
+        )
+    print(
+        "\n## chip-to-chip biases 0.5 deg/s and 0.05 m/s^2, no fault (paper-table4 without outliers)"
+    )
+    print("detector | gyro FAR (worst) | accel FAR (worst)")
+    for label, cls, params in (
+        ("pca-parity", PcaParityDetector, {}),
+        ("glt bias=true", GltDetector, {}),
+        ("glt bias=false (plain)", GltDetector, {"bias": False}),
+    ):
+        rows = []
+        for seed in range(seeds):
+            array, block = make_log(
+                "paper-table4",
+                seed,
+                outliers=False,
+                duration=20.0,
+                chip_biases={"gyro": "0.5deg/s", "accel": "0.05m/s^2"},
+            )
+            out = run(cls, params, array, block)
+            rows.append((out["gyro"].alarm.mean(), out["accel"].alarm.mean()))
+        r = np.array(rows)
+        print(
+            f"{label} | {r[:, 0].mean():.4f} ({r[:, 0].max():.4f}) | "
+            f"{r[:, 1].mean():.4f} ({r[:, 1].max():.4f})"
+        )
+
+
+def speed_part() -> None:
+    """Leave-one-out residuals: PRESS operator vs one least-squares fit per left-out sensor."""
+    array, block = make_log("wearable12", 0)
+    H = array.measurement_matrix("accel")
+    m = array.select(block.accel, "accel")
+    repeats = 5
+    start = time.perf_counter()
+    for _ in range(repeats):
+        operator, _ = leave_one_out_operator(H)
+        fast = m @ operator.T
+    fast_s = (time.perf_counter() - start) / repeats
+    start = time.perf_counter()
+    for _ in range(repeats):
+        slow = np.empty_like(m)
+        for j in range(H.shape[0]):
+            keep = np.arange(H.shape[0]) != j
+            x, *_ = np.linalg.lstsq(H[keep], m[:, keep].T, rcond=None)
+            slow[:, j] = m[:, j] - H[j] @ x
+    slow_s = (time.perf_counter() - start) / repeats
+    print("\n## speed: leave-one-out residuals of 36 accelerometers, 3000 samples")
+    print(f"PRESS operator {fast_s * 1e3:.2f} ms, per-sensor lstsq {slow_s * 1e3:.2f} ms, "
+          f"ratio {slow_s / fast_s:.1f}x, max difference {np.abs(fast - slow).max():.2e}")  # fmt: skip
+    detector = NoiseGlrDetector()
+    t = block.t_s()
+    detector.fit(block.mask(t < 2.0), array)
+    start = time.perf_counter()
+    for b in iter_blocks(block, 1000):
+        detector.process(b)
+    total = time.perf_counter() - start
+    print(f"noise-glr process: {len(block) / total / 1e3:.0f} k samples/s (gyro + accel, 12 IMUs)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--part", choices=("all", "noise", "pca", "speed"), default="all")
+    args = parser.parse_args()
+    if args.part in ("all", "noise"):
+        noise_part(args.seeds)
+    if args.part in ("all", "pca"):
+        pca_part(args.seeds)
+    if args.part in ("all", "speed"):
+        speed_part()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,230 @@
+"""pca-parity: moving windows, variance inflation, isolation, conical6 and bias cases."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.testing import assert_allclose
+
+from imufdi_cli.detectors.base import NO_ISOLATION, NOT_ISOLABLE, DetectionBlock, parse_params
+from imufdi_cli.detectors.glt import GltDetector
+from imufdi_cli.detectors.parity import parity_matrix
+from imufdi_cli.detectors.pca_parity import (
+    MovingWindow,
+    PcaParityDetector,
+    mean_variance_inflation,
+)
+from imufdi_cli.errors import CalibrationError, DetectorConfigError
+from imufdi_cli.faults import FaultInjector, parse_fault_spec
+from imufdi_cli.log import ImuBlock, iter_blocks
+from imufdi_cli.simulate import preset, simulate_block
+
+DEG = np.pi / 180.0
+
+
+def make(params: dict | None = None) -> PcaParityDetector:
+    return PcaParityDetector(**parse_params(PcaParityDetector.PARAMS, params or {}, "pca-parity"))
+
+
+def run(detector, array, block, calibrate=(0.0, 2.0), block_size=173):
+    t = block.t_s()
+    detector.fit(block.mask((t >= calibrate[0]) & (t < calibrate[1])), array)
+    outs = [detector.process(b) for b in iter_blocks(block, block_size)]
+    return {s: DetectionBlock.concatenate([o[s] for o in outs]) for s in outs[0]}
+
+
+def conical6(seed: int, fault: bool = True):
+    array, block = simulate_block(preset("conical6", seed=seed))
+    if fault:
+        faults = [parse_fault_spec("step:imu5.gyro.z,at=6s,amp=0.5deg/s", array)]
+        block = FaultInjector(faults, array, seed=seed, t0_ns=int(block.t_ns[0])).apply_block(block)
+    return array, block
+
+
+def gyro_block(values: np.ndarray, rate_hz: float = 100.0) -> ImuBlock:
+    """ImuBlock of co-aligned triads from (N, m, 3) gyro values."""
+    t_ns = (np.arange(values.shape[0]) * 1e9 / rate_hz).astype(np.int64)
+    return ImuBlock(t_ns=t_ns, gyro=values)
+
+
+# --- helpers -------------------------------------------------------------------------
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    length=st.integers(1, 12),
+    cuts=st.lists(st.integers(0, 60), max_size=5),
+)
+def test_moving_window_matches_direct_sums_across_block_boundaries(length, cuts):
+    values = np.random.default_rng(length).standard_normal((60, 2))
+    window = MovingWindow(length, 2)
+    edges = [0, *sorted(cuts), 60]
+    sums, counts = zip(*(window.push(values[a:b]) for a, b in itertools.pairwise(edges)))
+    sums_all, counts_all = np.concatenate(sums), np.concatenate(counts)
+    expected = np.array([values[max(0, i - length + 1) : i + 1].sum(axis=0) for i in range(60)])
+    assert_allclose(sums_all, expected, atol=1e-12)
+    assert_allclose(counts_all, np.minimum(np.arange(1, 61), length))
+
+
+def test_variance_inflation_matches_the_ar1_sum():
+    rho = np.array([0.0, 0.5, -0.3, 0.9])
+    lengths = np.array([1, 7, 40])
+    brute = np.array(
+        [[1 + 2 * sum((1 - lag / n) * r**lag for lag in range(1, n)) for r in rho] for n in lengths]
+    )
+    assert_allclose(mean_variance_inflation(rho, lengths), brute, rtol=1e-12)
+    # white noise: Var(mean of L) = sigma^2 / L exactly
+    assert_allclose(mean_variance_inflation(np.zeros(1), np.arange(1, 5))[:, 0], 1.0)
+
+
+# --- analytic isolation ----------------------------------------------------------------
+
+
+def test_noise_free_fault_is_isolated_at_zero_angle_with_exact_amplitude():
+    """A step f on sensor j moves the parity vector by f v_j: angle 0, amplitude f."""
+    array, _ = simulate_block(preset("conical6", seed=3, noise_scale=0.0))
+    H = array.measurement_matrix("gyro")
+    rng = np.random.default_rng(0)
+    n = 2000
+    measurements = rng.standard_normal((n, 3)) @ H.T * 0.3 + 1e-3 * rng.standard_normal((n, 6))
+    measurements[1000:, 2] += 0.01  # fault on sensor 2
+    triads = np.full((n, 6, 3), np.nan)
+    triads[:, :, 2] = measurements
+    block = gyro_block(triads)
+    detector = make({"leak": "none", "window": "0.5s"})
+    out = run(detector, array, block, calibrate=(0.0, 9.0))["gyro"]
+    late = slice(1200, 2000)
+    assert out.alarm[late].all()
+    assert (out.isolated[late] == 2).all()
+    assert_allclose(out.amplitude[late], 0.01, rtol=0.05)
+    assert np.all(out.scores[late, 2] < 0.1)  # radians
+    V = parity_matrix(H)
+    assert_allclose(detector.models["gyro"].projection, V)
+
+
+def test_four_sensors_detect_but_cannot_isolate():
+    """n = 4: one parity dimension, every v_j is parallel -> NOT_ISOLABLE."""
+    conical = simulate_block(preset("conical6", seed=0, n_imus=4))[0]
+    rng = np.random.default_rng(1)
+    n = 1500
+    values = 1e-3 * rng.standard_normal((n, 4))
+    values[800:, 1] += 0.02
+    triads = np.full((n, 4, 3), np.nan)
+    triads[:, :, 2] = values
+    out = run(make(), conical, gyro_block(triads))["gyro"]
+    assert out.alarm[850:].all()
+    assert set(np.unique(out.isolated[out.alarm])) == {NOT_ISOLABLE}
+
+
+# --- reference scenario --------------------------------------------------------------
+
+
+def test_conical6_fault_detected_isolated_and_quiet_before_with_motion_training():
+    """Hao & Wang §4 case: training window 0-5 s contains the motion (leak regression)."""
+    array, block = conical6(seed=0)
+    t = block.t_s()
+    out = run(make({"alpha": 0.001}), array, block, calibrate=(0.0, 5.0))["gyro"]
+    assert not out.alarm[t < 6.0].any()
+    hits = np.flatnonzero(out.alarm & (t >= 6.0))
+    assert t[hits[0]] - 6.0 <= 0.5
+    assert out.alarm[t >= 6.5].mean() > 0.99
+    assert (out.isolated[hits] == 5).mean() > 0.99
+    assert_allclose(np.median(out.amplitude[hits]), 0.5 * DEG, rtol=0.05)
+    assert (out.isolated[~out.alarm] == NO_ISOLATION).all()
+
+
+def test_raw_space_alarms_when_the_motion_starts():
+    array, block = conical6(seed=1)
+    t = block.t_s()
+    out = run(make({"space": "raw"}), array, block, calibrate=(0.0, 1.0))["gyro"]
+    first = t[np.flatnonzero(out.alarm)[0]]
+    assert 1.0 <= first < 1.1
+    assert out.alarm[(t >= 1.5) & (t < 6.0)].mean() > 0.9
+    assert set(np.unique(out.isolated[out.alarm])) == {NOT_ISOLABLE}
+
+
+def test_leak_regression_is_what_keeps_the_parity_test_quiet_under_motion():
+    array, block = conical6(seed=2, fault=False)
+    t = block.t_s()
+    without = run(make({"leak": "none"}), array, block, calibrate=(0.0, 5.0))["gyro"]
+    with_leak = run(make(), array, block, calibrate=(0.0, 5.0))["gyro"]
+    after = t >= 5.0
+    assert without.alarm[after].mean() > 0.05
+    assert with_leak.alarm[after].mean() < 0.03
+
+
+@pytest.mark.slow
+def test_chip_biases_false_alarm_rate_is_nominal_while_plain_glt_alarms():
+    rates = []
+    for seed in range(3):
+        array, block = simulate_block(
+            preset(
+                "paper-table4",
+                seed=seed,
+                outliers=False,
+                duration=20.0,
+                chip_biases={"gyro": "0.5deg/s"},
+            )
+        )
+        out = run(make({"sensors": "gyro"}), array, block)["gyro"]
+        rates.append(out.alarm.mean())
+        glt = GltDetector(**parse_params(GltDetector.PARAMS, {"bias": False}, "glt"))
+        plain = run(glt, array, block)["gyro"]
+        assert plain.alarm.mean() > 0.5
+    assert np.mean(rates) < 0.02  # nominal alpha = 0.01 (measured 0.002-0.007 per seed)
+
+
+def test_streaming_gives_the_same_rows_for_any_block_size():
+    array, block = conical6(seed=4)
+    one = run(make(), array, block, block_size=len(block))["gyro"]
+    many = run(make(), array, block, block_size=37)["gyro"]
+    assert_allclose(one.statistic, many.statistic, rtol=1e-9)
+    assert (one.alarm == many.alarm).all()
+    assert (one.isolated == many.isolated).all()
+    detector = make()
+    detector.fit(block.slice(0, 200), array)
+    assert [len(b) for b in detector.flush().values()] == [0]
+
+
+# --- errors and metadata -------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("raw", "match"),
+    [
+        ({"space": "pca"}, "valid: parity, raw"),
+        ({"components": "0"}, ">= 1"),
+        ({"window": "5m/s"}, "time"),
+        ({"sensors": "gyro,baro"}, "valid: gyro, accel, mag"),
+        ({"nope": "1"}, "valid: alpha"),
+    ],
+)
+def test_bad_params_raise_detector_config_error(raw, match):
+    with pytest.raises(DetectorConfigError, match=match):
+        make(raw)
+
+
+def test_short_or_missing_calibration_raises():
+    array, block = conical6(seed=0, fault=False)
+    with pytest.raises(CalibrationError, match="at least"):
+        make().fit(block.slice(0, 15), array)
+    with pytest.raises(CalibrationError, match="nothing to test"):
+        make({"sensors": "accel"}).fit(block.slice(0, 200), array)
+    with pytest.raises(CalibrationError, match="before fit"):
+        make().process(block)
+
+
+def test_metadata_is_json_ready():
+    import json
+
+    array, block = conical6(seed=0, fault=False)
+    detector = make()
+    detector.fit(block.slice(0, 500), array)
+    meta = json.loads(json.dumps(detector.metadata()))
+    assert meta["types"]["gyro"]["dimension"] == 3
+    assert meta["types"]["gyro"]["components"] == 2
+    assert meta["params"]["window_samples"] == 20
