@@ -247,6 +247,15 @@ def _vector3(value: Any, dimension: str, name: str) -> np.ndarray:
     return np.array([parse_quantity(v, dimension, name=name) for v in items], dtype=float)
 
 
+def _json_ready(value: Any) -> Any:
+    """Tuples, arrays and numpy scalars -> lists and floats (nested)."""
+    if isinstance(value, (tuple, list, np.ndarray)):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
 class Motion:
     """Base class of motion profiles: ``evaluate(t_s) -> MotionState``.
 
@@ -260,11 +269,7 @@ class Motion:
 
     def describe(self) -> dict[str, Any]:
         """Name and parameters as JSON-ready values."""
-        params = {
-            k: (np.asarray(v).tolist() if isinstance(v, (np.ndarray, tuple, list)) else v)
-            for k, v in self.__dict__.items()
-        }
-        return {"motion": self.NAME, **params}
+        return {"motion": self.NAME, **{k: _json_ready(v) for k, v in self.__dict__.items()}}
 
 
 class _EulerMotion(Motion):
@@ -662,7 +667,7 @@ class SimConfig:
             "magnetic_field_T": list(self.magnetic_field),
             **self.motion.describe(),
             "errors": {
-                k: {f: (list(v) if isinstance(v, tuple) else v) for f, v in e.__dict__.items()}
+                k: {f: _json_ready(v) for f, v in e.__dict__.items()}
                 for k, e in self.errors.items()
             },
         }

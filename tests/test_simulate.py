@@ -472,3 +472,16 @@ def test_options_and_block_size_property(block_size, n_imus, rate, seed) -> None
     assert_array_equal(joined.gyro, whole.gyro)
     assert_array_equal(joined.accel, whole.accel)
     assert np.all(np.diff(whole.t_ns) > 0)
+
+
+def test_describe_is_json_and_block_size_is_checked() -> None:
+    import json
+
+    for name in PRESETS:
+        described = json.loads(json.dumps(preset(name, seed=5).describe()))
+        assert described["name"] == name and described["seed"] == 5
+    quadrotor = preset("quadrotor-marg").describe()
+    assert quadrotor["motion"] == "attitude"
+    assert_allclose(quadrotor["moves"][1][2], np.radians([10, -20, 5]))
+    with pytest.raises(UsageError, match="block_size"):
+        simulate(preset("paper-table4"), block_size=0)
