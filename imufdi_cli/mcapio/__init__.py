@@ -26,6 +26,14 @@ from imufdi_cli.mcapio.imu import (
 )
 from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch, SchemaInfo
 from imufdi_cli.mcapio.source import McapSource
+from imufdi_cli.mcapio.status import (
+    StatusArrays,
+    encode_status,
+    read_json_topic,
+    read_status,
+    register_status_channel,
+)
+from imufdi_cli.mcapio.summary import LogSummary, TopicSummary, summarize
 
 __all__ = [
     "ARRAY_METADATA",
@@ -34,18 +42,26 @@ __all__ = [
     "ImuArrayReader",
     "ImuArrayWriter",
     "ImuFields",
+    "LogSummary",
     "McapSource",
     "McapWriter",
     "MessageBatch",
     "SchemaInfo",
+    "StatusArrays",
+    "TopicSummary",
     "decode_imu",
     "decode_mag",
     "encode_messages",
+    "encode_status",
     "is_imu_channel",
     "is_mag_channel",
     "natural_key",
     "patch_imu",
     "patch_mag",
     "read_array",
+    "read_json_topic",
+    "read_status",
+    "register_status_channel",
+    "summarize",
     "write_array",
 ]

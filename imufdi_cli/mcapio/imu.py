@@ -632,7 +632,9 @@ class ImuArrayReader:
         imu_channels = {c.topic: c for c in self.source.channels.values() if is_imu_channel(c)}
         if not imu_channels:
             topics_found = sorted({c.topic for c in self.source.channels.values()}, key=natural_key)
-            self.close()
+            self.source.push_back(list(self._prefetched))
+            if not isinstance(source, McapSource):
+                self.close()
             raise McapInputError(
                 f"{self.source.name}: no sensor_msgs/msg/Imu channel (CDR or JSON); topics: "
                 + (", ".join(topics_found) or "none")

@@ -230,7 +230,8 @@ class McapSource:
             self.close()
             raise McapInputError(f"{self.name} is not an MCAP file (bad magic bytes)")
         self._seekable = self._is_seekable()
-        self._consumed = False
+        self._iterator: Iterator[MessageBatch] | None = None
+        self._pushback: list[MessageBatch] = []
         if self._seekable:
             try:
                 self._read_summary()
@@ -368,10 +369,28 @@ class McapSource:
     # --- data ------------------------------------------------------------------------------
 
     def batches(self) -> Iterator[MessageBatch]:
-        """Message batches in file order: one per chunk; un-chunked messages are grouped."""
-        if self._consumed:
-            raise McapInputError(f"{self.name}: batches() can be iterated only once")
-        self._consumed = True
+        """Message batches in file order: one per chunk; un-chunked messages are grouped.
+
+        The file is read once: calling this again continues where the last iteration
+        stopped (batches handed back with :meth:`push_back` come first).
+        """
+        if self._iterator is None:
+            self._iterator = self._read_batches()
+        return self._with_pushback(self._iterator)
+
+    def push_back(self, batches: list[MessageBatch]) -> None:
+        """Hand batches back so that the next :meth:`batches` iteration yields them first."""
+        self._pushback[:0] = batches
+
+    def _with_pushback(self, iterator: Iterator[MessageBatch]) -> Iterator[MessageBatch]:
+        while self._pushback:
+            yield self._pushback.pop(0)
+        for batch in iterator:
+            yield batch
+            while self._pushback:
+                yield self._pushback.pop(0)
+
+    def _read_batches(self) -> Iterator[MessageBatch]:
         loose: list[tuple[bytes, int]] = []
         position = len(MAGIC)
         while True:
