@@ -1,0 +1,91 @@
+"""Run the real console entry point in-process, with byte-level stdin/stdout."""
+
+from __future__ import annotations
+
+import io
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from imufdi_cli.cli import main
+
+
+@dataclass
+class CliResult:
+    code: int
+    stdout: bytes
+    stderr: str
+
+    @property
+    def out(self) -> str:
+        return self.stdout.decode("utf-8", "replace")
+
+
+def invoke(args: list[str], stdin: bytes = b"") -> CliResult:
+    out_buffer, err_buffer = io.BytesIO(), io.BytesIO()
+    saved = sys.stdin, sys.stdout, sys.stderr
+    wrappers = (
+        io.TextIOWrapper(io.BytesIO(stdin)),
+        io.TextIOWrapper(out_buffer, write_through=True),
+        io.TextIOWrapper(err_buffer, write_through=True),
+    )
+    sys.stdin, sys.stdout, sys.stderr = wrappers
+    code = 0
+    try:
+        main([str(a) for a in args])
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        sys.stdin, sys.stdout, sys.stderr = saved
+    result = CliResult(
+        code, out_buffer.getvalue(), err_buffer.getvalue().decode("utf-8", "replace")
+    )
+    for wrapper in wrappers:
+        wrapper.detach()  # keep the byte buffers open past the wrappers' lifetime
+    return result
+
+
+@pytest.fixture
+def cli():
+    return invoke
+
+
+def assert_one_line_error(result: CliResult, code: int, fragment: str) -> None:
+    assert result.code == code, (result.code, result.stderr)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("imufdi: error: "), lines[0]
+    assert fragment in lines[0], lines[0]
+    assert "Traceback" not in result.stderr
+
+
+@pytest.fixture(scope="session")
+def table4_log(tmp_path_factory) -> Path:
+    """A paper-table4 log (seed 1), simulated once per session."""
+    path = tmp_path_factory.mktemp("logs") / "table4.mcap"
+    result = invoke(["simulate", "--preset", "paper-table4", "--seed", "1", "-o", path])
+    assert result.code == 0, result.stderr
+    return path
+
+
+@pytest.fixture(scope="session")
+def faulty_log(tmp_path_factory, table4_log) -> Path:
+    """table4_log with the 0.9 deg/s step on imu0.gyro.x at 2.5 s."""
+    path = tmp_path_factory.mktemp("logs") / "faulty.mcap"
+    result = invoke(
+        ["inject", table4_log, "--fault", "step:imu0.gyro.x,at=2.5s,amp=0.9deg/s", "-o", path]
+    )
+    assert result.code == 0, result.stderr
+    return path
+
+
+@pytest.fixture(scope="session")
+def detected_log(tmp_path_factory, faulty_log) -> Path:
+    path = tmp_path_factory.mktemp("logs") / "detected.mcap"
+    result = invoke(["detect", faulty_log, "-d", "glt", "-o", path])
+    assert result.code == 0, result.stderr
+    return path

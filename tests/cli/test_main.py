@@ -1,0 +1,62 @@
+"""The entry point: version, help, python -m, usage errors are one line with exit 2."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+from imufdi_cli import __version__
+from tests.cli.conftest import assert_one_line_error
+
+
+def test_version(cli):
+    result = cli(["--version"])
+    assert result.code == 0 and __version__ in result.out
+
+
+def test_help_lists_every_command(cli):
+    result = cli(["--help"])
+    assert result.code == 0
+    for name in (
+        "simulate",
+        "ingest",
+        "info",
+        "inject",
+        "tune",
+        "detect",
+        "report",
+        "campaign",
+        "demo",
+    ):
+        assert name in result.out
+    assert "Exit codes" in result.out
+
+
+def test_python_dash_m():
+    done = subprocess.run(
+        [sys.executable, "-m", "imufdi_cli", "--version"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 0 and __version__ in done.stdout
+
+
+def test_unknown_command_is_usage_error(cli):
+    assert_one_line_error(cli(["frobnicate"]), 2, "No such command 'frobnicate'")
+
+
+def test_unknown_option_is_usage_error(cli):
+    assert_one_line_error(cli(["report", "x.mcap", "--bogus"]), 2, "No such option '--bogus'")
+
+
+def test_cli_docs_match_help():
+    done = subprocess.run(
+        [sys.executable, "tools/gen_cli_docs.py", "--check"],
+        capture_output=True,
+        text=True,
+        check=False,
+        cwd=Path(__file__).resolve().parents[2],
+    )
+    assert done.returncode == 0, done.stderr
