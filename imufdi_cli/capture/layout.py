@@ -478,9 +478,13 @@ def _field_type(item: Mapping[str, Any], where: str) -> tuple[str, int]:
 
 
 def _record_scale(
-    item: Mapping[str, Any], name: str, fs: Mapping[str, float | None], where: str
+    item: Mapping[str, Any],
+    name: str,
+    fs: Mapping[str, float | None],
+    where: str,
+    type_name: str = "i16",
 ) -> tuple[float, float]:
-    """(scale to SI per LSB, offset) of a record field."""
+    """(scale to SI per LSB, offset) of a record field (float fields default to SI)."""
     if name == "pad":
         return 1.0, 0.0
     if name == "temperature":
@@ -511,6 +515,8 @@ def _record_scale(
     if "unit" in item:
         return _quantity(f"1{item['unit']}", dimension, f"{where}.unit"), 0.0
     known = fs.get(sensor)
+    if known is None and type_name in ("f32", "f64"):
+        return 1.0, 0.0
     if known is None:
         hint = {"gyro": "gyro_fs", "accel": "accel_fs"}.get(sensor, "scale")
         raise LayoutError(f"{where}: no scale for {name}; give 'scale' or the layout's {hint}")
@@ -704,7 +710,7 @@ def _layout_from_dict(data: Mapping[str, Any], source: str) -> Layout:
         type_name, size = _field_type(item, where)
         if field_name != "pad" and type_name == "pad":
             raise LayoutError(f"{where}: only a field named 'pad' can have type 'pad'")
-        scale, value_offset = _record_scale(item, field_name, fs, where)
+        scale, value_offset = _record_scale(item, field_name, fs, where, type_name)
         record.append(
             RecordField(
                 name=field_name,

@@ -1,0 +1,103 @@
+import math
+
+import pytest
+
+from imufdi_cli.capture import layout_from_dict, load_layout, mpu6500_array
+from imufdi_cli.capture.layout import accel_scale, gyro_scale
+from imufdi_cli.errors import LayoutError
+
+from .conftest import LAYOUTS
+
+
+def test_builtin_byte_map():
+    layout = mpu6500_array()
+    assert layout.sync == b"\xaa\x55"
+    assert [(f.name, f.offset, f.size) for f in layout.header] == [
+        ("version", 2, 1),
+        ("n_imus", 3, 1),
+        ("counter", 4, 2),
+        ("timestamp", 6, 4),
+    ]
+    assert [f.name for f in layout.record] == [
+        "accel_x", "accel_y", "accel_z", "temperature", "gyro_x", "gyro_y", "gyro_z",
+    ]  # fmt: skip
+    assert layout.record_size == 14
+    assert layout.frame_size(16) == 10 + 16 * 14 + 2
+    assert layout.checksum.resolve(layout.frame_size(1)) == (2, 24, 24)
+
+
+@pytest.mark.parametrize(
+    ("fs", "lsb_per_dps"), [("250dps", 131.0), ("500dps", 65.5), ("1000dps", 32.8), ("2000", 16.4)]
+)
+def test_gyro_full_scales(fs, lsb_per_dps):
+    assert gyro_scale(fs) == pytest.approx(math.radians(1.0) / lsb_per_dps)
+
+
+@pytest.mark.parametrize(
+    ("fs", "lsb_per_g"), [("2g", 16384), ("4g", 8192), ("8", 4096), ("16g", 2048)]
+)
+def test_accel_full_scales(fs, lsb_per_g):
+    assert accel_scale(fs) == pytest.approx(9.80665 / lsb_per_g)
+
+
+def test_toml_of_the_builtin_layout_is_the_builtin_layout():
+    toml = load_layout(LAYOUTS / "mpu6500-array.toml")
+    builtin = load_layout("mpu6500-array")
+    assert toml.header == builtin.header
+    assert toml.record == builtin.record
+    assert toml.checksum == builtin.checksum
+    assert toml.sync == builtin.sync
+
+
+def test_example_layouts_load():
+    layout = load_layout(LAYOUTS / "sync1-be-sum16.toml")
+    assert layout.frame_size(4) == 85 and layout.sensor_types == ("gyro", "accel", "mag")
+    assert load_layout(LAYOUTS / "logger-csv.toml").kind == "csv"
+
+
+BASE = {
+    "sync": "A5",
+    "n_imus": 1,
+    "gyro_fs": "500dps",
+    "record": [{"name": f"gyro_{a}", "type": "i16"} for a in "xyz"],
+}
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"sync": None}, "missing key 'sync'"),
+        ({"sync": "XZ"}, "not hex"),
+        ({"record": [{"name": "gyro_x", "type": "u12"}]}, "unknown field type 'u12'; valid: u8"),
+        ({"record": [{"name": "gyro_q", "type": "i16"}]}, "valid: accel_x"),
+        ({"record": [{"name": "gyro_x", "type": "i16"}]}, "needs all of gyro_x"),
+        ({"checksum": {"kind": "crc8"}}, "valid: none, sum8"),
+        ({"checksum": {"kind": "sum8", "end": 40}}, "checksum.end = 40 is past the frame"),
+        ({"checksum": {"kind": "sum8", "at": -30}}, "checksum.at = -30 is past the frame"),
+        ({"checksum": {"kind": "sum8", "start": 0, "end": 3, "at": 1}}, "inside the bytes"),
+        ({"gyro_fs": "300dps"}, "valid: 250dps, 500dps"),
+        ({"endian": "middle"}, "valid: little, big"),
+        ({"bogus": 1}, "unknown key 'bogus'"),
+        ({"n_imus": None}, "n_imus"),
+        ({"header": [{"type": "u16", "role": "clock"}]}, "valid: counter, timestamp"),
+        ({"header": [{"type": "u16", "role": "timestamp", "tick": "1m"}]}, "tick"),
+    ],
+)
+def test_bad_layouts_raise_one_line_layout_errors(change, message):
+    data = {**BASE, **change}
+    data = {k: v for k, v in data.items() if v is not None}
+    with pytest.raises(LayoutError, match=message) as info:
+        layout_from_dict(data, source="board.toml")
+    assert "\n" not in str(info.value)
+    assert str(info.value).startswith("board.toml")
+
+
+def test_unknown_layout_name_lists_choices(tmp_path):
+    with pytest.raises(LayoutError, match="valid: mpu6500-array, csv"):
+        load_layout("mpu9250")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("sync = [")
+    with pytest.raises(LayoutError, match="not valid TOML"):
+        load_layout(bad)
+    with pytest.raises(LayoutError, match="cannot read layout"):
+        load_layout(tmp_path / "missing.toml")
