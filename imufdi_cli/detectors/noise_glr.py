@@ -261,7 +261,11 @@ class NoiseGlrDetector:
             residuals = self._residuals(sensor_type, probe, calibration)
             bias, std = calibration_stats(residuals, min_samples=max(20, 2 * self.window_samples))
             variance = std**2
-            if np.any(variance[testable] <= 0) or not np.all(np.isfinite(variance)):
+            triads = calibration.get(sensor_type)
+            assert triads is not None
+            signal = array.select(triads, sensor_type)
+            floor = (1e-9 * float(np.sqrt(np.mean(signal**2)))) ** 2  # rounding level
+            if np.any(variance[testable] <= floor) or not np.all(np.isfinite(variance)):
                 raise CalibrationError(
                     f"{self.name}: {sensor_type} residual variance is zero or not finite for"
                     " some sensor; check the calibration window"
