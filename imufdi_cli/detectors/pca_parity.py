@@ -35,7 +35,9 @@ Beyond the paper:
   vector depend on the motion, ``p = V (S H) x + ...``. When the training window contains
   motion, the leak matrix K ((n-3), 3) of ``p = mu + K xhat`` (xhat the least-squares
   body-frame estimate) is fitted on the excited directions of xhat only (directions whose
-  variance exceeds ``100 x`` the noise variance of xhat), and subtracted online.
+  variance exceeds ``100 x`` the noise variance of xhat), kept only for parity components
+  where a regression F test finds it significant (p < 1e-3: a leak fitted on noise would
+  extrapolate badly once the motion leaves the training range), and subtracted online.
 - Isolation by fault direction: a fault f on sensor j moves the parity vector by ``f v_j``
   (v_j = column j of V). The mean parity deviation ``dp_t`` (moving mean of p minus mu) is
   compared to every v_j; the isolated sensor has the smallest angle
@@ -54,6 +56,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 from scipy.stats import chi2
+from scipy.stats import f as f_distribution
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
@@ -71,6 +74,8 @@ from imufdi_cli.log import ImuBlock
 #: Excitation test of the leak regression: a direction of xhat counts as excited when its
 #: training variance exceeds this multiple of the noise variance of xhat.
 EXCITATION_RATIO = 100.0
+#: Significance level of the F test that keeps a parity component's fitted leak.
+LEAK_SIGNIFICANCE = 1e-3
 
 
 class MovingWindow:
@@ -373,7 +378,16 @@ class PcaParityDetector:
         basis = directions[:, excited]  # (3, e)
         scores = estimate_c @ basis  # (N, e)
         coefficients, *_ = np.linalg.lstsq(scores, parity_c, rcond=None)  # (e, q)
-        return (basis @ coefficients).T  # (q, 3)
+        # Keep only parity components whose leak is significant (regression F test at
+        # LEAK_SIGNIFICANCE): fitting noise would extrapolate badly when the motion later
+        # leaves the range seen in training.
+        n_train, n_excited = scores.shape
+        explained = ((scores @ coefficients) ** 2).sum(axis=0)  # (q,)
+        unexplained = ((parity_c - scores @ coefficients) ** 2).sum(axis=0)
+        dof = n_train - n_excited - 1
+        ratio = (explained / n_excited) / np.maximum(unexplained / dof, 1e-300)
+        significant = f_distribution.sf(ratio, n_excited, dof) < LEAK_SIGNIFICANCE
+        return (basis @ (coefficients * significant[None, :])).T  # (q, 3)
 
     # --- online --------------------------------------------------------------------------
 
