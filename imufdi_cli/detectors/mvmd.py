@@ -7,7 +7,7 @@ of the authors' MATLAB code; f in cycles/sample on the one-sided spectrum)::
 
     u_kc(f)  <- (x_c(f) - sum_{i != k} u_ic(f) - lambda_c(f)/2) / (1 + alpha (f - omega_k)^2)   (A)
     omega_k  <- sum_c sum_f f |u_kc(f)|^2 / sum_c sum_f |u_kc(f)|^2                            (B)
-    lambda_c <- lambda_c + tau (x_c - sum_k u_kc)                                               (C)
+    lambda_c <- lambda_c + tau (sum_k u_kc - x_c)                                               (C)
 
 Gauss-Seidel over k, as in the reference: mode k uses the newest values of modes < k.
 
@@ -19,7 +19,7 @@ real, channel-independent gain times x_c(f): by induction ``u_kc(f) = g_k(f) x_c
 
     g_k(f)  <- (1 - sum_{i != k} g_i(f) - l(f)/2) / (1 + alpha (f - omega_k)^2)              (A')
     omega_k <- sum_f f g_k(f)^2 P(f) / sum_f g_k(f)^2 P(f),   P(f) = sum_c |x_c(f)|^2       (B')
-    l(f)    <- l(f) + tau (1 - sum_k g_k(f))                                                (C')
+    l(f)    <- l(f) + tau (sum_k g_k(f) - 1)                                                (C')
 
 so MVMD is an adaptive filter bank shared by all channels, and the channels enter the
 iteration only through their summed power spectrum P. Each iteration costs O(K F)
@@ -253,7 +253,7 @@ def mvmd_gains(
                     safe, (energy @ weighted_freqs) / np.where(safe, denom, 1.0), omega[:, k]
                 )
         if tau:
-            lam += tau * (1.0 - total)
+            lam += tau * (total - 1.0)
         history[n_iter, index] = omega
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(
