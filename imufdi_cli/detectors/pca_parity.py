@@ -36,7 +36,7 @@ Beyond the paper:
   motion, the leak matrix K ((n-3), 3) of ``p = mu + K xhat`` (xhat the least-squares
   body-frame estimate) is fitted on the excited directions of xhat only (directions whose
   variance exceeds ``100 x`` the noise variance of xhat), kept only for parity components
-  where a regression F test finds it significant (p < 1e-3: a leak fitted on noise would
+  where a regression F test finds it significant (p < 1e-3 / (n-3): a leak fitted on noise would
   extrapolate badly once the motion leaves the training range), and subtracted online.
 - Isolation by fault direction: a fault f on sensor j moves the parity vector by ``f v_j``
   (v_j = column j of V). The mean parity deviation ``dp_t`` (moving mean of p minus mu) is
@@ -74,7 +74,8 @@ from imufdi_cli.log import ImuBlock
 #: Excitation test of the leak regression: a direction of xhat counts as excited when its
 #: training variance exceeds this multiple of the noise variance of xhat.
 EXCITATION_RATIO = 100.0
-#: Significance level of the F test that keeps a parity component's fitted leak.
+#: Significance level (Bonferroni over the parity components) of the F test that keeps a
+#: parity component's fitted leak.
 LEAK_SIGNIFICANCE = 1e-3
 
 
@@ -386,7 +387,7 @@ class PcaParityDetector:
         unexplained = ((parity_c - scores @ coefficients) ** 2).sum(axis=0)
         dof = n_train - n_excited - 1
         ratio = (explained / n_excited) / np.maximum(unexplained / dof, 1e-300)
-        significant = f_distribution.sf(ratio, n_excited, dof) < LEAK_SIGNIFICANCE
+        significant = f_distribution.sf(ratio, n_excited, dof) < LEAK_SIGNIFICANCE / q
         return (basis @ (coefficients * significant[None, :])).T  # (q, 3)
 
     # --- online --------------------------------------------------------------------------
