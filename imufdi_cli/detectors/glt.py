@@ -12,8 +12,10 @@ and per-sensor bias b (from a fault-free calibration window):
 - amplitude (eq. 7): ``f_i = p^T (V V^T)^-1 v_i / (v_i^T (V V^T)^-1 v_i)``, times sigma_i (SI).
 
 V is orthonormal, so with the projector ``P = V^T V = I - H_w (H_w^T H_w)^-1 H_w^T`` and
-the whitened residual ``r = P m_w``: ``D_FD = |r|^2``, ``p^T v_i = r_i``,
-``v_i^T v_i = P_ii``. One (N, n) x (n, n) product per block gives every statistic.
+the whitened residual ``r = P m_w = m_w - H_w x_hat`` (``x_hat = H_w^+ m_w``, the weighted
+least-squares estimate): ``D_FD = |r|^2``, ``p^T v_i = r_i``, ``v_i^T v_i = P_ii``. Two thin
+products per block, (N, n) x (n, 3) and (N, 3) x (3, n), give every statistic (the same
+x_hat serves the monitoring of excluded sensors).
 
 Beyond the paper (all optional):
 
@@ -109,11 +111,13 @@ class _Configuration:
 
     active: np.ndarray  # (n_a,) global sensor indices
     excluded: np.ndarray  # (n_x,) global sensor indices, in exclusion order
-    projector: np.ndarray  # (n_a, n_a) P = V^T V of the whitened active H
-    projector_diag: np.ndarray  # (n_a,) v_i^T v_i
+    all_active: bool  # active == every sensor, in order (no gather needed)
+    estimator_t: np.ndarray  # (n_a, 3) (H_wa^+)^T: x_hat = m_a @ estimator_t
+    h_active_t: np.ndarray  # (3, n_a) H_wa^T
+    h_excluded_t: np.ndarray  # (3, n_x) H_wx^T
+    inverse_energy: np.ndarray  # (n_a,) 1 / (v_i^T v_i) = 1 / P_ii
     isolable: np.ndarray  # (n_a,) bool
     threshold: float  # chi2_{1-alpha}(n_a - 3)
-    excluded_gain: np.ndarray  # (n_x, n_a): whitened residual of excluded = m_x - gain @ m_a
     excluded_scale: np.ndarray  # (n_x,) 1/sqrt(1 + h (H^T H)^-1 h^T)
 
     @classmethod
@@ -122,19 +126,20 @@ class _Configuration:
     ) -> _Configuration:
         h_active = h_white[active]
         V = parity_matrix(h_active)  # Potter's V, (n_a - 3, n_a)
-        projector = V.T @ V
+        energy = np.einsum("ij,ij->j", V, V)  # v_i^T v_i = P_ii
         h_excluded = h_white[excluded]  # (n_x, 3)
         normal_inverse = np.linalg.inv(h_active.T @ h_active)
-        gain = h_excluded @ normal_inverse @ h_active.T  # h_x x_hat = gain @ m_a
         variance = 1.0 + np.einsum("ij,jk,ik->i", h_excluded, normal_inverse, h_excluded)
         return cls(
             active=active,
             excluded=excluded,
-            projector=projector,
-            projector_diag=np.diag(projector).copy(),
+            all_active=bool(excluded.size == 0 and np.array_equal(active, np.arange(len(h_white)))),
+            estimator_t=np.linalg.pinv(h_active).T.copy(),
+            h_active_t=h_active.T.copy(),
+            h_excluded_t=h_excluded.T.copy(),
+            inverse_energy=1.0 / energy,
             isolable=isolable_sensors(V),
             threshold=float(chi2.ppf(1.0 - alpha, active.size - 3)),
-            excluded_gain=gain,
             excluded_scale=1.0 / np.sqrt(variance),
         )
 
@@ -151,6 +156,9 @@ class _TypeState:
     sigma: np.ndarray  # (n,) SI
     bias: np.ndarray  # (n,) SI
     h_white: np.ndarray  # (n, 3)
+    inverse_sigma: np.ndarray  # (n,) 1 / sigma
+    bias_white: np.ndarray  # (n,) bias / sigma
+    full_triads: bool  # sensors are imu0.x, imu0.y, imu0.z, imu1.x, ... (all axes, in order)
     config: _Configuration
     history: np.ndarray  # (<= w-1, n) last whitened samples, for the moving average
     exceed_run: int = 0
@@ -314,6 +322,9 @@ class GltDetector:
             sigma=sigma,
             bias=bias,
             h_white=h_white,
+            inverse_sigma=1.0 / sigma,
+            bias_white=bias / sigma,
+            full_triads=bool(np.array_equal(imu_index * 3 + axis_index, np.arange(n))),
             config=config,
             history=np.zeros((0, n)),
         )
@@ -336,7 +347,10 @@ class GltDetector:
                     f"block has {triads.shape[1]} IMUs but glt was calibrated on"
                     f" {int(state.imu_index.max()) + 1}"
                 )
-            values = triads[:, state.imu_index, state.axis_index]
+            if state.full_triads and triads.shape[1] * 3 == state.imu_index.size:
+                values = triads.reshape(triads.shape[0], -1)  # every axis of every IMU: a view
+            else:
+                values = triads[:, state.imu_index, state.axis_index]
             out[sensor_type] = self._process_type(state, values)
         self._samples_seen += len(block)
         return out
@@ -349,7 +363,8 @@ class GltDetector:
         self, state: _TypeState, values: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Whitened (moving-averaged) measurements (N, n) and the averaged count k (N,)."""
-        white = (values - state.bias) / state.sigma
+        white = values * state.inverse_sigma
+        white -= state.bias_white
         n_samples = white.shape[0]
         if self.window == 1:
             return white, np.ones(n_samples)
@@ -408,16 +423,23 @@ class GltDetector:
         """All statistics of a run of samples under the current configuration."""
         config = state.config
         n_samples, n = averaged.shape
-        active_values = averaged[:, config.active]
-        # r = P m_w (whitened parity residual): D_FD = |r|^2, D_FI,i = r_i^2 / P_ii (eqs. 5-6)
-        parity_residual = active_values @ config.projector
-        statistic = np.einsum("ij,ij->i", parity_residual, parity_residual) * counts
-        amplitude_white = parity_residual / config.projector_diag  # eq. 7, whitened units
-        isolation_scores = parity_residual * amplitude_white * counts[:, None]
+        active_values = averaged if config.all_active else averaged[:, config.active]
+        # r = P m_w = m_w - H_w x_hat: D_FD = |r|^2, D_FI,i = r_i^2 / P_ii (eqs. 5-6)
+        x_hat = active_values @ config.estimator_t  # (N, 3), whitened LS estimate
+        parity_residual = active_values - x_hat @ config.h_active_t
+        amplitude_white = parity_residual * config.inverse_energy  # eq. 7, whitened units
+        isolation_scores = parity_residual * amplitude_white
+        statistic = np.einsum("ij,ij->i", parity_residual, parity_residual)
+        if self.window > 1:
+            statistic *= counts
+            isolation_scores *= counts[:, None]
         parity_exceed = statistic > config.threshold
 
-        scores = np.full((n_samples, n), np.nan)
-        scores[:, config.active] = isolation_scores
+        if config.all_active:
+            scores = isolation_scores
+        else:
+            scores = np.full((n_samples, n), np.nan)
+            scores[:, config.active] = isolation_scores
         best_local = np.argmax(isolation_scores, axis=1)
         best_sensor = config.active[best_local]
         best_isolable = config.isolable[best_local]
@@ -428,7 +450,7 @@ class GltDetector:
         excluded_amplitude = np.full(n_samples, np.nan)
         if config.excluded.size:
             # Excluded sensors against the LS estimate of the active ones (chi2, 1 dof)
-            residual_white = averaged[:, config.excluded] - active_values @ config.excluded_gain.T
+            residual_white = averaged[:, config.excluded] - x_hat @ config.h_excluded_t
             normalized = residual_white * config.excluded_scale
             excluded_scores = normalized**2 * counts[:, None]
             scores[:, config.excluded] = excluded_scores
