@@ -245,25 +245,16 @@ def _template(kind: str, frame_id: str) -> tuple[np.ndarray, dict[str, int]]:
     return np.frombuffer(payload, dtype=np.uint8).copy(), offsets
 
 
-def encode_messages(
+def _encode_into(
+    out: np.ndarray,
     kind: str,
     frame_id: str,
-    channel_id: int,
     t_ns: np.ndarray,
     vectors: dict[str, np.ndarray | None],
-    *,
-    first_sequence: int = 0,
-) -> MessageBatch:
-    """Bulk CDR encoding of N Imu (``kind="imu"``) or MagneticField (``"mag"``) messages.
-
-    ``vectors`` maps ``gyro``/``accel`` (or ``mag``) to (N, 3) arrays in SI units; a missing
-    vector is written as NaN. Log and publish times are the stamps.
-    """
-    t_ns = np.asarray(t_ns, dtype=np.int64)
+) -> None:
+    """Fill ``out`` (N, L) uint8 (may be a strided view) with N encoded messages."""
     n = t_ns.shape[0]
     template, offsets = _template(kind, frame_id)
-    length = template.shape[0]
-    out = np.empty((n, length), dtype=np.uint8)
     out[:] = template
     sec = np.floor_divide(t_ns, NS_PER_S)
     if n and (int(sec.min()) < -(2**31) or int(sec.max()) >= 2**31):
@@ -280,6 +271,27 @@ def encode_messages(
         out[:, start : start + 24] = (
             np.ascontiguousarray(array, dtype="<f8").view(np.uint8).reshape(n, 24)
         )
+
+
+def encode_messages(
+    kind: str,
+    frame_id: str,
+    channel_id: int,
+    t_ns: np.ndarray,
+    vectors: dict[str, np.ndarray | None],
+    *,
+    first_sequence: int = 0,
+) -> MessageBatch:
+    """Bulk CDR encoding of N Imu (``kind="imu"``) or MagneticField (``"mag"``) messages.
+
+    ``vectors`` maps ``gyro``/``accel`` (or ``mag``) to (N, 3) arrays in SI units; a missing
+    vector is written as NaN. Log and publish times are the stamps.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    n = t_ns.shape[0]
+    length = _template(kind, frame_id)[0].shape[0]
+    out = np.empty((n, length), dtype=np.uint8)
+    _encode_into(out, kind, frame_id, t_ns, vectors)
     return MessageBatch(
         channel_id=np.full(n, channel_id, np.uint16),
         sequence=(first_sequence + np.arange(n, dtype=np.int64)).astype(np.uint32),
@@ -343,57 +355,64 @@ class ImuArrayWriter:
             return
         if block.n_imus != self.array.n_imus:
             raise UsageError(f"block has {block.n_imus} IMUs but the array has {self.array.n_imus}")
-        parts = []
+        # (kind, frame id, channel id, vectors) of every channel, in message order per sample
+        channels: list[tuple[str, str, int, dict[str, np.ndarray | None]]] = []
         for k, channel_id in enumerate(self.imu_channels):
-            parts.append(
-                encode_messages(
-                    "imu",
-                    self.frame_ids[k],
-                    channel_id,
-                    block.t_ns,
-                    {
-                        "gyro": None if block.gyro is None else block.gyro[:, k],
-                        "accel": None if block.accel is None else block.accel[:, k],
-                    },
-                    first_sequence=self._written,
-                )
-            )
+            vectors = {
+                "gyro": None if block.gyro is None else block.gyro[:, k],
+                "accel": None if block.accel is None else block.accel[:, k],
+            }
+            channels.append(("imu", self.frame_ids[k], channel_id, vectors))
         if self.mag_channels and block.mag is not None:
             for k, channel_id in enumerate(self.mag_channels):
-                parts.append(
-                    encode_messages(
-                        "mag",
-                        self.frame_ids[k],
-                        channel_id,
-                        block.t_ns,
-                        {"mag": block.mag[:, k]},
-                        first_sequence=self._written,
-                    )
+                channels.append(("mag", self.frame_ids[k], channel_id, {"mag": block.mag[:, k]}))
+        lengths = {_template(kind, frame)[0].shape[0] for kind, frame, _, _ in channels}
+        c = len(channels)
+        ids = np.array([cid for _, _, cid, _ in channels], np.uint16)
+        # Bounded memory and cache-friendly: encode in slices of samples.
+        step = max(1, (4 << 20) // (c * max(lengths)))
+        for start in range(0, n, step):
+            stop = min(n, start + step)
+            ns = stop - start
+            t_ns = block.t_ns[start:stop]
+            sequence = np.repeat(
+                np.arange(self._written + start, self._written + stop, dtype=np.int64), c
+            ).astype(np.uint32)
+            if len(lengths) == 1:
+                # Sample-major order: for each stamp imu0..imu(m-1) (then magnetometers).
+                length = next(iter(lengths))
+                out = np.empty((ns, c, length), np.uint8)
+                for j, (kind, frame, _, vectors) in enumerate(channels):
+                    sliced = {
+                        key: None if v is None else v[start:stop] for key, v in vectors.items()
+                    }
+                    _encode_into(out[:, j, :], kind, frame, t_ns, sliced)
+                batch = MessageBatch(
+                    channel_id=np.tile(ids, ns),
+                    sequence=sequence,
+                    log_time=np.repeat(t_ns, c),
+                    publish_time=np.repeat(t_ns, c),
+                    data=out.reshape(-1),
+                    offset=np.arange(ns * c, dtype=np.int64) * length,
+                    length=np.full(ns * c, length, np.int64),
                 )
+            else:
+                parts = [
+                    encode_messages(
+                        kind,
+                        frame,
+                        cid,
+                        t_ns,
+                        {key: None if v is None else v[start:stop] for key, v in vectors.items()},
+                        first_sequence=self._written + start,
+                    )
+                    for kind, frame, cid, vectors in channels
+                ]
+                joined = MessageBatch.concatenate(parts)
+                index = np.arange(len(joined))
+                batch = joined.select(np.argsort((index % ns) * c + index // ns, kind="stable"))
+            self.writer.add_batch(batch)
         self._written += n
-        # Sample-major order: for each stamp imu0..imu(m-1) (then magnetometers).
-        lengths = {int(p.length[0]) for p in parts}
-        if len(lengths) == 1:
-            length = lengths.pop()
-            stacked = np.stack([p.data.reshape(n, length) for p in parts], axis=1)
-            c = len(parts)
-            batch = MessageBatch(
-                channel_id=np.stack([p.channel_id for p in parts], axis=1).reshape(-1),
-                sequence=np.stack([p.sequence for p in parts], axis=1).reshape(-1),
-                log_time=np.repeat(block.t_ns, c),
-                publish_time=np.repeat(block.t_ns, c),
-                data=stacked.reshape(-1),
-                offset=np.arange(n * c, dtype=np.int64) * length,
-                length=np.full(n * c, length, np.int64),
-            )
-        else:
-            joined = MessageBatch.concatenate(parts)
-            order = np.argsort(
-                np.arange(len(joined)) % n * len(parts) + np.arange(len(joined)) // n,
-                kind="stable",
-            )
-            batch = joined.select(order)
-        self.writer.add_batch(batch)
 
 
 def write_array(
@@ -473,6 +492,16 @@ class _Aligner:
             messages=dict.fromkeys(names, 0),
             tolerance_ns=self.tolerance,
         )
+
+    def empty(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        return np.zeros(0, np.int64), [np.zeros((0, w)) for w in self.widths]
+
+    def min_pending(self) -> int:
+        """Fewest samples waiting in any stream (or the most, if a stream is silent long)."""
+        counts = [sum(t.shape[0] for t in parts) for parts in self.pending_t]
+        if max(counts) > self.max_pending:
+            return max(counts)
+        return min(counts)
 
     def add(self, stream: int, t_ns: np.ndarray, values: np.ndarray) -> None:
         name = self.names[stream]
@@ -676,6 +705,8 @@ class ImuArrayReader:
         widths = [6] * len(self.imu_topics) + [3] * len(self.mag_topics)
         self._aligner = _Aligner(names, widths, tolerance, max_pending=max(8 * block_size, 65536))
         self.stats = self._aligner.stats
+        self._groups: list[tuple[np.ndarray, ChannelInfo, tuple[str, ...]]] | None = None
+        self._stream_of = np.zeros(0, np.int64)
 
     # --- setup helpers --------------------------------------------------------------------
 
@@ -745,29 +776,59 @@ class ImuArrayReader:
             yield from self._batches
             self._exhausted = True
 
+    def _decode_groups(self) -> list[tuple[np.ndarray, ChannelInfo, tuple[str, ...]]]:
+        """Channels read together: CDR channels sharing a schema are decoded in one pass
+        (their layout is the same); JSON channels one by one."""
+        groups: dict[Any, list[int]] = {}
+        for cid in list(self._imu_channel) + list(self._mag_channel):
+            channel = self.source.channels[cid]
+            kind = "imu" if cid in self._imu_channel else "mag"
+            if channel.message_encoding == "cdr" and channel.schema is not None:
+                key: Any = (kind, channel.schema.name, channel.schema.data)
+            else:
+                key = (kind, cid)
+            groups.setdefault(key, []).append(cid)
+        out: list[tuple[np.ndarray, ChannelInfo, tuple[str, ...]]] = []
+        for key, ids in groups.items():
+            kinds: tuple[str, ...] = ("gyro", "accel") if key[0] == "imu" else ("mag",)
+            out.append((np.array(ids, np.int64), self.source.channels[ids[0]], kinds))
+        return out
+
     def _feed(self, batch: MessageBatch) -> None:
         if len(batch) == 0:
             return
-        channels = self.source.channels
-        ids = batch.channel_id
-        order = np.argsort(ids, kind="stable")
-        sorted_ids = ids[order]
-        bounds = np.flatnonzero(np.diff(sorted_ids.astype(np.int64))) + 1
-        starts = np.concatenate([[0], bounds])
-        for group, start in zip(np.split(order, bounds), starts.tolist()):
-            cid = int(sorted_ids[start])
-            if cid in self._imu_channel:
-                fields = decode_imu(batch.select(group), channels[cid])
-                stream = self._imu_channel[cid]
-                values = np.concatenate([fields.gyro, fields.accel], axis=1)  # type: ignore[list-item]
-            elif cid in self._mag_channel:
-                fields = decode_mag(batch.select(group), channels[cid])
-                stream = len(self.imu_topics) + self._mag_channel[cid]
-                values = fields.mag  # type: ignore[assignment]
+        if self._groups is None:
+            self._groups = self._decode_groups()
+            m = len(self.imu_topics)
+            self._stream_of = np.full(65536, -1, np.int64)
+            for cid, k in self._imu_channel.items():
+                self._stream_of[cid] = k
+            for cid, k in self._mag_channel.items():
+                self._stream_of[cid] = m + k
+        stream_of_message = self._stream_of[batch.channel_id]
+        for ids, channel, kinds in self._groups:
+            if ids.shape[0] == 1:
+                mask = batch.channel_id == ids[0]
             else:
+                mask = np.isin(batch.channel_id, ids)
+            if not bool(mask.any()):
                 continue
+            selected = batch if bool(mask.all()) else batch.select(mask)
+            fields = _decode(selected, channel, kinds)
             t = fields.t_ns if self.time_source == "header" else fields.log_time
-            self._aligner.add(stream, t, values)
+            if kinds == ("mag",):
+                values = fields.mag
+            else:
+                values = np.concatenate([fields.gyro, fields.accel], axis=1)  # type: ignore[list-item]
+            streams = stream_of_message[mask]
+            if ids.shape[0] == 1:
+                self._aligner.add(int(streams[0]), t, values)  # type: ignore[arg-type]
+                continue
+            order = np.argsort(streams, kind="stable")
+            sorted_streams = streams[order]
+            bounds = np.flatnonzero(np.diff(sorted_streams)) + 1
+            for part, first in zip(np.split(order, bounds), np.r_[0, bounds].tolist()):
+                self._aligner.add(int(sorted_streams[first]), t[part], values[part])  # type: ignore[index]
 
     def _block(self, t_ns: np.ndarray, values: list[np.ndarray]) -> ImuBlock:
         m = len(self.imu_topics)
@@ -790,8 +851,12 @@ class ImuArrayReader:
         completed by it (possibly none); a final (empty batch, rest) pair at the end."""
         for batch in self._raw_batches():
             self._feed(batch)
-            t_ns, values = self._aligner.resolve(final=False)
-            yield batch, self._block(t_ns, values)
+            # Resolve in large groups: per-call numpy overhead is paid per block, not per chunk.
+            if self._aligner.min_pending() >= self.block_size:
+                t_ns, values = self._aligner.resolve(final=False)
+                yield batch, self._block(t_ns, values)
+            else:
+                yield batch, self._block(*self._aligner.empty())
         t_ns, values = self._aligner.resolve(final=True)
         if t_ns.shape[0]:
             yield MessageBatch.empty(), self._block(t_ns, values)

@@ -334,11 +334,16 @@ def build_message_records(batch: MessageBatch) -> tuple[np.ndarray, np.ndarray]:
     return out, starts
 
 
+_ZSTD: dict[str, Any] = {}
+
+
 def compress(raw: bytes | memoryview, compression: str) -> bytes:
     if compression == "zstd":
-        import zstandard
+        if "c" not in _ZSTD:
+            import zstandard
 
-        return zstandard.ZstdCompressor(level=3).compress(raw)
+            _ZSTD["c"] = zstandard.ZstdCompressor(level=1)
+        return bytes(_ZSTD["c"].compress(raw))
     if compression == "lz4":
         import lz4.frame
 
@@ -352,9 +357,11 @@ def decompress(raw: bytes, compression: str, uncompressed_size: int) -> bytes:
         if compression == "":
             return raw
         if compression == "zstd":
-            import zstandard
+            if "d" not in _ZSTD:
+                import zstandard
 
-            return zstandard.ZstdDecompressor().decompress(raw, max_output_size=uncompressed_size)
+                _ZSTD["d"] = zstandard.ZstdDecompressor()
+            return bytes(_ZSTD["d"].decompress(raw, max_output_size=uncompressed_size))
         if compression == "lz4":
             import lz4.frame
 
@@ -450,8 +457,8 @@ class McapWriter:
     # --- low level -------------------------------------------------------------------
 
     def _write(self, raw: bytes | memoryview) -> None:
+        # The data section CRC is optional (0 = not computed, as the mcap package writes).
         self._stream.write(raw)
-        self._data_crc = zlib.crc32(raw, self._data_crc)
         self._position += len(raw)
 
     def __enter__(self) -> McapWriter:
@@ -590,12 +597,27 @@ class McapWriter:
     def _flush_chunk(self) -> None:
         if not self._pending:
             return
-        batch = MessageBatch.concatenate(self._pending)
+        parts = self._pending
         self._pending = []
         self._pending_bytes = 0
-        records, record_offsets = build_message_records(batch)
-        raw = records.tobytes()
-        log_time = batch.log_time
+        # Serialise each part from its own buffer (never join the big source buffers).
+        record_parts = []
+        offset_parts = []
+        shift = 0
+        for part in parts:
+            records, offsets = build_message_records(part)
+            record_parts.append(records)
+            offset_parts.append(offsets + shift)
+            shift += records.shape[0]
+        raw = (
+            b"".join(r.data for r in record_parts)
+            if len(record_parts) > 1
+            else record_parts[0].tobytes()
+        )
+        record_offsets = np.concatenate(offset_parts)
+        channel_ids = np.concatenate([p.channel_id for p in parts])
+        log_time = np.concatenate([p.log_time for p in parts])
+        n_messages = int(log_time.shape[0])
         start_time = int(log_time.min())
         end_time = int(log_time.max())
         payload = compress(raw, self.compression)
@@ -610,14 +632,14 @@ class McapWriter:
         self._write(payload)
         chunk_length = self._position - chunk_offset
         # One MessageIndex record per channel, entries sorted by log time.
-        order = np.lexsort((log_time, batch.channel_id))
-        channels_sorted = batch.channel_id[order]
+        order = np.lexsort((log_time, channel_ids))
+        channels_sorted = channel_ids[order]
         bounds = np.flatnonzero(np.diff(channels_sorted.astype(np.int64))) + 1
         index_offsets: dict[int, int] = {}
         index_start = self._position
         entry_dtype = np.dtype([("t", "<u8"), ("offset", "<u8")])
         for group in np.split(order, bounds):
-            channel_id = int(batch.channel_id[group[0]])
+            channel_id = int(channel_ids[group[0]])
             entries = np.empty(group.shape[0], dtype=entry_dtype)
             entries["t"] = log_time[group].astype(np.uint64)
             entries["offset"] = record_offsets[group].astype(np.uint64)
@@ -640,10 +662,10 @@ class McapWriter:
                 len(raw),
             )
         )
-        counts = np.bincount(batch.channel_id.astype(np.int64))
+        counts = np.bincount(channel_ids.astype(np.int64))
         for cid in np.flatnonzero(counts).tolist():
             self._channel_counts[cid] = self._channel_counts.get(cid, 0) + int(counts[cid])
-        self._message_count += len(batch)
+        self._message_count += n_messages
         self._start_time = (
             start_time if self._start_time is None else min(self._start_time, start_time)
         )

@@ -190,10 +190,19 @@ class McapSource:
         the first batch.
     warnings : list of str
         Problems met while reading (e.g. a truncated file), when ``strict`` is False.
+
+    Chunk CRCs are checked when ``validate_crcs`` is true (default: when ``strict``).
     """
 
-    def __init__(self, source: str | os.PathLike[str] | IO[bytes], *, strict: bool = False) -> None:
+    def __init__(
+        self,
+        source: str | os.PathLike[str] | IO[bytes],
+        *,
+        strict: bool = False,
+        validate_crcs: bool | None = None,
+    ) -> None:
         self.strict = strict
+        self.validate_crcs = strict if validate_crcs is None else validate_crcs
         self.channels: dict[int, ChannelInfo] = {}
         self.schemas: dict[int, SchemaInfo] = {}
         self.metadata: dict[str, dict[str, str]] = {}
@@ -493,7 +502,7 @@ class McapSource:
         except McapInputError as err:
             self._problem(f"chunk at byte {chunk_offset} skipped: {err}")
             return None
-        if crc != 0 and zlib.crc32(raw) != crc:
+        if self.validate_crcs and crc != 0 and zlib.crc32(raw) != crc:
             self._problem(f"chunk at byte {chunk_offset} skipped: CRC mismatch")
             return None
         buf = np.frombuffer(raw, dtype=np.uint8)

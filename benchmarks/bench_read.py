@@ -1,0 +1,144 @@
+"""Benchmark of imufdi's MCAP reader and writer against mcap-ros2-support, same run.
+
+Usage: python benchmarks/bench_read.py [--imus 16] [--samples 62500] [--skip-memory]
+
+Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary directory, then
+- times ImuArrayWriter (bulk CDR encoding + zstd chunks) writing it,
+- times ImuArrayReader.blocks() (all messages decoded and aligned) and
+  mcap_ros2's make_reader(..., decoder_factories=[DecoderFactory()]).iter_decoded_messages()
+  on the same file (the latter on a subset of messages if --baseline-fraction < 1, rate
+  extrapolated), prints messages/s and the ratio,
+- measures peak memory (ru_maxrss of a fresh subprocess) reading the base log and a 10x
+  longer log.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.log import ImuBlock
+from imufdi_cli.mcapio import ImuArrayReader, ImuArrayWriter, McapWriter
+
+
+def make_log(path: Path, n_imus: int, n_samples: int, block: int = 50_000) -> float:
+    """Write the log block by block; returns the writer's wall time in seconds."""
+    rng = np.random.default_rng(0)
+    array = ArrayConfig.co_aligned(n_imus, 100.0)
+    elapsed = 0.0
+    with McapWriter(path) as writer:
+        imu_writer = ImuArrayWriter(writer, array)
+        for start in range(0, n_samples, block):
+            n = min(block, n_samples - start)
+            t_ns = (
+                np.arange(start, start + n, dtype=np.int64) * 10_000_000
+            ) + 1_700_000_000 * 10**9
+            data = ImuBlock(
+                t_ns=t_ns,
+                gyro=rng.normal(0, 0.01, (n, n_imus, 3)),
+                accel=rng.normal(0, 0.1, (n, n_imus, 3)) + np.array([0.0, 0.0, 9.81]),
+            )
+            t0 = time.perf_counter()
+            imu_writer.write_block(data)
+            elapsed += time.perf_counter() - t0
+        t0 = time.perf_counter()
+    elapsed += time.perf_counter() - t0  # close: last chunk + summary
+    return elapsed
+
+
+def time_imufdi(path: Path) -> tuple[float, int]:
+    t0 = time.perf_counter()
+    n = 0
+    with ImuArrayReader(path) as reader:
+        for block in reader.blocks():
+            n += len(block) * block.n_imus
+    return time.perf_counter() - t0, n
+
+
+def time_mcap_ros2(path: Path, max_messages: int) -> tuple[float, int]:
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    t0 = time.perf_counter()
+    n = 0
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        for _, _, _, msg in reader.iter_decoded_messages():
+            _ = (msg.angular_velocity.x, msg.linear_acceleration.z, msg.header.stamp.sec)
+            n += 1
+            if n >= max_messages:
+                break
+    return time.perf_counter() - t0, n
+
+
+def peak_rss_reading(path: Path) -> int:
+    """ru_maxrss (kB) of a fresh Python process reading the whole log."""
+    code = (
+        "import resource, sys\n"
+        "from imufdi_cli.mcapio import ImuArrayReader\n"
+        "n = 0\n"
+        "with ImuArrayReader(sys.argv[1]) as r:\n"
+        "    for b in r.blocks(): n += len(b)\n"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(path)], check=True, capture_output=True, text=True
+    )
+    return int(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--imus", type=int, default=16)
+    parser.add_argument("--samples", type=int, default=62_500)
+    parser.add_argument(
+        "--baseline-messages",
+        type=int,
+        default=200_000,
+        help="messages decoded by mcap-ros2-support (rate extrapolated; it is slow)",
+    )
+    parser.add_argument("--skip-memory", action="store_true")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Path(tmp) / "base.mcap"
+        n_messages = args.imus * args.samples
+        write_s = make_log(base, args.imus, args.samples)
+        size_mb = base.stat().st_size / 1e6
+        print(
+            f"log: {args.imus} IMUs x {args.samples} samples = {n_messages:,} Imu messages,"
+            f" {size_mb:.1f} MB (zstd)"
+        )
+        print(f"imufdi writer        : {write_s:7.2f} s  {n_messages / write_s:12,.0f} msg/s")
+        ours_s, ours_n = time_imufdi(base)
+        assert ours_n == n_messages, (ours_n, n_messages)
+        ours_rate = ours_n / ours_s
+        print(f"imufdi reader        : {ours_s:7.2f} s  {ours_rate:12,.0f} msg/s (decoded+aligned)")
+        ref_s, ref_n = time_mcap_ros2(base, args.baseline_messages)
+        ref_rate = ref_n / ref_s
+        print(
+            f"mcap-ros2-support    : {ref_s:7.2f} s  {ref_rate:12,.0f} msg/s"
+            f" ({ref_n:,} messages decoded)"
+        )
+        print(
+            f"speed-up             : {ours_rate / ref_rate:7.1f} x  (target >= 25 x, >= 1e6 msg/s)"
+        )
+        if not args.skip_memory:
+            long = Path(tmp) / "long.mcap"
+            make_log(long, args.imus, args.samples * 10)
+            rss_base = peak_rss_reading(base)
+            rss_long = peak_rss_reading(long)
+            print(
+                f"peak RSS reading     : base {rss_base / 1024:.1f} MB, 10x longer"
+                f" {rss_long / 1024:.1f} MB (+{100 * (rss_long / rss_base - 1):.1f} %, target <= 10 %)"
+            )
+
+
+if __name__ == "__main__":
+    main()
