@@ -1,6 +1,6 @@
 """GLT: generalized likelihood test on the parity vector, with reconfiguration.
 
-Li et al., "...", Micromachines 17(3):374, 2026, §2.1. Per sensor type s (gyros and
+Li et al., Micromachines 17(3):374, 2026, §2.1. Per sensor type s (gyros and
 accelerometers are separate tests) with measurement matrix H (n, 3), per-sensor noise sigma
 and per-sensor bias b (from a fault-free calibration window):
 
