@@ -209,9 +209,9 @@ class GltDetector:
         "alpha": ALPHA,
         "persistence": Param("int", 1, "consecutive samples over threshold for an alarm", low=1),
         "confirm": Param(
-            "int", 10, "consecutive samples isolating the same sensor to confirm it", low=1
+            "int", 1, "consecutive samples isolating the same sensor to confirm it", low=1
         ),
-        "reconfigure": Param("bool", True, "exclude a confirmed faulty sensor and rebuild V"),
+        "reconfigure": Param("bool", False, "exclude a confirmed faulty sensor and rebuild V"),
         "window": Param("int", 1, "moving average of the parity vector, samples", low=1),
         "sigma_source": Param(
             "choice",
@@ -229,8 +229,8 @@ class GltDetector:
         self,
         alpha: float = 0.01,
         persistence: int = 1,
-        confirm: int = 10,
-        reconfigure: bool = True,
+        confirm: int = 1,
+        reconfigure: bool = False,
         window: int = 1,
         sigma_source: str = "calibration",
         bias: bool = True,

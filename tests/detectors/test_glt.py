@@ -173,7 +173,7 @@ def test_reconfiguration_isolates_a_second_fault() -> None:
     test = make_block(array, 3000, rng, start=300)
     gyro_of(test)[1000:, 2, 2] += 0.08  # imu2.gyro.z = sensor 8
     gyro_of(test)[2000:, 4, 0] -= 0.08  # imu4.gyro.x = sensor 12
-    det = make_detector(types="gyro")
+    det = make_detector(types="gyro", confirm="10", reconfigure="true")
     det.fit(calibration, array)
     out = run_all(det, test, chunk=128)["gyro"]
     events = det.metadata()["types"]["gyro"]["reconfigurations"]
