@@ -35,8 +35,11 @@ EXIT_INTERNAL = 4
 
 
 def _console(to_stdout: bool) -> Console:
-    """Console for summaries: stderr when stdout carries data."""
-    return Console(stderr=not to_stdout, highlight=False, soft_wrap=True)
+    """Console for summaries: stderr when stdout carries data. Not a terminal (pipes,
+    CI logs): wide enough that tables are not truncated."""
+    stream = sys.stdout if to_stdout else sys.stderr
+    width = None if stream.isatty() else 160
+    return Console(stderr=not to_stdout, highlight=False, soft_wrap=True, width=width)
 
 
 def _err(message: str) -> None:
@@ -256,29 +259,39 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
     head = Table(show_header=False, box=None)
     head.add_column(style="bold")
     head.add_column()
-    for key in ("imu_count", "samples", "rate_hz", "duration_s", "start_time_ns"):
+    for key in ("n_imus", "n_samples", "rate_hz", "duration_s", "start_ns"):
         if key in s:
             value = s[key]
             head.add_row(key, f"{value:.6g}" if isinstance(value, float) else str(value))
     for key, value in s.get("alignment", {}).items():
-        head.add_row(f"alignment.{key}", str(value))
+        if isinstance(value, dict):
+            nonzero = {k: v for k, v in value.items() if v}
+            total = sum(v for v in value.values() if isinstance(v, (int, float)))
+            detail = ", ".join(f"{k}: {v}" for k, v in nonzero.items()) if nonzero else ""
+            text = f"{total}" + (f" ({detail})" if detail and key != "messages" else "")
+        else:
+            text = str(value)
+        head.add_row(f"alignment.{key}", text)
     console.print(head)
     topics = Table(title="topics")
     for col in ("topic", "schema", "encoding", "messages"):
         topics.add_column(col)
     for t in s.get("topics", []):
-        topics.add_row(t["topic"], t["schema"], t["encoding"], str(t["messages"]))
+        topics.add_row(
+            t["topic"], str(t.get("schema")), t["message_encoding"], str(t["message_count"])
+        )
     console.print(topics)
-    if s.get("array"):
-        arr = s["array"]
+    array = s.get("array")
+    if array:
+        source = "metadata" if s.get("array_from_metadata") else "inferred"
         console.print(
-            f"array: {len(arr['imu'])} IMUs at {arr['rate_hz']:g} Hz, sensors: "
-            + ", ".join(s.get("sensor_types", []))
+            f"array ({source}): {len(array['imu'])} IMUs at {array['rate_hz']:g} Hz, noise "
+            + (json.dumps(array.get("noise")) if array.get("noise") else "not given")
         )
     for fault in s.get("faults", []):
-        console.print(f"fault: {fault.get('spec', fault)}")
+        console.print(f"fault {fault.get('id', '')}: {fault.get('spec') or fault}")
     for name, det in s.get("detectors", {}).items():
-        console.print(f"detector: {name} {json.dumps(det.get('params', {}))}")
+        console.print(f"detector {name}: {json.dumps(det.get('params', {}))}")
     _warn(console, s.get("warnings", []))
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, BinaryIO
 
 import numpy as np
@@ -25,6 +25,7 @@ from imufdi_cli.detectors.base import DetectionBlock, Detector
 from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.mcapio import (
+    ChannelInfo,
     ImuArrayReader,
     McapWriter,
     MessageBatch,
@@ -96,6 +97,45 @@ class DetectResult:
     summaries: dict[str, dict[str, TypeSummary]]
     alignment: Any
     warnings: list[str]
+
+
+class ChannelCopier:
+    """Copy input channels into a writer for raw pass-through, keeping their ids where
+    free and renumbering (channel and schema ids) where the writer already uses them."""
+
+    def __init__(self, writer: McapWriter) -> None:
+        self.writer = writer
+        self.mapping: dict[int, int] = {}
+        self._lut: np.ndarray | None = None
+
+    @property
+    def known(self) -> set[int]:
+        return set(self.mapping)
+
+    def ensure(self, channels: Mapping[int, ChannelInfo], ids: Iterable[int]) -> None:
+        for cid in sorted(ids):
+            if cid in self.mapping:
+                continue
+            info = channels[cid]
+            schema = info.schema
+            if schema is not None:
+                existing = self.writer.schemas.get(schema.id)
+                if existing is not None and existing != schema:
+                    new_id = self.writer.register_schema(schema.name, schema.encoding, schema.data)
+                    schema = replace(schema, id=new_id)
+            out_id = cid if cid not in self.writer.channels else max(self.writer.channels) + 1
+            self.writer.copy_channels({out_id: replace(info, id=out_id, schema=schema)})
+            self.mapping[cid] = out_id
+            self._lut = None
+
+    def remap(self, batch: MessageBatch) -> MessageBatch:
+        if all(k == v for k, v in self.mapping.items()):
+            return batch
+        if self._lut is None:
+            self._lut = np.arange(65536, dtype=np.uint16)
+            for k, v in self.mapping.items():
+                self._lut[k] = v
+        return replace(batch, channel_id=self._lut[batch.channel_id])
 
 
 class _Track:
@@ -198,14 +238,14 @@ def detect_file(
     cal_samples = 0
 
     with McapWriter(output, compression=compression) as writer:
-        copied: set[int] = set()
         events_channel = writer.register_json_channel(EVENTS_TOPIC, "imufdi_msgs/FdiEvent")
 
         rerun = {det.name for det in instances}
+        copier = ChannelCopier(writer)
         dropped: set[int] = set()  # input channels replaced by this run's output
 
         def copy_batch(batch: MessageBatch) -> None:
-            new = {int(c) for c in np.unique(batch.channel_id)} - copied - dropped
+            new = {int(c) for c in np.unique(batch.channel_id)} - copier.known - dropped
             for c in sorted(new):
                 topic = reader.source.channels[c].topic
                 parts = topic.split("/")
@@ -213,10 +253,7 @@ def detect_file(
                     len(parts) == 4 and parts[1] == "imufdi" and parts[2] in rerun
                 ):
                     dropped.add(c)
-            new -= dropped
-            if new:
-                writer.copy_channels({c: reader.source.channels[c] for c in new})
-                copied.update(new)
+            copier.ensure(reader.source.channels, new - dropped)
             if dropped:
                 keep = ~np.isin(batch.channel_id, list(dropped))
                 for i in np.flatnonzero(~keep):
@@ -231,7 +268,7 @@ def detect_file(
                         writer.add_json(events_channel, int(batch.log_time[i]), event)
                 batch = batch.select(keep)
             if len(batch):
-                writer.add_batch(batch)
+                writer.add_batch(copier.remap(batch))
 
         def emit(track: _Track, outputs: Mapping[str, DetectionBlock]) -> None:
             rows = {len(v) for v in outputs.values()}

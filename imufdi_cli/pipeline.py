@@ -143,6 +143,13 @@ def log_info(source: str, *, topics: Sequence[str] | None = None) -> dict[str, A
 
     summary = summarize(source, topics=topics)
     data: dict[str, Any] = summary.to_dict()
+    if not data.get("imu_topics"):
+        from imufdi_cli.errors import McapInputError
+
+        found = ", ".join(f"{t['topic']} ({t.get('schema')})" for t in data.get("topics", []))
+        raise McapInputError(
+            f"{source}: no sensor_msgs/msg/Imu channel (channels: {found or 'none'})"
+        )
     data["source"] = source
     metadata = summary.metadata
     if "imufdi.faults" in metadata:

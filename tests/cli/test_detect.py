@@ -1,0 +1,66 @@
+"""imufdi detect: annotated output, pass-through, pipelines, bad parameters exit 2."""
+
+from __future__ import annotations
+
+import pytest
+
+from imufdi_cli.mcapio import McapSource, read_status
+from tests.cli.conftest import assert_one_line_error
+
+
+def test_detect_writes_status_and_copies_input(cli, tmp_path, faulty_log):
+    out = tmp_path / "d.mcap"
+    result = cli(["detect", faulty_log, "-d", "glt", "-d", "pca-parity", "-o", out])
+    assert result.code == 0, result.stderr
+    status = read_status(str(out))
+    assert {("glt", "gyro"), ("glt", "accel"), ("pca-parity", "gyro")} <= set(status)
+    assert len(status[("glt", "gyro")].t_ns) == 500
+
+    # every input message is in the output, byte for byte
+    def payloads(path):
+        with McapSource(str(path)) as src:
+            found = []
+            for batch in src.batches():
+                for i in range(len(batch)):
+                    if src.channels[int(batch.channel_id[i])].topic.endswith("/data_raw"):
+                        found.append(batch.payload(i))
+            return found
+
+    assert payloads(faulty_log) == payloads(out)
+
+
+def test_pipeline_stdin_stdout(cli, faulty_log):
+    result = cli(["detect", "-", "-d", "glt", "-o", "-"], stdin=faulty_log.read_bytes())
+    assert result.code == 0, result.stderr
+    report = cli(["report", "-", "--json", "-"], stdin=result.stdout)
+    assert report.code == 0, report.stderr
+    assert b'"detector": "glt"' in report.stdout
+
+
+def test_rerun_replaces_own_channels(cli, tmp_path, detected_log):
+    out = tmp_path / "again.mcap"
+    assert cli(["detect", detected_log, "-d", "glt", "-o", out]).code == 0
+    with McapSource(str(out)) as src:
+        for _ in src.batches():
+            pass
+        topics = [c.topic for c in src.channels.values()]
+    assert topics.count("/imufdi/glt/gyro") == 1
+    assert topics.count("/imufdi/events") == 1
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "fragment"),
+    [
+        (["-d", "nope"], 2, "nope"),
+        (["-d", "glt", "--param", "glt.alpha=2"], 2, "glt.alpha"),
+        (["-d", "glt", "--param", "glt.bogus=1"], 2, "glt.bogus"),
+        (["-d", "glt", "--param", "pca-parity.window=3"], 2, "not selected"),
+        (["-d", "glt", "--param", "alpha"], 2, "DETECTOR.KEY=VALUE"),
+        (["-d", "glt", "--calibrate", "3s:1s"], 2, "--calibrate"),
+        (["-d", "glt", "--calibrate", "100s:200s"], 3, "calibration"),
+    ],
+)
+def test_bad_arguments(cli, tmp_path, faulty_log, args, code, fragment):
+    out = tmp_path / "x.mcap"
+    assert_one_line_error(cli(["detect", faulty_log, *args, "-o", out]), code, fragment)
+    assert not out.exists()

@@ -1,0 +1,54 @@
+"""imufdi info: summary, JSON, and bad input (exit 3, one line)."""
+
+from __future__ import annotations
+
+import json
+
+from imufdi_cli.mcapio import McapWriter
+from tests.cli.conftest import assert_one_line_error
+
+
+def test_info_table_and_json(cli, table4_log):
+    result = cli(["info", table4_log])
+    assert result.code == 0, result.stderr
+    assert "/imu15/data_raw" in result.out
+    data = json.loads(cli(["info", table4_log, "--json"]).out)
+    assert data["n_imus"] == 16
+    assert abs(data["rate_hz"] - 100.0) < 1e-6
+    assert abs(data["duration_s"] - 5.0) < 0.02
+
+
+def test_info_shows_faults_and_detectors(cli, detected_log):
+    data = json.loads(cli(["info", detected_log, "--json"]).out)
+    assert data["faults"][0]["sensors"] == ["imu0.gyro.x"]
+    assert "glt" in data["detectors"]
+
+
+def test_missing_file(cli, tmp_path):
+    assert_one_line_error(cli(["info", tmp_path / "nope.mcap"]), 3, "no such file")
+
+
+def test_not_mcap(cli, tmp_path):
+    path = tmp_path / "x.mcap"
+    path.write_bytes(b"this is not an mcap file at all" * 10)
+    assert_one_line_error(cli(["info", path]), 3, str(path))
+
+
+def test_no_imu_channel(cli, tmp_path):
+    path = tmp_path / "empty.mcap"
+    with McapWriter(str(path)) as writer:
+        channel = writer.register_json_channel("/other", "Other")
+        writer.add_json(channel, 1, {"a": 1})
+    assert_one_line_error(cli(["info", path]), 3, "Imu")
+
+
+def test_truncated_warns_or_fails_with_strict(cli, tmp_path, table4_log):
+    data = table4_log.read_bytes()
+    path = tmp_path / "cut.mcap"
+    path.write_bytes(data[: len(data) * 2 // 3])
+    result = cli(["info", path])
+    assert result.code == 0, result.stderr
+    assert "warning" in result.out.lower() or "warning" in result.stderr.lower()
+    out = tmp_path / "d.mcap"
+    assert_one_line_error(cli(["detect", path, "-d", "glt", "--strict", "-o", out]), 3, "truncated")
+    assert not out.exists()
