@@ -17,15 +17,15 @@ import numpy as np
 from scipy.stats import chi2
 
 sys.path.insert(0, str(Path(__file__).parent / "reference"))
-from mvmd_reference import mvmd_reference  # noqa: E402
+from mvmd_reference import mvmd_reference
 
-from imufdi_cli.detectors.base import DetectionBlock, parse_params  # noqa: E402
-from imufdi_cli.detectors.mvmd import mvmd  # noqa: E402
-from imufdi_cli.detectors.parity import parity_matrix, residual_sigma, residuals, whiten  # noqa: E402
-from imufdi_cli.detectors.woa_mvmd_glt import WoaMvmdGltDetector  # noqa: E402
-from imufdi_cli.faults import FaultInjector, active_mask, parse_fault_spec  # noqa: E402
-from imufdi_cli.log import iter_blocks  # noqa: E402
-from imufdi_cli.simulate import PRESETS, preset, simulate_block  # noqa: E402
+from imufdi_cli.detectors.base import DetectionBlock, parse_params
+from imufdi_cli.detectors.mvmd import mvmd
+from imufdi_cli.detectors.parity import parity_matrix, residual_sigma, residuals, whiten
+from imufdi_cli.detectors.woa_mvmd_glt import WoaMvmdGltDetector
+from imufdi_cli.faults import FaultInjector, active_mask, parse_fault_spec
+from imufdi_cli.log import iter_blocks
+from imufdi_cli.simulate import PRESETS, preset, simulate_block
 
 
 def median_time(fn, repeat: int) -> float:

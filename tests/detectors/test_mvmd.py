@@ -22,10 +22,10 @@ def two_channel() -> np.ndarray:
     return np.vstack([tone(5) + tone(36), tone(24) + tone(36)])
 
 
-def direct_mvmd(x: np.ndarray, K: int, alpha: float, tau: float, n_iter: int) -> np.ndarray:  # noqa: N803
+def direct_mvmd(x: np.ndarray, K: int, alpha: float, tau: float, n_iter: int) -> np.ndarray:
     """Unreduced ADMM (eqs. A-C of mvmd.py), per channel, fixed iteration count."""
     spec, freqs, offset = spectrum(x)
-    C, F = spec.shape  # noqa: N806
+    C, F = spec.shape
     u = np.zeros((K, C, F), complex)
     lam = np.zeros((C, F), complex)
     omega = 0.5 / K * np.arange(K)
@@ -85,7 +85,7 @@ def test_convergence_is_scale_invariant():
 def test_batch_matches_single_runs():
     x = two_channel()
     batch = mvmd_batch(x, [2, 3, 4], [500.0, 2000.0, 800.0])
-    for result, (K, alpha) in zip(batch, [(2, 500.0), (3, 2000.0), (4, 800.0)]):  # noqa: N806
+    for result, (K, alpha) in zip(batch, [(2, 500.0), (3, 2000.0), (4, 800.0)]):
         single = mvmd(x, K, alpha)
         assert result.n_iter == single.n_iter
         assert_allclose(result.modes, single.modes, atol=1e-12)

@@ -15,8 +15,9 @@ def sphere(points: np.ndarray) -> np.ndarray:
 
 
 def test_finds_minimum_of_shifted_sphere():
-    result = woa(sphere, [-10, -10], [10, 10], population=20, iterations=60,
-                 rng=np.random.default_rng(1))
+    result = woa(
+        sphere, [-10, -10], [10, 10], population=20, iterations=60, rng=np.random.default_rng(1)
+    )
     assert_allclose(result.best, [3.0, -1.5], atol=1e-2)
     assert result.best_fitness < 1e-4
     assert result.curve.shape == (61,)
@@ -30,8 +31,15 @@ def test_one_call_per_iteration_and_cache_on_integer_grid():
         calls.append(len(points))
         return (points[:, 0] - 2) ** 2 + (points[:, 1] - 100.0) ** 2 / 1e4
 
-    result = woa(fitness, [1, 50], [6, 500], integer=[True, False], population=8,
-                 iterations=10, rng=np.random.default_rng(0))
+    result = woa(
+        fitness,
+        [1, 50],
+        [6, 500],
+        integer=[True, False],
+        population=8,
+        iterations=10,
+        rng=np.random.default_rng(0),
+    )
     assert len(calls) <= 11  # at most one batched call per iteration (+ initial)
     assert result.best[0] == 2.0
     assert result.best[0] == np.rint(result.best[0])

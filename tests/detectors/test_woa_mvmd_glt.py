@@ -43,8 +43,9 @@ def make(raw: dict) -> WoaMvmdGltDetector:
 
 def test_woa_chosen_parameters_separate_table1_frequencies():
     x = table1_signal()
-    tuned = tune_signal(x, population=8, iterations=6, k_bounds=(2, 7),
-                        alpha_bounds=(100.0, 5000.0), seed=0)
+    tuned = tune_signal(
+        x, population=8, iterations=6, k_bounds=(2, 7), alpha_bounds=(100.0, 5000.0), seed=0
+    )
     result = mvmd(x, tuned.K, tuned.alpha)
     found = result.omega * RATE
     for freq in (2.0, 36.0, 144.0, 288.0):
@@ -66,7 +67,7 @@ def test_filter_matrix_reproduces_mode():
     rng = np.random.default_rng(0)
     x = rng.standard_normal((4, 40)) + 2.0
     result = mvmd(x, 3, 500.0)
-    F = filter_matrix(result.gains[0], 40)  # noqa: N806
+    F = filter_matrix(result.gains[0], 40)
     assert_allclose(x @ F.T, result.modes[0], atol=1e-12)
 
 
