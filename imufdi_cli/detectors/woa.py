@@ -147,8 +147,8 @@ def woa(
         a = 2.0 - 2.0 * it / max(iterations, 1)  # eq. 2.3: a from 2 to 0
         r1 = rng.random((population, n_dims))
         r2 = rng.random((population, n_dims))
-        A = 2.0 * a * r1 - a  # noqa: N806 - the paper's names
-        C = 2.0 * r2  # noqa: N806
+        A = 2.0 * a * r1 - a
+        C = 2.0 * r2
         p = rng.random((population, 1))
         ell = rng.uniform(-1.0, 1.0, (population, 1))
         partners = positions[rng.integers(0, population, population)]
