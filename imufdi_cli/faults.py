@@ -799,11 +799,6 @@ class FaultInjector:
 
 # --- file level: imufdi inject -------------------------------------------------------------
 
-_IMU_SCHEMAS: Final[frozenset[str]] = frozenset({"sensor_msgs/msg/Imu", "sensor_msgs/Imu"})
-_MAG_SCHEMAS: Final[frozenset[str]] = frozenset(
-    {"sensor_msgs/msg/MagneticField", "sensor_msgs/MagneticField"}
-)
-
 
 @dataclass
 class InjectResult:
@@ -842,49 +837,6 @@ class InjectResult:
     messages: int = 0
     messages_patched: int = 0
     truth_messages: int = 0
-
-
-def _natural_key(text: str) -> list[Any]:
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text)]
-
-
-def _schema_name(channel: Any) -> str:
-    return "" if channel.schema is None else str(channel.schema.name)
-
-
-def topic_imu_indices(channels: Mapping[int, Any]) -> tuple[dict[int, int], dict[int, int]]:
-    """IMU index of every Imu channel and of every MagneticField channel.
-
-    Imu topics are numbered in natural sort order (``/imu2`` before ``/imu10``), the rule the
-    reader uses. A magnetometer topic belongs to the IMU whose topic shares its namespace
-    (``/imu3/mag`` with ``/imu3/data_raw``); the others follow in natural order.
-
-    Returns
-    -------
-    (imu_channels, mag_channels) : dict channel id -> IMU index
-    """
-    imu_ids = sorted(
-        (cid for cid, ch in channels.items() if _schema_name(ch) in _IMU_SCHEMAS),
-        key=lambda cid: (_natural_key(channels[cid].topic), cid),
-    )
-    imu_channels = {cid: k for k, cid in enumerate(imu_ids)}
-    namespace = {channels[cid].topic.rsplit("/", 1)[0]: k for cid, k in imu_channels.items()}
-    mag_ids = sorted(
-        (cid for cid, ch in channels.items() if _schema_name(ch) in _MAG_SCHEMAS),
-        key=lambda cid: (_natural_key(channels[cid].topic), cid),
-    )
-    mag_channels: dict[int, int] = {}
-    unmatched: list[int] = []
-    for cid in mag_ids:
-        k = namespace.get(channels[cid].topic.rsplit("/", 1)[0])
-        if k is None or k in mag_channels.values():
-            unmatched.append(cid)
-        else:
-            mag_channels[cid] = k
-    free = [k for k in range(len(imu_ids)) if k not in mag_channels.values()]
-    for cid, k in zip(unmatched, free):
-        mag_channels[cid] = k
-    return imu_channels, mag_channels
 
 
 def _same_file(a: str, b: str) -> bool:
@@ -949,44 +901,50 @@ def inject_file(
     if source_name == "-":
         buffered = io.BytesIO(sys.stdin.buffer.read())
 
-    def open_source() -> Any:
+    def open_input() -> Any:
         if buffered is not None:
             buffered.seek(0)
-            return mcapio.McapSource(buffered)
-        return mcapio.McapSource(source_name)
+            return buffered
+        return source_name
+
+    # The array and the topic -> IMU index rule, exactly as the reader sees them.
+    with mcapio.ImuArrayReader(open_input()) as array_reader:
+        array = array_reader.array
+        imu_topics = list(array_reader.imu_topics)
+        mag_topics = list(array_reader.mag_topics) if array.has("mag") else []
+    imu_index = {topic: k for k, topic in enumerate(imu_topics)}
+    mag_index = {topic: k for k, topic in enumerate(mag_topics)}
 
     # Pass 1: channels, metadata, the IMU time span.
     first_ns: int | None = None
     last_ns: int | None = None
-    with open_source() as reader:
+    with mcapio.McapSource(open_input()) as reader:
         for batch in reader.batches():
-            imu_channels, _ = topic_imu_indices(reader.channels)
             for cid in np.unique(batch.channel_id):
-                if int(cid) not in imu_channels:
+                channel = reader.channels[int(cid)]
+                if channel.topic not in imu_index or not mcapio.is_imu_channel(channel):
                     continue
                 part = batch.select(np.flatnonzero(batch.channel_id == cid))
-                stamps = mcapio.decode_imu(part, reader.channels[int(cid)]).t_ns
+                stamps = mcapio.decode_imu(part, channel).t_ns
                 if stamps.size:
                     low, high = int(stamps.min()), int(stamps.max())
                     first_ns = low if first_ns is None else min(first_ns, low)
                     last_ns = high if last_ns is None else max(last_ns, high)
         channels = dict(reader.channels)
         metadata = {name: dict(values) for name, values in reader.metadata.items()}
-    imu_channels, mag_channels = topic_imu_indices(channels)
-    if not imu_channels or first_ns is None or last_ns is None:
+    if first_ns is None or last_ns is None:
         raise McapInputError(f"{source_name}: no sensor_msgs/msg/Imu messages to inject into")
-    imu_topics = [channels[cid].topic for cid in sorted(imu_channels, key=imu_channels.get)]  # type: ignore[arg-type]
-
-    if "imufdi.array" in metadata and "json" in metadata["imufdi.array"]:
-        array = ArrayConfig.from_json(metadata["imufdi.array"]["json"])
-        if array.n_imus > len(imu_channels):
-            array = array.with_imus(len(imu_channels))
-        array_inferred = False
-    else:
-        if buffered is not None:
-            buffered.seek(0)
-        array = mcapio.ImuArrayReader(buffered if buffered is not None else source_name).array
-        array_inferred = True
+    imu_channels = {
+        cid: imu_index[ch.topic]
+        for cid, ch in channels.items()
+        if ch.topic in imu_index and mcapio.is_imu_channel(ch)
+    }
+    mag_channels = {
+        cid: mag_index[ch.topic]
+        for cid, ch in channels.items()
+        if ch.topic in mag_index and mcapio.is_mag_channel(ch)
+    }
+    array_recorded = "imufdi.array" in metadata
 
     # Validate every spec before writing anything.
     faults = [parse_fault_spec(spec, array) for spec in faults_specs]
@@ -1015,12 +973,15 @@ def inject_file(
     )
 
     # Pass 2: copy, patching the faulted IMU messages.
-    with open_source() as reader, mcapio.McapWriter(output, compression=compression) as writer:
+    with (
+        mcapio.McapSource(open_input()) as reader,
+        mcapio.McapWriter(output, compression=compression) as writer,
+    ):
         writer.copy_channels(channels)
         for name, values in metadata.items():
             if name != METADATA_NAME:
                 writer.add_metadata(name, values)
-        if array_inferred:
+        if not array_recorded:
             writer.add_metadata("imufdi.array", {"json": array.to_json()})
         writer.add_metadata(METADATA_NAME, injector.metadata())
         truth_ids = [cid for cid, ch in channels.items() if ch.topic == TRUTH_TOPIC]
@@ -1063,18 +1024,19 @@ def _patch_batch(
         where = np.flatnonzero(batch.channel_id == cid)
         part = batch.select(where)
         channel = channels[channel_id]
+        fields = (mcapio.decode_mag if is_mag else mcapio.decode_imu)(part, channel)
+        new_values: dict[str, np.ndarray] = {}
+        for sensor_type in types:
+            decoded = getattr(fields, sensor_type)
+            if decoded is None or not injector.affects(imu, sensor_type):
+                continue
+            new_values[sensor_type] = injector.apply(imu, sensor_type, fields.t_ns, decoded)
+        if not new_values:
+            continue
         if is_mag:
-            fields = mcapio.decode_mag(part, channel)
-            new_mag = injector.apply(imu, "mag", fields.t_ns, fields.mag)
-            pieces.append(mcapio.patch_mag(part, channel, mag=new_mag))
+            pieces.append(mcapio.patch_mag(part, channel, mag=new_values["mag"]))
         else:
-            fields = mcapio.decode_imu(part, channel)
-            new = {
-                t: injector.apply(imu, t, fields.t_ns, getattr(fields, t))
-                for t in types
-                if injector.affects(imu, t)
-            }
-            pieces.append(mcapio.patch_imu(part, channel, **new))
+            pieces.append(mcapio.patch_imu(part, channel, **new_values))
         positions.append(where)
         patched += len(where)
     if not pieces:

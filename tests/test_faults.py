@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -28,7 +27,6 @@ from imufdi_cli.faults import (
     inject_file,
     load_fault_file,
     parse_fault_spec,
-    topic_imu_indices,
 )
 from imufdi_cli.log import ImuBlock, iter_blocks
 
@@ -485,24 +483,6 @@ def test_non_finite_values_rejected(array: ArrayConfig) -> None:
         )
 
 
-def test_topic_imu_indices_natural_order_and_mag_pairing() -> None:
-    def channel(topic: str, schema: str) -> SimpleNamespace:
-        return SimpleNamespace(topic=topic, schema=SimpleNamespace(name=schema))
-
-    imu, mag = "sensor_msgs/msg/Imu", "sensor_msgs/msg/MagneticField"
-    channels = {
-        0: channel("/imu10/data_raw", imu),
-        1: channel("/imu2/data_raw", imu),
-        2: channel("/imu10/mag", mag),
-        3: channel("/imufdi/truth", "imufdi/FaultEvent"),
-        4: channel("/imu0/data_raw", imu),
-        5: channel("/compass", mag),
-    }
-    imu_channels, mag_channels = topic_imu_indices(channels)
-    assert imu_channels == {4: 0, 1: 1, 0: 2}
-    assert mag_channels == {2: 2, 5: 0}
-
-
 def test_apply_leaves_unfaulted_streams_and_empty_blocks(array: ArrayConfig) -> None:
     injector = FaultInjector(
         [parse_fault_spec("step:imu1.gyro.y,amp=1", array)], array, seed=0, t0_ns=0
@@ -640,3 +620,34 @@ def test_inject_refuses_to_overwrite_input(log_file) -> None:
     with pytest.raises(Exception, match="is the input file") as info:
         inject_file(str(path), str(path), _FILE_SPECS, [], seed=0)
     assert info.value.exit_code == 2  # type: ignore[attr-defined]
+
+
+@needs_mcapio
+def test_inject_from_stdin_matches_file_input(tmp_path, log_file, monkeypatch) -> None:
+    import io
+    import sys
+
+    path, _, _ = log_file
+    from_file, from_stdin = tmp_path / "file.mcap", tmp_path / "stdin.mcap"
+    inject_file(str(path), str(from_file), _FILE_SPECS, [], seed=3)
+    monkeypatch.setattr(sys, "stdin", io.TextIOWrapper(io.BytesIO(path.read_bytes())))
+    inject_file("-", str(from_stdin), _FILE_SPECS, [], seed=3)
+    assert sha256(from_file) == sha256(from_stdin)
+
+
+@needs_mcapio
+def test_inject_magnetometer(tmp_path) -> None:
+    array = ArrayConfig.co_aligned(2, RATE_HZ, sensors=("gyro", "accel", "mag"))
+    block = make_block(300, n_imus=2)
+    path, out = tmp_path / "mag.mcap", tmp_path / "mag-faulty.mcap"
+    mcapio.write_array(str(path), array, block)
+    spec = "drift:imu1.mag,at=1s,rate=2uT/s"
+    inject_file(str(path), str(out), [spec], [], seed=0)
+    _, faulty = mcapio.read_array(str(out))
+    t = rel_s(block)
+    ramp = np.where(t >= 1.0, 2e-6 * (t - 1.0), 0.0)
+    assert_allclose(
+        faulty.mag[:, 1, :] - block.mag[:, 1, :], ramp[:, None] * np.ones(3), atol=1e-15
+    )
+    assert_array_equal(faulty.mag[:, 0, :], block.mag[:, 0, :])
+    assert_array_equal(faulty.gyro, block.gyro)
