@@ -208,7 +208,45 @@ def tune_file(
             f"--sensor {sensor_type}: the log has no {sensor_type}; present: "
             + ", ".join(array.sensor_types())
         )
-    return tune(block.mask(keep), array, sensor_type=sensor_type, seed=seed, **dict(settings or {}))
+    return tune(
+        block.mask(keep), array, sensor_type=sensor_type, seed=seed, **_woa_settings(settings)
+    )
+
+
+#: ``imufdi tune --param KEY=VALUE`` settings and their types.
+TUNE_SETTINGS: dict[str, type] = {
+    "population": int,
+    "iterations": int,
+    "k_min": int,
+    "k_max": int,
+    "alpha_min": float,
+    "alpha_max": float,
+    "max_iter": int,
+}
+
+
+def _woa_settings(settings: Mapping[str, str] | None) -> dict[str, Any]:
+    """Typed WOA settings from strings; bounds grouped as the tuner wants them."""
+    typed: dict[str, Any] = {}
+    for key, text in (settings or {}).items():
+        if key not in TUNE_SETTINGS:
+            raise UsageError(
+                f"--param {key}: unknown tune setting; valid: {', '.join(TUNE_SETTINGS)}"
+            )
+        try:
+            typed[key] = TUNE_SETTINGS[key](text)
+        except ValueError:
+            raise UsageError(
+                f"--param {key}={text!r}: not a valid {TUNE_SETTINGS[key].__name__}"
+            ) from None
+    out: dict[str, Any] = {
+        k: v for k, v in typed.items() if k in ("population", "iterations", "max_iter")
+    }
+    if "k_min" in typed or "k_max" in typed:
+        out["k_bounds"] = (typed.get("k_min", 2), typed.get("k_max", 6))
+    if "alpha_min" in typed or "alpha_max" in typed:
+        out["alpha_bounds"] = (typed.get("alpha_min", 50.0), typed.get("alpha_max", 5000.0))
+    return out
 
 
 # --- demo ------------------------------------------------------------------------------

@@ -13,12 +13,14 @@ from imufdi_cli.detectors.base import DetectionBlock, Detector, Param, parse_par
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.noise_glr import NoiseGlrDetector
 from imufdi_cli.detectors.pca_parity import PcaParityDetector
+from imufdi_cli.detectors.woa_mvmd_glt import WoaMvmdGltDetector
 from imufdi_cli.errors import DetectorConfigError
 
 DETECTORS: dict[str, type] = {
     GltDetector.name: GltDetector,
     PcaParityDetector.name: PcaParityDetector,
     NoiseGlrDetector.name: NoiseGlrDetector,
+    WoaMvmdGltDetector.name: WoaMvmdGltDetector,
 }
 
 
