@@ -151,8 +151,8 @@ def predict_measurements(
         ``C(q)^T r_c``.
     """
     rot = quaternion_to_rotation(q)
-    body_refs = np.einsum("...ji,cj->...ci", rot, references)
-    return np.einsum("...ci,ci->...c", body_refs, sensor_axes), body_refs
+    body_refs = np.matmul(references, rot)  # row c: r_c^T C = (C^T r_c)^T
+    return (body_refs * sensor_axes).sum(axis=-1), body_refs
 
 
 def measurement_jacobian(
@@ -218,10 +218,10 @@ def gauss_newton_attitude(
         predicted, jacobian = measurement_jacobian(q, sensor_axes, references)
         residual = measurements[None] - predicted  # (E, N, c)
         weighted = jacobian * weights[:, None, :, None]
-        normal = np.einsum("enci,encj->enij", weighted, jacobian)
+        normal = np.matmul(weighted.swapaxes(-1, -2), jacobian)
         damping = (1e-9 * np.trace(normal, axis1=-2, axis2=-1) + 1e-30)[..., None, None] * np.eye(3)
-        rhs = np.einsum("enci,enc->eni", weighted, residual)
-        delta = np.linalg.solve(normal + damping, rhs[..., None])[..., 0]
+        rhs = np.matmul(weighted.swapaxes(-1, -2), residual[..., None])
+        delta = np.linalg.solve(normal + damping, rhs)[..., 0]
         increment = np.concatenate([np.ones((*delta.shape[:-1], 1)), 0.5 * delta], axis=-1)
         q = quaternion_multiply(q, increment)
         q /= np.linalg.norm(q, axis=-1, keepdims=True)

@@ -344,13 +344,13 @@ class _MargModel:
         # not computed (NaN).
         blind = np.arange(6)
         j_full = np.broadcast_to(jacobian[FULL_ESTIMATOR], (7, *jacobian.shape[1:]))
-        information = np.einsum("enci,ec,encj->enij", j_full, weights, j_full)
+        information = np.matmul((j_full * weights[:, None, :, None]).swapaxes(-1, -2), j_full)
         information += (1e-12 * np.trace(information, axis1=-2, axis2=-1) + 1e-30)[
             ..., None, None
         ] * np.eye(3)
         covariance = np.linalg.inv(information)  # (7, N, 3, 3) rad^2
         j_blind = j_full[blind, :, blind, :]  # (6, N, 3)
-        spread = np.einsum("eni,enij,enj->en", j_blind, covariance[:6], j_blind)
+        spread = (np.matmul(covariance[:6], j_blind[..., None])[..., 0] * j_blind).sum(axis=-1)
         blind_std = np.sqrt((self.noise**2)[:, None] + spread).T  # (N, 6)
         converged = np.concatenate([step_blind, step_full], axis=0).T < CONVERGED_STEP  # (N, 7)
         observable = (blind_std <= MAX_BLIND_STD_RATIO * self.noise) & converged[:, :6]
@@ -409,7 +409,7 @@ class BankDetector:
         "max_faults": Param(
             "int", 2, "array: simultaneous faulty sensors isolated per type", low=1, high=5
         ),
-        "iterations": Param("int", 8, "marg: maximum Gauss-Newton iterations", low=1, high=50),
+        "iterations": Param("int", 6, "marg: maximum Gauss-Newton iterations", low=1, high=50),
     }
 
     def __init__(
@@ -418,7 +418,7 @@ class BankDetector:
         mode: str = "auto",
         tau: float = 0.5,
         max_faults: int = 2,
-        iterations: int = 8,
+        iterations: int = 6,
     ) -> None:
         for key, value in (
             ("alpha", alpha),
