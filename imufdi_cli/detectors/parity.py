@@ -307,7 +307,8 @@ def residual_sigma(
     independent noise ``Var(r_i) = sum_j (I - S)_ij^2 sigma_j^2``. That linear system is
     solved for sigma^2 (non-negative least squares). When it is rank-deficient (little
     redundancy, e.g. n - 3 = 1) the per-sensor sigmas are not identifiable and one common
-    sigma is returned, from ``E |r|^2 = (n - 3) sigma^2``.
+    sigma is returned, from ``E |r|^2 = (n - 3) sigma^2``; so does any sensor whose fitted
+    variance is zero (residuals that are not white noise, e.g. unmodelled motion).
 
     Sparse outliers (spikes) would inflate the variances and make the Gaussian test blind:
     samples where any residual is further than ``outlier_cut`` robust standard deviations
@@ -346,10 +347,15 @@ def residual_sigma(
     variances = r.var(axis=0, ddof=1)
     mixing = (np.eye(n) - H @ np.linalg.pinv(H)) ** 2
     singular = np.linalg.svd(mixing, compute_uv=False)
+    common = variances.sum() / n_parity
     if singular[-1] > 1e-8 * singular[0]:
         sigma2, _ = nnls(mixing, variances)
+        # A sensor the non-negative fit drives to zero means the residuals are not white
+        # per-sensor noise (e.g. unmodelled lever-arm motion): no per-sensor sigma can be
+        # identified for it, so it gets the common sigma rather than an infinite weight.
+        sigma2 = np.where(sigma2 > 1e-6 * common, sigma2, common)
     else:
-        sigma2 = np.full(n, variances.sum() / n_parity)
+        sigma2 = np.full(n, common)
     return np.sqrt(sigma2)
 
 
