@@ -920,12 +920,15 @@ def inject_file(
     last_ns: int | None = None
     with mcapio.McapSource(open_input()) as reader:
         for batch in reader.batches():
-            for cid in np.unique(batch.channel_id):
-                channel = reader.channels[int(cid)]
-                if channel.topic not in imu_index or not mcapio.is_imu_channel(channel):
-                    continue
-                part = batch.select(np.flatnonzero(batch.channel_id == cid))
-                stamps = mcapio.decode_imu(part, channel).t_ns
+            # one bulk decode per schema: channels sharing a schema share a codec
+            groups: dict[tuple[Any, str], list[int]] = {}
+            for cid in np.unique(batch.channel_id).tolist():
+                channel = reader.channels[cid]
+                if channel.topic in imu_index and mcapio.is_imu_channel(channel):
+                    groups.setdefault((channel.schema, channel.message_encoding), []).append(cid)
+            for cids in groups.values():
+                part = batch.select(np.flatnonzero(np.isin(batch.channel_id, cids)))
+                stamps = mcapio.decode_imu(part, reader.channels[cids[0]]).t_ns
                 if stamps.size:
                     low, high = int(stamps.min()), int(stamps.max())
                     first_ns = low if first_ns is None else min(first_ns, low)
