@@ -790,7 +790,7 @@ class BankDetector:
         ) / self._sample_period
         raw[~valid] = 0.0
         # Remember each series' last clean sample for the next block.
-        has_clean = clean.any(axis=0)
+        has_clean = np.asarray(clean.any(axis=0), dtype=bool)
         last_index = n_samples - 1 - np.argmax(clean[::-1], axis=0)
         self._clean_q = np.where(has_clean[:, None], q[np.arange(n_est), last_index], self._clean_q)
         self._clean_integral = np.where(

@@ -1,0 +1,357 @@
+"""Tests of the bank-of-estimators detector (Berbra, Gentil, Lesecq) and its attitude maths."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from imufdi_cli.array import ArrayConfig, quaternion_to_matrix
+from imufdi_cli.detectors.attitude import (
+    body_rate_from_quaternions,
+    gauss_newton_attitude,
+    make_continuous,
+    predict_measurements,
+    quaternion_multiply,
+    quaternion_to_rotation,
+    rotation_to_quaternion,
+    wahba_rotation,
+)
+from imufdi_cli.detectors.bank import (
+    ESTIMATOR_MASKS,
+    BankDetector,
+    leave_one_out_matrix,
+)
+from imufdi_cli.detectors.base import NOT_ISOLABLE, DetectionBlock, parse_params
+from imufdi_cli.errors import CalibrationError, DetectorConfigError
+from imufdi_cli.faults import FaultInjector, active_mask, parse_fault_spec
+from imufdi_cli.log import ImuBlock, iter_blocks
+from imufdi_cli.simulate import PRESETS, preset, simulate_block
+from imufdi_cli.units import STANDARD_GRAVITY
+
+RNG_SEED = 7
+
+
+def random_quaternions(n: int, rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def make_detector(**raw: object) -> BankDetector:
+    return BankDetector(**parse_params(BankDetector.PARAMS, raw, "bank"))
+
+
+def run(
+    detector: BankDetector, block: ImuBlock, block_size: int = 250
+) -> dict[str, DetectionBlock]:
+    outputs = [detector.process(piece) for piece in iter_blocks(block, block_size)]
+    return {s: DetectionBlock.concatenate([o[s] for o in outputs]) for s in outputs[0]}
+
+
+# --- attitude maths ----------------------------------------------------------------------
+
+
+def test_quaternion_rotation_round_trip_matches_array_convention() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    q = random_quaternions(50, rng)
+    rotations = quaternion_to_rotation(q)
+    for qi, ri in zip(q[:5], rotations[:5]):
+        assert_allclose(ri, quaternion_to_matrix(qi), atol=1e-12)
+    back = rotation_to_quaternion(rotations)
+    sign = np.sign(np.einsum("ni,ni->n", back, q))
+    assert_allclose(back * sign[:, None], q, atol=1e-12)
+    # Hamilton product composes rotations: C(p q) = C(p) C(q)
+    p = random_quaternions(50, rng)
+    assert_allclose(
+        quaternion_to_rotation(quaternion_multiply(p, q)),
+        quaternion_to_rotation(p) @ rotations,
+        atol=1e-12,
+    )
+
+
+def test_body_rate_of_constant_rotation_is_exact() -> None:
+    rate = np.array([0.3, -0.2, 0.5])  # rad/s, body frame
+    dt = 0.01
+    t = np.arange(200) * dt
+    angle = np.linalg.norm(rate) * t
+    axis = rate / np.linalg.norm(rate)
+    q = np.concatenate([np.cos(angle / 2)[:, None], np.sin(angle / 2)[:, None] * axis], axis=1)
+    q[1::2] *= -1.0  # sign flips must not matter
+    q = make_continuous(q)
+    estimated = body_rate_from_quaternions(q[:-1], q[1:], np.full(199, dt))
+    # LS rate at the midpoint: exact for a constant-axis rotation up to O((w dt)^2)
+    assert_allclose(estimated, np.tile(rate, (199, 1)), rtol=1e-4)
+
+
+def test_wahba_and_gauss_newton_recover_the_attitude_noise_free() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    q_true = random_quaternions(40, rng)
+    q_true[q_true[:, 0] < 0] *= -1
+    g_ref = np.array([0.0, 0.0, 1.0])
+    h_ref = np.array([0.5, 0.0, math.sqrt(3) / 2])
+    axes = np.vstack([np.eye(3), np.eye(3)])
+    references = np.vstack([np.tile(g_ref, (3, 1)), np.tile(h_ref, (3, 1))])
+    y, body = predict_measurements(q_true, axes, references)
+    rotation = wahba_rotation(body[:, [0, 3]], np.vstack([g_ref, h_ref]), np.ones(2))
+    assert_allclose(rotation, quaternion_to_rotation(q_true), atol=1e-10)
+    start = random_quaternions(40, rng) * 0.05 + q_true  # warm start near the truth
+    start /= np.linalg.norm(start, axis=1, keepdims=True)
+    q, step = gauss_newton_attitude(y, axes, references, ESTIMATOR_MASKS, start, 10)
+    assert q.shape == (7, 40, 4)
+    assert_allclose(np.abs(np.einsum("eni,ni->en", q, q_true)), 1.0, atol=1e-10)
+    assert np.all(step < 1e-8)
+
+
+# --- leave-one-out bank (array mode) -----------------------------------------------------
+
+
+def test_leave_one_out_matrix_co_aligned_is_sensor_minus_mean_of_others() -> None:
+    array = ArrayConfig.co_aligned(5, sensors=("gyro",))
+    H = array.measurement_matrix("gyro")
+    P = leave_one_out_matrix(H, np.ones(15))
+    assert_allclose(P @ H, 0.0, atol=1e-12)
+    expected = np.zeros((15, 15))
+    for j in range(15):
+        same_axis = np.arange(j % 3, 15, 3)
+        expected[j, same_axis] = -1.0 / 4.0
+        expected[j, j] = 1.0
+    assert_allclose(P, expected, atol=1e-12)
+    # excluding sensor 0 removes it from every other estimator, row 0 still defined
+    P_excluded = leave_one_out_matrix(H, np.ones(15), frozenset({0}))
+    assert_allclose(P_excluded[:, 0][1:], 0.0)
+    assert_allclose(P_excluded[0, [3, 6, 9, 12]], -0.25)
+
+
+def _table4_double_fault(seed: int) -> dict[str, dict[str, float]]:
+    config = preset("paper-table4", seed=seed)
+    array, clean = simulate_block(config)
+    specs = ["step:imu0.gyro.x,at=2.5s,amp=0.9deg/s", "step:imu5.gyro.y,at=2.5s,amp=0.9deg/s"]
+    faults = [parse_fault_spec(s, array) for s in specs]
+    t0 = int(clean.t_ns[0])
+    faulty = FaultInjector(faults, array, seed=seed, t0_ns=t0).apply_block(clean.copy())
+    ids = array.sensor_ids("gyro")
+    truth = active_mask(faults, ids, faulty.t_ns, t0)
+    targets = [ids.index("imu0.gyro.x"), ids.index("imu5.gyro.y")]
+    from imufdi_cli.detectors.glt import GltDetector
+
+    figures: dict[str, dict[str, float]] = {}
+    for name, cls in (("bank", BankDetector), ("glt", GltDetector)):
+        detector = cls(**parse_params(cls.PARAMS, {}, name))
+        detector.fit(clean.slice(0, 200), array)
+        out = detector.process(faulty)["gyro"]  # one block: isolated sets of the whole log
+        if isinstance(detector, BankDetector):
+            assert detector.last_details is not None
+            sets = detector.last_details.isolated_sets["gyro"]
+        else:
+            sets = np.zeros_like(truth)
+            isolated = out.isolated >= 0
+            sets[np.flatnonzero(isolated), out.isolated[isolated]] = True
+        any_fault = truth.any(axis=1)
+        detected = out.alarm & any_fault
+        figures[name] = {
+            "FAR": float(out.alarm[~any_fault].mean()),
+            "MAR": float((~out.alarm[any_fault]).mean()),
+            "FIR": float((sets[detected] & ~truth[detected]).any(axis=1).mean()),
+            "isolated_0": float(sets[detected][:, targets[0]].mean()),
+            "isolated_1": float(sets[detected][:, targets[1]].mean()),
+            "both": float((sets[detected][:, targets[0]] & sets[detected][:, targets[1]]).mean()),
+        }
+    return figures
+
+
+def test_table4_two_simultaneous_steps_are_both_isolated_unlike_glt() -> None:
+    figures = _table4_double_fault(seed=1)
+    bank, glt = figures["bank"], figures["glt"]
+    assert bank["MAR"] <= 0.02
+    assert bank["isolated_0"] >= 0.9 and bank["isolated_1"] >= 0.9
+    assert bank["both"] >= 0.85
+    assert bank["FIR"] <= 0.1
+    assert bank["FAR"] <= 0.08  # outliers of p = 0.001 on 48 channels, as for GLT
+    # a single-fault GLT isolates one sensor per sample: never both
+    assert glt["both"] == 0.0
+    assert glt["isolated_0"] + glt["isolated_1"] <= 1.0 + 1e-12
+
+
+def test_two_sensors_on_an_axis_detect_but_do_not_isolate() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    array = ArrayConfig.co_aligned(2, sensors=("gyro",))
+    n = 600
+    gyro = 0.002 * rng.normal(size=(n, 2, 3)) + np.array([0.1, -0.2, 0.3])
+    block = ImuBlock(t_ns=np.arange(n) * 10_000_000, gyro=gyro)
+    detector = make_detector()
+    detector.fit(block.slice(0, 200), array)
+    faulty = block.copy()
+    assert faulty.gyro is not None
+    faulty.gyro[300:, 0, 0] += 0.05
+    out = detector.process(faulty)["gyro"]
+    assert out.alarm[300:].mean() > 0.99
+    assert np.all(out.isolated[300:][out.alarm[300:]] == NOT_ISOLABLE)
+
+
+# --- accel/mag/gyro bank (marg mode, the paper's quadrotor) -----------------------------
+
+
+@pytest.fixture(scope="module")
+def quadrotor() -> tuple[ArrayConfig, ImuBlock]:
+    return simulate_block(preset("quadrotor-marg", seed=3))
+
+
+def _inject(array: ArrayConfig, clean: ImuBlock, scenario: str) -> ImuBlock:
+    faults = [parse_fault_spec(s, array) for s in PRESETS["quadrotor-marg"].faults[scenario]]
+    return FaultInjector(faults, array, seed=3, t0_ns=int(clean.t_ns[0])).apply_block(clean.copy())
+
+
+def _fitted(array: ArrayConfig, clean: ImuBlock) -> BankDetector:
+    detector = make_detector()
+    detector.fit(clean.slice(0, 200), array)
+    assert detector.resolved_mode == "marg"
+    return detector
+
+
+def test_accel_bias_is_isolated_and_identified_table1(
+    quadrotor: tuple[ArrayConfig, ImuBlock],
+) -> None:
+    array, clean = quadrotor
+    faulty = _inject(array, clean, "accel-bias")
+    detector = _fitted(array, clean)
+    out = detector.process(faulty)
+    details = detector.last_details
+    assert details is not None and details.estimator_residuals is not None
+    t = faulty.t_s()
+    after = t >= 5.0
+    accel = out["accel"]
+    assert accel.alarm[after].mean() == 1.0
+    assert np.all(accel.isolated[after] == 0)
+    assert_allclose(np.median(accel.amplitude[after]), 0.5 * STANDARD_GRAVITY, rtol=0.05)
+    assert out["mag"].alarm[after].mean() <= 0.01
+    # Table 1: R_1 (blind to a1) has only its first component sensitive, = 0.5 (normalised)
+    r1 = details.estimator_residuals[after, 0, :]
+    assert_allclose(np.median(r1[:, 0]), 0.5, rtol=0.05)
+    assert np.all(np.abs(np.median(r1[:, 1:], axis=0)) < 0.01)
+    # every other estimator uses a1 and is corrupted: some component far from 0
+    for i in range(1, 7):
+        assert np.max(np.abs(np.median(details.estimator_residuals[after, i, :], axis=0))) > 0.05
+    # the gyro residuals use the estimator blind to a1: no gyro alarm burst
+    assert out["gyro"].alarm[after].mean() <= 0.05
+
+
+def test_gyro_bias_shows_only_in_its_residual_table2(
+    quadrotor: tuple[ArrayConfig, ImuBlock],
+) -> None:
+    array, clean = quadrotor
+    faulty = _inject(array, clean, "gyro-bias")
+    detector = _fitted(array, clean)
+    out = detector.process(faulty)
+    details = detector.last_details
+    assert details is not None and details.gyro_residuals is not None
+    t = faulty.t_s()
+    settled = t >= 5.5  # a few filter time constants after onset
+    gyro = out["gyro"]
+    assert gyro.alarm[settled].mean() >= 0.98
+    assert np.all(gyro.isolated[settled & gyro.alarm] == 2)
+    assert_allclose(np.median(gyro.amplitude[t >= 7.5]), 0.1, rtol=0.05)
+    # only g3's residual responds
+    threshold = gyro.threshold[0]
+    assert details.isolated_sets["gyro"][settled][:, :2].mean() <= 0.05
+    assert np.median(gyro.scores[settled, :2]) < threshold
+    for sensor_type in ("accel", "mag"):
+        assert out[sensor_type].alarm[t >= 5.0].mean() <= 0.02
+
+
+def test_gyro_bias_plus_drift_both_isolated_and_tracked(
+    quadrotor: tuple[ArrayConfig, ImuBlock],
+) -> None:
+    array, clean = quadrotor
+    faulty = _inject(array, clean, "gyro-bias-drift")
+    detector = _fitted(array, clean)
+    detector.process(faulty)
+    details = detector.last_details
+    assert details is not None and details.gyro_residuals is not None
+    t = faulty.t_s()
+    later = t >= 6.5
+    sets = details.isolated_sets["gyro"]
+    assert sets[later, 2].mean() >= 0.98  # g3 bias 0.5 rad/s
+    assert sets[later, 0].mean() >= 0.98  # g1 drift 0.1 rad/s^2
+    assert sets[later, 1].mean() <= 0.05
+    assert_allclose(np.median(details.gyro_residuals[t >= 7.5, 2]), 0.5, rtol=0.05)
+    # the filtered residual of a ramp lags it by tau
+    tau = detector.tau
+    expected_drift = 0.1 * (t[later] - 5.0 - tau)
+    assert_allclose(details.gyro_residuals[later, 0], expected_drift, atol=0.02)
+
+
+def test_attitude_manoeuvre_raises_no_alarm(quadrotor: tuple[ArrayConfig, ImuBlock]) -> None:
+    array, clean = quadrotor
+    detector = _fitted(array, clean)
+    out = run(detector, clean)
+    t = clean.t_s()
+    manoeuvre = (t >= 5.0) & (t < 6.5)
+    for sensor_type in ("accel", "mag", "gyro"):
+        # alpha = 0.01 per sample: allow a few isolated false alarms, no burst
+        assert out[sensor_type].alarm[manoeuvre].mean() <= 0.03, sensor_type
+        assert out[sensor_type].alarm.mean() <= 0.03, sensor_type
+
+
+def test_streaming_blocks_give_the_same_rows(quadrotor: tuple[ArrayConfig, ImuBlock]) -> None:
+    array, clean = quadrotor
+    faulty = _inject(array, clean, "gyro-bias-drift")
+    whole = _fitted(array, clean).process(faulty)
+    pieces = run(_fitted(array, clean), faulty, block_size=37)
+    for sensor_type, expected in whole.items():
+        got = pieces[sensor_type]
+        assert len(got) == len(faulty)
+        assert_allclose(got.statistic, expected.statistic, rtol=1e-6, atol=1e-9)
+        np.testing.assert_array_equal(got.alarm, expected.alarm)
+        np.testing.assert_array_equal(got.isolated, expected.isolated)
+    flushed = _fitted(array, clean).flush()
+    assert {s: len(b) for s, b in flushed.items()} == {"accel": 0, "mag": 0, "gyro": 0}
+
+
+def test_metadata_reports_the_calibrated_field_angle(
+    quadrotor: tuple[ArrayConfig, ImuBlock],
+) -> None:
+    array, clean = quadrotor
+    meta = _fitted(array, clean).metadata()
+    assert meta["mode"] == "marg"
+    assert_allclose(meta["calibration"]["field_angle_deg"], 30.0, atol=0.2)
+    assert_allclose(meta["calibration"]["gravity_norm"], STANDARD_GRAVITY, rtol=1e-3)
+
+
+# --- errors ------------------------------------------------------------------------------
+
+
+def test_bad_parameters_are_config_errors() -> None:
+    with pytest.raises(DetectorConfigError, match="valid: auto, marg, array"):
+        make_detector(mode="kalman")
+    with pytest.raises(DetectorConfigError, match=r"bank\.tau"):
+        make_detector(tau="-1s")
+    with pytest.raises(DetectorConfigError, match=r"unknown parameter bank\.beta"):
+        make_detector(beta=1)
+
+
+def test_marg_mode_on_an_array_and_degenerate_calibrations() -> None:
+    array = ArrayConfig.co_aligned(4, sensors=("gyro", "accel"))
+    n = 100
+    rng = np.random.default_rng(RNG_SEED)
+    block = ImuBlock(
+        t_ns=np.arange(n) * 10_000_000,
+        gyro=rng.normal(size=(n, 4, 3)),
+        accel=rng.normal(size=(n, 4, 3)),
+    )
+    with pytest.raises(DetectorConfigError, match="mode=marg needs exactly one IMU"):
+        make_detector(mode="marg").fit(block, array)
+    single = ArrayConfig.co_aligned(1, sensors=("gyro", "accel"))
+    with pytest.raises(CalibrationError, match="needs at least 4"):
+        make_detector().fit(block.slice(0, n), single)
+    marg = ArrayConfig.co_aligned(1, sensors=("gyro", "accel", "mag"))
+    parallel = np.tile([0.0, 0.0, 9.8], (n, 1, 1))
+    degenerate = ImuBlock(
+        t_ns=np.arange(n) * 10_000_000,
+        gyro=np.zeros((n, 1, 3)),
+        accel=parallel,
+        mag=parallel * 5e-6,
+    )
+    with pytest.raises(CalibrationError, match="not observable"):
+        make_detector().fit(degenerate, marg)
