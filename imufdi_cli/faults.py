@@ -962,6 +962,21 @@ def inject_file(
         log_duration_s=duration_s,
         previous_metadata=metadata.get(METADATA_NAME),
     )
+    # Every faulted stream must exist in the log and be patchable (CDR) before writing.
+    streams = {(k, t): cid for cid, k in imu_channels.items() for t in ("gyro", "accel")}
+    streams.update({(k, "mag"): cid for cid, k in mag_channels.items()})
+    for fault in injector.faults:
+        cid = streams.get((fault.imu, fault.sensor_type))
+        if cid is None:
+            raise FaultSpecError(
+                f"fault {fault.spec!r}: the log has no {fault.sensor_type} topic for "
+                f"imu{fault.imu}; IMU topics: {', '.join(imu_topics)}"
+            )
+        if channels[cid].message_encoding != "cdr":
+            raise McapInputError(
+                f"fault {fault.spec!r}: {channels[cid].topic} is "
+                f"{channels[cid].message_encoding!r}-encoded; only CDR messages can be patched"
+            )
     previous_faults = [
         Fault.from_dict(item) for run in injector.previous_runs for item in run["faults"]
     ]

@@ -651,3 +651,20 @@ def test_inject_magnetometer(tmp_path) -> None:
     )
     assert_array_equal(faulty.mag[:, 0, :], block.mag[:, 0, :])
     assert_array_equal(faulty.gyro, block.gyro)
+
+
+@needs_mcapio
+def test_inject_fault_on_missing_topic(tmp_path, log_file) -> None:
+    path, _, _ = log_file
+    # a log whose recorded array claims magnetometers it carries no topic for
+    mag_array = ArrayConfig.co_aligned(3, RATE_HZ, sensors=("gyro", "accel", "mag"))
+    no_mag = tmp_path / "nomag.mcap"
+    with mcapio.McapSource(str(path)) as source, mcapio.McapWriter(str(no_mag)) as writer:
+        writer.copy_channels(source.channels)
+        writer.add_metadata("imufdi.array", {"json": mag_array.to_json()})
+        for batch in source.batches():
+            writer.add_batch(batch)
+    out = tmp_path / "never.mcap"
+    with pytest.raises(FaultSpecError, match="no mag topic for imu1"):
+        inject_file(str(no_mag), str(out), ["step:imu1.mag.x,amp=1uT"], [], seed=0)
+    assert not out.exists()
