@@ -190,8 +190,8 @@ def compute_metrics(
     isolated = np.asarray(isolated, dtype=np.int64)
     faulty = np.asarray(faulty, dtype=bool).reshape(len(t_ns), -1)
     n = int(t_ns.size)
-    any_fault = faulty.any(axis=1)
-    fault_free = ~any_fault
+    any_fault = np.asarray(faulty.any(axis=1), dtype=bool)
+    fault_free = np.logical_not(any_fault)
     false_alarms = int(np.count_nonzero(alarm & fault_free))
     n_free = int(np.count_nonzero(fault_free))
     n_faulty = int(np.count_nonzero(any_fault))

@@ -179,7 +179,7 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
                 active = arrays.t_ns >= w.start_ns
                 if w.end_ns is not None:
                     active &= arrays.t_ns < w.end_ns
-                faulty[np.ix_(active, list(w.sensors))] = True
+                faulty[np.ix_(active, np.asarray(w.sensors, dtype=np.intp))] = True
         metrics = compute_metrics(
             arrays.t_ns, arrays.alarm, arrays.isolated, faulty, windows, persist=persist
         )

@@ -142,9 +142,9 @@ def parse_quantity(text: str | float | int, dimension: str, *, name: str = "valu
         return value
     factor, dim = _parse_unit(unit)
     if dim != DIMENSIONS[dimension]:
-        raise UnitError(
-            f"{name}: {text!r} is not a {dimension.replace('_', ' ')} (e.g. {example(dimension)})"
-        )
+        label = dimension.replace("_", " ")
+        article = "an" if label[0] in "aeiou" else "a"
+        raise UnitError(f"{name}: {text!r} is not {article} {label} (e.g. {example(dimension)})")
     return value * factor
 
 
