@@ -115,8 +115,8 @@ def test_parse_scale_ppm_spikes_duration(array: ArrayConfig) -> None:
         ("scale:imu0.gyro.x,at=1s", "scale needs factor= or ppm="),
         ("noise:imu0.gyro.x,at=1s", "noise needs factor= or sigma="),
         ("spikes:imu0.gyro.x,rate=1Hz", "spikes needs amp="),
-        ("step:imu0.accel.x,amp=0.9deg/s", "amp: '0.9deg/s' is not a acceleration"),
-        ("drift:imu0.gyro.x,rate=0.9deg/s", "rate: '0.9deg/s' is not a angular acceleration"),
+        ("step:imu0.accel.x,amp=0.9deg/s", "amp: '0.9deg/s' is not an acceleration"),
+        ("drift:imu0.gyro.x,rate=0.9deg/s", "rate: '0.9deg/s' is not an angular acceleration"),
         ("step:imu0.gyro.x,at=2parsecs,amp=1deg/s", "unknown unit 'parsecs'"),
         ("step:imu0.gyro.x,at=-1s,amp=1deg/s", "at must be >= 0"),
         ("step:imu0.gyro.x,amp", "'amp' is not key=value"),
@@ -174,7 +174,7 @@ def test_toml_file(tmp_path, array: ArrayConfig) -> None:
 def test_toml_errors(tmp_path, array: ArrayConfig) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('[[fault]]\nmodel = "step"\nsensor = "imu0.gyro.x"\namp = "1g"\n')
-    with pytest.raises(FaultSpecError, match=r"fault\[0\].*amp: '1g' is not a angular rate"):
+    with pytest.raises(FaultSpecError, match=r"fault\[0\].*amp: '1g' is not an angular rate"):
         load_fault_file(bad, array)
     with pytest.raises(FaultSpecError, match="missing sensor"):
         fault_from_table({"model": "step", "amp": 1.0}, array, where="t")
