@@ -473,17 +473,22 @@ class AlignmentStats:
 
 
 class _Aligner:
-    """Groups samples of S streams into time slots (stamps within ``tolerance``)."""
+    """Groups samples of S streams into time slots (stamps within ``tolerance``).
+
+    Pending samples of all streams are kept together (stamps, stream index, values padded
+    to a common width), so adding a chunk and resolving a block are a few numpy calls.
+    """
 
     def __init__(
         self, names: list[str], widths: list[int], tolerance: int, max_pending: int
     ) -> None:
         self.names = names
         self.widths = widths
+        self.width = max(widths)
         self.tolerance = int(tolerance)
         self.max_pending = max_pending
-        self.pending_t: list[list[np.ndarray]] = [[] for _ in names]
-        self.pending_v: list[list[np.ndarray]] = [[] for _ in names]
+        self.pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.counts = np.zeros(len(names), np.int64)
         self.boundary: int | None = None  # stamps <= boundary are resolved
         self.stats = AlignmentStats(
             gaps=dict.fromkeys(names, 0),
@@ -498,79 +503,72 @@ class _Aligner:
 
     def min_pending(self) -> int:
         """Fewest samples waiting in any stream (or the most, if a stream is silent long)."""
-        counts = [sum(t.shape[0] for t in parts) for parts in self.pending_t]
-        if max(counts) > self.max_pending:
-            return max(counts)
-        return min(counts)
+        most = int(self.counts.max())
+        return most if most > self.max_pending else int(self.counts.min())
 
-    def add(self, stream: int, t_ns: np.ndarray, values: np.ndarray) -> None:
-        name = self.names[stream]
-        self.stats.messages[name] += int(t_ns.shape[0])
+    def _tally(self, target: dict[str, int], streams: np.ndarray) -> np.ndarray:
+        counts = np.bincount(streams, minlength=len(self.names))
+        for s in np.flatnonzero(counts).tolist():
+            target[self.names[s]] += int(counts[s])
+        return counts
+
+    def add(self, streams: np.ndarray, t_ns: np.ndarray, values: np.ndarray) -> None:
+        """Queue samples: stream index (n,), stamps (n,), values (n, <= width)."""
+        streams = np.asarray(streams, np.int64)
+        self._tally(self.stats.messages, streams)
         if self.boundary is not None:
             late = t_ns <= self.boundary
             if bool(late.any()):
-                self.stats.late[name] += int(late.sum())
-                t_ns, values = t_ns[~late], values[~late]
-        if t_ns.shape[0]:
-            self.pending_t[stream].append(t_ns)
-            self.pending_v[stream].append(values)
-
-    def _collect(self, stream: int) -> tuple[np.ndarray, np.ndarray]:
-        if not self.pending_t[stream]:
-            return np.zeros(0, np.int64), np.zeros((0, self.widths[stream]))
-        t = np.concatenate(self.pending_t[stream])
-        v = np.concatenate(self.pending_v[stream])
-        if t.shape[0] > 1 and not bool(np.all(np.diff(t) >= 0)):
-            order = np.argsort(t, kind="stable")
-            t, v = t[order], v[order]
-        self.pending_t[stream] = [t]
-        self.pending_v[stream] = [v]
-        return t, v
+                self._tally(self.stats.late, streams[late])
+                keep = ~late
+                streams, t_ns, values = streams[keep], t_ns[keep], values[keep]
+        if t_ns.shape[0] == 0:
+            return
+        if values.shape[1] < self.width:
+            values = np.pad(values, ((0, 0), (0, self.width - values.shape[1])))
+        self.pending.append((t_ns, streams, values))
+        self.counts += np.bincount(streams, minlength=len(self.names))
 
     def resolve(self, final: bool) -> tuple[np.ndarray, list[np.ndarray]]:
         """Stamps (K,) and per-stream values (K, width) of the time slots now complete."""
-        streams = range(len(self.names))
-        collected = [self._collect(s) for s in streams]
-        empty = (np.zeros(0, np.int64), [np.zeros((0, w)) for w in self.widths])
-        sizes = [t.shape[0] for t, _ in collected]
-        if sum(sizes) == 0:
-            return empty
-        if final:
-            horizon = None
-        else:
-            if min(sizes) == 0:
-                if max(sizes) <= self.max_pending:
-                    return empty
-                # A stream has been silent for long: resolve what the others have.
-                horizon = min(int(t[-1]) for t, _ in collected if t.shape[0])
-            else:
-                horizon = min(int(t[-1]) for t, _ in collected)
-        all_t = np.concatenate([t for t, _ in collected])
-        all_s = np.concatenate(
-            [np.full(t.shape[0], s, np.int64) for s, (t, _) in enumerate(collected)]
-        )
-        all_i = np.concatenate([np.arange(t.shape[0]) for t, _ in collected])
+        if not self.pending:
+            return self.empty()
+        n_streams = len(self.names)
+        all_t = np.concatenate([p[0] for p in self.pending])
+        all_s = np.concatenate([p[1] for p in self.pending])
+        all_v = np.concatenate([p[2] for p in self.pending])
+        present = self.counts > 0
+        horizon: int | None = None
+        if not final:
+            if not bool(present.all()) and int(self.counts.max()) <= self.max_pending:
+                return self.empty()
+            # Newest stamp of each stream; a stream silent for long does not hold the rest.
+            newest = np.full(n_streams, np.iinfo(np.int64).max)
+            order_s = np.lexsort((all_t, all_s))
+            last_of = np.flatnonzero(np.r_[all_s[order_s][1:] != all_s[order_s][:-1], True])
+            newest[all_s[order_s][last_of]] = all_t[order_s][last_of]
+            horizon = int(newest.min())
         order = np.argsort(all_t, kind="stable")
-        all_t, all_s, all_i = all_t[order], all_s[order], all_i[order]
-        new_slot = np.empty(all_t.shape[0], bool)
+        t_sorted, s_sorted = all_t[order], all_s[order]
+        new_slot = np.empty(t_sorted.shape[0], bool)
         new_slot[0] = True
-        np.greater(np.diff(all_t), self.tolerance, out=new_slot[1:])
+        np.greater(np.diff(t_sorted), self.tolerance, out=new_slot[1:])
         slot = np.cumsum(new_slot) - 1
-        n_slots = int(slot[-1]) + 1
-        slot_end = np.full(n_slots, np.iinfo(np.int64).min)
-        np.maximum.at(slot_end, slot, all_t)
+        slot_start = np.flatnonzero(new_slot)
+        slot_end = t_sorted[np.r_[slot_start[1:] - 1, t_sorted.shape[0] - 1]]
+        n_slots = slot_start.shape[0]
         if horizon is None:
             n_done = n_slots
         else:
+            # A future sample (stamp >= horizon) cannot join a slot ending before this.
             n_done = int(np.searchsorted(slot_end + self.tolerance, horizon, side="left"))
         if n_done == 0:
-            return empty
-        done = slot < n_done
-        all_t, all_s, all_i, slot = all_t[done], all_s[done], all_i[done], slot[done]
+            return self.empty()
+        n_items = int(slot_start[n_done]) if n_done < n_slots else t_sorted.shape[0]
+        slot, s_done, rows = slot[:n_items], s_sorted[:n_items], order[:n_items]
         boundary = int(slot_end[n_done - 1])
         self.boundary = boundary if self.boundary is None else max(self.boundary, boundary)
-        n_streams = len(self.names)
-        key = slot * n_streams + all_s
+        key = slot * n_streams + s_done
         counts = np.bincount(key, minlength=n_done * n_streams).reshape(n_done, n_streams)
         complete = np.all(counts >= 1, axis=1)
         missing = counts == 0
@@ -583,24 +581,25 @@ class _Aligner:
         first_stream = unique_keys % n_streams
         keep = complete[first_slot]
         first, first_slot, first_stream = first[keep], first_slot[keep], first_stream[keep]
-        complete_slots = np.flatnonzero(complete)
         rank = np.cumsum(complete) - 1
-        k = complete_slots.shape[0]
-        stamps = np.zeros((k, n_streams), np.int64)
-        stamps[rank[first_slot], first_stream] = all_t[first]
-        index = np.zeros((k, n_streams), np.int64)
-        index[rank[first_slot], first_stream] = all_i[first]
-        values = [collected[s][1][index[:, s]] for s in streams]
+        k = int(complete.sum())
+        row = np.zeros((k, n_streams), np.int64)
+        row[rank[first_slot], first_stream] = rows[first]
+        stamps = all_t[row]
+        values = [all_v[row[:, s], : self.widths[s]] for s in range(n_streams)]
         if k:
             skew = stamps.max(axis=1) - stamps.min(axis=1)
             self.stats.misaligned += int(np.count_nonzero(skew))
             self.stats.max_skew_ns = max(self.stats.max_skew_ns, int(skew.max()))
         self.stats.n_aligned += k
-        # Drop resolved samples from the pending buffers.
-        for s, (t, v) in enumerate(collected):
-            cut = int(np.searchsorted(t, boundary, side="right"))
-            self.pending_t[s] = [t[cut:]] if cut < t.shape[0] else []
-            self.pending_v[s] = [v[cut:]] if cut < t.shape[0] else []
+        rest = order[n_items:]
+        if rest.shape[0]:
+            rest = np.sort(rest)  # keep arrival order
+            self.pending = [(all_t[rest], all_s[rest], all_v[rest])]
+            self.counts = np.bincount(all_s[rest], minlength=n_streams)
+        else:
+            self.pending = []
+            self.counts = np.zeros(n_streams, np.int64)
         return stamps[:, 0].copy(), values
 
 
@@ -820,15 +819,7 @@ class ImuArrayReader:
                 values = fields.mag
             else:
                 values = np.concatenate([fields.gyro, fields.accel], axis=1)  # type: ignore[list-item]
-            streams = stream_of_message[mask]
-            if ids.shape[0] == 1:
-                self._aligner.add(int(streams[0]), t, values)  # type: ignore[arg-type]
-                continue
-            order = np.argsort(streams, kind="stable")
-            sorted_streams = streams[order]
-            bounds = np.flatnonzero(np.diff(sorted_streams)) + 1
-            for part, first in zip(np.split(order, bounds), np.r_[0, bounds].tolist()):
-                self._aligner.add(int(sorted_streams[first]), t[part], values[part])  # type: ignore[index]
+            self._aligner.add(stream_of_message[mask], t, values)  # type: ignore[arg-type]
 
     def _block(self, t_ns: np.ndarray, values: list[np.ndarray]) -> ImuBlock:
         m = len(self.imu_topics)

@@ -17,16 +17,18 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
-from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.errors import McapInputError, UsageError
 from imufdi_cli.mcapio.cdr import codec_for, decode_json_payloads
 from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch, gather_bytes
 from imufdi_cli.mcapio.schemas import STATUS_SCHEMA, STATUS_SCHEMA_NAME
 from imufdi_cli.mcapio.source import McapSource
+
+if TYPE_CHECKING:
+    from imufdi_cli.detectors.base import DetectionBlock
 
 NS_PER_S = 1_000_000_000
 STATUS_TOPIC_PREFIX = "/imufdi/"
