@@ -45,10 +45,12 @@ import itertools
 import json
 import os
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -68,6 +70,13 @@ else:  # pragma: no cover
 DEFAULT_METRICS = ["far", "mar", "accuracy", "fir", "detection_delay_s", "detection_probability"]
 BLOCK_SAMPLES = 4096
 NS_PER_S = 1_000_000_000
+#: BLAS/OpenMP thread caps for worker processes: on a small machine, one BLAS thread per
+#: worker process; several threads per worker only fight over the same cores.
+WORKER_THREAD_ENV: dict[str, str] = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+}
 
 
 # --- spec ------------------------------------------------------------------------------
@@ -107,6 +116,17 @@ def _fault_specs(table: Mapping[str, Any], where: str) -> list[str]:
     return specs
 
 
+def _calibration_window(value: Any, where: str) -> list[float | None]:
+    """``"START:END"`` (times from the log start) -> ``[start_s, end_s or None]``."""
+    from imufdi_cli.units import parse_time_range
+
+    try:
+        start, end = parse_time_range(str(value), name=where)
+    except ImufdiError as err:
+        raise CampaignSpecError(str(err)) from err
+    return [start, end]
+
+
 def load_spec(path: str | Path) -> CampaignSpec:
     """Parse and validate a campaign spec; every problem is reported before any run."""
     from imufdi_cli.array import ArrayConfig
@@ -139,13 +159,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
         isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds
     ):
         raise CampaignSpecError(f"{path}: campaign.seeds must be a non-empty list of integers >= 0")
-    calibrate = str(head.get("calibrate", "0s:2s"))
-    from imufdi_cli.units import parse_time_range
-
-    try:
-        cal = parse_time_range(calibrate, name="campaign.calibrate")
-    except ImufdiError as err:
-        raise CampaignSpecError(f"{path}: {err}") from err
+    cal = _calibration_window(head.get("calibrate", "0s:2s"), f"{path}: campaign.calibrate")
     metrics = [str(m) for m in _as_list(head.get("metrics", DEFAULT_METRICS))]
     for metric in metrics:
         if metric not in METRIC_NAMES:
@@ -154,16 +168,23 @@ def load_spec(path: str | Path) -> CampaignSpec:
             )
 
     bases: list[dict[str, Any]] = []
+    base_cals: list[list[float | None] | None] = []
     arrays: list[Any] = []
     for i, table in enumerate(_as_list(data.get("base", []))):
         where = f"{path}: base[{i}]"
         if not isinstance(table, Mapping):
             raise CampaignSpecError(f"{where}: expected a table")
-        unknown = set(table) - {"preset", "options", "files"}
+        unknown = set(table) - {"preset", "options", "files", "calibrate"}
         if unknown:
             raise CampaignSpecError(
-                f"{where}: unknown key {sorted(unknown)[0]!r}; valid: files, options, preset"
+                f"{where}: unknown key {sorted(unknown)[0]!r};"
+                " valid: calibrate, files, options, preset"
             )
+        base_cal = (
+            _calibration_window(table["calibrate"], f"{where}.calibrate")
+            if "calibrate" in table
+            else None
+        )
         if ("preset" in table) == ("files" in table):
             raise CampaignSpecError(f"{where}: give exactly one of preset or files")
         if "preset" in table:
@@ -178,6 +199,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
             except ImufdiError as err:
                 raise CampaignSpecError(f"{where}: {err}") from err
             bases.append({"preset": name, "options": options})
+            base_cals.append(base_cal)
             arrays.append(config.array)
         else:
             matched: list[str] = []
@@ -194,6 +216,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 except ImufdiError as err:
                     raise CampaignSpecError(f"{where}: unreadable base log {file}: {err}") from err
                 bases.append({"file": os.path.abspath(file)})
+                base_cals.append(base_cal)
                 arrays.append(array)
     if not bases:
         raise CampaignSpecError(f"{path}: needs at least one [[base]] (preset or files)")
@@ -207,22 +230,35 @@ def load_spec(path: str | Path) -> CampaignSpec:
     if not fault_sets:
         raise CampaignSpecError(f"{path}: the fault matrix is empty; add [[fault]] tables")
 
-    detectors: list[tuple[str, dict[str, Any]]] = []
+    detectors: list[tuple[str, dict[str, Any], list[float | None] | None]] = []
     for i, table in enumerate(_as_list(data.get("detector", []))):
         where = f"{path}: detector[{i}]"
         if not isinstance(table, Mapping) or "name" not in table:
             raise CampaignSpecError(f"{where}: needs name")
+        unknown = set(table) - {"name", "params", "calibrate"}
+        if unknown:
+            raise CampaignSpecError(
+                f"{where}: unknown key {sorted(unknown)[0]!r}; valid: calibrate, name, params"
+            )
         name = str(table["name"])
         if name not in DETECTORS:
             raise CampaignSpecError(
                 f"{where}: unknown detector {name!r}; valid: {', '.join(sorted(DETECTORS))}"
             )
-        for params in _grid(dict(table.get("params", {}))):
+        det_cal = (
+            _calibration_window(table["calibrate"], f"{where}.calibrate")
+            if "calibrate" in table
+            else None
+        )
+        params_table = table.get("params", {})
+        if not isinstance(params_table, Mapping):
+            raise CampaignSpecError(f"{where}.params: expected a table of name = value or list")
+        for params in _grid(dict(params_table)):
             try:
                 make_detector(name, params)
             except ImufdiError as err:
                 raise CampaignSpecError(f"{where}: {err}") from err
-            detectors.append((name, params))
+            detectors.append((name, params, det_cal))
     if not detectors:
         raise CampaignSpecError(f"{path}: needs at least one [[detector]]")
 
@@ -239,7 +275,10 @@ def load_spec(path: str | Path) -> CampaignSpec:
                     ) from err
 
     runs = []
-    for base, specs, (det, params), seed in itertools.product(bases, fault_sets, detectors, seeds):
+    for (base, base_cal), specs, (det, params, det_cal), seed in itertools.product(
+        zip(bases, base_cals), fault_sets, detectors, seeds
+    ):
+        window = det_cal or base_cal or cal  # detector over base over campaign
         runs.append(
             {
                 "base": base,
@@ -247,7 +286,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 "faults": specs,
                 "detector": det,
                 "params": params,
-                "calibrate": [cal[0], cal[1]],
+                "calibrate": window,
             }
         )
     return CampaignSpec(
@@ -337,7 +376,7 @@ def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
                 continue
             columns = [ids.index(s) for s in fault.sensors if s in ids]
             active = fault.active(faulty.t_ns, t0)
-            faulty_mask[np.ix_(active, columns)] = True
+            faulty_mask[np.ix_(active, np.asarray(columns, dtype=np.intp))] = True
             end = None if fault.until_ns is None else t0 + fault.until_ns
             windows.append(FaultWindow(fault.id, tuple(columns), t0 + fault.at_ns, end))
         metrics = compute_metrics(faulty.t_ns, det.alarm, det.isolated, faulty_mask, windows)
@@ -360,33 +399,83 @@ class _Executor:
         pass
 
 
+@contextmanager
+def worker_thread_env() -> Iterator[None]:
+    """Set :data:`WORKER_THREAD_ENV` in ``os.environ`` for the block (restored after).
+
+    Worker processes started inside the block (spawned pool workers, dask nannies) inherit
+    it before they import numpy, so each uses one BLAS thread.
+    """
+    saved = {name: os.environ.get(name) for name in WORKER_THREAD_ENV}
+    os.environ.update(WORKER_THREAD_ENV)
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def _init_worker(parent_pid: int) -> None:
+    """Pool worker initializer: one BLAS thread, and exit when the parent is gone.
+
+    A campaign process killed with SIGKILL cannot stop its pool; the watchdog makes the
+    orphaned workers exit instead of waiting forever for work.
+    """
+    os.environ.update(WORKER_THREAD_ENV)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="imufdi-parent-watchdog", daemon=True).start()
+
+
 class LocalExecutor(_Executor):
-    """A process pool on this machine (``--jobs``); ``jobs=1`` runs in this process."""
+    """A process pool on this machine (``--jobs``); ``jobs=1`` runs in this process.
+
+    Workers are *spawned* (fresh interpreters) with :data:`WORKER_THREAD_ENV` set before
+    they import numpy; at most ``2 * jobs`` runs are in flight, so an interruption loses
+    little.
+    """
 
     def __init__(self, jobs: int) -> None:
+        if jobs < 1:
+            raise UsageError(f"--jobs must be >= 1, got {jobs}")
         self.jobs = jobs
 
     def run(self, runs: Sequence[dict[str, Any]]) -> Iterator[dict[str, Any]]:
-        if self.jobs == 1:
+        if self.jobs == 1 or len(runs) <= 1:
             for desc in runs:
                 yield execute_run(desc)
             return
         import multiprocessing
 
-        context = multiprocessing.get_context("spawn" if sys.platform == "darwin" else "fork")
-        with ProcessPoolExecutor(max_workers=self.jobs, mp_context=context) as pool:
-            pending: set[Future[dict[str, Any]]] = set()
-            queue = iter(runs)
-            # keep a bounded number of runs in flight: little lost on interruption
-            for desc in itertools.islice(queue, 2 * self.jobs):
-                pending.add(pool.submit(execute_run, desc))
-            while pending:
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for future in done:
-                    yield future.result()
-                    nxt = next(queue, None)
-                    if nxt is not None:
-                        pending.add(pool.submit(execute_run, nxt))
+        context = multiprocessing.get_context("spawn")
+        with worker_thread_env():
+            pool = ProcessPoolExecutor(
+                max_workers=min(self.jobs, len(runs)),
+                mp_context=context,
+                initializer=_init_worker,
+                initargs=(os.getpid(),),
+            )
+            try:
+                pending: set[Future[dict[str, Any]]] = set()
+                queue = iter(runs)
+                for desc in itertools.islice(queue, 2 * self.jobs):
+                    pending.add(pool.submit(execute_run, desc))
+                while pending:
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for future in done:
+                        nxt = next(queue, None)
+                        if nxt is not None:
+                            pending.add(pool.submit(execute_run, nxt))
+                        yield future.result()
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
 
 
 class DaskExecutor(_Executor):
@@ -410,13 +499,14 @@ class DaskExecutor(_Executor):
                 raise UsageError(
                     f"--scheduler {scheduler!r}: local:N needs N >= 1 workers"
                 ) from None
-            self.cluster = LocalCluster(
-                n_workers=workers,
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                dashboard_address=None,
-            )
+            with worker_thread_env():
+                self.cluster = LocalCluster(
+                    n_workers=workers,
+                    threads_per_worker=1,
+                    processes=True,
+                    host="127.0.0.1",
+                    dashboard_address=None,
+                )
             self.client = Client(self.cluster)
         elif scheduler.startswith("tcp://"):
             try:
@@ -493,6 +583,8 @@ def run_campaign(
             " or choose another directory"
         )
     runs_dir.mkdir(parents=True, exist_ok=True)
+    for stale in runs_dir.glob(".*.json.*.tmp"):  # left by a run killed while writing
+        stale.unlink(missing_ok=True)
     keyed = {run_key(desc): desc for desc in spec.runs}
     done_keys = {p.stem for p in existing} & set(keyed) if resume else set()
     todo = [desc for key, desc in keyed.items() if key not in done_keys]
@@ -625,7 +717,8 @@ def summarize(spec: CampaignSpec, results: Sequence[Mapping[str, Any]]) -> dict[
     for row in _rows(results):
         if not row["ok"]:
             continue
-        fault_type = row["faults"].split(":", 1)[1].split(",")[0].split(".")[1]
+        sensor = row["faults"].split(":", 1)[1].split(",")[0].split(".")
+        fault_type = sensor[1] if len(sensor) > 1 else ""
         if row["sensor_type"] != fault_type:
             continue  # score each run on the sensor type its fault acts on
         key = (
@@ -638,8 +731,7 @@ def summarize(spec: CampaignSpec, results: Sequence[Mapping[str, Any]]) -> dict[
         )
         groups.setdefault(key, []).append(row)
     table = []
-    for key, rows in sorted(groups.items()):
-        base, det, params, model, amp, sensor_type = key
+    for (base, det, params, model, amp, sensor_type), rows in sorted(groups.items()):
         entry: dict[str, Any] = {
             "base": base,
             "detector": det,
@@ -661,8 +753,64 @@ def summarize(spec: CampaignSpec, results: Sequence[Mapping[str, Any]]) -> dict[
         "failed": len(failures),
         "metrics": spec.metrics,
         "groups": table,
+        "curves": detection_curves(table),
         "failures": failures[:50],
     }
+
+
+def _amplitude_si(amplitude: str, sensor_type: str) -> float | None:
+    """Amplitude text -> SI float (``"0.9deg/s"`` on gyro -> rad/s); bare numbers as is."""
+    from imufdi_cli.units import parse_quantity, rate_dimension, sensor_dimension
+
+    for dimension in (sensor_dimension, rate_dimension):  # amplitudes, then drift rates
+        try:
+            return float(parse_quantity(amplitude, dimension(sensor_type)))
+        except ImufdiError:
+            continue
+    try:
+        return float(amplitude)
+    except ValueError:
+        return None
+
+
+def detection_curves(groups: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Detection probability against amplitude, one curve per base x detector x params x
+    fault model x sensor type, points sorted by SI amplitude."""
+    curves: dict[tuple[str, str, str, str, str], list[dict[str, Any]]] = {}
+    for g in groups:
+        stat = g.get("detection_probability")
+        if stat is None:
+            continue
+        key = (
+            g["base"],
+            g["detector"],
+            json.dumps(g["params"], sort_keys=True),
+            g["model"],
+            g["sensor_type"],
+        )
+        curves.setdefault(key, []).append(
+            {
+                "amplitude": g["amplitude"],
+                "amplitude_si": _amplitude_si(g["amplitude"], g["sensor_type"]),
+                "mean": stat["mean"],
+                "std": stat["std"],
+                "n": stat["n"],
+            }
+        )
+    out = []
+    for (base, det, params, model, sensor_type), points in sorted(curves.items()):
+        points.sort(key=lambda p: (p["amplitude_si"] is None, p["amplitude_si"] or 0.0))
+        out.append(
+            {
+                "base": base,
+                "detector": det,
+                "params": json.loads(params),
+                "model": model,
+                "sensor_type": sensor_type,
+                "points": points,
+            }
+        )
+    return out
 
 
 def summary_markdown(summary: Mapping[str, Any]) -> str:
@@ -715,6 +863,25 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
             else:
                 cells.append(f"{stat['mean'] * scale[m]:.3g} ± {stat['std'] * scale[m]:.2g}")
         lines.append("| " + " | ".join(cells) + " |")
+    curves = summary.get("curves") or []
+    if curves:
+        lines += [
+            "",
+            "## Detection probability against amplitude",
+            "",
+            "| base | detector | params | fault | type | amplitude: probability % |",
+            "|---|---|---|---|---|---|",
+        ]
+        for c in curves:
+            points = ", ".join(
+                f"{p['amplitude'] or '-'}: "
+                + ("undefined" if p["mean"] is None else f"{100.0 * p['mean']:.3g}")
+                for p in c["points"]
+            )
+            params = ", ".join(f"{k}={v}" for k, v in c["params"].items()) or "default"
+            lines.append(
+                f"| {c['base']} | {c['detector']} | {params} | {c['model']} | {c['sensor_type']} | {points} |"
+            )
     if summary["failures"]:
         lines += ["", "## Failed runs", ""]
         lines += [f"- `{f['key']}`: {f['error']}" for f in summary["failures"]]
@@ -730,23 +897,16 @@ def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
         import matplotlib.pyplot as plt
     except ImportError as err:
         raise UsageError("plots need matplotlib") from err
-    from imufdi_cli.units import parse_quantity, sensor_dimension
-
     curves: dict[tuple[str, str, str, str], list[tuple[float, float]]] = {}
-    for g in summary["groups"]:
-        if "detection_probability" not in g or g["detection_probability"]["mean"] is None:
-            continue
-        try:
-            x = parse_quantity(g["amplitude"], sensor_dimension(g["sensor_type"]))
-        except ImufdiError:
-            try:
-                x = float(g["amplitude"])
-            except ValueError:
-                continue
-        label = g["detector"] + ("" if not g["params"] else " " + json.dumps(g["params"]))
-        curves.setdefault((g["base"], g["model"], g["sensor_type"], label), []).append(
-            (x, g["detection_probability"]["mean"])
-        )
+    for c in summary.get("curves", []):
+        points = [
+            (p["amplitude_si"], p["mean"])
+            for p in c["points"]
+            if p["amplitude_si"] is not None and p["mean"] is not None
+        ]
+        label = c["detector"] + ("" if not c["params"] else " " + json.dumps(c["params"]))
+        if points:
+            curves[(c["base"], c["model"], c["sensor_type"], label)] = points
     if not curves:
         return
     fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
