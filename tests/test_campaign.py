@@ -1,0 +1,360 @@
+"""campaign: spec expansion and validation, run keys, failures, resume, summary, executors."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.testing import assert_allclose
+
+from imufdi_cli.campaign import (
+    CampaignSpec,
+    evaluate_summary_gates,
+    execute_run,
+    load_spec,
+    run_campaign,
+    run_key,
+    summarize,
+    summary_markdown,
+)
+from imufdi_cli.errors import CampaignSpecError, GateError, UsageError
+
+SPEC_200 = """
+[campaign]
+name = "ci-200"
+seeds = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]
+calibrate = "0s:0.6s"
+
+[[base]]
+preset = "paper-table4"
+options = { duration = "1s" }
+
+[[fault]]
+model = "step"
+sensor = ["imu0.gyro.x", "imu7.gyro.z"]
+at = "0.7s"
+amp = ["0.2deg/s", "0.4deg/s", "0.6deg/s", "0.9deg/s", "1.5deg/s"]
+
+[[detector]]
+name = "glt"
+
+[[detector]]
+name = "pca-parity"
+"""
+
+SMALL = """
+[campaign]
+seeds = [0, 1]
+calibrate = "0s:0.6s"
+
+[[base]]
+preset = "paper-table4"
+options = { duration = "1s" }
+
+[[fault]]
+model = "step"
+sensor = "imu0.gyro.x"
+at = "0.7s"
+amp = ["0.3deg/s", "0.9deg/s"]
+
+[[detector]]
+name = "glt"
+"""
+
+
+def write_spec(tmp_path: Path, text: str, name: str = "spec.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+# --- spec ------------------------------------------------------------------------------
+
+
+def test_spec_expands_the_full_matrix(tmp_path):
+    spec = load_spec(write_spec(tmp_path, SPEC_200))
+    assert spec.name == "ci-200"
+    assert len(spec.runs) == 1 * 2 * 5 * 2 * 10
+    assert len({run_key(r) for r in spec.runs}) == 200
+    faults = sorted({r["faults"][0] for r in spec.runs})
+    assert "step:imu0.gyro.x,amp=0.2deg/s,at=0.7s" in faults
+    assert len(faults) == 10
+    assert {r["detector"] for r in spec.runs} == {"glt", "pca-parity"}
+    assert all(r["calibrate"] == [0.0, 0.6] for r in spec.runs)
+    assert all(
+        r["base"] == {"preset": "paper-table4", "options": {"duration": "1s"}} for r in spec.runs
+    )
+
+
+def test_calibrate_precedence_detector_over_base_over_campaign(tmp_path):
+    spec = load_spec(
+        write_spec(
+            tmp_path,
+            """
+            [campaign]
+            calibrate = "0s:1s"
+            [[base]]
+            preset = "conical6"
+            calibrate = "0s:5s"
+            [[base]]
+            preset = "paper-table4"
+            [[fault]]
+            model = "step"
+            sensor = "imu0.gyro.z"
+            at = "6s"
+            amp = "0.5deg/s"
+            [[detector]]
+            name = "glt"
+            [[detector]]
+            name = "pca-parity"
+            calibrate = "0.5s:4s"
+            params = { alpha = [0.01, 0.001] }
+            """,
+        )
+    )
+    windows = {
+        (r["base"]["preset"], r["detector"], r["params"].get("alpha")): r["calibrate"]
+        for r in spec.runs
+    }
+    assert windows[("conical6", "glt", None)] == [0.0, 5.0]
+    assert windows[("paper-table4", "glt", None)] == [0.0, 1.0]
+    assert windows[("conical6", "pca-parity", 0.001)] == [0.5, 4.0]
+    assert windows[("paper-table4", "pca-parity", 0.01)] == [0.5, 4.0]
+    assert len(spec.runs) == 2 * 1 * 3
+
+
+BAD_SPECS = {
+    "unknown detector": (
+        SMALL.replace('name = "glt"', 'name = "nope"'),
+        "detector[0]: unknown detector 'nope'; valid: ",
+    ),
+    "unknown preset": (
+        SMALL.replace('preset = "paper-table4"', 'preset = "moon"'),
+        "base[0]: unknown preset 'moon'; valid: conical6, ",
+    ),
+    "unknown metric": (
+        SMALL.replace("[campaign]", '[campaign]\nmetrics = ["far", "speed"]'),
+        "campaign.metrics: unknown metric 'speed'; valid: far",
+    ),
+    "empty matrix": (
+        SMALL[: SMALL.index("[[fault]]")] + '[[detector]]\nname = "glt"\n',
+        "the fault matrix is empty",
+    ),
+    "unreadable base log": (
+        SMALL.replace(
+            'preset = "paper-table4"\noptions = { duration = "1s" }', 'files = "junk.mcap"'
+        ),
+        "base[0]: unreadable base log",
+    ),
+    "missing base log": (
+        SMALL.replace('preset = "paper-table4"\noptions = { duration = "1s" }', 'files = "*.nope"'),
+        "base[0]: no file matches '*.nope'",
+    ),
+    "unknown campaign key": (
+        SMALL.replace("[campaign]", "[campaign]\njobs = 3"),
+        "campaign.jobs: unknown key",
+    ),
+    "unknown detector key": (
+        SMALL.replace('name = "glt"', 'name = "glt"\nalpha = 0.1'),
+        "detector[0]: unknown key 'alpha'",
+    ),
+    "bad detector parameter": (
+        SMALL.replace('name = "glt"', 'name = "glt"\nparams = { wobble = 1 }'),
+        "detector[0]:",
+    ),
+    "bad calibrate": (
+        SMALL.replace('calibrate = "0s:0.6s"', 'calibrate = "2s:1s"'),
+        "campaign.calibrate",
+    ),
+    "bad base calibrate": (
+        SMALL.replace('preset = "paper-table4"', 'preset = "paper-table4"\ncalibrate = "3"'),
+        "base[0].calibrate",
+    ),
+    "fault past the array": (
+        SMALL.replace('sensor = "imu0.gyro.x"', 'sensor = "imu99.gyro.x"'),
+        "fault 'step:imu99.gyro.x",
+    ),
+    "bad seeds": (SMALL.replace("seeds = [0, 1]", "seeds = [-1]"), "campaign.seeds"),
+    "unknown table": (SMALL + "\n[extra]\nx = 1\n", "unknown table 'extra'"),
+    "not toml": ("[campaign\n", "not valid TOML"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_SPECS))
+def test_bad_spec_is_one_line_error_naming_the_key(tmp_path, case):
+    text, fragment = BAD_SPECS[case]
+    (tmp_path / "junk.mcap").write_bytes(b"not an mcap file at all")
+    with pytest.raises(CampaignSpecError) as info:
+        load_spec(write_spec(tmp_path, text))
+    message = str(info.value)
+    assert fragment in message
+    assert "\n" not in message
+
+
+def test_missing_spec_file(tmp_path):
+    with pytest.raises(CampaignSpecError, match="cannot read campaign spec"):
+        load_spec(tmp_path / "absent.toml")
+
+
+# --- run keys --------------------------------------------------------------------------
+
+json_scalars = st.one_of(
+    st.integers(-(10**6), 10**6), st.text(max_size=8), st.booleans(), st.floats(allow_nan=False)
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.dictionaries(st.text(min_size=1, max_size=6), json_scalars, min_size=1, max_size=6))
+def test_run_key_ignores_key_order_and_sees_every_value(desc):
+    reordered = dict(reversed(list(desc.items())))
+    assert run_key(desc) == run_key(reordered)
+    assert len(run_key(desc)) == 20
+    changed = dict(desc) | {"seed": "different" if desc.get("seed") != "different" else 1}
+    assert run_key(changed) != run_key(desc)
+
+
+# --- one run ---------------------------------------------------------------------------
+
+
+def test_failed_run_is_recorded_and_campaign_goes_on(tmp_path):
+    good = load_spec(write_spec(tmp_path, SMALL)).runs
+    bad = dict(good[0]) | {"base": {"preset": "no-such-preset", "options": {}}}
+    result = execute_run(bad)
+    assert result["ok"] is False
+    assert "no-such-preset" in result["error"]
+    spec = CampaignSpec(name="mixed", runs=[*good, bad], metrics=["far", "mar"], source="x")
+    outcome = run_campaign(spec, tmp_path / "out", jobs=1)
+    assert (outcome.total, outcome.executed, outcome.failed) == (5, 5, 1)
+    assert outcome.summary["failed"] == 1
+    assert outcome.summary["failures"][0]["key"] == run_key(bad)
+    csv_lines = (tmp_path / "out" / "runs.csv").read_text().splitlines()
+    assert sum(",False," in line for line in csv_lines) == 1
+    assert "## Failed runs" in (tmp_path / "out" / "summary.md").read_text()
+
+
+def test_execute_run_scores_the_faulted_sensor_type(tmp_path):
+    run = load_spec(write_spec(tmp_path, SMALL)).runs[-1]  # 0.9 deg/s, seed 1
+    result = execute_run(run)
+    assert result["ok"], result.get("error")
+    gyro = result["metrics"]["gyro"]
+    assert gyro["samples"] == 100 and gyro["faulty_samples"] == 30
+    assert_allclose(gyro["accuracy"], 1.0 - gyro["far"] - gyro["mar"], atol=1e-12)
+    assert gyro["detection_probability"] == 1.0
+    assert result["metrics"]["accel"]["faulty_samples"] == 0
+
+
+# --- resume and outputs -----------------------------------------------------------------
+
+
+def test_resume_skips_done_runs_and_refuses_to_mix_without_it(tmp_path):
+    spec = load_spec(write_spec(tmp_path, SMALL))
+    first = run_campaign(spec, tmp_path / "out", jobs=1)
+    assert (first.executed, first.skipped) == (4, 0)
+    stamps = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "out" / "runs").iterdir()}
+    with pytest.raises(UsageError, match="already holds 4 run results; use --resume"):
+        run_campaign(spec, tmp_path / "out", jobs=1)
+    again = run_campaign(spec, tmp_path / "out", jobs=1, resume=True)
+    assert (again.executed, again.skipped) == (0, 4)
+    assert stamps == {p.name: p.stat().st_mtime_ns for p in (tmp_path / "out" / "runs").iterdir()}
+    assert again.summary == first.summary
+
+
+def fake_result(seed: int, amp: str, far: float, probability: float) -> dict:
+    desc = {
+        "base": {"preset": "paper-table4", "options": {}},
+        "seed": seed,
+        "faults": [f"step:imu0.gyro.x,amp={amp},at=2.5s"],
+        "detector": "glt",
+        "params": {},
+        "calibrate": [0.0, 2.0],
+    }
+    gyro = {"far": far, "mar": 0.1, "detection_probability": probability, "faults": []}
+    return {"key": run_key(desc), "run": desc, "ok": True, "metrics": {"gyro": gyro}}
+
+
+def test_summary_means_spreads_and_curves():
+    spec = CampaignSpec(
+        name="s", runs=[], metrics=["far", "mar", "detection_probability"], source="s.toml"
+    )
+    results = [
+        fake_result(0, "0.9deg/s", 0.02, 1.0),
+        fake_result(1, "0.9deg/s", 0.04, 1.0),
+        fake_result(2, "0.9deg/s", 0.09, 1.0),
+        fake_result(0, "0.3deg/s", 0.05, 0.0),
+        fake_result(1, "0.3deg/s", 0.05, 1.0),
+    ]
+    summary = summarize(spec, results)
+    strong = next(g for g in summary["groups"] if g["amplitude"] == "0.9deg/s")
+    assert strong["runs"] == 3
+    assert_allclose(strong["far"]["mean"], 0.05)
+    assert_allclose(strong["far"]["std"], np.std([0.02, 0.04, 0.09], ddof=1))
+    (curve,) = summary["curves"]
+    assert [p["amplitude"] for p in curve["points"]] == ["0.3deg/s", "0.9deg/s"]
+    assert_allclose([p["amplitude_si"] for p in curve["points"]], np.deg2rad([0.3, 0.9]))
+    assert_allclose([p["mean"] for p in curve["points"]], [0.5, 1.0])
+    text = summary_markdown(summary)
+    assert "| paper-table4 | glt | default | step | 0.9deg/s | gyro | 3 | 5 ± 3.6 |" in text
+    assert "0.3deg/s: 50, 0.9deg/s: 100" in text
+
+
+def test_summary_gates():
+    spec = CampaignSpec(name="s", runs=[], metrics=["far"], source="s.toml")
+    summary = summarize(spec, [fake_result(0, "0.9deg/s", 0.02, 1.0)])
+    outcomes = evaluate_summary_gates(summary, ["glt.gyro.far > 0.01", "*.gyro.far > 0.5"])
+    assert [failed for _, failed, _ in outcomes] == [True, False]
+    with pytest.raises(GateError, match="not aggregated"):
+        evaluate_summary_gates(summary, ["glt.gyro.mar > 0.5"])
+    with pytest.raises(GateError, match="no campaign results"):
+        evaluate_summary_gates(summary, ["glt.accel.far > 0.5"])
+
+
+# --- the 200-run campaign, local pool against dask -------------------------------------
+
+
+@pytest.fixture(scope="module")
+def campaign_200(tmp_path_factory):
+    root = tmp_path_factory.mktemp("campaign200")
+    spec = load_spec(write_spec(root, SPEC_200))
+    result = run_campaign(spec, root / "pool", jobs=2)
+    return spec, root, result
+
+
+def test_campaign_of_200_runs_on_the_preset(campaign_200):
+    _, root, result = campaign_200
+    assert (result.total, result.executed, result.failed) == (200, 200, 0)
+    assert len(list((root / "pool" / "runs").glob("*.json"))) == 200
+    summary = json.loads((root / "pool" / "summary.json").read_text())
+    assert summary["runs"] == 200 and len(summary["groups"]) == 2 * 5
+    assert all(g["runs"] == 20 and g["sensor_type"] == "gyro" for g in summary["groups"])
+    for curve in summary["curves"]:  # the strongest step is always detected
+        assert curve["points"][-1]["amplitude"] == "1.5deg/s"
+        assert curve["points"][-1]["mean"] == 1.0
+    for group in summary["groups"]:
+        assert_allclose(
+            group["accuracy"]["mean"], 1 - group["far"]["mean"] - group["mar"]["mean"], atol=1e-12
+        )
+    rows = (root / "pool" / "runs.csv").read_text().splitlines()
+    assert len(rows) == 1 + 200 * 2  # one row per run and sensor type (gyro, accel)
+    assert (root / "pool" / "summary.md").read_text().startswith("# Campaign ci-200")
+
+
+def test_dask_local_cluster_gives_identical_runs_csv(campaign_200):
+    pytest.importorskip("dask.distributed")
+    spec, root, _ = campaign_200
+    result = run_campaign(spec, root / "dask", scheduler="local:2")
+    assert (result.total, result.executed, result.failed) == (200, 200, 0)
+    assert (root / "dask" / "runs.csv").read_text() == (root / "pool" / "runs.csv").read_text()
+
+
+def test_bad_scheduler_forms(tmp_path):
+    pytest.importorskip("dask.distributed")
+    spec = load_spec(write_spec(tmp_path, SMALL))
+    with pytest.raises(UsageError, match="valid forms are tcp://HOST:PORT and local:N"):
+        run_campaign(spec, tmp_path / "o", scheduler="udp://x")
+    with pytest.raises(UsageError, match="local:N needs N >= 1"):
+        run_campaign(spec, tmp_path / "o2", scheduler="local:0")
