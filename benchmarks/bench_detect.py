@@ -1,0 +1,119 @@
+"""Benchmark: ``imufdi detect -d glt`` end to end against copying the log with the mcap package.
+
+Issue targets (16-IMU, 100 Hz, 1-hour log):
+- the whole command (read, detect, write) at least 0.5x the speed of just copying the log
+  with the mcap package (``make_reader(...).iter_messages`` -> ``Writer.add_message``);
+- peak memory of ``detect`` on a 10x longer log within 10 % of the base one.
+
+The logs are simulated at run time (turntable, 16 co-aligned IMUs). Every measurement runs
+in a fresh subprocess so that peak RSS (``ru_maxrss``) belongs to that step alone.
+
+    python benchmarks/bench_detect.py                 # 60 min base log, 10x for memory
+    python benchmarks/bench_detect.py --minutes 10    # quicker
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import textwrap
+from pathlib import Path
+
+CHILD = textwrap.dedent(
+    """
+    import json, resource, sys, time
+    mode, src, dst = sys.argv[1], sys.argv[2], sys.argv[3]
+    start = time.perf_counter()
+    if mode == "detect":
+        from imufdi_cli.detect import detect_file
+        detect_file(src, dst, [("glt", {})])
+    elif mode == "mcap-copy":
+        from mcap.reader import make_reader
+        from mcap.writer import Writer
+        with open(src, "rb") as f, open(dst, "wb") as g:
+            reader = make_reader(f)
+            writer = Writer(g)
+            writer.start()
+            summary = reader.get_summary()
+            schemas = {sid: writer.register_schema(s.name, s.encoding, s.data)
+                       for sid, s in summary.schemas.items()}
+            channels = {cid: writer.register_channel(c.topic, c.message_encoding,
+                                                     schemas.get(c.schema_id, 0), c.metadata)
+                        for cid, c in summary.channels.items()}
+            for _, channel, message in reader.iter_messages(log_time_order=False):
+                writer.add_message(channels[channel.id], message.log_time, message.data,
+                                   message.publish_time, message.sequence)
+            writer.finish()
+    elif mode == "simulate":
+        from imufdi_cli.pipeline import simulate_file
+        minutes = float(dst.split("@")[1])
+        simulate_file(None, dst.split("@")[0], seed=1, options={
+            "imus": 16, "rate": "100Hz", "duration": f"{minutes * 60}s", "motion": "turntable"})
+    seconds = time.perf_counter() - start
+    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(json.dumps({"seconds": seconds, "peak_mib": peak_kib / 1024}))
+    """
+)
+
+
+def child(mode: str, src: str, dst: str) -> dict[str, float]:
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    done = subprocess.run(
+        [sys.executable, "-c", CHILD, mode, src, dst],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
+    )
+    return json.loads(done.stdout.strip().splitlines()[-1])  # type: ignore[no-any-return]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--minutes", type=float, default=60.0, help="base log length")
+    parser.add_argument("--long-factor", type=float, default=10.0, help="memory check log length")
+    parser.add_argument("--dir", help="where to put the logs (default: a temporary directory)")
+    args = parser.parse_args()
+    workdir = Path(args.dir or tempfile.mkdtemp(prefix="imufdi-bench-detect-"))
+    workdir.mkdir(parents=True, exist_ok=True)
+    base = workdir / "base.mcap"
+    long = workdir / "long.mcap"
+    samples = int(args.minutes * 60 * 100)
+    print(
+        f"16 IMUs, 100 Hz, {args.minutes:g} min: {samples:,} array samples, "
+        f"{samples * 16:,} Imu messages"
+    )
+    sim = child("simulate", "-", f"{base}@{args.minutes}")
+    print(
+        f"simulate + write          {sim['seconds']:8.2f} s  ({base.stat().st_size / 1e6:,.0f} MB)"
+    )
+    copy = child("mcap-copy", str(base), str(workdir / "copy.mcap"))
+    print(f"mcap package copy         {copy['seconds']:8.2f} s  peak {copy['peak_mib']:7.1f} MiB")
+    det = child("detect", str(base), str(workdir / "detected.mcap"))
+    print(f"imufdi detect -d glt      {det['seconds']:8.2f} s  peak {det['peak_mib']:7.1f} MiB")
+    print(f"  speed vs mcap copy: {copy['seconds'] / det['seconds']:.2f}x  (target >= 0.5x)")
+    print(f"  array samples/s through detect: {samples / det['seconds']:,.0f}")
+    for path in (workdir / "copy.mcap", workdir / "detected.mcap"):
+        path.unlink(missing_ok=True)
+    long_minutes = args.minutes * args.long_factor
+    child("simulate", "-", f"{long}@{long_minutes}")
+    det_long = child("detect", str(long), str(workdir / "detected-long.mcap"))
+    ratio = det_long["peak_mib"] / det["peak_mib"]
+    print(
+        f"imufdi detect, {long_minutes:g} min  {det_long['seconds']:8.2f} s  "
+        f"peak {det_long['peak_mib']:7.1f} MiB"
+    )
+    print(f"  peak memory {args.long_factor:g}x longer log / base: {ratio:.3f}  (target <= 1.10)")
+    if not args.dir:
+        for path in workdir.iterdir():
+            path.unlink()
+        workdir.rmdir()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
