@@ -430,7 +430,10 @@ class McapWriter:
             try:
                 fd, temp = tempfile.mkstemp(dir=directory, prefix=f".{final.name}.", suffix=".tmp")
             except OSError as err:
-                raise McapInputError(f"cannot write {final}: {err.strerror}") from err
+                raise UsageError(f"cannot write {final}: {err.strerror}") from err
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(temp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual mode
             self._final_path = final
             self._temp_path = Path(temp)
             self._stream = io.BufferedWriter(io.FileIO(fd, "wb"), buffer_size=1 << 20)
