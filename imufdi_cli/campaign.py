@@ -582,20 +582,20 @@ def run_campaign(
             f"{out} already holds {len(existing)} run results; use --resume to continue"
             " or choose another directory"
         )
-    runs_dir.mkdir(parents=True, exist_ok=True)
-    for stale in runs_dir.glob(".*.json.*.tmp"):  # left by a run killed while writing
-        stale.unlink(missing_ok=True)
+    executor: _Executor
+    if scheduler:
+        executor = DaskExecutor(scheduler)  # a bad address fails before anything is written
+    else:
+        executor = LocalExecutor(jobs or os.cpu_count() or 1)
     keyed = {run_key(desc): desc for desc in spec.runs}
     done_keys = {p.stem for p in existing} & set(keyed) if resume else set()
     todo = [desc for key, desc in keyed.items() if key not in done_keys]
     total = len(keyed)
-    executor: _Executor
-    if scheduler:
-        executor = DaskExecutor(scheduler)
-    else:
-        executor = LocalExecutor(jobs or os.cpu_count() or 1)
     executed = 0
     try:
+        runs_dir.mkdir(parents=True, exist_ok=True)
+        for stale in runs_dir.glob(".*.json.*.tmp"):  # left by a run killed while writing
+            stale.unlink(missing_ok=True)
         if progress:
             progress(len(done_keys), total, None)
         for result in executor.run(todo):
