@@ -1,0 +1,118 @@
+"""cnn-map on wearable12: speed (training + detection against a 60 s budget and real time)
+and the 20-seed comparison with noise-glr and GLT quoted in docs/algorithms/cnn-map.md.
+
+Run: ``python benchmarks/bench_cnn_map.py [--seeds 20] [--part all|speed|table]``.
+Fault ``noise:imu0.accel.x,at=12s,until=18s,factor=3``; calibration 0-10 s (cnn-map needs
+more fault-free data than 2 s to train; noise-glr and GLT are run with 0-2 s and 0-10 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from imufdi_cli.detectors.base import DetectionBlock, parse_params
+from imufdi_cli.detectors.cnn_map import CnnMapDetector
+from imufdi_cli.detectors.glt import GltDetector
+from imufdi_cli.detectors.noise_glr import NoiseGlrDetector
+from imufdi_cli.faults import FaultInjector, active_mask, parse_fault_spec
+from imufdi_cli.log import iter_blocks
+from imufdi_cli.metrics import FaultWindow, compute_metrics
+from imufdi_cli.simulate import preset, simulate_block
+
+SPEC = "noise:imu0.accel.x,at=12s,until=18s,factor=3"
+BUDGET_S = 60.0
+
+
+def make_log(seed: int):
+    array, block = simulate_block(preset("wearable12", seed=seed))
+    faults = [parse_fault_spec(SPEC, array)]
+    t0 = int(block.t_ns[0])
+    block = FaultInjector(faults, array, seed=seed, t0_ns=t0).apply_block(block)
+    return array, block, faults, t0
+
+
+def run(cls, params, array, block, calibrate):
+    detector = cls(**parse_params(cls.PARAMS, params, cls.name))
+    t = block.t_s()
+    detector.fit(block.mask((t >= calibrate[0]) & (t < calibrate[1])), array)
+    outs = [detector.process(b) for b in iter_blocks(block, 250)]
+    return DetectionBlock.concatenate([o["accel"] for o in outs])
+
+
+def speed_part() -> None:
+    array, block, _, _ = make_log(0)
+    start = time.perf_counter()
+    run(CnnMapDetector, {}, array, block, (0.0, 10.0))
+    elapsed = time.perf_counter() - start
+    duration = len(block) / array.rate_hz
+    print("## speed: cnn-map training (0-10 s) + detection of the 30 s wearable12 log")
+    print(
+        f"{elapsed:.2f} s; {elapsed / BUDGET_S:.3f} of the {BUDGET_S:.0f} s budget; "
+        f"{elapsed / duration:.3f} x real time ({duration:.0f} s of data)"
+    )
+
+
+def table_part(seeds: int) -> None:
+    cases = (
+        ("cnn-map", CnnMapDetector, {}, (0.0, 10.0)),
+        ("noise-glr", NoiseGlrDetector, {}, (0.0, 2.0)),
+        ("noise-glr", NoiseGlrDetector, {}, (0.0, 10.0)),
+        ("glt", GltDetector, {}, (0.0, 2.0)),
+    )
+    print(f"\n## wearable12, {SPEC}, {seeds} seeds (mean; worst seed in brackets)")
+    print(
+        "| detector | calibration | FAR (after calibration) | detection rate after 1st "
+        "detection | delay s | recovery s | FIR | seeds detected |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for label, cls, params, calibrate in cases:
+        rows = []
+        for seed in range(seeds):
+            array, block, faults, t0 = make_log(seed)
+            out = run(cls, params, array, block, calibrate)
+            t = block.t_s()
+            ids = array.sensor_ids("accel")
+            truth = active_mask(faults, ids, block.t_ns, t0)
+            keep = t >= calibrate[1]  # figures on the samples after the calibration window
+            window = FaultWindow("f0", (0,), t0 + 12 * 10**9, t0 + 18 * 10**9)
+            metrics = compute_metrics(
+                block.t_ns[keep], out.alarm[keep], out.isolated[keep], truth[keep], [window]
+            )
+            fault = truth[:, 0]
+            hits = np.flatnonzero(out.alarm & fault)
+            rate = out.alarm[hits[0] : np.flatnonzero(fault)[-1] + 1].mean() if hits.size else 0.0
+            rows.append(
+                (
+                    metrics.far,
+                    rate,
+                    np.nan if metrics.detection_delay_s is None else metrics.detection_delay_s,
+                    np.nan if metrics.recovery_delay_s is None else metrics.recovery_delay_s,
+                    np.nan if metrics.fir is None else metrics.fir,
+                    hits.size > 0,
+                )
+            )
+        r = np.array(rows, dtype=float)
+        print(
+            f"| {label} | {calibrate[0]:g}-{calibrate[1]:g} s | {np.nanmean(r[:, 0]):.4f} "
+            f"({np.nanmax(r[:, 0]):.4f}) | {np.nanmean(r[:, 1]):.4f} ({np.nanmin(r[:, 1]):.4f}) | "
+            f"{np.nanmean(r[:, 2]):.3f} ({np.nanmax(r[:, 2]):.2f}) | {np.nanmean(r[:, 3]):.3f} "
+            f"({np.nanmax(r[:, 3]):.2f}) | {np.nanmean(r[:, 4]):.3f} | {int(r[:, 5].sum())}/{seeds} |"
+        )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--part", choices=("all", "speed", "table"), default="all")
+    args = parser.parse_args()
+    if args.part in ("all", "speed"):
+        speed_part()
+    if args.part in ("all", "table"):
+        table_part(args.seeds)
+
+
+if __name__ == "__main__":
+    main()
