@@ -38,6 +38,13 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
    ``h = w/2 (u_c - 1 - ln u_c)``. With n tested sensors the per-sensor level is the Šidák
    ``a = 1 - (1 - alpha)^(1/n)`` so that the array-level false-alarm rate is alpha.
    Until the window has filled at the start of the log, w is the number of samples seen.
+   End of fault: after the noise returns to nominal, the window still holds faulty samples
+   and g stays high for up to w samples. The window is split into its most recent w_r
+   samples (``release_window``) and the older w - w_r; with both parts of the same
+   variance, the ratio of their mean squared residuals is ``F(w_r, w - w_r)``. When it is
+   below ``F^{-1}(release; w_r, w - w_r)`` (a one-sided test for a variance decrease) the
+   sensor's g is set to 0. During a fault this drops at most a fraction ``release`` of the
+   faulty samples; after it, the alarm ends about w_r samples later instead of w.
 6. Output: statistic = max_j g_j (threshold h), scores = g_j, isolated sensor = argmax_j g_j,
    ``amplitude = sqrt(u_j)`` of the isolated sensor: the estimated noise-standard-deviation
    ratio sigma1/sigma0 (dimensionless, the one exception to SI amplitudes).
@@ -52,7 +59,6 @@ from scipy.stats import f as f_distribution
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
-    ALPHA,
     NO_ISOLATION,
     DetectionBlock,
     Param,
@@ -131,6 +137,8 @@ class _TypeModel:
         n_train: int,
         window: int,
         alpha: float,
+        release_window: int = 1,
+        release_level: float = 0.0,
     ) -> None:
         self.operator = operator
         self.testable = testable
@@ -145,6 +153,14 @@ class _TypeModel:
         self.critical_ratio = critical_ratio  # u_c per window fill, (w,)
         self.threshold = 0.5 * counts * (critical_ratio - 1.0 - np.log(critical_ratio))
         self.window = MovingWindow(window, operator.shape[0])
+        self.release_window = MovingWindow(release_window, operator.shape[0])
+        self.release_level = release_level
+        # lower critical ratio of F(recent, older) per (recent count, older count)
+        recent = np.arange(1, release_window + 1, dtype=np.float64)[:, None]
+        older = np.arange(0, window, dtype=np.float64)[None, :]
+        with np.errstate(invalid="ignore"):
+            release_ratio = f_distribution.ppf(release_level, recent, np.maximum(older, 1.0))
+        self.release_ratio = np.where(older >= 1.0, release_ratio, 0.0)  # (w_r, w)
 
 
 class NoiseGlrDetector:
@@ -156,6 +172,10 @@ class NoiseGlrDetector:
         Array-level false-alarm probability per sample (per sensor type).
     window : float
         Variance window, seconds.
+    release : float
+        Level of the end-of-fault variance-decrease F test (0 disables it).
+    release_window : float
+        Recent part of the window compared against the older part, seconds.
     lever_arm : bool
         Model lever arms of accelerometers (needs positions and gyros).
     sensors : str
@@ -164,9 +184,31 @@ class NoiseGlrDetector:
 
     name: ClassVar[str] = "noise-glr"
     PARAMS: ClassVar[dict[str, Param]] = {
-        "alpha": ALPHA,
+        "alpha": Param(
+            "float",
+            0.001,
+            "array-level false-alarm level per sample and sensor type",
+            low=0.0,
+            high=0.5,
+            low_open=True,
+        ),
         "window": Param(
             "time", 0.3, "variance window (e.g. 0.3s)", low=0.0, high=60.0, low_open=True
+        ),
+        "release": Param(
+            "float",
+            0.01,
+            "level of the end-of-fault variance-decrease F test (0: off)",
+            low=0.0,
+            high=0.5,
+        ),
+        "release_window": Param(
+            "time",
+            0.1,
+            "recent part of the window tested for a variance decrease",
+            low=0.0,
+            high=60.0,
+            low_open=True,
         ),
         "lever_arm": Param("bool", True, "model accelerometer lever arms (w x (w x r), dw/dt x r)"),
         "sensors": Param("str", "gyro,accel", "sensor types to test, comma-separated"),
@@ -174,13 +216,17 @@ class NoiseGlrDetector:
 
     def __init__(
         self,
-        alpha: float = 0.01,
+        alpha: float = 0.001,
         window: float = 0.3,
+        release: float = 0.01,
+        release_window: float = 0.1,
         lever_arm: bool = True,
         sensors: str = "gyro,accel",
     ) -> None:
         self.alpha = float(alpha)
         self.window_s = float(window)
+        self.release_level = float(release)
+        self.release_window_s = float(release_window)
         self.lever_arm = bool(lever_arm)
         types = tuple(s.strip() for s in sensors.split(",") if s.strip())
         for s in types:
@@ -194,6 +240,7 @@ class NoiseGlrDetector:
         self.array: ArrayConfig | None = None
         self.models: dict[str, _TypeModel] = {}
         self.window_samples = 0
+        self.release_window_samples = 0
         self._rate_estimator: np.ndarray | None = None
 
     # --- residuals -----------------------------------------------------------------------
@@ -241,6 +288,9 @@ class NoiseGlrDetector:
         """
         self.array = array
         self.window_samples = max(2, round(self.window_s * array.rate_hz))
+        self.release_window_samples = min(
+            max(1, round(self.release_window_s * array.rate_hz)), self.window_samples - 1
+        )
         self.models = {}
         self._rate_estimator = None
         if array.n_sensors("gyro") >= 3:
@@ -279,6 +329,8 @@ class NoiseGlrDetector:
                 n_train=residuals.shape[0],
                 window=self.window_samples,
                 alpha=self.alpha,
+                release_window=self.release_window_samples,
+                release_level=self.release_level,
             )
         if not self.models:
             raise CalibrationError(
@@ -313,6 +365,14 @@ class NoiseGlrDetector:
                 0.5 * counts[:, None] * (ratio - 1.0 - np.log(np.maximum(ratio, 1e-300))),
                 0.0,
             )
+        recent_sums, recent_counts = model.release_window.push(squared)
+        older_counts = counts - recent_counts
+        with np.errstate(divide="ignore", invalid="ignore"):
+            change = (recent_sums / recent_counts[:, None]) / (
+                (sums - recent_sums) / np.maximum(older_counts, 1)[:, None]
+            )
+        released = change < model.release_ratio[recent_counts - 1, older_counts][:, None]
+        glr = np.where(released, 0.0, glr)
         glr[:, ~model.testable] = np.nan
         scores = glr
         filled = np.where(model.testable, glr, -np.inf)
@@ -357,6 +417,8 @@ class NoiseGlrDetector:
                 "alpha": self.alpha,
                 "window_s": self.window_s,
                 "window_samples": self.window_samples,
+                "release": self.release_level,
+                "release_window_samples": self.release_window_samples,
                 "lever_arm": self.lever_arm,
                 "sensors": ",".join(self.sensor_types),
             },

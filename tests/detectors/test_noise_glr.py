@@ -161,3 +161,42 @@ def test_short_calibration_raises_and_metadata_is_json_ready():
     meta = json.loads(json.dumps(detector.metadata()))
     assert meta["types"]["accel"]["lever_arm"] is True
     assert meta["types"]["gyro"]["lever_arm"] is False
+
+
+@pytest.mark.slow
+def test_default_parameters_meet_the_wearable12_noise_growth_targets():
+    """Issue targets, defaults, 3 seeds, as `imufdi detect`/`report` measure them."""
+    from imufdi_cli.metrics import FaultWindow, compute_metrics
+
+    rows = []
+    for seed in (0, 1, 2):
+        array, block = wearable12(seed)
+        out = run(make(), array, block, block_size=4096)["accel"]
+        t = block.t_s()
+        j = array.sensor_ids("accel").index("imu0.accel.x")
+        in_fault = (t >= 12.0) & (t < 18.0)
+        faulty = np.zeros((len(t), out.scores.shape[1]), dtype=bool)
+        faulty[in_fault, j] = True
+        t0 = int(block.t_ns[0])
+        window = FaultWindow("noise", (j,), t0 + 12 * 10**9, t0 + 18 * 10**9)
+        m = compute_metrics(block.t_ns, out.alarm, out.isolated, faulty, [window])
+        first = np.flatnonzero(out.alarm & in_fault)[0]
+        rate = out.alarm[first : np.flatnonzero(in_fault)[-1] + 1].mean()
+        rows.append((m.far, m.detection_delay_s, rate, m.recovery_delay_s))
+        assert m.faults[0].isolated_correctly == pytest.approx(1.0)
+    far, delay, rate, recovery = np.mean(np.array(rows, dtype=float), axis=0)
+    assert far <= 0.01
+    assert delay <= 0.4
+    assert rate >= 0.98
+    assert recovery <= 0.5
+
+
+def test_end_of_fault_release_shortens_the_alarm_tail():
+    array, block = wearable12(0)
+    t = block.t_s()
+    with_release = run(make(), array, block)["accel"]
+    without = run(make({"release": 0.0}), array, block)["accel"]
+    tail = t >= 18.0
+    assert with_release.alarm[tail].sum() < without.alarm[tail].sum()
+    # the release never adds alarms
+    assert not np.any(with_release.alarm & ~without.alarm)
