@@ -31,7 +31,7 @@ def make_log(name: str, seed: int, specs: tuple[str, ...] = (), **overrides: obj
     return array, block
 
 
-def run(cls, params, array: ArrayConfig, block: ImuBlock, calibrate=(0.0, 2.0), block_size=250):
+def run(cls, params, array: ArrayConfig, block: ImuBlock, calibrate=(0.0, 2.0), block_size=4096):
     detector = cls(**parse_params(cls.PARAMS, params, cls.name))
     t = block.t_s()
     detector.fit(block.mask((t >= calibrate[0]) & (t < calibrate[1])), array)
@@ -60,8 +60,9 @@ def noise_part(seeds: int) -> None:
     print("## noise-glr on wearable12, noise x3 on imu0.accel.x 12-18 s, calibration 0-2 s")
     print("detector | FAR | delay s (worst) | rate after 1st det | recovery s (worst) | iso")
     for label, cls, params in (
-        ("noise-glr a=0.01", NoiseGlrDetector, {}),
-        ("noise-glr a=0.001", NoiseGlrDetector, {"alpha": 0.001}),
+        ("noise-glr defaults", NoiseGlrDetector, {}),
+        ("noise-glr release=0", NoiseGlrDetector, {"release": 0.0}),
+        ("noise-glr a=0.01", NoiseGlrDetector, {"alpha": 0.01}),
         ("noise-glr lever_arm=false", NoiseGlrDetector, {"lever_arm": False}),
         ("glt (default)", GltDetector, {}),
     ):
@@ -81,7 +82,7 @@ def noise_part(seeds: int) -> None:
             f"(min {np.nanmin(r[:, 2]):.4f}) | {np.nanmean(r[:, 3]):.3f} ({np.nanmax(r[:, 3]):.2f})"
             f" | {np.nanmean(r[:, 4]):.4f}"
         )
-    print("\n## detection delay against the noise factor (noise-glr a=0.01, mean / worst)")
+    print("\n## detection delay against the noise factor (noise-glr defaults, mean / worst)")
     for factor in (1.5, 2.0, 3.0, 5.0):
         rows = []
         for seed in range(seeds):
