@@ -168,17 +168,18 @@ def load_spec(path: str | Path) -> CampaignSpec:
             )
 
     bases: list[dict[str, Any]] = []
+    base_names: list[str] = []
     base_cals: list[list[float | None] | None] = []
     arrays: list[Any] = []
     for i, table in enumerate(_as_list(data.get("base", []))):
         where = f"{path}: base[{i}]"
         if not isinstance(table, Mapping):
             raise CampaignSpecError(f"{where}: expected a table")
-        unknown = set(table) - {"preset", "options", "files", "calibrate"}
+        unknown = set(table) - {"preset", "options", "files", "calibrate", "name"}
         if unknown:
             raise CampaignSpecError(
                 f"{where}: unknown key {sorted(unknown)[0]!r};"
-                " valid: calibrate, files, options, preset"
+                " valid: calibrate, files, name, options, preset"
             )
         base_cal = (
             _calibration_window(table["calibrate"], f"{where}.calibrate")
@@ -199,6 +200,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
             except ImufdiError as err:
                 raise CampaignSpecError(f"{where}: {err}") from err
             bases.append({"preset": name, "options": options})
+            base_names.append(str(table.get("name", name)))
             base_cals.append(base_cal)
             arrays.append(config.array)
         else:
@@ -216,30 +218,48 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 except ImufdiError as err:
                     raise CampaignSpecError(f"{where}: unreadable base log {file}: {err}") from err
                 bases.append({"file": os.path.abspath(file)})
+                base_names.append(str(table.get("name", os.path.basename(file))))
                 base_cals.append(base_cal)
                 arrays.append(array)
     if not bases:
         raise CampaignSpecError(f"{path}: needs at least one [[base]] (preset or files)")
 
-    fault_sets: list[list[str]] = []
+    def scope(table: Mapping[str, Any], where: str) -> set[int]:
+        """Indices of the bases a [[fault]]/[[detector]] applies to (``bases`` key)."""
+        if "bases" not in table:
+            return set(range(len(bases)))
+        chosen: set[int] = set()
+        for label in _as_list(table["bases"]):
+            hits = {k for k, n in enumerate(base_names) if n == str(label)}
+            if not hits:
+                raise CampaignSpecError(
+                    f"{where}.bases: unknown base {label!r}; valid: {', '.join(sorted(set(base_names)))}"
+                )
+            chosen |= hits
+        return chosen
+
+    fault_sets: list[tuple[list[str], set[int]]] = []
     for i, table in enumerate(_as_list(data.get("fault", []))):
         where = f"{path}: fault[{i}]"
         if not isinstance(table, Mapping):
             raise CampaignSpecError(f"{where}: expected a table")
-        fault_sets += [[spec] for spec in _fault_specs(table, where)]
+        where_bases = scope(table, where)
+        grid = {k: v for k, v in table.items() if k != "bases"}
+        fault_sets += [([spec], where_bases) for spec in _fault_specs(grid, where)]
     if not fault_sets:
         raise CampaignSpecError(f"{path}: the fault matrix is empty; add [[fault]] tables")
 
-    detectors: list[tuple[str, dict[str, Any], list[float | None] | None]] = []
+    detectors: list[tuple[str, dict[str, Any], list[float | None] | None, set[int]]] = []
     for i, table in enumerate(_as_list(data.get("detector", []))):
         where = f"{path}: detector[{i}]"
         if not isinstance(table, Mapping) or "name" not in table:
             raise CampaignSpecError(f"{where}: needs name")
-        unknown = set(table) - {"name", "params", "calibrate"}
+        unknown = set(table) - {"name", "params", "calibrate", "bases"}
         if unknown:
             raise CampaignSpecError(
-                f"{where}: unknown key {sorted(unknown)[0]!r}; valid: calibrate, name, params"
+                f"{where}: unknown key {sorted(unknown)[0]!r}; valid: bases, calibrate, name, params"
             )
+        det_bases = scope(table, where)
         name = str(table["name"])
         if name not in DETECTORS:
             raise CampaignSpecError(
@@ -258,13 +278,15 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 make_detector(name, params)
             except ImufdiError as err:
                 raise CampaignSpecError(f"{where}: {err}") from err
-            detectors.append((name, params, det_cal))
+            detectors.append((name, params, det_cal, det_bases))
     if not detectors:
         raise CampaignSpecError(f"{path}: needs at least one [[detector]]")
 
-    for base, array in zip(bases, arrays):
+    for index, (base, array) in enumerate(zip(bases, arrays)):
         assert isinstance(array, ArrayConfig)
-        for specs in fault_sets:
+        for specs, fault_bases in fault_sets:
+            if index not in fault_bases:
+                continue
             for spec in specs:
                 try:
                     parse_fault_spec(spec, array)
@@ -275,9 +297,14 @@ def load_spec(path: str | Path) -> CampaignSpec:
                     ) from err
 
     runs = []
-    for (base, base_cal), specs, (det, params, det_cal), seed in itertools.product(
-        zip(bases, base_cals), fault_sets, detectors, seeds
-    ):
+    for (index, (base, base_cal)), (specs, fault_bases), (
+        det,
+        params,
+        det_cal,
+        det_bases,
+    ), seed in itertools.product(enumerate(zip(bases, base_cals)), fault_sets, detectors, seeds):
+        if index not in fault_bases or index not in det_bases:
+            continue
         window = det_cal or base_cal or cal  # detector over base over campaign
         runs.append(
             {
@@ -289,6 +316,11 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 "calibrate": window,
             }
         )
+    for index, name in enumerate(base_names):
+        if not any(run["base"] is bases[index] for run in runs):
+            raise CampaignSpecError(
+                f"{path}: base {name!r} pairs with no [[fault]] and [[detector]]; check their bases"
+            )
     return CampaignSpec(
         name=str(head.get("name", path.stem)), runs=runs, metrics=metrics, source=str(path)
     )
@@ -379,7 +411,14 @@ def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
             faulty_mask[np.ix_(active, np.asarray(columns, dtype=np.intp))] = True
             end = None if fault.until_ns is None else t0 + fault.until_ns
             windows.append(FaultWindow(fault.id, tuple(columns), t0 + fault.at_ns, end))
-        metrics = compute_metrics(faulty.t_ns, det.alarm, det.isolated, faulty_mask, windows)
+        metrics = compute_metrics(
+            faulty.t_ns,
+            det.alarm,
+            det.isolated,
+            faulty_mask,
+            windows,
+            isolated_set=det.isolated_set,
+        )
         figures[sensor_type] = {name: metrics.value(name) for name in METRIC_NAMES} | {
             "faults": [f.to_dict() for f in metrics.faults]
         }
@@ -442,13 +481,15 @@ class LocalExecutor(_Executor):
     little.
     """
 
-    def __init__(self, jobs: int) -> None:
+    def __init__(self, jobs: int, *, pool: bool | None = None) -> None:
         if jobs < 1:
             raise UsageError(f"--jobs must be >= 1, got {jobs}")
         self.jobs = jobs
+        self.pool = pool  # None: a pool when jobs > 1; True/False forces it (benchmarks)
 
     def run(self, runs: Sequence[dict[str, Any]]) -> Iterator[dict[str, Any]]:
-        if self.jobs == 1 or len(runs) <= 1:
+        use_pool = self.jobs > 1 and len(runs) > 1 if self.pool is None else self.pool
+        if not use_pool:
             for desc in runs:
                 yield execute_run(desc)
             return

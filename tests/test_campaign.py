@@ -128,6 +128,50 @@ def test_calibrate_precedence_detector_over_base_over_campaign(tmp_path):
     assert len(spec.runs) == 2 * 1 * 3
 
 
+def test_bases_key_scopes_faults_and_detectors(tmp_path):
+    spec = load_spec(
+        write_spec(
+            tmp_path,
+            """
+            [campaign]
+            seeds = [0, 1]
+            [[base]]
+            preset = "conical6"
+            [[base]]
+            preset = "paper-table4"
+            name = "t4"
+            [[fault]]
+            bases = ["conical6"]
+            model = "step"
+            sensor = "imu5.gyro.z"
+            at = "6s"
+            amp = ["0.5deg/s", "1deg/s"]
+            [[fault]]
+            bases = "t4"
+            model = "drift"
+            sensor = "imu0.gyro.x"
+            at = "2.5s"
+            rate = "10deg/s^2"
+            [[detector]]
+            name = "glt"
+            [[detector]]
+            bases = ["t4"]
+            name = "pca-parity"
+            """,
+        )
+    )
+    pairs = sorted(
+        (r["base"]["preset"], r["detector"], r["faults"][0].split(":")[0]) for r in spec.runs
+    )
+    assert len(spec.runs) == (2 * 1 + 1 * 2) * 2
+    assert set(pairs) == {
+        ("conical6", "glt", "step"),
+        ("paper-table4", "glt", "drift"),
+        ("paper-table4", "pca-parity", "drift"),
+    }
+    assert "bases" not in spec.runs[0]["faults"][0]
+
+
 BAD_SPECS = {
     "unknown detector": (
         SMALL.replace('name = "glt"', 'name = "nope"'),
@@ -178,6 +222,16 @@ BAD_SPECS = {
     "fault past the array": (
         SMALL.replace('sensor = "imu0.gyro.x"', 'sensor = "imu99.gyro.x"'),
         "fault 'step:imu99.gyro.x",
+    ),
+    "unknown base name": (
+        SMALL.replace('name = "glt"', 'name = "glt"\nbases = ["t4"]'),
+        "detector[0].bases: unknown base 't4'; valid: paper-table4",
+    ),
+    "base without runs": (
+        SMALL.replace(
+            "[[fault]]", '[[base]]\npreset = "conical6"\n[[fault]]\nbases = "paper-table4"'
+        ),
+        "base 'conical6' pairs with no [[fault]] and [[detector]]",
     ),
     "bad seeds": (SMALL.replace("seeds = [0, 1]", "seeds = [-1]"), "campaign.seeds"),
     "unknown table": (SMALL + "\n[extra]\nx = 1\n", "unknown table 'extra'"),
