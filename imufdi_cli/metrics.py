@@ -163,6 +163,7 @@ def compute_metrics(
     faults: Sequence[FaultWindow] = (),
     *,
     persist: int = 1,
+    isolated_set: np.ndarray | None = None,
 ) -> Metrics:
     """Per-sample metrics of one detector on one sensor type.
 
@@ -180,6 +181,10 @@ def compute_metrics(
         The faults of this sensor type, for delays and per-fault figures.
     persist : int
         Detection delay counts the first alarm that persists this many samples.
+    isolated_set : ndarray, shape (N, n_s), bool, optional
+        Every sensor the detector isolated at each sample (detectors that isolate several
+        simultaneous faults). Per-fault isolation then asks whether the fault's own sensor
+        is in the set; FIR still judges the primary ``isolated`` sensor.
 
     Returns
     -------
@@ -235,7 +240,12 @@ def compute_metrics(
             if after.size:
                 recovery = float(t_ns[after[0]] - fault.end_ns) / NS_PER_S
         det_idx = idx[alarm[idx]] if idx.size else idx
-        if det_idx.size:
+        if det_idx.size and isolated_set is not None:
+            hit = np.asarray(isolated_set, dtype=bool)[
+                np.ix_(det_idx, np.asarray(fault.sensors, dtype=np.intp))
+            ]
+            iso_ok = float(np.count_nonzero(hit.any(axis=1))) / det_idx.size
+        elif det_idx.size:
             iso = isolated[det_idx]
             iso_ok = float(np.count_nonzero(np.isin(iso, fault.sensors))) / det_idx.size
         else:

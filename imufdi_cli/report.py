@@ -181,7 +181,13 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
                     active &= arrays.t_ns < w.end_ns
                 faulty[np.ix_(active, np.asarray(w.sensors, dtype=np.intp))] = True
         metrics = compute_metrics(
-            arrays.t_ns, arrays.alarm, arrays.isolated, faulty, windows, persist=persist
+            arrays.t_ns,
+            arrays.alarm,
+            arrays.isolated,
+            faulty,
+            windows,
+            persist=persist,
+            isolated_set=arrays.isolated_set,
         )
         if not has_truth:
             metrics.far = metrics.mar = metrics.accuracy = None
@@ -384,6 +390,22 @@ def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
     if report.faults:
         lines += ["", "## Injected faults", ""]
         lines += [f"- `{f.get('spec', f.get('id', '?'))}`" for f in report.faults]
+    per_fault = [(e, f) for e in report.entries for f in e.metrics.faults]
+    if per_fault:
+        lines += [
+            "",
+            "## Per fault",
+            "",
+            "| Fault | Detector | Sensor | Detected | Delay s | Recovery s | Isolated to it % |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {f.fault_id} | {e.detector} | {e.sensor_type} | {'yes' if f.detected else 'no'} | "
+            f"{format_value(f.detection_delay_s, 1.0, '{:.3f}')} | "
+            f"{format_value(f.recovery_delay_s, 1.0, '{:.3f}')} | "
+            f"{format_value(f.isolated_correctly, 100.0, '{:.1f}')} |"
+            for e, f in per_fault
+        ]
     if gate_results:
         lines += ["", "## Gates", ""]
         lines += [f"- {'❌' if r.failed else '✅'} {r.message}" for r in gate_results]

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from imufdi_cli.detectors.base import DetectionBlock, Detector, Param, parse_params
 from imufdi_cli.detectors.bank import BankDetector
+from imufdi_cli.detectors.base import DetectionBlock, Detector, Param, parse_params
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.noise_glr import NoiseGlrDetector
 from imufdi_cli.detectors.pca_parity import PcaParityDetector

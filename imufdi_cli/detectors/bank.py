@@ -633,6 +633,7 @@ class BankDetector:
             if data is None:
                 raise CalibrationError(f"bank: block has no {sensor_type} data")
             out[sensor_type], isolated_sets[sensor_type] = test.run(array.select(data, sensor_type))
+            out[sensor_type].isolated_set = isolated_sets[sensor_type]
         self.last_details = BankDetails(isolated_sets=isolated_sets)
         return out
 
@@ -704,6 +705,10 @@ class BankDetector:
             gyro_residuals=gyro_residuals,
             chosen_estimator=chosen,
         )
+        for sensor_type, det in out.items():
+            chosen_set = isolated_sets.get(sensor_type)
+            if chosen_set is not None and chosen_set.shape == det.scores.shape:
+                det.isolated_set = chosen_set
         return out
 
     def _gyro_test(

@@ -55,6 +55,9 @@ class DetectionBlock:
         Estimated fault amplitude of the isolated sensor, SI units; NaN when none.
     scores : ndarray, shape (N, n_s), float64
         Per-sensor isolation scores (e.g. D_FI,i); NaN where not computed.
+    isolated_set : ndarray, shape (N, n_s), bool, or None
+        Every sensor isolated at each sample, for detectors that isolate several
+        simultaneous faults; None means "just ``isolated``" (see :meth:`isolation_set`).
     """
 
     statistic: np.ndarray
@@ -63,6 +66,17 @@ class DetectionBlock:
     isolated: np.ndarray
     amplitude: np.ndarray
     scores: np.ndarray
+    isolated_set: np.ndarray | None = None
+
+    def isolation_set(self) -> np.ndarray:
+        """(N, n_s) bool: ``isolated_set``, or the one-hot of ``isolated`` when it is None."""
+        if self.isolated_set is not None:
+            return np.asarray(self.isolated_set, dtype=bool)
+        n, n_sensors = self.scores.shape[0], self.scores.shape[1]
+        out = np.zeros((n, n_sensors), dtype=bool)
+        rows = np.flatnonzero(self.isolated >= 0)
+        out[rows, self.isolated[rows]] = True
+        return out
 
     def __len__(self) -> int:
         return int(self.statistic.shape[0])
@@ -88,6 +102,9 @@ class DetectionBlock:
             isolated=np.concatenate([b.isolated for b in blocks]),
             amplitude=np.concatenate([b.amplitude for b in blocks]),
             scores=np.concatenate([b.scores for b in blocks], axis=0),
+            isolated_set=None
+            if all(b.isolated_set is None for b in blocks)
+            else np.concatenate([b.isolation_set() for b in blocks], axis=0),
         )
 
 

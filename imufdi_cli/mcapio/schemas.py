@@ -101,6 +101,7 @@ bool alarm          # fault declared
 int32 isolated      # index into the channel's sensor_ids; -1 none, -2 not isolable
 float64 amplitude   # estimated fault amplitude (SI), NaN when none
 float64[] scores    # per-sensor isolation scores
+bool[] isolated_set # every sensor isolated at this sample (several simultaneous faults)
 """
 
 

@@ -10,6 +10,7 @@ offsets from the start of the payload, n = number of sensors)::
     28  bool    alarm              32 int32   isolated
     36  float64 amplitude          44 uint32  len(scores) = n
     52  float64 scores[n]          (absent, and no padding, when n = 0)
+    52+8n (48 when n = 0)  uint32 len(isolated_set) = n, then n bool bytes
 """
 
 from __future__ import annotations
@@ -61,6 +62,8 @@ class StatusArrays:
     isolated : ndarray (N,) int32
     scores : ndarray (N, n) float64
     sensor_ids : list of str
+    isolated_set : ndarray (N, n) bool
+        Every sensor isolated at each sample.
     """
 
     t_ns: np.ndarray
@@ -71,6 +74,7 @@ class StatusArrays:
     amplitude: np.ndarray
     scores: np.ndarray
     sensor_ids: list[str]
+    isolated_set: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t_ns.shape[0])
@@ -102,7 +106,9 @@ def encode_status(channel_id: int, t_ns: np.ndarray, det: DetectionBlock) -> Mes
     scores = np.asarray(det.scores, dtype=np.float64).reshape(n, -1)
     n_scores = scores.shape[1]
     # scores start at CDR position 48 (payload byte 52): 4 bytes of padding after n_scores.
-    length = _FIXED.itemsize + (4 + 8 * n_scores if n_scores else 0)
+    scores_end = _FIXED.itemsize + (4 + 8 * n_scores if n_scores else 0)
+    length = scores_end + 4 + n_scores  # isolated_set: u32 count (4-aligned) + n bools
+    isolated_set = det.isolation_set().reshape(n, n_scores)
     out = np.zeros((n, length), dtype=np.uint8)
     fixed = np.zeros(n, dtype=_FIXED)
     fixed["encapsulation"] = 0x0100  # bytes 00 01 00 00: CDR little-endian
@@ -117,7 +123,11 @@ def encode_status(channel_id: int, t_ns: np.ndarray, det: DetectionBlock) -> Mes
     fixed["n_scores"] = n_scores
     out[:, : _FIXED.itemsize] = fixed.view(np.uint8).reshape(n, _FIXED.itemsize)
     if n_scores:
-        out[:, _FIXED.itemsize + 4 :] = np.ascontiguousarray(scores, "<f8").view(np.uint8)
+        out[:, _FIXED.itemsize + 4 : scores_end] = np.ascontiguousarray(scores, "<f8").view(
+            np.uint8
+        )
+    out[:, scores_end : scores_end + 4] = np.array([n_scores], "<u4").view(np.uint8)
+    out[:, scores_end + 4 :] = isolated_set
     return MessageBatch(
         channel_id=np.full(n, channel_id, np.uint16),
         sequence=np.arange(n, dtype=np.int64).astype(np.uint32),
@@ -151,7 +161,7 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
         "isolated": ("isolated", "i4"),
         "amplitude": ("amplitude", "f8"),
     }
-    paths = [p for p, _ in scalars.values()] + ["scores"]
+    paths = [p for p, _ in scalars.values()] + ["scores", "isolated_set"]
     little, positions, sizes = codec.positions(batch, paths)
     out = {
         key: codec.read(batch, little, positions[path], code, 1)[:, 0]
@@ -168,6 +178,11 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
             raw = gather_bytes(batch.data, positions["scores"][i : i + 1], 8 * int(counts[i]))
             scores[i, : counts[i]] = raw.view("<f8" if little[i] else ">f8")[0]
     out["scores"] = scores
+    set_counts = sizes["isolated_set"]
+    isolated_set = np.zeros((n, width), dtype=bool)
+    if n and width and bool(np.all(set_counts == width)):
+        isolated_set = codec.read(batch, little, positions["isolated_set"], "u1", width) != 0
+    out["isolated_set"] = isolated_set
     return out
 
 
@@ -228,6 +243,12 @@ def read_status(
             amplitude=cat("amplitude").astype(np.float64),
             scores=scores,
             sensor_ids=ids,
+            isolated_set=np.concatenate(
+                [
+                    np.pad(p["isolated_set"], ((0, 0), (0, width - p["isolated_set"].shape[1])))
+                    for p in pieces
+                ]
+            ),
         )
     return result
 
