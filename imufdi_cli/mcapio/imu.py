@@ -17,7 +17,15 @@ from imufdi_cli.array import ArrayConfig
 from imufdi_cli.errors import ArrayConfigError, McapInputError, UsageError
 from imufdi_cli.log import ImuBlock, rechunk
 from imufdi_cli.mcapio.cdr import CdrCodec, codec_for, decode_json_payloads
-from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch
+from imufdi_cli.mcapio.records import (
+    MESSAGE_FIXED_CONTENT,
+    MESSAGE_HEADER_DTYPE,
+    MESSAGE_HEADER_SIZE,
+    OP_MESSAGE,
+    ChannelInfo,
+    McapWriter,
+    MessageBatch,
+)
 from imufdi_cli.mcapio.schemas import IMU_SCHEMA, IMU_SCHEMA_NAME, MAG_SCHEMA, MAG_SCHEMA_NAME
 from imufdi_cli.mcapio.source import McapSource
 
@@ -303,6 +311,77 @@ def encode_messages(
     )
 
 
+def _stamp_fields(t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ROS 2 ``builtin_interfaces/Time`` (sec int32, nanosec uint32) of stamps in ns."""
+    sec = np.floor_divide(t_ns, NS_PER_S)
+    if t_ns.shape[0] and (int(sec.min()) < -(2**31) or int(sec.max()) >= 2**31):
+        raise UsageError("timestamps do not fit a ROS 2 builtin_interfaces/Time (int32 seconds)")
+    return sec.astype("<i4"), (t_ns - sec * NS_PER_S).astype("<u4")
+
+
+def _field_view(records: np.ndarray, start: int, dtype: str, count: int = 1) -> np.ndarray:
+    """Writable view of ``count`` ``dtype`` values at byte ``start`` of every record.
+
+    ``records`` is (..., R) uint8 with a contiguous last axis; the result is (..., count).
+    """
+    width = np.dtype(dtype).itemsize * count
+    return records[..., start : start + width].view(dtype)
+
+
+class _RecordTemplate:
+    """Whole Message records (header + CDR Imu payload) of the array's Imu channels, with
+    every constant byte filled in, and the byte offsets of the fields that change."""
+
+    def __init__(self, frame_ids: Sequence[str], channel_ids: Sequence[int]) -> None:
+        payloads = [_template("imu", frame) for frame in frame_ids]
+        lengths = {payload.shape[0] for payload, _ in payloads}
+        offsets = {tuple(sorted(o.items())) for _, o in payloads}
+        self.uniform = len(lengths) == 1 and len(offsets) == 1
+        if not self.uniform:
+            return
+        length = next(iter(lengths))
+        self.record_size = MESSAGE_HEADER_SIZE + length
+        self.records = np.empty((len(frame_ids), self.record_size), np.uint8)
+        header = np.zeros(len(frame_ids), MESSAGE_HEADER_DTYPE)
+        header["opcode"] = OP_MESSAGE
+        header["record_length"] = MESSAGE_FIXED_CONTENT + length
+        header["channel_id"] = np.asarray(channel_ids, np.uint16)
+        self.records[:, :MESSAGE_HEADER_SIZE] = header.view(np.uint8).reshape(len(frame_ids), -1)
+        for k, (payload, _) in enumerate(payloads):
+            self.records[k, MESSAGE_HEADER_SIZE:] = payload
+        fields = MESSAGE_HEADER_DTYPE.fields
+        assert fields is not None
+        self.at = {name: int(fields[name][1]) for name in ("sequence", "log_time", "publish_time")}
+        for name, offset in payloads[0][1].items():
+            self.at[name] = MESSAGE_HEADER_SIZE + offset
+
+    def fill(
+        self,
+        t_ns: np.ndarray,
+        sequence: np.ndarray,
+        gyro: np.ndarray | None,
+        accel: np.ndarray | None,
+    ) -> np.ndarray:
+        """(N, m, R) records for N samples of the m IMUs (gyro/accel (N, m, 3), SI; None = NaN)."""
+        n = t_ns.shape[0]
+        sec, nanosec = _stamp_fields(t_ns)
+        out = np.empty((n, *self.records.shape), np.uint8)
+        out[...] = self.records
+        at = self.at
+        _field_view(out, at["sequence"], "<u4")[..., 0] = sequence[:, None]
+        _field_view(out, at["log_time"], "<u8")[..., 0] = t_ns[:, None]
+        _field_view(out, at["publish_time"], "<u8")[..., 0] = t_ns[:, None]
+        _field_view(out, at["sec"], "<i4")[..., 0] = sec[:, None]
+        _field_view(out, at["nanosec"], "<u4")[..., 0] = nanosec[:, None]
+        for name, values in (("gyro", gyro), ("accel", accel)):
+            target = _field_view(out, at[name], "<f8", 3)
+            if values is None:
+                target[...] = np.nan
+            else:
+                target[...] = values
+        return out
+
+
 class ImuArrayWriter:
     """Writes an IMU array's samples as one Imu channel per IMU (and MagneticField channels
     when the array has magnetometers), DESIGN.md §4.
@@ -347,6 +426,7 @@ class ImuArrayWriter:
             ]
         writer.add_metadata(ARRAY_METADATA, {"json": array.to_json()})
         self._written = 0
+        self._imu_records = _RecordTemplate(self.frame_ids, self.imu_channels)
 
     def write_block(self, block: ImuBlock) -> None:
         """Bulk-encode a block (all IMUs) and queue it, messages in time order."""
@@ -355,6 +435,9 @@ class ImuArrayWriter:
             return
         if block.n_imus != self.array.n_imus:
             raise UsageError(f"block has {block.n_imus} IMUs but the array has {self.array.n_imus}")
+        if self._imu_records.uniform and not (self.mag_channels and block.mag is not None):
+            self._write_imu_records(block)
+            return
         # (kind, frame id, channel id, vectors) of every channel, in message order per sample
         channels: list[tuple[str, str, int, dict[str, np.ndarray | None]]] = []
         for k, channel_id in enumerate(self.imu_channels):
@@ -412,6 +495,32 @@ class ImuArrayWriter:
                 index = np.arange(len(joined))
                 batch = joined.select(np.argsort((index % ns) * c + index // ns, kind="stable"))
             self.writer.add_batch(batch)
+        self._written += n
+
+    def _write_imu_records(self, block: ImuBlock) -> None:
+        """Imu messages only: build whole Message records straight from the block's arrays
+        (constant bytes from a template, fields through strided views) in slices of about
+        4 MB, handed to the writer without further copies."""
+        template = self._imu_records
+        m = self.array.n_imus
+        n = len(block)
+        step = max(1, (4 << 20) // (m * template.record_size))
+        ids = np.asarray(self.imu_channels, np.uint16)
+        for start in range(0, n, step):
+            stop = min(n, start + step)
+            t_ns = np.asarray(block.t_ns[start:stop], np.int64)
+            sequence = np.arange(self._written + start, self._written + stop).astype(np.uint32)
+            records = template.fill(
+                t_ns,
+                sequence,
+                None if block.gyro is None else block.gyro[start:stop],
+                None if block.accel is None else block.accel[start:stop],
+            )
+            self.writer.add_records(
+                records.reshape(-1, template.record_size),
+                np.tile(ids, stop - start),
+                np.repeat(t_ns, m),
+            )
         self._written += n
 
 
