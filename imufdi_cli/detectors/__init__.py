@@ -11,6 +11,7 @@ from typing import Any
 
 from imufdi_cli.detectors.bank import BankDetector
 from imufdi_cli.detectors.base import DetectionBlock, Detector, Param, parse_params
+from imufdi_cli.detectors.cnn_map import CnnMapDetector
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.noise_glr import NoiseGlrDetector
 from imufdi_cli.detectors.pca_parity import PcaParityDetector
@@ -23,6 +24,7 @@ DETECTORS: dict[str, type] = {
     NoiseGlrDetector.name: NoiseGlrDetector,
     WoaMvmdGltDetector.name: WoaMvmdGltDetector,
     BankDetector.name: BankDetector,
+    CnnMapDetector.name: CnnMapDetector,
 }
 
 
