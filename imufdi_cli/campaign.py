@@ -930,7 +930,10 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
 
 
 def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
-    """PNG of detection probability (and MAR) against amplitude per detector (plot extra)."""
+    """``detection_probability.png``: one panel per base x fault model x sensor type, with
+    the per-event detection probability (solid) and, when MAR is aggregated, the per-sample
+    detection rate 1 - MAR (dashed) of each detector against the SI amplitude (plot extra).
+    """
     try:
         import matplotlib
 
@@ -938,30 +941,43 @@ def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
         import matplotlib.pyplot as plt
     except ImportError as err:
         raise UsageError("plots need matplotlib") from err
-    curves: dict[tuple[str, str, str, str], list[tuple[float, float]]] = {}
+    rates: dict[tuple[str, str, str, str, str], float] = {}
+    for g in summary["groups"]:
+        mar = g.get("mar")
+        if mar is not None and mar["mean"] is not None:
+            params = json.dumps(g["params"], sort_keys=True)
+            key = (g["base"], g["detector"], params, g["model"], g["amplitude"])
+            rates[key] = 1.0 - mar["mean"]
+    panels: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for c in summary.get("curves", []):
-        points = [
-            (p["amplitude_si"], p["mean"])
-            for p in c["points"]
-            if p["amplitude_si"] is not None and p["mean"] is not None
-        ]
-        label = c["detector"] + ("" if not c["params"] else " " + json.dumps(c["params"]))
-        if points:
-            curves[(c["base"], c["model"], c["sensor_type"], label)] = points
-    if not curves:
+        panels.setdefault((c["base"], c["model"], c["sensor_type"]), []).append(c)
+    if not panels:
         return
-    fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
-    for (base, model, _type, label), points in sorted(curves.items()):
-        points.sort()
-        xs, ys = zip(*points)
-        ax.plot(xs, ys, "o-", label=f"{label} · {model} · {base}")
-    ax.set_xlabel("fault amplitude (SI)")
-    ax.set_ylabel("detection probability")
-    ax.set_ylim(-0.02, 1.02)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    fig, axes = plt.subplots(
+        1, len(panels), figsize=(4.2 * len(panels), 3.8), squeeze=False, constrained_layout=True
+    )
+    for ax, ((base, model, sensor_type), curves) in zip(axes[0], sorted(panels.items())):
+        for index, c in enumerate(curves):
+            params = json.dumps(c["params"], sort_keys=True)
+            label = c["detector"] + ("" if not c["params"] else " " + params)
+            points = [p for p in c["points"] if p["amplitude_si"] is not None]
+            xs = [p["amplitude_si"] for p in points]
+            color = f"C{index % 10}"
+            probability = [np.nan if p["mean"] is None else p["mean"] for p in points]
+            ax.plot(xs, probability, "o-", color=color, label=label)
+            rate = [
+                rates.get((base, c["detector"], params, model, p["amplitude"]), np.nan)
+                for p in points
+            ]
+            ax.plot(xs, rate, "s--", color=color, alpha=0.7)
+        ax.set_title(f"{base} · {model} · {sensor_type}", fontsize=9)
+        ax.set_xlabel("fault amplitude (SI)")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("detection probability (solid), 1 - MAR (dashed)")
     tmp = out / ".detection_probability.png.tmp.png"
-    fig.savefig(tmp, dpi=110)
+    fig.savefig(tmp, dpi=100)
     plt.close(fig)
     os.replace(tmp, out / "detection_probability.png")
 
