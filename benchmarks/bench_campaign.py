@@ -77,8 +77,10 @@ def main() -> None:
         path.write_text(SPEC.format(seeds=seeds, duration=args.duration))
         runs = load_spec(path).runs
     n = len(runs)
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     print(
-        f"{n} runs: paper-table4 (16 IMUs, 100 Hz, 5 s), step fault, glt; cores: {os.cpu_count()}"
+        f"{n} runs: paper-table4 (16 IMUs, 100 Hz, {args.duration}), step fault, glt; "
+        f"cores: {os.cpu_count()}; load average before: {load}"
     )
 
     execute_run(runs[0])  # warm imports and caches
