@@ -222,6 +222,22 @@ def parse_params(
     return values
 
 
+def parse_sensor_types(text: str, detector: str) -> tuple[str, ...]:
+    """``"gyro,accel"`` -> ``("gyro", "accel")`` for a detector's ``sensors`` parameter.
+
+    Raises DetectorConfigError naming the valid types for an unknown or empty list.
+    """
+    types = tuple(item.strip() for item in text.split(",") if item.strip())
+    for item in types:
+        if item not in ("gyro", "accel", "mag"):
+            raise DetectorConfigError(
+                f"{detector}.sensors: unknown sensor type {item!r}; valid: gyro, accel, mag"
+            )
+    if not types:
+        raise DetectorConfigError(f"{detector}.sensors: give at least one of gyro, accel, mag")
+    return types
+
+
 ALPHA = Param("float", 0.01, "false-alarm level of the test", low=0.0, high=0.5, low_open=True)
 """The common ``alpha`` parameter (0 < alpha <= 0.5)."""
 

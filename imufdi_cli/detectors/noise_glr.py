@@ -63,9 +63,10 @@ from imufdi_cli.detectors.base import (
     DetectionBlock,
     Param,
     calibration_stats,
+    parse_sensor_types,
 )
 from imufdi_cli.detectors.pca_parity import MovingWindow
-from imufdi_cli.errors import CalibrationError, DetectorConfigError
+from imufdi_cli.errors import CalibrationError
 from imufdi_cli.log import ImuBlock
 
 #: Sensors whose leverage P_jj exceeds this are not redundant (their leave-one-out
@@ -228,15 +229,7 @@ class NoiseGlrDetector:
         self.release_level = float(release)
         self.release_window_s = float(release_window)
         self.lever_arm = bool(lever_arm)
-        types = tuple(s.strip() for s in sensors.split(",") if s.strip())
-        for s in types:
-            if s not in ("gyro", "accel", "mag"):
-                raise DetectorConfigError(
-                    f"{self.name}.sensors: unknown sensor type {s!r}; valid: gyro, accel, mag"
-                )
-        if not types:
-            raise DetectorConfigError(f"{self.name}.sensors: give at least one of gyro, accel, mag")
-        self.sensor_types = types
+        self.sensor_types = parse_sensor_types(sensors, self.name)
         self.array: ArrayConfig | None = None
         self.models: dict[str, _TypeModel] = {}
         self.window_samples = 0

@@ -66,9 +66,10 @@ from imufdi_cli.detectors.base import (
     DetectionBlock,
     Param,
     calibration_stats,
+    parse_sensor_types,
 )
 from imufdi_cli.detectors.parity import isolable_sensors, parity_matrix
-from imufdi_cli.errors import CalibrationError, DetectorConfigError
+from imufdi_cli.errors import CalibrationError
 from imufdi_cli.log import ImuBlock
 
 #: Excitation test of the leak regression: a direction of xhat counts as excited when its
@@ -270,15 +271,7 @@ class PcaParityDetector:
         self.space = space
         self.residual_test = bool(residual_test)
         self.leak = leak
-        types = tuple(s.strip() for s in sensors.split(",") if s.strip())
-        for s in types:
-            if s not in ("gyro", "accel", "mag"):
-                raise DetectorConfigError(
-                    f"{self.name}.sensors: unknown sensor type {s!r}; valid: gyro, accel, mag"
-                )
-        if not types:
-            raise DetectorConfigError(f"{self.name}.sensors: give at least one of gyro, accel, mag")
-        self.sensor_types = types
+        self.sensor_types = parse_sensor_types(sensors, self.name)
         self.array: ArrayConfig | None = None
         self.models: dict[str, _TypeModel] = {}
         self.window_samples = 0
