@@ -60,7 +60,13 @@ import numpy as np
 
 from imufdi_cli.errors import CampaignSpecError, ImufdiError, UsageError
 from imufdi_cli.fileio import write_text
-from imufdi_cli.metrics import METRIC_NAMES, FaultWindow, compute_metrics, mean_metrics
+from imufdi_cli.metrics import (
+    METRIC_NAMES,
+    FaultWindow,
+    compute_metrics,
+    faulty_matrix,
+    mean_metrics,
+)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -401,21 +407,18 @@ def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
     for sensor_type, parts in outputs.items():
         det = DetectionBlock.concatenate(parts)
         ids = array.sensor_ids(sensor_type)
-        faulty_mask = np.zeros((len(det), len(ids)), dtype=bool)
         windows = []
         for fault in faults:
             if fault.sensor_type != sensor_type:
                 continue
             columns = [ids.index(s) for s in fault.sensors if s in ids]
-            active = fault.active(faulty.t_ns, t0)
-            faulty_mask[np.ix_(active, np.asarray(columns, dtype=np.intp))] = True
             end = None if fault.until_ns is None else t0 + fault.until_ns
             windows.append(FaultWindow(fault.id, tuple(columns), t0 + fault.at_ns, end))
         metrics = compute_metrics(
             faulty.t_ns,
             det.alarm,
             det.isolated,
-            faulty_mask,
+            faulty_matrix(faulty.t_ns, windows, len(ids)),
             windows,
             isolated_set=det.isolated_set,
         )

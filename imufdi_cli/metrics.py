@@ -135,6 +135,24 @@ def _ratio(numerator: int, denominator: int) -> float | None:
     return None if denominator == 0 else numerator / denominator
 
 
+def faulty_matrix(t_ns: np.ndarray, windows: Sequence[FaultWindow], n_sensors: int) -> np.ndarray:
+    """Ground truth per sample and sensor from fault windows.
+
+    Returns
+    -------
+    ndarray, shape (N, n_sensors), bool
+        ``[i, j]`` true when a window acting on sensor j holds ``start <= t_i < end``.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    faulty = np.zeros((t_ns.size, n_sensors), dtype=bool)
+    for window in windows:
+        active = t_ns >= window.start_ns
+        if window.end_ns is not None:
+            active &= t_ns < window.end_ns
+        faulty[np.ix_(active, np.asarray(window.sensors, dtype=np.intp))] = True
+    return faulty
+
+
 def rising_edges(alarm: np.ndarray) -> np.ndarray:
     """Indices where ``alarm`` (N,) bool goes from False to True (index 0 if it starts True)."""
     alarm = np.asarray(alarm, dtype=bool)

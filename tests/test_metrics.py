@@ -140,3 +140,14 @@ def test_value_lookup():
     assert m.value("detection_probability") == 1.0
     with pytest.raises(KeyError):
         m.value("nonsense")
+
+
+def test_faulty_matrix_from_windows():
+    from imufdi_cli.metrics import faulty_matrix
+
+    t = _t(6)
+    windows = [FaultWindow("a", (0,), 2 * MS10, 4 * MS10), FaultWindow("b", (1, 2), 5 * MS10)]
+    expected = np.zeros((6, 3), bool)
+    expected[2:4, 0] = True
+    expected[5:, 1:] = True
+    assert (faulty_matrix(t, windows, 3) == expected).all()
