@@ -14,18 +14,21 @@ import json
 import math
 import operator
 import re
-import shutil
-import sys
-import tempfile
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import IO, Any, BinaryIO
+from typing import Any, BinaryIO
 from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 
 from imufdi_cli.errors import GateError, McapInputError
-from imufdi_cli.metrics import METRIC_NAMES, FaultWindow, Metrics, compute_metrics
+from imufdi_cli.metrics import (
+    METRIC_NAMES,
+    FaultWindow,
+    Metrics,
+    compute_metrics,
+    faulty_matrix,
+)
 
 # --- building --------------------------------------------------------------------------
 
@@ -108,20 +111,6 @@ def truth_windows(metadata: dict[str, dict[str, str]]) -> Truth | None:
     return Truth(windows=windows, descriptions=descriptions)
 
 
-def _spool(source: str | BinaryIO) -> tuple[str | IO[bytes], Callable[[], None]]:
-    """Make stdin/streams seekable (spooled to a temporary file); paths are used as is."""
-    if isinstance(source, str) and source != "-":
-        return source, lambda: None
-    stream = sys.stdin.buffer if source == "-" else source
-    assert not isinstance(stream, str)
-    if hasattr(stream, "seekable") and stream.seekable():
-        return stream, lambda: None
-    spool = tempfile.TemporaryFile()
-    shutil.copyfileobj(stream, spool, 1 << 20)
-    spool.seek(0)
-    return spool, spool.close
-
-
 def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
     """Compute the report of an annotated log.
 
@@ -135,17 +124,11 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
     from imufdi_cli.mcapio import McapSource, read_status
 
     name = source if isinstance(source, str) else "<stream>"
-    seekable, cleanup = _spool(source)
-    try:
-        status = read_status(seekable)
-        if hasattr(seekable, "seek"):
-            seekable.seek(0)
-        with McapSource(seekable) as src:
-            for _ in src.batches():
-                pass  # metadata may sit anywhere in a streamed file
-            metadata = dict(src.metadata)
-    finally:
-        cleanup()
+    # one pass: read_status streams every batch, so the source's metadata (wherever the
+    # records sit, even in a stream from stdin) is complete afterwards
+    with McapSource(source) as src:
+        status = read_status(src)
+        metadata = dict(src.metadata)
     if not status:
         raise McapInputError(
             f"{name}: no detector status channels (/imufdi/<detector>/<type>); "
@@ -164,8 +147,6 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
     entries = []
     for (detector, sensor_type), arrays in sorted(status.items()):
         ids = list(arrays.sensor_ids)
-        n = len(arrays.t_ns)
-        faulty = np.zeros((n, len(ids)), dtype=bool)
         windows: list[FaultWindow] = []
         if truth is not None:
             windows = [
@@ -173,13 +154,9 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
                     w.fault_id, tuple(ids.index(s) for s in w.sensors), w.start_ns, w.end_ns
                 )
                 for w in truth.windows
-                if any(s in ids for s in w.sensors) and all(s in ids for s in w.sensors)
+                if all(s in ids for s in w.sensors)
             ]
-            for w in windows:
-                active = arrays.t_ns >= w.start_ns
-                if w.end_ns is not None:
-                    active &= arrays.t_ns < w.end_ns
-                faulty[np.ix_(active, np.asarray(w.sensors, dtype=np.intp))] = True
+        faulty = faulty_matrix(arrays.t_ns, windows, len(ids))
         metrics = compute_metrics(
             arrays.t_ns,
             arrays.alarm,
