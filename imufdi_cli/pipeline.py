@@ -12,6 +12,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Mapping, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -57,12 +58,7 @@ def simulate_file(
     array, blocks = simulate(config)
     samples = 0
     first = last = 0
-    capture_chunks: list[bytes] = []
-    encoder = None
-    if capture:
-        from imufdi_cli.capture import CaptureEncoder
-
-        encoder = CaptureEncoder(array, corrupt=corrupt, seed=seed)
+    capture_bytes = 0
     metadata = {
         "imufdi.simulate": {
             "json": json.dumps(
@@ -74,7 +70,19 @@ def simulate_file(
             )
         }
     }
-    with McapWriter(output) as writer:
+    with ExitStack() as stack:
+        writer = stack.enter_context(McapWriter(output))
+        capture_file = None
+        encoder = None
+        if capture:
+            from imufdi_cli.capture import CaptureEncoder
+            from imufdi_cli.fileio import atomic_path
+
+            encoder = CaptureEncoder(array, corrupt=corrupt, seed=seed)
+            # streamed like the MCAP: memory stays flat with log length
+            capture_file = stack.enter_context(
+                open(stack.enter_context(atomic_path(capture)), "wb")
+            )
         for name, data in metadata.items():
             writer.add_metadata(name, data)
         imu_writer = ImuArrayWriter(writer, array)
@@ -85,17 +93,10 @@ def simulate_file(
                 last = int(block.t_ns[-1])
             samples += len(block)
             imu_writer.write_block(block)
-            if encoder is not None:
-                capture_chunks.append(encoder.encode(block))
-        capture_bytes = 0
-        if capture and encoder is not None:
-            from imufdi_cli.fileio import atomic_path
-
-            with atomic_path(capture) as tmp, open(tmp, "wb") as handle:
-                for chunk in capture_chunks:
-                    handle.write(chunk)
-                    capture_bytes += len(chunk)
-                handle.write(encoder.finish())
+            if encoder is not None and capture_file is not None:
+                capture_bytes += capture_file.write(encoder.encode(block))
+        if encoder is not None and capture_file is not None:
+            capture_bytes += capture_file.write(encoder.finish())
     return SimulateResult(
         output=output,
         samples=samples,
