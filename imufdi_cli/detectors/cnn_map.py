@@ -11,40 +11,57 @@ devices (§2-3): accelerometer noise increase in a 12-IMU array. The paper's met
 2. Mapping network (§2): two 1-D convolution layers and a fully connected layer (numpy,
    :mod:`.nn`) map a window of ``L`` samples of one IMU's specific force, rotated to the body
    frame and standardised, to the reference rate at the window's last sample. One network
-   is shared by every IMU (12x the training windows of one network per IMU; the per-IMU
-   differences due to lever arms stay in the per-IMU residual calibration below). Training
+   is shared by every IMU (12x the training windows of one network per IMU; the IMUs'
+   lever arms change their inputs only slightly, and step 4 compares IMUs). Training
    on the fault-free calibration window: MSE loss, Adam, shuffled mini-batches from a seeded
    Generator, early stopping on the last ``holdout`` fraction of the window (a time-ordered
    split with a gap of ``L`` samples, so no training window overlaps a held-out one); the
    weights of the best held-out epoch are kept.
-3. Residuals (§3): ``e_k(t) = CNN(a_k[t-L+1..t]) - w_ref(t)`` (rad/s, 3 components). On the
-   held-out part: per-IMU, per-component mean mu_kc and variance v_kc. Online, the windowed
-   energy ratio over the last ``w`` samples::
+3. Residuals (§3): ``e_k(t) = CNN(a_k[t-L+1..t]) - w_ref(t)`` (rad/s, 3 components).
+   Beyond the paper (see docs/algorithms/cnn-map.md for the measurements behind each step):
+   the plain residual is dominated by the smooth mapping error, so it is prewhitened by an
+   autoregressive filter of order ``p = whiten`` fitted by least squares on the calibration
+   residuals (per component, pooled over IMUs)::
 
-       E_k(t) = 1/(3 w) sum_{window} sum_c (e_kc - mu_kc)^2 / v_kc        (1 when fault-free)
+       z_kc(t) = e_kc(t) - sum_{i=1..p} phi_ci e_kc(t - i)
 
-4. Threshold: the residuals are coloured (the network and the reference are smooth), so the
-   chi2(3w)/(3w) law of white residuals does not hold. The held-out windowed energies of
-   every IMU are pooled and fitted with a gamma law of mean 1 by the method of moments
-   (shape kappa = 1/var(E)), which keeps the effective number of degrees of freedom of the
-   coloured sum. Threshold ``T = Gamma^-1(1 - a; kappa, 1/kappa)`` with the Šidák level
+   This removes the predictable mapping error and leaves the accelerometer noise the
+   network passes through (broadband, independent between IMUs). ``whiten=0`` keeps the
+   plain residual.
+4. Energy ratio: per IMU, ``s_k(t) = 1/3 sum_c (z_kc - mu_kc)^2 / v_c`` with mu_kc the
+   calibration mean and v_c the calibration variance of component c averaged over the
+   IMUs; ``E_k(t)`` = mean of s_k over the last ``w`` samples. The network's noise gain
+   changes with the motion phase, by a factor of 2-3 over a swing, and every IMU sees the
+   same motion. The test therefore compares each IMU with the others at the same time::
+
+       R_k(t) = E_k(t) / mean_{j != k} E_j(t)        (about 1 when fault-free)
+
+5. Threshold: the windowed energies are sums of coloured terms, so the chi2 law of white
+   residuals does not hold. Every IMU's R_k over the calibration window is pooled and
+   fitted with a gamma law by the method of moments (shape ``kappa = mean^2 / var``, scale
+   ``mean / kappa``). Threshold ``T = Gamma^-1(1 - a)`` with the Šidák level
    ``a = 1 - (1 - alpha)^(1/m)`` over the m tested IMUs. While the window fills (c < w
    samples at the start of the log) the shape is ``kappa c / w``.
-5. Isolation: the IMU with the largest E_k. Which of its accelerometer axes: by the network's
-   linearised sensitivity. White noise of added variance delta on IMU axis a (body direction
-   d_a = R_k[:, a]) raises the expected normalised residual energy of component c by
-   ``delta S_k[a, c]`` with ``S_k[a, c] = mean_windows sum_lags (J_c,lag . d_a)^2 / v_kc``
-   (J = d CNN / d input, from the held-out windows). With the observed excess
-   ``x_c = mean_window((e_c - mu_c)^2 / v_c) - 1``, each axis is fitted alone by least squares:
-   ``delta_a = x . S_a / |S_a|^2``, fit ``(x . S_a)^2 / |S_a|^2``; the isolated sensor is the
-   axis with the best fit (``x . S_a > 0``). ``scores`` = sqrt(max(delta_a, 0)), the
-   estimated added noise standard deviation of every accelerometer axis, m/s^2.
-6. ``amplitude`` = E_k of the isolated IMU, the residual energy ratio against calibration
-   (dimensionless, like noise-glr's noise ratio; ~1 + delta S for a noise growth).
+6. Isolation: the IMU with the largest R_k. Which of its accelerometer axes: by the
+   network's linearised sensitivity. White noise of added variance delta on IMU axis a
+   (body direction d_a = R_k[:, a]) raises the expected energy of component c by
+   ``delta S_k[a, c]`` with ``S_k[a, c] = sum_lags ((K * J_c) . d_a)^2 / v_c``. Here
+   J = d CNN / d input of the current window (from backpropagation) and K is the
+   whitening kernel ``[1, -phi_1, .., -phi_p]`` convolved along the lags (J is taken as
+   constant over p consecutive windows). With the observed excess of each component's
+   energy ratio against the other IMUs, ``x_c``, each axis is fitted alone by least
+   squares: ``delta_a = x . S_a / |S_a|^2``, fit ``(x . S_a)^2 / |S_a|^2``. The isolated
+   sensor is the axis with the best fit (``x . S_a > 0``). ``scores`` =
+   sqrt(max(delta_a, 0)), the estimated added noise standard deviation of every
+   accelerometer axis, m/s^2.
+7. ``statistic`` = max_k R_k; ``amplitude`` = R_k of the isolated IMU, the residual energy
+   ratio against the other IMUs (dimensionless; 1 = nominal, ~1 + delta S for a noise
+   growth).
 
 Only ``accel`` is reported (the gyros are the reference; their screening is in
-:meth:`CnnMapDetector.metadata`). The first ``L - 1`` samples of the log have no full
-input window: their residual energy counts as its calibrated mean (no alarm possible).
+:meth:`CnnMapDetector.metadata`). The first ``L - 1 + p`` samples of the log have no
+whitened residual: their energy counts as the calibrated mean (R = 1, no alarm possible).
+At least two IMUs with accelerometer triads are needed (step 4 compares them).
 """
 
 from __future__ import annotations
@@ -63,7 +80,6 @@ from scipy.stats import gamma as gamma_distribution
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
-    ALPHA,
     NO_ISOLATION,
     DetectionBlock,
     Param,
@@ -80,8 +96,6 @@ from imufdi_cli.log import ImuBlock
 MODEL_FORMAT = "imufdi-cnn-map-1"
 #: Fewest training windows (all IMUs together) for a meaningful fit.
 MIN_TRAINING_WINDOWS = 200
-#: Held-out windows used for the sensitivity Jacobian (a seeded subsample beyond this).
-MAX_JACOBIAN_WINDOWS = 4000
 
 
 @dataclass
@@ -210,6 +224,49 @@ def input_windows(body_accel: np.ndarray, length: int) -> np.ndarray:
     return np.moveaxis(sliding_window_view(body_accel, length, axis=0), -1, 2)
 
 
+def fit_autoregression(series: np.ndarray, order: int) -> np.ndarray:
+    """Least-squares AR coefficients shared by several series (step 3).
+
+    Parameters
+    ----------
+    series : ndarray, shape (N, m)
+        m series of N samples each, fitted jointly.
+    order : int
+        p >= 0.
+
+    Returns
+    -------
+    ndarray, shape (p,): phi with ``x(t) ~ sum_i phi_i x(t - i)``.
+    """
+    n = series.shape[0]
+    if order == 0:
+        return np.zeros(0)
+    lags = np.stack([series[order - 1 - i : n - 1 - i] for i in range(order)], axis=-1)
+    design, target = lags.reshape(-1, order), series[order:].ravel()
+    return np.linalg.lstsq(design, target, rcond=None)[0]  # type: ignore[no-any-return]
+
+
+def whiten(residual: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
+    """Apply the AR prewhitening filter per component (step 3).
+
+    Parameters
+    ----------
+    residual : ndarray, shape (N, m, 3)
+    coefficients : ndarray, shape (3, p)
+        phi per component.
+
+    Returns
+    -------
+    ndarray, shape (N - p, m, 3): row i is ``e(i + p) - sum_j phi_j e(i + p - j)``.
+    """
+    p = coefficients.shape[1]
+    n = residual.shape[0]
+    out = residual[p:].copy()
+    for i in range(p):
+        out -= coefficients[:, i] * residual[p - 1 - i : n - 1 - i]
+    return out
+
+
 def gamma_shape(energies: np.ndarray) -> float:
     """Method-of-moments gamma shape of energies with mean ~1: ``mean^2 / var``."""
     mean = float(np.mean(energies))
@@ -228,6 +285,8 @@ class CnnMapDetector:
         False-alarm level per sample over the tested IMUs.
     window : float
         Residual energy window, s.
+    whiten : int
+        Order p of the AR filter that prewhitens the mapping residuals (0: none).
     input_length : float
         CNN input window, s (rounded to samples).
     filters, kernel : int
@@ -246,8 +305,15 @@ class CnnMapDetector:
 
     name: ClassVar[str] = "cnn-map"
     PARAMS: ClassVar[dict[str, Param]] = {
-        "alpha": ALPHA,
-        "window": Param("time", 0.2, "residual energy window (e.g. 0.2s)", low=0.0, low_open=True),
+        "alpha": Param(
+            "float",
+            0.001,
+            "false-alarm level per sample over the tested IMUs",
+            low=0.0,
+            high=0.5,
+            low_open=True,
+        ),
+        "window": Param("time", 0.4, "residual energy window (e.g. 0.4s)", low=0.0, low_open=True),
         "input_length": Param(
             "time", 0.24, "CNN input window (e.g. 0.24s)", low=0.0, high=10.0, low_open=True
         ),
@@ -261,24 +327,19 @@ class CnnMapDetector:
         "holdout": Param("float", 0.4, "held-out fraction of calibration", low=0.05, high=0.5),
         "seed": Param("int", 0, "seed of initialisation and shuffling", low=0),
         "model": Param("path", None, "saved model file to reuse instead of training"),
-        "relative": Param(
-            "bool", False, "divide each IMU's energy by the across-IMU median energy"
-        ),
-        "difference": Param(
-            "int", 1, "order of the time difference of the residuals (0 = none)", low=0, high=3
-        ),
-        "common_mode": Param(
-            "choice",
-            "none",
-            "remove the across-IMU median of the mapping residuals (median) or not (none)",
-            choices=("median", "none"),
+        "whiten": Param(
+            "int",
+            8,
+            "order of the residual prewhitening AR filter (0 = plain residual)",
+            low=0,
+            high=32,
         ),
     }
 
     def __init__(
         self,
-        alpha: float = 0.01,
-        window: float = 0.2,
+        alpha: float = 0.001,
+        window: float = 0.4,
         input_length: float = 0.24,
         filters: int = 8,
         kernel: int = 5,
@@ -290,9 +351,7 @@ class CnnMapDetector:
         holdout: float = 0.4,
         seed: int = 0,
         model: str | None = None,
-        common_mode: str = "none",
-        difference: int = 1,
-        relative: bool = False,
+        whiten: int = 8,
     ) -> None:
         self.alpha = float(alpha)
         self.window_s = float(window)
@@ -311,13 +370,7 @@ class CnnMapDetector:
         self.holdout = float(holdout)
         self.seed = int(seed)
         self.model_path = model
-        if common_mode not in ("median", "none"):
-            raise DetectorConfigError(
-                f"cnn-map.common_mode: {common_mode!r} is not valid; valid: median, none"
-            )
-        self.common_mode = common_mode
-        self.difference = int(difference)
-        self.relative = bool(relative)
+        self.whiten = int(whiten)
         self.array: ArrayConfig | None = None
         self.mapping: MappingNetwork | None = None
         self.network: Sequential | None = None
@@ -332,9 +385,10 @@ class CnnMapDetector:
 
     def _setup(self, array: ArrayConfig) -> None:
         tested = [k for k, imu in enumerate(array.imus) if len(imu.axes_of("accel")) == 3]
-        if not tested:
+        if len(tested) < 2:
             raise DetectorConfigError(
-                "cnn-map needs IMUs with full accelerometer triads; this array has none"
+                "cnn-map compares IMUs with each other and needs at least 2 with full"
+                f" accelerometer triads; this array has {len(tested)}"
             )
         if (
             array.n_sensors("gyro") < 3
@@ -433,7 +487,6 @@ class CnnMapDetector:
                 )
             self.mapping = mapping
             self.network = mapping.build()
-            holdout_start = 0  # the whole window calibrates the residuals
         else:
             length = max(self.kernel * 2 + 2, round(self.input_length_s * array.rate_hz))
             windows_n = len(calibration) - length + 1
@@ -448,7 +501,7 @@ class CnnMapDetector:
             holdout_start = windows_n - n_holdout
             self._train(body, reference, length, n_train, holdout_start, array.rate_hz)
         self.input_length = length
-        self._calibrate_residuals(body, reference, holdout_start)
+        self._calibrate_residuals(body, reference)
 
     def _load(self, path: str) -> MappingNetwork:
         try:
@@ -560,20 +613,17 @@ class CnnMapDetector:
 
     def _residuals(self, predicted: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """Mapping residuals (N, m, 3) rad/s of predictions (N, m, 3) against the reference
-        (N, 3); with ``common_mode=median`` minus their across-IMU median (step 3b)."""
-        residual = predicted - reference[:, None, :]
-        if self.common_mode == "median" and residual.shape[1] >= 3:
-            residual = residual - np.median(residual, axis=1, keepdims=True)
-        return residual
+        (N, 3) (step 3)."""
+        return predicted - reference[:, None, :]  # type: ignore[no-any-return]
 
     def _axis_gains(self, windows: np.ndarray) -> np.ndarray:
-        """Linearised noise gains of the (differenced) mapping residual, per IMU axis.
+        """Linearised noise gains of the whitened mapping residual, per IMU axis (step 6).
 
-        ``G[n, k, a, c] = sum_lags (D J_c . R_k[:, a])^2`` with J = d CNN_c / d input (rad/s
-        per m/s^2, body frame) of window n of IMU k and D the difference of order
-        ``difference`` along the lags (J taken constant over consecutive windows): white
-        noise of variance delta on IMU axis a adds ``delta G[.., a, c]`` to the variance of
-        residual component c.
+        ``G[n, k, a, c] = sum_lags ((K_c * J_c) . R_k[:, a])^2``, J = d CNN_c / d input
+        (rad/s per m/s^2, body frame) of window n of IMU k, K_c the whitening kernel
+        ``[1, -phi_c1, .., -phi_cp]`` convolved along the lags: white noise of variance
+        delta on IMU axis a adds ``delta G[.., a, c]`` to the variance of whitened
+        component c.
 
         Parameters
         ----------
@@ -590,66 +640,70 @@ class CnnMapDetector:
         gains = np.empty((flat.shape[0], 3, 3))
         rotations = np.broadcast_to(self.rotations, (n, m, 3, 3)).reshape(-1, 3, 3)
         scale = mp.output_std[None, :, None, None] / mp.input_std[None, None, None, :]
+        kernel = np.concatenate([np.ones((3, 1)), -self.ar_coefficients], axis=1)  # (c, p+1)
+        p = kernel.shape[1] - 1
+        length = mp.input_length
         for lo in range(0, flat.shape[0], 2048):  # bounded memory
             jac = self.network.input_gradients(flat[lo : lo + 2048]) * scale  # (b, c, L, 3)
             directed = np.einsum("bclj,bja->bacl", jac, rotations[lo : lo + 2048])
-            if self.difference:
-                pad = [(0, 0)] * 3 + [(self.difference, self.difference)]
-                directed = np.diff(np.pad(directed, pad), n=self.difference, axis=3)
-            gains[lo : lo + 2048] = np.sum(directed**2, axis=3)
+            filtered = np.zeros((*directed.shape[:3], length + p))
+            for i in range(p + 1):  # y(t - i) reads the samples i earlier
+                filtered[..., p - i : p - i + length] += kernel[:, i, None] * directed
+            gains[lo : lo + 2048] = np.sum(filtered**2, axis=3)
         return gains.reshape(n, m, 3, 3)
 
-    def _calibrate_residuals(self, body: np.ndarray, reference: np.ndarray, start: int) -> None:
-        """Residual variance model, energy threshold (steps 3-4)."""
+    @staticmethod
+    def _ratio_to_others(energy: np.ndarray) -> np.ndarray:
+        """``E_k / mean_{j != k} E_j`` along axis 1 (step 4)."""
+        m = energy.shape[1]
+        others = (energy.sum(axis=1, keepdims=True) - energy) / (m - 1)
+        return energy / others  # type: ignore[no-any-return]
+
+    def _calibrate_residuals(self, body: np.ndarray, reference: np.ndarray) -> None:
+        """Whitening filter, residual statistics and energy-ratio threshold (steps 3-5) on
+        the whole calibration window."""
         assert self.array is not None and self.mapping is not None and self.network is not None
         length = self.input_length
-        windows = input_windows(body, length)[start:]  # (W_h, m, L, 3)
-        target = reference[length - 1 :][start:]  # (W_h, 3)
-        residual = self._residuals(self._predict(windows), target)  # (W_h, m, 3)
-        residual = np.diff(residual, n=self.difference, axis=0)
-        gain = self._axis_gains(windows)[self.difference :].sum(axis=2)  # (W, m, 3) isotropic
-        self.residual_mean = residual.mean(axis=0)  # (m, 3)
-        power = (residual - self.residual_mean) ** 2
-        # Variance model v = a g + b per IMU and component (least squares, a, b > 0 floors)
-        g_mean, p_mean = gain.mean(axis=0), power.mean(axis=0)
-        g_var = gain.var(axis=0)
-        cov = ((gain - g_mean) * (power - p_mean)).mean(axis=0)
-        slope = np.where(g_var > 0, cov / np.where(g_var > 0, g_var, 1.0), 0.0)
-        floor = 0.05 * p_mean
-        slope = np.clip(slope, 0.0, None)
-        offset = np.maximum(p_mean - slope * g_mean, floor)
-        if not np.all(p_mean > 0):
-            raise CalibrationError("cnn-map: zero residual variance; check the calibration window")
-        self.noise_slope = slope  # (m, 3) ~ accel noise variance seen through the network
-        self.noise_offset = offset  # (m, 3) residual variance not explained by the gain
-        variance = slope * gain + offset
-        squared = (power / variance).mean(axis=2)  # (W, m)
+        windows = input_windows(body, length)  # (W, m, L, 3)
+        residual = self._residuals(self._predict(windows), reference[length - 1 :])
+        p = self.whiten
         self.window_samples = max(1, round(self.window_s * self.array.rate_hz))
         w = self.window_samples
-        if squared.shape[0] < 2 * w:
+        if residual.shape[0] - p < 2 * w or residual.shape[0] < 4 * p:
             raise CalibrationError(
-                f"cnn-map: {squared.shape[0]} held-out samples cannot calibrate a {w}-sample"
-                " energy window; use a longer --calibrate window"
+                f"cnn-map: {residual.shape[0]} calibration residuals cannot fit an order-{p}"
+                f" whitening filter and a {w}-sample energy window; use a longer --calibrate"
+                " window"
             )
-        scale = squared.mean(axis=0)  # renormalise to mean 1 per IMU
-        self.noise_slope = self.noise_slope * scale[:, None]
-        self.noise_offset = self.noise_offset * scale[:, None]
-        squared = squared / scale
+        # Step 3: AR(p) per component, least squares pooled over IMUs
+        self.ar_coefficients = np.stack(
+            [fit_autoregression(residual[:, :, c], p) for c in range(3)]
+        ).reshape(3, p)
+        whitened = whiten(residual, self.ar_coefficients)  # (W - p, m, 3)
+        self.residual_mean = whitened.mean(axis=0)  # (m, 3)
+        centred = whitened - self.residual_mean
+        self.residual_variance = centred.var(axis=0).mean(axis=0)  # (3,) shared by IMUs
+        if not np.all(self.residual_variance > 0):
+            raise CalibrationError("cnn-map: zero residual variance; check the calibration window")
+        squared = (centred**2 / self.residual_variance).mean(axis=2)  # (W - p, m)
         cumulative = np.concatenate([np.zeros((1, squared.shape[1])), np.cumsum(squared, axis=0)])
-        energies = (cumulative[w:] - cumulative[:-w]) / w  # (W - w + 1, m)
-        if self.relative and energies.shape[1] >= 3:
-            energies = energies / np.median(energies, axis=1, keepdims=True)
-        self.gamma_shape = gamma_shape(energies.ravel())
+        energies = (cumulative[w:] - cumulative[:-w]) / w  # (W - p - w + 1, m)
+        ratios = self._ratio_to_others(energies)
+        # Step 5: gamma law of the pooled energy ratios, Šidák level over the m IMUs
+        mean = float(ratios.mean())
+        self.gamma_shape = gamma_shape(ratios.ravel())
         m = len(self.tested)
-        self.imu_level = -math.expm1(math.log1p(-self.alpha) / m)  # Šidák
+        self.imu_level = -math.expm1(math.log1p(-self.alpha) / m)
         counts = np.arange(1, w + 1, dtype=np.float64)
         shapes = self.gamma_shape * counts / w
-        self.thresholds = gamma_distribution.ppf(1.0 - self.imu_level, shapes, scale=1.0 / shapes)
-        self.holdout_far = float(np.mean(energies.max(axis=1) > self.thresholds[-1]))
-        self.residual_sigma = np.sqrt(p_mean)
+        self.thresholds = gamma_distribution.ppf(1.0 - self.imu_level, shapes, scale=mean / shapes)
+        self.calibration_alarm_rate = float(np.mean(ratios.max(axis=1) > self.thresholds[-1]))
+        self.residual_rms = float(np.sqrt(np.mean(residual**2)))
         self._energy_window = MovingWindow(w, m * 3 + m * 9)
         self._tail = np.zeros((0, m, 3))
         self._residual_tail = np.zeros((0, m, 3))
+        self._episode_imu = -1
+        self._episode_sums = (np.zeros(3), np.zeros(3))
         self._samples_seen = 0
 
     # --- online ------------------------------------------------------------------------
@@ -668,25 +722,25 @@ class CnnMapDetector:
         body = self._body_accel(block)
         joined = np.concatenate([self._tail, body], axis=0)
         length = self.input_length
+        p = self.whiten
         n_full = joined.shape[0] - length + 1  # windows ending in this block
-        # before the first full window: calibrated mean energy, no sensitivity
+        # before the first whitened residual: calibrated mean energy, no sensitivity
         squared = np.ones((n_samples, m, 3))
         sensitivity = np.zeros((n_samples, m, 3, 3))
         if n_full > 0:
             windows = input_windows(joined, length)
             residual = self._residuals(self._predict(windows), reference[n_samples - n_full :])
             joined_residual = np.concatenate([self._residual_tail, residual], axis=0)
-            differenced = np.diff(joined_residual, n=self.difference, axis=0)
-            n_new = min(differenced.shape[0], n_full)
+            n_new = min(joined_residual.shape[0] - p, n_full)
             if n_new > 0:
-                gains = self._axis_gains(windows[n_full - n_new :])  # (n_new, m, axis, c)
-                variance = self.noise_slope * gains.sum(axis=2) + self.noise_offset
+                whitened = whiten(joined_residual[-(n_new + p) :], self.ar_coefficients)
                 squared[n_samples - n_new :] = (
-                    differenced[-n_new:] - self.residual_mean
-                ) ** 2 / variance
-                # Step 5: S[a, c] = G[a, c] / v_c (normalised energy per added variance)
-                sensitivity[n_samples - n_new :] = gains / variance[:, :, None, :]
-            self._residual_tail = joined_residual[joined_residual.shape[0] - self.difference :]
+                    whitened - self.residual_mean
+                ) ** 2 / self.residual_variance
+                gains = self._axis_gains(windows[n_full - n_new :])  # (n_new, m, axis, c)
+                # Step 6: S[a, c] = G[a, c] / v_c (energy per added variance)
+                sensitivity[n_samples - n_new :] = gains / self.residual_variance
+            self._residual_tail = joined_residual[max(0, joined_residual.shape[0] - p) :]
         self._tail = joined[joined.shape[0] - (length - 1) :]
         stacked = np.concatenate(
             [squared.reshape(n_samples, -1), sensitivity.reshape(n_samples, -1)], axis=1
@@ -695,26 +749,23 @@ class CnnMapDetector:
         means = sums / counts[:, None]
         component = means[:, : m * 3].reshape(n_samples, m, 3)  # (N, m, c)
         window_sensitivity = means[:, m * 3 :].reshape(n_samples, m, 3, 3)  # (N, m, a, c)
-        energy = component.mean(axis=2)  # E_k, (N, m)
-        if self.relative and m >= 3:
-            common = np.median(energy, axis=1, keepdims=True)
-            energy = energy / common
-            component = component / common[:, :, None]
-        best_imu = np.argmax(energy, axis=1)
+        ratio = self._ratio_to_others(component.mean(axis=2))  # R_k, (N, m)
+        best_imu = np.argmax(ratio, axis=1)
         rows = np.arange(n_samples)
-        statistic = energy[rows, best_imu]
+        statistic = ratio[rows, best_imu]
         threshold = self.thresholds[counts - 1]
         alarm = statistic > threshold
-        # Step 5: per-axis least-squares fit of the excess energy with the sensitivities
-        excess = component - 1.0  # (N, m, c)
+        # Step 6: per-axis least-squares fit of the excess component energy ratios
+        excess = self._ratio_to_others(component) - 1.0  # (N, m, c)
         projection = np.einsum("nkc,nkac->nka", excess, window_sensitivity)  # x . S_a
         norm2 = np.einsum("nkac,nkac->nka", window_sensitivity, window_sensitivity)
         safe = np.where(norm2 > 0, norm2, 1.0)
         delta = np.where(norm2 > 0, projection / safe, 0.0)  # added variance, (m/s^2)^2
-        fit = np.where((projection > 0) & (norm2 > 0), projection**2 / safe, 0.0)
         scores = np.full((n_samples, self.n_accel), np.nan)
         scores[:, self.sensor_of.ravel()] = np.sqrt(np.maximum(delta, 0.0)).reshape(n_samples, -1)
-        best_axis = np.argmax(fit[rows, best_imu], axis=1)
+        best_axis = self._episode_axes(
+            alarm, best_imu, projection[rows, best_imu], norm2[rows, best_imu]
+        )
         isolated = np.where(alarm, self.sensor_of[best_imu, best_axis], NO_ISOLATION)
         amplitude = np.where(alarm, statistic, np.nan)
         self._samples_seen += n_samples
@@ -728,6 +779,57 @@ class CnnMapDetector:
                 scores=scores,
             )
         }
+
+    def _episode_axes(
+        self, alarm: np.ndarray, imu: np.ndarray, projection: np.ndarray, norm2: np.ndarray
+    ) -> np.ndarray:
+        """Accelerometer axis of the isolated IMU from the evidence of the whole alarm
+        episode (step 6): ``x . S_a`` and ``|S_a|^2`` are summed over the samples since the
+        alarm on this IMU began, and the axis with the best fit ``(sum x.S_a)^2 /
+        sum |S_a|^2`` (positive sum) is chosen. State carries over blocks.
+
+        Parameters
+        ----------
+        alarm : ndarray, shape (N,), bool
+        imu : ndarray, shape (N,), int
+            Most significant IMU per sample.
+        projection, norm2 : ndarray, shape (N, 3)
+            ``x . S_a`` and ``|S_a|^2`` of that IMU's axes.
+
+        Returns
+        -------
+        ndarray, shape (N,), int: axis per sample (meaningful where ``alarm``).
+        """
+        n = alarm.size
+        previous_alarm = np.concatenate([[self._episode_imu >= 0], alarm[:-1]])
+        previous_imu = np.concatenate([[self._episode_imu], imu[:-1]])
+        starts = alarm & ~(previous_alarm & (previous_imu == imu))
+        segment = np.cumsum(starts)  # 0: the episode carried over from the last block
+        sums = []
+        for values, carried in (
+            (projection, self._episode_sums[0]),
+            (norm2, self._episode_sums[1]),
+        ):
+            masked = np.where(alarm[:, None], values, 0.0)
+            cumulative = np.cumsum(masked, axis=0)
+            base = np.zeros((int(segment[-1]) + 1, 3)) if n else np.zeros((1, 3))
+            base[0] = -carried
+            start_rows = np.flatnonzero(starts)
+            base[1:] = np.where(
+                (start_rows > 0)[:, None], cumulative[np.maximum(start_rows - 1, 0)], 0.0
+            )
+            sums.append(cumulative - base[segment])
+        total_projection, total_norm2 = sums
+        safe = np.where(total_norm2 > 0, total_norm2, 1.0)
+        fit = np.where((total_projection > 0) & (total_norm2 > 0), total_projection**2 / safe, 0.0)
+        if n:
+            if alarm[-1]:
+                self._episode_imu = int(imu[-1])
+                self._episode_sums = (total_projection[-1].copy(), total_norm2[-1].copy())
+            else:
+                self._episode_imu = -1
+                self._episode_sums = (np.zeros(3), np.zeros(3))
+        return np.argmax(fit, axis=1)  # type: ignore[no-any-return]
 
     def flush(self) -> dict[str, DetectionBlock]:
         """Causal detector: nothing is held back."""
@@ -767,9 +869,7 @@ class CnnMapDetector:
             "holdout": self.holdout,
             "seed": self.seed,
             "model": self.model_path,
-            "common_mode": self.common_mode,
-            "difference": self.difference,
-            "relative": self.relative,
+            "whiten": self.whiten,
         }
         out: dict[str, Any] = {"detector": self.name, "params": params}
         if self.mapping is None or self.array is None:
@@ -787,18 +887,21 @@ class CnnMapDetector:
                 "training": mp.training,
                 "model_npz_base64": base64.b64encode(mp.to_npz_bytes()).decode("ascii"),
                 "tested_imus": self.tested.tolist(),
-                "residual_mean_rad_s": self.residual_mean.tolist(),
-                "residual_sigma_rad_s": self.residual_sigma.tolist(),
-                "noise_slope": self.noise_slope.tolist(),
-                "noise_offset_rad2_s2": self.noise_offset.tolist(),
+                "residual_rms_rad_s": self.residual_rms,
+                "ar_coefficients": self.ar_coefficients.tolist(),
+                "whitened_mean_rad_s": self.residual_mean.tolist(),
+                "whitened_variance_rad2_s2": self.residual_variance.tolist(),
                 "gamma_shape": float(self.gamma_shape),
                 "imu_level": float(self.imu_level),
                 "threshold": float(self.thresholds[-1]),
-                "holdout_alarm_rate": self.holdout_far,
+                "calibration_alarm_rate": self.calibration_alarm_rate,
                 "gyro_screening": "glt" if self._glt is not None else "none (< 4 gyros)",
                 "excluded_gyros": list(self.gyro_events),
-                "statistic": "max_k E_k, E_k = windowed mean of (e_kc - mu_kc)^2 / v_kc",
-                "amplitude": "residual energy ratio E_k of the isolated IMU (1 = calibration)",
+                "statistic": (
+                    "max_k R_k, R_k = E_k / mean_(j!=k) E_j, E_k = windowed mean of"
+                    " (z_kc - mu_kc)^2 / v_c, z = AR-whitened mapping residual"
+                ),
+                "amplitude": "energy ratio R_k of the isolated IMU against the other IMUs",
                 "scores": "estimated added noise std per accel axis, m/s^2",
             }
         )

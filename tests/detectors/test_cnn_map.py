@@ -9,7 +9,14 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
-from imufdi_cli.detectors.cnn_map import CnnMapDetector, MappingNetwork, gamma_shape, input_windows
+from imufdi_cli.detectors.cnn_map import (
+    CnnMapDetector,
+    MappingNetwork,
+    fit_autoregression,
+    gamma_shape,
+    input_windows,
+    whiten,
+)
 from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.faults import FaultInjector, parse_fault_spec
 from imufdi_cli.log import iter_blocks
@@ -56,6 +63,62 @@ def test_gamma_shape_of_chi2_means():
     assert_allclose(gamma_shape(energies), 5.0, rtol=0.02)
 
 
+def test_autoregression_fit_and_whitening_recover_an_ar2_process():
+    rng = np.random.default_rng(1)
+    phi = np.array([0.5, -0.3])
+    noise = rng.normal(0.0, 0.2, (20_000, 4))
+    series = np.zeros_like(noise)
+    for t in range(2, series.shape[0]):
+        series[t] = phi[0] * series[t - 1] + phi[1] * series[t - 2] + noise[t]
+    fitted = fit_autoregression(series, 2)
+    assert_allclose(fitted, phi, atol=0.015)
+    residual = np.repeat(series[:, :, None], 3, axis=2)  # (N, m, 3)
+    white = whiten(residual, np.tile(phi, (3, 1)))
+    assert white.shape == (series.shape[0] - 2, 4, 3)
+    assert_allclose(white[:, :, 0], noise[2:], atol=1e-12)
+    assert fit_autoregression(series, 0).shape == (0,)
+    assert_array_equal(whiten(residual, np.zeros((3, 0))), residual)
+
+
+def test_energy_ratio_to_the_other_imus():
+    energy = np.array([[1.0, 1.0, 1.0, 1.0], [4.0, 1.0, 1.0, 1.0], [2.0, 2.0, 2.0, 2.0]])
+    ratio = CnnMapDetector._ratio_to_others(energy)
+    assert_allclose(ratio[0], 1.0)
+    assert_allclose(ratio[1], [4.0, 1.0 / 2.0, 1.0 / 2.0, 1.0 / 2.0])
+    assert_allclose(ratio[2], 1.0)  # a common gain change cancels
+
+
+@pytest.mark.parametrize(("order", "rtol"), [(0, 0.06), (2, 0.3)])
+def test_axis_gains_predict_the_whitened_noise_variance(short_log, order, rtol):
+    """Step 6: added white noise of std eps on one IMU axis raises the variance of the
+    whitened residual by eps^2 G (Monte Carlo). Exact up to the linearisation without
+    whitening; with it, G takes the Jacobian as constant over the p + 1 windows the filter
+    combines, which the tolerance allows for."""
+    array, block = short_log
+    detector = make({**FAST, "whiten": str(order)})
+    t = block.t_s()
+    detector.fit(block.mask(t < 6.0), array)
+    length = detector.input_length
+    all_imus = detector._body_accel(block)[300 : 300 + length + order]  # (L + p, m, 3)
+    rotation = detector.rotations[4]
+    rng = np.random.default_rng(3)
+    eps, axis, draws = 1e-3, 0, 3000
+    noise = eps * rng.standard_normal((draws, length + order, 1)) * rotation[:, axis]
+    noisy = all_imus[:, 4] + noise  # IMU 4
+    windows = np.stack([noisy[:, i : i + length] for i in range(order + 1)], axis=1)
+    predicted = detector._predict(windows)  # (draws, p + 1 windows, 3)
+    white = whiten(predicted, detector.ar_coefficients)[:, -1]  # (draws, 3)
+    last_windows = np.moveaxis(all_imus[order:], 0, 1)[None]  # (1, m, L, 3)
+    gains = detector._axis_gains(last_windows)[0, 4, axis]  # (c,)
+    assert_allclose(white.var(axis=0) / eps**2, gains, rtol=rtol)
+
+
+def test_fewer_than_two_accelerometer_triads_are_rejected():
+    array, block = simulate_block(preset("wearable12", seed=0, duration=4.0, n_imus=1))
+    with pytest.raises(DetectorConfigError, match="at least 2"):
+        make(FAST).fit(block, array)
+
+
 def test_block_size_invariance_and_json_metadata(short_log):
     array, block = short_log
     a = run(make(FAST), array, block, (0.0, 6.0), block_size=97)
@@ -65,8 +128,8 @@ def test_block_size_invariance_and_json_metadata(short_log):
     assert_array_equal(a.alarm, b.alarm)
     assert_array_equal(a.isolated, b.isolated)
     assert a.scores.shape == (len(block), 36)
-    # first L - 1 samples: no full input window, calibrated mean energy
-    assert_allclose(a.statistic[:10], 1.0)
+    # first L - 1 + p samples: no whitened residual, calibrated mean energy (R = 1)
+    assert_allclose(a.statistic[:30], 1.0)
     detector = make(FAST)
     run(detector, array, block, (0.0, 6.0))
     meta = json.loads(json.dumps(detector.metadata()))
@@ -75,6 +138,8 @@ def test_block_size_invariance_and_json_metadata(short_log):
     assert len(training["train_loss"]) == training["epochs_run"] == len(training["holdout_loss"])
     assert training["mae_rad_s"] > 0
     assert meta["gyro_screening"] == "glt"
+    assert np.asarray(meta["ar_coefficients"]).shape == (3, 8)
+    assert meta["threshold"] > 1.0
     assert len(meta["excluded_gyros"]) <= 36 - 3
 
 
@@ -143,15 +208,20 @@ def test_model_trained_at_another_rate_is_rejected(short_log, tmp_path):
 
 
 @pytest.mark.slow
-def test_wearable12_noise_growth_is_detected_on_imu0():
+def test_wearable12_noise_growth_is_detected_and_isolated():
     array, block = wearable12(1)
     out = run(make(), array, block)
     t = block.t_s()
     fault = (t >= 12.0) & (t < 18.0)
-    free = (t >= 10.0) & ~fault
-    assert out.alarm[fault].mean() > 0.8
-    assert out.alarm[free].mean() < 0.1
+    free = (t >= 10.0) & (t < 12.0) | (t >= 18.6)  # after the window has left the fault
     hits = np.flatnonzero(out.alarm & fault)
-    assert t[hits[0]] - 12.0 < 0.5
-    # isolated to an accelerometer of IMU 0 (sensors 0-2) most of the time
-    assert np.isin(out.isolated[out.alarm & fault], [0, 1, 2]).mean() > 0.8
+    assert t[hits[0]] - 12.0 < 0.4  # paper: 0.4 s
+    assert out.alarm[hits[0] : np.flatnonzero(fault)[-1] + 1].mean() > 0.98  # paper: 98.21 %
+    assert out.alarm[free].mean() < 0.02
+    after = np.flatnonzero((t >= 18.0) & ~out.alarm)
+    # paper: 0.5 s; the 0.4 s window still holds faulty samples after the end (20-seed
+    # mean 0.38 s in docs/algorithms/cnn-map.md, this seed 0.5 s)
+    assert t[after[0]] - 18.0 <= 0.55
+    # the faulty sensor, imu0.accel.x (sensor 0), most of the time
+    assert (out.isolated[out.alarm & fault] == 0).mean() > 0.8
+    assert np.nanmedian(out.amplitude[out.alarm & fault]) > 2.0  # energy ratio
