@@ -50,8 +50,9 @@ devices (§2-3): accelerometer noise increase in a 12-IMU array. The paper's met
    whitening kernel ``[1, -phi_1, .., -phi_p]`` convolved along the lags (J is taken as
    constant over p consecutive windows). With the observed excess of each component's
    energy ratio against the other IMUs, ``x_c``, each axis is fitted alone by least
-   squares: ``delta_a = x . S_a / |S_a|^2``, fit ``(x . S_a)^2 / |S_a|^2``. The isolated
-   sensor is the axis with the best fit (``x . S_a > 0``). ``scores`` =
+   squares: ``delta_a = x . S_a / |S_a|^2``. The isolated sensor is the axis with the best
+   fit ``(sum x . S_a)^2 / sum |S_a|^2`` (positive sum), the sums running over the alarm
+   episode on that IMU so far (:meth:`CnnMapDetector._episode_axes`). ``scores`` =
    sqrt(max(delta_a, 0)), the estimated added noise standard deviation of every
    accelerometer axis, m/s^2.
 7. ``statistic`` = max_k R_k; ``amplitude`` = R_k of the isolated IMU, the residual energy
