@@ -143,6 +143,16 @@ def test_block_size_invariance_and_json_metadata(short_log):
     assert len(meta["excluded_gyros"]) <= 36 - 3
 
 
+def test_alarm_episode_isolation_does_not_depend_on_block_size():
+    array, block = wearable12(2, duration=16.0)  # fault from 12 s to the end
+    a = run(make(FAST), array, block, (0.0, 6.0), block_size=37)
+    b = run(make(FAST), array, block, (0.0, 6.0), block_size=1000)
+    fault = block.t_s() >= 12.0
+    assert a.alarm[fault].mean() > 0.5  # episodes cross many block boundaries
+    assert_array_equal(a.alarm, b.alarm)
+    assert_array_equal(a.isolated, b.isolated)
+
+
 def test_training_reduces_the_loss(short_log):
     array, block = short_log
     detector = make({"epochs": "15", "patience": "15"})
