@@ -71,7 +71,7 @@ import base64
 import io
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -81,6 +81,7 @@ from scipy.stats import gamma as gamma_distribution
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
+    ALPHA,
     NO_ISOLATION,
     DetectionBlock,
     Param,
@@ -306,13 +307,8 @@ class CnnMapDetector:
 
     name: ClassVar[str] = "cnn-map"
     PARAMS: ClassVar[dict[str, Param]] = {
-        "alpha": Param(
-            "float",
-            0.001,
-            "false-alarm level per sample over the tested IMUs",
-            low=0.0,
-            high=0.5,
-            low_open=True,
+        "alpha": replace(
+            ALPHA, default=0.001, help="false-alarm level per sample over the tested IMUs"
         ),
         "window": Param("time", 0.4, "residual energy window (e.g. 0.4s)", low=0.0, low_open=True),
         "input_length": Param(

@@ -52,6 +52,7 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -59,6 +60,7 @@ from scipy.stats import f as f_distribution
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
+    ALPHA,
     NO_ISOLATION,
     DetectionBlock,
     Param,
@@ -185,13 +187,8 @@ class NoiseGlrDetector:
 
     name: ClassVar[str] = "noise-glr"
     PARAMS: ClassVar[dict[str, Param]] = {
-        "alpha": Param(
-            "float",
-            0.001,
-            "array-level false-alarm level per sample and sensor type",
-            low=0.0,
-            high=0.5,
-            low_open=True,
+        "alpha": replace(
+            ALPHA, default=0.001, help="array-level false-alarm level per sample and sensor type"
         ),
         "window": Param(
             "time", 0.3, "variance window (e.g. 0.3s)", low=0.0, high=60.0, low_open=True
