@@ -787,7 +787,7 @@ class CnnMapDetector:
 
         Parameters
         ----------
-        alarm : ndarray, shape (N,), bool
+        alarm : ndarray, shape (N,), bool, N >= 1
         imu : ndarray, shape (N,), int
             Most significant IMU per sample.
         projection, norm2 : ndarray, shape (N, 3)
@@ -797,11 +797,11 @@ class CnnMapDetector:
         -------
         ndarray, shape (N,), int: axis per sample (meaningful where ``alarm``).
         """
-        n = alarm.size
         previous_alarm = np.concatenate([[self._episode_imu >= 0], alarm[:-1]])
         previous_imu = np.concatenate([[self._episode_imu], imu[:-1]])
         starts = alarm & ~(previous_alarm & (previous_imu == imu))
         segment = np.cumsum(starts)  # 0: the episode carried over from the last block
+        start_rows = np.flatnonzero(starts)
         sums = []
         for values, carried in (
             (projection, self._episode_sums[0]),
@@ -809,9 +809,8 @@ class CnnMapDetector:
         ):
             masked = np.where(alarm[:, None], values, 0.0)
             cumulative = np.cumsum(masked, axis=0)
-            base = np.zeros((int(segment[-1]) + 1, 3)) if n else np.zeros((1, 3))
+            base = np.empty((start_rows.size + 1, 3))
             base[0] = -carried
-            start_rows = np.flatnonzero(starts)
             base[1:] = np.where(
                 (start_rows > 0)[:, None], cumulative[np.maximum(start_rows - 1, 0)], 0.0
             )
@@ -819,13 +818,12 @@ class CnnMapDetector:
         total_projection, total_norm2 = sums
         safe = np.where(total_norm2 > 0, total_norm2, 1.0)
         fit = np.where((total_projection > 0) & (total_norm2 > 0), total_projection**2 / safe, 0.0)
-        if n:
-            if alarm[-1]:
-                self._episode_imu = int(imu[-1])
-                self._episode_sums = (total_projection[-1].copy(), total_norm2[-1].copy())
-            else:
-                self._episode_imu = -1
-                self._episode_sums = (np.zeros(3), np.zeros(3))
+        if alarm[-1]:
+            self._episode_imu = int(imu[-1])
+            self._episode_sums = (total_projection[-1].copy(), total_norm2[-1].copy())
+        else:
+            self._episode_imu = -1
+            self._episode_sums = (np.zeros(3), np.zeros(3))
         return np.argmax(fit, axis=1)  # type: ignore[no-any-return]
 
     def flush(self) -> dict[str, DetectionBlock]:
