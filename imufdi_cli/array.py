@@ -22,7 +22,7 @@ import json
 import math
 import sys
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -83,6 +83,70 @@ def _parse_axes(value: Any, where: str) -> tuple[str, ...]:
 
 
 @dataclass(frozen=True, eq=False)
+class TriadCalibration:
+    """Per-chip calibration of one sensor triad: ``calibrated = M (raw - b)``.
+
+    ``M`` absorbs scale factors (diagonal), non-orthogonality and a small residual
+    rotation of the chip; ``b`` is the bias in the raw (chip) frame, SI units.
+
+    Attributes
+    ----------
+    matrix : ndarray, shape (3, 3)
+        ``M``, dimensionless; must be finite and well conditioned.
+    bias : ndarray, shape (3,)
+        ``b``, rad/s (gyro), m/s^2 (accel) or tesla (mag).
+    """
+
+    matrix: np.ndarray = field(default_factory=lambda: np.eye(3))
+    bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def apply(self, raw: np.ndarray) -> np.ndarray:
+        """``M (raw - b)`` for triads ``raw`` (..., 3)."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            return (np.asarray(raw, float) - self.bias) @ self.matrix.T
+
+    def undo(self, calibrated: np.ndarray) -> np.ndarray:
+        """The raw triads (..., 3) that :meth:`apply` maps to ``calibrated``."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            return np.asarray(calibrated, float) @ np.linalg.inv(self.matrix).T + self.bias
+
+    @property
+    def is_identity(self) -> bool:
+        return bool(np.array_equal(self.matrix, np.eye(3)) and not np.any(self.bias))
+
+
+#: Largest condition number accepted for a calibration matrix M (a chip whose M is worse
+#: is a typo or a failed fit, not a sensor).
+MAX_CALIBRATION_CONDITION = 1e3
+
+
+def _check_calibration(matrix: Any, bias: Any, where: str, unit: str) -> TriadCalibration:
+    try:
+        m = np.asarray(matrix, dtype=float)
+        b = np.asarray(
+            [parse_quantity(v, unit, name=where) if isinstance(v, str) else v for v in bias]
+            if isinstance(bias, (list, tuple))
+            else bias,
+            dtype=float,
+        )
+    except (TypeError, ValueError, UnitError) as err:
+        raise ArrayConfigError(f"{where}: calibration must be numbers ({err})") from err
+    if m.shape != (3, 3):
+        raise ArrayConfigError(f"{where}: matrix must be 3x3, got shape {m.shape}")
+    if b.shape != (3,):
+        raise ArrayConfigError(f"{where}: bias must be [x, y, z], got shape {b.shape}")
+    if not (np.all(np.isfinite(m)) and np.all(np.isfinite(b))):
+        raise ArrayConfigError(f"{where}: matrix and bias must be finite")
+    cond = np.linalg.cond(m)
+    if not np.isfinite(cond) or cond > MAX_CALIBRATION_CONDITION:
+        raise ArrayConfigError(
+            f"{where}: matrix is singular or nearly so (condition number {cond:.3g},"
+            f" limit {MAX_CALIBRATION_CONDITION:g})"
+        )
+    return TriadCalibration(matrix=m, bias=b)
+
+
+@dataclass(frozen=True, eq=False)
 class ImuSpec:
     """One IMU of the array.
 
@@ -95,6 +159,8 @@ class ImuSpec:
     axes : dict
         Per sensor type (``gyro``, ``accel``, ``mag``) the axes present, e.g. ``("x","y","z")``;
         an empty tuple means the IMU has no such sensor.
+    calibration : dict
+        Per sensor type, the chip's :class:`TriadCalibration` (absent: identity).
     """
 
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
@@ -102,9 +168,14 @@ class ImuSpec:
     axes: Mapping[str, tuple[str, ...]] = field(
         default_factory=lambda: {"gyro": AXES, "accel": AXES, "mag": ()}
     )
+    calibration: Mapping[str, TriadCalibration] = field(default_factory=dict)
 
     def axes_of(self, sensor_type: str) -> tuple[str, ...]:
         return tuple(self.axes.get(sensor_type, ()))
+
+    def calibration_of(self, sensor_type: str) -> TriadCalibration:
+        """The chip calibration of a sensor type (identity when none is given)."""
+        return self.calibration.get(sensor_type) or TriadCalibration()
 
 
 @dataclass(frozen=True, eq=False)
@@ -120,11 +191,15 @@ class ArrayConfig:
     noise : dict
         Nominal white-noise standard deviation per sensor type in SI units (rad/s, m/s^2,
         tesla). Optional; detectors calibrate from data when it is absent.
+    range : dict
+        Measurement range (full scale) per sensor type, SI; samples at or near it are
+        flagged as clipped (:mod:`imufdi_cli.validity`). Optional.
     """
 
     imus: tuple[ImuSpec, ...]
     rate_hz: float = 100.0
     noise: Mapping[str, float] = field(default_factory=dict)
+    range: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if len(self.imus) == 0:
@@ -222,7 +297,7 @@ class ArrayConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON/TOML-ready dict (SI units)."""
-        return {
+        data: dict[str, Any] = {
             "rate_hz": float(self.rate_hz),
             "noise": {k: float(v) for k, v in self.noise.items()},
             "imu": [
@@ -230,17 +305,62 @@ class ArrayConfig:
                     "rotation": np.asarray(imu.rotation, float).tolist(),
                     "position": np.asarray(imu.position, float).tolist(),
                     **{f"{s}_axes": "".join(imu.axes_of(s)) for s in SENSOR_TYPES},
+                    **{
+                        key: value
+                        for s, cal in imu.calibration.items()
+                        for key, value in (
+                            (f"{s}_matrix", np.asarray(cal.matrix, float).tolist()),
+                            (f"{s}_bias", np.asarray(cal.bias, float).tolist()),
+                        )
+                    },
                 }
                 for imu in self.imus
             ],
         }
+        if self.range:
+            data["range"] = {k: float(v) for k, v in self.range.items()}
+        return data
+
+    @property
+    def calibrated(self) -> bool:
+        """Whether any IMU carries a non-identity chip calibration."""
+        return any(not c.is_identity for imu in self.imus for c in imu.calibration.values())
+
+    def with_calibration(
+        self, calibration: Sequence[Mapping[str, TriadCalibration]] | None
+    ) -> ArrayConfig:
+        """This geometry with the per-IMU calibrations replaced (None: removed)."""
+        cals = calibration or [{} for _ in self.imus]
+        if len(cals) != self.n_imus:
+            raise ArrayConfigError(
+                f"{len(cals)} calibrations given for an array of {self.n_imus} IMUs"
+            )
+        imus = tuple(replace(imu, calibration=dict(c)) for imu, c in zip(self.imus, cals))
+        return replace(self, imus=imus)
+
+    def check_matches(self, log_array: ArrayConfig) -> ArrayConfig:
+        """This config (``--array FILE``) checked against a log's: same IMU count and
+        every sensor type of the log present. Returns self."""
+        if self.n_imus != log_array.n_imus:
+            raise ArrayConfigError(
+                f"--array describes {self.n_imus} IMUs but the log has {log_array.n_imus}"
+            )
+        for s in log_array.sensor_types():
+            if not self.has(s):
+                raise ArrayConfigError(f"--array has no {s} axes but the log has {s} data")
+        return self
+
+    def with_range(self, ranges: Mapping[str, float]) -> ArrayConfig:
+        """This array with the measurement ranges of ``ranges`` added where none is set."""
+        merged = {**{k: float(v) for k, v in ranges.items()}, **dict(self.range)}
+        return replace(self, range=merged)
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], *, source: str = "array config") -> ArrayConfig:
         """Build from the dict form (TOML or JSON); quantities may carry units."""
         if not isinstance(data, Mapping):
             raise ArrayConfigError(f"{source}: expected a table at the top level")
-        known = {"rate_hz", "rate", "noise", "imu"}
+        known = {"rate_hz", "rate", "noise", "imu", "range"}
         for key in data:
             if key not in known:
                 raise ArrayConfigError(
@@ -265,13 +385,34 @@ class ArrayConfig:
                 noise[key] = parse_quantity(
                     value, sensor_dimension(key), name=f"{source}: noise.{key}"
                 )
+            range_raw = data.get("range", {})
+            if not isinstance(range_raw, Mapping):
+                raise ArrayConfigError(
+                    f"{source}: range must be a table like {{gyro = '2000deg/s', accel = '16g'}}"
+                )
+            ranges: dict[str, float] = {}
+            for key, value in range_raw.items():
+                if key not in SENSOR_TYPES:
+                    raise ArrayConfigError(
+                        f"{source}: range.{key}: unknown sensor type; valid: gyro, accel, mag"
+                    )
+                ranges[key] = parse_quantity(
+                    value, sensor_dimension(key), name=f"{source}: range.{key}"
+                )
+                if not (math.isfinite(ranges[key]) and ranges[key] > 0):
+                    raise ArrayConfigError(f"{source}: range.{key} must be positive and finite")
         except UnitError as err:
             raise ArrayConfigError(str(err)) from err
         imus_raw = data.get("imu")
         if not isinstance(imus_raw, list) or not imus_raw:
             raise ArrayConfigError(f"{source}: needs at least one [[imu]] table")
         imus = []
-        imu_keys = {"rotation", "quaternion", "position", *(f"{s}_axes" for s in SENSOR_TYPES)}
+        imu_keys = {
+            "rotation",
+            "quaternion",
+            "position",
+            *(f"{s}_{key}" for s in SENSOR_TYPES for key in ("axes", "matrix", "bias")),
+        }
         for k, item in enumerate(imus_raw):
             where = f"{source}: imu[{k}]"
             if not isinstance(item, Mapping):
@@ -300,10 +441,24 @@ class ArrayConfig:
                 s: _parse_axes(item.get(f"{s}_axes", "xyz" if s != "mag" else ""), where)
                 for s in SENSOR_TYPES
             }
+            calibration = {}
+            for s in SENSOR_TYPES:
+                if f"{s}_matrix" in item or f"{s}_bias" in item:
+                    calibration[s] = _check_calibration(
+                        item.get(f"{s}_matrix", np.eye(3).tolist()),
+                        item.get(f"{s}_bias", [0.0, 0.0, 0.0]),
+                        f"{source}: imu{k} {s} calibration",
+                        sensor_dimension(s),
+                    )
             imus.append(
-                ImuSpec(rotation=_check_rotation(rotation, where), position=position, axes=axes)
+                ImuSpec(
+                    rotation=_check_rotation(rotation, where),
+                    position=position,
+                    axes=axes,
+                    calibration=calibration,
+                )
             )
-        return cls(imus=tuple(imus), rate_hz=rate, noise=noise)
+        return cls(imus=tuple(imus), rate_hz=rate, noise=noise, range=ranges)
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), separators=(",", ":"))
@@ -323,7 +478,11 @@ class ArrayConfig:
             lines.append("[noise]  # white-noise sigma, SI (rad/s, m/s^2, T)")
             lines += [f"{k} = {float(v)!r}" for k, v in self.noise.items()]
             lines.append("")
-        for imu in self.imus:
+        if self.range:
+            lines.append("[range]  # full scale, SI (rad/s, m/s^2, T): samples near it are clipped")
+            lines += [f"{k} = {float(v)!r}" for k, v in self.range.items()]
+            lines.append("")
+        for k, imu in enumerate(self.imus):
             rot = ", ".join(
                 "[" + ", ".join(repr(float(v)) for v in row) + "]"
                 for row in np.asarray(imu.rotation)
@@ -335,6 +494,16 @@ class ArrayConfig:
                 f"position = [{pos}]  # m, body frame",
             ]
             lines += [f'{s}_axes = "{"".join(imu.axes_of(s))}"' for s in SENSOR_TYPES]
+            for s, cal in imu.calibration.items():
+                mat = ", ".join(
+                    "[" + ", ".join(repr(float(v)) for v in row) + "]"
+                    for row in np.asarray(cal.matrix)
+                )
+                bias = ", ".join(repr(float(v)) for v in np.asarray(cal.bias))
+                lines += [
+                    f"{s}_matrix = [{mat}]  # imu{k}: calibrated = M (raw - b)",
+                    f"{s}_bias = [{bias}]  # SI, chip frame",
+                ]
             lines.append("")
         return "\n".join(lines)
 
@@ -359,7 +528,12 @@ class ArrayConfig:
 
     def with_imus(self, n_imus: int) -> ArrayConfig:
         """The first ``n_imus`` IMUs of this array (used when a log has fewer topics)."""
-        return ArrayConfig(imus=self.imus[:n_imus], rate_hz=self.rate_hz, noise=dict(self.noise))
+        return ArrayConfig(
+            imus=self.imus[:n_imus],
+            rate_hz=self.rate_hz,
+            noise=dict(self.noise),
+            range=dict(self.range),
+        )
 
 
 def _check_type(sensor_type: str) -> None:

@@ -59,6 +59,20 @@ def _warn(console: Console, warnings: Sequence[str]) -> None:
         console.print(f"[yellow]warning:[/] {warning}", markup=True)
 
 
+def _start_end(start: str | None, end: str | None) -> tuple[float, float | None] | None:
+    """``--start``/``--end`` as a window (seconds from the first sample), or None."""
+    from imufdi_cli.errors import UsageError
+    from imufdi_cli.units import parse_quantity
+
+    if start is None and end is None:
+        return None
+    start_s = parse_quantity(start, "time", name="--start") if start is not None else 0.0
+    end_s = parse_quantity(end, "time", name="--end") if end is not None else None
+    if start_s < 0 or (end_s is not None and end_s <= start_s):
+        raise UsageError(f"--start {start!r} / --end {end!r}: need 0 <= START < END")
+    return start_s, end_s
+
+
 def _time_range(text: str | None, name: str) -> tuple[float, float | None] | None:
     from imufdi_cli.units import parse_time_range
 
@@ -374,6 +388,13 @@ def inject(
 )
 @click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
 @click.option("--strict", is_flag=True, help="A truncated input is an error instead of a warning.")
+@click.option(
+    "--array",
+    "array_path",
+    help="ArrayConfig TOML (geometry, per-IMU calibration, range) replacing the log's.",
+)
+@click.option("--start", help="Test samples from this time, seconds from the log start (e.g. 30s).")
+@click.option("--end", help="Test samples before this time, seconds from the log start.")
 def detect(
     source: str,
     output: str | None,
@@ -382,6 +403,9 @@ def detect(
     calibrate: str,
     topics: tuple[str, ...],
     strict: bool,
+    array_path: str | None,
+    start: str | None,
+    end: str | None,
 ) -> None:
     """Run detectors and write an annotated MCAP (status channels, alarm events).
 
@@ -391,7 +415,9 @@ def detect(
     \b
         imufdi detect faulty.mcap -d glt -d woa-mvmd-glt --param glt.alpha=0.001 -o out.mcap
         imufdi detect - -d glt -o - < faulty.mcap | imufdi report -
+        imufdi detect real.mcap -d glt --array array.toml --calibrate 0s:10s --start 10s -o out.mcap
     """
+    from imufdi_cli.array import ArrayConfig
     from imufdi_cli.detect import detect_file, parse_detector_params
     from imufdi_cli.fileio import check_input, check_output, default_output
 
@@ -399,10 +425,19 @@ def detect(
     grouped = parse_detector_params(detectors, params)
     window = _time_range(calibrate, "--calibrate")
     assert window is not None
+    tested = _start_end(start, end)
+    array = ArrayConfig.load(array_path) if array_path else None
     output = output or default_output(source, "detect")
     check_output(source, output)
     result = detect_file(
-        source, output, grouped, calibrate=window, topics=list(topics) or None, strict=strict
+        source,
+        output,
+        grouped,
+        calibrate=window,
+        topics=list(topics) or None,
+        strict=strict,
+        array=array,
+        window=tested,
     )
     console = _console(output != "-")
     table = Table(title=f"detect: {result.samples} samples, {result.duration_s:.3g} s -> {output}")
@@ -419,6 +454,12 @@ def detect(
                 ", ".join(f"{k} ({v})" for k, v in top) or "-",
             )
     console.print(table)
+    for sensor_type, counts in result.validity.items():
+        if counts["clipped"] or counts["invalid"]:
+            console.print(
+                f"{sensor_type}: {counts['clipped']} clipped and {counts['invalid']} invalid"
+                f" samples excluded from the tests ({counts['held']} without consensus)"
+            )
     _warn(console, result.warnings)
 
 
@@ -440,6 +481,8 @@ def detect(
     show_default=True,
     help="Detection delay counts the first alarm lasting this many samples.",
 )
+@click.option("--start", help="Score samples from this time, seconds from the log start.")
+@click.option("--end", help="Score samples before this time, seconds from the log start.")
 def report(
     log: str,
     json_out: str | None,
@@ -449,6 +492,8 @@ def report(
     plot_out: str | None,
     gates: tuple[str, ...],
     persist: int,
+    start: str | None,
+    end: str | None,
 ) -> None:
     """Metrics per detector and sensor type: FAR, MAR, accuracy, FIR, delays.
 
@@ -465,7 +510,7 @@ def report(
 
     check_input(log)
     parsed = [rep.parse_gate(g, DETECTORS) for g in gates]  # bad gates fail before reading
-    result = rep.build_report(log, persist=persist)
+    result = rep.build_report(log, persist=persist, window=_start_end(start, end))
     gate_results = rep.evaluate_gates(result, parsed)
     stdout_taken = "-" in (json_out, md_out, csv_out, junit_out)
     console = _console(not stdout_taken)
@@ -503,6 +548,101 @@ def report(
             + "; ".join(r.target for r in failed)
         )
         sys.exit(EXIT_GATE_FAILED)
+
+
+# --- calibrate -------------------------------------------------------------------------
+
+
+@cli.command()
+@click.argument("source", metavar="IN")
+@click.option("-o", "--output", required=True, help="ArrayConfig TOML to write, - for stdout.")
+@click.option("--start", help="Use samples from this time, seconds from the log start.")
+@click.option("--end", help="Use samples before this time, seconds from the log start.")
+@click.option("--array", "array_path", help="Base ArrayConfig TOML (geometry); default: the log's.")
+@click.option(
+    "--gravity", default="9.80665m/s^2", show_default=True, help="|f| at rest (local gravity)."
+)
+@click.option(
+    "--min-static", default="5s", show_default=True, help="Shortest static interval used."
+)
+@click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON.")
+def calibrate(
+    source: str,
+    output: str,
+    start: str | None,
+    end: str | None,
+    array_path: str | None,
+    gravity: str,
+    min_static: str,
+    topics: tuple[str, ...],
+    as_json: bool,
+) -> None:
+    """Per-IMU calibration (M, b of every triad) from static orientations and motion.
+
+    Finds the static intervals, groups them by orientation, fits each accelerometer so
+    all triads agree and |f| = g, each gyro bias at rest and its matrix from motion
+    relative to the array consensus; writes the ArrayConfig with the calibration for
+    `ingest --array` / `detect --array` (docs/real-arrays.md).
+
+    Example:
+
+
+    \b
+        imufdi calibrate board.mcap --array board.toml -o board-calibrated.toml
+        imufdi detect other.mcap -d glt --array board-calibrated.toml --calibrate 0s:10s -o out.mcap
+    """
+    from imufdi_cli.array import ArrayConfig
+    from imufdi_cli.calibrate import calibrate_file
+    from imufdi_cli.fileio import check_input, check_output, write_text
+    from imufdi_cli.units import parse_quantity
+
+    check_input(source)
+    check_output(source, output)
+    window = _start_end(start, end)
+    base = ArrayConfig.load(array_path) if array_path else None
+    result = calibrate_file(
+        source,
+        window=window,
+        base=base,
+        gravity=parse_quantity(gravity, "acceleration", name="--gravity"),
+        min_static_s=parse_quantity(min_static, "time", name="--min-static"),
+        topics=list(topics) or None,
+    )
+    write_text(output, result.array.to_toml())
+    console = _console(output != "-")
+    if as_json:
+        console.print_json(json.dumps(result.to_dict()))
+        _warn(console, result.warnings)
+        return
+    places = ", ".join(f"{i.start_s:.0f}-{i.end_s:.0f}s" for i in result.intervals)
+    console.print(
+        f"{len(result.intervals)} static intervals ({result.static_s:.0f} s: {places}),"
+        f" {result.orientations} orientations, direction coverage {result.coverage:.2f};"
+        f" motion {result.motion_s:.0f} s; {result.clipped_rows} clipped/invalid rows unused"
+    )
+    table = Table(title=f"calibrate: {source} -> {output}")
+    for col in ("imu", "sensor", "scale ppm (x y z)", "misalign. mrad", "bias (x y z)"):
+        table.add_column(col)
+    for f in result.figures:
+        unit, factor = ("deg/s", 57.29577951308232) if f.sensor_type == "gyro" else ("m/s^2", 1.0)
+        table.add_row(
+            f"imu{f.imu}",
+            f.sensor_type,
+            " ".join(f"{v:+.0f}" for v in f.scale_ppm),
+            f"{f.misalignment_mrad:.2f}",
+            " ".join(f"{v * factor:+.4f}" for v in f.bias) + f" {unit}",
+        )
+    console.print(table)
+    for sensor_type, (before, after) in result.residual_rms.items():
+        where = "at rest (interval means)" if sensor_type == "accel" else "in motion"
+        unit, factor = ("deg/s", 57.29577951308232) if sensor_type == "gyro" else ("m/s^2", 1.0)
+        console.print(
+            f"{sensor_type}: RMS between triads {where}: {before * factor:.4g} -> "
+            f"{after * factor:.4g} {unit}"
+        )
+    console.print(f"runtime {result.runtime_s:.2f} s")
+    _warn(console, result.warnings)
 
 
 # --- tune ------------------------------------------------------------------------------

@@ -32,10 +32,13 @@ from imufdi_cli.mcapio import (
     encode_status,
     register_status_channel,
 )
+from imufdi_cli.validity import Conditioner
 
 NS_PER_S = 1_000_000_000
 EVENTS_TOPIC = "/imufdi/events"
 DEFAULT_CALIBRATION = (0.0, 2.0)
+#: Per sensor type, (clipped, invalid) masks of shape (N, m, 3) (imufdi_cli.validity).
+Flags = dict[str, tuple[np.ndarray, np.ndarray]]
 
 
 def parse_detector_params(
@@ -97,6 +100,7 @@ class DetectResult:
     summaries: dict[str, dict[str, TypeSummary]]
     alignment: Any
     warnings: list[str]
+    validity: dict[str, Any] = field(default_factory=dict)  # per type: clipped, invalid, ...
 
 
 class ChannelCopier:
@@ -206,6 +210,8 @@ def detect_file(
     topics: Sequence[str] | None = None,
     strict: bool = False,
     compression: str = "zstd",
+    array: ArrayConfig | None = None,
+    window: tuple[float, float | None] | None = None,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -218,6 +224,13 @@ def detect_file(
         Fault-free calibration window, seconds from the first aligned sample.
     topics : sequence of str, optional
         Imu topics to use, in array order (default: all, natural order).
+    array : ArrayConfig, optional
+        Geometry and chip calibration to test with, instead of the log's ``imufdi.array``
+        (``detect --array``); its calibration replaces the log's (see
+        :mod:`imufdi_cli.validity`).
+    window : (start_s, end_s or None), optional
+        Samples tested (seconds from the first aligned sample); the others get no status.
+        The calibration window is taken from the whole log either way.
 
     Returns
     -------
@@ -226,14 +239,17 @@ def detect_file(
     instances = [make_detector(name, dict(params)) for name, params in detectors]
     cal_start_s, cal_end_s = calibrate
     reader = ImuArrayReader(source, topics=topics, strict=strict)
-    array = reader.array
+    log_array = reader.array
+    array = log_array if array is None else array.check_matches(log_array)
+    conditioner = Conditioner(log_array, array)
+    test_start_s, test_end_s = window if window is not None else (0.0, None)
     tracks = [_Track(det, array) for det in instances]
     warnings: list[str] = []
     n_samples = 0
     t_first: int | None = None
     t_last = 0
-    calibration: list[ImuBlock] = []
-    backlog: list[ImuBlock] = []
+    calibration: list[tuple[ImuBlock, Flags]] = []
+    backlog: list[tuple[ImuBlock, Flags]] = []
     fitted = False
     cal_samples = 0
 
@@ -301,26 +317,30 @@ def detect_file(
                         summary.events += 1
                     writer.add_json(events_channel, log_time, event)
 
-        def run(block: ImuBlock) -> None:
+        def run(block: ImuBlock, flags: Flags) -> None:
+            block = conditioner.sanitize(block, flags)
             for track in tracks:
                 track.pending.append(block.t_ns)
                 emit(track, track.detector.process(block))
 
         def fit() -> None:
             nonlocal fitted, cal_samples
-            whole = ImuBlock.concatenate(calibration)
+            whole = ImuBlock.concatenate(b for b, _ in calibration)
+            whole_flags = _concat_flags([f for _, f in calibration])
             cal_samples = len(whole)
             if cal_samples == 0:
                 raise CalibrationError(
                     f"calibration window {cal_start_s:g}s:{'' if cal_end_s is None else f'{cal_end_s:g}s'}"
                     " holds no samples; choose one inside the log with --calibrate START:END"
                 )
+            conditioner.fit(whole, whole_flags)
+            whole = conditioner.sanitize(whole, whole_flags, count=False)
             for track in tracks:
                 track.detector.fit(whole, array)
             fitted = True
             calibration.clear()
-            for pending in backlog:
-                run(pending)
+            for pending, pending_flags in backlog:
+                run(pending, pending_flags)
             backlog.clear()
 
         for batch, block in reader.stream():
@@ -329,18 +349,27 @@ def detect_file(
                 continue
             if t_first is None:
                 t_first = int(block.t_ns[0])
-            n_samples += len(block)
             t_last = int(block.t_ns[-1])
-            if fitted:
-                run(block)
-                continue
+            block, flags = conditioner.prepare(block)
             rel = (block.t_ns - t_first) / NS_PER_S
+            tested = rel >= test_start_s
+            if test_end_s is not None:
+                tested &= rel < test_end_s
+            test_block, test_flags = block, flags
+            if not tested.all():
+                test_block, test_flags = block.mask(tested), _mask_flags(flags, tested)
+            n_samples += len(test_block)
+            if fitted:
+                if len(test_block):
+                    run(test_block, test_flags)
+                continue
             inside = rel >= cal_start_s
             if cal_end_s is not None:
                 inside &= rel < cal_end_s
             if inside.any():
-                calibration.append(block.mask(inside).copy())
-            backlog.append(block.copy())
+                calibration.append((block.mask(inside).copy(), _mask_flags(flags, inside)))
+            if len(test_block):
+                backlog.append((test_block.copy(), test_flags))
             if cal_end_s is not None and rel[-1] >= cal_end_s:
                 fit()
         if not fitted:
@@ -363,7 +392,13 @@ def detect_file(
                 "calibration_s": [cal_start_s, cal_end_s],
                 "calibration_samples": cal_samples,
                 "detector_metadata": track.detector.metadata(),
+                "t0_ns": t_first,
+                "window_s": [test_start_s, test_end_s],
+                "array_source": "log" if array is log_array else "--array",
+                "validity": conditioner.metadata(),
             }
+            if array is not log_array:
+                record["array"] = array.to_dict()
             writer.add_metadata(
                 f"imufdi.detect.{track.detector.name}",
                 {"json": json.dumps(record, default=_json_default)},
@@ -387,6 +422,7 @@ def detect_file(
         summaries={t.detector.name: t.summary for t in tracks},
         alignment=reader.stats,
         warnings=warnings,
+        validity={s: c.to_dict() for s, c in conditioner.counts.items()},
     )
 
 
@@ -400,3 +436,19 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, (np.bool_,)):
         return bool(value)
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _mask_flags(flags: Flags, keep: np.ndarray) -> Flags:
+    return {s: (c[keep], i[keep]) for s, (c, i) in flags.items()}
+
+
+def _concat_flags(parts: Sequence[Flags]) -> Flags:
+    if not parts:
+        return {}
+    return {
+        s: (
+            np.concatenate([p[s][0] for p in parts]),
+            np.concatenate([p[s][1] for p in parts]),
+        )
+        for s in parts[0]
+    }

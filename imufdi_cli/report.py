@@ -47,6 +47,7 @@ class ReportEntry:
     alarm: np.ndarray = field(repr=False)
     scores: np.ndarray = field(repr=False)
     faulty: np.ndarray = field(repr=False)
+    validity: dict[str, int] = field(default_factory=dict)  # clipped, invalid, excluded
 
 
 @dataclass
@@ -111,7 +112,12 @@ def truth_windows(metadata: dict[str, dict[str, str]]) -> Truth | None:
     return Truth(windows=windows, descriptions=descriptions)
 
 
-def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
+def build_report(
+    source: str | BinaryIO,
+    *,
+    persist: int = 1,
+    window: tuple[float, float | None] | None = None,
+) -> Report:
     """Compute the report of an annotated log.
 
     Parameters
@@ -120,8 +126,13 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
         An MCAP written by ``imufdi detect``.
     persist : int
         Detection delays count the first alarm persisting this many samples.
+    window : (start_s, end_s or None), optional
+        Score only samples in this range (seconds from the log's first sample). Samples
+        ``detect`` excluded as clipped or invalid are never scored
+        (:func:`imufdi_cli.validity.select_rows`).
     """
     from imufdi_cli.mcapio import McapSource, read_status
+    from imufdi_cli.validity import select_rows
 
     name = source if isinstance(source, str) else "<stream>"
     # one pass: read_status streams every batch, so the source's metadata (wherever the
@@ -146,6 +157,16 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
     t0_ns = min(t0_candidates) if t0_candidates else 0
     entries = []
     for (detector, sensor_type), arrays in sorted(status.items()):
+        selection = select_rows(
+            arrays.t_ns, _detect_record(metadata, detector), sensor_type, window
+        )
+        if not selection.keep.all():
+            arrays = _select_status(arrays, selection.keep)
+        if selection.excluded:
+            notes.append(
+                f"{detector}.{sensor_type}: {selection.excluded} samples not scored"
+                f" ({selection.clipped} clipped, {selection.invalid} invalid in the tested range)"
+            )
         ids = list(arrays.sensor_ids)
         windows: list[FaultWindow] = []
         if truth is not None:
@@ -182,6 +203,11 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
                 alarm=arrays.alarm,
                 scores=arrays.scores,
                 faulty=faulty,
+                validity={
+                    "clipped": selection.clipped,
+                    "invalid": selection.invalid,
+                    "excluded": selection.excluded,
+                },
             )
         )
     return Report(
@@ -191,6 +217,31 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
         entries=entries,
         notes=notes,
         t0_ns=t0_ns,
+    )
+
+
+def _detect_record(metadata: dict[str, dict[str, str]], detector: str) -> dict[str, Any] | None:
+    try:
+        record = json.loads(metadata[f"imufdi.detect.{detector}"]["json"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def _select_status(arrays: Any, keep: np.ndarray) -> Any:
+    """Status rows where ``keep`` is true (same type as the reader's StatusArrays)."""
+    from dataclasses import replace
+
+    return replace(
+        arrays,
+        t_ns=arrays.t_ns[keep],
+        statistic=arrays.statistic[keep],
+        threshold=arrays.threshold[keep],
+        alarm=arrays.alarm[keep],
+        isolated=arrays.isolated[keep],
+        amplitude=arrays.amplitude[keep],
+        scores=arrays.scores[keep],
+        isolated_set=None if arrays.isolated_set is None else arrays.isolated_set[keep],
     )
 
 
@@ -338,7 +389,12 @@ def to_json(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
         "has_truth": report.has_truth,
         "faults": report.faults,
         "results": [
-            {"detector": e.detector, "sensor_type": e.sensor_type, **e.metrics.to_dict()}
+            {
+                "detector": e.detector,
+                "sensor_type": e.sensor_type,
+                **e.metrics.to_dict(),
+                **e.validity,
+            }
             for e in report.entries
         ],
         "gates": [

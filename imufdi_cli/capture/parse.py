@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import sys
@@ -14,10 +15,12 @@ import numpy as np
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.capture.binary import iter_binary_blocks
 from imufdi_cli.capture.csvcap import iter_csv_blocks
+from imufdi_cli.capture.fullscale import layout_ranges
 from imufdi_cli.capture.layout import Layout
 from imufdi_cli.capture.stats import IngestStats
 from imufdi_cli.errors import CaptureError, ImufdiError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.validity import apply_calibration
 
 #: default bytes read per round
 DEFAULT_CHUNK_SIZE = 1 << 20
@@ -147,6 +150,9 @@ def ingest(
     layout : Layout
     array : ArrayConfig or None
         Default: co-aligned, the IMU count of the frames, the rate from the timestamps.
+        Its per-IMU calibration, if any, is applied to the samples (``M (raw - b)``) and
+        recorded with it in ``imufdi.array``; its ``range`` defaults to the layout's full
+        scale (:func:`~imufdi_cli.capture.fullscale.layout_ranges`).
     rate_hz, strict, chunk_size
         As in :func:`parse_capture`.
     compression : str
@@ -179,6 +185,10 @@ def ingest(
         raise CaptureError(
             f"the capture has {first.n_imus} IMUs per sample, the array config {array.n_imus}"
         )
+    array = array.with_range(layout_ranges(layout))  # full scale, for the clipping flags
+    if array.calibrated:
+        blocks = (apply_calibration(b, array) for b in itertools.chain([first], blocks))
+        first = next(blocks)
     writer_options: dict[str, Any] = {"compression": compression}
     try:
         target = Path(output) if isinstance(output, os.PathLike) else output

@@ -1,0 +1,460 @@
+"""``imufdi calibrate``: per-chip calibration of an IMU array from its own log.
+
+Parity-space detection needs the IMUs of an array to agree with each other, not with
+truth. This module estimates, for every triad, ``calibrated = M (raw - b)``
+(:class:`~imufdi_cli.array.TriadCalibration`) from a log with static intervals in several
+orientations (and some motion for the gyro matrices):
+
+**Static intervals** are found automatically: the moving standard deviation (1 s window)
+of the array-mean specific force and angular rate in the body frame stays under three
+times its own 10th percentile (the noise floor), with absolute caps, for at least
+``min_static`` seconds; one second is trimmed at each end. Intervals whose gravity
+directions lie within 10 degrees are one orientation; the *coverage* of directions is
+``3 lambda_min`` of the mean ``u u^T`` over orientations (1: isotropic, 0: coplanar).
+
+**Accelerometers** — multi-position calibration (Skog & Händel, "Calibration of a MEMS
+inertial measurement unit", IMEKO XVIII, 2006; Tedaldi, Pretto & Menegatti, "A robust and
+easy to implement method for IMU calibration without external equipments", ICRA 2014,
+eq. 10-11, there with one triad against ``|f| = g``), here jointly for all triads as in
+the array self-calibration of Carlsson, Skog & Jaldén (IEEE Sensors J. 21(6), 2021): at
+rest in orientation ``i`` every triad measures the same specific force ``f_i`` with
+``|f_i| = g``::
+
+    R_k M_k (a_ki - b_k) = f_i          for every triad k and orientation i
+
+solved by alternating least squares: given the ``M, b``, ``f_i = g normalize(mean_k R_k
+M_k (a_ki - b_k))``; given the ``f_i``, each triad's ``[M_k | -M_k b_k]`` is a linear least
+squares problem (12 unknowns, 3 equations per orientation: needs >= 4 non-coplanar
+orientations; fewer give biases only). The common rotation of all triads is not
+observable at rest: it is fixed so that the triads' mean rotation is the nominal one
+(polar factor of ``mean_k R_k M_k R_k^T``).
+
+**Gyroscopes** — bias ``b_k`` = mean raw rate over the static intervals; ``M_k`` from the
+motion samples (not static, not clipped) relative to the array consensus ``w = mean_k R_k
+M_k (w_k - b_k)``, by alternating least squares again, with the gauge ``mean_k R_k M_k
+R_k^T = I`` (the array's mean scale and axes stay nominal: agreement, not truth). Without
+motion on every axis (RMS consensus rate under :data:`MIN_MOTION_RATE`) only biases are
+estimated, with a warning.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.array import ArrayConfig, TriadCalibration
+from imufdi_cli.errors import CalibrationError
+from imufdi_cli.log import ImuBlock
+from imufdi_cli.validity import flag_values
+
+STANDARD_GRAVITY = 9.80665  # m/s^2
+#: Static detection: window (s), noise-floor multiple and absolute caps (SI).
+STATIC_WINDOW_S = 1.0
+STATIC_FLOOR_FACTOR = 3.0
+STATIC_CAP = {"accel": 0.3, "gyro": np.radians(3.0)}
+#: Two static intervals are the same orientation when their gravity directions are closer.
+SAME_ORIENTATION_RAD = np.radians(10.0)
+#: Below this many distinct orientations the accelerometer matrices are not estimated.
+MIN_ORIENTATIONS_MATRIX = 4
+#: Warn below this many orientations or this coverage.
+GOOD_ORIENTATIONS = 9
+GOOD_COVERAGE = 0.3
+#: RMS consensus rate needed on every body axis to estimate the gyro matrices (rad/s).
+MIN_MOTION_RATE = np.radians(20.0)
+ALS_ITERATIONS = 30
+
+
+@dataclass
+class StaticInterval:
+    start_s: float
+    end_s: float
+    direction: np.ndarray  # unit gravity-opposite direction (specific force), body frame
+    orientation: int = -1
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "start_s": round(self.start_s, 3),
+            "end_s": round(self.end_s, 3),
+            "direction": [round(float(v), 4) for v in self.direction],
+            "orientation": self.orientation,
+        }
+
+
+@dataclass
+class TriadFigures:
+    """Printable figures of one triad's calibration."""
+
+    imu: int
+    sensor_type: str
+    scale_ppm: list[float]  # (M_aa - 1) * 1e6
+    misalignment_mrad: float  # largest |off-diagonal| of M, mrad
+    bias: list[float]  # SI
+
+
+@dataclass
+class CalibrationResult:
+    """What ``imufdi calibrate`` estimated and measured."""
+
+    array: ArrayConfig
+    intervals: list[StaticInterval]
+    orientations: int
+    coverage: float
+    static_s: float
+    motion_s: float
+    clipped_rows: int
+    figures: list[TriadFigures]
+    residual_rms: dict[str, tuple[float, float]]  # type -> (before, after), SI
+    warnings: list[str] = field(default_factory=list)
+    runtime_s: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "intervals": [i.to_dict() for i in self.intervals],
+            "orientations": self.orientations,
+            "coverage": self.coverage,
+            "static_s": self.static_s,
+            "motion_s": self.motion_s,
+            "clipped_rows": self.clipped_rows,
+            "residual_rms": {k: list(v) for k, v in self.residual_rms.items()},
+            "triads": [f.__dict__ for f in self.figures],
+            "warnings": self.warnings,
+        }
+
+
+# --- static intervals ------------------------------------------------------------------
+
+
+def _moving_std(x: np.ndarray, w: int) -> np.ndarray:
+    """Centred moving standard deviation (N,) of the rows of x (N, 3), summed over axes."""
+    n = x.shape[0]
+    w = max(2, min(w, n))
+    c1 = np.concatenate([np.zeros((1, 3)), np.cumsum(x, axis=0)])
+    c2 = np.concatenate([np.zeros((1, 3)), np.cumsum(x * x, axis=0)])
+    lo = np.clip(np.arange(n) - w // 2, 0, n - w)
+    hi = lo + w
+    mean = (c1[hi] - c1[lo]) / w
+    var = (c2[hi] - c2[lo]) / w - mean * mean
+    return np.sqrt(np.maximum(var, 0.0).sum(axis=1))
+
+
+def body_consensus(array: ArrayConfig, triads: np.ndarray) -> np.ndarray:
+    """Mean over IMUs of ``R_k x_k``: (N, m, 3) -> (N, 3) in the body frame."""
+    return np.einsum("kij,nkj->ni", array.rotations(), triads) / triads.shape[1]
+
+
+def find_static(
+    array: ArrayConfig,
+    accel: np.ndarray,
+    gyro: np.ndarray | None,
+    t_s: np.ndarray,
+    usable: np.ndarray,
+    *,
+    min_static_s: float = 5.0,
+) -> tuple[list[StaticInterval], np.ndarray]:
+    """Static intervals (and their row mask) of raw accel (N, m, 3), gyro (N, m, 3)."""
+    rate = array.rate_hz
+    w = max(3, round(STATIC_WINDOW_S * rate))
+    still = usable.copy()
+    for name, data in (("accel", accel), ("gyro", gyro)):
+        if data is None:
+            continue
+        consensus = body_consensus(array, np.where(usable[:, None, None], data, 0.0))
+        spread = _moving_std(consensus, w)
+        floor = float(np.percentile(spread[usable], 10)) if usable.any() else 0.0
+        still &= spread < min(STATIC_CAP[name], max(STATIC_FLOOR_FACTOR * floor, 1e-12))
+    # runs of still rows, trimmed by one window at each end
+    mask = np.zeros(len(t_s), dtype=bool)
+    intervals: list[StaticInterval] = []
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(np.int8), [0]])))
+    consensus_a = body_consensus(array, accel)
+    for a, b in zip(edges[::2], edges[1::2]):
+        a, b = a + w, b - w
+        if b <= a or t_s[b - 1] - t_s[a] < min_static_s:
+            continue
+        mean = consensus_a[a:b].mean(axis=0)
+        norm = np.linalg.norm(mean)
+        if not np.isfinite(norm) or norm == 0:
+            continue
+        intervals.append(StaticInterval(float(t_s[a]), float(t_s[b - 1]), mean / norm))
+        mask[a:b] = True
+    return intervals, mask
+
+
+def group_orientations(intervals: list[StaticInterval]) -> tuple[int, float]:
+    """Assign orientation numbers in place; returns (count, coverage in [0, 1])."""
+    centres: list[np.ndarray] = []
+    for item in intervals:
+        for j, c in enumerate(centres):
+            if np.arccos(np.clip(c @ item.direction, -1, 1)) < SAME_ORIENTATION_RAD:
+                item.orientation = j
+                break
+        else:
+            item.orientation = len(centres)
+            centres.append(item.direction)
+    if not centres:
+        return 0, 0.0
+    u = np.stack(centres)
+    scatter = u.T @ u / len(u)
+    return len(centres), float(3.0 * np.linalg.eigvalsh(scatter)[0])
+
+
+# --- estimation ------------------------------------------------------------------------
+
+
+def _rotation_gauge(array: ArrayConfig, mats: list[np.ndarray], scale: bool) -> list[np.ndarray]:
+    """Fix the unobservable common transform: mean_k R_k M_k R_k^T -> rotation part (or
+    all of it, ``scale``) removed."""
+    rot = array.rotations()
+    mean = sum(r @ m @ r.T for r, m in zip(rot, mats)) / len(mats)
+    if scale:
+        fix = np.linalg.inv(mean)
+    else:
+        u, _, vt = np.linalg.svd(mean)
+        fix = (u @ vt).T
+    return [r.T @ fix @ r @ m for r, m in zip(rot, mats)]
+
+
+def calibrate_accel(
+    array: ArrayConfig, means: np.ndarray, gravity: float, full: bool
+) -> list[TriadCalibration]:
+    """Accelerometer ``M, b`` from per-interval raw means (I, m, 3), see module docstring."""
+    rot = array.rotations()
+    n_int, m, _ = means.shape
+    mats = [np.eye(3) for _ in range(m)]
+    biases = [np.zeros(3) for _ in range(m)]
+    for _ in range(ALS_ITERATIONS):
+        body = np.stack(
+            [(means[:, k] - biases[k]) @ mats[k].T @ rot[k].T for k in range(m)], axis=1
+        )  # (I, m, 3)
+        f = body.mean(axis=1)
+        f = gravity * f / np.linalg.norm(f, axis=1, keepdims=True)
+        for k in range(m):
+            target = f @ rot[k]  # R_k^T f_i, rows
+            if full:
+                design = np.hstack([means[:, k], np.ones((n_int, 1))])  # (I, 4)
+                sol, *_ = np.linalg.lstsq(design, target, rcond=None)  # (4, 3)
+                mats[k] = sol[:3].T
+                biases[k] = -np.linalg.solve(mats[k], sol[3])
+            else:
+                biases[k] = (means[:, k] - target @ np.linalg.inv(mats[k]).T).mean(axis=0)
+        if full:
+            fixed = _rotation_gauge(array, mats, scale=False)
+            mats = fixed
+    return [TriadCalibration(matrix=mt, bias=b) for mt, b in zip(mats, biases)]
+
+
+def calibrate_gyro(
+    array: ArrayConfig, gyro: np.ndarray, static: np.ndarray, motion: np.ndarray, full: bool
+) -> list[TriadCalibration]:
+    """Gyro biases from static rows, matrices from motion rows relative to the consensus."""
+    m = gyro.shape[1]
+    rot = array.rotations()
+    biases = gyro[static].mean(axis=0)  # (m, 3)
+    mats = [np.eye(3) for _ in range(m)]
+    if full:
+        x = gyro[motion] - biases  # (n, m, 3)
+        for _ in range(ALS_ITERATIONS):
+            consensus = np.stack([x[:, k] @ mats[k].T @ rot[k].T for k in range(m)], 1).mean(1)
+            for k in range(m):
+                sol, *_ = np.linalg.lstsq(x[:, k], consensus @ rot[k], rcond=None)
+                mats[k] = sol.T
+            mats = _rotation_gauge(array, mats, scale=True)
+    return [TriadCalibration(matrix=mt, bias=b) for mt, b in zip(mats, biases)]
+
+
+def _residual_rms(
+    array: ArrayConfig, triads: np.ndarray, cals: list[TriadCalibration] | None
+) -> float:
+    """RMS over rows, IMUs and axes of each triad's body-frame value minus the array mean."""
+    if triads.shape[0] == 0:
+        return float("nan")
+    rot = array.rotations()
+    body = np.stack(
+        [
+            (triads[:, k] if cals is None else cals[k].apply(triads[:, k])) @ rot[k].T
+            for k in range(triads.shape[1])
+        ],
+        axis=1,
+    )
+    return float(np.sqrt(np.mean((body - body.mean(axis=1, keepdims=True)) ** 2)))
+
+
+def _figures(k: int, sensor_type: str, cal: TriadCalibration) -> TriadFigures:
+    off = cal.matrix - np.diag(np.diag(cal.matrix))
+    return TriadFigures(
+        imu=k,
+        sensor_type=sensor_type,
+        scale_ppm=[float(v) for v in (np.diag(cal.matrix) - 1.0) * 1e6],
+        misalignment_mrad=float(np.abs(off).max() * 1e3),
+        bias=[float(v) for v in cal.bias],
+    )
+
+
+def calibrate_block(
+    array: ArrayConfig,
+    block: ImuBlock,
+    *,
+    gravity: float = STANDARD_GRAVITY,
+    min_static_s: float = 5.0,
+) -> CalibrationResult:
+    """Estimate every triad's calibration from raw samples (see the module docstring).
+
+    Parameters
+    ----------
+    array : ArrayConfig
+        Geometry (rotations) of the array; its own calibration is ignored (replaced).
+    block : ImuBlock
+        Raw (uncalibrated) samples, N rows, accelerometers required.
+    gravity : float
+        |f| at rest, m/s^2.
+    min_static_s : float
+        Shortest static interval used, s.
+
+    Raises
+    ------
+    CalibrationError
+        No accelerometers or no static interval (exit 3).
+    """
+    started = time.perf_counter()
+    warnings: list[str] = []
+    if block.accel is None:
+        raise CalibrationError("calibrate needs accelerometers (the log has none)")
+    if len(block) == 0:
+        raise CalibrationError("calibrate: no samples in the selected time range")
+    accel, gyro = block.accel, block.gyro
+    clipped = np.zeros(len(block), dtype=bool)
+    for s, data in (("accel", accel), ("gyro", gyro)):
+        if data is not None:
+            c, i = flag_values(data, s, array.range.get(s))
+            clipped |= (c | i).any(axis=(1, 2))
+    accel = np.where(clipped[:, None, None], 0.0, accel)
+    gyro = None if gyro is None else np.where(clipped[:, None, None], 0.0, gyro)
+    t_s = block.t_s()
+    intervals, static = find_static(array, accel, gyro, t_s, ~clipped, min_static_s=min_static_s)
+    if not intervals:
+        raise CalibrationError(
+            f"no static interval of at least {min_static_s:g} s found "
+            f"({t_s[-1] - t_s[0]:.3g} s examined): calibrate needs the array at rest in several"
+            " orientations (accelerometers) and at rest at least once (gyro biases)"
+        )
+    orientations, coverage = group_orientations(intervals)
+    full_accel = orientations >= MIN_ORIENTATIONS_MATRIX and coverage > 0.05
+    if not full_accel:
+        warnings.append(
+            f"only {orientations} orientation(s) (coverage {coverage:.2f}): accelerometer"
+            f" matrices need >= {MIN_ORIENTATIONS_MATRIX} non-coplanar orientations;"
+            " biases only (relative to the array consensus)"
+        )
+    elif orientations < GOOD_ORIENTATIONS or coverage < GOOD_COVERAGE:
+        warnings.append(
+            f"{orientations} orientations, coverage {coverage:.2f}: the accelerometer"
+            f" matrices are weakly determined (aim for >= {GOOD_ORIENTATIONS} orientations"
+            f" spread over the sphere, coverage >= {GOOD_COVERAGE})"
+        )
+    means = []
+    for item in intervals:
+        rows = (t_s >= item.start_s) & (t_s <= item.end_s) & static
+        means.append(accel[rows].mean(axis=0))
+    mean_arr = np.stack(means)  # (I, m, 3)
+    accel_cal = calibrate_accel(array, mean_arr, gravity, full_accel)
+    residual = {
+        "accel": (_residual_rms(array, mean_arr, None), _residual_rms(array, mean_arr, accel_cal))
+    }
+    cals: list[dict[str, TriadCalibration]] = [{"accel": c} for c in accel_cal]
+    motion_s = 0.0
+    if gyro is not None:
+        w = round(STATIC_WINDOW_S * array.rate_hz)
+        near_static = np.convolve(static.astype(float), np.ones(2 * w + 1), "same") > 0
+        motion = ~near_static & ~clipped
+        motion_s = float(np.count_nonzero(motion) / array.rate_hz)
+        full_gyro = False
+        if motion.any():
+            consensus = body_consensus(array, gyro[motion] - gyro[static].mean(axis=0))
+            rms = np.sqrt(np.mean(consensus**2, axis=0))
+            full_gyro = bool(np.all(rms >= MIN_MOTION_RATE))
+            if not full_gyro:
+                warnings.append(
+                    "motion RMS rate per body axis "
+                    + "/".join(f"{np.degrees(v):.1f}" for v in rms)
+                    + f" deg/s: gyro matrices need >= {np.degrees(MIN_MOTION_RATE):g} deg/s on"
+                    " every axis; gyro biases only"
+                )
+        else:
+            warnings.append("no motion in the log: gyro biases only (matrices need motion)")
+        gyro_cal = calibrate_gyro(array, gyro, static, motion, full_gyro)
+        for k, gcal in enumerate(gyro_cal):
+            cals[k]["gyro"] = gcal
+        sample = gyro[motion] if motion.any() else gyro[static]
+        residual["gyro"] = (
+            _residual_rms(array, sample, None),
+            _residual_rms(array, sample, gyro_cal),
+        )
+    figures = [
+        _figures(k, s, c)
+        for k, per in enumerate(cals)
+        for s, c in sorted(per.items(), reverse=True)
+    ]
+    out = array.with_calibration(cals)
+    return CalibrationResult(
+        array=out,
+        intervals=intervals,
+        orientations=orientations,
+        coverage=coverage,
+        static_s=float(np.count_nonzero(static) / array.rate_hz),
+        motion_s=motion_s,
+        clipped_rows=int(np.count_nonzero(clipped)),
+        figures=figures,
+        residual_rms=residual,
+        warnings=warnings,
+        runtime_s=time.perf_counter() - started,
+    )
+
+
+def calibrate_file(
+    source: str,
+    *,
+    window: tuple[float, float | None] | None = None,
+    base: ArrayConfig | None = None,
+    gravity: float = STANDARD_GRAVITY,
+    min_static_s: float = 5.0,
+    topics: list[str] | None = None,
+) -> CalibrationResult:
+    """Read a log, recover raw chip values and estimate the calibration.
+
+    ``base`` (``--array``) gives the geometry; default the log's ``imufdi.array``. The
+    log's own calibration (if it was ingested with one) is undone first, so the result is
+    relative to the raw chip output, as ``ingest --array`` and ``detect --array`` expect.
+    """
+    from imufdi_cli.mcapio import read_array
+
+    started = time.perf_counter()
+    log_array, block = read_array(source, topics=topics)
+    if len(block) == 0:
+        raise CalibrationError(f"{source}: no aligned IMU samples")
+    array = log_array if base is None else base.check_matches(log_array)
+    array = array.with_range(log_array.range)
+    fields: dict[str, np.ndarray | None] = {}
+    for s in ("gyro", "accel", "mag"):
+        data = block.get(s)
+        if data is not None:
+            data = data.copy()
+            for k, imu in enumerate(log_array.imus):
+                cal = imu.calibration_of(s)
+                if not cal.is_identity:
+                    data[:, k] = cal.undo(data[:, k])
+        fields[s] = data
+    raw = ImuBlock(t_ns=block.t_ns, **fields)
+    if window is not None:
+        rel = raw.t_s()
+        keep = rel >= window[0]
+        if window[1] is not None:
+            keep &= rel < window[1]
+        raw = raw.mask(keep)
+    result = calibrate_block(
+        array.with_calibration(None), raw, gravity=gravity, min_static_s=min_static_s
+    )
+    result.runtime_s = time.perf_counter() - started
+    return result

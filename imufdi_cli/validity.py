@@ -1,0 +1,387 @@
+"""Sample validity: chip calibration, clipping and impossible values, before the tests.
+
+Real arrays saturate (a MEMS gyro at +-2000 deg/s in hand motion) and damaged logs carry
+NaN or absurd numbers (1e308 in a gyro). Neither is a sensor fault a parity test should
+alarm on, and neither may crash a detector. :class:`Conditioner` sits between the reader
+and the detectors of ``imufdi detect``:
+
+1. **Chip calibration.** The messages of a log carry the values described by its
+   ``imufdi.array`` record (calibrated with that record's per-IMU ``M, b`` when it has them).
+   With ``detect --array FILE`` the calibration of FILE replaces it: each triad is mapped
+   back to the raw chip output ``raw = M_log^-1 y + b_log`` and forward with FILE's
+   ``M (raw - b)``.
+2. **Flags**, on the raw chip values of each sensor (one mask for both mechanisms):
+
+   - *invalid*: not finite, beyond the array's ``range`` by more than
+     :data:`OUT_OF_RANGE_FACTOR` (a chip cannot output it), or beyond the absurd limit of
+     its type in SI (:data:`ABSURD`, used whether a range is known or not);
+   - *clipped*: within :data:`CLIP_FRACTION` of the ``range`` (full scale) or beyond it.
+3. **Exclusion by consensus.** A flagged sensor sample is replaced by the least-squares
+   consensus of the valid sensors of its type, ``h_j^T x_hat + beta_j`` with
+   ``x_hat = H_v^+ (y_v - beta_v)`` and ``beta`` each sensor's mean offset from the
+   consensus in the calibration window. It then carries no parity residual: the tests see
+   only the valid sensors (the statistic of the n-1 others against the n-sensor threshold,
+   slightly conservative). When the valid sensors do not span 3 dimensions (every gyro of
+   an axis clipped at once), the whole sample of that type is *held*: every sensor gets the
+   last consensus, so nothing alarms on a sample that cannot be tested.
+
+Every row with a flagged sensor is counted (``clipped``, ``invalid``, ``held`` rows) and
+listed in time intervals (``clipped_ns``, ``invalid_ns``) in the detector's
+``imufdi.detect.<name>`` metadata;
+``imufdi report`` leaves those rows out of every metric and shows the counts.
+
+Why replacement rather than a mask passed to detectors: every detector (parity, PCA,
+bank, MVMD, CNN) works unchanged, streaming state (moving means, filters) sees a
+continuous and consistent signal, and no detector internals change.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.array import SENSOR_TYPES, ArrayConfig
+from imufdi_cli.log import ImuBlock
+
+#: A raw value at or beyond this fraction of the full scale is clipped.
+CLIP_FRACTION = 0.995
+#: A raw value beyond this multiple of the full scale cannot come from the chip: invalid.
+OUT_OF_RANGE_FACTOR = 1.05
+#: Magnitudes no sensor of the type measures (SI): invalid whatever the range. Gyro
+#: 1000 rad/s (57,000 deg/s), accel 10,000 m/s^2 (1,000 g), magnetometer 0.01 T.
+ABSURD: Mapping[str, float] = {"gyro": 1e3, "accel": 1e4, "mag": 1e-2}
+
+
+def flag_values(
+    raw: np.ndarray, sensor_type: str, full_scale: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Clipped and invalid flags of raw chip values.
+
+    Parameters
+    ----------
+    raw : ndarray, shape (..., 3)
+        Raw chip values, SI.
+    sensor_type : str
+    full_scale : float or None
+        Measurement range of the type, SI (None: only non-finite and absurd values flag).
+
+    Returns
+    -------
+    clipped, invalid : ndarray of bool, shape of ``raw``
+        Disjoint: an invalid value is not also clipped.
+    """
+    with np.errstate(invalid="ignore", over="ignore"):
+        magnitude = np.abs(np.asarray(raw, dtype=float))
+        invalid = ~np.isfinite(magnitude) | (magnitude > ABSURD[sensor_type])
+        if full_scale is None:
+            return np.zeros(magnitude.shape, dtype=bool), invalid
+        invalid |= magnitude > OUT_OF_RANGE_FACTOR * full_scale
+        clipped = ~invalid & (magnitude >= CLIP_FRACTION * full_scale)
+    return clipped, invalid
+
+
+class Runs:
+    """Runs of flagged rows as [first, last] timestamps (ns), merged across blocks."""
+
+    def __init__(self) -> None:
+        self.intervals: list[list[int]] = []
+        self._open = False
+
+    def add(self, t_ns: np.ndarray, flagged: np.ndarray) -> None:
+        idx = np.flatnonzero(flagged)
+        if idx.size:
+            breaks = np.flatnonzero(np.diff(idx) > 1)
+            starts = np.concatenate([[idx[0]], idx[breaks + 1]])
+            ends = np.concatenate([idx[breaks], [idx[-1]]])
+            for a, b in zip(starts, ends):
+                if self._open and a == 0 and self.intervals:
+                    self.intervals[-1][1] = int(t_ns[b])
+                else:
+                    self.intervals.append([int(t_ns[a]), int(t_ns[b])])
+        self._open = bool(flagged[-1]) if len(flagged) else self._open
+
+
+@dataclass
+class TypeValidity:
+    """Counts for one sensor type over the tested rows."""
+
+    rows: int = 0
+    clipped_rows: int = 0  # rows with at least one clipped sensor
+    invalid_rows: int = 0  # rows with at least one invalid sensor
+    held_rows: int = 0  # rows without 3 valid dimensions: every sensor held
+    clipped_values: int = 0
+    invalid_values: int = 0
+    clipped_runs: Runs = field(default_factory=Runs)
+    invalid_runs: Runs = field(default_factory=Runs)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "rows": self.rows,
+            "clipped": self.clipped_rows,
+            "invalid": self.invalid_rows,
+            "held": self.held_rows,
+            "clipped_values": self.clipped_values,
+            "invalid_values": self.invalid_values,
+            "clipped_ns": self.clipped_runs.intervals,
+            "invalid_ns": self.invalid_runs.intervals,
+        }
+
+
+class Conditioner:
+    """Calibration override, flags and exclusion by consensus, block by block.
+
+    Parameters
+    ----------
+    log_array : ArrayConfig
+        What the log's messages are (its ``imufdi.array`` record).
+    array : ArrayConfig, optional
+        The array to test with (``detect --array``); default ``log_array``. Its calibration
+        replaces the log's; its ``range`` (else the log's) sets the clipping limits.
+    """
+
+    def __init__(self, log_array: ArrayConfig, array: ArrayConfig | None = None) -> None:
+        self.log_array = log_array
+        self.array = array if array is not None else log_array
+        self.ranges = {**dict(log_array.range), **dict(self.array.range)}
+        self.recalibrate = self.array is not log_array and any(
+            not _same(a.calibration_of(s), b.calibration_of(s))
+            for a, b in zip(log_array.imus, self.array.imus)
+            for s in SENSOR_TYPES
+        )
+        self.offsets: dict[str, np.ndarray] = {}
+        self.last_rate: dict[str, np.ndarray] = {}
+        self.counts: dict[str, TypeValidity] = {
+            s: TypeValidity() for s in self.array.sensor_types()
+        }
+
+    # --- 1 + 2: calibration and flags --------------------------------------------------
+
+    def prepare(self, block: ImuBlock) -> tuple[ImuBlock, dict[str, tuple[np.ndarray, np.ndarray]]]:
+        """Apply the calibration override and flag values.
+
+        Returns the block to test (triads calibrated as ``array`` says) and, per sensor
+        type, (clipped, invalid) masks of shape (N, m, 3).
+        """
+        flags: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        fields: dict[str, np.ndarray | None] = {}
+        for s in SENSOR_TYPES:
+            triads = block.get(s)
+            fields[s] = triads
+            if triads is None:
+                continue
+            raw = np.empty_like(triads)
+            for k, imu in enumerate(self.log_array.imus):
+                cal = imu.calibration_of(s)
+                raw[:, k] = triads[:, k] if cal.is_identity else cal.undo(triads[:, k])
+            flags[s] = flag_values(raw, s, self.ranges.get(s))
+            if self.recalibrate:
+                out = np.empty_like(triads)
+                for k, imu in enumerate(self.array.imus):
+                    out[:, k] = imu.calibration_of(s).apply(raw[:, k])
+                fields[s] = out
+        return ImuBlock(t_ns=block.t_ns, **fields), flags
+
+    # --- 3: exclusion -----------------------------------------------------------------
+
+    def fit(self, block: ImuBlock, flags: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> None:
+        """Each sensor's mean offset from the LS consensus over unflagged calibration rows."""
+        for s in self.array.sensor_types():
+            triads = block.get(s)
+            if triads is None or s not in flags:
+                continue
+            y = self.array.select(triads, s)
+            bad = self._bad(flags, s)
+            good = ~bad.any(axis=1)
+            h = self.array.measurement_matrix(s)
+            offsets = np.zeros(h.shape[0])
+            if good.any() and np.linalg.matrix_rank(h) == 3:
+                yg = y[good]
+                residual = yg - yg @ np.linalg.pinv(h).T @ h.T
+                offsets = residual.mean(axis=0)
+            self.offsets[s] = offsets
+
+    def sanitize(
+        self,
+        block: ImuBlock,
+        flags: Mapping[str, tuple[np.ndarray, np.ndarray]],
+        *,
+        count: bool = True,
+    ) -> ImuBlock:
+        """Replace flagged sensor samples by the consensus (or hold the row); count them."""
+        fields: dict[str, np.ndarray | None] = {s: block.get(s) for s in SENSOR_TYPES}
+        for s in self.array.sensor_types():
+            triads = block.get(s)
+            if triads is None or s not in flags:
+                continue
+            clipped, invalid = (self.array.select(f, s) for f in flags[s])
+            bad = clipped | invalid
+            held = np.zeros(len(block), dtype=bool)
+            rows = np.flatnonzero(bad.any(axis=1))
+            if rows.size or np.any(flags[s][1]):
+                triads = triads.copy()
+                # values of unused axes never reach a test, but must not carry NaN/inf
+                triads[flags[s][1] | ~np.isfinite(triads)] = 0.0
+                y = self.array.select(triads, s)
+                held = self._replace(s, y, bad, rows)
+                imu_idx, axis_idx = self.array.sensor_index(s)
+                triads[:, imu_idx, axis_idx] = y
+                fields[s] = triads
+            self._track_consensus(s, fields[s], bad)
+            if count:
+                c = self.counts[s]
+                c.rows += len(block)
+                c.clipped_rows += int(np.count_nonzero(clipped.any(axis=1)))
+                c.invalid_rows += int(np.count_nonzero(invalid.any(axis=1)))
+                c.held_rows += int(np.count_nonzero(held))
+                c.clipped_values += int(np.count_nonzero(clipped))
+                c.invalid_values += int(np.count_nonzero(invalid))
+                c.clipped_runs.add(block.t_ns, np.asarray(clipped.any(axis=1)))
+                c.invalid_runs.add(block.t_ns, np.asarray(invalid.any(axis=1)))
+        return ImuBlock(t_ns=block.t_ns, **fields)
+
+    def _bad(self, flags: Mapping[str, tuple[np.ndarray, np.ndarray]], s: str) -> np.ndarray:
+        clipped, invalid = flags[s]
+        return self.array.select(clipped | invalid, s)
+
+    def _replace(self, s: str, y: np.ndarray, bad: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """In place on ``y`` (N, n_s): flagged entries of ``rows`` -> consensus. Returns
+        the rows held (no 3-dimensional consensus)."""
+        h = self.array.measurement_matrix(s)
+        beta = self.offsets.get(s, np.zeros(h.shape[0]))
+        held = np.zeros(y.shape[0], dtype=bool)
+        if rows.size == 0:
+            return held
+        patterns, inverse = np.unique(bad[rows], axis=0, return_inverse=True)
+        inverse = np.asarray(inverse).reshape(-1)
+        for p, pattern in enumerate(patterns):
+            sel = rows[inverse == p]
+            valid = ~pattern
+            hv = h[valid]
+            if hv.shape[0] >= 3 and np.linalg.matrix_rank(hv) == 3:
+                x_hat = (y[np.ix_(sel, valid)] - beta[valid]) @ np.linalg.pinv(hv).T
+                y[np.ix_(sel, pattern)] = x_hat @ h[pattern].T + beta[pattern]
+            else:
+                held[sel] = True
+        if held.any():
+            # hold: every sensor gets the consensus of the last testable row before it
+            x_prev = self.last_rate.get(s, np.zeros(3))
+            pinv = np.linalg.pinv(h)
+            good_rows = ~bad.any(axis=1)
+            for i in np.flatnonzero(held | good_rows):
+                if held[i]:
+                    y[i] = h @ x_prev + beta
+                else:
+                    x_prev = pinv @ (y[i] - beta)
+        return held
+
+    def _track_consensus(self, s: str, triads: np.ndarray | None, bad: np.ndarray) -> None:
+        if triads is None:
+            return
+        good = np.flatnonzero(~bad.any(axis=1))
+        if good.size:
+            h = self.array.measurement_matrix(s)
+            beta = self.offsets.get(s, np.zeros(h.shape[0]))
+            y = self.array.select(triads[good[-1:]], s)[0]
+            self.last_rate[s] = np.linalg.pinv(h) @ (y - beta)
+
+    def metadata(self) -> dict[str, Any]:
+        """JSON-ready record: limits and counts per sensor type."""
+        return {
+            "clip_fraction": CLIP_FRACTION,
+            "out_of_range_factor": OUT_OF_RANGE_FACTOR,
+            "absurd": dict(ABSURD),
+            "range": dict(self.ranges),
+            "types": {s: c.to_dict() for s, c in self.counts.items()},
+        }
+
+
+def apply_calibration(block: ImuBlock, array: ArrayConfig) -> ImuBlock:
+    """The block with each IMU's chip calibration applied, ``M (raw - b)`` (new arrays)."""
+    fields: dict[str, np.ndarray | None] = {}
+    for s in SENSOR_TYPES:
+        triads = block.get(s)
+        if triads is not None:
+            triads = triads.copy()
+            for k, imu in enumerate(array.imus):
+                cal = imu.calibration_of(s)
+                if not cal.is_identity:
+                    triads[:, k] = cal.apply(triads[:, k])
+        fields[s] = triads
+    return ImuBlock(t_ns=block.t_ns, **fields)
+
+
+def _same(a: Any, b: Any) -> bool:
+    return bool(np.array_equal(a.matrix, b.matrix) and np.array_equal(a.bias, b.bias))
+
+
+# --- report side -----------------------------------------------------------------------
+
+
+@dataclass
+class Selection:
+    """Which status rows of one detector and sensor type a report counts."""
+
+    keep: np.ndarray  # (N,) bool
+    clipped: int = 0  # rows with a clipped sensor, in the window
+    invalid: int = 0  # rows with an invalid sensor, in the window
+    excluded: int = 0  # rows not scored for validity (inside the time window)
+
+
+def select_rows(
+    t_ns: np.ndarray,
+    record: Mapping[str, Any] | None,
+    sensor_type: str,
+    window: tuple[float, float | None] | None = None,
+) -> Selection:
+    """Rows to score: inside ``window`` (seconds from the log's first sample, as recorded
+    by ``detect``; else from the first status row) and outside the validity exclusions.
+
+    Parameters
+    ----------
+    t_ns : ndarray, shape (N,)
+        Status row times.
+    record : dict or None
+        The detector's ``imufdi.detect.<name>`` record (decoded JSON).
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    keep = np.ones(t_ns.shape, dtype=bool)
+    record = record or {}
+    if window is not None:
+        t0 = record.get("t0_ns")
+        origin = int(t0) if isinstance(t0, int) else (int(t_ns[0]) if t_ns.size else 0)
+        rel = (t_ns - origin) / 1e9
+        keep &= rel >= window[0]
+        if window[1] is not None:
+            keep &= rel < window[1]
+    validity = record.get("validity")
+    counts = validity.get("types", {}).get(sensor_type) if isinstance(validity, Mapping) else None
+    if not isinstance(counts, Mapping):
+        return Selection(keep=keep)
+    clipped = _in_runs(t_ns, counts.get("clipped_ns", []))
+    invalid = _in_runs(t_ns, counts.get("invalid_ns", []))
+    flagged = clipped | invalid
+    return Selection(
+        keep=keep & ~flagged,
+        clipped=int(np.count_nonzero(clipped & keep)),
+        invalid=int(np.count_nonzero(invalid & keep)),
+        excluded=int(np.count_nonzero(flagged & keep)),
+    )
+
+
+def _in_runs(t_ns: np.ndarray, runs: Any) -> np.ndarray:
+    """Rows of ``t_ns`` (sorted) inside any [first, last] interval of ``runs``."""
+    try:
+        intervals = np.asarray(runs, dtype=np.int64).reshape(-1, 2)
+    except (TypeError, ValueError):
+        return np.zeros(t_ns.shape, dtype=bool)
+    if intervals.size == 0 or t_ns.size == 0:
+        return np.zeros(t_ns.shape, dtype=bool)
+    lo = np.searchsorted(t_ns, intervals[:, 0], side="left")
+    hi = np.searchsorted(t_ns, intervals[:, 1], side="right")
+    delta = np.zeros(t_ns.size + 1, dtype=np.int64)
+    np.add.at(delta, lo, 1)
+    np.add.at(delta, hi, -1)
+    return np.cumsum(delta[:-1]) > 0
