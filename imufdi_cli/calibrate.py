@@ -8,7 +8,7 @@ orientations (and some motion for the gyro matrices):
 **Static intervals** are found automatically: the moving standard deviation (1 s window)
 of the array-mean specific force and angular rate in the body frame stays under three
 times its own 10th percentile (the noise floor), with absolute caps, for at least
-``min_static`` seconds; one second is trimmed at each end. Intervals whose gravity
+``min_static`` seconds; half a second more is trimmed at each end. Intervals whose gravity
 directions lie within 10 degrees are one orientation; the *coverage* of directions is
 ``3 lambda_min`` of the mean ``u u^T`` over orientations (1: isotropic, 0: coplanar).
 
@@ -65,6 +65,10 @@ GOOD_COVERAGE = 0.3
 #: RMS consensus rate needed on every body axis to estimate the gyro matrices (rad/s).
 MIN_MOTION_RATE = np.radians(20.0)
 ALS_ITERATIONS = 30
+#: Accelerometer ALS: the triads agree within a few iterations, but the common mode
+#: (|f| = g) converges linearly and slowly; iterate until M moves less than this.
+ACCEL_ALS_MAX_ITERATIONS = 3000
+ACCEL_ALS_TOLERANCE = 1e-10
 
 
 @dataclass
@@ -165,13 +169,14 @@ def find_static(
         spread = _moving_std(consensus, w)
         floor = float(np.percentile(spread[usable], 10)) if usable.any() else 0.0
         still &= spread < min(STATIC_CAP[name], max(STATIC_FLOOR_FACTOR * floor, 1e-12))
-    # runs of still rows, trimmed by one window at each end
+    # runs of still rows (the centred window already keeps w/2 off a move), trimmed by
+    # another half window at each end
     mask = np.zeros(len(t_s), dtype=bool)
     intervals: list[StaticInterval] = []
     edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(np.int8), [0]])))
     consensus_a = body_consensus(array, accel)
     for a, b in zip(edges[::2], edges[1::2]):
-        a, b = a + w, b - w
+        a, b = a + w // 2, b - w // 2
         if b <= a or t_s[b - 1] - t_s[a] < min_static_s:
             continue
         mean = consensus_a[a:b].mean(axis=0)
@@ -225,7 +230,8 @@ def calibrate_accel(
     n_int, m, _ = means.shape
     mats = [np.eye(3) for _ in range(m)]
     biases = [np.zeros(3) for _ in range(m)]
-    for _ in range(ALS_ITERATIONS):
+    for _ in range(ACCEL_ALS_MAX_ITERATIONS if full else ALS_ITERATIONS):
+        previous = np.stack(mats)
         body = np.stack(
             [(means[:, k] - biases[k]) @ mats[k].T @ rot[k].T for k in range(m)], axis=1
         )  # (I, m, 3)
@@ -241,8 +247,9 @@ def calibrate_accel(
             else:
                 biases[k] = (means[:, k] - target @ np.linalg.inv(mats[k]).T).mean(axis=0)
         if full:
-            fixed = _rotation_gauge(array, mats, scale=False)
-            mats = fixed
+            mats = _rotation_gauge(array, mats, scale=False)
+            if np.abs(np.stack(mats) - previous).max() < ACCEL_ALS_TOLERANCE:
+                break
     return [TriadCalibration(matrix=mt, bias=b) for mt, b in zip(mats, biases)]
 
 

@@ -1,0 +1,101 @@
+"""ArrayConfig per-IMU calibration (M, b) and range: parsing, validation, round trips."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from imufdi_cli.array import ArrayConfig, TriadCalibration
+from imufdi_cli.errors import ArrayConfigError
+
+TOML = """
+rate_hz = 62.5
+[range]
+gyro = "2000deg/s"
+accel = "16g"
+
+[[imu]]
+gyro_matrix = [[1.01, 0.002, 0], [0, 0.99, 0], [0, 0, 1]]
+gyro_bias = ["0.5deg/s", 0, 0]
+accel_bias = [0.1, -0.2, 0.3]
+
+[[imu]]
+rotation = [[0, -1, 0], [-1, 0, 0], [0, 0, -1]]
+"""
+
+
+def _load(tmp_path, text):
+    path = tmp_path / "a.toml"
+    path.write_text(text)
+    return ArrayConfig.load(path)
+
+
+def test_calibration_parsed_with_units_and_defaults(tmp_path):
+    array = _load(tmp_path, TOML)
+    gyro = array.imus[0].calibration_of("gyro")
+    assert_allclose(gyro.bias, [np.radians(0.5), 0, 0])
+    assert_allclose(gyro.matrix[0], [1.01, 0.002, 0])
+    accel = array.imus[0].calibration_of("accel")
+    assert_allclose(accel.matrix, np.eye(3))  # bias only: M defaults to identity
+    assert array.imus[1].calibration_of("gyro").is_identity
+    assert array.calibrated
+    assert_allclose(array.range["gyro"], np.radians(2000))
+    assert_allclose(array.range["accel"], 16 * 9.80665)
+
+
+def test_toml_and_json_round_trip(tmp_path):
+    array = _load(tmp_path, TOML)
+    assert ArrayConfig.from_json(array.to_json()) == array
+    again = tmp_path / "b.toml"
+    array.save(again)
+    assert ArrayConfig.load(again) == array
+
+
+def test_apply_and_undo_are_inverse():
+    rng = np.random.default_rng(0)
+    cal = TriadCalibration(
+        matrix=np.eye(3) + 0.01 * rng.standard_normal((3, 3)), bias=rng.standard_normal(3)
+    )
+    raw = rng.standard_normal((50, 3))
+    assert_allclose(cal.apply(raw), (raw - cal.bias) @ cal.matrix.T)
+    assert_allclose(cal.undo(cal.apply(raw)), raw, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("line", "fragment"),
+    [
+        (
+            "accel_matrix = [[1, 0, 0], [0, 1, 0], [0, 0, 0]]",
+            "imu1 accel calibration: matrix is singular",
+        ),
+        (
+            "gyro_matrix = [[1, 1, 0], [1, 1, 0], [0, 0, 1]]",
+            "imu1 gyro calibration: matrix is singular",
+        ),
+        ("gyro_bias = [nan, 0, 0]", "imu1 gyro calibration: matrix and bias must be finite"),
+        ("accel_matrix = [[inf, 0, 0], [0, 1, 0], [0, 0, 1]]", "imu1 accel calibration"),
+        ("accel_bias = [1, 2]", "imu1 accel calibration: bias must be [x, y, z]"),
+        ("accel_matrix = [[1, 0], [0, 1]]", "imu1 accel calibration: matrix must be 3x3"),
+        ('gyro_bias = ["1m", 0, 0]', "imu1 gyro calibration"),
+    ],
+)
+def test_bad_calibration_names_the_imu(tmp_path, line, fragment):
+    with pytest.raises(ArrayConfigError, match=fragment.replace("[", r"\[").replace("]", r"\]")):
+        _load(tmp_path, TOML + line + "\n")
+
+
+def test_bad_range(tmp_path):
+    with pytest.raises(ArrayConfigError, match="range.gyro"):
+        _load(tmp_path, 'range = {gyro = "-1deg/s"}\n[[imu]]\n')
+    with pytest.raises(ArrayConfigError, match="range.speed"):
+        _load(tmp_path, 'range = {speed = "1m/s"}\n[[imu]]\n')
+
+
+def test_with_calibration_and_check_matches(tmp_path):
+    array = _load(tmp_path, TOML)
+    plain = array.with_calibration(None)
+    assert not plain.calibrated
+    assert plain.with_range({"gyro": 1.0}).range["gyro"] == array.range["gyro"]  # kept
+    with pytest.raises(ArrayConfigError, match="2 IMUs but the log has 3"):
+        array.check_matches(ArrayConfig.co_aligned(3))
