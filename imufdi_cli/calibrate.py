@@ -65,10 +65,9 @@ GOOD_COVERAGE = 0.3
 #: RMS consensus rate needed on every body axis to estimate the gyro matrices (rad/s).
 MIN_MOTION_RATE = np.radians(20.0)
 ALS_ITERATIONS = 30
-#: Accelerometer ALS: the triads agree within a few iterations, but the common mode
-#: (|f| = g) converges linearly and slowly; iterate until M moves less than this.
-ACCEL_ALS_MAX_ITERATIONS = 3000
-ACCEL_ALS_TOLERANCE = 1e-10
+#: Accelerometer Gauss-Newton: largest step count and step size (M entries, m/s^2) to stop.
+ACCEL_GN_MAX_STEPS = 50
+ACCEL_GN_TOLERANCE = 1e-9
 
 
 @dataclass
@@ -224,33 +223,83 @@ def _rotation_gauge(array: ArrayConfig, mats: list[np.ndarray], scale: bool) -> 
 
 def calibrate_accel(
     array: ArrayConfig, means: np.ndarray, gravity: float, full: bool
-) -> list[TriadCalibration]:
-    """Accelerometer ``M, b`` from per-interval raw means (I, m, 3), see module docstring."""
-    rot = array.rotations()
+) -> tuple[list[TriadCalibration], int]:
+    """Accelerometer ``M, b`` from per-interval raw means (I, m, 3), see module docstring.
+
+    Alternating least squares gets the triads to agree in a few iterations; the common
+    mode (|f| = g) converges slowly that way, so Gauss-Newton on all unknowns at once
+    (12 per triad, 2 per orientation on the sphere |f| = g) finishes the fit. The
+    common rotation, not observable, is left to the minimum-norm step and then fixed by
+    the gauge. Returns the calibrations and the number of Gauss-Newton steps.
+    """
+    rot = array.rotations()  # (m, 3, 3)
     n_int, m, _ = means.shape
-    mats = [np.eye(3) for _ in range(m)]
-    biases = [np.zeros(3) for _ in range(m)]
-    for _ in range(ACCEL_ALS_MAX_ITERATIONS if full else ALS_ITERATIONS):
-        previous = np.stack(mats)
-        body = np.stack(
-            [(means[:, k] - biases[k]) @ mats[k].T @ rot[k].T for k in range(m)], axis=1
-        )  # (I, m, 3)
+    mats = np.tile(np.eye(3), (m, 1, 1))
+    biases = np.zeros((m, 3))
+    design = np.concatenate([means, np.ones((n_int, m, 1))], axis=2).transpose(1, 0, 2)
+    normal = np.einsum("kia,kib->kab", design, design)  # (m, 4, 4)
+    f = np.zeros((n_int, 3))
+    for _ in range(ALS_ITERATIONS):
+        body = np.einsum("kab,ikb->ika", rot @ mats, means - biases)  # (I, m, 3)
         f = body.mean(axis=1)
         f = gravity * f / np.linalg.norm(f, axis=1, keepdims=True)
-        for k in range(m):
-            target = f @ rot[k]  # R_k^T f_i, rows
-            if full:
-                design = np.hstack([means[:, k], np.ones((n_int, 1))])  # (I, 4)
-                sol, *_ = np.linalg.lstsq(design, target, rcond=None)  # (4, 3)
-                mats[k] = sol[:3].T
-                biases[k] = -np.linalg.solve(mats[k], sol[3])
-            else:
-                biases[k] = (means[:, k] - target @ np.linalg.inv(mats[k]).T).mean(axis=0)
+        target = np.einsum("ia,kab->kib", f, rot)  # R_k^T f_i as rows, (m, I, 3)
         if full:
-            mats = _rotation_gauge(array, mats, scale=False)
-            if np.abs(np.stack(mats) - previous).max() < ACCEL_ALS_TOLERANCE:
-                break
-    return [TriadCalibration(matrix=mt, bias=b) for mt, b in zip(mats, biases)]
+            sol = np.linalg.solve(normal, np.einsum("kia,kib->kab", design, target))
+            mats = sol[:, :3].transpose(0, 2, 1)
+            biases = -np.linalg.solve(mats, sol[:, 3][..., None])[..., 0]
+        else:
+            inv = np.linalg.inv(mats)
+            biases = (means.transpose(1, 0, 2) - np.einsum("kib,kab->kia", target, inv)).mean(1)
+    steps = 0
+    if full:
+        mats, biases, steps = _gauss_newton(rot, design, mats, biases, f, gravity)
+        mats = np.stack(_rotation_gauge(array, list(mats), scale=False))
+    cals = [TriadCalibration(matrix=mt, bias=b) for mt, b in zip(mats, biases)]
+    return cals, steps
+
+
+def _gauss_newton(
+    rot: np.ndarray,
+    design: np.ndarray,
+    mats: np.ndarray,
+    biases: np.ndarray,
+    f: np.ndarray,
+    gravity: float,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Minimise sum ||R_k P_k x_ki - f_i||^2 over P_k = [M_k | -M_k b_k] (3x4) and f_i on
+    the sphere of radius g (tangent-plane steps, renormalised)."""
+    m, n_int, _ = design.shape
+    params = np.concatenate([mats, -(mats @ biases[..., None])], axis=2)  # (m, 3, 4)
+    n_p = 12 * m
+    # d r_kia / d P_k[p, q] = R_k[a, p] x_ki[q]: one (3, 12) block per (k, i)
+    blocks = np.einsum("kap,kiq->kiapq", rot, design).reshape(m, n_int, 3, 12)
+    steps = 0
+    for steps in range(1, ACCEL_GN_MAX_STEPS + 1):  # noqa: B007 (count returned)
+        # tangent basis of each f_i
+        u = f / np.linalg.norm(f, axis=1, keepdims=True)
+        helper = np.where(np.abs(u[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+        t1 = np.cross(u, helper)
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        t2 = np.cross(u, t1)
+        tangent = np.stack([t1, t2], axis=2)  # (I, 3, 2)
+        residual = np.einsum("kab,kib->kia", rot @ params, design) - f[None]  # (m, I, 3)
+        jac = np.zeros((m, n_int, 3, n_p + 2 * n_int))
+        for k in range(m):
+            jac[k, :, :, 12 * k : 12 * k + 12] = blocks[k]
+        for i in range(n_int):
+            jac[:, i, :, n_p + 2 * i : n_p + 2 * i + 2] = -tangent[i]
+        step, *_ = np.linalg.lstsq(
+            jac.reshape(-1, n_p + 2 * n_int), -residual.reshape(-1), rcond=None
+        )
+        params = params + step[:n_p].reshape(m, 3, 4)
+        f = f + np.einsum("iab,ib->ia", tangent, step[n_p:].reshape(n_int, 2))
+        f = gravity * f / np.linalg.norm(f, axis=1, keepdims=True)
+        if np.abs(step).max() < ACCEL_GN_TOLERANCE:
+            break
+    mats = params[:, :, :3]
+    biases = -np.linalg.solve(mats, params[:, :, 3][..., None])[..., 0]
+    return mats, biases, steps
 
 
 def calibrate_gyro(
@@ -366,7 +415,11 @@ def calibrate_block(
         rows = (t_s >= item.start_s) & (t_s <= item.end_s) & static
         means.append(accel[rows].mean(axis=0))
     mean_arr = np.stack(means)  # (I, m, 3)
-    accel_cal = calibrate_accel(array, mean_arr, gravity, full_accel)
+    accel_cal, iterations = calibrate_accel(array, mean_arr, gravity, full_accel)
+    if full_accel and iterations >= ACCEL_GN_MAX_STEPS:
+        warnings.append(
+            f"accelerometer fit stopped after {iterations} iterations without converging"
+        )
     residual = {
         "accel": (_residual_rms(array, mean_arr, None), _residual_rms(array, mean_arr, accel_cal))
     }

@@ -86,9 +86,9 @@ def test_bad_calibration_names_the_imu(tmp_path, line, fragment):
 
 
 def test_bad_range(tmp_path):
-    with pytest.raises(ArrayConfigError, match="range.gyro"):
+    with pytest.raises(ArrayConfigError, match=r"range\.gyro"):
         _load(tmp_path, 'range = {gyro = "-1deg/s"}\n[[imu]]\n')
-    with pytest.raises(ArrayConfigError, match="range.speed"):
+    with pytest.raises(ArrayConfigError, match=r"range\.speed"):
         _load(tmp_path, 'range = {speed = "1m/s"}\n[[imu]]\n')
 
 
