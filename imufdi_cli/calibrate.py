@@ -202,7 +202,7 @@ def group_orientations(intervals: list[StaticInterval]) -> tuple[int, float]:
         return 0, 0.0
     u = np.stack(centres)
     scatter = u.T @ u / len(u)
-    return len(centres), float(3.0 * np.linalg.eigvalsh(scatter)[0])
+    return len(centres), max(0.0, float(3.0 * np.linalg.eigvalsh(scatter)[0]))
 
 
 # --- estimation ------------------------------------------------------------------------

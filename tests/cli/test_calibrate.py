@@ -1,0 +1,154 @@
+"""imufdi calibrate / detect --array / --start --end / validity, on the real MIMU4444 sample.
+
+sample_logs/mimu4444-exp1-cut.bin is 300 s of exp_1 (10 static orientations, then hand
+motion with gyro clipping) of the MIT-licensed MIMU4444 recordings (sample_logs/README.md).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.calibrate import find_static
+from imufdi_cli.mcapio import read_array, read_status, write_array
+from tests.cli.conftest import assert_one_line_error
+
+SAMPLES = Path(__file__).resolve().parents[2] / "sample_logs"
+LAYOUT = Path(__file__).resolve().parents[2] / "docs" / "layouts" / "mimu4444.toml"
+CUT = SAMPLES / "mimu4444-exp1-cut.bin"
+FRAMES = 18750  # (1,987,504 - 4 prefix bytes) / 106
+
+
+@pytest.fixture(scope="module")
+def real_log(tmp_path_factory):
+    from tests.cli.conftest import invoke
+
+    out = tmp_path_factory.mktemp("real") / "cut.mcap"
+    result = invoke(
+        ["ingest", CUT, "--layout", LAYOUT, "--array", SAMPLES / "mimu4444-array.toml", "-o", out]
+    )
+    assert result.code == 0, result.stderr
+    return out
+
+
+def test_ingest_every_frame(real_log):
+    array, block = read_array(str(real_log))
+    assert len(block) == FRAMES
+    assert CUT.stat().st_size == 4 + 106 * FRAMES
+    # full scale from the layout: int16 at 16.4 LSB/(deg/s) and 2048 LSB/g
+    assert array.range["gyro"] == pytest.approx(np.radians(32768 / 16.4))
+    assert array.range["accel"] == pytest.approx(16 * 9.80665)
+
+
+def test_calibrate_improves_triad_agreement(cli, real_log, tmp_path):
+    out = tmp_path / "cal.toml"
+    result = cli(["calibrate", real_log, "-o", out, "--json"])
+    assert result.code == 0, result.stderr
+    figures = json.loads(result.out)
+    assert figures["orientations"] == 10 and figures["coverage"] > 0.9
+    before, after = figures["residual_rms"]["accel"]
+    assert before > 0.1 and after < 0.01  # m/s^2, interval means at rest
+    assert figures["residual_rms"]["gyro"][1] < figures["residual_rms"]["gyro"][0]
+    assert figures["clipped_rows"] > 0  # the motion phase saturates the gyros
+    cal = ArrayConfig.load(out)
+    assert cal.calibrated and cal.range
+    # the committed calibration is what calibrate writes for the sample
+    assert cal == ArrayConfig.load(SAMPLES / "mimu4444-calibrated.toml")
+
+
+def test_calibrate_start_end_and_missing_static(cli, real_log, tmp_path):
+    # the last 40 s are hand motion only: no static interval -> exit 3 naming it
+    result = cli(["calibrate", real_log, "--start", "260s", "-o", tmp_path / "c.toml"])
+    assert_one_line_error(result, 3, "no static interval")
+    assert not (tmp_path / "c.toml").exists()
+    result = cli(["calibrate", real_log, "--end", "60s", "-o", tmp_path / "c.toml"])
+    assert result.code == 0, result.stderr
+    assert "only 2 orientation(s)" in result.out and "warning" in result.out
+
+
+def test_singular_calibration_is_usage_error_naming_the_imu(cli, real_log, tmp_path):
+    text = (SAMPLES / "mimu4444-calibrated.toml").read_text()
+    bad = tmp_path / "bad.toml"
+    lines = text.splitlines()
+    idx = [i for i, line in enumerate(lines) if line.startswith("accel_matrix")][3]
+    lines[idx] = "accel_matrix = [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]"
+    bad.write_text("\n".join(lines))
+    result = cli(["detect", real_log, "-d", "glt", "--array", bad, "-o", tmp_path / "d.mcap"])
+    assert_one_line_error(result, 2, "imu3 accel calibration: matrix is singular")
+    result = cli(["calibrate", real_log, "--array", bad, "-o", tmp_path / "c.toml"])
+    assert_one_line_error(result, 2, "imu3 accel calibration")
+
+
+@pytest.mark.slow
+def test_detect_holds_its_level_on_the_real_sample(cli, real_log, tmp_path):
+    """Calibrated array, 10 s bias calibration: static alarm rate near alpha = 1 %."""
+    out = tmp_path / "d.mcap"
+    result = cli(
+        [
+            "detect", real_log, "-d", "glt", "-d", "pca-parity",
+            "--array", SAMPLES / "mimu4444-calibrated.toml", "--calibrate", "0s:10s",
+            "--start", "10s", "-o", out,
+        ]
+    )  # fmt: skip
+    assert result.code == 0, result.stderr
+    assert "563 clipped" in result.out
+    array, block = read_array(str(real_log))
+    t = block.t_s()
+    _, static = find_static(array, block.accel, block.gyro, t, np.ones(len(t), bool))
+    status = read_status(str(out))
+    for (detector, sensor_type), arrays in status.items():
+        rel = (arrays.t_ns - block.t_ns[0]) / 1e9
+        rows = np.interp(rel, t, static.astype(float)) > 0.5
+        rate = arrays.alarm[rows].mean()
+        # the issue's per-orientation target is 5 %: the sample's static rows must hold it
+        assert rate <= 0.05, (detector, sensor_type, rate)
+
+
+def test_detect_window_and_report_window(cli, real_log, tmp_path):
+    out = tmp_path / "d.mcap"
+    args = ["detect", real_log, "-d", "glt", "--calibrate", "0s:10s"]
+    result = cli([*args, "--start", "20s", "--end", "50s", "-o", out])
+    assert result.code == 0, result.stderr
+    status = read_status(str(out))[("glt", "gyro")]
+    _, block = read_array(str(real_log))
+    rel = block.t_s()
+    assert len(status.t_ns) == np.count_nonzero((rel >= 20) & (rel < 50))
+    assert abs(len(status.t_ns) - 30 * 62.5) <= 1
+    report = cli(["report", out, "--start", "30s", "--json", "-"])
+    assert report.code == 0, report.stderr
+    entry = json.loads(report.out)["results"][0]
+    assert entry["samples"] == np.count_nonzero((rel >= 30) & (rel < 50))
+    bad = cli([*args, "--start", "50s", "--end", "20s", "-o", tmp_path / "x.mcap"])
+    assert_one_line_error(bad, 2, "--start")
+
+
+def test_huge_and_nan_values_are_flagged_not_a_crash(cli, tmp_path):
+    """1e308 in a gyro, NaN in an accel (also in the calibration window): exit 0, counted."""
+    rng = np.random.default_rng(0)
+    array = ArrayConfig.co_aligned(4, rate_hz=100.0)
+    n = 1000
+    from imufdi_cli.log import ImuBlock
+
+    gyro = 0.002 * rng.standard_normal((n, 4, 3))
+    accel = np.array([0, 0, 9.81]) + 0.02 * rng.standard_normal((n, 4, 3))
+    gyro[500, 1, 2] = 1e308
+    gyro[600, 2, 0] = -np.inf
+    accel[100, 0, 1] = np.nan
+    accel[700:705, 3, :] = np.nan
+    log = tmp_path / "bad.mcap"
+    write_array(str(log), array, ImuBlock(t_ns=np.arange(n) * 10_000_000, gyro=gyro, accel=accel))
+    out = tmp_path / "d.mcap"
+    detectors = ["-d", "glt", "-d", "pca-parity", "-d", "bank", "-d", "noise-glr"]
+    result = cli(["detect", log, *detectors, "-o", out])
+    assert result.code == 0, result.stderr
+    assert "2 invalid" in result.out and "6 invalid" in result.out
+    report = cli(["report", out, "--json", "-"])
+    assert report.code == 0, report.stderr
+    entries = {(e["detector"], e["sensor_type"]): e for e in json.loads(report.out)["results"]}
+    assert entries[("glt", "gyro")]["invalid"] == 2
+    assert entries[("glt", "accel")]["invalid"] == 6  # row 100 (calibration window) too
+    assert entries[("glt", "accel")]["alarm_rate"] < 0.05
