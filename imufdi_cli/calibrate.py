@@ -234,11 +234,11 @@ def calibrate_accel(
     """
     rot = array.rotations()  # (m, 3, 3)
     n_int, m, _ = means.shape
-    mats = np.tile(np.eye(3), (m, 1, 1))
-    biases = np.zeros((m, 3))
+    mats: np.ndarray = np.tile(np.eye(3), (m, 1, 1))
+    biases: np.ndarray = np.zeros((m, 3))
     design = np.concatenate([means, np.ones((n_int, m, 1))], axis=2).transpose(1, 0, 2)
     normal = np.einsum("kia,kib->kab", design, design)  # (m, 4, 4)
-    f = np.zeros((n_int, 3))
+    f: np.ndarray = np.zeros((n_int, 3))
     for _ in range(ALS_ITERATIONS):
         body = np.einsum("kab,ikb->ika", rot @ mats, means - biases)  # (I, m, 3)
         f = body.mean(axis=1)

@@ -274,6 +274,10 @@ def info(log: str, as_json: bool, topics: tuple[str, ...]) -> None:
     _render_info(console, summary)
 
 
+def _has_cal(imu: dict[str, Any]) -> bool:
+    return any(key.endswith(("_matrix", "_bias")) for key in imu)
+
+
 def _render_info(console: Console, s: dict[str, Any]) -> None:
     console.print(f"[bold]{s['source']}[/]", markup=True)
     head = Table(show_header=False, box=None)
@@ -307,11 +311,23 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
         console.print(
             f"array ({source}): {len(array['imu'])} IMUs at {array['rate_hz']:g} Hz, noise "
             + (json.dumps(array.get("noise")) if array.get("noise") else "not given")
+            + (", per-IMU calibration" if any(_has_cal(imu) for imu in array["imu"]) else "")
+            + (f", range {json.dumps(array['range'])}" if array.get("range") else "")
+        )
+    for sensor_type, counts in s.get("validity", {}).items():
+        console.print(
+            f"{sensor_type}: {counts.get('clipped', 0)} clipped and {counts.get('invalid', 0)}"
+            f" invalid of {counts.get('rows', 0)} samples (at ingest)"
         )
     for fault in s.get("faults", []):
         console.print(f"fault {fault.get('id', '')}: {fault.get('spec') or fault}")
     for name, det in s.get("detectors", {}).items():
         console.print(f"detector {name}: {json.dumps(det.get('params', {}))}")
+        for sensor_type, counts in det.get("validity", {}).items():
+            console.print(
+                f"  {sensor_type}: {counts.get('clipped', 0)} clipped, {counts.get('invalid', 0)}"
+                f" invalid samples excluded from the tests"
+            )
     _warn(console, s.get("warnings", []))
 
 

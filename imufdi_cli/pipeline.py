@@ -169,10 +169,31 @@ def log_info(source: str, *, topics: Sequence[str] | None = None) -> dict[str, A
             detectors[name.removeprefix("imufdi.detect.")] = {
                 "params": meta.get("params", meta),
                 "calibration_s": content.get("calibration_s"),
+                **_validity_counts(content.get("validity")),
             }
     if detectors:
         data["detectors"] = detectors
+    if "imufdi.ingest" in metadata:
+        try:
+            ingest_record = json.loads(metadata["imufdi.ingest"].get("json", "{}"))
+        except ValueError:
+            ingest_record = {}
+        if isinstance(ingest_record, dict) and isinstance(ingest_record.get("validity"), dict):
+            data["validity"] = ingest_record["validity"]
     return data
+
+
+def _validity_counts(record: Any) -> dict[str, Any]:
+    """Clipped/invalid/held row counts per sensor type of a detect record's validity."""
+    if not isinstance(record, dict) or not isinstance(record.get("types"), dict):
+        return {}
+    return {
+        "validity": {
+            s: {k: v for k, v in c.items() if k in ("rows", "clipped", "invalid", "held")}
+            for s, c in record["types"].items()
+            if isinstance(c, dict)
+        }
+    }
 
 
 # --- tune ------------------------------------------------------------------------------

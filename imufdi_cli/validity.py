@@ -298,6 +298,27 @@ class Conditioner:
         }
 
 
+class ValidityCounter:
+    """Rows with clipped or invalid raw values per sensor type (``ingest`` records them
+    in ``imufdi.ingest``; ``info`` shows them)."""
+
+    def __init__(self, array: ArrayConfig) -> None:
+        self.array = array
+        self.counts: dict[str, dict[str, int]] = {}
+
+    def count(self, block: ImuBlock) -> ImuBlock:
+        for s in SENSOR_TYPES:
+            data = block.get(s)
+            if data is None:
+                continue
+            clipped, invalid = flag_values(data, s, self.array.range.get(s))
+            entry = self.counts.setdefault(s, {"rows": 0, "clipped": 0, "invalid": 0})
+            entry["rows"] += len(block)
+            entry["clipped"] += int(np.count_nonzero(clipped.any(axis=(1, 2))))
+            entry["invalid"] += int(np.count_nonzero(invalid.any(axis=(1, 2))))
+        return block
+
+
 def apply_calibration(block: ImuBlock, array: ArrayConfig) -> ImuBlock:
     """The block with each IMU's chip calibration applied, ``M (raw - b)`` (new arrays)."""
     fields: dict[str, np.ndarray | None] = {}

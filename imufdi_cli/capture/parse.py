@@ -20,7 +20,7 @@ from imufdi_cli.capture.layout import Layout
 from imufdi_cli.capture.stats import IngestStats
 from imufdi_cli.errors import CaptureError, ImufdiError
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.validity import apply_calibration
+from imufdi_cli.validity import ValidityCounter, apply_calibration
 
 #: default bytes read per round
 DEFAULT_CHUNK_SIZE = 1 << 20
@@ -186,9 +186,11 @@ def ingest(
             f"the capture has {first.n_imus} IMUs per sample, the array config {array.n_imus}"
         )
     array = array.with_range(layout_ranges(layout))  # full scale, for the clipping flags
+    counter = ValidityCounter(array)
+    blocks = (counter.count(b) for b in itertools.chain([first], blocks))
     if array.calibrated:
-        blocks = (apply_calibration(b, array) for b in itertools.chain([first], blocks))
-        first = next(blocks)
+        blocks = (apply_calibration(b, array) for b in blocks)
+    first = next(blocks)
     writer_options: dict[str, Any] = {"compression": compression}
     try:
         target = Path(output) if isinstance(output, os.PathLike) else output
@@ -207,6 +209,7 @@ def ingest(
                     "chunk_size": chunk_size,
                 },
                 "stats": stats.to_dict(),
+                "validity": counter.counts,
             }
             writer.add_metadata("imufdi.ingest", {"json": json.dumps(record)})
     except ImufdiError:

@@ -35,7 +35,10 @@ def real_log(tmp_path_factory):
     return out
 
 
-def test_ingest_every_frame(real_log):
+def test_ingest_every_frame(cli, real_log):
+    info = cli(["info", real_log])
+    assert info.code == 0, info.stderr
+    assert "gyro: 563 clipped and 0 invalid of 18750 samples" in info.out
     array, block = read_array(str(real_log))
     assert len(block) == FRAMES
     assert CUT.stat().st_size == 4 + 106 * FRAMES
