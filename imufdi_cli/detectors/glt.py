@@ -60,6 +60,7 @@ from imufdi_cli.detectors.parity import (
     residuals,
     whiten,
 )
+from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
 from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
 from imufdi_cli.log import ImuBlock
 
@@ -220,6 +221,7 @@ class GltDetector:
             choices=("calibration", "config"),
         ),
         "bias": Param("bool", True, "remove per-sensor biases found in the calibration window"),
+        "track_bias": TRACK_BIAS,
         "types": Param(
             "str", "auto", "sensor types to test: auto or e.g. gyro,accel", check=_check_types
         ),
@@ -235,6 +237,7 @@ class GltDetector:
         sigma_source: str = "calibration",
         bias: bool = True,
         types: str = "auto",
+        track_bias: float = 0.0,
     ) -> None:
         self.alpha = float(alpha)
         self.persistence = int(persistence)
@@ -244,6 +247,7 @@ class GltDetector:
         self.sigma_source = sigma_source
         self.remove_bias = bool(bias)
         self.types = types
+        self.tracker = BiasTracker(track_bias)
         self.threshold_excluded = float(chi2.ppf(1.0 - self.alpha, 1))
         self._states: dict[str, _TypeState] = {}
         self._untested: dict[str, str] = {}
@@ -262,6 +266,7 @@ class GltDetector:
         CalibrationError
             Fewer than 10 calibration samples, non-finite data or a zero sigma.
         """
+        self.tracker.fit(calibration, array)
         if self.types == "auto":
             requested = array.sensor_types()
         else:
@@ -335,6 +340,7 @@ class GltDetector:
         """Test one block; one row per input sample for every tested sensor type."""
         if not self._states:
             raise DetectorConfigError("glt: call fit() before process()")
+        block = self.tracker.apply(block)
         out: dict[str, DetectionBlock] = {}
         for sensor_type, state in self._states.items():
             triads = block.get(sensor_type)
@@ -526,7 +532,9 @@ class GltDetector:
                 "sigma_source": self.sigma_source,
                 "bias": self.remove_bias,
                 "types": self.types,
+                "track_bias": self.tracker.tau_s,
             },
+            "tracked_bias_change": self.tracker.metadata(),
             "types": types,
             "untested": dict(self._untested),
         }

@@ -69,6 +69,7 @@ from imufdi_cli.detectors.base import (
     parse_sensor_types,
 )
 from imufdi_cli.detectors.parity import isolable_sensors, parity_matrix
+from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
 from imufdi_cli.errors import CalibrationError
 from imufdi_cli.log import ImuBlock
 
@@ -253,6 +254,7 @@ class PcaParityDetector:
             choices=("regress", "none"),
         ),
         "sensors": Param("str", "gyro,accel", "sensor types to test, comma-separated"),
+        "track_bias": TRACK_BIAS,
     }
 
     def __init__(
@@ -264,6 +266,7 @@ class PcaParityDetector:
         residual_test: bool = True,
         leak: str = "regress",
         sensors: str = "gyro,accel",
+        track_bias: float = 0.0,
     ) -> None:
         self.alpha = float(alpha)
         self.components = int(components)
@@ -272,6 +275,7 @@ class PcaParityDetector:
         self.residual_test = bool(residual_test)
         self.leak = leak
         self.sensor_types = parse_sensor_types(sensors, self.name)
+        self.tracker = BiasTracker(track_bias)
         self.array: ArrayConfig | None = None
         self.models: dict[str, _TypeModel] = {}
         self.window_samples = 0
@@ -287,6 +291,7 @@ class PcaParityDetector:
             Window too short, no testable sensor type, or degenerate (zero-variance) data.
         """
         self.array = array
+        self.tracker.fit(calibration, array)
         self.window_samples = max(1, round(self.window_s * array.rate_hz))
         self.models = {}
         minimum = 3 if self.space == "parity" else 0
@@ -389,6 +394,7 @@ class PcaParityDetector:
         """Test one block; one row per input sample (causal)."""
         if self.array is None:
             raise CalibrationError(f"{self.name}: process() called before fit()")
+        block = self.tracker.apply(block)
         out: dict[str, DetectionBlock] = {}
         for sensor_type, model in self.models.items():
             triads = block.get(sensor_type)
@@ -487,7 +493,9 @@ class PcaParityDetector:
                 "residual_test": self.residual_test,
                 "leak": self.leak,
                 "sensors": ",".join(self.sensor_types),
+                "track_bias": self.tracker.tau_s,
             },
+            "tracked_bias_change": self.tracker.metadata(),
             "statistic": "max(T/chi2_{1-a}(k), Q/chi2_{1-a}(q-k)), a = alpha/2; threshold 1",
             "scores": "angle between each sensor's parity direction and the mean parity"
             " deviation, rad (smallest = isolated)",

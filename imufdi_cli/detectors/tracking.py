@@ -1,0 +1,108 @@
+"""Slow bias tracking, shared by the parity detectors (``track_bias`` parameter).
+
+Real MEMS gyro biases wander (about 0.05 deg/s over 8 minutes on the MIMU4444 board,
+docs/real-arrays.md): a bias calibrated in the first seconds of a log slowly drifts into
+the parity residual, and tests that average (pca-parity's moving mean) alarm on it. The
+tracker follows each sensor's offset from the array consensus with an exponential average
+of time constant ``tau`` and removes its change since the calibration window::
+
+    r_t = P y_t                                  (P = I - H H^+: the parity residual of y)
+    e_t = e_{t-1} + (dt / tau) clip(r_t - e_{t-1}, +-gate sigma)
+    y'_t = y_t - (e_{t-1} - e_0)                 (e_0: mean residual of the calibration window)
+
+The correction lies in the residual space (``P c = c``), so the consensus estimate is
+unchanged; only slow parity offsets are removed. The clip bounds how fast a fault can be
+absorbed (at most ``gate sigma dt / tau`` per sample).
+
+**Trade-off.** Whatever is slow enough is tracked, faults included: a drift fault of rate
+``k`` leaves a steady residual of only ``k tau`` (the tracker's lag) instead of growing
+without bound, so drifts with ``k tau`` below the detection level are never seen; a step
+of amplitude ``A`` decays as ``A exp(-t / tau)`` (by 15 % after 10 s at ``tau = 60 s``).
+``track_bias = 0`` (the default) turns it off. Measured on the MIMU4444 recordings in
+docs/real-arrays.md.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors.base import Param
+from imufdi_cli.log import ImuBlock
+
+#: The detector parameter (seconds; 0 = off).
+TRACK_BIAS = Param(
+    "time",
+    0.0,
+    "slow bias tracking time constant, e.g. 60s (0 = off; docs/real-arrays.md)",
+    low=0.0,
+)
+#: Innovation clip, in per-sensor sigmas.
+GATE_SIGMA = 3.0
+
+
+class BiasTracker:
+    """Exponential tracking of per-sensor parity offsets (see the module docstring).
+
+    Parameters
+    ----------
+    tau_s : float
+        Time constant, seconds; 0 disables tracking (``apply`` returns its input).
+    """
+
+    def __init__(self, tau_s: float = 0.0) -> None:
+        self.tau_s = float(tau_s)
+        self.array: ArrayConfig | None = None
+        self._state: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    @property
+    def enabled(self) -> bool:
+        return self.tau_s > 0
+
+    def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
+        """Projector, per-sensor sigma and reference offset of every type with parity."""
+        self.array = array
+        self._state = {}
+        if not self.enabled:
+            return
+        for sensor_type in array.sensor_types():
+            triads = calibration.get(sensor_type)
+            h = array.measurement_matrix(sensor_type)
+            if triads is None or h.shape[0] <= 3 or len(calibration) < 2:
+                continue
+            projector = np.eye(h.shape[0]) - h @ np.linalg.pinv(h)
+            residual = array.select(triads, sensor_type) @ projector.T
+            reference = residual.mean(axis=0)
+            sigma = np.maximum(residual.std(axis=0), 1e-12)
+            self._state[sensor_type] = (projector, sigma, reference, reference.copy())
+
+    def apply(self, block: ImuBlock) -> ImuBlock:
+        """The block with tracked offset changes removed (state carried across blocks)."""
+        if not self.enabled or not self._state or self.array is None or len(block) == 0:
+            return block
+        step = 1.0 / (self.tau_s * self.array.rate_hz)
+        fields: dict[str, np.ndarray | None] = {
+            "gyro": block.gyro,
+            "accel": block.accel,
+            "mag": block.mag,
+        }
+        for sensor_type, (projector, sigma, reference, estimate) in self._state.items():
+            triads = block.get(sensor_type)
+            if triads is None:
+                continue
+            values = self.array.select(triads, sensor_type)
+            residual = values @ projector.T
+            correction = np.empty_like(values)
+            gate = GATE_SIGMA * sigma
+            for i in range(values.shape[0]):
+                correction[i] = estimate - reference
+                estimate += step * np.clip(residual[i] - estimate, -gate, gate)
+            out = triads.copy()
+            imu_idx, axis_idx = self.array.sensor_index(sensor_type)
+            out[:, imu_idx, axis_idx] = values - correction
+            fields[sensor_type] = out
+        return ImuBlock(t_ns=block.t_ns, **fields)
+
+    def metadata(self) -> dict[str, list[float]]:
+        """Per type, the tracked offset change at the end of the run (SI)."""
+        return {s: (e - r).tolist() for s, (_, _, r, e) in self._state.items()}
