@@ -209,9 +209,15 @@ def main() -> None:
     }
 
     tables = {}
-    for label, config in (("nominal", ArrayConfig.load(BASE)), ("calibrated", result.array)):
-        detected = out / f"{args.test}-{label}.mcap"
-        detect_file(str(test), str(detected), [(d, {}) for d in DETECTORS],
+    runs = [
+        ("nominal", ArrayConfig.load(BASE), {}),
+        ("calibrated", result.array, {}),
+        ("calibrated, track_bias=300s", result.array, {"track_bias": "300s"}),
+        ("calibrated, track_bias=60s", result.array, {"track_bias": "60s"}),
+    ]
+    for n, (label, config, params) in enumerate(runs):
+        detected = out / f"{args.test}-run{n}.mcap"
+        detect_file(str(test), str(detected), [(d, dict(params)) for d in DETECTORS],
                     calibrate=CALIBRATION, array=config)  # fmt: skip
         tables[label] = alarm_table(detected, intervals, motion_start)
     figures["alarm_rates"] = tables

@@ -8,7 +8,7 @@ of time constant ``tau`` and removes its change since the calibration window::
 
     r_t = P y_t                                  (P = I - H H^+: the parity residual of y)
     e_t = e_{t-1} + (dt / tau) clip(r_t - e_{t-1}, +-gate sigma)
-    y'_t = y_t - (e_{t-1} - e_0)                 (e_0: mean residual of the calibration window)
+    y'_t = y_t - P (e_{t-1} - e_0)               (e_0: mean residual of the calibration window)
 
 The correction lies in the residual space (``P c = c``), so the consensus estimate is
 unchanged; only slow parity offsets are removed. The clip bounds how fast a fault can be
@@ -97,6 +97,8 @@ class BiasTracker:
             for i in range(values.shape[0]):
                 correction[i] = estimate - reference
                 estimate += step * np.clip(residual[i] - estimate, -gate, gate)
+            # the clip is per sensor: project back so the consensus stays untouched
+            correction = correction @ projector.T
             out = triads.copy()
             imu_idx, axis_idx = self.array.sensor_index(sensor_type)
             out[:, imu_idx, axis_idx] = values - correction
