@@ -289,9 +289,12 @@ def _gauss_newton(
             jac[k, :, :, 12 * k : 12 * k + 12] = blocks[k]
         for i in range(n_int):
             jac[:, i, :, n_p + 2 * i : n_p + 2 * i + 2] = -tangent[i]
-        step, *_ = np.linalg.lstsq(
-            jac.reshape(-1, n_p + 2 * n_int), -residual.reshape(-1), rcond=None
-        )
+        # normal equations with a tiny Levenberg damping: the common rotation (3 gauge
+        # directions) is not observable, the damping keeps the step off it
+        flat = jac.reshape(-1, n_p + 2 * n_int)
+        normal = flat.T @ flat
+        normal[np.diag_indices_from(normal)] += 1e-9 * np.trace(normal) / normal.shape[0]
+        step = np.linalg.solve(normal, -(flat.T @ residual.reshape(-1)))
         params = params + step[:n_p].reshape(m, 3, 4)
         f = f + np.einsum("iab,ib->ia", tangent, step[n_p:].reshape(n_int, 2))
         f = gravity * f / np.linalg.norm(f, axis=1, keepdims=True)
