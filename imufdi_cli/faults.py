@@ -52,10 +52,10 @@ else:  # pragma: no cover
 
 #: Name of the MCAP metadata record describing injected faults.
 METADATA_NAME: Final[str] = "imufdi.faults"
-#: Topic of the JSON ground-truth channel (one message per fault start/end).
+#: Topic of the ground-truth channel (one message per fault start/end).
 TRUTH_TOPIC: Final[str] = "/imufdi/truth"
-#: Schema name of the ground-truth channel.
-TRUTH_SCHEMA: Final[str] = "imufdi/FaultEvent"
+#: Schema name (ros2msg) of the ground-truth channel.
+TRUTH_SCHEMA: Final[str] = "imufdi_msgs/msg/FaultEvent"
 METADATA_FORMAT: Final[str] = "imufdi.faults/1"
 
 _COMMON_KEYS: Final[frozenset[str]] = frozenset({"at", "until", "duration", "id"})
@@ -859,7 +859,9 @@ def inject_file(
 
     Every channel, message and metadata record of the input is copied; IMU (and
     magnetometer) messages of faulted sensors are patched in place (all other bytes
-    identical). Adds the ``/imufdi/truth`` JSON channel (one message per fault start/end)
+    identical). Adds the ``/imufdi/truth`` channel (``imufdi_msgs/msg/FaultEvent``, CDR, one
+    message per fault start/end; truth events of an older imufdi's JSON channel are
+    re-encoded onto it)
     and the ``imufdi.faults`` metadata record (seed, faults in SI, earlier runs under
     ``previous``). All specs are validated against the array and the log duration before
     anything is written; on failure no output file is left.
@@ -890,6 +892,12 @@ def inject_file(
 
     from imufdi_cli import mcapio
     from imufdi_cli.errors import McapInputError, UsageError
+    from imufdi_cli.mcapio.events import (
+        decode_events,
+        encode_fault_events,
+        is_event_channel,
+        register_truth_channel,
+    )
 
     if not faults_specs and not fault_files:
         raise FaultSpecError("inject needs at least one --fault SPEC or --faults FILE")
@@ -915,11 +923,16 @@ def inject_file(
     imu_index = {topic: k for k, topic in enumerate(imu_topics)}
     mag_index = {topic: k for k, topic in enumerate(mag_topics)}
 
-    # Pass 1: channels, metadata, the IMU time span.
+    # Pass 1: channels, metadata, the IMU time span (and truth on older JSON channels).
     first_ns: int | None = None
     last_ns: int | None = None
+    legacy_truth: list[dict[str, Any]] = []
     with mcapio.McapSource(open_input()) as reader:
         for batch in reader.batches():
+            for cid in np.unique(batch.channel_id).tolist():
+                channel = reader.channels[cid]
+                if channel.topic == TRUTH_TOPIC and channel.message_encoding == "json":
+                    legacy_truth += decode_events(batch.select(batch.channel_id == cid), channel)
             # one bulk decode per schema: channels sharing a schema share a codec
             groups: dict[tuple[Any, str], list[int]] = {}
             for cid in np.unique(batch.channel_id).tolist():
@@ -995,21 +1008,30 @@ def inject_file(
         mcapio.McapSource(open_input()) as reader,
         mcapio.McapWriter(output, compression=compression) as writer,
     ):
-        writer.copy_channels(channels)
+        legacy_ids = [
+            cid
+            for cid, ch in channels.items()
+            if ch.topic == TRUTH_TOPIC and ch.message_encoding == "json"
+        ]
+        writer.copy_channels({c: ch for c, ch in channels.items() if c not in legacy_ids})
         for name, values in metadata.items():
             if name != METADATA_NAME:
                 writer.add_metadata(name, values)
         if not array_recorded:
             writer.add_metadata("imufdi.array", {"json": array.to_json()})
         writer.add_metadata(METADATA_NAME, injector.metadata())
-        truth_ids = [cid for cid, ch in channels.items() if ch.topic == TRUTH_TOPIC]
-        truth_channel = (
-            truth_ids[0] if truth_ids else writer.register_json_channel(TRUTH_TOPIC, TRUTH_SCHEMA)
-        )
-        for event in injector.truth_events():
-            writer.add_json(truth_channel, int(event["t_ns"]), event)
-            result.truth_messages += 1
+        truth_ids = [
+            cid
+            for cid, ch in channels.items()
+            if ch.topic == TRUTH_TOPIC and ch.message_encoding == "cdr" and is_event_channel(ch)
+        ]
+        truth_channel = truth_ids[0] if truth_ids else register_truth_channel(writer)
+        events = legacy_truth + injector.truth_events()
+        writer.add_batch(encode_fault_events(truth_channel, events))
+        result.truth_messages += len(events) - len(legacy_truth)
         for batch in reader.batches():
+            if legacy_ids:
+                batch = batch.select(~np.isin(batch.channel_id, legacy_ids))
             result.messages += len(batch)
             patched, count = _patch_batch(batch, channels, imu_channels, mag_channels, injector)
             result.messages_patched += count
