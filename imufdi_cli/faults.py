@@ -860,8 +860,8 @@ def inject_file(
     Every channel, message and metadata record of the input is copied; IMU (and
     magnetometer) messages of faulted sensors are patched in place (all other bytes
     identical). Adds the ``/imufdi/truth`` channel (``imufdi_msgs/msg/FaultEvent``, CDR, one
-    message per fault start/end; truth events of an older imufdi's JSON channel are
-    re-encoded onto it)
+    message per fault start/end; the JSON truth and alarm events of an older imufdi are
+    re-encoded as FaultEvent / FdiEvent)
     and the ``imufdi.faults`` metadata record (seed, faults in SI, earlier runs under
     ``previous``). All specs are validated against the array and the log duration before
     anything is written; on failure no output file is left.
@@ -895,7 +895,9 @@ def inject_file(
     from imufdi_cli.mcapio.events import (
         decode_events,
         encode_fault_events,
+        encode_fdi_event_dicts,
         is_event_channel,
+        register_events_channel,
         register_truth_channel,
     )
 
@@ -927,12 +929,17 @@ def inject_file(
     first_ns: int | None = None
     last_ns: int | None = None
     legacy_truth: list[dict[str, Any]] = []
+    legacy_alarms: list[tuple[int, dict[str, Any]]] = []
     with mcapio.McapSource(open_input()) as reader:
         for batch in reader.batches():
             for cid in np.unique(batch.channel_id).tolist():
                 channel = reader.channels[cid]
-                if channel.topic == TRUTH_TOPIC and channel.message_encoding == "json":
-                    legacy_truth += decode_events(batch.select(batch.channel_id == cid), channel)
+                if channel.message_encoding == "json" and is_event_channel(channel):
+                    sub = batch.select(batch.channel_id == cid)
+                    if channel.topic == TRUTH_TOPIC:
+                        legacy_truth += decode_events(sub, channel)
+                    else:
+                        legacy_alarms += zip(sub.log_time.tolist(), decode_events(sub, channel))
             # one bulk decode per schema: channels sharing a schema share a codec
             groups: dict[tuple[Any, str], list[int]] = {}
             for cid in np.unique(batch.channel_id).tolist():
@@ -1008,10 +1015,11 @@ def inject_file(
         mcapio.McapSource(open_input()) as reader,
         mcapio.McapWriter(output, compression=compression) as writer,
     ):
+        # JSON event channels of an older imufdi are re-encoded as FaultEvent / FdiEvent
         legacy_ids = [
             cid
             for cid, ch in channels.items()
-            if ch.topic == TRUTH_TOPIC and ch.message_encoding == "json"
+            if ch.message_encoding == "json" and is_event_channel(ch)
         ]
         writer.copy_channels({c: ch for c, ch in channels.items() if c not in legacy_ids})
         for name, values in metadata.items():
@@ -1029,6 +1037,14 @@ def inject_file(
         events = legacy_truth + injector.truth_events()
         writer.add_batch(encode_fault_events(truth_channel, events))
         result.truth_messages += len(events) - len(legacy_truth)
+        if legacy_alarms:
+            writer.add_batch(
+                encode_fdi_event_dicts(
+                    register_events_channel(writer),
+                    [t for t, _ in legacy_alarms],
+                    [e for _, e in legacy_alarms],
+                )
+            )
         for batch in reader.batches():
             if legacy_ids:
                 batch = batch.select(~np.isin(batch.channel_id, legacy_ids))
