@@ -59,6 +59,11 @@ def _warn(console: Console, warnings: Sequence[str]) -> None:
         console.print(f"[yellow]warning:[/] {warning}", markup=True)
 
 
+def _time_source(stamps: str) -> str:
+    """--stamps choice -> ImuArrayReader time source."""
+    return "log_time" if stamps == "log" else stamps
+
+
 def _time_range(text: str | None, name: str) -> tuple[float, float | None] | None:
     from imufdi_cli.units import parse_time_range
 
@@ -237,8 +242,22 @@ def ingest(
 @cli.command()
 @click.argument("log")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of tables.")
-@click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
-def info(log: str, as_json: bool, topics: tuple[str, ...]) -> None:
+@click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+@click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
+def info(log: str, as_json: bool, topics: tuple[str, ...], stamps: str) -> None:
     """Describe a log: topics, IMUs, rate, duration, gaps, array, faults, detectors.
 
     Example:
@@ -252,7 +271,7 @@ def info(log: str, as_json: bool, topics: tuple[str, ...]) -> None:
     from imufdi_cli.pipeline import log_info
 
     check_input(log)
-    summary = log_info(log, topics=list(topics) or None)
+    summary = log_info(log, topics=list(topics) or None, time_source=_time_source(stamps))
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
@@ -315,12 +334,29 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
 )
 @click.option("--faults", "fault_files", multiple=True, help="TOML file of [[fault]] tables.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed for random faults.")
+@click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+@click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
 def inject(
     source: str,
     output: str | None,
     faults: tuple[str, ...],
     fault_files: tuple[str, ...],
     seed: int,
+    topics: tuple[str, ...],
+    stamps: str,
 ) -> None:
     """Inject faults into a log and record their ground truth.
 
@@ -343,11 +379,20 @@ def inject(
         raise FaultSpecError("no fault given; use --fault SPEC or --faults FILE.toml")
     output = output or default_output(source, "faults")
     check_output(source, output)
-    result = inject_file(source, output, list(faults), list(fault_files), seed=seed)
+    result = inject_file(
+        source,
+        output,
+        list(faults),
+        list(fault_files),
+        seed=seed,
+        topics=list(topics) or None,
+        time_source=_time_source(stamps),
+    )
     console = _console(output != "-")
     for fault in result.faults:
         console.print(f"injected {fault.spec}")
     console.print(f"-> {output}")
+    _warn(console, result.warnings)
 
 
 # --- detect ----------------------------------------------------------------------------
@@ -372,7 +417,21 @@ def inject(
     show_default=True,
     help="Fault-free calibration window START:END, seconds from the log start.",
 )
-@click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
+@click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+@click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
 @click.option("--strict", is_flag=True, help="A truncated input is an error instead of a warning.")
 def detect(
     source: str,
@@ -381,6 +440,7 @@ def detect(
     params: tuple[str, ...],
     calibrate: str,
     topics: tuple[str, ...],
+    stamps: str,
     strict: bool,
 ) -> None:
     """Run detectors and write an annotated MCAP (status channels, alarm events).
@@ -402,7 +462,13 @@ def detect(
     output = output or default_output(source, "detect")
     check_output(source, output)
     result = detect_file(
-        source, output, grouped, calibrate=window, topics=list(topics) or None, strict=strict
+        source,
+        output,
+        grouped,
+        calibrate=window,
+        topics=list(topics) or None,
+        strict=strict,
+        time_source=_time_source(stamps),
     )
     console = _console(output != "-")
     table = Table(title=f"detect: {result.samples} samples, {result.duration_s:.3g} s -> {output}")

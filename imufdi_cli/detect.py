@@ -239,6 +239,7 @@ def detect_file(
     topics: Sequence[str] | None = None,
     strict: bool = False,
     compression: str = "zstd",
+    time_source: str = "auto",
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -250,7 +251,10 @@ def detect_file(
     calibrate : (start_s, end_s or None)
         Fault-free calibration window, seconds from the first aligned sample.
     topics : sequence of str, optional
-        Imu topics to use, in array order (default: all, natural order).
+        Imu topics to use, in array order (default: all, natural order); ``/topic:field``
+        for an Imu inside a larger message.
+    time_source : {"auto", "header", "log_time"}
+        Stamps to align on (see :class:`~imufdi_cli.mcapio.ImuArrayReader`).
 
     Returns
     -------
@@ -258,7 +262,7 @@ def detect_file(
     """
     instances = [make_detector(name, dict(params)) for name, params in detectors]
     cal_start_s, cal_end_s = calibrate
-    reader = ImuArrayReader(source, topics=topics, strict=strict)
+    reader = ImuArrayReader(source, topics=topics, strict=strict, time_source=time_source)
     array = reader.array
     tracks = [_Track(det, array) for det in instances]
     warnings: list[str] = []

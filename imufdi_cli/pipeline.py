@@ -138,11 +138,13 @@ def ingest_file(
 # --- info ------------------------------------------------------------------------------
 
 
-def log_info(source: str, *, topics: Sequence[str] | None = None) -> dict[str, Any]:
+def log_info(
+    source: str, *, topics: Sequence[str] | None = None, time_source: str = "auto"
+) -> dict[str, Any]:
     """Everything ``imufdi info`` shows, as a JSON-ready dict."""
     from imufdi_cli.mcapio import summarize
 
-    summary = summarize(source, topics=topics)
+    summary = summarize(source, topics=topics, time_source=time_source)
     data: dict[str, Any] = summary.to_dict()
     if not data.get("imu_topics"):
         from imufdi_cli.errors import McapInputError

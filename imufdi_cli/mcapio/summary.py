@@ -95,6 +95,7 @@ def summarize(
     *,
     topics: Sequence[str] | None = None,
     strict: bool = False,
+    time_source: str = "auto",
 ) -> LogSummary:
     """Topics, message counts, array, rate, duration, gaps/duplicates and metadata of a log.
 
@@ -107,7 +108,7 @@ def summarize(
         counts: dict[int, int] = {}
         reader: ImuArrayReader | None = None
         try:
-            reader = ImuArrayReader(src, topics=topics, strict=strict)
+            reader = ImuArrayReader(src, topics=topics, strict=strict, time_source=time_source)
         except McapInputError:
             if topics is not None or any(is_imu_channel(c) for c in src.channels.values()):
                 raise
