@@ -127,8 +127,8 @@ def _channel_key(channel: ChannelInfo) -> tuple[Any, ...]:
 class BagDirSource(McapSource):
     """A rosbag2 directory read as one :class:`McapSource` (module docstring).
 
-    Channel ids are those of the first file that has the channel; a channel of a later
-    file whose id is taken by another channel gets a free id.
+    Channel and schema ids are those of the first file that has them; a channel (schema)
+    of a later file whose id is taken by another one gets a free id.
     """
 
     def __init__(
@@ -162,6 +162,7 @@ class BagDirSource(McapSource):
         self._parts: list[McapSource] = []
         self._maps: list[dict[int, int]] = []
         self._keys: dict[tuple[Any, ...], int] = {}
+        self._schema_ids: dict[tuple[Any, ...], int] = {}
         try:
             for file in self.files:
                 part = McapSource(file, strict=strict, validate_crcs=validate_crcs)
@@ -186,9 +187,16 @@ class BagDirSource(McapSource):
             if out is None:
                 out = cid if cid not in self.channels else max(self.channels) + 1
                 self._keys[key] = out
-                self.channels[out] = replace(channel, id=out)
-                if channel.schema is not None:
-                    self.schemas.setdefault(channel.schema.id, channel.schema)
+                schema = channel.schema
+                if schema is not None:
+                    schema_key = (schema.name, schema.encoding, schema.data)
+                    sid = self._schema_ids.get(schema_key)
+                    if sid is None:
+                        sid = schema.id if schema.id not in self.schemas else max(self.schemas) + 1
+                        self._schema_ids[schema_key] = sid
+                        self.schemas[sid] = replace(schema, id=sid)
+                    schema = self.schemas[sid]
+                self.channels[out] = replace(channel, id=out, schema=schema)
             mapping[cid] = out
 
     def _merge_summary(self, index: int) -> None:
