@@ -188,6 +188,12 @@ def simulate(
 @click.option("--gyro-fs", help="Built-in layout gyro full scale: 250, 500, 1000, 2000 (deg/s).")
 @click.option("--accel-fs", help="Built-in layout accel full scale: 2, 4, 8, 16 (g).")
 @click.option("--strict", is_flag=True, help="Any dropped byte is an error (exit 3).")
+@click.option(
+    "--start-time",
+    help="Wall-clock time of the first frame (ISO 8601, e.g. 2024-05-01T12:00:00Z, or Unix"
+    " seconds); stamps keep the device's intervals. Default: the device's own clock (from 0,"
+    " shown as 1970 by viewers).",
+)
 def ingest(
     capture: str,
     output: str | None,
@@ -197,6 +203,7 @@ def ingest(
     gyro_fs: str | None,
     accel_fs: str | None,
     strict: bool,
+    start_time: str | None,
 ) -> None:
     """Convert a raw serial capture (or CSV) into an IMU array MCAP.
 
@@ -226,6 +233,7 @@ def ingest(
         gyro_fs=gyro_fs,
         accel_fs=accel_fs,
         strict=strict,
+        start_time=start_time,
     )
     console = _console(output != "-")
     table = Table(title=f"ingest {capture} -> {output}", show_header=True)
@@ -284,10 +292,38 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
     head = Table(show_header=False, box=None)
     head.add_column(style="bold")
     head.add_column()
-    for key in ("n_imus", "n_samples", "rate_hz", "duration_s", "start_ns"):
+    for key in ("n_imus", "n_samples", "duration_s", "start_ns"):
         if key in s:
             value = s[key]
             head.add_row(key, f"{value:.6g}" if isinstance(value, float) else str(value))
+    if s.get("rate_hz") is not None:
+        head.add_row("rate_hz", f"{s['rate_hz']:.6g}  ({s.get('rate_method', '')})")
+    if s.get("time_source"):
+        head.add_row("stamps", "header.stamp" if s["time_source"] == "header" else "log time")
+    fields = {t: f for t, f in s.get("imu_fields", {}).items() if f}
+    for topic, path in fields.items():
+        head.add_row("imu field", f"{topic}: {path}")
+    gaps = s.get("gaps") or {}
+    if gaps:
+        text = f"{gaps.get('count', 0)}"
+        if gaps.get("count"):
+            text += (
+                f" ({gaps['missing_samples']} samples missing of {gaps['expected_samples']}"
+                f" expected; longest {gaps['longest_s']:.6g} s)"
+            )
+        head.add_row("gaps (all topics)", text)
+    ingest = s.get("ingest")
+    if ingest:
+        labels = (
+            ("frames_ok", "frames ok"),
+            ("frames_lost", "lost"),
+            ("frames_bad_checksum", "bad checksum"),
+            ("frames_truncated", "truncated"),
+            ("duplicates", "duplicates"),
+            ("bytes_dropped", "bytes dropped"),
+        )
+        parts = [f"{label} {ingest[key]}" for key, label in labels if key in ingest]
+        head.add_row("capture (ingest)", ", ".join(parts))
     for key, value in s.get("alignment", {}).items():
         if isinstance(value, dict):
             nonzero = {k: v for k, v in value.items() if v}
@@ -310,7 +346,7 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
     if array:
         source = "metadata" if s.get("array_from_metadata") else "inferred"
         console.print(
-            f"array ({source}): {len(array['imu'])} IMUs at {array['rate_hz']:g} Hz, noise "
+            f"array ({source}): {len(array['imu'])} IMUs, noise "
             + (json.dumps(array.get("noise")) if array.get("noise") else "not given")
         )
     for fault in s.get("faults", []):
