@@ -19,7 +19,7 @@ episode's first part):
 model   r(t) for t >= tau (before: N(0, sigma_r^2))  size (90 % interval)
 ======  ==========================================  ==================================
 step    a + e                                        amp: a_hat +- z sigma_r / sqrt(n)
-drift   b (t - tau) + e                              rate: b_hat +- z sigma_r / sqrt(S_uu)
+drift   c + b (t - tau) + e (c: sub-sample onset)    rate: least-squares interval on b
 noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: chi-square interval on Var e
 scale   beta o(t) + e, o the consensus prediction    factor 1 + beta_hat +- z se
 spikes  e + s A on a fraction p of samples           amp A (t interval), rate (Poisson)
@@ -259,7 +259,6 @@ def fit_models(
     s_t, s_tt, s_tr = _suffix(t)[taus], _suffix(t * t)[taus], _suffix(t * r)[taus]
     s_o, s_oo, s_or = _suffix(o)[taus], _suffix(o * o)[taus], _suffix(o * r)[taus]
     del s_o
-    t0 = t[taus]
     fits: list[FaultFit] = []
 
     def best(nll_after: np.ndarray, k_params: int) -> tuple[int, float]:
@@ -273,14 +272,12 @@ def fit_models(
     half = z * sigma_r / math.sqrt(n_after[j])
     fits.append(FaultFit("step", float(a[j]), float(a[j] - half), float(a[j] + half), lo + j, bic))
 
-    # drift: r = b (t - tau) + e
-    s_uu = s_tt - 2 * t0 * s_t + n_after * t0**2
-    s_ur = s_tr - t0 * s_r
-    with np.errstate(divide="ignore", invalid="ignore"):
-        b = np.where(s_uu > 0, s_ur / s_uu, 0.0)
-    j, bic = best(_gaussian_nll(s_rr - b * s_ur, n_after, var0), 1)
-    half = z * sigma_r / math.sqrt(s_uu[j]) if s_uu[j] > 0 else math.inf
-    fits.append(FaultFit("drift", float(b[j]), float(b[j] - half), float(b[j] + half), lo + j, bic))
+    # drift: r = b (t - t_f) + e from an onset t_f between samples tau - 1 and tau, i.e.
+    # r = b (u + lam) with u = t - t_tau and lam = t_tau - t_f in [0, dt]: the offset
+    # lam is fitted per tau (interior least squares, else the better bound)
+    fits.extend(
+        _drift_fit(t, taus, n_after, s_r, s_rr, s_t, s_tt, s_tr, nll_before, var0, z, ln_n, lo)
+    )
 
     # noise: r ~ N(0, f^2 sigma_k^2 + sigma_c^2); variance fitted (bounded below by var0)
     var_hat = np.maximum(s_rr / n_after, var0)
@@ -316,6 +313,59 @@ def fit_models(
     if stuck is not None:
         fits.insert(0, stuck)
     return fits
+
+
+def _drift_fit(
+    t: np.ndarray,
+    taus: np.ndarray,
+    n: np.ndarray,
+    s_r: np.ndarray,
+    s_rr: np.ndarray,
+    s_t: np.ndarray,
+    s_tt: np.ndarray,
+    s_tr: np.ndarray,
+    nll_before: np.ndarray,
+    var0: float,
+    z: float,
+    ln_n: float,
+    lo: int,
+) -> list[FaultFit]:
+    """Ramp from an onset between two samples; the rate's interval from the fit's
+    least-squares variance (two parameters when the onset offset is interior, one at a
+    bound)."""
+    dt = float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
+    s_u = s_t - n * t0
+    s_uu = s_tt - 2 * t0 * s_t + n * t0**2
+    s_ur = s_tr - t0 * s_r
+    det = n * s_uu - s_u**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b_free = (n * s_ur - s_u * s_r) / det
+        lam_free = (s_r - b_free * s_u) / n / b_free
+    best: tuple[float, float, float, int] | None = None  # (total nll, b, var_b, j)
+    for lam in (None, 0.0, dt):
+        if lam is None:
+            b = b_free
+            sse = s_rr - (s_r - b * s_u) / n * s_r - b * s_ur
+            var_b = var0 * n / det
+            valid = (det > 0) & (lam_free >= 0) & (lam_free <= dt)
+        else:
+            s_vv = s_uu + 2 * lam * s_u + n * lam**2
+            s_vr = s_ur + lam * s_r
+            with np.errstate(divide="ignore", invalid="ignore"):
+                b = s_vr / s_vv
+            sse = s_rr - b * s_vr
+            var_b = var0 / s_vv
+            valid = s_vv > 0
+        total = np.where(valid, nll_before + _gaussian_nll(sse, n, var0), np.inf)
+        j = int(np.argmin(total))
+        if np.isfinite(total[j]) and (best is None or total[j] < best[0]):
+            best = (float(total[j]), float(b[j]), float(var_b[j]), j)
+    if best is None:
+        return []
+    total_nll, rate, var_rate, j = best
+    half = z * math.sqrt(var_rate)
+    bic = 2 * total_nll + 3 * ln_n  # rate, offset, onset
+    return [FaultFit("drift", rate, rate - half, rate + half, lo + j, bic)]
 
 
 def _noise_fit(
