@@ -334,6 +334,7 @@ def _drift_fit(
     least-squares variance (two parameters when the onset offset is interior, one at a
     bound)."""
     dt = float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
+    t0 = t[taus]
     s_u = s_t - n * t0
     s_uu = s_tt - 2 * t0 * s_t + n * t0**2
     s_ur = s_tr - t0 * s_r
