@@ -158,7 +158,9 @@ def encode_fdi_events(
     amplitude, statistic : ndarray, shape (K,), float64
 
     Messages sharing (start/end, isolated sensor) have the same byte layout: one template
-    is built per such group and the numbers are written into all its rows at once.
+    per such kind (cached across calls) holds the constant bytes; the K payloads are the
+    templates joined in event order, and the stamps and numbers are written into all of
+    them at once with numpy.
     """
     t_ns = np.asarray(t_ns, np.int64)
     k = t_ns.shape[0]
@@ -166,57 +168,70 @@ def encode_fdi_events(
         return MessageBatch.empty()
     alarm = np.asarray(alarm, bool)
     isolated = np.asarray(isolated, np.int64)
-    amplitude = np.asarray(amplitude, np.float64)
-    statistic = np.asarray(statistic, np.float64)
     sec, nanosec = _stamps(t_ns)
     key = alarm.astype(np.int64) * (len(sensor_ids) + 3) + np.clip(isolated, -2, None) + 2
-    groups, inverse = np.unique(key, return_inverse=True)
-    buffers: list[np.ndarray] = []
-    order: list[np.ndarray] = []
-    offsets: list[np.ndarray] = []
-    lengths: list[np.ndarray] = []
-    position = 0
-    for g in range(groups.shape[0]):
-        rows = np.flatnonzero(inverse == g)
-        first = int(rows[0])
-        iso = int(isolated[first])
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    kinds = [
+        _fdi_template(
+            detector,
+            sensor_type,
+            bool(alarm[i]),
+            sensor_ids[int(isolated[i])] if 0 <= int(isolated[i]) < len(sensor_ids) else "",
+            int(isolated[i]) != -2,
+        )
+        for i in first.tolist()
+    ]
+    payloads = [kinds[g][0] for g in inverse.tolist()]
+    data = np.frombuffer(b"".join(payloads), np.uint8).copy()
+    fields = np.array([at for _, at in kinds], np.int64)[inverse]  # (K, 4) field offsets
+    length = np.array([len(p) for p, _ in kinds], np.int64)[inverse]
+    offset = np.zeros(k, np.int64)
+    np.cumsum(length[:-1], out=offset[1:])
+    columns = (
+        (sec, 4),
+        (nanosec, 4),
+        (np.ascontiguousarray(amplitude, "<f8"), 8),
+        (np.ascontiguousarray(statistic, "<f8"), 8),
+    )
+    for column, (values, size) in enumerate(columns):
+        where = offset + fields[:, column]
+        data[where[:, None] + np.arange(size)] = values.reshape(k, 1).view(np.uint8)
+    return MessageBatch(
+        channel_id=np.full(k, channel_id, np.uint16),
+        sequence=np.zeros(k, np.uint32),
+        log_time=t_ns.copy(),
+        publish_time=t_ns.copy(),
+        data=data,
+        offset=offset,
+        length=length,
+    )
+
+
+_TEMPLATES: dict[tuple[str, str, bool, str, bool], tuple[bytes, tuple[int, int, int, int]]] = {}
+
+
+def _fdi_template(
+    detector: str, sensor_type: str, start: bool, isolated: str, isolable: bool
+) -> tuple[bytes, tuple[int, int, int, int]]:
+    """FdiEvent payload with zero stamp and numbers, and the offsets of sec, nanosec,
+    amplitude and statistic."""
+    key = (detector, sensor_type, start, isolated, isolable)
+    found = _TEMPLATES.get(key)
+    if found is None:
         cdr = _CdrBuilder()
         at_sec, at_nanosec = cdr.header()
         cdr.string(detector)
         cdr.string(sensor_type)
-        cdr.string("alarm_start" if alarm[first] else "alarm_end")
-        cdr.string(sensor_ids[iso] if 0 <= iso < len(sensor_ids) else "")
-        cdr.prim("u1", iso != -2)
+        cdr.string("alarm_start" if start else "alarm_end")
+        cdr.string(isolated)
+        cdr.prim("u1", isolable)
         at_amplitude = cdr.prim("f8", 0.0)
         at_statistic = cdr.prim("f8", 0.0)
-        template = np.frombuffer(cdr.payload(), np.uint8)
-        length = template.shape[0]
-        block = np.empty((rows.shape[0], length), np.uint8)
-        block[:] = template
-        block[:, at_sec : at_sec + 4] = sec[rows, None].view(np.uint8)
-        block[:, at_nanosec : at_nanosec + 4] = nanosec[rows, None].view(np.uint8)
-        block[:, at_amplitude : at_amplitude + 8] = (
-            amplitude[rows, None].astype("<f8").view(np.uint8)
-        )
-        block[:, at_statistic : at_statistic + 8] = (
-            statistic[rows, None].astype("<f8").view(np.uint8)
-        )
-        buffers.append(block.reshape(-1))
-        order.append(rows)
-        offsets.append(position + np.arange(rows.shape[0], dtype=np.int64) * length)
-        lengths.append(np.full(rows.shape[0], length, np.int64))
-        position += block.size
-    rows_all = np.concatenate(order)
-    batch = MessageBatch(
-        channel_id=np.full(k, channel_id, np.uint16),
-        sequence=np.zeros(k, np.uint32),
-        log_time=t_ns[rows_all],
-        publish_time=t_ns[rows_all],
-        data=np.concatenate(buffers),
-        offset=np.concatenate(offsets),
-        length=np.concatenate(lengths),
-    )
-    return batch.select(np.argsort(rows_all, kind="stable"))
+        found = (cdr.payload(), (at_sec, at_nanosec, at_amplitude, at_statistic))
+        if len(_TEMPLATES) > 4096:
+            _TEMPLATES.clear()
+        _TEMPLATES[key] = found
+    return found
 
 
 # --- decoding ---------------------------------------------------------------------------
