@@ -83,7 +83,7 @@ def imu_fields_of(channel: ChannelInfo) -> list[str]:
         return []
     try:
         codec = codec_for(schema.name, schema.data)
-    except McapInputError:
+    except Exception:  # a schema we cannot parse holds no Imu we could read
         return []
     found: list[str] = []
 

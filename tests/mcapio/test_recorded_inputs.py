@@ -284,3 +284,27 @@ def test_real_rosbag2_split_directory() -> None:
 def test_real_bag_without_imu_is_refused_naming_its_types() -> None:
     result = invoke(["info", WBAG])
     assert_one_line_error(result, 3, "AAA (std_msgs/msg/String)")
+
+
+def test_metadata_yaml_forms_and_refusals(tmp_path) -> None:
+    bag = write_bag(tmp_path / "one", "vectornav")
+    meta = bag / "metadata.yaml"
+    text = meta.read_text()
+    # flow sequence, quoted names
+    meta.write_text(
+        text.replace(
+            "  relative_file_paths:\n  - one.mcap\n", "  relative_file_paths: ['one.mcap']\n"
+        )
+    )
+    assert [f.name for f in bag_files(bag)] == ["one.mcap"]
+    meta.write_text(text.replace("storage_identifier: mcap", "storage_identifier: sqlite3"))
+    with pytest.raises(McapInputError, match="storage 'sqlite3' is not supported"):
+        bag_files(bag)
+    meta.write_text(text.replace("compression_mode: ''", "compression_mode: FILE"))
+    with pytest.raises(McapInputError, match="whole-file compressed"):
+        bag_files(bag)
+    meta.write_text(text.replace("  - one.mcap\n", "  - one.mcap\n  - two.mcap\n"))
+    result = invoke(["info", bag])
+    assert_one_line_error(result, 3, "two.mcap, listed in metadata.yaml, is missing")
+    (tmp_path / "plain").mkdir()
+    assert_one_line_error(invoke(["info", tmp_path / "plain"]), 3, "not a regular file")
