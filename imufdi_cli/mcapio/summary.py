@@ -48,8 +48,8 @@ class LogSummary:
     gaps : dict
         Where every topic misses samples: ``count`` (intervals longer than 1.5 sample
         periods), ``missing_samples`` (sum of round(interval / period) - 1),
-        ``expected_samples`` (present + missing), ``longest_s``; the period is the median
-        interval of the first block of aligned stamps.
+        ``expected_samples`` (present + missing), ``longest_s``, ``period_s``; the period
+        is the median interval of the first 256 aligned stamps.
     stats : AlignmentStats or None
         Gaps of single topics, duplicates, misalignment found while aligning.
     time_source : str or None
@@ -196,27 +196,47 @@ def summarize(
 
 
 class _GapCounter:
-    """Intervals between aligned samples longer than 1.5 periods, streamed block by block
-    (the period: median interval of the first block with at least 2 samples)."""
+    """Intervals between aligned samples longer than 1.5 periods, streamed block by block.
+
+    The period is the median interval of the first ``HEAD`` samples (all of them for a
+    shorter log); those are held until it is known."""
+
+    HEAD = 256
 
     def __init__(self) -> None:
         self.period_ns: float | None = None
+        self.head: list[np.ndarray] = []
         self.last: int | None = None
         self.count = 0
         self.missing = 0
         self.longest_ns = 0
 
     def add(self, t_ns: np.ndarray) -> None:
-        t = np.asarray(t_ns, np.int64)
+        if self.period_ns is None:
+            self.head.append(np.asarray(t_ns, np.int64))
+            if sum(h.shape[0] for h in self.head) >= self.HEAD:
+                self._start()
+            return
+        self._scan(np.asarray(t_ns, np.int64))
+
+    def _start(self) -> None:
+        t = np.concatenate(self.head) if self.head else np.zeros(0, np.int64)
+        self.head = []
+        steps = np.diff(t)
+        positive = steps[steps > 0]
+        if positive.size == 0:
+            return
+        self.period_ns = float(np.median(positive))
+        self._scan(t)
+
+    def _scan(self, t: np.ndarray) -> None:
+        if t.shape[0] == 0:
+            return
         if self.last is not None:
             t = np.concatenate([[self.last], t])
         self.last = int(t[-1])
+        assert self.period_ns is not None
         steps = np.diff(t)
-        if self.period_ns is None:
-            positive = steps[steps > 0]
-            if positive.size == 0:
-                return
-            self.period_ns = float(np.median(positive))
         long = steps[steps > 1.5 * self.period_ns]
         if long.size:
             self.count += int(long.size)
@@ -224,6 +244,8 @@ class _GapCounter:
             self.longest_ns = max(self.longest_ns, int(long.max()))
 
     def result(self, n_samples: int) -> dict[str, Any]:
+        if self.period_ns is None:
+            self._start()
         return {
             "count": self.count,
             "missing_samples": self.missing,
