@@ -308,3 +308,23 @@ def test_metadata_yaml_forms_and_refusals(tmp_path) -> None:
     assert_one_line_error(result, 3, "two.mcap, listed in metadata.yaml, is missing")
     (tmp_path / "plain").mkdir()
     assert_one_line_error(invoke(["info", tmp_path / "plain"]), 3, "not a regular file")
+
+
+def test_inject_and_detect_take_topic_fields_and_stamps(tmp_path) -> None:
+    bag = write_bag(tmp_path / "vn", "vectornav", imus=4)
+    out = tmp_path / "f.mcap"
+    spec = "step:imu1.gyro.z,at=0.5s,amp=0.1rad/s"
+    topics = [a for k in (3, 1, 0, 2) for a in ("--topic", f"/vn{k}/imu:imu")]
+    result = invoke(["inject", bag, "--fault", spec, *topics, "--stamps", "header", "-o", out])
+    assert result.code == 0, result.stderr
+    _, block = read_array(out, topics=[f"/vn{k}/imu" for k in (3, 1, 0, 2)])
+    _, before = read_array(bag, topics=[f"/vn{k}/imu" for k in (3, 1, 0, 2)])
+    changed = np.flatnonzero(np.any(block.gyro != before.gyro, axis=2).any(axis=0))
+    assert changed.tolist() == [1]  # imu1 = the 2nd topic given, /vn1/imu
+    bad = invoke(["inject", bag, "--fault", spec, "--topic", "/vn0/imu:nope", "-o", out])
+    assert_one_line_error(bad, 3, "custom_interfaces/msg/Vectornav")
+    det = tmp_path / "d.mcap"
+    result = invoke(["detect", bag, "-d", "glt", *topics, "--stamps", "log", "-o", det])
+    assert result.code == 0, result.stderr
+    bad = invoke(["detect", bag, "-d", "glt", "--topic", "/nope", "-o", det])
+    assert_one_line_error(bad, 3, "/nope")
