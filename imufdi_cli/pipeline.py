@@ -280,9 +280,14 @@ def tune_file(
             f"--sensor {sensor_type}: the log has no {sensor_type}; present: "
             + ", ".join(array.sensor_types())
         )
-    return tune(
-        block.mask(keep), array, sensor_type=sensor_type, seed=seed, **_woa_settings(settings)
-    )
+    from imufdi_cli.validity import Conditioner
+
+    # clipped or impossible values (NaN, 1e308) replaced by the consensus, as in detect
+    conditioner = Conditioner(array)
+    segment_block, flags = conditioner.prepare(block.mask(keep))
+    conditioner.fit(segment_block, flags)
+    segment_block = conditioner.sanitize(segment_block, flags, count=False)
+    return tune(segment_block, array, sensor_type=sensor_type, seed=seed, **_woa_settings(settings))
 
 
 #: ``imufdi tune --param KEY=VALUE`` settings and their types.

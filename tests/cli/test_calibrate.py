@@ -147,6 +147,7 @@ def test_huge_and_nan_values_are_flagged_not_a_crash(cli, tmp_path):
     gyro = 0.002 * rng.standard_normal((n, 4, 3))
     accel = np.array([0, 0, 9.81]) + 0.02 * rng.standard_normal((n, 4, 3))
     gyro[500, 1, 2] = 1e308
+    gyro[50, 0, 0] = 1e308  # inside the calibration window too
     gyro[600, 2, 0] = -np.inf
     accel[100, 0, 1] = np.nan
     accel[700:705, 3, :] = np.nan
@@ -156,10 +157,18 @@ def test_huge_and_nan_values_are_flagged_not_a_crash(cli, tmp_path):
     detectors = ["-d", "glt", "-d", "pca-parity", "-d", "bank", "-d", "noise-glr"]
     result = cli(["detect", log, *detectors, "-o", out])
     assert result.code == 0, result.stderr
-    assert "2 invalid" in result.out and "6 invalid" in result.out
+    assert "3 invalid" in result.out and "6 invalid" in result.out
     report = cli(["report", out, "--json", "-"])
     assert report.code == 0, report.stderr
     entries = {(e["detector"], e["sensor_type"]): e for e in json.loads(report.out)["results"]}
-    assert entries[("glt", "gyro")]["invalid"] == 2
+    assert entries[("glt", "gyro")]["invalid"] == 3
     assert entries[("glt", "accel")]["invalid"] == 6  # row 100 (calibration window) too
     assert entries[("glt", "accel")]["alarm_rate"] < 0.05
+    for command in (
+        ["tune", log, "--segment", "0s:1s", "--param", "population=3", "--param", "iterations=2"],
+        ["inject", log, "--fault", "scale:imu1.gyro.z,at=4s,factor=2", "-o", tmp_path / "i.mcap"],
+        ["calibrate", log, "-o", tmp_path / "c.toml"],
+    ):
+        result = cli(command)
+        assert result.code in (0, 3), (command, result.stderr)
+        assert "Traceback" not in result.stderr and "internal error" not in result.stderr
