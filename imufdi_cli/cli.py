@@ -469,6 +469,12 @@ def inject(
     " no header or all-zero stamps, with a warning).",
 )
 @click.option("--strict", is_flag=True, help="A truncated input is an error instead of a warning.")
+@click.option(
+    "--explain/--no-explain",
+    default=True,
+    show_default=True,
+    help="Write an explained episode event (fault class, size with interval) per alarm episode.",
+)
 def detect(
     source: str,
     output: str | None,
@@ -478,6 +484,7 @@ def detect(
     topics: tuple[str, ...],
     stamps: str,
     strict: bool,
+    explain: bool,
 ) -> None:
     """Run detectors and write an annotated MCAP (status channels, alarm events).
 
@@ -505,10 +512,12 @@ def detect(
         topics=list(topics) or None,
         strict=strict,
         time_source=_time_source(stamps),
+        explain=explain,
     )
     console = _console(output != "-")
     table = Table(title=f"detect: {result.samples} samples, {result.duration_s:.3g} s -> {output}")
-    for col in ("detector", "sensor", "alarm %", "events", "isolated (alarm samples)"):
+    columns = ("detector", "sensor", "alarm %", "events", "isolated (alarm samples)", "episodes")
+    for col in columns:
         table.add_column(col)
     for name, per_type in result.summaries.items():
         for sensor_type, s in per_type.items():
@@ -519,6 +528,8 @@ def detect(
                 f"{100.0 * s.alarms / max(s.samples, 1):.2f}",
                 str(s.events),
                 ", ".join(f"{k} ({v})" for k, v in top) or "-",
+                ", ".join(f"{k} {v}" for k, v in sorted(s.episodes.items(), key=lambda kv: -kv[1]))
+                or "-",
             )
     console.print(table)
     _warn(console, result.warnings)
