@@ -807,6 +807,114 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
     return builders
 
 
+# --- scoring against injected truth -------------------------------------------------------
+
+#: the fault parameter each model's size estimates (faults.py keys, SI)
+TRUTH_SIZE_KEYS = {
+    "step": "amp",
+    "drift": "rate",
+    "noise": "factor",
+    "scale": "factor",
+    "spikes": "amp",
+}
+
+
+def truth_size(fault: dict[str, Any]) -> float | None:
+    """The size an explanation of ``fault`` (a :meth:`Fault.to_dict`) should find, or None
+    (stuck, or a noise fault given by sigma without a factor)."""
+    key = TRUTH_SIZE_KEYS.get(str(fault.get("model")))
+    value = None if key is None else fault.get("params", {}).get(key)
+    return None if value is None else float(value)
+
+
+def match_episodes(
+    episodes: Sequence[dict[str, Any]], faults: Sequence[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Match each episode (:meth:`Episode.to_dict`) to the injected fault it explains.
+
+    ``faults`` hold ``id``, ``model``, ``sensors``, ``params`` and absolute ``start_ns`` /
+    ``end_ns`` (None: to the end of the log). An episode matches a fault when its first
+    isolated sensor is one of the fault's sensors and its alarms overlap the fault's
+    window; it is ``wrong_sensor`` when it overlaps a fault on another sensor of its type,
+    and ``false`` otherwise. Returns one record per episode: ``{"match": "fault" |
+    "wrong_sensor" | "false", "fault_id", "true_class", "class_right", "true_size",
+    "covered"}``.
+    """
+    out = []
+    for episode in episodes:
+        sensors = episode.get("sensors") or []
+        first = sensors[0] if sensors else None
+        kind, hit = "false", None
+        for fault in faults:
+            end = fault.get("end_ns")
+            overlaps = episode["end_ns"] >= fault["start_ns"] and (
+                end is None or episode["start_ns"] < end
+            )
+            same_type = any(
+                s.split(".")[1] == episode["sensor_type"] for s in fault.get("sensors", [])
+            )
+            if not overlaps or not same_type:
+                continue
+            if first in fault["sensors"]:
+                kind, hit = "fault", fault
+                break
+            kind = "wrong_sensor"
+        record: dict[str, Any] = {"match": kind, "fault_id": None if hit is None else hit["id"]}
+        if hit is not None:
+            fits = episode.get("fits") or []
+            best = fits[0] if fits else {}
+            size = truth_size(hit)
+            record["true_class"] = hit["model"]
+            record["class_right"] = best.get("model") == hit["model"]
+            record["true_size"] = size
+            low, high = best.get("low"), best.get("high")
+            record["covered"] = (
+                None
+                if size is None or not record["class_right"] or low is None or high is None
+                else bool(low <= size <= high)
+            )
+        out.append(record)
+    return out
+
+
+def score_episodes(
+    episodes: Sequence[dict[str, Any]],
+    matches: Sequence[dict[str, Any]],
+    hours: float | None,
+) -> dict[str, Any]:
+    """Figures of one detector and sensor type: episodes, false episodes (per hour of
+    ``hours`` of log), and for matched ones the share classified right and the share of
+    size intervals covering the truth, per true fault model (None when undefined)."""
+    matched = [(e, m) for e, m in zip(episodes, matches) if m["match"] == "fault"]
+    false = sum(m["match"] == "false" for m in matches)
+    per_model: dict[str, dict[str, Any]] = {}
+    for _, m in matched:
+        row = per_model.setdefault(
+            m["true_class"], {"episodes": 0, "class_right": 0, "sized": 0, "covered": 0}
+        )
+        row["episodes"] += 1
+        row["class_right"] += bool(m["class_right"])
+        if m["covered"] is not None:
+            row["sized"] += 1
+            row["covered"] += bool(m["covered"])
+    for row in per_model.values():
+        row["class_accuracy"] = row["class_right"] / row["episodes"]
+        row["coverage"] = row["covered"] / row["sized"] if row["sized"] else None
+    sized = sum(r["sized"] for r in per_model.values())
+    return {
+        "episodes": len(episodes),
+        "matched": len(matched),
+        "wrong_sensor": sum(m["match"] == "wrong_sensor" for m in matches),
+        "false": false,
+        "false_episodes_per_hour": false / hours if hours else None,
+        "class_accuracy": (
+            sum(bool(m["class_right"]) for _, m in matched) / len(matched) if matched else None
+        ),
+        "coverage": (sum(r["covered"] for r in per_model.values()) / sized if sized else None),
+        "per_model": per_model,
+    }
+
+
 __all__ = [
     "MODELS",
     "Episode",
@@ -817,4 +925,7 @@ __all__ = [
     "fit_models",
     "isolation_summary",
     "leave_one_out",
+    "match_episodes",
+    "score_episodes",
+    "truth_size",
 ]
