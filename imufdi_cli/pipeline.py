@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 import tempfile
 import time
 from collections.abc import Mapping, Sequence
@@ -49,8 +50,15 @@ def simulate_file(
     """Simulate a log (preset or free options) into an MCAP, streaming in blocks.
 
     With ``capture``, the same samples are also written as a raw ``mpu6500-array`` serial
-    capture (optionally with corrupted stretches), the input of ``imufdi ingest``.
+    capture (optionally with corrupted stretches), the input of ``imufdi ingest``
+    (``-`` = stdout, when the MCAP goes to a file). Both outputs are atomic: on any failure
+    neither file is created or changed.
     """
+    from imufdi_cli.fileio import check_outputs
+
+    check_outputs([], [("-o", output), ("--capture", capture)])
+    if capture == "-" and output == "-":
+        raise UsageError("-o - and --capture -: only one output can go to stdout")
     from imufdi_cli.mcapio import ImuArrayWriter, McapWriter
     from imufdi_cli.simulate import config_from_options, simulate
 
@@ -76,12 +84,12 @@ def simulate_file(
         encoder = None
         if capture:
             from imufdi_cli.capture import CaptureEncoder
-            from imufdi_cli.fileio import atomic_path
+            from imufdi_cli.fileio import open_atomic
 
             encoder = CaptureEncoder(array, corrupt=corrupt, seed=seed)
             # streamed like the MCAP: memory stays flat with log length
-            capture_file = stack.enter_context(
-                open(stack.enter_context(atomic_path(capture)), "wb")
+            capture_file = (
+                sys.stdout.buffer if capture == "-" else stack.enter_context(open_atomic(capture))
             )
         for name, data in metadata.items():
             writer.add_metadata(name, data)
@@ -278,6 +286,7 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
     from imufdi_cli.detect import detect_file
     from imufdi_cli.detectors import DETECTORS
     from imufdi_cli.faults import inject_file
+    from imufdi_cli.fileio import atomic_path, check_outputs, write_text
 
     if keep_dir:
         workdir = Path(keep_dir)
@@ -287,6 +296,13 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
         workdir = Path(tempfile.mkdtemp(prefix="imufdi-demo-"))
         cleanup = True
     result = DemoResult(directory=str(workdir))
+    check_outputs(
+        [p for p in SAMPLE_LOGS.iterdir() if p.is_file()] if SAMPLE_LOGS.is_dir() else [],
+        [
+            (f"--keep {keep_dir}", workdir / name)
+            for name in ("table4.mcap", "faulty.mcap", "detected.mcap", "report.md")
+        ],
+    )
 
     def step(name: str, command: str, output: Path, fn: Any) -> Any:
         console.print(f"[bold cyan]$ {command}[/]", markup=True)
@@ -316,7 +332,8 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
             )
         else:
             sample = SAMPLE_LOGS / "paper-table4.mcap"
-            shutil.copyfile(sample, base)
+            with atomic_path(base) as tmp:
+                shutil.copyfile(sample, tmp)
         faulty = workdir / "faulty.mcap"
         step(
             "inject",
@@ -342,7 +359,7 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
             md,
             lambda: rep.build_report(str(detected)),
         )
-        md.write_text(rep.to_markdown(report), encoding="utf-8")
+        write_text(str(md), rep.to_markdown(report))
         table = Table(title="demo: 0.9 deg/s step on imu0.gyro.x at 2.5 s (paper-table4)")
         table.add_column("detector")
         table.add_column("sensor")
