@@ -84,7 +84,8 @@ class _Group(click.Group):
     def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         formatter.write_paragraph()
         formatter.write_text(
-            "Exit codes: 0 ok, 1 CI gate failed, 2 usage error, 3 bad input data, 4 internal error."
+            "Exit codes: 0 ok, 1 CI gate failed, 2 usage error, 3 bad input data or I/O error,"
+            " 4 internal error, 130/143 interrupted/terminated."
         )
 
 
