@@ -86,6 +86,11 @@ class McapInputError(InputDataError):
     """An MCAP file is missing, not MCAP, truncated (with --strict) or has no IMU data."""
 
 
+class OutputError(InputDataError):
+    """An output file could not be written: disk full, file size limit, I/O error (exit 3;
+    the partial output has been removed)."""
+
+
 class CaptureError(InputDataError):
     """A raw serial capture could not be parsed (or, with --strict, had dropped bytes)."""
 

@@ -26,7 +26,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
 
-from imufdi_cli.errors import InputDataError, UsageError
+from imufdi_cli.errors import InputDataError, OutputError, UsageError
 
 #: Temporary names: ``.<target name>.<pid>.<random>.tmp`` (plus an optional suffix).
 _TEMP_RE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.[0-9a-f]{12}\.tmp(\.\w+)?$")
@@ -151,7 +151,12 @@ def open_atomic(path: str | Path, mode: str = "wb") -> Iterator[IO[bytes]]:
     try:
         handle = os.fdopen(fd, mode)
         yield handle
-        handle.close()  # flush errors (ENOSPC, EFBIG) surface here, before the rename
+        try:
+            handle.close()  # flush errors (ENOSPC, EFBIG) surface here, before the rename
+        except OSError as err:
+            raise OutputError(
+                f"cannot write {path}: {err.strerror or err}; nothing was written"
+            ) from err
         commit_temp(temp, path)
     except BaseException:
         if handle is None:
@@ -172,7 +177,12 @@ def write_text(path: str, text: str) -> None:
         sys.stdout.flush()
         return
     with open_atomic(path) as handle:
-        handle.write(text.encode("utf-8"))
+        try:
+            handle.write(text.encode("utf-8"))
+        except OSError as err:
+            raise OutputError(
+                f"cannot write {path}: {err.strerror or err}; nothing was written"
+            ) from err
 
 
 def check_input(path: str) -> None:

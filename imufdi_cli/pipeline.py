@@ -102,9 +102,9 @@ def simulate_file(
             samples += len(block)
             imu_writer.write_block(block)
             if encoder is not None and capture_file is not None:
-                capture_bytes += capture_file.write(encoder.encode(block))
+                capture_bytes += _write_output(capture_file, encoder.encode(block), capture)
         if encoder is not None and capture_file is not None:
-            capture_bytes += capture_file.write(encoder.finish())
+            capture_bytes += _write_output(capture_file, encoder.finish(), capture)
     return SimulateResult(
         output=output,
         samples=samples,
@@ -113,6 +113,20 @@ def simulate_file(
         duration_s=(last - first) / 1e9 + 1.0 / array.rate_hz if samples else 0.0,
         capture_bytes=capture_bytes,
     )
+
+
+def _write_output(handle: Any, data: bytes, name: str | None) -> int:
+    """Write to an output file; a full disk or file size limit is an OutputError naming it."""
+    try:
+        return int(handle.write(data))
+    except BrokenPipeError:
+        raise
+    except OSError as err:
+        from imufdi_cli.errors import OutputError
+
+        raise OutputError(
+            f"cannot write {name}: {err.strerror or err}; nothing was written"
+        ) from err
 
 
 # --- ingest ----------------------------------------------------------------------------

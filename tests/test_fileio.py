@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from imufdi_cli import fileio
-from imufdi_cli.errors import UsageError
+from imufdi_cli.errors import OutputError, UsageError
 from imufdi_cli.fileio import (
     atomic_path,
     check_outputs,
@@ -120,9 +120,9 @@ def test_a_failing_close_removes_the_temp_and_keeps_the_target(tmp_path, monkeyp
     monkeypatch.setattr(
         fileio.os, "fdopen", lambda fd, mode: _FailingClose(real_fdopen(fd, mode), err)
     )
-    with pytest.raises(OSError) as info:
+    with pytest.raises(OutputError, match=f"cannot write {target}: {os.strerror(err)}") as info:
         write_text(str(target), "x" * 100_000)
-    assert info.value.errno == err
+    assert isinstance(info.value.__cause__, OSError) and info.value.__cause__.errno == err
     assert target.read_text() == "previous"
     assert temps(tmp_path) == []
 

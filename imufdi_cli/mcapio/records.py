@@ -31,7 +31,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from imufdi_cli.errors import McapInputError, UsageError
+from imufdi_cli.errors import McapInputError, OutputError, UsageError
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -514,8 +514,20 @@ class McapWriter:
 
     def _write_now(self, raw: bytes | memoryview) -> None:
         # The data section CRC is optional (0 = not computed, as the mcap package writes).
-        self._stream.write(raw)
+        try:
+            self._stream.write(raw)
+        except OSError as err:
+            self._write_failed(err)
         self._position += len(raw)
+
+    def _write_failed(self, err: OSError) -> None:
+        """A file output that cannot be written (ENOSPC, EFBIG, EIO) is an OutputError
+        naming it; stream errors (a closed pipe) pass through unchanged."""
+        if not self._owns_stream:
+            raise err
+        raise OutputError(
+            f"cannot write {self._final_path}: {err.strerror or err}; nothing was written"
+        ) from err
 
     def _shutdown_executor(self) -> None:
         self._in_flight.clear()
@@ -848,7 +860,10 @@ class McapWriter:
             # The last buffered bytes reach the file here: a flush/close error (ENOSPC,
             # EFBIG) must remove the temporary file like any other failure.
             if self._owns_stream:
-                self._stream.close()
+                try:
+                    self._stream.close()
+                except OSError as err:
+                    self._write_failed(err)
             else:
                 self._stream.flush()
             if self._temp_path is not None and self._final_path is not None:

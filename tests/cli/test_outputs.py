@@ -256,3 +256,37 @@ def test_temps_of_a_killed_writer_are_removed_by_the_next_write(cli, tmp_path):
     )
     assert result.code == 0, result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["long.bin", "long.mcap"]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_FSIZE semantics")
+def test_a_file_size_limit_mid_write_is_exit_3_and_leaves_nothing(tmp_path):
+    import resource
+
+    def limit() -> None:  # `ulimit -f 200`: writes past 200 KiB fail with EFBIG
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200 * 1024, 200 * 1024))
+
+    for extra in ([], ["--capture", str(tmp_path / "long.bin")]):
+        process = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "imufdi_cli",
+                "simulate",
+                "--preset",
+                "paper-table4",
+                "--duration",
+                "30s",
+                "-o",
+                str(tmp_path / "long.mcap"),
+                *extra,
+            ],
+            env=dict(os.environ, PYTHONPATH=str(REPO)),
+            preexec_fn=limit,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        lines = [line for line in process.stderr.splitlines() if line.strip()]
+        assert process.returncode == 3, process.stderr
+        assert len(lines) == 1 and "File too large" in lines[0], process.stderr
+        assert sorted(p.name for p in tmp_path.iterdir()) == []

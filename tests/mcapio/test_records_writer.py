@@ -10,7 +10,7 @@ import pytest
 import zstandard
 from mcap.reader import make_reader
 
-from imufdi_cli.errors import McapInputError
+from imufdi_cli.errors import McapInputError, OutputError
 from imufdi_cli.mcapio import McapWriter, MessageBatch
 from imufdi_cli.mcapio.records import compress, decompress
 
@@ -45,7 +45,7 @@ class _Full:
 def test_disk_full_on_write_or_close_leaves_no_temp_and_keeps_the_target(tmp_path, on_close, err):
     path = tmp_path / "out.mcap"
     path.write_bytes(b"previous")
-    with pytest.raises(OSError) as info, McapWriter(path, chunk_size=4096) as writer:
+    with pytest.raises(OutputError) as info, McapWriter(path, chunk_size=4096) as writer:
         schema = writer.register_schema("raw/Blob", "", b"")
         channel = writer.register_channel("/a", "application/octet-stream", schema)
         writer._stream = _Full(writer._stream, 5_000, err, on_close=on_close)
@@ -57,7 +57,8 @@ def test_disk_full_on_write_or_close_leaves_no_temp_and_keeps_the_target(tmp_pat
                 [rng.bytes(40) for _ in range(2000)],
             )
         )
-    assert info.value.errno == err
+    assert str(info.value).startswith(f"cannot write {path}: {os.strerror(err)}")
+    assert isinstance(info.value.__cause__, OSError) and info.value.__cause__.errno == err
     assert path.read_bytes() == b"previous"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mcap"]
 
