@@ -741,7 +741,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Console script: run the CLI, turning every error into one line and an exit code."""
     try:
         with _signals_as_exceptions():
-            code = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)
+            code = cli.main(
+                args=list(argv) if argv is not None else None,
+                prog_name="imufdi",
+                standalone_mode=False,
+            )
     except ImufdiError as err:
         if _debug():
             traceback.print_exc()
