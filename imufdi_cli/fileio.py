@@ -9,7 +9,8 @@ Every file the CLI writes goes through this module:
   ``.NAME.PID.RANDOM.tmp`` beside the target and rename it into place only when the whole
   output, including its final flush and close, succeeded. On any failure (an exception,
   ``ENOSPC``/``EFBIG`` on flush or close, SIGINT/SIGTERM turned into exceptions by the
-  CLI) the temporary file is removed and the target is left as it was.
+  CLI) the temporary file is removed and the target is left as it was. An existing output
+  that is not a regular file (``/dev/null``, a FIFO) is written in place, never replaced.
 
 A writer killed with SIGKILL cannot clean up; the next write to the same target removes
 temporary files whose writer process (the PID in the name) no longer exists on this host.
@@ -20,6 +21,7 @@ from __future__ import annotations
 import os
 import re
 import secrets
+import stat
 import sys
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
@@ -71,6 +73,16 @@ def remove_stale_temps(target: str | Path) -> list[Path]:
         except OSError:
             pass
     return removed
+
+
+def is_special(path: str | Path) -> bool:
+    """True for an existing output that is not a regular file or directory (``/dev/null``,
+    a FIFO, ``/dev/stdout``): written in place, never replaced by a renamed file."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
 def create_temp(path: str | Path, *, suffix: str = "") -> tuple[int, Path]:
@@ -127,6 +139,9 @@ def atomic_path(path: str | Path, *, suffix: str = "") -> Iterator[str]:
     the temporary file is removed and ``path`` is left as it was. ``suffix`` is appended
     to the temporary name (for writers that choose the format from the extension).
     """
+    if is_special(path):
+        yield str(path)
+        return
     fd, temp = create_temp(path, suffix=suffix)
     os.close(fd)
     try:
@@ -146,6 +161,10 @@ def open_atomic(path: str | Path, mode: str = "wb") -> Iterator[IO[bytes]]:
     """
     if mode not in ("wb", "w+b"):
         raise ValueError(f"open_atomic is for binary writing, got mode {mode!r}")
+    if is_special(path):
+        with open(path, "wb") as special:
+            yield special
+        return
     fd, temp = create_temp(path)
     handle: IO[bytes] | None = None
     try:
@@ -244,8 +263,11 @@ def check_outputs(
                 raise UsageError(
                     f"{label} {out} is the input file {source}; inputs are never modified"
                 )
-    for i, (label, out) in enumerate(named):
-        for other_label, other in named[i + 1 :]:
+    regular = [
+        (label, out) for label, out in named if not is_special(out)
+    ]  # /dev/null twice is fine
+    for i, (label, out) in enumerate(regular):
+        for other_label, other in regular[i + 1 :]:
             if same_file(out, other):
                 raise UsageError(
                     f"{label} {out} and {other_label} {other} are the same file;"

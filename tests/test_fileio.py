@@ -156,3 +156,36 @@ def test_stale_temps_of_dead_writers_are_removed(tmp_path):
     with open_atomic(tmp_path / "y.mcap") as handle:
         handle.write(b"ok")
     assert not other.exists()
+
+
+def test_special_files_are_written_in_place_never_replaced(tmp_path):
+    import threading
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    received: list[bytes] = []
+    reader = threading.Thread(target=lambda: received.append(fifo.read_bytes()))
+    reader.start()
+    write_text(str(fifo), "through the pipe")
+    reader.join(timeout=30)
+    assert received == [b"through the pipe"]
+    assert fileio.is_special(fifo)  # still the FIFO, not a renamed regular file
+    assert temps(tmp_path) == []
+    check_outputs([], [("--json", fifo), ("--markdown", fifo)])  # like /dev/null twice
+
+
+def test_mcap_writer_writes_into_a_fifo(tmp_path):
+    import threading
+
+    from imufdi_cli.mcapio import McapWriter
+
+    fifo = tmp_path / "pipe.mcap"
+    os.mkfifo(fifo)
+    received: list[bytes] = []
+    reader = threading.Thread(target=lambda: received.append(fifo.read_bytes()))
+    reader.start()
+    with McapWriter(fifo) as writer:
+        writer.add_metadata("m", {"a": "b"})
+    reader.join(timeout=30)
+    assert received[0][:8] == b"\x89MCAP0\r\n" and fileio.is_special(fifo)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pipe.mcap"]

@@ -475,13 +475,16 @@ class McapWriter:
         if isinstance(output, (str, os.PathLike)) and os.fspath(output) == "-":
             self._stream: IO[bytes] = sys.stdout.buffer
         elif isinstance(output, (str, os.PathLike)):
-            from imufdi_cli.fileio import create_temp
+            from imufdi_cli.fileio import create_temp, is_special
 
             final = Path(output)
-            fd, temp = create_temp(final)  # the one output path (imufdi_cli.fileio)
             self._final_path = final
-            self._temp_path = temp
-            self._stream = io.BufferedWriter(io.FileIO(fd, "wb"), buffer_size=1 << 20)
+            if is_special(final):  # /dev/null, a FIFO: written in place, never replaced
+                self._stream = open(final, "wb", buffering=1 << 20)
+            else:
+                fd, temp = create_temp(final)  # the one output path (imufdi_cli.fileio)
+                self._temp_path = temp
+                self._stream = io.BufferedWriter(io.FileIO(fd, "wb"), buffer_size=1 << 20)
             self._owns_stream = True
         else:
             self._stream = output
