@@ -664,8 +664,8 @@ def results_lock(out: Path) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
-def _write_json_atomic(path: Path, data: Any) -> None:
-    write_text(str(path), json.dumps(data, sort_keys=True, default=_jsonable) + "\n")
+def _write_json_atomic(path: Path, data: Any, *, sweep: bool = True) -> None:
+    write_text(str(path), json.dumps(data, sort_keys=True, default=_jsonable) + "\n", sweep=sweep)
 
 
 def _jsonable(value: Any) -> Any:
@@ -750,7 +750,8 @@ def _run_locked(
     if progress:
         progress(len(done_keys), total, None)
     for result in executor.run(todo):
-        _write_json_atomic(runs_dir / f"{result['key']}.json", result)
+        # runs/ was swept once above: no directory listing per result
+        _write_json_atomic(runs_dir / f"{result['key']}.json", result, sweep=False)
         executed += 1
         if progress:
             progress(len(done_keys) + executed, total, result)

@@ -85,12 +85,15 @@ def is_special(path: str | Path) -> bool:
     return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
-def create_temp(path: str | Path, *, suffix: str = "") -> tuple[int, Path]:
+def create_temp(path: str | Path, *, suffix: str = "", sweep: bool = True) -> tuple[int, Path]:
     """Create the temporary file of output ``path``; returns ``(fd, temp_path)``.
 
     The file is created beside the target (same file system, so the final rename is
     atomic) with the mode an ordinary new file would get. The caller owns ``fd`` and must
-    either rename the temporary file over ``path`` or :func:`discard_temp` it.
+    either rename the temporary file over ``path`` or :func:`discard_temp` it. With
+    ``sweep`` (default), stale temporary files of ``path`` are removed first
+    (:func:`remove_stale_temps`, one directory listing); writers of many small files in one
+    directory (campaign run results) sweep once themselves and pass ``sweep=False``.
 
     Raises
     ------
@@ -104,7 +107,8 @@ def create_temp(path: str | Path, *, suffix: str = "") -> tuple[int, Path]:
         raise UsageError(f"cannot write {target}: directory {directory} does not exist")
     if target.is_dir():
         raise UsageError(f"cannot write {target}: it is a directory")
-    remove_stale_temps(target)
+    if sweep:
+        remove_stale_temps(target)
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
     for _ in range(100):
         temp = directory / f".{target.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp{suffix}"
@@ -153,7 +157,7 @@ def atomic_path(path: str | Path, *, suffix: str = "") -> Iterator[str]:
 
 
 @contextmanager
-def open_atomic(path: str | Path, mode: str = "wb") -> Iterator[IO[bytes]]:
+def open_atomic(path: str | Path, mode: str = "wb", *, sweep: bool = True) -> Iterator[IO[bytes]]:
     """Open an atomic output file for writing in binary ``mode``.
 
     The file is flushed and closed before the rename; a failure there (disk full, file
@@ -165,7 +169,7 @@ def open_atomic(path: str | Path, mode: str = "wb") -> Iterator[IO[bytes]]:
         with open(path, "wb") as special:
             yield special
         return
-    fd, temp = create_temp(path)
+    fd, temp = create_temp(path, sweep=sweep)
     handle: IO[bytes] | None = None
     try:
         handle = os.fdopen(fd, mode)
@@ -189,13 +193,13 @@ def open_atomic(path: str | Path, mode: str = "wb") -> Iterator[IO[bytes]]:
         raise
 
 
-def write_text(path: str, text: str) -> None:
+def write_text(path: str, text: str, *, sweep: bool = True) -> None:
     """Write text to ``path`` atomically, or to stdout when ``path`` is ``-``."""
     if path == "-":
         sys.stdout.write(text)
         sys.stdout.flush()
         return
-    with open_atomic(path) as handle:
+    with open_atomic(path, sweep=sweep) as handle:
         try:
             handle.write(text.encode("utf-8"))
         except OSError as err:
