@@ -290,3 +290,41 @@ def test_a_file_size_limit_mid_write_is_exit_3_and_leaves_nothing(tmp_path):
         assert process.returncode == 3, process.stderr
         assert len(lines) == 1 and "File too large" in lines[0], process.stderr
         assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def _with_huge_log_time(source: Path, target: Path) -> None:
+    """Copy a log with the mcap package, giving its 50th message log_time 2^63 + 5."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(source, "rb") as stream, open(target, "wb") as out:
+        reader = make_reader(stream)
+        writer = Writer(out)
+        writer.start("ros2", "test")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for index, (schema, channel, message) in enumerate(reader.iter_messages()):
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id], channel.metadata
+                )
+            log_time = (1 << 63) + 5 if index == 49 else message.log_time
+            writer.add_message(channels[channel.id], log_time, message.data, message.publish_time)
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        writer.finish()
+
+
+@pytest.mark.parametrize("command", ["detect", "inject"])
+def test_a_log_time_beyond_int64_is_bad_data_not_a_bug(cli, workdir, tmp_path, command):
+    source = tmp_path / "huge.mcap"
+    _with_huge_log_time(workdir / "log.mcap", source)
+    extra = ["-d", "glt"] if command == "detect" else ["--fault", "step:imu0.gyro.x,amp=1deg/s"]
+    result = cli([command, source, *extra, "-o", tmp_path / "out.mcap"])
+    assert result.code == 3, result.stderr
+    assert_one_line_error(result, 3, "")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["huge.mcap"]
