@@ -319,3 +319,34 @@ def test_some_runs_failing_still_exits_0(cli, tmp_path, monkeypatch):
     result = cli(["campaign", write(tmp_path, SPEC), "-o", tmp_path / "out", "--jobs", "1"])
     assert result.code == 0, result.stderr
     assert "2 failed" in result.out
+
+
+@pytest.mark.slow
+def test_sigterm_stops_a_campaign_cleanly_and_resume_finishes_it(cli, tmp_path):
+    spec = write(tmp_path, RESUME_SPEC)
+    out = tmp_path / "out"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "imufdi_cli", "campaign", str(spec), "-o", str(out), "--jobs", "1"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    deadline = time.monotonic() + 120
+    while len(list(out.glob("runs/*.json"))) < 2:
+        assert proc.poll() is None, proc.communicate()[1]
+        assert time.monotonic() < deadline, "no run finished within 120 s"
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 143, stderr
+    assert [line for line in stderr.splitlines() if "error" in line] == [
+        "imufdi: error: terminated by SIGTERM"
+    ]
+    assert not [p for p in out.rglob("*") if ".tmp" in p.name]
+    done = len(list(out.glob("runs/*.json")))
+    assert 2 <= done < 24
+    resumed = cli(["campaign", spec, "-o", out, "--jobs", "1", "--resume"])  # lock released
+    assert resumed.code == 0, resumed.stderr
+    assert f"24 runs ({24 - done} executed, {done} resumed, 0 failed)" in resumed.out
