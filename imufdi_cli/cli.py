@@ -689,7 +689,8 @@ HANDLED_SIGNALS = tuple(
 @contextmanager
 def _signals_as_exceptions() -> Iterator[None]:
     """Install handlers raising :class:`Terminated` (the first signal only: further
-    signals while cleaning up are ignored so the cleanup completes); restore on exit."""
+    signals while cleaning up are ignored so the cleanup completes); restore on exit.
+    A signal that is already ignored (``nohup`` ignores SIGHUP) stays ignored."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -705,6 +706,8 @@ def _signals_as_exceptions() -> Iterator[None]:
     previous = {}
     for signum in HANDLED_SIGNALS:
         try:
+            if signal.getsignal(signum) == signal.SIG_IGN:
+                continue  # ignored by whoever started us (nohup, a background job): keep it
             previous[signum] = signal.signal(signum, handler)
         except (OSError, ValueError):  # pragma: no cover - platform without the signal
             continue

@@ -328,3 +328,36 @@ def test_a_log_time_beyond_int64_is_bad_data_not_a_bug(cli, workdir, tmp_path, c
     assert result.code == 3, result.stderr
     assert_one_line_error(result, 3, "")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["huge.mcap"]
+
+
+def test_an_ignored_signal_stays_ignored(tmp_path):
+    """nohup (SIGHUP ignored) must keep working: the handler is not installed over SIG_IGN."""
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import signal, sys; signal.signal(signal.SIGHUP, signal.SIG_IGN)\n"
+            "from imufdi_cli.cli import main\n"
+            "main(sys.argv[1:])",
+            "simulate",
+            "--preset",
+            "paper-table4",
+            "--duration",
+            "60s",
+            "-o",
+            str(tmp_path / "x.mcap"),
+        ],
+        env=dict(os.environ, PYTHONPATH=str(REPO)),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".x.mcap.*.tmp")):
+        assert process.poll() is None, process.communicate()[1]
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    process.send_signal(signal.SIGHUP)
+    _, stderr = process.communicate(timeout=300)
+    assert process.returncode == 0, stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.mcap"]
