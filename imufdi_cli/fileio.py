@@ -241,6 +241,21 @@ def same_file(a: str | Path, b: str | Path) -> bool:
     return (sa.st_dev, sa.st_ino) == (sb.st_dev, sb.st_ino)
 
 
+def _bag_files(path: Path) -> list[str]:
+    """The files a rosbag2 input reads: given its directory or its ``metadata.yaml``, every
+    regular file in that directory (split MCAP files, metadata)."""
+    if path.is_dir():
+        directory = path
+    elif path.name == "metadata.yaml":
+        directory = path.parent
+    else:
+        return []
+    try:
+        return [str(entry) for entry in directory.iterdir() if entry.is_file()]
+    except OSError:
+        return []
+
+
 def check_outputs(
     inputs: Iterable[str | Path | None],
     outputs: Sequence[tuple[str, str | Path | None]],
@@ -250,7 +265,8 @@ def check_outputs(
     Parameters
     ----------
     inputs : iterable of path or None
-        Every file the command reads (``-`` and None are skipped).
+        Every file the command reads (``-`` and None are skipped); a rosbag2 directory (or
+        its ``metadata.yaml``) stands for every file in it.
     outputs : sequence of (label, path or None)
         Every file the command writes with the option that names it, e.g.
         ``("--json", "report.json")`` (``-`` and None are skipped).
@@ -260,7 +276,12 @@ def check_outputs(
     UsageError
         Naming the option, the output and the input (or the other output).
     """
-    files = [str(p) for p in inputs if p is not None and str(p) != "-"]
+    files: list[str] = []
+    for p in inputs:
+        if p is None or str(p) == "-":
+            continue
+        files.append(str(p))
+        files += _bag_files(Path(p))
     named = [(label, str(p)) for label, p in outputs if p is not None and str(p) != "-"]
     for label, out in named:
         for source in files:

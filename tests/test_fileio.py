@@ -189,3 +189,16 @@ def test_mcap_writer_writes_into_a_fifo(tmp_path):
     reader.join(timeout=30)
     assert received[0][:8] == b"\x89MCAP0\r\n" and fileio.is_special(fifo)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pipe.mcap"]
+
+
+@pytest.mark.parametrize("given", ["directory", "metadata"])
+def test_the_files_of_a_bag_directory_are_inputs(tmp_path, given):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    (bag / "bag_0.mcap").write_bytes(b"split 0")
+    source = bag if given == "directory" else bag / "metadata.yaml"
+    for existing in ("bag_0.mcap", "metadata.yaml"):
+        with pytest.raises(UsageError, match="is the input file"):
+            check_outputs([source], [("-o", bag / existing)])
+    check_outputs([source], [("-o", bag / "new.mcap"), ("--json", tmp_path / "r.json")])
