@@ -76,6 +76,11 @@ def test_calibrate_start_end_and_missing_static(cli, real_log, tmp_path):
     result = cli(["calibrate", real_log, "--start", "260s", "-o", tmp_path / "c.toml"])
     assert_one_line_error(result, 3, "no static interval")
     assert not (tmp_path / "c.toml").exists()
+    base = tmp_path / "base.toml"
+    base.write_text((SAMPLES / "mimu4444-array.toml").read_text())
+    result = cli(["calibrate", real_log, "--array", base, "-o", base])
+    assert_one_line_error(result, 2, "inputs are never modified")
+    assert base.read_text() == (SAMPLES / "mimu4444-array.toml").read_text()
     result = cli(["calibrate", real_log, "--end", "60s", "-o", tmp_path / "c.toml"])
     assert result.code == 0, result.stderr
     assert "only 2 orientation(s)" in result.out and "warning" in result.out
