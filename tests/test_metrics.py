@@ -88,7 +88,8 @@ def test_recovery_delay_and_persistence():
     assert m.detection_delay_s == pytest.approx(0.01)
     assert m.recovery_delay_s == pytest.approx(0.03)
     m3 = compute_metrics(t, alarm, np.zeros(30, int), faulty, [fault], persist=3)
-    assert m3.detection_delay_s == pytest.approx(0.04)  # the blip does not count
+    # the blip does not count; the run 14..16 is known to persist at sample 16
+    assert m3.detection_delay_s == pytest.approx(0.06)
 
 
 def test_alarm_after_fault_end_is_not_a_detection():

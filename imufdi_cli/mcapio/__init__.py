@@ -27,8 +27,10 @@ from imufdi_cli.mcapio.imu import (
 from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch, SchemaInfo
 from imufdi_cli.mcapio.source import McapSource
 from imufdi_cli.mcapio.status import (
+    STATUS_FRAME_ID,
     StatusArrays,
     encode_status,
+    iter_status,
     read_json_topic,
     read_status,
     register_status_channel,
@@ -37,6 +39,7 @@ from imufdi_cli.mcapio.summary import LogSummary, TopicSummary, summarize
 
 __all__ = [
     "ARRAY_METADATA",
+    "STATUS_FRAME_ID",
     "AlignmentStats",
     "ChannelInfo",
     "ImuArrayReader",
@@ -55,6 +58,7 @@ __all__ = [
     "encode_status",
     "is_imu_channel",
     "is_mag_channel",
+    "iter_status",
     "natural_key",
     "patch_imu",
     "patch_mag",
