@@ -499,9 +499,9 @@ def report(
     table = Table(title=f"imufdi report: {result.source}")
     table.add_column("detector")
     table.add_column("sensor")
-    for _, header, _, _ in rep.table_columns(result):
+    for _, header, _, _ in rep.table_columns(result, console=True):
         table.add_column(header, justify="right")
-    for row in rep.table_rows(result):
+    for row in rep.table_rows(result, console=True):
         table.add_row(*row)
     console.print(table)
     for note in result.notes:

@@ -511,9 +511,15 @@ MATCHED_COLUMNS: list[tuple[str, str, float, str]] = [
 ]
 
 
-def table_columns(report: Report) -> list[tuple[str, str, float, str]]:
-    """The columns of this report's tables (matched-FAR columns with ``--match-far``)."""
-    return TABLE_COLUMNS + (MATCHED_COLUMNS if report.match_far is not None else [])
+#: Columns the terminal table leaves out (they stay in Markdown, CSV, JSON and JUnit).
+CONSOLE_OMITS = {"far_calibration", "alarm_rate"}
+
+
+def table_columns(report: Report, *, console: bool = False) -> list[tuple[str, str, float, str]]:
+    """The columns of this report's tables (matched-FAR columns with ``--match-far``;
+    ``console``: the narrower terminal table)."""
+    columns = TABLE_COLUMNS + (MATCHED_COLUMNS if report.match_far is not None else [])
+    return [c for c in columns if not (console and c[0] in CONSOLE_OMITS)]
 
 
 def format_value(value: float | None, scale: float = 1.0, fmt: str = "{:.4g}") -> str:
@@ -523,9 +529,9 @@ def format_value(value: float | None, scale: float = 1.0, fmt: str = "{:.4g}") -
     return fmt.format(value * scale)
 
 
-def table_rows(report: Report) -> list[list[str]]:
-    """Rows (detector, type, columns of TABLE_COLUMNS) as strings."""
-    columns = table_columns(report)
+def table_rows(report: Report, *, console: bool = False) -> list[list[str]]:
+    """Rows (detector, type, columns of :func:`table_columns`) as strings."""
+    columns = table_columns(report, console=console)
     return [
         [e.detector, e.sensor_type]
         + [format_value(e.metrics.value(m), s, f) for m, _, s, f in columns]

@@ -604,6 +604,8 @@ class McapWriter:
             if not isinstance(key, str) or not isinstance(value, str):
                 raise UsageError(f"metadata {name!r}: keys and values must be strings")
         record = _record(OP_METADATA, _string(name) + _string_map(data))
+        if self._in_flight:  # chunks being compressed are written first: index after them
+            self._drain(0)
         self._metadata_index.append((self._position, len(record), name))
         self._write(record)
 
