@@ -439,3 +439,72 @@ def test_bad_scheduler_forms(tmp_path):
         run_campaign(spec, tmp_path / "o", scheduler="udp://x")
     with pytest.raises(UsageError, match="local:N needs N >= 1"):
         run_campaign(spec, tmp_path / "o2", scheduler="local:0")
+
+
+JITTER = """
+[campaign]
+seeds = [0, 1, 2, 3]
+calibrate = "0s:0.5s"
+match_far = "2%"
+
+[[base]]
+preset = "paper-table4"
+options = { duration = "1.5s" }
+
+[[fault]]
+model = "step"
+sensor = "imu0.gyro.x"
+at = "0.8s"
+at_jitter = "0.4s"
+amp = ["0.9deg/s", "1.5deg/s"]
+
+[[detector]]
+name = "glt"
+"""
+
+
+def test_at_jitter_draws_onsets_per_seed_and_records_them(tmp_path):
+    from imufdi_cli.campaign import jittered_specs
+    from imufdi_cli.simulate import config_from_options, simulate_block
+
+    spec = load_spec(write_spec(tmp_path, JITTER))
+    assert all(r["at_jitter"] == [0.4] and r["match_far"] == 0.02 for r in spec.runs)
+    array, _ = simulate_block(config_from_options("paper-table4", seed=0, duration="0.1s"))
+    onsets = {}
+    for run in spec.runs:
+        applied, (onset,) = jittered_specs(run["faults"], run["at_jitter"], run["seed"], array)
+        assert 0.8 <= onset <= 1.2
+        assert f"at={onset:.9f}s" in applied[0] and "at=0.8s" not in applied[0]
+        # every amplitude of a seed gets the same onset (paired comparisons)
+        assert onsets.setdefault(run["seed"], onset) == onset
+    assert len(set(onsets.values())) == 4  # seeds differ
+    result = run_campaign(spec, tmp_path / "out", jobs=1)
+    assert result.failed == 0
+    import csv
+
+    with open(tmp_path / "out" / "runs.csv", newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    assert {"onset_s", "mar_at_far", "target_far", "fault", "sensor"} <= set(rows[0])
+    gyro = [row for row in rows if row["sensor_type"] == "gyro"]
+    assert {round(float(r["onset_s"]), 6) for r in gyro} == {round(v, 6) for v in onsets.values()}
+    assert all(r["target_far"] == "0.02" and r["mar_at_far"] != "" for r in gyro)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert all("mar_at_far" in g and g["target_far"] == 0.02 for g in summary["groups"])
+
+
+@pytest.mark.parametrize(
+    ("line", "fragment"),
+    [
+        ('at_jitter = "soon"', "at_jitter"),
+        ('at_jitter = "-1s"', "at_jitter"),
+    ],
+)
+def test_bad_at_jitter(tmp_path, line, fragment):
+    text = JITTER.replace('at_jitter = "0.4s"', line)
+    with pytest.raises(CampaignSpecError, match=fragment):
+        load_spec(write_spec(tmp_path, text))
+
+
+def test_bad_match_far_in_spec(tmp_path):
+    with pytest.raises(CampaignSpecError, match="match_far"):
+        load_spec(write_spec(tmp_path, JITTER.replace('"2%"', '"200%"')))
