@@ -10,8 +10,9 @@ that fails is recorded with its error and the campaign goes on.
 
 Runs use the library in memory (simulate or read the base log once, inject with
 :class:`~imufdi_cli.faults.FaultInjector`, stream blocks through the detector, score with
-:func:`~imufdi_cli.metrics.compute_metrics`): the same maths as ``inject | detect |
-report``, without writing intermediate MCAP files.
+:class:`~imufdi_cli.metrics.MetricsAccumulator`, rows stamped with their decision time as
+:mod:`imufdi_cli.detect` does): the same maths as ``inject | detect | report
+--match-far``, without writing intermediate MCAP files.
 
 Spec example::
 
@@ -19,7 +20,8 @@ Spec example::
     name = "compare"
     seeds = [0, 1, 2, 3, 4]
     calibrate = "0s:2s"
-    metrics = ["far", "mar", "fir", "detection_delay_s"]
+    match_far = "1%"
+    metrics = ["far", "mar", "fir", "detection_delay_s", "mar_at_far"]
 
     [[base]]
     preset = "paper-table4"
@@ -28,6 +30,7 @@ Spec example::
     model = "step"
     sensor = ["imu0.gyro.x", "imu7.gyro.z"]
     at = "2.5s"
+    at_jitter = "0.5s"
     amp = ["0.3deg/s", "0.6deg/s", "0.9deg/s"]
 
     [[detector]]
