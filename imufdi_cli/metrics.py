@@ -15,9 +15,11 @@ All figures are per sample and per sensor type, with the definitions of Li et al
 - isolation delay = decision time of the first alarm inside the fault isolated to one of
   the fault's sensors - onset
 - decision latency = mean over samples of (decision time - sample time)
-- recovery delay = decision time of the first sample after the fault's last alarm in its
-  recovery episode (from the fault end to the next onset or the end of the log), provided
-  at least ``persist`` quiet samples follow, - fault end
+- recovery delay = decision time of the first sample r at or after the fault end from
+  which the alarms stop for good - fault end: at least ``persist`` quiet samples from r,
+  and no alarm within ``merge_gap_s`` (0.1 s) of r — an alarm that comes back that soon
+  is the same alarm episode flickering; one that comes back later is a new episode (and
+  a false alarm). Only rows before the next onset on the same sensor type count.
 
 :class:`MetricsAccumulator` computes them in one streaming pass (memory independent of the
 log length); :func:`compute_metrics` is the one-call form. A figure whose denominator is
@@ -221,8 +223,10 @@ class _FaultState:
         self.after_first = 0  # faulty samples from the first alarm on
         self.alarmed_after_first = 0
         self.first_alarm = False
-        self.quiet_from_ns: int | None = None  # decision time of the first quiet sample
+        self.quiet_from_ns: int | None = None  # decision time of the candidate quiet sample
+        self.quiet_from_t: int | None = None  # its sample time
         self.quiet = 0  # quiet samples since then
+        self.recovered_ns: int | None = None  # decision time of the recovery sample, once known
 
 
 class MetricsAccumulator:
@@ -244,6 +248,9 @@ class MetricsAccumulator:
         this many quiet samples after the last alarm.
     sweep : bool
         Also fill the matched-FAR histograms (:mod:`imufdi_cli.sweep`).
+    merge_gap_s : float
+        Recovery: an alarm that comes back within this time of the candidate recovery
+        sample belongs to the same alarm episode (flicker), s.
     """
 
     def __init__(
@@ -254,9 +261,11 @@ class MetricsAccumulator:
         calibration_ns: tuple[int, int] | None = None,
         persist: int = 1,
         sweep: bool = True,
+        merge_gap_s: float = 0.1,
     ) -> None:
         from imufdi_cli.sweep import SweepAccumulator
 
+        self.merge_gap_ns = round(merge_gap_s * NS_PER_S)
         self.n_sensors = int(n_sensors)
         self.windows = list(faults)
         self.calibration_ns = calibration_ns
@@ -430,25 +439,43 @@ class MetricsAccumulator:
                         st.detected_ns = int(decided[idx[j]])
                         break
                 st.run = run
-        if w.end_ns is not None:
+        if w.end_ns is not None and st.recovered_ns is None:
             after = t_ns >= w.end_ns
             if st.episode_end_ns is not None:
                 after &= t_ns < st.episode_end_ns
             rows = np.flatnonzero(after)
             if rows.size:
-                on = alarm[rows]
-                if on.any():
-                    last = int(np.flatnonzero(on)[-1])
-                    if last + 1 < rows.size:
-                        st.quiet_from_ns = int(decided[rows[last + 1]])
-                        st.quiet = int(rows.size - last - 1)
-                    else:
-                        st.quiet_from_ns, st.quiet = None, 0
-                else:
-                    if st.quiet_from_ns is None:
-                        st.quiet_from_ns = int(decided[rows[0]])
-                    st.quiet += int(rows.size)
+                self._update_recovery(st, t_ns[rows], decided[rows], alarm[rows])
         return inside
+
+    def _update_recovery(
+        self, st: _FaultState, t_ns: np.ndarray, decided: np.ndarray, alarm: np.ndarray
+    ) -> None:
+        """Recovery bookkeeping on rows of the fault's recovery episode (module docstring):
+        a candidate quiet sample r is confirmed when an alarm comes back more than
+        ``merge_gap_s`` after it with at least ``persist`` quiet samples in between, or when
+        the episode ends quiet after at least ``persist`` samples."""
+        position = 0
+        size = int(t_ns.size)
+        for a in [*np.flatnonzero(alarm).tolist(), size]:
+            if a > position:
+                if st.quiet_from_ns is None:
+                    st.quiet_from_ns = int(decided[position])
+                    st.quiet_from_t = int(t_ns[position])
+                    st.quiet = 0
+                st.quiet += a - position
+            if a == size:
+                return
+            if (
+                st.quiet_from_t is not None
+                and st.quiet >= self.persist
+                and t_ns[a] - st.quiet_from_t > self.merge_gap_ns
+            ):
+                st.recovered_ns = st.quiet_from_ns  # the alarm is a new episode
+                return
+            st.quiet_from_ns = st.quiet_from_t = None
+            st.quiet = 0
+            position = a + 1
 
     def result(self) -> Metrics:
         """The figures of every row fed so far."""
@@ -472,14 +499,12 @@ class MetricsAccumulator:
             w = st.window
             delay = None if st.detected_ns is None else (st.detected_ns - w.start_ns) / NS_PER_S
             iso_delay = None if st.isolated_ns is None else (st.isolated_ns - w.start_ns) / NS_PER_S
+            recovered = st.recovered_ns
+            if recovered is None and st.quiet_from_ns is not None and st.quiet >= self.persist:
+                recovered = st.quiet_from_ns  # quiet to the end of the episode
             recovery = None
-            if (
-                w.end_ns is not None
-                and delay is not None
-                and st.quiet_from_ns is not None
-                and st.quiet >= self.persist
-            ):
-                recovery = (st.quiet_from_ns - w.end_ns) / NS_PER_S
+            if w.end_ns is not None and delay is not None and recovered is not None:
+                recovery = (recovered - w.end_ns) / NS_PER_S
             figures.append(
                 FaultFigures(
                     fault_id=w.fault_id,

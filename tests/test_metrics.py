@@ -246,6 +246,18 @@ def test_recovery_waits_until_alarms_stop_for_good():
     # --persist 20: 14 quiet samples (26..39) are not enough, recovery undefined
     m20 = compute_metrics(t, alarm, np.zeros(40, int), n_sensors=1, faults=[fault], persist=20)
     assert m20.recovery_delay_s is None
+    # an alarm that comes back more than 0.1 s (the merge gap) after the clearing is a new
+    # episode (a false alarm), not a late recovery; one within 0.1 s is flicker
+    t80 = _t(80)
+    alarm80 = np.zeros(80, bool)
+    alarm80[12:21] = True
+    alarm80[[22, 25, 60]] = True
+    m80 = compute_metrics(t80, alarm80, np.zeros(80, int), n_sensors=1, faults=[fault])
+    assert m80.recovery_delay_s == pytest.approx(0.06)
+    assert m80.false_alarms == 4  # 20 (the fault ends at 20), 22, 25 and 60
+    alarm80[35] = True  # 9 samples (0.09 s) after the clearing at 26: still the episode
+    m80 = compute_metrics(t80, alarm80, np.zeros(80, int), n_sensors=1, faults=[fault])
+    assert m80.recovery_delay_s == pytest.approx(0.16)
     # the recovery episode ends at the next onset: alarms of the next fault do not count
     second = FaultWindow("g", (0,), 30 * MS10)
     alarm2 = alarm.copy()
