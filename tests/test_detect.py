@@ -77,7 +77,7 @@ def sim_log(tmp_path_factory):
 
 
 def test_rows_carry_decision_times(sim_log, tmp_path, monkeypatch):
-    monkeypatch.setitem(DETECTORS, "hold3", HoldBack)
+    monkeypatch.setitem(DETECTORS, "hold3", "tests.test_detect:HoldBack")
     out = tmp_path / "d.mcap"
     detect_file(str(sim_log), str(out), [("glt", {}), ("hold3", {})], calibrate=(0.0, 1.0))
     status = read_status(str(out))
