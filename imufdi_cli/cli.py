@@ -6,15 +6,21 @@ to stdout, so commands compose in pipelines::
 
     imufdi ingest cap.bin -o - | imufdi inject - --fault ... -o - | imufdi detect - -d glt -o - | imufdi report -
 
-Exit codes: 0 ok, 1 a CI gate failed, 2 usage error, 3 bad input data, 4 internal error.
+Exit codes: 0 ok, 1 a CI gate failed, 2 usage error, 3 bad input data (or an I/O error
+such as a full disk), 4 internal error; 130 interrupted (SIGINT), 143 terminated (SIGTERM),
+129 hung up (SIGHUP): 128 + the signal number, after removing any partial output.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+import traceback
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 # The maths works on thin matrices (tens of sensors) where multi-threaded BLAS only adds
@@ -49,14 +55,26 @@ def _console(to_stdout: bool) -> Console:
 
 
 def _err(message: str) -> None:
-    Console(stderr=True, highlight=False, soft_wrap=True).print(
-        f"[bold red]imufdi: error:[/] {message}", markup=True
-    ) if sys.stderr.isatty() else sys.stderr.write(f"imufdi: error: {message}\n")
+    """One non-empty line on stderr."""
+    from rich.markup import escape
+
+    message = " ".join(str(message).split()) or "unknown error (no message)"
+    if sys.stderr.isatty():
+        Console(stderr=True, highlight=False, soft_wrap=True).print(
+            f"[bold red]imufdi: error:[/] {escape(message)}", markup=True
+        )
+    else:
+        sys.stderr.write(f"imufdi: error: {message}\n")
 
 
 def _warn(console: Console, warnings: Sequence[str]) -> None:
     for warning in warnings:
         console.print(f"[yellow]warning:[/] {warning}", markup=True)
+
+
+def _time_source(stamps: str) -> str:
+    """--stamps choice -> ImuArrayReader time source."""
+    return "log_time" if stamps == "log" else stamps
 
 
 def _time_range(text: str | None, name: str) -> tuple[float, float | None] | None:
@@ -71,7 +89,8 @@ class _Group(click.Group):
     def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         formatter.write_paragraph()
         formatter.write_text(
-            "Exit codes: 0 ok, 1 CI gate failed, 2 usage error, 3 bad input data, 4 internal error."
+            "Exit codes: 0 ok, 1 CI gate failed, 2 usage error, 3 bad input data or I/O error,"
+            " 4 internal error, 130/143 interrupted/terminated."
         )
 
 
@@ -138,8 +157,10 @@ def simulate(
         imufdi simulate --preset paper-table4 --seed 3 -o table4.mcap
         imufdi simulate --imus 16 --rate 1kHz --duration 1h --motion turntable -o long.mcap
     """
+    from imufdi_cli.fileio import check_outputs
     from imufdi_cli.pipeline import simulate_file
 
+    check_outputs([], [("-o", output), ("--capture", capture)])
     options: dict[str, Any] = {
         k: v
         for k, v in dict(
@@ -183,6 +204,12 @@ def simulate(
 @click.option("--gyro-fs", help="Built-in layout gyro full scale: 250, 500, 1000, 2000 (deg/s).")
 @click.option("--accel-fs", help="Built-in layout accel full scale: 2, 4, 8, 16 (g).")
 @click.option("--strict", is_flag=True, help="Any dropped byte is an error (exit 3).")
+@click.option(
+    "--start-time",
+    help="Wall-clock time of the first frame (ISO 8601, e.g. 2024-05-01T12:00:00Z, or Unix"
+    " seconds); stamps keep the device's intervals. Default: the device's own clock (from 0,"
+    " shown as 1970 by viewers).",
+)
 def ingest(
     capture: str,
     output: str | None,
@@ -192,6 +219,7 @@ def ingest(
     gyro_fs: str | None,
     accel_fs: str | None,
     strict: bool,
+    start_time: str | None,
 ) -> None:
     """Convert a raw serial capture (or CSV) into an IMU array MCAP.
 
@@ -205,13 +233,14 @@ def ingest(
         imufdi ingest board.bin --layout my_board.toml --array array.toml -o board.mcap
         cat capture.bin | imufdi ingest - -o - | imufdi info -
     """
-    from imufdi_cli.fileio import check_input, check_output
+    from imufdi_cli.fileio import check_input, check_outputs
     from imufdi_cli.pipeline import ingest_file
 
     check_input(capture)
     if output is None:
         output = "-" if capture == "-" else os.path.splitext(capture)[0] + ".mcap"
-    check_output(capture, output)
+    layout_file = layout if layout.lower().endswith(".toml") else None
+    check_outputs([capture, layout_file, array_path], [("-o", output)])
     stats = ingest_file(
         capture,
         output,
@@ -221,6 +250,7 @@ def ingest(
         gyro_fs=gyro_fs,
         accel_fs=accel_fs,
         strict=strict,
+        start_time=start_time,
     )
     console = _console(output != "-")
     table = Table(title=f"ingest {capture} -> {output}", show_header=True)
@@ -237,8 +267,22 @@ def ingest(
 @cli.command()
 @click.argument("log")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of tables.")
-@click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
-def info(log: str, as_json: bool, topics: tuple[str, ...]) -> None:
+@click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+@click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
+def info(log: str, as_json: bool, topics: tuple[str, ...], stamps: str) -> None:
     """Describe a log: topics, IMUs, rate, duration, gaps, array, faults, detectors.
 
     Example:
@@ -252,7 +296,7 @@ def info(log: str, as_json: bool, topics: tuple[str, ...]) -> None:
     from imufdi_cli.pipeline import log_info
 
     check_input(log)
-    summary = log_info(log, topics=list(topics) or None)
+    summary = log_info(log, topics=list(topics) or None, time_source=_time_source(stamps))
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
@@ -265,10 +309,38 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
     head = Table(show_header=False, box=None)
     head.add_column(style="bold")
     head.add_column()
-    for key in ("n_imus", "n_samples", "rate_hz", "duration_s", "start_ns"):
+    for key in ("n_imus", "n_samples", "duration_s", "start_ns"):
         if key in s:
             value = s[key]
             head.add_row(key, f"{value:.6g}" if isinstance(value, float) else str(value))
+    if s.get("rate_hz") is not None:
+        head.add_row("rate_hz", f"{s['rate_hz']:.6g}  ({s.get('rate_method', '')})")
+    if s.get("time_source"):
+        head.add_row("stamps", "header.stamp" if s["time_source"] == "header" else "log time")
+    fields = {t: f for t, f in s.get("imu_fields", {}).items() if f}
+    for topic, path in fields.items():
+        head.add_row("imu field", f"{topic}: {path}")
+    gaps = s.get("gaps") or {}
+    if gaps:
+        text = f"{gaps.get('count', 0)}"
+        if gaps.get("count"):
+            text += (
+                f" ({gaps['missing_samples']} samples missing of {gaps['expected_samples']}"
+                f" expected; longest {gaps['longest_s']:.6g} s)"
+            )
+        head.add_row("gaps (all topics)", text)
+    ingest = s.get("ingest")
+    if ingest:
+        labels = (
+            ("frames_ok", "frames ok"),
+            ("frames_lost", "lost"),
+            ("frames_bad_checksum", "bad checksum"),
+            ("frames_truncated", "truncated"),
+            ("duplicates", "duplicates"),
+            ("bytes_dropped", "bytes dropped"),
+        )
+        parts = [f"{label} {ingest[key]}" for key, label in labels if key in ingest]
+        head.add_row("capture (ingest)", ", ".join(parts))
     for key, value in s.get("alignment", {}).items():
         if isinstance(value, dict):
             nonzero = {k: v for k, v in value.items() if v}
@@ -291,7 +363,7 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
     if array:
         source = "metadata" if s.get("array_from_metadata") else "inferred"
         console.print(
-            f"array ({source}): {len(array['imu'])} IMUs at {array['rate_hz']:g} Hz, noise "
+            f"array ({source}): {len(array['imu'])} IMUs, noise "
             + (json.dumps(array.get("noise")) if array.get("noise") else "not given")
         )
     for fault in s.get("faults", []):
@@ -315,12 +387,29 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
 )
 @click.option("--faults", "fault_files", multiple=True, help="TOML file of [[fault]] tables.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed for random faults.")
+@click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+@click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
 def inject(
     source: str,
     output: str | None,
     faults: tuple[str, ...],
     fault_files: tuple[str, ...],
     seed: int,
+    topics: tuple[str, ...],
+    stamps: str,
 ) -> None:
     """Inject faults into a log and record their ground truth.
 
@@ -336,18 +425,27 @@ def inject(
     """
     from imufdi_cli.errors import FaultSpecError
     from imufdi_cli.faults import inject_file
-    from imufdi_cli.fileio import check_input, check_output, default_output
+    from imufdi_cli.fileio import check_input, check_outputs, default_output
 
     check_input(source)
     if not faults and not fault_files:
         raise FaultSpecError("no fault given; use --fault SPEC or --faults FILE.toml")
     output = output or default_output(source, "faults")
-    check_output(source, output)
-    result = inject_file(source, output, list(faults), list(fault_files), seed=seed)
+    check_outputs([source, *fault_files], [("-o", output)])
+    result = inject_file(
+        source,
+        output,
+        list(faults),
+        list(fault_files),
+        seed=seed,
+        topics=list(topics) or None,
+        time_source=_time_source(stamps),
+    )
     console = _console(output != "-")
     for fault in result.faults:
         console.print(f"injected {fault.spec}")
     console.print(f"-> {output}")
+    _warn(console, result.warnings)
 
 
 # --- detect ----------------------------------------------------------------------------
@@ -372,8 +470,28 @@ def inject(
     show_default=True,
     help="Fault-free calibration window START:END, seconds from the log start.",
 )
-@click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
+@click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+@click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
 @click.option("--strict", is_flag=True, help="A truncated input is an error instead of a warning.")
+@click.option(
+    "--explain/--no-explain",
+    default=True,
+    show_default=True,
+    help="Write an explained episode event (fault class, size with interval) per alarm episode.",
+)
 def detect(
     source: str,
     output: str | None,
@@ -381,7 +499,9 @@ def detect(
     params: tuple[str, ...],
     calibrate: str,
     topics: tuple[str, ...],
+    stamps: str,
     strict: bool,
+    explain: bool,
 ) -> None:
     """Run detectors and write an annotated MCAP (status channels, alarm events).
 
@@ -393,20 +513,30 @@ def detect(
         imufdi detect - -d glt -o - < faulty.mcap | imufdi report -
     """
     from imufdi_cli.detect import detect_file, parse_detector_params
-    from imufdi_cli.fileio import check_input, check_output, default_output
+    from imufdi_cli.fileio import check_input, check_outputs, default_output
 
     check_input(source)
     grouped = parse_detector_params(detectors, params)
     window = _time_range(calibrate, "--calibrate")
     assert window is not None
     output = output or default_output(source, "detect")
-    check_output(source, output)
+    # parameter files (e.g. woa-mvmd-glt.params=tuned.json) are inputs too
+    param_files = [p.split("=", 1)[1] for p in params if "=" in p]
+    check_outputs([source, *(f for f in param_files if os.path.isfile(f))], [("-o", output)])
     result = detect_file(
-        source, output, grouped, calibrate=window, topics=list(topics) or None, strict=strict
+        source,
+        output,
+        grouped,
+        calibrate=window,
+        topics=list(topics) or None,
+        strict=strict,
+        time_source=_time_source(stamps),
+        explain=explain,
     )
     console = _console(output != "-")
     table = Table(title=f"detect: {result.samples} samples, {result.duration_s:.3g} s -> {output}")
-    for col in ("detector", "sensor", "alarm %", "events", "isolated (alarm samples)"):
+    columns = ("detector", "sensor", "alarm %", "events", "isolated (alarm samples)", "episodes")
+    for col in columns:
         table.add_column(col)
     for name, per_type in result.summaries.items():
         for sensor_type, s in per_type.items():
@@ -417,6 +547,8 @@ def detect(
                 f"{100.0 * s.alarms / max(s.samples, 1):.2f}",
                 str(s.events),
                 ", ".join(f"{k} ({v})" for k, v in top) or "-",
+                ", ".join(f"{k} {v}" for k, v in sorted(s.episodes.items(), key=lambda kv: -kv[1]))
+                or "-",
             )
     console.print(table)
     _warn(console, result.warnings)
@@ -481,10 +613,20 @@ def report(
         imufdi report out.mcap --match-far 1% --roc roc.csv
     """
     from imufdi_cli import report as rep
-    from imufdi_cli.fileio import check_input, write_text
+    from imufdi_cli.fileio import atomic_path, check_input, check_outputs, write_text
 
     target = None if match_far is None else rep.parse_far(match_far)
     check_input(log)
+    check_outputs(
+        [log],
+        [
+            ("--json", json_out),
+            ("--markdown", md_out),
+            ("--csv", csv_out),
+            ("--junit", junit_out),
+            ("--plot", plot_out),
+        ],
+    )
     parsed = [rep.parse_gate(g, DETECTORS) for g in gates]  # bad gates fail before reading
     result = rep.build_report(
         log,
@@ -517,16 +659,12 @@ def report(
     if roc_out:
         write_text(roc_out, rep.to_roc_csv(result))
     if plot_out:
-        from imufdi_cli.fileio import atomic_path
-
-        with atomic_path(plot_out) as tmp:
-            rep.plot_report(result, tmp + ".png")
-            os.replace(tmp + ".png", tmp)
+        with atomic_path(plot_out, suffix=".png") as tmp:  # matplotlib wants the extension
+            rep.plot_report(result, tmp)
         if roc_out and roc_out != "-":
             png = os.path.splitext(roc_out)[0] + ".png"
-            with atomic_path(png) as tmp:
-                rep.plot_roc(result, tmp + ".png")
-                os.replace(tmp + ".png", tmp)
+            with atomic_path(png, suffix=".png") as tmp:
+                rep.plot_roc(result, tmp)
     failed = [r for r in gate_results if r.failed]
     for r in gate_results:
         style = "red" if r.failed else "green"
@@ -576,10 +714,11 @@ def tune(
         imufdi tune run.mcap --segment 0s:2.5s -o params.json
         imufdi detect run.mcap -d woa-mvmd-glt --param woa-mvmd-glt.params=params.json -o out.mcap
     """
-    from imufdi_cli.fileio import check_input, write_text
+    from imufdi_cli.fileio import check_input, check_outputs, write_text
     from imufdi_cli.pipeline import tune_file
 
     check_input(log)
+    check_outputs([log], [("-o", output)])
     window = _time_range(segment, "--segment")
     assert window is not None
     settings = {}
@@ -670,22 +809,106 @@ def demo(keep_dir: str | None) -> None:
 # --- entry point -----------------------------------------------------------------------
 
 
+class Terminated(BaseException):
+    """SIGTERM/SIGHUP (or SIGINT) turned into an exception, so that every ``with`` block
+    unwinds: atomic outputs remove their temporary files, worker pools shut down.
+
+    A BaseException, so that library code catching ``Exception`` (a campaign recording a
+    failed run) does not swallow it.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+#: Signals that stop the CLI cleanly (exit 128 + signal number).
+HANDLED_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+
+
+@contextmanager
+def _signals_as_exceptions() -> Iterator[None]:
+    """Install handlers raising :class:`Terminated` (the first signal only: further
+    signals while cleaning up are ignored so the cleanup completes); restore on exit.
+    A signal that is already ignored (``nohup`` ignores SIGHUP) stays ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    raised = False
+
+    def handler(signum: int, frame: Any) -> None:
+        nonlocal raised
+        if raised:
+            return
+        raised = True
+        raise Terminated(signum)
+
+    previous = {}
+    for signum in HANDLED_SIGNALS:
+        try:
+            if signal.getsignal(signum) == signal.SIG_IGN:
+                continue  # ignored by whoever started us (nohup, a background job): keep it
+            previous[signum] = signal.signal(signum, handler)
+        except (OSError, ValueError):  # pragma: no cover - platform without the signal
+            continue
+    try:
+        yield
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
+
+
+def describe_exception(err: BaseException) -> str:
+    """One non-empty line for an unexpected exception: its class and what it says."""
+    text = " ".join(str(err).split())
+    name = type(err).__name__
+    if isinstance(err, MemoryError):
+        return (
+            "out of memory"
+            + (f" ({text})" if text else "")
+            + "; the input may declare sizes larger than it holds, or need more memory than"
+            " this machine has"
+        )
+    if isinstance(err, OSError):
+        reason = err.strerror or text or name
+        where = err.filename if err.filename is not None else None
+        return f"{where}: {reason}" if where is not None else f"{name}: {reason}"
+    return f"{name}: {text}" if text else f"{name} (no message)"
+
+
+def _debug() -> bool:
+    return os.environ.get("IMUFDI_DEBUG", "") not in ("", "0")
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Console script: run the CLI, turning every error into one line and an exit code."""
     try:
-        code = cli.main(
-            args=list(argv) if argv is not None else None,
-            prog_name="imufdi",
-            standalone_mode=False,
-        )
+        with _signals_as_exceptions():
+            code = cli.main(
+                args=list(argv) if argv is not None else None,
+                prog_name="imufdi",
+                standalone_mode=False,
+            )
     except ImufdiError as err:
-        _err(str(err))
+        if _debug():
+            traceback.print_exc()
+        _err(str(err) or type(err).__name__)
+        sys.exit(err.exit_code)
+    except Terminated as err:
+        name = signal.Signals(err.signum).name
+        _err("interrupted" if name == "SIGINT" else f"terminated by {name}")
         sys.exit(err.exit_code)
     except click.exceptions.Abort:
         _err("aborted")
         sys.exit(130)
     except click.ClickException as err:
-        _err(" ".join(err.format_message().split()))
+        _err(" ".join(err.format_message().split()) or type(err).__name__)
         sys.exit(EXIT_USAGE if err.exit_code == 2 else err.exit_code)
     except KeyboardInterrupt:
         _err("interrupted")
@@ -697,13 +920,15 @@ def main(argv: Sequence[str] | None = None) -> None:
         finally:
             sys.exit(0)
     except (MemoryError, OSError) as err:
-        _err(f"{type(err).__name__}: {err}")
+        if _debug():
+            traceback.print_exc()
+        _err(describe_exception(err))
         sys.exit(EXIT_BAD_INPUT)
     except Exception as err:  # a bug: one line, and the traceback only on request
-        if os.environ.get("IMUFDI_DEBUG"):
-            raise
+        if _debug():
+            traceback.print_exc()
         _err(
-            f"internal error ({type(err).__name__}: {err}); "
+            f"internal error ({describe_exception(err)}); "
             "please report it with the output of IMUFDI_DEBUG=1"
         )
         sys.exit(EXIT_INTERNAL)
