@@ -916,48 +916,75 @@ def match_episodes(
     return out
 
 
-def score_episodes(
-    episodes: Sequence[dict[str, Any]],
-    matches: Sequence[dict[str, Any]],
-    hours: float | None,
-) -> dict[str, Any]:
-    """Figures of one detector and sensor type: episodes, false episodes (per hour of
-    ``hours`` of log), and for matched ones the share classified right and the share of
-    size intervals covering the truth, per true fault model (None when undefined)."""
-    matched = [(e, m) for e, m in zip(episodes, matches) if m["match"] == "fault"]
-    false = sum(m["match"] == "false" for m in matches)
-    per_model: dict[str, dict[str, Any]] = {}
-    for _, m in matched:
-        row = per_model.setdefault(
-            m["true_class"], {"episodes": 0, "class_right": 0, "sized": 0, "covered": 0}
-        )
-        row["episodes"] += 1
-        row["class_right"] += bool(m["class_right"])
-        if m["covered"] is not None:
-            row["sized"] += 1
-            row["covered"] += bool(m["covered"])
-    for row in per_model.values():
-        row["class_accuracy"] = row["class_right"] / row["episodes"]
-        row["coverage"] = row["covered"] / row["sized"] if row["sized"] else None
-    sized = sum(r["sized"] for r in per_model.values())
-    return {
-        "episodes": len(episodes),
-        "matched": len(matched),
-        "wrong_sensor": sum(m["match"] == "wrong_sensor" for m in matches),
-        "false": false,
-        "false_episodes_per_hour": false / hours if hours else None,
-        "class_accuracy": (
-            sum(bool(m["class_right"]) for _, m in matched) / len(matched) if matched else None
-        ),
-        "coverage": (sum(r["covered"] for r in per_model.values()) / sized if sized else None),
-        "per_model": per_model,
-    }
+class EpisodeTally:
+    """Streaming figures of one detector and sensor type's episodes (bounded memory)."""
+
+    def __init__(self) -> None:
+        self.episodes = 0
+        self.matched = 0
+        self.wrong_sensor = 0
+        self.false = 0
+        self.calibration = 0  # in the calibration window: in sample, not scored
+        self.per_model: dict[str, dict[str, int]] = {}
+
+    def add(self, match: dict[str, Any]) -> None:
+        """Count one episode with its :func:`match_episodes` record."""
+        self.episodes += 1
+        if match["match"] == "false":
+            self.false += 1
+        elif match["match"] == "wrong_sensor":
+            self.wrong_sensor += 1
+        else:
+            self.matched += 1
+            row = self.per_model.setdefault(
+                match["true_class"], {"episodes": 0, "class_right": 0, "sized": 0, "covered": 0}
+            )
+            row["episodes"] += 1
+            row["class_right"] += bool(match["class_right"])
+            if match["covered"] is not None:
+                row["sized"] += 1
+                row["covered"] += bool(match["covered"])
+
+    def result(self, hours: float | None) -> dict[str, Any]:
+        """Episodes, false episodes (per hour of ``hours`` of fault-free log), and for
+        matched ones the share classified right and the share of size intervals covering
+        the truth, overall and per true fault model (None when undefined)."""
+        per_model = {}
+        for model, row in sorted(self.per_model.items()):
+            per_model[model] = {
+                **row,
+                "class_accuracy": row["class_right"] / row["episodes"],
+                "coverage": row["covered"] / row["sized"] if row["sized"] else None,
+            }
+        right = sum(r["class_right"] for r in self.per_model.values())
+        covered = sum(r["covered"] for r in self.per_model.values())
+        sized = sum(r["sized"] for r in self.per_model.values())
+        return {
+            "episodes": self.episodes,
+            "matched": self.matched,
+            "wrong_sensor": self.wrong_sensor,
+            "false": self.false,
+            "in_calibration": self.calibration,
+            "false_episodes_per_hour": self.false / hours if hours else None,
+            "class_accuracy": right / self.matched if self.matched else None,
+            "coverage": covered / sized if sized else None,
+            "per_model": per_model,
+        }
+
+
+def score_episodes(matches: Sequence[dict[str, Any]], hours: float | None) -> dict[str, Any]:
+    """:class:`EpisodeTally` figures of the :func:`match_episodes` records of a list."""
+    tally = EpisodeTally()
+    for match in matches:
+        tally.add(match)
+    return tally.result(hours)
 
 
 __all__ = [
     "MODELS",
     "Episode",
     "EpisodeBuilder",
+    "EpisodeTally",
     "FaultFit",
     "episode_builders",
     "find_episodes",
