@@ -356,6 +356,8 @@ def select_rows(
     record: Mapping[str, Any] | None,
     sensor_type: str,
     window: tuple[float, float | None] | None = None,
+    *,
+    origin_ns: int | None = None,
 ) -> Selection:
     """Rows to score: inside ``window`` (seconds from the log's first sample, as recorded
     by ``detect``; else from the first status row) and outside the validity exclusions.
@@ -366,13 +368,20 @@ def select_rows(
         Status row times.
     record : dict or None
         The detector's ``imufdi.detect.<name>`` record (decoded JSON).
+    origin_ns : int, optional
+        Time origin when the record has no ``t0_ns`` (a stream's first status row).
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     keep = np.ones(t_ns.shape, dtype=bool)
     record = record or {}
     if window is not None:
         t0 = record.get("t0_ns")
-        origin = int(t0) if isinstance(t0, int) else (int(t_ns[0]) if t_ns.size else 0)
+        if isinstance(t0, int):
+            origin = t0
+        elif origin_ns is not None:
+            origin = int(origin_ns)
+        else:
+            origin = int(t_ns[0]) if t_ns.size else 0
         rel = (t_ns - origin) / 1e9
         keep &= rel >= window[0]
         if window[1] is not None:
