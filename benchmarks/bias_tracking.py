@@ -54,7 +54,7 @@ def run(out: Path, seeds: int) -> dict[str, Any]:
                         calibrate=(0.0, 10.0))  # fmt: skip
             for entry in build_report(str(clean), window=(10.0, None)).entries:
                 key = f"{entry.detector}.{entry.sensor_type}.tau={tau:g}.far"
-                results.setdefault(key, []).append(float(np.mean(entry.alarm)))
+                results.setdefault(key, []).append(entry.metrics.alarm_rate)
             for rate in RATES_DEG_S2:
                 faulty = out / f"drift-{seed}-{rate:g}.mcap"
                 if not faulty.exists():

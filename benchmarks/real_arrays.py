@@ -114,13 +114,18 @@ def alarm_table(detected: Path, intervals: list[Any], motion_start: float) -> di
 _REPORTS: dict[tuple[str, Any], Any] = {}
 
 
-def _rate(path: Path, detector: str, sensor_type: str, window: tuple[float, float | None],
-          full: bool = False) -> Any:  # fmt: skip
+def _report(path: Path, window: tuple[float, float | None]) -> Any:
     key = (str(path), window)
     if key not in _REPORTS:
         _REPORTS[key] = build_report(str(path), window=window)
-    entry = _REPORTS[key].entry(detector, sensor_type)
-    rate = float(np.mean(entry.alarm)) if len(entry.alarm) else float("nan")
+    return _REPORTS[key]
+
+
+def _rate(path: Path, detector: str, sensor_type: str, window: tuple[float, float | None],
+          full: bool = False) -> Any:  # fmt: skip
+    """Alarm rate of the scored samples in ``window`` (clipped/invalid ones not scored)."""
+    entry = _report(path, window).entry(detector, sensor_type)
+    rate = entry.metrics.alarm_rate
     if full:
         return {"rate": rate, "excluded": entry.validity.get("excluded", 0)}
     return rate
@@ -151,13 +156,15 @@ def injection(
     for entry in rep.entries:
         m = entry.metrics
         # FAR on the static rows only (the moves between orientations are motion)
-        rel = (entry.t_ns - rep.t0_ns) / 1e9
-        static = np.zeros(rel.shape, dtype=bool)
+        false_alarms = free = 0
         for item in intervals:
-            static |= (rel >= item.start_s) & (rel <= item.end_s)
-        free = static & ~entry.faulty.any(axis=1)
+            window = (max(item.start_s, CALIBRATION[1]), item.end_s)
+            if window[1] > window[0]:
+                part = _report(detected, window).entry(entry.detector, entry.sensor_type)
+                false_alarms += part.metrics.false_alarms
+                free += part.metrics.fault_free_samples
         figures[f"{entry.detector}.{entry.sensor_type}"] = {
-            "far_static": float(np.mean(entry.alarm[free])),
+            "far_static": false_alarms / free if free else None,
             "far_static_phase": m.far, "mar": m.mar, "fir": m.fir,
             "detection_delay_s": m.detection_delay_s, "faulty_samples": m.faulty_samples,
         }  # fmt: skip
