@@ -373,7 +373,12 @@ def inject(
     help="Fault-free calibration window START:END, seconds from the log start.",
 )
 @click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
-@click.option("--strict", is_flag=True, help="A truncated input is an error instead of a warning.")
+@click.option(
+    "--strict",
+    is_flag=True,
+    help="A truncated input, or a calibration window a detector finds inadequate, is an"
+    " error (exit 3) instead of a warning.",
+)
 def detect(
     source: str,
     output: str | None,
