@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors import DETECTORS
-from imufdi_cli.detectors.base import DetectionBlock, parse_params
+from imufdi_cli.detectors import make_detector
+from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.faults import FaultInjector, parse_fault_spec
 from imufdi_cli.log import ImuBlock, iter_blocks
 from imufdi_cli.simulate import preset, simulate_block
@@ -54,8 +54,7 @@ def run_detector(
 
     The detector's calibration warnings (if it has any) are appended to ``warnings``.
     """
-    cls = DETECTORS[name]
-    detector = cls(**parse_params(cls.PARAMS, params, name))
+    detector = make_detector(name, params)
     t = block.t_s()
     detector.fit(block.mask((t >= calibrate[0]) & (t < calibrate[1])), array)
     outputs = [detector.process(b) for b in iter_blocks(block, block_size)]
