@@ -440,7 +440,7 @@ class BankDetector:
         "max_faults": Param(
             "int", 2, "array: simultaneous faulty sensors isolated per type", low=1, high=5
         ),
-        "iterations": Param("int", 6, "marg: maximum Gauss-Newton iterations", low=1, high=50),
+        "iterations": Param("int", 20, "marg: maximum Gauss-Newton iterations", low=1, high=50),
     }
 
     def __init__(
@@ -449,7 +449,7 @@ class BankDetector:
         mode: str = "auto",
         tau: float = 0.5,
         max_faults: int = 2,
-        iterations: int = 6,
+        iterations: int = 20,
     ) -> None:
         for key, value in (
             ("alpha", alpha),
