@@ -706,6 +706,12 @@ class WoaMvmdGltDetector:
             out[sensor_type] = self._rows(state, state.stream.push(values))
         return out
 
+    @property
+    def lookahead_samples(self) -> int:
+        """Upper bound of the samples a row may be held back: the last window containing a
+        sample can end ``window - 1`` samples after it (decision time, docs/metrics.md)."""
+        return self.window - 1
+
     def flush(self) -> dict[str, DetectionBlock]:
         return {t: self._rows(s, s.stream.flush()) for t, s in self._states.items()}
 
