@@ -9,12 +9,14 @@ from __future__ import annotations
 
 from typing import Any
 
+from imufdi_cli.detectors.ap_consistency import ApConsistencyDetector
 from imufdi_cli.detectors.bank import BankDetector
 from imufdi_cli.detectors.base import DetectionBlock, Detector, Param, parse_params
 from imufdi_cli.detectors.cnn_map import CnnMapDetector
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.noise_glr import NoiseGlrDetector
 from imufdi_cli.detectors.pca_parity import PcaParityDetector
+from imufdi_cli.detectors.px4_selector import Px4SelectorDetector
 from imufdi_cli.detectors.woa_mvmd_glt import WoaMvmdGltDetector
 from imufdi_cli.errors import DetectorConfigError
 
@@ -25,6 +27,8 @@ DETECTORS: dict[str, type] = {
     WoaMvmdGltDetector.name: WoaMvmdGltDetector,
     BankDetector.name: BankDetector,
     CnnMapDetector.name: CnnMapDetector,
+    Px4SelectorDetector.name: Px4SelectorDetector,
+    ApConsistencyDetector.name: ApConsistencyDetector,
 }
 
 
