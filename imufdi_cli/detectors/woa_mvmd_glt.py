@@ -17,11 +17,14 @@ For one sensor type (n sensors, measurement matrix H, measurements m (N, n)):
    per-sensor sigma and with the per-sensor biases estimated on u_best of the calibration
    window (sigma re-estimated in the u_best domain: the filter removes most of the noise,
    which is why the step fault is detected with a small MAR). Threshold chi2_{1-alpha}(n-3).
-4. Each sample gets its row from the window where it lies in the central ``hop`` samples
-   (``centre``), or the smallest statistic of all windows containing it (``min``: a window
-   that ends before a step onset does not see it, which sharpens the edges; default).
-   Either way the output depends only on the sample index in the log, not on how the
-   pipeline cuts blocks; the detector holds back ``window - hop`` samples at most.
+4. Each sample gets its row from the first window that contains it, where it lies in the
+   last ``hop`` samples (``end``, default: causal, decided when that window ends, at most
+   ``hop - 1`` samples after the sample; the first ``window - hop`` samples of the log get
+   no decision), from the window where it is central (``centre``), or the smallest
+   statistic of all windows containing it (``min``; ``centre`` and ``min`` use windows that
+   end up to ``window - 1`` samples later, so a sample's row depends on what follows it).
+   The output depends only on the sample index in the log, not on how the pipeline cuts
+   blocks; :attr:`WoaMvmdGltDetector.lookahead_samples` is the longest hold-back.
 
 (K, alpha) come from the ``params`` JSON file written by ``imufdi tune`` (:func:`tune`), from
 the ``K`` and ``mvmd_alpha`` parameters, or, by default, are tuned by the whale optimization
@@ -70,7 +73,7 @@ from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataEr
 from imufdi_cli.log import ImuBlock
 
 DEFAULT_WEIGHTS: tuple[float, float, float] = (1.0, 1.0, 1.0)
-COMBINE_CHOICES: tuple[str, ...] = ("min", "centre")
+COMBINE_CHOICES: tuple[str, ...] = ("end", "centre", "min")
 
 
 # --- fitness (§2.6) --------------------------------------------------------------------
@@ -329,9 +332,11 @@ class _WindowStream:
     """Overlapping windows on a stream of (N, n) rows; emits per-sample rows in order.
 
     Windows start at ``j * hop`` (global sample index) and hold ``window`` samples. A
-    row's value is taken from the window that has it in its central ``hop`` samples
-    (``centre``) or is the row-wise choice of ``reduce`` over all windows containing it
-    (``min``), exactly as if the whole log were processed at once.
+    row's value is taken from the window that has it in its last ``hop`` samples (``end``;
+    rows before ``window - hop`` are emitted at once as quiet, undecided rows), from the
+    window that has it in its central ``hop`` samples (``centre``) or is the row-wise
+    minimum of the statistic over all windows containing it (``min``), exactly as if the
+    whole log were processed at once.
     """
 
     def __init__(self, window: int, hop: int, combine: str, evaluate: Any) -> None:
@@ -385,6 +390,8 @@ class _WindowStream:
         """Global rows [lo, hi) a window starting at ``start`` contributes."""
         if self.combine == "min":
             return start, start + length
+        if self.combine == "end":
+            return start + length - self.hop, start + length
         lo = 0 if start == 0 else start + self.pad
         return lo, start + self.pad + self.hop
 
@@ -394,7 +401,13 @@ class _WindowStream:
         else:
             self.buffer = np.concatenate([self.buffer, values])
         self.received += values.shape[0]
-        outputs = []
+        outputs: list[dict[str, np.ndarray]] = []
+        if self.combine == "end":
+            # rows before the first window's last hop are never decided: emit them now
+            quiet = min(self.received, self.window - self.hop) - self.emitted
+            if quiet > 0:
+                outputs.append({"__quiet__": np.zeros(quiet)})
+                self.emitted += quiet
         while self.next_window * self.hop + self.window <= self.received:
             start = self.next_window * self.hop
             local = start - self.buffer_start
@@ -404,7 +417,9 @@ class _WindowStream:
             self.next_window += 1
             # rows before the next window's start (min) / contribution (centre) are final
             final = self.next_window * self.hop
-            if self.combine == "centre":
+            if self.combine == "end":
+                final = start + self.window
+            elif self.combine == "centre":
                 final = self.next_window * self.hop + self.pad
             taken = self._take(final)
             if taken is not None:
@@ -472,6 +487,8 @@ class _TypeState:
     isolable: np.ndarray
     threshold: float
     stream: _WindowStream
+    n_calibration: int = 0  # samples the biases were averaged over
+    outlier_variance: float = 0.0  # SI^2, added to every sigma^2 (outliers=variance)
 
 
 class WoaMvmdGltDetector:
@@ -484,10 +501,18 @@ class WoaMvmdGltDetector:
         "overlap": Param("int", 40, "overlap of consecutive windows, samples", low=0),
         "combine": Param(
             "choice",
-            "min",
-            "per-sample statistic: min over all windows containing the sample, or the "
-            "window where it is central",
+            "end",
+            "per-sample row: from the first window that ends after the sample (causal,"
+            " look-ahead hop - 1), the window where it is central, or the min over all"
+            " windows containing it (look-ahead window - 1)",
             choices=COMBINE_CHOICES,
+        ),
+        "outliers": Param(
+            "choice",
+            "variance",
+            "sparse gyro spikes in the calibration window: add their variance to sigma (they"
+            " act as extra white noise once u_best smooths them) or ignore them",
+            choices=("variance", "ignore"),
         ),
         "params": Param("path", None, "JSON file of tuned (K, alpha) from `imufdi tune`"),
         "K": Param("int", None, "number of MVMD modes (skips tuning, with mvmd_alpha)", low=1),
@@ -555,6 +580,42 @@ class WoaMvmdGltDetector:
         self._states: dict[str, _TypeState] = {}
         self._array: ArrayConfig | None = None
 
+    @property
+    def lookahead_samples(self) -> int:
+        """Most samples a row is held back: its decision waits for a window's last sample.
+
+        ``end``: a sample in the last ``hop`` samples of a window is decided when that window
+        ends, ``hop - 1`` samples later at most. ``centre`` and ``min``: up to ``window - 1``
+        (the first window decides its first sample ``window - 1`` samples late; ``min`` waits
+        for the last window containing the sample).
+        """
+        if self.params["combine"] == "end":
+            return self.hop - 1
+        return self.window - 1
+
+    def decision_index(self, sample: np.ndarray, n_samples: int) -> np.ndarray:
+        """Index of the input sample at which each row's decision is available, (N,).
+
+        Exact for the window grid (``end``: the end of the first window that has the sample
+        in its last ``hop``; ``centre``: the end of the window where it is central; ``min``:
+        the end of the last window that contains it), capped at the last sample of the log
+        (the tail window of ``flush``).
+        """
+        sample = np.asarray(sample, dtype=np.int64)
+        window, hop = self.window, self.hop
+        combine = self.params["combine"]
+        if combine == "end":
+            first = np.maximum(-(-(sample - window + 1) // hop), 0)
+            decided = first * hop + window - 1
+            decided = np.where(sample < window - hop, sample, decided)  # quiet rows
+        elif combine == "centre":
+            pad = (window - hop) // 2
+            j = np.maximum((sample - pad) // hop, 0)
+            decided = j * hop + window - 1
+        else:
+            decided = (sample // hop) * hop + window - 1
+        return np.asarray(np.minimum(decided, n_samples - 1))
+
     # -- calibration ----------------------------------------------------------------
 
     def _choose(self, sensor_type: str, values: np.ndarray) -> tuple[int, float, dict | None]:
@@ -620,6 +681,13 @@ class WoaMvmdGltDetector:
                     f"{self.name}: {sensor_type} noise sigma is zero or not finite;"
                     " the calibration window is degenerate"
                 )
+            outlier_variance = 0.0
+            if self.params["outliers"] == "variance":
+                # sparse spikes, smoothed by u_best, act as extra white noise: their variance
+                # (all samples minus the spike-free fit), pooled over the sensors of the type
+                plain = residual_sigma(H, values, outlier_cut=None)
+                outlier_variance = float(np.mean(np.maximum(plain**2 - sigma**2, 0.0)))
+                sigma = np.sqrt(sigma**2 + outlier_variance)
             bias = residuals(H, values).mean(axis=0)
             V = parity_matrix(whiten(H, sigma))
             state = _TypeState(
@@ -634,6 +702,8 @@ class WoaMvmdGltDetector:
                 isolable=isolable_sensors(V),
                 threshold=float(chi2.ppf(1.0 - float(self.params["alpha"]), n - 3)),
                 stream=_WindowStream(self.window, self.hop, self.params["combine"], None),
+                n_calibration=int(values.shape[0]),
+                outlier_variance=outlier_variance,
             )
             state.stream.evaluate = self._evaluator(state, decompose)
             self._states[sensor_type] = state
@@ -647,8 +717,14 @@ class WoaMvmdGltDetector:
             u, F = decompose(window)
             noise_gain = np.sqrt(np.einsum("ij,ij->i", F, F))  # (L,): sigma_u = sigma * gain
             dc_gain = F.sum(axis=1)  # (L,): bias_u = bias * dc_gain
+            # the calibration bias (mean of n_cal samples) is off by N(0, sigma^2 / n_cal),
+            # carried as dc_gain * error: its variance against the filtered noise is
+            # dc_gain^2 / (gain^2 n_cal) (the filter's effective length over n_cal), not
+            # negligible once u_best has averaged the noise down
+            inflation = 1.0 + (dc_gain / noise_gain) ** 2 / max(state.n_calibration, 1)
+            row_scale = noise_gain * np.sqrt(inflation)
             whitened = (u - dc_gain[:, None] * state.bias) / (
-                state.sigma[None, :] * noise_gain[:, None]
+                state.sigma[None, :] * row_scale[:, None]
             )
             p = whitened @ state.V.T
             statistic = np.einsum("ij,ij->i", p, p)  # eq. 5, V V^T = I
@@ -656,7 +732,7 @@ class WoaMvmdGltDetector:
             # amplitude of a step in the raw signal: undo whitening and the filter's DC gain
             scale = (
                 state.sigma[None, :]
-                * (noise_gain / np.where(dc_gain != 0, dc_gain, np.nan))[:, None]
+                * (row_scale / np.where(dc_gain != 0, dc_gain, np.nan))[:, None]
             )
             return {"statistic": statistic, "scores": d_fi, "amplitude": amplitude * scale}
 
@@ -723,6 +799,7 @@ class WoaMvmdGltDetector:
                     "threshold": s.threshold,
                     "window": self.window,
                     "hop": self.hop,
+                    "lookahead_samples": self.lookahead_samples,
                 }
                 for t, s in self._states.items()
             },

@@ -88,7 +88,7 @@ def run(det: WoaMvmdGltDetector, block: ImuBlock, size: int) -> DetectionBlock:
     return DetectionBlock.concatenate([*parts, det.flush()["gyro"]])
 
 
-@pytest.mark.parametrize("combine", ["min", "centre"])
+@pytest.mark.parametrize("combine", ["end", "min", "centre"])
 def test_output_does_not_depend_on_block_cuts(combine):
     array = coaligned(6)
     block = synthetic_block(step_at=300)
@@ -101,6 +101,59 @@ def test_output_does_not_depend_on_block_cuts(combine):
         assert len(other) == 400
         assert_allclose(other.statistic, outputs[0].statistic)
         assert np.array_equal(other.isolated, outputs[0].isolated)
+
+
+@pytest.mark.parametrize("onset", [300, 303, 305, 317])
+def test_causal_rows_before_the_onset_do_not_depend_on_what_follows(onset):
+    """Rows decided before the onset are bit-identical whatever follows (the issue's
+    0.3 vs 1.5 deg/s case), wherever the onset falls on the hop grid."""
+    array = coaligned(6)
+    base = synthetic_block()
+    assert base.gyro is not None
+    outputs = []
+    for amplitude in (0.0, 0.3, 1.5):
+        gyro = base.gyro.copy()
+        gyro[onset:, 0, 0] += np.deg2rad(amplitude)
+        det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"})
+        det.fit(base.slice(0, 200), array)
+        outputs.append(run(det, ImuBlock(t_ns=base.t_ns, gyro=gyro), 64))
+    decided = make({"K": 2, "mvmd_alpha": 3000.0}).decision_index(np.arange(400), 400)
+    before = decided < onset
+    assert before[: onset - 9].all() and not before[onset:].any()  # look-ahead hop - 1 = 9
+    for other in outputs[1:]:
+        for field in ("statistic", "alarm", "isolated", "amplitude"):
+            a, b = getattr(outputs[0], field)[before], getattr(other, field)[before]
+            assert np.array_equal(a, b, equal_nan=field == "amplitude"), field
+    # min-combine (the old default) used later windows: its pre-onset rows change
+    rows = []
+    for amplitude in (0.3, 1.5):
+        gyro = base.gyro.copy()
+        gyro[onset:, 0, 0] += np.deg2rad(amplitude)
+        det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro", "combine": "min"})
+        det.fit(base.slice(0, 200), array)
+        rows.append(run(det, ImuBlock(t_ns=base.t_ns, gyro=gyro), 64).statistic[:onset])
+    assert not np.array_equal(rows[0], rows[1])
+
+
+def test_lookahead_and_decision_index_follow_the_window_grid():
+    det = make({"window": "50", "overlap": "40"})
+    assert det.lookahead_samples == 9
+    decided = det.decision_index(np.arange(200), 200)
+    assert (decided[:40] == np.arange(40)).all()  # undecided (quiet) rows, emitted at once
+    assert (decided[40:50] == 49).all() and (decided[50:60] == 59).all()
+    assert (decided - np.arange(200)).max() == 9
+    assert make({"combine": "min"}).lookahead_samples == 49
+    assert make({"combine": "centre", "window": "60", "overlap": "40"}).lookahead_samples == 59
+    # the stream really holds rows back no longer than that
+    array = coaligned(6)
+    block = synthetic_block()
+    det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"})
+    det.fit(block.slice(0, 200), array)
+    emitted = 0
+    for i in range(len(block)):
+        emitted += len(det.process(block.slice(i, i + 1))["gyro"])
+        assert emitted >= i + 1 - det.lookahead_samples
+    assert emitted + len(det.flush()["gyro"]) == len(block)
 
 
 def test_detects_and_isolates_step_with_amplitude():
@@ -143,7 +196,7 @@ def test_fit_tunes_and_records_choice(tmp_path):
         ({"window": "10", "overlap": "10"}, "overlap"),
         ({"population": "1"}, "population: must be >= 2"),
         ({"weights": "1,2"}, "three comma-separated"),
-        ({"combine": "max"}, "valid: min, centre"),
+        ({"combine": "max"}, "valid: end, centre, min"),
     ],
 )
 def test_bad_parameters_raise(raw, match):
