@@ -129,6 +129,81 @@ def cfv(result: MvmdResult, weights: Sequence[float] = DEFAULT_WEIGHTS) -> float
     return float(sum(w * t for w, t in zip(weights, terms)))
 
 
+# --- validation fault (beyond the paper) -----------------------------------------------
+
+FITNESS_CHOICES: tuple[str, ...] = ("cfv+delay", "cfv")
+OUTLIER_CHOICES: tuple[str, ...] = ("clip", "variance", "ignore")
+
+
+@dataclass(frozen=True)
+class ValidationFault:
+    """A step on one sensor, used to score how a candidate (K, alpha) delays detection.
+
+    CFV alone decreases monotonically as alpha grows (narrower modes have flatter envelopes
+    and smaller spectral spread), so WOA returns the alpha upper bound whatever it is. The
+    detection statistic pays for that smoothing in delay: this fault measures it.
+
+    Attributes
+    ----------
+    window, hop : int
+        The detector's window grid (rows are decided in the last ``hop`` of a window).
+    step : float
+        Step amplitude in units of the sensor's noise sigma.
+    dof : int
+        n - 3, degrees of freedom of the GLT statistic.
+    threshold : float
+        chi2_{1-alpha}(n - 3).
+    projection : float
+        Mean diagonal of the whitened parity projector, (n - 3) / n: the share of a
+        one-sensor step that reaches the parity space.
+    weight : float
+        Weight of the expected missed fraction in the fitness.
+    horizon : int
+        Samples after the onset over which misses are counted (default 4 windows).
+    """
+
+    window: int
+    hop: int
+    step: float
+    dof: int
+    threshold: float
+    projection: float
+    weight: float = 1.0
+    horizon: int = 0
+
+    def miss_fraction(self, F: np.ndarray) -> float:
+        """Expected fraction of missed fault samples over the horizon, for filter F (L, L).
+
+        A sample k samples after the onset is decided on row t of a window (t uniformly in
+        the last ``hop`` rows); the step covers columns ``c = max(t - k, 0)`` .. L - 1, so the
+        GLT statistic (eq. 5) is noncentral chi2(n - 3) with noncentrality
+        ``step^2 * projection * (sum_{tau >= c} F[t, tau])^2 / |F[t]|^2`` (the whitened step
+        through the filter, against the filtered noise). Detection probability
+        ``P(chi2'(n - 3, lambda) > threshold)``; the result is the mean of 1 - P over t and
+        over k = 0 .. horizon - 1 (k >= t: the whole window carries the step).
+        """
+        from scipy.stats import ncx2  # imported when used (start-up time)
+
+        L = F.shape[0]
+        horizon = self.horizon or 4 * self.window
+        rows = np.arange(L - self.hop, L)
+        tails = np.cumsum(F[rows, ::-1], axis=1)[:, ::-1]  # tails[r, c] = sum_{tau >= c} F
+        norms = np.sqrt(np.einsum("ij,ij->i", F[rows], F[rows]))
+        k = np.arange(horizon)
+        columns = np.maximum(rows[:, None] - k[None, :], 0)  # (hop, horizon)
+        signal = tails[np.arange(rows.size)[:, None], columns] / norms[:, None]
+        noncentrality = self.step**2 * self.projection * signal**2
+        detected = ncx2.sf(self.threshold, self.dof, noncentrality)
+        return float(np.mean(1.0 - detected))
+
+
+def validation_windows(n_samples: int, window: int, count: int = 4) -> list[int]:
+    """Start indices of ``count`` windows spread over a tuning segment of ``n_samples``."""
+    if n_samples < window:
+        return []
+    return sorted({int(v) for v in np.linspace(0, n_samples - window, count).round()})
+
+
 # --- tuning (§2.7) ---------------------------------------------------------------------
 
 
@@ -203,10 +278,14 @@ def tune_signal(
     seed: int = 0,
     tol: float = 1e-6,
     max_iter: int = 300,
+    validation: ValidationFault | None = None,
 ) -> TuneResult:
     """WOA search of (K, alpha) minimising CFV for one multichannel signal (C, T).
 
     The whole population of each WOA iteration is decomposed in one batched MVMD call.
+    With ``validation``, the fitness is ``CFV + weight * miss``, ``miss`` the expected
+    missed fraction of :meth:`ValidationFault.miss_fraction` averaged over a few windows of
+    the signal (each decomposed with the candidate, its u_best filter taken).
     """
     if population < 2:
         raise DetectorConfigError(f"WOA population must be >= 2, got {population}")
@@ -219,10 +298,29 @@ def tune_signal(
     signal = np.asarray(signal, dtype=np.float64)
     start = time.perf_counter()
 
+    starts = validation_windows(signal.shape[-1], validation.window) if validation else []
+    if validation is not None and not starts:
+        raise CalibrationError(
+            f"tuning segment has {signal.shape[-1]} samples; the validation fault needs one"
+            f" window of {validation.window}"
+        )
+
     def fitness(candidates: np.ndarray) -> np.ndarray:
         Ks = [int(k) for k in candidates[:, 0]]
-        results = mvmd_batch(signal, Ks, list(candidates[:, 1]), tol=tol, max_iter=max_iter)
-        return np.array([cfv(r, weights) for r in results])
+        alphas = list(candidates[:, 1])
+        results = mvmd_batch(signal, Ks, alphas, tol=tol, max_iter=max_iter)
+        values = np.array([cfv(r, weights) for r in results])
+        if validation is None:
+            return values
+        misses = np.zeros(len(Ks))
+        for start in starts:
+            window = signal[..., start : start + validation.window].T  # (L, C)
+            decomposed = mvmd_batch(window.T, Ks, alphas, tol=tol, max_iter=max_iter)
+            for i, result in enumerate(decomposed):
+                k = best_mode(result, window)
+                F = filter_matrix(result.gains[k], window.shape[0])
+                misses[i] += validation.miss_fraction(F) / len(starts)
+        return values + validation.weight * misses
 
     found = woa(
         fitness,
@@ -249,6 +347,8 @@ def tune_signal(
             "seed": seed,
             "samples": int(signal.shape[-1]),
             "channels": int(signal.shape[0]) if signal.ndim == 2 else 1,
+            "fitness": "cfv" if validation is None else "cfv+delay",
+            "validation": None if validation is None else asdict(validation),
         },
     )
 
@@ -257,6 +357,13 @@ def tune(
     block: ImuBlock,
     array: ArrayConfig,
     sensor_type: str = "gyro",
+    *,
+    fitness: str = "cfv+delay",
+    validation_step: float = 4.0,
+    delay_weight: float = 100.0,
+    window: int = 50,
+    overlap: int = 40,
+    detector_alpha: float = 0.01,
     **woa_params: Any,
 ) -> TuneResult:
     """Tune (K, alpha) on the measurements of one sensor type of a (fault-free) block.
@@ -267,6 +374,11 @@ def tune(
         The segment to tune on (e.g. the first 2.5 s of a log).
     array : ArrayConfig
     sensor_type : str
+    fitness : {"cfv+delay", "cfv"}
+        ``cfv``: the paper's CFV alone (its minimum is the alpha upper bound, see
+        docs/algorithms/woa-mvmd-glt.md); ``cfv+delay`` adds ``delay_weight`` times the
+        expected missed fraction of a ``validation_step``-sigma step (:class:`ValidationFault`)
+        on the detector's window grid (``window``, ``overlap``) at level ``detector_alpha``.
     **woa_params
         ``population``, ``iterations``, ``k_bounds``, ``alpha_bounds``, ``weights``, ``seed``,
         ``tol``, ``max_iter`` (see :func:`tune_signal`).
@@ -283,9 +395,34 @@ def tune(
         raise CalibrationError(
             f"tuning segment has {values.shape[0]} samples; at least {MIN_SAMPLES} are needed"
         )
-    result = tune_signal(values.T, **woa_params)
+    validation = None
+    if fitness == "cfv+delay":
+        validation = make_validation(
+            values.shape[1], window, window - overlap, validation_step, delay_weight, detector_alpha
+        )
+    elif fitness != "cfv":
+        raise DetectorConfigError(f"fitness: valid: {', '.join(FITNESS_CHOICES)}")
+    result = tune_signal(values.T, validation=validation, **woa_params)
     result.sensor_type = sensor_type
     return result
+
+
+def make_validation(
+    n_sensors: int, window: int, hop: int, step: float, weight: float, alpha: float
+) -> ValidationFault:
+    """The :class:`ValidationFault` of a detector with n sensors of a type at level alpha."""
+    dof = n_sensors - 3
+    if dof < 1:
+        raise DetectorConfigError(f"the GLT needs at least 4 sensors, got {n_sensors}")
+    return ValidationFault(
+        window=window,
+        hop=hop,
+        step=float(step),
+        dof=dof,
+        threshold=float(chi2.ppf(1.0 - alpha, dof)),
+        projection=dof / n_sensors,
+        weight=float(weight),
+    )
 
 
 # --- windowed decomposition ------------------------------------------------------------
@@ -488,7 +625,41 @@ class _TypeState:
     threshold: float
     stream: _WindowStream
     n_calibration: int = 0  # samples the biases were averaged over
-    outlier_variance: float = 0.0  # SI^2, added to every sigma^2 (outliers=variance)
+    outlier_variance: float = (
+        0.0  # variance added for outliers (variance: SI^2; clip: sigma^2 units)
+    )
+    outlier_cut: float | None = None  # outliers=clip: level of the standardised residual
+    clipped: int = 0  # residual entries clipped so far
+
+    @staticmethod
+    def clip_probe(
+        values: np.ndarray, bias: np.ndarray, sigma: np.ndarray, V: np.ndarray, cut: float
+    ) -> np.ndarray:
+        """(N, n) bool: standardised parity residuals beyond ``cut`` (see :meth:`clip`)."""
+        projector = V.T @ V
+        scale = np.sqrt(np.diag(projector))
+        standardised = (((values - bias) / sigma) @ projector) / scale
+        return np.asarray(np.abs(standardised) > cut)
+
+    def clip(self, values: np.ndarray) -> np.ndarray:
+        """Clip each sample's standardised parity residuals at ``outlier_cut``, (N, n).
+
+        Whitened residual ``r = P x_w`` (``P = V^T V``, ``x_w = (x - bias) / sigma``),
+        standardised ``z_i = r_i / sqrt(P_ii)``; where ``|z_i| > c``, sensor i is moved by
+        ``(|z_i| - c) sigma_i / sqrt(P_ii)`` toward the others, so that ``|z_i| = c``. A
+        one-sample spike on one sensor is cut to c; a step larger than c sigma is cut too,
+        sample by sample, but stays far above the threshold once u_best averages it (the
+        amplitude is estimated on the unclipped signal). Gaussian noise is left alone but
+        with probability 2 Phi(-c) per residual (6e-5 at c = 4).
+        """
+        if self.outlier_cut is None:
+            return values
+        projector = self.V.T @ self.V
+        scale = np.sqrt(np.diag(projector))
+        standardised = (((values - self.bias) / self.sigma) @ projector) / scale
+        excess = np.sign(standardised) * np.maximum(np.abs(standardised) - self.outlier_cut, 0.0)
+        self.clipped += int(np.count_nonzero(excess))
+        return np.asarray(values - excess * self.sigma / scale)
 
 
 class WoaMvmdGltDetector:
@@ -509,10 +680,31 @@ class WoaMvmdGltDetector:
         ),
         "outliers": Param(
             "choice",
-            "variance",
-            "sparse gyro spikes in the calibration window: add their variance to sigma (they"
-            " act as extra white noise once u_best smooths them) or ignore them",
-            choices=("variance", "ignore"),
+            "clip",
+            "sparse spikes: clip each sample's standardised parity residual at outlier_cut"
+            " before the decomposition (clip), add their calibration variance to sigma"
+            " (variance), or nothing (ignore)",
+            choices=OUTLIER_CHOICES,
+        ),
+        "outlier_cut": Param(
+            "float",
+            4.0,
+            "clip level of outliers=clip, standardised residual",
+            low=0.0,
+            low_open=True,
+        ),
+        "fitness": Param(
+            "choice",
+            "cfv+delay",
+            "WOA fitness: the paper's CFV plus the expected missed fraction of a validation"
+            " step (cfv+delay), or CFV alone (cfv: picks the alpha upper bound)",
+            choices=FITNESS_CHOICES,
+        ),
+        "validation_step": Param(
+            "float", 4.0, "validation step of cfv+delay, in noise sigmas", low=0.0, low_open=True
+        ),
+        "delay_weight": Param(
+            "float", 100.0, "weight of the validation miss fraction in cfv+delay", low=0.0
         ),
         "params": Param("path", None, "JSON file of tuned (K, alpha) from `imufdi tune`"),
         "K": Param("int", None, "number of MVMD modes (skips tuning, with mvmd_alpha)", low=1),
@@ -625,8 +817,19 @@ class WoaMvmdGltDetector:
         if self.tuned_file is not None:
             return self.tuned_file.K, self.tuned_file.alpha, {"source": "params file"}
         segment = values[: int(p["tune_samples"])]
+        validation = None
+        if p["fitness"] == "cfv+delay":
+            validation = make_validation(
+                values.shape[1],
+                self.window,
+                self.hop,
+                float(p["validation_step"]),
+                float(p["delay_weight"]),
+                float(p["alpha"]),
+            )
         result = tune_signal(
             segment.T,
+            validation=validation,
             population=int(p["population"]),
             iterations=int(p["iterations"]),
             k_bounds=(int(p["k_min"]), int(p["k_max"])),
@@ -682,6 +885,9 @@ class WoaMvmdGltDetector:
                     " the calibration window is degenerate"
                 )
             outlier_variance = 0.0
+            outlier_cut = None
+            if self.params["outliers"] == "clip":
+                outlier_cut = float(self.params["outlier_cut"])
             if self.params["outliers"] == "variance":
                 # sparse spikes, smoothed by u_best, act as extra white noise: their variance
                 # (all samples minus the spike-free fit), pooled over the sensors of the type
@@ -690,6 +896,15 @@ class WoaMvmdGltDetector:
                 sigma = np.sqrt(sigma**2 + outlier_variance)
             bias = residuals(H, values).mean(axis=0)
             V = parity_matrix(whiten(H, sigma))
+            if outlier_cut is not None:
+                # a clipped spike still carries c standardised sigmas: its variance, at the
+                # rate spikes were clipped in the calibration window, joins the noise
+                probe = _TypeState.clip_probe(values, bias, sigma, V, outlier_cut)
+                rate = float(np.mean(probe))
+                diagonal = np.einsum("ki,ki->i", V, V)
+                outlier_variance = rate * outlier_cut**2
+                sigma = sigma * np.sqrt(1.0 + outlier_variance / diagonal)
+                V = parity_matrix(whiten(H, sigma))
             state = _TypeState(
                 sensor_type=sensor_type,
                 n=n,
@@ -704,6 +919,7 @@ class WoaMvmdGltDetector:
                 stream=_WindowStream(self.window, self.hop, self.params["combine"], None),
                 n_calibration=int(values.shape[0]),
                 outlier_variance=outlier_variance,
+                outlier_cut=outlier_cut,
             )
             state.stream.evaluate = self._evaluator(state, decompose)
             self._states[sensor_type] = state
@@ -714,7 +930,9 @@ class WoaMvmdGltDetector:
 
     def _evaluator(self, state: _TypeState, decompose: Any) -> Any:
         def evaluate(window: np.ndarray) -> dict[str, np.ndarray]:
-            u, F = decompose(window)
+            # the stream carries [clipped | raw] side by side (see process)
+            raw = window[:, state.n :]
+            u, F = decompose(window[:, : state.n])
             noise_gain = np.sqrt(np.einsum("ij,ij->i", F, F))  # (L,): sigma_u = sigma * gain
             dc_gain = F.sum(axis=1)  # (L,): bias_u = bias * dc_gain
             # the calibration bias (mean of n_cal samples) is off by N(0, sigma^2 / n_cal),
@@ -728,7 +946,14 @@ class WoaMvmdGltDetector:
             )
             p = whitened @ state.V.T
             statistic = np.einsum("ij,ij->i", p, p)  # eq. 5, V V^T = I
-            d_fi, amplitude = isolation_statistics(p, state.V)  # eqs. 6-7
+            d_fi, _ = isolation_statistics(p, state.V)  # eq. 6
+            if state.outlier_cut is not None:  # eq. 7 on the unclipped signal
+                raw_white = (F @ raw - dc_gain[:, None] * state.bias) / (
+                    state.sigma[None, :] * row_scale[:, None]
+                )
+                _, amplitude = isolation_statistics(raw_white @ state.V.T, state.V)
+            else:
+                _, amplitude = isolation_statistics(p, state.V)
             # amplitude of a step in the raw signal: undo whitening and the filter's DC gain
             scale = (
                 state.sigma[None, :]
@@ -779,7 +1004,8 @@ class WoaMvmdGltDetector:
             if triads is None:
                 raise InputDataError(f"{self.name}: block has no {sensor_type} data")
             values = self._array.select(triads, sensor_type)
-            out[sensor_type] = self._rows(state, state.stream.push(values))
+            carried = np.concatenate([state.clip(values), values], axis=1)
+            out[sensor_type] = self._rows(state, state.stream.push(carried))
         return out
 
     def flush(self) -> dict[str, DetectionBlock]:
@@ -800,6 +1026,8 @@ class WoaMvmdGltDetector:
                     "window": self.window,
                     "hop": self.hop,
                     "lookahead_samples": self.lookahead_samples,
+                    "outlier_variance": s.outlier_variance,
+                    "clipped_residuals": s.clipped,
                 }
                 for t, s in self._states.items()
             },
@@ -809,11 +1037,14 @@ class WoaMvmdGltDetector:
 __all__ = [
     "COMBINE_CHOICES",
     "DEFAULT_WEIGHTS",
+    "FITNESS_CHOICES",
     "TuneResult",
+    "ValidationFault",
     "WoaMvmdGltDetector",
     "best_mode",
     "cfv",
     "cfv_components",
+    "make_validation",
     "tune",
     "tune_signal",
 ]
