@@ -43,8 +43,9 @@ def run_detector(name: str, params: dict[str, Any], block: Any, array: Any, ncal
     return out, decided, det
 
 
-def measure_seed(seed: int, woa_params: dict[str, Any]) -> dict[str, Any]:
-    array, clean = simulate_block(preset("paper-table4", seed=seed, duration="20s"))
+def measure_seed(seed: int, woa_params: dict[str, Any], outliers: bool = True) -> dict[str, Any]:
+    config = preset("paper-table4", seed=seed, duration="20s", outliers=outliers)
+    array, clean = simulate_block(config)
     rng = np.random.default_rng(seed)
     onset_s = 10.0 + 0.5 * rng.random()
     spec = f"step:imu0.gyro.x,at={onset_s:.4f}s,amp=0.9deg/s"
@@ -94,15 +95,16 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", default="7000:7020", help="START:STOP")
     parser.add_argument("--param", action="append", default=[], help="woa-mvmd-glt KEY=VALUE")
+    parser.add_argument("--no-outliers", action="store_true", help="paper-table4 without spikes")
     args = parser.parse_args()
     lo, hi = (int(v) for v in args.seeds.split(":"))
-    woa_params = {"types": "gyro"}
+    woa_params: dict[str, Any] = {"types": "gyro"}
     for item in args.param:
         key, value = item.split("=", 1)
         woa_params[key] = value
     rows = []
     for seed in range(lo, hi):
-        rows.append(measure_seed(seed, woa_params))
+        rows.append(measure_seed(seed, woa_params, outliers=not args.no_outliers))
         r = rows[-1]["woa-mvmd-glt"]
         print(
             f"seed {seed}: woa FAR {100 * r['free_alarms'] / r['free_samples']:.2f} %"
@@ -115,7 +117,8 @@ def main() -> None:
         r["woa-mvmd-glt"]["free_samples"] for r in rows
     )
     summary = {}
-    print(f"paper-table4, seeds {lo}-{hi - 1}, woa-mvmd-glt params {woa_params}")
+    spikes = "without" if args.no_outliers else "with"
+    print(f"paper-table4 {spikes} outliers, seeds {lo}-{hi - 1}, woa-mvmd-glt params {woa_params}")
     print(
         "| detector | FAR % (mean, worst seed) | MAR % | delay s (decision time) | FIR % |"
         " at woa's FAR: scale, MAR % |"
