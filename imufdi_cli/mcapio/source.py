@@ -192,7 +192,17 @@ class McapSource:
         Problems met while reading (e.g. a truncated file), when ``strict`` is False.
 
     Chunk CRCs are checked when ``validate_crcs`` is true (default: when ``strict``).
+    A rosbag2 directory (or its ``metadata.yaml``) gives a
+    :class:`~imufdi_cli.mcapio.bagdir.BagDirSource`: its split files read as one log.
     """
+
+    def __new__(cls, source: Any = None, *args: Any, **kwargs: Any) -> McapSource:
+        if cls is McapSource and isinstance(source, (str, os.PathLike)) and source != "-":
+            from imufdi_cli.mcapio.bagdir import BagDirSource, is_bag_dir
+
+            if is_bag_dir(source):
+                return super().__new__(BagDirSource)
+        return super().__new__(cls)
 
     def __init__(
         self,
@@ -219,7 +229,10 @@ class McapSource:
             self.name = os.fspath(source)
             path = Path(source)
             if path.is_dir():
-                raise McapInputError(f"{path} is a directory, not an MCAP file")
+                raise McapInputError(
+                    f"{path} is a directory, not an MCAP file (nor a rosbag2 directory with"
+                    " metadata.yaml)"
+                )
             try:
                 self._stream = open(path, "rb")
             except FileNotFoundError as err:
