@@ -414,6 +414,16 @@ def make_validation(
     dof = n_sensors - 3
     if dof < 1:
         raise DetectorConfigError(f"the GLT needs at least 4 sensors, got {n_sensors}")
+    if window < MIN_SAMPLES or not 1 <= hop <= window:
+        raise DetectorConfigError(
+            f"validation fault: window must be >= {MIN_SAMPLES} and overlap in [0, window),"
+            f" got window {window}, overlap {window - hop}"
+        )
+    if not (step > 0 and weight >= 0):
+        raise DetectorConfigError(
+            f"validation fault: validation_step must be > 0 and delay_weight >= 0,"
+            f" got {step}, {weight}"
+        )
     return ValidationFault(
         window=window,
         hop=hop,
