@@ -29,6 +29,7 @@ QUICK: dict[str, list[str]] = {
     "noise_glr": ["--seeds", "5"],
     "bank": ["--duration", "30"],
     "events": ["--events", "5000"],
+    "woa": ["--duration", "10"],
 }
 
 
