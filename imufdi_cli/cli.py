@@ -570,7 +570,22 @@ def detect(
     type=click.IntRange(min=1),
     default=1,
     show_default=True,
-    help="Detection delay counts the first alarm lasting this many samples.",
+    help="Detection delay counts the first run of this many alarms; recovery needs this"
+    " many quiet samples after the last alarm.",
+)
+@click.option(
+    "--match-far",
+    "match_far",
+    metavar="RATE",
+    help="Also report MAR, FIR and delay with each detector's threshold scaled to this"
+    " out-of-sample FAR (e.g. 1% or 0.01).",
+)
+@click.option(
+    "--roc",
+    "roc_out",
+    metavar="FILE",
+    help="Write the threshold sweep (FAR, MAR, FIR, delay per scale) as CSV; with --plot"
+    " also FILE's name with .png.",
 )
 def report(
     log: str,
@@ -581,9 +596,13 @@ def report(
     plot_out: str | None,
     gates: tuple[str, ...],
     persist: int,
+    match_far: str | None,
+    roc_out: str | None,
 ) -> None:
     """Metrics per detector and sensor type: FAR, MAR, accuracy, FIR, delays.
 
+    FAR counts samples outside the calibration window; delays are at decision time.
+    --match-far compares detectors at one false-alarm rate (docs/metrics.md).
     --fail-if gates exit with code 1 when any fails (CI regression on recorded data).
 
     Example:
@@ -591,10 +610,12 @@ def report(
 
     \b
         imufdi report out.mcap --markdown table.md --fail-if 'glt.gyro.far > 0.08' --fail-if 'glt.gyro.mar > 0.35'
+        imufdi report out.mcap --match-far 1% --roc roc.csv
     """
     from imufdi_cli import report as rep
     from imufdi_cli.fileio import atomic_path, check_input, check_outputs, write_text
 
+    target = None if match_far is None else rep.parse_far(match_far)
     check_input(log)
     check_outputs(
         [log],
@@ -607,16 +628,22 @@ def report(
         ],
     )
     parsed = [rep.parse_gate(g, DETECTORS) for g in gates]  # bad gates fail before reading
-    result = rep.build_report(log, persist=persist)
+    result = rep.build_report(
+        log,
+        persist=persist,
+        match_far=target,
+        keep_series=plot_out is not None,
+        keep_roc=roc_out is not None,
+    )
     gate_results = rep.evaluate_gates(result, parsed)
     stdout_taken = "-" in (json_out, md_out, csv_out, junit_out)
     console = _console(not stdout_taken)
     table = Table(title=f"imufdi report: {result.source}")
     table.add_column("detector")
     table.add_column("sensor")
-    for _, header, _, _ in rep.TABLE_COLUMNS:
+    for _, header, _, _ in rep.table_columns(result, console=True):
         table.add_column(header, justify="right")
-    for row in rep.table_rows(result):
+    for row in rep.table_rows(result, console=True):
         table.add_row(*row)
     console.print(table)
     for note in result.notes:
@@ -629,9 +656,15 @@ def report(
         write_text(csv_out, rep.to_csv(result))
     if junit_out:
         write_text(junit_out, rep.to_junit(result, gate_results))
+    if roc_out:
+        write_text(roc_out, rep.to_roc_csv(result))
     if plot_out:
         with atomic_path(plot_out, suffix=".png") as tmp:  # matplotlib wants the extension
             rep.plot_report(result, tmp)
+        if roc_out and roc_out != "-":
+            png = os.path.splitext(roc_out)[0] + ".png"
+            with atomic_path(png, suffix=".png") as tmp:
+                rep.plot_roc(result, tmp)
     failed = [r for r in gate_results if r.failed]
     for r in gate_results:
         style = "red" if r.failed else "green"

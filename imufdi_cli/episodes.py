@@ -40,9 +40,10 @@ detectors' model); their coverage is measured in ``tests/test_episodes.py`` and 
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -100,7 +101,17 @@ class FaultFit:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite numbers become None)."""
-        out = _finite(asdict(self))
+        out = _finite(
+            {
+                "model": self.model,
+                "size": self.size,
+                "low": self.low,
+                "high": self.high,
+                "onset_index": self.onset_index,
+                "bic": self.bic,
+                "extra": dict(self.extra),
+            }
+        )
         out["size_name"] = self.size_name
         return out
 
@@ -175,6 +186,15 @@ def leave_one_out(
     consensus_sigma : float
         Standard deviation of the prediction error, ``sqrt(h_k^T (H_{-k}^T W H_{-k})^{-1} h_k)``.
     """
+    gain, consensus_sigma = _consensus_gain(H, sigma, k)
+    m = np.asarray(measurements, dtype=np.float64)
+    prediction = m @ gain
+    return m[:, k] - prediction, prediction, consensus_sigma
+
+
+def _consensus_gain(H: np.ndarray, sigma: np.ndarray | float, k: int) -> tuple[np.ndarray, float]:
+    """(n,) weights of the prediction of sensor k from the others (0 for k itself), and the
+    prediction's standard deviation."""
     H = check_measurement_matrix(H)
     n = H.shape[0]
     sigma_arr = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))
@@ -182,21 +202,34 @@ def leave_one_out(
     H_o = H[others]
     if np.linalg.matrix_rank(H_o) < 3:
         raise ValueError(f"sensor {k}: the other sensors do not span 3 axes")
-    L = least_squares_matrix(H_o, sigma_arr[others])  # (3, n-1)
-    gain = H[k] @ L  # (n-1,)
-    m = np.asarray(measurements, dtype=np.float64)
-    prediction = m[:, others] @ gain
-    consensus_sigma = float(np.sqrt(np.sum((gain * sigma_arr[others]) ** 2)))
-    return m[:, k] - prediction, prediction, consensus_sigma
+    gain = np.zeros(n)
+    gain[others] = H[k] @ least_squares_matrix(H_o, sigma_arr[others])
+    return gain, float(np.sqrt(np.sum((gain * sigma_arr) ** 2)))
 
 
 # --- fitting the fault models -------------------------------------------------------------
 
 
+@functools.lru_cache(maxsize=64)
 def _normal_quantile(p: float) -> float:
     from scipy.stats import norm
 
     return float(norm.ppf(p))
+
+
+@functools.lru_cache(maxsize=4096)
+def _chi2_quantile(p: float, dof: int) -> float:
+    """Chi-square quantile (cached: episodes repeat the same few lengths)."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(p, dof))
+
+
+@functools.lru_cache(maxsize=4096)
+def _t_quantile(p: float, dof: int) -> float:
+    from scipy.stats import t as t_distribution
+
+    return float(t_distribution.ppf(p, dof))
 
 
 def _gaussian_nll(ss: Any, n: Any, var: Any) -> Any:
@@ -399,15 +432,14 @@ def _noise_fit(
     bic: float,
 ) -> FaultFit:
     """Noise factor f with Var r = f^2 sigma_k^2 + sigma_c^2; chi-square interval on Var r."""
-    from scipy.stats import chi2
 
     def factor(var: float) -> float:
         return math.sqrt(max(var - consensus_sigma**2, 0.0)) / sigma_k
 
     tail = (1 - confidence) / 2
     var_hat = ss / n
-    low = factor(ss / float(chi2.ppf(1 - tail, n)))
-    high = factor(ss / float(chi2.ppf(tail, n)))
+    low = factor(ss / _chi2_quantile(1 - tail, n))
+    high = factor(ss / _chi2_quantile(tail, n))
     return FaultFit("noise", factor(var_hat), low, high, onset, bic)
 
 
@@ -421,9 +453,6 @@ def _spike_fit(
     confidence: float,
 ) -> FaultFit | None:
     """Sparse spikes: residuals beyond SPIKE_CUT sigma_r, amplitude and Poisson rate."""
-    from scipy.stats import chi2
-    from scipy.stats import t as t_distribution
-
     flagged = np.abs(r) > SPIKE_CUT * sigma_r
     count_after = _suffix(flagged.astype(np.float64))[taus]
     if count_after.max(initial=0.0) < 1:
@@ -448,13 +477,13 @@ def _spike_fit(
     tail = (1 - confidence) / 2
     if m >= 2:
         se = float(spikes.std(ddof=1)) / math.sqrt(m)
-        q = float(t_distribution.ppf(1 - tail, m - 1))
+        q = _t_quantile(1 - tail, m - 1)
         low, high = float(spikes.mean() - q * se), float(spikes.mean() + q * se)
     else:
         low, high = -math.inf, math.inf
     duration = float(t[-1] - t[onset]) + (float(t[1] - t[0]) if t.shape[0] > 1 else 0.0)
-    rate_low = 0.5 * float(chi2.ppf(tail, 2 * m)) / duration if m > 0 else 0.0
-    rate_high = 0.5 * float(chi2.ppf(1 - tail, 2 * m + 2)) / duration
+    rate_low = 0.5 * _chi2_quantile(tail, 2 * m) / duration if m > 0 else 0.0
+    rate_high = 0.5 * _chi2_quantile(1 - tail, 2 * m + 2) / duration
     extra = {"rate_hz": m / duration, "rate_low_hz": rate_low, "rate_high_hz": rate_high}
     return FaultFit("spikes", float(spikes.mean()), low, high, onset, bic, extra)
 
@@ -514,7 +543,7 @@ class Episode:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite numbers become None)."""
-        out = _finite(asdict(self))
+        out = _finite({k: v for k, v in vars(self).items() if k != "fits"})
         out["duration_s"] = self.duration_s
         out["fault_class"] = self.fault_class
         out["fits"] = [f.to_dict() for f in self.fits]
@@ -600,6 +629,7 @@ class EpisodeBuilder:
         self.max_window = max(4, round(max_window_s * rate_hz))
         self.confidence = confidence
         self.explain = explain
+        self._gains: dict[int, tuple[np.ndarray, float]] = {}
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
         self._history_t: np.ndarray = np.zeros(0, np.int64)
@@ -721,9 +751,11 @@ class EpisodeBuilder:
             episode.sensors = [self.sensor_ids[k]]
             episode.isolated_by = "residual"
         try:
-            residual, prediction, consensus_sigma = leave_one_out(self.H, window, self.sigma, k)
+            gain, consensus_sigma = self._gain(k)
         except ValueError:
             return episode
+        prediction = window @ gain
+        residual = window[:, k] - prediction
         t_s = (window_t - window_t[0]).astype(np.float64) * 1e-9
         alarm_index = min(state["alarm_index"], max(len(window_t) - 2, 0))
         episode.fits = fit_models(
@@ -737,6 +769,12 @@ class EpisodeBuilder:
             raw=window[:, k],
         )
         return episode
+
+    def _gain(self, k: int) -> tuple[np.ndarray, float]:
+        found = self._gains.get(k)
+        if found is None:
+            found = self._gains[k] = _consensus_gain(self.H, self.sigma, k)
+        return found
 
     def for_detector(self, detector: str) -> EpisodeBuilder:
         """A fresh builder with the same calibration, for another detector."""
@@ -761,10 +799,11 @@ class EpisodeBuilder:
         energies = []
         for k in range(self.H.shape[0]):
             try:
-                r, _, c = leave_one_out(self.H, window, self.sigma, k)
+                gain, c = self._gain(k)
             except ValueError:
                 energies.append(-math.inf)
                 continue
+            r = window[:, k] - window @ gain
             energies.append(float(np.sum(r**2)) / (self.sigma[k] ** 2 + c**2))
         return int(np.argmax(energies))
 

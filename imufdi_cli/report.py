@@ -21,12 +21,12 @@ from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 
-from imufdi_cli.errors import GateError, McapInputError
+from imufdi_cli.errors import GateError, McapInputError, UsageError
 from imufdi_cli.metrics import (
     METRIC_NAMES,
     FaultWindow,
     Metrics,
-    compute_metrics,
+    MetricsAccumulator,
     faulty_matrix,
 )
 
@@ -35,7 +35,11 @@ from imufdi_cli.metrics import (
 
 @dataclass
 class ReportEntry:
-    """Metrics of one detector on one sensor type."""
+    """Metrics of one detector on one sensor type.
+
+    The series (``t_ns`` ... ``faulty``) are only kept for ``--plot`` (``keep_series``), at
+    most :data:`PLOT_POINTS` samples per channel (evenly decimated); otherwise empty.
+    """
 
     detector: str
     sensor_type: str
@@ -47,6 +51,7 @@ class ReportEntry:
     alarm: np.ndarray = field(repr=False)
     scores: np.ndarray = field(repr=False)
     faulty: np.ndarray = field(repr=False)
+    roc: dict[str, np.ndarray] | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -59,6 +64,7 @@ class Report:
     entries: list[ReportEntry]
     notes: list[str]
     t0_ns: int
+    match_far: float | None = None
 
     def entry(self, detector: str, sensor_type: str) -> ReportEntry | None:
         for item in self.entries:
@@ -111,78 +117,228 @@ def truth_windows(metadata: dict[str, dict[str, str]]) -> Truth | None:
     return Truth(windows=windows, descriptions=descriptions)
 
 
-def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
-    """Compute the report of an annotated log.
+def calibration_windows(
+    metadata: dict[str, dict[str, str]],
+) -> dict[str, tuple[int, int] | None]:
+    """Detector name -> calibration window ``(start_ns, end_ns)`` from the
+    ``imufdi.detect.<name>`` records; a detector absent from the result recorded none
+    (a log from an imufdi before the window was recorded)."""
+    out: dict[str, tuple[int, int] | None] = {}
+    for name, data in metadata.items():
+        if not name.startswith("imufdi.detect."):
+            continue
+        try:
+            record = json.loads(data.get("json", "{}"))
+        except ValueError:
+            continue
+        if not isinstance(record, dict) or "calibration_window_ns" not in record:
+            continue
+        window = record["calibration_window_ns"]
+        detector = name.removeprefix("imufdi.detect.")
+        if window is None:
+            out[detector] = None
+        else:
+            try:
+                out[detector] = (int(window[0]), int(window[1]))
+            except (TypeError, ValueError, IndexError) as err:
+                raise McapInputError(
+                    f"{name}: calibration_window_ns is malformed ({window!r})"
+                ) from err
+    return out
+
+
+#: Samples per channel kept for ``--plot``.
+PLOT_POINTS = 20_000
+
+
+class _Series:
+    """Evenly decimated copy of a status channel for plots (bounded memory)."""
+
+    def __init__(self) -> None:
+        self.stride = 1
+        self.seen = 0
+        self.parts: list[dict[str, np.ndarray]] = []
+        self.kept = 0
+
+    def add(self, rows: dict[str, np.ndarray]) -> None:
+        n = int(rows["t_ns"].size)
+        first = (-self.seen) % self.stride
+        pick = np.arange(first, n, self.stride)
+        self.seen += n
+        if pick.size:
+            self.parts.append({k: v[pick] for k, v in rows.items()})
+            self.kept += int(pick.size)
+        if self.kept > 2 * PLOT_POINTS:
+            whole = self.arrays()
+            keep = slice(0, None, 2)
+            self.parts = [{k: v[keep] for k, v in whole.items()}]
+            self.kept = int(self.parts[0]["t_ns"].size)
+            self.stride *= 2
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        keys = self.parts[0].keys() if self.parts else ()
+        return {k: np.concatenate([p[k] for p in self.parts]) for k in keys}
+
+
+def _open_seekable(source: str | BinaryIO) -> tuple[Any, bool]:
+    """A seekable binary stream of ``source`` (stdin and pipes are spooled to a temporary
+    file, so that the metadata at the end of the file is known before the first message).
+    Returns the stream and whether the caller must close it."""
+    import shutil
+    import sys
+    import tempfile
+
+    if isinstance(source, str) and source != "-":
+        return source, False
+    stream = sys.stdin.buffer if source == "-" else source
+    assert not isinstance(stream, str)
+    try:
+        if stream.seekable():
+            return stream, False
+    except (AttributeError, OSError, ValueError):
+        pass
+    spool = tempfile.TemporaryFile()
+    shutil.copyfileobj(stream, spool, 1 << 20)
+    spool.seek(0)
+    return spool, True
+
+
+def build_report(
+    source: str | BinaryIO,
+    *,
+    persist: int = 1,
+    match_far: float | None = None,
+    keep_series: bool = False,
+    keep_roc: bool = False,
+) -> Report:
+    """Compute the report of an annotated log in one streaming pass.
 
     Parameters
     ----------
     source : path, ``"-"`` or binary stream
-        An MCAP written by ``imufdi detect``.
+        An MCAP written by ``imufdi detect`` (stdin is spooled to a temporary file).
     persist : int
-        Detection delays count the first alarm persisting this many samples.
-    """
-    from imufdi_cli.mcapio import McapSource, read_status
+        Detection delays count the first run of this many alarms; recovery needs this many
+        quiet samples after the last alarm (docs/metrics.md).
+    match_far : float, optional
+        Target FAR in (0, 1) for the matched-FAR figures (``mar_at_far``, ...).
+    keep_series : bool
+        Keep (decimated) status series for :func:`plot_report`.
+    keep_roc : bool
+        Keep the swept curve of each entry (``ReportEntry.roc``) for :func:`to_roc_csv`.
 
+    Memory does not depend on the log length (one chunk, fixed histograms), except for
+    the bounded series of ``keep_series``.
+    """
+    from imufdi_cli.mcapio import McapSource, iter_status
+
+    if match_far is not None and not 0.0 < match_far < 1.0:
+        raise UsageError(f"--match-far must be in (0, 1), got {match_far:g}")
     name = source if isinstance(source, str) else "<stream>"
-    # one pass: read_status streams every batch, so the source's metadata (wherever the
-    # records sit, even in a stream from stdin) is complete afterwards
-    with McapSource(source) as src:
-        status = read_status(src)
-        metadata = dict(src.metadata)
-    if not status:
+    name = "<stdin>" if name == "-" else name
+    stream, close = _open_seekable(source)
+    accumulators: dict[tuple[str, str], MetricsAccumulator] = {}
+    ids_of: dict[tuple[str, str], list[str]] = {}
+    series: dict[tuple[str, str], _Series] = {}
+    first_ns: dict[tuple[str, str], int] = {}
+    all_decided: dict[tuple[str, str], bool] = {}
+    notes: list[str] = []
+    try:
+        with McapSource(stream) as src:
+            metadata = dict(src.metadata)  # seekable: read from the summary up front
+            truth = truth_windows(metadata)
+            windows_cal = calibration_windows(metadata)
+            for detector, sensor_type, ids, rows in iter_status(src):
+                key = (detector, sensor_type)
+                acc = accumulators.get(key)
+                if acc is None:
+                    acc = _accumulator(truth, ids, windows_cal.get(detector), persist)
+                    accumulators[key] = acc
+                    ids_of[key] = ids
+                    first_ns[key] = int(rows["t_ns"][0]) if rows["t_ns"].size else 0
+                    all_decided[key] = True
+                    if keep_series:
+                        series[key] = _Series()
+                all_decided[key] &= "decided_ns" in rows
+                acc.update(
+                    rows["t_ns"],
+                    rows["alarm"],
+                    rows["isolated"],
+                    decided_ns=rows.get("decided_ns"),
+                    isolated_set=rows["isolated_set"],
+                    statistic=rows["statistic"],
+                    threshold=rows["threshold"],
+                    scores=rows["scores"],
+                )
+                if keep_series:
+                    series[key].add(
+                        {k: rows[k] for k in ("t_ns", "statistic", "threshold", "alarm", "scores")}
+                    )
+    finally:
+        if close:
+            stream.close()
+    if not accumulators:
         raise McapInputError(
             f"{name}: no detector status channels (/imufdi/<detector>/<type>); "
             "run `imufdi detect` on the log first"
         )
-    truth = truth_windows(metadata)
-    notes: list[str] = []
     has_truth = truth is not None
     if not has_truth:
         notes.append(
             "no ground truth in this log (inject faults with `imufdi inject`): "
             "FAR, MAR, FIR and delays need truth; alarm statistics only"
         )
-    t0_candidates = [int(arrs.t_ns[0]) for arrs in status.values() if len(arrs.t_ns)]
-    t0_ns = min(t0_candidates) if t0_candidates else 0
-    entries = []
-    for (detector, sensor_type), arrays in sorted(status.items()):
-        ids = list(arrays.sensor_ids)
-        windows: list[FaultWindow] = []
-        if truth is not None:
-            windows = [
-                FaultWindow(
-                    w.fault_id, tuple(ids.index(s) for s in w.sensors), w.start_ns, w.end_ns
-                )
-                for w in truth.windows
-                if all(s in ids for s in w.sensors)
-            ]
-        faulty = faulty_matrix(arrays.t_ns, windows, len(ids))
-        metrics = compute_metrics(
-            arrays.t_ns,
-            arrays.alarm,
-            arrays.isolated,
-            faulty,
-            windows,
-            persist=persist,
-            isolated_set=arrays.isolated_set,
+    old = sorted({d for d, _ in accumulators if d not in windows_cal})
+    if old:
+        notes.append(
+            f"{', '.join(old)}: no calibration window recorded (log from an older imufdi):"
+            " FAR and alarm rate count every sample, including the in-sample calibration"
         )
+    undecided = sorted({d for (d, _), ok in all_decided.items() if not ok})
+    if undecided:
+        notes.append(
+            f"{', '.join(undecided)}: status without decision times (older imufdi): delays"
+            " are at sample time"
+        )
+    entries = []
+    for key in sorted(accumulators):
+        detector, sensor_type = key
+        acc = accumulators[key]
+        metrics = acc.result()
+        roc = None
+        if match_far is not None and has_truth:
+            note = acc.matched(metrics, match_far)
+            if note:
+                notes.append(f"{detector}.{sensor_type} at FAR {match_far:g}: {note}")
+        if keep_roc and has_truth and acc.sweep is not None and acc.sweep.sweepable:
+            roc = acc.sweep.curve()
         if not has_truth:
             metrics.far = metrics.mar = metrics.accuracy = None
             metrics.fir = metrics.isolation_accuracy = None
-            metrics.false_alarm_events_per_hour = None
+            metrics.false_alarm_events_per_hour = metrics.far_calibration = None
+        arrays = series[key].arrays() if key in series else {}
+        n_s = len(ids_of[key])
+        t_ns = arrays.get("t_ns", np.zeros(0, np.int64))
         entries.append(
             ReportEntry(
                 detector=detector,
                 sensor_type=sensor_type,
-                sensor_ids=ids,
+                sensor_ids=ids_of[key],
                 metrics=metrics,
-                t_ns=arrays.t_ns,
-                statistic=arrays.statistic,
-                threshold=arrays.threshold,
-                alarm=arrays.alarm,
-                scores=arrays.scores,
-                faulty=faulty,
+                t_ns=t_ns,
+                statistic=arrays.get("statistic", np.zeros(0)),
+                threshold=arrays.get("threshold", np.zeros(0)),
+                alarm=arrays.get("alarm", np.zeros(0, bool)),
+                scores=arrays.get("scores", np.zeros((0, n_s))),
+                faulty=faulty_matrix(t_ns, acc.windows, n_s),
+                roc=roc,
             )
+        )
+    if match_far is not None and has_truth:
+        notes.append(
+            f"matched FAR {match_far:g}: the threshold of each detector's raw statistic is"
+            " scaled (alarm when statistic >= scale x threshold, per sample); confirmation"
+            " and persistence rules are not re-run (docs/metrics.md)"
         )
     return Report(
         source=name,
@@ -190,8 +346,37 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
         faults=[] if truth is None else truth.descriptions,
         entries=entries,
         notes=notes,
-        t0_ns=t0_ns,
+        t0_ns=min(first_ns.values()) if first_ns else 0,
+        match_far=match_far,
     )
+
+
+def _accumulator(
+    truth: Truth | None,
+    ids: list[str],
+    calibration: tuple[int, int] | None,
+    persist: int,
+) -> MetricsAccumulator:
+    windows: list[FaultWindow] = []
+    if truth is not None:
+        windows = [
+            FaultWindow(w.fault_id, tuple(ids.index(s) for s in w.sensors), w.start_ns, w.end_ns)
+            for w in truth.windows
+            if all(s in ids for s in w.sensors)
+        ]
+    return MetricsAccumulator(len(ids), windows, calibration_ns=calibration, persist=persist)
+
+
+def parse_far(text: str) -> float:
+    """``"1%"``, ``"0.01"`` -> 0.01; UsageError (exit 2) outside (0, 1) or malformed."""
+    raw = text.strip()
+    try:
+        value = float(raw[:-1]) / 100.0 if raw.endswith("%") else float(raw)
+    except ValueError:
+        raise UsageError(f"--match-far {text!r} is not a rate (e.g. 1% or 0.01)") from None
+    if not (0.0 < value < 1.0) or math.isnan(value):
+        raise UsageError(f"--match-far {text!r} must be in (0, 1) (e.g. 1% or 0.01)")
+    return value
 
 
 # --- gates -----------------------------------------------------------------------------
@@ -310,10 +495,31 @@ TABLE_COLUMNS: list[tuple[str, str, float, str]] = [
     ("accuracy", "Accuracy %", 100.0, "{:.2f}"),
     ("fir", "FIR %", 100.0, "{:.2f}"),
     ("detection_delay_s", "Delay s", 1.0, "{:.3f}"),
+    ("isolation_delay_s", "Iso delay s", 1.0, "{:.3f}"),
+    ("decision_latency_s", "Latency s", 1.0, "{:.3f}"),
     ("recovery_delay_s", "Recovery s", 1.0, "{:.3f}"),
+    ("far_calibration", "FAR cal %", 100.0, "{:.2f}"),
     ("alarm_rate", "Alarm %", 100.0, "{:.2f}"),
     ("alarm_events", "Events", 1.0, "{:.0f}"),
 ]
+#: Extra columns with --match-far.
+MATCHED_COLUMNS: list[tuple[str, str, float, str]] = [
+    ("mar_at_far", "MAR@FAR %", 100.0, "{:.2f}"),
+    ("fir_at_far", "FIR@FAR %", 100.0, "{:.2f}"),
+    ("detection_delay_at_far_s", "Delay@FAR s", 1.0, "{:.3f}"),
+    ("threshold_scale_at_far", "Scale@FAR", 1.0, "{:.3g}"),
+]
+
+
+#: Columns the terminal table leaves out (they stay in Markdown, CSV, JSON and JUnit).
+CONSOLE_OMITS = {"far_calibration", "alarm_rate"}
+
+
+def table_columns(report: Report, *, console: bool = False) -> list[tuple[str, str, float, str]]:
+    """The columns of this report's tables (matched-FAR columns with ``--match-far``;
+    ``console``: the narrower terminal table)."""
+    columns = TABLE_COLUMNS + (MATCHED_COLUMNS if report.match_far is not None else [])
+    return [c for c in columns if not (console and c[0] in CONSOLE_OMITS)]
 
 
 def format_value(value: float | None, scale: float = 1.0, fmt: str = "{:.4g}") -> str:
@@ -323,11 +529,12 @@ def format_value(value: float | None, scale: float = 1.0, fmt: str = "{:.4g}") -
     return fmt.format(value * scale)
 
 
-def table_rows(report: Report) -> list[list[str]]:
-    """Rows (detector, type, columns of TABLE_COLUMNS) as strings."""
+def table_rows(report: Report, *, console: bool = False) -> list[list[str]]:
+    """Rows (detector, type, columns of :func:`table_columns`) as strings."""
+    columns = table_columns(report, console=console)
     return [
         [e.detector, e.sensor_type]
-        + [format_value(e.metrics.value(m), s, f) for m, _, s, f in TABLE_COLUMNS]
+        + [format_value(e.metrics.value(m), s, f) for m, _, s, f in columns]
         for e in report.entries
     ]
 
@@ -336,6 +543,7 @@ def to_json(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
     data = {
         "source": report.source,
         "has_truth": report.has_truth,
+        "match_far": report.match_far,
         "faults": report.faults,
         "results": [
             {"detector": e.detector, "sensor_type": e.sensor_type, **e.metrics.to_dict()}
@@ -356,7 +564,7 @@ def to_json(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
 
 
 def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
-    header = ["Detector", "Sensor"] + [h for _, h, _, _ in TABLE_COLUMNS]
+    header = ["Detector", "Sensor"] + [h for _, h, _, _ in table_columns(report)]
     lines = [
         f"# imufdi report: `{report.source}`",
         "",
@@ -373,12 +581,14 @@ def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
             "",
             "## Per fault",
             "",
-            "| Fault | Detector | Sensor | Detected | Delay s | Recovery s | Isolated to it % |",
-            "|---|---|---|---|---|---|---|",
+            "| Fault | Detector | Sensor | Detected | Delay s | Iso delay s | Recovery s"
+            " | Isolated to it % |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         lines += [
             f"| {f.fault_id} | {e.detector} | {e.sensor_type} | {'yes' if f.detected else 'no'} | "
             f"{format_value(f.detection_delay_s, 1.0, '{:.3f}')} | "
+            f"{format_value(f.isolation_delay_s, 1.0, '{:.3f}')} | "
             f"{format_value(f.recovery_delay_s, 1.0, '{:.3f}')} | "
             f"{format_value(f.isolated_correctly, 100.0, '{:.1f}')} |"
             for e, f in per_fault
@@ -397,16 +607,27 @@ CSV_FIELDS = [
     "samples",
     "fault_free_samples",
     "faulty_samples",
+    "calibration_samples",
     "far",
+    "far_calibration",
     "mar",
+    "detection_rate",
     "accuracy",
     "fir",
     "isolation_accuracy",
     "detection_delay_s",
+    "isolation_delay_s",
+    "decision_latency_s",
     "recovery_delay_s",
+    "rate_after_first_detection",
     "alarm_rate",
     "alarm_events",
     "false_alarm_events_per_hour",
+    "target_far",
+    "mar_at_far",
+    "fir_at_far",
+    "detection_delay_at_far_s",
+    "threshold_scale_at_far",
 ]
 
 
@@ -436,7 +657,8 @@ def to_junit(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
     else:
         for e in report.entries:
             summary = ", ".join(
-                f"{h}={format_value(e.metrics.value(m), s, f)}" for m, h, s, f in TABLE_COLUMNS
+                f"{h}={format_value(e.metrics.value(m), s, f)}"
+                for m, h, s, f in table_columns(report)
             )
             cases.append(
                 f'  <testcase classname="imufdi.{escape(e.detector)}" name="{escape(e.sensor_type)}">'
@@ -451,18 +673,77 @@ def to_junit(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
     )
 
 
-def plot_report(report: Report, path: str) -> None:
-    """Detection statistic vs threshold and isolation scores over time, faults shaded
-    (like Li et al. Figure 15). Needs the ``plot`` extra (matplotlib)."""
+ROC_FIELDS = [
+    "detector",
+    "sensor_type",
+    "threshold_scale",
+    "far",
+    "mar",
+    "fir",
+    "detection_delay_s",
+]
+
+
+def to_roc_csv(report: Report) -> str:
+    """The swept curves (``--roc``): one row per histogram edge where FAR or MAR changes
+    (plus the first and last edge), per detector and sensor type; empty cells are undefined."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(ROC_FIELDS)
+    for e in report.entries:
+        if e.roc is None:
+            continue
+        far, mar = e.roc["far"], e.roc["mar"]
+        change = np.ones(far.size, dtype=bool)
+        change[1:-1] = (np.diff(np.nan_to_num(far, nan=-1.0))[:-1] != 0) | (
+            np.diff(np.nan_to_num(mar, nan=-1.0))[:-1] != 0
+        )
+        for k in np.flatnonzero(change).tolist():
+            row = [e.detector, e.sensor_type, f"{10 ** e.roc['log10_scale'][k]:.6g}"]
+            for name in ("far", "mar", "fir", "detection_delay_s"):
+                v = float(e.roc[name][k])
+                row.append("" if math.isnan(v) else f"{v:.6g}")
+            writer.writerow(row)
+    return out.getvalue()
+
+
+def plot_roc(report: Report, path: str) -> None:
+    """MAR against FAR of every swept entry (log FAR axis), the matched FAR marked."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.5, 4.5), constrained_layout=True)
+    for e in report.entries:
+        if e.roc is None:
+            continue
+        far, mar = e.roc["far"], e.roc["mar"]
+        ok = ~np.isnan(far) & ~np.isnan(mar) & (far > 0)
+        ax.plot(far[ok] * 100, mar[ok] * 100, lw=1.2, label=f"{e.detector} · {e.sensor_type}")
+    if report.match_far is not None:
+        ax.axvline(report.match_far * 100, color="k", ls="--", lw=0.8, label="matched FAR")
+    ax.set_xscale("log")
+    ax.set_xlabel("FAR %, outside the calibration window")
+    ax.set_ylabel("MAR %")
+    ax.set_title("threshold sweep of the raw statistic")
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _pyplot() -> Any:
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as err:
-        from imufdi_cli.errors import UsageError
-
         raise UsageError("--plot needs matplotlib: pip install 'imufdi-cli[plot]'") from err
+    return plt
+
+
+def plot_report(report: Report, path: str) -> None:
+    """Detection statistic vs threshold and isolation scores over time, faults shaded
+    (like Li et al. Figure 15), from the series kept with ``build_report(keep_series=True)``.
+    Needs the ``plot`` extra (matplotlib)."""
+    plt = _pyplot()
     entries = report.entries
     fig, axes = plt.subplots(
         len(entries), 2, figsize=(12, 3.2 * len(entries)), squeeze=False, constrained_layout=True

@@ -334,13 +334,19 @@ class McapSource:
             stream.seek(summary_start)
             raw = self._read_exact(file_size - len(MAGIC) - _FOOTER_SIZE - summary_start)
             metadata_offsets = self._parse_summary(raw)
+            stale = False
             for offset, length in metadata_offsets:
                 stream.seek(offset)
                 record = self._read_exact(length)
                 if len(record) == length and record[0] == OP_METADATA:
                     name, values = parse_metadata(record[9:])
                     self.metadata[name] = values
-            return
+                else:
+                    stale = True
+            if not stale:
+                return
+            # A metadata index that does not point at metadata records (written by
+            # imufdi <= 0.1.0 while chunks were still being compressed): scan instead.
         # No footer/summary (e.g. a truncated file): scan the top-level records for
         # metadata without decompressing chunks.
         stream.seek(len(MAGIC))
