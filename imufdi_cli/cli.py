@@ -569,6 +569,11 @@ def detect(
 @click.option("--csv", "csv_out", help="Write a CSV table here.")
 @click.option("--junit", "junit_out", help="Write JUnit XML (one test case per gate).")
 @click.option("--plot", "plot_out", help="Write a PNG of statistics and isolation scores.")
+@click.option(
+    "--episodes-csv",
+    "episodes_out",
+    help="Write the explained alarm episodes as CSV (docs/episodes.md).",
+)
 @click.option("--fail-if", "gates", multiple=True, help="Gate, e.g. 'glt.gyro.far > 0.01'.")
 @click.option(
     "--persist",
@@ -599,6 +604,7 @@ def report(
     csv_out: str | None,
     junit_out: str | None,
     plot_out: str | None,
+    episodes_out: str | None,
     gates: tuple[str, ...],
     persist: int,
     match_far: str | None,
@@ -630,6 +636,8 @@ def report(
             ("--csv", csv_out),
             ("--junit", junit_out),
             ("--plot", plot_out),
+            ("--roc", roc_out),
+            ("--episodes-csv", episodes_out),
         ],
     )
     parsed = [rep.parse_gate(g, DETECTORS) for g in gates]  # bad gates fail before reading
@@ -641,7 +649,7 @@ def report(
         keep_roc=roc_out is not None,
     )
     gate_results = rep.evaluate_gates(result, parsed)
-    stdout_taken = "-" in (json_out, md_out, csv_out, junit_out)
+    stdout_taken = "-" in (json_out, md_out, csv_out, junit_out, roc_out, episodes_out)
     console = _console(not stdout_taken)
     table = Table(title=f"imufdi report: {result.source}")
     table.add_column("detector")
@@ -651,8 +659,11 @@ def report(
     for row in rep.table_rows(result, console=True):
         table.add_row(*row)
     console.print(table)
+    _print_episodes(console, result)
     for note in result.notes:
         console.print(f"[yellow]note:[/] {note}", markup=True)
+    if episodes_out:
+        write_text(episodes_out, rep.to_episodes_csv(result))
     if json_out:
         write_text(json_out, rep.to_json(result, gate_results))
     if md_out:
@@ -680,6 +691,53 @@ def report(
             + "; ".join(r.target for r in failed)
         )
         sys.exit(EXIT_GATE_FAILED)
+
+
+def _print_episodes(console: Console, result: Any, limit: int = 12) -> None:
+    """The episode figures per detector and type, and the strongest episodes."""
+    from imufdi_cli import report as rep
+
+    if not result.episode_scores:
+        return
+    table = Table(title="alarm episodes (docs/episodes.md)")
+    for col in ("detector.type", "episodes", "false / h", "class right %", "covered %"):
+        table.add_column(col, justify="right")
+    for key, score in result.episode_scores.items():
+        table.add_row(
+            key,
+            str(score["episodes"]),
+            rep.format_value(score.get("false_episodes_per_hour"), 1.0, "{:.3g}"),
+            rep.format_value(score.get("class_accuracy"), 100.0, "{:.1f}"),
+            rep.format_value(score.get("coverage"), 100.0, "{:.1f}"),
+        )
+    console.print(table)
+    rows = sorted(rep.episode_rows(result), key=lambda r: -(r["peak_ratio"] or 0.0))[:limit]
+    detail = Table(title=f"strongest {len(rows)} episodes")
+    for col in (
+        "detector",
+        "start s",
+        "dur s",
+        "sensor",
+        "class",
+        "size [90 %]",
+        "runner-up",
+        "peak",
+        "match",
+    ):
+        detail.add_column(col)
+    for r in rows:
+        detail.add_row(
+            f"{r['detector']}.{r['sensor_type']}",
+            f"{r['start_s']:.2f}",
+            rep.format_value(r["duration_s"], 1.0, "{:.2f}"),
+            r["sensor"] or "-",
+            r["fault_class"] or "-",
+            r["size"],
+            r["runner_up_class"] or "-",
+            rep.format_value(r["peak_ratio"], 1.0, "{:.3g}"),
+            r["match"] or "-",
+        )
+    console.print(detail)
 
 
 # --- tune ------------------------------------------------------------------------------

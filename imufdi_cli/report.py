@@ -65,6 +65,11 @@ class Report:
     notes: list[str]
     t0_ns: int
     match_far: float | None = None
+    #: explained alarm episodes (the first EPISODES_LISTED of each detector and type, each
+    #: with its ``match`` to the truth), docs/episodes.md
+    episodes: list[dict[str, Any]] = field(default_factory=list)
+    #: per ``detector.type``: EpisodeTally figures, plus ``listed`` and ``omitted``
+    episode_scores: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def entry(self, detector: str, sensor_type: str) -> ReportEntry | None:
         for item in self.entries:
@@ -242,13 +247,15 @@ def build_report(
     series: dict[tuple[str, str], _Series] = {}
     first_ns: dict[tuple[str, str], int] = {}
     all_decided: dict[tuple[str, str], bool] = {}
+    last_ns: dict[tuple[str, str], int] = {}
     notes: list[str] = []
     try:
         with McapSource(stream) as src:
             metadata = dict(src.metadata)  # seekable: read from the summary up front
             truth = truth_windows(metadata)
             windows_cal = calibration_windows(metadata)
-            for detector, sensor_type, ids, rows in iter_status(src):
+            episodes = _EpisodeCollector(truth, windows_cal)
+            for detector, sensor_type, ids, rows in iter_status(src, others=episodes.batch):
                 key = (detector, sensor_type)
                 acc = accumulators.get(key)
                 if acc is None:
@@ -260,6 +267,8 @@ def build_report(
                     if keep_series:
                         series[key] = _Series()
                 all_decided[key] &= "decided_ns" in rows
+                if rows["t_ns"].size:
+                    last_ns[key] = int(rows["t_ns"][-1])
                 acc.update(
                     rows["t_ns"],
                     rows["alarm"],
@@ -340,6 +349,12 @@ def build_report(
             " scaled (alarm when statistic >= scale x threshold, per sample); confirmation"
             " and persistence rules are not re-run (docs/metrics.md)"
         )
+    hours = {}
+    for entry in entries:
+        key, metrics = (entry.detector, entry.sensor_type), entry.metrics
+        span_h = (last_ns.get(key, 0) - first_ns[key]) * 1e-9 / 3600
+        share = metrics.fault_free_samples / metrics.samples if metrics.samples else 0.0
+        hours[key] = span_h * (share if has_truth else 1.0)
     return Report(
         source=name,
         has_truth=has_truth,
@@ -348,7 +363,76 @@ def build_report(
         notes=notes,
         t0_ns=min(first_ns.values()) if first_ns else 0,
         match_far=match_far,
+        episodes=episodes.listed,
+        episode_scores=episodes.scores(hours),
     )
+
+
+#: episodes listed per detector and sensor type (all are counted)
+EPISODES_LISTED = 200
+
+
+class _EpisodeCollector:
+    """Explained episodes from the ``/imufdi/events`` channel, matched to the truth as
+    they stream by; keeps the first EPISODES_LISTED per detector and type."""
+
+    def __init__(self, truth: Truth | None, calibration: dict[str, tuple[int, int] | None]) -> None:
+        self.calibration = calibration
+        self.faults = (
+            []
+            if truth is None
+            else [
+                {**d, "start_ns": w.start_ns, "end_ns": w.end_ns}
+                for w, d in zip(truth.windows, truth.descriptions)
+            ]
+        )
+        self.has_truth = truth is not None
+        self.listed: list[dict[str, Any]] = []
+        self.tallies: dict[tuple[str, str], Any] = {}
+        self.counts: dict[tuple[str, str], int] = {}
+
+    def batch(self, batch: Any, channel: Any) -> None:
+        from imufdi_cli.episodes import EpisodeTally, match_episodes
+        from imufdi_cli.mcapio.events import EVENTS_TOPIC, decode_events, is_event_channel
+
+        if channel.topic != EVENTS_TOPIC or not is_event_channel(channel):
+            return
+        found = [e["episode"] for e in decode_events(batch, channel) if "episode" in e]
+        matches = (
+            match_episodes(found, self.faults)
+            if self.has_truth
+            else [{"match": None} for _ in found]
+        )
+        for episode, match in zip(found, matches):
+            key = (episode["detector"], episode["sensor_type"])
+            tally = self.tallies.setdefault(key, EpisodeTally())
+            window = self.calibration.get(episode["detector"])
+            if window is not None and episode["start_ns"] < window[1]:
+                # inside the calibration window: in sample, listed but never scored
+                match = {**match, "match": "calibration"}
+                tally.calibration += 1
+            elif self.has_truth:
+                tally.add(match)
+            else:
+                tally.episodes += 1
+            self.counts[key] = self.counts.get(key, 0) + 1
+            if self.counts[key] <= EPISODES_LISTED:
+                self.listed.append({**episode, **match})
+
+    def scores(self, hours: dict[tuple[str, str], float]) -> dict[str, dict[str, Any]]:
+        out = {}
+        for key, tally in sorted(self.tallies.items()):
+            result = tally.result(hours.get(key) if self.has_truth else None)
+            if not self.has_truth:
+                span = hours.get(key)
+                result = {
+                    "episodes": tally.episodes,
+                    "episodes_per_hour": tally.episodes / span if span else None,
+                }
+            result["listed"] = min(self.counts[key], EPISODES_LISTED)
+            result["omitted"] = max(0, self.counts[key] - EPISODES_LISTED)
+            out[f"{key[0]}.{key[1]}"] = result
+        return out
 
 
 def _accumulator(
@@ -559,6 +643,8 @@ def to_json(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
             for r in gate_results
         ],
         "notes": report.notes,
+        "episodes": report.episodes,
+        "episode_scores": report.episode_scores,
     }
     return json.dumps(data, indent=2, allow_nan=False) + "\n"
 
@@ -593,12 +679,143 @@ def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
             f"{format_value(f.isolated_correctly, 100.0, '{:.1f}')} |"
             for e, f in per_fault
         ]
+    lines += _episodes_markdown(report)
     if gate_results:
         lines += ["", "## Gates", ""]
         lines += [f"- {'❌' if r.failed else '✅'} {r.message}" for r in gate_results]
     if report.notes:
         lines += [""] + [f"> {note}" for note in report.notes]
     return "\n".join(lines) + "\n"
+
+
+# --- episodes ---------------------------------------------------------------------------
+
+#: display unit of an episode's size: (sensor type, size name) -> (scale from SI, unit)
+_SIZE_UNITS = {
+    ("gyro", "amp"): (180.0 / math.pi, "deg/s"),
+    ("gyro", "rate"): (180.0 / math.pi, "deg/s^2"),
+    ("gyro", "value"): (180.0 / math.pi, "deg/s"),
+    ("accel", "amp"): (1.0, "m/s^2"),
+    ("accel", "rate"): (1.0, "m/s^3"),
+    ("accel", "value"): (1.0, "m/s^2"),
+    ("mag", "amp"): (1e6, "uT"),
+    ("mag", "rate"): (1e6, "uT/s"),
+    ("mag", "value"): (1e6, "uT"),
+}
+
+
+def format_size(episode: dict[str, Any]) -> str:
+    """``0.91 deg/s [0.88, 0.94]``: the best fit's size and interval in display units."""
+    fits = episode.get("fits") or []
+    if not fits or fits[0].get("model") in (None, "none"):
+        return "-"
+    fit = fits[0]
+    name = fit.get("size_name", "")
+    if name == "factor":
+        scale, unit = 1.0, "x"
+    else:
+        scale, unit = _SIZE_UNITS.get((episode["sensor_type"], name), (1.0, "SI"))
+
+    def num(value: float | None) -> str:
+        return "?" if value is None else f"{value * scale:.3g}"
+
+    if fit.get("model") == "stuck":
+        return f"at {num(fit.get('size'))} {unit}"
+    return f"{num(fit.get('size'))} {unit} [{num(fit.get('low'))}, {num(fit.get('high'))}]"
+
+
+EPISODE_COLUMNS = [
+    "detector",
+    "sensor_type",
+    "start_s",
+    "duration_s",
+    "decided_start_s",
+    "sensor",
+    "fault_class",
+    "size",
+    "runner_up_class",
+    "peak_ratio",
+    "runner_up_sensor",
+    "runner_up_share",
+    "alarms",
+    "match",
+    "fault_id",
+]
+
+
+def episode_rows(report: Report) -> list[dict[str, Any]]:
+    """One flat row per listed episode (times in seconds from the log's first sample)."""
+    rows = []
+    for e in report.episodes:
+        fits = e.get("fits") or []
+        rows.append(
+            {
+                "detector": e["detector"],
+                "sensor_type": e["sensor_type"],
+                "start_s": (e["start_ns"] - report.t0_ns) * 1e-9,
+                "duration_s": e.get("duration_s"),
+                "decided_start_s": (e["decided_start_ns"] - report.t0_ns) * 1e-9,
+                "sensor": (e.get("sensors") or [None])[0],
+                "fault_class": e.get("fault_class"),
+                "size": format_size(e),
+                "runner_up_class": fits[1]["model"] if len(fits) > 1 else None,
+                "peak_ratio": e.get("peak_ratio"),
+                "runner_up_sensor": e.get("runner_up"),
+                "runner_up_share": e.get("runner_up_share"),
+                "alarms": e.get("alarms"),
+                "match": e.get("match"),
+                "fault_id": e.get("fault_id"),
+            }
+        )
+    return rows
+
+
+def to_episodes_csv(report: Report) -> str:
+    """The listed episodes, one CSV row each (:data:`EPISODE_COLUMNS`)."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(EPISODE_COLUMNS)
+    for row in episode_rows(report):
+        writer.writerow(["" if row[k] is None else row[k] for k in EPISODE_COLUMNS])
+    return out.getvalue()
+
+
+def _episodes_markdown(report: Report) -> list[str]:
+    if not report.episode_scores:
+        return []
+    lines = ["", "## Alarm episodes", ""]
+    if report.has_truth:
+        lines += [
+            "| Detector | Sensor | Episodes | Matched | False | False / h | Class right %"
+            " | 90 % interval covers % |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for key, score in report.episode_scores.items():
+            detector, sensor_type = key.split(".", 1)
+            lines.append(
+                f"| {detector} | {sensor_type} | {score['episodes']} | {score['matched']} | "
+                f"{score['false']} | {format_value(score['false_episodes_per_hour'], 1, '{:.3g}')} | "
+                f"{format_value(score['class_accuracy'], 100.0, '{:.1f}')} | "
+                f"{format_value(score['coverage'], 100.0, '{:.1f}')} |"
+            )
+    lines += [
+        "",
+        "| Detector | Sensor | Start s | Duration s | Isolated | Class | Size [90 % interval]"
+        " | Runner-up class | Peak stat/threshold | Match |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in episode_rows(report):
+        lines.append(
+            f"| {row['detector']} | {row['sensor_type']} | {row['start_s']:.3f} | "
+            f"{format_value(row['duration_s'], 1.0, '{:.3f}')} | {row['sensor'] or '-'} | "
+            f"{row['fault_class'] or '-'} | {row['size']} | {row['runner_up_class'] or '-'} | "
+            f"{format_value(row['peak_ratio'], 1.0, '{:.3g}')} | "
+            f"{row['match'] or '-'}{' ' + row['fault_id'] if row['fault_id'] else ''} |"
+        )
+    omitted = sum(s.get("omitted", 0) for s in report.episode_scores.values())
+    if omitted:
+        lines += ["", f"> {omitted} more episodes counted but not listed"]
+    return lines
 
 
 CSV_FIELDS = [

@@ -138,7 +138,7 @@ float64 statistic       # detection statistic at that sample
 
 # An explained alarm episode (event "episode"; header.stamp = decision time of its last
 # alarm); empty strings and NaN for alarm_start/alarm_end. docs/episodes.md.
-string fault_class      # step, drift, noise, scale, spikes or stuck; "" when unexplained
+string fault_class      # step, drift, noise, scale, spikes, stuck or none; "" when unexplained
 string size_name        # amp, rate (per second), factor or value
 float64 size            # SI units of the sensor type; NaN when none
 float64 size_low        # confidence interval of size (level in detail)

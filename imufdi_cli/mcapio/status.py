@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, Any
 
@@ -255,9 +255,13 @@ def _channel_ids(channel: ChannelInfo) -> list[str]:
 
 
 def iter_status(
-    source: McapSource, detector: str | None = None
+    source: McapSource,
+    detector: str | None = None,
+    *,
+    others: Callable[[MessageBatch, ChannelInfo], None] | None = None,
 ) -> Iterator[tuple[str, str, list[str], dict[str, np.ndarray]]]:
-    """Stream the status channels batch by batch (memory: one chunk).
+    """Stream the status channels batch by batch (memory: one chunk). ``others`` is called
+    with the messages of every other channel, batch by batch, in the same pass.
 
     Yields
     ------
@@ -270,6 +274,8 @@ def iter_status(
         for cid in np.unique(batch.channel_id).tolist():
             channel = source.channels[cid]
             if not _is_status(channel):
+                if others is not None:
+                    others(batch.select(batch.channel_id == cid), channel)
                 continue
             det = channel.topic.split("/")[2]
             if detector is not None and det != detector:

@@ -172,3 +172,49 @@ def test_report_streams_stdin_through_a_spool(detected_log):
     assert [e.metrics.to_dict() for e in piped.entries] == [
         e.metrics.to_dict() for e in direct.entries
     ]
+
+
+def test_episodes_are_explained_and_scored_against_the_truth(cli, tmp_path, detected_log):
+    out = {k: tmp_path / f"e.{k}" for k in ("json", "md", "csv")}
+    result = cli(
+        [
+            "report",
+            detected_log,
+            "--json",
+            out["json"],
+            "--markdown",
+            out["md"],
+            "--episodes-csv",
+            out["csv"],
+        ]
+    )
+    assert result.code == 0, result.stderr
+    assert "alarm episodes" in result.out
+    data = json.loads(out["json"].read_text())
+    matched = [
+        e
+        for e in data["episodes"]
+        if e["match"] == "fault" and e["detector"] == "glt" and e["sensor_type"] == "gyro"
+    ]
+    # the 0.9 deg/s step on imu0.gyro.x from 2.5 s to the end: one long episode explains it
+    longest = max(matched, key=lambda e: e["alarms"])
+    assert longest["sensors"][0] == "imu0.gyro.x" and longest["fault_class"] == "step"
+    step = longest["fits"][0]
+    assert step["size_name"] == "amp" and step["low"] < step["size"] < step["high"]
+    assert abs(step["size"] - 0.9 * 3.141592653589793 / 180) < 0.1 * 0.9 * 3.14159 / 180
+    scores = data["episode_scores"]["glt.gyro"]
+    assert (
+        scores["matched"] >= 1
+        and scores["episodes"] == scores["matched"] + scores["false"] + scores["wrong_sensor"]
+    )
+    assert "## Alarm episodes" in out["md"].read_text()
+    lines = out["csv"].read_text().splitlines()
+    assert lines[0].startswith("detector,sensor_type,start_s") and len(lines) > 1
+
+
+def test_episode_outputs_never_overwrite_the_input(cli, detected_log, tmp_path):
+    for option in ("--episodes-csv", "--roc"):
+        before = detected_log.read_bytes()
+        result = cli(["report", detected_log, option, detected_log])
+        assert_one_line_error(result, 2, option)
+        assert detected_log.read_bytes() == before
