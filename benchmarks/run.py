@@ -30,6 +30,7 @@ QUICK: dict[str, list[str]] = {
     "bank": ["--duration", "30"],
     "report": ["--minutes", "1"],
     "events": ["--events", "5000"],
+    "woa": ["--duration", "10"],
 }
 
 

@@ -515,7 +515,12 @@ def inject(
     help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
     " no header or all-zero stamps, with a warning).",
 )
-@click.option("--strict", is_flag=True, help="A truncated input is an error instead of a warning.")
+@click.option(
+    "--strict",
+    is_flag=True,
+    help="A truncated input, or a calibration window a detector finds inadequate, is an"
+    " error (exit 3) instead of a warning.",
+)
 @click.option(
     "--array",
     "array_path",

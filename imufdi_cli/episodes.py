@@ -260,6 +260,7 @@ def fit_models(
     stuck_share: float = 0.9,
     raw: np.ndarray | None = None,
     calibration_samples: int | None = None,
+    offset_var: float | None = None,
 ) -> list[FaultFit]:
     """Fit every fault model to one sensor's residual over an analysis window.
 
@@ -286,6 +287,9 @@ def fit_models(
     calibration_samples : int, optional
         Samples ``sigma_k`` was estimated from; the noise factor's interval then accounts
         for that estimate (F instead of chi-square).
+    offset_var : float, optional
+        Variance of the bias taken out of the residual (its calibration estimate), added to
+        the step amplitude's interval.
 
     Returns
     -------
@@ -325,7 +329,12 @@ def fit_models(
     a = s_r / n_after
     j, bic = best(_gaussian_nll(s_rr - n_after * a**2, n_after, var0), 1)
     half = _half_width(
-        float(s_rr[j] - n_after[j] * a[j] ** 2), int(n_after[j]), 1, 1.0 / n_after[j], confidence
+        float(s_rr[j] - n_after[j] * a[j] ** 2),
+        int(n_after[j]),
+        1,
+        1.0 / n_after[j],
+        confidence,
+        extra_var=offset_var or 0.0,
     )
     fits.append(FaultFit("step", float(a[j]), float(a[j] - half), float(a[j] + half), lo + j, bic))
 
@@ -448,14 +457,17 @@ def _drift_fit(
     return [FaultFit("drift", rate, rate - half, rate + half, lo + j, bic)]
 
 
-def _half_width(sse: float, n: int, k: int, gain_inv: float, confidence: float) -> float:
+def _half_width(
+    sse: float, n: int, k: int, gain_inv: float, confidence: float, extra_var: float = 0.0
+) -> float:
     """Half width of a least-squares coefficient's t interval, with the noise variance
     estimated from the fit's own residuals after the onset (``sse / (n - k)``): outliers and
     an imprecise calibrated sigma widen it, as they should."""
     dof = n - k
     if dof < 1 or not math.isfinite(gain_inv):
         return math.inf
-    return _t_quantile(0.5 + confidence / 2, dof) * math.sqrt(max(sse, 0.0) / dof * gain_inv)
+    variance = max(sse, 0.0) / dof * gain_inv + extra_var
+    return _t_quantile(0.5 + confidence / 2, dof) * math.sqrt(variance)
 
 
 def _noise_fit(
@@ -646,6 +658,9 @@ class EpisodeBuilder:
         sigma) gives the episodes with their evidence but no fault class.
     calibration_samples : int, optional
         Samples ``sigma`` was estimated from (widens the noise factor's interval).
+    calibration_mean : ndarray, shape (n,), optional
+        Mean measurements of the calibration window: each sensor's bias against the
+        consensus is taken out of its residual (a fault is what changed since).
     """
 
     def __init__(
@@ -663,6 +678,7 @@ class EpisodeBuilder:
         confidence: float = 0.9,
         explain: bool = True,
         calibration_samples: int | None = None,
+        calibration_mean: np.ndarray | None = None,
     ) -> None:
         self.detector = detector
         self.sensor_type = sensor_type
@@ -675,6 +691,9 @@ class EpisodeBuilder:
         self.confidence = confidence
         self.explain = explain
         self.calibration_samples = calibration_samples
+        self.calibration_mean = (
+            None if calibration_mean is None else np.asarray(calibration_mean, np.float64)
+        )
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
@@ -802,6 +821,13 @@ class EpisodeBuilder:
             return episode
         prediction = window @ gain
         residual = window[:, k] - prediction
+        offset_var = None
+        if self.calibration_mean is not None:
+            # the sensor's own bias against the consensus, as calibrated: a fault is what
+            # changed since (its estimate's variance widens the step interval)
+            residual = residual - (self.calibration_mean[k] - self.calibration_mean @ gain)
+            if self.calibration_samples:
+                offset_var = (self.sigma[k] ** 2 + consensus_sigma**2) / self.calibration_samples
         t_s = (window_t - window_t[0]).astype(np.float64) * 1e-9
         alarm_index = min(state["alarm_index"], max(len(window_t) - 2, 0))
         episode.fits = fit_models(
@@ -814,6 +840,7 @@ class EpisodeBuilder:
             confidence=self.confidence,
             raw=window[:, k],
             calibration_samples=self.calibration_samples,
+            offset_var=offset_var,
         )
         return episode
 
@@ -839,6 +866,7 @@ class EpisodeBuilder:
             confidence=self.confidence,
             explain=self.explain,
             calibration_samples=self.calibration_samples,
+            calibration_mean=self.calibration_mean,
         )
 
     def _loudest(self, window: np.ndarray) -> int:
@@ -874,10 +902,12 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
         explain = H.shape[0] >= 4
         sigma = np.ones(H.shape[0])
         n_cal: int | None = None
+        mean: np.ndarray | None = None
         if explain:
             measurements = array.select(triads, sensor_type)
             finite = np.all(np.isfinite(measurements), axis=1)
             n_cal = int(np.count_nonzero(finite))
+            mean = measurements[finite].mean(axis=0) if n_cal else None
             try:
                 sigma = residual_sigma(H, measurements[finite])
             except CalibrationError:
@@ -892,6 +922,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
             array.rate_hz,
             explain=explain,
             calibration_samples=n_cal if explain else None,
+            calibration_mean=mean if explain else None,
             **options,
         )
     return builders
