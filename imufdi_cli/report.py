@@ -262,7 +262,7 @@ def build_report(
             metadata = dict(src.metadata)  # seekable: read from the summary up front
             truth = truth_windows(metadata)
             windows_cal = calibration_windows(metadata)
-            episodes = _EpisodeCollector(truth, windows_cal)
+            episodes = _EpisodeCollector(truth, windows_cal, window, first_ns)
             records = {d: _detect_record(metadata, d) for d in windows_cal}
             for detector, sensor_type, ids, rows in iter_status(src, others=episodes.batch):
                 key = (detector, sensor_type)
@@ -386,6 +386,7 @@ def build_report(
         span_h = (last_ns.get(key, 0) - first_ns[key]) * 1e-9 / 3600
         share = metrics.fault_free_samples / metrics.samples if metrics.samples else 0.0
         hours[key] = span_h * (share if has_truth else 1.0)
+    episode_scores = episodes.scores(hours)  # first: it takes the episodes still pending
     return Report(
         source=name,
         has_truth=has_truth,
@@ -394,8 +395,8 @@ def build_report(
         notes=notes,
         t0_ns=min(first_ns.values()) if first_ns else 0,
         match_far=match_far,
+        episode_scores=episode_scores,
         episodes=episodes.listed,
-        episode_scores=episodes.scores(hours),
     )
 
 
@@ -416,8 +417,17 @@ class _EpisodeCollector:
     """Explained episodes from the ``/imufdi/events`` channel, matched to the truth as
     they stream by; keeps the first EPISODES_LISTED per detector and type."""
 
-    def __init__(self, truth: Truth | None, calibration: dict[str, tuple[int, int] | None]) -> None:
+    def __init__(
+        self,
+        truth: Truth | None,
+        calibration: dict[str, tuple[int, int] | None],
+        window: tuple[float, float | None] | None = None,
+        origins: dict[tuple[str, str], int] | None = None,
+    ) -> None:
         self.calibration = calibration
+        self.pending: list[tuple[dict[str, Any], dict[str, Any]]] = []
+        self.window = window  # --start/--end, seconds from each channel's first sample
+        self.origins = origins if origins is not None else {}
         self.faults = (
             []
             if truth is None
@@ -432,7 +442,7 @@ class _EpisodeCollector:
         self.counts: dict[tuple[str, str], int] = {}
 
     def batch(self, batch: Any, channel: Any) -> None:
-        from imufdi_cli.episodes import EpisodeTally, match_episodes
+        from imufdi_cli.episodes import match_episodes
         from imufdi_cli.mcapio.events import EVENTS_TOPIC, decode_events, is_event_channel
 
         if channel.topic != EVENTS_TOPIC or not is_event_channel(channel):
@@ -443,8 +453,22 @@ class _EpisodeCollector:
             if self.has_truth
             else [{"match": None} for _ in found]
         )
-        for episode, match in zip(found, matches):
+        self._take(list(zip(found, matches)))
+
+    def _take(self, items: list[tuple[dict[str, Any], dict[str, Any]]]) -> None:
+        """Count and list episodes (with their matches) inside --start/--end; those of a
+        channel whose first status row has not been read yet wait for it."""
+        from imufdi_cli.episodes import EpisodeTally
+
+        if self.pending:
+            items, self.pending = self.pending + items, []
+        for episode, match in items:
             key = (episode["detector"], episode["sensor_type"])
+            if self.window is not None and key not in self.origins:
+                self.pending.append((episode, match))
+                continue
+            if not self._inside(key, episode["start_ns"]):
+                continue
             tally = self.tallies.setdefault(key, EpisodeTally())
             window = self.calibration.get(episode["detector"])
             if window is not None and episode["start_ns"] < window[1]:
@@ -459,7 +483,19 @@ class _EpisodeCollector:
             if self.counts[key] <= EPISODES_LISTED:
                 self.listed.append({**episode, **match})
 
+    def _inside(self, key: tuple[str, str], start_ns: int) -> bool:
+        """Whether an episode starting at ``start_ns`` is inside --start/--end."""
+        origin = self.origins.get(key)
+        if self.window is None or origin is None:
+            return True
+        start_s, end_s = self.window
+        rel = (start_ns - origin) * 1e-9
+        return rel >= start_s and (end_s is None or rel < end_s)
+
     def scores(self, hours: dict[tuple[str, str], float]) -> dict[str, dict[str, Any]]:
+        if self.pending:  # channels without status rows: no origin, nothing to window
+            self.window, pending, self.pending = None, self.pending, []
+            self._take(pending)
         out = {}
         for key, tally in sorted(self.tallies.items()):
             result = tally.result(hours.get(key) if self.has_truth else None)

@@ -218,3 +218,20 @@ def test_episode_outputs_never_overwrite_the_input(cli, detected_log, tmp_path):
         result = cli(["report", detected_log, option, detected_log])
         assert_one_line_error(result, 2, option)
         assert detected_log.read_bytes() == before
+
+
+def test_episodes_respect_start_and_end(cli, tmp_path, detected_log):
+    window, whole = tmp_path / "w.csv", tmp_path / "all.csv"
+    result = cli(
+        ["report", detected_log, "--start", "3s", "--end", "4.5s", "--episodes-csv", window]
+    )
+    assert result.code == 0, result.stderr
+    assert cli(["report", detected_log, "--episodes-csv", whole]).code == 0
+
+    def starts(path):
+        lines = path.read_text().splitlines()[1:]
+        return [float(line.split(",")[2]) for line in lines]
+
+    inside = starts(window)
+    assert inside and all(3.0 <= s < 4.5 for s in inside)
+    assert len(starts(whole)) > len(inside)
