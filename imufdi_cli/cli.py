@@ -238,7 +238,8 @@ def ingest(
 @click.argument("log")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of tables.")
 @click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
-def info(log: str, as_json: bool, topics: tuple[str, ...]) -> None:
+@click.option("--strict", is_flag=True, help="A truncated or corrupt input is an error (exit 3).")
+def info(log: str, as_json: bool, topics: tuple[str, ...], strict: bool) -> None:
     """Describe a log: topics, IMUs, rate, duration, gaps, array, faults, detectors.
 
     Example:
@@ -252,7 +253,7 @@ def info(log: str, as_json: bool, topics: tuple[str, ...]) -> None:
     from imufdi_cli.pipeline import log_info
 
     check_input(log)
-    summary = log_info(log, topics=list(topics) or None)
+    summary = log_info(log, topics=list(topics) or None, strict=strict)
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
@@ -373,7 +374,7 @@ def inject(
     help="Fault-free calibration window START:END, seconds from the log start.",
 )
 @click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
-@click.option("--strict", is_flag=True, help="A truncated input is an error instead of a warning.")
+@click.option("--strict", is_flag=True, help="A truncated or corrupt input is an error (exit 3).")
 def detect(
     source: str,
     output: str | None,
