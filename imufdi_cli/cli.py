@@ -640,7 +640,11 @@ def demo(keep_dir: str | None) -> None:
 def main(argv: Sequence[str] | None = None) -> None:
     """Console script: run the CLI, turning every error into one line and an exit code."""
     try:
-        code = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)
+        code = cli.main(
+            args=list(argv) if argv is not None else None,
+            prog_name="imufdi",
+            standalone_mode=False,
+        )
     except ImufdiError as err:
         _err(str(err))
         sys.exit(err.exit_code)

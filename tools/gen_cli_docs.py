@@ -35,7 +35,7 @@ def render() -> str:
         command = cli.commands[name]
         sub = click.Context(
             command,
-            info_name=f"imufdi {name}",
+            info_name=name,
             parent=ctx,
             terminal_width=100,
             max_content_width=100,

@@ -1,0 +1,736 @@
+"""Alarm episodes and what they mean: which sensor, which kind of fault, how big, and why.
+
+An **episode** is a run of alarms of one detector on one sensor type, merged across gaps of
+at most ``merge_gap`` quiet samples (a detector at its nominal false-alarm level flickers
+inside a fault; a gap that short is not a recovery). Its start and end are the first and
+last alarmed samples; the decision times are those of the status rows.
+
+Explaining an episode works on the isolated sensor ``k`` alone, against the consensus of
+the others (leave-one-out least squares, :func:`leave_one_out`)::
+
+    r(t) = y_k(t) - h_k^T x_hat_{-k}(t),      Var r = sigma_k^2 + h_k^T (H_{-k}^T W H_{-k})^{-1} h_k
+
+so ``r`` is the sensor's own error, whatever the motion. Over an analysis window (the
+episode plus a margin before it) the fault models of ``imufdi inject`` are fitted to ``r``
+with an unknown onset ``tau`` (profile likelihood over every sample of the margin and the
+episode's first part):
+
+======  ==========================================  ==================================
+model   r(t) for t >= tau (before: N(0, sigma_r^2))  size (90 % interval)
+======  ==========================================  ==================================
+step    a + e                                        amp: a_hat +- z sigma_r / sqrt(n)
+drift   c + b (t - tau) + e (c: sub-sample onset)    rate: least-squares interval on b
+noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: chi-square interval on Var e
+scale   beta o(t) + e, o the consensus prediction    factor 1 + beta_hat +- z se
+spikes  e + s A on a fraction p of samples           amp A (t interval), rate (Poisson)
+stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
+======  ==========================================  ==================================
+
+The models are ranked by BIC (Schwarz 1978): the Gaussian log-likelihood of the whole
+window minus half the number of free parameters times ln n. ``stuck`` is not a Gaussian
+model (a frozen output has no noise at all): it is declared when the raw output repeats
+exactly on at least ``stuck_share`` of the samples after the onset (a healthy sensor always
+carries its own noise, so long exact repeats do not happen), and then ranks first.
+
+The intervals assume white Gaussian residuals with the calibrated sigma (the parity
+detectors' model); their coverage is measured in ``tests/test_episodes.py`` and the docs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.detectors.parity import check_measurement_matrix, least_squares_matrix
+
+#: fault models an episode is explained by, in tie-break order
+MODELS = ("step", "drift", "noise", "scale", "spikes", "stuck")
+#: what the size of each model is
+SIZE_NAMES = {
+    "step": "amp",
+    "drift": "rate",
+    "noise": "factor",
+    "scale": "factor",
+    "spikes": "amp",
+    "stuck": "value",
+}
+#: residuals beyond this many sigma_r count as spikes
+SPIKE_CUT = 4.0
+
+
+@dataclass(frozen=True)
+class FaultFit:
+    """One fault model fitted to an episode's residual.
+
+    Attributes
+    ----------
+    model : str
+        One of :data:`MODELS`.
+    size : float
+        Step amplitude, drift rate (per second), noise or scale factor, spike amplitude, or
+        stuck value; SI units of the sensor type (factors are dimensionless).
+    low, high : float
+        Confidence interval of ``size`` at the fit's confidence level.
+    onset_index : int
+        Index in the analysis window where the fitted fault starts.
+    bic : float
+        Schwarz criterion ``-2 log L + k ln n`` (lower is better; ``-inf`` for stuck).
+    extra : dict
+        Model-specific figures (spikes: ``rate_hz`` with its interval).
+    """
+
+    model: str
+    size: float
+    low: float
+    high: float
+    onset_index: int
+    bic: float
+    extra: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def size_name(self) -> str:
+        return SIZE_NAMES[self.model]
+
+    def to_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["size_name"] = self.size_name
+        return out
+
+
+# --- episodes from status rows ---------------------------------------------------------
+
+
+def find_episodes(alarm: np.ndarray, merge_gap: int = 0) -> list[tuple[int, int]]:
+    """Runs of alarms merged across gaps of at most ``merge_gap`` quiet samples.
+
+    Parameters
+    ----------
+    alarm : array_like, shape (N,), bool
+    merge_gap : int
+        Longest run of quiet samples that does not end an episode.
+
+    Returns
+    -------
+    list of (start, stop)
+        Index ranges ``[start, stop)``; ``alarm[start]`` and ``alarm[stop - 1]`` are set.
+    """
+    alarm = np.asarray(alarm, dtype=bool)
+    if merge_gap < 0:
+        raise ValueError("merge_gap must be >= 0")
+    padded = np.concatenate(([False], alarm, [False]))
+    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
+    starts, stops = edges[0::2], edges[1::2]
+    if starts.size == 0:
+        return []
+    keep = np.concatenate(([True], starts[1:] - stops[:-1] > merge_gap))
+    merged_starts = starts[keep]
+    merged_stops = np.concatenate((stops[:-1][keep[1:]], stops[-1:]))
+    return [(int(a), int(b)) for a, b in zip(merged_starts, merged_stops)]
+
+
+# --- the isolated sensor against the others ---------------------------------------------
+
+
+def leave_one_out(
+    H: np.ndarray, measurements: np.ndarray, sigma: np.ndarray | float, k: int
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Sensor ``k`` against the weighted least-squares consensus of the other sensors.
+
+    Parameters
+    ----------
+    H : array_like, shape (n, 3)
+        Measurement matrix of the sensor type.
+    measurements : array_like, shape (N, n)
+        SI units.
+    sigma : float or array_like, shape (n,)
+        Per-sensor white-noise standard deviation, SI.
+    k : int
+        Sensor index.
+
+    Returns
+    -------
+    residual : ndarray, shape (N,)
+        ``y_k - h_k^T x_hat_{-k}``.
+    prediction : ndarray, shape (N,)
+        ``h_k^T x_hat_{-k}``: what the others say sensor k should read.
+    consensus_sigma : float
+        Standard deviation of the prediction error, ``sqrt(h_k^T (H_{-k}^T W H_{-k})^{-1} h_k)``.
+    """
+    H = check_measurement_matrix(H)
+    n = H.shape[0]
+    sigma_arr = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))
+    others = np.flatnonzero(np.arange(n) != k)
+    H_o = H[others]
+    if np.linalg.matrix_rank(H_o) < 3:
+        raise ValueError(f"sensor {k}: the other sensors do not span 3 axes")
+    L = least_squares_matrix(H_o, sigma_arr[others])  # (3, n-1)
+    gain = H[k] @ L  # (n-1,)
+    m = np.asarray(measurements, dtype=np.float64)
+    prediction = m[:, others] @ gain
+    consensus_sigma = float(np.sqrt(np.sum((gain * sigma_arr[others]) ** 2)))
+    return m[:, k] - prediction, prediction, consensus_sigma
+
+
+# --- fitting the fault models -------------------------------------------------------------
+
+
+def _normal_quantile(p: float) -> float:
+    from scipy.stats import norm
+
+    return float(norm.ppf(p))
+
+
+def _gaussian_nll(ss: np.ndarray, n: np.ndarray, var: np.ndarray | float) -> np.ndarray:
+    """-log L of n samples with sum of squares ss about their model, variance var."""
+    return 0.5 * (ss / var + n * np.log(2 * math.pi * var))
+
+
+def _suffix(values: np.ndarray) -> np.ndarray:
+    """S[j] = sum(values[j:]), shape (L + 1,)."""
+    out = np.zeros(values.shape[0] + 1)
+    out[:-1] = np.cumsum(values[::-1])[::-1]
+    return out
+
+
+def fit_models(
+    residual: np.ndarray,
+    prediction: np.ndarray,
+    t_s: np.ndarray,
+    sigma_k: float,
+    consensus_sigma: float,
+    *,
+    onset_range: tuple[int, int],
+    confidence: float = 0.9,
+    stuck_share: float = 0.9,
+    raw: np.ndarray | None = None,
+) -> list[FaultFit]:
+    """Fit every fault model to one sensor's residual over an analysis window.
+
+    Parameters
+    ----------
+    residual, prediction : ndarray, shape (L,)
+        From :func:`leave_one_out`, over the analysis window (SI units).
+    t_s : ndarray, shape (L,)
+        Sample times, seconds.
+    sigma_k : float
+        Calibrated white-noise standard deviation of sensor k (SI).
+    consensus_sigma : float
+        Standard deviation of the consensus prediction error (SI).
+    onset_range : (int, int)
+        Onset candidates ``[lo, hi)`` (indices into the window); the fault is assumed to
+        last from its onset to the end of the window.
+    confidence : float
+        Level of the size intervals.
+    stuck_share : float
+        Share of exactly repeated raw outputs after the onset that means "stuck".
+    raw : ndarray, shape (L,), optional
+        The sensor's own output (for "stuck": exact repeats); default ``residual +
+        prediction``, which rounding may keep from repeating exactly.
+
+    Returns
+    -------
+    list of FaultFit
+        Best first (stuck when detected, then by BIC).
+    """
+    r = np.asarray(residual, dtype=np.float64)
+    o = np.asarray(prediction, dtype=np.float64)
+    t = np.asarray(t_s, dtype=np.float64)
+    length = r.shape[0]
+    lo, hi = max(0, int(onset_range[0])), min(length - 2, int(onset_range[1]))
+    if length < 4 or hi <= lo:
+        return []
+    var0 = sigma_k**2 + consensus_sigma**2
+    sigma_r = math.sqrt(var0)
+    z = _normal_quantile(0.5 + confidence / 2)
+    taus = np.arange(lo, hi)
+    n_after = (length - taus).astype(np.float64)
+    n_total = float(length)
+    ln_n = math.log(n_total)
+
+    # prefix: healthy samples before tau; suffix sums after tau
+    sq = r**2
+    healthy_before = np.concatenate(([0.0], np.cumsum(sq)))[taus]
+    nll_before = _gaussian_nll(healthy_before, taus.astype(np.float64), var0)
+    s_r, s_rr = _suffix(r)[taus], _suffix(sq)[taus]
+    s_t, s_tt, s_tr = _suffix(t)[taus], _suffix(t * t)[taus], _suffix(t * r)[taus]
+    s_o, s_oo, s_or = _suffix(o)[taus], _suffix(o * o)[taus], _suffix(o * r)[taus]
+    del s_o
+    fits: list[FaultFit] = []
+
+    def best(nll_after: np.ndarray, k_params: int) -> tuple[int, float]:
+        total = nll_before + nll_after
+        j = int(np.argmin(total))
+        return j, float(2 * total[j] + (k_params + 1) * ln_n)  # +1: the onset
+
+    # step: r = a + e
+    a = s_r / n_after
+    j, bic = best(_gaussian_nll(s_rr - n_after * a**2, n_after, var0), 1)
+    half = z * sigma_r / math.sqrt(n_after[j])
+    fits.append(FaultFit("step", float(a[j]), float(a[j] - half), float(a[j] + half), lo + j, bic))
+
+    # drift: r = b (t - t_f) + e from an onset t_f between samples tau - 1 and tau, i.e.
+    # r = b (u + lam) with u = t - t_tau and lam = t_tau - t_f in [0, dt]: the offset
+    # lam is fitted per tau (interior least squares, else the better bound)
+    fits.extend(
+        _drift_fit(t, taus, n_after, s_r, s_rr, s_t, s_tt, s_tr, nll_before, var0, z, ln_n, lo)
+    )
+
+    # noise: r ~ N(0, f^2 sigma_k^2 + sigma_c^2); variance fitted (bounded below by var0)
+    var_hat = np.maximum(s_rr / n_after, var0)
+    j, bic = best(_gaussian_nll(s_rr, n_after, var_hat), 1)
+    fits.append(
+        _noise_fit(
+            float(s_rr[j]), int(n_after[j]), sigma_k, consensus_sigma, confidence, lo + j, bic
+        )
+    )
+
+    # scale: r = beta o + e
+    with np.errstate(divide="ignore", invalid="ignore"):
+        beta = np.where(s_oo > 0, s_or / s_oo, 0.0)
+    j, bic = best(_gaussian_nll(s_rr - beta * s_or, n_after, var0), 1)
+    half = z * sigma_r / math.sqrt(s_oo[j]) if s_oo[j] > 0 else math.inf
+    fits.append(
+        FaultFit(
+            "scale",
+            float(1 + beta[j]),
+            float(1 + beta[j] - half),
+            float(1 + beta[j] + half),
+            lo + j,
+            bic,
+        )
+    )
+
+    spikes = _spike_fit(r, t, sigma_r, taus, nll_before, ln_n, confidence)
+    if spikes is not None:
+        fits.append(spikes)
+    fits.sort(key=lambda f: (f.bic, MODELS.index(f.model)))
+
+    stuck = _stuck_fit(r + o if raw is None else np.asarray(raw), lo, hi, stuck_share)
+    if stuck is not None:
+        fits.insert(0, stuck)
+    return fits
+
+
+def _drift_fit(
+    t: np.ndarray,
+    taus: np.ndarray,
+    n: np.ndarray,
+    s_r: np.ndarray,
+    s_rr: np.ndarray,
+    s_t: np.ndarray,
+    s_tt: np.ndarray,
+    s_tr: np.ndarray,
+    nll_before: np.ndarray,
+    var0: float,
+    z: float,
+    ln_n: float,
+    lo: int,
+) -> list[FaultFit]:
+    """Ramp from an onset between two samples; the rate's interval from the fit's
+    least-squares variance (two parameters when the onset offset is interior, one at a
+    bound)."""
+    dt = float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
+    t0 = t[taus]
+    s_u = s_t - n * t0
+    s_uu = s_tt - 2 * t0 * s_t + n * t0**2
+    s_ur = s_tr - t0 * s_r
+    det = n * s_uu - s_u**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b_free = (n * s_ur - s_u * s_r) / det
+        lam_free = (s_r - b_free * s_u) / n / b_free
+    best: tuple[float, float, float, int] | None = None  # (total nll, b, var_b, j)
+    for lam in (None, 0.0, dt):
+        if lam is None:
+            b = b_free
+            sse = s_rr - (s_r - b * s_u) / n * s_r - b * s_ur
+            var_b = var0 * n / det
+            valid = (det > 0) & (lam_free >= 0) & (lam_free <= dt)
+        else:
+            s_vv = s_uu + 2 * lam * s_u + n * lam**2
+            s_vr = s_ur + lam * s_r
+            with np.errstate(divide="ignore", invalid="ignore"):
+                b = s_vr / s_vv
+            sse = s_rr - b * s_vr
+            var_b = var0 / s_vv
+            valid = s_vv > 0
+        total = np.where(valid, nll_before + _gaussian_nll(sse, n, var0), np.inf)
+        j = int(np.argmin(total))
+        if np.isfinite(total[j]) and (best is None or total[j] < best[0]):
+            best = (float(total[j]), float(b[j]), float(var_b[j]), j)
+    if best is None:
+        return []
+    total_nll, rate, var_rate, j = best
+    half = z * math.sqrt(var_rate)
+    bic = 2 * total_nll + 3 * ln_n  # rate, offset, onset
+    return [FaultFit("drift", rate, rate - half, rate + half, lo + j, bic)]
+
+
+def _noise_fit(
+    ss: float,
+    n: int,
+    sigma_k: float,
+    consensus_sigma: float,
+    confidence: float,
+    onset: int,
+    bic: float,
+) -> FaultFit:
+    """Noise factor f with Var r = f^2 sigma_k^2 + sigma_c^2; chi-square interval on Var r."""
+    from scipy.stats import chi2
+
+    def factor(var: float) -> float:
+        return math.sqrt(max(var - consensus_sigma**2, 0.0)) / sigma_k
+
+    tail = (1 - confidence) / 2
+    var_hat = ss / n
+    low = factor(ss / float(chi2.ppf(1 - tail, n)))
+    high = factor(ss / float(chi2.ppf(tail, n)))
+    return FaultFit("noise", factor(var_hat), low, high, onset, bic)
+
+
+def _spike_fit(
+    r: np.ndarray,
+    t: np.ndarray,
+    sigma_r: float,
+    taus: np.ndarray,
+    nll_before: np.ndarray,
+    ln_n: float,
+    confidence: float,
+) -> FaultFit | None:
+    """Sparse spikes: residuals beyond SPIKE_CUT sigma_r, amplitude and Poisson rate."""
+    from scipy.stats import chi2
+    from scipy.stats import t as t_distribution
+
+    flagged = np.abs(r) > SPIKE_CUT * sigma_r
+    count_after = _suffix(flagged.astype(np.float64))[taus]
+    if count_after.max(initial=0.0) < 1:
+        return None
+    abs_after = _suffix(np.where(flagged, np.abs(r), 0.0))[taus]
+    sq_quiet_after = _suffix(np.where(flagged, 0.0, r**2))[taus]
+    n_after = (r.shape[0] - taus).astype(np.float64)
+    p = np.clip(count_after / n_after, 1e-12, 1 - 1e-12)
+    amp = np.where(count_after > 0, abs_after / np.maximum(count_after, 1), 0.0)
+    sq_spikes_after = _suffix(np.where(flagged, r**2, 0.0))[taus]
+    # spikes about +-amp, quiet samples about 0, one common variance; mixture weights p
+    ss_spikes = sq_spikes_after - count_after * amp**2
+    nll_after = _gaussian_nll(sq_quiet_after + ss_spikes, n_after, sigma_r**2) - (
+        count_after * np.log(p / 2) + (n_after - count_after) * np.log(1 - p)
+    )
+    total = nll_before + nll_after
+    j = int(np.argmin(total))
+    bic = float(2 * total[j] + 3 * ln_n)
+    onset = int(taus[j])
+    spikes = np.abs(r[onset:][flagged[onset:]])
+    m = spikes.shape[0]
+    tail = (1 - confidence) / 2
+    if m >= 2:
+        se = float(spikes.std(ddof=1)) / math.sqrt(m)
+        q = float(t_distribution.ppf(1 - tail, m - 1))
+        low, high = float(spikes.mean() - q * se), float(spikes.mean() + q * se)
+    else:
+        low, high = -math.inf, math.inf
+    duration = float(t[-1] - t[onset]) + (float(t[1] - t[0]) if t.shape[0] > 1 else 0.0)
+    rate_low = 0.5 * float(chi2.ppf(tail, 2 * m)) / duration if m > 0 else 0.0
+    rate_high = 0.5 * float(chi2.ppf(1 - tail, 2 * m + 2)) / duration
+    extra = {"rate_hz": m / duration, "rate_low_hz": rate_low, "rate_high_hz": rate_high}
+    return FaultFit("spikes", float(spikes.mean()), low, high, onset, bic, extra)
+
+
+def _stuck_fit(raw: np.ndarray, lo: int, hi: int, share: float) -> FaultFit | None:
+    """A frozen output: the longest run of exactly repeated raw values that starts in
+    [lo - 1, hi) covers at least ``share`` of the samples from its start to the window's
+    end. The onset is the first repeated sample (the frozen value is the one before it)."""
+    repeat = np.concatenate(([False], np.diff(raw) == 0))
+    padded = np.concatenate(([False], repeat, [False]))
+    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
+    starts, stops = edges[0::2], edges[1::2]
+    inside = (starts >= max(lo, 1)) & (starts < hi) & (stops - starts >= 3)
+    if not inside.any():
+        return None
+    lengths = np.where(inside, stops - starts, 0)
+    j = int(np.argmax(lengths))
+    onset = int(starts[j])
+    if lengths[j] < share * (raw.shape[0] - onset):
+        return None
+    value = float(raw[onset - 1])
+    return FaultFit("stuck", value, value, value, onset, -math.inf)
+
+
+# --- one explained episode ---------------------------------------------------------------
+
+
+@dataclass
+class Episode:
+    """One alarm episode of one detector on one sensor type, explained.
+
+    Times are nanoseconds (log time of the samples); ``fits`` are best first.
+    """
+
+    detector: str
+    sensor_type: str
+    start_ns: int
+    end_ns: int
+    decided_start_ns: int
+    decided_end_ns: int
+    alarms: int
+    sensors: list[str]
+    peak_ratio: float
+    runner_up: str | None = None
+    runner_up_share: float | None = None
+    fits: list[FaultFit] = field(default_factory=list)
+    isolated_by: str = "detector"
+    invalid_samples: int = 0
+
+    @property
+    def duration_s(self) -> float:
+        return (self.end_ns - self.start_ns) * 1e-9
+
+    @property
+    def fault_class(self) -> str | None:
+        return self.fits[0].model if self.fits else None
+
+    def to_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["duration_s"] = self.duration_s
+        out["fault_class"] = self.fault_class
+        out["fits"] = [f.to_dict() for f in self.fits]
+        return out
+
+
+def isolation_summary(
+    isolated: np.ndarray, sensor_ids: Sequence[str]
+) -> tuple[list[str], str | None, float | None]:
+    """Sensors isolated during an episode, most often first, and the runner-up's share.
+
+    Parameters
+    ----------
+    isolated : ndarray, shape (M,), int
+        Isolated index per alarmed row (negative: none).
+    """
+    valid = isolated[isolated >= 0]
+    if valid.size == 0:
+        return [], None, None
+    counts = np.bincount(valid, minlength=len(sensor_ids))
+    order = [int(i) for i in np.argsort(-counts, kind="stable") if counts[i] > 0]
+    names = [sensor_ids[i] for i in order]
+    if len(order) < 2:
+        return names, None, 0.0
+    return names, names[1], float(counts[order[1]] / valid.size)
+
+
+# --- streaming: episodes of one detector on one sensor type, explained as they close ----
+
+
+class EpisodeBuilder:
+    """Builds explained episodes from a detector's status rows while a log streams by.
+
+    The builder keeps the last ``margin`` samples of the sensor type's measurements (the
+    fault usually starts before its first alarm: a drift is detected late) and, while an
+    episode is open, its samples up to ``max_window``; an episode closes once ``merge_gap``
+    quiet rows follow it, and is then explained (:func:`fit_models` on the isolated
+    sensor). Memory is bounded by ``margin + max_window`` samples whatever the log length.
+
+    Parameters
+    ----------
+    detector, sensor_type : str
+    H : ndarray, shape (n, 3)
+        Measurement matrix of the sensor type.
+    sensor_ids : sequence of str, length n
+    sigma : ndarray, shape (n,)
+        Calibrated per-sensor white-noise standard deviation (SI), e.g. from
+        :func:`imufdi_cli.detectors.parity.residual_sigma` on the calibration window.
+    rate_hz : float
+        Nominal sample rate.
+    merge_gap_s, margin_s, max_window_s : float
+        Quiet time that does not end an episode; analysis margin before the first alarm
+        (onset candidates); longest stretch of an episode kept for the fit.
+    confidence : float
+        Level of the size intervals.
+    """
+
+    def __init__(
+        self,
+        detector: str,
+        sensor_type: str,
+        H: np.ndarray,
+        sensor_ids: Sequence[str],
+        sigma: np.ndarray,
+        rate_hz: float,
+        *,
+        merge_gap_s: float = 0.1,
+        margin_s: float = 2.0,
+        max_window_s: float = 30.0,
+        confidence: float = 0.9,
+    ) -> None:
+        self.detector = detector
+        self.sensor_type = sensor_type
+        self.H = check_measurement_matrix(H)
+        self.sensor_ids = list(sensor_ids)
+        self.sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (self.H.shape[0],))
+        self.merge_gap = max(0, round(merge_gap_s * rate_hz))
+        self.margin = max(2, round(margin_s * rate_hz))
+        self.max_window = max(4, round(max_window_s * rate_hz))
+        self.confidence = confidence
+        self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
+        self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
+        self._history_t: np.ndarray = np.zeros(0, np.int64)
+        self._open: dict[str, Any] | None = None
+
+    # measurements arrive with the input blocks, rows when the detector emits them
+    def feed(self, measurements: np.ndarray) -> None:
+        """Measurements (N, n) of the next N input samples, SI."""
+        self._pending.append(np.asarray(measurements, dtype=np.float64))
+
+    def _take(self, count: int) -> np.ndarray:
+        parts, need = [], count
+        while need > 0:
+            head = self._pending[0]
+            if head.shape[0] <= need:
+                parts.append(self._pending.pop(0))
+                need -= head.shape[0]
+            else:
+                parts.append(head[:need])
+                self._pending[0] = head[need:]
+                need = 0
+        return np.concatenate(parts) if parts else np.zeros((0, self.H.shape[0]))
+
+    def rows(self, t_ns: np.ndarray, decided_ns: np.ndarray, out: Any) -> list[Episode]:
+        """Status rows (a DetectionBlock ``out`` with sample and decision times, in order);
+        returns the episodes that closed within them."""
+        n = len(t_ns)
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        m = self._take(n)
+        alarm = np.asarray(out.alarm, dtype=bool)
+        idx = np.flatnonzero(alarm)
+        groups = np.split(idx, np.flatnonzero(np.diff(idx) - 1 > self.merge_gap) + 1)
+        closed: list[Episode] = []
+        pos = 0  # next row of this block not yet in the open episode's window
+        for group in groups if idx.size else []:
+            first, last = int(group[0]), int(group[-1])
+            state = self._open
+            if state is None or state["quiet"] + first > self.merge_gap:
+                if state is not None:
+                    closed.append(self._close(state))
+                history = np.concatenate([self._history, m[:first]])[-self.margin :]
+                history_t = np.concatenate([self._history_t, t_ns[:first]])[-self.margin :]
+                state = self._open = {
+                    "start_ns": int(t_ns[first]),
+                    "decided_start_ns": int(decided_ns[first]),
+                    "window": [history],
+                    "window_t": [history_t],
+                    "kept": history.shape[0],
+                    "alarm_index": history.shape[0],
+                    "alarms": 0,
+                    "isolated": [],
+                    "peak": -math.inf,
+                }
+                pos = first
+            self._append(state, m, t_ns, pos, last + 1)
+            pos = last + 1
+            state["end_ns"] = int(t_ns[last])
+            state["decided_end_ns"] = int(decided_ns[last])
+            state["quiet"] = 0
+            state["alarms"] += int(group.size)
+            state["isolated"].append(np.asarray(out.isolated)[group])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.asarray(out.statistic)[group] / np.asarray(out.threshold)[group]
+            ratio = ratio[np.isfinite(ratio)]
+            if ratio.size:
+                state["peak"] = max(state["peak"], float(ratio.max()))
+        state = self._open
+        if state is not None:
+            self._append(state, m, t_ns, pos, n)
+            state["quiet"] += n - pos
+            if state["quiet"] > self.merge_gap:
+                closed.append(self._close(state))
+                self._open = None
+        self._history = np.concatenate([self._history, m])[-self.margin :]
+        self._history_t = np.concatenate([self._history_t, t_ns])[-self.margin :]
+        return closed
+
+    def _append(
+        self, state: dict[str, Any], m: np.ndarray, t_ns: np.ndarray, lo: int, hi: int
+    ) -> None:
+        hi = min(hi, lo + max(0, self.max_window - state["kept"]))
+        if hi > lo:
+            state["window"].append(m[lo:hi])
+            state["window_t"].append(t_ns[lo:hi])
+            state["kept"] += hi - lo
+
+    def finish(self) -> list[Episode]:
+        """The episode still open at the end of the log, explained."""
+        if self._open is None:
+            return []
+        state, self._open = self._open, None
+        return [self._close(state)]
+
+    def _close(self, state: dict[str, Any]) -> Episode:
+        window = np.concatenate(state["window"])
+        window_t = np.concatenate(state["window_t"])
+        # drop the quiet rows after the last alarm (they are not part of the fault)
+        last = int(np.searchsorted(window_t, state["end_ns"], side="right"))
+        window, window_t = window[:last], window_t[:last]
+        isolated = np.concatenate([np.zeros(0, np.int64), *state["isolated"]]).astype(np.int64)
+        names, runner_up, share = isolation_summary(isolated, self.sensor_ids)
+        episode = Episode(
+            detector=self.detector,
+            sensor_type=self.sensor_type,
+            start_ns=state["start_ns"],
+            end_ns=state["end_ns"],
+            decided_start_ns=state["decided_start_ns"],
+            decided_end_ns=state["decided_end_ns"],
+            alarms=state["alarms"],
+            sensors=names,
+            peak_ratio=state["peak"],
+            runner_up=runner_up,
+            runner_up_share=share,
+        )
+        k = self.sensor_ids.index(names[0]) if names else self._loudest(window)
+        if not names:
+            episode.sensors = [self.sensor_ids[k]]
+            episode.isolated_by = "residual"
+        try:
+            residual, prediction, consensus_sigma = leave_one_out(self.H, window, self.sigma, k)
+        except ValueError:
+            return episode
+        t_s = (window_t - window_t[0]).astype(np.float64) * 1e-9
+        alarm_index = min(state["alarm_index"], max(len(window_t) - 2, 0))
+        episode.fits = fit_models(
+            residual,
+            prediction,
+            t_s,
+            float(self.sigma[k]),
+            consensus_sigma,
+            onset_range=(0, alarm_index + 1),
+            confidence=self.confidence,
+            raw=window[:, k],
+        )
+        return episode
+
+    def _loudest(self, window: np.ndarray) -> int:
+        """For detectors that do not isolate: the sensor with the largest normalised
+        leave-one-out residual energy over the episode."""
+        energies = []
+        for k in range(self.H.shape[0]):
+            try:
+                r, _, c = leave_one_out(self.H, window, self.sigma, k)
+            except ValueError:
+                energies.append(-math.inf)
+                continue
+            energies.append(float(np.sum(r**2)) / (self.sigma[k] ** 2 + c**2))
+        return int(np.argmax(energies))
+
+
+__all__ = [
+    "MODELS",
+    "Episode",
+    "EpisodeBuilder",
+    "FaultFit",
+    "find_episodes",
+    "fit_models",
+    "isolation_summary",
+    "leave_one_out",
+]
