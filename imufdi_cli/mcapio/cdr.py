@@ -580,6 +580,21 @@ def codec_for(schema_name: str, schema_data: bytes) -> CdrCodec:
 # --- general per-message decoding (fallback) --------------------------------------------
 
 
+#: numpy dtype code -> struct format character.
+_STRUCT_CODES = {
+    "u1": "B",
+    "i1": "b",
+    "i2": "h",
+    "u2": "H",
+    "i4": "i",
+    "u4": "I",
+    "i8": "q",
+    "u8": "Q",
+    "f4": "f",
+    "f8": "d",
+}
+
+
 def decode_cdr_message(
     defs: dict[str, MsgDef], root: str, payload: bytes, limits: ReaderLimits | None = None
 ) -> dict[str, Any]:
@@ -599,27 +614,22 @@ def decode_cdr_message(
         rel = state["pos"] - 4
         state["pos"] += (-rel) % size
 
-    def prim(type_name: str) -> Any:
+    def prims(type_name: str, count: int) -> list[Any]:
+        """``count`` consecutive primitives in one unpack (aligned once, if any)."""
         code, size = PRIMITIVES[type_name]
+        if count == 0:
+            return []
         align(size)
-        fmt = (
-            endian
-            + {
-                "u1": "B",
-                "i1": "b",
-                "i2": "h",
-                "u2": "H",
-                "i4": "i",
-                "u4": "I",
-                "i8": "q",
-                "u8": "Q",
-                "f4": "f",
-                "f8": "d",
-            }[code]
-        )
-        (value,) = struct.unpack_from(fmt, payload, state["pos"])
-        state["pos"] += size
-        return bool(value) if type_name == "bool" else value
+        if state["pos"] + count * size > len(payload):
+            raise McapInputError(
+                f"malformed CDR message of type {root}: {count} x {type_name} past its end"
+            )
+        values = struct.unpack_from(f"{endian}{count}{_STRUCT_CODES[code]}", payload, state["pos"])
+        state["pos"] += count * size
+        return [bool(v) for v in values] if type_name == "bool" else list(values)
+
+    def prim(type_name: str) -> Any:
+        return prims(type_name, 1)[0]
 
     def string() -> str:
         align(4)
@@ -654,6 +664,11 @@ def decode_cdr_message(
                 align(4)
                 (count,) = struct.unpack_from(endian + "I", payload, state["pos"])
                 state["pos"] += 4
+            if fdef.type_name in PRIMITIVES:
+                # bounded by the payload: no per-element work, no field budget
+                out[fdef.name] = prims(fdef.type_name, count)
+                state["values"] += 1
+                continue
             if count > limits.max_schema_fields:
                 raise McapInputError(
                     f"CDR message of type {root}: {fdef.name} has {count} elements, more than"

@@ -48,6 +48,11 @@ _SCAN_BLOCK = 4 << 20
 #: Chunk record fields before the compression name: start/end time, uncompressed size,
 #: CRC, and the compression name's length.
 _CHUNK_HEAD = struct.Struct("<QQQII")
+_RECORD_HEAD = struct.Struct("<BQ")
+#: Chunks of at most this many record bytes are walked in Python (numpy costs more there).
+_SMALL_CHUNK = 4096
+#: Read-ahead of the data section; larger records are read straight from the stream.
+_READ_AHEAD = 256 << 10
 #: Messages (of small chunks, or un-chunked) are joined into batches of about this size.
 _BATCH_MESSAGES = 4096
 _BATCH_BYTES = 1 << 20
@@ -283,6 +288,8 @@ class McapSource:
         self._file_size: int | None = None
         self._known = np.zeros(1 << 16, bool)
         self._known_size = 0
+        self._ahead = b""  # read-ahead buffer of the data section, and the position in it
+        self._ahead_pos = 0
         self._pending_channels: dict[int, tuple[int, str, str, dict[str, str]]] = {}
         if isinstance(source, (str, os.PathLike)) and os.fspath(source) == "-":
             self.name = "<stdin>"
@@ -538,52 +545,75 @@ class McapSource:
             while self._pushback:
                 yield self._pushback.pop(0)
 
+    def _take(self, n: int) -> bytes:
+        """Up to ``n`` bytes of the data section (fewer only at the end of the stream),
+        through a read-ahead buffer: small records cost no stream call each."""
+        available = len(self._ahead) - self._ahead_pos
+        if n <= available:
+            start = self._ahead_pos
+            self._ahead_pos += n
+            return self._ahead[start : start + n]
+        rest = self._ahead[self._ahead_pos :]
+        self._ahead, self._ahead_pos = b"", 0
+        if n > _READ_AHEAD:
+            return rest + self._read_exact(n - len(rest))
+        self._ahead = rest + self._read_exact(_READ_AHEAD - len(rest))
+        return self._take(min(n, len(self._ahead)))
+
+    def _discard(self, n: int) -> int:
+        """Skip ``n`` bytes of the data section; returns how many were skipped."""
+        available = len(self._ahead) - self._ahead_pos
+        if n <= available:
+            self._ahead_pos += n
+            return n
+        self._ahead, self._ahead_pos = b"", 0
+        return available + self._skip(n - available)
+
     def _next_record(self, position: int) -> tuple[int, int, bytes | None] | None:
         """The record at ``position``: (opcode, content length, content or None if skipped),
         or None at the end of the data (after reporting why)."""
-        head = self._read_exact(9)
-        if not head:
-            self._problem(f"truncated MCAP: file ends at byte {position} without a footer")
-            return None
+        head = self._take(9)
         if len(head) < 9:
-            self._problem(f"truncated MCAP: record header cut at byte {position}")
+            if head:
+                self._problem(f"truncated MCAP: record header cut at byte {position}")
+            else:
+                self._problem(f"truncated MCAP: file ends at byte {position} without a footer")
             return None
-        opcode = head[0]
-        length = int(struct.unpack("<Q", head[1:9])[0])
-        name = _record_name(opcode)
+        opcode, length = _RECORD_HEAD.unpack(head)
         if self._file_size is not None and length > self._file_size - position - 9:
             remaining = max(self._file_size - position - 9, 0)
             self._problem(
-                f"corrupt or truncated MCAP: {name} record at byte {position} claims {length}"
-                f" bytes but {remaining} remain; read up to it"
+                f"corrupt or truncated MCAP: {_record_name(opcode)} record at byte {position}"
+                f" claims {length} bytes but {remaining} remain; read up to it"
             )
             return None
         if opcode not in _HELD:
-            skipped = self._skip(length)
+            skipped = self._discard(length)
             if skipped < length:
                 self._problem(
-                    f"truncated MCAP: {name} record at byte {position} is cut after"
-                    f" {skipped} of {length} bytes; read up to the cut"
+                    f"truncated MCAP: {_record_name(opcode)} record at byte {position} is cut"
+                    f" after {skipped} of {length} bytes; read up to the cut"
                 )
                 return None
             return opcode, length, None
         if length > self.limits.max_record_bytes:
             self._problem(
-                f"corrupt MCAP: {name} record at byte {position} claims {length} bytes, over"
-                f" the limit of {self.limits.max_record_bytes} (IMUFDI_MAX_RECORD_BYTES);"
-                " read up to it"
+                f"corrupt MCAP: {_record_name(opcode)} record at byte {position} claims"
+                f" {length} bytes, over the limit of {self.limits.max_record_bytes}"
+                " (IMUFDI_MAX_RECORD_BYTES); read up to it"
             )
             return None
-        content = self._read_exact(length)
+        content = self._take(length)
         if len(content) < length:
             self._problem(
-                f"truncated MCAP: {name} record at byte {position} is cut after"
-                f" {len(content)} of {length} bytes; read up to the cut"
+                f"truncated MCAP: {_record_name(opcode)} record at byte {position} is cut"
+                f" after {len(content)} of {length} bytes; read up to the cut"
             )
             return None
         return opcode, length, content
 
     def _read_batches(self) -> Iterator[MessageBatch]:
+        self._ahead, self._ahead_pos = b"", 0
         pending = _PendingMessages()
         position = len(MAGIC)
         while True:
@@ -681,24 +711,25 @@ class McapSource:
     def _chunk_records(self, content: bytes, chunk_offset: int) -> bytes | None:
         """The decompressed, CRC-checked records of a Chunk record (None if unusable)."""
         try:
-            if len(content) < _CHUNK_HEAD.size + 12:
+            if len(content) < _CHUNK_HEAD.size + 8:
                 raise McapInputError("malformed Chunk record (shorter than its fields)")
-            _, _, uncompressed_size, crc, _ = _CHUNK_HEAD.unpack_from(content)
-            cur = _Cursor(content, "Chunk")
-            cur.pos = _CHUNK_HEAD.size - 4
-            compression = cur.string()
-            records_length = cur.u64()
-            if records_length != len(content) - cur.pos:
+            _, _, uncompressed_size, crc, name_length = _CHUNK_HEAD.unpack_from(content)
+            records_at = _CHUNK_HEAD.size + name_length + 8
+            if records_at > len(content):
+                raise McapInputError("malformed Chunk record (compression name past its end)")
+            compression = content[_CHUNK_HEAD.size : records_at - 8].decode("utf-8", "replace")
+            (records_length,) = struct.unpack_from("<Q", content, records_at - 8)
+            if records_length != len(content) - records_at:
                 raise McapInputError(
                     f"records length {records_length} does not match the record"
-                    f" ({len(content) - cur.pos} bytes left)"
+                    f" ({len(content) - records_at} bytes left)"
                 )
             if uncompressed_size > self.limits.max_chunk_bytes:
                 raise McapInputError(
                     f"declares {uncompressed_size} uncompressed bytes, over the limit of"
                     f" {self.limits.max_chunk_bytes} (IMUFDI_MAX_CHUNK_BYTES)"
                 )
-            raw = decompress(memoryview(content)[cur.pos :], compression, uncompressed_size)
+            raw = decompress(memoryview(content)[records_at:], compression, uncompressed_size)
         except McapInputError as err:
             self._problem(f"chunk at byte {chunk_offset} skipped: {err}")
             return None
@@ -712,12 +743,14 @@ class McapSource:
 
     def _chunk_part(
         self, content: bytes, chunk_offset: int
-    ) -> tuple[bytes, np.ndarray, np.ndarray] | None:
+    ) -> tuple[bytes, np.ndarray | list[int], np.ndarray | list[int]] | None:
         """A chunk's records, and the content starts and lengths of its Message records
         (its Schema and Channel records are registered); None if the chunk is unusable."""
         raw = self._chunk_records(content, chunk_offset)
         if raw is None:
             return None
+        if len(raw) <= _SMALL_CHUNK:
+            return self._small_chunk_part(raw, chunk_offset)
         buf = np.frombuffer(raw, dtype=np.uint8)
         starts, opcodes, lengths, end = scan_records(buf, _IN_CHUNK)
         is_message = opcodes == OP_MESSAGE
@@ -736,6 +769,31 @@ class McapSource:
             starts = starts[is_message]
             lengths = lengths[is_message]
         return raw, starts + 9, lengths
+
+    def _small_chunk_part(
+        self, raw: bytes, chunk_offset: int
+    ) -> tuple[bytes, list[int], list[int]]:
+        """:meth:`_chunk_part` for a chunk of a few records: walked in Python, no numpy."""
+        starts: list[int] = []
+        lengths: list[int] = []
+        position = 0
+        size = len(raw)
+        while position + 9 <= size:
+            opcode, length = _RECORD_HEAD.unpack_from(raw, position)
+            if position + 9 + length > size or opcode not in _IN_CHUNK:
+                break
+            if opcode == OP_MESSAGE:
+                starts.append(position + 9)
+                lengths.append(length)
+            else:
+                self._add_record(opcode, raw[position + 9 : position + 9 + length], chunk_offset)
+            position += 9 + length
+        if position != size:
+            self._problem(
+                f"chunk at byte {chunk_offset}: malformed record at byte {position} of its"
+                f" {size} record bytes; the {len(starts)} message(s) before it kept"
+            )
+        return raw, starts, lengths
 
 
 class _PendingMessages:
@@ -772,12 +830,23 @@ class _PendingMessages:
         self.parts.append(content)
         self._note(position, len(content), 1)
 
-    def add_chunk(self, raw: bytes, starts: np.ndarray, lengths: np.ndarray, position: int) -> None:
-        self._close_loose()
-        self.starts.append(starts + self.n_bytes)
-        self.lengths.append(lengths)
+    def add_chunk(
+        self,
+        raw: bytes,
+        starts: np.ndarray | list[int],
+        lengths: np.ndarray | list[int],
+        position: int,
+    ) -> None:
+        if isinstance(starts, list):  # a small chunk: kept in lists like loose messages
+            shift = self.n_bytes
+            self.loose_starts.extend(start + shift for start in starts)
+            self.loose_lengths.extend(lengths)
+        else:
+            self._close_loose()
+            self.starts.append(starts + self.n_bytes)
+            self.lengths.append(np.asarray(lengths))
         self.parts.append(raw)
-        self._note(position, len(raw), int(starts.shape[0]))
+        self._note(position, len(raw), len(starts))
 
     def full(self) -> bool:
         return self.n_bytes >= _BATCH_BYTES or self.n_messages >= _BATCH_MESSAGES

@@ -12,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from imufdi_cli.errors import McapInputError, UsageError
@@ -209,3 +210,20 @@ def test_limits_from_environment(monkeypatch) -> None:
     monkeypatch.setenv("IMUFDI_MAX_CHUNK_BYTES", "lots")
     with pytest.raises(UsageError, match="IMUFDI_MAX_CHUNK_BYTES"):
         ReaderLimits.from_env()
+
+
+def test_general_decoder_reads_large_primitive_arrays_at_once() -> None:
+    defs = parse_ros2msg("pkg/msg/A", "uint8 flag\nfloat64[200000] samples\nint32[] tail\n")
+    values = np.arange(200_000, dtype="<f8")
+    payload = (
+        b"\x00\x01\x00\x00"
+        + b"\x01"
+        + b"\x00" * 7  # align to 8
+        + values.tobytes()
+        + struct.pack("<Iii", 2, -5, 7)
+    )
+    decoded = decode_cdr_message(defs, "pkg/msg/A", payload)
+    assert decoded["flag"] == 1 and decoded["tail"] == [-5, 7]
+    np.testing.assert_array_equal(decoded["samples"], values)
+    with pytest.raises(McapInputError, match="past its end"):
+        decode_cdr_message(defs, "pkg/msg/A", payload[:1000])
