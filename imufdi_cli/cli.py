@@ -349,6 +349,7 @@ def inject(
     for fault in result.faults:
         console.print(f"injected {fault.spec}")
     console.print(f"-> {output}")
+    _warn(console, result.warnings)
 
 
 # --- detect ----------------------------------------------------------------------------

@@ -825,6 +825,9 @@ class InjectResult:
         IMU/magnetometer messages whose values were rewritten.
     truth_messages : int
         Messages added to ``/imufdi/truth``.
+    warnings : list of str
+        Problems the reader met in the input (e.g. a corrupt chunk skipped: its messages
+        are not in the output).
     """
 
     output: str
@@ -837,6 +840,7 @@ class InjectResult:
     messages: int = 0
     messages_patched: int = 0
     truth_messages: int = 0
+    warnings: list[str] = field(default_factory=list)
 
 
 def _same_file(a: str, b: str) -> bool:
@@ -1014,6 +1018,7 @@ def inject_file(
             patched, count = _patch_batch(batch, channels, imu_channels, mag_channels, injector)
             result.messages_patched += count
             writer.add_batch(patched)
+        result.warnings = list(reader.warnings)
     return result
 
 

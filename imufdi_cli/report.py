@@ -129,13 +129,15 @@ def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
     with McapSource(source) as src:
         status = read_status(src)
         metadata = dict(src.metadata)
+        problems = list(src.warnings)
     if not status:
         raise McapInputError(
             f"{name}: no detector status channels (/imufdi/<detector>/<type>); "
-            "run `imufdi detect` on the log first"
+            "run `imufdi detect` on the log first" + (f"; {problems[0]}" if problems else "")
         )
     truth = truth_windows(metadata)
-    notes: list[str] = []
+    # a damaged log is reported on what could be read, and says so
+    notes: list[str] = [f"input: {problem}" for problem in problems]
     has_truth = truth is not None
     if not has_truth:
         notes.append(
