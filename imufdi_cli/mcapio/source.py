@@ -8,6 +8,7 @@ read with one strided gather. Memory is bounded by one chunk.
 
 from __future__ import annotations
 
+import bisect
 import io
 import os
 import struct
@@ -290,6 +291,9 @@ class McapSource:
         self._known_size = 0
         self._ahead = b""  # read-ahead buffer of the data section, and the position in it
         self._ahead_pos = 0
+        #: Chunk offsets from the summary's ChunkIndex records (seekable files): where
+        #: reading resumes after a damaged record.
+        self._chunk_starts: list[int] = []
         self._pending_channels: dict[int, tuple[int, str, str, dict[str, str]]] = {}
         if isinstance(source, (str, os.PathLike)) and os.fspath(source) == "-":
             self.name = "<stdin>"
@@ -469,6 +473,7 @@ class McapSource:
         except (McapInputError, struct.error, ValueError) as err:
             self.schemas, self.channels, self._pending_channels = saved
             self._known_size = -1
+            self._chunk_starts = []
             self.summary_channel_counts = None
             self.summary_message_count = None
             self.summary_time_range = None
@@ -499,6 +504,7 @@ class McapSource:
         if end != buf.shape[0]:
             raise McapInputError(f"malformed record at byte {end} of the summary")
         metadata_offsets = []
+        chunk_starts: list[int] = []
         for start, opcode, length in zip(starts.tolist(), opcodes.tolist(), lengths.tolist()):
             content = raw[start + 9 : start + 9 + length]
             if opcode == OP_SCHEMA:
@@ -508,6 +514,9 @@ class McapSource:
             elif opcode == OP_METADATA_INDEX:
                 offset, record_length = struct.unpack("<QQ", content[:16])
                 metadata_offsets.append((int(offset), int(record_length)))
+            elif opcode == 0x08:  # ChunkIndex: where each chunk starts
+                (chunk_start,) = struct.unpack_from("<Q", content, 16)
+                chunk_starts.append(int(chunk_start))
             elif opcode == 0x0B:  # Statistics
                 cur = _Cursor(content, "Statistics")
                 self.summary_message_count = cur.u64()
@@ -519,6 +528,7 @@ class McapSource:
                     cid = cur.u16()
                     counts[cid] = cur.u64()
                 self.summary_channel_counts = counts
+        self._chunk_starts = sorted(chunk_starts)
         return metadata_offsets
 
     # --- data ------------------------------------------------------------------------------
@@ -584,7 +594,7 @@ class McapSource:
             remaining = max(self._file_size - position - 9, 0)
             self._problem(
                 f"corrupt or truncated MCAP: {_record_name(opcode)} record at byte {position}"
-                f" claims {length} bytes but {remaining} remain; read up to it"
+                f" claims {length} bytes but {remaining} remain"
             )
             return None
         if opcode not in _HELD:
@@ -600,7 +610,7 @@ class McapSource:
             self._problem(
                 f"corrupt MCAP: {_record_name(opcode)} record at byte {position} claims"
                 f" {length} bytes, over the limit of {self.limits.max_record_bytes}"
-                " (IMUFDI_MAX_RECORD_BYTES); read up to it"
+                " (IMUFDI_MAX_RECORD_BYTES)"
             )
             return None
         content = self._take(length)
@@ -612,6 +622,24 @@ class McapSource:
             return None
         return opcode, length, content
 
+    def _resume_after(self, position: int) -> int | None:
+        """After a damaged record at ``position``: the next chunk the summary's chunk index
+        knows (seekable files with a usable summary), positioned to read; else None."""
+        if self._file_size is None or not self._chunk_starts:
+            return None
+        index = bisect.bisect_right(self._chunk_starts, position)
+        if index == len(self._chunk_starts):
+            return None
+        resume = self._chunk_starts[index]
+        if resume >= self._file_size:
+            return None
+        self._ahead, self._ahead_pos = b"", 0
+        self._stream.seek(resume)
+        self.warnings.append(
+            f"resumed reading at the chunk at byte {resume} (from the summary's chunk index)"
+        )
+        return resume
+
     def _read_batches(self) -> Iterator[MessageBatch]:
         self._ahead, self._ahead_pos = b"", 0
         pending = _PendingMessages()
@@ -619,7 +647,11 @@ class McapSource:
         while True:
             record = self._next_record(position)
             if record is None:
-                break
+                resume = self._resume_after(position)
+                if resume is None:
+                    break
+                position = resume
+                continue
             opcode, length, content = record
             here = position
             position += 9 + length

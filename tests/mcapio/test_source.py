@@ -147,16 +147,24 @@ def _read_strict(data: bytes) -> None:
             pass
 
 
-def test_corrupt_record_length_reads_up_to_it() -> None:
+def test_corrupt_record_length_reads_up_to_it_and_resumes_from_the_chunk_index() -> None:
     data = imu_file(chunked=True, n_imus=2, n_samples=60, chunk_size=800)
     chunks = [offset for offset, opcode, _ in _records(data) if opcode == 0x06]
     bad = bytearray(data)
     bad[chunks[2] + 1 : chunks[2] + 9] = struct.pack("<Q", 77_309_414_278)
     full, _ = _our_count(data, seekable=True)
-    for seekable in (True, False):
+    before = _mcap_package_count(data[: chunks[2]])
+    in_chunk = _mcap_package_count(data[: chunks[3]]) - before
+    # through a pipe: up to the damaged record; from a file: the summary's chunk index
+    # gives where the next chunk starts, so only the damaged chunk is lost
+    for seekable, expected in ((False, before), (True, full - in_chunk)):
         count, warnings = _our_count(bytes(bad), seekable=seekable)
-        assert 0 < count < full
+        assert count == expected and 0 < before
         assert f"at byte {chunks[2]} claims 77309414278 bytes" in warnings[0]
+    assert (
+        warnings[1]
+        == f"resumed reading at the chunk at byte {chunks[3]} (from the summary's chunk index)"
+    )
     with pytest.raises(McapInputError, match="claims 77309414278 bytes"):
         _read_strict(bytes(bad))
 
