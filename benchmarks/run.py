@@ -28,6 +28,7 @@ QUICK: dict[str, list[str]] = {
     "mvmd": ["--seeds", "3"],
     "noise_glr": ["--seeds", "5"],
     "bank": ["--duration", "30"],
+    "events": ["--events", "5000"],
 }
 
 

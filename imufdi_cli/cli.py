@@ -59,6 +59,11 @@ def _warn(console: Console, warnings: Sequence[str]) -> None:
         console.print(f"[yellow]warning:[/] {warning}", markup=True)
 
 
+def _time_source(stamps: str) -> str:
+    """--stamps choice -> ImuArrayReader time source."""
+    return "log_time" if stamps == "log" else stamps
+
+
 def _time_range(text: str | None, name: str) -> tuple[float, float | None] | None:
     from imufdi_cli.units import parse_time_range
 
@@ -183,6 +188,12 @@ def simulate(
 @click.option("--gyro-fs", help="Built-in layout gyro full scale: 250, 500, 1000, 2000 (deg/s).")
 @click.option("--accel-fs", help="Built-in layout accel full scale: 2, 4, 8, 16 (g).")
 @click.option("--strict", is_flag=True, help="Any dropped byte is an error (exit 3).")
+@click.option(
+    "--start-time",
+    help="Wall-clock time of the first frame (ISO 8601, e.g. 2024-05-01T12:00:00Z, or Unix"
+    " seconds); stamps keep the device's intervals. Default: the device's own clock (from 0,"
+    " shown as 1970 by viewers).",
+)
 def ingest(
     capture: str,
     output: str | None,
@@ -192,6 +203,7 @@ def ingest(
     gyro_fs: str | None,
     accel_fs: str | None,
     strict: bool,
+    start_time: str | None,
 ) -> None:
     """Convert a raw serial capture (or CSV) into an IMU array MCAP.
 
@@ -221,6 +233,7 @@ def ingest(
         gyro_fs=gyro_fs,
         accel_fs=accel_fs,
         strict=strict,
+        start_time=start_time,
     )
     console = _console(output != "-")
     table = Table(title=f"ingest {capture} -> {output}", show_header=True)
@@ -237,9 +250,23 @@ def ingest(
 @cli.command()
 @click.argument("log")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of tables.")
-@click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
+@click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+@click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
 @click.option("--strict", is_flag=True, help="A truncated or corrupt input is an error (exit 3).")
-def info(log: str, as_json: bool, topics: tuple[str, ...], strict: bool) -> None:
+def info(log: str, as_json: bool, topics: tuple[str, ...], stamps: str, strict: bool) -> None:
     """Describe a log: topics, IMUs, rate, duration, gaps, array, faults, detectors.
 
     Example:
@@ -253,7 +280,9 @@ def info(log: str, as_json: bool, topics: tuple[str, ...], strict: bool) -> None
     from imufdi_cli.pipeline import log_info
 
     check_input(log)
-    summary = log_info(log, topics=list(topics) or None, strict=strict)
+    summary = log_info(
+        log, topics=list(topics) or None, time_source=_time_source(stamps), strict=strict
+    )
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
@@ -266,10 +295,38 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
     head = Table(show_header=False, box=None)
     head.add_column(style="bold")
     head.add_column()
-    for key in ("n_imus", "n_samples", "rate_hz", "duration_s", "start_ns"):
+    for key in ("n_imus", "n_samples", "duration_s", "start_ns"):
         if key in s:
             value = s[key]
             head.add_row(key, f"{value:.6g}" if isinstance(value, float) else str(value))
+    if s.get("rate_hz") is not None:
+        head.add_row("rate_hz", f"{s['rate_hz']:.6g}  ({s.get('rate_method', '')})")
+    if s.get("time_source"):
+        head.add_row("stamps", "header.stamp" if s["time_source"] == "header" else "log time")
+    fields = {t: f for t, f in s.get("imu_fields", {}).items() if f}
+    for topic, path in fields.items():
+        head.add_row("imu field", f"{topic}: {path}")
+    gaps = s.get("gaps") or {}
+    if gaps:
+        text = f"{gaps.get('count', 0)}"
+        if gaps.get("count"):
+            text += (
+                f" ({gaps['missing_samples']} samples missing of {gaps['expected_samples']}"
+                f" expected; longest {gaps['longest_s']:.6g} s)"
+            )
+        head.add_row("gaps (all topics)", text)
+    ingest = s.get("ingest")
+    if ingest:
+        labels = (
+            ("frames_ok", "frames ok"),
+            ("frames_lost", "lost"),
+            ("frames_bad_checksum", "bad checksum"),
+            ("frames_truncated", "truncated"),
+            ("duplicates", "duplicates"),
+            ("bytes_dropped", "bytes dropped"),
+        )
+        parts = [f"{label} {ingest[key]}" for key, label in labels if key in ingest]
+        head.add_row("capture (ingest)", ", ".join(parts))
     for key, value in s.get("alignment", {}).items():
         if isinstance(value, dict):
             nonzero = {k: v for k, v in value.items() if v}
@@ -292,7 +349,7 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
     if array:
         source = "metadata" if s.get("array_from_metadata") else "inferred"
         console.print(
-            f"array ({source}): {len(array['imu'])} IMUs at {array['rate_hz']:g} Hz, noise "
+            f"array ({source}): {len(array['imu'])} IMUs, noise "
             + (json.dumps(array.get("noise")) if array.get("noise") else "not given")
         )
     for fault in s.get("faults", []):
@@ -316,12 +373,29 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
 )
 @click.option("--faults", "fault_files", multiple=True, help="TOML file of [[fault]] tables.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed for random faults.")
+@click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+@click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
 def inject(
     source: str,
     output: str | None,
     faults: tuple[str, ...],
     fault_files: tuple[str, ...],
     seed: int,
+    topics: tuple[str, ...],
+    stamps: str,
 ) -> None:
     """Inject faults into a log and record their ground truth.
 
@@ -344,7 +418,15 @@ def inject(
         raise FaultSpecError("no fault given; use --fault SPEC or --faults FILE.toml")
     output = output or default_output(source, "faults")
     check_output(source, output)
-    result = inject_file(source, output, list(faults), list(fault_files), seed=seed)
+    result = inject_file(
+        source,
+        output,
+        list(faults),
+        list(fault_files),
+        seed=seed,
+        topics=list(topics) or None,
+        time_source=_time_source(stamps),
+    )
     console = _console(output != "-")
     for fault in result.faults:
         console.print(f"injected {fault.spec}")
@@ -374,7 +456,21 @@ def inject(
     show_default=True,
     help="Fault-free calibration window START:END, seconds from the log start.",
 )
-@click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
+@click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+@click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
 @click.option("--strict", is_flag=True, help="A truncated or corrupt input is an error (exit 3).")
 def detect(
     source: str,
@@ -383,6 +479,7 @@ def detect(
     params: tuple[str, ...],
     calibrate: str,
     topics: tuple[str, ...],
+    stamps: str,
     strict: bool,
 ) -> None:
     """Run detectors and write an annotated MCAP (status channels, alarm events).
@@ -404,7 +501,13 @@ def detect(
     output = output or default_output(source, "detect")
     check_output(source, output)
     result = detect_file(
-        source, output, grouped, calibrate=window, topics=list(topics) or None, strict=strict
+        source,
+        output,
+        grouped,
+        calibrate=window,
+        topics=list(topics) or None,
+        strict=strict,
+        time_source=_time_source(stamps),
     )
     console = _console(output != "-")
     table = Table(title=f"detect: {result.samples} samples, {result.duration_s:.3g} s -> {output}")

@@ -2,9 +2,10 @@
 
 One streaming pass: every input message is copied to the output as raw bytes; the aligned
 IMU samples go through each detector; per-sample status messages (fixed-layout CDR, encoded
-in bulk) go to ``/imufdi/<detector>/<type>``, alarm start/end events to the JSON channel
-``/imufdi/events``, and each detector's parameters and calibration to the
-``imufdi.detect.<name>`` metadata record. Memory is bounded by the block size and the
+in bulk) go to ``/imufdi/<detector>/<type>``, alarm start/end events
+(``imufdi_msgs/msg/FdiEvent``, CDR, encoded in bulk per block) to ``/imufdi/events``, and
+each detector's parameters and calibration to the ``imufdi.detect.<name>`` metadata record.
+Ground truth on the JSON channel of an older imufdi is re-encoded as FaultEvent. Memory is bounded by the block size and the
 calibration window, not by the log length.
 """
 
@@ -22,7 +23,7 @@ from imufdi_cli import __version__
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors import DETECTORS, make_detector
 from imufdi_cli.detectors.base import DetectionBlock, Detector
-from imufdi_cli.errors import CalibrationError, DetectorConfigError
+from imufdi_cli.errors import CalibrationError, DetectorConfigError, McapInputError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.mcapio import (
     ChannelInfo,
@@ -32,9 +33,19 @@ from imufdi_cli.mcapio import (
     encode_status,
     register_status_channel,
 )
+from imufdi_cli.mcapio.events import (
+    EVENTS_TOPIC,
+    TRUTH_TOPIC,
+    decode_events,
+    encode_fault_events,
+    encode_fdi_event_dicts,
+    encode_fdi_events,
+    is_event_channel,
+    register_events_channel,
+    register_truth_channel,
+)
 
 NS_PER_S = 1_000_000_000
-EVENTS_TOPIC = "/imufdi/events"
 DEFAULT_CALIBRATION = (0.0, 2.0)
 
 
@@ -165,36 +176,58 @@ class _Track:
 
 
 def _events(
-    track: _Track, sensor_type: str, t_ns: np.ndarray, out: DetectionBlock
-) -> list[tuple[int, dict[str, Any]]]:
-    """Alarm start/end events of a block (state carried across blocks)."""
+    track: _Track, channel_id: int, sensor_type: str, t_ns: np.ndarray, out: DetectionBlock
+) -> tuple[MessageBatch, int]:
+    """Alarm start/end events of a block (state carried across blocks), encoded in bulk;
+    also the number of alarm starts."""
     alarm = np.asarray(out.alarm, dtype=bool)
     before = track.alarm_on.get(sensor_type, False)
     previous = np.concatenate([[before], alarm[:-1]])
     changes = np.flatnonzero(alarm != previous)
     if alarm.size:
         track.alarm_on[sensor_type] = bool(alarm[-1])
-    ids = track.array.sensor_ids(sensor_type)
-    events = []
-    for i in changes:
-        iso = int(out.isolated[i])
-        amp = float(out.amplitude[i])
-        events.append(
-            (
-                int(t_ns[i]),
-                {
-                    "detector": track.detector.name,
-                    "sensor_type": sensor_type,
-                    "event": "alarm_start" if alarm[i] else "alarm_end",
-                    "t_ns": int(t_ns[i]),
-                    "isolated": ids[iso] if iso >= 0 else None,
-                    "isolable": iso != -2,
-                    "amplitude": amp if np.isfinite(amp) else None,
-                    "statistic": float(out.statistic[i]),
-                },
-            )
+    amplitude = np.asarray(out.amplitude, np.float64)[changes]
+    batch = encode_fdi_events(
+        channel_id,
+        np.asarray(t_ns, np.int64)[changes],
+        detector=track.detector.name,
+        sensor_type=sensor_type,
+        sensor_ids=track.array.sensor_ids(sensor_type),
+        alarm=alarm[changes],
+        isolated=np.asarray(out.isolated)[changes],
+        amplitude=np.where(np.isfinite(amplitude), amplitude, np.nan),
+        statistic=np.asarray(out.statistic, np.float64)[changes],
+    )
+    return batch, int(np.count_nonzero(alarm[changes]))
+
+
+def _keep_events(
+    writer: McapWriter,
+    channel_id: int,
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    rerun: set[str],
+) -> None:
+    """Copy the input's alarm events of detectors not run again onto ``channel_id``
+    (CDR events as raw bytes; JSON events of an older imufdi re-encoded as FdiEvent)."""
+    sub = batch.select(batch.channel_id == channel.id)
+    try:
+        events = decode_events(sub, channel)
+    except McapInputError:
+        return  # not readable as events: dropped like the rest of the old channel
+    keep = np.array(
+        [isinstance(e, dict) and e.get("detector") not in rerun for e in events], dtype=bool
+    )
+    if not keep.any():
+        return
+    if channel.message_encoding == "cdr":
+        kept = sub.select(keep)
+        writer.add_batch(replace(kept, channel_id=np.full(len(kept), channel_id, np.uint16)))
+    else:
+        log_time = sub.log_time[keep].tolist()
+        writer.add_batch(
+            encode_fdi_event_dicts(channel_id, log_time, [e for e, k in zip(events, keep) if k])
         )
-    return events
 
 
 def detect_file(
@@ -206,6 +239,7 @@ def detect_file(
     topics: Sequence[str] | None = None,
     strict: bool = False,
     compression: str = "zstd",
+    time_source: str = "auto",
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -217,7 +251,10 @@ def detect_file(
     calibrate : (start_s, end_s or None)
         Fault-free calibration window, seconds from the first aligned sample.
     topics : sequence of str, optional
-        Imu topics to use, in array order (default: all, natural order).
+        Imu topics to use, in array order (default: all, natural order); ``/topic:field``
+        for an Imu inside a larger message.
+    time_source : {"auto", "header", "log_time"}
+        Stamps to align on (see :class:`~imufdi_cli.mcapio.ImuArrayReader`).
 
     Returns
     -------
@@ -225,7 +262,7 @@ def detect_file(
     """
     instances = [make_detector(name, dict(params)) for name, params in detectors]
     cal_start_s, cal_end_s = calibrate
-    reader = ImuArrayReader(source, topics=topics, strict=strict)
+    reader = ImuArrayReader(source, topics=topics, strict=strict, time_source=time_source)
     array = reader.array
     tracks = [_Track(det, array) for det in instances]
     warnings: list[str] = []
@@ -238,13 +275,16 @@ def detect_file(
     cal_samples = 0
 
     with McapWriter(output, compression=compression) as writer:
-        events_channel = writer.register_json_channel(EVENTS_TOPIC, "imufdi_msgs/FdiEvent")
+        events_channel = register_events_channel(writer)
 
         rerun = {det.name for det in instances}
         copier = ChannelCopier(writer)
         dropped: set[int] = set()  # input channels replaced by this run's output
+        legacy_truth: set[int] = set()  # JSON truth channels of an older imufdi
+        truth_channel: int | None = None
 
         def copy_batch(batch: MessageBatch) -> None:
+            nonlocal truth_channel
             new = {int(c) for c in np.unique(batch.channel_id)} - copier.known - dropped
             for c in sorted(new):
                 topic = reader.source.channels[c].topic
@@ -253,19 +293,21 @@ def detect_file(
                     len(parts) == 4 and parts[1] == "imufdi" and parts[2] in rerun
                 ):
                     dropped.add(c)
+                elif topic == TRUTH_TOPIC and reader.source.channels[c].message_encoding == "json":
+                    dropped.add(c)
+                    legacy_truth.add(c)
             copier.ensure(reader.source.channels, new - dropped)
             if dropped:
                 keep = ~np.isin(batch.channel_id, list(dropped))
-                for i in np.flatnonzero(~keep):
-                    channel = reader.source.channels[int(batch.channel_id[i])]
-                    if channel.topic != EVENTS_TOPIC:
-                        continue
-                    try:
-                        event = json.loads(batch.payload(int(i)))
-                    except ValueError:
-                        continue
-                    if isinstance(event, dict) and event.get("detector") not in rerun:
-                        writer.add_json(events_channel, int(batch.log_time[i]), event)
+                for cid in np.unique(batch.channel_id[~keep]).tolist():
+                    channel = reader.source.channels[cid]
+                    if channel.topic == EVENTS_TOPIC and is_event_channel(channel):
+                        _keep_events(writer, events_channel, batch, channel, rerun)
+                    elif cid in legacy_truth:
+                        if truth_channel is None:
+                            truth_channel = register_truth_channel(writer)
+                        old = decode_events(batch.select(batch.channel_id == cid), channel)
+                        writer.add_batch(encode_fault_events(truth_channel, old))
                 batch = batch.select(keep)
             if len(batch):
                 writer.add_batch(copier.remap(batch))
@@ -296,10 +338,9 @@ def detect_file(
                 for index, count in zip(*np.unique(iso, return_counts=True)):
                     sid = ids[int(index)]
                     summary.isolated[sid] = summary.isolated.get(sid, 0) + int(count)
-                for log_time, event in _events(track, sensor_type, t_ns, out):
-                    if event["event"] == "alarm_start":
-                        summary.events += 1
-                    writer.add_json(events_channel, log_time, event)
+                events, starts = _events(track, events_channel, sensor_type, t_ns, out)
+                summary.events += starts
+                writer.add_batch(events)
 
         def run(block: ImuBlock) -> None:
             for track in tracks:

@@ -52,10 +52,10 @@ else:  # pragma: no cover
 
 #: Name of the MCAP metadata record describing injected faults.
 METADATA_NAME: Final[str] = "imufdi.faults"
-#: Topic of the JSON ground-truth channel (one message per fault start/end).
+#: Topic of the ground-truth channel (one message per fault start/end).
 TRUTH_TOPIC: Final[str] = "/imufdi/truth"
-#: Schema name of the ground-truth channel.
-TRUTH_SCHEMA: Final[str] = "imufdi/FaultEvent"
+#: Schema name (ros2msg) of the ground-truth channel.
+TRUTH_SCHEMA: Final[str] = "imufdi_msgs/msg/FaultEvent"
 METADATA_FORMAT: Final[str] = "imufdi.faults/1"
 
 _COMMON_KEYS: Final[frozenset[str]] = frozenset({"at", "until", "duration", "id"})
@@ -819,6 +819,8 @@ class InjectResult:
         Last minus first IMU sample stamp, s.
     imu_topics : list of str
         IMU topics in IMU index order.
+    warnings : list of str
+        Reader warnings (e.g. log time used for Imu messages without header stamps).
     messages : int
         Messages copied (all channels, input only).
     messages_patched : int
@@ -858,12 +860,16 @@ def inject_file(
     *,
     seed: int,
     compression: str = "zstd",
+    topics: Sequence[str] | None = None,
+    time_source: str = "auto",
 ) -> InjectResult:
     """Copy an MCAP log with faults injected into its IMU messages, plus ground truth.
 
     Every channel, message and metadata record of the input is copied; IMU (and
     magnetometer) messages of faulted sensors are patched in place (all other bytes
-    identical). Adds the ``/imufdi/truth`` JSON channel (one message per fault start/end)
+    identical). Adds the ``/imufdi/truth`` channel (``imufdi_msgs/msg/FaultEvent``, CDR, one
+    message per fault start/end; the JSON truth and alarm events of an older imufdi are
+    re-encoded as FaultEvent / FdiEvent)
     and the ``imufdi.faults`` metadata record (seed, faults in SI, earlier runs under
     ``previous``). All specs are validated against the array and the log duration before
     anything is written; on failure no output file is left.
@@ -882,6 +888,11 @@ def inject_file(
         Seed of the random fault models.
     compression : {"zstd", "lz4", "none"}
         Chunk compression of the output.
+    topics : sequence of str, optional
+        Imu topics in IMU order (``/topic:field`` for an Imu inside a larger message), as
+        :class:`~imufdi_cli.mcapio.ImuArrayReader` takes them; default all.
+    time_source : {"auto", "header", "log_time"}
+        Stamps the fault times refer to (see :class:`~imufdi_cli.mcapio.ImuArrayReader`).
 
     Raises
     ------
@@ -894,6 +905,14 @@ def inject_file(
 
     from imufdi_cli import mcapio
     from imufdi_cli.errors import McapInputError, UsageError
+    from imufdi_cli.mcapio.events import (
+        decode_events,
+        encode_fault_events,
+        encode_fdi_event_dicts,
+        is_event_channel,
+        register_events_channel,
+        register_truth_channel,
+    )
 
     if not faults_specs and not fault_files:
         raise FaultSpecError("inject needs at least one --fault SPEC or --faults FILE")
@@ -912,27 +931,44 @@ def inject_file(
         return source_name
 
     # The array and the topic -> IMU index rule, exactly as the reader sees them.
-    with mcapio.ImuArrayReader(open_input()) as array_reader:
+    with mcapio.ImuArrayReader(
+        open_input(), topics=topics, time_source=time_source
+    ) as array_reader:
         array = array_reader.array
         imu_topics = list(array_reader.imu_topics)
+        imu_fields = dict(array_reader.imu_fields)
+        use_log_time = array_reader.time_source == "log_time"
+        reader_warnings = list(array_reader.warnings)
         mag_topics = list(array_reader.mag_topics) if array.has("mag") else []
     imu_index = {topic: k for k, topic in enumerate(imu_topics)}
     mag_index = {topic: k for k, topic in enumerate(mag_topics)}
 
-    # Pass 1: channels, metadata, the IMU time span.
+    # Pass 1: channels, metadata, the IMU time span (and truth on older JSON channels).
     first_ns: int | None = None
     last_ns: int | None = None
+    legacy_truth: list[dict[str, Any]] = []
+    legacy_alarms: list[tuple[int, dict[str, Any]]] = []
     with mcapio.McapSource(open_input()) as reader:
         for batch in reader.batches():
-            # one bulk decode per schema: channels sharing a schema share a codec
-            groups: dict[tuple[Any, str], list[int]] = {}
             for cid in np.unique(batch.channel_id).tolist():
                 channel = reader.channels[cid]
-                if channel.topic in imu_index and mcapio.is_imu_channel(channel):
-                    groups.setdefault((channel.schema, channel.message_encoding), []).append(cid)
-            for cids in groups.values():
+                if channel.message_encoding == "json" and is_event_channel(channel):
+                    sub = batch.select(batch.channel_id == cid)
+                    if channel.topic == TRUTH_TOPIC:
+                        legacy_truth += decode_events(sub, channel)
+                    else:
+                        legacy_alarms += zip(sub.log_time.tolist(), decode_events(sub, channel))
+            # one bulk decode per schema: channels sharing a schema share a codec
+            groups: dict[tuple[Any, str, str], list[int]] = {}
+            for cid in np.unique(batch.channel_id).tolist():
+                channel = reader.channels[cid]
+                if _is_imu_source(channel, imu_fields):
+                    key = (channel.schema, channel.message_encoding, imu_fields[channel.topic])
+                    groups.setdefault(key, []).append(cid)
+            for (_, _, imu_path), cids in groups.items():
                 part = batch.select(np.flatnonzero(np.isin(batch.channel_id, cids)))
-                stamps = mcapio.decode_imu(part, reader.channels[cids[0]]).t_ns
+                decoded = mcapio.decode_imu(part, reader.channels[cids[0]], imu_path)
+                stamps = decoded.log_time if use_log_time else decoded.t_ns
                 if stamps.size:
                     low, high = int(stamps.min()), int(stamps.max())
                     first_ns = low if first_ns is None else min(first_ns, low)
@@ -942,9 +978,7 @@ def inject_file(
     if first_ns is None or last_ns is None:
         raise McapInputError(f"{source_name}: no sensor_msgs/msg/Imu messages to inject into")
     imu_channels = {
-        cid: imu_index[ch.topic]
-        for cid, ch in channels.items()
-        if ch.topic in imu_index and mcapio.is_imu_channel(ch)
+        cid: imu_index[ch.topic] for cid, ch in channels.items() if _is_imu_source(ch, imu_fields)
     }
     mag_channels = {
         cid: mag_index[ch.topic]
@@ -992,6 +1026,7 @@ def inject_file(
         t0_ns=first_ns,
         duration_s=duration_s,
         imu_topics=imu_topics,
+        warnings=reader_warnings,
     )
 
     # Pass 2: copy, patching the faulted IMU messages.
@@ -999,27 +1034,61 @@ def inject_file(
         mcapio.McapSource(open_input()) as reader,
         mcapio.McapWriter(output, compression=compression) as writer,
     ):
-        writer.copy_channels(channels)
+        # JSON event channels of an older imufdi are re-encoded as FaultEvent / FdiEvent
+        legacy_ids = [
+            cid
+            for cid, ch in channels.items()
+            if ch.message_encoding == "json" and is_event_channel(ch)
+        ]
+        writer.copy_channels({c: ch for c, ch in channels.items() if c not in legacy_ids})
         for name, values in metadata.items():
             if name != METADATA_NAME:
                 writer.add_metadata(name, values)
         if not array_recorded:
             writer.add_metadata("imufdi.array", {"json": array.to_json()})
         writer.add_metadata(METADATA_NAME, injector.metadata())
-        truth_ids = [cid for cid, ch in channels.items() if ch.topic == TRUTH_TOPIC]
-        truth_channel = (
-            truth_ids[0] if truth_ids else writer.register_json_channel(TRUTH_TOPIC, TRUTH_SCHEMA)
-        )
-        for event in injector.truth_events():
-            writer.add_json(truth_channel, int(event["t_ns"]), event)
-            result.truth_messages += 1
+        truth_ids = [
+            cid
+            for cid, ch in channels.items()
+            if ch.topic == TRUTH_TOPIC and ch.message_encoding == "cdr" and is_event_channel(ch)
+        ]
+        truth_channel = truth_ids[0] if truth_ids else register_truth_channel(writer)
+        events = legacy_truth + injector.truth_events()
+        writer.add_batch(encode_fault_events(truth_channel, events))
+        result.truth_messages += len(events) - len(legacy_truth)
+        if legacy_alarms:
+            writer.add_batch(
+                encode_fdi_event_dicts(
+                    register_events_channel(writer),
+                    [t for t, _ in legacy_alarms],
+                    [e for _, e in legacy_alarms],
+                )
+            )
         for batch in reader.batches():
+            if legacy_ids:
+                batch = batch.select(~np.isin(batch.channel_id, legacy_ids))
             result.messages += len(batch)
-            patched, count = _patch_batch(batch, channels, imu_channels, mag_channels, injector)
+            patched, count = _patch_batch(
+                batch,
+                channels,
+                imu_channels,
+                mag_channels,
+                injector,
+                imu_fields=imu_fields,
+                use_log_time=use_log_time,
+            )
             result.messages_patched += count
             writer.add_batch(patched)
         result.warnings = list(reader.warnings)
     return result
+
+
+def _is_imu_source(channel: Any, imu_fields: Mapping[str, str]) -> bool:
+    """The channel carries the Imu of one of the array's topics (at that topic's field)."""
+    from imufdi_cli.mcapio.imu import imu_fields_of
+
+    path = imu_fields.get(channel.topic)
+    return path is not None and path in imu_fields_of(channel)
 
 
 def _patch_batch(
@@ -1028,8 +1097,14 @@ def _patch_batch(
     imu_channels: Mapping[int, int],
     mag_channels: Mapping[int, int],
     injector: FaultInjector,
+    *,
+    imu_fields: Mapping[str, str] | None = None,
+    use_log_time: bool = False,
 ) -> tuple[Any, int]:
-    """The batch with faulted IMU/magnetometer messages rewritten, in the original order."""
+    """The batch with faulted IMU/magnetometer messages rewritten, in the original order.
+
+    ``imu_fields``: topic -> path of the Imu inside its messages; ``use_log_time``: fault
+    times refer to the log time instead of the header stamps."""
     from imufdi_cli import mcapio
 
     pieces: list[Any] = []
@@ -1047,19 +1122,24 @@ def _patch_batch(
         where = np.flatnonzero(batch.channel_id == cid)
         part = batch.select(where)
         channel = channels[channel_id]
-        fields = (mcapio.decode_mag if is_mag else mcapio.decode_imu)(part, channel)
+        path = "" if is_mag else (imu_fields or {}).get(channel.topic, "")
+        if is_mag:
+            fields = mcapio.decode_mag(part, channel)
+        else:
+            fields = mcapio.decode_imu(part, channel, path)
+        stamps = fields.log_time if use_log_time else fields.t_ns
         new_values: dict[str, np.ndarray] = {}
         for sensor_type in types:
             decoded = getattr(fields, sensor_type)
             if decoded is None or not injector.affects(imu, sensor_type):
                 continue
-            new_values[sensor_type] = injector.apply(imu, sensor_type, fields.t_ns, decoded)
+            new_values[sensor_type] = injector.apply(imu, sensor_type, stamps, decoded)
         if not new_values:
             continue
         if is_mag:
             pieces.append(mcapio.patch_mag(part, channel, mag=new_values["mag"]))
         else:
-            pieces.append(mcapio.patch_imu(part, channel, **new_values))
+            pieces.append(mcapio.patch_imu(part, channel, field=path, **new_values))
         positions.append(where)
         patched += len(where)
     if not pieces:

@@ -53,14 +53,15 @@ def write_text(path: str, text: str) -> None:
 
 
 def check_input(path: str) -> None:
-    """Raise InputDataError (exit 3) when an input path is missing or not a file."""
+    """Raise InputDataError (exit 3) when an input path is missing or not a file (a rosbag2
+    directory, holding metadata.yaml, counts as one)."""
     if path == "-":
         return
     p = Path(path)
     if not p.exists():
         raise InputDataError(f"{path}: no such file")
-    if not p.is_file():
-        raise InputDataError(f"{path}: not a regular file")
+    if not p.is_file() and not (p.is_dir() and (p / "metadata.yaml").is_file()):
+        raise InputDataError(f"{path}: not a regular file (nor a rosbag2 directory)")
 
 
 def default_output(source: str, suffix: str) -> str:

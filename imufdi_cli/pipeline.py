@@ -120,8 +120,12 @@ def ingest_file(
     gyro_fs: str | None = None,
     accel_fs: str | None = None,
     strict: bool = False,
+    start_time: str | None = None,
 ) -> Any:
-    """Parse a raw capture with a layout and write the MCAP; returns the ingest stats."""
+    """Parse a raw capture with a layout and write the MCAP; returns the ingest stats.
+
+    ``start_time``: wall-clock time of the first frame (see :func:`parse_start_time`);
+    default: the device's own time."""
     from imufdi_cli.capture import ingest, load_layout
 
     builtin: dict[str, Any] = {}
@@ -132,20 +136,62 @@ def ingest_file(
     layout_obj = load_layout(layout, **builtin)
     array = ArrayConfig.load(array_path) if array_path else None
     rate_hz = parse_quantity(rate, "frequency", name="--rate") if rate else None
-    return ingest(capture, output, layout=layout_obj, array=array, rate_hz=rate_hz, strict=strict)
+    return ingest(
+        capture,
+        output,
+        layout=layout_obj,
+        array=array,
+        rate_hz=rate_hz,
+        strict=strict,
+        start_time_ns=None if start_time is None else parse_start_time(start_time),
+    )
+
+
+def parse_start_time(text: str) -> int:
+    """``--start-time``: ISO 8601 date and time (``2024-05-01T12:00:00.25Z``; without a
+    zone: UTC) or seconds since the Unix epoch (``1714564800.25``) -> ns since the epoch.
+
+    Raises UsageError (naming ``--start-time``) for anything else.
+    """
+    from datetime import datetime, timezone
+    from decimal import Decimal, InvalidOperation
+
+    from imufdi_cli.errors import UsageError
+
+    value = text.strip()
+    try:
+        return int(Decimal(value) * 1_000_000_000)
+    except InvalidOperation:
+        pass
+    try:
+        moment = datetime.fromisoformat(value.replace("Z", "+00:00").replace("z", "+00:00"))
+    except ValueError as err:
+        raise UsageError(
+            f"--start-time {text!r} is neither an ISO 8601 time (2024-05-01T12:00:00Z) nor"
+            " seconds since the Unix epoch"
+        ) from err
+    if moment.tzinfo is None:
+        moment = moment.replace(tzinfo=timezone.utc)
+    epoch = datetime(1970, 1, 1, tzinfo=timezone.utc)
+    delta = moment - epoch
+    return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1000
 
 
 # --- info ------------------------------------------------------------------------------
 
 
 def log_info(
-    source: str, *, topics: Sequence[str] | None = None, strict: bool = False
+    source: str,
+    *,
+    topics: Sequence[str] | None = None,
+    time_source: str = "auto",
+    strict: bool = False,
 ) -> dict[str, Any]:
     """Everything ``imufdi info`` shows, as a JSON-ready dict (``strict``: a truncated or
     corrupt log raises McapInputError instead of adding a warning)."""
     from imufdi_cli.mcapio import summarize
 
-    summary = summarize(source, topics=topics, strict=strict)
+    summary = summarize(source, topics=topics, time_source=time_source, strict=strict)
     data: dict[str, Any] = summary.to_dict()
     if not data.get("imu_topics"):
         from imufdi_cli.errors import McapInputError
@@ -157,6 +203,12 @@ def log_info(
             + (f"; {problems[0]}" if problems else "")
         )
     data["source"] = source
+    nominal = summary.array.rate_hz if summary.array is not None else None
+    measured = summary.rate_hz
+    if summary.array_from_metadata and nominal and measured and abs(measured / nominal - 1) > 0.01:
+        data["warnings"].append(
+            f"the array config gives {nominal:g} Hz but the stamps give {measured:.6g} Hz"
+        )
     metadata = summary.metadata
     if "imufdi.faults" in metadata:
         from imufdi_cli.report import truth_windows

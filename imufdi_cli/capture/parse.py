@@ -6,6 +6,7 @@ import json
 import os
 import sys
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -135,6 +136,7 @@ def ingest(
     strict: bool = False,
     compression: str = "zstd",
     chunk_size: int = DEFAULT_CHUNK_SIZE,
+    start_time_ns: int | None = None,
 ) -> IngestStats:
     """Parse a capture and write it as an MCAP log (``imufdi ingest``).
 
@@ -151,6 +153,11 @@ def ingest(
         As in :func:`parse_capture`.
     compression : str
         MCAP chunk compression (``zstd``, ``lz4``, ``none``).
+    start_time_ns : int, optional
+        Wall-clock time (ns since the Unix epoch) of the first frame: every stamp is shifted
+        by the same offset, so intervals keep the device's timing. Default: the device's own
+        time (timestamp field, counter x period, or frame index x period, from 0 at the
+        device's epoch), which viewers show as a date near 1970.
 
     Returns
     -------
@@ -179,14 +186,19 @@ def ingest(
         raise CaptureError(
             f"the capture has {first.n_imus} IMUs per sample, the array config {array.n_imus}"
         )
+    offset_ns = 0 if start_time_ns is None else int(start_time_ns) - int(first.t_ns[0])
+
+    def anchored(block: ImuBlock) -> ImuBlock:
+        return block if offset_ns == 0 else replace(block, t_ns=block.t_ns + offset_ns)
+
     writer_options: dict[str, Any] = {"compression": compression}
     try:
         target = Path(output) if isinstance(output, os.PathLike) else output
         with mcapio.McapWriter(target, **writer_options) as writer:
             imu_writer = mcapio.ImuArrayWriter(writer, array)
-            imu_writer.write_block(first)
+            imu_writer.write_block(anchored(first))
             for block in blocks:
-                imu_writer.write_block(block)
+                imu_writer.write_block(anchored(block))
             record = {
                 "layout": _jsonable(layout.description),
                 "layout_name": layout.name,
@@ -195,6 +207,8 @@ def ingest(
                     "rate_hz": rate_hz,
                     "compression": compression,
                     "chunk_size": chunk_size,
+                    "start_time_ns": start_time_ns,
+                    "time_offset_ns": offset_ns,
                 },
                 "stats": stats.to_dict(),
             }

@@ -5,8 +5,20 @@ Low level: :class:`McapSource` (streaming reader, one :class:`MessageBatch` per 
 :class:`ImuArrayWriter`, :func:`read_array`, :func:`write_array`; per-channel codecs
 :func:`decode_imu`, :func:`patch_imu`, :func:`decode_mag`, :func:`patch_mag`. Detector
 status channels: :func:`register_status_channel`, :func:`encode_status`, :func:`read_status`.
+Ground truth and alarm events (CDR ``FaultEvent``/``FdiEvent``): :func:`read_events`,
+:func:`encode_fault_events`, :func:`encode_fdi_events`.
 """
 
+from imufdi_cli.mcapio.events import (
+    EVENTS_TOPIC,
+    TRUTH_TOPIC,
+    decode_events,
+    encode_fault_events,
+    encode_fdi_events,
+    read_events,
+    register_events_channel,
+    register_truth_channel,
+)
 from imufdi_cli.mcapio.imu import (
     ARRAY_METADATA,
     AlignmentStats,
@@ -37,6 +49,8 @@ from imufdi_cli.mcapio.summary import LogSummary, TopicSummary, summarize
 
 __all__ = [
     "ARRAY_METADATA",
+    "EVENTS_TOPIC",
+    "TRUTH_TOPIC",
     "AlignmentStats",
     "ChannelInfo",
     "ImuArrayReader",
@@ -49,8 +63,11 @@ __all__ = [
     "SchemaInfo",
     "StatusArrays",
     "TopicSummary",
+    "decode_events",
     "decode_imu",
     "decode_mag",
+    "encode_fault_events",
+    "encode_fdi_events",
     "encode_messages",
     "encode_status",
     "is_imu_channel",
@@ -59,9 +76,12 @@ __all__ = [
     "patch_imu",
     "patch_mag",
     "read_array",
+    "read_events",
     "read_json_topic",
     "read_status",
+    "register_events_channel",
     "register_status_channel",
+    "register_truth_channel",
     "summarize",
     "write_array",
 ]

@@ -60,6 +60,8 @@ class ImuFields:
         ``linear_acceleration``, m/s^2.
     mag : ndarray, shape (N, 3), float64, or None
         ``magnetic_field``, tesla.
+    has_stamp : bool
+        False when the messages have no ``header.stamp`` (``t_ns`` is then the log time).
     """
 
     t_ns: np.ndarray
@@ -67,6 +69,7 @@ class ImuFields:
     gyro: np.ndarray | None = None
     accel: np.ndarray | None = None
     mag: np.ndarray | None = None
+    has_stamp: bool = True
 
 
 def natural_key(text: str) -> list[Any]:
@@ -78,8 +81,40 @@ def schema_name(channel: ChannelInfo) -> str:
     return channel.schema.name if channel.schema is not None else ""
 
 
+def imu_fields_of(channel: ChannelInfo) -> list[str]:
+    """Where a channel's messages hold a ``sensor_msgs/msg/Imu``: ``[""]`` for Imu messages,
+    else the field paths of Imu fields inside a CDR message (e.g. ``["imu"]`` for a
+    ``custom_interfaces/msg/Vectornav`` with an Imu field ``imu``); empty when none."""
+    if schema_name(channel) in IMU_TYPE_NAMES and channel.message_encoding in ("cdr", "json"):
+        return [""]
+    schema = channel.schema
+    if channel.message_encoding != "cdr" or schema is None or schema.encoding != "ros2msg":
+        return []
+    try:
+        codec = codec_for(schema.name, schema.data)
+    except Exception:  # a schema we cannot parse holds no Imu we could read
+        return []
+    found: list[str] = []
+
+    def walk(type_name: str, prefix: str, depth: int) -> None:
+        definition = codec.defs.get(type_name)
+        if definition is None or depth > 8:
+            return
+        for fdef in definition.fields:
+            if fdef.array is not None or "/" not in fdef.type_name:
+                continue
+            if fdef.type_name == IMU_TYPE_NAMES[0]:
+                found.append(prefix + fdef.name)
+            else:
+                walk(fdef.type_name, f"{prefix}{fdef.name}.", depth + 1)
+
+    walk(codec.root, "", 0)
+    return found
+
+
 def is_imu_channel(channel: ChannelInfo) -> bool:
-    return schema_name(channel) in IMU_TYPE_NAMES and channel.message_encoding in ("cdr", "json")
+    """An Imu channel, or a CDR channel whose type holds exactly one Imu field."""
+    return len(imu_fields_of(channel)) == 1
 
 
 def is_mag_channel(channel: ChannelInfo) -> bool:
@@ -100,7 +135,7 @@ def _codec(channel: ChannelInfo) -> CdrCodec:
     return codec_for(channel.schema.name, channel.schema.data)
 
 
-def _vector_paths(codec: CdrCodec, field_name: str) -> str:
+def _vector_paths(codec: CdrCodec, field_name: str) -> str:  # field_name may be nested
     """Path of ``<field>.x``, checking that y and z follow it as contiguous float64."""
     leaves = codec.layout.leaves
     first = leaves.get(f"{field_name}.x")
@@ -119,22 +154,28 @@ def _decode_cdr(
     batch: MessageBatch,
     channel: ChannelInfo,
     kinds: Sequence[str],
+    field: str = "",
     valid: np.ndarray | None = None,
 ) -> ImuFields:
     codec = _codec(channel)
-    vector_paths = {kind: _vector_paths(codec, _VECTORS[kind]) for kind in kinds}
-    paths = ["header.stamp.sec", "header.stamp.nanosec", *vector_paths.values()]
+    prefix = f"{field}." if field else ""
+    vector_paths = {kind: _vector_paths(codec, prefix + _VECTORS[kind]) for kind in kinds}
+    stamp = [f"{prefix}header.stamp.sec", f"{prefix}header.stamp.nanosec"]
+    has_stamp = all(path in codec.layout.leaves for path in stamp)
+    paths = [*(stamp if has_stamp else []), *vector_paths.values()]
     little, positions, _ = codec.positions(batch, paths, valid)
     if valid is not None and not bool(valid.all()):
         batch = batch.select(valid)
         little = little[valid]
         positions = {path: value[valid] for path, value in positions.items()}
-    sec = codec.read(batch, little, positions["header.stamp.sec"], "i4", 1)[:, 0]
-    nanosec = codec.read(batch, little, positions["header.stamp.nanosec"], "u4", 1)[:, 0]
-    out = ImuFields(
-        t_ns=sec.astype(np.int64) * NS_PER_S + nanosec.astype(np.int64),
-        log_time=batch.log_time.astype(np.int64),
-    )
+    log_time = batch.log_time.astype(np.int64)
+    if has_stamp:
+        sec = codec.read(batch, little, positions[stamp[0]], "i4", 1)[:, 0]
+        nanosec = codec.read(batch, little, positions[stamp[1]], "u4", 1)[:, 0]
+        t_ns = sec.astype(np.int64) * NS_PER_S + nanosec.astype(np.int64)
+    else:
+        t_ns = log_time.copy()
+    out = ImuFields(t_ns=t_ns, log_time=log_time, has_stamp=has_stamp)
     for kind, path in vector_paths.items():
         setattr(out, kind, codec.read(batch, little, positions[path], "f8", 3).astype(np.float64))
     return out
@@ -144,16 +185,24 @@ def _decode_json(
     batch: MessageBatch,
     channel: ChannelInfo,
     kinds: Sequence[str],
+    field: str = "",
     valid: np.ndarray | None = None,
 ) -> ImuFields:
     n = len(batch)
-    t_ns = np.zeros(n, np.int64)
+    t_ns = batch.log_time.astype(np.int64).copy()
+    has_stamp = True
     vectors = {kind: np.zeros((n, 3)) for kind in kinds}
     for i in range(n):
         try:
             obj = json.loads(batch.payload(i))
-            stamp = obj["header"]["stamp"]
-            t_ns[i] = int(stamp["sec"]) * NS_PER_S + int(stamp.get("nanosec", stamp.get("nsec", 0)))
+            for part in field.split(".") if field else []:
+                obj = obj[part]
+            if i == 0:
+                has_stamp = isinstance(obj, dict) and "header" in obj
+            if has_stamp:
+                stamp = obj["header"]["stamp"]
+                nanosec = int(stamp.get("nanosec", stamp.get("nsec", 0)))
+                t_ns[i] = int(stamp["sec"]) * NS_PER_S + nanosec
             for kind in kinds:
                 vec = obj[_VECTORS[kind]]
                 vectors[kind][i] = (float(vec["x"]), float(vec["y"]), float(vec["z"]))
@@ -169,34 +218,38 @@ def _decode_json(
     if valid is not None and not bool(valid.all()):
         t_ns, log_time = t_ns[valid], log_time[valid]
         vectors = {kind: value[valid] for kind, value in vectors.items()}
-    return ImuFields(t_ns=t_ns, log_time=log_time, **vectors)
+    return ImuFields(t_ns=t_ns, log_time=log_time, has_stamp=has_stamp, **vectors)
 
 
 def _decode(
     batch: MessageBatch,
     channel: ChannelInfo,
     kinds: Sequence[str],
+    field: str = "",
     valid: np.ndarray | None = None,
 ) -> ImuFields:
-    """Decode one channel's messages. Malformed messages raise McapInputError, unless
-    ``valid`` (N,) bool is given: then they are left out and their entries set False."""
+    """Decode one channel's messages (``field``: path of an embedded Imu, "" for the message
+    itself). Malformed messages raise McapInputError, unless ``valid`` (N,) bool is given:
+    then they are left out and their entries set False."""
     if channel.message_encoding == "cdr":
-        return _decode_cdr(batch, channel, kinds, valid)
+        return _decode_cdr(batch, channel, kinds, field, valid)
     if channel.message_encoding == "json":
-        return _decode_json(batch, channel, kinds, valid)
+        return _decode_json(batch, channel, kinds, field, valid)
     raise McapInputError(
         f"channel {channel.topic}: message encoding {channel.message_encoding!r} is not"
         " supported; supported: cdr, json"
     )
 
 
-def decode_imu(batch: MessageBatch, channel: ChannelInfo) -> ImuFields:
+def decode_imu(batch: MessageBatch, channel: ChannelInfo, field: str = "") -> ImuFields:
     """Stamps, angular velocity and linear acceleration of Imu messages (one channel).
 
+    ``field`` is the path of the Imu inside a larger message (``""``: the message is an
+    Imu). Without a ``header.stamp`` the stamps are the log times (``has_stamp`` False).
     CDR payloads are decoded in bulk (one position per message, gathers of 24 bytes);
     JSON payloads one by one.
     """
-    return _decode(batch, channel, ("gyro", "accel"))
+    return _decode(batch, channel, ("gyro", "accel"), field)
 
 
 def decode_mag(batch: MessageBatch, channel: ChannelInfo) -> ImuFields:
@@ -205,7 +258,10 @@ def decode_mag(batch: MessageBatch, channel: ChannelInfo) -> ImuFields:
 
 
 def _patch(
-    batch: MessageBatch, channel: ChannelInfo, values: dict[str, np.ndarray | None]
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    values: dict[str, np.ndarray | None],
+    field: str = "",
 ) -> MessageBatch:
     if channel.message_encoding != "cdr":
         raise McapInputError(
@@ -228,7 +284,8 @@ def _patch(
     requested = {k: v for k, v in values.items() if v is not None}
     if not requested or n == 0:
         return out
-    paths = {kind: _vector_paths(codec, _VECTORS[kind]) for kind in requested}
+    prefix = f"{field}." if field else ""
+    paths = {kind: _vector_paths(codec, prefix + _VECTORS[kind]) for kind in requested}
     little, positions, _ = codec.positions(out, list(paths.values()))
     for kind, array in requested.items():
         array = np.asarray(array, dtype=np.float64)
@@ -244,10 +301,12 @@ def patch_imu(
     *,
     gyro: np.ndarray | None = None,
     accel: np.ndarray | None = None,
+    field: str = "",
 ) -> MessageBatch:
     """The same Imu messages with angular velocity and/or linear acceleration (N, 3)
-    replaced; every other byte is identical. The input batch is not modified."""
-    return _patch(batch, channel, {"gyro": gyro, "accel": accel})
+    replaced; every other byte is identical. The input batch is not modified. ``field``:
+    path of the Imu inside a larger message, as in :func:`decode_imu`."""
+    return _patch(batch, channel, {"gyro": gyro, "accel": accel}, field)
 
 
 def patch_mag(batch: MessageBatch, channel: ChannelInfo, *, mag: np.ndarray) -> MessageBatch:
@@ -761,12 +820,16 @@ class ImuArrayReader:
     source : path, ``"-"``, binary stream or McapSource
     topics : sequence of str, optional
         Imu topics to read, in array order (default: every Imu channel, sorted naturally).
-        Magnetometers are read from ``<namespace>/mag`` MagneticField topics when every
-        selected IMU has one.
+        A channel whose type holds exactly one ``sensor_msgs/msg/Imu`` field (e.g. a
+        driver's message with an ``imu`` field) counts as an Imu channel; ``"/topic:path"``
+        picks the Imu field at ``path`` explicitly. Magnetometers are read from
+        ``<namespace>/mag`` MagneticField topics when every selected IMU has one.
     strict : bool
         Raise McapInputError on a truncated or corrupt file instead of adding a warning.
-    time_source : {"header", "log_time"}
-        Stamp used for alignment and output: ``header.stamp`` or the MCAP log time.
+    time_source : {"auto", "header", "log_time"}
+        Stamp used for alignment and output: ``header.stamp``, the MCAP log time, or
+        (``auto``) the header stamp unless the Imu has no header or its stamps are all
+        zero, in which case the log time is used with a warning.
     block_size : int
         Samples per block yielded by :meth:`blocks`.
     tolerance_ns : int, optional
@@ -778,6 +841,12 @@ class ImuArrayReader:
     array : ArrayConfig
         From the ``imufdi.array`` metadata when it matches the topics, else inferred
         (co-aligned, one IMU per topic, measured rate).
+    imu_fields : dict
+        Topic -> path of the Imu inside its messages (``""``: the messages are Imu).
+    imu_types : dict
+        Topic -> message type name.
+    time_source : str
+        ``"header"`` or ``"log_time"``, as resolved.
     """
 
     def __init__(
@@ -786,12 +855,12 @@ class ImuArrayReader:
         *,
         topics: Sequence[str] | None = None,
         strict: bool = False,
-        time_source: str = "header",
+        time_source: str = "auto",
         block_size: int = 4096,
         tolerance_ns: int | None = None,
     ) -> None:
-        if time_source not in ("header", "log_time"):
-            raise UsageError(f"unknown time source {time_source!r}; valid: header, log_time")
+        if time_source not in ("auto", "header", "log_time"):
+            raise UsageError(f"unknown time source {time_source!r}; valid: auto, header, log_time")
         if block_size < 1:
             raise UsageError(f"block_size must be >= 1, got {block_size}")
         self.source = (
@@ -803,35 +872,24 @@ class ImuArrayReader:
         self._batches = self.source.batches()
         self._prefetched: deque[MessageBatch] = deque()
         self._exhausted = False
+        self._imu_like: dict[int, tuple[ChannelInfo, bool]] = {}
+        self._topics_given = topics is not None
         self._prefetch_setup(topics)
-        imu_channels = {c.topic: c for c in self.source.channels.values() if is_imu_channel(c)}
-        if not imu_channels:
-            topics_found = sorted({c.topic for c in self.source.channels.values()}, key=natural_key)
+        try:
+            self._select_topics(topics)
+        except Exception:
             self.source.push_back(list(self._prefetched))
             if not isinstance(source, McapSource):
                 self.close()
-            raise NoImuChannelError(
-                f"{self.source.name}: no sensor_msgs/msg/Imu channel (CDR or JSON); topics: "
-                + (", ".join(topics_found) or "none")
-                + (f"; {self.warnings[0]}" if self.warnings else "")
-            )
-        if topics is None:
-            self.imu_topics = sorted(imu_channels, key=natural_key)
-        else:
-            self.imu_topics = list(topics)
-            unknown = [t for t in self.imu_topics if t not in imu_channels]
-            if unknown or not self.imu_topics:
-                self.close()
-                raise NoImuChannelError(
-                    f"{self.source.name}: no Imu channel on topic(s) {', '.join(unknown) or '(none)'};"
-                    f" Imu topics: {', '.join(sorted(imu_channels, key=natural_key))}"
-                )
-            if len(set(self.imu_topics)) != len(self.imu_topics):
-                self.close()
-                raise UsageError("a topic is selected twice")
+            raise
+        imu_channels = {t: self.source.channels[cid] for t, cid in self._topic_channel.items()}
         mag_channels = {c.topic: c for c in self.source.channels.values() if is_mag_channel(c)}
         mag_topics = [t.rsplit("/", 1)[0] + "/mag" for t in self.imu_topics]
-        self.mag_topics = mag_topics if all(t in mag_channels for t in mag_topics) else []
+        self.mag_topics = (
+            mag_topics
+            if all(t in mag_channels for t in mag_topics) and not any(self.imu_fields.values())
+            else []
+        )
         self._imu_channel = {imu_channels[t].id: k for k, t in enumerate(self.imu_topics)}
         self._mag_channel = (
             {mag_channels[t].id: k for k, t in enumerate(self.mag_topics)}
@@ -840,6 +898,7 @@ class ImuArrayReader:
         )
         self._known_channels = -1  # check for late Imu channels on the first batch
         self._late_topics: set[str] = set()
+        self._resolve_time_source()
         self.array = self._array_config()
         if self.array.has("mag") and not self.mag_topics:
             self.warnings.append(
@@ -852,10 +911,105 @@ class ImuArrayReader:
         widths = [6] * len(self.imu_topics) + [3] * len(self.mag_topics)
         self._aligner = _Aligner(names, widths, tolerance, max_pending=max(8 * block_size, 65536))
         self.stats = self._aligner.stats
-        self._groups: list[tuple[np.ndarray, ChannelInfo, tuple[str, ...]]] | None = None
+        self._groups: list[tuple[np.ndarray, ChannelInfo, tuple[str, ...], str]] | None = None
         self._stream_of = np.zeros(0, np.int64)
 
     # --- setup helpers --------------------------------------------------------------------
+
+    def _select_topics(self, topics: Sequence[str] | None) -> None:
+        """Fill ``imu_topics``, ``imu_fields``, ``imu_types`` and the topic -> channel id map."""
+        channels = list(self.source.channels.values())
+        by_topic = {c.topic: c for c in channels}
+        found = {c.topic: imu_fields_of(c) for c in channels}
+        self.imu_fields: dict[str, str] = {}
+        self._topic_channel: dict[str, int] = {}
+        if topics is None:
+            usable = sorted((t for t, f in found.items() if len(f) == 1), key=natural_key)
+            if not usable:
+                listed = sorted(
+                    (f"{c.topic} ({schema_name(c) or 'no schema'})" for c in channels),
+                    key=natural_key,
+                )
+                raise NoImuChannelError(
+                    f"{self.source.name}: no sensor_msgs/msg/Imu channel (CDR or JSON), and no"
+                    " message type holding exactly one Imu field; topics: "
+                    + (", ".join(listed) or "none")
+                    + (f"; {self.warnings[0]}" if self.warnings else "")
+                )
+            self.imu_topics = usable
+            for topic in usable:
+                self.imu_fields[topic] = found[topic][0]
+                self._topic_channel[topic] = by_topic[topic].id
+        else:
+            self.imu_topics = []
+            for spec in topics:
+                topic, _, path = spec.partition(":")
+                channel = by_topic.get(topic)
+                if channel is None:
+                    usable = [t for t, f in found.items() if f]
+                    raise NoImuChannelError(
+                        f"{self.source.name}: no Imu channel on topic {topic or '(none)'};"
+                        " Imu topics: " + (", ".join(sorted(usable, key=natural_key)) or "none")
+                    )
+                fields = found[topic]
+                kind = schema_name(channel) or "no schema"
+                if path and path not in fields:
+                    raise McapInputError(
+                        f"topic {topic} ({kind}, {channel.message_encoding}) has no"
+                        f" sensor_msgs/msg/Imu field {path!r}; Imu fields: "
+                        + (", ".join(f or "(the message)" for f in fields) or "none")
+                    )
+                if not path and len(fields) != 1:
+                    if fields:
+                        raise McapInputError(
+                            f"topic {topic} ({kind}) holds {len(fields)} sensor_msgs/msg/Imu"
+                            f" fields ({', '.join(fields)}); choose one with --topic"
+                            f" {topic}:{fields[0]}"
+                        )
+                    raise McapInputError(
+                        f"topic {topic} has type {kind} ({channel.message_encoding}), which is"
+                        " not sensor_msgs/msg/Imu and holds no Imu field (CDR)"
+                    )
+                if topic in self.imu_fields:
+                    raise UsageError(f"topic {topic} is selected twice")
+                self.imu_topics.append(topic)
+                self.imu_fields[topic] = path or fields[0]
+                self._topic_channel[topic] = channel.id
+            if not self.imu_topics:
+                raise UsageError("no topic selected")
+        self.imu_types = {t: schema_name(by_topic[t]) for t in self.imu_topics}
+
+    def _resolve_time_source(self) -> None:
+        """``auto``: header stamps, unless the first Imu topic has none or they are all 0."""
+        requested = self.time_source
+        if requested == "log_time":
+            return
+        topic = self.imu_topics[0]
+        cid = self._topic_channel[topic]
+        channel = self.source.channels[cid]
+        # malformed messages are left out here and reported when the data are read
+        fields = [
+            _decode(
+                sub, channel, ("gyro", "accel"), self.imu_fields[topic], np.ones(len(sub), bool)
+            )
+            for sub in (b.select(b.channel_id == cid) for b in self._prefetched)
+            if len(sub)
+        ]
+        if not fields:
+            self.time_source = "header"
+            return
+        has_stamp = all(f.has_stamp for f in fields)
+        zero = has_stamp and all(not bool(np.any(f.t_ns)) for f in fields)
+        if has_stamp and not zero:
+            self.time_source = "header"
+            return
+        why = "has no header.stamp" if not has_stamp else "has header stamps that are all zero"
+        if requested == "header":
+            raise McapInputError(
+                f"{topic} ({self.imu_types[topic]}) {why}; use --stamps log (MCAP log time)"
+            )
+        self.time_source = "log_time"
+        self.warnings.append(f"{topic} ({self.imu_types[topic]}) {why}: using the log time")
 
     def _prefetch_setup(self, topics: Sequence[str] | None) -> None:
         """Read ahead until the IMU set and the rate are known.
@@ -868,14 +1022,14 @@ class ImuArrayReader:
         """
         counts: dict[int, int] = {}
         buffered = 0
-        wanted = set(topics) if topics is not None else None
+        wanted = {spec.partition(":")[0] for spec in topics} if topics is not None else None
         while not self._exhausted:
             if len(self._prefetched) >= _SETUP_BATCHES or buffered >= _SETUP_BYTES:
                 break
             imu_ids = [
                 c.id
-                for c in self.source.channels.values()
-                if is_imu_channel(c) and (wanted is None or c.topic in wanted)
+                for c in list(self.source.channels.values())
+                if (c.topic in wanted if wanted is not None else self._holds_one_imu(c))
             ]
             seen_topics = {self.source.channels[i].topic for i in imu_ids}
             ready = bool(imu_ids) and (wanted is None or wanted <= seen_topics)
@@ -892,16 +1046,24 @@ class ImuArrayReader:
             for i, c in zip(ids.tolist(), n.tolist()):
                 counts[i] = counts.get(i, 0) + c
 
+    def _holds_one_imu(self, channel: ChannelInfo) -> bool:
+        """The channel is read as an IMU by default (an Imu, or one Imu field); cached."""
+        known = self._imu_like.get(channel.id)
+        if known is None or known[0] is not channel:
+            known = (channel, len(imu_fields_of(channel)) == 1)
+            self._imu_like[channel.id] = known
+        return known[1]
+
     def _check_new_channels(self) -> None:
         """Warn about Imu channels first met after the IMU set was fixed (not read)."""
         channels = self.source.channels
-        if len(channels) == self._known_channels:
+        if len(channels) == self._known_channels or self._topics_given:
             return
         self._known_channels = len(channels)
         selected = {self.source.channels[cid].topic for cid in self._imu_channel}
         for channel in list(channels.values()):
             if (
-                is_imu_channel(channel)
+                self._holds_one_imu(channel)
                 and channel.topic not in selected
                 and channel.topic not in self._late_topics
             ):
@@ -940,7 +1102,13 @@ class ImuArrayReader:
             sub = batch.select(batch.channel_id == cid)
             if len(sub):
                 # malformed messages are left out here and reported when the data are read
-                fields = _decode(sub, channels[cid], ("gyro", "accel"), np.ones(len(sub), bool))
+                fields = _decode(
+                    sub,
+                    channels[cid],
+                    ("gyro", "accel"),
+                    self.imu_fields[first],
+                    np.ones(len(sub), bool),
+                )
                 stamps.append(fields.t_ns if self.time_source == "header" else fields.log_time)
         t = np.sort(np.concatenate(stamps)) if stamps else np.zeros(0, np.int64)
         steps = np.diff(t)
@@ -960,22 +1128,24 @@ class ImuArrayReader:
             yield from self._batches
             self._exhausted = True
 
-    def _decode_groups(self) -> list[tuple[np.ndarray, ChannelInfo, tuple[str, ...]]]:
-        """Channels read together: CDR channels sharing a schema are decoded in one pass
-        (their layout is the same); JSON channels one by one."""
+    def _decode_groups(self) -> list[tuple[np.ndarray, ChannelInfo, tuple[str, ...], str]]:
+        """Channels read together: CDR channels sharing a schema (and Imu field) are decoded
+        in one pass (their layout is the same); JSON channels one by one."""
         groups: dict[Any, list[int]] = {}
+        field_of = {self._topic_channel[t]: f for t, f in self.imu_fields.items()}
         for cid in list(self._imu_channel) + list(self._mag_channel):
             channel = self.source.channels[cid]
             kind = "imu" if cid in self._imu_channel else "mag"
+            path = field_of.get(cid, "") if kind == "imu" else ""
             if channel.message_encoding == "cdr" and channel.schema is not None:
-                key: Any = (kind, channel.schema.name, channel.schema.data)
+                key: Any = (kind, channel.schema.name, channel.schema.data, path)
             else:
-                key = (kind, cid)
+                key = (kind, cid, path)
             groups.setdefault(key, []).append(cid)
-        out: list[tuple[np.ndarray, ChannelInfo, tuple[str, ...]]] = []
+        out: list[tuple[np.ndarray, ChannelInfo, tuple[str, ...], str]] = []
         for key, ids in groups.items():
             kinds: tuple[str, ...] = ("gyro", "accel") if key[0] == "imu" else ("mag",)
-            out.append((np.array(ids, np.int64), self.source.channels[ids[0]], kinds))
+            out.append((np.array(ids, np.int64), self.source.channels[ids[0]], kinds, key[-1]))
         return out
 
     def _feed(self, batch: MessageBatch) -> None:
@@ -991,7 +1161,7 @@ class ImuArrayReader:
             for cid, k in self._mag_channel.items():
                 self._stream_of[cid] = m + k
         stream_of_message = self._stream_of[batch.channel_id]
-        for ids, channel, kinds in self._groups:
+        for ids, channel, kinds, path in self._groups:
             if ids.shape[0] == 1:
                 mask = batch.channel_id == ids[0]
             else:
@@ -1000,7 +1170,7 @@ class ImuArrayReader:
                 continue
             selected = batch if bool(mask.all()) else batch.select(mask)
             valid = np.ones(len(selected), bool)
-            fields = _decode(selected, channel, kinds, valid)
+            fields = _decode(selected, channel, kinds, path, valid)
             streams = stream_of_message[mask]
             if not bool(valid.all()):
                 streams = streams[valid]

@@ -658,8 +658,11 @@ class McapWriter:
             if not isinstance(key, str) or not isinstance(value, str):
                 raise UsageError(f"metadata {name!r}: keys and values must be strings")
         record = _record(OP_METADATA, _string(name) + _string_map(data))
+        # Chunks still compressing on worker threads are written first: the index entry
+        # must hold the position the record actually lands at.
+        self._drain(0)
         self._metadata_index.append((self._position, len(record), name))
-        self._write(record)
+        self._write_now(record)
 
     # --- messages ----------------------------------------------------------------------
 

@@ -8,6 +8,8 @@ SEPARATOR = "=" * 80
 IMU_SCHEMA_NAME = "sensor_msgs/msg/Imu"
 MAG_SCHEMA_NAME = "sensor_msgs/msg/MagneticField"
 STATUS_SCHEMA_NAME = "imufdi_msgs/msg/FdiStatus"
+FAULT_EVENT_SCHEMA_NAME = "imufdi_msgs/msg/FaultEvent"
+FDI_EVENT_SCHEMA_NAME = "imufdi_msgs/msg/FdiEvent"
 
 _HEADER = """# Standard metadata for higher-level stamped data types.
 # Used to communicate timestamped data in a particular coordinate frame.
@@ -105,6 +107,36 @@ bool[] isolated_set # every sensor isolated at this sample (several simultaneous
 """
 
 
+_FAULT_EVENT = """# Start or end of a fault injected by imufdi (ground truth, one message per mark).
+# header.stamp: the time the fault starts or ends; header.frame_id is empty.
+std_msgs/Header header
+
+string event            # "start" or "end"
+float64 t_s             # the same time, seconds after the log start
+string fault_id         # unique within the log (f0, f1, ... unless the spec names one)
+string model            # step, drift, noise, stuck, scale or spikes
+string[] sensors        # faulted sensor ids, e.g. imu0.gyro.x
+float64 at_s            # fault start, seconds after the log start
+float64 until_s         # fault end (exclusive), seconds after the log start; NaN: end of log
+string[] param_names    # model parameters, SI units (e.g. amp in rad/s)
+float64[] param_values
+string spec             # the fault as the user wrote it
+"""
+
+_FDI_EVENT = """# Start or end of an alarm of an imufdi detector, for one sensor type.
+# header.stamp: the sample at which the alarm starts or ends; header.frame_id is empty.
+std_msgs/Header header
+
+string detector         # e.g. glt
+string sensor_type      # gyro, accel or mag
+string event            # "alarm_start" or "alarm_end"
+string isolated         # sensor id isolated at that sample; empty when none
+bool isolable           # false when isolation is impossible (too few sensors per axis)
+float64 amplitude       # estimated fault amplitude (SI); NaN when none
+float64 statistic       # detection statistic at that sample
+"""
+
+
 def _concat(main: str, deps: list[tuple[str, str]]) -> bytes:
     parts = [main]
     for name, text in deps:
@@ -130,3 +162,9 @@ MAG_SCHEMA = _concat(
     ],
 )
 STATUS_SCHEMA = _concat(_STATUS, [("builtin_interfaces/Time", _TIME)])
+FAULT_EVENT_SCHEMA = _concat(
+    _FAULT_EVENT, [("std_msgs/Header", _HEADER), ("builtin_interfaces/Time", _TIME)]
+)
+FDI_EVENT_SCHEMA = _concat(
+    _FDI_EVENT, [("std_msgs/Header", _HEADER), ("builtin_interfaces/Time", _TIME)]
+)

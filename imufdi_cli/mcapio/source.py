@@ -265,18 +265,29 @@ class McapSource:
 
     Chunk CRCs are checked when ``validate_crcs`` is true (the default: CRC-32 runs at
     about 1 GB/s, 5-15 % of the time of ``summarize`` and less of detection).
+
+    A rosbag2 directory (or its ``metadata.yaml``) gives a
+    :class:`~imufdi_cli.mcapio.bagdir.BagDirSource`: its split files read as one log.
     """
+
+    def __new__(cls, source: Any = None, *args: Any, **kwargs: Any) -> McapSource:
+        if cls is McapSource and isinstance(source, (str, os.PathLike)) and source != "-":
+            from imufdi_cli.mcapio.bagdir import BagDirSource, is_bag_dir
+
+            if is_bag_dir(source):
+                return super().__new__(BagDirSource)
+        return super().__new__(cls)
 
     def __init__(
         self,
         source: str | os.PathLike[str] | IO[bytes],
         *,
         strict: bool = False,
-        validate_crcs: bool = True,
+        validate_crcs: bool | None = True,
         limits: ReaderLimits | None = None,
     ) -> None:
         self.strict = strict
-        self.validate_crcs = validate_crcs
+        self.validate_crcs = validate_crcs is not False  # None (unset) also checks them
         self.limits = limits if limits is not None else ReaderLimits.from_env()
         self.channels: dict[int, ChannelInfo] = {}
         self.schemas: dict[int, SchemaInfo] = {}
@@ -302,7 +313,10 @@ class McapSource:
             self.name = os.fspath(source)
             path = Path(source)
             if path.is_dir():
-                raise McapInputError(f"{path} is a directory, not an MCAP file")
+                raise McapInputError(
+                    f"{path} is a directory, not an MCAP file (nor a rosbag2 directory with"
+                    " metadata.yaml)"
+                )
             try:
                 self._stream = open(path, "rb")
             except FileNotFoundError as err:

@@ -24,6 +24,7 @@ import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
 from imufdi_cli.mcapio.cdr import codec_for, decode_json_payloads
+from imufdi_cli.mcapio.events import decode_events, is_event_channel
 from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch, gather_bytes
 from imufdi_cli.mcapio.schemas import STATUS_SCHEMA, STATUS_SCHEMA_NAME
 from imufdi_cli.mcapio.source import McapSource
@@ -256,7 +257,11 @@ def read_status(
 def read_json_topic(
     source: str | os.PathLike[str] | IO[bytes] | McapSource, topic: str
 ) -> list[tuple[int, Any]]:
-    """All messages of a JSON channel as ``(log_time ns, decoded object)``, in file order."""
+    """All messages of a JSON channel as ``(log_time ns, decoded object)``, in file order.
+
+    The imufdi event topics (``/imufdi/truth``, ``/imufdi/events``), CDR since this version,
+    are decoded to the same dicts (see :func:`imufdi_cli.mcapio.events.read_events`).
+    """
     own = not isinstance(source, McapSource)
     src = McapSource(source) if not isinstance(source, McapSource) else source
     out: list[tuple[int, Any]] = []
@@ -266,11 +271,14 @@ def read_json_topic(
                 channel = src.channels[cid]
                 if channel.topic != topic:
                     continue
+                sub = batch.select(batch.channel_id == cid)
+                if channel.message_encoding != "json" and is_event_channel(channel):
+                    out.extend(zip(sub.log_time.tolist(), decode_events(sub, channel)))
+                    continue
                 if channel.message_encoding != "json":
                     raise McapInputError(
                         f"topic {topic} has message encoding {channel.message_encoding!r}, not json"
                     )
-                sub = batch.select(batch.channel_id == cid)
                 out.extend(zip(sub.log_time.tolist(), decode_json_payloads(sub)))
     finally:
         if own:

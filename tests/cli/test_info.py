@@ -75,3 +75,49 @@ def test_corrupt_chunk_is_skipped_with_its_offset_or_fails_with_strict(cli, tmp_
     warnings = [line for line in result.out.splitlines() if line.startswith("warning:")]
     assert len(warnings) == 1 and f"chunk at byte {offset} skipped: " in warnings[0]
     assert_one_line_error(cli(["info", "--strict", "-"], stdin=data), 3, f"chunk at byte {offset}")
+
+
+def test_info_shows_capture_losses_and_one_rate(cli, tmp_path):
+    """A capture with lost frames: info shows the ingest counts, the gaps where every topic
+    misses samples, and one rate saying how it was measured."""
+    capture, log = tmp_path / "cap.bin", tmp_path / "cap.mcap"
+    sim = ["simulate", "--preset", "paper-table4", "--imus", "4", "--duration", "3s"]
+    assert cli([*sim, "-o", tmp_path / "s.mcap", "--capture", capture, "--corrupt"]).code == 0
+    assert cli(["ingest", capture, "-o", log]).code == 0
+    data = json.loads(cli(["info", log, "--json"]).out)
+    ingest = data["ingest"]
+    assert ingest["frames_lost"] > 0 and ingest["frames_bad_checksum"] > 0
+    # every frame lost or dropped leaves a hole in all topics at once
+    holes = ingest["frames_lost"] + ingest["frames_bad_checksum"] + ingest["frames_truncated"]
+    assert 0 < data["gaps"]["missing_samples"] <= holes
+    assert data["gaps"]["expected_samples"] == data["n_samples"] + data["gaps"]["missing_samples"]
+    assert data["alignment"]["gaps"] == {f"/imu{k}/data_raw": 0 for k in range(4)}
+    assert abs(data["rate_hz"] - 100.0) < 1e-6  # not (N - 1) / duration, which gaps bias
+    assert "missing" in data["rate_method"] and "header stamps" in data["rate_method"]
+    text = cli(["info", log]).out
+    assert f"lost {ingest['frames_lost']}" in text
+    assert f"{data['gaps']['missing_samples']} samples missing" in text
+    assert text.count(" Hz") == 0  # one rate, in the rate_hz row
+    assert "rate_hz" in text and "aligned samples" in text
+
+
+def test_ingest_start_time_anchors_device_time(cli, tmp_path):
+    capture = tmp_path / "cap.bin"
+    sim = ["simulate", "--preset", "paper-table4", "--imus", "4", "--duration", "1s"]
+    assert cli([*sim, "-o", tmp_path / "s.mcap", "--capture", capture]).code == 0
+    device, anchored = tmp_path / "device.mcap", tmp_path / "anchored.mcap"
+    assert cli(["ingest", capture, "-o", device]).code == 0
+    assert (
+        cli(["ingest", capture, "-o", anchored, "--start-time", "2024-05-01T12:00:00Z"]).code == 0
+    )
+    a = json.loads(cli(["info", device, "--json"]).out)
+    b = json.loads(cli(["info", anchored, "--json"]).out)
+    assert b["start_ns"] == 1_714_564_800_000_000_000
+    assert a["start_ns"] < 10**18  # the device's clock: near the 1970 epoch
+    assert b["duration_s"] == a["duration_s"] and b["n_samples"] == a["n_samples"]
+    unix = tmp_path / "unix.mcap"
+    assert cli(["ingest", capture, "-o", unix, "--start-time", "1714564800.5"]).code == 0
+    assert json.loads(cli(["info", unix, "--json"]).out)["start_ns"] == 1_714_564_800_500_000_000
+    result = cli(["ingest", capture, "-o", tmp_path / "x.mcap", "--start-time", "noon"])
+    assert_one_line_error(result, 2, "--start-time")
+    assert not (tmp_path / "x.mcap").exists()

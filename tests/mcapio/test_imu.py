@@ -354,3 +354,20 @@ def test_stdin_like_stream(tmp_path, block4, array4) -> None:
 
     _, block = read_array(Pipe(Path(path).read_bytes()))  # type: ignore[arg-type]
     assert_array_equal(block.gyro, block4.gyro)  # type: ignore[arg-type]
+
+
+def test_summarize_counts_gaps_of_every_topic(tmp_path, array4) -> None:
+    """Samples missing from all topics at once (lost frames): counted against the period,
+    and the rate is measured with them, not biased by them."""
+    block = make_block(1000, 4)
+    keep = np.ones(1000, bool)
+    keep[[10, 11, 12, 500, 700]] = False  # one hole of 3 samples, two of 1
+    path = tmp_path / "a.mcap"
+    write_array(path, array4, block.mask(keep))
+    summary = summarize(path)
+    assert summary.gaps["count"] == 3
+    assert summary.gaps["missing_samples"] == 5
+    assert summary.gaps["expected_samples"] == 1000
+    assert summary.gaps["longest_s"] == pytest.approx(0.04)
+    assert summary.rate_hz == pytest.approx(100.0)
+    assert summary.stats is not None and sum(summary.stats.gaps.values()) == 0

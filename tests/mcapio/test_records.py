@@ -156,3 +156,30 @@ def test_copy_channels_keeps_ids(tmp_path) -> None:
 def test_bad_options() -> None:
     with pytest.raises(UsageError, match="valid: zstd, lz4, none"):
         McapWriter(io.BytesIO(), compression="gzip")
+
+
+@pytest.mark.parametrize("compression", ["zstd", "none"])
+def test_metadata_index_points_at_metadata_records(tmp_path, compression) -> None:
+    """Metadata added while chunks are still compressing on worker threads: the
+    MetadataIndex must hold the offset the record landed at (read by the mcap package)."""
+    path = tmp_path / "m.mcap"
+    with McapWriter(path, compression=compression, chunk_size=256) as writer:
+        schema = writer.register_schema("s", "", b"")
+        ch = writer.register_channel("/x", "bin", schema)
+        writer.add_metadata("first", {"a": "1"})
+        for k in range(3):
+            writer.add_batch(_batch(200, ch))  # several chunks, some still in flight
+            writer.add_metadata(f"after{k}", {"k": str(k)})
+    raw = path.read_bytes()
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None
+        assert [raw[m.offset] for m in summary.metadata_indexes] == [0x0C] * 4
+        assert [(m.name, m.metadata) for m in reader.iter_metadata()] == [
+            ("first", {"a": "1"}),
+            ("after0", {"k": "0"}),
+            ("after1", {"k": "1"}),
+            ("after2", {"k": "2"}),
+        ]
+        assert sum(1 for _ in reader.iter_messages()) == 600

@@ -1,0 +1,348 @@
+"""Event channels: injected-fault ground truth (``imufdi_msgs/msg/FaultEvent`` on
+``/imufdi/truth``) and detector alarm events (``imufdi_msgs/msg/FdiEvent`` on
+``/imufdi/events``), both ros2msg/CDR so every ROS 2 tool opens the files.
+
+Events are read back as the plain dicts imufdi used before (older logs carry them on JSON
+channels, which are still read):
+
+- truth: ``{"event": "start"|"end", "t_ns", "t_s", "fault_id", "fault": Fault.to_dict()}``
+- alarms: ``{"detector", "sensor_type", "event": "alarm_start"|"alarm_end", "t_ns",
+  "isolated": sensor id or None, "isolable", "amplitude": float or None, "statistic"}``
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import struct
+from collections.abc import Sequence
+from typing import IO, Any
+
+import numpy as np
+
+from imufdi_cli.errors import McapInputError, UsageError
+from imufdi_cli.mcapio.cdr import codec_for, decode_cdr_message, decode_json_payloads
+from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch
+from imufdi_cli.mcapio.schemas import (
+    FAULT_EVENT_SCHEMA,
+    FAULT_EVENT_SCHEMA_NAME,
+    FDI_EVENT_SCHEMA,
+    FDI_EVENT_SCHEMA_NAME,
+)
+from imufdi_cli.mcapio.source import McapSource
+
+NS_PER_S = 1_000_000_000
+TRUTH_TOPIC = "/imufdi/truth"
+EVENTS_TOPIC = "/imufdi/events"
+#: Schema names that older imufdi versions gave the JSON event channels.
+LEGACY_SCHEMA_NAMES = ("imufdi/FaultEvent", "imufdi_msgs/FdiEvent")
+
+
+_FORMATS = {"u1": "B", "i4": "i", "u4": "I", "f8": "d"}
+
+
+class _CdrBuilder:
+    """Little-endian CDR payload built field by field; returns the offset of each field
+    (from the start of the payload, encapsulation header included)."""
+
+    def __init__(self) -> None:
+        self.body = bytearray()
+
+    def _align(self, size: int) -> None:
+        self.body += b"\0" * ((-len(self.body)) % size)
+
+    def prim(self, code: str, value: float | int) -> int:
+        size = struct.calcsize(_FORMATS[code])
+        self._align(size)
+        offset = len(self.body) + 4
+        self.body += struct.pack("<" + _FORMATS[code], value)
+        return offset
+
+    def string(self, text: str) -> None:
+        raw = text.encode("utf-8") + b"\0"
+        self.prim("u4", len(raw))
+        self.body += raw
+
+    def strings(self, texts: Sequence[str]) -> None:
+        self.prim("u4", len(texts))
+        for text in texts:
+            self.string(text)
+
+    def f8_sequence(self, values: Sequence[float]) -> None:
+        self.prim("u4", len(values))
+        for value in values:
+            self.prim("f8", value)
+
+    def header(self, t_ns: int = 0, frame_id: str = "") -> tuple[int, int]:
+        sec, nanosec = divmod(int(t_ns), NS_PER_S)
+        at_sec = self.prim("i4", sec)
+        at_nanosec = self.prim("u4", nanosec)
+        self.string(frame_id)
+        return at_sec, at_nanosec
+
+    def payload(self) -> bytes:
+        return b"\x00\x01\x00\x00" + bytes(self.body)
+
+
+def _stamps(t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    sec = np.floor_divide(t_ns, NS_PER_S)
+    if t_ns.size and (int(sec.min()) < -(2**31) or int(sec.max()) >= 2**31):
+        raise UsageError("timestamps do not fit a ROS 2 builtin_interfaces/Time (int32 seconds)")
+    return sec.astype("<i4"), (t_ns - sec * NS_PER_S).astype("<u4")
+
+
+# --- registering ------------------------------------------------------------------------
+
+
+def register_truth_channel(writer: McapWriter) -> int:
+    """The ``/imufdi/truth`` channel (``imufdi_msgs/msg/FaultEvent``, CDR); its id."""
+    schema_id = writer.register_schema(FAULT_EVENT_SCHEMA_NAME, "ros2msg", FAULT_EVENT_SCHEMA)
+    return writer.register_channel(TRUTH_TOPIC, "cdr", schema_id)
+
+
+def register_events_channel(writer: McapWriter) -> int:
+    """The ``/imufdi/events`` channel (``imufdi_msgs/msg/FdiEvent``, CDR); its id."""
+    schema_id = writer.register_schema(FDI_EVENT_SCHEMA_NAME, "ros2msg", FDI_EVENT_SCHEMA)
+    return writer.register_channel(EVENTS_TOPIC, "cdr", schema_id)
+
+
+# --- encoding ---------------------------------------------------------------------------
+
+
+def encode_fault_events(channel_id: int, events: Sequence[dict[str, Any]]) -> MessageBatch:
+    """FaultEvent messages (log time = ``t_ns``) from truth event dicts (module docstring)."""
+    payloads = []
+    for event in events:
+        fault = event["fault"]
+        until = fault.get("until_s")
+        params = dict(fault.get("params", {}))
+        cdr = _CdrBuilder()
+        cdr.header(int(event["t_ns"]))
+        cdr.string(str(event["event"]))
+        cdr.prim("f8", float(event.get("t_s", math.nan)))
+        cdr.string(str(event.get("fault_id", fault.get("id", ""))))
+        cdr.string(str(fault["model"]))
+        cdr.strings([str(s) for s in fault["sensors"]])
+        cdr.prim("f8", float(fault["at_s"]))
+        cdr.prim("f8", math.nan if until is None else float(until))
+        cdr.strings([str(k) for k in params])
+        cdr.f8_sequence([float(v) for v in params.values()])
+        cdr.string(str(fault.get("spec", "")))
+        payloads.append(cdr.payload())
+    t_ns = np.array([int(e["t_ns"]) for e in events], np.int64)
+    return MessageBatch.from_payloads(channel_id, t_ns, payloads)
+
+
+def encode_fdi_events(
+    channel_id: int,
+    t_ns: np.ndarray,
+    *,
+    detector: str,
+    sensor_type: str,
+    sensor_ids: Sequence[str],
+    alarm: np.ndarray,
+    isolated: np.ndarray,
+    amplitude: np.ndarray,
+    statistic: np.ndarray,
+) -> MessageBatch:
+    """FdiEvent messages for K alarm changes of one detector and sensor type, in bulk.
+
+    Parameters
+    ----------
+    t_ns : ndarray, shape (K,), int64
+        Sample time of each change (also the log time).
+    alarm : ndarray, shape (K,), bool
+        True: the alarm starts at that sample; False: it ends.
+    isolated : ndarray, shape (K,), int
+        Index into ``sensor_ids``; -1 none, -2 not isolable.
+    amplitude, statistic : ndarray, shape (K,), float64
+
+    Messages sharing (start/end, isolated sensor) have the same byte layout: one template
+    per such kind (cached across calls) holds the constant bytes; the K payloads are the
+    templates joined in event order, and the stamps and numbers are written into all of
+    them at once with numpy.
+    """
+    t_ns = np.asarray(t_ns, np.int64)
+    k = t_ns.shape[0]
+    if k == 0:
+        return MessageBatch.empty()
+    alarm = np.asarray(alarm, bool)
+    isolated = np.asarray(isolated, np.int64)
+    sec, nanosec = _stamps(t_ns)
+    key = alarm.astype(np.int64) * (len(sensor_ids) + 3) + np.clip(isolated, -2, None) + 2
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    kinds = [
+        _fdi_template(
+            detector,
+            sensor_type,
+            bool(alarm[i]),
+            sensor_ids[int(isolated[i])] if 0 <= int(isolated[i]) < len(sensor_ids) else "",
+            int(isolated[i]) != -2,
+        )
+        for i in first.tolist()
+    ]
+    payloads = [kinds[g][0] for g in inverse.tolist()]
+    data = np.frombuffer(b"".join(payloads), np.uint8).copy()
+    fields = np.array([at for _, at in kinds], np.int64)[inverse]  # (K, 4) field offsets
+    length = np.array([len(p) for p, _ in kinds], np.int64)[inverse]
+    offset = np.zeros(k, np.int64)
+    np.cumsum(length[:-1], out=offset[1:])
+    columns = (
+        (sec, 4),
+        (nanosec, 4),
+        (np.ascontiguousarray(amplitude, "<f8"), 8),
+        (np.ascontiguousarray(statistic, "<f8"), 8),
+    )
+    for column, (values, size) in enumerate(columns):
+        where = offset + fields[:, column]
+        data[where[:, None] + np.arange(size)] = values.reshape(k, 1).view(np.uint8)
+    return MessageBatch(
+        channel_id=np.full(k, channel_id, np.uint16),
+        sequence=np.zeros(k, np.uint32),
+        log_time=t_ns.copy(),
+        publish_time=t_ns.copy(),
+        data=data,
+        offset=offset,
+        length=length,
+    )
+
+
+_TEMPLATES: dict[tuple[str, str, bool, str, bool], tuple[bytes, tuple[int, int, int, int]]] = {}
+
+
+def _fdi_template(
+    detector: str, sensor_type: str, start: bool, isolated: str, isolable: bool
+) -> tuple[bytes, tuple[int, int, int, int]]:
+    """FdiEvent payload with zero stamp and numbers, and the offsets of sec, nanosec,
+    amplitude and statistic."""
+    key = (detector, sensor_type, start, isolated, isolable)
+    found = _TEMPLATES.get(key)
+    if found is None:
+        cdr = _CdrBuilder()
+        at_sec, at_nanosec = cdr.header()
+        cdr.string(detector)
+        cdr.string(sensor_type)
+        cdr.string("alarm_start" if start else "alarm_end")
+        cdr.string(isolated)
+        cdr.prim("u1", isolable)
+        at_amplitude = cdr.prim("f8", 0.0)
+        at_statistic = cdr.prim("f8", 0.0)
+        found = (cdr.payload(), (at_sec, at_nanosec, at_amplitude, at_statistic))
+        if len(_TEMPLATES) > 4096:
+            _TEMPLATES.clear()
+        _TEMPLATES[key] = found
+    return found
+
+
+# --- decoding ---------------------------------------------------------------------------
+
+
+def is_event_channel(channel: ChannelInfo) -> bool:
+    """A FaultEvent/FdiEvent CDR channel, or a JSON event channel of an older imufdi."""
+    if channel.schema is None:
+        return False
+    if channel.message_encoding == "cdr":
+        return channel.schema.name in (FAULT_EVENT_SCHEMA_NAME, FDI_EVENT_SCHEMA_NAME)
+    return channel.message_encoding == "json" and channel.topic in (TRUTH_TOPIC, EVENTS_TOPIC)
+
+
+def _stamp_ns(header: dict[str, Any]) -> int:
+    stamp = header["stamp"]
+    return int(stamp["sec"]) * NS_PER_S + int(stamp["nanosec"])
+
+
+def _fault_event(msg: dict[str, Any]) -> dict[str, Any]:
+    until = float(msg["until_s"])
+    return {
+        "event": msg["event"],
+        "t_ns": _stamp_ns(msg["header"]),
+        "t_s": float(msg["t_s"]),
+        "fault_id": msg["fault_id"],
+        "fault": {
+            "id": msg["fault_id"],
+            "model": msg["model"],
+            "sensors": list(msg["sensors"]),
+            "at_s": float(msg["at_s"]),
+            "until_s": None if math.isnan(until) else until,
+            "params": {k: float(v) for k, v in zip(msg["param_names"], msg["param_values"])},
+            "spec": msg["spec"],
+        },
+    }
+
+
+def _fdi_event(msg: dict[str, Any]) -> dict[str, Any]:
+    amplitude = float(msg["amplitude"])
+    return {
+        "detector": msg["detector"],
+        "sensor_type": msg["sensor_type"],
+        "event": msg["event"],
+        "t_ns": _stamp_ns(msg["header"]),
+        "isolated": msg["isolated"] or None,
+        "isolable": bool(msg["isolable"]),
+        "amplitude": None if math.isnan(amplitude) else amplitude,
+        "statistic": float(msg["statistic"]),
+    }
+
+
+def decode_events(batch: MessageBatch, channel: ChannelInfo) -> list[dict[str, Any]]:
+    """Event dicts (module docstring) of the messages of one event channel (CDR or JSON)."""
+    if channel.message_encoding == "json":
+        return decode_json_payloads(batch)
+    if not is_event_channel(channel) or channel.schema is None:
+        raise McapInputError(f"channel {channel.topic} is not an imufdi event channel")
+    codec = codec_for(channel.schema.name, channel.schema.data)
+    convert = _fault_event if channel.schema.name == FAULT_EVENT_SCHEMA_NAME else _fdi_event
+    out = []
+    for i in range(len(batch)):
+        try:
+            out.append(convert(decode_cdr_message(codec.defs, codec.root, batch.payload(i))))
+        except (KeyError, TypeError, ValueError) as err:
+            raise McapInputError(f"{channel.topic}: malformed {codec.root} message") from err
+    return out
+
+
+def read_events(
+    source: str | os.PathLike[str] | IO[bytes] | McapSource, topic: str
+) -> list[tuple[int, dict[str, Any]]]:
+    """All events on ``topic`` (``/imufdi/truth`` or ``/imufdi/events``, CDR or the JSON of
+    older versions) as ``(log_time ns, event dict)``, in file order."""
+    own = not isinstance(source, McapSource)
+    src = McapSource(source) if not isinstance(source, McapSource) else source
+    out: list[tuple[int, dict[str, Any]]] = []
+    try:
+        for batch in src.batches():
+            for cid in np.unique(batch.channel_id).tolist():
+                channel = src.channels[cid]
+                if channel.topic != topic:
+                    continue
+                if not is_event_channel(channel):
+                    raise McapInputError(
+                        f"topic {topic} has type {channel.schema.name if channel.schema else '?'}"
+                        f" ({channel.message_encoding}), not an imufdi event type"
+                    )
+                sub = batch.select(batch.channel_id == cid)
+                out.extend(zip(sub.log_time.tolist(), decode_events(sub, channel)))
+    finally:
+        if own:
+            src.close()
+    return out
+
+
+def encode_fdi_event_dicts(
+    channel_id: int, log_time: Sequence[int], events: Sequence[dict[str, Any]]
+) -> MessageBatch:
+    """FdiEvent messages from event dicts one by one (for re-encoding older JSON events)."""
+    payloads = []
+    for event in events:
+        amplitude = event.get("amplitude")
+        cdr = _CdrBuilder()
+        cdr.header(int(event.get("t_ns", 0)))
+        cdr.string(str(event.get("detector", "")))
+        cdr.string(str(event.get("sensor_type", "")))
+        cdr.string(str(event.get("event", "")))
+        cdr.string(str(event.get("isolated") or ""))
+        cdr.prim("u1", bool(event.get("isolable", True)))
+        cdr.prim("f8", math.nan if amplitude is None else float(amplitude))
+        cdr.prim("f8", float(event.get("statistic", math.nan)))
+        payloads.append(cdr.payload())
+    return MessageBatch.from_payloads(channel_id, np.asarray(log_time, np.int64), payloads)

@@ -1,0 +1,304 @@
+"""Every command's output, read by independent MCAP/ROS 2 readers (DESIGN.md §4).
+
+The judges: the ``mcap`` package (indexed reader: summary, statistics, chunk, message and
+metadata indexes, CRCs validated; and its streaming reader), rosbags ``AnyReader`` (every
+message of every topic deserialised), mcap-ros2-support ``read_ros2_messages`` (every
+message) and, when node and an installed @mcap/core are found, the TypeScript library
+Foxglove uses. Counts and values are checked against what the commands wrote.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import struct
+import subprocess
+import zlib
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.records import Footer, Message
+from mcap.stream_reader import StreamReader
+from mcap_ros2.reader import read_ros2_messages
+from rosbags.highlevel import AnyReader
+
+from imufdi_cli.mcapio import McapSource, decode_imu, read_events, read_status
+from tests.cli.conftest import invoke
+
+N_IMUS = 16
+N_SAMPLES = 300  # 3 s at 100 Hz
+FAULTS = (
+    "step:imu0.gyro.x,at=2s,amp=0.9deg/s",
+    "drift:imu2.gyro.z,at=0.5s,until=1.5s,rate=2deg/s^2",
+)
+DETECTORS = ("glt", "pca-parity")
+HERE = Path(__file__).parent
+
+
+def _run(args: list[object], stdin: bytes = b"") -> bytes:
+    result = invoke([str(a) for a in args], stdin=stdin)
+    assert result.code == 0, result.stderr
+    return result.stdout
+
+
+@pytest.fixture(scope="module")
+def outputs(tmp_path_factory) -> dict[str, Path]:
+    """Outputs of simulate, ingest, inject and detect, each written to a file and to stdout."""
+    d = tmp_path_factory.mktemp("independent")
+    files: dict[str, Path] = {}
+
+    def keep(name: str, data: bytes) -> None:
+        files[name] = d / f"{name}.mcap"
+        files[name].write_bytes(data)
+
+    sim = d / "simulate.mcap"
+    capture = d / "capture.bin"
+    simulate = ["simulate", "--preset", "paper-table4", "--duration", "3s"]
+    _run([*simulate, "--seed", 3, "-o", sim, "--capture", capture, "--corrupt"])
+    files["simulate"] = sim
+    keep("simulate-stdout", _run([*simulate, "--seed", 3, "-o", "-"]))
+    files["ingest"] = d / "ingest.mcap"
+    _run(["ingest", capture, "-o", files["ingest"]])
+    keep("ingest-stdout", _run(["ingest", "-", "-o", "-"], stdin=capture.read_bytes()))
+    faults = [a for f in FAULTS for a in ("--fault", f)]
+    files["inject"] = d / "inject.mcap"
+    _run(["inject", sim, *faults, "-o", files["inject"]])
+    keep("inject-stdout", _run(["inject", "-", *faults, "-o", "-"], stdin=sim.read_bytes()))
+    dets = [a for name in DETECTORS for a in ("-d", name)]
+    files["detect"] = d / "detect.mcap"
+    _run(["detect", files["inject"], *dets, "-o", files["detect"]])
+    keep(
+        "detect-stdout",
+        _run(["detect", "-", *dets, "-o", "-"], stdin=files["inject-stdout"].read_bytes()),
+    )
+    # detect on an ingested log (device-time stamps, lost frames)
+    files["detect-ingest"] = d / "detect-ingest.mcap"
+    _run(["detect", files["ingest"], "-d", "glt", "-o", files["detect-ingest"]])
+    return files
+
+
+ALL = [
+    "simulate",
+    "simulate-stdout",
+    "ingest",
+    "ingest-stdout",
+    "inject",
+    "inject-stdout",
+    "detect",
+    "detect-stdout",
+    "detect-ingest",
+]
+
+
+def _ours(path: Path) -> tuple[Counter[str], dict[str, dict[str, str]], dict[str, list[bytes]]]:
+    """Per-topic message counts, metadata and payloads as imufdi's own reader sees them."""
+    counts: Counter[str] = Counter()
+    payloads: dict[str, list[bytes]] = {}
+    with McapSource(path, strict=True) as src:
+        for batch in src.batches():
+            for i in range(len(batch)):
+                topic = src.channels[int(batch.channel_id[i])].topic
+                counts[topic] += 1
+                payloads.setdefault(topic, []).append(batch.payload(i))
+        return counts, dict(src.metadata), payloads
+
+
+def _expected_counts(name: str, path: Path) -> Counter[str]:
+    """What the command was asked to write, from its inputs (not from the file's index)."""
+    imu = {f"/imu{k}/data_raw": N_SAMPLES for k in range(N_IMUS)}
+    if name.startswith(("ingest", "detect-ingest")):
+        with McapSource(path) as src:
+            frames = json.loads(src.metadata["imufdi.ingest"]["json"])["stats"]["frames_ok"]
+        imu = {t: frames for t in imu}
+    counts = Counter(imu)
+    if name.startswith(("inject", "detect")) and name != "detect-ingest":
+        counts["/imufdi/truth"] = 3  # step: start; drift: start and end
+    if name.startswith("detect"):
+        n = imu["/imu0/data_raw"]
+        status = read_status(path)
+        transitions = 0
+        for (detector, sensor_type), arrays in status.items():
+            counts[f"/imufdi/{detector}/{sensor_type}"] = n
+            alarm = arrays.alarm.astype(np.int8)
+            transitions += int(np.count_nonzero(np.diff(np.concatenate([[0], alarm]))))
+        if transitions:
+            counts["/imufdi/events"] = transitions
+    return counts
+
+
+EXPECTED_METADATA = {
+    "simulate": {"imufdi.array", "imufdi.simulate"},
+    "ingest": {"imufdi.array", "imufdi.ingest"},
+    "inject": {"imufdi.array", "imufdi.simulate", "imufdi.faults"},
+    "detect": {
+        "imufdi.array",
+        "imufdi.simulate",
+        "imufdi.faults",
+        "imufdi.detect.glt",
+        "imufdi.detect.pca-parity",
+    },
+    "detect-ingest": {"imufdi.array", "imufdi.ingest", "imufdi.detect.glt"},
+}
+
+
+def _base(name: str) -> str:
+    return name.removesuffix("-stdout")
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_mcap_package_indexed_reader(outputs, name) -> None:
+    path = outputs[name]
+    raw = path.read_bytes()
+    counts, metadata, payloads = _ours(path)
+    assert counts == _expected_counts(name, path)
+    assert set(metadata) == EXPECTED_METADATA[_base(name)]
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        stats = summary.statistics
+        topic_of = {cid: ch.topic for cid, ch in summary.channels.items()}
+        assert stats.message_count == sum(counts.values())
+        assert {topic_of[c]: n for c, n in stats.channel_message_counts.items()} == counts
+        assert stats.metadata_count == len(metadata)
+        assert stats.chunk_count == len(summary.chunk_indexes) > 0
+        # every index entry points at the record it names
+        for index in summary.chunk_indexes:
+            assert raw[index.chunk_start_offset] == 0x06
+            for offset in index.message_index_offsets.values():
+                assert raw[offset] == 0x07
+        assert [raw[m.offset] for m in summary.metadata_indexes] == [0x0C] * len(metadata)
+        found = {m.name: m.metadata for m in reader.iter_metadata()}
+        assert found == metadata
+        by_topic: dict[str, list[bytes]] = {}
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            by_topic.setdefault(channel.topic, []).append(message.data)
+        assert by_topic == payloads
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_mcap_package_stream_reader_crcs(outputs, name) -> None:
+    path = outputs[name]
+    counts, _, _ = _ours(path)
+    with open(path, "rb") as stream:
+        records = list(StreamReader(stream, validate_crcs=True).records)
+    n_messages = sum(isinstance(r, Message) for r in records)
+    assert n_messages == sum(counts.values())
+    assert isinstance(records[-1], Footer)
+    # the summary CRC in the footer covers the summary section and the footer's head
+    raw = path.read_bytes()
+    footer_start = len(raw) - 8 - 29
+    summary_start, _, crc = struct.unpack("<QQI", raw[footer_start + 9 : footer_start + 29])
+    assert crc == zlib.crc32(raw[summary_start : footer_start + 25])
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_rosbags_any_reader(outputs, name) -> None:
+    path = outputs[name]
+    counts, _, _ = _ours(path)
+    gyro: dict[str, list[tuple[float, float, float]]] = {}
+    seen: Counter[str] = Counter()
+    truth = []
+    with AnyReader([path]) as reader:
+        assert reader.message_count == sum(counts.values())
+        for connection, _, rawdata in reader.messages():
+            msg = reader.deserialize(rawdata, connection.msgtype)
+            seen[connection.topic] += 1
+            if connection.msgtype == "sensor_msgs/msg/Imu":
+                v = msg.angular_velocity
+                gyro.setdefault(connection.topic, []).append((v.x, v.y, v.z))
+            elif connection.topic == "/imufdi/truth":
+                truth.append(msg)
+    assert seen == counts
+    with McapSource(path) as src:
+        channels = {c.topic: c for c in src.channels.values()}
+        for batch in src.batches():
+            for topic, values in gyro.items():
+                sub = batch.select(batch.channel_id == channels[topic].id)
+                if len(sub):
+                    ours = decode_imu(sub, channels[topic]).gyro
+                    np.testing.assert_array_equal(np.array(values[: len(sub)]), ours)
+                    gyro[topic] = values[len(sub) :]
+    assert all(not rest for rest in gyro.values())
+    if "/imufdi/truth" in counts:
+        marks = [(m.fault_id, m.event, m.model, list(m.sensors)) for m in truth]
+        assert sorted(marks) == [
+            ("f0", "start", "step", ["imu0.gyro.x"]),
+            ("f1", "end", "drift", ["imu2.gyro.z"]),
+            ("f1", "start", "drift", ["imu2.gyro.z"]),
+        ]
+        step = next(m for m in truth if m.model == "step")
+        assert step.param_names == ["amp"]
+        assert step.param_values[0] == pytest.approx(math.radians(0.9))
+        assert math.isnan(step.until_s) and step.at_s == 2.0
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_mcap_ros2_support(outputs, name) -> None:
+    path = outputs[name]
+    counts, _, _ = _ours(path)
+    seen: Counter[str] = Counter()
+    events = []
+    for message in read_ros2_messages(str(path)):
+        seen[message.channel.topic] += 1
+        if message.channel.topic == "/imufdi/events":
+            events.append(message)
+    assert seen == counts
+    if events:
+        ours = read_events(path, "/imufdi/events")
+        assert len(ours) == len(events)
+        by_time = sorted(
+            (
+                m.log_time_ns,
+                m.ros_msg.detector,
+                m.ros_msg.event,
+                m.ros_msg.header.stamp.sec * 1_000_000_000 + m.ros_msg.header.stamp.nanosec,
+            )
+            for m in events
+        )
+        assert by_time == sorted((t, e["detector"], e["event"], e["t_ns"]) for t, e in ours)
+
+
+def _mcap_core() -> tuple[str, dict[str, str]] | None:
+    node = shutil.which("node")
+    if node is None:
+        return None
+    env = dict(os.environ)
+    probe = subprocess.run(
+        [node, "-e", "require.resolve('@mcap/core'); require.resolve('fzstd')"],
+        env=env,
+        capture_output=True,
+        check=False,
+    )
+    return (node, env) if probe.returncode == 0 else None
+
+
+@pytest.mark.parametrize("name", ["simulate", "ingest-stdout", "inject", "detect-stdout"])
+def test_mcap_core_typescript(outputs, name) -> None:
+    found = _mcap_core()
+    if found is None:
+        pytest.skip(
+            "@mcap/core check skipped: needs `node` and the npm packages @mcap/core and fzstd"
+            " on NODE_PATH (e.g. npm install @mcap/core fzstd; NODE_PATH=.../node_modules)"
+        )
+    node, env = found
+    path = outputs[name]
+    counts, metadata, _ = _ours(path)
+    done = subprocess.run(
+        [node, str(HERE / "mcap_core_check.js"), str(path)],
+        env=env,
+        capture_output=True,
+        check=False,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr.decode()
+    result = json.loads(done.stdout)
+    assert result["indexed"] == dict(counts)
+    assert result["stream"] == dict(counts)
+    assert result["statistics"] == sum(counts.values())
+    assert sorted(result["metadata"]) == sorted(metadata)
