@@ -352,10 +352,16 @@ class ArrayConfig:
             data = tomllib.loads(raw.decode("utf-8"))
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
             raise ArrayConfigError(f"{path}: not valid TOML ({err})") from err
+        except RecursionError as err:  # tomllib parses nested arrays/tables recursively
+            raise ArrayConfigError(
+                f"{path}: not valid TOML (arrays or tables nested too deeply)"
+            ) from err
         return cls.from_dict(data, source=str(path))
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(self.to_toml(), encoding="utf-8")
+        from imufdi_cli.fileio import write_text
+
+        write_text(str(path), self.to_toml())
 
     def with_imus(self, n_imus: int) -> ArrayConfig:
         """The first ``n_imus`` IMUs of this array (used when a log has fewer topics)."""

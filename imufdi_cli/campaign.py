@@ -58,8 +58,8 @@ from typing import Any
 
 import numpy as np
 
-from imufdi_cli.errors import CampaignSpecError, ImufdiError, UsageError
-from imufdi_cli.fileio import write_text
+from imufdi_cli.errors import CampaignFailedError, CampaignSpecError, ImufdiError, UsageError
+from imufdi_cli.fileio import atomic_path, check_outputs, write_text
 from imufdi_cli.metrics import (
     METRIC_NAMES,
     FaultWindow,
@@ -137,7 +137,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
     """Parse and validate a campaign spec; every problem is reported before any run."""
     from imufdi_cli.array import ArrayConfig
     from imufdi_cli.detectors import DETECTORS, make_detector
-    from imufdi_cli.faults import parse_fault_spec
+    from imufdi_cli.faults import parse_fault_spec, validate_faults
     from imufdi_cli.simulate import PRESETS, config_from_options
 
     path = Path(path)
@@ -147,6 +147,10 @@ def load_spec(path: str | Path) -> CampaignSpec:
         raise CampaignSpecError(f"cannot read campaign spec {path}: {err.strerror}") from err
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
         raise CampaignSpecError(f"{path}: not valid TOML ({err})") from err
+    except RecursionError as err:  # tomllib parses nested arrays/tables recursively
+        raise CampaignSpecError(
+            f"{path}: not valid TOML (arrays or tables nested too deeply)"
+        ) from err
     known = {"campaign", "base", "fault", "detector"}
     for key in data:
         if key not in known:
@@ -154,6 +158,10 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 f"{path}: unknown table {key!r}; valid: {', '.join(sorted(known))}"
             )
     head = data.get("campaign", {})
+    if not isinstance(head, Mapping):
+        raise CampaignSpecError(
+            f"{path}: campaign: expected a table [campaign], got {type(head).__name__}"
+        )
     head_keys = {"name", "seeds", "calibrate", "metrics"}
     for key in head:
         if key not in head_keys:
@@ -177,6 +185,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
     base_names: list[str] = []
     base_cals: list[list[float | None] | None] = []
     arrays: list[Any] = []
+    durations: list[float] = []  # log length of each base, s (faults must start inside)
     for i, table in enumerate(_as_list(data.get("base", []))):
         where = f"{path}: base[{i}]"
         if not isinstance(table, Mapping):
@@ -200,7 +209,13 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 raise CampaignSpecError(
                     f"{where}: unknown preset {name!r}; valid: {', '.join(sorted(PRESETS))}"
                 )
-            options = {str(k): v for k, v in dict(table.get("options", {})).items()}
+            raw_options = table.get("options", {})
+            if not isinstance(raw_options, Mapping):
+                raise CampaignSpecError(
+                    f"{where}.options: expected a table of simulate options"
+                    f' (e.g. options = {{ duration = "10s" }}), got {raw_options!r}'
+                )
+            options = {str(k): v for k, v in raw_options.items()}
             try:
                 config = config_from_options(name, seed=0, **options)
             except ImufdiError as err:
@@ -209,6 +224,8 @@ def load_spec(path: str | Path) -> CampaignSpec:
             base_names.append(str(table.get("name", name)))
             base_cals.append(base_cal)
             arrays.append(config.array)
+            # as `imufdi inject` measures a log: first to last sample
+            durations.append(max(config.n_samples - 1, 0) / config.rate_hz)
         else:
             matched: list[str] = []
             for pattern in _as_list(table["files"]):
@@ -220,13 +237,18 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 matched += found
             for file in matched:
                 try:
-                    array = _read_base(os.path.abspath(file))[0]
+                    array, block = _read_base(os.path.abspath(file))
                 except ImufdiError as err:
                     raise CampaignSpecError(f"{where}: unreadable base log {file}: {err}") from err
+                if len(block) == 0:
+                    raise CampaignSpecError(
+                        f"{where}: base log {file} holds no aligned IMU samples"
+                    )
                 bases.append({"file": os.path.abspath(file)})
                 base_names.append(str(table.get("name", os.path.basename(file))))
                 base_cals.append(base_cal)
                 arrays.append(array)
+                durations.append((int(block.t_ns[-1]) - int(block.t_ns[0])) * 1e-9)
     if not bases:
         raise CampaignSpecError(f"{path}: needs at least one [[base]] (preset or files)")
 
@@ -295,12 +317,13 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 continue
             for spec in specs:
                 try:
-                    parse_fault_spec(spec, array)
+                    # the same checks as `imufdi inject`, including `at` inside the log
+                    validate_faults(
+                        [parse_fault_spec(spec, array)], array, log_duration_s=durations[index]
+                    )
                 except ImufdiError as err:
                     label = base.get("preset") or base.get("file")
-                    raise CampaignSpecError(
-                        f"{path}: fault {spec!r} on base {label}: {err}"
-                    ) from err
+                    raise CampaignSpecError(f"{path}: base {label}: {err}") from err
 
     runs = []
     for (index, (base, base_cal)), (specs, fault_bases), (
@@ -361,12 +384,14 @@ def execute_run(desc: Mapping[str, Any]) -> dict[str, Any]:
             "seconds": time.perf_counter() - start,
         }
     except Exception as err:  # a failed run is a result, the campaign goes on
-        message = str(err) if isinstance(err, ImufdiError) else f"{type(err).__name__}: {err}"
+        internal = not isinstance(err, ImufdiError)
+        message = f"{type(err).__name__}: {err}" if internal else str(err)
         return {
             "key": run_key(desc),
             "run": dict(desc),
             "ok": False,
-            "error": message,
+            "error": message or type(err).__name__,
+            "internal": internal,
             "traceback": "" if isinstance(err, ImufdiError) else traceback.format_exc(limit=5),
             "seconds": time.perf_counter() - start,
         }
@@ -588,10 +613,59 @@ class CampaignResult:
     rows: list[dict[str, Any]] = field(default_factory=list)
     summary: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
+    results: list[dict[str, Any]] = field(default_factory=list)
 
 
-def _write_json_atomic(path: Path, data: Any) -> None:
-    write_text(str(path), json.dumps(data, sort_keys=True, default=_jsonable) + "\n")
+#: Files a campaign writes in its results directory (besides runs/<key>.json).
+RESULT_FILES = ("runs.csv", "summary.json", "summary.md", "detection_probability.png")
+#: Lock file in the results directory: one campaign at a time per directory.
+LOCK_NAME = ".imufdi-campaign.lock"
+
+
+@contextmanager
+def results_lock(out: Path) -> Iterator[None]:
+    """Hold an exclusive lock on a results directory for the block.
+
+    The lock is an ``flock`` on ``<out>/.imufdi-campaign.lock``, which holds the PID and
+    host of its holder. The kernel releases it when the holder exits, however it exits
+    (SIGKILL included), so a lock file left by a dead campaign is simply taken over.
+
+    Raises
+    ------
+    UsageError
+        Another live campaign holds the lock (the message names its PID).
+    """
+    import fcntl
+    import socket
+
+    path = out / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+    except OSError as err:
+        raise UsageError(f"-o {out}: cannot create the lock file {path} ({err.strerror})") from err
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode("utf-8", "replace").split()
+            who = (
+                f"pid {holder[0]}" + (f" on {holder[1]}" if len(holder) > 1 else "")
+                if holder
+                else "a process that is starting"
+            )
+            raise UsageError(
+                f"-o {out}: another campaign ({who}) is running on this results directory"
+                f" (lock {path}); wait for it to finish or choose another directory"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _write_json_atomic(path: Path, data: Any, *, sweep: bool = True) -> None:
+    write_text(str(path), json.dumps(data, sort_keys=True, default=_jsonable) + "\n", sweep=sweep)
 
 
 def _jsonable(value: Any) -> Any:
@@ -617,38 +691,70 @@ def run_campaign(
     """
     start = time.perf_counter()
     out = Path(results_dir)
-    runs_dir = out / "runs"
     if out.exists() and not out.is_dir():
         raise UsageError(f"-o {out}: exists and is not a directory")
-    existing = sorted(runs_dir.glob("*.json")) if runs_dir.is_dir() else []
-    if existing and not resume:
-        raise UsageError(
-            f"{out} already holds {len(existing)} run results; use --resume to continue"
-            " or choose another directory"
-        )
+    check_outputs(
+        [spec.source, *(r["base"]["file"] for r in spec.runs if "file" in r["base"])],
+        [(f"-o {out}", out / name) for name in RESULT_FILES],
+    )
+    _check_fresh(out, resume)
     executor: _Executor
     if scheduler:
         executor = DaskExecutor(scheduler)  # a bad address fails before anything is written
     else:
         executor = LocalExecutor(jobs or os.cpu_count() or 1)
+    try:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise UsageError(f"-o {out}: cannot create the directory ({err.strerror})") from err
+        with results_lock(out):
+            _check_fresh(out, resume)  # again: another campaign may have finished meanwhile
+            return _run_locked(spec, out, executor, resume=resume, progress=progress, start=start)
+    finally:
+        executor.close()
+
+
+def _check_fresh(out: Path, resume: bool) -> None:
+    """Without --resume, refuse a results directory that already holds run results."""
+    runs_dir = out / "runs"
+    existing = list(runs_dir.glob("*.json")) if runs_dir.is_dir() else []
+    if existing and not resume:
+        raise UsageError(
+            f"{out} already holds {len(existing)} run results; use --resume to continue"
+            " or choose another directory"
+        )
+
+
+def _run_locked(
+    spec: CampaignSpec,
+    out: Path,
+    executor: _Executor,
+    *,
+    resume: bool,
+    progress: Callable[[int, int, dict[str, Any] | None], None] | None,
+    start: float,
+) -> CampaignResult:
+    """The campaign proper, with the results directory locked by this process."""
+    runs_dir = out / "runs"
+    existing = sorted(runs_dir.glob("*.json")) if runs_dir.is_dir() else []
     keyed = {run_key(desc): desc for desc in spec.runs}
     done_keys = {p.stem for p in existing} & set(keyed) if resume else set()
     todo = [desc for key, desc in keyed.items() if key not in done_keys]
     total = len(keyed)
     executed = 0
-    try:
-        runs_dir.mkdir(parents=True, exist_ok=True)
-        for stale in runs_dir.glob(".*.json.*.tmp"):  # left by a run killed while writing
-            stale.unlink(missing_ok=True)
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    # left by a campaign killed while writing (safe: we hold the directory's lock)
+    for stale in runs_dir.glob(".*.json.*.tmp"):
+        stale.unlink(missing_ok=True)
+    if progress:
+        progress(len(done_keys), total, None)
+    for result in executor.run(todo):
+        # runs/ was swept once above: no directory listing per result
+        _write_json_atomic(runs_dir / f"{result['key']}.json", result, sweep=False)
+        executed += 1
         if progress:
-            progress(len(done_keys), total, None)
-        for result in executor.run(todo):
-            _write_json_atomic(runs_dir / f"{result['key']}.json", result)
-            executed += 1
-            if progress:
-                progress(len(done_keys) + executed, total, result)
-    finally:
-        executor.close()
+            progress(len(done_keys) + executed, total, result)
     results = []
     for key in keyed:
         path = runs_dir / f"{key}.json"
@@ -672,6 +778,7 @@ def run_campaign(
         rows=rows,
         summary=summary,
         seconds=time.perf_counter() - start,
+        results=results,
     )
 
 
@@ -979,10 +1086,11 @@ def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     axes[0][0].set_ylabel("detection probability (solid), 1 - MAR (dashed)")
-    tmp = out / ".detection_probability.png.tmp.png"
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, out / "detection_probability.png")
+    try:
+        with atomic_path(out / "detection_probability.png", suffix=".png") as tmp:
+            fig.savefig(tmp, dpi=100)  # matplotlib takes the format from the extension
+    finally:
+        plt.close(fig)
 
 
 # --- gates over the summary ------------------------------------------------------------
@@ -1030,6 +1138,32 @@ def evaluate_summary_gates(
     return outcomes
 
 
+def check_all_failed(result: CampaignResult) -> None:
+    """Raise :class:`CampaignFailedError` when every run of the campaign failed.
+
+    Exit 4 when any run failed on an internal error (a bug), else 3 (the runs failed on
+    their data). A campaign where only some runs failed succeeds: the failures are in
+    ``summary.json``/``summary.md`` and counted on the console.
+    """
+    if not result.results or any(r["ok"] for r in result.results):
+        return
+    internal = any(_is_internal(r) for r in result.results)
+    first = result.results[0]
+    raise CampaignFailedError(
+        f"all {len(result.results)} runs failed (first: run {first['key']}:"
+        f" {first.get('error') or 'no message'});"
+        f" details in {Path(result.directory) / 'summary.md'}",
+        internal=internal,
+    )
+
+
+def _is_internal(result: Mapping[str, Any]) -> bool:
+    """A failed run failed on a bug (not an imufdi error); older results: a traceback."""
+    if result.get("ok"):
+        return False
+    return bool(result.get("internal", bool(result.get("traceback"))))
+
+
 def run_campaign_cli(
     spec_path: str,
     results_dir: str,
@@ -1040,7 +1174,10 @@ def run_campaign_cli(
     gates: Sequence[str],
     console: Any,
 ) -> int:
-    """What ``imufdi campaign`` does; returns the exit code (0, or 1 when a gate fails)."""
+    """What ``imufdi campaign`` does; returns the exit code (0, or 1 when a gate fails).
+
+    Raises CampaignFailedError (exit 3, or 4 on internal errors) when every run failed.
+    """
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -1080,6 +1217,7 @@ def run_campaign_cli(
         f"{result.total} runs ({result.executed} executed, {result.skipped} resumed, "
         f"{result.failed} failed) in {result.seconds:.1f} s -> {result.directory}"
     )
+    check_all_failed(result)
     outcomes = evaluate_summary_gates(result.summary, gates)
     for _, failed_gate, message in outcomes:
         console.print(f"[{'red' if failed_gate else 'green'}]gate {message}[/]", markup=True)

@@ -6,15 +6,21 @@ to stdout, so commands compose in pipelines::
 
     imufdi ingest cap.bin -o - | imufdi inject - --fault ... -o - | imufdi detect - -d glt -o - | imufdi report -
 
-Exit codes: 0 ok, 1 a CI gate failed, 2 usage error, 3 bad input data, 4 internal error.
+Exit codes: 0 ok, 1 a CI gate failed, 2 usage error, 3 bad input data (or an I/O error
+such as a full disk), 4 internal error; 130 interrupted (SIGINT), 143 terminated (SIGTERM),
+129 hung up (SIGHUP): 128 + the signal number, after removing any partial output.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+import traceback
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 # The maths works on thin matrices (tens of sensors) where multi-threaded BLAS only adds
@@ -49,9 +55,16 @@ def _console(to_stdout: bool) -> Console:
 
 
 def _err(message: str) -> None:
-    Console(stderr=True, highlight=False, soft_wrap=True).print(
-        f"[bold red]imufdi: error:[/] {message}", markup=True
-    ) if sys.stderr.isatty() else sys.stderr.write(f"imufdi: error: {message}\n")
+    """One non-empty line on stderr."""
+    from rich.markup import escape
+
+    message = " ".join(str(message).split()) or "unknown error (no message)"
+    if sys.stderr.isatty():
+        Console(stderr=True, highlight=False, soft_wrap=True).print(
+            f"[bold red]imufdi: error:[/] {escape(message)}", markup=True
+        )
+    else:
+        sys.stderr.write(f"imufdi: error: {message}\n")
 
 
 def _warn(console: Console, warnings: Sequence[str]) -> None:
@@ -76,7 +89,8 @@ class _Group(click.Group):
     def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         formatter.write_paragraph()
         formatter.write_text(
-            "Exit codes: 0 ok, 1 CI gate failed, 2 usage error, 3 bad input data, 4 internal error."
+            "Exit codes: 0 ok, 1 CI gate failed, 2 usage error, 3 bad input data or I/O error,"
+            " 4 internal error, 130/143 interrupted/terminated."
         )
 
 
@@ -143,8 +157,10 @@ def simulate(
         imufdi simulate --preset paper-table4 --seed 3 -o table4.mcap
         imufdi simulate --imus 16 --rate 1kHz --duration 1h --motion turntable -o long.mcap
     """
+    from imufdi_cli.fileio import check_outputs
     from imufdi_cli.pipeline import simulate_file
 
+    check_outputs([], [("-o", output), ("--capture", capture)])
     options: dict[str, Any] = {
         k: v
         for k, v in dict(
@@ -217,13 +233,14 @@ def ingest(
         imufdi ingest board.bin --layout my_board.toml --array array.toml -o board.mcap
         cat capture.bin | imufdi ingest - -o - | imufdi info -
     """
-    from imufdi_cli.fileio import check_input, check_output
+    from imufdi_cli.fileio import check_input, check_outputs
     from imufdi_cli.pipeline import ingest_file
 
     check_input(capture)
     if output is None:
         output = "-" if capture == "-" else os.path.splitext(capture)[0] + ".mcap"
-    check_output(capture, output)
+    layout_file = layout if layout.lower().endswith(".toml") else None
+    check_outputs([capture, layout_file, array_path], [("-o", output)])
     stats = ingest_file(
         capture,
         output,
@@ -411,13 +428,13 @@ def inject(
     """
     from imufdi_cli.errors import FaultSpecError
     from imufdi_cli.faults import inject_file
-    from imufdi_cli.fileio import check_input, check_output, default_output
+    from imufdi_cli.fileio import check_input, check_outputs, default_output
 
     check_input(source)
     if not faults and not fault_files:
         raise FaultSpecError("no fault given; use --fault SPEC or --faults FILE.toml")
     output = output or default_output(source, "faults")
-    check_output(source, output)
+    check_outputs([source, *fault_files], [("-o", output)])
     result = inject_file(
         source,
         output,
@@ -472,6 +489,12 @@ def inject(
     " no header or all-zero stamps, with a warning).",
 )
 @click.option("--strict", is_flag=True, help="A truncated or corrupt input is an error (exit 3).")
+@click.option(
+    "--explain/--no-explain",
+    default=True,
+    show_default=True,
+    help="Write an explained episode event (fault class, size with interval) per alarm episode.",
+)
 def detect(
     source: str,
     output: str | None,
@@ -481,6 +504,7 @@ def detect(
     topics: tuple[str, ...],
     stamps: str,
     strict: bool,
+    explain: bool,
 ) -> None:
     """Run detectors and write an annotated MCAP (status channels, alarm events).
 
@@ -492,14 +516,16 @@ def detect(
         imufdi detect - -d glt -o - < faulty.mcap | imufdi report -
     """
     from imufdi_cli.detect import detect_file, parse_detector_params
-    from imufdi_cli.fileio import check_input, check_output, default_output
+    from imufdi_cli.fileio import check_input, check_outputs, default_output
 
     check_input(source)
     grouped = parse_detector_params(detectors, params)
     window = _time_range(calibrate, "--calibrate")
     assert window is not None
     output = output or default_output(source, "detect")
-    check_output(source, output)
+    # parameter files (e.g. woa-mvmd-glt.params=tuned.json) are inputs too
+    param_files = [p.split("=", 1)[1] for p in params if "=" in p]
+    check_outputs([source, *(f for f in param_files if os.path.isfile(f))], [("-o", output)])
     result = detect_file(
         source,
         output,
@@ -508,10 +534,12 @@ def detect(
         topics=list(topics) or None,
         strict=strict,
         time_source=_time_source(stamps),
+        explain=explain,
     )
     console = _console(output != "-")
     table = Table(title=f"detect: {result.samples} samples, {result.duration_s:.3g} s -> {output}")
-    for col in ("detector", "sensor", "alarm %", "events", "isolated (alarm samples)"):
+    columns = ("detector", "sensor", "alarm %", "events", "isolated (alarm samples)", "episodes")
+    for col in columns:
         table.add_column(col)
     for name, per_type in result.summaries.items():
         for sensor_type, s in per_type.items():
@@ -522,6 +550,8 @@ def detect(
                 f"{100.0 * s.alarms / max(s.samples, 1):.2f}",
                 str(s.events),
                 ", ".join(f"{k} ({v})" for k, v in top) or "-",
+                ", ".join(f"{k} {v}" for k, v in sorted(s.episodes.items(), key=lambda kv: -kv[1]))
+                or "-",
             )
     console.print(table)
     _warn(console, result.warnings)
@@ -566,9 +596,19 @@ def report(
         imufdi report out.mcap --markdown table.md --fail-if 'glt.gyro.far > 0.08' --fail-if 'glt.gyro.mar > 0.35'
     """
     from imufdi_cli import report as rep
-    from imufdi_cli.fileio import check_input, write_text
+    from imufdi_cli.fileio import atomic_path, check_input, check_outputs, write_text
 
     check_input(log)
+    check_outputs(
+        [log],
+        [
+            ("--json", json_out),
+            ("--markdown", md_out),
+            ("--csv", csv_out),
+            ("--junit", junit_out),
+            ("--plot", plot_out),
+        ],
+    )
     parsed = [rep.parse_gate(g, DETECTORS) for g in gates]  # bad gates fail before reading
     result = rep.build_report(log, persist=persist)
     gate_results = rep.evaluate_gates(result, parsed)
@@ -593,11 +633,8 @@ def report(
     if junit_out:
         write_text(junit_out, rep.to_junit(result, gate_results))
     if plot_out:
-        from imufdi_cli.fileio import atomic_path
-
-        with atomic_path(plot_out) as tmp:
-            rep.plot_report(result, tmp + ".png")
-            os.replace(tmp + ".png", tmp)
+        with atomic_path(plot_out, suffix=".png") as tmp:  # matplotlib wants the extension
+            rep.plot_report(result, tmp)
     failed = [r for r in gate_results if r.failed]
     for r in gate_results:
         style = "red" if r.failed else "green"
@@ -647,10 +684,11 @@ def tune(
         imufdi tune run.mcap --segment 0s:2.5s -o params.json
         imufdi detect run.mcap -d woa-mvmd-glt --param woa-mvmd-glt.params=params.json -o out.mcap
     """
-    from imufdi_cli.fileio import check_input, write_text
+    from imufdi_cli.fileio import check_input, check_outputs, write_text
     from imufdi_cli.pipeline import tune_file
 
     check_input(log)
+    check_outputs([log], [("-o", output)])
     window = _time_range(segment, "--segment")
     assert window is not None
     settings = {}
@@ -741,22 +779,106 @@ def demo(keep_dir: str | None) -> None:
 # --- entry point -----------------------------------------------------------------------
 
 
+class Terminated(BaseException):
+    """SIGTERM/SIGHUP (or SIGINT) turned into an exception, so that every ``with`` block
+    unwinds: atomic outputs remove their temporary files, worker pools shut down.
+
+    A BaseException, so that library code catching ``Exception`` (a campaign recording a
+    failed run) does not swallow it.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+#: Signals that stop the CLI cleanly (exit 128 + signal number).
+HANDLED_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+
+
+@contextmanager
+def _signals_as_exceptions() -> Iterator[None]:
+    """Install handlers raising :class:`Terminated` (the first signal only: further
+    signals while cleaning up are ignored so the cleanup completes); restore on exit.
+    A signal that is already ignored (``nohup`` ignores SIGHUP) stays ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    raised = False
+
+    def handler(signum: int, frame: Any) -> None:
+        nonlocal raised
+        if raised:
+            return
+        raised = True
+        raise Terminated(signum)
+
+    previous = {}
+    for signum in HANDLED_SIGNALS:
+        try:
+            if signal.getsignal(signum) == signal.SIG_IGN:
+                continue  # ignored by whoever started us (nohup, a background job): keep it
+            previous[signum] = signal.signal(signum, handler)
+        except (OSError, ValueError):  # pragma: no cover - platform without the signal
+            continue
+    try:
+        yield
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
+
+
+def describe_exception(err: BaseException) -> str:
+    """One non-empty line for an unexpected exception: its class and what it says."""
+    text = " ".join(str(err).split())
+    name = type(err).__name__
+    if isinstance(err, MemoryError):
+        return (
+            "out of memory"
+            + (f" ({text})" if text else "")
+            + "; the input may declare sizes larger than it holds, or need more memory than"
+            " this machine has"
+        )
+    if isinstance(err, OSError):
+        reason = err.strerror or text or name
+        where = err.filename if err.filename is not None else None
+        return f"{where}: {reason}" if where is not None else f"{name}: {reason}"
+    return f"{name}: {text}" if text else f"{name} (no message)"
+
+
+def _debug() -> bool:
+    return os.environ.get("IMUFDI_DEBUG", "") not in ("", "0")
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Console script: run the CLI, turning every error into one line and an exit code."""
     try:
-        code = cli.main(
-            args=list(argv) if argv is not None else None,
-            prog_name="imufdi",
-            standalone_mode=False,
-        )
+        with _signals_as_exceptions():
+            code = cli.main(
+                args=list(argv) if argv is not None else None,
+                prog_name="imufdi",
+                standalone_mode=False,
+            )
     except ImufdiError as err:
-        _err(str(err))
+        if _debug():
+            traceback.print_exc()
+        _err(str(err) or type(err).__name__)
+        sys.exit(err.exit_code)
+    except Terminated as err:
+        name = signal.Signals(err.signum).name
+        _err("interrupted" if name == "SIGINT" else f"terminated by {name}")
         sys.exit(err.exit_code)
     except click.exceptions.Abort:
         _err("aborted")
         sys.exit(130)
     except click.ClickException as err:
-        _err(" ".join(err.format_message().split()))
+        _err(" ".join(err.format_message().split()) or type(err).__name__)
         sys.exit(EXIT_USAGE if err.exit_code == 2 else err.exit_code)
     except KeyboardInterrupt:
         _err("interrupted")
@@ -768,13 +890,15 @@ def main(argv: Sequence[str] | None = None) -> None:
         finally:
             sys.exit(0)
     except (MemoryError, OSError) as err:
-        _err(f"{type(err).__name__}: {err}")
+        if _debug():
+            traceback.print_exc()
+        _err(describe_exception(err))
         sys.exit(EXIT_BAD_INPUT)
     except Exception as err:  # a bug: one line, and the traceback only on request
-        if os.environ.get("IMUFDI_DEBUG"):
-            raise
+        if _debug():
+            traceback.print_exc()
         _err(
-            f"internal error ({type(err).__name__}: {err}); "
+            f"internal error ({describe_exception(err)}); "
             "please report it with the output of IMUFDI_DEBUG=1"
         )
         sys.exit(EXIT_INTERNAL)

@@ -23,6 +23,7 @@ from imufdi_cli import __version__
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors import DETECTORS, make_detector
 from imufdi_cli.detectors.base import DetectionBlock, Detector
+from imufdi_cli.episodes import EpisodeBuilder, episode_builders
 from imufdi_cli.errors import CalibrationError, DetectorConfigError, McapInputError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.mcapio import (
@@ -37,6 +38,7 @@ from imufdi_cli.mcapio.events import (
     EVENTS_TOPIC,
     TRUTH_TOPIC,
     decode_events,
+    encode_episode_events,
     encode_fault_events,
     encode_fdi_event_dicts,
     encode_fdi_events,
@@ -93,6 +95,7 @@ class TypeSummary:
     alarms: int = 0
     events: int = 0
     isolated: dict[str, int] = field(default_factory=dict)  # sensor id -> alarm samples
+    episodes: dict[str, int] = field(default_factory=dict)  # fault class -> episodes
 
 
 @dataclass
@@ -159,6 +162,7 @@ class _Track:
         self.channels: dict[str, int] = {}
         self.alarm_on: dict[str, bool] = {}
         self.summary: dict[str, TypeSummary] = {}
+        self.episodes: dict[str, EpisodeBuilder] = {}  # sensor type -> builder
 
     def take_times(self, count: int) -> np.ndarray:
         """Timestamps of the next ``count`` rows, in order."""
@@ -240,6 +244,7 @@ def detect_file(
     strict: bool = False,
     compression: str = "zstd",
     time_source: str = "auto",
+    explain: bool = True,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -255,6 +260,8 @@ def detect_file(
         for an Imu inside a larger message.
     time_source : {"auto", "header", "log_time"}
         Stamps to align on (see :class:`~imufdi_cli.mcapio.ImuArrayReader`).
+    explain : bool
+        Write an explained ``episode`` event for every alarm episode (docs/episodes.md).
 
     Returns
     -------
@@ -341,10 +348,28 @@ def detect_file(
                 events, starts = _events(track, events_channel, sensor_type, t_ns, out)
                 summary.events += starts
                 writer.add_batch(events)
+                builder = track.episodes.get(sensor_type)
+                if builder is not None:
+                    add_episodes(track, builder.rows(t_ns, t_ns, out))
+            for sensor_type in set(track.episodes) - set(outputs):
+                del track.episodes[sensor_type]  # a type this detector does not test
+
+        def add_episodes(track: _Track, episodes: Sequence[Any]) -> None:
+            if not episodes:
+                return
+            writer.add_batch(encode_episode_events(events_channel, [e.to_dict() for e in episodes]))
+            for episode in episodes:
+                counts = track.summary[episode.sensor_type].episodes
+                label = episode.fault_class or "unexplained"
+                counts[label] = counts.get(label, 0) + 1
 
         def run(block: ImuBlock) -> None:
             for track in tracks:
                 track.pending.append(block.t_ns)
+                for sensor_type, builder in track.episodes.items():
+                    triads = block.get(sensor_type)
+                    assert triads is not None  # builders exist only for types in the log
+                    builder.feed(array.select(triads, sensor_type))
                 emit(track, track.detector.process(block))
 
         def fit() -> None:
@@ -358,6 +383,11 @@ def detect_file(
                 )
             for track in tracks:
                 track.detector.fit(whole, array)
+            builders = episode_builders(whole, array) if explain else {}
+            for track in tracks:
+                track.episodes = {
+                    t: b.for_detector(track.detector.name) for t, b in builders.items()
+                }
             fitted = True
             calibration.clear()
             for pending in backlog:
@@ -393,6 +423,8 @@ def detect_file(
             fit()
         for track in tracks:
             emit(track, track.detector.flush())
+            for builder in track.episodes.values():
+                add_episodes(track, builder.finish())
             if track.pending and sum(p.size for p in track.pending):
                 raise DetectorConfigError(
                     f"detector {track.detector.name} left samples without output"

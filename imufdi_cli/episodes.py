@@ -27,7 +27,9 @@ stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
 ======  ==========================================  ==================================
 
 The models are ranked by BIC (Schwarz 1978): the Gaussian log-likelihood of the whole
-window minus half the number of free parameters times ln n. ``stuck`` is not a Gaussian
+window minus half the number of free parameters times ln n. ``none`` (no fault: the
+residual is the calibrated noise throughout) is ranked with them, so an episode that no
+fault model explains better than chance is called a false alarm, with its evidence. ``stuck`` is not a Gaussian
 model (a frozen output has no noise at all): it is declared when the raw output repeats
 exactly on at least ``stuck_share`` of the samples after the onset (a healthy sensor always
 carries its own noise, so long exact repeats do not happen), and then ranks first.
@@ -48,9 +50,10 @@ import numpy as np
 from imufdi_cli.detectors.parity import check_measurement_matrix, least_squares_matrix
 
 #: fault models an episode is explained by, in tie-break order
-MODELS = ("step", "drift", "noise", "scale", "spikes", "stuck")
+MODELS = ("none", "step", "drift", "noise", "scale", "spikes", "stuck")
 #: what the size of each model is
 SIZE_NAMES = {
+    "none": "",
     "step": "amp",
     "drift": "rate",
     "noise": "factor",
@@ -96,9 +99,21 @@ class FaultFit:
         return SIZE_NAMES[self.model]
 
     def to_dict(self) -> dict[str, Any]:
-        out = asdict(self)
+        """JSON-ready (non-finite numbers become None)."""
+        out = _finite(asdict(self))
         out["size_name"] = self.size_name
         return out
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by None, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
 
 
 # --- episodes from status rows ---------------------------------------------------------
@@ -184,7 +199,7 @@ def _normal_quantile(p: float) -> float:
     return float(norm.ppf(p))
 
 
-def _gaussian_nll(ss: np.ndarray, n: np.ndarray, var: np.ndarray | float) -> np.ndarray:
+def _gaussian_nll(ss: Any, n: Any, var: Any) -> Any:
     """-log L of n samples with sum of squares ss about their model, variance var."""
     return 0.5 * (ss / var + n * np.log(2 * math.pi * var))
 
@@ -303,6 +318,11 @@ def fit_models(
             bic,
         )
     )
+
+    # none: the residual is the sensor's calibrated noise over the whole window (a false
+    # alarm of chance: no fault model earns its extra parameters)
+    nll_healthy = float(_gaussian_nll(np.sum(sq), n_total, var0))
+    fits.append(FaultFit("none", math.nan, math.nan, math.nan, -1, 2 * nll_healthy))
 
     spikes = _spike_fit(r, t, sigma_r, taus, nll_before, ln_n, confidence)
     if spikes is not None:
@@ -493,7 +513,8 @@ class Episode:
         return self.fits[0].model if self.fits else None
 
     def to_dict(self) -> dict[str, Any]:
-        out = asdict(self)
+        """JSON-ready (non-finite numbers become None)."""
+        out = _finite(asdict(self))
         out["duration_s"] = self.duration_s
         out["fault_class"] = self.fault_class
         out["fits"] = [f.to_dict() for f in self.fits]
@@ -549,6 +570,9 @@ class EpisodeBuilder:
         (onset candidates); longest stretch of an episode kept for the fit.
     confidence : float
         Level of the size intervals.
+    explain : bool
+        Fit the fault models; False (too few sensors for a consensus, or no calibrated
+        sigma) gives the episodes with their evidence but no fault class.
     """
 
     def __init__(
@@ -564,6 +588,7 @@ class EpisodeBuilder:
         margin_s: float = 2.0,
         max_window_s: float = 30.0,
         confidence: float = 0.9,
+        explain: bool = True,
     ) -> None:
         self.detector = detector
         self.sensor_type = sensor_type
@@ -574,6 +599,7 @@ class EpisodeBuilder:
         self.margin = max(2, round(margin_s * rate_hz))
         self.max_window = max(4, round(max_window_s * rate_hz))
         self.confidence = confidence
+        self.explain = explain
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
         self._history_t: np.ndarray = np.zeros(0, np.int64)
@@ -688,6 +714,8 @@ class EpisodeBuilder:
             runner_up=runner_up,
             runner_up_share=share,
         )
+        if not self.explain or window.shape[0] < 4:
+            return episode
         k = self.sensor_ids.index(names[0]) if names else self._loudest(window)
         if not names:
             episode.sensors = [self.sensor_ids[k]]
@@ -710,6 +738,23 @@ class EpisodeBuilder:
         )
         return episode
 
+    def for_detector(self, detector: str) -> EpisodeBuilder:
+        """A fresh builder with the same calibration, for another detector."""
+        rate_hz = 1.0  # the sample counts are already resolved: pass them as seconds
+        return EpisodeBuilder(
+            detector,
+            self.sensor_type,
+            self.H,
+            self.sensor_ids,
+            self.sigma,
+            rate_hz,
+            merge_gap_s=self.merge_gap,
+            margin_s=self.margin,
+            max_window_s=self.max_window,
+            confidence=self.confidence,
+            explain=self.explain,
+        )
+
     def _loudest(self, window: np.ndarray) -> int:
         """For detectors that do not isolate: the sensor with the largest normalised
         leave-one-out residual energy over the episode."""
@@ -724,13 +769,163 @@ class EpisodeBuilder:
         return int(np.argmax(energies))
 
 
+def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, EpisodeBuilder]:
+    """One builder per sensor type of ``array`` present in the calibration block (an
+    :class:`~imufdi_cli.log.ImuBlock`), with per-sensor sigma from its parity residuals
+    (:func:`~imufdi_cli.detectors.parity.residual_sigma`). Types with fewer than 4 sensors
+    (no leave-one-out consensus) get episodes without explanation. Use
+    :meth:`EpisodeBuilder.for_detector` to get each detector its own builder."""
+    from imufdi_cli.detectors.parity import residual_sigma
+    from imufdi_cli.errors import CalibrationError
+
+    builders = {}
+    for sensor_type in array.sensor_types():
+        triads = calibration.get(sensor_type)
+        if triads is None:
+            continue
+        H = array.measurement_matrix(sensor_type)
+        explain = H.shape[0] >= 4
+        sigma = np.ones(H.shape[0])
+        if explain:
+            measurements = array.select(triads, sensor_type)
+            finite = np.all(np.isfinite(measurements), axis=1)
+            try:
+                sigma = residual_sigma(H, measurements[finite])
+            except CalibrationError:
+                explain = False
+            explain = explain and bool(np.all(np.isfinite(sigma)) and np.all(sigma > 0))
+        builders[sensor_type] = EpisodeBuilder(
+            "",
+            sensor_type,
+            H,
+            array.sensor_ids(sensor_type),
+            sigma,
+            array.rate_hz,
+            explain=explain,
+            **options,
+        )
+    return builders
+
+
+# --- scoring against injected truth -------------------------------------------------------
+
+#: the fault parameter each model's size estimates (faults.py keys, SI)
+TRUTH_SIZE_KEYS = {
+    "step": "amp",
+    "drift": "rate",
+    "noise": "factor",
+    "scale": "factor",
+    "spikes": "amp",
+}
+
+
+def truth_size(fault: dict[str, Any]) -> float | None:
+    """The size an explanation of ``fault`` (a :meth:`Fault.to_dict`) should find, or None
+    (stuck, or a noise fault given by sigma without a factor)."""
+    key = TRUTH_SIZE_KEYS.get(str(fault.get("model")))
+    value = None if key is None else fault.get("params", {}).get(key)
+    return None if value is None else float(value)
+
+
+def match_episodes(
+    episodes: Sequence[dict[str, Any]], faults: Sequence[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Match each episode (:meth:`Episode.to_dict`) to the injected fault it explains.
+
+    ``faults`` hold ``id``, ``model``, ``sensors``, ``params`` and absolute ``start_ns`` /
+    ``end_ns`` (None: to the end of the log). An episode matches a fault when its first
+    isolated sensor is one of the fault's sensors and its alarms overlap the fault's
+    window; it is ``wrong_sensor`` when it overlaps a fault on another sensor of its type,
+    and ``false`` otherwise. Returns one record per episode: ``{"match": "fault" |
+    "wrong_sensor" | "false", "fault_id", "true_class", "class_right", "true_size",
+    "covered"}``.
+    """
+    out = []
+    for episode in episodes:
+        sensors = episode.get("sensors") or []
+        first = sensors[0] if sensors else None
+        kind, hit = "false", None
+        for fault in faults:
+            end = fault.get("end_ns")
+            overlaps = episode["end_ns"] >= fault["start_ns"] and (
+                end is None or episode["start_ns"] < end
+            )
+            same_type = any(
+                s.split(".")[1] == episode["sensor_type"] for s in fault.get("sensors", [])
+            )
+            if not overlaps or not same_type:
+                continue
+            if first in fault["sensors"]:
+                kind, hit = "fault", fault
+                break
+            kind = "wrong_sensor"
+        record: dict[str, Any] = {"match": kind, "fault_id": None if hit is None else hit["id"]}
+        if hit is not None:
+            fits = episode.get("fits") or []
+            best = fits[0] if fits else {}
+            size = truth_size(hit)
+            record["true_class"] = hit["model"]
+            record["class_right"] = best.get("model") == hit["model"]
+            record["true_size"] = size
+            low, high = best.get("low"), best.get("high")
+            record["covered"] = (
+                None
+                if size is None or not record["class_right"] or low is None or high is None
+                else bool(low <= size <= high)
+            )
+        out.append(record)
+    return out
+
+
+def score_episodes(
+    episodes: Sequence[dict[str, Any]],
+    matches: Sequence[dict[str, Any]],
+    hours: float | None,
+) -> dict[str, Any]:
+    """Figures of one detector and sensor type: episodes, false episodes (per hour of
+    ``hours`` of log), and for matched ones the share classified right and the share of
+    size intervals covering the truth, per true fault model (None when undefined)."""
+    matched = [(e, m) for e, m in zip(episodes, matches) if m["match"] == "fault"]
+    false = sum(m["match"] == "false" for m in matches)
+    per_model: dict[str, dict[str, Any]] = {}
+    for _, m in matched:
+        row = per_model.setdefault(
+            m["true_class"], {"episodes": 0, "class_right": 0, "sized": 0, "covered": 0}
+        )
+        row["episodes"] += 1
+        row["class_right"] += bool(m["class_right"])
+        if m["covered"] is not None:
+            row["sized"] += 1
+            row["covered"] += bool(m["covered"])
+    for row in per_model.values():
+        row["class_accuracy"] = row["class_right"] / row["episodes"]
+        row["coverage"] = row["covered"] / row["sized"] if row["sized"] else None
+    sized = sum(r["sized"] for r in per_model.values())
+    return {
+        "episodes": len(episodes),
+        "matched": len(matched),
+        "wrong_sensor": sum(m["match"] == "wrong_sensor" for m in matches),
+        "false": false,
+        "false_episodes_per_hour": false / hours if hours else None,
+        "class_accuracy": (
+            sum(bool(m["class_right"]) for _, m in matched) / len(matched) if matched else None
+        ),
+        "coverage": (sum(r["covered"] for r in per_model.values()) / sized if sized else None),
+        "per_model": per_model,
+    }
+
+
 __all__ = [
     "MODELS",
     "Episode",
     "EpisodeBuilder",
     "FaultFit",
+    "episode_builders",
     "find_episodes",
     "fit_models",
     "isolation_summary",
     "leave_one_out",
+    "match_episodes",
+    "score_episodes",
+    "truth_size",
 ]

@@ -10,6 +10,7 @@ code  meaning
 1     a CI gate (``--fail-if``) failed
 2     usage: bad option, parameter, spec, layout or gate expression
 3     bad input data: unreadable, malformed or inconsistent files
+4     internal error (a bug); also every run of a campaign failing on one
 ===== ==========================================================
 
 Messages are a single line that names the problem and, where there is a finite set of
@@ -22,6 +23,7 @@ EXIT_OK = 0
 EXIT_GATE_FAILED = 1
 EXIT_USAGE = 2
 EXIT_BAD_INPUT = 3
+EXIT_INTERNAL = 4
 
 
 class ImufdiError(Exception):
@@ -84,6 +86,11 @@ class McapInputError(InputDataError):
     """An MCAP file is missing, not MCAP, truncated (with --strict) or has no IMU data."""
 
 
+class OutputError(InputDataError):
+    """An output file could not be written: disk full, file size limit, I/O error (exit 3;
+    the partial output has been removed)."""
+
+
 class CaptureError(InputDataError):
     """A raw serial capture could not be parsed (or, with --strict, had dropped bytes)."""
 
@@ -94,3 +101,12 @@ class TruthError(InputDataError):
 
 class CalibrationError(InputDataError):
     """The calibration window is empty, too short or degenerate."""
+
+
+class CampaignFailedError(ImufdiError):
+    """Every run of a campaign failed: exit 3 when they failed on the data (imufdi errors),
+    4 when any failed on an internal error (a bug)."""
+
+    def __init__(self, message: str, *, internal: bool) -> None:
+        super().__init__(message)
+        self.exit_code = EXIT_INTERNAL if internal else EXIT_BAD_INPUT

@@ -440,6 +440,10 @@ def load_fault_file(path: str | Path, array: ArrayConfig) -> list[Fault]:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise FaultSpecError(f"{path}: not valid TOML ({err})") from err
+    except RecursionError as err:  # tomllib parses nested arrays/tables recursively
+        raise FaultSpecError(
+            f"{path}: not valid TOML (arrays or tables nested too deeply)"
+        ) from err
     for key in data:
         if key != "fault":
             raise FaultSpecError(f"{path}: unknown top-level key {key!r}; valid: fault")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 import tempfile
 import time
 from collections.abc import Mapping, Sequence
@@ -49,8 +50,15 @@ def simulate_file(
     """Simulate a log (preset or free options) into an MCAP, streaming in blocks.
 
     With ``capture``, the same samples are also written as a raw ``mpu6500-array`` serial
-    capture (optionally with corrupted stretches), the input of ``imufdi ingest``.
+    capture (optionally with corrupted stretches), the input of ``imufdi ingest``
+    (``-`` = stdout, when the MCAP goes to a file). Both outputs are atomic: on any failure
+    neither file is created or changed.
     """
+    from imufdi_cli.fileio import check_outputs
+
+    check_outputs([], [("-o", output), ("--capture", capture)])
+    if capture == "-" and output == "-":
+        raise UsageError("-o - and --capture -: only one output can go to stdout")
     from imufdi_cli.mcapio import ImuArrayWriter, McapWriter
     from imufdi_cli.simulate import config_from_options, simulate
 
@@ -76,12 +84,12 @@ def simulate_file(
         encoder = None
         if capture:
             from imufdi_cli.capture import CaptureEncoder
-            from imufdi_cli.fileio import atomic_path
+            from imufdi_cli.fileio import open_atomic
 
             encoder = CaptureEncoder(array, corrupt=corrupt, seed=seed)
             # streamed like the MCAP: memory stays flat with log length
-            capture_file = stack.enter_context(
-                open(stack.enter_context(atomic_path(capture)), "wb")
+            capture_file = (
+                sys.stdout.buffer if capture == "-" else stack.enter_context(open_atomic(capture))
             )
         for name, data in metadata.items():
             writer.add_metadata(name, data)
@@ -94,9 +102,9 @@ def simulate_file(
             samples += len(block)
             imu_writer.write_block(block)
             if encoder is not None and capture_file is not None:
-                capture_bytes += capture_file.write(encoder.encode(block))
+                capture_bytes += _write_output(capture_file, encoder.encode(block), capture)
         if encoder is not None and capture_file is not None:
-            capture_bytes += capture_file.write(encoder.finish())
+            capture_bytes += _write_output(capture_file, encoder.finish(), capture)
     return SimulateResult(
         output=output,
         samples=samples,
@@ -105,6 +113,20 @@ def simulate_file(
         duration_s=(last - first) / 1e9 + 1.0 / array.rate_hz if samples else 0.0,
         capture_bytes=capture_bytes,
     )
+
+
+def _write_output(handle: Any, data: bytes, name: str | None) -> int:
+    """Write to an output file; a full disk or file size limit is an OutputError naming it."""
+    try:
+        return int(handle.write(data))
+    except BrokenPipeError:
+        raise
+    except OSError as err:
+        from imufdi_cli.errors import OutputError
+
+        raise OutputError(
+            f"cannot write {name}: {err.strerror or err}; nothing was written"
+        ) from err
 
 
 # --- ingest ----------------------------------------------------------------------------
@@ -335,6 +357,7 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
     from imufdi_cli.detect import detect_file
     from imufdi_cli.detectors import DETECTORS
     from imufdi_cli.faults import inject_file
+    from imufdi_cli.fileio import atomic_path, check_outputs, write_text
 
     if keep_dir:
         workdir = Path(keep_dir)
@@ -344,6 +367,13 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
         workdir = Path(tempfile.mkdtemp(prefix="imufdi-demo-"))
         cleanup = True
     result = DemoResult(directory=str(workdir))
+    check_outputs(
+        [p for p in SAMPLE_LOGS.iterdir() if p.is_file()] if SAMPLE_LOGS.is_dir() else [],
+        [
+            (f"--keep {keep_dir}", workdir / name)
+            for name in ("table4.mcap", "faulty.mcap", "detected.mcap", "report.md")
+        ],
+    )
 
     def step(name: str, command: str, output: Path, fn: Any) -> Any:
         console.print(f"[bold cyan]$ {command}[/]", markup=True)
@@ -373,7 +403,8 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
             )
         else:
             sample = SAMPLE_LOGS / "paper-table4.mcap"
-            shutil.copyfile(sample, base)
+            with atomic_path(base) as tmp:
+                shutil.copyfile(sample, tmp)
         faulty = workdir / "faulty.mcap"
         step(
             "inject",
@@ -399,7 +430,7 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
             md,
             lambda: rep.build_report(str(detected)),
         )
-        md.write_text(rep.to_markdown(report), encoding="utf-8")
+        write_text(str(md), rep.to_markdown(report))
         table = Table(title="demo: 0.9 deg/s step on imu0.gyro.x at 2.5 s (paper-table4)")
         table.add_column("detector")
         table.add_column("sensor")

@@ -24,7 +24,9 @@ def render() -> str:
         "a test fails when this file and `imufdi COMMAND --help` disagree.",
         "",
         "Exit codes for every command: `0` ok, `1` a `--fail-if` gate failed, `2` usage error,",
-        "`3` bad input data, `4` internal error. Errors are one line on stderr.",
+        "`3` bad input data (or an I/O error such as a full disk), `4` internal error;",
+        "`130` interrupted (SIGINT), `143` terminated (SIGTERM), `129` hung up (SIGHUP).",
+        "Errors are one line on stderr. No output is ever one of the command's inputs.",
         "",
     ]
     ctx = click.Context(

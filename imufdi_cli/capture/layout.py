@@ -68,6 +68,12 @@ ACCEL_FULL_SCALES: Final[dict[str, float]] = {
 MPU6500_TEMP_SENSITIVITY: Final[float] = 333.87
 MPU6500_TEMP_OFFSET_C: Final[float] = 21.0
 
+#: Bounds checked when a layout is loaded, before any buffer is sized from it: IMUs per
+#: frame (``n_imus``, ``max_imus``) and bytes per frame (any ``pad`` size, ``trailer_pad``
+#: and the whole frame with the most IMUs). Documented in docs/capture.md.
+MAX_LAYOUT_IMUS: Final[int] = 1024
+MAX_FRAME_BYTES: Final[int] = 1 << 20
+
 _DIMENSION_OF: Final[dict[str, str]] = {
     "gyro": "angular_rate",
     "accel": "acceleration",
@@ -318,11 +324,13 @@ def _endian(value: Any, where: str) -> str:
     return text
 
 
-def _int(value: Any, where: str, *, minimum: int | None = None) -> int:
+def _int(value: Any, where: str, *, minimum: int | None = None, maximum: int | None = None) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise LayoutError(f"{where}: expected an integer, got {value!r}")
     if minimum is not None and value < minimum:
         raise LayoutError(f"{where}: must be >= {minimum}, got {value}")
+    if maximum is not None and value > maximum:
+        raise LayoutError(f"{where}: must be <= {maximum}, got {value}")
     return value
 
 
@@ -467,7 +475,7 @@ def _field_type(item: Mapping[str, Any], where: str) -> tuple[str, int]:
         raise LayoutError(f"{where}: missing key 'type'; valid: {_choices(FIELD_TYPES)}, pad")
     type_name = str(item["type"])
     if type_name == "pad":
-        return "pad", _int(item.get("size", 1), f"{where}.size", minimum=1)
+        return "pad", _int(item.get("size", 1), f"{where}.size", minimum=1, maximum=MAX_FRAME_BYTES)
     if type_name not in FIELD_TYPES:
         raise LayoutError(
             f"{where}: unknown field type {type_name!r}; valid: {_choices(FIELD_TYPES)}, pad"
@@ -736,13 +744,13 @@ def _layout_from_dict(data: Mapping[str, Any], source: str) -> Layout:
     count_field = next((h for h in header if h.role == "imu_count"), None)
     n_imus: int | None = None
     if "n_imus" in data:
-        n_imus = _int(data["n_imus"], "n_imus", minimum=1)
+        n_imus = _int(data["n_imus"], "n_imus", minimum=1, maximum=MAX_LAYOUT_IMUS)
     elif count_field is None:
         raise LayoutError("n_imus: give a fixed IMU count or a header field with role 'imu_count'")
-    max_imus = _int(data.get("max_imus", 64), "max_imus", minimum=1)
+    max_imus = _int(data.get("max_imus", 64), "max_imus", minimum=1, maximum=MAX_LAYOUT_IMUS)
     if count_field is not None and n_imus is not None:
         raise LayoutError("n_imus: give a fixed n_imus or an 'imu_count' field, not both")
-    trailer = _int(data.get("trailer_pad", 0), "trailer_pad", minimum=0)
+    trailer = _int(data.get("trailer_pad", 0), "trailer_pad", minimum=0, maximum=MAX_FRAME_BYTES)
     checksum = _parse_checksum(data.get("checksum"), default_endian, len(sync))
     if not sync:
         raise LayoutError("sync: at least one sync byte is needed")
@@ -760,6 +768,14 @@ def _layout_from_dict(data: Mapping[str, Any], source: str) -> Layout:
         rate_hz=rate_hz,
         description=dict(data),
     )
+    largest = layout.max_frame_size
+    if largest > MAX_FRAME_BYTES:
+        count_key = "n_imus" if n_imus is not None else "max_imus"
+        raise LayoutError(
+            f"{count_key}: a frame of {layout.max_imus} IMUs is {largest} bytes"
+            f" ({len(header)} header fields, {record_offset}-byte records, trailer_pad"
+            f" {trailer}); the limit is {MAX_FRAME_BYTES} bytes per frame"
+        )
     _check_frame(layout)
     return layout
 
@@ -808,6 +824,8 @@ def load_layout(spec: str | Path, **builtin_options: Any) -> Layout:
         data = tomllib.loads(raw.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
         raise LayoutError(f"{path}: not valid TOML ({err})") from err
+    except RecursionError as err:  # tomllib parses nested arrays/tables recursively
+        raise LayoutError(f"{path}: not valid TOML (arrays or tables nested too deeply)") from err
     if builtin_options:
         data.update(builtin_options)
     return layout_from_dict(data, source=str(path))

@@ -844,7 +844,10 @@ class CnnMapDetector:
         if self.mapping is None:
             raise DetectorConfigError("cnn-map: no model to save; call fit() first")
         try:
-            Path(path).write_bytes(self.mapping.to_npz_bytes())
+            from imufdi_cli.fileio import open_atomic
+
+            with open_atomic(path) as handle:
+                handle.write(self.mapping.to_npz_bytes())
         except OSError as err:
             raise DetectorConfigError(f"cnn-map: cannot write model {str(path)!r} ({err})") from err
 

@@ -6,12 +6,15 @@ Events are read back as the plain dicts imufdi used before (older logs carry the
 channels, which are still read):
 
 - truth: ``{"event": "start"|"end", "t_ns", "t_s", "fault_id", "fault": Fault.to_dict()}``
-- alarms: ``{"detector", "sensor_type", "event": "alarm_start"|"alarm_end", "t_ns",
-  "isolated": sensor id or None, "isolable", "amplitude": float or None, "statistic"}``
+- alarms: ``{"detector", "sensor_type", "event": "alarm_start"|"alarm_end"|"episode",
+  "t_ns", "isolated": sensor id or None, "isolable", "amplitude": float or None,
+  "statistic"}``, and for ``episode`` events ``"episode"``: the explanation
+  (:meth:`imufdi_cli.episodes.Episode.to_dict`)
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import struct
@@ -227,6 +230,7 @@ def _fdi_template(
         cdr.prim("u1", isolable)
         at_amplitude = cdr.prim("f8", 0.0)
         at_statistic = cdr.prim("f8", 0.0)
+        _episode_fields(cdr, None)
         found = (cdr.payload(), (at_sec, at_nanosec, at_amplitude, at_statistic))
         if len(_TEMPLATES) > 4096:
             _TEMPLATES.clear()
@@ -272,7 +276,7 @@ def _fault_event(msg: dict[str, Any]) -> dict[str, Any]:
 
 def _fdi_event(msg: dict[str, Any]) -> dict[str, Any]:
     amplitude = float(msg["amplitude"])
-    return {
+    event = {
         "detector": msg["detector"],
         "sensor_type": msg["sensor_type"],
         "event": msg["event"],
@@ -282,6 +286,13 @@ def _fdi_event(msg: dict[str, Any]) -> dict[str, Any]:
         "amplitude": None if math.isnan(amplitude) else amplitude,
         "statistic": float(msg["statistic"]),
     }
+    detail = msg.get("detail")
+    if detail:
+        try:
+            event["episode"] = json.loads(detail)
+        except ValueError as err:
+            raise ValueError("malformed episode detail") from err
+    return event
 
 
 def decode_events(batch: MessageBatch, channel: ChannelInfo) -> list[dict[str, Any]]:
@@ -344,5 +355,41 @@ def encode_fdi_event_dicts(
         cdr.prim("u1", bool(event.get("isolable", True)))
         cdr.prim("f8", math.nan if amplitude is None else float(amplitude))
         cdr.prim("f8", float(event.get("statistic", math.nan)))
+        _episode_fields(cdr, event.get("episode"))
         payloads.append(cdr.payload())
     return MessageBatch.from_payloads(channel_id, np.asarray(log_time, np.int64), payloads)
+
+
+def _episode_fields(cdr: _CdrBuilder, episode: dict[str, Any] | None) -> None:
+    """The episode fields of FdiEvent: the explanation of an ``episode`` event, or the
+    empty/NaN defaults of an alarm start or end."""
+    best = (episode or {}).get("fits") or [{}]
+    fit = best[0]
+    cdr.string(str(fit.get("model", "")))
+    cdr.string(str(fit.get("size_name", "")))
+    for key in ("size", "low", "high"):
+        value = fit.get(key)
+        cdr.prim("f8", math.nan if value is None else float(value))
+    cdr.string("" if episode is None else json.dumps(episode, allow_nan=False))
+
+
+def encode_episode_events(channel_id: int, episodes: Sequence[dict[str, Any]]) -> MessageBatch:
+    """``episode`` FdiEvent messages from :meth:`imufdi_cli.episodes.Episode.to_dict`
+    dicts; stamped (and logged) at the decision time of each episode's last alarm."""
+    events = []
+    for episode in episodes:
+        sensors = episode.get("sensors") or []
+        events.append(
+            {
+                "t_ns": int(episode["decided_end_ns"]),
+                "detector": episode["detector"],
+                "sensor_type": episode["sensor_type"],
+                "event": "episode",
+                "isolated": sensors[0] if sensors else "",
+                "isolable": True,
+                "amplitude": None,
+                "statistic": float(episode.get("peak_ratio", math.nan)),
+                "episode": episode,
+            }
+        )
+    return encode_fdi_event_dicts(channel_id, [e["t_ns"] for e in events], events)

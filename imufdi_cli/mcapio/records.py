@@ -20,7 +20,6 @@ import io
 import os
 import struct
 import sys
-import tempfile
 import threading
 import zlib
 from collections import deque
@@ -32,7 +31,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from imufdi_cli.errors import McapInputError, UsageError
+from imufdi_cli.errors import McapInputError, OutputError, UsageError
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -355,13 +354,14 @@ def compress(raw: bytes | memoryview, compression: str) -> bytes:
         if compressor is None:
             import zstandard
 
-            compressor = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
+            # with the frame's content checksum: every zstd decoder verifies it
+            compressor = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True)
             _ZSTD_LOCAL.compressor = compressor
         return bytes(compressor.compress(raw))
     if compression == "lz4":
         import lz4.frame
 
-        return bytes(lz4.frame.compress(raw))
+        return bytes(lz4.frame.compress(raw, content_checksum=True))
     return bytes(raw)
 
 
@@ -529,18 +529,16 @@ class McapWriter:
         if isinstance(output, (str, os.PathLike)) and os.fspath(output) == "-":
             self._stream: IO[bytes] = sys.stdout.buffer
         elif isinstance(output, (str, os.PathLike)):
+            from imufdi_cli.fileio import create_temp, is_special
+
             final = Path(output)
-            directory = final.parent if str(final.parent) else Path(".")
-            try:
-                fd, temp = tempfile.mkstemp(dir=directory, prefix=f".{final.name}.", suffix=".tmp")
-            except OSError as err:
-                raise UsageError(f"cannot write {final}: {err.strerror}") from err
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(temp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual mode
             self._final_path = final
-            self._temp_path = Path(temp)
-            self._stream = io.BufferedWriter(io.FileIO(fd, "wb"), buffer_size=1 << 20)
+            if is_special(final):  # /dev/null, a FIFO: written in place, never replaced
+                self._stream = open(final, "wb", buffering=1 << 20)
+            else:
+                fd, temp = create_temp(final)  # the one output path (imufdi_cli.fileio)
+                self._temp_path = temp
+                self._stream = io.BufferedWriter(io.FileIO(fd, "wb"), buffer_size=1 << 20)
             self._owns_stream = True
         else:
             self._stream = output
@@ -573,8 +571,20 @@ class McapWriter:
 
     def _write_now(self, raw: bytes | memoryview) -> None:
         # The data section CRC is optional (0 = not computed, as the mcap package writes).
-        self._stream.write(raw)
+        try:
+            self._stream.write(raw)
+        except OSError as err:
+            self._write_failed(err)
         self._position += len(raw)
+
+    def _write_failed(self, err: OSError) -> None:
+        """A file output that cannot be written (ENOSPC, EFBIG, EIO) is an OutputError
+        naming it; stream errors (a closed pipe) pass through unchanged."""
+        if not self._owns_stream:
+            raise err
+        raise OutputError(
+            f"cannot write {self._final_path}: {err.strerror or err}; nothing was written"
+        ) from err
 
     def _shutdown_executor(self) -> None:
         self._in_flight.clear()
@@ -674,6 +684,7 @@ class McapWriter:
         unknown = np.setdiff1d(np.unique(batch.channel_id), list(self.channels))
         if unknown.size:
             raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
+        self._check_log_time(batch.channel_id, batch.log_time)
         sizes = batch.length.astype(np.int64) + MESSAGE_HEADER_SIZE
         cumulative = np.cumsum(sizes)
         start = 0
@@ -721,6 +732,7 @@ class McapWriter:
         unknown = np.setdiff1d(np.unique(channel_id), list(self.channels))
         if unknown.size:
             raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
+        self._check_log_time(channel_id, log_time)
         size = int(records.shape[1])
         start = 0
         while start < n:
@@ -734,6 +746,24 @@ class McapWriter:
             start = stop
             if self._pending_bytes >= self.chunk_size:
                 self._flush_chunk()
+
+    def _check_log_time(self, channel_id: np.ndarray, log_time: np.ndarray) -> None:
+        """Refuse log times the file format and the int64 time base cannot hold.
+
+        Times are int64 ns here; a u64 time >= 2^63 read from a file wraps to a negative
+        value. Such a message is bad input data (exit 3), named by topic and value.
+        """
+        log_time = np.asarray(log_time)
+        if log_time.size == 0 or int(log_time.min()) >= 0:
+            return
+        first = int(np.flatnonzero(log_time < 0)[0])
+        value = int(log_time[first])
+        channel = self.channels.get(int(channel_id[first]))
+        topic = channel.topic if channel is not None else f"channel {int(channel_id[first])}"
+        raise McapInputError(
+            f"{topic}: message log_time {value + (1 << 64) if value < 0 else value} ns is"
+            f" outside the supported range 0..{(1 << 63) - 1} ns"
+        )
 
     def add_message(
         self,
@@ -887,18 +917,23 @@ class McapWriter:
             return
         try:
             self._finish()
+            # The last buffered bytes reach the file here: a flush/close error (ENOSPC,
+            # EFBIG) must remove the temporary file like any other failure.
+            if self._owns_stream:
+                try:
+                    self._stream.close()
+                except OSError as err:
+                    self._write_failed(err)
+            else:
+                self._stream.flush()
+            if self._temp_path is not None and self._final_path is not None:
+                os.replace(self._temp_path, self._final_path)
         except BaseException:
             self.abort()
             raise
         finally:
             self._shutdown_executor()
         self._closed = True
-        if self._owns_stream:
-            self._stream.close()
-        else:
-            self._stream.flush()
-        if self._temp_path is not None and self._final_path is not None:
-            os.replace(self._temp_path, self._final_path)
 
     def abort(self) -> None:
         """Stop writing and remove the temporary file (nothing is left behind)."""
@@ -912,10 +947,9 @@ class McapWriter:
             except OSError:
                 pass
         if self._temp_path is not None:
-            try:
-                self._temp_path.unlink()
-            except FileNotFoundError:
-                pass
+            from imufdi_cli.fileio import discard_temp
+
+            discard_temp(self._temp_path)
 
     def _finish(self) -> None:
         self._flush_chunk()

@@ -123,7 +123,7 @@ float64[] param_values
 string spec             # the fault as the user wrote it
 """
 
-_FDI_EVENT = """# Start or end of an alarm of an imufdi detector, for one sensor type.
+_FDI_EVENT = """# Start or end of an alarm of an imufdi detector, for one sensor type, or an episode.
 # header.stamp: the sample at which the alarm starts or ends; header.frame_id is empty.
 std_msgs/Header header
 
@@ -134,6 +134,15 @@ string isolated         # sensor id isolated at that sample; empty when none
 bool isolable           # false when isolation is impossible (too few sensors per axis)
 float64 amplitude       # estimated fault amplitude (SI); NaN when none
 float64 statistic       # detection statistic at that sample
+
+# An explained alarm episode (event "episode"; header.stamp = decision time of its last
+# alarm); empty strings and NaN for alarm_start/alarm_end. docs/episodes.md.
+string fault_class      # step, drift, noise, scale, spikes or stuck; "" when unexplained
+string size_name        # amp, rate (per second), factor or value
+float64 size            # SI units of the sensor type; NaN when none
+float64 size_low        # confidence interval of size (level in detail)
+float64 size_high
+string detail           # the whole explanation as JSON: times, sensors, every fit, evidence
 """
 
 

@@ -101,3 +101,42 @@ def test_unknown_layout_name_lists_choices(tmp_path):
         load_layout(bad)
     with pytest.raises(LayoutError, match="cannot read layout"):
         load_layout(tmp_path / "missing.toml")
+
+
+PAD = {"name": "pad", "type": "pad"}
+GYRO = BASE["record"]
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"n_imus": 100_000_000}, "n_imus: must be <= 1024, got 100000000"),
+        ({"n_imus": None, "max_imus": 10**9}, "max_imus: must be <= 1024"),
+        ({"trailer_pad": 10**12}, "trailer_pad: must be <= 1048576"),
+        ({"record": [*GYRO, PAD | {"size": 10**12}]}, r"record\[3\].size: must be <= 1048576"),
+        ({"header": [PAD | {"size": 10**12}]}, r"header\[0\].size: must be <= 1048576"),
+        ({"n_imus": 1024, "record": [*GYRO, PAD | {"size": 2000}]}, "n_imus: a frame of 1024"),
+    ],
+)
+def test_sizes_are_bounded_before_anything_is_allocated(change, message):
+    data = {**BASE, **change}
+    if data.get("n_imus") is None:
+        data.pop("n_imus")
+        data["header"] = [{"type": "u8", "role": "imu_count"}]
+    with pytest.raises(LayoutError, match=message) as info:
+        layout_from_dict(data, source="board.toml")
+    assert "\n" not in str(info.value)
+
+
+def test_largest_allowed_frame_loads():
+    # 1024 IMUs of 1018-byte records with the 1-byte sync: 1024 * 1018 + 1 < 1 MiB
+    data = {**BASE, "n_imus": 1024, "record": [*GYRO, PAD | {"size": 1012}]}
+    assert layout_from_dict(data).frame_size(1024) == 1024 * 1018 + 1
+
+
+def test_deeply_nested_toml_is_a_layout_error(tmp_path):
+    deep = tmp_path / "deep.toml"
+    deep.write_text('sync = "AA"\nx = ' + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(LayoutError, match="nested too deeply") as info:
+        load_layout(deep)
+    assert "\n" not in str(info.value)

@@ -212,3 +212,141 @@ def test_sigkill_half_way_then_resume_equals_uninterrupted(cli, tmp_path):
     ref_summary = json.loads((tmp_path / "ref" / "summary.json").read_text())
     new_summary = json.loads((out / "summary.json").read_text())
     assert new_summary["groups"] == ref_summary["groups"]
+
+
+# --- malformed specs, results-directory lock, campaigns where every run fails ----------
+
+MALFORMED = {
+    "campaign not a table": ("campaign = 5\n", "campaign: expected a table [campaign], got int"),
+    "options not a table": (
+        SPEC.replace('options = { duration = "1s" }', 'options = "x"'),
+        "base[0].options: expected a table",
+    ),
+    "deep nesting": (SPEC + "x = " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply"),
+    "fault after the log": (
+        SPEC.replace('at = "0.7s"', 'at = "100s"'),
+        "at (100 s) is after the log ends (0.99 s)",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MALFORMED))
+def test_malformed_specs_exit_2_naming_the_problem(cli, tmp_path, case):
+    text, fragment = MALFORMED[case]
+    out = tmp_path / "out"
+    result = cli(["campaign", write(tmp_path, text), "-o", out])
+    assert_one_line_error(result, 2, fragment)
+    assert not out.exists()
+
+
+def test_a_second_campaign_on_one_directory_is_refused_naming_the_holder(cli, tmp_path):
+    from imufdi_cli.campaign import LOCK_NAME, results_lock
+
+    spec = write(tmp_path, SPEC)
+    out = tmp_path / "out"
+    out.mkdir()
+    with results_lock(out):  # as a running campaign holds it
+        result = cli(["campaign", spec, "-o", out, "--jobs", "1", "--resume"])
+    assert_one_line_error(result, 2, f"another campaign (pid {os.getpid()} on")
+    assert not (out / "runs").exists()
+    # a lock file left by a dead campaign does not block: the kernel released its lock
+    (out / LOCK_NAME).write_text("999999999 elsewhere\n")
+    result = cli(["campaign", spec, "-o", out, "--jobs", "1"])
+    assert result.code == 0, result.stderr
+    assert (out / LOCK_NAME).read_text().split()[0] == str(os.getpid())
+
+
+def test_a_lock_held_by_another_process_names_its_pid(cli, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from pathlib import Path; "
+            "from imufdi_cli.campaign import results_lock\n"
+            "with results_lock(Path(sys.argv[1])):\n"
+            "    print('locked', flush=True); time.sleep(60)",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2])),
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+        result = cli(["campaign", write(tmp_path, SPEC), "-o", out, "--jobs", "1"])
+        assert_one_line_error(result, 2, f"another campaign (pid {holder.pid} on")
+    finally:
+        holder.kill()
+        holder.wait()
+    result = cli(["campaign", write(tmp_path, SPEC), "-o", out, "--jobs", "1"])
+    assert result.code == 0, result.stderr
+
+
+def test_all_runs_failing_on_their_data_exits_3(cli, tmp_path):
+    spec = write(tmp_path, SPEC.replace('calibrate = "0s:0.6s"', 'calibrate = "5s:6s"'))
+    out = tmp_path / "out"
+    result = cli(["campaign", spec, "-o", out, "--jobs", "1"])
+    assert_one_line_error(result, 3, "all 4 runs failed (first: run ")
+    assert "4 runs (4 executed, 0 resumed, 4 failed)" in result.out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["failed"] == 4 and summary["failures"][0]["error"]
+
+
+def test_all_runs_failing_on_a_bug_exits_4(cli, tmp_path, monkeypatch):
+    import imufdi_cli.campaign
+
+    def bug(desc):
+        raise ZeroDivisionError("division by zero")
+
+    monkeypatch.setattr(imufdi_cli.campaign, "_execute", bug)
+    result = cli(["campaign", write(tmp_path, SPEC), "-o", tmp_path / "out", "--jobs", "1"])
+    assert_one_line_error(result, 4, "ZeroDivisionError: division by zero")
+
+
+def test_some_runs_failing_still_exits_0(cli, tmp_path, monkeypatch):
+    import imufdi_cli.campaign
+
+    real = imufdi_cli.campaign._execute
+
+    def flaky(desc):
+        if desc["seed"] == 1:
+            raise ZeroDivisionError("division by zero")
+        return real(desc)
+
+    monkeypatch.setattr(imufdi_cli.campaign, "_execute", flaky)
+    result = cli(["campaign", write(tmp_path, SPEC), "-o", tmp_path / "out", "--jobs", "1"])
+    assert result.code == 0, result.stderr
+    assert "2 failed" in result.out
+
+
+@pytest.mark.slow
+def test_sigterm_stops_a_campaign_cleanly_and_resume_finishes_it(cli, tmp_path):
+    spec = write(tmp_path, RESUME_SPEC)
+    out = tmp_path / "out"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "imufdi_cli", "campaign", str(spec), "-o", str(out), "--jobs", "1"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    deadline = time.monotonic() + 120
+    while len(list(out.glob("runs/*.json"))) < 2:
+        assert proc.poll() is None, proc.communicate()[1]
+        assert time.monotonic() < deadline, "no run finished within 120 s"
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 143, stderr
+    assert [line for line in stderr.splitlines() if "error" in line] == [
+        "imufdi: error: terminated by SIGTERM"
+    ]
+    assert not [p for p in out.rglob("*") if ".tmp" in p.name]
+    done = len(list(out.glob("runs/*.json")))
+    assert 2 <= done < 24
+    resumed = cli(["campaign", spec, "-o", out, "--jobs", "1", "--resume"])  # lock released
+    assert resumed.code == 0, resumed.stderr
+    assert f"24 runs ({24 - done} executed, {done} resumed, 0 failed)" in resumed.out

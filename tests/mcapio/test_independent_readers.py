@@ -27,6 +27,7 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.reader import read_ros2_messages
 from rosbags.highlevel import AnyReader
 
+from imufdi_cli.episodes import find_episodes
 from imufdi_cli.mcapio import McapSource, decode_imu, read_events, read_status
 from tests.cli.conftest import invoke
 
@@ -126,6 +127,9 @@ def _expected_counts(name: str, path: Path) -> Counter[str]:
             counts[f"/imufdi/{detector}/{sensor_type}"] = n
             alarm = arrays.alarm.astype(np.int8)
             transitions += int(np.count_nonzero(np.diff(np.concatenate([[0], alarm]))))
+            # plus one explained "episode" event per alarm episode (docs/episodes.md:
+            # alarm runs merged across gaps of up to 0.1 s, 10 samples at 100 Hz)
+            transitions += len(find_episodes(arrays.alarm, merge_gap=10))
         if transitions:
             counts["/imufdi/events"] = transitions
     return counts

@@ -1,0 +1,363 @@
+"""Every command's outputs: never an input (path, symlink, hard link), never each other,
+no temporary file left on failure or on SIGTERM/SIGINT, one-line messages for any error."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.cli.conftest import assert_one_line_error
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def leftovers(directory: Path) -> list[str]:
+    return sorted(p.name for p in directory.iterdir() if ".tmp" in p.name)
+
+
+def alias(kind: str, target: Path, directory: Path) -> Path:
+    """``target`` itself, or a symlink / hard link to it in ``directory``."""
+    if kind == "path":
+        return target
+    at = directory / f"alias-{kind}{target.suffix}"
+    if kind == "symlink":
+        at.symlink_to(target)
+    else:
+        os.link(target, at)
+    return at
+
+
+#: command -> (input file name in the work directory, argv with IN and OUT placeholders)
+COMMANDS = {
+    "inject": (
+        "log.mcap",
+        ["inject", "IN", "--fault", "step:imu0.gyro.x,at=0.5s,amp=1deg/s", "-o", "OUT"],
+    ),
+    "detect": ("log.mcap", ["detect", "IN", "-d", "glt", "-o", "OUT"]),
+    "report --json": ("det.mcap", ["report", "IN", "--json", "OUT"]),
+    "report --markdown": ("det.mcap", ["report", "IN", "--markdown", "OUT"]),
+    "report --csv": ("det.mcap", ["report", "IN", "--csv", "OUT"]),
+    "report --junit": ("det.mcap", ["report", "IN", "--junit", "OUT"]),
+    "report --plot": ("det.mcap", ["report", "IN", "--plot", "OUT"]),
+    "tune": ("log.mcap", ["tune", "IN", "-o", "OUT"]),
+    "ingest": ("cap.bin", ["ingest", "IN", "-o", "OUT"]),
+    "ingest --layout": ("layout.toml", ["ingest", "cap.bin", "--layout", "IN", "-o", "OUT"]),
+    "ingest --array": ("array.toml", ["ingest", "cap.bin", "--array", "IN", "-o", "OUT"]),
+    "inject --faults": ("faults.toml", ["inject", "log.mcap", "--faults", "IN", "-o", "OUT"]),
+}
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory, detected_log) -> Path:
+    from tests.cli.conftest import invoke
+
+    base = tmp_path_factory.mktemp("outputs")
+    made = invoke(
+        [
+            "simulate",
+            "--preset",
+            "paper-table4",
+            "--duration",
+            "1s",
+            "-o",
+            base / "log.mcap",
+            "--capture",
+            base / "cap.bin",
+        ]
+    )
+    assert made.code == 0, made.stderr
+    shutil.copyfile(detected_log, base / "det.mcap")
+    (base / "layout.toml").write_text(
+        'sync = "AA"\nn_imus = 1\nrate_hz = 100\n[[record]]\nname = "gyro_x"\ntype = "i16"\n'
+        'scale = "1deg/s"\n[[record]]\nname = "gyro_y"\ntype = "i16"\nscale = "1deg/s"\n'
+        '[[record]]\nname = "gyro_z"\ntype = "i16"\nscale = "1deg/s"\n'
+    )
+    (base / "array.toml").write_text("not even read\n")
+    (base / "faults.toml").write_text(
+        '[[fault]]\nmodel = "step"\nsensor = "imu0.gyro.x"\nat = "0.5s"\namp = "1deg/s"\n'
+    )
+    return base
+
+
+@pytest.mark.parametrize("kind", ["path", "symlink", "hardlink"])
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_an_output_equal_to_an_input_is_refused(cli, workdir, tmp_path, command, kind):
+    name, argv = COMMANDS[command]
+    source = workdir / name
+    before = sha(source)
+    out = alias(kind, source, tmp_path)
+    args = [str(source) if a == "IN" else str(out) if a == "OUT" else a for a in argv]
+    args = [str(workdir / a) if (workdir / a).is_file() and a != name else a for a in args]
+    result = cli(args)
+    assert_one_line_error(result, 2, "is the input file")
+    assert sha(source) == before
+    assert leftovers(workdir) == [] and leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("kind", ["path", "symlink", "hardlink"])
+def test_simulate_refuses_one_file_for_mcap_and_capture(cli, tmp_path, kind):
+    target = tmp_path / "x.bin"
+    target.write_bytes(b"keep me")
+    other = alias(kind, target, tmp_path)
+    result = cli(["simulate", "--preset", "paper-table4", "-o", target, "--capture", other])
+    assert_one_line_error(result, 2, "are the same file")
+    assert target.read_bytes() == b"keep me"
+    assert leftovers(tmp_path) == []
+    both_stdout = cli(["simulate", "--preset", "paper-table4", "-o", "-", "--capture", "-"])
+    assert_one_line_error(both_stdout, 2, "only one output can go to stdout")
+
+
+def test_report_refuses_two_outputs_in_one_file(cli, workdir, tmp_path):
+    out = tmp_path / "r.txt"
+    result = cli(["report", workdir / "det.mcap", "--json", out, "--markdown", out])
+    assert_one_line_error(result, 2, "--json")
+    assert not out.exists()
+
+
+def test_campaign_refuses_results_over_its_spec(cli, tmp_path):
+    results = tmp_path / "res"
+    results.mkdir()
+    spec = results / "summary.md"  # odd, but an input all the same
+    spec.write_text(
+        '[[base]]\npreset = "paper-table4"\noptions = { duration = "1s" }\n'
+        '[[fault]]\nmodel = "step"\nsensor = "imu0.gyro.x"\nat = "0.5s"\namp = "1deg/s"\n'
+        '[[detector]]\nname = "glt"\n'
+    )
+    before = sha(spec)
+    result = cli(["campaign", spec, "-o", results, "--jobs", "1"])
+    assert_one_line_error(result, 2, "is the input file")
+    assert sha(spec) == before
+
+
+def test_output_into_a_missing_directory_is_a_usage_error(cli, workdir, tmp_path):
+    result = cli(["report", workdir / "det.mcap", "--json", tmp_path / "no" / "r.json"])
+    assert_one_line_error(result, 2, "does not exist")
+
+
+# --- unexpected exceptions ------------------------------------------------------------
+
+
+def test_an_empty_memory_error_still_gives_one_informative_line(cli, workdir, monkeypatch):
+    import imufdi_cli.pipeline
+
+    def boom(*args, **kwargs):
+        raise MemoryError()
+
+    monkeypatch.setattr(imufdi_cli.pipeline, "log_info", boom)
+    result = cli(["info", workdir / "log.mcap"])
+    assert_one_line_error(result, 3, "out of memory")
+    monkeypatch.setenv("IMUFDI_DEBUG", "1")
+    debug = cli(["info", workdir / "log.mcap"])
+    assert debug.code == 3
+    assert "Traceback" in debug.stderr and "MemoryError" in debug.stderr
+    assert debug.stderr.strip().splitlines()[-1].startswith("imufdi: error: out of memory")
+
+
+def test_a_bug_is_exit_4_with_its_class(cli, workdir, monkeypatch):
+    import imufdi_cli.pipeline
+
+    def boom(*args, **kwargs):
+        raise KeyError()
+
+    monkeypatch.setattr(imufdi_cli.pipeline, "log_info", boom)
+    result = cli(["info", workdir / "log.mcap"])
+    assert_one_line_error(result, 4, "internal error (KeyError (no message))")
+
+
+# --- signals ------------------------------------------------------------------------
+
+
+def _start_long_simulate(directory: Path) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.pop("IMUFDI_DEBUG", None)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "imufdi_cli",
+            "simulate",
+            "--imus",
+            "8",
+            "--rate",
+            "1kHz",
+            "--duration",
+            "2h",
+            "-o",
+            str(directory / "long.mcap"),
+            "--capture",
+            str(directory / "long.bin"),
+        ],
+        env=env,
+        cwd=directory,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _wait_for_partial_output(process: subprocess.Popen, directory: Path) -> None:
+    """Until both temporary files hold data (the command is mid-write)."""
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        assert process.poll() is None, process.communicate()[1]
+        sizes = [p.stat().st_size for p in directory.glob(".long.*.tmp")]
+        if len(sizes) == 2 and min(sizes) > 0:
+            return
+        time.sleep(0.05)
+    process.kill()
+    pytest.fail("the simulation never started writing")
+
+
+@pytest.mark.parametrize(
+    ("signum", "code", "fragment"),
+    [(signal.SIGTERM, 143, "terminated by SIGTERM"), (signal.SIGINT, 130, "interrupted")],
+)
+def test_a_signal_mid_write_removes_the_partial_outputs(tmp_path, signum, code, fragment):
+    process = _start_long_simulate(tmp_path)
+    _wait_for_partial_output(process, tmp_path)
+    process.send_signal(signum)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == code, stderr
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert lines == [f"imufdi: error: {fragment}"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_temps_of_a_killed_writer_are_removed_by_the_next_write(cli, tmp_path):
+    process = _start_long_simulate(tmp_path)
+    _wait_for_partial_output(process, tmp_path)
+    process.kill()  # SIGKILL: no handler can run
+    process.communicate(timeout=60)
+    assert len(list(tmp_path.glob(".long.*.tmp"))) == 2
+    result = cli(
+        [
+            "simulate",
+            "--preset",
+            "paper-table4",
+            "--duration",
+            "1s",
+            "-o",
+            tmp_path / "long.mcap",
+            "--capture",
+            tmp_path / "long.bin",
+        ]
+    )
+    assert result.code == 0, result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["long.bin", "long.mcap"]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_FSIZE semantics")
+def test_a_file_size_limit_mid_write_is_exit_3_and_leaves_nothing(tmp_path):
+    import resource
+
+    def limit() -> None:  # `ulimit -f 200`: writes past 200 KiB fail with EFBIG
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200 * 1024, 200 * 1024))
+
+    for extra in ([], ["--capture", str(tmp_path / "long.bin")]):
+        process = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "imufdi_cli",
+                "simulate",
+                "--preset",
+                "paper-table4",
+                "--duration",
+                "30s",
+                "-o",
+                str(tmp_path / "long.mcap"),
+                *extra,
+            ],
+            env=dict(os.environ, PYTHONPATH=str(REPO)),
+            preexec_fn=limit,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        lines = [line for line in process.stderr.splitlines() if line.strip()]
+        assert process.returncode == 3, process.stderr
+        assert len(lines) == 1 and "File too large" in lines[0], process.stderr
+        assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def _with_huge_log_time(source: Path, target: Path) -> None:
+    """Copy a log with the mcap package, giving its 50th message log_time 2^63 + 5."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(source, "rb") as stream, open(target, "wb") as out:
+        reader = make_reader(stream)
+        writer = Writer(out)
+        writer.start("ros2", "test")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for index, (schema, channel, message) in enumerate(reader.iter_messages()):
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id], channel.metadata
+                )
+            log_time = (1 << 63) + 5 if index == 49 else message.log_time
+            writer.add_message(channels[channel.id], log_time, message.data, message.publish_time)
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        writer.finish()
+
+
+@pytest.mark.parametrize("command", ["detect", "inject"])
+def test_a_log_time_beyond_int64_is_bad_data_not_a_bug(cli, workdir, tmp_path, command):
+    source = tmp_path / "huge.mcap"
+    _with_huge_log_time(workdir / "log.mcap", source)
+    extra = ["-d", "glt"] if command == "detect" else ["--fault", "step:imu0.gyro.x,amp=1deg/s"]
+    result = cli([command, source, *extra, "-o", tmp_path / "out.mcap"])
+    assert result.code == 3, result.stderr
+    assert_one_line_error(result, 3, "")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["huge.mcap"]
+
+
+def test_an_ignored_signal_stays_ignored(tmp_path):
+    """nohup (SIGHUP ignored) must keep working: the handler is not installed over SIG_IGN."""
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import signal, sys; signal.signal(signal.SIGHUP, signal.SIG_IGN)\n"
+            "from imufdi_cli.cli import main\n"
+            "main(sys.argv[1:])",
+            "simulate",
+            "--preset",
+            "paper-table4",
+            "--duration",
+            "60s",
+            "-o",
+            str(tmp_path / "x.mcap"),
+        ],
+        env=dict(os.environ, PYTHONPATH=str(REPO)),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".x.mcap.*.tmp")):
+        assert process.poll() is None, process.communicate()[1]
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    process.send_signal(signal.SIGHUP)
+    _, stderr = process.communicate(timeout=300)
+    assert process.returncode == 0, stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.mcap"]
