@@ -425,7 +425,7 @@ def decompress(raw: bytes | memoryview, compression: str, uncompressed_size: int
     except McapInputError:
         raise
     except Exception as err:  # zstandard.ZstdError, lz4's RuntimeError, ...
-        raise McapInputError(f"corrupt {compression} data ({_error_text(err)})") from err
+        raise McapInputError(f"corrupt {compression} chunk ({_error_text(err)})") from err
     if len(out) > uncompressed_size:
         raise McapInputError(
             f"{compression or 'uncompressed'} records exceed the declared size of"
