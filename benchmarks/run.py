@@ -28,7 +28,9 @@ QUICK: dict[str, list[str]] = {
     "mvmd": ["--seeds", "3"],
     "noise_glr": ["--seeds", "5"],
     "bank": ["--duration", "30"],
+    "report": ["--minutes", "1"],
     "events": ["--events", "5000"],
+    "woa": ["--duration", "10"],
 }
 
 

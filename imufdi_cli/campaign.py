@@ -10,8 +10,9 @@ that fails is recorded with its error and the campaign goes on.
 
 Runs use the library in memory (simulate or read the base log once, inject with
 :class:`~imufdi_cli.faults.FaultInjector`, stream blocks through the detector, score with
-:func:`~imufdi_cli.metrics.compute_metrics`): the same maths as ``inject | detect |
-report``, without writing intermediate MCAP files.
+:class:`~imufdi_cli.metrics.MetricsAccumulator`, rows stamped with their decision time as
+:mod:`imufdi_cli.detect` does): the same maths as ``inject | detect | report
+--match-far``, without writing intermediate MCAP files.
 
 Spec example::
 
@@ -19,7 +20,8 @@ Spec example::
     name = "compare"
     seeds = [0, 1, 2, 3, 4]
     calibrate = "0s:2s"
-    metrics = ["far", "mar", "fir", "detection_delay_s"]
+    match_far = "1%"
+    metrics = ["far", "mar", "fir", "detection_delay_s", "mar_at_far"]
 
     [[base]]
     preset = "paper-table4"
@@ -28,6 +30,7 @@ Spec example::
     model = "step"
     sensor = ["imu0.gyro.x", "imu7.gyro.z"]
     at = "2.5s"
+    at_jitter = "0.5s"
     amp = ["0.3deg/s", "0.6deg/s", "0.9deg/s"]
 
     [[detector]]
@@ -63,8 +66,6 @@ from imufdi_cli.fileio import atomic_path, check_outputs, write_text
 from imufdi_cli.metrics import (
     METRIC_NAMES,
     FaultWindow,
-    compute_metrics,
-    faulty_matrix,
     mean_metrics,
 )
 
@@ -73,7 +74,18 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-DEFAULT_METRICS = ["far", "mar", "accuracy", "fir", "detection_delay_s", "detection_probability"]
+DEFAULT_METRICS = [
+    "far",
+    "mar",
+    "accuracy",
+    "fir",
+    "detection_delay_s",
+    "isolation_delay_s",
+    "detection_probability",
+    "mar_at_far",
+]
+#: Target FAR of the ``*_at_far`` figures unless ``campaign.match_far`` says otherwise.
+DEFAULT_MATCH_FAR = 0.01
 BLOCK_SAMPLES = 4096
 NS_PER_S = 1_000_000_000
 #: BLAS/OpenMP thread caps for worker processes: on a small machine, one BLAS thread per
@@ -110,9 +122,11 @@ def _grid(params: Mapping[str, Any]) -> list[dict[str, Any]]:
 
 
 def _fault_specs(table: Mapping[str, Any], where: str) -> list[str]:
-    """Expand one [[fault]] table into spec strings of the CLI grammar."""
+    """Expand one [[fault]] table into spec strings of the CLI grammar (``at_jitter`` is
+    not part of the spec: see :func:`_jitter_of`)."""
     if "model" not in table or "sensor" not in table:
         raise CampaignSpecError(f"{where}: needs model and sensor")
+    table = {k: v for k, v in table.items() if k != "at_jitter"}
     specs = []
     for combo in _grid(table):
         model = combo.pop("model")
@@ -120,6 +134,54 @@ def _fault_specs(table: Mapping[str, Any], where: str) -> list[str]:
         items = ",".join(f"{k}={v}" for k, v in sorted(combo.items()))
         specs.append(f"{model}:{sensor}" + (f",{items}" if items else ""))
     return specs
+
+
+def _jitter_of(table: Mapping[str, Any], where: str) -> float | None:
+    """``at_jitter = "0.5s"`` of a [[fault]] table in seconds (None when absent).
+
+    Each run draws its onset uniformly in ``[at, at + at_jitter]`` from its seed
+    (:func:`jittered_specs`), so onsets do not sit on one sample or window grid."""
+    if "at_jitter" not in table:
+        return None
+    from imufdi_cli.units import parse_quantity
+
+    if "at" not in table:
+        raise CampaignSpecError(f"{where}.at_jitter: needs an onset `at` to jitter")
+    try:
+        value = parse_quantity(str(table["at_jitter"]), "time", name=f"{where}.at_jitter")
+    except ImufdiError as err:
+        raise CampaignSpecError(str(err)) from err
+    if not value >= 0.0 or not np.isfinite(value):
+        raise CampaignSpecError(f"{where}.at_jitter: must be a time >= 0, got {value!r}")
+    return float(value)
+
+
+def jittered_specs(
+    specs: Sequence[str], jitters: Sequence[float | None] | None, seed: int, array: Any
+) -> tuple[list[str], list[float | None]]:
+    """Fault specs with their onsets drawn per seed; returns the specs applied and each
+    fault's onset in seconds from the log start (None for faults without ``at``).
+
+    The draw depends only on the seed and the fault's position in the run, so every
+    detector and amplitude of a seed sees the same onset (paired comparisons).
+    """
+    from imufdi_cli.faults import parse_fault_spec
+
+    out: list[str] = []
+    onsets: list[float | None] = []
+    for index, spec in enumerate(specs):
+        jitter = None if not jitters else jitters[index]
+        fault = parse_fault_spec(spec, array)
+        onset = fault.at_ns / NS_PER_S
+        if jitter:
+            rng = np.random.default_rng([int(seed), index, 0x4A17])
+            onset += float(rng.uniform(0.0, jitter))
+            head, *items = spec.split(",")
+            items = [it for it in items if not it.startswith("at=")]
+            spec = ",".join([head, *items, f"at={onset:.9f}s"])
+        out.append(spec)
+        onsets.append(onset)
+    return out, onsets
 
 
 def _calibration_window(value: Any, where: str) -> list[float | None]:
@@ -162,7 +224,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
         raise CampaignSpecError(
             f"{path}: campaign: expected a table [campaign], got {type(head).__name__}"
         )
-    head_keys = {"name", "seeds", "calibrate", "metrics"}
+    head_keys = {"name", "seeds", "calibrate", "metrics", "match_far"}
     for key in head:
         if key not in head_keys:
             raise CampaignSpecError(
@@ -174,6 +236,14 @@ def load_spec(path: str | Path) -> CampaignSpec:
     ):
         raise CampaignSpecError(f"{path}: campaign.seeds must be a non-empty list of integers >= 0")
     cal = _calibration_window(head.get("calibrate", "0s:2s"), f"{path}: campaign.calibrate")
+    match_far = DEFAULT_MATCH_FAR
+    if "match_far" in head:
+        from imufdi_cli.report import parse_far
+
+        try:
+            match_far = parse_far(str(head["match_far"]))
+        except ImufdiError as err:
+            raise CampaignSpecError(f"{path}: campaign.match_far: {err}") from err
     metrics = [str(m) for m in _as_list(head.get("metrics", DEFAULT_METRICS))]
     for metric in metrics:
         if metric not in METRIC_NAMES:
@@ -267,13 +337,18 @@ def load_spec(path: str | Path) -> CampaignSpec:
         return chosen
 
     fault_sets: list[tuple[list[str], set[int]]] = []
+    jitter_of: dict[str, float] = {}
     for i, table in enumerate(_as_list(data.get("fault", []))):
         where = f"{path}: fault[{i}]"
         if not isinstance(table, Mapping):
             raise CampaignSpecError(f"{where}: expected a table")
         where_bases = scope(table, where)
         grid = {k: v for k, v in table.items() if k != "bases"}
-        fault_sets += [([spec], where_bases) for spec in _fault_specs(grid, where)]
+        jitter = _jitter_of(grid, where)
+        for spec in _fault_specs(grid, where):
+            fault_sets.append(([spec], where_bases))
+            if jitter:
+                jitter_of[spec] = jitter
     if not fault_sets:
         raise CampaignSpecError(f"{path}: the fault matrix is empty; add [[fault]] tables")
 
@@ -335,16 +410,19 @@ def load_spec(path: str | Path) -> CampaignSpec:
         if index not in fault_bases or index not in det_bases:
             continue
         window = det_cal or base_cal or cal  # detector over base over campaign
-        runs.append(
-            {
-                "base": base,
-                "seed": int(seed),
-                "faults": specs,
-                "detector": det,
-                "params": params,
-                "calibrate": window,
-            }
-        )
+        desc: dict[str, Any] = {
+            "base": base,
+            "seed": int(seed),
+            "faults": specs,
+            "detector": det,
+            "params": params,
+            "calibrate": window,
+        }
+        if any(spec in jitter_of for spec in specs):
+            desc["at_jitter"] = [jitter_of.get(spec) for spec in specs]
+        if match_far != DEFAULT_MATCH_FAR:
+            desc["match_far"] = match_far
+        runs.append(desc)
     for index, name in enumerate(base_names):
         if not any(run["base"] is bases[index] for run in runs):
             raise CampaignSpecError(
@@ -398,10 +476,11 @@ def execute_run(desc: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
+    from imufdi_cli.detect import calibration_window_ns, decision_positions, lookahead_of
     from imufdi_cli.detectors import make_detector
-    from imufdi_cli.detectors.base import DetectionBlock
     from imufdi_cli.faults import FaultInjector, parse_fault_spec
     from imufdi_cli.log import iter_blocks
+    from imufdi_cli.metrics import MetricsAccumulator
     from imufdi_cli.simulate import config_from_options, simulate_block
 
     base = desc["base"]
@@ -411,44 +490,67 @@ def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
         array, block = simulate_block(config)
     else:
         array, block = _read_base(base["file"])
-    faults = [parse_fault_spec(spec, array) for spec in desc["faults"]]
+    specs, onsets = jittered_specs(desc["faults"], desc.get("at_jitter"), seed, array)
+    faults = [parse_fault_spec(spec, array) for spec in specs]
     t0 = int(block.t_ns[0])
     injector = FaultInjector(faults, array, seed=seed, t0_ns=t0)
     faulty = injector.apply_block(block)
     detector = make_detector(desc["detector"], desc["params"])
-    rel = (faulty.t_ns - t0) / NS_PER_S
     cal_start, cal_end = desc["calibrate"]
-    keep = rel >= cal_start
-    if cal_end is not None:
-        keep &= rel < cal_end
+    window = calibration_window_ns(t0, int(faulty.t_ns[-1]), cal_start, cal_end)
+    assert window is not None
+    keep = (faulty.t_ns >= window[0]) & (faulty.t_ns < window[1])
     detector.fit(faulty.mask(keep), array)
-    outputs: dict[str, list[DetectionBlock]] = {}
+    lookahead = lookahead_of(detector)
+    accumulators: dict[str, MetricsAccumulator] = {}
+    emitted: dict[str, int] = {}
+    passed = 0
+
+    def score(outputs: Mapping[str, Any]) -> None:
+        for sensor_type, out in outputs.items():
+            if sensor_type not in accumulators:
+                ids = array.sensor_ids(sensor_type)
+                windows = []
+                for fault in faults:
+                    if fault.sensor_type != sensor_type:
+                        continue
+                    columns = [ids.index(s) for s in fault.sensors if s in ids]
+                    end = None if fault.until_ns is None else t0 + fault.until_ns
+                    windows.append(FaultWindow(fault.id, tuple(columns), t0 + fault.at_ns, end))
+                accumulators[sensor_type] = MetricsAccumulator(
+                    len(ids), windows, calibration_ns=(window[0], window[1])
+                )
+                emitted[sensor_type] = 0
+            rows = len(out)
+            first = emitted[sensor_type]
+            positions = decision_positions(first, rows, passed, lookahead)
+            accumulators[sensor_type].update(
+                faulty.t_ns[first : first + rows],
+                out.alarm,
+                out.isolated,
+                decided_ns=faulty.t_ns[positions],
+                isolated_set=out.isolated_set,
+                statistic=out.statistic,
+                threshold=out.threshold,
+                scores=out.scores,
+            )
+            emitted[sensor_type] = first + rows
+
     for part in iter_blocks(faulty, BLOCK_SAMPLES):
-        for sensor_type, out in detector.process(part).items():
-            outputs.setdefault(sensor_type, []).append(out)
-    for sensor_type, out in detector.flush().items():
-        outputs.setdefault(sensor_type, []).append(out)
+        passed += len(part)
+        score(detector.process(part))
+    score(detector.flush())
+    target = float(desc.get("match_far", DEFAULT_MATCH_FAR))
     figures: dict[str, Any] = {}
-    for sensor_type, parts in outputs.items():
-        det = DetectionBlock.concatenate(parts)
-        ids = array.sensor_ids(sensor_type)
-        windows = []
-        for fault in faults:
-            if fault.sensor_type != sensor_type:
-                continue
-            columns = [ids.index(s) for s in fault.sensors if s in ids]
-            end = None if fault.until_ns is None else t0 + fault.until_ns
-            windows.append(FaultWindow(fault.id, tuple(columns), t0 + fault.at_ns, end))
-        metrics = compute_metrics(
-            faulty.t_ns,
-            det.alarm,
-            det.isolated,
-            faulty_matrix(faulty.t_ns, windows, len(ids)),
-            windows,
-            isolated_set=det.isolated_set,
-        )
+    for sensor_type, acc in accumulators.items():
+        metrics = acc.result()
+        note = acc.matched(metrics, target)
         figures[sensor_type] = {name: metrics.value(name) for name in METRIC_NAMES} | {
-            "faults": [f.to_dict() for f in metrics.faults]
+            "faults": [f.to_dict() for f in metrics.faults],
+            "onsets_s": onsets,
+            "applied_faults": specs,
+            "target_far": target,
+            "notes": [note] if note else [],
         }
     return figures
 
@@ -782,16 +884,37 @@ def _run_locked(
     )
 
 
+_AMPLITUDE_KEYS = ("amp", "rate", "factor", "sigma")
+
+
 def _fault_model_amp(specs: Sequence[str]) -> tuple[str, str]:
     """Model and amplitude-like parameter of a run's (first) fault spec, for grouping."""
     spec = specs[0]
     model, rest = spec.split(":", 1)
     parts = rest.split(",")
     values = dict(p.split("=", 1) for p in parts[1:] if "=" in p)
-    amp = (
-        values.get("amp") or values.get("rate") or values.get("factor") or values.get("sigma") or ""
-    )
+    amp = next((values[k] for k in _AMPLITUDE_KEYS if values.get(k)), "")
     return model, amp
+
+
+def _fault_label(specs: Sequence[str]) -> tuple[str, str]:
+    """The run's (first) fault spec without its amplitude, and its sensor: runs that differ
+    only in amplitude share the label (one curve), faults on different sensors do not."""
+    spec = specs[0]
+    head, *items = spec.split(",")
+    kept = [it for it in items if it.split("=", 1)[0] not in _AMPLITUDE_KEYS]
+    sensor = head.split(":", 1)[1] if ":" in head else ""
+    return ",".join([head, *kept]), sensor
+
+
+def _amplitude_number(amplitude: str) -> tuple[float | None, str]:
+    """``"0.9deg/s"`` -> ``(0.9, "deg/s")``: the spec's number and unit as written."""
+    import re
+
+    match = re.match(r"^\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*(.*?)\s*$", amplitude)
+    if not match:
+        return None, ""
+    return float(match.group(1)), match.group(2)
 
 
 def _base_label(base: Mapping[str, Any]) -> str:
@@ -806,11 +929,19 @@ def _rows(results: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
     for r in results:
         run = r["run"]
         model, amp = _fault_model_amp(run["faults"])
+        label, sensor = _fault_label(run["faults"])
+        onsets: list[Any] = []
+        if r["ok"]:
+            first: Mapping[str, Any] = next(iter(r["metrics"].values()), {})
+            onsets = first.get("onsets_s") or []
         common = {
             "key": r["key"],
             "base": _base_label(run["base"]),
             "seed": run["seed"],
             "faults": ";".join(run["faults"]),
+            "fault": label,
+            "sensor": sensor,
+            "onset_s": ";".join("" if o is None else f"{o:.6f}" for o in onsets),
             "model": model,
             "amplitude": amp,
             "detector": run["detector"],
@@ -824,6 +955,7 @@ def _rows(results: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
         for sensor_type, figures in sorted(r["metrics"].items()):
             row = common | {"sensor_type": sensor_type}
             row |= {name: figures.get(name) for name in METRIC_NAMES}
+            row["target_far"] = figures.get("target_far")
             rows.append(row)
     return rows
 
@@ -834,6 +966,9 @@ def _rows_csv(rows: Sequence[Mapping[str, Any]]) -> str:
         "base",
         "seed",
         "faults",
+        "fault",
+        "sensor",
+        "onset_s",
         "model",
         "amplitude",
         "detector",
@@ -842,6 +977,7 @@ def _rows_csv(rows: Sequence[Mapping[str, Any]]) -> str:
         "ok",
         "error",
         *METRIC_NAMES,
+        "target_far",
     ]
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n")
@@ -861,14 +997,20 @@ def _rows_csv(rows: Sequence[Mapping[str, Any]]) -> str:
     return buffer.getvalue()
 
 
+def _amplitude_order(amplitude: str, sensor_type: str) -> tuple[bool, float, str]:
+    si = _amplitude_si(amplitude, sensor_type)
+    return (si is None, 0.0 if si is None else si, amplitude)
+
+
 def summarize(spec: CampaignSpec, results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """Means and spreads over seeds per base x detector x params x fault model x amplitude
-    x sensor type, plus detection probability against amplitude per detector."""
+    """Means and spreads over seeds per base x detector x params x fault (spec without its
+    amplitude, so faults on different sensors stay apart) x amplitude x sensor type,
+    amplitudes in numeric order, plus detection probability against amplitude."""
     groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
     for row in _rows(results):
         if not row["ok"]:
             continue
-        sensor = row["faults"].split(":", 1)[1].split(",")[0].split(".")
+        sensor = row["sensor"].split(".")
         fault_type = sensor[1] if len(sensor) > 1 else ""
         if row["sensor_type"] != fault_type:
             continue  # score each run on the sensor type its fault acts on
@@ -876,18 +1018,25 @@ def summarize(spec: CampaignSpec, results: Sequence[Mapping[str, Any]]) -> dict[
             row["base"],
             row["detector"],
             row["params"],
-            row["model"],
+            row["fault"],
             row["amplitude"],
             row["sensor_type"],
         )
         groups.setdefault(key, []).append(row)
     table = []
-    for (base, det, params, model, amp, sensor_type), rows in sorted(groups.items()):
+    ordered = sorted(
+        groups.items(),
+        key=lambda item: (item[0][:4], item[0][5], _amplitude_order(item[0][4], item[0][5])),
+    )
+    for (base, det, params, fault, amp, sensor_type), rows in ordered:
+        first = rows[0]
         entry: dict[str, Any] = {
             "base": base,
             "detector": det,
             "params": json.loads(params),
-            "model": model,
+            "fault": fault,
+            "sensor": first["sensor"],
+            "model": first["model"],
             "amplitude": amp,
             "sensor_type": sensor_type,
             "runs": len(rows),
@@ -895,6 +1044,9 @@ def summarize(spec: CampaignSpec, results: Sequence[Mapping[str, Any]]) -> dict[
         for metric in spec.metrics:
             mean, std, count = mean_metrics([r.get(metric) for r in rows])
             entry[metric] = {"mean": mean, "std": std, "n": count}
+        targets = {float(r["target_far"]) for r in rows if r.get("target_far") is not None}
+        if targets:
+            entry["target_far"] = sorted(targets)[0]
         table.append(entry)
     failures = [{"key": r["key"], "error": r.get("error", "")} for r in results if not r["ok"]]
     return {
@@ -926,38 +1078,49 @@ def _amplitude_si(amplitude: str, sensor_type: str) -> float | None:
 
 def detection_curves(groups: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     """Detection probability against amplitude, one curve per base x detector x params x
-    fault model x sensor type, points sorted by SI amplitude."""
+    fault (spec without amplitude) x sensor type, points sorted by SI amplitude and given
+    in the spec's own units too (``amplitude_value``, ``unit`` when all points share one)."""
     curves: dict[tuple[str, str, str, str, str], list[dict[str, Any]]] = {}
+    models: dict[tuple[str, str, str, str, str], str] = {}
     for g in groups:
         stat = g.get("detection_probability")
         if stat is None:
             continue
+        fault = g.get("fault", g["model"])
         key = (
             g["base"],
             g["detector"],
             json.dumps(g["params"], sort_keys=True),
-            g["model"],
+            fault,
             g["sensor_type"],
         )
+        models[key] = g["model"]
+        value, unit = _amplitude_number(g["amplitude"])
         curves.setdefault(key, []).append(
             {
                 "amplitude": g["amplitude"],
                 "amplitude_si": _amplitude_si(g["amplitude"], g["sensor_type"]),
+                "amplitude_value": value,
+                "amplitude_unit": unit,
                 "mean": stat["mean"],
                 "std": stat["std"],
                 "n": stat["n"],
             }
         )
     out = []
-    for (base, det, params, model, sensor_type), points in sorted(curves.items()):
+    for key, points in sorted(curves.items()):
+        base, det, params, fault, sensor_type = key
         points.sort(key=lambda p: (p["amplitude_si"] is None, p["amplitude_si"] or 0.0))
+        units = {p["amplitude_unit"] for p in points}
         out.append(
             {
                 "base": base,
                 "detector": det,
                 "params": json.loads(params),
-                "model": model,
+                "fault": fault,
+                "model": models[key],
                 "sensor_type": sensor_type,
+                "unit": units.pop() if len(units) == 1 else None,
                 "points": points,
             }
         )
@@ -979,6 +1142,10 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
                 "detection_rate",
                 "detection_probability",
                 "alarm_rate",
+                "far_calibration",
+                "rate_after_first_detection",
+                "mar_at_far",
+                "fir_at_far",
             }
             else 1.0
         )
@@ -991,6 +1158,13 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
         f"# Campaign {summary['name']}",
         "",
         f"{summary['runs']} runs, {summary['failed']} failed. Mean ± standard deviation over seeds.",
+        "FAR outside the calibration window; delays at decision time; `*_at_far` with the"
+        " threshold scaled to the matched FAR"
+        + (
+            f" ({100 * summary['groups'][0]['target_far']:g} %)."
+            if summary["groups"] and "target_far" in summary["groups"][0]
+            else "."
+        ),
         "",
         "| " + " | ".join(head) + " |",
         "|" + "|".join("---" for _ in head) + "|",
@@ -1000,7 +1174,7 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
             g["base"],
             g["detector"],
             ", ".join(f"{k}={v}" for k, v in g["params"].items()) or "default",
-            g["model"],
+            g.get("fault", g["model"]),
             g["amplitude"],
             g["sensor_type"],
             str(g["runs"]),
@@ -1031,7 +1205,8 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
             )
             params = ", ".join(f"{k}={v}" for k, v in c["params"].items()) or "default"
             lines.append(
-                f"| {c['base']} | {c['detector']} | {params} | {c['model']} | {c['sensor_type']} | {points} |"
+                f"| {c['base']} | {c['detector']} | {params} | {c.get('fault', c['model'])}"
+                f" | {c['sensor_type']} | {points} |"
             )
     if summary["failures"]:
         lines += ["", "## Failed runs", ""]
@@ -1056,11 +1231,11 @@ def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
         mar = g.get("mar")
         if mar is not None and mar["mean"] is not None:
             params = json.dumps(g["params"], sort_keys=True)
-            key = (g["base"], g["detector"], params, g["model"], g["amplitude"])
+            key = (g["base"], g["detector"], params, g.get("fault", g["model"]), g["amplitude"])
             rates[key] = 1.0 - mar["mean"]
     panels: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for c in summary.get("curves", []):
-        panels.setdefault((c["base"], c["model"], c["sensor_type"]), []).append(c)
+        panels.setdefault((c["base"], c.get("fault", c["model"]), c["sensor_type"]), []).append(c)
     if not panels:
         return
     fig, axes = plt.subplots(
@@ -1070,8 +1245,10 @@ def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
         for index, c in enumerate(curves):
             params = json.dumps(c["params"], sort_keys=True)
             label = c["detector"] + ("" if not c["params"] else " " + params)
-            points = [p for p in c["points"] if p["amplitude_si"] is not None]
-            xs = [p["amplitude_si"] for p in points]
+            unit = c.get("unit")
+            field = "amplitude_value" if unit is not None else "amplitude_si"
+            points = [p for p in c["points"] if p.get(field) is not None]
+            xs = [p[field] for p in points]
             color = f"C{index % 10}"
             probability = [np.nan if p["mean"] is None else p["mean"] for p in points]
             ax.plot(xs, probability, "o-", color=color, label=label)
@@ -1081,7 +1258,12 @@ def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
             ]
             ax.plot(xs, rate, "s--", color=color, alpha=0.7)
         ax.set_title(f"{base} · {model} · {sensor_type}", fontsize=9)
-        ax.set_xlabel("fault amplitude (SI)")
+        units = {c.get("unit") for c in curves}
+        unit = units.pop() if len(units) == 1 else None
+        if unit is None:
+            ax.set_xlabel("fault amplitude (SI)")
+        else:
+            ax.set_xlabel(f"fault amplitude, {unit}" if unit else "fault amplitude")
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)

@@ -567,13 +567,33 @@ def detect(
 @click.option("--csv", "csv_out", help="Write a CSV table here.")
 @click.option("--junit", "junit_out", help="Write JUnit XML (one test case per gate).")
 @click.option("--plot", "plot_out", help="Write a PNG of statistics and isolation scores.")
+@click.option(
+    "--episodes-csv",
+    "episodes_out",
+    help="Write the explained alarm episodes as CSV (docs/episodes.md).",
+)
 @click.option("--fail-if", "gates", multiple=True, help="Gate, e.g. 'glt.gyro.far > 0.01'.")
 @click.option(
     "--persist",
     type=click.IntRange(min=1),
     default=1,
     show_default=True,
-    help="Detection delay counts the first alarm lasting this many samples.",
+    help="Detection delay counts the first run of this many alarms; recovery needs this"
+    " many quiet samples after the last alarm.",
+)
+@click.option(
+    "--match-far",
+    "match_far",
+    metavar="RATE",
+    help="Also report MAR, FIR and delay with each detector's threshold scaled to this"
+    " out-of-sample FAR (e.g. 1% or 0.01).",
+)
+@click.option(
+    "--roc",
+    "roc_out",
+    metavar="FILE",
+    help="Write the threshold sweep (FAR, MAR, FIR, delay per scale) as CSV; with --plot"
+    " also FILE's name with .png.",
 )
 def report(
     log: str,
@@ -582,11 +602,16 @@ def report(
     csv_out: str | None,
     junit_out: str | None,
     plot_out: str | None,
+    episodes_out: str | None,
     gates: tuple[str, ...],
     persist: int,
+    match_far: str | None,
+    roc_out: str | None,
 ) -> None:
     """Metrics per detector and sensor type: FAR, MAR, accuracy, FIR, delays.
 
+    FAR counts samples outside the calibration window; delays are at decision time.
+    --match-far compares detectors at one false-alarm rate (docs/metrics.md).
     --fail-if gates exit with code 1 when any fails (CI regression on recorded data).
 
     Example:
@@ -594,10 +619,12 @@ def report(
 
     \b
         imufdi report out.mcap --markdown table.md --fail-if 'glt.gyro.far > 0.08' --fail-if 'glt.gyro.mar > 0.35'
+        imufdi report out.mcap --match-far 1% --roc roc.csv
     """
     from imufdi_cli import report as rep
     from imufdi_cli.fileio import atomic_path, check_input, check_outputs, write_text
 
+    target = None if match_far is None else rep.parse_far(match_far)
     check_input(log)
     check_outputs(
         [log],
@@ -607,23 +634,34 @@ def report(
             ("--csv", csv_out),
             ("--junit", junit_out),
             ("--plot", plot_out),
+            ("--roc", roc_out),
+            ("--episodes-csv", episodes_out),
         ],
     )
     parsed = [rep.parse_gate(g, DETECTORS) for g in gates]  # bad gates fail before reading
-    result = rep.build_report(log, persist=persist)
+    result = rep.build_report(
+        log,
+        persist=persist,
+        match_far=target,
+        keep_series=plot_out is not None,
+        keep_roc=roc_out is not None,
+    )
     gate_results = rep.evaluate_gates(result, parsed)
-    stdout_taken = "-" in (json_out, md_out, csv_out, junit_out)
+    stdout_taken = "-" in (json_out, md_out, csv_out, junit_out, roc_out, episodes_out)
     console = _console(not stdout_taken)
     table = Table(title=f"imufdi report: {result.source}")
     table.add_column("detector")
     table.add_column("sensor")
-    for _, header, _, _ in rep.TABLE_COLUMNS:
+    for _, header, _, _ in rep.table_columns(result, console=True):
         table.add_column(header, justify="right")
-    for row in rep.table_rows(result):
+    for row in rep.table_rows(result, console=True):
         table.add_row(*row)
     console.print(table)
+    _print_episodes(console, result)
     for note in result.notes:
         console.print(f"[yellow]note:[/] {note}", markup=True)
+    if episodes_out:
+        write_text(episodes_out, rep.to_episodes_csv(result))
     if json_out:
         write_text(json_out, rep.to_json(result, gate_results))
     if md_out:
@@ -632,9 +670,15 @@ def report(
         write_text(csv_out, rep.to_csv(result))
     if junit_out:
         write_text(junit_out, rep.to_junit(result, gate_results))
+    if roc_out:
+        write_text(roc_out, rep.to_roc_csv(result))
     if plot_out:
         with atomic_path(plot_out, suffix=".png") as tmp:  # matplotlib wants the extension
             rep.plot_report(result, tmp)
+        if roc_out and roc_out != "-":
+            png = os.path.splitext(roc_out)[0] + ".png"
+            with atomic_path(png, suffix=".png") as tmp:
+                rep.plot_roc(result, tmp)
     failed = [r for r in gate_results if r.failed]
     for r in gate_results:
         style = "red" if r.failed else "green"
@@ -645,6 +689,53 @@ def report(
             + "; ".join(r.target for r in failed)
         )
         sys.exit(EXIT_GATE_FAILED)
+
+
+def _print_episodes(console: Console, result: Any, limit: int = 12) -> None:
+    """The episode figures per detector and type, and the strongest episodes."""
+    from imufdi_cli import report as rep
+
+    if not result.episode_scores:
+        return
+    table = Table(title="alarm episodes (docs/episodes.md)")
+    for col in ("detector.type", "episodes", "false / h", "class right %", "covered %"):
+        table.add_column(col, justify="right")
+    for key, score in result.episode_scores.items():
+        table.add_row(
+            key,
+            str(score["episodes"]),
+            rep.format_value(score.get("false_episodes_per_hour"), 1.0, "{:.3g}"),
+            rep.format_value(score.get("class_accuracy"), 100.0, "{:.1f}"),
+            rep.format_value(score.get("coverage"), 100.0, "{:.1f}"),
+        )
+    console.print(table)
+    rows = sorted(rep.episode_rows(result), key=lambda r: -(r["peak_ratio"] or 0.0))[:limit]
+    detail = Table(title=f"strongest {len(rows)} episodes")
+    for col in (
+        "detector",
+        "start s",
+        "dur s",
+        "sensor",
+        "class",
+        "size [90 %]",
+        "runner-up",
+        "peak",
+        "match",
+    ):
+        detail.add_column(col)
+    for r in rows:
+        detail.add_row(
+            f"{r['detector']}.{r['sensor_type']}",
+            f"{r['start_s']:.2f}",
+            rep.format_value(r["duration_s"], 1.0, "{:.2f}"),
+            r["sensor"] or "-",
+            r["fault_class"] or "-",
+            r["size"],
+            r["runner_up_class"] or "-",
+            rep.format_value(r["peak_ratio"], 1.0, "{:.3g}"),
+            r["match"] or "-",
+        )
+    console.print(detail)
 
 
 # --- tune ------------------------------------------------------------------------------

@@ -152,31 +152,73 @@ class ChannelCopier:
         return replace(batch, channel_id=self._lut[batch.channel_id])
 
 
+def lookahead_of(detector: Any) -> int | None:
+    """A detector's declared ``lookahead_samples`` (None when it declares none)."""
+    value = getattr(detector, "lookahead_samples", None)
+    return None if value is None else int(value)
+
+
+def decision_positions(first_row: int, rows: int, passed: int, lookahead: int | None) -> np.ndarray:
+    """Index of the input sample at whose arrival each output row's decision is available.
+
+    Rows ``first_row .. first_row + rows - 1`` were returned by a ``process``/``flush``
+    call after ``passed`` input samples had been passed to the detector. The decision on
+    row i is available at the newest passed sample (index ``passed - 1``) — and, since the
+    detector declares that it never waits for more than ``lookahead`` later samples, no
+    later than sample ``i + lookahead``. The decision time is the timestamp of
+    ``min(i + lookahead, passed - 1)``: the sample time for a causal detector whatever the
+    block size, and a block-size independent bound for one that looks ahead. A detector
+    that declares no look-ahead (``None``) is charged the newest passed sample.
+
+    Returns
+    -------
+    ndarray, shape (rows,), int64
+    """
+    index = np.arange(first_row, first_row + rows, dtype=np.int64)
+    newest = np.full(rows, passed - 1, dtype=np.int64)
+    if lookahead is None:
+        return newest
+    return np.minimum(index + int(lookahead), newest)
+
+
 class _Track:
     """Streaming bookkeeping for one detector: pending timestamps, alarm state, channels."""
 
     def __init__(self, detector: Detector, array: ArrayConfig) -> None:
         self.detector = detector
         self.array = array
+        self.lookahead = lookahead_of(detector)
         self.pending: deque[np.ndarray] = deque()
+        self.passed = 0  # input samples passed to the detector
+        self.emitted = 0  # rows returned by it
         self.channels: dict[str, int] = {}
         self.alarm_on: dict[str, bool] = {}
         self.summary: dict[str, TypeSummary] = {}
         self.episodes: dict[str, EpisodeBuilder] = {}  # sensor type -> builder
 
-    def take_times(self, count: int) -> np.ndarray:
-        """Timestamps of the next ``count`` rows, in order."""
-        parts = []
-        while count > 0:
-            head = self.pending[0]
-            if head.size <= count:
-                parts.append(self.pending.popleft())
-                count -= head.size
-            else:
-                parts.append(head[:count])
-                self.pending[0] = head[count:]
-                count = 0
-        return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+    def feed(self, t_ns: np.ndarray) -> None:
+        """Record the timestamps of a block about to be passed to the detector."""
+        self.pending.append(t_ns)
+        self.passed += int(t_ns.size)
+
+    def take_times(self, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sample times and decision times (ns) of the next ``count`` rows, in order."""
+        if count > self.passed - self.emitted:
+            raise DetectorConfigError(
+                f"detector {self.detector.name} returned {count} rows for"
+                f" {self.passed - self.emitted} samples not yet reported"
+            )
+        positions = decision_positions(self.emitted, count, self.passed, self.lookahead)
+        # every position lies in [emitted, passed): the pending timestamps hold them
+        held = np.concatenate(list(self.pending)) if self.pending else np.zeros(0, np.int64)
+        decided = held[positions - self.emitted] if count else np.zeros(0, np.int64)
+        times = held[:count]
+        rest = held[count:]
+        self.pending.clear()
+        if rest.size:
+            self.pending.append(rest)
+        self.emitted += count
+        return times, decided
 
 
 def _events(
@@ -327,7 +369,7 @@ def detect_file(
                 raise DetectorConfigError(
                     f"detector {track.detector.name} returned blocks of different lengths"
                 )
-            t_ns = track.take_times(rows.pop())
+            t_ns, decided_ns = track.take_times(rows.pop())
             if t_ns.size == 0:
                 return
             for sensor_type, out in outputs.items():
@@ -336,7 +378,7 @@ def detect_file(
                         writer, track.detector.name, sensor_type, array.sensor_ids(sensor_type)
                     )
                     track.summary[sensor_type] = TypeSummary()
-                writer.add_batch(encode_status(track.channels[sensor_type], t_ns, out))
+                writer.add_batch(encode_status(track.channels[sensor_type], t_ns, out, decided_ns))
                 summary = track.summary[sensor_type]
                 summary.samples += len(out)
                 summary.alarms += int(np.count_nonzero(out.alarm))
@@ -350,7 +392,7 @@ def detect_file(
                 writer.add_batch(events)
                 builder = track.episodes.get(sensor_type)
                 if builder is not None:
-                    add_episodes(track, builder.rows(t_ns, t_ns, out))
+                    add_episodes(track, builder.rows(t_ns, decided_ns, out))
             for sensor_type in set(track.episodes) - set(outputs):
                 del track.episodes[sensor_type]  # a type this detector does not test
 
@@ -365,7 +407,7 @@ def detect_file(
 
         def run(block: ImuBlock) -> None:
             for track in tracks:
-                track.pending.append(block.t_ns)
+                track.feed(block.t_ns)
                 for sensor_type, builder in track.episodes.items():
                     triads = block.get(sensor_type)
                     assert triads is not None  # builders exist only for types in the log
@@ -405,14 +447,15 @@ def detect_file(
             if fitted:
                 run(block)
                 continue
-            rel = (block.t_ns - t_first) / NS_PER_S
-            inside = rel >= cal_start_s
+            window = calibration_window_ns(t_first, t_last, cal_start_s, cal_end_s)
+            assert window is not None
+            inside = block.t_ns >= window[0]
             if cal_end_s is not None:
-                inside &= rel < cal_end_s
+                inside &= block.t_ns < window[1]
             if inside.any():
                 calibration.append(block.mask(inside).copy())
             backlog.append(block.copy())
-            if cal_end_s is not None and rel[-1] >= cal_end_s:
+            if cal_end_s is not None and block.t_ns[-1] >= window[1]:
                 fit()
         if not fitted:
             if t_first is not None and cal_end_s is not None:
@@ -429,12 +472,15 @@ def detect_file(
                 raise DetectorConfigError(
                     f"detector {track.detector.name} left samples without output"
                 )
+        window_ns = calibration_window_ns(t_first, t_last, cal_start_s, cal_end_s)
         for track in tracks:
             record = {
                 "detector": track.detector.name,
                 "version": __version__,
                 "calibration_s": [cal_start_s, cal_end_s],
+                "calibration_window_ns": window_ns,
                 "calibration_samples": cal_samples,
+                "lookahead_samples": track.lookahead,
                 "detector_metadata": track.detector.metadata(),
             }
             writer.add_metadata(
@@ -461,6 +507,21 @@ def detect_file(
         alignment=reader.stats,
         warnings=warnings,
     )
+
+
+def calibration_window_ns(
+    t_first: int | None, t_last: int, start_s: float, end_s: float | None
+) -> list[int] | None:
+    """The calibration window as absolute ``[start_ns, end_ns)`` (None for an empty log).
+
+    A sample at time t was in the window when ``start_ns <= t < end_ns``; an open end
+    (``end_s`` None) ends after the last sample.
+    """
+    if t_first is None:
+        return None
+    start = t_first + round(start_s * NS_PER_S)
+    end = t_last + 1 if end_s is None else t_first + round(end_s * NS_PER_S)
+    return [start, end]
 
 
 def _json_default(value: Any) -> Any:

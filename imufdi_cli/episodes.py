@@ -18,10 +18,10 @@ episode's first part):
 ======  ==========================================  ==================================
 model   r(t) for t >= tau (before: N(0, sigma_r^2))  size (90 % interval)
 ======  ==========================================  ==================================
-step    a + e                                        amp: a_hat +- z sigma_r / sqrt(n)
-drift   c + b (t - tau) + e (c: sub-sample onset)    rate: least-squares interval on b
-noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: chi-square interval on Var e
-scale   beta o(t) + e, o the consensus prediction    factor 1 + beta_hat +- z se
+step    a + e                                        amp: a_hat +- t s / sqrt(n)
+drift   b (t - t_f) + e, t_f between two samples     rate: t interval of the LS slope
+noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: F(n, n_cal) interval
+scale   beta o(t) + e, o the consensus prediction    factor: 1 + beta_hat +- t se
 spikes  e + s A on a fraction p of samples           amp A (t interval), rate (Poisson)
 stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
 ======  ==========================================  ==================================
@@ -34,15 +34,20 @@ model (a frozen output has no noise at all): it is declared when the raw output 
 exactly on at least ``stuck_share`` of the samples after the onset (a healthy sensor always
 carries its own noise, so long exact repeats do not happen), and then ranks first.
 
-The intervals assume white Gaussian residuals with the calibrated sigma (the parity
-detectors' model); their coverage is measured in ``tests/test_episodes.py`` and the docs.
+The least-squares intervals (step, drift, scale) are t intervals whose noise variance is
+estimated from the fit's own residuals after the onset (s^2 = SSE / (n - k)), so outliers
+and a calibrated sigma that is off widen them; the noise factor's interval is F(n, n_cal)
+because sigma_k itself was estimated from n_cal calibration samples. Their coverage is
+measured in ``tests/test_episodes.py``, ``benchmarks/bench_episodes.py`` and
+docs/episodes.md.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -100,7 +105,17 @@ class FaultFit:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite numbers become None)."""
-        out = _finite(asdict(self))
+        out = _finite(
+            {
+                "model": self.model,
+                "size": self.size,
+                "low": self.low,
+                "high": self.high,
+                "onset_index": self.onset_index,
+                "bic": self.bic,
+                "extra": dict(self.extra),
+            }
+        )
         out["size_name"] = self.size_name
         return out
 
@@ -175,6 +190,15 @@ def leave_one_out(
     consensus_sigma : float
         Standard deviation of the prediction error, ``sqrt(h_k^T (H_{-k}^T W H_{-k})^{-1} h_k)``.
     """
+    gain, consensus_sigma = _consensus_gain(H, sigma, k)
+    m = np.asarray(measurements, dtype=np.float64)
+    prediction = m @ gain
+    return m[:, k] - prediction, prediction, consensus_sigma
+
+
+def _consensus_gain(H: np.ndarray, sigma: np.ndarray | float, k: int) -> tuple[np.ndarray, float]:
+    """(n,) weights of the prediction of sensor k from the others (0 for k itself), and the
+    prediction's standard deviation."""
     H = check_measurement_matrix(H)
     n = H.shape[0]
     sigma_arr = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))
@@ -182,21 +206,34 @@ def leave_one_out(
     H_o = H[others]
     if np.linalg.matrix_rank(H_o) < 3:
         raise ValueError(f"sensor {k}: the other sensors do not span 3 axes")
-    L = least_squares_matrix(H_o, sigma_arr[others])  # (3, n-1)
-    gain = H[k] @ L  # (n-1,)
-    m = np.asarray(measurements, dtype=np.float64)
-    prediction = m[:, others] @ gain
-    consensus_sigma = float(np.sqrt(np.sum((gain * sigma_arr[others]) ** 2)))
-    return m[:, k] - prediction, prediction, consensus_sigma
+    gain = np.zeros(n)
+    gain[others] = H[k] @ least_squares_matrix(H_o, sigma_arr[others])
+    return gain, float(np.sqrt(np.sum((gain * sigma_arr) ** 2)))
 
 
 # --- fitting the fault models -------------------------------------------------------------
 
 
-def _normal_quantile(p: float) -> float:
-    from scipy.stats import norm
+@functools.lru_cache(maxsize=4096)
+def _chi2_quantile(p: float, dof: int) -> float:
+    """Chi-square quantile (cached: episodes repeat the same few lengths)."""
+    from scipy.stats import chi2
 
-    return float(norm.ppf(p))
+    return float(chi2.ppf(p, dof))
+
+
+@functools.lru_cache(maxsize=4096)
+def _f_quantile(p: float, dof1: int, dof2: int) -> float:
+    from scipy.stats import f as f_distribution
+
+    return float(f_distribution.ppf(p, dof1, dof2))
+
+
+@functools.lru_cache(maxsize=4096)
+def _t_quantile(p: float, dof: int) -> float:
+    from scipy.stats import t as t_distribution
+
+    return float(t_distribution.ppf(p, dof))
 
 
 def _gaussian_nll(ss: Any, n: Any, var: Any) -> Any:
@@ -222,6 +259,8 @@ def fit_models(
     confidence: float = 0.9,
     stuck_share: float = 0.9,
     raw: np.ndarray | None = None,
+    calibration_samples: int | None = None,
+    offset_var: float | None = None,
 ) -> list[FaultFit]:
     """Fit every fault model to one sensor's residual over an analysis window.
 
@@ -245,6 +284,12 @@ def fit_models(
     raw : ndarray, shape (L,), optional
         The sensor's own output (for "stuck": exact repeats); default ``residual +
         prediction``, which rounding may keep from repeating exactly.
+    calibration_samples : int, optional
+        Samples ``sigma_k`` was estimated from; the noise factor's interval then accounts
+        for that estimate (F instead of chi-square).
+    offset_var : float, optional
+        Variance of the bias taken out of the residual (its calibration estimate), added to
+        the step amplitude's interval.
 
     Returns
     -------
@@ -260,7 +305,6 @@ def fit_models(
         return []
     var0 = sigma_k**2 + consensus_sigma**2
     sigma_r = math.sqrt(var0)
-    z = _normal_quantile(0.5 + confidence / 2)
     taus = np.arange(lo, hi)
     n_after = (length - taus).astype(np.float64)
     n_total = float(length)
@@ -284,14 +328,23 @@ def fit_models(
     # step: r = a + e
     a = s_r / n_after
     j, bic = best(_gaussian_nll(s_rr - n_after * a**2, n_after, var0), 1)
-    half = z * sigma_r / math.sqrt(n_after[j])
+    half = _half_width(
+        float(s_rr[j] - n_after[j] * a[j] ** 2),
+        int(n_after[j]),
+        1,
+        1.0 / n_after[j],
+        confidence,
+        extra_var=offset_var or 0.0,
+    )
     fits.append(FaultFit("step", float(a[j]), float(a[j] - half), float(a[j] + half), lo + j, bic))
 
     # drift: r = b (t - t_f) + e from an onset t_f between samples tau - 1 and tau, i.e.
     # r = b (u + lam) with u = t - t_tau and lam = t_tau - t_f in [0, dt]: the offset
     # lam is fitted per tau (interior least squares, else the better bound)
     fits.extend(
-        _drift_fit(t, taus, n_after, s_r, s_rr, s_t, s_tt, s_tr, nll_before, var0, z, ln_n, lo)
+        _drift_fit(
+            t, taus, n_after, s_r, s_rr, s_t, s_tt, s_tr, nll_before, var0, confidence, ln_n, lo
+        )
     )
 
     # noise: r ~ N(0, f^2 sigma_k^2 + sigma_c^2); variance fitted (bounded below by var0)
@@ -299,7 +352,14 @@ def fit_models(
     j, bic = best(_gaussian_nll(s_rr, n_after, var_hat), 1)
     fits.append(
         _noise_fit(
-            float(s_rr[j]), int(n_after[j]), sigma_k, consensus_sigma, confidence, lo + j, bic
+            float(s_rr[j]),
+            int(n_after[j]),
+            sigma_k,
+            consensus_sigma,
+            confidence,
+            lo + j,
+            bic,
+            calibration_samples,
         )
     )
 
@@ -307,7 +367,13 @@ def fit_models(
     with np.errstate(divide="ignore", invalid="ignore"):
         beta = np.where(s_oo > 0, s_or / s_oo, 0.0)
     j, bic = best(_gaussian_nll(s_rr - beta * s_or, n_after, var0), 1)
-    half = z * sigma_r / math.sqrt(s_oo[j]) if s_oo[j] > 0 else math.inf
+    half = (
+        _half_width(
+            float(s_rr[j] - beta[j] * s_or[j]), int(n_after[j]), 1, 1.0 / s_oo[j], confidence
+        )
+        if s_oo[j] > 0
+        else math.inf
+    )
     fits.append(
         FaultFit(
             "scale",
@@ -346,7 +412,7 @@ def _drift_fit(
     s_tr: np.ndarray,
     nll_before: np.ndarray,
     var0: float,
-    z: float,
+    confidence: float,
     ln_n: float,
     lo: int,
 ) -> list[FaultFit]:
@@ -362,12 +428,13 @@ def _drift_fit(
     with np.errstate(divide="ignore", invalid="ignore"):
         b_free = (n * s_ur - s_u * s_r) / det
         lam_free = (s_r - b_free * s_u) / n / b_free
-    best: tuple[float, float, float, int] | None = None  # (total nll, b, var_b, j)
+    best: tuple[float, float, float, float, int, int] | None = None
     for lam in (None, 0.0, dt):
         if lam is None:
             b = b_free
             sse = s_rr - (s_r - b * s_u) / n * s_r - b * s_ur
-            var_b = var0 * n / det
+            gain_inv = n / det
+            k_params = 2
             valid = (det > 0) & (lam_free >= 0) & (lam_free <= dt)
         else:
             s_vv = s_uu + 2 * lam * s_u + n * lam**2
@@ -375,18 +442,32 @@ def _drift_fit(
             with np.errstate(divide="ignore", invalid="ignore"):
                 b = s_vr / s_vv
             sse = s_rr - b * s_vr
-            var_b = var0 / s_vv
+            gain_inv = 1.0 / s_vv
+            k_params = 1
             valid = s_vv > 0
         total = np.where(valid, nll_before + _gaussian_nll(sse, n, var0), np.inf)
         j = int(np.argmin(total))
         if np.isfinite(total[j]) and (best is None or total[j] < best[0]):
-            best = (float(total[j]), float(b[j]), float(var_b[j]), j)
+            best = (float(total[j]), float(b[j]), float(sse[j]), float(gain_inv[j]), k_params, j)
     if best is None:
         return []
-    total_nll, rate, var_rate, j = best
-    half = z * math.sqrt(var_rate)
+    total_nll, rate, sse_j, gain_j, k_params, j = best
+    half = _half_width(sse_j, int(n[j]), k_params, gain_j, confidence)
     bic = 2 * total_nll + 3 * ln_n  # rate, offset, onset
     return [FaultFit("drift", rate, rate - half, rate + half, lo + j, bic)]
+
+
+def _half_width(
+    sse: float, n: int, k: int, gain_inv: float, confidence: float, extra_var: float = 0.0
+) -> float:
+    """Half width of a least-squares coefficient's t interval, with the noise variance
+    estimated from the fit's own residuals after the onset (``sse / (n - k)``): outliers and
+    an imprecise calibrated sigma widen it, as they should."""
+    dof = n - k
+    if dof < 1 or not math.isfinite(gain_inv):
+        return math.inf
+    variance = max(sse, 0.0) / dof * gain_inv + extra_var
+    return _t_quantile(0.5 + confidence / 2, dof) * math.sqrt(variance)
 
 
 def _noise_fit(
@@ -397,17 +478,22 @@ def _noise_fit(
     confidence: float,
     onset: int,
     bic: float,
+    calibration_samples: int | None = None,
 ) -> FaultFit:
     """Noise factor f with Var r = f^2 sigma_k^2 + sigma_c^2; chi-square interval on Var r."""
-    from scipy.stats import chi2
 
     def factor(var: float) -> float:
         return math.sqrt(max(var - consensus_sigma**2, 0.0)) / sigma_k
 
     tail = (1 - confidence) / 2
     var_hat = ss / n
-    low = factor(ss / float(chi2.ppf(1 - tail, n)))
-    high = factor(ss / float(chi2.ppf(tail, n)))
+    if calibration_samples:
+        # sigma_k was estimated too: the variance ratio is F(n, n_cal) distributed
+        low = factor(var_hat / _f_quantile(1 - tail, n, calibration_samples))
+        high = factor(var_hat / _f_quantile(tail, n, calibration_samples))
+    else:
+        low = factor(ss / _chi2_quantile(1 - tail, n))
+        high = factor(ss / _chi2_quantile(tail, n))
     return FaultFit("noise", factor(var_hat), low, high, onset, bic)
 
 
@@ -421,9 +507,6 @@ def _spike_fit(
     confidence: float,
 ) -> FaultFit | None:
     """Sparse spikes: residuals beyond SPIKE_CUT sigma_r, amplitude and Poisson rate."""
-    from scipy.stats import chi2
-    from scipy.stats import t as t_distribution
-
     flagged = np.abs(r) > SPIKE_CUT * sigma_r
     count_after = _suffix(flagged.astype(np.float64))[taus]
     if count_after.max(initial=0.0) < 1:
@@ -448,13 +531,13 @@ def _spike_fit(
     tail = (1 - confidence) / 2
     if m >= 2:
         se = float(spikes.std(ddof=1)) / math.sqrt(m)
-        q = float(t_distribution.ppf(1 - tail, m - 1))
+        q = _t_quantile(1 - tail, m - 1)
         low, high = float(spikes.mean() - q * se), float(spikes.mean() + q * se)
     else:
         low, high = -math.inf, math.inf
     duration = float(t[-1] - t[onset]) + (float(t[1] - t[0]) if t.shape[0] > 1 else 0.0)
-    rate_low = 0.5 * float(chi2.ppf(tail, 2 * m)) / duration if m > 0 else 0.0
-    rate_high = 0.5 * float(chi2.ppf(1 - tail, 2 * m + 2)) / duration
+    rate_low = 0.5 * _chi2_quantile(tail, 2 * m) / duration if m > 0 else 0.0
+    rate_high = 0.5 * _chi2_quantile(1 - tail, 2 * m + 2) / duration
     extra = {"rate_hz": m / duration, "rate_low_hz": rate_low, "rate_high_hz": rate_high}
     return FaultFit("spikes", float(spikes.mean()), low, high, onset, bic, extra)
 
@@ -514,7 +597,7 @@ class Episode:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite numbers become None)."""
-        out = _finite(asdict(self))
+        out = _finite({k: v for k, v in vars(self).items() if k != "fits"})
         out["duration_s"] = self.duration_s
         out["fault_class"] = self.fault_class
         out["fits"] = [f.to_dict() for f in self.fits]
@@ -573,6 +656,11 @@ class EpisodeBuilder:
     explain : bool
         Fit the fault models; False (too few sensors for a consensus, or no calibrated
         sigma) gives the episodes with their evidence but no fault class.
+    calibration_samples : int, optional
+        Samples ``sigma`` was estimated from (widens the noise factor's interval).
+    calibration_mean : ndarray, shape (n,), optional
+        Mean measurements of the calibration window: each sensor's bias against the
+        consensus is taken out of its residual (a fault is what changed since).
     """
 
     def __init__(
@@ -589,6 +677,8 @@ class EpisodeBuilder:
         max_window_s: float = 30.0,
         confidence: float = 0.9,
         explain: bool = True,
+        calibration_samples: int | None = None,
+        calibration_mean: np.ndarray | None = None,
     ) -> None:
         self.detector = detector
         self.sensor_type = sensor_type
@@ -600,6 +690,11 @@ class EpisodeBuilder:
         self.max_window = max(4, round(max_window_s * rate_hz))
         self.confidence = confidence
         self.explain = explain
+        self.calibration_samples = calibration_samples
+        self.calibration_mean = (
+            None if calibration_mean is None else np.asarray(calibration_mean, np.float64)
+        )
+        self._gains: dict[int, tuple[np.ndarray, float]] = {}
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
         self._history_t: np.ndarray = np.zeros(0, np.int64)
@@ -721,9 +816,18 @@ class EpisodeBuilder:
             episode.sensors = [self.sensor_ids[k]]
             episode.isolated_by = "residual"
         try:
-            residual, prediction, consensus_sigma = leave_one_out(self.H, window, self.sigma, k)
+            gain, consensus_sigma = self._gain(k)
         except ValueError:
             return episode
+        prediction = window @ gain
+        residual = window[:, k] - prediction
+        offset_var = None
+        if self.calibration_mean is not None:
+            # the sensor's own bias against the consensus, as calibrated: a fault is what
+            # changed since (its estimate's variance widens the step interval)
+            residual = residual - (self.calibration_mean[k] - self.calibration_mean @ gain)
+            if self.calibration_samples:
+                offset_var = (self.sigma[k] ** 2 + consensus_sigma**2) / self.calibration_samples
         t_s = (window_t - window_t[0]).astype(np.float64) * 1e-9
         alarm_index = min(state["alarm_index"], max(len(window_t) - 2, 0))
         episode.fits = fit_models(
@@ -735,8 +839,16 @@ class EpisodeBuilder:
             onset_range=(0, alarm_index + 1),
             confidence=self.confidence,
             raw=window[:, k],
+            calibration_samples=self.calibration_samples,
+            offset_var=offset_var,
         )
         return episode
+
+    def _gain(self, k: int) -> tuple[np.ndarray, float]:
+        found = self._gains.get(k)
+        if found is None:
+            found = self._gains[k] = _consensus_gain(self.H, self.sigma, k)
+        return found
 
     def for_detector(self, detector: str) -> EpisodeBuilder:
         """A fresh builder with the same calibration, for another detector."""
@@ -753,6 +865,8 @@ class EpisodeBuilder:
             max_window_s=self.max_window,
             confidence=self.confidence,
             explain=self.explain,
+            calibration_samples=self.calibration_samples,
+            calibration_mean=self.calibration_mean,
         )
 
     def _loudest(self, window: np.ndarray) -> int:
@@ -761,10 +875,11 @@ class EpisodeBuilder:
         energies = []
         for k in range(self.H.shape[0]):
             try:
-                r, _, c = leave_one_out(self.H, window, self.sigma, k)
+                gain, c = self._gain(k)
             except ValueError:
                 energies.append(-math.inf)
                 continue
+            r = window[:, k] - window @ gain
             energies.append(float(np.sum(r**2)) / (self.sigma[k] ** 2 + c**2))
         return int(np.argmax(energies))
 
@@ -786,9 +901,13 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
         H = array.measurement_matrix(sensor_type)
         explain = H.shape[0] >= 4
         sigma = np.ones(H.shape[0])
+        n_cal: int | None = None
+        mean: np.ndarray | None = None
         if explain:
             measurements = array.select(triads, sensor_type)
             finite = np.all(np.isfinite(measurements), axis=1)
+            n_cal = int(np.count_nonzero(finite))
+            mean = measurements[finite].mean(axis=0) if n_cal else None
             try:
                 sigma = residual_sigma(H, measurements[finite])
             except CalibrationError:
@@ -802,6 +921,8 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
             sigma,
             array.rate_hz,
             explain=explain,
+            calibration_samples=n_cal if explain else None,
+            calibration_mean=mean if explain else None,
             **options,
         )
     return builders
@@ -877,48 +998,75 @@ def match_episodes(
     return out
 
 
-def score_episodes(
-    episodes: Sequence[dict[str, Any]],
-    matches: Sequence[dict[str, Any]],
-    hours: float | None,
-) -> dict[str, Any]:
-    """Figures of one detector and sensor type: episodes, false episodes (per hour of
-    ``hours`` of log), and for matched ones the share classified right and the share of
-    size intervals covering the truth, per true fault model (None when undefined)."""
-    matched = [(e, m) for e, m in zip(episodes, matches) if m["match"] == "fault"]
-    false = sum(m["match"] == "false" for m in matches)
-    per_model: dict[str, dict[str, Any]] = {}
-    for _, m in matched:
-        row = per_model.setdefault(
-            m["true_class"], {"episodes": 0, "class_right": 0, "sized": 0, "covered": 0}
-        )
-        row["episodes"] += 1
-        row["class_right"] += bool(m["class_right"])
-        if m["covered"] is not None:
-            row["sized"] += 1
-            row["covered"] += bool(m["covered"])
-    for row in per_model.values():
-        row["class_accuracy"] = row["class_right"] / row["episodes"]
-        row["coverage"] = row["covered"] / row["sized"] if row["sized"] else None
-    sized = sum(r["sized"] for r in per_model.values())
-    return {
-        "episodes": len(episodes),
-        "matched": len(matched),
-        "wrong_sensor": sum(m["match"] == "wrong_sensor" for m in matches),
-        "false": false,
-        "false_episodes_per_hour": false / hours if hours else None,
-        "class_accuracy": (
-            sum(bool(m["class_right"]) for _, m in matched) / len(matched) if matched else None
-        ),
-        "coverage": (sum(r["covered"] for r in per_model.values()) / sized if sized else None),
-        "per_model": per_model,
-    }
+class EpisodeTally:
+    """Streaming figures of one detector and sensor type's episodes (bounded memory)."""
+
+    def __init__(self) -> None:
+        self.episodes = 0
+        self.matched = 0
+        self.wrong_sensor = 0
+        self.false = 0
+        self.calibration = 0  # in the calibration window: in sample, not scored
+        self.per_model: dict[str, dict[str, int]] = {}
+
+    def add(self, match: dict[str, Any]) -> None:
+        """Count one episode with its :func:`match_episodes` record."""
+        self.episodes += 1
+        if match["match"] == "false":
+            self.false += 1
+        elif match["match"] == "wrong_sensor":
+            self.wrong_sensor += 1
+        else:
+            self.matched += 1
+            row = self.per_model.setdefault(
+                match["true_class"], {"episodes": 0, "class_right": 0, "sized": 0, "covered": 0}
+            )
+            row["episodes"] += 1
+            row["class_right"] += bool(match["class_right"])
+            if match["covered"] is not None:
+                row["sized"] += 1
+                row["covered"] += bool(match["covered"])
+
+    def result(self, hours: float | None) -> dict[str, Any]:
+        """Episodes, false episodes (per hour of ``hours`` of fault-free log), and for
+        matched ones the share classified right and the share of size intervals covering
+        the truth, overall and per true fault model (None when undefined)."""
+        per_model = {}
+        for model, row in sorted(self.per_model.items()):
+            per_model[model] = {
+                **row,
+                "class_accuracy": row["class_right"] / row["episodes"],
+                "coverage": row["covered"] / row["sized"] if row["sized"] else None,
+            }
+        right = sum(r["class_right"] for r in self.per_model.values())
+        covered = sum(r["covered"] for r in self.per_model.values())
+        sized = sum(r["sized"] for r in self.per_model.values())
+        return {
+            "episodes": self.episodes,
+            "matched": self.matched,
+            "wrong_sensor": self.wrong_sensor,
+            "false": self.false,
+            "in_calibration": self.calibration,
+            "false_episodes_per_hour": self.false / hours if hours else None,
+            "class_accuracy": right / self.matched if self.matched else None,
+            "coverage": covered / sized if sized else None,
+            "per_model": per_model,
+        }
+
+
+def score_episodes(matches: Sequence[dict[str, Any]], hours: float | None) -> dict[str, Any]:
+    """:class:`EpisodeTally` figures of the :func:`match_episodes` records of a list."""
+    tally = EpisodeTally()
+    for match in matches:
+        tally.add(match)
+    return tally.result(hours)
 
 
 __all__ = [
     "MODELS",
     "Episode",
     "EpisodeBuilder",
+    "EpisodeTally",
     "FaultFit",
     "episode_builders",
     "find_episodes",

@@ -1,19 +1,30 @@
 """Detection and isolation metrics from ground truth and alarms (DESIGN.md §7).
 
 All figures are per sample and per sensor type, with the definitions of Li et al.
-(Micromachines 17(3):374, 2026), Table 4:
+(Micromachines 17(3):374, 2026), Table 4, measured out of sample (docs/metrics.md):
 
-- FAR = alarms on fault-free samples / fault-free samples
-- MAR = faulty samples without alarm / faulty samples
-- detection accuracy = 1 - FAR - MAR   (Table 4: 100 - 4.98 - 26.58 = 68.44 %)
+- FAR = alarms on fault-free samples / fault-free samples, outside the calibration window
+  (``far_calibration``: the same inside it, where the detector was fitted)
+- MAR = faulty samples without alarm / faulty samples (outside the calibration window)
+- detection rate = 1 - MAR; detection accuracy = 1 - FAR - MAR (Table 4: 100 - 4.98 -
+  26.58 = 68.44 %)
 - FIR = detected faulty samples isolated to a sensor that is not faulty / detected faulty
   samples; isolation accuracy = 1 - FIR
-- detection delay = first alarm at or after onset (and before the fault ends) - onset;
-  optionally the first alarm that persists ``persist`` samples
-- recovery delay = first sample at or after the fault end with the alarm cleared - fault end
+- detection delay = decision time of the sample completing the first run of ``persist``
+  consecutive alarms inside the fault - onset
+- isolation delay = decision time of the first alarm inside the fault isolated to one of
+  the fault's sensors - onset
+- decision latency = mean over samples of (decision time - sample time)
+- recovery delay = decision time of the first sample r at or after the fault end from
+  which the alarms stop for good - fault end: at least ``persist`` quiet samples from r,
+  and no alarm within ``merge_gap_s`` (0.1 s) of r — an alarm that comes back that soon
+  is the same alarm episode flickering; one that comes back later is a new episode (and
+  a false alarm). Only rows before the next onset on the same sensor type count.
 
-A figure whose denominator is empty (no faulty samples, no detections, a fault never
-detected) is ``None`` — "undefined" — never 0.
+:class:`MetricsAccumulator` computes them in one streaming pass (memory independent of the
+log length); :func:`compute_metrics` is the one-call form. A figure whose denominator is
+empty (no faulty samples, no detections, a fault never detected) is ``None`` —
+"undefined" — never 0.
 """
 
 from __future__ import annotations
@@ -52,14 +63,16 @@ class FaultWindow:
 
 @dataclass
 class FaultFigures:
-    """Per-fault event figures."""
+    """Per-fault event figures (delays in seconds, at decision time)."""
 
     fault_id: str
     detected: bool
     detection_delay_s: float | None
+    isolation_delay_s: float | None
     recovery_delay_s: float | None
     isolated_correctly: float | None  # fraction of the fault's detected samples isolated to it
     faulty_samples: int
+    rate_after_first_detection: float | None  # alarmed / faulty samples from the first alarm on
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -69,7 +82,8 @@ class FaultFigures:
 class Metrics:
     """Per-sample figures for one detector and sensor type.
 
-    Ratios are fractions (0..1); ``None`` where undefined.
+    Ratios are fractions (0..1); ``None`` where undefined. Sample counts other than
+    ``samples`` and ``calibration_samples`` are outside the calibration window.
     """
 
     samples: int
@@ -92,10 +106,21 @@ class Metrics:
     false_alarm_events_per_hour: float | None
     duration_s: float
     faults: list[FaultFigures] = field(default_factory=list)
+    calibration_samples: int = 0
+    far_calibration: float | None = None
+    isolation_delay_s: float | None = None  # mean over faults isolated to a faulty sensor
+    decision_latency_s: float | None = None
+    rate_after_first_detection: float | None = None
+    mar_at_far: float | None = None
+    fir_at_far: float | None = None
+    detection_delay_at_far_s: float | None = None
+    threshold_scale_at_far: float | None = None
+    target_far: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
         data["faults"] = [f.to_dict() for f in self.faults]
+        data["detection_rate"] = self.value("detection_rate")
         return data
 
     def value(self, name: str) -> float | None:
@@ -114,18 +139,28 @@ class Metrics:
 
 #: Scalar figures that gates and tables may name.
 METRIC_NAMES: dict[str, str] = {
-    "far": "false alarm rate (alarms on fault-free samples / fault-free samples)",
+    "far": "false alarm rate outside the calibration window (alarms on fault-free samples"
+    " / fault-free samples)",
+    "far_calibration": "false alarm rate inside the calibration window (in-sample)",
     "mar": "missed alarm rate (faulty samples without alarm / faulty samples)",
     "accuracy": "detection accuracy, 1 - FAR - MAR",
     "fir": "false isolation rate (detected faulty samples isolated to a healthy sensor)",
     "isolation_accuracy": "1 - FIR",
     "detection_rate": "1 - MAR",
-    "detection_delay_s": "mean detection delay over detected faults, s",
+    "rate_after_first_detection": "alarmed / faulty samples from each fault's first alarm"
+    " on (secondary; the detection rate is 1 - MAR)",
+    "detection_delay_s": "mean detection delay over detected faults, at decision time, s",
+    "isolation_delay_s": "mean delay to the first alarm isolated to a faulty sensor, s",
+    "decision_latency_s": "mean decision time - sample time, s",
     "recovery_delay_s": "mean recovery delay over faults that ended, s",
     "detection_probability": "fraction of injected faults that were detected",
-    "alarm_rate": "alarms / samples",
-    "alarm_events": "number of alarm events (rising edges)",
+    "alarm_rate": "alarms / samples (outside the calibration window)",
+    "alarm_events": "number of alarm events (rising edges) outside the calibration window",
     "false_alarm_events_per_hour": "alarm events that start on fault-free samples, per hour",
+    "mar_at_far": "MAR with the threshold scaled to the matched FAR (--match-far)",
+    "fir_at_far": "FIR at the matched FAR",
+    "detection_delay_at_far_s": "mean detection delay at the matched FAR, s",
+    "threshold_scale_at_far": "threshold scale giving the matched FAR",
     "samples": "number of samples",
     "faulty_samples": "number of samples with an active fault",
 }
@@ -173,17 +208,382 @@ def persistent(alarm: np.ndarray, persist: int) -> np.ndarray:
     return window == persist
 
 
+class _FaultState:
+    """Streaming per-fault bookkeeping (see :class:`MetricsAccumulator`)."""
+
+    def __init__(self, window: FaultWindow, episode_end_ns: int | None) -> None:
+        self.window = window
+        self.episode_end_ns = episode_end_ns
+        self.samples = 0
+        self.run = 0  # consecutive alarms inside the fault so far
+        self.detected_ns: int | None = None
+        self.isolated_ns: int | None = None
+        self.alarmed = 0
+        self.isolated_ok = 0
+        self.after_first = 0  # faulty samples from the first alarm on
+        self.alarmed_after_first = 0
+        self.first_alarm = False
+        self.quiet_from_ns: int | None = None  # decision time of the candidate quiet sample
+        self.quiet_from_t: int | None = None  # its sample time
+        self.quiet = 0  # quiet samples since then
+        self.recovered_ns: int | None = None  # decision time of the recovery sample, once known
+
+
+class MetricsAccumulator:
+    """Streaming metrics of one detector on one sensor type (module docstring).
+
+    Feed the rows in time order with :meth:`update`, any number of rows at a time, then
+    call :meth:`result`. Memory does not depend on the number of rows.
+
+    Parameters
+    ----------
+    n_sensors : int
+    faults : sequence of FaultWindow
+        The faults of this sensor type.
+    calibration_ns : (start_ns, end_ns) or None
+        Samples with ``start <= t < end`` are in-sample and excluded from the figures
+        (counted in ``far_calibration``); None: every sample counts.
+    persist : int
+        Detection delay: the first run of this many consecutive alarms; recovery: at least
+        this many quiet samples after the last alarm.
+    sweep : bool
+        Also fill the matched-FAR histograms (:mod:`imufdi_cli.sweep`).
+    merge_gap_s : float
+        Recovery: an alarm that comes back within this time of the candidate recovery
+        sample belongs to the same alarm episode (flicker), s.
+    """
+
+    def __init__(
+        self,
+        n_sensors: int,
+        faults: Sequence[FaultWindow] = (),
+        *,
+        calibration_ns: tuple[int, int] | None = None,
+        persist: int = 1,
+        sweep: bool = True,
+        merge_gap_s: float = 0.1,
+    ) -> None:
+        from imufdi_cli.sweep import SweepAccumulator
+
+        self.merge_gap_ns = round(merge_gap_s * NS_PER_S)
+        self.n_sensors = int(n_sensors)
+        self.windows = list(faults)
+        self.calibration_ns = calibration_ns
+        self.persist = max(int(persist), 1)
+        onsets = sorted(w.start_ns for w in self.windows)
+        self.states = []
+        for w in self.windows:
+            later = [s for s in onsets if w.end_ns is not None and s >= w.end_ns]
+            self.states.append(_FaultState(w, min(later) if later else None))
+        self.sweep = SweepAccumulator([w.start_ns for w in self.windows]) if sweep else None
+        self.n = 0
+        self.n_cal = 0
+        self.n_eval = 0
+        self.n_free = 0
+        self.n_free_cal = 0
+        self.false_alarms = 0
+        self.false_alarms_cal = 0
+        self.n_faulty = 0
+        self.missed = 0
+        self.detected = 0
+        self.false_iso = 0
+        self.unisolated = 0
+        self.alarms_eval = 0
+        self.events = 0
+        self.false_events = 0
+        self.latency_sum = 0.0
+        self.t_first: int | None = None
+        self.t_last = 0
+        self.previous_alarm = False
+
+    def update(
+        self,
+        t_ns: np.ndarray,
+        alarm: np.ndarray,
+        isolated: np.ndarray,
+        *,
+        decided_ns: np.ndarray | None = None,
+        isolated_set: np.ndarray | None = None,
+        statistic: np.ndarray | None = None,
+        threshold: np.ndarray | None = None,
+        scores: np.ndarray | None = None,
+        faulty: np.ndarray | None = None,
+    ) -> None:
+        """Add k consecutive rows.
+
+        Parameters
+        ----------
+        t_ns : (k,) int64, sample times, ns
+        alarm : (k,) bool
+        isolated : (k,) int, isolated sensor (negative: none / not isolable)
+        decided_ns : (k,) int64, decision times (default: the sample times)
+        isolated_set : (k, n) bool, every sensor isolated (default: one-hot of ``isolated``)
+        statistic, threshold : (k,) float64, for the matched-FAR sweep
+        scores : (k, n) float64, isolation scores; the sweep judges the isolation of rows the
+            detector left unisolated by their largest score
+        faulty : (k, n) bool, optional
+            Ground truth per row and sensor; default: from the fault windows
+        """
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        k = int(t_ns.size)
+        if k == 0:
+            return
+        alarm = np.asarray(alarm, dtype=bool)
+        isolated = np.asarray(isolated, dtype=np.int64)
+        decided = t_ns if decided_ns is None else np.asarray(decided_ns, dtype=np.int64)
+        n_s = self.n_sensors
+        if faulty is None:
+            faulty = faulty_matrix(t_ns, self.windows, n_s)
+        else:
+            faulty = np.asarray(faulty, dtype=bool).reshape(k, n_s)
+        any_fault = faulty.any(axis=1)
+        if self.calibration_ns is not None:
+            in_cal = (t_ns >= self.calibration_ns[0]) & (t_ns < self.calibration_ns[1])
+        else:
+            in_cal = np.zeros(k, dtype=bool)
+        evaluated = ~in_cal
+        free = ~any_fault & evaluated
+        free_cal = ~any_fault & in_cal
+        faulty_eval = any_fault & evaluated
+
+        if self.t_first is None:
+            self.t_first = int(t_ns[0])
+        self.t_last = int(t_ns[-1])
+        self.n += k
+        self.n_cal += int(np.count_nonzero(in_cal))
+        self.n_eval += int(np.count_nonzero(evaluated))
+        self.n_free += int(np.count_nonzero(free))
+        self.n_free_cal += int(np.count_nonzero(free_cal))
+        self.false_alarms += int(np.count_nonzero(alarm & free))
+        self.false_alarms_cal += int(np.count_nonzero(alarm & free_cal))
+        self.n_faulty += int(np.count_nonzero(faulty_eval))
+        self.missed += int(np.count_nonzero(faulty_eval & ~alarm))
+        detected = faulty_eval & alarm
+        self.detected += int(np.count_nonzero(detected))
+        self.alarms_eval += int(np.count_nonzero(alarm & evaluated))
+        self.latency_sum += float(np.sum(decided[evaluated] - t_ns[evaluated])) / NS_PER_S
+
+        has_iso = isolated >= 0
+        column = np.clip(np.where(has_iso, isolated, 0), 0, max(n_s - 1, 0))
+        rows = np.arange(k)
+        correct = has_iso & faulty[rows, column] if n_s else np.zeros(k, dtype=bool)
+        self.false_iso += int(np.count_nonzero(detected & has_iso & ~correct))
+        self.unisolated += int(np.count_nonzero(detected & ~has_iso))
+
+        previous = np.concatenate([[self.previous_alarm], alarm[:-1]])
+        rising = alarm & ~previous & evaluated
+        self.events += int(np.count_nonzero(rising))
+        self.false_events += int(np.count_nonzero(rising & ~any_fault))
+        self.previous_alarm = bool(alarm[-1])
+
+        if isolated_set is None:
+            iso_set = np.zeros((k, n_s), dtype=bool)
+            iso_set[rows[has_iso], isolated[has_iso]] = True
+        else:
+            iso_set = np.asarray(isolated_set, dtype=bool).reshape(k, n_s)
+        in_faults = [self._update_fault(st, t_ns, decided, alarm, iso_set) for st in self.states]
+
+        if self.sweep is not None and statistic is not None and threshold is not None:
+            from imufdi_cli.sweep import ratio_bins
+
+            judged = has_iso
+            if scores is not None and n_s:
+                sc = np.asarray(scores, dtype=np.float64).reshape(k, n_s)
+                finite = np.isfinite(sc).any(axis=1)
+                best = np.argmax(np.where(np.isfinite(sc), sc, -np.inf), axis=1)
+                use = ~has_iso & (isolated != -2) & finite
+                column = np.where(use, best, column)
+                judged = has_iso | use
+            right = judged & faulty[rows, column] if n_s else np.zeros(k, dtype=bool)
+            iso_class = np.zeros(k, dtype=np.int8)
+            iso_class[faulty_eval & right] = 1
+            iso_class[faulty_eval & judged & ~right] = 2
+            iso_class[faulty_eval & ~judged] = 3
+            self.sweep.update(ratio_bins(statistic, threshold), decided, free, iso_class, in_faults)
+
+    def _update_fault(
+        self,
+        st: _FaultState,
+        t_ns: np.ndarray,
+        decided: np.ndarray,
+        alarm: np.ndarray,
+        iso_set: np.ndarray,
+    ) -> np.ndarray:
+        w = st.window
+        inside = t_ns >= w.start_ns
+        if w.end_ns is not None:
+            inside &= t_ns < w.end_ns
+        idx = np.flatnonzero(inside)
+        if idx.size:
+            st.samples += int(idx.size)
+            on = alarm[idx]
+            hit = iso_set[np.ix_(idx, np.asarray(w.sensors, dtype=np.intp))].any(axis=1) & on
+            st.alarmed += int(np.count_nonzero(on))
+            st.isolated_ok += int(np.count_nonzero(hit))
+            if st.isolated_ns is None and hit.any():
+                st.isolated_ns = int(decided[idx[np.argmax(hit)]])
+            if not st.first_alarm and on.any():
+                st.first_alarm = True
+                first = int(np.argmax(on))
+                st.after_first += int(idx.size - first)
+                st.alarmed_after_first += int(np.count_nonzero(on[first:]))
+            elif st.first_alarm:
+                st.after_first += int(idx.size)
+                st.alarmed_after_first += int(np.count_nonzero(on))
+            if st.detected_ns is None:
+                # run length ending at each row, carried over from the previous rows
+                run = st.run
+                for j, flag in enumerate(on.tolist()):
+                    run = run + 1 if flag else 0
+                    if run >= self.persist:
+                        st.detected_ns = int(decided[idx[j]])
+                        break
+                st.run = run
+        if w.end_ns is not None and st.recovered_ns is None:
+            after = t_ns >= w.end_ns
+            if st.episode_end_ns is not None:
+                after &= t_ns < st.episode_end_ns
+            rows = np.flatnonzero(after)
+            if rows.size:
+                self._update_recovery(st, t_ns[rows], decided[rows], alarm[rows])
+        return inside
+
+    def _update_recovery(
+        self, st: _FaultState, t_ns: np.ndarray, decided: np.ndarray, alarm: np.ndarray
+    ) -> None:
+        """Recovery bookkeeping on rows of the fault's recovery episode (module docstring):
+        a candidate quiet sample r is confirmed when an alarm comes back more than
+        ``merge_gap_s`` after it with at least ``persist`` quiet samples in between, or when
+        the episode ends quiet after at least ``persist`` samples."""
+        position = 0
+        size = int(t_ns.size)
+        for a in [*np.flatnonzero(alarm).tolist(), size]:
+            if a > position:
+                if st.quiet_from_ns is None:
+                    st.quiet_from_ns = int(decided[position])
+                    st.quiet_from_t = int(t_ns[position])
+                    st.quiet = 0
+                st.quiet += a - position
+            if a == size:
+                return
+            if (
+                st.quiet_from_t is not None
+                and st.quiet >= self.persist
+                and t_ns[a] - st.quiet_from_t > self.merge_gap_ns
+            ):
+                st.recovered_ns = st.quiet_from_ns  # the alarm is a new episode
+                return
+            st.quiet_from_ns = st.quiet_from_t = None
+            st.quiet = 0
+            position = a + 1
+
+    def result(self) -> Metrics:
+        """The figures of every row fed so far."""
+        n = self.n
+        far = _ratio(self.false_alarms, self.n_free)
+        mar = _ratio(self.missed, self.n_faulty)
+        fir = _ratio(self.false_iso, self.detected)
+        accuracy = None if far is None or mar is None else 1.0 - far - mar
+        duration_s = 0.0
+        if n > 1 and self.t_first is not None:
+            span = float(self.t_last - self.t_first) / NS_PER_S
+            duration_s = span * n / (n - 1)  # count the last sample's period too
+        free_hours = self.n_free * (duration_s / n) / 3600.0 if n and duration_s > 0 else 0.0
+        figures: list[FaultFigures] = []
+        delays: list[float] = []
+        isolations: list[float] = []
+        recoveries: list[float] = []
+        after_first = 0
+        alarmed_after_first = 0
+        for st in self.states:
+            w = st.window
+            delay = None if st.detected_ns is None else (st.detected_ns - w.start_ns) / NS_PER_S
+            iso_delay = None if st.isolated_ns is None else (st.isolated_ns - w.start_ns) / NS_PER_S
+            recovered = st.recovered_ns
+            if recovered is None and st.quiet_from_ns is not None and st.quiet >= self.persist:
+                recovered = st.quiet_from_ns  # quiet to the end of the episode
+            recovery = None
+            if w.end_ns is not None and delay is not None and recovered is not None:
+                recovery = (recovered - w.end_ns) / NS_PER_S
+            figures.append(
+                FaultFigures(
+                    fault_id=w.fault_id,
+                    detected=delay is not None,
+                    detection_delay_s=delay,
+                    isolation_delay_s=iso_delay,
+                    recovery_delay_s=recovery,
+                    isolated_correctly=_ratio(st.isolated_ok, st.alarmed),
+                    faulty_samples=st.samples,
+                    rate_after_first_detection=_ratio(st.alarmed_after_first, st.after_first),
+                )
+            )
+            after_first += st.after_first
+            alarmed_after_first += st.alarmed_after_first
+            for value, bucket in ((delay, delays), (iso_delay, isolations), (recovery, recoveries)):
+                if value is not None:
+                    bucket.append(value)
+        return Metrics(
+            samples=n,
+            fault_free_samples=self.n_free,
+            faulty_samples=self.n_faulty,
+            false_alarms=self.false_alarms,
+            missed=self.missed,
+            detected_faulty=self.detected,
+            false_isolations=self.false_iso,
+            unisolated=self.unisolated,
+            far=far,
+            mar=mar,
+            accuracy=None if self.n_faulty == 0 else accuracy,
+            fir=fir,
+            isolation_accuracy=None if fir is None else 1.0 - fir,
+            detection_delay_s=float(np.mean(delays)) if delays else None,
+            recovery_delay_s=float(np.mean(recoveries)) if recoveries else None,
+            alarm_rate=_ratio(self.alarms_eval, self.n_eval),
+            alarm_events=self.events,
+            false_alarm_events_per_hour=(self.false_events / free_hours)
+            if free_hours > 0
+            else None,
+            duration_s=duration_s,
+            faults=figures,
+            calibration_samples=self.n_cal,
+            far_calibration=_ratio(self.false_alarms_cal, self.n_free_cal),
+            isolation_delay_s=float(np.mean(isolations)) if isolations else None,
+            decision_latency_s=(self.latency_sum / self.n_eval) if self.n_eval else None,
+            rate_after_first_detection=_ratio(alarmed_after_first, after_first),
+        )
+
+    def matched(self, metrics: Metrics, target_far: float) -> str | None:
+        """Fill the ``*_at_far`` figures of ``metrics`` at ``target_far``; returns a note
+        (why a figure is undefined, or where the match sits) or None."""
+        if self.sweep is None:
+            return "matched FAR: no sweep data"
+        match = self.sweep.match(target_far)
+        metrics.target_far = target_far
+        metrics.mar_at_far = match.mar
+        metrics.fir_at_far = match.fir
+        metrics.detection_delay_at_far_s = match.detection_delay_s
+        metrics.threshold_scale_at_far = match.threshold_scale
+        return match.note
+
+
 def compute_metrics(
     t_ns: np.ndarray,
     alarm: np.ndarray,
     isolated: np.ndarray,
-    faulty: np.ndarray,
+    faulty: np.ndarray | None = None,
     faults: Sequence[FaultWindow] = (),
     *,
     persist: int = 1,
     isolated_set: np.ndarray | None = None,
+    decided_ns: np.ndarray | None = None,
+    calibration_ns: tuple[int, int] | None = None,
+    statistic: np.ndarray | None = None,
+    threshold: np.ndarray | None = None,
+    scores: np.ndarray | None = None,
+    match_far: float | None = None,
+    n_sensors: int | None = None,
 ) -> Metrics:
-    """Per-sample metrics of one detector on one sensor type.
+    """Per-sample metrics of one detector on one sensor type, in one call.
 
     Parameters
     ----------
@@ -193,118 +593,50 @@ def compute_metrics(
         Detector alarm per sample.
     isolated : ndarray, shape (N,), int
         Isolated sensor index per sample (negative: none / not isolable).
-    faulty : ndarray, shape (N, n_s), bool
-        Ground truth: sensor j has an active fault at sample i.
+    faulty : ndarray, shape (N, n_s), bool, optional
+        Ground truth: sensor j has an active fault at sample i (default: from ``faults``,
+        see :func:`faulty_matrix`, with ``n_sensors`` columns).
     faults : sequence of FaultWindow
-        The faults of this sensor type, for delays and per-fault figures.
+        The faults of this sensor type.
     persist : int
-        Detection delay counts the first alarm that persists this many samples.
+        See :class:`MetricsAccumulator`.
     isolated_set : ndarray, shape (N, n_s), bool, optional
-        Every sensor the detector isolated at each sample (detectors that isolate several
-        simultaneous faults). Per-fault isolation then asks whether the fault's own sensor
-        is in the set; FIR still judges the primary ``isolated`` sensor.
+        Every sensor the detector isolated at each sample.
+    decided_ns : ndarray, shape (N,), int64, optional
+        Decision times (default: the sample times).
+    calibration_ns : (start_ns, end_ns), optional
+        Calibration window, excluded from the figures.
+    statistic, threshold, scores : optional
+        For the matched-FAR sweep (``match_far``).
+    match_far : float, optional
+        Target FAR for the ``*_at_far`` figures.
 
     Returns
     -------
     Metrics
     """
-    t_ns = np.asarray(t_ns, dtype=np.int64)
-    alarm = np.asarray(alarm, dtype=bool)
-    isolated = np.asarray(isolated, dtype=np.int64)
-    faulty = np.asarray(faulty, dtype=bool).reshape(len(t_ns), -1)
-    n = int(t_ns.size)
-    any_fault = np.asarray(faulty.any(axis=1), dtype=bool)
-    fault_free = np.logical_not(any_fault)
-    false_alarms = int(np.count_nonzero(alarm & fault_free))
-    n_free = int(np.count_nonzero(fault_free))
-    n_faulty = int(np.count_nonzero(any_fault))
-    missed = int(np.count_nonzero(any_fault & ~alarm))
-    detected = any_fault & alarm
-    n_detected = int(np.count_nonzero(detected))
-    has_iso = isolated >= 0
-    safe_iso = np.where(has_iso, isolated, 0)
-    correct_iso = has_iso & faulty[np.arange(n), np.clip(safe_iso, 0, max(faulty.shape[1] - 1, 0))]
-    false_iso = int(np.count_nonzero(detected & has_iso & ~correct_iso))
-    unisolated = int(np.count_nonzero(detected & ~has_iso))
-
-    far = _ratio(false_alarms, n_free)
-    mar = _ratio(missed, n_faulty)
-    fir = _ratio(false_iso, n_detected)
-    accuracy = None if far is None or mar is None else 1.0 - far - mar
-    if n_free and n_faulty == 0:
-        accuracy = None  # without faulty samples the paper's accuracy is not defined
-
-    duration_s = float(t_ns[-1] - t_ns[0]) / NS_PER_S if n > 1 else 0.0
-    if n > 1:
-        duration_s += float(np.median(np.diff(t_ns))) / NS_PER_S  # count the last period
-    edges = rising_edges(alarm)
-    false_events = int(np.count_nonzero(fault_free[edges])) if edges.size else 0
-    free_hours = n_free * (duration_s / n) / 3600.0 if n and duration_s > 0 else 0.0
-
-    confirmed = persistent(alarm, persist)
-    figures: list[FaultFigures] = []
-    delays: list[float] = []
-    recoveries: list[float] = []
-    for fault in faults:
-        in_fault = t_ns >= fault.start_ns
-        if fault.end_ns is not None:
-            in_fault &= t_ns < fault.end_ns
-        idx = np.flatnonzero(in_fault)
-        hits = idx[confirmed[idx]] if idx.size else idx
-        delay = float(t_ns[hits[0]] - fault.start_ns) / NS_PER_S if hits.size else None
-        recovery = None
-        if fault.end_ns is not None and hits.size:
-            after = np.flatnonzero((t_ns >= fault.end_ns) & ~alarm)
-            if after.size:
-                recovery = float(t_ns[after[0]] - fault.end_ns) / NS_PER_S
-        det_idx = idx[alarm[idx]] if idx.size else idx
-        if det_idx.size and isolated_set is not None:
-            hit = np.asarray(isolated_set, dtype=bool)[
-                np.ix_(det_idx, np.asarray(fault.sensors, dtype=np.intp))
-            ]
-            iso_ok = float(np.count_nonzero(hit.any(axis=1))) / det_idx.size
-        elif det_idx.size:
-            iso = isolated[det_idx]
-            iso_ok = float(np.count_nonzero(np.isin(iso, fault.sensors))) / det_idx.size
-        else:
-            iso_ok = None
-        figures.append(
-            FaultFigures(
-                fault_id=fault.fault_id,
-                detected=delay is not None,
-                detection_delay_s=delay,
-                recovery_delay_s=recovery,
-                isolated_correctly=iso_ok,
-                faulty_samples=int(idx.size),
-            )
-        )
-        if delay is not None:
-            delays.append(delay)
-        if recovery is not None:
-            recoveries.append(recovery)
-
-    return Metrics(
-        samples=n,
-        fault_free_samples=n_free,
-        faulty_samples=n_faulty,
-        false_alarms=false_alarms,
-        missed=missed,
-        detected_faulty=n_detected,
-        false_isolations=false_iso,
-        unisolated=unisolated,
-        far=far,
-        mar=mar,
-        accuracy=accuracy,
-        fir=fir,
-        isolation_accuracy=None if fir is None else 1.0 - fir,
-        detection_delay_s=float(np.mean(delays)) if delays else None,
-        recovery_delay_s=float(np.mean(recoveries)) if recoveries else None,
-        alarm_rate=_ratio(int(np.count_nonzero(alarm)), n),
-        alarm_events=int(edges.size),
-        false_alarm_events_per_hour=(false_events / free_hours) if free_hours > 0 else None,
-        duration_s=duration_s,
-        faults=figures,
+    if n_sensors is None:
+        if faulty is None:
+            raise ValueError("give faulty or n_sensors")
+        n_sensors = int(np.asarray(faulty).reshape(len(t_ns), -1).shape[1])
+    acc = MetricsAccumulator(
+        n_sensors, faults, calibration_ns=calibration_ns, persist=persist, sweep=True
     )
+    acc.update(
+        t_ns,
+        alarm,
+        isolated,
+        decided_ns=decided_ns,
+        isolated_set=isolated_set,
+        statistic=statistic,
+        threshold=threshold,
+        scores=scores,
+        faulty=faulty,
+    )
+    metrics = acc.result()
+    if match_far is not None:
+        acc.matched(metrics, match_far)
+    return metrics
 
 
 def mean_metrics(values: Sequence[float | None]) -> tuple[float | None, float | None, int]:

@@ -302,6 +302,11 @@ TUNE_SETTINGS: dict[str, type] = {
     "alpha_min": float,
     "alpha_max": float,
     "max_iter": int,
+    "fitness": str,
+    "validation_step": float,
+    "delay_weight": float,
+    "window": int,
+    "overlap": int,
 }
 
 
@@ -319,9 +324,17 @@ def _woa_settings(settings: Mapping[str, str] | None) -> dict[str, Any]:
             raise UsageError(
                 f"--param {key}={text!r}: not a valid {TUNE_SETTINGS[key].__name__}"
             ) from None
-    out: dict[str, Any] = {
-        k: v for k, v in typed.items() if k in ("population", "iterations", "max_iter")
-    }
+    passed = (
+        "population",
+        "iterations",
+        "max_iter",
+        "fitness",
+        "validation_step",
+        "delay_weight",
+        "window",
+        "overlap",
+    )
+    out: dict[str, Any] = {k: v for k, v in typed.items() if k in passed}
     if "k_min" in typed or "k_max" in typed:
         out["k_bounds"] = (typed.get("k_min", 2), typed.get("k_max", 6))
     if "alpha_min" in typed or "alpha_max" in typed:

@@ -21,12 +21,12 @@ from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 
-from imufdi_cli.errors import GateError, McapInputError
+from imufdi_cli.errors import GateError, McapInputError, UsageError
 from imufdi_cli.metrics import (
     METRIC_NAMES,
     FaultWindow,
     Metrics,
-    compute_metrics,
+    MetricsAccumulator,
     faulty_matrix,
 )
 
@@ -35,7 +35,11 @@ from imufdi_cli.metrics import (
 
 @dataclass
 class ReportEntry:
-    """Metrics of one detector on one sensor type."""
+    """Metrics of one detector on one sensor type.
+
+    The series (``t_ns`` ... ``faulty``) are only kept for ``--plot`` (``keep_series``), at
+    most :data:`PLOT_POINTS` samples per channel (evenly decimated); otherwise empty.
+    """
 
     detector: str
     sensor_type: str
@@ -47,6 +51,7 @@ class ReportEntry:
     alarm: np.ndarray = field(repr=False)
     scores: np.ndarray = field(repr=False)
     faulty: np.ndarray = field(repr=False)
+    roc: dict[str, np.ndarray] | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -59,6 +64,12 @@ class Report:
     entries: list[ReportEntry]
     notes: list[str]
     t0_ns: int
+    match_far: float | None = None
+    #: explained alarm episodes (the first EPISODES_LISTED of each detector and type, each
+    #: with its ``match`` to the truth), docs/episodes.md
+    episodes: list[dict[str, Any]] = field(default_factory=list)
+    #: per ``detector.type``: EpisodeTally figures, plus ``listed`` and ``omitted``
+    episode_scores: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def entry(self, detector: str, sensor_type: str) -> ReportEntry | None:
         for item in self.entries:
@@ -111,89 +122,349 @@ def truth_windows(metadata: dict[str, dict[str, str]]) -> Truth | None:
     return Truth(windows=windows, descriptions=descriptions)
 
 
-def build_report(source: str | BinaryIO, *, persist: int = 1) -> Report:
-    """Compute the report of an annotated log.
+def calibration_windows(
+    metadata: dict[str, dict[str, str]],
+) -> dict[str, tuple[int, int] | None]:
+    """Detector name -> calibration window ``(start_ns, end_ns)`` from the
+    ``imufdi.detect.<name>`` records; a detector absent from the result recorded none
+    (a log from an imufdi before the window was recorded)."""
+    out: dict[str, tuple[int, int] | None] = {}
+    for name, data in metadata.items():
+        if not name.startswith("imufdi.detect."):
+            continue
+        try:
+            record = json.loads(data.get("json", "{}"))
+        except ValueError:
+            continue
+        if not isinstance(record, dict) or "calibration_window_ns" not in record:
+            continue
+        window = record["calibration_window_ns"]
+        detector = name.removeprefix("imufdi.detect.")
+        if window is None:
+            out[detector] = None
+        else:
+            try:
+                out[detector] = (int(window[0]), int(window[1]))
+            except (TypeError, ValueError, IndexError) as err:
+                raise McapInputError(
+                    f"{name}: calibration_window_ns is malformed ({window!r})"
+                ) from err
+    return out
+
+
+#: Samples per channel kept for ``--plot``.
+PLOT_POINTS = 20_000
+
+
+class _Series:
+    """Evenly decimated copy of a status channel for plots (bounded memory)."""
+
+    def __init__(self) -> None:
+        self.stride = 1
+        self.seen = 0
+        self.parts: list[dict[str, np.ndarray]] = []
+        self.kept = 0
+
+    def add(self, rows: dict[str, np.ndarray]) -> None:
+        n = int(rows["t_ns"].size)
+        first = (-self.seen) % self.stride
+        pick = np.arange(first, n, self.stride)
+        self.seen += n
+        if pick.size:
+            self.parts.append({k: v[pick] for k, v in rows.items()})
+            self.kept += int(pick.size)
+        if self.kept > 2 * PLOT_POINTS:
+            whole = self.arrays()
+            keep = slice(0, None, 2)
+            self.parts = [{k: v[keep] for k, v in whole.items()}]
+            self.kept = int(self.parts[0]["t_ns"].size)
+            self.stride *= 2
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        keys = self.parts[0].keys() if self.parts else ()
+        return {k: np.concatenate([p[k] for p in self.parts]) for k in keys}
+
+
+def _open_seekable(source: str | BinaryIO) -> tuple[Any, bool]:
+    """A seekable binary stream of ``source`` (stdin and pipes are spooled to a temporary
+    file, so that the metadata at the end of the file is known before the first message).
+    Returns the stream and whether the caller must close it."""
+    import shutil
+    import sys
+    import tempfile
+
+    if isinstance(source, str) and source != "-":
+        return source, False
+    stream = sys.stdin.buffer if source == "-" else source
+    assert not isinstance(stream, str)
+    try:
+        if stream.seekable():
+            return stream, False
+    except (AttributeError, OSError, ValueError):
+        pass
+    spool = tempfile.TemporaryFile()
+    shutil.copyfileobj(stream, spool, 1 << 20)
+    spool.seek(0)
+    return spool, True
+
+
+def build_report(
+    source: str | BinaryIO,
+    *,
+    persist: int = 1,
+    match_far: float | None = None,
+    keep_series: bool = False,
+    keep_roc: bool = False,
+) -> Report:
+    """Compute the report of an annotated log in one streaming pass.
 
     Parameters
     ----------
     source : path, ``"-"`` or binary stream
-        An MCAP written by ``imufdi detect``.
+        An MCAP written by ``imufdi detect`` (stdin is spooled to a temporary file).
     persist : int
-        Detection delays count the first alarm persisting this many samples.
-    """
-    from imufdi_cli.mcapio import McapSource, read_status
+        Detection delays count the first run of this many alarms; recovery needs this many
+        quiet samples after the last alarm (docs/metrics.md).
+    match_far : float, optional
+        Target FAR in (0, 1) for the matched-FAR figures (``mar_at_far``, ...).
+    keep_series : bool
+        Keep (decimated) status series for :func:`plot_report`.
+    keep_roc : bool
+        Keep the swept curve of each entry (``ReportEntry.roc``) for :func:`to_roc_csv`.
 
+    Memory does not depend on the log length (one chunk, fixed histograms), except for
+    the bounded series of ``keep_series``.
+    """
+    from imufdi_cli.mcapio import McapSource, iter_status
+
+    if match_far is not None and not 0.0 < match_far < 1.0:
+        raise UsageError(f"--match-far must be in (0, 1), got {match_far:g}")
     name = source if isinstance(source, str) else "<stream>"
-    # one pass: read_status streams every batch, so the source's metadata (wherever the
-    # records sit, even in a stream from stdin) is complete afterwards
-    with McapSource(source) as src:
-        status = read_status(src)
-        metadata = dict(src.metadata)
-        problems = list(src.warnings)
-    if not status:
+    name = "<stdin>" if name == "-" else name
+    stream, close = _open_seekable(source)
+    accumulators: dict[tuple[str, str], MetricsAccumulator] = {}
+    ids_of: dict[tuple[str, str], list[str]] = {}
+    series: dict[tuple[str, str], _Series] = {}
+    first_ns: dict[tuple[str, str], int] = {}
+    all_decided: dict[tuple[str, str], bool] = {}
+    last_ns: dict[tuple[str, str], int] = {}
+    notes: list[str] = []
+    problems: list[str] = []
+    try:
+        with McapSource(stream) as src:
+            metadata = dict(src.metadata)  # seekable: read from the summary up front
+            truth = truth_windows(metadata)
+            windows_cal = calibration_windows(metadata)
+            episodes = _EpisodeCollector(truth, windows_cal)
+            for detector, sensor_type, ids, rows in iter_status(src, others=episodes.batch):
+                key = (detector, sensor_type)
+                acc = accumulators.get(key)
+                if acc is None:
+                    acc = _accumulator(truth, ids, windows_cal.get(detector), persist)
+                    accumulators[key] = acc
+                    ids_of[key] = ids
+                    first_ns[key] = int(rows["t_ns"][0]) if rows["t_ns"].size else 0
+                    all_decided[key] = True
+                    if keep_series:
+                        series[key] = _Series()
+                all_decided[key] &= "decided_ns" in rows
+                if rows["t_ns"].size:
+                    last_ns[key] = int(rows["t_ns"][-1])
+                acc.update(
+                    rows["t_ns"],
+                    rows["alarm"],
+                    rows["isolated"],
+                    decided_ns=rows.get("decided_ns"),
+                    isolated_set=rows["isolated_set"],
+                    statistic=rows["statistic"],
+                    threshold=rows["threshold"],
+                    scores=rows["scores"],
+                )
+                if keep_series:
+                    series[key].add(
+                        {k: rows[k] for k in ("t_ns", "statistic", "threshold", "alarm", "scores")}
+                    )
+            problems = list(src.warnings)
+    finally:
+        if close:
+            stream.close()
+    if not accumulators:
         raise McapInputError(
             f"{name}: no detector status channels (/imufdi/<detector>/<type>); "
             "run `imufdi detect` on the log first" + (f"; {problems[0]}" if problems else "")
         )
-    truth = truth_windows(metadata)
     # a damaged log is reported on what could be read, and says so
-    notes: list[str] = [f"input: {problem}" for problem in problems]
+    notes.extend(f"input: {problem}" for problem in problems)
     has_truth = truth is not None
     if not has_truth:
         notes.append(
             "no ground truth in this log (inject faults with `imufdi inject`): "
             "FAR, MAR, FIR and delays need truth; alarm statistics only"
         )
-    t0_candidates = [int(arrs.t_ns[0]) for arrs in status.values() if len(arrs.t_ns)]
-    t0_ns = min(t0_candidates) if t0_candidates else 0
-    entries = []
-    for (detector, sensor_type), arrays in sorted(status.items()):
-        ids = list(arrays.sensor_ids)
-        windows: list[FaultWindow] = []
-        if truth is not None:
-            windows = [
-                FaultWindow(
-                    w.fault_id, tuple(ids.index(s) for s in w.sensors), w.start_ns, w.end_ns
-                )
-                for w in truth.windows
-                if all(s in ids for s in w.sensors)
-            ]
-        faulty = faulty_matrix(arrays.t_ns, windows, len(ids))
-        metrics = compute_metrics(
-            arrays.t_ns,
-            arrays.alarm,
-            arrays.isolated,
-            faulty,
-            windows,
-            persist=persist,
-            isolated_set=arrays.isolated_set,
+    old = sorted({d for d, _ in accumulators if d not in windows_cal})
+    if old:
+        notes.append(
+            f"{', '.join(old)}: no calibration window recorded (log from an older imufdi):"
+            " FAR and alarm rate count every sample, including the in-sample calibration"
         )
+    undecided = sorted({d for (d, _), ok in all_decided.items() if not ok})
+    if undecided:
+        notes.append(
+            f"{', '.join(undecided)}: status without decision times (older imufdi): delays"
+            " are at sample time"
+        )
+    entries = []
+    for key in sorted(accumulators):
+        detector, sensor_type = key
+        acc = accumulators[key]
+        metrics = acc.result()
+        roc = None
+        if match_far is not None and has_truth:
+            note = acc.matched(metrics, match_far)
+            if note:
+                notes.append(f"{detector}.{sensor_type} at FAR {match_far:g}: {note}")
+        if keep_roc and has_truth and acc.sweep is not None and acc.sweep.sweepable:
+            roc = acc.sweep.curve()
         if not has_truth:
             metrics.far = metrics.mar = metrics.accuracy = None
             metrics.fir = metrics.isolation_accuracy = None
-            metrics.false_alarm_events_per_hour = None
+            metrics.false_alarm_events_per_hour = metrics.far_calibration = None
+        arrays = series[key].arrays() if key in series else {}
+        n_s = len(ids_of[key])
+        t_ns = arrays.get("t_ns", np.zeros(0, np.int64))
         entries.append(
             ReportEntry(
                 detector=detector,
                 sensor_type=sensor_type,
-                sensor_ids=ids,
+                sensor_ids=ids_of[key],
                 metrics=metrics,
-                t_ns=arrays.t_ns,
-                statistic=arrays.statistic,
-                threshold=arrays.threshold,
-                alarm=arrays.alarm,
-                scores=arrays.scores,
-                faulty=faulty,
+                t_ns=t_ns,
+                statistic=arrays.get("statistic", np.zeros(0)),
+                threshold=arrays.get("threshold", np.zeros(0)),
+                alarm=arrays.get("alarm", np.zeros(0, bool)),
+                scores=arrays.get("scores", np.zeros((0, n_s))),
+                faulty=faulty_matrix(t_ns, acc.windows, n_s),
+                roc=roc,
             )
         )
+    if match_far is not None and has_truth:
+        notes.append(
+            f"matched FAR {match_far:g}: the threshold of each detector's raw statistic is"
+            " scaled (alarm when statistic >= scale x threshold, per sample); confirmation"
+            " and persistence rules are not re-run (docs/metrics.md)"
+        )
+    hours = {}
+    for entry in entries:
+        key, metrics = (entry.detector, entry.sensor_type), entry.metrics
+        span_h = (last_ns.get(key, 0) - first_ns[key]) * 1e-9 / 3600
+        share = metrics.fault_free_samples / metrics.samples if metrics.samples else 0.0
+        hours[key] = span_h * (share if has_truth else 1.0)
     return Report(
         source=name,
         has_truth=has_truth,
         faults=[] if truth is None else truth.descriptions,
         entries=entries,
         notes=notes,
-        t0_ns=t0_ns,
+        t0_ns=min(first_ns.values()) if first_ns else 0,
+        match_far=match_far,
+        episodes=episodes.listed,
+        episode_scores=episodes.scores(hours),
     )
+
+
+#: episodes listed per detector and sensor type (all are counted)
+EPISODES_LISTED = 200
+
+
+class _EpisodeCollector:
+    """Explained episodes from the ``/imufdi/events`` channel, matched to the truth as
+    they stream by; keeps the first EPISODES_LISTED per detector and type."""
+
+    def __init__(self, truth: Truth | None, calibration: dict[str, tuple[int, int] | None]) -> None:
+        self.calibration = calibration
+        self.faults = (
+            []
+            if truth is None
+            else [
+                {**d, "start_ns": w.start_ns, "end_ns": w.end_ns}
+                for w, d in zip(truth.windows, truth.descriptions)
+            ]
+        )
+        self.has_truth = truth is not None
+        self.listed: list[dict[str, Any]] = []
+        self.tallies: dict[tuple[str, str], Any] = {}
+        self.counts: dict[tuple[str, str], int] = {}
+
+    def batch(self, batch: Any, channel: Any) -> None:
+        from imufdi_cli.episodes import EpisodeTally, match_episodes
+        from imufdi_cli.mcapio.events import EVENTS_TOPIC, decode_events, is_event_channel
+
+        if channel.topic != EVENTS_TOPIC or not is_event_channel(channel):
+            return
+        found = [e["episode"] for e in decode_events(batch, channel) if "episode" in e]
+        matches = (
+            match_episodes(found, self.faults)
+            if self.has_truth
+            else [{"match": None} for _ in found]
+        )
+        for episode, match in zip(found, matches):
+            key = (episode["detector"], episode["sensor_type"])
+            tally = self.tallies.setdefault(key, EpisodeTally())
+            window = self.calibration.get(episode["detector"])
+            if window is not None and episode["start_ns"] < window[1]:
+                # inside the calibration window: in sample, listed but never scored
+                match = {**match, "match": "calibration"}
+                tally.calibration += 1
+            elif self.has_truth:
+                tally.add(match)
+            else:
+                tally.episodes += 1
+            self.counts[key] = self.counts.get(key, 0) + 1
+            if self.counts[key] <= EPISODES_LISTED:
+                self.listed.append({**episode, **match})
+
+    def scores(self, hours: dict[tuple[str, str], float]) -> dict[str, dict[str, Any]]:
+        out = {}
+        for key, tally in sorted(self.tallies.items()):
+            result = tally.result(hours.get(key) if self.has_truth else None)
+            if not self.has_truth:
+                span = hours.get(key)
+                result = {
+                    "episodes": tally.episodes,
+                    "episodes_per_hour": tally.episodes / span if span else None,
+                }
+            result["listed"] = min(self.counts[key], EPISODES_LISTED)
+            result["omitted"] = max(0, self.counts[key] - EPISODES_LISTED)
+            out[f"{key[0]}.{key[1]}"] = result
+        return out
+
+
+def _accumulator(
+    truth: Truth | None,
+    ids: list[str],
+    calibration: tuple[int, int] | None,
+    persist: int,
+) -> MetricsAccumulator:
+    windows: list[FaultWindow] = []
+    if truth is not None:
+        windows = [
+            FaultWindow(w.fault_id, tuple(ids.index(s) for s in w.sensors), w.start_ns, w.end_ns)
+            for w in truth.windows
+            if all(s in ids for s in w.sensors)
+        ]
+    return MetricsAccumulator(len(ids), windows, calibration_ns=calibration, persist=persist)
+
+
+def parse_far(text: str) -> float:
+    """``"1%"``, ``"0.01"`` -> 0.01; UsageError (exit 2) outside (0, 1) or malformed."""
+    raw = text.strip()
+    try:
+        value = float(raw[:-1]) / 100.0 if raw.endswith("%") else float(raw)
+    except ValueError:
+        raise UsageError(f"--match-far {text!r} is not a rate (e.g. 1% or 0.01)") from None
+    if not (0.0 < value < 1.0) or math.isnan(value):
+        raise UsageError(f"--match-far {text!r} must be in (0, 1) (e.g. 1% or 0.01)")
+    return value
 
 
 # --- gates -----------------------------------------------------------------------------
@@ -312,10 +583,31 @@ TABLE_COLUMNS: list[tuple[str, str, float, str]] = [
     ("accuracy", "Accuracy %", 100.0, "{:.2f}"),
     ("fir", "FIR %", 100.0, "{:.2f}"),
     ("detection_delay_s", "Delay s", 1.0, "{:.3f}"),
+    ("isolation_delay_s", "Iso delay s", 1.0, "{:.3f}"),
+    ("decision_latency_s", "Latency s", 1.0, "{:.3f}"),
     ("recovery_delay_s", "Recovery s", 1.0, "{:.3f}"),
+    ("far_calibration", "FAR cal %", 100.0, "{:.2f}"),
     ("alarm_rate", "Alarm %", 100.0, "{:.2f}"),
     ("alarm_events", "Events", 1.0, "{:.0f}"),
 ]
+#: Extra columns with --match-far.
+MATCHED_COLUMNS: list[tuple[str, str, float, str]] = [
+    ("mar_at_far", "MAR@FAR %", 100.0, "{:.2f}"),
+    ("fir_at_far", "FIR@FAR %", 100.0, "{:.2f}"),
+    ("detection_delay_at_far_s", "Delay@FAR s", 1.0, "{:.3f}"),
+    ("threshold_scale_at_far", "Scale@FAR", 1.0, "{:.3g}"),
+]
+
+
+#: Columns the terminal table leaves out (they stay in Markdown, CSV, JSON and JUnit).
+CONSOLE_OMITS = {"far_calibration", "alarm_rate"}
+
+
+def table_columns(report: Report, *, console: bool = False) -> list[tuple[str, str, float, str]]:
+    """The columns of this report's tables (matched-FAR columns with ``--match-far``;
+    ``console``: the narrower terminal table)."""
+    columns = TABLE_COLUMNS + (MATCHED_COLUMNS if report.match_far is not None else [])
+    return [c for c in columns if not (console and c[0] in CONSOLE_OMITS)]
 
 
 def format_value(value: float | None, scale: float = 1.0, fmt: str = "{:.4g}") -> str:
@@ -325,11 +617,12 @@ def format_value(value: float | None, scale: float = 1.0, fmt: str = "{:.4g}") -
     return fmt.format(value * scale)
 
 
-def table_rows(report: Report) -> list[list[str]]:
-    """Rows (detector, type, columns of TABLE_COLUMNS) as strings."""
+def table_rows(report: Report, *, console: bool = False) -> list[list[str]]:
+    """Rows (detector, type, columns of :func:`table_columns`) as strings."""
+    columns = table_columns(report, console=console)
     return [
         [e.detector, e.sensor_type]
-        + [format_value(e.metrics.value(m), s, f) for m, _, s, f in TABLE_COLUMNS]
+        + [format_value(e.metrics.value(m), s, f) for m, _, s, f in columns]
         for e in report.entries
     ]
 
@@ -338,6 +631,7 @@ def to_json(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
     data = {
         "source": report.source,
         "has_truth": report.has_truth,
+        "match_far": report.match_far,
         "faults": report.faults,
         "results": [
             {"detector": e.detector, "sensor_type": e.sensor_type, **e.metrics.to_dict()}
@@ -353,12 +647,14 @@ def to_json(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
             for r in gate_results
         ],
         "notes": report.notes,
+        "episodes": report.episodes,
+        "episode_scores": report.episode_scores,
     }
     return json.dumps(data, indent=2, allow_nan=False) + "\n"
 
 
 def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
-    header = ["Detector", "Sensor"] + [h for _, h, _, _ in TABLE_COLUMNS]
+    header = ["Detector", "Sensor"] + [h for _, h, _, _ in table_columns(report)]
     lines = [
         f"# imufdi report: `{report.source}`",
         "",
@@ -375,16 +671,19 @@ def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
             "",
             "## Per fault",
             "",
-            "| Fault | Detector | Sensor | Detected | Delay s | Recovery s | Isolated to it % |",
-            "|---|---|---|---|---|---|---|",
+            "| Fault | Detector | Sensor | Detected | Delay s | Iso delay s | Recovery s"
+            " | Isolated to it % |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         lines += [
             f"| {f.fault_id} | {e.detector} | {e.sensor_type} | {'yes' if f.detected else 'no'} | "
             f"{format_value(f.detection_delay_s, 1.0, '{:.3f}')} | "
+            f"{format_value(f.isolation_delay_s, 1.0, '{:.3f}')} | "
             f"{format_value(f.recovery_delay_s, 1.0, '{:.3f}')} | "
             f"{format_value(f.isolated_correctly, 100.0, '{:.1f}')} |"
             for e, f in per_fault
         ]
+    lines += _episodes_markdown(report)
     if gate_results:
         lines += ["", "## Gates", ""]
         lines += [f"- {'❌' if r.failed else '✅'} {r.message}" for r in gate_results]
@@ -393,22 +692,163 @@ def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
     return "\n".join(lines) + "\n"
 
 
+# --- episodes ---------------------------------------------------------------------------
+
+#: display unit of an episode's size: (sensor type, size name) -> (scale from SI, unit)
+_SIZE_UNITS = {
+    ("gyro", "amp"): (180.0 / math.pi, "deg/s"),
+    ("gyro", "rate"): (180.0 / math.pi, "deg/s^2"),
+    ("gyro", "value"): (180.0 / math.pi, "deg/s"),
+    ("accel", "amp"): (1.0, "m/s^2"),
+    ("accel", "rate"): (1.0, "m/s^3"),
+    ("accel", "value"): (1.0, "m/s^2"),
+    ("mag", "amp"): (1e6, "uT"),
+    ("mag", "rate"): (1e6, "uT/s"),
+    ("mag", "value"): (1e6, "uT"),
+}
+
+
+def format_size(episode: dict[str, Any]) -> str:
+    """``0.91 deg/s [0.88, 0.94]``: the best fit's size and interval in display units."""
+    fits = episode.get("fits") or []
+    if not fits or fits[0].get("model") in (None, "none"):
+        return "-"
+    fit = fits[0]
+    name = fit.get("size_name", "")
+    if name == "factor":
+        scale, unit = 1.0, "x"
+    else:
+        scale, unit = _SIZE_UNITS.get((episode["sensor_type"], name), (1.0, "SI"))
+
+    def num(value: float | None) -> str:
+        return "?" if value is None else f"{value * scale:.3g}"
+
+    if fit.get("model") == "stuck":
+        return f"at {num(fit.get('size'))} {unit}"
+    return f"{num(fit.get('size'))} {unit} [{num(fit.get('low'))}, {num(fit.get('high'))}]"
+
+
+EPISODE_COLUMNS = [
+    "detector",
+    "sensor_type",
+    "start_s",
+    "duration_s",
+    "decided_start_s",
+    "sensor",
+    "fault_class",
+    "size",
+    "runner_up_class",
+    "peak_ratio",
+    "runner_up_sensor",
+    "runner_up_share",
+    "alarms",
+    "match",
+    "fault_id",
+]
+
+
+def episode_rows(report: Report) -> list[dict[str, Any]]:
+    """One flat row per listed episode (times in seconds from the log's first sample)."""
+    rows = []
+    for e in report.episodes:
+        fits = e.get("fits") or []
+        rows.append(
+            {
+                "detector": e["detector"],
+                "sensor_type": e["sensor_type"],
+                "start_s": (e["start_ns"] - report.t0_ns) * 1e-9,
+                "duration_s": e.get("duration_s"),
+                "decided_start_s": (e["decided_start_ns"] - report.t0_ns) * 1e-9,
+                "sensor": (e.get("sensors") or [None])[0],
+                "fault_class": e.get("fault_class"),
+                "size": format_size(e),
+                "runner_up_class": fits[1]["model"] if len(fits) > 1 else None,
+                "peak_ratio": e.get("peak_ratio"),
+                "runner_up_sensor": e.get("runner_up"),
+                "runner_up_share": e.get("runner_up_share"),
+                "alarms": e.get("alarms"),
+                "match": e.get("match"),
+                "fault_id": e.get("fault_id"),
+            }
+        )
+    return rows
+
+
+def to_episodes_csv(report: Report) -> str:
+    """The listed episodes, one CSV row each (:data:`EPISODE_COLUMNS`)."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(EPISODE_COLUMNS)
+    for row in episode_rows(report):
+        writer.writerow(["" if row[k] is None else row[k] for k in EPISODE_COLUMNS])
+    return out.getvalue()
+
+
+def _episodes_markdown(report: Report) -> list[str]:
+    if not report.episode_scores:
+        return []
+    lines = ["", "## Alarm episodes", ""]
+    if report.has_truth:
+        lines += [
+            "| Detector | Sensor | Episodes | Matched | False | False / h | Class right %"
+            " | 90 % interval covers % |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for key, score in report.episode_scores.items():
+            detector, sensor_type = key.split(".", 1)
+            lines.append(
+                f"| {detector} | {sensor_type} | {score['episodes']} | {score['matched']} | "
+                f"{score['false']} | {format_value(score['false_episodes_per_hour'], 1, '{:.3g}')} | "
+                f"{format_value(score['class_accuracy'], 100.0, '{:.1f}')} | "
+                f"{format_value(score['coverage'], 100.0, '{:.1f}')} |"
+            )
+    lines += [
+        "",
+        "| Detector | Sensor | Start s | Duration s | Isolated | Class | Size [90 % interval]"
+        " | Runner-up class | Peak stat/threshold | Match |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in episode_rows(report):
+        lines.append(
+            f"| {row['detector']} | {row['sensor_type']} | {row['start_s']:.3f} | "
+            f"{format_value(row['duration_s'], 1.0, '{:.3f}')} | {row['sensor'] or '-'} | "
+            f"{row['fault_class'] or '-'} | {row['size']} | {row['runner_up_class'] or '-'} | "
+            f"{format_value(row['peak_ratio'], 1.0, '{:.3g}')} | "
+            f"{row['match'] or '-'}{' ' + row['fault_id'] if row['fault_id'] else ''} |"
+        )
+    omitted = sum(s.get("omitted", 0) for s in report.episode_scores.values())
+    if omitted:
+        lines += ["", f"> {omitted} more episodes counted but not listed"]
+    return lines
+
+
 CSV_FIELDS = [
     "detector",
     "sensor_type",
     "samples",
     "fault_free_samples",
     "faulty_samples",
+    "calibration_samples",
     "far",
+    "far_calibration",
     "mar",
+    "detection_rate",
     "accuracy",
     "fir",
     "isolation_accuracy",
     "detection_delay_s",
+    "isolation_delay_s",
+    "decision_latency_s",
     "recovery_delay_s",
+    "rate_after_first_detection",
     "alarm_rate",
     "alarm_events",
     "false_alarm_events_per_hour",
+    "target_far",
+    "mar_at_far",
+    "fir_at_far",
+    "detection_delay_at_far_s",
+    "threshold_scale_at_far",
 ]
 
 
@@ -438,7 +878,8 @@ def to_junit(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
     else:
         for e in report.entries:
             summary = ", ".join(
-                f"{h}={format_value(e.metrics.value(m), s, f)}" for m, h, s, f in TABLE_COLUMNS
+                f"{h}={format_value(e.metrics.value(m), s, f)}"
+                for m, h, s, f in table_columns(report)
             )
             cases.append(
                 f'  <testcase classname="imufdi.{escape(e.detector)}" name="{escape(e.sensor_type)}">'
@@ -453,18 +894,77 @@ def to_junit(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
     )
 
 
-def plot_report(report: Report, path: str) -> None:
-    """Detection statistic vs threshold and isolation scores over time, faults shaded
-    (like Li et al. Figure 15). Needs the ``plot`` extra (matplotlib)."""
+ROC_FIELDS = [
+    "detector",
+    "sensor_type",
+    "threshold_scale",
+    "far",
+    "mar",
+    "fir",
+    "detection_delay_s",
+]
+
+
+def to_roc_csv(report: Report) -> str:
+    """The swept curves (``--roc``): one row per histogram edge where FAR or MAR changes
+    (plus the first and last edge), per detector and sensor type; empty cells are undefined."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(ROC_FIELDS)
+    for e in report.entries:
+        if e.roc is None:
+            continue
+        far, mar = e.roc["far"], e.roc["mar"]
+        change = np.ones(far.size, dtype=bool)
+        change[1:-1] = (np.diff(np.nan_to_num(far, nan=-1.0))[:-1] != 0) | (
+            np.diff(np.nan_to_num(mar, nan=-1.0))[:-1] != 0
+        )
+        for k in np.flatnonzero(change).tolist():
+            row = [e.detector, e.sensor_type, f"{10 ** e.roc['log10_scale'][k]:.6g}"]
+            for name in ("far", "mar", "fir", "detection_delay_s"):
+                v = float(e.roc[name][k])
+                row.append("" if math.isnan(v) else f"{v:.6g}")
+            writer.writerow(row)
+    return out.getvalue()
+
+
+def plot_roc(report: Report, path: str) -> None:
+    """MAR against FAR of every swept entry (log FAR axis), the matched FAR marked."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.5, 4.5), constrained_layout=True)
+    for e in report.entries:
+        if e.roc is None:
+            continue
+        far, mar = e.roc["far"], e.roc["mar"]
+        ok = ~np.isnan(far) & ~np.isnan(mar) & (far > 0)
+        ax.plot(far[ok] * 100, mar[ok] * 100, lw=1.2, label=f"{e.detector} · {e.sensor_type}")
+    if report.match_far is not None:
+        ax.axvline(report.match_far * 100, color="k", ls="--", lw=0.8, label="matched FAR")
+    ax.set_xscale("log")
+    ax.set_xlabel("FAR %, outside the calibration window")
+    ax.set_ylabel("MAR %")
+    ax.set_title("threshold sweep of the raw statistic")
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _pyplot() -> Any:
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as err:
-        from imufdi_cli.errors import UsageError
-
         raise UsageError("--plot needs matplotlib: pip install 'imufdi-cli[plot]'") from err
+    return plt
+
+
+def plot_report(report: Report, path: str) -> None:
+    """Detection statistic vs threshold and isolation scores over time, faults shaded
+    (like Li et al. Figure 15), from the series kept with ``build_report(keep_series=True)``.
+    Needs the ``plot`` extra (matplotlib)."""
+    plt = _pyplot()
     entries = report.entries
     fig, axes = plt.subplots(
         len(entries), 2, figsize=(12, 3.2 * len(entries)), squeeze=False, constrained_layout=True

@@ -27,6 +27,7 @@ DIMENSIONS: Final[dict[str, _Dim]] = {
     "angle": (0, 0, 1, 0),
     "angular_rate": (0, -1, 1, 0),
     "angular_acceleration": (0, -2, 1, 0),
+    "velocity": (1, -1, 0, 0),
     "acceleration": (1, -2, 0, 0),
     "jerk": (1, -3, 0, 0),
     "magnetic_field": (0, 0, 0, 1),

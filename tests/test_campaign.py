@@ -318,11 +318,13 @@ def test_resume_skips_done_runs_and_refuses_to_mix_without_it(tmp_path):
     assert again.summary == first.summary
 
 
-def fake_result(seed: int, amp: str, far: float, probability: float) -> dict:
+def fake_result(
+    seed: int, amp: str, far: float, probability: float, sensor: str = "imu0.gyro.x"
+) -> dict:
     desc = {
         "base": {"preset": "paper-table4", "options": {}},
         "seed": seed,
-        "faults": [f"step:imu0.gyro.x,amp={amp},at=2.5s"],
+        "faults": [f"step:{sensor},amp={amp},at=2.5s"],
         "detector": "glt",
         "params": {},
         "calibrate": [0.0, 2.0],
@@ -352,8 +354,32 @@ def test_summary_means_spreads_and_curves():
     assert_allclose([p["amplitude_si"] for p in curve["points"]], np.deg2rad([0.3, 0.9]))
     assert_allclose([p["mean"] for p in curve["points"]], [0.5, 1.0])
     text = summary_markdown(summary)
-    assert "| paper-table4 | glt | default | step | 0.9deg/s | gyro | 3 | 5 ± 3.6 |" in text
+    assert (
+        "| paper-table4 | glt | default | step:imu0.gyro.x,at=2.5s | 0.9deg/s | gyro | 3 | 5 ± 3.6 |"
+        in text
+    )
     assert "0.3deg/s: 50, 0.9deg/s: 100" in text
+
+
+def test_summary_groups_by_sensor_and_sorts_amplitudes_numerically():
+    spec = CampaignSpec(
+        name="s", runs=[], metrics=["far", "detection_probability"], source="s.toml"
+    )
+    results = [
+        fake_result(0, "10deg/s", 0.01, 1.0),
+        fake_result(0, "1deg/s", 0.02, 1.0),
+        fake_result(0, "2deg/s", 0.03, 1.0),
+        fake_result(0, "1deg/s", 0.04, 0.0, sensor="imu3.gyro.y"),
+    ]
+    summary = summarize(spec, results)
+    x_groups = [g for g in summary["groups"] if g["sensor"] == "imu0.gyro.x"]
+    assert [g["amplitude"] for g in x_groups] == ["1deg/s", "2deg/s", "10deg/s"]
+    (other,) = [g for g in summary["groups"] if g["sensor"] == "imu3.gyro.y"]
+    assert other["far"]["mean"] == 0.04 and other["runs"] == 1  # not merged with imu0
+    assert len(summary["curves"]) == 2
+    curve = next(c for c in summary["curves"] if "imu0" in c["fault"])
+    assert curve["unit"] == "deg/s"
+    assert [p["amplitude_value"] for p in curve["points"]] == [1.0, 2.0, 10.0]
 
 
 def test_summary_gates():
@@ -383,8 +409,9 @@ def test_campaign_of_200_runs_on_the_preset(campaign_200):
     assert (result.total, result.executed, result.failed) == (200, 200, 0)
     assert len(list((root / "pool" / "runs").glob("*.json"))) == 200
     summary = json.loads((root / "pool" / "summary.json").read_text())
-    assert summary["runs"] == 200 and len(summary["groups"]) == 2 * 5
-    assert all(g["runs"] == 20 and g["sensor_type"] == "gyro" for g in summary["groups"])
+    # detectors x sensors x amplitudes: faults on different sensors are separate groups
+    assert summary["runs"] == 200 and len(summary["groups"]) == 2 * 2 * 5
+    assert all(g["runs"] == 10 and g["sensor_type"] == "gyro" for g in summary["groups"])
     for curve in summary["curves"]:  # the strongest step is always detected
         assert curve["points"][-1]["amplitude"] == "1.5deg/s"
         assert curve["points"][-1]["mean"] == 1.0
@@ -412,3 +439,72 @@ def test_bad_scheduler_forms(tmp_path):
         run_campaign(spec, tmp_path / "o", scheduler="udp://x")
     with pytest.raises(UsageError, match="local:N needs N >= 1"):
         run_campaign(spec, tmp_path / "o2", scheduler="local:0")
+
+
+JITTER = """
+[campaign]
+seeds = [0, 1, 2, 3]
+calibrate = "0s:0.5s"
+match_far = "2%"
+
+[[base]]
+preset = "paper-table4"
+options = { duration = "1.5s" }
+
+[[fault]]
+model = "step"
+sensor = "imu0.gyro.x"
+at = "0.8s"
+at_jitter = "0.4s"
+amp = ["0.9deg/s", "1.5deg/s"]
+
+[[detector]]
+name = "glt"
+"""
+
+
+def test_at_jitter_draws_onsets_per_seed_and_records_them(tmp_path):
+    from imufdi_cli.campaign import jittered_specs
+    from imufdi_cli.simulate import config_from_options, simulate_block
+
+    spec = load_spec(write_spec(tmp_path, JITTER))
+    assert all(r["at_jitter"] == [0.4] and r["match_far"] == 0.02 for r in spec.runs)
+    array, _ = simulate_block(config_from_options("paper-table4", seed=0, duration="0.1s"))
+    onsets = {}
+    for run in spec.runs:
+        applied, (onset,) = jittered_specs(run["faults"], run["at_jitter"], run["seed"], array)
+        assert 0.8 <= onset <= 1.2
+        assert f"at={onset:.9f}s" in applied[0] and "at=0.8s" not in applied[0]
+        # every amplitude of a seed gets the same onset (paired comparisons)
+        assert onsets.setdefault(run["seed"], onset) == onset
+    assert len(set(onsets.values())) == 4  # seeds differ
+    result = run_campaign(spec, tmp_path / "out", jobs=1)
+    assert result.failed == 0
+    import csv
+
+    with open(tmp_path / "out" / "runs.csv", newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    assert {"onset_s", "mar_at_far", "target_far", "fault", "sensor"} <= set(rows[0])
+    gyro = [row for row in rows if row["sensor_type"] == "gyro"]
+    assert {round(float(r["onset_s"]), 6) for r in gyro} == {round(v, 6) for v in onsets.values()}
+    assert all(r["target_far"] == "0.02" and r["mar_at_far"] != "" for r in gyro)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert all("mar_at_far" in g and g["target_far"] == 0.02 for g in summary["groups"])
+
+
+@pytest.mark.parametrize(
+    ("line", "fragment"),
+    [
+        ('at_jitter = "soon"', "at_jitter"),
+        ('at_jitter = "-1s"', "at_jitter"),
+    ],
+)
+def test_bad_at_jitter(tmp_path, line, fragment):
+    text = JITTER.replace('at_jitter = "0.4s"', line)
+    with pytest.raises(CampaignSpecError, match=fragment):
+        load_spec(write_spec(tmp_path, text))
+
+
+def test_bad_match_far_in_spec(tmp_path):
+    with pytest.raises(CampaignSpecError, match="match_far"):
+        load_spec(write_spec(tmp_path, JITTER.replace('"2%"', '"200%"')))

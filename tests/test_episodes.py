@@ -221,7 +221,7 @@ def test_episodes_are_matched_to_the_fault_they_explain_and_scored() -> None:
     ]
     assert matches[0]["covered"] is True and matches[1]["covered"] is False
     assert matches[4]["class_right"] is False and matches[4]["covered"] is None
-    score = score_episodes(episodes, matches, hours=0.5)
+    score = score_episodes(matches, hours=0.5)
     assert score["episodes"] == 7 and score["matched"] == 3 and score["false"] == 3
     assert score["false_episodes_per_hour"] == pytest.approx(6.0)
     assert score["class_accuracy"] == pytest.approx(2 / 3)

@@ -88,7 +88,8 @@ def test_recovery_delay_and_persistence():
     assert m.detection_delay_s == pytest.approx(0.01)
     assert m.recovery_delay_s == pytest.approx(0.03)
     m3 = compute_metrics(t, alarm, np.zeros(30, int), faulty, [fault], persist=3)
-    assert m3.detection_delay_s == pytest.approx(0.04)  # the blip does not count
+    # the blip does not count; the run 14..16 is known to persist at sample 16
+    assert m3.detection_delay_s == pytest.approx(0.06)
 
 
 def test_alarm_after_fault_end_is_not_a_detection():
@@ -151,3 +152,149 @@ def test_faulty_matrix_from_windows():
     expected[2:4, 0] = True
     expected[5:, 1:] = True
     assert (faulty_matrix(t, windows, 3) == expected).all()
+
+
+# --- out-of-sample FAR, decision time, isolation delay, recovery ----------------------------
+
+
+def test_calibration_window_is_excluded_and_reported_apart():
+    # 20 fault-free samples; the calibration window holds samples 0..9 with 4 alarms, the
+    # rest 1 alarm: FAR 1/10 out of sample, 4/10 in sample.
+    t = _t(20)
+    alarm = np.zeros(20, bool)
+    alarm[[1, 2, 3, 5, 15]] = True
+    m = compute_metrics(t, alarm, np.full(20, -1), n_sensors=2, calibration_ns=(0, 10 * MS10))
+    assert m.samples == 20 and m.calibration_samples == 10 and m.fault_free_samples == 10
+    assert m.far == pytest.approx(1 / 10)
+    assert m.far_calibration == pytest.approx(4 / 10)
+    assert m.alarm_rate == pytest.approx(1 / 10)
+    assert m.alarm_events == 1  # the events inside the window do not count
+    # without the window: every sample counts, as older logs are reported
+    m_all = compute_metrics(t, alarm, np.full(20, -1), n_sensors=2)
+    assert m_all.far == pytest.approx(5 / 20) and m_all.far_calibration is None
+
+
+def test_calibration_exclusion_streams_like_one_call():
+    from imufdi_cli.metrics import MetricsAccumulator
+
+    rng = np.random.default_rng(3)
+    t = _t(500)
+    alarm = rng.random(500) < 0.2
+    isolated = np.where(alarm, rng.integers(0, 3, 500), -1)
+    fault = FaultWindow("f", (2,), 300 * MS10, 400 * MS10)
+    whole = compute_metrics(
+        t, alarm, isolated, n_sensors=3, faults=[fault], calibration_ns=(0, 100 * MS10)
+    )
+    acc = MetricsAccumulator(3, [fault], calibration_ns=(0, 100 * MS10))
+    for start in range(0, 500, 37):  # uneven chunks
+        part = slice(start, start + 37)
+        acc.update(t[part], alarm[part], isolated[part])
+    assert acc.result().to_dict() == whole.to_dict()
+
+
+def test_delays_are_at_decision_time():
+    # fault on sensor 0 from sample 10; first alarm at sample 12, its decision available
+    # 5 samples later (a detector that looks ahead): delay 0.07 s, latency 0.05 s
+    t = _t(30)
+    decided = t + 5 * MS10
+    alarm = np.zeros(30, bool)
+    alarm[12:] = True
+    fault = FaultWindow("f", (0,), 10 * MS10)
+    m = compute_metrics(
+        t, alarm, np.zeros(30, int), n_sensors=2, faults=[fault], decided_ns=decided
+    )
+    assert m.detection_delay_s == pytest.approx(0.07)
+    assert m.decision_latency_s == pytest.approx(0.05)
+    causal = compute_metrics(t, alarm, np.zeros(30, int), n_sensors=2, faults=[fault])
+    assert causal.detection_delay_s == pytest.approx(0.02)
+    assert causal.decision_latency_s == 0.0
+
+
+def test_isolation_delay_waits_for_the_faulty_sensor():
+    # a chance alarm isolated to healthy sensor 1 at sample 11, then sensor 0 from sample 15
+    t = _t(30)
+    alarm = np.zeros(30, bool)
+    alarm[11] = True
+    alarm[15:] = True
+    isolated = np.full(30, -1)
+    isolated[11] = 1
+    isolated[15:] = 0
+    fault = FaultWindow("f", (0,), 10 * MS10)
+    m = compute_metrics(t, alarm, isolated, n_sensors=2, faults=[fault])
+    assert m.detection_delay_s == pytest.approx(0.01)
+    assert m.isolation_delay_s == pytest.approx(0.05)
+    assert m.faults[0].isolation_delay_s == pytest.approx(0.05)
+    # with a set of isolated sensors the fault's own sensor must be in the set
+    iso_set = np.zeros((30, 2), bool)
+    iso_set[11, 1] = True
+    iso_set[18:, :] = True
+    m_set = compute_metrics(t, alarm, isolated, n_sensors=2, faults=[fault], isolated_set=iso_set)
+    assert m_set.isolation_delay_s == pytest.approx(0.08)
+    never = compute_metrics(t, alarm, np.where(alarm, 1, -1), n_sensors=2, faults=[fault])
+    assert never.isolation_delay_s is None and never.detection_delay_s is not None
+
+
+def test_recovery_waits_until_alarms_stop_for_good():
+    # fault 10..20; alarms flicker after the end: 20, 22, 25 on, then quiet to the end
+    t = _t(40)
+    alarm = np.zeros(40, bool)
+    alarm[12:21] = True
+    alarm[[22, 25]] = True
+    fault = FaultWindow("f", (0,), 10 * MS10, 20 * MS10)
+    m = compute_metrics(t, alarm, np.zeros(40, int), n_sensors=1, faults=[fault])
+    assert m.recovery_delay_s == pytest.approx(0.06)  # first sample after the last alarm: 26
+    # --persist 20: 14 quiet samples (26..39) are not enough, recovery undefined
+    m20 = compute_metrics(t, alarm, np.zeros(40, int), n_sensors=1, faults=[fault], persist=20)
+    assert m20.recovery_delay_s is None
+    # an alarm that comes back more than 0.1 s (the merge gap) after the clearing is a new
+    # episode (a false alarm), not a late recovery; one within 0.1 s is flicker
+    t80 = _t(80)
+    alarm80 = np.zeros(80, bool)
+    alarm80[12:21] = True
+    alarm80[[22, 25, 60]] = True
+    m80 = compute_metrics(t80, alarm80, np.zeros(80, int), n_sensors=1, faults=[fault])
+    assert m80.recovery_delay_s == pytest.approx(0.06)
+    assert m80.false_alarms == 4  # 20 (the fault ends at 20), 22, 25 and 60
+    alarm80[35] = True  # 9 samples (0.09 s) after the clearing at 26: still the episode
+    m80 = compute_metrics(t80, alarm80, np.zeros(80, int), n_sensors=1, faults=[fault])
+    assert m80.recovery_delay_s == pytest.approx(0.16)
+    # the recovery episode ends at the next onset: alarms of the next fault do not count
+    second = FaultWindow("g", (0,), 30 * MS10)
+    alarm2 = alarm.copy()
+    alarm2[31:] = True
+    m2 = compute_metrics(t, alarm2, np.zeros(40, int), n_sensors=1, faults=[fault, second])
+    assert m2.faults[0].recovery_delay_s == pytest.approx(0.06)
+    # and the recovery is stamped at decision time too
+    late = compute_metrics(
+        t, alarm, np.zeros(40, int), n_sensors=1, faults=[fault], decided_ns=t + 3 * MS10
+    )
+    assert late.recovery_delay_s == pytest.approx(0.09)
+
+
+def test_recovery_streams_across_chunks():
+    from imufdi_cli.metrics import MetricsAccumulator
+
+    t = _t(40)
+    alarm = np.zeros(40, bool)
+    alarm[12:21] = True
+    alarm[[22, 25]] = True
+    fault = FaultWindow("f", (0,), 10 * MS10, 20 * MS10)
+    for size in (1, 3, 7, 40):
+        acc = MetricsAccumulator(1, [fault], persist=2)
+        for start in range(0, 40, size):
+            part = slice(start, start + size)
+            acc.update(t[part], alarm[part], np.zeros(len(t[part]), int))
+        result = acc.result()
+        assert result.recovery_delay_s == pytest.approx(0.06)
+        assert result.detection_delay_s == pytest.approx(0.03)  # run 12, 13 known at 13
+
+
+def test_detection_rate_is_one_minus_mar_and_rate_after_first_detection_is_apart():
+    t = _t(20)
+    alarm = np.zeros(20, bool)
+    alarm[15:] = True  # fault from 10: detected late
+    fault = FaultWindow("f", (0,), 10 * MS10)
+    m = compute_metrics(t, alarm, np.zeros(20, int), n_sensors=1, faults=[fault])
+    assert m.value("detection_rate") == pytest.approx(0.5)
+    assert m.to_dict()["detection_rate"] == pytest.approx(0.5)
+    assert m.rate_after_first_detection == pytest.approx(1.0)

@@ -25,6 +25,8 @@ DETECTORS: dict[str, str] = {
     "woa-mvmd-glt": "imufdi_cli.detectors.woa_mvmd_glt:WoaMvmdGltDetector",
     "bank": "imufdi_cli.detectors.bank:BankDetector",
     "cnn-map": "imufdi_cli.detectors.cnn_map:CnnMapDetector",
+    "px4-selector": "imufdi_cli.detectors.px4_selector:Px4SelectorDetector",
+    "ap-consistency": "imufdi_cli.detectors.ap_consistency:ApConsistencyDetector",
 }
 
 

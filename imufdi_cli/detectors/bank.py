@@ -395,6 +395,8 @@ class BankDetector:
     """
 
     name: ClassVar[str] = "bank"
+    #: Causal: the row of sample i depends on samples up to i only.
+    lookahead_samples: int = 0
     PARAMS: ClassVar[dict[str, Param]] = {
         "alpha": ALPHA,
         "mode": Param(

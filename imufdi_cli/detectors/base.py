@@ -12,7 +12,13 @@ are the oldest input samples not yet reported, in order. A causal detector retur
 per input sample; a detector that needs look-ahead (e.g. windowed decompositions) may hold
 samples back and returns them later; ``flush()`` returns every held-back row at the end of
 the log, so that over ``process`` + ``flush`` each input sample gets exactly one row. The
-pipeline pairs rows with timestamps in order. Sensor indices refer to
+pipeline pairs rows with timestamps in order.
+
+Every detector declares ``lookahead_samples``: the largest number of later input samples the
+decision on a sample may wait for (0 for a causal detector, whose row for sample i depends
+on samples up to i only). The pipeline stamps each row with its decision time (see
+:func:`imufdi_cli.detect.decision_positions`), so a detector that looks ahead pays for it in
+the reported delays. Sensor indices refer to
 ``ArrayConfig.sensor_ids(sensor_type)`` (global, never renumbered by reconfiguration).
 """
 
@@ -114,6 +120,9 @@ class Detector(Protocol):
 
     name: ClassVar[str]
     PARAMS: ClassVar[Mapping[str, Param]]
+    #: Maximum number of input samples a row may be held back: the decision on sample i
+    #: is available once sample i + lookahead_samples has been passed in (0: causal).
+    lookahead_samples: int
 
     def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
         """Learn noise, biases, thresholds from a fault-free calibration block."""

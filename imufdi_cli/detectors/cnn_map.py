@@ -306,6 +306,8 @@ class CnnMapDetector:
     """
 
     name: ClassVar[str] = "cnn-map"
+    #: Causal: the row of sample i depends on samples up to i only.
+    lookahead_samples: int = 0
     PARAMS: ClassVar[dict[str, Param]] = {
         "alpha": replace(
             ALPHA, default=0.001, help="false-alarm level per sample over the tested IMUs"

@@ -205,6 +205,8 @@ class GltDetector:
     """
 
     name: ClassVar[str] = "glt"
+    #: Causal: the row of sample i depends on samples up to i only.
+    lookahead_samples: int = 0
     PARAMS: ClassVar[dict[str, Param]] = {
         "alpha": ALPHA,
         "persistence": Param("int", 1, "consecutive samples over threshold for an alarm", low=1),

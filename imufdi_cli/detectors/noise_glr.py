@@ -186,6 +186,8 @@ class NoiseGlrDetector:
     """
 
     name: ClassVar[str] = "noise-glr"
+    #: Causal: the row of sample i depends on samples up to i only.
+    lookahead_samples: int = 0
     PARAMS: ClassVar[dict[str, Param]] = {
         "alpha": replace(
             ALPHA, default=0.001, help="array-level false-alarm level per sample and sensor type"

@@ -236,6 +236,8 @@ class PcaParityDetector:
     """
 
     name: ClassVar[str] = "pca-parity"
+    #: Causal: the row of sample i depends on samples up to i only.
+    lookahead_samples: int = 0
     PARAMS: ClassVar[dict[str, Param]] = {
         "alpha": ALPHA,
         "components": Param("int", 2, "number of principal components kept", low=1, high=64),

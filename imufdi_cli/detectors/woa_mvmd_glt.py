@@ -17,11 +17,14 @@ For one sensor type (n sensors, measurement matrix H, measurements m (N, n)):
    per-sensor sigma and with the per-sensor biases estimated on u_best of the calibration
    window (sigma re-estimated in the u_best domain: the filter removes most of the noise,
    which is why the step fault is detected with a small MAR). Threshold chi2_{1-alpha}(n-3).
-4. Each sample gets its row from the window where it lies in the central ``hop`` samples
-   (``centre``), or the smallest statistic of all windows containing it (``min``: a window
-   that ends before a step onset does not see it, which sharpens the edges; default).
-   Either way the output depends only on the sample index in the log, not on how the
-   pipeline cuts blocks; the detector holds back ``window - hop`` samples at most.
+4. Each sample gets its row from the first window that contains it, where it lies in the
+   last ``hop`` samples (``end``, default: causal, decided when that window ends, at most
+   ``hop - 1`` samples after the sample; the first ``window - hop`` samples of the log get
+   no decision), from the window where it is central (``centre``), or the smallest
+   statistic of all windows containing it (``min``; ``centre`` and ``min`` use windows that
+   end up to ``window - 1`` samples later, so a sample's row depends on what follows it).
+   The output depends only on the sample index in the log, not on how the pipeline cuts
+   blocks; :attr:`WoaMvmdGltDetector.lookahead_samples` is the longest hold-back.
 
 (K, alpha) come from the ``params`` JSON file written by ``imufdi tune`` (:func:`tune`), from
 the ``K`` and ``mvmd_alpha`` parameters, or, by default, are tuned by the whale optimization
@@ -70,7 +73,7 @@ from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataEr
 from imufdi_cli.log import ImuBlock
 
 DEFAULT_WEIGHTS: tuple[float, float, float] = (1.0, 1.0, 1.0)
-COMBINE_CHOICES: tuple[str, ...] = ("min", "centre")
+COMBINE_CHOICES: tuple[str, ...] = ("end", "centre", "min")
 
 
 # --- fitness (§2.6) --------------------------------------------------------------------
@@ -124,6 +127,81 @@ def cfv(result: MvmdResult, weights: Sequence[float] = DEFAULT_WEIGHTS) -> float
     """CFV = w1 * envelope entropy + w2 * inter-mode correlation + w3 * compactness (§2.6)."""
     terms = cfv_components(result)
     return float(sum(w * t for w, t in zip(weights, terms)))
+
+
+# --- validation fault (beyond the paper) -----------------------------------------------
+
+FITNESS_CHOICES: tuple[str, ...] = ("cfv+delay", "cfv")
+OUTLIER_CHOICES: tuple[str, ...] = ("clip", "variance", "ignore")
+
+
+@dataclass(frozen=True)
+class ValidationFault:
+    """A step on one sensor, used to score how a candidate (K, alpha) delays detection.
+
+    CFV alone decreases monotonically as alpha grows (narrower modes have flatter envelopes
+    and smaller spectral spread), so WOA returns the alpha upper bound whatever it is. The
+    detection statistic pays for that smoothing in delay: this fault measures it.
+
+    Attributes
+    ----------
+    window, hop : int
+        The detector's window grid (rows are decided in the last ``hop`` of a window).
+    step : float
+        Step amplitude in units of the sensor's noise sigma.
+    dof : int
+        n - 3, degrees of freedom of the GLT statistic.
+    threshold : float
+        chi2_{1-alpha}(n - 3).
+    projection : float
+        Mean diagonal of the whitened parity projector, (n - 3) / n: the share of a
+        one-sensor step that reaches the parity space.
+    weight : float
+        Weight of the expected missed fraction in the fitness.
+    horizon : int
+        Samples after the onset over which misses are counted (default 4 windows).
+    """
+
+    window: int
+    hop: int
+    step: float
+    dof: int
+    threshold: float
+    projection: float
+    weight: float = 1.0
+    horizon: int = 0
+
+    def miss_fraction(self, F: np.ndarray) -> float:
+        """Expected fraction of missed fault samples over the horizon, for filter F (L, L).
+
+        A sample k samples after the onset is decided on row t of a window (t uniformly in
+        the last ``hop`` rows); the step covers columns ``c = max(t - k, 0)`` .. L - 1, so the
+        GLT statistic (eq. 5) is noncentral chi2(n - 3) with noncentrality
+        ``step^2 * projection * (sum_{tau >= c} F[t, tau])^2 / |F[t]|^2`` (the whitened step
+        through the filter, against the filtered noise). Detection probability
+        ``P(chi2'(n - 3, lambda) > threshold)``; the result is the mean of 1 - P over t and
+        over k = 0 .. horizon - 1 (k >= t: the whole window carries the step).
+        """
+        from scipy.stats import ncx2  # imported when used (start-up time)
+
+        L = F.shape[0]
+        horizon = self.horizon or 4 * self.window
+        rows = np.arange(L - self.hop, L)
+        tails = np.cumsum(F[rows, ::-1], axis=1)[:, ::-1]  # tails[r, c] = sum_{tau >= c} F
+        norms = np.sqrt(np.einsum("ij,ij->i", F[rows], F[rows]))
+        k = np.arange(horizon)
+        columns = np.maximum(rows[:, None] - k[None, :], 0)  # (hop, horizon)
+        signal = tails[np.arange(rows.size)[:, None], columns] / norms[:, None]
+        noncentrality = self.step**2 * self.projection * signal**2
+        detected = ncx2.sf(self.threshold, self.dof, noncentrality)
+        return float(np.mean(1.0 - detected))
+
+
+def validation_windows(n_samples: int, window: int, count: int = 4) -> list[int]:
+    """Start indices of ``count`` windows spread over a tuning segment of ``n_samples``."""
+    if n_samples < window:
+        return []
+    return sorted({int(v) for v in np.linspace(0, n_samples - window, count).round()})
 
 
 # --- tuning (§2.7) ---------------------------------------------------------------------
@@ -200,10 +278,14 @@ def tune_signal(
     seed: int = 0,
     tol: float = 1e-6,
     max_iter: int = 300,
+    validation: ValidationFault | None = None,
 ) -> TuneResult:
     """WOA search of (K, alpha) minimising CFV for one multichannel signal (C, T).
 
     The whole population of each WOA iteration is decomposed in one batched MVMD call.
+    With ``validation``, the fitness is ``CFV + weight * miss``, ``miss`` the expected
+    missed fraction of :meth:`ValidationFault.miss_fraction` averaged over a few windows of
+    the signal (each decomposed with the candidate, its u_best filter taken).
     """
     if population < 2:
         raise DetectorConfigError(f"WOA population must be >= 2, got {population}")
@@ -216,10 +298,29 @@ def tune_signal(
     signal = np.asarray(signal, dtype=np.float64)
     start = time.perf_counter()
 
+    starts = validation_windows(signal.shape[-1], validation.window) if validation else []
+    if validation is not None and not starts:
+        raise CalibrationError(
+            f"tuning segment has {signal.shape[-1]} samples; the validation fault needs one"
+            f" window of {validation.window}"
+        )
+
     def fitness(candidates: np.ndarray) -> np.ndarray:
         Ks = [int(k) for k in candidates[:, 0]]
-        results = mvmd_batch(signal, Ks, list(candidates[:, 1]), tol=tol, max_iter=max_iter)
-        return np.array([cfv(r, weights) for r in results])
+        alphas = list(candidates[:, 1])
+        results = mvmd_batch(signal, Ks, alphas, tol=tol, max_iter=max_iter)
+        values = np.array([cfv(r, weights) for r in results])
+        if validation is None:
+            return values
+        misses = np.zeros(len(Ks))
+        for start in starts:
+            window = signal[..., start : start + validation.window].T  # (L, C)
+            decomposed = mvmd_batch(window.T, Ks, alphas, tol=tol, max_iter=max_iter)
+            for i, result in enumerate(decomposed):
+                k = best_mode(result, window)
+                F = filter_matrix(result.gains[k], window.shape[0])
+                misses[i] += validation.miss_fraction(F) / len(starts)
+        return values + validation.weight * misses
 
     found = woa(
         fitness,
@@ -246,6 +347,8 @@ def tune_signal(
             "seed": seed,
             "samples": int(signal.shape[-1]),
             "channels": int(signal.shape[0]) if signal.ndim == 2 else 1,
+            "fitness": "cfv" if validation is None else "cfv+delay",
+            "validation": None if validation is None else asdict(validation),
         },
     )
 
@@ -254,6 +357,13 @@ def tune(
     block: ImuBlock,
     array: ArrayConfig,
     sensor_type: str = "gyro",
+    *,
+    fitness: str = "cfv+delay",
+    validation_step: float = 4.0,
+    delay_weight: float = 100.0,
+    window: int = 50,
+    overlap: int = 40,
+    detector_alpha: float = 0.01,
     **woa_params: Any,
 ) -> TuneResult:
     """Tune (K, alpha) on the measurements of one sensor type of a (fault-free) block.
@@ -264,6 +374,11 @@ def tune(
         The segment to tune on (e.g. the first 2.5 s of a log).
     array : ArrayConfig
     sensor_type : str
+    fitness : {"cfv+delay", "cfv"}
+        ``cfv``: the paper's CFV alone (its minimum is the alpha upper bound, see
+        docs/algorithms/woa-mvmd-glt.md); ``cfv+delay`` adds ``delay_weight`` times the
+        expected missed fraction of a ``validation_step``-sigma step (:class:`ValidationFault`)
+        on the detector's window grid (``window``, ``overlap``) at level ``detector_alpha``.
     **woa_params
         ``population``, ``iterations``, ``k_bounds``, ``alpha_bounds``, ``weights``, ``seed``,
         ``tol``, ``max_iter`` (see :func:`tune_signal`).
@@ -280,9 +395,44 @@ def tune(
         raise CalibrationError(
             f"tuning segment has {values.shape[0]} samples; at least {MIN_SAMPLES} are needed"
         )
-    result = tune_signal(values.T, **woa_params)
+    validation = None
+    if fitness == "cfv+delay":
+        validation = make_validation(
+            values.shape[1], window, window - overlap, validation_step, delay_weight, detector_alpha
+        )
+    elif fitness != "cfv":
+        raise DetectorConfigError(f"fitness: valid: {', '.join(FITNESS_CHOICES)}")
+    result = tune_signal(values.T, validation=validation, **woa_params)
     result.sensor_type = sensor_type
     return result
+
+
+def make_validation(
+    n_sensors: int, window: int, hop: int, step: float, weight: float, alpha: float
+) -> ValidationFault:
+    """The :class:`ValidationFault` of a detector with n sensors of a type at level alpha."""
+    dof = n_sensors - 3
+    if dof < 1:
+        raise DetectorConfigError(f"the GLT needs at least 4 sensors, got {n_sensors}")
+    if window < MIN_SAMPLES or not 1 <= hop <= window:
+        raise DetectorConfigError(
+            f"validation fault: window must be >= {MIN_SAMPLES} and overlap in [0, window),"
+            f" got window {window}, overlap {window - hop}"
+        )
+    if not (step > 0 and weight >= 0):
+        raise DetectorConfigError(
+            f"validation fault: validation_step must be > 0 and delay_weight >= 0,"
+            f" got {step}, {weight}"
+        )
+    return ValidationFault(
+        window=window,
+        hop=hop,
+        step=float(step),
+        dof=dof,
+        threshold=float(chi2.ppf(1.0 - alpha, dof)),
+        projection=dof / n_sensors,
+        weight=float(weight),
+    )
 
 
 # --- windowed decomposition ------------------------------------------------------------
@@ -329,9 +479,11 @@ class _WindowStream:
     """Overlapping windows on a stream of (N, n) rows; emits per-sample rows in order.
 
     Windows start at ``j * hop`` (global sample index) and hold ``window`` samples. A
-    row's value is taken from the window that has it in its central ``hop`` samples
-    (``centre``) or is the row-wise choice of ``reduce`` over all windows containing it
-    (``min``), exactly as if the whole log were processed at once.
+    row's value is taken from the window that has it in its last ``hop`` samples (``end``;
+    rows before ``window - hop`` are emitted at once as quiet, undecided rows), from the
+    window that has it in its central ``hop`` samples (``centre``) or is the row-wise
+    minimum of the statistic over all windows containing it (``min``), exactly as if the
+    whole log were processed at once.
     """
 
     def __init__(self, window: int, hop: int, combine: str, evaluate: Any) -> None:
@@ -385,6 +537,8 @@ class _WindowStream:
         """Global rows [lo, hi) a window starting at ``start`` contributes."""
         if self.combine == "min":
             return start, start + length
+        if self.combine == "end":
+            return start + length - self.hop, start + length
         lo = 0 if start == 0 else start + self.pad
         return lo, start + self.pad + self.hop
 
@@ -394,7 +548,13 @@ class _WindowStream:
         else:
             self.buffer = np.concatenate([self.buffer, values])
         self.received += values.shape[0]
-        outputs = []
+        outputs: list[dict[str, np.ndarray]] = []
+        if self.combine == "end":
+            # rows before the first window's last hop are never decided: emit them now
+            quiet = min(self.received, self.window - self.hop) - self.emitted
+            if quiet > 0:
+                outputs.append({"__quiet__": np.zeros(quiet)})
+                self.emitted += quiet
         while self.next_window * self.hop + self.window <= self.received:
             start = self.next_window * self.hop
             local = start - self.buffer_start
@@ -404,7 +564,9 @@ class _WindowStream:
             self.next_window += 1
             # rows before the next window's start (min) / contribution (centre) are final
             final = self.next_window * self.hop
-            if self.combine == "centre":
+            if self.combine == "end":
+                final = start + self.window
+            elif self.combine == "centre":
                 final = self.next_window * self.hop + self.pad
             taken = self._take(final)
             if taken is not None:
@@ -472,6 +634,42 @@ class _TypeState:
     isolable: np.ndarray
     threshold: float
     stream: _WindowStream
+    n_calibration: int = 0  # samples the biases were averaged over
+    outlier_variance: float = (
+        0.0  # variance added for outliers (variance: SI^2; clip: sigma^2 units)
+    )
+    outlier_cut: float | None = None  # outliers=clip: level of the standardised residual
+    clipped: int = 0  # residual entries clipped so far
+
+    @staticmethod
+    def clip_probe(
+        values: np.ndarray, bias: np.ndarray, sigma: np.ndarray, V: np.ndarray, cut: float
+    ) -> np.ndarray:
+        """(N, n) bool: standardised parity residuals beyond ``cut`` (see :meth:`clip`)."""
+        projector = V.T @ V
+        scale = np.sqrt(np.diag(projector))
+        standardised = (((values - bias) / sigma) @ projector) / scale
+        return np.asarray(np.abs(standardised) > cut)
+
+    def clip(self, values: np.ndarray) -> np.ndarray:
+        """Clip each sample's standardised parity residuals at ``outlier_cut``, (N, n).
+
+        Whitened residual ``r = P x_w`` (``P = V^T V``, ``x_w = (x - bias) / sigma``),
+        standardised ``z_i = r_i / sqrt(P_ii)``; where ``|z_i| > c``, sensor i is moved by
+        ``(|z_i| - c) sigma_i / sqrt(P_ii)`` toward the others, so that ``|z_i| = c``. A
+        one-sample spike on one sensor is cut to c; a step larger than c sigma is cut too,
+        sample by sample, but stays far above the threshold once u_best averages it (the
+        amplitude is estimated on the unclipped signal). Gaussian noise is left alone but
+        with probability 2 Phi(-c) per residual (6e-5 at c = 4).
+        """
+        if self.outlier_cut is None:
+            return values
+        projector = self.V.T @ self.V
+        scale = np.sqrt(np.diag(projector))
+        standardised = (((values - self.bias) / self.sigma) @ projector) / scale
+        excess = np.sign(standardised) * np.maximum(np.abs(standardised) - self.outlier_cut, 0.0)
+        self.clipped += int(np.count_nonzero(excess))
+        return np.asarray(values - excess * self.sigma / scale)
 
 
 class WoaMvmdGltDetector:
@@ -484,10 +682,39 @@ class WoaMvmdGltDetector:
         "overlap": Param("int", 40, "overlap of consecutive windows, samples", low=0),
         "combine": Param(
             "choice",
-            "min",
-            "per-sample statistic: min over all windows containing the sample, or the "
-            "window where it is central",
+            "end",
+            "per-sample row: from the first window that ends after the sample (causal,"
+            " look-ahead hop - 1), the window where it is central, or the min over all"
+            " windows containing it (look-ahead window - 1)",
             choices=COMBINE_CHOICES,
+        ),
+        "outliers": Param(
+            "choice",
+            "clip",
+            "sparse spikes: clip each sample's standardised parity residual at outlier_cut"
+            " before the decomposition (clip), add their calibration variance to sigma"
+            " (variance), or nothing (ignore)",
+            choices=OUTLIER_CHOICES,
+        ),
+        "outlier_cut": Param(
+            "float",
+            4.0,
+            "clip level of outliers=clip, standardised residual",
+            low=0.0,
+            low_open=True,
+        ),
+        "fitness": Param(
+            "choice",
+            "cfv+delay",
+            "WOA fitness: the paper's CFV plus the expected missed fraction of a validation"
+            " step (cfv+delay), or CFV alone (cfv: picks the alpha upper bound)",
+            choices=FITNESS_CHOICES,
+        ),
+        "validation_step": Param(
+            "float", 4.0, "validation step of cfv+delay, in noise sigmas", low=0.0, low_open=True
+        ),
+        "delay_weight": Param(
+            "float", 100.0, "weight of the validation miss fraction in cfv+delay", low=0.0
         ),
         "params": Param("path", None, "JSON file of tuned (K, alpha) from `imufdi tune`"),
         "K": Param("int", None, "number of MVMD modes (skips tuning, with mvmd_alpha)", low=1),
@@ -555,6 +782,42 @@ class WoaMvmdGltDetector:
         self._states: dict[str, _TypeState] = {}
         self._array: ArrayConfig | None = None
 
+    @property
+    def lookahead_samples(self) -> int:
+        """Most samples a row is held back: its decision waits for a window's last sample.
+
+        ``end``: a sample in the last ``hop`` samples of a window is decided when that window
+        ends, ``hop - 1`` samples later at most. ``centre`` and ``min``: up to ``window - 1``
+        (the first window decides its first sample ``window - 1`` samples late; ``min`` waits
+        for the last window containing the sample).
+        """
+        if self.params["combine"] == "end":
+            return self.hop - 1
+        return self.window - 1
+
+    def decision_index(self, sample: np.ndarray, n_samples: int) -> np.ndarray:
+        """Index of the input sample at which each row's decision is available, (N,).
+
+        Exact for the window grid (``end``: the end of the first window that has the sample
+        in its last ``hop``; ``centre``: the end of the window where it is central; ``min``:
+        the end of the last window that contains it), capped at the last sample of the log
+        (the tail window of ``flush``).
+        """
+        sample = np.asarray(sample, dtype=np.int64)
+        window, hop = self.window, self.hop
+        combine = self.params["combine"]
+        if combine == "end":
+            first = np.maximum(-(-(sample - window + 1) // hop), 0)
+            decided = first * hop + window - 1
+            decided = np.where(sample < window - hop, sample, decided)  # quiet rows
+        elif combine == "centre":
+            pad = (window - hop) // 2
+            j = np.maximum((sample - pad) // hop, 0)
+            decided = j * hop + window - 1
+        else:
+            decided = (sample // hop) * hop + window - 1
+        return np.asarray(np.minimum(decided, n_samples - 1))
+
     # -- calibration ----------------------------------------------------------------
 
     def _choose(self, sensor_type: str, values: np.ndarray) -> tuple[int, float, dict | None]:
@@ -564,8 +827,19 @@ class WoaMvmdGltDetector:
         if self.tuned_file is not None:
             return self.tuned_file.K, self.tuned_file.alpha, {"source": "params file"}
         segment = values[: int(p["tune_samples"])]
+        validation = None
+        if p["fitness"] == "cfv+delay":
+            validation = make_validation(
+                values.shape[1],
+                self.window,
+                self.hop,
+                float(p["validation_step"]),
+                float(p["delay_weight"]),
+                float(p["alpha"]),
+            )
         result = tune_signal(
             segment.T,
+            validation=validation,
             population=int(p["population"]),
             iterations=int(p["iterations"]),
             k_bounds=(int(p["k_min"]), int(p["k_max"])),
@@ -620,8 +894,27 @@ class WoaMvmdGltDetector:
                     f"{self.name}: {sensor_type} noise sigma is zero or not finite;"
                     " the calibration window is degenerate"
                 )
+            outlier_variance = 0.0
+            outlier_cut = None
+            if self.params["outliers"] == "clip":
+                outlier_cut = float(self.params["outlier_cut"])
+            if self.params["outliers"] == "variance":
+                # sparse spikes, smoothed by u_best, act as extra white noise: their variance
+                # (all samples minus the spike-free fit), pooled over the sensors of the type
+                plain = residual_sigma(H, values, outlier_cut=None)
+                outlier_variance = float(np.mean(np.maximum(plain**2 - sigma**2, 0.0)))
+                sigma = np.sqrt(sigma**2 + outlier_variance)
             bias = residuals(H, values).mean(axis=0)
             V = parity_matrix(whiten(H, sigma))
+            if outlier_cut is not None:
+                # a clipped spike still carries c standardised sigmas: its variance, at the
+                # rate spikes were clipped in the calibration window, joins the noise
+                probe = _TypeState.clip_probe(values, bias, sigma, V, outlier_cut)
+                rate = float(np.mean(probe))
+                diagonal = np.einsum("ki,ki->i", V, V)
+                outlier_variance = rate * outlier_cut**2
+                sigma = sigma * np.sqrt(1.0 + outlier_variance / diagonal)
+                V = parity_matrix(whiten(H, sigma))
             state = _TypeState(
                 sensor_type=sensor_type,
                 n=n,
@@ -634,6 +927,9 @@ class WoaMvmdGltDetector:
                 isolable=isolable_sensors(V),
                 threshold=float(chi2.ppf(1.0 - float(self.params["alpha"]), n - 3)),
                 stream=_WindowStream(self.window, self.hop, self.params["combine"], None),
+                n_calibration=int(values.shape[0]),
+                outlier_variance=outlier_variance,
+                outlier_cut=outlier_cut,
             )
             state.stream.evaluate = self._evaluator(state, decompose)
             self._states[sensor_type] = state
@@ -644,19 +940,34 @@ class WoaMvmdGltDetector:
 
     def _evaluator(self, state: _TypeState, decompose: Any) -> Any:
         def evaluate(window: np.ndarray) -> dict[str, np.ndarray]:
-            u, F = decompose(window)
+            # the stream carries [clipped | raw] side by side (see process)
+            raw = window[:, state.n :]
+            u, F = decompose(window[:, : state.n])
             noise_gain = np.sqrt(np.einsum("ij,ij->i", F, F))  # (L,): sigma_u = sigma * gain
             dc_gain = F.sum(axis=1)  # (L,): bias_u = bias * dc_gain
+            # the calibration bias (mean of n_cal samples) is off by N(0, sigma^2 / n_cal),
+            # carried as dc_gain * error: its variance against the filtered noise is
+            # dc_gain^2 / (gain^2 n_cal) (the filter's effective length over n_cal), not
+            # negligible once u_best has averaged the noise down
+            inflation = 1.0 + (dc_gain / noise_gain) ** 2 / max(state.n_calibration, 1)
+            row_scale = noise_gain * np.sqrt(inflation)
             whitened = (u - dc_gain[:, None] * state.bias) / (
-                state.sigma[None, :] * noise_gain[:, None]
+                state.sigma[None, :] * row_scale[:, None]
             )
             p = whitened @ state.V.T
             statistic = np.einsum("ij,ij->i", p, p)  # eq. 5, V V^T = I
-            d_fi, amplitude = isolation_statistics(p, state.V)  # eqs. 6-7
+            d_fi, _ = isolation_statistics(p, state.V)  # eq. 6
+            if state.outlier_cut is not None:  # eq. 7 on the unclipped signal
+                raw_white = (F @ raw - dc_gain[:, None] * state.bias) / (
+                    state.sigma[None, :] * row_scale[:, None]
+                )
+                _, amplitude = isolation_statistics(raw_white @ state.V.T, state.V)
+            else:
+                _, amplitude = isolation_statistics(p, state.V)
             # amplitude of a step in the raw signal: undo whitening and the filter's DC gain
             scale = (
                 state.sigma[None, :]
-                * (noise_gain / np.where(dc_gain != 0, dc_gain, np.nan))[:, None]
+                * (row_scale / np.where(dc_gain != 0, dc_gain, np.nan))[:, None]
             )
             return {"statistic": statistic, "scores": d_fi, "amplitude": amplitude * scale}
 
@@ -703,7 +1014,8 @@ class WoaMvmdGltDetector:
             if triads is None:
                 raise InputDataError(f"{self.name}: block has no {sensor_type} data")
             values = self._array.select(triads, sensor_type)
-            out[sensor_type] = self._rows(state, state.stream.push(values))
+            carried = np.concatenate([state.clip(values), values], axis=1)
+            out[sensor_type] = self._rows(state, state.stream.push(carried))
         return out
 
     def flush(self) -> dict[str, DetectionBlock]:
@@ -723,6 +1035,9 @@ class WoaMvmdGltDetector:
                     "threshold": s.threshold,
                     "window": self.window,
                     "hop": self.hop,
+                    "lookahead_samples": self.lookahead_samples,
+                    "outlier_variance": s.outlier_variance,
+                    "clipped_residuals": s.clipped,
                 }
                 for t, s in self._states.items()
             },
@@ -732,11 +1047,14 @@ class WoaMvmdGltDetector:
 __all__ = [
     "COMBINE_CHOICES",
     "DEFAULT_WEIGHTS",
+    "FITNESS_CHOICES",
     "TuneResult",
+    "ValidationFault",
     "WoaMvmdGltDetector",
     "best_mode",
     "cfv",
     "cfv_components",
+    "make_validation",
     "tune",
     "tune_signal",
 ]

@@ -40,8 +40,10 @@ from imufdi_cli.mcapio.imu import (
 from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch, SchemaInfo
 from imufdi_cli.mcapio.source import McapSource
 from imufdi_cli.mcapio.status import (
+    STATUS_FRAME_ID,
     StatusArrays,
     encode_status,
+    iter_status,
     read_json_topic,
     read_status,
     register_status_channel,
@@ -51,6 +53,7 @@ from imufdi_cli.mcapio.summary import LogSummary, TopicSummary, summarize
 __all__ = [
     "ARRAY_METADATA",
     "EVENTS_TOPIC",
+    "STATUS_FRAME_ID",
     "TRUTH_TOPIC",
     "AlignmentStats",
     "ChannelInfo",
@@ -74,6 +77,7 @@ __all__ = [
     "encode_status",
     "is_imu_channel",
     "is_mag_channel",
+    "iter_status",
     "natural_key",
     "patch_imu",
     "patch_mag",

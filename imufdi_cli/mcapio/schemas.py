@@ -96,7 +96,8 @@ float64[9] magnetic_field_covariance # Row major about x, y, z axes
 """
 
 _STATUS = """# Per-sample output of an imufdi detector for one sensor type.
-builtin_interfaces/Time stamp
+std_msgs/Header header            # stamp = the sample's time; frame_id = the array body frame
+builtin_interfaces/Time decided   # when the decision on this sample became available
 float64 statistic   # detection statistic
 float64 threshold   # threshold it is compared to
 bool alarm          # fault declared
@@ -137,7 +138,7 @@ float64 statistic       # detection statistic at that sample
 
 # An explained alarm episode (event "episode"; header.stamp = decision time of its last
 # alarm); empty strings and NaN for alarm_start/alarm_end. docs/episodes.md.
-string fault_class      # step, drift, noise, scale, spikes or stuck; "" when unexplained
+string fault_class      # step, drift, noise, scale, spikes, stuck or none; "" when unexplained
 string size_name        # amp, rate (per second), factor or value
 float64 size            # SI units of the sensor type; NaN when none
 float64 size_low        # confidence interval of size (level in detail)
@@ -170,7 +171,7 @@ MAG_SCHEMA = _concat(
         ("geometry_msgs/Vector3", _VECTOR3),
     ],
 )
-STATUS_SCHEMA = _concat(_STATUS, [("builtin_interfaces/Time", _TIME)])
+STATUS_SCHEMA = _concat(_STATUS, [("std_msgs/Header", _HEADER), ("builtin_interfaces/Time", _TIME)])
 FAULT_EVENT_SCHEMA = _concat(
     _FAULT_EVENT, [("std_msgs/Header", _HEADER), ("builtin_interfaces/Time", _TIME)]
 )

@@ -462,6 +462,9 @@ class McapSource:
                 self._problem("summary section CRC mismatch; reading without it")
             elif self._use_summary(raw, summary_start):
                 return
+            # Else: an unreadable summary, or a metadata index that does not point at
+            # metadata records (written by imufdi <= 0.1.0 while chunks were still being
+            # compressed): scan for the metadata instead.
         # No usable footer/summary (e.g. a truncated file): scan the top-level records for
         # metadata without decompressing chunks.
         stream.seek(len(MAGIC))
@@ -481,7 +484,8 @@ class McapSource:
             position += 9 + length
 
     def _use_summary(self, raw: bytes, summary_start: int) -> bool:
-        """Read channels, statistics and metadata through the summary; False if unusable."""
+        """Read channels, statistics and metadata through the summary; False if it is
+        unusable or its metadata index is stale (the metadata are then found by a scan)."""
         saved = (dict(self.schemas), dict(self.channels), dict(self._pending_channels))
         try:
             metadata_offsets = self._parse_summary(raw)
@@ -498,6 +502,7 @@ class McapSource:
             )
             return False
         assert self._file_size is not None
+        stale = False
         for offset, length in metadata_offsets:
             if (
                 offset < len(MAGIC)
@@ -505,13 +510,15 @@ class McapSource:
                 or offset + length > self._file_size
                 or length > self.limits.max_record_bytes
             ):
-                self._problem(f"MetadataIndex points outside the file (byte {offset}); ignored")
+                stale = True
                 continue
             self._stream.seek(offset)
             record = self._read_exact(length)
             if record[0] == OP_METADATA:
                 self._add_record(OP_METADATA, record[9:], offset)
-        return True
+            else:
+                stale = True
+        return not stale
 
     def _parse_summary(self, raw: bytes) -> list[tuple[int, int]]:
         buf = np.frombuffer(raw, dtype=np.uint8)

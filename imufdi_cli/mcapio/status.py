@@ -1,22 +1,31 @@
 """Detector status channels (``imufdi_msgs/msg/FdiStatus``) and JSON topics.
 
 One status message per sample and sensor type, on ``/imufdi/<detector>/<sensor_type>``,
-with channel metadata ``{"sensor_ids": <JSON list>}``. Fixed CDR layout (little-endian,
-offsets from the start of the payload, n = number of sensors)::
+with channel metadata ``{"sensor_ids": <JSON list>}``. CDR layout (little-endian, offsets
+from the start of the payload, n = number of sensors, F = len(frame_id) + 1 for its NUL,
+P = 16 + F rounded up to a multiple of 4, S = P + 8 rounded up so that S - 4 is a
+multiple of 8)::
 
-    0   encapsulation 00 01 00 00
-    4   int32   stamp.sec          8  uint32 stamp.nanosec
-    12  float64 statistic          20 float64 threshold
-    28  bool    alarm              32 int32   isolated
-    36  float64 amplitude          44 uint32  len(scores) = n
-    52  float64 scores[n]          (absent, and no padding, when n = 0)
-    52+8n (48 when n = 0)  uint32 len(isolated_set) = n, then n bool bytes
+    0    encapsulation 00 01 00 00
+    4    int32   header.stamp.sec   8  uint32 header.stamp.nanosec   (the sample's time)
+    12   uint32  F, then frame_id bytes and a NUL                     (the array body frame)
+    P    int32   decided.sec        P+4 uint32 decided.nanosec       (decision time)
+    S    float64 statistic          S+8 float64 threshold
+    S+16 bool    alarm              S+20 int32 isolated
+    S+24 float64 amplitude          S+32 uint32 len(scores) = n
+    S+40 float64 scores[n]          (absent, and no padding, when n = 0)
+    S+40+8n (S+36 when n = 0)  uint32 len(isolated_set) = n, then n bool bytes
+
+With the default frame id ``imu_array`` (F = 10): P = 28, S = 36. Status channels written
+before the header and decision time existed (``builtin_interfaces/Time stamp`` first, then
+``statistic``) are still read; their decision time is the sample time.
 """
 
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, Any
 
@@ -34,21 +43,8 @@ if TYPE_CHECKING:
 
 NS_PER_S = 1_000_000_000
 STATUS_TOPIC_PREFIX = "/imufdi/"
-
-_FIXED = np.dtype(
-    [
-        ("encapsulation", "<u4"),
-        ("sec", "<i4"),
-        ("nanosec", "<u4"),
-        ("statistic", "<f8"),
-        ("threshold", "<f8"),
-        ("alarm", "u1"),
-        ("pad", "u1", (3,)),
-        ("isolated", "<i4"),
-        ("amplitude", "<f8"),
-        ("n_scores", "<u4"),
-    ]
-)
+#: ``header.frame_id`` of status messages: the array body frame the sensors are tested in.
+STATUS_FRAME_ID = "imu_array"
 
 
 @dataclass
@@ -58,6 +54,7 @@ class StatusArrays:
     Attributes
     ----------
     t_ns : ndarray (N,) int64
+        Sample time (``header.stamp``), ns.
     statistic, threshold, amplitude : ndarray (N,) float64
     alarm : ndarray (N,) bool
     isolated : ndarray (N,) int32
@@ -65,6 +62,11 @@ class StatusArrays:
     sensor_ids : list of str
     isolated_set : ndarray (N, n) bool
         Every sensor isolated at each sample.
+    decided_ns : ndarray (N,) int64
+        When the decision on each sample became available (``decided``), ns; equal to
+        ``t_ns`` for channels written without it (``has_decided`` False).
+    has_decided : bool
+        Whether the channel carries decision times.
     """
 
     t_ns: np.ndarray
@@ -76,6 +78,8 @@ class StatusArrays:
     scores: np.ndarray
     sensor_ids: list[str]
     isolated_set: np.ndarray | None = None
+    decided_ns: np.ndarray | None = None
+    has_decided: bool = False
 
     def __len__(self) -> int:
         return int(self.t_ns.shape[0])
@@ -98,37 +102,75 @@ def register_status_channel(
     )
 
 
-def encode_status(channel_id: int, t_ns: np.ndarray, det: DetectionBlock) -> MessageBatch:
-    """Bulk CDR encoding of one status message per sample (log time = ``t_ns``)."""
+def _up(value: int, align: int) -> int:
+    return -(-value // align) * align
+
+
+def _put(out: np.ndarray, offset: int, values: np.ndarray, dtype: str) -> None:
+    """Write one little-endian column (N,) or (N, k) at payload ``offset`` of every row."""
+    raw = np.ascontiguousarray(values, dtype=dtype)
+    width = raw.dtype.itemsize * (raw.shape[1] if raw.ndim == 2 else 1)
+    out[:, offset : offset + width] = raw.view(np.uint8).reshape(out.shape[0], width)
+
+
+def encode_status(
+    channel_id: int,
+    t_ns: np.ndarray,
+    det: DetectionBlock,
+    decided_ns: np.ndarray | None = None,
+    *,
+    frame_id: str = STATUS_FRAME_ID,
+) -> MessageBatch:
+    """Bulk CDR encoding of one status message per sample (log time = ``t_ns``).
+
+    Parameters
+    ----------
+    channel_id : int
+    t_ns : ndarray, shape (N,), int64
+        Sample times, ns (``header.stamp`` and the message log time).
+    det : DetectionBlock
+        N rows.
+    decided_ns : ndarray, shape (N,), int64, optional
+        Decision times, ns (default: the sample times, a causal detector).
+    frame_id : str
+        ``header.frame_id``.
+    """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     n = t_ns.shape[0]
     if len(det) != n:
         raise UsageError(f"{len(det)} detector rows for {n} timestamps")
+    decided = t_ns if decided_ns is None else np.asarray(decided_ns, dtype=np.int64)
+    if decided.shape != t_ns.shape:
+        raise UsageError(f"{decided.shape[0]} decision times for {n} timestamps")
     scores = np.asarray(det.scores, dtype=np.float64).reshape(n, -1)
     n_scores = scores.shape[1]
-    # scores start at CDR position 48 (payload byte 52): 4 bytes of padding after n_scores.
-    scores_end = _FIXED.itemsize + (4 + 8 * n_scores if n_scores else 0)
-    length = scores_end + 4 + n_scores  # isolated_set: u32 count (4-aligned) + n bools
-    isolated_set = det.isolation_set().reshape(n, n_scores)
+    frame = frame_id.encode("utf-8") + b"\0"
+    body_decided = _up(12 + len(frame), 4)  # CDR body offsets (payload offset - 4)
+    body_stat = _up(body_decided + 8, 8)
+    p = 4 + body_stat  # payload offset of statistic
+    scores_at = p + 40 if n_scores else p + 36
+    set_at = scores_at + 8 * n_scores
+    length = set_at + 4 + n_scores
     out = np.zeros((n, length), dtype=np.uint8)
-    fixed = np.zeros(n, dtype=_FIXED)
-    fixed["encapsulation"] = 0x0100  # bytes 00 01 00 00: CDR little-endian
+    out[:, 0:4] = np.frombuffer(b"\x00\x01\x00\x00", np.uint8)  # CDR little-endian
     sec = np.floor_divide(t_ns, NS_PER_S)
-    fixed["sec"] = sec
-    fixed["nanosec"] = t_ns - sec * NS_PER_S
-    fixed["statistic"] = det.statistic
-    fixed["threshold"] = det.threshold
-    fixed["alarm"] = np.asarray(det.alarm, dtype=bool)
-    fixed["isolated"] = det.isolated
-    fixed["amplitude"] = det.amplitude
-    fixed["n_scores"] = n_scores
-    out[:, : _FIXED.itemsize] = fixed.view(np.uint8).reshape(n, _FIXED.itemsize)
+    _put(out, 4, sec, "<i4")
+    _put(out, 8, t_ns - sec * NS_PER_S, "<u4")
+    out[:, 12:16] = np.frombuffer(np.array([len(frame)], "<u4").tobytes(), np.uint8)
+    out[:, 16 : 16 + len(frame)] = np.frombuffer(frame, np.uint8)
+    dsec = np.floor_divide(decided, NS_PER_S)
+    _put(out, 4 + body_decided, dsec, "<i4")
+    _put(out, 8 + body_decided, decided - dsec * NS_PER_S, "<u4")
+    _put(out, p, det.statistic, "<f8")
+    _put(out, p + 8, det.threshold, "<f8")
+    out[:, p + 16] = np.asarray(det.alarm, dtype=bool)
+    _put(out, p + 20, det.isolated, "<i4")
+    _put(out, p + 24, det.amplitude, "<f8")
+    out[:, p + 32 : p + 36] = np.frombuffer(np.array([n_scores], "<u4").tobytes(), np.uint8)
     if n_scores:
-        out[:, _FIXED.itemsize + 4 : scores_end] = np.ascontiguousarray(scores, "<f8").view(
-            np.uint8
-        )
-    out[:, scores_end : scores_end + 4] = np.array([n_scores], "<u4").view(np.uint8)
-    out[:, scores_end + 4 :] = isolated_set
+        _put(out, scores_at, scores, "<f8")
+    out[:, set_at : set_at + 4] = np.frombuffer(np.array([n_scores], "<u4").tobytes(), np.uint8)
+    out[:, set_at + 4 :] = det.isolation_set().reshape(n, n_scores)
     return MessageBatch(
         channel_id=np.full(n, channel_id, np.uint16),
         sequence=np.arange(n, dtype=np.int64).astype(np.uint32),
@@ -153,21 +195,37 @@ def _is_status(channel: ChannelInfo) -> bool:
 def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.ndarray]:
     assert channel.schema is not None
     codec = codec_for(channel.schema.name, channel.schema.data)
+    stamp = "header.stamp" if "header.stamp.sec" in codec.layout.leaves else "stamp"
     scalars = {
-        "sec": ("stamp.sec", "i4"),
-        "nanosec": ("stamp.nanosec", "u4"),
+        "sec": (f"{stamp}.sec", "i4"),
+        "nanosec": (f"{stamp}.nanosec", "u4"),
         "statistic": ("statistic", "f8"),
         "threshold": ("threshold", "f8"),
         "alarm": ("alarm", "u1"),
         "isolated": ("isolated", "i4"),
         "amplitude": ("amplitude", "f8"),
     }
+    if "decided.sec" in codec.layout.leaves:
+        scalars["decided_sec"] = ("decided.sec", "i4")
+        scalars["decided_nanosec"] = ("decided.nanosec", "u4")
     paths = [p for p, _ in scalars.values()] + ["scores", "isolated_set"]
     little, positions, sizes = codec.positions(batch, paths)
-    out = {
+    raw = {
         key: codec.read(batch, little, positions[path], code, 1)[:, 0]
         for key, (path, code) in scalars.items()
     }
+    out: dict[str, np.ndarray] = {
+        "t_ns": raw["sec"].astype(np.int64) * NS_PER_S + raw["nanosec"].astype(np.int64),
+        "statistic": raw["statistic"].astype(np.float64),
+        "threshold": raw["threshold"].astype(np.float64),
+        "alarm": raw["alarm"] != 0,
+        "isolated": raw["isolated"].astype(np.int32),
+        "amplitude": raw["amplitude"].astype(np.float64),
+    }
+    if "decided_sec" in raw:
+        out["decided_ns"] = raw["decided_sec"].astype(np.int64) * NS_PER_S + raw[
+            "decided_nanosec"
+        ].astype(np.int64)
     counts = sizes["scores"]
     n = len(batch)
     width = int(counts.max()) if n else 0
@@ -176,8 +234,10 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
         scores = codec.read(batch, little, positions["scores"], "f8", width).astype(np.float64)
     elif n and width:
         for i in range(n):  # ragged scores (not written by imufdi): rare, slow path
-            raw = gather_bytes(batch.data, positions["scores"][i : i + 1], 8 * int(counts[i]))
-            scores[i, : counts[i]] = raw.view("<f8" if little[i] else ">f8")[0]
+            raw_scores = gather_bytes(
+                batch.data, positions["scores"][i : i + 1], 8 * int(counts[i])
+            )
+            scores[i, : counts[i]] = raw_scores.view("<f8" if little[i] else ">f8")[0]
     out["scores"] = scores
     set_counts = sizes["isolated_set"]
     isolated_set = np.zeros((n, width), dtype=bool)
@@ -187,10 +247,52 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
     return out
 
 
+def _channel_ids(channel: ChannelInfo) -> list[str]:
+    try:
+        return list(json.loads(channel.metadata.get("sensor_ids", "[]")))
+    except ValueError as err:
+        raise McapInputError(f"{channel.topic}: sensor_ids metadata is not JSON") from err
+
+
+def iter_status(
+    source: McapSource,
+    detector: str | None = None,
+    *,
+    others: Callable[[MessageBatch, ChannelInfo], None] | None = None,
+) -> Iterator[tuple[str, str, list[str], dict[str, np.ndarray]]]:
+    """Stream the status channels batch by batch (memory: one chunk). ``others`` is called
+    with the messages of every other channel, batch by batch, in the same pass.
+
+    Yields
+    ------
+    detector, sensor_type, sensor_ids, rows
+        ``rows`` maps ``t_ns``, ``statistic``, ``threshold``, ``alarm``, ``isolated``,
+        ``amplitude``, ``scores`` (k, n), ``isolated_set`` (k, n) and, when the channel
+        carries it, ``decided_ns`` to the next k rows of that channel, in file order.
+    """
+    for batch in source.batches():
+        for cid in np.unique(batch.channel_id).tolist():
+            channel = source.channels[cid]
+            if not _is_status(channel):
+                if others is not None:
+                    others(batch.select(batch.channel_id == cid), channel)
+                continue
+            det = channel.topic.split("/")[2]
+            if detector is not None and det != detector:
+                continue
+            sub = batch.select(batch.channel_id == cid)
+            yield (
+                det,
+                channel.topic.split("/")[3],
+                _channel_ids(channel),
+                _decode_status(sub, channel),
+            )
+
+
 def read_status(
     source: str | os.PathLike[str] | IO[bytes] | McapSource, detector: str | None = None
 ) -> dict[tuple[str, str], StatusArrays]:
-    """Read every status channel (optionally of one detector).
+    """Read every status channel (optionally of one detector) into memory.
 
     Returns
     -------
@@ -199,57 +301,46 @@ def read_status(
     """
     own = not isinstance(source, McapSource)
     src = McapSource(source) if not isinstance(source, McapSource) else source
-    parts: dict[int, list[dict[str, np.ndarray]]] = {}
+    parts: dict[tuple[str, str], list[dict[str, np.ndarray]]] = {}
+    ids_of: dict[tuple[str, str], list[str]] = {}
     try:
-        for batch in src.batches():
-            for cid in np.unique(batch.channel_id).tolist():
-                channel = src.channels[cid]
-                if not _is_status(channel):
-                    continue
-                det = channel.topic.split("/")[2]
-                if detector is not None and det != detector:
-                    continue
-                sub = batch.select(batch.channel_id == cid)
-                parts.setdefault(cid, []).append(_decode_status(sub, channel))
+        for det, sensor_type, ids, rows in iter_status(src, detector):
+            parts.setdefault((det, sensor_type), []).append(rows)
+            ids_of[(det, sensor_type)] = ids
     finally:
         if own:
             src.close()
     result: dict[tuple[str, str], StatusArrays] = {}
-    for cid, pieces in parts.items():
-        channel = src.channels[cid]
-        _, _, det, sensor_type = channel.topic.split("/")
-        try:
-            ids = list(json.loads(channel.metadata.get("sensor_ids", "[]")))
-        except ValueError as err:
-            raise McapInputError(f"{channel.topic}: sensor_ids metadata is not JSON") from err
+    for key, pieces in parts.items():
         width = max(p["scores"].shape[1] for p in pieces)
 
-        def cat(key: str, pieces: list[dict[str, np.ndarray]] = pieces) -> np.ndarray:
-            return np.concatenate([p[key] for p in pieces])
+        def cat(name: str, pieces: list[dict[str, np.ndarray]] = pieces) -> np.ndarray:
+            return np.concatenate([p[name] for p in pieces])
 
-        scores = np.concatenate(
-            [
-                np.pad(
-                    p["scores"], ((0, 0), (0, width - p["scores"].shape[1])), constant_values=np.nan
-                )
-                for p in pieces
-            ]
-        )
-        result[(det, sensor_type)] = StatusArrays(
-            t_ns=cat("sec").astype(np.int64) * NS_PER_S + cat("nanosec").astype(np.int64),
-            statistic=cat("statistic").astype(np.float64),
-            threshold=cat("threshold").astype(np.float64),
-            alarm=cat("alarm") != 0,
-            isolated=cat("isolated").astype(np.int32),
-            amplitude=cat("amplitude").astype(np.float64),
-            scores=scores,
-            sensor_ids=ids,
-            isolated_set=np.concatenate(
+        def padded(
+            name: str, fill: Any, pieces: list[dict[str, np.ndarray]] = pieces, width: int = width
+        ) -> np.ndarray:
+            return np.concatenate(
                 [
-                    np.pad(p["isolated_set"], ((0, 0), (0, width - p["isolated_set"].shape[1])))
+                    np.pad(p[name], ((0, 0), (0, width - p[name].shape[1])), constant_values=fill)
                     for p in pieces
                 ]
-            ),
+            )
+
+        t_ns = cat("t_ns")
+        has_decided = all("decided_ns" in p for p in pieces)
+        result[key] = StatusArrays(
+            t_ns=t_ns,
+            statistic=cat("statistic"),
+            threshold=cat("threshold"),
+            alarm=cat("alarm"),
+            isolated=cat("isolated"),
+            amplitude=cat("amplitude"),
+            scores=padded("scores", np.nan),
+            sensor_ids=ids_of[key],
+            isolated_set=padded("isolated_set", False),
+            decided_ns=cat("decided_ns") if has_decided else t_ns.copy(),
+            has_decided=has_decided,
         )
     return result
 

@@ -78,3 +78,143 @@ def test_plot(cli, tmp_path, detected_log):
     png = tmp_path / "p.png"
     assert cli(["report", detected_log, "--plot", png]).code == 0
     assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_match_far_and_roc(cli, tmp_path, detected_log):
+    out, roc, md = tmp_path / "r.json", tmp_path / "roc.csv", tmp_path / "r.md"
+    result = cli(
+        ["report", detected_log, "--match-far", "5%", "--json", out, "--roc", roc, "--markdown", md]
+    )
+    assert result.code == 0, result.stderr
+    assert "MAR@FAR %" in md.read_text()
+    data = json.loads(out.read_text())
+    assert data["match_far"] == 0.05
+    gyro = next(r for r in data["results"] if r["detector"] == "glt" and r["sensor_type"] == "gyro")
+    for key in ("mar_at_far", "fir_at_far", "detection_delay_at_far_s", "threshold_scale_at_far"):
+        assert gyro[key] is not None, key
+    assert 0.0 <= gyro["mar_at_far"] <= 1.0 and gyro["threshold_scale_at_far"] > 0
+    lines = roc.read_text().splitlines()
+    assert lines[0] == "detector,sensor_type,threshold_scale,far,mar,fir,detection_delay_s"
+    rows = [line.split(",") for line in lines[1:] if line.startswith("glt,gyro,")]
+    far = [float(r[3]) for r in rows]
+    mar = [float(r[4]) for r in rows if r[4]]
+    assert far == sorted(far, reverse=True) and mar == sorted(mar)  # monotone curve
+    # the figures are those of the detector's own calibration window: FAR out of sample
+    assert gyro["calibration_samples"] > 0 and gyro["far_calibration"] is not None
+
+
+def test_match_far_usage_errors(cli, detected_log, tmp_path):
+    for bad in ("0", "1", "0%", "100%", "150%", "-1%", "abc", "1%%", "nan"):
+        result = cli(["report", detected_log, "--match-far", bad])
+        assert_one_line_error(result, 2, "--match-far")
+    # checked before the input is read
+    result = cli(["report", str(tmp_path / "missing.mcap"), "--match-far", "2"])
+    assert_one_line_error(result, 2, "--match-far")
+
+
+def test_roc_plot(cli, tmp_path, detected_log):
+    import pytest
+
+    pytest.importorskip("matplotlib")
+    roc = tmp_path / "roc.csv"
+    result = cli(["report", detected_log, "--roc", roc, "--plot", tmp_path / "p.png"])
+    assert result.code == 0, result.stderr
+    assert roc.exists() and (tmp_path / "roc.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_unsweepable_detector_is_a_note_not_a_crash(cli, tmp_path, faulty_log):
+    import numpy as np
+
+    from imufdi_cli.detectors.base import DetectionBlock
+    from imufdi_cli.mcapio import McapSource, McapWriter, encode_status, register_status_channel
+
+    # copy the truth of faulty_log and add a status channel whose threshold is infinite
+    with McapSource(str(faulty_log)) as src:
+        metadata = dict(src.metadata)
+    path = tmp_path / "flat.mcap"
+    t_ns = 1_700_000_000 * 10**9 + np.arange(500, dtype=np.int64) * 10_000_000
+    with McapWriter(path) as writer:
+        cid = register_status_channel(writer, "glt", "gyro", [f"imu{k}.gyro.x" for k in range(3)])
+        writer.add_batch(encode_status(cid, t_ns, DetectionBlock.empty(500, 3)))
+        for name, data in metadata.items():
+            writer.add_metadata(name, data)
+    result = cli(["report", path, "--match-far", "1%", "--json", "-"])
+    assert result.code == 0, result.stderr
+    data = json.loads(result.stdout)
+    assert any("no sweepable statistic" in note for note in data["notes"]), data["notes"]
+    assert data["results"][0]["mar_at_far"] is None
+
+
+def test_report_streams_stdin_through_a_spool(detected_log):
+    import io
+
+    from imufdi_cli.report import build_report
+
+    class Pipe(io.RawIOBase):
+        """A non-seekable stream, like a shell pipe."""
+
+        def __init__(self, data: bytes) -> None:
+            self.inner = io.BytesIO(data)
+
+        def readable(self) -> bool:
+            return True
+
+        def seekable(self) -> bool:
+            return False
+
+        def readinto(self, buffer) -> int:  # type: ignore[no-untyped-def]
+            chunk = self.inner.read(len(buffer))
+            buffer[: len(chunk)] = chunk
+            return len(chunk)
+
+    piped = build_report(io.BufferedReader(Pipe(detected_log.read_bytes())), match_far=0.05)
+    direct = build_report(str(detected_log), match_far=0.05)
+    assert [e.metrics.to_dict() for e in piped.entries] == [
+        e.metrics.to_dict() for e in direct.entries
+    ]
+
+
+def test_episodes_are_explained_and_scored_against_the_truth(cli, tmp_path, detected_log):
+    out = {k: tmp_path / f"e.{k}" for k in ("json", "md", "csv")}
+    result = cli(
+        [
+            "report",
+            detected_log,
+            "--json",
+            out["json"],
+            "--markdown",
+            out["md"],
+            "--episodes-csv",
+            out["csv"],
+        ]
+    )
+    assert result.code == 0, result.stderr
+    assert "alarm episodes" in result.out
+    data = json.loads(out["json"].read_text())
+    matched = [
+        e
+        for e in data["episodes"]
+        if e["match"] == "fault" and e["detector"] == "glt" and e["sensor_type"] == "gyro"
+    ]
+    # the 0.9 deg/s step on imu0.gyro.x from 2.5 s to the end: one long episode explains it
+    longest = max(matched, key=lambda e: e["alarms"])
+    assert longest["sensors"][0] == "imu0.gyro.x" and longest["fault_class"] == "step"
+    step = longest["fits"][0]
+    assert step["size_name"] == "amp" and step["low"] < step["size"] < step["high"]
+    assert abs(step["size"] - 0.9 * 3.141592653589793 / 180) < 0.1 * 0.9 * 3.14159 / 180
+    scores = data["episode_scores"]["glt.gyro"]
+    assert (
+        scores["matched"] >= 1
+        and scores["episodes"] == scores["matched"] + scores["false"] + scores["wrong_sensor"]
+    )
+    assert "## Alarm episodes" in out["md"].read_text()
+    lines = out["csv"].read_text().splitlines()
+    assert lines[0].startswith("detector,sensor_type,start_s") and len(lines) > 1
+
+
+def test_episode_outputs_never_overwrite_the_input(cli, detected_log, tmp_path):
+    for option in ("--episodes-csv", "--roc"):
+        before = detected_log.read_bytes()
+        result = cli(["report", detected_log, option, detected_log])
+        assert_one_line_error(result, 2, option)
+        assert detected_log.read_bytes() == before

@@ -5,15 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
+from scipy.stats import chi2, ncx2
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
 from imufdi_cli.detectors.mvmd import mvmd
 from imufdi_cli.detectors.woa_mvmd_glt import (
     TuneResult,
+    ValidationFault,
     WoaMvmdGltDetector,
     cfv_components,
     filter_matrix,
+    make_validation,
     tune,
     tune_signal,
 )
@@ -88,7 +91,7 @@ def run(det: WoaMvmdGltDetector, block: ImuBlock, size: int) -> DetectionBlock:
     return DetectionBlock.concatenate([*parts, det.flush()["gyro"]])
 
 
-@pytest.mark.parametrize("combine", ["min", "centre"])
+@pytest.mark.parametrize("combine", ["end", "min", "centre"])
 def test_output_does_not_depend_on_block_cuts(combine):
     array = coaligned(6)
     block = synthetic_block(step_at=300)
@@ -101,6 +104,59 @@ def test_output_does_not_depend_on_block_cuts(combine):
         assert len(other) == 400
         assert_allclose(other.statistic, outputs[0].statistic)
         assert np.array_equal(other.isolated, outputs[0].isolated)
+
+
+@pytest.mark.parametrize("onset", [300, 303, 305, 317])
+def test_causal_rows_before_the_onset_do_not_depend_on_what_follows(onset):
+    """Rows decided before the onset are bit-identical whatever follows (the issue's
+    0.3 vs 1.5 deg/s case), wherever the onset falls on the hop grid."""
+    array = coaligned(6)
+    base = synthetic_block()
+    assert base.gyro is not None
+    outputs = []
+    for amplitude in (0.0, 0.3, 1.5):
+        gyro = base.gyro.copy()
+        gyro[onset:, 0, 0] += np.deg2rad(amplitude)
+        det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"})
+        det.fit(base.slice(0, 200), array)
+        outputs.append(run(det, ImuBlock(t_ns=base.t_ns, gyro=gyro), 64))
+    decided = make({"K": 2, "mvmd_alpha": 3000.0}).decision_index(np.arange(400), 400)
+    before = decided < onset
+    assert before[: onset - 9].all() and not before[onset:].any()  # look-ahead hop - 1 = 9
+    for other in outputs[1:]:
+        for field in ("statistic", "alarm", "isolated", "amplitude"):
+            a, b = getattr(outputs[0], field)[before], getattr(other, field)[before]
+            assert np.array_equal(a, b, equal_nan=field == "amplitude"), field
+    # min-combine (the old default) used later windows: its pre-onset rows change
+    rows = []
+    for amplitude in (0.3, 1.5):
+        gyro = base.gyro.copy()
+        gyro[onset:, 0, 0] += np.deg2rad(amplitude)
+        det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro", "combine": "min"})
+        det.fit(base.slice(0, 200), array)
+        rows.append(run(det, ImuBlock(t_ns=base.t_ns, gyro=gyro), 64).statistic[:onset])
+    assert not np.array_equal(rows[0], rows[1])
+
+
+def test_lookahead_and_decision_index_follow_the_window_grid():
+    det = make({"window": "50", "overlap": "40"})
+    assert det.lookahead_samples == 9
+    decided = det.decision_index(np.arange(200), 200)
+    assert (decided[:40] == np.arange(40)).all()  # undecided (quiet) rows, emitted at once
+    assert (decided[40:50] == 49).all() and (decided[50:60] == 59).all()
+    assert (decided - np.arange(200)).max() == 9
+    assert make({"combine": "min"}).lookahead_samples == 49
+    assert make({"combine": "centre", "window": "60", "overlap": "40"}).lookahead_samples == 59
+    # the stream really holds rows back no longer than that
+    array = coaligned(6)
+    block = synthetic_block()
+    det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"})
+    det.fit(block.slice(0, 200), array)
+    emitted = 0
+    for i in range(len(block)):
+        emitted += len(det.process(block.slice(i, i + 1))["gyro"])
+        assert emitted >= i + 1 - det.lookahead_samples
+    assert emitted + len(det.flush()["gyro"]) == len(block)
 
 
 def test_detects_and_isolates_step_with_amplitude():
@@ -143,7 +199,7 @@ def test_fit_tunes_and_records_choice(tmp_path):
         ({"window": "10", "overlap": "10"}, "overlap"),
         ({"population": "1"}, "population: must be >= 2"),
         ({"weights": "1,2"}, "three comma-separated"),
-        ({"combine": "max"}, "valid: min, centre"),
+        ({"combine": "max"}, "valid: end, centre, min"),
     ],
 )
 def test_bad_parameters_raise(raw, match):
@@ -157,3 +213,69 @@ def test_bad_tune_file_raises(tmp_path):
     path.write_text('{"K": 0, "alpha": 5}')
     with pytest.raises(DetectorConfigError):
         make({"params": str(path)})
+
+
+def test_validation_miss_fraction_without_smoothing_is_the_per_sample_glt_miss():
+    val = make_validation(48, 50, 10, 4.0, 1.0, 0.01)
+    assert val.dof == 45 and val.projection == pytest.approx(45 / 48)
+    assert val.threshold == pytest.approx(chi2.ppf(0.99, 45))
+    expected = 1.0 - ncx2.sf(val.threshold, 45, 16.0 * 45 / 48)
+    assert val.miss_fraction(np.eye(50)) == pytest.approx(expected, rel=1e-12)
+
+
+def test_validation_miss_fraction_of_a_moving_average_matches_a_loop():
+    L, hop = 20, 5
+    val = ValidationFault(
+        window=L, hop=hop, step=3.0, dof=5, threshold=15.0, projection=0.6, horizon=30
+    )
+    F = np.full((L, L), 1.0 / L)
+    misses = []
+    for t in range(L - hop, L):
+        for k in range(30):
+            c = max(t - k, 0)
+            fraction = F[t, c:].sum() / np.linalg.norm(F[t])
+            misses.append(1.0 - ncx2.sf(15.0, 5, 9.0 * 0.6 * fraction**2))
+    assert val.miss_fraction(F) == pytest.approx(np.mean(misses), rel=1e-12)
+
+
+@pytest.mark.slow
+def test_cfv_alone_picks_the_alpha_bound_and_the_validation_fault_does_not():
+    """The degeneracy of the paper's fitness, and the cfv+delay fix, on an array signal."""
+    block = synthetic_block(n_imus=16, n=250)
+    assert block.gyro is not None
+    values = block.gyro.reshape(250, -1)
+    for bound in (5000.0, 2e4):
+        alone = tune_signal(
+            values.T, alpha_bounds=(50.0, bound), population=4, iterations=3, seed=1
+        )
+        assert alone.alpha == pytest.approx(bound)
+    validation = make_validation(48, 50, 10, 4.0, 100.0, 0.01)
+    chosen = [
+        tune_signal(
+            values.T, alpha_bounds=(50.0, b), k_bounds=(2, 2), validation=validation, seed=1
+        ).alpha
+        for b in (5000.0, 2e4)
+    ]
+    assert all(100.0 < a < 4000.0 for a in chosen), chosen
+    assert chosen[1] == pytest.approx(chosen[0], rel=0.3)
+
+
+def test_clip_cuts_a_spike_and_keeps_the_step_amplitude():
+    array = coaligned(6)
+    block = synthetic_block(step_at=300)
+    assert block.gyro is not None
+    gyro = block.gyro.copy()
+    gyro[250, 3, 1] += 0.0026 * 40  # a 40-sigma one-sample spike before the step
+    spiky = ImuBlock(t_ns=block.t_ns, gyro=gyro)
+    outputs = {}
+    for mode in ("clip", "ignore"):
+        det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro", "outliers": mode})
+        det.fit(block.slice(0, 200), array)
+        outputs[mode] = run(det, spiky, 64)
+        meta = det.metadata()["types"]["gyro"]
+    assert outputs["ignore"].alarm[240:290].any()  # the spike alarms without clipping
+    assert not outputs["clip"].alarm[200:295].any()
+    assert outputs["clip"].alarm[310:].all()
+    # amplitude from the unclipped signal: the 0.9 deg/s step, not the clip level
+    assert_allclose(np.median(outputs["clip"].amplitude[330:390]), 0.0157, rtol=0.1)
+    assert meta["clipped_residuals"] == 0  # outliers=ignore never clips

@@ -56,6 +56,7 @@ def test_mcap_package_reads_our_file(tmp_path, compression: str, variable: bool)
         b = _batch(40, ch1, seed=3, var=variable)
         writer.add_batch(a)
         writer.add_batch(b)
+        writer.add_metadata("imufdi.after", {"y": "2"})  # chunks still being compressed
         writer.add_message(ch0, 10**9, b"last")
     with open(path, "rb") as stream:
         reader = make_reader(stream, validate_crcs=True)
@@ -70,7 +71,12 @@ def test_mcap_package_reads_our_file(tmp_path, compression: str, variable: bool)
         ]
         assert messages[-1][2].data == b"last"
         assert messages[0][1].metadata == {"k": "v"}
-        assert {m.name: m.metadata for m in reader.iter_metadata()} == {"imufdi.test": {"x": "1"}}
+        assert {m.name: m.metadata for m in reader.iter_metadata()} == {
+            "imufdi.test": {"x": "1"},
+            "imufdi.after": {"y": "2"},
+        }
+    with McapSource(str(path)) as source:  # our reader takes them from the summary index
+        assert source.metadata == {"imufdi.test": {"x": "1"}, "imufdi.after": {"y": "2"}}
     # the non-seeking reader checks every CRC, DataEnd and the footer
     with open(path, "rb") as stream:
         records = list(StreamReader(stream, validate_crcs=True).records)

@@ -60,3 +60,77 @@ def test_status_round_trip_and_mcap_ros2(tmp_path) -> None:
     assert [d.isolated for d in decoded] == gyro.isolated.tolist()
     assert_array_equal(np.array([d.scores for d in decoded]), gyro.scores)
     assert [d.alarm for d in decoded] == gyro.alarm.tolist()
+
+
+def test_header_and_decision_time_round_trip(tmp_path) -> None:
+    from imufdi_cli.mcapio import STATUS_FRAME_ID
+
+    path = tmp_path / "d.mcap"
+    t_ns = 1_700_000_000 * 10**9 + np.arange(50, dtype=np.int64) * 10_000_000
+    decided = t_ns + np.arange(50, dtype=np.int64) * 7_000_001  # crosses second boundaries
+    det = _detections(50, 3, seed=2)
+    with McapWriter(path) as writer:
+        cid = register_status_channel(writer, "woa", "gyro", ["a", "b", "c"])
+        writer.add_batch(encode_status(cid, t_ns, det, decided))
+    got = read_status(path)[("woa", "gyro")]
+    assert got.has_decided
+    assert_array_equal(got.t_ns, t_ns)
+    assert_array_equal(got.decided_ns, decided)
+    assert_array_equal(got.scores, det.scores)
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        decoded = [d for _, _, _, d in reader.iter_decoded_messages()]
+    assert {d.header.frame_id for d in decoded} == {STATUS_FRAME_ID}
+    stamps = [d.header.stamp.sec * 10**9 + d.header.stamp.nanosec for d in decoded]
+    assert stamps == t_ns.tolist()
+    assert [d.decided.sec * 10**9 + d.decided.nanosec for d in decoded] == decided.tolist()
+    assert [d.isolated for d in decoded] == det.isolated.tolist()
+
+
+_OLD_STATUS = """builtin_interfaces/Time stamp
+float64 statistic
+float64 threshold
+bool alarm
+int32 isolated
+float64 amplitude
+float64[] scores
+bool[] isolated_set
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+"""
+
+
+def test_old_status_channels_without_header_are_still_read(tmp_path) -> None:
+    from mcap_ros2.writer import Writer as Ros2Writer
+
+    path = tmp_path / "old.mcap"
+    with open(path, "wb") as stream:
+        writer = Ros2Writer(stream)
+        schema = writer.register_msgdef("imufdi_msgs/msg/FdiStatus", _OLD_STATUS)
+        for i in range(5):
+            writer.write_message(
+                topic="/imufdi/glt/gyro",
+                schema=schema,
+                message={
+                    "stamp": {"sec": 3, "nanosec": i * 10},
+                    "statistic": float(i),
+                    "threshold": 2.5,
+                    "alarm": i > 2,
+                    "isolated": i - 1,
+                    "amplitude": 0.5,
+                    "scores": [1.0, float(i)],
+                    "isolated_set": [False, i > 2],
+                },
+                log_time=3 * 10**9 + i * 10,
+                publish_time=3 * 10**9 + i * 10,
+            )
+        writer.finish()
+    got = read_status(path)[("glt", "gyro")]
+    assert not got.has_decided
+    assert_array_equal(got.t_ns, 3 * 10**9 + np.arange(5) * 10)
+    assert_array_equal(got.decided_ns, got.t_ns)  # no decision time: the sample time
+    assert_array_equal(got.statistic, np.arange(5.0))
+    assert got.alarm.tolist() == [False, False, False, True, True]
+    assert_array_equal(got.scores[:, 1], np.arange(5.0))

@@ -1,0 +1,314 @@
+"""ap-consistency: IMU-to-IMU consistency held for a time, in the style of ArduPilot's
+pre-arm INS checks.
+
+ArduPilot (GPL-3.0), read for understanding, not copied: ``libraries/AP_Arming/AP_Arming.cpp``,
+``AP_Arming::ins_accels_consistent`` and ``ins_gyros_consistent``:
+
+- every accelerometer vector is compared with the primary's; the difference's z component is
+  halved ("EKF is less sensitive to Z-axis error"); the limit is ``ARMING_ACCTHRESH``
+  (``accel_error_threshold``, default ``AP_ARMING_ACCEL_ERROR_THRESHOLD`` = 0.75 m/s^2),
+  three times larger for the third IMU onwards (``i >= 2``: "runs at a different
+  temperature ... not used for accel data in the EKF");
+- every gyro vector is compared with the primary's against 5 deg/s (``radians(5)``);
+- an IMU fails once it has not passed for 10 s (``now - last_pass_ms > 10000``; newer
+  releases reset one timer for all IMUs and require 10 s of continuous consistency before
+  arming — the per-IMU form is the one that says which IMU disagrees).
+
+Here, per sensor type and sample t, with W = diag(1, 1, z_weight) for accelerometers (I for
+gyros), thresholds e_i and h = ``floor(hold * rate) + 1`` samples ("more than ``hold``
+seconds since the last pass"):
+
+    d_i(t) = |W (x_i(t) - ref_i(t))| / e_i              x in the body frame
+    s_i(t) = min(d_i(t-h+1), ..., d_i(t))             (0 until h samples have been seen)
+    alarm(t) = max_i s_i(t) > 1
+
+``ref_i`` is the primary IMU (``reference=primary``, the firmware) or the mean of the other
+IMUs (``reference=others``). ``s_i > 1`` exactly when IMU i failed on every one of the last h
+samples; the statistic is ``max_i s_i`` and the threshold 1, so scaling the threshold scales
+every e_i. Isolation (>= 3 IMUs; NOT_ISOLABLE with 2): with ``reference=primary``, the primary
+when every other IMU fails (they all disagree with it), otherwise the failing IMU with the
+largest s; with ``reference=others``, the failing IMU with the largest s. The reported sensor
+is the isolated IMU's axis with the largest deviation from the mean of the other IMUs (in
+its own frame), which is also the amplitude. ``bias=true`` removes each IMU's offset from
+the array mean on the calibration window (the firmware's sensors are calibrated). Causal.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors.base import NOT_ISOLABLE, DetectionBlock, Param
+from imufdi_cli.detectors.vectors import TriadLayout, parse_vector_types
+from imufdi_cli.errors import DetectorConfigError
+from imufdi_cli.log import ImuBlock
+
+REFERENCES: tuple[str, ...] = ("primary", "others")
+
+
+def trailing_minimum(history: np.ndarray, values: np.ndarray, length: int) -> np.ndarray:
+    """Minimum of each column over the last ``length`` rows, for every row of ``values``.
+
+    Parameters
+    ----------
+    history : ndarray, shape (H, m)
+        Rows before ``values`` (at most ``length - 1`` are used).
+    values : ndarray, shape (N, m)
+    length : int
+        Window length h >= 1.
+
+    Returns
+    -------
+    ndarray, shape (N, m)
+        Row t: min over the h rows ending at t; rows whose window reaches before the start
+        of ``history`` are the minimum of what is available.
+    """
+    from scipy.ndimage import minimum_filter1d  # imported when used (start-up time)
+
+    if values.shape[0] == 0:
+        return values.copy()
+    extended = np.concatenate([history[-(length - 1) :] if length > 1 else history[:0], values])
+    offset = extended.shape[0] - values.shape[0]
+    # a centred filter of size h at j covers [j - h//2, j - h//2 + h - 1]; the trailing window
+    # ending at t is the centred one at j = t - (h - 1)//2 (pad with +inf at the start)
+    shift = (length - 1) // 2
+    padded = np.concatenate([np.full((length, extended.shape[1]), np.inf), extended])
+    centred = minimum_filter1d(padded, size=length, axis=0, mode="nearest")
+    rows = np.arange(offset, extended.shape[0]) + length - shift
+    return np.asarray(centred[rows])
+
+
+@dataclass
+class _TypeState:
+    layout: TriadLayout
+    limits: np.ndarray  # (m,) e_i
+    weight: np.ndarray  # (3,) W diagonal
+    offsets: np.ndarray  # (m, 3)
+    primary: int  # compared-IMU index of the primary
+    history: np.ndarray  # (<= h - 1, m) normalised deviations of the last samples
+    seen: int = 0
+
+
+class ApConsistencyDetector:
+    """ArduPilot pre-arm style IMU consistency check (module docstring); ``ap-consistency``."""
+
+    name: ClassVar[str] = "ap-consistency"
+    #: Causal: every row is decided on its own sample (the hold time is a delay, not look-ahead).
+    lookahead_samples: ClassVar[int] = 0
+    PARAMS: ClassVar[dict[str, Param]] = {
+        "accel_threshold": Param(
+            "acceleration",
+            0.75,
+            "accel vector difference limit (ARMING_ACCTHRESH, AP_ARMING_ACCEL_ERROR_THRESHOLD)",
+            low=0.0,
+            low_open=True,
+        ),
+        "gyro_threshold": Param(
+            "angular_rate",
+            math.radians(5.0),
+            "gyro vector difference limit (ins_gyros_consistent: radians(5))",
+            low=0.0,
+            low_open=True,
+        ),
+        "hold": Param(
+            "time", 10.0, "an IMU fails after this long without passing (10000 ms)", low=0.0
+        ),
+        "z_weight": Param(
+            "float", 0.5, "weight of the accel difference's z component (0.5)", low=0.0
+        ),
+        "backup_factor": Param(
+            "float",
+            3.0,
+            "accel limit multiplier for the third IMU onwards (i >= 2: x3)",
+            low=0.0,
+            low_open=True,
+        ),
+        "reference": Param(
+            "choice",
+            "primary",
+            "compare each IMU with the primary (firmware) or with the mean of the others",
+            choices=REFERENCES,
+        ),
+        "primary": Param("int", 0, "array index of the primary IMU", low=0),
+        "bias": Param("bool", True, "remove per-IMU offsets found in the calibration window"),
+        "types": Param("str", "gyro,accel", "sensor types tested: gyro, accel or both"),
+    }
+
+    def __init__(
+        self,
+        accel_threshold: float = 0.75,
+        gyro_threshold: float = math.radians(5.0),
+        hold: float = 10.0,
+        z_weight: float = 0.5,
+        backup_factor: float = 3.0,
+        reference: str = "primary",
+        primary: int = 0,
+        bias: bool = True,
+        types: str = "gyro,accel",
+    ) -> None:
+        if reference not in REFERENCES:
+            raise DetectorConfigError(
+                f"{self.name}.reference: {reference!r} is not valid; valid: {', '.join(REFERENCES)}"
+            )
+        self.accel_threshold = float(accel_threshold)
+        self.gyro_threshold = float(gyro_threshold)
+        self.hold = float(hold)
+        self.z_weight = float(z_weight)
+        self.backup_factor = float(backup_factor)
+        self.reference = reference
+        self.primary = int(primary)
+        self.remove_bias = bool(bias)
+        self.types = parse_vector_types(types, self.name)
+        self.hold_samples = 1
+        self._states: dict[str, _TypeState] = {}
+
+    def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
+        """Check the layout, find per-IMU offsets, and turn ``hold`` into samples.
+
+        Raises
+        ------
+        DetectorConfigError
+            Fewer than 2 IMUs of a tested type, a partial triad, or a primary IMU without
+            the tested type.
+        CalibrationError
+            Fewer than 10 calibration samples or non-finite data (with ``bias=true``).
+        """
+        self._states = {}
+        # "now - last_pass > hold": more than hold seconds of consecutive failures
+        self.hold_samples = math.floor(self.hold * array.rate_hz + 1e-9) + 1
+        for sensor_type in self.types:
+            layout = TriadLayout.build(array, sensor_type, self.name)
+            if layout.n_imus == 0 and len(self.types) > 1:
+                continue
+            if layout.n_imus < 2:
+                raise DetectorConfigError(
+                    f"{self.name} compares IMUs: {sensor_type} needs at least 2 IMUs,"
+                    f" the array has {layout.n_imus}"
+                )
+            where = np.flatnonzero(layout.imus == self.primary)
+            if where.size == 0:
+                raise DetectorConfigError(
+                    f"{self.name}.primary: imu{self.primary} has no {sensor_type};"
+                    f" IMUs with {sensor_type}: " + ", ".join(f"imu{int(k)}" for k in layout.imus)
+                )
+            m = layout.n_imus
+            if sensor_type == "accel":
+                limits = np.full(m, self.accel_threshold)
+                limits[2:] *= self.backup_factor  # firmware index i >= 2 (array order)
+                weight = np.array([1.0, 1.0, self.z_weight])
+            else:
+                limits = np.full(m, self.gyro_threshold)
+                weight = np.ones(3)
+            offsets = (
+                layout.calibration_offsets(calibration, self.name)
+                if self.remove_bias
+                else np.zeros((m, 3))
+            )
+            self._states[sensor_type] = _TypeState(
+                layout=layout,
+                limits=limits,
+                weight=weight,
+                offsets=offsets,
+                primary=int(where[0]),
+                history=np.zeros((0, m)),
+            )
+        if not self._states:
+            raise DetectorConfigError(
+                f"{self.name}: the array has no {' or '.join(self.types)} to compare"
+            )
+
+    def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
+        """One row per input sample for every tested sensor type."""
+        if not self._states:
+            raise DetectorConfigError(f"{self.name}: call fit() before process()")
+        return {t: self._process_type(s, block) for t, s in self._states.items()}
+
+    def _process_type(self, state: _TypeState, block: ImuBlock) -> DetectionBlock:
+        layout = state.layout
+        vectors = layout.body(block, self.name) - state.offsets[None, :, :]
+        n_samples, m = vectors.shape[0], layout.n_imus
+        if n_samples == 0:
+            return DetectionBlock.empty(0, layout.n_sensors)
+        total = vectors.sum(axis=1, keepdims=True)
+        versus_others = vectors - (total - vectors) / (m - 1)  # x_i - mean_{j != i} x_j
+        if self.reference == "primary":
+            difference = vectors - vectors[:, state.primary : state.primary + 1, :]
+        else:
+            difference = versus_others
+        normalised = np.linalg.norm(difference * state.weight, axis=2) / state.limits  # (N, m)
+        held = trailing_minimum(state.history, normalised, self.hold_samples)
+        # before h samples have been seen the window is not full: no decision yet
+        seen = state.seen + np.arange(1, n_samples + 1)
+        held[seen < self.hold_samples] = 0.0
+        state.history = np.concatenate([state.history, normalised])[-(self.hold_samples - 1) :]
+        if self.hold_samples == 1:
+            state.history = normalised[:0]
+        state.seen += n_samples
+
+        rows = np.arange(n_samples)
+        failing = held > 1.0
+        statistic = held.max(axis=1)
+        alarm = statistic > 1.0
+        worst = np.argmax(held, axis=1)
+        if self.reference == "primary":
+            others = np.delete(np.arange(m), state.primary)
+            every_other = failing[:, others].all(axis=1)
+            worst = np.where(every_other, state.primary, worst)
+        local = layout.to_imu_frame(versus_others[rows, worst], worst)
+        component = np.argmax(np.abs(local), axis=1)
+        if m >= 3:
+            isolated = np.where(alarm, layout.axis_rows(worst, component), -1).astype(np.int32)
+            amplitude = np.where(alarm, local[rows, component], np.nan)
+        else:
+            isolated = np.where(alarm, NOT_ISOLABLE, -1).astype(np.int32)
+            amplitude = np.full(n_samples, np.nan)
+        scores = np.full((n_samples, layout.n_sensors), np.nan)
+        for axis in range(3):
+            scores[:, layout.sensor_of[:, axis]] = held
+        return DetectionBlock(
+            statistic=statistic,
+            threshold=np.ones(n_samples),
+            alarm=alarm,
+            isolated=isolated,
+            amplitude=amplitude,
+            scores=scores,
+        )
+
+    def flush(self) -> dict[str, DetectionBlock]:
+        """Causal: nothing is held back."""
+        return {t: DetectionBlock.empty(0, s.layout.n_sensors) for t, s in self._states.items()}
+
+    def metadata(self) -> dict[str, Any]:
+        """Parameters (SI), hold in samples, per-IMU limits and calibration offsets."""
+        return {
+            "detector": self.name,
+            "params": {
+                "accel_threshold": self.accel_threshold,
+                "gyro_threshold": self.gyro_threshold,
+                "hold": self.hold,
+                "z_weight": self.z_weight,
+                "backup_factor": self.backup_factor,
+                "reference": self.reference,
+                "primary": self.primary,
+                "bias": self.remove_bias,
+                "types": ",".join(self.types),
+            },
+            "hold_samples": self.hold_samples,
+            "lookahead_samples": self.lookahead_samples,
+            "types": {
+                t: {
+                    "imus": [f"imu{int(k)}" for k in s.layout.imus],
+                    "isolable": bool(s.layout.n_imus >= 3),
+                    "limits": s.limits.tolist(),
+                    "offsets": s.offsets.tolist(),
+                }
+                for t, s in self._states.items()
+            },
+        }
+
+
+__all__ = ["ApConsistencyDetector", "trailing_minimum"]

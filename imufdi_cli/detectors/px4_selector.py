@@ -1,0 +1,313 @@
+"""px4-selector: IMU inconsistency accumulated over time, in the style of PX4's EKF2 selector.
+
+PX4-Autopilot (BSD-3-Clause), read for understanding, not copied:
+
+- ``src/modules/sensors/voted_sensors_update.cpp`` (``calcGyroInconsistency``,
+  ``calcAccelInconsistency``): per update, each IMU's vector minus the mean of all IMUs,
+  smoothed by ``diff = 0.95 diff + 0.05 (x_i - mean)``; the inconsistency is ``|diff|``
+  (published as ``sensors_status_imu.gyro_inconsistency_rad_s`` / ``accel_inconsistency_m_s_s``).
+- ``src/modules/ekf2/EKF2Selector.cpp`` (``UpdateErrorScores``): per IMU
+  ``E_i += (|diff_i| - rate_threshold) * dt`` with ``dt = constrain(step, 0, 0.02 s)``, then
+  ``E_i = max(E_i, 0)``; an IMU whose accumulated error exceeds the angle (velocity)
+  threshold is an exceedance. With >= 3 IMUs the one with the largest accumulated error is
+  declared faulty; with 2, a fault is declared but its IMU cannot be identified.
+- Parameters (``EKF2Selector.hpp``, ``ekf2_params_selector``): ``EKF2_SEL_IMU_RAT`` 7 deg/s,
+  ``EKF2_SEL_IMU_ANG`` 15 deg, ``EKF2_SEL_IMU_ACC`` 1 m/s^2, ``EKF2_SEL_IMU_VEL`` 2 m/s.
+
+Here, per sensor type (gyro and accel separately), on each sample t with step dt_t:
+
+    d_i(t) = (1 - c) d_i(t-1) + c (x_i(t) - mean_j x_j(t))      x in the body frame, (3,)
+    E_i(t) = max(0, E_i(t-1) + (|d_i(t)| - r) min(dt_t, dt_max))
+    alarm(t) = max_i E_i(t) > A
+
+with (r, A) = (rate_threshold, angle_threshold) for gyros and (accel_threshold,
+velocity_threshold) for accelerometers. The statistic is ``max_i E_i`` (rad or m/s), the
+threshold A. Isolation: the IMU with the largest E (>= 3 IMUs), NOT_ISOLABLE with 2; the
+reported sensor is that IMU's axis with the largest ``|d|`` component in its own frame, and
+the amplitude that component times m / (m - 1) (a step f on one of m IMUs moves its deviation
+from the mean by f (m - 1) / m). Scores: E of each IMU on each of its axes.
+
+The firmware runs on calibrated sensors; ``bias=true`` (default) removes each IMU's mean
+offset from the array mean on the calibration window, standing in for that calibration.
+The smoothing constant c acts per sample, as in the firmware per update: at the log's rate
+its time constant is ``dt / c`` (0.2 s at 100 Hz). Causal: one row per input sample, no
+look-ahead. Lever-arm effects on accelerometers are not compensated (nor are they in PX4).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors.base import NOT_ISOLABLE, DetectionBlock, Param
+from imufdi_cli.detectors.vectors import TriadLayout, block_steps, parse_vector_types
+from imufdi_cli.errors import DetectorConfigError
+from imufdi_cli.log import ImuBlock
+
+
+def accumulate_excess(excess: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """``E_t = max(0, E_{t-1} + x_t)`` for every column, vectorised (Lindley's recursion).
+
+    With ``C_t = x_1 + ... + x_t``: ``E_t = C_t - min(-E_0, min_{s<=t} C_s)``.
+
+    Parameters
+    ----------
+    excess : ndarray, shape (N, m)
+        Increments x_t.
+    start : ndarray, shape (m,)
+        E_0 (>= 0).
+
+    Returns
+    -------
+    ndarray, shape (N, m)
+    """
+    if excess.shape[0] == 0:
+        return np.zeros_like(excess)
+    cumulative = np.cumsum(excess, axis=0)
+    floor = np.minimum(np.minimum.accumulate(cumulative, axis=0), -start[None, :])
+    return np.maximum(cumulative - floor, 0.0)
+
+
+def smooth_deviation(deviation: np.ndarray, start: np.ndarray, gain: float) -> np.ndarray:
+    """``d_t = (1 - c) d_{t-1} + c x_t`` along axis 0 (the firmware's 0.95/0.05 filter).
+
+    Parameters
+    ----------
+    deviation : ndarray, shape (N, ...)
+    start : ndarray, shape deviation.shape[1:]
+        d_0.
+    gain : float
+        c in (0, 1].
+
+    Returns
+    -------
+    ndarray, shape (N, ...)
+    """
+    from scipy.signal import lfilter  # imported when used (start-up time)
+
+    if deviation.shape[0] == 0:
+        return np.zeros_like(deviation)
+    decay = 1.0 - gain
+    # lfilter's state for y_t = c x_t + decay y_{t-1}: zi = decay * y_0
+    initial = (decay * start)[None, ...]
+    smoothed, _ = lfilter([gain], [1.0, -decay], deviation, axis=0, zi=initial)
+    return np.asarray(smoothed)
+
+
+@dataclass
+class _TypeState:
+    layout: TriadLayout
+    rate_threshold: float
+    accumulated_threshold: float
+    offsets: np.ndarray  # (m, 3) body frame
+    smoothed: np.ndarray  # (m, 3) d_i, body frame
+    accumulated: np.ndarray  # (m,) E_i
+    last_ns: int | None = None
+    first_alarm_sample: int | None = None
+
+
+class Px4SelectorDetector:
+    """PX4 EKF2-selector style IMU consistency check (module docstring); ``px4-selector``."""
+
+    name: ClassVar[str] = "px4-selector"
+    #: Causal: every row is decided on its own sample.
+    lookahead_samples: ClassVar[int] = 0
+    PARAMS: ClassVar[dict[str, Param]] = {
+        "rate_threshold": Param(
+            "angular_rate",
+            math.radians(7.0),
+            "gyro inconsistency that starts accumulating angle error (EKF2_SEL_IMU_RAT)",
+            low=0.0,
+        ),
+        "angle_threshold": Param(
+            "angle",
+            math.radians(15.0),
+            "accumulated gyro angle error declaring a fault (EKF2_SEL_IMU_ANG)",
+            low=0.0,
+            low_open=True,
+        ),
+        "accel_threshold": Param(
+            "acceleration",
+            1.0,
+            "accel inconsistency that starts accumulating velocity error (EKF2_SEL_IMU_ACC)",
+            low=0.0,
+        ),
+        "velocity_threshold": Param(
+            "velocity",
+            2.0,
+            "accumulated accel velocity error declaring a fault (EKF2_SEL_IMU_VEL)",
+            low=0.0,
+            low_open=True,
+        ),
+        "smoothing": Param(
+            "float",
+            0.05,
+            "per-sample gain of the deviation filter (voted_sensors_update.cpp: 0.05)",
+            low=0.0,
+            high=1.0,
+            low_open=True,
+        ),
+        "max_step": Param(
+            "time",
+            0.02,
+            "largest time step accumulated per sample (EKF2Selector.cpp: 0.02 s)",
+            low=0.0,
+            low_open=True,
+        ),
+        "bias": Param("bool", True, "remove per-IMU offsets found in the calibration window"),
+        "types": Param("str", "gyro,accel", "sensor types tested: gyro, accel or both"),
+    }
+
+    def __init__(
+        self,
+        rate_threshold: float = math.radians(7.0),
+        angle_threshold: float = math.radians(15.0),
+        accel_threshold: float = 1.0,
+        velocity_threshold: float = 2.0,
+        smoothing: float = 0.05,
+        max_step: float = 0.02,
+        bias: bool = True,
+        types: str = "gyro,accel",
+    ) -> None:
+        self.rate_threshold = float(rate_threshold)
+        self.angle_threshold = float(angle_threshold)
+        self.accel_threshold = float(accel_threshold)
+        self.velocity_threshold = float(velocity_threshold)
+        self.smoothing = float(smoothing)
+        self.max_step = float(max_step)
+        self.remove_bias = bool(bias)
+        self.types = parse_vector_types(types, self.name)
+        self._states: dict[str, _TypeState] = {}
+        self._nominal_step = 0.01
+        self._samples_seen = 0
+
+    def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
+        """Check the layout (>= 2 IMUs with full triads) and find the per-IMU offsets.
+
+        Raises
+        ------
+        DetectorConfigError
+            A tested type with fewer than 2 IMUs, or an IMU with a partial triad.
+        CalibrationError
+            Fewer than 10 calibration samples or non-finite data (with ``bias=true``).
+        """
+        self._states = {}
+        self._samples_seen = 0
+        self._nominal_step = 1.0 / array.rate_hz
+        for sensor_type in self.types:
+            layout = TriadLayout.build(array, sensor_type, self.name)
+            if layout.n_imus == 0 and len(self.types) > 1:
+                continue
+            if layout.n_imus < 2:
+                raise DetectorConfigError(
+                    f"{self.name} compares IMUs: {sensor_type} needs at least 2 IMUs,"
+                    f" the array has {layout.n_imus}"
+                )
+            if self.remove_bias:
+                offsets = layout.calibration_offsets(calibration, self.name)
+            else:
+                offsets = np.zeros((layout.n_imus, 3))
+            gyro = sensor_type == "gyro"
+            self._states[sensor_type] = _TypeState(
+                layout=layout,
+                rate_threshold=self.rate_threshold if gyro else self.accel_threshold,
+                accumulated_threshold=self.angle_threshold if gyro else self.velocity_threshold,
+                offsets=offsets,
+                smoothed=np.zeros((layout.n_imus, 3)),
+                accumulated=np.zeros(layout.n_imus),
+            )
+        if not self._states:
+            raise DetectorConfigError(
+                f"{self.name}: the array has no {' or '.join(self.types)} to compare"
+            )
+
+    def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
+        """One row per input sample for every tested sensor type."""
+        if not self._states:
+            raise DetectorConfigError(f"{self.name}: call fit() before process()")
+        out = {t: self._process_type(s, block) for t, s in self._states.items()}
+        self._samples_seen += len(block)
+        return out
+
+    def _process_type(self, state: _TypeState, block: ImuBlock) -> DetectionBlock:
+        layout = state.layout
+        vectors = layout.body(block, self.name) - state.offsets[None, :, :]
+        n_samples, m = vectors.shape[0], layout.n_imus
+        if n_samples == 0:
+            return DetectionBlock.empty(0, layout.n_sensors)
+        deviation = vectors - vectors.mean(axis=1, keepdims=True)
+        smoothed = smooth_deviation(deviation, state.smoothed, self.smoothing)
+        inconsistency = np.linalg.norm(smoothed, axis=2)  # (N, m)
+        steps = np.minimum(
+            block_steps(block.t_ns, state.last_ns, self._nominal_step), self.max_step
+        )
+        steps = np.maximum(steps, 0.0)
+        excess = (inconsistency - state.rate_threshold) * steps[:, None]
+        accumulated = accumulate_excess(excess, state.accumulated)
+        state.smoothed = smoothed[-1].copy()
+        state.accumulated = accumulated[-1].copy()
+        state.last_ns = int(block.t_ns[-1])
+
+        rows = np.arange(n_samples)
+        worst = np.argmax(accumulated, axis=1)
+        statistic = accumulated[rows, worst]
+        alarm = statistic > state.accumulated_threshold
+        local = layout.to_imu_frame(smoothed[rows, worst], worst)  # (N, 3), IMU frame
+        component = np.argmax(np.abs(local), axis=1)
+        if m >= 3:
+            isolated = np.where(alarm, layout.axis_rows(worst, component), -1).astype(np.int32)
+            amplitude = np.where(alarm, local[rows, component] * m / (m - 1), np.nan)
+        else:
+            isolated = np.where(alarm, NOT_ISOLABLE, -1).astype(np.int32)
+            amplitude = np.full(n_samples, np.nan)
+        scores = np.full((n_samples, layout.n_sensors), np.nan)
+        for axis in range(3):
+            scores[:, layout.sensor_of[:, axis]] = accumulated
+        if state.first_alarm_sample is None and alarm.any():
+            state.first_alarm_sample = self._samples_seen + int(np.argmax(alarm))
+        return DetectionBlock(
+            statistic=statistic,
+            threshold=np.full(n_samples, state.accumulated_threshold),
+            alarm=alarm,
+            isolated=isolated,
+            amplitude=amplitude,
+            scores=scores,
+        )
+
+    def flush(self) -> dict[str, DetectionBlock]:
+        """Causal: nothing is held back."""
+        return {t: DetectionBlock.empty(0, s.layout.n_sensors) for t, s in self._states.items()}
+
+    def metadata(self) -> dict[str, Any]:
+        """Parameters (SI), compared IMUs, calibration offsets and the first alarm sample."""
+        return {
+            "detector": self.name,
+            "params": {
+                "rate_threshold": self.rate_threshold,
+                "angle_threshold": self.angle_threshold,
+                "accel_threshold": self.accel_threshold,
+                "velocity_threshold": self.velocity_threshold,
+                "smoothing": self.smoothing,
+                "max_step": self.max_step,
+                "bias": self.remove_bias,
+                "types": ",".join(self.types),
+            },
+            "lookahead_samples": self.lookahead_samples,
+            "types": {
+                t: {
+                    "imus": [f"imu{int(k)}" for k in s.layout.imus],
+                    "isolable": bool(s.layout.n_imus >= 3),
+                    "offsets": s.offsets.tolist(),
+                    "threshold": s.accumulated_threshold,
+                    "first_alarm_sample": s.first_alarm_sample,
+                }
+                for t, s in self._states.items()
+            },
+        }
+
+
+__all__ = ["Px4SelectorDetector", "accumulate_excess", "smooth_deviation"]

@@ -1,0 +1,158 @@
+"""ap-consistency: hold time, thresholds, isolation rules, streaming, CLI."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose, assert_array_equal
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors.ap_consistency import ApConsistencyDetector, trailing_minimum
+from imufdi_cli.detectors.base import NO_ISOLATION, NOT_ISOLABLE, DetectionBlock, parse_params
+from imufdi_cli.errors import DetectorConfigError
+from imufdi_cli.log import ImuBlock
+from imufdi_cli.mcapio import read_status
+from tests.cli.conftest import assert_one_line_error, invoke
+
+DT_NS = 10_000_000
+
+
+def make(**raw: Any) -> ApConsistencyDetector:
+    return ApConsistencyDetector(
+        **parse_params(ApConsistencyDetector.PARAMS, raw, "ap-consistency")
+    )
+
+
+def block(n: int, m: int, rng: np.random.Generator) -> ImuBlock:
+    gyro = 0.005 * rng.standard_normal((n, m, 3))
+    accel = np.array([0.0, 0.0, 9.81]) + 0.02 * rng.standard_normal((n, m, 3))
+    return ImuBlock(t_ns=np.arange(n) * DT_NS, gyro=gyro, accel=accel)
+
+
+def test_trailing_minimum_matches_brute_force_across_blocks() -> None:
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((400, 3))
+    for length in (1, 2, 7, 50):
+        expected = np.array([x[max(0, t - length + 1) : t + 1].min(axis=0) for t in range(400)])
+        first = trailing_minimum(np.zeros((0, 3)), x[:123], length)
+        second = trailing_minimum(x[:123], x[123:], length)
+        assert_allclose(np.concatenate([first, second]), expected)
+
+
+def test_alarm_after_more_than_hold_seconds_of_disagreement() -> None:
+    rng = np.random.default_rng(2)
+    array = ArrayConfig.co_aligned(4)
+    data = block(1500, 4, rng)
+    assert data.gyro is not None
+    data.gyro[600:, 3, 2] += math.radians(8.0)  # over the 5 deg/s limit
+    det = make(hold="2s")
+    det.fit(data.slice(0, 100), array)
+    out = det.process(data)["gyro"]
+    assert det.hold_samples == 201  # "now - last_pass > 2000 ms" at 100 Hz
+    # failing from sample 600 on: the last pass is 599, alarm when 201 samples have failed
+    assert int(np.argmax(out.alarm)) == 600 + 200
+    assert out.alarm[800:].all()
+    first = out.isolated[800]
+    assert first == 3 * 3 + 2  # imu3.gyro.z
+    assert_allclose(out.amplitude[800:].mean(), math.radians(8.0), rtol=0.02)
+    assert (out.isolated[:800] == NO_ISOLATION).all()
+
+
+def test_one_passing_sample_restarts_the_hold() -> None:
+    rng = np.random.default_rng(3)
+    array = ArrayConfig.co_aligned(3)
+    data = block(1000, 3, rng)
+    assert data.gyro is not None
+    data.gyro[300:, 1, 0] += math.radians(10.0)
+    data.gyro[450, 1, 0] -= math.radians(10.0)  # one consistent sample
+    det = make(hold="2s", bias=False)
+    det.fit(data.slice(0, 100), array)
+    out = det.process(data)["gyro"]
+    # without the pass at 450 the alarm would come at 300 + 200
+    assert int(np.argmax(out.alarm)) == 451 + 200
+
+
+def test_primary_fault_isolates_the_primary_and_z_is_halved() -> None:
+    rng = np.random.default_rng(4)
+    array = ArrayConfig.co_aligned(4)
+    data = block(800, 4, rng)
+    assert data.accel is not None
+    data.accel[200:, 0, 0] += 1.0  # primary, x: every other IMU disagrees with it by 1 m/s^2
+    det = make(hold="0.5s", backup_factor="1")
+    det.fit(data.slice(0, 100), array)
+    out = det.process(data)["accel"]
+    assert out.alarm[300:].all()
+    assert set(out.isolated[300:].tolist()) == {0}  # imu0.accel.x
+    # 1.2 m/s^2 on z is 0.6 after the firmware's z weight: under 0.75, no alarm
+    data2 = block(800, 4, rng)
+    assert data2.accel is not None
+    data2.accel[200:, 2, 2] += 1.2
+    det2 = make(hold="0.5s", backup_factor="1")
+    det2.fit(data2.slice(0, 100), array)
+    assert not det2.process(data2)["accel"].alarm.any()
+
+
+def test_backup_factor_triples_the_accel_limit_from_the_third_imu() -> None:
+    array = ArrayConfig.co_aligned(4)
+    det = make()
+    det.fit(block(200, 4, np.random.default_rng(5)), array)
+    assert_allclose(det._states["accel"].limits, [0.75, 0.75, 2.25, 2.25])
+    assert_allclose(det._states["gyro"].limits, math.radians(5.0))
+
+
+def test_reference_others_and_two_imus() -> None:
+    rng = np.random.default_rng(6)
+    data = block(600, 2, rng)
+    assert data.gyro is not None
+    data.gyro[100:, 1, 1] += math.radians(12.0)
+    det = make(hold="0.2s", reference="others")
+    det.fit(data.slice(0, 50), ArrayConfig.co_aligned(2))
+    out = det.process(data)["gyro"]
+    assert out.alarm[200:].all()
+    assert set(out.isolated[out.alarm].tolist()) == {NOT_ISOLABLE}
+
+
+def test_block_size_does_not_change_rows() -> None:
+    rng = np.random.default_rng(7)
+    array = ArrayConfig.co_aligned(5)
+    data = block(1000, 5, rng)
+    assert data.gyro is not None
+    data.gyro[400:, 2, 0] += math.radians(6.0)
+    whole = make(hold="1s")
+    whole.fit(data.slice(0, 100), array)
+    expected = whole.process(data)
+    pieces = make(hold="1s")
+    pieces.fit(data.slice(0, 100), array)
+    parts = [pieces.process(data.slice(i, i + 29)) for i in range(0, 1000, 29)]
+    for sensor_type in ("gyro", "accel"):
+        joined = DetectionBlock.concatenate([p[sensor_type] for p in parts])
+        assert_allclose(joined.statistic, expected[sensor_type].statistic)
+        assert_array_equal(joined.isolated, expected[sensor_type].isolated)
+    assert pieces.lookahead_samples == 0
+
+
+def test_bad_configurations_name_the_problem() -> None:
+    with pytest.raises(DetectorConfigError, match="reference"):
+        make(reference="median")
+    with pytest.raises(DetectorConfigError, match="primary: imu7"):
+        make(primary=7).fit(block(100, 4, np.random.default_rng(0)), ArrayConfig.co_aligned(4))
+
+
+def test_cli_detect(tmp_path: Any) -> None:
+    clean, faulty, detected = (str(tmp_path / f) for f in ("c.mcap", "f.mcap", "d.mcap"))
+    args = ["simulate", "--preset", "paper-table4", "--seed", "3", "--duration", "8s"]
+    assert invoke([*args, "-o", clean]).code == 0
+    fault = "step:imu5.gyro.y,amp=30deg/s,at=3s"
+    assert invoke(["inject", clean, "--fault", fault, "-o", faulty]).code == 0
+    params = ["--param", "ap-consistency.hold=1s"]
+    result = invoke(["detect", faulty, "-d", "ap-consistency", *params, "-o", detected])
+    assert result.code == 0, result.stderr
+    status = read_status(detected)[("ap-consistency", "gyro")]
+    first = int(np.argmax(status.alarm))
+    assert first == 300 + 100  # fault at 3 s, alarm once more than 1 s has failed
+    assert status.isolated[first] == 5 * 3 + 1  # imu5.gyro.y
+    bad = invoke(["detect", faulty, "-d", "ap-consistency", "--param", "ap-consistency.hold=x"])
+    assert_one_line_error(bad, 2, "ap-consistency.hold")

@@ -1,0 +1,98 @@
+"""detect: decision times, look-ahead and the recorded calibration window."""
+
+from __future__ import annotations
+
+import json
+from typing import Any, ClassVar
+
+import numpy as np
+import pytest
+from numpy.testing import assert_array_equal
+
+from imufdi_cli.detect import calibration_window_ns, decision_positions, detect_file
+from imufdi_cli.detectors import DETECTORS
+from imufdi_cli.detectors.base import DetectionBlock
+from imufdi_cli.mcapio import McapSource, read_status
+
+
+def test_decision_positions():
+    # rows 10..14 returned after 20 samples were passed in
+    assert decision_positions(10, 5, 20, 0).tolist() == [10, 11, 12, 13, 14]
+    assert decision_positions(10, 5, 20, 7).tolist() == [17, 18, 19, 19, 19]
+    assert decision_positions(10, 5, 20, None).tolist() == [19] * 5  # undeclared: newest
+    assert decision_positions(0, 0, 0, 3).size == 0
+
+
+def test_calibration_window_ns():
+    assert calibration_window_ns(None, 0, 0.0, 2.0) is None
+    assert calibration_window_ns(10**9, 5 * 10**9, 0.5, 2.0) == [15 * 10**8, 3 * 10**9]
+    assert calibration_window_ns(10**9, 5 * 10**9, 0.0, None) == [10**9, 5 * 10**9 + 1]
+
+
+class HoldBack:
+    """Test detector: holds every sample back ``lookahead_samples`` samples; statistic =
+    sample index, so rows can be matched to samples."""
+
+    name: ClassVar[str] = "hold3"
+    PARAMS: ClassVar[dict[str, Any]] = {}
+    lookahead_samples = 3
+
+    def __init__(self) -> None:
+        self.seen = 0
+        self.held = 0
+
+    def fit(self, calibration: Any, array: Any) -> None:
+        self.n = array.n_sensors("gyro")
+
+    def _rows(self, count: int) -> dict[str, DetectionBlock]:
+        block = DetectionBlock.empty(count, self.n)
+        block.statistic = np.arange(
+            self.seen - self.held, self.seen - self.held + count, dtype=float
+        )
+        block.threshold = np.full(count, 1e9)
+        self.held -= count
+        return {"gyro": block}
+
+    def process(self, block: Any) -> dict[str, DetectionBlock]:
+        self.seen += len(block)
+        self.held += len(block)
+        return self._rows(max(self.held - self.lookahead_samples, 0))
+
+    def flush(self) -> dict[str, DetectionBlock]:
+        return self._rows(self.held)
+
+    def metadata(self) -> dict[str, Any]:
+        return {}
+
+
+@pytest.fixture(scope="module")
+def sim_log(tmp_path_factory):
+    from imufdi_cli.mcapio import write_array
+    from imufdi_cli.simulate import config_from_options, simulate_block
+
+    path = tmp_path_factory.mktemp("d") / "s.mcap"
+    array, block = simulate_block(config_from_options("paper-table4", seed=3, duration="3s"))
+    write_array(str(path), array, block)
+    return path
+
+
+def test_rows_carry_decision_times(sim_log, tmp_path, monkeypatch):
+    monkeypatch.setitem(DETECTORS, "hold3", "tests.test_detect:HoldBack")
+    out = tmp_path / "d.mcap"
+    detect_file(str(sim_log), str(out), [("glt", {}), ("hold3", {})], calibrate=(0.0, 1.0))
+    status = read_status(str(out))
+    glt = status[("glt", "gyro")]
+    assert glt.has_decided
+    assert_array_equal(glt.decided_ns, glt.t_ns)  # causal: the sample time
+    held = status[("hold3", "gyro")]
+    n = len(held)
+    assert_array_equal(held.statistic, np.arange(n))  # one row per sample, in order
+    later = np.minimum(np.arange(n) + 3, n - 1)
+    assert_array_equal(held.decided_ns, held.t_ns[later])
+    with McapSource(str(out)) as src:
+        record = json.loads(src.metadata["imufdi.detect.glt"]["json"])
+    t0 = int(glt.t_ns[0])
+    assert record["calibration_window_ns"] == [t0, t0 + 10**9]
+    assert record["lookahead_samples"] == 0
+    inside = (glt.t_ns >= t0) & (glt.t_ns < t0 + 10**9)
+    assert record["calibration_samples"] == int(np.count_nonzero(inside))
