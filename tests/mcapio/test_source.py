@@ -280,7 +280,7 @@ def test_mutation_fuzz_raises_only_input_errors(variant: str) -> None:
             for warning in summary.warnings:
                 assert warning.strip() and not warning.endswith(":") and "\n" not in warning
             if strict:
-                assert summary.warnings == [] or all(
-                    "imufdi.array" in w or "sample rate" in w for w in summary.warnings
-                )
+                # reader problems (they name a byte offset, or say what was skipped) are
+                # errors with --strict; notes such as "using the log time" may remain
+                assert not any("byte" in w or "skipped" in w for w in summary.warnings)
     assert outcomes["ok"] and outcomes["error"]
