@@ -488,7 +488,12 @@ def inject(
     help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
     " no header or all-zero stamps, with a warning).",
 )
-@click.option("--strict", is_flag=True, help="A truncated or corrupt input is an error (exit 3).")
+@click.option(
+    "--strict",
+    is_flag=True,
+    help="A truncated or corrupt input, or a calibration window a detector finds inadequate,"
+    " is an error (exit 3) instead of a warning.",
+)
 @click.option(
     "--explain/--no-explain",
     default=True,

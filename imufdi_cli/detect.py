@@ -474,6 +474,14 @@ def detect_file(
                 )
         window_ns = calibration_window_ns(t_first, t_last, cal_start_s, cal_end_s)
         for track in tracks:
+            # A detector may judge its calibration window from what it processed (e.g.
+            # pca-parity: motion beyond the calibrated range); --strict makes that fatal.
+            judge = getattr(track.detector, "calibration_warnings", None)
+            found = list(judge()) if judge is not None else []
+            if strict and found:
+                raise CalibrationError(f"{found[0]} (--strict)")
+            warnings.extend(found)
+        for track in tracks:
             record = {
                 "detector": track.detector.name,
                 "version": __version__,

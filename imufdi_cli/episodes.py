@@ -47,7 +47,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -435,7 +435,11 @@ def _drift_fit(
             sse = s_rr - (s_r - b * s_u) / n * s_r - b * s_ur
             gain_inv = n / det
             k_params = 2
-            valid = (det > 0) & (lam_free >= 0) & (lam_free <= dt)
+            # a free offset is a sub-sample onset; at the window's first sample it may also
+            # be a ramp already in progress (an episode that starts mid-fault, after an
+            # earlier alarm episode of the same fault)
+            in_progress = (taus == 0) & (det > 0)
+            valid = ((det > 0) & (lam_free >= 0) & (lam_free <= dt)) | in_progress
         else:
             s_vv = s_uu + 2 * lam * s_u + n * lam**2
             s_vr = s_ur + lam * s_r
@@ -836,13 +840,54 @@ class EpisodeBuilder:
             t_s,
             float(self.sigma[k]),
             consensus_sigma,
-            onset_range=(0, alarm_index + 1),
+            # the onset may precede the first alarm (a drift is detected late) or follow
+            # it (a chance alarm just before the fault merges into its episode)
+            onset_range=(0, alarm_index + 1 + (len(window_t) - alarm_index) // 2),
             confidence=self.confidence,
             raw=window[:, k],
             calibration_samples=self.calibration_samples,
             offset_var=offset_var,
         )
+        episode.fits = [self._widen_by_array(f, window, t_s, k) for f in episode.fits]
         return episode
+
+    def _widen_by_array(
+        self, fit: FaultFit, window: np.ndarray, t_s: np.ndarray, k: int
+    ) -> FaultFit:
+        """A step's amplitude or a drift's rate, estimated the same way on every other
+        sensor over the same samples, spreads by what healthy sensors do on their own
+        (white noise, but also bias wander that the white-noise interval ignores). The
+        interval is widened to at least that spread (robust: 1.4826 MAD over the others,
+        t quantile with their count), so it holds whatever the noise's colour."""
+        if fit.model not in ("step", "drift") or fit.onset_index < 0:
+            return fit
+        others = [j for j in range(self.H.shape[0]) if j != k]
+        if len(others) < 3:
+            return fit
+        onset = fit.onset_index
+        residuals = np.empty((window.shape[0] - onset, len(others)))
+        for column, j in enumerate(others):
+            try:
+                gain, _ = self._gain(j)
+            except ValueError:
+                return fit
+            r = window[onset:, j] - window[onset:] @ gain
+            if self.calibration_mean is not None:
+                r = r - (self.calibration_mean[j] - self.calibration_mean @ gain)
+            residuals[:, column] = r
+        if fit.model == "step":
+            estimates = residuals.mean(axis=0)
+        else:
+            u = t_s[onset:] - t_s[onset]
+            denominator = float(u @ u)
+            if denominator <= 0:
+                return fit
+            estimates = u @ residuals / denominator
+        spread = 1.4826 * float(np.median(np.abs(estimates - np.median(estimates))))
+        half = _t_quantile(0.5 + self.confidence / 2, len(others) - 1) * spread
+        if half <= (fit.high - fit.low) / 2:
+            return fit
+        return replace(fit, low=fit.size - half, high=fit.size + half)
 
     def _gain(self, k: int) -> tuple[np.ndarray, float]:
         found = self._gains.get(k)

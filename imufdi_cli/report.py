@@ -960,6 +960,37 @@ def _pyplot() -> Any:
     return plt
 
 
+#: episodes labelled per panel (the longest; the others are only spanned)
+PLOT_EPISODE_LABELS = 6
+
+
+def _mark_episodes(ax: Any, report: Report, entry: ReportEntry) -> None:
+    """Span each listed episode of this detector and type on the panel's time axis, and
+    label the longest with their class and size (docs/episodes.md)."""
+    mine = [
+        ep
+        for ep in report.episodes
+        if ep["detector"] == entry.detector and ep["sensor_type"] == entry.sensor_type
+    ]
+    for ep in mine:
+        start = (ep["start_ns"] - report.t0_ns) / 1e9
+        end = (ep["end_ns"] - report.t0_ns) / 1e9
+        ax.axvspan(start, max(end, start + 1e-3), color="tab:orange", alpha=0.25, lw=0)
+    for ep in sorted(mine, key=lambda ep: -(ep["end_ns"] - ep["start_ns"]))[:PLOT_EPISODE_LABELS]:
+        start = (ep["start_ns"] - report.t0_ns) / 1e9
+        sensor = (ep.get("sensors") or ["?"])[0]
+        ax.annotate(
+            f"{sensor}: {ep.get('fault_class') or '?'} {format_size(ep)}",
+            xy=(start, 0.97),
+            xycoords=("data", "axes fraction"),
+            fontsize=7,
+            rotation=90,
+            va="top",
+            ha="right",
+            color="tab:brown",
+        )
+
+
 def plot_report(report: Report, path: str) -> None:
     """Detection statistic vs threshold and isolation scores over time, faults shaded
     (like Li et al. Figure 15), from the series kept with ``build_report(keep_series=True)``.
@@ -991,6 +1022,7 @@ def plot_report(report: Report, path: str) -> None:
         finite = e.statistic[np.isfinite(e.statistic) & (e.statistic > 0)]
         if finite.size and finite.max() / max(finite.min(), 1e-12) > 100:
             ax.set_yscale("log")
+        _mark_episodes(ax, report, e)
         ax.set_title(f"{e.detector} · {e.sensor_type}: detection statistic")
         ax.set_xlabel("time, s")
         ax.legend(loc="upper left", fontsize=8)

@@ -6,8 +6,12 @@ devices (§2-3): accelerometer noise increase in a 12-IMU array. The paper's met
 
 1. Reference rate (§2): the array gyros are screened by the GLT (faulty gyros excluded) and
    the remaining ones give the body rate by least squares, ``w_ref = (H_a^T H_a)^-1 H_a^T m_a``
-   (:class:`~imufdi_cli.detectors.glt.GltDetector`, ``types=gyro``; a gyro stays excluded
-   once the GLT has reported it as isolated).
+   (:class:`~imufdi_cli.detectors.glt.GltDetector`, ``types=gyro``; a gyro is excluded
+   while the GLT isolates it and re-admitted ``READMIT_S`` = 0.5 s after its last
+   isolation, so a GLT false alarm does not remove a healthy gyro for good; every
+   exclusion and re-admission is logged in the metadata, ``excluded_gyros``). The
+   calibration window must contain motion: rotation and specific-force change of at least
+   10x their noise on one body axis (``check_motion``), else fit refuses it.
 2. Mapping network (§2): two 1-D convolution layers and a fully connected layer (numpy,
    :mod:`.nn`) map a window of ``L`` samples of one IMU's specific force, rotated to the body
    frame and standardised, to the reference rate at the window's last sample. One network
@@ -72,6 +76,7 @@ import io
 import json
 import math
 from dataclasses import dataclass, field, replace
+from itertools import pairwise
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -98,6 +103,14 @@ from imufdi_cli.log import ImuBlock
 MODEL_FORMAT = "imufdi-cnn-map-1"
 #: Fewest training windows (all IMUs together) for a meaningful fit.
 MIN_TRAINING_WINDOWS = 200
+#: Scale from the median absolute deviation to the standard deviation of a Gaussian.
+MAD_TO_STD = 1.4826
+#: The calibration window must rotate, and move the specific force, by at least this
+#: multiple of the noise (standard deviations) on one body axis (``check_motion``).
+MIN_MOTION_RATIO = 10.0
+#: A gyro the GLT screen isolated is re-admitted to the reference this long after its last
+#: isolation, seconds.
+READMIT_S = 0.5
 
 
 @dataclass
@@ -269,6 +282,57 @@ def whiten(residual: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
     return out
 
 
+def _excursion_ratio(series: np.ndarray) -> np.ndarray:
+    """Per-column motion excursion over the white-noise level, (c,) for (N, c) series.
+
+    Noise from second differences (``Var(D^2 x) = 6 sigma^2`` for white noise, smooth
+    motion cancels to O(Te^2)); excursion = the standard deviation left after the noise.
+    """
+    noise = MAD_TO_STD * np.median(np.abs(np.diff(series, n=2, axis=0)), axis=0) / np.sqrt(6.0)
+    spread = np.sqrt(np.maximum(series.var(axis=0) - noise**2, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(noise > 0, spread / noise, np.where(spread > 0, np.inf, 0.0))
+
+
+def check_motion(reference: np.ndarray, body: np.ndarray) -> dict[str, list[float]]:
+    """Refuse a calibration window without the motion the mapping needs.
+
+    The mapping learns the body rate from windows of specific force: the window must
+    rotate (reference rate) and move the specific force, each by at least
+    ``MIN_MOTION_RATIO`` times its noise on one body axis.
+
+    Parameters
+    ----------
+    reference : ndarray, shape (N, 3), rad/s
+    body : ndarray, shape (N, m, 3), m/s^2
+
+    Returns
+    -------
+    dict
+        ``rate`` and ``specific_force``: excursion / noise per body axis (for metadata).
+
+    Raises
+    ------
+    CalibrationError
+        Neither ratio reaches ``MIN_MOTION_RATIO`` on any axis; the message names which.
+    """
+    rate = _excursion_ratio(reference)
+    force = _excursion_ratio(body.mean(axis=1))
+    missing = [
+        f"{what} (excursion {', '.join(f'{v:.2g}' for v in ratio)} x its noise about x, y, z)"
+        for what, ratio in (("rotation", rate), ("specific-force change", force))
+        if not np.any(ratio >= MIN_MOTION_RATIO)
+    ]
+    if missing:
+        raise CalibrationError(
+            "cnn-map: the calibration window lacks the motion the mapping needs: no "
+            + " and no ".join(missing)
+            + f"; it needs at least {MIN_MOTION_RATIO:g}x on one axis. Calibrate on a window"
+            " where the array moves (--calibrate START:END)"
+        )
+    return {"rate": rate.tolist(), "specific_force": force.tolist()}
+
+
 def gamma_shape(energies: np.ndarray) -> float:
     """Method-of-moments gamma shape of energies with mean ~1: ``mean^2 / var``."""
     mean = float(np.mean(energies))
@@ -410,6 +474,11 @@ class CnnMapDetector:
         self.excluded_gyros: list[int] = []
         self.gyro_events: list[dict[str, Any]] = []
         self._estimator = least_squares_matrix(self.gyro_H)  # (3, n_g)
+        self._full_estimator = self._estimator
+        self._estimators: dict[frozenset[int], np.ndarray] = {}
+        # stream index of each gyro's last GLT isolation (-inf: never)
+        self._last_isolated = np.full(len(self.gyro_ids), -np.inf)
+        self._readmit_samples = max(1, round(READMIT_S * array.rate_hz))
         self._samples_seen = 0
 
     def _body_accel(self, block: ImuBlock) -> np.ndarray:
@@ -425,27 +494,58 @@ class CnnMapDetector:
         if self._glt is None:
             return gyro @ self._estimator.T  # type: ignore[no-any-return]
         isolated = self._glt.process(ImuBlock(t_ns=block.t_ns, gyro=block.gyro))["gyro"].isolated
+        # A gyro is left out of the reference while the GLT isolates it and for READMIT_S
+        # after its last isolation; then it is re-admitted (a GLT false alarm must not
+        # remove a healthy gyro for good). Exclusions and re-admissions are logged.
+        n_gyros = len(self.gyro_ids)
+        stamp = np.full((n_samples, n_gyros), -np.inf)
+        hits = np.flatnonzero(isolated >= 0)
+        stamp[hits, isolated[hits]] = self._samples_seen + hits
+        last = np.maximum.accumulate(np.vstack([self._last_isolated[None], stamp]), axis=0)[1:]
+        position = self._samples_seen + np.arange(n_samples)
+        excluded = (position[:, None] - last) < self._readmit_samples  # (N, n_g)
+        if n_samples:
+            self._last_isolated = last[-1].copy()
+        previous = np.zeros(n_gyros, dtype=bool)
+        previous[self.excluded_gyros] = True
+        stacked = np.vstack([previous[None], excluded])
+        changes = np.flatnonzero(np.any(stacked[1:] != stacked[:-1], axis=1))
         rate = np.empty((n_samples, 3))
-        start = 0
-        # New exclusions: the first sample at which GLT reports each not-yet-excluded gyro.
-        fresh = (isolated >= 0) & ~np.isin(isolated, self.excluded_gyros)
-        for index in np.flatnonzero(fresh):
-            sensor = int(isolated[index])
-            if sensor in self.excluded_gyros:
+        bounds = [0, *changes.tolist(), n_samples]
+        state = previous
+        for start, stop in pairwise(bounds):
+            if stop <= start:
                 continue
-            rate[start:index] = gyro[start:index] @ self._estimator.T
-            start = int(index)
-            self.excluded_gyros.append(sensor)
-            self.gyro_events.append(
-                {"sample": self._samples_seen + start, "excluded": self.gyro_ids[sensor]}
-            )
-            active = np.setdiff1d(np.arange(len(self.gyro_ids)), self.excluded_gyros)
-            estimator = np.zeros((3, len(self.gyro_ids)))
-            if np.linalg.matrix_rank(self.gyro_H[active]) == 3:
-                estimator[:, active] = least_squares_matrix(self.gyro_H[active])
-                self._estimator = estimator
-        rate[start:] = gyro[start:] @ self._estimator.T
+            now = excluded[start]
+            for sensor in np.flatnonzero(now & ~state):
+                self.gyro_events.append(
+                    {"sample": int(position[start]), "excluded": self.gyro_ids[sensor]}
+                )
+            for sensor in np.flatnonzero(state & ~now):
+                self.gyro_events.append(
+                    {"sample": int(position[start]), "readmitted": self.gyro_ids[sensor]}
+                )
+            state = now
+            rate[start:stop] = gyro[start:stop] @ self._estimator_without(now).T
+        self.excluded_gyros = np.flatnonzero(state).tolist()
         return rate
+
+    def _estimator_without(self, excluded: np.ndarray) -> np.ndarray:
+        """Least-squares rate estimator (3, n_g) of the gyros not ``excluded`` (cached); the
+        full one if the rest do not span 3 axes."""
+        key = frozenset(np.flatnonzero(excluded).tolist())
+        if not key:
+            return self._full_estimator
+        if key not in self._estimators:
+            active = np.flatnonzero(~excluded)
+            estimator = self._full_estimator
+            if active.size >= 3 and np.linalg.matrix_rank(self.gyro_H[active]) == 3:
+                estimator = np.zeros((3, len(self.gyro_ids)))
+                estimator[:, active] = least_squares_matrix(self.gyro_H[active])
+            if len(self._estimators) > 1024:
+                self._estimators.clear()
+            self._estimators[key] = estimator
+        return self._estimators[key]
 
     # --- training ------------------------------------------------------------------------
 
@@ -474,6 +574,7 @@ class CnnMapDetector:
         gyro = array.select(calibration.gyro, "gyro")
         reference = gyro @ self._estimator.T  # fault-free window: every gyro
         body = self._body_accel(calibration)
+        self.calibration_motion = check_motion(reference, body)
 
         if self.model_path is not None:
             mapping = self._load(self.model_path)
@@ -897,6 +998,9 @@ class CnnMapDetector:
                 "calibration_alarm_rate": self.calibration_alarm_rate,
                 "gyro_screening": "glt" if self._glt is not None else "none (< 4 gyros)",
                 "excluded_gyros": list(self.gyro_events),
+                "excluded_now": [self.gyro_ids[i] for i in self.excluded_gyros],
+                "readmit_s": READMIT_S,
+                "calibration_motion_ratio": self.calibration_motion,
                 "statistic": (
                     "max_k R_k, R_k = E_k / mean_(j!=k) E_j, E_k = windowed mean of"
                     " (z_kc - mu_kc)^2 / v_c, z = AR-whitened mapping residual"

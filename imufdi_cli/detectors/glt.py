@@ -6,7 +6,10 @@ and per-sensor bias b (from a fault-free calibration window):
 
 - whitened measurements ``m_w = (m - b) / sigma``, ``H_w = H / sigma`` (so the noise is white
   with unit variance), Potter's parity matrix ``V`` of ``H_w`` (:mod:`.parity`), ``p = V m_w``;
-- detection (eq. 5): ``D_FD = p^T (V V^T)^-1 p`` against ``T_D = chi2_{1-alpha}(n - 3)``;
+- detection (eq. 5): ``D_FD = p^T (V V^T)^-1 p`` against ``T_D = chi2_{1-alpha}(n - 3)``
+  when sigma and bias are known; estimated from N calibration samples, sigma and bias
+  make D_FD heavier-tailed (1.3-1.4 alpha at N = 200 on 48 gyros), so T_D is the
+  two-moment ``g chi2_{1-alpha}(h)`` of :func:`.parity.estimated_sigma_threshold`;
 - isolation (eq. 6): ``D_FI,i = (p^T (V V^T)^-1 v_i)^2 / (v_i^T (V V^T)^-1 v_i)``, isolated
   sensor ``argmax_i D_FI,i``;
 - amplitude (eq. 7): ``f_i = p^T (V V^T)^-1 v_i / (v_i^T (V V^T)^-1 v_i)``, times sigma_i (SI).
@@ -44,6 +47,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 from scipy.stats import chi2
+from scipy.stats import f as f_distribution
 
 from imufdi_cli.array import SENSOR_TYPES, ArrayConfig
 from imufdi_cli.detectors.base import (
@@ -54,10 +58,12 @@ from imufdi_cli.detectors.base import (
     Param,
 )
 from imufdi_cli.detectors.parity import (
+    estimated_sigma_threshold,
     isolable_sensors,
     parity_matrix,
     residual_sigma,
     residuals,
+    sigma_estimate_variance,
     whiten,
 )
 from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
@@ -117,12 +123,18 @@ class _Configuration:
     h_excluded_t: np.ndarray  # (3, n_x) H_wx^T
     inverse_energy: np.ndarray  # (n_a,) 1 / (v_i^T v_i) = 1 / P_ii
     isolable: np.ndarray  # (n_a,) bool
-    threshold: float  # chi2_{1-alpha}(n_a - 3)
+    threshold: float  # g chi2_{1-alpha}(h): chi2_{1-alpha}(n_a - 3) corrected for estimation
     excluded_scale: np.ndarray  # (n_x,) 1/sqrt(1 + h (H^T H)^-1 h^T)
 
     @classmethod
     def build(
-        cls, h_white: np.ndarray, active: np.ndarray, excluded: np.ndarray, alpha: float
+        cls,
+        h_white: np.ndarray,
+        active: np.ndarray,
+        excluded: np.ndarray,
+        alpha: float,
+        scale_variance: np.ndarray | None = None,
+        mean_samples: float = float("inf"),
     ) -> _Configuration:
         h_active = h_white[active]
         V = parity_matrix(h_active)  # Potter's V, (n_a - 3, n_a)
@@ -139,7 +151,12 @@ class _Configuration:
             h_excluded_t=h_excluded.T.copy(),
             inverse_energy=1.0 / energy,
             isolable=isolable_sensors(V),
-            threshold=float(chi2.ppf(1.0 - alpha, active.size - 3)),
+            threshold=estimated_sigma_threshold(
+                h_active,
+                alpha,
+                None if scale_variance is None else scale_variance[active],
+                mean_samples,
+            )[0],
             excluded_scale=1.0 / np.sqrt(variance),
         )
 
@@ -158,6 +175,8 @@ class _TypeState:
     h_white: np.ndarray  # (n, 3)
     inverse_sigma: np.ndarray  # (n,) 1 / sigma
     bias_white: np.ndarray  # (n,) bias / sigma
+    scale_variance: np.ndarray | None  # (n,) Var(sigma_hat^2)/sigma^4; None: sigma known
+    mean_samples: float  # samples of the bias estimate (inf: no bias removed)
     full_triads: bool  # sensors are imu0.x, imu0.y, imu0.z, imu1.x, ... (all axes, in order)
     config: _Configuration
     history: np.ndarray  # (<= w-1, n) last whitened samples, for the moving average
@@ -314,7 +333,28 @@ class GltDetector:
         # parity vectors, since V H = 0 for every subset of sensors).
         bias = residuals(H, values.mean(axis=0)[None, :])[0] if self.remove_bias else np.zeros(n)
         h_white = whiten(H, sigma)
-        config = _Configuration.build(h_white, np.arange(n), np.zeros(0, dtype=np.intp), self.alpha)
+        scale_variance = (
+            sigma_estimate_variance(H, sigma, values.shape[0])
+            if self.sigma_source == "calibration"
+            else None
+        )
+        mean_samples = float(values.shape[0]) if self.remove_bias else float("inf")
+        config = _Configuration.build(
+            h_white,
+            np.arange(n),
+            np.zeros(0, dtype=np.intp),
+            self.alpha,
+            scale_variance,
+            mean_samples,
+        )
+        # Excluded sensors: z^2 with the sensor's own estimated variance, F(1, nu) with
+        # nu = 2 / Var(delta), and the bias error (1 + 1/N).
+        if scale_variance is not None:
+            nu = 2.0 / float(np.mean(scale_variance))
+            excluded = float(f_distribution.ppf(1.0 - self.alpha, 1, nu))
+        else:
+            excluded = float(chi2.ppf(1.0 - self.alpha, 1))
+        self.threshold_excluded = excluded * (1.0 + 1.0 / mean_samples)
         return _TypeState(
             sensor_type=sensor_type,
             sensor_ids=array.sensor_ids(sensor_type),
@@ -326,6 +366,8 @@ class GltDetector:
             h_white=h_white,
             inverse_sigma=1.0 / sigma,
             bias_white=bias / sigma,
+            scale_variance=scale_variance,
+            mean_samples=mean_samples,
             full_triads=bool(np.array_equal(imu_index * 3 + axis_index, np.arange(n))),
             config=config,
             history=np.zeros((0, n)),
@@ -406,7 +448,14 @@ class GltDetector:
                 sensor = int(segment.isolated[segment.event])
                 active = config.active[config.active != sensor]
                 excluded = np.append(config.excluded, sensor).astype(np.intp)
-                state.config = _Configuration.build(state.h_white, active, excluded, self.alpha)
+                state.config = _Configuration.build(
+                    state.h_white,
+                    active,
+                    excluded,
+                    self.alpha,
+                    state.scale_variance,
+                    state.mean_samples,
+                )
                 state.candidate = NO_ISOLATION
                 state.candidate_run = 0
                 state.events.append(

@@ -21,33 +21,49 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
    residual e = (I - P) m it is ``e_j / (1 - P_jj)`` (the PRESS identity; Allen,
    Technometrics 16(1), 1974), so all n leave-one-out fits cost one (N, n) x (n, n) product.
    Sensors with ``P_jj ~ 1`` are not redundant and are not tested.
-3. Calibration: per-sensor residual mean b_j (bias) and variance sigma0_j^2 over the N
-   calibration samples.
-4. Windowed variance over the last w samples: ``s_j^2 = mean((r_j - b_j)^2)``; its ratio
-   ``u_j = s_j^2 / sigma0_j^2``.
-5. GLR for N(0, sigma0^2) against N(0, sigma1^2) with sigma1 unknown (maximum likelihood
-   sigma1^2 = s^2)::
+3. Differencing. The test works on ``d_t = r_t - r_{t-1}``: any constant or slowly
+   varying mean of the residual (a bias step, a bias wander, a calibration-mean error)
+   drops out, while a noise-variance growth doubles into Var(d) = 2 sigma^2 just as the
+   noise does. A bias step becomes one large difference. Under white residual noise the
+   standardized differences z_t are N(0, 1) with lag-1 correlation rho = -1/2 and none
+   beyond.
+4. Robust squares. ``q_t = min(z_t^2, c^2)`` (``clip`` = c): one outlier or one step moves
+   a window sum by at most 2 c^2, so the isolated outliers of paper-table4 and bias steps
+   do not look like noise growth. The null moments of q are closed form for one term
+   (mu = E q, v = Var q, from the truncated normal moments) and one 1-D integral for
+   the lag-1 covariance c1 of (q_t, q_{t+1}) (``clipped_square_moments``). The scale
+   tau = Var(d) is calibrated with the same function (Huber's "proposal 2": tau solves
+   ``mean(min(d^2/tau, c^2)) = mu``) on the N calibration samples.
+5. Windowed ratio over the last k <= w differences: ``u = sum(q)/(k mu)`` (1 in
+   expectation). Its null law is approximated by matching two moments (Satterthwaite):
+   ``u ~ chi2(nu_k)/nu_k`` with ``nu_k = 2 (k mu)^2 / (k v + 2 (k - 1) c1)``. The scale
+   tau is itself estimated; to first order its error multiplies u by a factor whose
+   variance is that of a calibration-window mean of q, i.e. ``2/nu_{N-1}``, so
+   ``u ~ F(nu_k, nu_{N-1})`` (-> chi2(nu_k)/nu_k for long calibration windows).
+   GLR for a variance growth on nu_k equivalent degrees of freedom::
 
-       ln L(sigma1 = s) - ln L(sigma0) = -w/2 ln s^2 - w/2 + w/2 ln sigma0^2 + w s^2/(2 sigma0^2)
-                                       = w/2 (u - 1 - ln u)
+       g = nu_k/2 (u - 1 - ln u) for u > 1, else 0
 
-   one-sided (noise growth): g = 0 for u <= 1. g is increasing in u for u > 1, so the test
-   ``g > h`` is the test ``u > u_c``. Under no fault ``w s^2 / sigma0^2 ~ chi2(w)``; since
-   sigma0^2 is itself estimated from N - 1 degrees of freedom the exact law of u is
-   ``F(w, N - 1)`` (-> chi2(w)/w as N grows), so ``u_c = F^{-1}(1 - a; w, N - 1)`` and
-   ``h = w/2 (u_c - 1 - ln u_c)``. With n tested sensors the per-sensor level is the Šidák
-   ``a = 1 - (1 - alpha)^(1/n)`` so that the array-level false-alarm rate is alpha.
-   Until the window has filled at the start of the log, w is the number of samples seen.
+   g is increasing in u for u > 1, so ``g > h`` is ``u > u_c`` with
+   ``u_c = F^{-1}(1 - a; nu_k, nu_{N-1})`` and ``h = nu_k/2 (u_c - 1 - ln u_c)``. With n
+   tested sensors the per-sensor level is the Šidák ``a = 1 - (1 - alpha)^(1/n)`` so that
+   the array-level false-alarm rate is alpha. Without clipping (c -> inf) mu = 1, v = 2,
+   c1 = 1/2 and nu_k = 2k^2/(3k - 1) ~ 2k/3: differencing costs about a third of the
+   degrees of freedom, the price of being blind to the mean.
+   Until the window has filled at the start of the log, k is the number of differences
+   seen; the first sample of the log has no difference and enters the window with its
+   null mean.
    End of fault: after the noise returns to nominal, the window still holds faulty samples
    and g stays high for up to w samples. The window is split into its most recent w_r
    samples (``release_window``) and the older w - w_r; with both parts of the same
-   variance, the ratio of their mean squared residuals is ``F(w_r, w - w_r)``. When it is
-   below ``F^{-1}(release; w_r, w - w_r)`` (a one-sided test for a variance decrease) the
-   sensor's g is set to 0. During a fault this drops at most a fraction ``release`` of the
-   faulty samples; after it, the alarm ends about w_r samples later instead of w.
+   variance, the ratio of their mean q is approximately ``F(nu_{w_r}, nu_{w - w_r})``.
+   When it is below ``F^{-1}(release; ...)`` (a one-sided test for a variance decrease)
+   the sensor's g is set to 0. During a fault this drops at most a fraction ``release``
+   of the faulty samples; after it, the alarm ends about w_r samples later instead of w.
 6. Output: statistic = max_j g_j (threshold h), scores = g_j, isolated sensor = argmax_j g_j,
-   ``amplitude = sqrt(u_j)`` of the isolated sensor: the estimated noise-standard-deviation
-   ratio sigma1/sigma0 (dimensionless, the one exception to SI amplitudes).
+   ``amplitude = sqrt(mean(d^2)/tau)`` of the isolated sensor over the window (unclipped):
+   the estimated noise-standard-deviation ratio sigma1/sigma0 (dimensionless, the one
+   exception to SI amplitudes).
 """
 
 from __future__ import annotations
@@ -57,6 +73,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 from scipy.stats import f as f_distribution
+from scipy.stats import norm
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
@@ -129,6 +146,96 @@ def leave_one_out_operator(model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (np.eye(n) - hat) * scale[:, None], testable
 
 
+#: Lag-1 correlation of the differences of a white sequence.
+DIFFERENCE_CORRELATION = -0.5
+
+
+def _truncated_square_mean(mean: np.ndarray, std: float, clip: float) -> np.ndarray:
+    """``E[min(Y^2, c^2)]`` for Y ~ N(mean, std^2) (elementwise in ``mean``)."""
+    lo, hi = (-clip - mean) / std, (clip - mean) / std
+    inside = norm.cdf(hi) - norm.cdf(lo)
+    pdf_lo, pdf_hi = norm.pdf(lo), norm.pdf(hi)
+    # E[(m + s Z)^2 ; lo < Z < hi]
+    square = (
+        mean**2 * inside
+        + 2.0 * mean * std * (pdf_lo - pdf_hi)
+        + std**2 * (inside + lo * pdf_lo - hi * pdf_hi)
+    )
+    return square + clip**2 * (1.0 - inside)
+
+
+def clipped_square_moments(clip: float, rho: float = DIFFERENCE_CORRELATION) -> tuple[float, ...]:
+    """Null moments of ``q = min(z^2, c^2)`` for standard normal z.
+
+    Parameters
+    ----------
+    clip : float
+        c, in standard deviations; ``inf`` for plain squares.
+    rho : float
+        Correlation of consecutive z (differences of white noise: -1/2).
+
+    Returns
+    -------
+    mean, variance, lag1_covariance : float
+        ``E q``, ``Var q`` (truncated normal moments, closed form) and
+        ``Cov(q_t, q_{t+1})`` (one integral over z_t of ``E[q_{t+1} | z_t]``, with
+        ``z_{t+1} | z_t ~ N(rho z_t, 1 - rho^2)``; for c = inf it is ``2 rho^2``).
+    """
+    if not np.isfinite(clip):
+        return 1.0, 2.0, 2.0 * rho**2
+    tail = 2.0 * norm.sf(clip)
+    inside = 1.0 - tail
+    pdf = norm.pdf(clip)
+    second = inside - 2.0 * clip * pdf  # E[z^2 ; |z| < c]
+    fourth = 3.0 * inside - 2.0 * pdf * (clip**3 + 3.0 * clip)  # E[z^4 ; |z| < c]
+    mean = second + clip**2 * tail
+    variance = fourth + clip**4 * tail - mean**2
+    grid = np.linspace(-12.0, 12.0, 24001)
+    weight = norm.pdf(grid) * np.minimum(grid**2, clip**2)
+    conditional = _truncated_square_mean(rho * grid, float(np.sqrt(1.0 - rho**2)), clip)
+    joint = float(np.sum(weight * conditional) * (grid[1] - grid[0]))
+    return float(mean), float(variance), joint - float(mean) ** 2
+
+
+def equivalent_dof(counts: np.ndarray, moments: tuple[float, ...]) -> np.ndarray:
+    """Satterthwaite degrees of freedom of a sum of k consecutive q (lag-1 dependent).
+
+    ``nu_k = 2 (k mu)^2 / (k v + 2 (k - 1) c1)``, so that ``sum(q)/(k mu)`` has the mean and
+    variance of ``chi2(nu_k)/nu_k``.
+    """
+    mean, variance, lag1 = moments
+    k = np.asarray(counts, dtype=np.float64)
+    return 2.0 * (k * mean) ** 2 / (k * variance + 2.0 * np.maximum(k - 1.0, 0.0) * lag1)
+
+
+def robust_scale(differences: np.ndarray, clip: float, mean: float) -> np.ndarray:
+    """Per-column tau with ``mean(min(d^2/tau, c^2)) = E q`` (Huber's proposal 2).
+
+    Parameters
+    ----------
+    differences : ndarray, shape (N, n)
+    clip, mean : float
+        c and the null mean of q for that c.
+
+    Returns
+    -------
+    tau : ndarray, shape (n,)
+        Variance of d (for Gaussian d, an estimate of Var d).
+    """
+    squares = differences**2
+    tau = np.mean(squares, axis=0)
+    if not np.isfinite(clip):
+        return tau
+    tau = np.maximum(np.median(squares, axis=0) / 0.4549364231195724, 1e-300)
+    for _ in range(200):  # fixed point, monotone convergence
+        updated = tau * np.mean(np.minimum(squares / tau, clip**2), axis=0) / mean
+        done = np.all(np.abs(updated - tau) <= 1e-12 * np.abs(tau))
+        tau = np.maximum(updated, 1e-300)
+        if done:
+            break
+    return tau
+
+
 class _TypeModel:
     def __init__(
         self,
@@ -136,10 +243,11 @@ class _TypeModel:
         testable: np.ndarray,
         lever_arm: bool,
         bias: np.ndarray,
-        variance: np.ndarray,
+        scale: np.ndarray,
         n_train: int,
         window: int,
         alpha: float,
+        clip: float = np.inf,
         release_window: int = 1,
         release_level: float = 0.0,
     ) -> None:
@@ -147,23 +255,41 @@ class _TypeModel:
         self.testable = testable
         self.lever_arm = lever_arm
         self.bias = bias
-        self.variance = variance
+        self.scale = scale  # tau_j = Var(d_j), (n,)
         self.n_train = n_train
+        self.clip = clip
+        self.moments = clipped_square_moments(clip)
         n_tested = max(int(testable.sum()), 1)
         self.sensor_level = -np.expm1(np.log1p(-alpha) / n_tested)  # Šidák
         counts = np.arange(1, window + 1, dtype=np.float64)
-        critical_ratio = f_distribution.ppf(1.0 - self.sensor_level, counts, n_train - 1)
+        self.dof = equivalent_dof(counts, self.moments)  # nu_k, (w,)
+        self.calibration_dof = float(
+            equivalent_dof(np.array([max(n_train - 1, 1)]), self.moments)[0]
+        )
+        critical_ratio = f_distribution.ppf(1.0 - self.sensor_level, self.dof, self.calibration_dof)
         self.critical_ratio = critical_ratio  # u_c per window fill, (w,)
-        self.threshold = 0.5 * counts * (critical_ratio - 1.0 - np.log(critical_ratio))
-        self.window = MovingWindow(window, operator.shape[0])
-        self.release_window = MovingWindow(release_window, operator.shape[0])
+        self.threshold = 0.5 * self.dof * (critical_ratio - 1.0 - np.log(critical_ratio))
+        n = operator.shape[0]
+        self.window = MovingWindow(window, n)
+        self.raw_window = MovingWindow(window, n)
+        self.release_window = MovingWindow(release_window, n)
         self.release_level = release_level
-        # lower critical ratio of F(recent, older) per (recent count, older count)
-        recent = np.arange(1, release_window + 1, dtype=np.float64)[:, None]
-        older = np.arange(0, window, dtype=np.float64)[None, :]
+        self.previous: np.ndarray | None = None  # last residual of the previous block
+        # lower critical ratio of F(nu recent, nu older) per (recent count, older count)
+        recent = equivalent_dof(np.arange(1, release_window + 1), self.moments)[:, None]
+        older = equivalent_dof(np.maximum(np.arange(0, window), 1), self.moments)[None, :]
         with np.errstate(invalid="ignore"):
-            release_ratio = f_distribution.ppf(release_level, recent, np.maximum(older, 1.0))
-        self.release_ratio = np.where(older >= 1.0, release_ratio, 0.0)  # (w_r, w)
+            release_ratio = f_distribution.ppf(release_level, recent, older)
+        older_count = np.arange(0, window)[None, :]
+        self.release_ratio = np.where(older_count >= 1, release_ratio, 0.0)  # (w_r, w)
+
+    def differences(self, residuals: np.ndarray) -> np.ndarray:
+        """Standardized differences z (N, n), streaming; the log's first row is NaN."""
+        first = self.previous if self.previous is not None else np.full(residuals.shape[1], np.nan)
+        joined = np.vstack([first[None, :], residuals])
+        if residuals.shape[0]:
+            self.previous = residuals[-1].copy()
+        return np.diff(joined, axis=0) / np.sqrt(self.scale)
 
 
 class NoiseGlrDetector:
@@ -179,6 +305,9 @@ class NoiseGlrDetector:
         Level of the end-of-fault variance-decrease F test (0 disables it).
     release_window : float
         Recent part of the window compared against the older part, seconds.
+    clip : float
+        Standardized differences are clipped at this many standard deviations (robustness
+        to isolated outliers and bias steps; 1000 in effect turns clipping off).
     lever_arm : bool
         Model lever arms of accelerometers (needs positions and gyros).
     sensors : str
@@ -193,7 +322,7 @@ class NoiseGlrDetector:
             ALPHA, default=0.001, help="array-level false-alarm level per sample and sensor type"
         ),
         "window": Param(
-            "time", 0.3, "variance window (e.g. 0.3s)", low=0.0, high=60.0, low_open=True
+            "time", 0.4, "variance window (e.g. 0.4s)", low=0.0, high=60.0, low_open=True
         ),
         "release": Param(
             "float",
@@ -210,6 +339,14 @@ class NoiseGlrDetector:
             high=60.0,
             low_open=True,
         ),
+        "clip": Param(
+            "float",
+            3.0,
+            "clip standardized residual differences at this many sigma (outliers, steps;"
+            " 1000: off)",
+            low=1.0,
+            high=1000.0,
+        ),
         "lever_arm": Param("bool", True, "model accelerometer lever arms (w x (w x r), dw/dt x r)"),
         "sensors": Param("str", "gyro,accel", "sensor types to test, comma-separated"),
     }
@@ -217,9 +354,10 @@ class NoiseGlrDetector:
     def __init__(
         self,
         alpha: float = 0.001,
-        window: float = 0.3,
+        window: float = 0.4,
         release: float = 0.01,
         release_window: float = 0.1,
+        clip: float = 3.0,
         lever_arm: bool = True,
         sensors: str = "gyro,accel",
     ) -> None:
@@ -227,6 +365,7 @@ class NoiseGlrDetector:
         self.window_s = float(window)
         self.release_level = float(release)
         self.release_window_s = float(release_window)
+        self.clip = float(clip)
         self.lever_arm = bool(lever_arm)
         self.sensor_types = parse_sensor_types(sensors, self.name)
         self.array: ArrayConfig | None = None
@@ -301,13 +440,14 @@ class NoiseGlrDetector:
                 n_train=2, window=1, alpha=self.alpha,
             )  # fmt: skip
             residuals = self._residuals(sensor_type, probe, calibration)
-            bias, std = calibration_stats(residuals, min_samples=max(20, 2 * self.window_samples))
-            variance = std**2
+            bias, _ = calibration_stats(residuals, min_samples=max(20, 2 * self.window_samples))
+            moments = clipped_square_moments(self.clip)
+            scale = robust_scale(np.diff(residuals, axis=0), self.clip, moments[0])
             triads = calibration.get(sensor_type)
             assert triads is not None
             signal = array.select(triads, sensor_type)
             floor = (1e-9 * float(np.sqrt(np.mean(signal**2)))) ** 2  # rounding level
-            if np.any(variance[testable] <= floor) or not np.all(np.isfinite(variance)):
+            if np.any(scale[testable] <= floor) or not np.all(np.isfinite(scale)):
                 raise CalibrationError(
                     f"{self.name}: {sensor_type} residual variance is zero or not finite for"
                     " some sensor; check the calibration window"
@@ -317,10 +457,11 @@ class NoiseGlrDetector:
                 testable,
                 lever_arm,
                 bias,
-                np.where(testable, variance, 1.0),
+                np.where(testable, scale, 1.0),
                 n_train=residuals.shape[0],
                 window=self.window_samples,
                 alpha=self.alpha,
+                clip=self.clip,
                 release_window=self.release_window_samples,
                 release_level=self.release_level,
             )
@@ -348,13 +489,18 @@ class NoiseGlrDetector:
     @staticmethod
     def _process_type(model: _TypeModel, residuals: np.ndarray) -> DetectionBlock:
         n_samples = residuals.shape[0]
-        squared = (residuals - model.bias) ** 2 / model.variance  # (N, n)
+        z = model.differences(residuals)  # (N, n)
+        mean_q = model.moments[0]
+        start = np.isnan(z)  # the log's first sample: enters with the null mean
+        squared = np.where(start, mean_q, np.minimum(z**2, model.clip**2))
         sums, counts = model.window.push(squared)
-        ratio = sums / counts[:, None]  # u_j = s_j^2 / sigma0_j^2
+        raw_sums, _ = model.raw_window.push(np.where(start, 1.0, z**2))
+        ratio = sums / (counts[:, None] * mean_q)  # u_j, 1 in expectation
+        dof = model.dof[counts - 1][:, None]
         with np.errstate(divide="ignore"):
             glr = np.where(
                 ratio > 1.0,
-                0.5 * counts[:, None] * (ratio - 1.0 - np.log(np.maximum(ratio, 1e-300))),
+                0.5 * dof * (ratio - 1.0 - np.log(np.maximum(ratio, 1e-300))),
                 0.0,
             )
         recent_sums, recent_counts = model.release_window.push(squared)
@@ -369,11 +515,12 @@ class NoiseGlrDetector:
         scores = glr
         filled = np.where(model.testable, glr, -np.inf)
         best = np.argmax(filled, axis=1)
-        statistic = filled[np.arange(n_samples), best]
+        rows = np.arange(n_samples)
+        statistic = filled[rows, best]
         threshold = model.threshold[counts - 1]
         alarm = statistic > threshold
         isolated = np.where(alarm, best, NO_ISOLATION).astype(np.int32)
-        amplitude = np.where(alarm, np.sqrt(ratio[np.arange(n_samples), best]), np.nan)
+        amplitude = np.where(alarm, np.sqrt(raw_sums[rows, best] / counts), np.nan)
         return DetectionBlock(
             statistic=statistic,
             threshold=threshold,
@@ -397,7 +544,10 @@ class NoiseGlrDetector:
                 "lever_arm": bool(model.lever_arm),
                 "testable": model.testable.tolist(),
                 "residual_bias": model.bias.tolist(),
-                "residual_sigma": np.sqrt(model.variance).tolist(),
+                "residual_sigma": np.sqrt(model.scale / 2.0).tolist(),
+                "clip": float(model.clip),
+                "equivalent_dof": float(model.dof[-1]),
+                "calibration_dof": float(model.calibration_dof),
                 "calibration_samples": int(model.n_train),
                 "sensor_level": float(model.sensor_level),
                 "critical_variance_ratio": float(model.critical_ratio[-1]),
@@ -411,10 +561,14 @@ class NoiseGlrDetector:
                 "window_samples": self.window_samples,
                 "release": self.release_level,
                 "release_window_samples": self.release_window_samples,
+                "clip": self.clip,
                 "lever_arm": self.lever_arm,
                 "sensors": ",".join(self.sensor_types),
             },
-            "statistic": "max_j w/2 (u_j - 1 - ln u_j), u_j = s_j^2/sigma0_j^2 > 1",
+            "statistic": (
+                "max_j nu/2 (u_j - 1 - ln u_j), u_j = mean(min(z^2, c^2))/E0, z = standardized"
+                " residual differences"
+            ),
             "amplitude": "noise standard-deviation ratio sqrt(u) of the isolated sensor",
             "types": types,
         }

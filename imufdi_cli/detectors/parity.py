@@ -362,6 +362,7 @@ def residual_sigma(
 __all__ = [
     "check_measurement_matrix",
     "detection_statistic",
+    "estimated_sigma_threshold",
     "fault_directions",
     "gram_inverse",
     "isolable_sensors",
@@ -372,5 +373,98 @@ __all__ = [
     "parity_vectors",
     "residual_sigma",
     "residuals",
+    "sigma_estimate_variance",
     "whiten",
 ]
+
+
+def _weighted_traces(h_white: np.ndarray, scale_error: np.ndarray) -> np.ndarray:
+    """``(tr A, tr A^2)`` of ``A = D P_D D``, ``D = diag((1 + delta)^-1/2)``.
+
+    A is the quadratic form of the parity statistic in the true-whitened noise when each
+    sensor's variance was estimated as ``sigma^2 (1 + delta)``; P_D projects out the
+    columns of ``D H_w`` (the parity projector in the estimated metric).
+    """
+    weights = 1.0 / np.sqrt(1.0 + scale_error)
+    h_est = weights[:, None] * h_white
+    projector = np.eye(h_white.shape[0]) - h_est @ np.linalg.pinv(h_est)
+    form = weights[:, None] * projector * weights[None, :]
+    return np.array([np.trace(form), np.sum(form * form.T)])
+
+
+def sigma_estimate_variance(H: np.ndarray, sigma: np.ndarray, n_samples: int) -> np.ndarray:
+    """Relative variance ``Var(sigma_hat_j^2) / sigma_j^4`` of ``residual_sigma``'s estimate.
+
+    The estimate solves ``M sigma^2 = s`` with ``M = (I - S)∘(I - S)`` and s the residual
+    sample variances; for Gaussian noise ``Cov(s) = 2/(N - 1) (C∘C)``, ``C = (I - S)
+    diag(sigma^2) (I - S)^T``, so ``Cov(sigma_hat^2) = M^+ Cov(s) M^+T`` (the
+    non-negativity constraints inactive). For 16 co-aligned IMUs this is 1.14 x the
+    ``2/(N - 1)`` of a directly observed variance.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    n = H.shape[0]
+    mixing = np.eye(n) - H @ np.linalg.pinv(H)
+    covariance = mixing @ np.diag(sigma**2) @ mixing.T
+    inverse = np.linalg.pinv(mixing**2)
+    spread = inverse @ (2.0 / max(n_samples - 1, 1) * covariance**2) @ inverse.T
+    return np.diag(spread) / sigma**4
+
+
+def estimated_sigma_threshold(
+    h_white: np.ndarray, alpha: float, scale_variance: np.ndarray | None, mean_samples: float
+) -> tuple[float, float, float]:
+    """Threshold of ``D = |P m_w|^2`` when sigma and bias come from a calibration window.
+
+    With known sigma and bias, ``D ~ chi2(n - 3)``. With per-sensor variances estimated,
+    ``sigma_hat_j^2 = sigma_j^2 (1 + delta_j)`` with ``Var delta_j`` from
+    ``sigma_estimate_variance``, the statistic is ``z^T A(delta) z`` with z the truly
+    whitened noise (``_weighted_traces``): its mean ``E tr A`` and variance
+    ``2 E tr A^2 + Var tr A`` over the calibration draw follow from the second-order delta
+    method (diagonal Hessian and gradient of the traces by central differences; the
+    ``delta_j`` are independent). The bias (calibration mean of N samples) adds its own
+    error: every residual variance is multiplied by ``1 + 1/N``. The null law is then
+    approximated by matching two moments, ``D ~ g chi2(h)`` (Satterthwaite), the
+    estimation-uncertainty analogue of Hotelling's F for one common variance.
+
+    Parameters
+    ----------
+    h_white : ndarray, shape (n, 3)
+        Whitened measurement matrix of the active sensors.
+    alpha : float
+        Level per sample.
+    scale_variance : ndarray, shape (n,), or None
+        ``Var delta_j`` of each variance estimate (None: sigma known).
+    mean_samples : float
+        Samples of the bias estimate (``inf``: no bias removed).
+
+    Returns
+    -------
+    threshold, scale, dof : float
+        ``g chi2_{1-alpha}(h)``, g and h.
+    """
+    from scipy.stats import chi2
+
+    n = h_white.shape[0]
+    base = _weighted_traces(h_white, np.zeros(n))
+    mean, square, spread = base[0], base[1], 0.0
+    if scale_variance is not None:
+        step = 1e-3
+        for j in range(n):
+            delta = np.zeros(n)
+            delta[j] = step
+            up = _weighted_traces(h_white, delta)
+            down = _weighted_traces(h_white, -delta)
+            second = (up + down - 2.0 * base) / step**2
+            first = (up[0] - down[0]) / (2.0 * step)
+            mean += 0.5 * second[0] * scale_variance[j]
+            square += 0.5 * second[1] * scale_variance[j]
+            spread += first**2 * scale_variance[j]
+    inflation = 1.0 + (1.0 / mean_samples if np.isfinite(mean_samples) else 0.0)
+    total_mean = mean * inflation
+    total_variance = (2.0 * square + spread) * inflation**2
+    scale = total_variance / (2.0 * total_mean)
+    dof = 2.0 * total_mean**2 / total_variance
+    return float(scale * chi2.ppf(1.0 - alpha, dof)), float(scale), float(dof)

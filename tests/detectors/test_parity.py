@@ -10,6 +10,7 @@ from scipy.stats import ortho_group
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.parity import (
     detection_statistic,
+    estimated_sigma_threshold,
     fault_directions,
     isolable_sensors,
     isolation_statistics,
@@ -18,6 +19,7 @@ from imufdi_cli.detectors.parity import (
     parity_vectors,
     residual_sigma,
     residuals,
+    sigma_estimate_variance,
     whiten,
 )
 from imufdi_cli.errors import ArrayConfigError, CalibrationError
@@ -181,3 +183,56 @@ def test_residual_sigma_ignores_sparse_outliers() -> None:
     assert plain.mean() > 1.04 * clean.mean()  # spikes inflate the plain estimate
     with pytest.raises(CalibrationError):
         residual_sigma(H, m[:1])
+
+
+# --- issue 16: the level with sigma and bias estimated from a calibration window ---------
+
+
+def _levels_with_estimated_sigma(alpha: float, reps: int, seed: int) -> tuple[np.ndarray, float]:
+    """Per-calibration false-alarm rates of D = |P m_w|^2 at the corrected threshold."""
+    H = ArrayConfig.co_aligned(16, 100.0, sensors=("gyro",)).measurement_matrix("gyro")
+    n, sigma = H.shape[0], 0.0026
+    variance = sigma_estimate_variance(H, np.full(n, sigma), 200)
+    threshold = estimated_sigma_threshold(whiten(H, np.full(n, sigma)), alpha, variance, 200)[0]
+    rng = np.random.default_rng(seed)
+    levels = []
+    for _ in range(reps):
+        calibration = rng.standard_normal((200, n)) * sigma
+        test = rng.standard_normal((2000, n)) * sigma
+        estimate = residual_sigma(H, calibration)
+        bias = residuals(H, calibration.mean(axis=0)[None, :])[0]
+        V = parity_matrix(whiten(H, estimate))
+        statistic = ((((test - bias) / estimate) @ V.T) ** 2).sum(axis=1)
+        levels.append(np.mean(statistic > threshold))
+    return np.array(levels), threshold
+
+
+def test_sigma_estimate_variance_matches_the_direct_variance_for_co_aligned_imus():
+    H = ArrayConfig.co_aligned(16, 100.0, sensors=("gyro",)).measurement_matrix("gyro")
+    variance = sigma_estimate_variance(H, np.full(48, 0.01), 201)
+    # one residual per sensor, 15/16 of it its own noise: 1.14 x 2/(N - 1), all equal
+    assert_allclose(variance, variance[0])
+    assert 1.0 < variance[0] / (2 / 200) < 1.3
+
+
+def test_known_sigma_threshold_is_the_chi_square_quantile():
+    from scipy.stats import chi2
+
+    H = ArrayConfig.co_aligned(16, 100.0, sensors=("gyro",)).measurement_matrix("gyro")
+    threshold, scale, dof = estimated_sigma_threshold(H, 0.01, None, float("inf"))
+    assert_allclose((threshold, scale, dof), (chi2.ppf(0.99, 45), 1.0, 45.0), rtol=1e-9)
+
+
+@pytest.mark.slow
+def test_parity_test_holds_its_level_with_sigma_estimated_from_200_samples():
+    """16 IMUs, sigma per sensor and bias from 200 samples (paper-table4's 2 s window).
+
+    chi2(45) gives 1.41 alpha here. The corrected threshold is a second-order
+    approximation: allow 0.1 alpha for it, plus 4 standard errors of the mean level
+    over the calibrations (measured from the spread of the per-calibration levels).
+    """
+    alpha = 0.01
+    levels, _ = _levels_with_estimated_sigma(alpha, reps=150, seed=11)
+    standard_error = levels.std(ddof=1) / np.sqrt(levels.size)
+    assert abs(levels.mean() - alpha) <= 0.1 * alpha + 4 * standard_error
+    assert 4 * standard_error < 0.2 * alpha  # the check can tell 1.41 alpha from alpha

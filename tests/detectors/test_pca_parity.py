@@ -228,3 +228,89 @@ def test_metadata_is_json_ready():
     assert meta["types"]["gyro"]["dimension"] == 3
     assert meta["types"]["gyro"]["components"] == 2
     assert meta["params"]["window_samples"] == 20
+
+
+# --- issue 16: level out of sample, calibration coverage ------------------------------------
+
+
+def far_bound(n_samples: int, level: float, window: int, z: float = 3.1) -> float:
+    """Upper 99.9 % bound on the alarm count at per-sample rate ``level``.
+
+    A moving-mean test's alarms come in clumps no longer than the window, so the variance
+    of the count is at most ``window`` times the binomial one.
+    """
+    mean = n_samples * level
+    return mean + z * np.sqrt(window * mean * (1.0 - level))
+
+
+def test_prediction_leverage_is_the_regression_prediction_variance():
+    """h = [1, x]^T (Z^T Z)^-1 [1, x] for the design Z = [1, X] of the training motion."""
+    rng = np.random.default_rng(3)
+    n = 6
+    array, _ = conical6(seed=0, fault=False)
+    H = array.measurement_matrix("gyro")
+    rates = rng.standard_normal((400, 3)) * 0.3  # well excited in all three axes
+    noise = rng.standard_normal((400, n)) * 1e-3
+    detector = make({"window": "0.01s"})  # one-sample moving mean
+    detector.window_samples = 1
+    training = rates @ H.T + noise
+    detector.models = {"gyro": detector._fit_type(training, H, "gyro")}
+    model = detector.models["gyro"]
+    estimates = training @ np.linalg.pinv(H).T
+    design = np.hstack([np.ones((400, 1)), estimates])
+    new = rng.standard_normal((5, 3)) * 2.0
+    expected = np.einsum(
+        "ij,jk,ik->i",
+        np.hstack([np.ones((5, 1)), new]),
+        np.linalg.inv(design.T @ design),
+        np.hstack([np.ones((5, 1)), new]),
+    )
+    extra, _ = model.leverage(new)
+    assert_allclose(1.0 / 400 + extra, expected, rtol=1e-8)
+
+
+def test_conical6_level_holds_after_the_documented_calibration():
+    """Documented setup (alpha 0.001, 0-5 s): FAR after calibration was 8.6 alpha."""
+    alarms = total = 0
+    detector = make({"alpha": 0.001})
+    for seed in (3, 4):
+        array, block = conical6(seed, fault=False)
+        out = run(detector, array, block, calibrate=(0.0, 5.0))["gyro"]
+        after = block.t_s() >= 5.0
+        alarms += int(out.alarm[after].sum())
+        total += int(after.sum())
+        assert detector.calibration_warnings() == []
+    assert alarms <= far_bound(total, 1.5 * detector.alpha, detector.window_samples)
+
+
+def test_calibration_without_the_motion_is_reported_and_fatal_under_strict(tmp_path):
+    """Default 0-2 s window on conical6 (1 s of ramping motion): warned, exit 3 under --strict."""
+    detector = make()
+    array, block = conical6(seed=5, fault=False)
+    run(detector, array, block, calibrate=(0.0, 2.0))
+    (message,) = detector.calibration_warnings()
+    assert "lacks the motion" in message and "% of the samples" in message
+    assert detector.metadata()["types"]["gyro"]["samples_beyond_calibrated_motion"] > 0
+
+    from tests.cli.conftest import assert_one_line_error, invoke
+
+    log = tmp_path / "c6.mcap"
+    assert invoke(["simulate", "--preset", "conical6", "--seed", "5", "-o", log]).code == 0
+    ok = invoke(["detect", log, "-d", "pca-parity", "-o", tmp_path / "a.mcap"])
+    assert ok.code == 0 and "lacks the motion" in ok.stderr + ok.out
+    strict = invoke(["detect", log, "-d", "pca-parity", "-o", tmp_path / "b.mcap", "--strict"])
+    assert_one_line_error(strict, 3, "lacks the motion")
+    assert not (tmp_path / "b.mcap").exists()
+    wide = ["detect", log, "-d", "pca-parity", "-o", tmp_path / "c.mcap", "--calibrate", "0s:5s"]
+    assert invoke([*wide, "--strict"]).code == 0
+
+
+def test_accelerometers_with_lever_arms_are_not_tested_and_say_why():
+    """wearable12: IMUs 3 cm apart; the accelerometer parity does not cancel the rotation."""
+    array, block = simulate_block(preset("wearable12", seed=0, duration=3.0))
+    detector = make()
+    out = run(detector, array, block)
+    assert set(out) == {"gyro"}
+    assert "lever-arm" in detector.metadata()["untested"]["accel"]
+    with pytest.raises(CalibrationError, match="lever-arm"):
+        run(make({"sensors": "accel"}), array, block)
