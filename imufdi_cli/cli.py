@@ -296,7 +296,8 @@ def ingest(
     help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
     " no header or all-zero stamps, with a warning).",
 )
-def info(log: str, as_json: bool, topics: tuple[str, ...], stamps: str) -> None:
+@click.option("--strict", is_flag=True, help="A truncated or corrupt input is an error (exit 3).")
+def info(log: str, as_json: bool, topics: tuple[str, ...], stamps: str, strict: bool) -> None:
     """Describe a log: topics, IMUs, rate, duration, gaps, array, faults, detectors.
 
     Example:
@@ -310,7 +311,9 @@ def info(log: str, as_json: bool, topics: tuple[str, ...], stamps: str) -> None:
     from imufdi_cli.pipeline import log_info
 
     check_input(log)
-    summary = log_info(log, topics=list(topics) or None, time_source=_time_source(stamps))
+    summary = log_info(
+        log, topics=list(topics) or None, time_source=_time_source(stamps), strict=strict
+    )
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
@@ -518,8 +521,8 @@ def inject(
 @click.option(
     "--strict",
     is_flag=True,
-    help="A truncated input, or a calibration window a detector finds inadequate, is an"
-    " error (exit 3) instead of a warning.",
+    help="A truncated or corrupt input, or a calibration window a detector finds inadequate,"
+    " is an error (exit 3) instead of a warning.",
 )
 @click.option(
     "--array",

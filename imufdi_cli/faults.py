@@ -832,6 +832,9 @@ class InjectResult:
         IMU/magnetometer messages whose values were rewritten.
     truth_messages : int
         Messages added to ``/imufdi/truth``.
+    warnings : list of str
+        Problems the reader met in the input (e.g. a corrupt chunk skipped: its messages
+        are not in the output).
     """
 
     output: str
@@ -1081,6 +1084,7 @@ def inject_file(
             )
             result.messages_patched += count
             writer.add_batch(patched)
+        result.warnings = list(reader.warnings)
     return result
 
 

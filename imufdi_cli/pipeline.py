@@ -203,19 +203,26 @@ def parse_start_time(text: str) -> int:
 
 
 def log_info(
-    source: str, *, topics: Sequence[str] | None = None, time_source: str = "auto"
+    source: str,
+    *,
+    topics: Sequence[str] | None = None,
+    time_source: str = "auto",
+    strict: bool = False,
 ) -> dict[str, Any]:
-    """Everything ``imufdi info`` shows, as a JSON-ready dict."""
+    """Everything ``imufdi info`` shows, as a JSON-ready dict (``strict``: a truncated or
+    corrupt log raises McapInputError instead of adding a warning)."""
     from imufdi_cli.mcapio import summarize
 
-    summary = summarize(source, topics=topics, time_source=time_source)
+    summary = summarize(source, topics=topics, time_source=time_source, strict=strict)
     data: dict[str, Any] = summary.to_dict()
     if not data.get("imu_topics"):
         from imufdi_cli.errors import McapInputError
 
         found = ", ".join(f"{t['topic']} ({t.get('schema')})" for t in data.get("topics", []))
+        problems = data.get("warnings") or []
         raise McapInputError(
             f"{source}: no sensor_msgs/msg/Imu channel (channels: {found or 'none'})"
+            + (f"; {problems[0]}" if problems else "")
         )
     data["source"] = source
     nominal = summary.array.rate_hz if summary.array is not None else None

@@ -257,6 +257,7 @@ def build_report(
     last_ns: dict[tuple[str, str], int] = {}
     validity: dict[tuple[str, str], dict[str, int]] = {}
     notes: list[str] = []
+    problems: list[str] = []
     try:
         with McapSource(stream) as src:
             metadata = dict(src.metadata)  # seekable: read from the summary up front
@@ -307,14 +308,17 @@ def build_report(
                     series[key].add(
                         {k: rows[k] for k in ("t_ns", "statistic", "threshold", "alarm", "scores")}
                     )
+            problems = list(src.warnings)
     finally:
         if close:
             stream.close()
     if not accumulators:
         raise McapInputError(
             f"{name}: no detector status channels (/imufdi/<detector>/<type>); "
-            "run `imufdi detect` on the log first"
+            "run `imufdi detect` on the log first" + (f"; {problems[0]}" if problems else "")
         )
+    # a damaged log is reported on what could be read, and says so
+    notes.extend(f"input: {problem}" for problem in problems)
     has_truth = truth is not None
     if not has_truth:
         notes.append(

@@ -25,6 +25,7 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError
+from imufdi_cli.mcapio.limits import ReaderLimits
 from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch
 from imufdi_cli.mcapio.source import McapSource
 
@@ -137,11 +138,13 @@ class BagDirSource(McapSource):
         *,
         strict: bool = False,
         validate_crcs: bool | None = None,
+        limits: ReaderLimits | None = None,
     ) -> None:
         if not isinstance(source, (str, os.PathLike)):
             raise McapInputError("a rosbag2 directory must be given as a path")
         self.strict = strict
-        self.validate_crcs = strict if validate_crcs is None else validate_crcs
+        self.validate_crcs = validate_crcs is not False
+        self.limits = limits if limits is not None else ReaderLimits.from_env()
         directory = Path(source)
         if directory.name == METADATA_FILE:
             directory = directory.parent
@@ -165,7 +168,9 @@ class BagDirSource(McapSource):
         self._schema_ids: dict[tuple[Any, ...], int] = {}
         try:
             for file in self.files:
-                part = McapSource(file, strict=strict, validate_crcs=validate_crcs)
+                part = McapSource(
+                    file, strict=strict, validate_crcs=validate_crcs, limits=self.limits
+                )
                 self._parts.append(part)
                 self._maps.append({})
                 self.warnings.extend(f"{file.name}: {w}" for w in part.warnings)

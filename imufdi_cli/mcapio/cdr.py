@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError
+from imufdi_cli.mcapio.limits import ReaderLimits
 from imufdi_cli.mcapio.records import MessageBatch, gather_bytes
 
 #: ROS 2 primitive type -> (numpy dtype code without byte order, size in bytes)
@@ -111,6 +112,10 @@ def _parse_section(name: str, text: str) -> MsgDef:
         if array is None:
             fields.append(FieldDef(field_name, type_name))
         elif size and not upper:
+            if len(size) > 18:
+                raise McapInputError(
+                    f"ros2msg schema {name}: fixed array size of {field_name!r} is too large"
+                )
             fields.append(FieldDef(field_name, type_name, "fixed", int(size)))
         else:
             fields.append(FieldDef(field_name, type_name, "sequence"))
@@ -178,9 +183,66 @@ class CdrLayout:
     leaves: dict[str, _Leaf] = field(default_factory=dict)
 
     @classmethod
-    def compile(cls, defs: dict[str, MsgDef], root: str) -> CdrLayout:
+    def compile(
+        cls, defs: dict[str, MsgDef], root: str, limits: ReaderLimits | None = None
+    ) -> CdrLayout:
+        """Layout of ``root``; at most ``limits.max_schema_fields`` leaves are made.
+
+        Fixed arrays of primitives are one leaf whatever their size. Fixed arrays of strings
+        or messages are expanded element by element, but only within the field budget: the
+        first field that would exceed it ends the layout (an ``opaque`` step, like a
+        sequence of messages), so fields before it stay readable in bulk and fields after it
+        are refused when asked for. Types nested deeper than ``limits.max_schema_depth``
+        (or recursive) raise McapInputError.
+        """
+        limits = limits if limits is not None else ReaderLimits.from_env()
         layout = cls(root)
-        state = {"segment": 0, "const": 0, "base_align": 8}
+        state = {"segment": 0, "const": 0, "base_align": 8, "fields": 0, "stopped": 0}
+        shapes: dict[str, tuple[int, int]] = {}
+
+        def shape(type_name: str, chain: tuple[str, ...] = ()) -> tuple[int, int]:
+            """(leaves of one element once expanded, nesting height) of a type, memoised;
+            nothing is expanded."""
+            if type_name in PRIMITIVES or type_name in STRING_TYPES:
+                return 1, 0
+            known = shapes.get(type_name)
+            if known is not None:
+                return known
+            if type_name in chain or len(chain) > limits.max_schema_depth:
+                raise McapInputError(
+                    f"ros2msg schema {root}: types nested deeper than"
+                    f" {limits.max_schema_depth} (IMUFDI_MAX_SCHEMA_DEPTH) or recursive"
+                )
+            msg = defs.get(type_name)
+            if msg is None:
+                raise McapInputError(
+                    f"ros2msg schema {root}: no definition of {type_name} in the schema text"
+                )
+            total, height = 0, 0
+            for fdef in msg.fields:
+                if fdef.array == "sequence" or fdef.type_name in PRIMITIVES:
+                    total += 1
+                    continue
+                leaves, sub_height = shape(fdef.type_name, (*chain, type_name))
+                total += leaves * (fdef.size if fdef.array == "fixed" else 1)
+                height = max(height, sub_height + 1)
+            shapes[type_name] = (total, height)
+            return total, height
+
+        def expanded(type_name: str, depth: int) -> int:
+            leaves, height = shape(type_name)
+            if depth + height > limits.max_schema_depth:
+                raise McapInputError(
+                    f"ros2msg schema {root}: types nested deeper than"
+                    f" {limits.max_schema_depth} (IMUFDI_MAX_SCHEMA_DEPTH)"
+                )
+            return leaves
+
+        def stop(path: str) -> None:
+            layout.steps.append(_Step("opaque", state["const"], path=path))
+            state["segment"] += 1
+            state["const"] = 0
+            state["stopped"] = 1
 
         def need_runtime_align(alignment: int) -> None:
             if alignment <= state["base_align"]:
@@ -193,6 +255,9 @@ class CdrLayout:
 
         def primitive(path: str, type_name: str, count: int) -> None:
             code, size = PRIMITIVES[type_name]
+            if state["const"] + size * count > limits.max_record_bytes:
+                stop(path)  # no message within the record limit holds this field
+                return
             need_runtime_align(size)
             layout.leaves[path] = _Leaf(path, code, count, state["segment"], state["const"])
             state["const"] += size * count
@@ -208,16 +273,19 @@ class CdrLayout:
             state["base_align"] = 1
 
         def walk(type_name: str, prefix: str, depth: int) -> None:
-            if depth > 32:
-                raise McapInputError(f"ros2msg schema {root}: type nesting too deep")
-            msg = defs.get(type_name)
-            if msg is None:
-                raise McapInputError(
-                    f"ros2msg schema {root}: no definition of {type_name} in the schema text"
-                )
-            for fdef in msg.fields:
+            expanded(type_name, depth)  # checks depth, recursion and definitions
+            for fdef in defs[type_name].fields:
+                if state["stopped"]:
+                    return
                 path = f"{prefix}{fdef.name}"
                 elem = fdef.type_name
+                cost = 1
+                if fdef.array != "sequence" and elem not in PRIMITIVES:
+                    cost = expanded(elem, depth + 1) * (fdef.size if fdef.array == "fixed" else 1)
+                if state["fields"] + cost > limits.max_schema_fields:
+                    stop(path)  # the rest of the type is out of the field budget
+                    return
+                state["fields"] += 1 if elem in PRIMITIVES or fdef.array == "sequence" else 0
                 if fdef.array == "sequence":
                     if elem in PRIMITIVES:
                         variable(path, "sequence", PRIMITIVES[elem][1])
@@ -225,19 +293,20 @@ class CdrLayout:
                     else:
                         # Sequences of strings or messages: skipping them needs a
                         # per-message walk; the layout marks the rest as unreachable.
-                        layout.steps.append(_Step("opaque", state["const"], path=path))
-                        state["segment"] += 1
-                        state["const"] = 0
+                        stop(path)
                         return
                 elif elem in PRIMITIVES:
                     primitive(path, elem, fdef.size if fdef.array == "fixed" else 1)
                 elif elem in STRING_TYPES:
                     count = fdef.size if fdef.array == "fixed" else 1
+                    state["fields"] += count
                     for i in range(count):
                         sub = f"{path}[{i}]" if fdef.array == "fixed" else path
                         variable(sub, "string" if elem == "string" else "wstring", 1)
                 else:
                     if fdef.array == "fixed":
+                        if cost == 0:
+                            continue  # elements without fields: nothing to lay out
                         for i in range(fdef.size):
                             walk(elem, f"{path}[{i}].", depth + 1)
                     else:
@@ -247,7 +316,12 @@ class CdrLayout:
         return layout
 
     def locate(
-        self, data: np.ndarray, offsets: np.ndarray, lengths: np.ndarray, paths: Sequence[str]
+        self,
+        data: np.ndarray,
+        offsets: np.ndarray,
+        lengths: np.ndarray,
+        paths: Sequence[str],
+        valid: np.ndarray | None = None,
     ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Byte positions of fields in N messages of the same endianness.
 
@@ -265,6 +339,10 @@ class CdrLayout:
             Absolute positions in ``data`` of each requested leaf.
         sizes : dict path -> (N,) int64
             For sequences and strings: element count / byte length (else absent).
+
+        A message whose length fields point past its end makes this raise McapInputError,
+        unless ``valid`` (N,) bool is given: then that message's entry is set False (its
+        positions are meaningless but every read made here stays inside its payload).
         """
         wanted = {}
         for path in paths:
@@ -274,6 +352,7 @@ class CdrLayout:
             wanted[path] = leaf
         last_segment = max((leaf.segment for leaf in wanted.values()), default=0)
         origin = offsets.astype(np.int64) + 4
+        payload_end = offsets.astype(np.int64) + lengths.astype(np.int64)
         position = origin.copy()
         positions: dict[str, np.ndarray] = {}
         sizes: dict[str, np.ndarray] = {}
@@ -295,7 +374,7 @@ class CdrLayout:
             else:
                 rel = position - origin
                 position = origin + (-(-rel // 4)) * 4
-                count = self._u32(data, position, self._endian)
+                count = self._u32(data, position, payload_end, valid, origin)
                 if step.kind in ("string", "wstring"):
                     width = 4 if step.kind == "wstring" else 1
                     sizes[step.path] = count
@@ -314,10 +393,12 @@ class CdrLayout:
             if leaf.segment == segment and path not in positions:
                 positions[path] = position + leaf.offset
         ends = {p: positions[p] + self.leaf_size(p, sizes) for p in wanted}
-        payload_end = offsets.astype(np.int64) + lengths.astype(np.int64)
         for path, end in ends.items():
-            if end.size and bool(np.any(end > payload_end)):
-                raise McapInputError(f"{self.root}: field {path!r} lies past the message end")
+            past = end > payload_end
+            if end.size and bool(np.any(past)):
+                if valid is None:
+                    raise McapInputError(f"{self.root}: field {path!r} lies past the message end")
+                valid &= ~past
         return positions, sizes
 
     _endian = "<"
@@ -330,11 +411,26 @@ class CdrLayout:
             return sizes[path] * int(PRIMITIVES_BY_CODE[leaf.dtype])
         return leaf.count * int(PRIMITIVES_BY_CODE[leaf.dtype])
 
-    @staticmethod
-    def _u32(data: np.ndarray, position: np.ndarray, endian: str) -> np.ndarray:
-        if position.size and int(position.max()) + 4 > data.shape[0]:
-            raise McapInputError("CDR length field lies past the end of the data")
-        return gather_bytes(data, position, 4).view(endian + "u4").reshape(-1).astype(np.int64)
+    def _u32(
+        self,
+        data: np.ndarray,
+        position: np.ndarray,
+        payload_end: np.ndarray,
+        valid: np.ndarray | None,
+        origin: np.ndarray,
+    ) -> np.ndarray:
+        """u32 length fields at ``position``; one past its message's end is an error, or
+        (with ``valid``) marks that message invalid and reads as 0."""
+        inside = position + 4 <= payload_end
+        if not bool(inside.all()):
+            if valid is None:
+                raise McapInputError(f"{self.root}: a CDR length field lies past the message end")
+            valid &= inside
+            position = np.where(inside, position, origin - 4)  # the encapsulation header
+            out = gather_bytes(data, position, 4).view(self._endian + "u4").reshape(-1)
+            return np.where(inside, out.astype(np.int64), 0)
+        raw = gather_bytes(data, position, 4)
+        return raw.view(self._endian + "u4").reshape(-1).astype(np.int64)
 
 
 PRIMITIVES_BY_CODE = {code: size for code, size in PRIMITIVES.values()}
@@ -360,34 +456,61 @@ def encapsulation_endian(batch: MessageBatch) -> np.ndarray:
     return kind == 1
 
 
+def _encapsulation_flags(batch: MessageBatch) -> tuple[np.ndarray, np.ndarray]:
+    """Per message: little-endian flag, and whether the encapsulation is CDR_LE/CDR_BE."""
+    ok = batch.length >= 4
+    head = np.zeros((len(batch), 2), np.uint8)
+    if bool(ok.any()):
+        head[ok] = gather_bytes(batch.data, batch.offset[ok], 2)
+    ok &= (head[:, 0] == 0) & (head[:, 1] <= 1)
+    return (head[:, 1] == 1) | ~ok, ok
+
+
 class CdrCodec:
     """Bulk field access for one ros2msg schema (cached per schema)."""
 
-    def __init__(self, schema_name: str, schema_text: bytes | str) -> None:
+    def __init__(
+        self, schema_name: str, schema_text: bytes | str, limits: ReaderLimits | None = None
+    ) -> None:
         self.defs = parse_ros2msg(schema_name, schema_text)
         self.root = normalize_type(schema_name, schema_name.split("/")[0])
-        self.layout = CdrLayout.compile(self.defs, self.root)
+        self.layout = CdrLayout.compile(self.defs, self.root, limits)
 
     def positions(
-        self, batch: MessageBatch, paths: Sequence[str]
+        self, batch: MessageBatch, paths: Sequence[str], valid: np.ndarray | None = None
     ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
-        """Little-endian flags (N,) and positions/sizes of ``paths`` for every message."""
-        little = encapsulation_endian(batch)
+        """Little-endian flags (N,) and positions/sizes of ``paths`` for every message.
+
+        Malformed messages (bad encapsulation, fields past the end) raise McapInputError,
+        unless ``valid`` (N,) bool is given: then their entries are set False instead.
+        """
         n = len(batch)
+        ok = None
+        if valid is None:
+            little = encapsulation_endian(batch)
+        else:
+            little, ok = _encapsulation_flags(batch)
+            valid &= ok
         positions = {p: np.zeros(n, np.int64) for p in paths}
         sizes: dict[str, np.ndarray] = {}
         for flag in (True, False):
             mask = little == flag
+            if ok is not None:
+                mask &= ok  # messages without a CDR header are not walked
             if not bool(mask.any()):
                 continue
             full = bool(mask.all())
             offs = batch.offset if full else batch.offset[mask]
             lens = batch.length if full else batch.length[mask]
             self.layout._endian = "<" if flag else ">"
+            sub_valid = None if valid is None else (valid if full else valid[mask])
             try:
-                pos, size = self.layout.locate(batch.data, offs, lens, paths)
+                pos, size = self.layout.locate(batch.data, offs, lens, paths, sub_valid)
             finally:
                 self.layout._endian = "<"
+            if valid is not None and not full:
+                assert sub_valid is not None
+                valid[mask] = sub_valid
             for path, value in pos.items():
                 if path not in positions:
                     positions[path] = np.zeros(n, np.int64)
@@ -457,38 +580,56 @@ def codec_for(schema_name: str, schema_data: bytes) -> CdrCodec:
 # --- general per-message decoding (fallback) --------------------------------------------
 
 
-def decode_cdr_message(defs: dict[str, MsgDef], root: str, payload: bytes) -> dict[str, Any]:
-    """Decode one CDR message into nested dicts (general, slow path)."""
+#: numpy dtype code -> struct format character.
+_STRUCT_CODES = {
+    "u1": "B",
+    "i1": "b",
+    "i2": "h",
+    "u2": "H",
+    "i4": "i",
+    "u4": "I",
+    "i8": "q",
+    "u8": "Q",
+    "f4": "f",
+    "f8": "d",
+}
+
+
+def decode_cdr_message(
+    defs: dict[str, MsgDef], root: str, payload: bytes, limits: ReaderLimits | None = None
+) -> dict[str, Any]:
+    """Decode one CDR message into nested dicts (general, slow path).
+
+    At most ``limits.max_schema_fields`` values are decoded (fixed arrays and sequences of
+    field-less types would otherwise loop without consuming bytes); more raises
+    McapInputError.
+    """
     if len(payload) < 4 or payload[0] != 0 or payload[1] > 1:
         raise McapInputError("unsupported or missing CDR encapsulation header")
+    limits = limits if limits is not None else ReaderLimits.from_env()
     endian = "<" if payload[1] == 1 else ">"
-    state = {"pos": 4}
+    state = {"pos": 4, "values": 0}
 
     def align(size: int) -> None:
         rel = state["pos"] - 4
         state["pos"] += (-rel) % size
 
-    def prim(type_name: str) -> Any:
+    def prims(type_name: str, count: int) -> list[Any]:
+        """``count`` consecutive primitives in one unpack (aligned once, if any)."""
         code, size = PRIMITIVES[type_name]
+        if count == 0:
+            return []
         align(size)
-        fmt = (
-            endian
-            + {
-                "u1": "B",
-                "i1": "b",
-                "i2": "h",
-                "u2": "H",
-                "i4": "i",
-                "u4": "I",
-                "i8": "q",
-                "u8": "Q",
-                "f4": "f",
-                "f8": "d",
-            }[code]
-        )
-        (value,) = struct.unpack_from(fmt, payload, state["pos"])
-        state["pos"] += size
-        return bool(value) if type_name == "bool" else value
+        if state["pos"] + count * size > len(payload):
+            raise McapInputError(
+                f"malformed CDR message of type {root}: {count} x {type_name} past its end"
+            )
+        values = struct.unpack_from(f"{endian}{count}{_STRUCT_CODES[code]}", payload, state["pos"])
+        state["pos"] += count * size
+        return [bool(v) for v in values] if type_name == "bool" else list(values)
+
+    def prim(type_name: str) -> Any:
+        return prims(type_name, 1)[0]
 
     def string() -> str:
         align(4)
@@ -499,6 +640,12 @@ def decode_cdr_message(defs: dict[str, MsgDef], root: str, payload: bytes) -> di
         return raw.rstrip(b"\0").decode("utf-8", errors="replace")
 
     def value(type_name: str) -> Any:
+        state["values"] += 1
+        if state["values"] > limits.max_schema_fields:
+            raise McapInputError(
+                f"CDR message of type {root} has more than {limits.max_schema_fields} values"
+                " (IMUFDI_MAX_SCHEMA_FIELDS)"
+            )
         if type_name in PRIMITIVES:
             return prim(type_name)
         if type_name in STRING_TYPES:
@@ -517,11 +664,23 @@ def decode_cdr_message(defs: dict[str, MsgDef], root: str, payload: bytes) -> di
                 align(4)
                 (count,) = struct.unpack_from(endian + "I", payload, state["pos"])
                 state["pos"] += 4
+            if fdef.type_name in PRIMITIVES:
+                # bounded by the payload: no per-element work, no field budget
+                out[fdef.name] = prims(fdef.type_name, count)
+                state["values"] += 1
+                continue
+            if count > limits.max_schema_fields:
+                raise McapInputError(
+                    f"CDR message of type {root}: {fdef.name} has {count} elements, more than"
+                    f" {limits.max_schema_fields} (IMUFDI_MAX_SCHEMA_FIELDS)"
+                )
             out[fdef.name] = [value(fdef.type_name) for _ in range(count)]
         return out
 
     try:
         return message(root)
+    except RecursionError as err:
+        raise McapInputError(f"CDR message of type {root}: types nested too deeply") from err
     except (struct.error, KeyError) as err:
         raise McapInputError(f"malformed CDR message of type {root}: {err}") from err
 

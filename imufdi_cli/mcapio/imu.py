@@ -3,6 +3,7 @@ and the streaming, time-aligning array reader (DESIGN.md §4)."""
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from collections import deque
@@ -16,7 +17,7 @@ import numpy as np
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.errors import ArrayConfigError, McapInputError, UsageError
 from imufdi_cli.log import ImuBlock, rechunk
-from imufdi_cli.mcapio.cdr import CdrCodec, codec_for, decode_json_payloads
+from imufdi_cli.mcapio.cdr import CdrCodec, codec_for
 from imufdi_cli.mcapio.records import (
     MESSAGE_FIXED_CONTENT,
     MESSAGE_HEADER_DTYPE,
@@ -30,9 +31,17 @@ from imufdi_cli.mcapio.schemas import IMU_SCHEMA, IMU_SCHEMA_NAME, MAG_SCHEMA, M
 from imufdi_cli.mcapio.source import McapSource
 
 ARRAY_METADATA = "imufdi.array"
+#: Read-ahead when a reader starts (see ImuArrayReader._prefetch_setup).
+_SETUP_MESSAGES = 8
+_SETUP_BATCHES = 4096
+_SETUP_BYTES = 64 << 20
 IMU_TYPE_NAMES = ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")
 MAG_TYPE_NAMES = ("sensor_msgs/msg/MagneticField", "sensor_msgs/MagneticField")
 NS_PER_S = 1_000_000_000
+
+
+class NoImuChannelError(McapInputError):
+    """The log has no ``sensor_msgs/msg/Imu`` channel (or none of the requested topics)."""
 
 
 @dataclass
@@ -142,7 +151,11 @@ def _vector_paths(codec: CdrCodec, field_name: str) -> str:  # field_name may be
 
 
 def _decode_cdr(
-    batch: MessageBatch, channel: ChannelInfo, kinds: Sequence[str], field: str = ""
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    kinds: Sequence[str],
+    field: str = "",
+    valid: np.ndarray | None = None,
 ) -> ImuFields:
     codec = _codec(channel)
     prefix = f"{field}." if field else ""
@@ -150,7 +163,11 @@ def _decode_cdr(
     stamp = [f"{prefix}header.stamp.sec", f"{prefix}header.stamp.nanosec"]
     has_stamp = all(path in codec.layout.leaves for path in stamp)
     paths = [*(stamp if has_stamp else []), *vector_paths.values()]
-    little, positions, _ = codec.positions(batch, paths)
+    little, positions, _ = codec.positions(batch, paths, valid)
+    if valid is not None and not bool(valid.all()):
+        batch = batch.select(valid)
+        little = little[valid]
+        positions = {path: value[valid] for path, value in positions.items()}
     log_time = batch.log_time.astype(np.int64)
     if has_stamp:
         sec = codec.read(batch, little, positions[stamp[0]], "i4", 1)[:, 0]
@@ -165,14 +182,19 @@ def _decode_cdr(
 
 
 def _decode_json(
-    batch: MessageBatch, channel: ChannelInfo, kinds: Sequence[str], field: str = ""
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    kinds: Sequence[str],
+    field: str = "",
+    valid: np.ndarray | None = None,
 ) -> ImuFields:
     n = len(batch)
     t_ns = batch.log_time.astype(np.int64).copy()
     has_stamp = True
     vectors = {kind: np.zeros((n, 3)) for kind in kinds}
-    for i, obj in enumerate(decode_json_payloads(batch)):
+    for i in range(n):
         try:
+            obj = json.loads(batch.payload(i))
             for part in field.split(".") if field else []:
                 obj = obj[part]
             if i == 0:
@@ -184,23 +206,35 @@ def _decode_json(
             for kind in kinds:
                 vec = obj[_VECTORS[kind]]
                 vectors[kind][i] = (float(vec["x"]), float(vec["y"]), float(vec["z"]))
-        except (KeyError, TypeError, ValueError) as err:
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as err:
+            if valid is not None:
+                valid[i] = False
+                continue
             raise McapInputError(
-                f"channel {channel.topic}: JSON message {i} lacks a field of {schema_name(channel)}"
-                f" ({err!r})"
+                f"channel {channel.topic}: JSON message {i} is not a {schema_name(channel)}"
+                f" ({type(err).__name__}: {err})"
             ) from err
-    return ImuFields(
-        t_ns=t_ns, log_time=batch.log_time.astype(np.int64), has_stamp=has_stamp, **vectors
-    )
+    log_time = batch.log_time.astype(np.int64)
+    if valid is not None and not bool(valid.all()):
+        t_ns, log_time = t_ns[valid], log_time[valid]
+        vectors = {kind: value[valid] for kind, value in vectors.items()}
+    return ImuFields(t_ns=t_ns, log_time=log_time, has_stamp=has_stamp, **vectors)
 
 
 def _decode(
-    batch: MessageBatch, channel: ChannelInfo, kinds: Sequence[str], field: str = ""
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    kinds: Sequence[str],
+    field: str = "",
+    valid: np.ndarray | None = None,
 ) -> ImuFields:
+    """Decode one channel's messages (``field``: path of an embedded Imu, "" for the message
+    itself). Malformed messages raise McapInputError, unless ``valid`` (N,) bool is given:
+    then they are left out and their entries set False."""
     if channel.message_encoding == "cdr":
-        return _decode_cdr(batch, channel, kinds, field)
+        return _decode_cdr(batch, channel, kinds, field, valid)
     if channel.message_encoding == "json":
-        return _decode_json(batch, channel, kinds, field)
+        return _decode_json(batch, channel, kinds, field, valid)
     raise McapInputError(
         f"channel {channel.topic}: message encoding {channel.message_encoding!r} is not"
         " supported; supported: cdr, json"
@@ -838,7 +872,9 @@ class ImuArrayReader:
         self._batches = self.source.batches()
         self._prefetched: deque[MessageBatch] = deque()
         self._exhausted = False
-        self._prefetch(1)
+        self._imu_like: dict[int, tuple[ChannelInfo, bool]] = {}
+        self._topics_given = topics is not None
+        self._prefetch_setup(topics)
         try:
             self._select_topics(topics)
         except Exception:
@@ -860,8 +896,8 @@ class ImuArrayReader:
             if self.mag_topics
             else {}
         )
-        # Enough data to measure the rate.
-        self._prefetch(64, per_channel=8)
+        self._known_channels = -1  # check for late Imu channels on the first batch
+        self._late_topics: set[str] = set()
         self._resolve_time_source()
         self.array = self._array_config()
         if self.array.has("mag") and not self.mag_topics:
@@ -894,10 +930,11 @@ class ImuArrayReader:
                     (f"{c.topic} ({schema_name(c) or 'no schema'})" for c in channels),
                     key=natural_key,
                 )
-                raise McapInputError(
+                raise NoImuChannelError(
                     f"{self.source.name}: no sensor_msgs/msg/Imu channel (CDR or JSON), and no"
                     " message type holding exactly one Imu field; topics: "
                     + (", ".join(listed) or "none")
+                    + (f"; {self.warnings[0]}" if self.warnings else "")
                 )
             self.imu_topics = usable
             for topic in usable:
@@ -910,7 +947,7 @@ class ImuArrayReader:
                 channel = by_topic.get(topic)
                 if channel is None:
                     usable = [t for t, f in found.items() if f]
-                    raise McapInputError(
+                    raise NoImuChannelError(
                         f"{self.source.name}: no Imu channel on topic {topic or '(none)'};"
                         " Imu topics: " + (", ".join(sorted(usable, key=natural_key)) or "none")
                     )
@@ -950,8 +987,11 @@ class ImuArrayReader:
         topic = self.imu_topics[0]
         cid = self._topic_channel[topic]
         channel = self.source.channels[cid]
+        # malformed messages are left out here and reported when the data are read
         fields = [
-            decode_imu(sub, channel, self.imu_fields[topic])
+            _decode(
+                sub, channel, ("gyro", "accel"), self.imu_fields[topic], np.ones(len(sub), bool)
+            )
             for sub in (b.select(b.channel_id == cid) for b in self._prefetched)
             if len(sub)
         ]
@@ -971,14 +1011,29 @@ class ImuArrayReader:
         self.time_source = "log_time"
         self.warnings.append(f"{topic} ({self.imu_types[topic]}) {why}: using the log time")
 
-    def _prefetch(self, n_batches: int, per_channel: int = 0) -> None:
+    def _prefetch_setup(self, topics: Sequence[str] | None) -> None:
+        """Read ahead until the IMU set and the rate are known.
+
+        Without a summary (stdin, a truncated file) channels are only known as their records
+        are met, so batches are read until every Imu channel met so far (or every requested
+        topic) has at least ``_SETUP_MESSAGES`` messages, within ``_SETUP_BATCHES`` batches
+        and ``_SETUP_BYTES`` of buffered data. An Imu channel first met later is reported
+        (:meth:`_check_new_channels`), never silently dropped.
+        """
         counts: dict[int, int] = {}
-        for batch in self._prefetched:
-            ids, n = np.unique(batch.channel_id, return_counts=True)
-            for i, c in zip(ids.tolist(), n.tolist()):
-                counts[i] = counts.get(i, 0) + c
-        while not self._exhausted and len(self._prefetched) < n_batches:
-            if per_channel and all(counts.get(cid, 0) >= per_channel for cid in self._imu_channel):
+        buffered = 0
+        wanted = {spec.partition(":")[0] for spec in topics} if topics is not None else None
+        while not self._exhausted:
+            if len(self._prefetched) >= _SETUP_BATCHES or buffered >= _SETUP_BYTES:
+                break
+            imu_ids = [
+                c.id
+                for c in list(self.source.channels.values())
+                if (c.topic in wanted if wanted is not None else self._holds_one_imu(c))
+            ]
+            seen_topics = {self.source.channels[i].topic for i in imu_ids}
+            ready = bool(imu_ids) and (wanted is None or wanted <= seen_topics)
+            if ready and all(counts.get(i, 0) >= _SETUP_MESSAGES for i in imu_ids):
                 break
             try:
                 batch = next(self._batches)
@@ -986,9 +1041,38 @@ class ImuArrayReader:
                 self._exhausted = True
                 break
             self._prefetched.append(batch)
+            buffered += int(batch.data.nbytes)
             ids, n = np.unique(batch.channel_id, return_counts=True)
             for i, c in zip(ids.tolist(), n.tolist()):
                 counts[i] = counts.get(i, 0) + c
+
+    def _holds_one_imu(self, channel: ChannelInfo) -> bool:
+        """The channel is read as an IMU by default (an Imu, or one Imu field); cached."""
+        known = self._imu_like.get(channel.id)
+        if known is None or known[0] is not channel:
+            known = (channel, len(imu_fields_of(channel)) == 1)
+            self._imu_like[channel.id] = known
+        return known[1]
+
+    def _check_new_channels(self) -> None:
+        """Warn about Imu channels first met after the IMU set was fixed (not read)."""
+        channels = self.source.channels
+        if len(channels) == self._known_channels or self._topics_given:
+            return
+        self._known_channels = len(channels)
+        selected = {self.source.channels[cid].topic for cid in self._imu_channel}
+        for channel in list(channels.values()):
+            if (
+                self._holds_one_imu(channel)
+                and channel.topic not in selected
+                and channel.topic not in self._late_topics
+            ):
+                self._late_topics.add(channel.topic)
+                self.warnings.append(
+                    f"Imu topic {channel.topic} first appears after the IMU set was fixed from"
+                    f" the first {_SETUP_MESSAGES} messages of each topic; it is not read"
+                    " (select topics with --topic)"
+                )
 
     def _array_config(self) -> ArrayConfig:
         m = len(self.imu_topics)
@@ -1017,7 +1101,14 @@ class ImuArrayReader:
         for batch in self._prefetched:
             sub = batch.select(batch.channel_id == cid)
             if len(sub):
-                fields = decode_imu(sub, channels[cid], self.imu_fields[first])
+                # malformed messages are left out here and reported when the data are read
+                fields = _decode(
+                    sub,
+                    channels[cid],
+                    ("gyro", "accel"),
+                    self.imu_fields[first],
+                    np.ones(len(sub), bool),
+                )
                 stamps.append(fields.t_ns if self.time_source == "header" else fields.log_time)
         t = np.sort(np.concatenate(stamps)) if stamps else np.zeros(0, np.int64)
         steps = np.diff(t)
@@ -1058,6 +1149,7 @@ class ImuArrayReader:
         return out
 
     def _feed(self, batch: MessageBatch) -> None:
+        self._check_new_channels()
         if len(batch) == 0:
             return
         if self._groups is None:
@@ -1077,13 +1169,21 @@ class ImuArrayReader:
             if not bool(mask.any()):
                 continue
             selected = batch if bool(mask.all()) else batch.select(mask)
-            fields = _decode(selected, channel, kinds, path)
+            valid = np.ones(len(selected), bool)
+            fields = _decode(selected, channel, kinds, path, valid)
+            streams = stream_of_message[mask]
+            if not bool(valid.all()):
+                streams = streams[valid]
+                self.source._problem(
+                    f"{int((~valid).sum())} malformed {schema_name(channel)} message(s) on"
+                    f" {channel.topic} skipped (fields past the message end or not decodable)"
+                )
             t = fields.t_ns if self.time_source == "header" else fields.log_time
             if kinds == ("mag",):
                 values = fields.mag
             else:
                 values = np.concatenate([fields.gyro, fields.accel], axis=1)  # type: ignore[list-item]
-            self._aligner.add(stream_of_message[mask], t, values)  # type: ignore[arg-type]
+            self._aligner.add(streams, t, values)  # type: ignore[arg-type]
 
     def _block(self, t_ns: np.ndarray, values: list[np.ndarray]) -> ImuBlock:
         m = len(self.imu_topics)

@@ -11,8 +11,13 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.errors import McapInputError
-from imufdi_cli.mcapio.imu import AlignmentStats, ImuArrayReader, is_imu_channel, natural_key
+from imufdi_cli.mcapio.imu import (
+    AlignmentStats,
+    ImuArrayReader,
+    NoImuChannelError,
+    is_imu_channel,
+    natural_key,
+)
 from imufdi_cli.mcapio.source import McapSource
 
 
@@ -135,7 +140,7 @@ def summarize(
         reader: ImuArrayReader | None = None
         try:
             reader = ImuArrayReader(src, topics=topics, strict=strict, time_source=time_source)
-        except McapInputError:
+        except NoImuChannelError:
             if topics is not None or any(is_imu_channel(c) for c in src.channels.values()):
                 raise
         first: int | None = None

@@ -54,6 +54,29 @@ def test_truncated_warns_or_fails_with_strict(cli, tmp_path, table4_log):
     assert not out.exists()
 
 
+def _damaged_second_chunk(log) -> tuple[bytes, int]:
+    """The log with one byte of its second chunk's compressed records altered."""
+    data = bytearray(log.read_bytes())
+    position, chunks = 8, []
+    while data[position] != 0x0F:  # up to DataEnd
+        length = int.from_bytes(data[position + 1 : position + 9], "little")
+        chunks += [position] if data[position] == 0x06 else []
+        position += 9 + length
+    data[chunks[1] + 500] ^= 0x10
+    return bytes(data), chunks[1]
+
+
+def test_corrupt_chunk_is_skipped_with_its_offset_or_fails_with_strict(cli, tmp_path, table4_log):
+    data, offset = _damaged_second_chunk(table4_log)
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(data)
+    result = cli(["info", path])
+    assert result.code == 0, result.stderr
+    warnings = [line for line in result.out.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and f"chunk at byte {offset} skipped: " in warnings[0]
+    assert_one_line_error(cli(["info", "--strict", "-"], stdin=data), 3, f"chunk at byte {offset}")
+
+
 def test_info_shows_capture_losses_and_one_rate(cli, tmp_path):
     """A capture with lost frames: info shows the ingest counts, the gaps where every topic
     misses samples, and one rate saying how it was measured."""

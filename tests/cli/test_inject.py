@@ -83,3 +83,15 @@ def test_refuses_to_overwrite_input(cli, table4_log):
     )
     assert_one_line_error(result, 2, "input")
     assert _sha(table4_log) == before
+
+
+def test_corrupt_input_chunk_is_named_in_a_warning(cli, tmp_path, table4_log):
+    from tests.cli.test_info import _damaged_second_chunk
+
+    data, offset = _damaged_second_chunk(table4_log)
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(data)
+    out = tmp_path / "out.mcap"
+    result = cli(["inject", path, "--fault", "step:imu0.gyro.x,at=1s,amp=1deg/s", "-o", out])
+    assert result.code == 0, result.stderr
+    assert f"warning: chunk at byte {offset} skipped: " in result.out

@@ -1,0 +1,138 @@
+"""Small IMU-array MCAP files written by the ``mcap`` package (chunked or not), for the
+reader's robustness tests."""
+
+from __future__ import annotations
+
+import io
+import struct
+import zlib
+
+import lz4.frame
+import numpy as np
+import zstandard
+from mcap.writer import CompressionType, Writer
+
+from imufdi_cli.mcapio import encode_messages
+from imufdi_cli.mcapio.schemas import IMU_SCHEMA, IMU_SCHEMA_NAME
+
+T0_NS = 1_700_000_000_000_000_000
+
+
+def imu_file(
+    *,
+    n_imus: int = 4,
+    n_samples: int = 50,
+    chunked: bool = True,
+    compression: str = "zstd",
+    chunk_size: int = 2048,
+    seed: int = 0,
+) -> bytes:
+    """An MCAP of ``n_imus`` Imu topics at 100 Hz, each channel declared just before its
+    first message (as a streaming recorder does), written by the ``mcap`` package."""
+    rng = np.random.default_rng(seed)
+    stream = io.BytesIO()
+    kind = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+    writer = Writer(
+        stream, chunk_size=chunk_size, compression=kind[compression], use_chunking=chunked
+    )
+    writer.start(profile="ros2", library="test")
+    schema = writer.register_schema(IMU_SCHEMA_NAME, "ros2msg", IMU_SCHEMA)
+    t_ns = T0_NS + np.arange(n_samples, dtype=np.int64) * 10_000_000
+    payloads = []
+    for k in range(n_imus):
+        batch = encode_messages(
+            "imu",
+            f"imu{k}",
+            k,
+            t_ns,
+            {"gyro": rng.normal(0, 0.1, (n_samples, 3)), "accel": rng.normal(0, 1, (n_samples, 3))},
+        )
+        payloads.append([batch.payload(i) for i in range(n_samples)])
+    channels: list[int] = []
+    for i in range(n_samples):
+        for k in range(n_imus):
+            if len(channels) <= k:
+                channels.append(writer.register_channel(f"/imu{k}/data_raw", "cdr", schema))
+            writer.add_message(channels[k], int(t_ns[i]), payloads[k][i], int(t_ns[i]), i)
+    writer.finish()
+    return stream.getvalue()
+
+
+def _record(opcode: int, content: bytes) -> bytes:
+    return struct.pack("<BQ", opcode, len(content)) + content
+
+
+def _string(text: str) -> bytes:
+    raw = text.encode()
+    return struct.pack("<I", len(raw)) + raw
+
+
+def chunk_record(records: bytes, compression: str, *, declared: int | None = None) -> bytes:
+    """A Chunk record of ``records`` compressed with ``compression`` ("zstd", "lz4", "");
+    ``declared`` overrides the uncompressed size it claims."""
+    if compression == "zstd":
+        payload = zstandard.ZstdCompressor().compress(records)
+    elif compression == "lz4":
+        payload = lz4.frame.compress(records)
+    else:
+        payload = records
+    size = len(records) if declared is None else declared
+    content = (
+        struct.pack("<QQQI", 0, 0, size, zlib.crc32(records))
+        + _string(compression)
+        + struct.pack("<Q", len(payload))
+        + payload
+    )
+    return _record(0x06, content)
+
+
+def zero_chunk(size: int, compression: str, *, declared: int | None = None) -> bytes:
+    """A Chunk record of ``size`` zero bytes compressed with "zstd" or "lz4", built in 1 MiB
+    pieces (the zeros are never held whole); ``declared`` overrides the size it claims."""
+    piece = bytes(1 << 20)
+    crc = 0
+    parts = []
+    if compression == "zstd":
+        zstd_writer = zstandard.ZstdCompressor().compressobj(size=size)
+        for _ in range(size >> 20):
+            parts.append(zstd_writer.compress(piece))
+        parts.append(zstd_writer.flush())
+    else:
+        lz4_writer = lz4.frame.LZ4FrameCompressor()
+        parts.append(lz4_writer.begin(source_size=size))
+        for _ in range(size >> 20):
+            parts.append(lz4_writer.compress(piece))
+        parts.append(lz4_writer.flush())
+    for _ in range(size >> 20):
+        crc = zlib.crc32(piece, crc)
+    payload = b"".join(parts)
+    content = (
+        struct.pack("<QQQI", 0, 0, size if declared is None else declared, crc)
+        + _string(compression)
+        + struct.pack("<Q", len(payload))
+        + payload
+    )
+    return _record(0x06, content)
+
+
+def wrap(data_records: bytes) -> bytes:
+    """A whole MCAP: magic, Header, the given records, DataEnd, an empty Footer, magic."""
+    magic = b"\x89MCAP0\r\n"
+    header = _record(0x01, _string("ros2") + _string("test"))
+    footer = _record(0x02, struct.pack("<QQI", 0, 0, 0))
+    return magic + header + data_records + _record(0x0F, struct.pack("<I", 0)) + footer + magic
+
+
+def imu_file_with_schema(schema_text: bytes, *, n_samples: int = 20) -> bytes:
+    """An un-chunked one-IMU file whose Imu channel carries ``schema_text``."""
+    stream = io.BytesIO()
+    writer = Writer(stream, use_chunking=False)
+    writer.start(profile="ros2", library="test")
+    schema = writer.register_schema(IMU_SCHEMA_NAME, "ros2msg", schema_text)
+    channel = writer.register_channel("/imu0/data_raw", "cdr", schema)
+    t_ns = T0_NS + np.arange(n_samples, dtype=np.int64) * 10_000_000
+    batch = encode_messages("imu", "imu0", channel, t_ns, {"gyro": None, "accel": None})
+    for i in range(n_samples):
+        writer.add_message(channel, int(t_ns[i]), batch.payload(i), int(t_ns[i]), i)
+    writer.finish()
+    return stream.getvalue()
