@@ -388,7 +388,10 @@ def encode_episode_events(channel_id: int, episodes: Sequence[dict[str, Any]]) -
                 "isolated": sensors[0] if sensors else "",
                 "isolable": True,
                 "amplitude": None,
-                "statistic": float(episode.get("peak_ratio", math.nan)),
+                # None when no alarm had a finite statistic/threshold (to_dict's JSON)
+                "statistic": math.nan
+                if episode.get("peak_ratio") is None
+                else float(episode["peak_ratio"]),
                 "episode": episode,
             }
         )

@@ -202,3 +202,31 @@ def test_decode_events_refuses_other_channels(tmp_path) -> None:
         channel = src.channels[int(batch.channel_id[0])]
         with pytest.raises(McapInputError, match="not an imufdi event channel"):
             decode_events(batch.select(batch.channel_id == channel.id), channel)
+
+
+def test_episode_events_round_trip_with_undefined_numbers() -> None:
+    """An episode whose alarms had no finite statistic (peak_ratio None) and no fit still
+    encodes (the fuzz once found exit 4 here) and decodes to the same explanation."""
+    from imufdi_cli.mcapio.events import encode_episode_events
+    from imufdi_cli.mcapio.records import ChannelInfo, SchemaInfo
+    from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA, FDI_EVENT_SCHEMA_NAME
+
+    episode = {
+        "detector": "glt",
+        "sensor_type": "gyro",
+        "start_ns": 10,
+        "end_ns": 20,
+        "decided_start_ns": 10,
+        "decided_end_ns": 25,
+        "alarms": 2,
+        "sensors": [],
+        "peak_ratio": None,
+        "fits": [],
+        "fault_class": None,
+    }
+    batch = encode_episode_events(1, [episode])
+    schema = SchemaInfo(1, FDI_EVENT_SCHEMA_NAME, "ros2msg", FDI_EVENT_SCHEMA)
+    channel = ChannelInfo(1, "/imufdi/events", "cdr", {}, schema)
+    (event,) = decode_events(batch, channel)
+    assert event["event"] == "episode" and event["t_ns"] == 25
+    assert event["episode"] == episode
