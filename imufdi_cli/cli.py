@@ -99,6 +99,24 @@ def _time_range(text: str | None, name: str) -> tuple[float, float | None] | Non
     return parse_time_range(text, name=name)
 
 
+#: options shared by every command that reads Imu topics (info, inject, detect)
+_topic_option = click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+_stamps_option = click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
+
+
 class _Group(click.Group):
     def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         formatter.write_paragraph()
@@ -281,21 +299,8 @@ def ingest(
 @cli.command()
 @click.argument("log")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of tables.")
-@click.option(
-    "--topic",
-    "topics",
-    multiple=True,
-    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
-    " sensor_msgs/msg/Imu field FIELD of a larger message.",
-)
-@click.option(
-    "--stamps",
-    type=click.Choice(["auto", "header", "log"]),
-    default="auto",
-    show_default=True,
-    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
-    " no header or all-zero stamps, with a warning).",
-)
+@_topic_option
+@_stamps_option
 @click.option("--strict", is_flag=True, help="A truncated or corrupt input is an error (exit 3).")
 def info(log: str, as_json: bool, topics: tuple[str, ...], stamps: str, strict: bool) -> None:
     """Describe a log: topics, IMUs, rate, duration, gaps, array, faults, detectors.
@@ -420,21 +425,8 @@ def _render_info(console: Console, s: dict[str, Any]) -> None:
 )
 @click.option("--faults", "fault_files", multiple=True, help="TOML file of [[fault]] tables.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed for random faults.")
-@click.option(
-    "--topic",
-    "topics",
-    multiple=True,
-    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
-    " sensor_msgs/msg/Imu field FIELD of a larger message.",
-)
-@click.option(
-    "--stamps",
-    type=click.Choice(["auto", "header", "log"]),
-    default="auto",
-    show_default=True,
-    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
-    " no header or all-zero stamps, with a warning).",
-)
+@_topic_option
+@_stamps_option
 def inject(
     source: str,
     output: str | None,
@@ -503,21 +495,8 @@ def inject(
     show_default=True,
     help="Fault-free calibration window START:END, seconds from the log start.",
 )
-@click.option(
-    "--topic",
-    "topics",
-    multiple=True,
-    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
-    " sensor_msgs/msg/Imu field FIELD of a larger message.",
-)
-@click.option(
-    "--stamps",
-    type=click.Choice(["auto", "header", "log"]),
-    default="auto",
-    show_default=True,
-    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
-    " no header or all-zero stamps, with a warning).",
-)
+@_topic_option
+@_stamps_option
 @click.option(
     "--strict",
     is_flag=True,
