@@ -936,7 +936,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
     (no leave-one-out consensus) get episodes without explanation. Use
     :meth:`EpisodeBuilder.for_detector` to get each detector its own builder."""
     from imufdi_cli.detectors.parity import residual_sigma
-    from imufdi_cli.errors import CalibrationError
+    from imufdi_cli.errors import ArrayConfigError, CalibrationError
 
     builders = {}
     for sensor_type in array.sensor_types():
@@ -944,6 +944,10 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
         if triads is None:
             continue
         H = array.measurement_matrix(sensor_type)
+        try:
+            check_measurement_matrix(H)
+        except ArrayConfigError:
+            continue  # the detectors say what is wrong with such a geometry; no episodes
         explain = H.shape[0] >= 4
         sigma = np.ones(H.shape[0])
         n_cal: int | None = None
