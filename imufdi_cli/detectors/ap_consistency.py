@@ -42,8 +42,13 @@ from typing import Any, ClassVar
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import NOT_ISOLABLE, DetectionBlock, Param
-from imufdi_cli.detectors.vectors import TriadLayout, parse_vector_types
+from imufdi_cli.detectors.base import DetectionBlock, Param
+from imufdi_cli.detectors.vectors import (
+    TriadLayout,
+    compared_layouts,
+    imu_isolation,
+    parse_vector_types,
+)
 from imufdi_cli.errors import DetectorConfigError
 from imufdi_cli.log import ImuBlock
 
@@ -180,15 +185,7 @@ class ApConsistencyDetector:
         self._states = {}
         # "now - last_pass > hold": more than hold seconds of consecutive failures
         self.hold_samples = math.floor(self.hold * array.rate_hz + 1e-9) + 1
-        for sensor_type in self.types:
-            layout = TriadLayout.build(array, sensor_type, self.name)
-            if layout.n_imus == 0 and len(self.types) > 1:
-                continue
-            if layout.n_imus < 2:
-                raise DetectorConfigError(
-                    f"{self.name} compares IMUs: {sensor_type} needs at least 2 IMUs,"
-                    f" the array has {layout.n_imus}"
-                )
+        for sensor_type, layout in compared_layouts(array, self.types, self.name).items():
             where = np.flatnonzero(layout.imus == self.primary)
             if where.size == 0:
                 raise DetectorConfigError(
@@ -215,10 +212,6 @@ class ApConsistencyDetector:
                 offsets=offsets,
                 primary=int(where[0]),
                 history=np.zeros((0, m)),
-            )
-        if not self._states:
-            raise DetectorConfigError(
-                f"{self.name}: the array has no {' or '.join(self.types)} to compare"
             )
 
     def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
@@ -249,7 +242,6 @@ class ApConsistencyDetector:
             state.history = normalised[:0]
         state.seen += n_samples
 
-        rows = np.arange(n_samples)
         failing = held > 1.0
         statistic = held.max(axis=1)
         alarm = statistic > 1.0
@@ -258,17 +250,7 @@ class ApConsistencyDetector:
             others = np.delete(np.arange(m), state.primary)
             every_other = failing[:, others].all(axis=1)
             worst = np.where(every_other, state.primary, worst)
-        local = layout.to_imu_frame(versus_others[rows, worst], worst)
-        component = np.argmax(np.abs(local), axis=1)
-        if m >= 3:
-            isolated = np.where(alarm, layout.axis_rows(worst, component), -1).astype(np.int32)
-            amplitude = np.where(alarm, local[rows, component], np.nan)
-        else:
-            isolated = np.where(alarm, NOT_ISOLABLE, -1).astype(np.int32)
-            amplitude = np.full(n_samples, np.nan)
-        scores = np.full((n_samples, layout.n_sensors), np.nan)
-        for axis in range(3):
-            scores[:, layout.sensor_of[:, axis]] = held
+        isolated, amplitude, scores = imu_isolation(layout, alarm, worst, versus_others, held)
         return DetectionBlock(
             statistic=statistic,
             threshold=np.ones(n_samples),

@@ -43,8 +43,14 @@ from typing import Any, ClassVar
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import NOT_ISOLABLE, DetectionBlock, Param
-from imufdi_cli.detectors.vectors import TriadLayout, block_steps, parse_vector_types
+from imufdi_cli.detectors.base import DetectionBlock, Param
+from imufdi_cli.detectors.vectors import (
+    TriadLayout,
+    block_steps,
+    compared_layouts,
+    imu_isolation,
+    parse_vector_types,
+)
 from imufdi_cli.errors import DetectorConfigError
 from imufdi_cli.log import ImuBlock
 
@@ -198,15 +204,7 @@ class Px4SelectorDetector:
         self._states = {}
         self._samples_seen = 0
         self._nominal_step = 1.0 / array.rate_hz
-        for sensor_type in self.types:
-            layout = TriadLayout.build(array, sensor_type, self.name)
-            if layout.n_imus == 0 and len(self.types) > 1:
-                continue
-            if layout.n_imus < 2:
-                raise DetectorConfigError(
-                    f"{self.name} compares IMUs: {sensor_type} needs at least 2 IMUs,"
-                    f" the array has {layout.n_imus}"
-                )
+        for sensor_type, layout in compared_layouts(array, self.types, self.name).items():
             if self.remove_bias:
                 offsets = layout.calibration_offsets(calibration, self.name)
             else:
@@ -219,10 +217,6 @@ class Px4SelectorDetector:
                 offsets=offsets,
                 smoothed=np.zeros((layout.n_imus, 3)),
                 accumulated=np.zeros(layout.n_imus),
-            )
-        if not self._states:
-            raise DetectorConfigError(
-                f"{self.name}: the array has no {' or '.join(self.types)} to compare"
             )
 
     def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
@@ -256,17 +250,9 @@ class Px4SelectorDetector:
         worst = np.argmax(accumulated, axis=1)
         statistic = accumulated[rows, worst]
         alarm = statistic > state.accumulated_threshold
-        local = layout.to_imu_frame(smoothed[rows, worst], worst)  # (N, 3), IMU frame
-        component = np.argmax(np.abs(local), axis=1)
-        if m >= 3:
-            isolated = np.where(alarm, layout.axis_rows(worst, component), -1).astype(np.int32)
-            amplitude = np.where(alarm, local[rows, component] * m / (m - 1), np.nan)
-        else:
-            isolated = np.where(alarm, NOT_ISOLABLE, -1).astype(np.int32)
-            amplitude = np.full(n_samples, np.nan)
-        scores = np.full((n_samples, layout.n_sensors), np.nan)
-        for axis in range(3):
-            scores[:, layout.sensor_of[:, axis]] = accumulated
+        isolated, amplitude, scores = imu_isolation(
+            layout, alarm, worst, smoothed, accumulated, amplitude_scale=m / (m - 1)
+        )
         if state.first_alarm_sample is None and alarm.any():
             state.first_alarm_sample = self._samples_seen + int(np.argmax(alarm))
         return DetectionBlock(

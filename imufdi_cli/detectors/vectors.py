@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import NO_ISOLATION, parse_sensor_types
+from imufdi_cli.detectors.base import NO_ISOLATION, NOT_ISOLABLE, parse_sensor_types
 from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
 from imufdi_cli.log import ImuBlock
 
@@ -146,4 +146,85 @@ def block_steps(t_ns: np.ndarray, last_ns: int | None, nominal_s: float) -> np.n
     return np.asarray((t - previous) * 1e-9, dtype=np.float64)
 
 
-__all__ = ["VECTOR_TYPES", "TriadLayout", "block_steps", "parse_vector_types"]
+def compared_layouts(
+    array: ArrayConfig, types: tuple[str, ...], detector: str
+) -> dict[str, TriadLayout]:
+    """The layout of every tested type that the array has, each with at least 2 IMUs.
+
+    Raises
+    ------
+    DetectorConfigError
+        A tested type with fewer than 2 IMUs (a type absent altogether is skipped when
+        several are tested), a partial triad, or no tested type at all.
+    """
+    layouts = {}
+    for sensor_type in types:
+        layout = TriadLayout.build(array, sensor_type, detector)
+        if layout.n_imus == 0 and len(types) > 1:
+            continue
+        if layout.n_imus < 2:
+            raise DetectorConfigError(
+                f"{detector} compares IMUs: {sensor_type} needs at least 2 IMUs,"
+                f" the array has {layout.n_imus}"
+            )
+        layouts[sensor_type] = layout
+    if not layouts:
+        raise DetectorConfigError(f"{detector}: the array has no {' or '.join(types)} to compare")
+    return layouts
+
+
+def imu_isolation(
+    layout: TriadLayout,
+    alarm: np.ndarray,
+    worst: np.ndarray,
+    deviation: np.ndarray,
+    imu_scores: np.ndarray,
+    amplitude_scale: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """DetectionBlock isolation columns from a whole-IMU decision.
+
+    Parameters
+    ----------
+    alarm : ndarray, shape (N,), bool
+    worst : ndarray, shape (N,), int
+        The IMU (index into ``layout.imus``) blamed at each sample.
+    deviation : ndarray, shape (N, m, 3)
+        Each IMU's deviation from the others, body frame, SI.
+    imu_scores : ndarray, shape (N, m)
+        Per-IMU score, copied to each of the IMU's axes.
+    amplitude_scale : float
+        Factor from the deviation to the fault amplitude.
+
+    Returns
+    -------
+    isolated : ndarray, shape (N,), int32
+        The blamed IMU's axis with the largest deviation in its own frame (>= 3 IMUs), or
+        NOT_ISOLABLE (2 IMUs), at alarmed samples; NO_ISOLATION elsewhere.
+    amplitude : ndarray, shape (N,)
+        That axis' deviation times ``amplitude_scale`` (NaN without isolation).
+    scores : ndarray, shape (N, n_sensors)
+    """
+    n_samples, m = imu_scores.shape
+    rows = np.arange(n_samples)
+    local = layout.to_imu_frame(deviation[rows, worst], worst)  # (N, 3), IMU frame
+    component = np.argmax(np.abs(local), axis=1)
+    if m >= 3:
+        isolated = np.where(alarm, layout.axis_rows(worst, component), NO_ISOLATION)
+        amplitude = np.where(alarm, local[rows, component] * amplitude_scale, np.nan)
+    else:
+        isolated = np.where(alarm, NOT_ISOLABLE, NO_ISOLATION)
+        amplitude = np.full(n_samples, np.nan)
+    scores = np.full((n_samples, layout.n_sensors), np.nan)
+    for axis in range(3):
+        scores[:, layout.sensor_of[:, axis]] = imu_scores
+    return isolated.astype(np.int32), amplitude, scores
+
+
+__all__ = [
+    "VECTOR_TYPES",
+    "TriadLayout",
+    "block_steps",
+    "compared_layouts",
+    "imu_isolation",
+    "parse_vector_types",
+]
