@@ -293,6 +293,28 @@ class ArrayConfig:
         imu_idx, axis_idx = self.sensor_index(sensor_type)
         return np.asarray(triads)[:, imu_idx, axis_idx]
 
+    def calibrate_triads(
+        self, triads: np.ndarray, sensor_type: str, *, undo: bool = False
+    ) -> np.ndarray:
+        """Each IMU's chip calibration applied to its triads, ``M (raw - b)`` (or undone:
+        ``undo=True`` gives the raw values back).
+
+        Parameters
+        ----------
+        triads : ndarray, shape (N, m, 3), SI
+        sensor_type : str
+
+        Returns
+        -------
+        ndarray, shape (N, m, 3): a new array (the input is not modified).
+        """
+        out = np.array(triads, dtype=np.float64, copy=True)
+        for k, imu in enumerate(self.imus):
+            cal = imu.calibration_of(sensor_type)
+            if not cal.is_identity:
+                out[:, k] = cal.undo(out[:, k]) if undo else cal.apply(out[:, k])
+        return out
+
     # --- serialisation --------------------------------------------------------------
 
     def to_dict(self) -> dict[str, Any]:

@@ -502,13 +502,7 @@ def calibrate_file(
     fields: dict[str, np.ndarray | None] = {}
     for s in ("gyro", "accel", "mag"):
         data = block.get(s)
-        if data is not None:
-            data = data.copy()
-            for k, imu in enumerate(log_array.imus):
-                cal = imu.calibration_of(s)
-                if not cal.is_identity:
-                    data[:, k] = cal.undo(data[:, k])
-        fields[s] = data
+        fields[s] = None if data is None else log_array.calibrate_triads(data, s, undo=True)
     raw = ImuBlock(t_ns=block.t_ns, **fields)
     if window is not None:
         rel = raw.t_s()

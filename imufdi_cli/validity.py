@@ -172,16 +172,10 @@ class Conditioner:
             fields[s] = triads
             if triads is None:
                 continue
-            raw = np.empty_like(triads)
-            for k, imu in enumerate(self.log_array.imus):
-                cal = imu.calibration_of(s)
-                raw[:, k] = triads[:, k] if cal.is_identity else cal.undo(triads[:, k])
+            raw = self.log_array.calibrate_triads(triads, s, undo=True)
             flags[s] = flag_values(raw, s, self.ranges.get(s))
             if self.recalibrate:
-                out = np.empty_like(triads)
-                for k, imu in enumerate(self.array.imus):
-                    out[:, k] = imu.calibration_of(s).apply(raw[:, k])
-                fields[s] = out
+                fields[s] = self.array.calibrate_triads(raw, s)
         return ImuBlock(t_ns=block.t_ns, **fields), flags
 
     # --- 3: exclusion -----------------------------------------------------------------
@@ -324,13 +318,7 @@ def apply_calibration(block: ImuBlock, array: ArrayConfig) -> ImuBlock:
     fields: dict[str, np.ndarray | None] = {}
     for s in SENSOR_TYPES:
         triads = block.get(s)
-        if triads is not None:
-            triads = triads.copy()
-            for k, imu in enumerate(array.imus):
-                cal = imu.calibration_of(s)
-                if not cal.is_identity:
-                    triads[:, k] = cal.apply(triads[:, k])
-        fields[s] = triads
+        fields[s] = None if triads is None else array.calibrate_triads(triads, s)
     return ImuBlock(t_ns=block.t_ns, **fields)
 
 
