@@ -393,34 +393,11 @@ class ArrayConfig:
                 rate = parse_quantity(data["rate"], "frequency", name=f"{source}: rate")
             else:
                 rate = float(data.get("rate_hz", 100.0))
-            noise_raw = data.get("noise", {})
-            if not isinstance(noise_raw, Mapping):
-                raise ArrayConfigError(
-                    f"{source}: noise must be a table like {{gyro = '0.1deg/s'}}"
-                )
-            noise: dict[str, float] = {}
-            for key, value in noise_raw.items():
-                if key not in SENSOR_TYPES:
-                    raise ArrayConfigError(
-                        f"{source}: noise.{key}: unknown sensor type; valid: gyro, accel, mag"
-                    )
-                noise[key] = parse_quantity(
-                    value, sensor_dimension(key), name=f"{source}: noise.{key}"
-                )
-            range_raw = data.get("range", {})
-            if not isinstance(range_raw, Mapping):
-                raise ArrayConfigError(
-                    f"{source}: range must be a table like {{gyro = '2000deg/s', accel = '16g'}}"
-                )
-            ranges: dict[str, float] = {}
-            for key, value in range_raw.items():
-                if key not in SENSOR_TYPES:
-                    raise ArrayConfigError(
-                        f"{source}: range.{key}: unknown sensor type; valid: gyro, accel, mag"
-                    )
-                ranges[key] = parse_quantity(
-                    value, sensor_dimension(key), name=f"{source}: range.{key}"
-                )
+            noise = _per_type_quantities(data, "noise", "{gyro = '0.1deg/s'}", source)
+            ranges = _per_type_quantities(
+                data, "range", "{gyro = '2000deg/s', accel = '16g'}", source
+            )
+            for key in ranges:
                 if not (math.isfinite(ranges[key]) and ranges[key] > 0):
                     raise ArrayConfigError(f"{source}: range.{key} must be positive and finite")
         except UnitError as err:
@@ -562,6 +539,25 @@ class ArrayConfig:
             noise=dict(self.noise),
             range=dict(self.range),
         )
+
+
+def _per_type_quantities(
+    data: Mapping[str, Any], key: str, example: str, source: str
+) -> dict[str, float]:
+    """A ``[key]`` table of one quantity per sensor type (``noise``, ``range``), in SI."""
+    raw = data.get(key, {})
+    if not isinstance(raw, Mapping):
+        raise ArrayConfigError(f"{source}: {key} must be a table like {example}")
+    out: dict[str, float] = {}
+    for sensor_type, value in raw.items():
+        if sensor_type not in SENSOR_TYPES:
+            raise ArrayConfigError(
+                f"{source}: {key}.{sensor_type}: unknown sensor type; valid: gyro, accel, mag"
+            )
+        out[sensor_type] = parse_quantity(
+            value, sensor_dimension(sensor_type), name=f"{source}: {key}.{sensor_type}"
+        )
+    return out
 
 
 def _check_type(sensor_type: str) -> None:
