@@ -698,6 +698,17 @@ class EpisodeBuilder:
         self.calibration_mean = (
             None if calibration_mean is None else np.asarray(calibration_mean, np.float64)
         )
+        # what another detector's builder is made from (for_detector)
+        self._arguments = (sensor_type, H, sensor_ids, sigma, rate_hz)
+        self._options: dict[str, Any] = {
+            "merge_gap_s": merge_gap_s,
+            "margin_s": margin_s,
+            "max_window_s": max_window_s,
+            "confidence": confidence,
+            "explain": explain,
+            "calibration_samples": calibration_samples,
+            "calibration_mean": calibration_mean,
+        }
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
@@ -897,22 +908,7 @@ class EpisodeBuilder:
 
     def for_detector(self, detector: str) -> EpisodeBuilder:
         """A fresh builder with the same calibration, for another detector."""
-        rate_hz = 1.0  # the sample counts are already resolved: pass them as seconds
-        return EpisodeBuilder(
-            detector,
-            self.sensor_type,
-            self.H,
-            self.sensor_ids,
-            self.sigma,
-            rate_hz,
-            merge_gap_s=self.merge_gap,
-            margin_s=self.margin,
-            max_window_s=self.max_window,
-            confidence=self.confidence,
-            explain=self.explain,
-            calibration_samples=self.calibration_samples,
-            calibration_mean=self.calibration_mean,
-        )
+        return EpisodeBuilder(detector, *self._arguments, **self._options)
 
     def _loudest(self, window: np.ndarray) -> int:
         """For detectors that do not isolate: the sensor with the largest normalised
