@@ -12,7 +12,7 @@ per model is injected on a sensor drawn from the seed at a jittered onset in [8,
 (:func:`imufdi_cli.episodes.match_episodes`) and scored: per true model, the share of
 matched episodes whose class is right, and the share whose 90 % size interval covers the
 injected size (targets: class >= 90 %, coverage 85-95 %). False episodes per hour come
-from the fault-free seconds. Also prints detect's time with and without explanations on
+from the fault-free seconds after the calibration window. Also prints detect's time with and without explanations on
 the same logs (a ratio, same run) and the load average.
 """
 
@@ -85,13 +85,20 @@ def main() -> int:
                     if e["event"] == "episode" and e["sensor_type"] == "gyro"
                 ]
                 matches = match_episodes(episodes, faults)
+                # out-of-sample fault-free time: after the 2 s calibration window (the
+                # detector was fitted on it), before the onset
+                onset_ns = faults[0]["start_ns"]
+                calibrated_ns = onset_ns - round((at - 2.0) * 1e9)
                 for episode, match in zip(episodes, matches):
                     if match["match"] == "fault":
                         rows[model].append({**match, "class": episode["fault_class"]})
-                    # fault-free time: the 6 s after calibration (2 s) and before the onset
-                    elif match["match"] == "false" and episode["end_ns"] < faults[0]["start_ns"]:
+                    elif (
+                        match["match"] == "false"
+                        and episode["start_ns"] >= calibrated_ns
+                        and episode["end_ns"] < onset_ns
+                    ):
                         false_episodes += 1
-                fault_free_hours += 6.0 / 3600
+                fault_free_hours += (at - 2.0) / 3600
             print(f"seed {seed} done", file=sys.stderr, flush=True)
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     print(f"detector {args.detector}, paper-table4 gyro, seeds {lo}-{hi - 1}; load average {load}")
@@ -108,7 +115,10 @@ def main() -> int:
         print(
             f"{model:8s} {n:8d} {100 * right / max(n, 1):11.1f}% {100 * cov:8.1f}%  {dict(found)}"
         )
-    print(f"false episodes before the onsets: {false_episodes / fault_free_hours:.0f} per hour")
+    print(
+        "false episodes between calibration and onset:"
+        f" {false_episodes / fault_free_hours:.0f} per hour"
+    )
     print(f"detect time with explanations / without: {time_on / time_off:.2f}x")
     return 0
 
