@@ -1382,6 +1382,7 @@ def run_campaign_cli(
         TimeRemainingColumn(),
         console=console,
         transient=False,
+        disable=not console.is_terminal,  # a bar only on a terminal, never in logs/pipes
     ) as bar:
         task = bar.add_task(spec.name, total=len({run_key(r) for r in spec.runs}), failed=0)
         failed = 0

@@ -46,6 +46,7 @@ from imufdi_cli.mcapio.events import (
     register_events_channel,
     register_truth_channel,
 )
+from imufdi_cli.progress import LogTimeProgress, ProgressCallback
 from imufdi_cli.validity import Conditioner
 
 NS_PER_S = 1_000_000_000
@@ -293,6 +294,7 @@ def detect_file(
     window: tuple[float, float | None] | None = None,
     time_source: str = "auto",
     explain: bool = True,
+    progress: ProgressCallback | None = None,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -317,6 +319,8 @@ def detect_file(
         The calibration window is taken from the whole log either way.
     explain : bool
         Write an explained ``episode`` event for every alarm episode (docs/episodes.md).
+    progress : callable, optional
+        ``progress(seconds done, log seconds or None)`` (:mod:`imufdi_cli.progress`).
 
     Returns
     -------
@@ -456,8 +460,10 @@ def detect_file(
                 run(pending, pending_flags)
             backlog.clear()
 
+        tracker = LogTimeProgress(progress, getattr(reader.source, "summary_time_range", None))
         for batch, block in reader.stream():
             copy_batch(batch)
+            tracker.batch(batch)
             if len(block) == 0:
                 continue
             if t_first is None:

@@ -103,6 +103,24 @@ class CalibrationError(InputDataError):
     """The calibration window is empty, too short or degenerate."""
 
 
+class ArrayTooSmallError(CalibrationError):
+    """The log's array has too few IMUs or sensors for a detector (exit 3, like any other
+    data the detector cannot check, whichever detector it is). The message ends with
+    :data:`ARRAY_TOO_SMALL_HINT`."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(f"{message}; {ARRAY_TOO_SMALL_HINT}")
+
+
+#: what a user can do about a log with too few sensors for a detector
+ARRAY_TOO_SMALL_HINT = (
+    "redundancy checks compare sensors, so they need more of them than this log has:"
+    " `imufdi info LOG` shows its IMUs; use a log of the whole array, choose --topic"
+    " so that enough IMUs are read, or a detector for this case (bank mode=marg checks"
+    " a single IMU that has a magnetometer)"
+)
+
+
 class CampaignFailedError(ImufdiError):
     """Every run of a campaign failed: exit 3 when they failed on the data (imufdi errors),
     4 when any failed on an internal error (a bug)."""

@@ -867,6 +867,7 @@ def inject_file(
     compression: str = "zstd",
     topics: Sequence[str] | None = None,
     time_source: str = "auto",
+    progress: Any = None,
 ) -> InjectResult:
     """Copy an MCAP log with faults injected into its IMU messages, plus ground truth.
 
@@ -898,6 +899,9 @@ def inject_file(
         :class:`~imufdi_cli.mcapio.ImuArrayReader` takes them; default all.
     time_source : {"auto", "header", "log_time"}
         Stamps the fault times refer to (see :class:`~imufdi_cli.mcapio.ImuArrayReader`).
+    progress : callable, optional
+        ``progress(done, total)`` in seconds of log time, both passes counted
+        (:mod:`imufdi_cli.progress`).
 
     Raises
     ------
@@ -910,6 +914,7 @@ def inject_file(
 
     from imufdi_cli import mcapio
     from imufdi_cli.errors import McapInputError, UsageError
+    from imufdi_cli.progress import LogTimeProgress
     from imufdi_cli.mcapio.events import (
         decode_events,
         encode_fault_events,
@@ -954,7 +959,9 @@ def inject_file(
     legacy_truth: list[dict[str, Any]] = []
     legacy_alarms: list[tuple[int, dict[str, Any]]] = []
     with mcapio.McapSource(open_input()) as reader:
+        tracker = LogTimeProgress(progress, reader.summary_time_range, passes=2)
         for batch in reader.batches():
+            tracker.batch(batch)
             for cid in np.unique(batch.channel_id).tolist():
                 channel = reader.channels[cid]
                 if channel.message_encoding == "json" and is_event_channel(channel):
@@ -1069,7 +1076,9 @@ def inject_file(
                     [e for _, e in legacy_alarms],
                 )
             )
+        tracker.next_pass()
         for batch in reader.batches():
+            tracker.batch(batch)
             if legacy_ids:
                 batch = batch.select(~np.isin(batch.channel_id, legacy_ids))
             result.messages += len(batch)

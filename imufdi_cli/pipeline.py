@@ -143,11 +143,13 @@ def ingest_file(
     accel_fs: str | None = None,
     strict: bool = False,
     start_time: str | None = None,
+    progress: Any = None,
 ) -> Any:
     """Parse a raw capture with a layout and write the MCAP; returns the ingest stats.
 
     ``start_time``: wall-clock time of the first frame (see :func:`parse_start_time`);
-    default: the device's own time."""
+    default: the device's own time. ``progress(bytes read, capture bytes or None)``:
+    see :mod:`imufdi_cli.progress`."""
     from imufdi_cli.capture import ingest, load_layout
 
     builtin: dict[str, Any] = {}
@@ -166,6 +168,7 @@ def ingest_file(
         rate_hz=rate_hz,
         strict=strict,
         start_time_ns=None if start_time is None else parse_start_time(start_time),
+        progress=progress,
     )
 
 

@@ -22,6 +22,7 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 
 from imufdi_cli.errors import GateError, McapInputError, UsageError
+from imufdi_cli.jsonout import dumps as json_dumps
 from imufdi_cli.metrics import (
     METRIC_NAMES,
     FaultWindow,
@@ -29,6 +30,7 @@ from imufdi_cli.metrics import (
     MetricsAccumulator,
     faulty_matrix,
 )
+from imufdi_cli.progress import LogTimeProgress, ProgressCallback
 
 # --- building --------------------------------------------------------------------------
 
@@ -53,6 +55,8 @@ class ReportEntry:
     faulty: np.ndarray = field(repr=False)
     roc: dict[str, np.ndarray] | None = field(default=None, repr=False)
     validity: dict[str, int] = field(default_factory=dict)  # clipped, invalid, excluded
+    #: isolated sensor index per kept sample (-1: none), for ``--plot``
+    isolated: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
 
 
 @dataclass
@@ -71,6 +75,9 @@ class Report:
     episodes: list[dict[str, Any]] = field(default_factory=list)
     #: per ``detector.type``: EpisodeTally figures, plus ``listed`` and ``omitted``
     episode_scores: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: per detector: its ``imufdi.detect.<name>`` record (parameters, what its statistic
+    #: and scores are), when the log has one
+    records: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def entry(self, detector: str, sensor_type: str) -> ReportEntry | None:
         for item in self.entries:
@@ -217,6 +224,7 @@ def build_report(
     keep_series: bool = False,
     keep_roc: bool = False,
     window: tuple[float, float | None] | None = None,
+    progress: ProgressCallback | None = None,
 ) -> Report:
     """Compute the report of an annotated log in one streaming pass.
 
@@ -237,6 +245,8 @@ def build_report(
         Score only samples in this range (seconds from the log's first sample, as
         ``detect`` recorded it). Samples ``detect`` excluded as clipped or invalid are never
         scored (:func:`imufdi_cli.validity.select_rows`).
+    progress : callable, optional
+        ``progress(seconds done, log seconds or None)`` (:mod:`imufdi_cli.progress`).
 
     Memory does not depend on the log length (one chunk, fixed histograms), except for
     the bounded series of ``keep_series``.
@@ -265,8 +275,11 @@ def build_report(
             windows_cal = calibration_windows(metadata)
             episodes = _EpisodeCollector(truth, windows_cal, window, first_ns)
             records = {d: _detect_record(metadata, d) for d in windows_cal}
+            tracker = LogTimeProgress(progress, getattr(src, "summary_time_range", None))
             for detector, sensor_type, ids, rows in iter_status(src, others=episodes.batch):
                 key = (detector, sensor_type)
+                if rows["t_ns"].size:
+                    tracker.at(int(rows["t_ns"][-1]))
                 if key not in first_ns and rows["t_ns"].size:
                     origin = int(rows["t_ns"][0])
                 else:
@@ -306,7 +319,17 @@ def build_report(
                 )
                 if keep_series:
                     series[key].add(
-                        {k: rows[k] for k in ("t_ns", "statistic", "threshold", "alarm", "scores")}
+                        {
+                            k: rows[k]
+                            for k in (
+                                "t_ns",
+                                "statistic",
+                                "threshold",
+                                "alarm",
+                                "isolated",
+                                "scores",
+                            )
+                        }
                     )
             problems = list(src.warnings)
     finally:
@@ -374,6 +397,7 @@ def build_report(
                 alarm=arrays.get("alarm", np.zeros(0, bool)),
                 scores=arrays.get("scores", np.zeros((0, n_s))),
                 faulty=faulty_matrix(t_ns, acc.windows, n_s),
+                isolated=arrays.get("isolated", np.zeros(0, np.int64)),
                 roc=roc,
                 validity=validity.get(key, {}),
             )
@@ -401,6 +425,7 @@ def build_report(
         match_far=match_far,
         episode_scores=episode_scores,
         episodes=episodes.listed,
+        records={d: r for d, r in records.items() if r is not None},
     )
 
 
@@ -731,7 +756,7 @@ def to_json(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
         "episodes": report.episodes,
         "episode_scores": report.episode_scores,
     }
-    return json.dumps(data, indent=2, allow_nan=False) + "\n"
+    return json_dumps(data)
 
 
 def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
@@ -1007,117 +1032,3 @@ def to_roc_csv(report: Report) -> str:
                 row.append("" if math.isnan(v) else f"{v:.6g}")
             writer.writerow(row)
     return out.getvalue()
-
-
-def plot_roc(report: Report, path: str) -> None:
-    """MAR against FAR of every swept entry (log FAR axis), the matched FAR marked."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.5, 4.5), constrained_layout=True)
-    for e in report.entries:
-        if e.roc is None:
-            continue
-        far, mar = e.roc["far"], e.roc["mar"]
-        ok = ~np.isnan(far) & ~np.isnan(mar) & (far > 0)
-        ax.plot(far[ok] * 100, mar[ok] * 100, lw=1.2, label=f"{e.detector} · {e.sensor_type}")
-    if report.match_far is not None:
-        ax.axvline(report.match_far * 100, color="k", ls="--", lw=0.8, label="matched FAR")
-    ax.set_xscale("log")
-    ax.set_xlabel("FAR %, outside the calibration window")
-    ax.set_ylabel("MAR %")
-    ax.set_title("threshold sweep of the raw statistic")
-    ax.legend(fontsize=8)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def _pyplot() -> Any:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError as err:
-        raise UsageError("--plot needs matplotlib: pip install 'imufdi-cli[plot]'") from err
-    return plt
-
-
-#: episodes labelled per panel (the longest; the others are only spanned)
-PLOT_EPISODE_LABELS = 6
-
-
-def _mark_episodes(ax: Any, report: Report, entry: ReportEntry) -> None:
-    """Span each listed episode of this detector and type on the panel's time axis, and
-    label the longest with their class and size (docs/episodes.md)."""
-    mine = [
-        ep
-        for ep in report.episodes
-        if ep["detector"] == entry.detector and ep["sensor_type"] == entry.sensor_type
-    ]
-    for ep in mine:
-        start = (ep["start_ns"] - report.t0_ns) / 1e9
-        end = (ep["end_ns"] - report.t0_ns) / 1e9
-        ax.axvspan(start, max(end, start + 1e-3), color="tab:orange", alpha=0.25, lw=0)
-    for ep in sorted(mine, key=lambda ep: -(ep["end_ns"] - ep["start_ns"]))[:PLOT_EPISODE_LABELS]:
-        start = (ep["start_ns"] - report.t0_ns) / 1e9
-        sensor = (ep.get("sensors") or ["?"])[0]
-        ax.annotate(
-            f"{sensor}: {ep.get('fault_class') or '?'} {format_size(ep)}",
-            xy=(start, 0.97),
-            xycoords=("data", "axes fraction"),
-            fontsize=7,
-            rotation=90,
-            va="top",
-            ha="right",
-            color="tab:brown",
-        )
-
-
-def plot_report(report: Report, path: str) -> None:
-    """Detection statistic vs threshold and isolation scores over time, faults shaded
-    (like Li et al. Figure 15), from the series kept with ``build_report(keep_series=True)``.
-    Needs the ``plot`` extra (matplotlib)."""
-    plt = _pyplot()
-    entries = report.entries
-    fig, axes = plt.subplots(
-        len(entries), 2, figsize=(12, 3.2 * len(entries)), squeeze=False, constrained_layout=True
-    )
-    for row, e in enumerate(entries):
-        t = (e.t_ns - report.t0_ns) / 1e9
-        shade = e.faulty.any(axis=1)
-        for ax in axes[row]:
-            if shade.any():
-                ax.fill_between(
-                    t,
-                    0,
-                    1,
-                    where=shade,
-                    transform=ax.get_xaxis_transform(),
-                    color="tab:red",
-                    alpha=0.12,
-                    label="fault active",
-                    step="post",
-                )
-        ax = axes[row][0]
-        ax.plot(t, e.statistic, lw=0.7, label="statistic")
-        ax.plot(t, e.threshold, "k--", lw=1.0, label="threshold")
-        finite = e.statistic[np.isfinite(e.statistic) & (e.statistic > 0)]
-        if finite.size and finite.max() / max(finite.min(), 1e-12) > 100:
-            ax.set_yscale("log")
-        _mark_episodes(ax, report, e)
-        ax.set_title(f"{e.detector} · {e.sensor_type}: detection statistic")
-        ax.set_xlabel("time, s")
-        ax.legend(loc="upper left", fontsize=8)
-        ax = axes[row][1]
-        scores = e.scores
-        if scores.size and np.isfinite(scores).any():
-            peak = np.nanmax(np.where(np.isfinite(scores), scores, -np.inf), axis=0)
-            top = np.argsort(peak)[::-1][: min(6, scores.shape[1])]
-            for j in top:
-                ax.plot(t, scores[:, j], lw=0.7, label=e.sensor_ids[j])
-            ax.legend(loc="upper left", fontsize=7, ncol=2)
-        else:
-            ax.text(0.5, 0.5, "no isolation scores", ha="center", transform=ax.transAxes)
-        ax.set_title(f"{e.detector} · {e.sensor_type}: isolation scores (top sensors)")
-        ax.set_xlabel("time, s")
-    fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -140,6 +140,7 @@ def ingest(
     compression: str = "zstd",
     chunk_size: int = DEFAULT_CHUNK_SIZE,
     start_time_ns: int | None = None,
+    progress: Any = None,
 ) -> IngestStats:
     """Parse a capture and write it as an MCAP log (``imufdi ingest``).
 
@@ -164,6 +165,8 @@ def ingest(
         by the same offset, so intervals keep the device's timing. Default: the device's own
         time (timestamp field, counter x period, or frame index x period, from 0 at the
         device's epoch), which viewers show as a date near 1970.
+    progress : callable, optional
+        ``progress(bytes read, capture size in bytes or None)`` (:mod:`imufdi_cli.progress`).
 
     Returns
     -------
@@ -209,8 +212,11 @@ def ingest(
         with mcapio.McapWriter(target, **writer_options) as writer:
             imu_writer = mcapio.ImuArrayWriter(writer, array)
             imu_writer.write_block(anchored(first))
+            size = _capture_size(source) if progress is not None else None
             for block in blocks:
                 imu_writer.write_block(anchored(block))
+                if progress is not None:
+                    progress(float(stats.bytes_total), size)
             record = {
                 "layout": _jsonable(layout.description),
                 "layout_name": layout.name,
@@ -231,6 +237,18 @@ def ingest(
     except (OSError, ValueError) as err:
         raise CaptureError(f"cannot write {output}: {err}") from err
     return stats
+
+
+def _capture_size(source: Any) -> float | None:
+    """Bytes in a capture (a path or bytes), None for streams."""
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        return float(len(source))
+    if isinstance(source, (str, os.PathLike)) and os.fspath(source) != "-":
+        try:
+            return float(os.path.getsize(source))
+        except OSError:
+            return None
+    return None
 
 
 def _jsonable(value: Any) -> Any:

@@ -71,7 +71,7 @@ from imufdi_cli.detectors.parity import (
     sigma_estimate_variance,
     whiten,
 )
-from imufdi_cli.errors import CalibrationError, DetectorConfigError
+from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 
 #: Scale from the median absolute deviation to the standard deviation of a Gaussian.
@@ -258,7 +258,7 @@ def _fit_array_test(
 ) -> _ArrayTest:
     n = H.shape[0]
     if n < 4:
-        raise CalibrationError(
+        raise ArrayTooSmallError(
             f"bank: {sensor_type} has {n} sensors; the leave-one-out bank needs at least 4"
         )
     calibration_stats(values)  # checks the window length

@@ -96,7 +96,12 @@ from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.nn import ACTIVATIONS, Adam, Conv1d, Dense, Sequential, mse_loss
 from imufdi_cli.detectors.parity import least_squares_matrix
 from imufdi_cli.detectors.pca_parity import MovingWindow
-from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
+from imufdi_cli.errors import (
+    ArrayTooSmallError,
+    CalibrationError,
+    DetectorConfigError,
+    InputDataError,
+)
 from imufdi_cli.log import ImuBlock
 
 #: Format tag of saved model files.
@@ -449,7 +454,7 @@ class CnnMapDetector:
     def _setup(self, array: ArrayConfig) -> None:
         tested = [k for k, imu in enumerate(array.imus) if len(imu.axes_of("accel")) == 3]
         if len(tested) < 2:
-            raise DetectorConfigError(
+            raise ArrayTooSmallError(
                 "cnn-map compares IMUs with each other and needs at least 2 with full"
                 f" accelerometer triads; this array has {len(tested)}"
             )

@@ -67,7 +67,12 @@ from imufdi_cli.detectors.parity import (
     whiten,
 )
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
-from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
+from imufdi_cli.errors import (
+    ArrayTooSmallError,
+    CalibrationError,
+    DetectorConfigError,
+    InputDataError,
+)
 from imufdi_cli.log import ImuBlock
 
 #: Minimum number of calibration samples.
@@ -305,7 +310,7 @@ class GltDetector:
             self._states[sensor_type] = self._calibrate(calibration, array, sensor_type)
         if not self._states:
             counts = ", ".join(f"{s}: {array.n_sensors(s)}" for s in requested) or "none"
-            raise DetectorConfigError(
+            raise ArrayTooSmallError(
                 f"glt needs at least {MIN_ACTIVE_SENSORS} sensors of a type (parity space"
                 f" n - 3 >= 1); this array has {counts}"
             )

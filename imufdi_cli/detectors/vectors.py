@@ -16,7 +16,12 @@ import numpy as np
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import NO_ISOLATION, NOT_ISOLABLE, parse_sensor_types
-from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
+from imufdi_cli.errors import (
+    ArrayTooSmallError,
+    CalibrationError,
+    DetectorConfigError,
+    InputDataError,
+)
 from imufdi_cli.log import ImuBlock
 
 #: Sensor types the firmware checks compare (magnetometers are checked differently).
@@ -163,7 +168,7 @@ def compared_layouts(
         if layout.n_imus == 0 and len(types) > 1:
             continue
         if layout.n_imus < 2:
-            raise DetectorConfigError(
+            raise ArrayTooSmallError(
                 f"{detector} compares IMUs: {sensor_type} needs at least 2 IMUs,"
                 f" the array has {layout.n_imus}"
             )

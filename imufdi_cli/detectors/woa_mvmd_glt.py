@@ -69,7 +69,12 @@ from imufdi_cli.detectors.parity import (
     whiten,
 )
 from imufdi_cli.detectors.woa import woa
-from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
+from imufdi_cli.errors import (
+    ArrayTooSmallError,
+    CalibrationError,
+    DetectorConfigError,
+    InputDataError,
+)
 from imufdi_cli.log import ImuBlock
 
 DEFAULT_WEIGHTS: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -874,7 +879,7 @@ class WoaMvmdGltDetector:
             if triads is None or n == 0:
                 continue
             if n < 4:
-                raise CalibrationError(
+                raise ArrayTooSmallError(
                     f"{self.name}: {sensor_type} has {n} sensors; the GLT needs at least 4"
                 )
             values = array.select(triads, sensor_type)

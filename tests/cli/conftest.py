@@ -55,11 +55,13 @@ def cli():
 
 
 def assert_one_line_error(result: CliResult, code: int, fragment: str) -> None:
+    """Exit ``code`` and exactly one error line, the last line on stderr (a summary of
+    what was done before the error may precede it), containing ``fragment``."""
     assert result.code == code, (result.code, result.stderr)
     lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("imufdi: error: "), lines[0]
-    assert fragment in lines[0], lines[0]
+    errors = [line for line in lines if line.startswith("imufdi: error: ")]
+    assert len(errors) == 1 and lines[-1] == errors[0], result.stderr
+    assert fragment in errors[0], errors[0]
     assert "Traceback" not in result.stderr
 
 

@@ -83,7 +83,7 @@ def test_calibrate_start_end_and_missing_static(cli, real_log, tmp_path):
     assert base.read_text() == (SAMPLES / "mimu4444-array.toml").read_text()
     result = cli(["calibrate", real_log, "--end", "60s", "-o", tmp_path / "c.toml"])
     assert result.code == 0, result.stderr
-    assert "only 2 orientation(s)" in result.out and "warning" in result.out
+    assert "only 2 orientation(s)" in result.stderr and "warning" in result.stderr
 
 
 def test_singular_calibration_is_usage_error_naming_the_imu(cli, real_log, tmp_path):
@@ -111,7 +111,7 @@ def test_detect_holds_its_level_on_the_real_sample(cli, real_log, tmp_path):
         ]
     )  # fmt: skip
     assert result.code == 0, result.stderr
-    assert "563 clipped" in result.out
+    assert "563 clipped" in result.stderr
     array, block = read_array(str(real_log))
     t = block.t_s()
     _, static = find_static(array, block.accel, block.gyro, t, np.ones(len(t), bool))
@@ -162,7 +162,7 @@ def test_huge_and_nan_values_are_flagged_not_a_crash(cli, tmp_path):
     detectors = ["-d", "glt", "-d", "pca-parity", "-d", "bank", "-d", "noise-glr"]
     result = cli(["detect", log, *detectors, "-o", out])
     assert result.code == 0, result.stderr
-    assert "3 invalid" in result.out and "6 invalid" in result.out
+    assert "3 invalid" in result.stderr and "6 invalid" in result.stderr
     report = cli(["report", out, "--json", "-"])
     assert report.code == 0, report.stderr
     entries = {(e["detector"], e["sensor_type"]): e for e in json.loads(report.out)["results"]}

@@ -67,8 +67,8 @@ def test_campaign_writes_results_and_gates(cli, tmp_path):
     out = tmp_path / "out"
     result = cli(["campaign", spec, "-o", out, "--jobs", "1", "--fail-if", "glt.gyro.far > 0.5"])
     assert result.code == 0, result.stderr
-    assert "4 runs (4 executed, 0 resumed, 0 failed)" in result.out
-    assert "gate passed" in result.out
+    assert "4 runs (4 executed, 0 resumed, 0 failed)" in result.stderr
+    assert "gate passed" in result.stderr
     names = {p.name for p in out.iterdir()}
     assert {"runs", "runs.csv", "summary.json", "summary.md"} <= names
     summary = json.loads((out / "summary.json").read_text())
@@ -77,7 +77,7 @@ def test_campaign_writes_results_and_gates(cli, tmp_path):
         ["campaign", spec, "-o", out, "--resume", "--fail-if", "glt.gyro.detection_probability < 1"]
     )
     assert failing.code == 1, failing.stderr
-    assert "0 executed, 4 resumed" in failing.out and "gate FAILED" in failing.out
+    assert "0 executed, 4 resumed" in failing.stderr and "gate FAILED" in failing.stderr
 
 
 def test_campaign_on_base_log_files(cli, tmp_path):
@@ -204,7 +204,7 @@ def test_sigkill_half_way_then_resume_equals_uninterrupted(cli, tmp_path):
     assert not (out / "runs.csv").exists()
     resumed = cli(["campaign", spec, "-o", out, "--jobs", "2", "--resume"])
     assert resumed.code == 0, resumed.stderr
-    assert f"24 runs ({24 - len(done)} executed, {len(done)} resumed, 0 failed)" in resumed.out
+    assert f"24 runs ({24 - len(done)} executed, {len(done)} resumed, 0 failed)" in resumed.stderr
     after = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in out.glob("runs/*.json")}
     assert len(after) == 24
     assert all(after[name] == stamp for name, stamp in done.items())  # no run executed twice
@@ -289,7 +289,7 @@ def test_all_runs_failing_on_their_data_exits_3(cli, tmp_path):
     out = tmp_path / "out"
     result = cli(["campaign", spec, "-o", out, "--jobs", "1"])
     assert_one_line_error(result, 3, "all 4 runs failed (first: run ")
-    assert "4 runs (4 executed, 0 resumed, 4 failed)" in result.out
+    assert "4 runs (4 executed, 0 resumed, 4 failed)" in result.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["failed"] == 4 and summary["failures"][0]["error"]
 
@@ -318,7 +318,7 @@ def test_some_runs_failing_still_exits_0(cli, tmp_path, monkeypatch):
     monkeypatch.setattr(imufdi_cli.campaign, "_execute", flaky)
     result = cli(["campaign", write(tmp_path, SPEC), "-o", tmp_path / "out", "--jobs", "1"])
     assert result.code == 0, result.stderr
-    assert "2 failed" in result.out
+    assert "2 failed" in result.stderr
 
 
 @pytest.mark.slow
@@ -349,4 +349,4 @@ def test_sigterm_stops_a_campaign_cleanly_and_resume_finishes_it(cli, tmp_path):
     assert 2 <= done < 24
     resumed = cli(["campaign", spec, "-o", out, "--jobs", "1", "--resume"])  # lock released
     assert resumed.code == 0, resumed.stderr
-    assert f"24 runs ({24 - done} executed, {done} resumed, 0 failed)" in resumed.out
+    assert f"24 runs ({24 - done} executed, {done} resumed, 0 failed)" in resumed.stderr

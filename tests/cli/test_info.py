@@ -72,7 +72,7 @@ def test_corrupt_chunk_is_skipped_with_its_offset_or_fails_with_strict(cli, tmp_
     path.write_bytes(data)
     result = cli(["info", path])
     assert result.code == 0, result.stderr
-    warnings = [line for line in result.out.splitlines() if line.startswith("warning:")]
+    warnings = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
     assert len(warnings) == 1 and f"chunk at byte {offset} skipped: " in warnings[0]
     assert_one_line_error(cli(["info", "--strict", "-"], stdin=data), 3, f"chunk at byte {offset}")
 

@@ -94,4 +94,4 @@ def test_corrupt_input_chunk_is_named_in_a_warning(cli, tmp_path, table4_log):
     out = tmp_path / "out.mcap"
     result = cli(["inject", path, "--fault", "step:imu0.gyro.x,at=1s,amp=1deg/s", "-o", out])
     assert result.code == 0, result.stderr
-    assert f"warning: chunk at byte {offset} skipped: " in result.out
+    assert f"warning: chunk at byte {offset} skipped: " in result.stderr

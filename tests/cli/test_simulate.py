@@ -14,7 +14,7 @@ def test_preset_writes_log(cli, tmp_path):
     out = tmp_path / "a.mcap"
     result = cli(["simulate", "--preset", "paper-table4", "--seed", "3", "-o", out])
     assert result.code == 0, result.stderr
-    assert "500 samples of 16 IMUs" in result.out
+    assert "500 samples of 16 IMUs" in result.stderr
     array, block = read_array(str(out))
     assert array.n_imus == 16 and len(block) == 500
 

@@ -13,7 +13,12 @@ from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import NO_ISOLATION, NOT_ISOLABLE, DetectionBlock, parse_params
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.parity import parity_matrix, whiten
-from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
+from imufdi_cli.errors import (
+    ArrayTooSmallError,
+    CalibrationError,
+    DetectorConfigError,
+    InputDataError,
+)
 from imufdi_cli.log import ImuBlock
 
 RATE = 100.0
@@ -209,7 +214,7 @@ def test_two_coaligned_imus_are_not_isolable() -> None:
 
 def test_fewer_than_four_sensors() -> None:
     array = ArrayConfig.co_aligned(1, noise={"gyro": 0.01})
-    with pytest.raises(DetectorConfigError, match="at least 4 sensors"):
+    with pytest.raises(ArrayTooSmallError, match="at least 4 sensors"):  # exit 3: the data
         make_detector().fit(make_block(array, 50, np.random.default_rng(0)), array)
 
 

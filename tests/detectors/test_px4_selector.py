@@ -16,7 +16,7 @@ from imufdi_cli.detectors.px4_selector import (
     accumulate_excess,
     smooth_deviation,
 )
-from imufdi_cli.errors import DetectorConfigError
+from imufdi_cli.errors import ArrayTooSmallError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.mcapio import read_status
 from tests.cli.conftest import assert_one_line_error, invoke
@@ -161,7 +161,7 @@ def test_defaults_are_the_firmware_parameters() -> None:
 def test_bad_configurations_name_the_problem() -> None:
     with pytest.raises(DetectorConfigError, match="types"):
         make(types="mag")
-    with pytest.raises(DetectorConfigError, match="at least 2 IMUs"):
+    with pytest.raises(ArrayTooSmallError, match="at least 2 IMUs"):  # exit 3: the data
         make().fit(block(100, 1, np.random.default_rng(0)), ArrayConfig.co_aligned(1))
     partial = ArrayConfig(
         imus=(ImuSpec(), ImuSpec(axes={"gyro": ("x", "y"), "accel": ("x", "y", "z"), "mag": ()}))

@@ -1,0 +1,85 @@
+"""The ``imufdi`` click group and the option helpers its commands share."""
+
+from __future__ import annotations
+
+import click
+
+from imufdi_cli import __version__
+
+
+def start_end(start: str | None, end: str | None) -> tuple[float, float | None] | None:
+    """``--start``/``--end`` as a window (seconds from the first sample), or None."""
+    from imufdi_cli.errors import UsageError
+    from imufdi_cli.units import parse_quantity
+
+    if start is None and end is None:
+        return None
+    start_s = parse_quantity(start, "time", name="--start") if start is not None else 0.0
+    end_s = parse_quantity(end, "time", name="--end") if end is not None else None
+    if start_s < 0 or (end_s is not None and end_s <= start_s):
+        raise UsageError(f"--start {start!r} / --end {end!r}: need 0 <= START < END")
+    return start_s, end_s
+
+
+def time_source(stamps: str) -> str:
+    """--stamps choice -> ImuArrayReader time source."""
+    return "log_time" if stamps == "log" else stamps
+
+
+def time_range(text: str, name: str) -> tuple[float, float | None]:
+    """A ``START:END`` option (e.g. ``--calibrate 0s:2s``) in seconds."""
+    from imufdi_cli.units import parse_time_range
+
+    return parse_time_range(text, name=name)
+
+
+#: options shared by every command that reads Imu topics (info, inject, detect)
+topic_option = click.option(
+    "--topic",
+    "topics",
+    multiple=True,
+    help="Imu topic to use, in array order (repeatable); /TOPIC:FIELD picks the"
+    " sensor_msgs/msg/Imu field FIELD of a larger message.",
+)
+stamps_option = click.option(
+    "--stamps",
+    type=click.Choice(["auto", "header", "log"]),
+    default="auto",
+    show_default=True,
+    help="Imu time: header.stamp, MCAP log time, or auto (header; log time when the Imu has"
+    " no header or all-zero stamps, with a warning).",
+)
+
+EXIT_CODES_TEXT = (
+    "Exit codes: 0 ok, 1 CI gate failed, 2 usage error, 3 bad input data or I/O error,"
+    " 4 internal error, 130/143 interrupted/terminated."
+)
+
+
+class Group(click.Group):
+    def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        formatter.write_paragraph()
+        formatter.write_text(
+            "Every command: -q/--quiet, -v/--verbose, --json [FILE] (machine-readable"
+            " summary; - or no FILE: stdout); summaries on stderr; NO_COLOR honoured."
+            ' Shell completion: eval "$(_IMUFDI_COMPLETE=bash_source imufdi)"'
+            " (zsh_source, fish_source)."
+        )
+        formatter.write_paragraph()
+        formatter.write_text(EXIT_CODES_TEXT)
+
+
+@click.group(cls=Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="imufdi")
+def cli() -> None:
+    """Fault detection and isolation for redundant MEMS IMU arrays, on MCAP logs.
+
+    Example:
+
+
+    \b
+        imufdi simulate --preset paper-table4 --seed 1 -o run.mcap
+        imufdi inject run.mcap --fault step:imu0.gyro.x,at=2.5s,amp=0.9deg/s -o faulty.mcap
+        imufdi detect faulty.mcap -d glt -o detected.mcap
+        imufdi report detected.mcap --fail-if 'glt.gyro.far > 0.08'
+    """

@@ -1,0 +1,145 @@
+"""The console entry point: run the click group, turn every error into one line and an
+exit code (``main``), and signals into a clean exit."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+import traceback
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import click
+
+from imufdi_cli.cli.app import cli
+from imufdi_cli.cli.ui import error_line as _err
+from imufdi_cli.errors import EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_USAGE, ImufdiError
+
+
+class Terminated(BaseException):
+    """SIGTERM/SIGHUP (or SIGINT) turned into an exception, so that every ``with`` block
+    unwinds: atomic outputs remove their temporary files, worker pools shut down.
+
+    A BaseException, so that library code catching ``Exception`` (a campaign recording a
+    failed run) does not swallow it.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+#: Signals that stop the CLI cleanly (exit 128 + signal number).
+HANDLED_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+
+
+@contextmanager
+def _signals_as_exceptions() -> Iterator[None]:
+    """Install handlers raising :class:`Terminated` (the first signal only: further
+    signals while cleaning up are ignored so the cleanup completes); restore on exit.
+    A signal that is already ignored (``nohup`` ignores SIGHUP) stays ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    raised = False
+
+    def handler(signum: int, frame: Any) -> None:
+        nonlocal raised
+        if raised:
+            return
+        raised = True
+        raise Terminated(signum)
+
+    previous = {}
+    for signum in HANDLED_SIGNALS:
+        try:
+            if signal.getsignal(signum) == signal.SIG_IGN:
+                continue  # ignored by whoever started us (nohup, a background job): keep it
+            previous[signum] = signal.signal(signum, handler)
+        except (OSError, ValueError):  # pragma: no cover - platform without the signal
+            continue
+    try:
+        yield
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
+
+
+def describe_exception(err: BaseException) -> str:
+    """One non-empty line for an unexpected exception: its class and what it says."""
+    text = " ".join(str(err).split())
+    name = type(err).__name__
+    if isinstance(err, MemoryError):
+        return (
+            "out of memory"
+            + (f" ({text})" if text else "")
+            + "; the input may declare sizes larger than it holds, or need more memory than"
+            " this machine has"
+        )
+    if isinstance(err, OSError):
+        reason = err.strerror or text or name
+        where = err.filename if err.filename is not None else None
+        return f"{where}: {reason}" if where is not None else f"{name}: {reason}"
+    return f"{name}: {text}" if text else f"{name} (no message)"
+
+
+def _debug() -> bool:
+    return os.environ.get("IMUFDI_DEBUG", "") not in ("", "0")
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Console script: run the CLI, turning every error into one line and an exit code."""
+    try:
+        with _signals_as_exceptions():
+            code = cli.main(
+                args=list(argv) if argv is not None else None,
+                prog_name="imufdi",
+                standalone_mode=False,
+            )
+    except ImufdiError as err:
+        if _debug():
+            traceback.print_exc()
+        _err(str(err) or type(err).__name__)
+        sys.exit(err.exit_code)
+    except Terminated as err:
+        name = signal.Signals(err.signum).name
+        _err("interrupted" if name == "SIGINT" else f"terminated by {name}")
+        sys.exit(err.exit_code)
+    except click.exceptions.Abort:
+        _err("aborted")
+        sys.exit(130)
+    except click.ClickException as err:
+        _err(" ".join(err.format_message().split()) or type(err).__name__)
+        sys.exit(EXIT_USAGE if err.exit_code == 2 else err.exit_code)
+    except KeyboardInterrupt:
+        _err("interrupted")
+        sys.exit(130)
+    except BrokenPipeError:
+        # the reader of our stdout went away (e.g. `| head`): not an error of ours
+        try:
+            sys.stdout = open(os.devnull, "w")
+        finally:
+            sys.exit(0)
+    except (MemoryError, OSError) as err:
+        if _debug():
+            traceback.print_exc()
+        _err(describe_exception(err))
+        sys.exit(EXIT_BAD_INPUT)
+    except Exception as err:  # a bug: one line, and the traceback only on request
+        if _debug():
+            traceback.print_exc()
+        _err(
+            f"internal error ({describe_exception(err)}); "
+            "please report it with the output of IMUFDI_DEBUG=1"
+        )
+        sys.exit(EXIT_INTERNAL)
+    sys.exit(code if isinstance(code, int) else 0)

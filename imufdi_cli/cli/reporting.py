@@ -1,0 +1,218 @@
+"""``imufdi report``: metrics, renderers, CI gates."""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Any
+
+import click
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from imufdi_cli.cli.app import cli, start_end
+from imufdi_cli.cli.ui import UI, common_options, error_line
+from imufdi_cli.errors import EXIT_GATE_FAILED
+
+
+@cli.command()
+@click.argument("log")
+@click.option("--markdown", "md_out", help="Write a Markdown table here (- for stdout).")
+@click.option("--csv", "csv_out", help="Write a CSV table here (- for stdout).")
+@click.option("--junit", "junit_out", help="Write JUnit XML (one test case per gate).")
+@click.option(
+    "--plot",
+    "plot_out",
+    help="Write a PNG of statistics (alarms marked) and isolation scores (needs matplotlib).",
+)
+@click.option(
+    "--episodes-csv",
+    "episodes_out",
+    help="Write the explained alarm episodes as CSV (docs/episodes.md).",
+)
+@click.option("--fail-if", "gates", multiple=True, help="Gate, e.g. 'glt.gyro.far > 0.01'.")
+@click.option(
+    "--persist",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Detection delay counts the first run of this many alarms; recovery needs this"
+    " many quiet samples after the last alarm.",
+)
+@click.option(
+    "--match-far",
+    "match_far",
+    metavar="RATE",
+    help="Also report MAR, FIR and delay with each detector's threshold scaled to this"
+    " out-of-sample FAR (e.g. 1% or 0.01).",
+)
+@click.option(
+    "--roc",
+    "roc_out",
+    metavar="FILE",
+    help="Write the threshold sweep (FAR, MAR, FIR, delay per scale) as CSV; with --plot"
+    " also FILE's name with .png.",
+)
+@click.option("--start", help="Score samples from this time, seconds from the log start.")
+@click.option("--end", help="Score samples before this time, seconds from the log start.")
+@common_options(json_help="The whole report (metrics, gates, notes, episodes).")
+def report(
+    log: str,
+    md_out: str | None,
+    csv_out: str | None,
+    junit_out: str | None,
+    plot_out: str | None,
+    episodes_out: str | None,
+    gates: tuple[str, ...],
+    persist: int,
+    match_far: str | None,
+    roc_out: str | None,
+    start: str | None,
+    end: str | None,
+    ui: UI,
+) -> None:
+    """Metrics per detector and sensor type: FAR, MAR, accuracy, FIR, delays.
+
+    FAR counts samples outside the calibration window; delays are at decision time.
+    --match-far compares detectors at one false-alarm rate (docs/metrics.md).
+    --fail-if gates exit with code 1 when any fails (CI regression on recorded data).
+    The table goes to stdout (to stderr when an output is -).
+
+    Example:
+
+
+    \b
+        imufdi report out.mcap --markdown table.md --fail-if 'glt.gyro.far > 0.08' --fail-if 'glt.gyro.mar > 0.35'
+        imufdi report out.mcap --match-far 1% --roc roc.csv --plot figures.png
+    """
+    from imufdi_cli import report as rep
+    from imufdi_cli.detectors import DETECTORS
+    from imufdi_cli.errors import UsageError
+    from imufdi_cli.fileio import atomic_path, check_input, check_outputs, write_text
+
+    target = None if match_far is None else rep.parse_far(match_far)
+    check_input(log)
+    outputs = [
+        ("--json", ui.json_target),
+        ("--markdown", md_out),
+        ("--csv", csv_out),
+        ("--junit", junit_out),
+        ("--plot", plot_out),
+        ("--roc", roc_out),
+        ("--episodes-csv", episodes_out),
+    ]
+    to_stdout = [label for label, path in outputs if path == "-"]
+    if len(to_stdout) > 1:
+        raise UsageError(f"{' and '.join(to_stdout)} would all write to stdout; give files")
+    if plot_out == "-":
+        raise UsageError("--plot writes a PNG file; give it a file name")
+    ui.data_to_stdout(md_out, csv_out, junit_out, roc_out, episodes_out)
+    check_outputs([log], outputs)
+    parsed = [rep.parse_gate(g, DETECTORS) for g in gates]  # bad gates fail before reading
+    if plot_out:
+        from imufdi_cli.plots import pyplot
+
+        pyplot()  # no matplotlib: a usage error before any work or any output
+    with ui.progress(f"report {log}") as progress:
+        result = rep.build_report(
+            log,
+            persist=persist,
+            match_far=target,
+            keep_series=plot_out is not None,
+            keep_roc=roc_out is not None,
+            window=start_end(start, end),
+            progress=progress,
+        )
+    gate_results = rep.evaluate_gates(result, parsed)
+    console = ui.product
+    table = Table(title=f"imufdi report: {escape(result.source)}")
+    table.add_column("detector")
+    table.add_column("sensor")
+    for _, header, _, _ in rep.table_columns(result, console=True):
+        table.add_column(header, justify="right")
+    for row in rep.table_rows(result, console=True):
+        table.add_row(*row)
+    console.print(table)
+    print_episodes(console, result, limit=None if ui.verbose else 12)
+    ui.note(result.notes, console)
+    if episodes_out:
+        write_text(episodes_out, rep.to_episodes_csv(result))
+    if ui.json_target:
+        write_text(ui.json_target, rep.to_json(result, gate_results))
+    if md_out:
+        write_text(md_out, rep.to_markdown(result, gate_results))
+    if csv_out:
+        write_text(csv_out, rep.to_csv(result))
+    if junit_out:
+        write_text(junit_out, rep.to_junit(result, gate_results))
+    if roc_out:
+        write_text(roc_out, rep.to_roc_csv(result))
+    if plot_out:
+        from imufdi_cli import plots
+
+        with atomic_path(plot_out, suffix=".png") as tmp:  # matplotlib wants the extension
+            plots.plot_report(result, tmp)
+        if roc_out and roc_out != "-":
+            png = os.path.splitext(roc_out)[0] + ".png"
+            with atomic_path(png, suffix=".png") as tmp:
+                plots.plot_roc(result, tmp)
+    failed = [r for r in gate_results if r.failed]
+    for r in gate_results:
+        style = "red" if r.failed else "green"
+        console.print(f"[{style}]gate {escape(r.message)}[/]")
+    if failed:
+        ui.flush()  # the table before the error line
+        error_line(
+            f"{len(failed)} of {len(gate_results)} gate(s) failed: "
+            + "; ".join(r.target for r in failed)
+            + " (exit 1; the report above shows the figures)"
+        )
+        sys.exit(EXIT_GATE_FAILED)
+
+
+def print_episodes(console: Console, result: Any, limit: int | None = 12) -> None:
+    """The episode figures per detector and type, and the strongest episodes."""
+    from imufdi_cli import report as rep
+
+    if not result.episode_scores:
+        return
+    table = Table(title="alarm episodes (docs/episodes.md)")
+    for col in ("detector.type", "episodes", "false / h", "class right %", "covered %"):
+        table.add_column(col, justify="right")
+    for key, score in result.episode_scores.items():
+        table.add_row(
+            key,
+            str(score["episodes"]),
+            rep.format_value(score.get("false_episodes_per_hour"), 1.0, "{:.3g}"),
+            rep.format_value(score.get("class_accuracy"), 100.0, "{:.1f}"),
+            rep.format_value(score.get("coverage"), 100.0, "{:.1f}"),
+        )
+    console.print(table)
+    rows = sorted(rep.episode_rows(result), key=lambda r: -(r["peak_ratio"] or 0.0))[:limit]
+    detail = Table(title=f"strongest {len(rows)} episodes")
+    for col in (
+        "detector",
+        "start s",
+        "dur s",
+        "sensor",
+        "class",
+        "size [90 %]",
+        "runner-up",
+        "peak",
+        "match",
+    ):
+        detail.add_column(col)
+    for r in rows:
+        detail.add_row(
+            f"{r['detector']}.{r['sensor_type']}",
+            f"{r['start_s']:.2f}",
+            rep.format_value(r["duration_s"], 1.0, "{:.2f}"),
+            r["sensor"] or "-",
+            r["fault_class"] or "-",
+            escape(r["size"]),
+            r["runner_up_class"] or "-",
+            rep.format_value(r["peak_ratio"], 1.0, "{:.3g}"),
+            r["match"] or "-",
+        )
+    console.print(detail)

@@ -1,0 +1,331 @@
+"""Figures of ``imufdi report --plot`` (needs the ``plot`` extra: matplotlib).
+
+:func:`plot_report` draws, per detector and sensor type, the detection statistic against
+its threshold with the alarms marked (like Li et al. Figure 15) and the isolation scores
+of the suspect sensors against the spread of all the others; :func:`plot_roc` the
+threshold sweep. Colours are stable per detector (:func:`detector_colour`), so the same
+detector has the same colour in every figure.
+"""
+
+from __future__ import annotations
+
+import textwrap
+import zlib
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.errors import UsageError
+from imufdi_cli.report import Report, ReportEntry, format_size
+
+#: fixed colour per known detector, the same in every figure (others: PALETTE by hash)
+DETECTOR_COLOURS = {
+    "glt": "#1f77b4",
+    "woa-mvmd-glt": "#ff7f0e",
+    "pca-parity": "#2ca02c",
+    "bank": "#9467bd",
+    "noise-glr": "#8c564b",
+    "cnn-map": "#17becf",
+    "px4-selector": "#e377c2",
+    "ap-consistency": "#7f7f7f",
+}
+#: colours for detectors not in DETECTOR_COLOURS and for the suspect sensors
+PALETTE = ("#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#31a354")
+ALARM_COLOUR = "#d62728"
+FAULT_COLOUR = "#d62728"
+#: the statistic is drawn on a log axis when its positive values span more than
+#: LOG_SPREAD (max / min) or its peak exceeds the median threshold LOG_OVER_THRESHOLD
+#: times: then a threshold of 70 is not squashed under values near 1000
+LOG_SPREAD = 100.0
+LOG_OVER_THRESHOLD = 10.0
+#: suspect sensors drawn one by one in the isolation panel (the rest as a band)
+SUSPECTS = 3
+#: episodes labelled per panel (the longest)
+PLOT_EPISODE_LABELS = 3
+
+
+def pyplot() -> Any:
+    """matplotlib.pyplot on the Agg backend; UsageError (exit 2) with the install hint when
+    matplotlib is missing (``report --plot`` checks this before any work)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as err:
+        raise UsageError(
+            "--plot needs matplotlib, which is not installed: pip install 'imufdi-cli[plot]'"
+            " (or drop --plot)"
+        ) from err
+    return plt
+
+
+def detector_colour(name: str) -> str:
+    """The colour of a detector in every figure (a fixed table; an unknown name gets a
+    colour from its hash, so it too is the same in every figure and run)."""
+    if name in DETECTOR_COLOURS:
+        return DETECTOR_COLOURS[name]
+    return PALETTE[zlib.crc32(name.encode()) % len(PALETTE)]
+
+
+def _headroom(ax: Any, share: float = 0.5) -> None:
+    """Extend the axis' top (the visual top, also when inverted) by ``share`` of its span,
+    so that the legend sits above the data instead of over it."""
+    bottom, top = ax.get_ylim()
+    if ax.get_yscale() == "log" and bottom > 0 and top > 0:
+        ax.set_ylim(bottom, top * (top / bottom) ** share)
+    else:
+        ax.set_ylim(bottom, top + share * (top - bottom))
+
+
+def _wrap(text: str, width: int = 42) -> str:
+    return "\n".join(textwrap.wrap(text, width)) if len(text) > width else text
+
+
+def _described(report: Report, entry: ReportEntry, key: str) -> str | None:
+    record = report.records.get(entry.detector) or {}
+    text = record.get(key)
+    return str(text) if isinstance(text, str) and text else None
+
+
+def smaller_is_worse(entry: ReportEntry) -> bool:
+    """Whether this detector isolates the sensor with the *smallest* score (pca-parity's
+    angles): judged from the data, at alarm samples where a sensor was isolated."""
+    scores, isolated = entry.scores, entry.isolated
+    if scores.size == 0 or isolated.size != scores.shape[0]:
+        return False
+    rows = np.flatnonzero(entry.alarm & (isolated >= 0))
+    if rows.size == 0:
+        return False
+    picked = scores[rows, isolated[rows]]
+    finite = np.where(np.isfinite(scores[rows]), scores[rows], np.nan)
+    with np.errstate(all="ignore"):
+        is_min = np.isclose(picked, np.nanmin(finite, axis=1))
+        is_max = np.isclose(picked, np.nanmax(finite, axis=1))
+    return int(np.count_nonzero(is_min)) > int(np.count_nonzero(is_max))
+
+
+def suspects(entry: ReportEntry, limit: int = SUSPECTS) -> list[int]:
+    """Sensor indices to draw one by one: every truly faulty one, then those most often
+    isolated during alarms (up to ``limit`` in all, at least one wrongly isolated sensor
+    when there is one)."""
+    truth = [int(j) for j in np.flatnonzero(entry.faulty.any(axis=0))] if entry.faulty.size else []
+    chosen = list(truth)
+    room = max(limit - len(truth), 1) if truth else 1  # no fault: the worst false one
+    if entry.isolated.size and entry.alarm.size == entry.isolated.size:
+        hits = entry.isolated[entry.alarm & (entry.isolated >= 0)]
+        counts = np.bincount(hits, minlength=len(entry.sensor_ids)) if hits.size else []
+        for j in np.argsort(-np.asarray(counts), kind="stable"):
+            if room == 0 or counts[j] == 0:
+                break
+            if int(j) not in chosen:
+                chosen.append(int(j))
+                room -= 1
+    return chosen
+
+
+def _shade_faults(ax: Any, t: np.ndarray, entry: ReportEntry, label: bool) -> None:
+    shade = entry.faulty.any(axis=1) if entry.faulty.size else np.zeros(t.size, bool)
+    if shade.any():
+        ax.fill_between(
+            t,
+            0,
+            1,
+            where=shade,
+            transform=ax.get_xaxis_transform(),
+            color=FAULT_COLOUR,
+            alpha=0.10,
+            lw=0,
+            label="fault active (truth)" if label else None,
+            step="post",
+        )
+
+
+def _mark_episodes(ax: Any, report: Report, entry: ReportEntry) -> None:
+    """Label the longest explained episodes of this detector and type with their class
+    and size (docs/episodes.md) at their start."""
+    mine = [
+        ep
+        for ep in report.episodes
+        if ep["detector"] == entry.detector and ep["sensor_type"] == entry.sensor_type
+    ]
+    longest = sorted(mine, key=lambda ep: -(ep["end_ns"] - ep["start_ns"]))
+    for ep in longest[:PLOT_EPISODE_LABELS]:
+        start = (ep["start_ns"] - report.t0_ns) / 1e9
+        sensor = (ep.get("sensors") or ["?"])[0]
+        ax.annotate(
+            f"{sensor}: {ep.get('fault_class') or '?'} {format_size(ep)}",
+            xy=(start, 0.97),
+            xycoords=("data", "axes fraction"),
+            fontsize=7,
+            rotation=90,
+            va="top",
+            ha="right",
+            color="#5a3d00",
+            bbox={"boxstyle": "square,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.7},
+        )
+
+
+def _statistic_panel(ax: Any, report: Report, entry: ReportEntry, t: np.ndarray) -> None:
+    colour = detector_colour(entry.detector)
+    stat = np.asarray(entry.statistic, float)
+    thr = np.asarray(entry.threshold, float)
+    _shade_faults(ax, t, entry, label=True)
+    positive = stat[np.isfinite(stat) & (stat > 0)]
+    finite_thr = thr[np.isfinite(thr) & (thr > 0)]
+    log = False
+    if positive.size:
+        spread = positive.max() / max(positive.min(), 1e-300)
+        over = positive.max() / float(np.median(finite_thr)) if finite_thr.size else 1.0
+        log = spread > LOG_SPREAD or over > LOG_OVER_THRESHOLD
+    if log:
+        floor = max(positive.min(), positive.max() * 1e-6)
+        ax.set_yscale("log")
+        stat = np.where(np.isfinite(stat), np.maximum(stat, floor), np.nan)
+    ax.plot(t, stat, lw=0.8, color=colour, label="statistic")
+    ax.plot(
+        t, np.where(np.isfinite(thr), thr, np.nan), color="k", ls="--", lw=1.0, label="threshold"
+    )
+    alarms = np.flatnonzero(entry.alarm) if entry.alarm.size else np.zeros(0, int)
+    if alarms.size:
+        ax.plot(
+            t[alarms],
+            np.full(alarms.size, 0.015),
+            "|",
+            transform=ax.get_xaxis_transform(),
+            color=ALARM_COLOUR,
+            ms=9,
+            mew=1.0,
+            label=f"alarm ({100.0 * alarms.size / max(entry.alarm.size, 1):.1f} % of samples)",
+        )
+    _mark_episodes(ax, report, entry)
+    unit = "log scale" if log else "linear"
+    ax.set_ylabel(f"statistic, dimensionless\n({unit})", fontsize=8)
+    described = _described(report, entry, "statistic")
+    title = f"{entry.detector} · {entry.sensor_type}: detection statistic"
+    ax.set_title(title, fontsize=10, color=colour, loc="left")
+    if described:
+        ax.set_title(_wrap(described, 60), fontsize=7, loc="right", color="0.35")
+    _headroom(ax)
+    ax.legend(loc="upper left", fontsize=7, framealpha=0.85, ncol=2)
+
+
+def _isolation_panel(ax: Any, report: Report, entry: ReportEntry, t: np.ndarray) -> None:
+    scores = np.asarray(entry.scores, float)
+    _shade_faults(ax, t, entry, label=False)
+    ax.set_title(
+        f"{entry.detector} · {entry.sensor_type}: isolation scores", fontsize=10, loc="left"
+    )
+    if not scores.size or not np.isfinite(scores).any():
+        ax.text(0.5, 0.5, "no isolation scores", ha="center", va="center", transform=ax.transAxes)
+        ax.set_yticks([])
+        return
+    flip = smaller_is_worse(entry)
+    chosen = suspects(entry)
+    others = [j for j in range(scores.shape[1]) if j not in chosen]
+    if others:
+        rest = scores[:, others]
+        with np.errstate(all="ignore"):
+            ok = np.isfinite(rest).any(axis=1)
+            low = np.full(t.size, np.nan)
+            high = np.full(t.size, np.nan)
+            mid = np.full(t.size, np.nan)
+            low[ok] = np.nanpercentile(rest[ok], 10, axis=1)
+            high[ok] = np.nanpercentile(rest[ok], 90, axis=1)
+            mid[ok] = np.nanmedian(rest[ok], axis=1)
+        ax.fill_between(
+            t,
+            low,
+            high,
+            color="0.6",
+            alpha=0.35,
+            lw=0,
+            label=f"other {len(others)} sensors, 10-90 %",
+        )
+        ax.plot(t, mid, color="0.45", lw=0.6, label="other sensors, median")
+    truth = set(np.flatnonzero(entry.faulty.any(axis=0)).tolist()) if entry.faulty.size else set()
+    styles = ["-", "--", ":", "-."]
+    palette = [c for c in PALETTE if c != detector_colour(entry.detector)]
+    reds = ("#d62728", "#8c1515", "#ff7f7f")
+    n_truth = 0
+    for k, j in enumerate(chosen):
+        faulty = j in truth
+        if faulty:
+            colour, style, width = reds[n_truth % 3], styles[n_truth % 3], 1.2
+            n_truth += 1
+        else:
+            colour, style, width = palette[k % len(palette)], styles[(k % 3) + 1], 0.9
+        ax.plot(
+            t,
+            scores[:, j],
+            lw=width,
+            ls=style,
+            color=colour,
+            label=f"{entry.sensor_ids[j]}" + (" (faulty, truth)" if faulty else " (isolated)"),
+            zorder=3 if faulty else 2,
+        )
+    described = _described(report, entry, "scores")
+    label = described or "isolation score"
+    if flip:
+        ax.invert_yaxis()
+        label += "; axis inverted: smaller = more suspect, drawn up"
+    ax.set_ylabel(_wrap(label, 45), fontsize=7)
+    _headroom(ax)
+    ax.legend(loc="upper left", fontsize=7, framealpha=0.85, ncol=2)
+
+
+def plot_report(report: Report, path: str) -> None:
+    """Detection statistic vs threshold with alarms, and isolation scores of the suspect
+    sensors, over time, faults shaded, from the series kept with
+    ``build_report(keep_series=True)``; one row per detector and sensor type."""
+    plt = pyplot()
+    entries = report.entries
+    fig, axes = plt.subplots(
+        len(entries),
+        2,
+        figsize=(14, 3.4 * len(entries)),
+        squeeze=False,
+        constrained_layout=True,
+    )
+    for row, entry in enumerate(entries):
+        t = (entry.t_ns - report.t0_ns) / 1e9
+        _statistic_panel(axes[row][0], report, entry, t)
+        _isolation_panel(axes[row][1], report, entry, t)
+        for ax in axes[row]:
+            ax.set_xlabel("time since the log start, s", fontsize=8)
+            ax.tick_params(labelsize=8)
+            ax.grid(True, which="major", alpha=0.25)
+    fig.suptitle(f"imufdi report: {report.source}", fontsize=11)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_roc(report: Report, path: str) -> None:
+    """MAR against FAR of every swept entry (log FAR axis), the matched FAR marked;
+    colour per detector, line style per sensor type."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.5, 4.5), constrained_layout=True)
+    styles = {"gyro": "-", "accel": "--", "mag": ":"}
+    for e in report.entries:
+        if e.roc is None:
+            continue
+        far, mar = e.roc["far"], e.roc["mar"]
+        ok = ~np.isnan(far) & ~np.isnan(mar) & (far > 0)
+        ax.plot(
+            far[ok] * 100,
+            mar[ok] * 100,
+            lw=1.2,
+            color=detector_colour(e.detector),
+            ls=styles.get(e.sensor_type, "-."),
+            label=f"{e.detector} · {e.sensor_type}",
+        )
+    if report.match_far is not None:
+        ax.axvline(report.match_far * 100, color="k", ls="--", lw=0.8, label="matched FAR")
+    ax.set_xscale("log")
+    ax.set_xlabel("FAR, % of fault-free samples outside the calibration window")
+    ax.set_ylabel("MAR, % of faulty samples")
+    ax.set_title("threshold sweep of the raw statistic")
+    ax.grid(True, which="both", alpha=0.25)
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
