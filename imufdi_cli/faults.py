@@ -914,7 +914,6 @@ def inject_file(
 
     from imufdi_cli import mcapio
     from imufdi_cli.errors import McapInputError, UsageError
-    from imufdi_cli.progress import LogTimeProgress
     from imufdi_cli.mcapio.events import (
         decode_events,
         encode_fault_events,
@@ -923,6 +922,7 @@ def inject_file(
         register_events_channel,
         register_truth_channel,
     )
+    from imufdi_cli.progress import LogTimeProgress
 
     if not faults_specs and not fault_files:
         raise FaultSpecError("inject needs at least one --fault SPEC or --faults FILE")

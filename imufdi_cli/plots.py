@@ -114,8 +114,8 @@ def suspects(entry: ReportEntry, limit: int = SUSPECTS) -> list[int]:
     room = max(limit - len(truth), 1) if truth else 1  # no fault: the worst false one
     if entry.isolated.size and entry.alarm.size == entry.isolated.size:
         hits = entry.isolated[entry.alarm & (entry.isolated >= 0)]
-        counts = np.bincount(hits, minlength=len(entry.sensor_ids)) if hits.size else []
-        for j in np.argsort(-np.asarray(counts), kind="stable"):
+        counts = np.bincount(hits, minlength=len(entry.sensor_ids))
+        for j in np.argsort(-counts, kind="stable"):
             if room == 0 or counts[j] == 0:
                 break
             if int(j) not in chosen:
@@ -166,18 +166,28 @@ def _mark_episodes(ax: Any, report: Report, entry: ReportEntry) -> None:
         )
 
 
+def use_log_scale(statistic: np.ndarray, threshold: np.ndarray) -> bool:
+    """Whether a statistic is drawn on a log axis: its positive values span more than
+    :data:`LOG_SPREAD`, or its peak exceeds the median finite threshold
+    :data:`LOG_OVER_THRESHOLD` times."""
+    stat = np.asarray(statistic, float)
+    thr = np.asarray(threshold, float)
+    positive = stat[np.isfinite(stat) & (stat > 0)]
+    if positive.size == 0:
+        return False
+    finite_thr = thr[np.isfinite(thr) & (thr > 0)]
+    spread = positive.max() / positive.min()
+    over = positive.max() / float(np.median(finite_thr)) if finite_thr.size else 1.0
+    return bool(spread > LOG_SPREAD or over > LOG_OVER_THRESHOLD)
+
+
 def _statistic_panel(ax: Any, report: Report, entry: ReportEntry, t: np.ndarray) -> None:
     colour = detector_colour(entry.detector)
     stat = np.asarray(entry.statistic, float)
     thr = np.asarray(entry.threshold, float)
     _shade_faults(ax, t, entry, label=True)
     positive = stat[np.isfinite(stat) & (stat > 0)]
-    finite_thr = thr[np.isfinite(thr) & (thr > 0)]
-    log = False
-    if positive.size:
-        spread = positive.max() / max(positive.min(), 1e-300)
-        over = positive.max() / float(np.median(finite_thr)) if finite_thr.size else 1.0
-        log = spread > LOG_SPREAD or over > LOG_OVER_THRESHOLD
+    log = use_log_scale(stat, thr)
     if log:
         floor = max(positive.min(), positive.max() * 1e-6)
         ax.set_yscale("log")

@@ -217,6 +217,8 @@ def ingest(
                 imu_writer.write_block(anchored(block))
                 if progress is not None:
                     progress(float(stats.bytes_total), size)
+            if progress is not None:
+                progress(float(stats.bytes_total), size)
             record = {
                 "layout": _jsonable(layout.description),
                 "layout_name": layout.name,

@@ -216,6 +216,7 @@ class DelayedBar:
         self.bar: Any = None
         self.task: Any = None
         self.calls = 0
+        self.started = False
 
     def _start(self) -> None:
         from rich.progress import (
@@ -227,23 +228,19 @@ class DelayedBar:
             TimeRemainingColumn,
         )
 
-        unit = self.unit
         self.bar = Progress(
             TextColumn("{task.description}"),
             BarColumn(),
             TaskProgressColumn(),
-            TextColumn(
-                "{task.completed:.0f}/{task.total:.0f} " + unit
-                if unit != "B"
-                else "{task.fields[mib]}"
-            ),
+            TextColumn("{task.fields[amount]}"),
             TimeElapsedColumn(),
             TimeRemainingColumn(),
             console=make_console(sys.stderr),
             transient=True,
         )
-        self.task = self.bar.add_task(self.description, total=None, mib="")
+        self.task = self.bar.add_task(self.description, total=None, amount="")
         self.bar.start()
+        self.started = True
 
     def update(self, done: float, total: float | None) -> None:
         self.calls += 1
@@ -251,8 +248,18 @@ class DelayedBar:
             if time.monotonic() - self.t0 < self.delay:
                 return
             self._start()
-        mib = f"{done / 2**20:.1f}/{total / 2**20:.1f} MiB" if total else f"{done / 2**20:.1f} MiB"
-        self.bar.update(self.task, completed=done, total=total, mib=mib)
+        self.bar.update(self.task, completed=done, total=total, amount=self.amount(done, total))
+
+    def amount(self, done: float, total: float | None) -> str:
+        """``12/60 s`` of log time, or ``1.5/20.0 MiB`` of a capture (total when known)."""
+        if self.unit == "B":
+            scale, unit, fmt = 2.0**-20, "MiB", "{:.1f}"
+        else:
+            scale, unit, fmt = 1.0, self.unit, "{:.0f}"
+        text = fmt.format(done * scale)
+        if total is not None:
+            text += "/" + fmt.format(total * scale)
+        return f"{text} {unit}"
 
     def stop(self) -> None:
         if self.bar is not None:

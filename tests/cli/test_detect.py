@@ -64,3 +64,15 @@ def test_bad_arguments(cli, tmp_path, faulty_log, args, code, fragment):
     out = tmp_path / "x.mcap"
     assert_one_line_error(cli(["detect", faulty_log, *args, "-o", out]), code, fragment)
     assert not out.exists()
+
+
+@pytest.mark.parametrize("detector", ["glt", "cnn-map", "px4-selector", "bank", "woa-mvmd-glt"])
+def test_a_single_imu_log_is_bad_data_for_every_detector(cli, tmp_path, detector):
+    """One situation, one exit code: 3 (the data cannot be checked), with what to do."""
+    log = tmp_path / "one.mcap"
+    assert cli(["simulate", "--imus", "1", "--duration", "3s", "-o", log]).code == 0
+    out = tmp_path / "d.mcap"
+    result = cli(["detect", log, "-d", detector, "-o", out])
+    assert_one_line_error(result, 3, "`imufdi info LOG` shows its IMUs")
+    assert "bank mode=marg" in result.stderr
+    assert not out.exists()

@@ -235,3 +235,17 @@ def test_episodes_respect_start_and_end(cli, tmp_path, detected_log):
     inside = starts(window)
     assert inside and all(3.0 <= s < 4.5 for s in inside)
     assert len(starts(whole)) > len(inside)
+
+
+def test_plot_without_matplotlib_fails_before_any_work(cli, tmp_path, detected_log, monkeypatch):
+    import sys
+
+    for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    out = tmp_path / "r.json"
+    result = cli(["report", detected_log, "--json", out, "--plot", tmp_path / "p.png"])
+    assert_one_line_error(result, 2, "--plot needs matplotlib")
+    assert "pip install" in result.stderr
+    assert not out.exists() and not (tmp_path / "p.png").exists()
+    assert result.stdout == b""  # no table either: nothing was computed

@@ -66,3 +66,28 @@ def test_bad_options(cli, tmp_path, args, fragment):
     result = cli(["simulate", *args, "-o", out])
     assert_one_line_error(result, 2, fragment)
     assert not out.exists()
+
+
+def test_preset_and_motion_list_their_choices(cli, tmp_path):
+    from imufdi_cli.simulate import MOTIONS, PRESETS
+
+    text = cli(["simulate", "--help"]).out
+    for name in [*PRESETS, *MOTIONS]:
+        assert name in text
+    result = cli(["simulate", "--preset", "nope", "-o", tmp_path / "x.mcap"])
+    assert_one_line_error(result, 2, "paper-table4")  # the error lists the valid ones
+
+
+def test_help_does_not_import_the_simulator():
+    """The choices come from the registry only when needed (start-up stays light)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\nfrom imufdi_cli.cli import main\n"
+        "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+        "print(sorted(m for m in sys.modules if m in"
+        " ('imufdi_cli.simulate', 'imufdi_cli.detect', 'scipy', 'matplotlib')))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.stdout.strip().splitlines()[-1] == "[]", done.stdout + done.stderr

@@ -1,0 +1,177 @@
+"""The habits every command shares (imufdi_cli.cli.ui): --json [FILE], -q/-v, summaries
+on stderr, no ANSI off a terminal or with NO_COLOR, the progress bar's conditions."""
+
+from __future__ import annotations
+
+import json
+import os
+import pty
+import select
+import subprocess
+import sys
+from pathlib import Path
+from typing import ClassVar
+
+import pytest
+
+from imufdi_cli.cli import cli as group
+from imufdi_cli.cli import ui
+from tests.cli.conftest import assert_one_line_error
+
+ROOT = Path(__file__).resolve().parents[2]
+SAMPLE = ROOT / "sample_logs" / "paper-table4.mcap"
+ANSI = "\x1b["
+
+
+def test_every_command_has_quiet_verbose_and_json():
+    for name, command in group.commands.items():
+        params = {p.name: p for p in command.params}
+        assert {"quiet", "verbose", "json_target"} <= set(params), name
+        assert params["json_target"].help and "stdout" in params["json_target"].help, name
+
+
+def test_summary_on_stderr_stdout_clean(cli, tmp_path):
+    result = cli(["simulate", "--preset", "paper-table4", "-o", tmp_path / "a.mcap"])
+    assert result.code == 0 and result.stdout == b""
+    assert result.stderr.startswith("simulate: 500 samples of 16 IMUs")
+    assert ANSI not in result.stderr  # not a terminal: plain text
+
+
+def test_json_to_stdout_and_to_a_file(cli, tmp_path):
+    result = cli(["simulate", "--preset", "paper-table4", "-o", tmp_path / "a.mcap", "--json"])
+    data = json.loads(result.out)
+    assert data["command"] == "simulate" and data["samples"] == 500 and data["n_imus"] == 16
+    # data on stdout, the summary in a file: both usable
+    piped = cli(["simulate", "--preset", "paper-table4", "-o", "-", "--json", tmp_path / "s.json"])
+    assert piped.code == 0 and piped.stdout.startswith(b"\x89MCAP0\r\n")
+    assert json.loads((tmp_path / "s.json").read_text())["output"] == "-"
+
+
+def test_json_and_data_both_on_stdout_is_a_usage_error(cli, tmp_path):
+    result = cli(["simulate", "--preset", "paper-table4", "-o", "-", "--json", "-"])
+    assert_one_line_error(result, 2, "would both write to stdout; give --json a file")
+    assert result.stdout == b""
+    result = cli(["detect", SAMPLE, "-d", "glt", "-o", "-", "--json"])
+    assert_one_line_error(result, 2, "--json and -o - would both write to stdout")
+
+
+def test_json_of_detect_inject_ingest_info(cli, tmp_path):
+    faulty = tmp_path / "f.mcap"
+    fault = "step:imu0.gyro.x,at=2.5s,amp=0.9deg/s"
+    inject = json.loads(cli(["inject", SAMPLE, "--fault", fault, "-o", faulty, "--json"]).out)
+    assert inject["faults"][0]["sensors"] == ["imu0.gyro.x"] or "imu0.gyro.x" in json.dumps(
+        inject["faults"][0]
+    )
+    detect = json.loads(
+        cli(["detect", faulty, "-d", "glt", "-o", tmp_path / "d.mcap", "--json"]).out
+    )
+    gyro = detect["detectors"]["glt"]["gyro"]
+    assert gyro["samples"] == detect["samples"] and gyro["alarms"] <= gyro["samples"]
+    assert max(gyro["isolated"], key=gyro["isolated"].get) == "imu0.gyro.x"
+    # rates are written without float noise (12 significant digits at most)
+    assert len(repr(gyro["alarm_rate"]).lstrip("0.").replace(".", "")) <= 12
+    info = json.loads(cli(["info", faulty, "--json"]).out)
+    assert info["n_imus"] == 16
+
+
+def test_quiet_prints_nothing_but_errors(cli, tmp_path):
+    out = tmp_path / "a.mcap"
+    result = cli(["simulate", "--preset", "paper-table4", "-o", out, "-q"])
+    assert result.code == 0 and result.stdout == b"" and result.stderr == ""
+    result = cli(["info", out, "--quiet"])
+    assert result.code == 0 and result.stdout == b"" and result.stderr == ""
+    result = cli(["detect", out, "-d", "glt", "-q", "-o", tmp_path / "d.mcap"])
+    assert result.code == 0 and result.stderr == ""
+    failing = cli(["report", tmp_path / "d.mcap", "-q", "--fail-if", "glt.gyro.alarm_rate >= 0"])
+    assert_one_line_error(failing, 1, "gate(s) failed")
+    assert failing.stdout == b""
+
+
+def test_verbose_adds_timing(cli, tmp_path):
+    result = cli(["simulate", "--preset", "paper-table4", "-o", tmp_path / "a.mcap", "-v"])
+    assert result.code == 0
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.endswith(" s") and float(last[:-2]) >= 0
+
+
+def _run_on_terminal(args: list[str], env: dict[str, str]) -> str:
+    """Run imufdi with stdout and stderr on a pseudo-terminal; everything it printed."""
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "imufdi_cli", *args],
+        stdout=slave,
+        stderr=slave,
+        stdin=subprocess.DEVNULL,
+        env=env,
+        cwd=ROOT,
+    )
+    os.close(slave)
+    chunks = []
+    while True:
+        ready, _, _ = select.select([master], [], [], 60)
+        if not ready:
+            break
+        try:
+            data = os.read(master, 65536)
+        except OSError:  # the child closed the terminal
+            break
+        if not data:
+            break
+        chunks.append(data)
+    proc.wait(timeout=60)
+    os.close(master)
+    return b"".join(chunks).decode("utf-8", "replace")
+
+
+def test_no_color_means_no_escape_codes_on_a_terminal():
+    env = {k: v for k, v in os.environ.items() if k != "NO_COLOR"}
+    env["PYTHONPATH"] = str(ROOT)
+    env["TERM"] = "xterm-256color"
+    args = ["info", str(SAMPLE)]
+    styled = _run_on_terminal(args, env)
+    assert "paper-table4.mcap" in styled and ANSI in styled  # the test can fail
+    plain = _run_on_terminal(args, {**env, "NO_COLOR": "1"})
+    assert "paper-table4.mcap" in plain and ANSI not in plain
+    error = _run_on_terminal(["info", "missing.mcap"], {**env, "NO_COLOR": "1"})
+    assert "imufdi: error: missing.mcap: no such file" in error and ANSI not in error
+
+
+class RecordingBar(ui.DelayedBar):
+    made: ClassVar[list[RecordingBar]] = []
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        RecordingBar.made.append(self)
+
+
+@pytest.fixture
+def bars(monkeypatch):
+    RecordingBar.made = []
+    monkeypatch.setattr(ui, "DelayedBar", RecordingBar)
+    monkeypatch.setattr(ui, "PROGRESS_DELAY_S", 0.0)
+    return RecordingBar.made
+
+
+def test_no_progress_bar_when_stderr_is_not_a_terminal(cli, bars, tmp_path):
+    result = cli(["detect", SAMPLE, "-d", "glt", "-o", tmp_path / "d.mcap"])
+    assert result.code == 0 and bars == []
+    assert f"detect {SAMPLE}" not in result.stderr  # the bar's description
+
+
+def test_progress_bar_on_a_terminal_and_not_with_quiet(cli, bars, monkeypatch, tmp_path):
+    monkeypatch.setattr(ui, "stderr_is_terminal", lambda: True)
+    result = cli(["detect", SAMPLE, "-d", "glt", "-o", tmp_path / "d.mcap"])
+    assert result.code == 0 and len(bars) == 1
+    assert bars[0].calls > 0 and bars[0].started and bars[0].bar is None  # stopped
+    result = cli(["detect", SAMPLE, "-d", "glt", "-q", "-o", tmp_path / "e.mcap"])
+    assert result.code == 0 and len(bars) == 1  # --quiet: no new bar
+
+
+def test_progress_bar_waits_before_appearing():
+    bar = ui.DelayedBar("work", "s", delay=3600.0)
+    bar.update(1.0, 10.0)
+    bar.update(2.0, None)
+    assert bar.calls == 2 and not bar.started
+    bar.stop()
+    assert bar.amount(2.0, None) == "2 s" and bar.amount(2.0, 10.0) == "2/10 s"
+    assert ui.DelayedBar("x", "B").amount(1.5 * 2**20, 20 * 2**20) == "1.5/20.0 MiB"
