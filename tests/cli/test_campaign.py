@@ -74,10 +74,17 @@ def test_campaign_writes_results_and_gates(cli, tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert [g["amplitude"] for g in summary["groups"]] == ["0.3deg/s", "1.5deg/s"]
     failing = cli(
-        ["campaign", spec, "-o", out, "--resume", "--fail-if", "glt.gyro.detection_probability < 1"]
-    )
+        [
+            "campaign", spec, "-o", out, "--resume", "--json",
+            "--fail-if", "glt.gyro.detection_probability < 1",
+        ]
+    )  # fmt: skip
     assert failing.code == 1, failing.stderr
     assert "0 executed, 4 resumed" in failing.stderr and "gate FAILED" in failing.stderr
+    # --json: the summary (through the one JSON writer), also when a gate fails
+    from imufdi_cli.jsonout import clean
+
+    assert json.loads(failing.out) == clean(json.loads((out / "summary.json").read_text()))
 
 
 def test_campaign_on_base_log_files(cli, tmp_path):

@@ -175,3 +175,21 @@ def test_progress_bar_waits_before_appearing():
     bar.stop()
     assert bar.amount(2.0, None) == "2 s" and bar.amount(2.0, 10.0) == "2/10 s"
     assert ui.DelayedBar("x", "B").amount(1.5 * 2**20, 20 * 2**20) == "1.5/20.0 MiB"
+
+
+def test_shell_completion_completes_detectors_and_presets():
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "_IMUFDI_COMPLETE": "bash_complete"}
+    done = subprocess.run(
+        [sys.executable, "-m", "imufdi_cli"],
+        env={**env, "COMP_WORDS": "imufdi detect x -d woa", "COMP_CWORD": "4"},
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0 and done.stdout.split() == ["plain,woa-mvmd-glt"]
+    done = subprocess.run(
+        [sys.executable, "-m", "imufdi_cli"],
+        env={**env, "COMP_WORDS": "imufdi simulate --preset paper", "COMP_CWORD": "3"},
+        capture_output=True,
+        text=True,
+    )
+    assert done.stdout.split() == ["plain,paper-table4"]
