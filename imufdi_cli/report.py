@@ -165,26 +165,50 @@ PLOT_POINTS = 20_000
 
 
 class _Series:
-    """Evenly decimated copy of a status channel for plots (bounded memory)."""
+    """Evenly decimated copy of a status channel for plots (bounded memory).
+
+    Every ``stride``-th sample is kept; its ``alarm`` is the OR of the alarms since the
+    previous kept sample, so that no alarm disappears from the plot however long the log.
+    """
 
     def __init__(self) -> None:
         self.stride = 1
         self.seen = 0
         self.parts: list[dict[str, np.ndarray]] = []
         self.kept = 0
+        self.pending_alarm = False  # an alarm after the last kept sample
 
     def add(self, rows: dict[str, np.ndarray]) -> None:
         n = int(rows["t_ns"].size)
         first = (-self.seen) % self.stride
         pick = np.arange(first, n, self.stride)
         self.seen += n
+        alarm = np.asarray(rows["alarm"], bool) if "alarm" in rows else None
         if pick.size:
-            self.parts.append({k: v[pick] for k, v in rows.items()})
+            part = {k: v[pick] for k, v in rows.items()}
+            if alarm is not None:
+                count = np.concatenate([[0], np.cumsum(alarm)])  # alarms in rows[:i]
+                ends = pick + 1
+                starts = np.concatenate([[0], ends[:-1]])
+                part["alarm"] = (count[ends] - count[starts]) > 0
+                part["alarm"][0] |= self.pending_alarm
+                self.pending_alarm = bool(alarm[pick[-1] + 1 :].any())
+            self.parts.append(part)
             self.kept += int(pick.size)
+        elif alarm is not None:
+            self.pending_alarm |= bool(alarm.any())
         if self.kept > 2 * PLOT_POINTS:
             whole = self.arrays()
             keep = slice(0, None, 2)
-            self.parts = [{k: v[keep] for k, v in whole.items()}]
+            halved = {k: v[keep] for k, v in whole.items()}
+            if "alarm" in whole:  # kept sample 2j also covers the dropped 2j - 1
+                merged = whole["alarm"][0::2].copy()
+                odd = whole["alarm"][1::2]
+                merged[1 : odd.size + 1] |= odd[: merged.size - 1]
+                if odd.size == merged.size:  # the last sample was dropped
+                    self.pending_alarm |= bool(odd[-1])
+                halved["alarm"] = merged
+            self.parts = [halved]
             self.kept = int(self.parts[0]["t_ns"].size)
             self.stride *= 2
 
@@ -238,7 +262,7 @@ def build_report(
     match_far : float, optional
         Target FAR in (0, 1) for the matched-FAR figures (``mar_at_far``, ...).
     keep_series : bool
-        Keep (decimated) status series for :func:`plot_report`.
+        Keep (decimated) status series for :func:`imufdi_cli.plots.plot_report`.
     keep_roc : bool
         Keep the swept curve of each entry (``ReportEntry.roc``) for :func:`to_roc_csv`.
     window : (start_s, end_s or None), optional
