@@ -31,6 +31,8 @@ DETECTOR_COLOURS = {
 }
 #: colours for detectors not in DETECTOR_COLOURS and for the suspect sensors
 PALETTE = ("#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#31a354")
+#: colours of the isolated (not truly faulty) suspect sensors: none red, none alike
+SUSPECT_COLOURS = ("#9467bd", "#17becf", "#8c564b", "#e377c2")
 ALARM_COLOUR = "#d62728"
 FAULT_COLOUR = "#d62728"
 #: the statistic is drawn on a log axis when its positive values span more than
@@ -88,6 +90,15 @@ def _described(report: Report, entry: ReportEntry, key: str) -> str | None:
     return str(text) if isinstance(text, str) and text else None
 
 
+def origin_ns(report: Report, entry: ReportEntry) -> int:
+    """Time zero of an entry's panels: the log's first sample as ``detect`` recorded it
+    (fault and ``--start`` times count from there), else the report's first status
+    sample (logs of an older imufdi)."""
+    record = report.records.get(entry.detector) or {}
+    t0 = record.get("t0_ns")
+    return int(t0) if isinstance(t0, int) else int(report.t0_ns)
+
+
 def smaller_is_worse(entry: ReportEntry) -> bool:
     """Whether this detector isolates the sensor with the *smallest* score (pca-parity's
     angles): judged from the data, at alarm samples where a sensor was isolated."""
@@ -141,7 +152,7 @@ def _shade_faults(ax: Any, t: np.ndarray, entry: ReportEntry, label: bool) -> No
         )
 
 
-def _mark_episodes(ax: Any, report: Report, entry: ReportEntry) -> None:
+def _mark_episodes(ax: Any, report: Report, entry: ReportEntry, t0_ns: int) -> None:
     """Label the longest explained episodes of this detector and type with their class
     and size (docs/episodes.md) at their start."""
     mine = [
@@ -151,7 +162,7 @@ def _mark_episodes(ax: Any, report: Report, entry: ReportEntry) -> None:
     ]
     longest = sorted(mine, key=lambda ep: -(ep["end_ns"] - ep["start_ns"]))
     for ep in longest[:PLOT_EPISODE_LABELS]:
-        start = (ep["start_ns"] - report.t0_ns) / 1e9
+        start = (ep["start_ns"] - t0_ns) / 1e9
         sensor = (ep.get("sensors") or ["?"])[0]
         ax.annotate(
             f"{sensor}: {ep.get('fault_class') or '?'} {format_size(ep)}",
@@ -208,7 +219,7 @@ def _statistic_panel(ax: Any, report: Report, entry: ReportEntry, t: np.ndarray)
             mew=1.0,
             label=f"alarm ({100.0 * alarms.size / max(entry.alarm.size, 1):.1f} % of samples)",
         )
-    _mark_episodes(ax, report, entry)
+    _mark_episodes(ax, report, entry, origin_ns(report, entry))
     unit = "log scale" if log else "linear"
     ax.set_ylabel(f"statistic, dimensionless\n({unit})", fontsize=8)
     described = _described(report, entry, "statistic")
@@ -232,6 +243,14 @@ def _isolation_panel(ax: Any, report: Report, entry: ReportEntry, t: np.ndarray)
         return
     flip = smaller_is_worse(entry)
     chosen = suspects(entry)
+    if not flip and use_log_scale(scores, np.zeros(0)):
+        ax.set_yscale("log")  # e.g. glt's D_FI: 1e6 in saturation, ~1 otherwise
+        positive = scores[np.isfinite(scores) & (scores > 0)]
+        scores = np.where(
+            np.isfinite(scores),
+            np.maximum(scores, max(positive.min(), positive.max() * 1e-8)),
+            np.nan,
+        )
     others = [j for j in range(scores.shape[1]) if j not in chosen]
     if others:
         rest = scores[:, others]
@@ -255,7 +274,7 @@ def _isolation_panel(ax: Any, report: Report, entry: ReportEntry, t: np.ndarray)
         ax.plot(t, mid, color="0.45", lw=0.6, label="other sensors, median")
     truth = set(np.flatnonzero(entry.faulty.any(axis=0)).tolist()) if entry.faulty.size else set()
     styles = ["-", "--", ":", "-."]
-    palette = [c for c in PALETTE if c != detector_colour(entry.detector)]
+    palette = SUSPECT_COLOURS
     reds = ("#d62728", "#8c1515", "#ff7f7f")
     n_truth = 0
     for k, j in enumerate(chosen):
@@ -264,7 +283,8 @@ def _isolation_panel(ax: Any, report: Report, entry: ReportEntry, t: np.ndarray)
             colour, style, width = reds[n_truth % 3], styles[n_truth % 3], 1.2
             n_truth += 1
         else:
-            colour, style, width = palette[k % len(palette)], styles[(k % 3) + 1], 0.9
+            colour = palette[(k - n_truth) % len(palette)]
+            style, width = styles[((k - n_truth) % 3) + 1], 0.9
         ax.plot(
             t,
             scores[:, j],
@@ -298,7 +318,7 @@ def plot_report(report: Report, path: str) -> None:
         constrained_layout=True,
     )
     for row, entry in enumerate(entries):
-        t = (entry.t_ns - report.t0_ns) / 1e9
+        t = (entry.t_ns - origin_ns(report, entry)) / 1e9
         _statistic_panel(axes[row][0], report, entry, t)
         _isolation_panel(axes[row][1], report, entry, t)
         for ax in axes[row]:

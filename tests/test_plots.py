@@ -79,3 +79,11 @@ def test_plot_report_writes_a_png(tmp_path):
     path = tmp_path / "r.png"
     plots.plot_report(report, str(path))
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_time_zero_is_the_log_start_detect_recorded():
+    e = entry(np.zeros((3, 2)), [-1] * 3, [False] * 3, np.zeros((3, 2), bool))
+    report = Report(source="s", has_truth=False, faults=[], entries=[e], notes=[], t0_ns=10**10)
+    assert plots.origin_ns(report, e) == 10**10  # older logs: the first status sample
+    report.records["pca-parity"] = {"t0_ns": 0}  # detect --start 10s: status from 10 s
+    assert plots.origin_ns(report, e) == 0
