@@ -92,6 +92,19 @@ def describe_exception(err: BaseException) -> str:
     return f"{name}: {text}" if text else f"{name} (no message)"
 
 
+def _json_took_the_argument(args: Sequence[str]) -> str:
+    """A hint when a bare ``--json`` swallowed the command's argument (``info --json
+    run.mcap``): ``--json`` takes an optional FILE, so it must come last or be given one."""
+    for i, arg in enumerate(args[:-1]):
+        following = args[i + 1]
+        if arg == "--json" and following != "-" and not following.startswith("-"):
+            return (
+                f" (--json took {following!r} as its FILE: put --json last, or write"
+                f" --json - for stdout)"
+            )
+    return ""
+
+
 def _debug() -> bool:
     return os.environ.get("IMUFDI_DEBUG", "") not in ("", "0")
 
@@ -118,7 +131,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         _err("aborted")
         sys.exit(130)
     except click.ClickException as err:
-        _err(" ".join(err.format_message().split()) or type(err).__name__)
+        message = " ".join(err.format_message().split()) or type(err).__name__
+        if isinstance(err, click.MissingParameter):
+            message += _json_took_the_argument(list(argv) if argv is not None else sys.argv[1:])
+        _err(message)
         sys.exit(EXIT_USAGE if err.exit_code == 2 else err.exit_code)
     except KeyboardInterrupt:
         _err("interrupted")

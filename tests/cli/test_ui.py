@@ -193,3 +193,9 @@ def test_shell_completion_completes_detectors_and_presets():
         text=True,
     )
     assert done.stdout.split() == ["plain,paper-table4"]
+
+
+def test_a_bare_json_before_the_argument_is_explained(cli, tmp_path):
+    result = cli(["info", "--json", SAMPLE])
+    assert_one_line_error(result, 2, f"--json took '{SAMPLE}' as its FILE: put --json last")
+    assert json.loads(cli(["info", "--json", "-", SAMPLE]).out)["n_imus"] == 16
