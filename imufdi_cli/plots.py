@@ -341,6 +341,8 @@ def plot_roc(report: Report, path: str) -> None:
             continue
         far, mar = e.roc["far"], e.roc["mar"]
         ok = ~np.isnan(far) & ~np.isnan(mar) & (far > 0)
+        if not ok.any():  # no faulty samples of this type: nothing to draw or list
+            continue
         ax.plot(
             far[ok] * 100,
             mar[ok] * 100,
