@@ -18,7 +18,7 @@ from imufdi_cli.detectors.cnn_map import (
     input_windows,
     whiten,
 )
-from imufdi_cli.errors import CalibrationError, DetectorConfigError
+from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.faults import FaultInjector, parse_fault_spec
 from imufdi_cli.log import iter_blocks
 from imufdi_cli.simulate import preset, simulate_block
@@ -116,7 +116,7 @@ def test_axis_gains_predict_the_whitened_noise_variance(short_log, order, rtol):
 
 def test_fewer_than_two_accelerometer_triads_are_rejected():
     array, block = simulate_block(preset("wearable12", seed=0, duration=4.0, n_imus=1))
-    with pytest.raises(DetectorConfigError, match="at least 2"):
+    with pytest.raises(ArrayTooSmallError, match="at least 2"):  # exit 3: the data
         make(FAST).fit(block, array)
 
 
