@@ -55,12 +55,13 @@ def stderr_is_terminal() -> bool:
 def make_console(stream: IO[Any], file: IO[str] | None = None, *, quiet: bool = False) -> Console:
     """A rich console rendering for ``stream`` (colour and width follow it) that writes to
     ``file`` (default: the stream itself). Styles only on a terminal without NO_COLOR;
-    elsewhere plain text, wide enough that tables are not cut."""
-    styled = is_terminal(stream) and not no_color()
-    width = shutil.get_terminal_size((120, 24)).columns if is_terminal(stream) else 160
+    elsewhere plain text (no escape codes), wide enough that tables are not cut."""
+    terminal = is_terminal(stream)
+    styled = terminal and not no_color()
+    width = shutil.get_terminal_size((120, 24)).columns if terminal else 160
     return Console(
         file=file if file is not None else stream,
-        force_terminal=styled,
+        force_terminal=terminal,  # a progress bar still redraws with NO_COLOR, uncoloured
         color_system="auto" if styled else None,
         no_color=not styled,
         highlight=False,
