@@ -28,6 +28,10 @@ def render() -> str:
         "`130` interrupted (SIGINT), `143` terminated (SIGTERM), `129` hung up (SIGHUP).",
         "Errors are one line on stderr. No output is ever one of the command's inputs.",
         "",
+        "Every command takes `-q/--quiet`, `-v/--verbose` and `--json [FILE]` (its",
+        "machine-readable summary; `-` or no FILE: stdout), prints summaries on stderr and no",
+        "escape codes off a terminal or with `NO_COLOR`: docs/guide.md, \"Output conventions\".",
+        "",
     ]
     ctx = click.Context(
         cli, info_name="imufdi", terminal_width=100, max_content_width=100, **cli.context_settings
