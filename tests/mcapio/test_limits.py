@@ -154,9 +154,9 @@ def test_bombs_exit_3_under_memory_and_time_limits(tmp_path) -> None:
     for name, (code, _, stderr) in zip(names, results):
         assert code == 3, (name, stderr)
         _one_line(stderr, "imufdi: error: ")
-    (code, stdout, _), (strict_code, _, stderr) = results[-2:]
+    (code, _, warned), (strict_code, _, stderr) = results[-2:]
     assert code == 0
-    warnings = [line for line in stdout.splitlines() if line.startswith("warning:")]
+    warnings = [line for line in warned.splitlines() if line.startswith("warning:")]  # stderr
     assert f"at byte {offset} claims 77309414278 bytes" in warnings[0]
     assert "resumed reading at the chunk at byte" in warnings[1]
     assert strict_code == 3

@@ -203,9 +203,9 @@ def test_no_header_stamps_fall_back_to_log_time(tmp_path, kind) -> None:
     assert_one_line_error(result, 3, "--stamps log")
     result = invoke(["info", bag, "--stamps", "log", "--json"])
     assert result.code == 0, result.stderr
-    assert "using the log time" not in result.out
+    assert "using the log time" not in result.stderr
     result = invoke(["info", bag])
-    assert result.code == 0 and "using the log time" in result.out
+    assert result.code == 0 and "using the log time" in result.stderr
 
 
 def test_split_bag_directory_is_one_log(tmp_path) -> None:
