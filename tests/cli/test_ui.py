@@ -199,3 +199,30 @@ def test_a_bare_json_before_the_argument_is_explained(cli, tmp_path):
     result = cli(["info", "--json", SAMPLE])
     assert_one_line_error(result, 2, f"--json took '{SAMPLE}' as its FILE: put --json last")
     assert json.loads(cli(["info", "--json", "-", SAMPLE]).out)["n_imus"] == 16
+
+
+def test_a_summary_is_written_in_one_piece(monkeypatch):
+    """Pipeline stages share stderr: each writes its summary with a single write, so
+    their lines cannot interleave (short of the terminal's own limits)."""
+    import io as _io
+
+    class Counting(_io.StringIO):
+        writes = 0
+
+        def write(self, text):
+            Counting.writes += 1
+            return super().write(text)
+
+    err = Counting()
+    monkeypatch.setattr(sys, "stderr", err)
+    out = ui.UI()
+    out.summary.print("detect: first line")
+    out.warn(["second", "third"])
+    assert err.getvalue() == "" and Counting.writes == 0  # nothing before the end
+    out.flush()
+    assert Counting.writes == 1
+    assert err.getvalue().splitlines() == [
+        "detect: first line",
+        "warning: second",
+        "warning: third",
+    ]
