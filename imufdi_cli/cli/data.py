@@ -239,7 +239,7 @@ def inject(
     output = output or default_output(source, "faults")
     ui.data_to_stdout(output)
     check_outputs([source, *fault_files], [("-o", output), ("--json", ui.json_target)])
-    with ui.progress(f"inject {source}") as progress:
+    with ui.progress(f"inject {source} (2 passes)") as progress:
         result = inject_file(
             source,
             output,
