@@ -251,7 +251,9 @@ def test_gyro_bias_shows_only_in_its_residual_table2(
     gyro = out["gyro"]
     assert gyro.alarm[settled].mean() >= 0.98
     assert np.all(gyro.isolated[settled & gyro.alarm] == 2)
-    assert_allclose(np.median(gyro.amplitude[t >= 7.5]), 0.1, rtol=0.05)
+    # amplitude where the test decides (it abstains while an accel/mag false alarm points
+    # at a component whose blind estimator is unobservable)
+    assert_allclose(np.median(gyro.amplitude[(t >= 7.5) & gyro.alarm]), 0.1, rtol=0.05)
     # only g3's residual responds
     threshold = gyro.threshold[0]
     assert details.isolated_sets["gyro"][settled][:, :2].mean() <= 0.05
