@@ -63,6 +63,25 @@ devices (§2-3): accelerometer noise increase in a 12-IMU array. The paper's met
    ratio against the other IMUs (dimensionless; 1 = nominal, ~1 + delta S for a noise
    growth).
 
+8. Input test (beyond the paper; ``input_test``, default on). The mapping passes an
+   accelerometer axis's noise to its output only as far as the network uses that axis: on
+   wearable12 the linearised gain ``sum_c S_k[a, c]`` is 9x (y) and 16x (z) smaller than
+   for x, so a noise growth on y or z hardly moves R_k (detection 10-14 % at x3). Every
+   axis is therefore also tested on its own: the leave-one-out residual of each
+   accelerometer against the rigid-body consensus of the others (lever arms modelled; the
+   residual model and calibrated scale of
+   :class:`~imufdi_cli.detectors.noise_glr.NoiseGlrDetector`), first-differenced and
+   standardized (``z``), feeds a capped variance CUSUM (:mod:`.cusum`, design ratio
+   ``K = 9``, ``z^2`` clipped at 25, cap ``INPUT_RELEASE_S`` of null drift above h). The
+   threshold h is the per-channel Šidák share of ``alpha / 2``, from a seeded simulation
+   of the null (:func:`.cusum.cusum_threshold`). The mapping test then runs at
+   ``alpha / 2`` (Bonferroni).
+9. Combined output (with the input test): ``statistic = max(max_k R_k / T_map,
+   max_j S_j / h)``, threshold 1; an input-test alarm isolates its channel (the axis
+   itself) with ``amplitude`` = the variance ratio of its recent differences (mean z^2 over
+   ``window``), else the mapping's isolation and amplitude apply; ``scores`` = the added
+   noise standard deviation of every axis, ``sqrt(max(mean z^2 - 1, 0) tau / 2)``, m/s^2.
+
 Only ``accel`` is reported (the gyros are the reference; their screening is in
 :meth:`CnnMapDetector.metadata`). The first ``L - 1 + p`` samples of the log have no
 whitened residual: their energy counts as the calibrated mean (R = 1, no alarm possible).
