@@ -358,6 +358,33 @@ def bank_two_faults(seeds: list[int]) -> None:
 PARTS["bank-two"] = lambda: []
 
 
+def cnn_input_level(seeds: list[int]) -> None:
+    """cnn-map's input test alone on fault-free wearable12 (calibration 0-10 s): its level
+    without the mapping test (no network is trained: the input test does not use it)."""
+    from imufdi_cli.detectors.cnn_map import CnnMapDetector
+
+    print("\n## cnn-map input test alone, fault-free wearable12, calibration 0-10 s")
+    print("| seed | FAR / α (α = 0.001) | threshold h |")
+    print("|---|---|---|")
+    ratios = []
+    for seed in seeds:
+        array, block = make_log("wearable12", seed)
+        t = block.t_s()
+        detector = CnnMapDetector()
+        detector._setup(array)
+        detector._fit_input_test(block.mask(t < 10.0), array)
+        cusum = np.concatenate(
+            [detector._input_statistics(part)[0] for part in iter_blocks(block, 4096)]
+        )
+        alarm = np.nanmax(cusum, axis=1) > detector.input_threshold
+        ratios.append(alarm[t >= 10.0].mean() / detector.alpha)
+        print(f"| {seed} | {ratios[-1]:.2f} | {detector.input_threshold:.2f} |", flush=True)
+    print(f"| mean (worst) | {np.mean(ratios):.2f} ({np.max(ratios):.2f}) | |")
+
+
+PARTS["cnn-input"] = lambda: []
+
+
 # --- campaign specs ----------------------------------------------------------------------
 
 
@@ -494,6 +521,8 @@ def main() -> None:
             bank_marg_faults(seeds)
         if part == "bank-two":
             bank_two_faults(seeds)
+        if part == "cnn-input":
+            cnn_input_level(seeds)
 
 
 if __name__ == "__main__":

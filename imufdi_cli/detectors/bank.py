@@ -16,8 +16,10 @@ minimises ``sum_{c != i} (y_c - h_c . C(q)^T r_c)^2`` over the attitude q (nonli
 squares, batched Gauss-Newton from an SVD/Wahba warm start), a seventh uses all six. Its
 residual vector ``R_i = y - y_hat(q_i)``; with a fault f on component j only ``R_j`` keeps
 a single non-zero component, ``R_j[j] = f`` (Table 1). Gyro residuals (Table 2): the
-attitude of the fault-free estimator (the full one, or the one blind to the isolated
-accel/mag component) gives the body rate from ``q_dot = 1/2 Xi(q) w`` by finite differences
+attitude of a fault-free estimator (the full one; during an accel/mag alarm, the clean
+series, among those of the estimators blind to a component isolated since the alarm
+began, with the smallest peak z^2, the test abstaining while one of them is unobservable;
+a series idle for over ``GYRO_MAX_GAP_S`` restarts) gives the body rate from ``q_dot = 1/2 Xi(q) w`` by finite differences
 (``w = 2 Xi(q_mid)^T (q_k - q_{k-1}) / Te``); the residual ``g - H_g w`` (gyro averaged over
 the same interval) is smoothed by the first-order filter ``y_k = a y_{k-1} + (1 - a) x_k``,
 ``a = exp(-Te / tau)``. A gyro fault shows only in its own residual.
