@@ -35,6 +35,14 @@ M_k (w_k - b_k)``, by alternating least squares again, with the gauge ``mean_k R
 R_k^T = I`` (the array's mean scale and axes stay nominal: agreement, not truth). Without
 motion on every axis (RMS consensus rate under :data:`MIN_MOTION_RATE`) only biases are
 estimated, with a warning.
+
+**Noise levels** — each sensor's white-noise sigma after calibration, from the parity
+residuals (:func:`~imufdi_cli.detectors.parity.residual_sigma`) of every static interval,
+averaged as variances over the intervals (weighted by their length). On the MIMU4444 board
+the gyro noise changes with the orientation (a narrow-band 8-16 Hz component on some
+z-axis gyros, up to 1.5x in sigma, docs/real-arrays.md), so the typical level over many
+orientations is a better reference for a parity test than a few seconds in one of them.
+Stored per IMU as ``<type>_noise``; glt uses it (``sigma_source=auto``).
 """
 
 from __future__ import annotations
@@ -352,6 +360,61 @@ def _figures(k: int, sensor_type: str, cal: TriadCalibration) -> TriadFigures:
     )
 
 
+def static_noise(
+    array: ArrayConfig,
+    accel: np.ndarray,
+    gyro: np.ndarray | None,
+    t_s: np.ndarray,
+    static: np.ndarray,
+    intervals: list[StaticInterval],
+) -> list[dict[str, np.ndarray]]:
+    """Per-IMU, per-type noise sigma (3,) of the calibrated sensors at rest (SI).
+
+    For every static interval and sensor type with a parity space (>= 4 sensors), the
+    per-sensor sigma of :func:`~imufdi_cli.detectors.parity.residual_sigma` (motion and
+    common offsets cancel); the variances are averaged over the intervals, weighted by
+    their sample counts. Axes a type lacks keep no entry.
+
+    Parameters
+    ----------
+    array : ArrayConfig
+        Geometry with the chip calibration to apply.
+    accel, gyro : ndarray, shape (N, m, 3)
+        Raw samples (SI).
+    t_s : ndarray, shape (N,)
+    static : ndarray, shape (N,), bool
+    intervals : list of StaticInterval
+    """
+    from imufdi_cli.detectors.parity import residual_sigma
+
+    out: list[dict[str, np.ndarray]] = [{} for _ in range(array.n_imus)]
+    for sensor_type, raw in (("accel", accel), ("gyro", gyro)):
+        if raw is None or array.n_sensors(sensor_type) < 4:
+            continue
+        values = array.select(array.calibrate_triads(raw, sensor_type), sensor_type)
+        H = array.measurement_matrix(sensor_type)
+        total = np.zeros(H.shape[0])
+        count = 0
+        for item in intervals:
+            rows = (t_s >= item.start_s) & (t_s <= item.end_s) & static
+            n_rows = int(np.count_nonzero(rows))
+            if n_rows < 10:
+                continue
+            total += n_rows * residual_sigma(H, values[rows]) ** 2
+            count += n_rows
+        if count == 0:
+            continue
+        sigma = np.sqrt(total / count)
+        imu_idx, axis_idx = array.sensor_index(sensor_type)
+        for k in range(array.n_imus):
+            mine = imu_idx == k
+            if np.count_nonzero(mine) == 3:
+                triad = np.empty(3)
+                triad[axis_idx[mine]] = sigma[mine]
+                out[k][sensor_type] = triad
+    return out
+
+
 def calibrate_block(
     array: ArrayConfig,
     block: ImuBlock,
@@ -455,12 +518,13 @@ def calibrate_block(
             _residual_rms(array, sample, None),
             _residual_rms(array, sample, gyro_cal),
         )
+    noise = static_noise(array.with_calibration(cals), accel, gyro, t_s, static, intervals)
     figures = [
         _figures(k, s, c)
         for k, per in enumerate(cals)
         for s, c in sorted(per.items(), reverse=True)
     ]
-    out = array.with_calibration(cals)
+    out = array.with_calibration(cals).with_sensor_noise(noise)
     return CalibrationResult(
         array=out,
         intervals=intervals,

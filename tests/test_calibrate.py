@@ -98,6 +98,11 @@ def test_recovers_known_calibration():
     before, after = result.residual_rms["accel"]
     assert after < 0.01 * before
     assert after < 5e-3
+    # per-sensor noise at rest: 12 intervals of ~7 s (8,000+ rows); the relative standard
+    # error of a residual-based sigma is ~ sqrt(Var(sigma^2 est) / 4) ~ 1 % here: 6 %
+    # tolerance is 6 standard errors
+    assert_allclose(result.array.sensor_noise("gyro"), 0.002, rtol=0.06)
+    assert_allclose(result.array.sensor_noise("accel"), 0.02, rtol=0.06)
 
 
 def test_few_orientations_and_no_motion_warn_and_estimate_biases_only():
