@@ -5,11 +5,11 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from scipy.stats import binom
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
+from scipy.stats import binom
 
 from imufdi_cli.detectors.base import NO_ISOLATION, NOT_ISOLABLE, DetectionBlock, parse_params
 from imufdi_cli.detectors.glt import GltDetector
