@@ -454,16 +454,16 @@ def static_noise(
         H = array.measurement_matrix(sensor_type)
         n = H.shape[0]
         projector = np.eye(n) - H @ np.linalg.pinv(H)
+        residual = values @ projector.T  # (N, n)
         squares = np.zeros(n)
         dof = 0
         for item in intervals:
-            rows = (t_s >= item.start_s) & (t_s <= item.end_s) & static
-            n_rows = int(np.count_nonzero(rows))
-            if n_rows < 10:
+            lo, hi = np.searchsorted(t_s, [item.start_s, item.end_s], side="left")
+            part = residual[lo : hi + 1][static[lo : hi + 1]]
+            if part.shape[0] < 10:
                 continue
-            residual = values[rows] @ projector.T
-            squares += np.sum((residual - residual.mean(axis=0)) ** 2, axis=0)
-            dof += n_rows - 1
+            squares += part.var(axis=0) * part.shape[0]
+            dof += part.shape[0] - 1
         if dof == 0:
             continue
         variances = squares / dof
