@@ -14,7 +14,11 @@ from imufdi_cli.detectors.woa_mvmd_glt import (
     TuneResult,
     ValidationFault,
     WoaMvmdGltDetector,
+    best_mode,
     cfv_components,
+    clear_tuning_cache,
+    decompose_windows,
+    filter_matrices,
     filter_matrix,
     make_validation,
     tune,
@@ -72,6 +76,27 @@ def test_filter_matrix_reproduces_mode():
     result = mvmd(x, 3, 500.0)
     F = filter_matrix(result.gains[0], 40)
     assert_allclose(x @ F.T, result.modes[0], atol=1e-12)
+
+
+def test_decompose_windows_matches_one_window_at_a_time():
+    rng = np.random.default_rng(4)
+    t = np.arange(30) / 100.0
+    windows = 1.0 + 0.02 * rng.standard_normal((7, 30, 5)) + np.sin(2 * np.pi * 4 * t)[:, None]
+    Ks = [2, 3, 2, 4, 2, 3, 2]
+    alphas = [300.0, 800.0, 50.0, 2000.0, 530.0, 120.0, 5000.0]
+    u, F = decompose_windows(windows, Ks, alphas, tol=1e-6, max_iter=300)
+    assert u.shape == (7, 30, 5) and F.shape == (7, 30, 30)
+    for w in range(7):
+        result = mvmd(windows[w].T, Ks[w], alphas[w], tol=1e-6, max_iter=300)
+        k = best_mode(result, windows[w])
+        assert_allclose(F[w], filter_matrix(result.gains[k], 30), rtol=0, atol=1e-12)
+        assert_allclose(u[w], result.modes[k].T, rtol=0, atol=1e-12)
+    assert_allclose(F @ windows, u, atol=1e-12)  # u = F x, channel by channel
+    gains = rng.random((3, 31))
+    for g, matrix in zip(gains, filter_matrices(gains, 30)):
+        assert_allclose(matrix, filter_matrix(g, 30), rtol=0, atol=1e-15)
+    with pytest.raises(DetectorConfigError, match="non-finite"):
+        decompose_windows(np.full((1, 30, 5), np.nan), [2], [100.0], tol=1e-6, max_iter=10)
 
 
 def coaligned(n_imus: int) -> ArrayConfig:
@@ -236,6 +261,36 @@ def test_validation_miss_fraction_of_a_moving_average_matches_a_loop():
             fraction = F[t, c:].sum() / np.linalg.norm(F[t])
             misses.append(1.0 - ncx2.sf(15.0, 5, 9.0 * 0.6 * fraction**2))
     assert val.miss_fraction(F) == pytest.approx(np.mean(misses), rel=1e-12)
+
+
+def test_validation_miss_fractions_of_a_stack_equal_one_by_one():
+    val = ValidationFault(window=20, hop=5, step=4.0, dof=13, threshold=27.7, projection=13 / 16)
+    rng = np.random.default_rng(2)
+    filters = rng.random((4, 20, 20))
+    stacked = val.miss_fractions(filters)
+    assert stacked.shape == (4,)
+    for F, value in zip(filters, stacked):
+        assert val.miss_fraction(F) == pytest.approx(value, rel=1e-13)
+
+
+def test_tuning_is_reused_for_the_same_calibration_segment():
+    clear_tuning_cache()
+    array = coaligned(6)
+    raw = {"types": "gyro", "population": 3, "iterations": 1, "window": 20, "overlap": 15}
+    first, second, other = make(raw), make(raw), make({**raw, "seed": 1})
+    calibration = synthetic_block(6, 200)
+    first.fit(calibration, array)
+    second.fit(calibration, array)
+    other.fit(calibration, array)
+    a, b, c = (d.metadata()["types"]["gyro"] for d in (first, second, other))
+    assert a["tuning"]["reused"] is False and b["tuning"]["reused"] is True
+    assert (a["K"], a["mvmd_alpha"]) == (b["K"], b["mvmd_alpha"])
+    assert c["tuning"]["reused"] is False  # another WOA seed: searched again
+    changed = synthetic_block(6, 200)
+    changed.gyro[0, 0, 0] += 1e-9
+    first.fit(changed, array)
+    assert first.metadata()["types"]["gyro"]["tuning"]["reused"] is False
+    clear_tuning_cache()
 
 
 @pytest.mark.slow
