@@ -525,14 +525,36 @@ def _impulse_spectra(n_samples: int) -> np.ndarray:
     return cached
 
 
-def filter_matrices(gains: np.ndarray, n_samples: int) -> np.ndarray:
-    """:func:`filter_matrix` of a stack of gains (W, n_samples + 1): F, shape (W, L, L)."""
+_FILTER_BASES: dict[int, np.ndarray] = {}
+
+
+def filter_matrices(gains: np.ndarray, n_samples: int, first_row: int = 0) -> np.ndarray:
+    """:func:`filter_matrix` of a stack of gains (W, L + 1), rows ``first_row`` .. L - 1.
+
+    F is linear in the gains, ``F = sum_f g(f) B_f`` with ``B_f`` the filter of a unit
+    gain at bin f (built once per window length with the FFTs of :func:`filter_matrix`),
+    so a stack is one matrix product; equal to :func:`filter_matrix` up to rounding
+    (about 1e-15 of the largest weight).
+
+    Returns
+    -------
+    F : ndarray, shape (W, L - first_row, L)
+    """
     gains = np.asarray(gains, dtype=np.float64)
-    offset = n_samples // 2
-    response = np.fft.irfft(
-        _impulse_spectra(n_samples)[None] * gains[:, None, :], n=2 * n_samples, axis=-1
-    )
-    return np.ascontiguousarray(np.swapaxes(response[..., offset : offset + n_samples], 1, 2))
+    basis = _FILTER_BASES.get(n_samples)
+    if basis is None:
+        offset = n_samples // 2
+        unit = np.fft.irfft(
+            _impulse_spectra(n_samples)[None] * np.eye(n_samples + 1)[:, None, :],
+            n=2 * n_samples,
+            axis=-1,
+        )
+        basis = np.ascontiguousarray(np.swapaxes(unit[..., offset : offset + n_samples], 1, 2))
+        if len(_FILTER_BASES) < 16:
+            _FILTER_BASES[n_samples] = basis  # (L + 1, L, L)
+    kept = basis[:, first_row:, :]
+    flat = gains @ kept.reshape(n_samples + 1, -1)
+    return flat.reshape(gains.shape[0], n_samples - first_row, n_samples)
 
 
 @dataclass
@@ -582,11 +604,12 @@ class WindowSpectra:
         )
 
     def u_best(
-        self, raw: Sequence[tuple[np.ndarray, np.ndarray, int, bool]]
+        self, raw: Sequence[tuple[np.ndarray, np.ndarray, int, bool]], first_row: int = 0
     ) -> tuple[np.ndarray, np.ndarray]:
-        """u_best (W, L, n) and its filter (W, L, L) from the outputs of :func:`mvmd_gains`
-        (one per window, gains cropped to L + 1 bins), chosen as :func:`best_mode` does
-        (modes sorted by centre frequency) and built as :func:`filter_matrix`."""
+        """u_best (W, L, n) and rows ``first_row`` .. L - 1 of its filter (W, L - first_row,
+        L) from the outputs of :func:`mvmd_gains` (one per window), chosen as
+        :func:`best_mode` does (modes sorted by centre frequency), the filter as
+        :func:`filter_matrices`."""
         n_windows, _, n_samples = self.x.shape
         k_max = max(g.shape[0] for g, _, _, _ in raw)
         gains = np.zeros((n_windows, k_max, n_samples + 1))
@@ -606,7 +629,7 @@ class WindowSpectra:
         best = np.argmax(score, axis=1)
         rows = np.arange(n_windows)
         u = np.ascontiguousarray(np.swapaxes(modes[rows, best], 1, 2))
-        return u, filter_matrices(gains[rows, best], n_samples)
+        return u, filter_matrices(gains[rows, best], n_samples, first_row)
 
 
 def decompose_windows(
@@ -616,6 +639,7 @@ def decompose_windows(
     *,
     tol: float,
     max_iter: int,
+    first_row: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """u_best of each window of a stack and its filter matrix, by one batched MVMD.
 
@@ -630,13 +654,15 @@ def decompose_windows(
         W windows of L samples of n channels.
     Ks, alphas : sequences of W
     tol, max_iter : MVMD convergence settings
+    first_row : int
+        First row of the filter returned (the rows a caller uses).
 
     Returns
     -------
     u : ndarray, shape (W, L, n)
         u_best of each window (same units).
-    F : ndarray, shape (W, L, L)
-        Its filter: ``u[w] = F[w] @ windows[w]``.
+    F : ndarray, shape (W, L - first_row, L)
+        Rows of its filter: ``u[w, first_row:] = F[w] @ windows[w]``.
     """
     spectra = WindowSpectra.of(windows)
     raw = mvmd_gains(
@@ -648,7 +674,7 @@ def decompose_windows(
         max_iter=max_iter,
         history=False,
     )
-    return spectra.u_best(raw)
+    return spectra.u_best(raw, first_row)
 
 
 class _WindowStream:
@@ -670,7 +696,9 @@ class _WindowStream:
         self.hop = hop
         self.pad = (window - hop) // 2
         self.combine = combine
-        self.evaluate = evaluate  # (W, L, n) -> dict of (W, L, ...) arrays, "statistic" first
+        # evaluate(windows (W, L, n), first_row) -> dict of (W, L - first_row, ...) arrays
+        # for rows first_row .. L - 1 of each window, "statistic" first
+        self.evaluate = evaluate
         self.buffer: np.ndarray | None = None
         self.buffer_start = 0  # global index of buffer[0]
         self.received = 0
@@ -740,21 +768,20 @@ class _WindowStream:
             starts = (self.next_window + np.arange(min(self.BATCH, count - first))) * self.hop
             local = starts - self.buffer_start
             stack = self.buffer[local[:, None] + np.arange(self.window)]  # (W, L, columns)
-            rows = self.evaluate(stack)
             if self.combine == "end":
+                rows = self.evaluate(stack, self.window - self.hop)  # the last hop rows
                 # contributions are consecutive, disjoint and final at once: the last hop
                 # rows of each window, in order (pending is empty between pushes)
                 outputs.append(
                     {
-                        key: value[:, self.window - self.hop :].reshape(
-                            starts.size * self.hop, *value.shape[2:]
-                        )
+                        key: value.reshape(starts.size * self.hop, *value.shape[2:])
                         for key, value in rows.items()
                     }
                 )
                 self.emitted = int(starts[-1]) + self.window
                 self.next_window += starts.size
                 continue
+            rows = self.evaluate(stack, 0)
             for i, start in enumerate(int(s) for s in starts):
                 lo, hi = self._window_rows(start, self.window)
                 self._store(lo, {k: v[i, lo - start : hi - start] for k, v in rows.items()})
@@ -788,9 +815,9 @@ class _WindowStream:
             length = total - start
             if length < MIN_SAMPLES:
                 return [{"__quiet__": np.zeros(total - self.emitted)}]
-        rows = self.evaluate(self.buffer[None, start - self.buffer_start :])
         lo = max(start, self.emitted)
-        self._store(lo, {k: v[0, lo - start :] for k, v in rows.items()})
+        rows = self.evaluate(self.buffer[None, start - self.buffer_start :], lo - start)
+        self._store(lo, {k: v[0] for k, v in rows.items()})
         out = self._take(total)
         return [out] if out is not None else []
 
@@ -1078,11 +1105,17 @@ class WoaMvmdGltDetector:
         tol = float(self.params["tol"])
         max_iter = int(self.params["max_iter"])
 
-        def u_best(windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def u_best(windows: np.ndarray, first_row: int) -> tuple[np.ndarray, np.ndarray]:
             count = windows.shape[0]
-            return decompose_windows(
-                windows, [K] * count, [alpha] * count, tol=tol, max_iter=max_iter
+            u, F = decompose_windows(
+                windows,
+                [K] * count,
+                [alpha] * count,
+                tol=tol,
+                max_iter=max_iter,
+                first_row=first_row,
             )
+            return u[:, first_row:], F
 
         return u_best
 
@@ -1160,10 +1193,11 @@ class WoaMvmdGltDetector:
             )
 
     def _evaluator(self, state: _TypeState, decompose: Any) -> Any:
-        def evaluate(windows: np.ndarray) -> dict[str, np.ndarray]:
-            # windows (W, L, 2n); the stream carries [clipped | raw] side by side (process)
+        def evaluate(windows: np.ndarray, first_row: int) -> dict[str, np.ndarray]:
+            # windows (W, L, 2n); the stream carries [clipped | raw] side by side (process);
+            # rows first_row .. L - 1 of each window: R = L - first_row
             raw = windows[..., state.n :]
-            u, F = decompose(windows[..., : state.n])  # (W, L, n), (W, L, L)
+            u, F = decompose(windows[..., : state.n], first_row)  # (W, R, n), (W, R, L)
             noise_gain = np.sqrt(np.einsum("wij,wij->wi", F, F))  # sigma_u = sigma * gain
             dc_gain = F.sum(axis=-1)  # (W, L): bias_u = bias * dc_gain
             # the calibration bias (mean of n_cal samples) is off by N(0, sigma^2 / n_cal),

@@ -94,7 +94,7 @@ def test_decompose_windows_matches_one_window_at_a_time():
     assert_allclose(F @ windows, u, atol=1e-12)  # u = F x, channel by channel
     gains = rng.random((3, 31))
     for g, matrix in zip(gains, filter_matrices(gains, 30)):
-        assert_allclose(matrix, filter_matrix(g, 30), rtol=0, atol=1e-15)
+        assert_allclose(matrix, filter_matrix(g, 30), rtol=0, atol=1e-13)
     with pytest.raises(DetectorConfigError, match="non-finite"):
         decompose_windows(np.full((1, 30, 5), np.nan), [2], [100.0], tol=1e-6, max_iter=10)
 
