@@ -189,7 +189,8 @@ class ValidationFault:
         return float(self.miss_fractions(np.asarray(F)[None])[0])
 
     def miss_fractions(self, F: np.ndarray) -> np.ndarray:
-        """:meth:`miss_fraction` of a stack of filters F (R, L, L), one value per filter.
+        """:meth:`miss_fraction` of a stack of filters F (R, L, L), one value per filter
+        (or of their last ``hop`` rows, (R, hop, L): the only rows it reads).
 
         Offsets ``k >= L - 1`` all see the step on every column (c = 0), so the
         probabilities are computed for ``k < L`` only and the last one weighted by the
@@ -202,7 +203,7 @@ class ValidationFault:
         L = F.shape[-1]
         horizon = self.horizon or 4 * self.window
         rows = np.arange(L - self.hop, L)
-        kept = F[:, rows]  # (R, hop, L)
+        kept = F[:, -self.hop :]  # (R, hop, L): the rows decided (or only those given)
         tails = np.cumsum(kept[..., ::-1], axis=-1)[..., ::-1]  # tails[., r, c] = sum_{tau>=c}
         norms = np.sqrt(np.einsum("rij,rij->ri", kept, kept))
         distinct = min(horizon, L)
@@ -354,7 +355,7 @@ def tune_signal(
             max_iter=max_iter,
             history=False,
         )
-        _, F = stacked.u_best(raw)
+        _, F = stacked.u_best(raw, validation.window - validation.hop)  # decided rows
         misses = validation.miss_fractions(F).reshape(len(starts), len(Ks)).mean(axis=0)
         return values + validation.weight * misses
 

@@ -271,6 +271,7 @@ def test_validation_miss_fractions_of_a_stack_equal_one_by_one():
     assert stacked.shape == (4,)
     for F, value in zip(filters, stacked):
         assert val.miss_fraction(F) == pytest.approx(value, rel=1e-13)
+    assert_allclose(val.miss_fractions(filters[:, -5:]), stacked, rtol=1e-15)  # decided rows
 
 
 def test_tuning_is_reused_for_the_same_calibration_segment():
