@@ -294,6 +294,32 @@ def test_tuning_is_reused_for_the_same_calibration_segment():
     clear_tuning_cache()
 
 
+def test_clip_moves_only_the_largest_residual_and_keeps_a_large_drift_detected():
+    array = coaligned(6)
+    calibration = synthetic_block(n=200)
+    det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"})  # outliers=clip, c = 4
+    det.fit(calibration, array)
+    state = det._states["gyro"]
+    values = array.select(synthetic_block(n=400).gyro, "gyro")  # (400, 18)
+    values[100:, 0] += 0.0026 * 1000.0  # a 1000-sigma fault on one sensor
+    clipped = state.clip(values)
+    moved = np.abs(clipped - values) > 0
+    assert moved[100:, 0].all()  # the faulty sensor is cut on every faulty sample ...
+    assert not moved[100:, 1:].any()  # ... and no healthy sensor is moved toward it
+    # after the cut, the faulty sensor's standardised residual sits at the clip level
+    projector = state.V.T @ state.V
+    z = (((clipped - state.bias) / state.sigma) @ projector) / np.sqrt(np.diag(projector))
+    assert_allclose(np.abs(z[100:, 0]), 4.0, rtol=1e-9)
+    # a fast drift (0 -> 3000 sigma) stays detected all along
+    block = synthetic_block(n=600)
+    gyro = block.gyro.copy()
+    gyro[300:, 0, 0] += 0.0026 * 10.0 * np.arange(300)
+    drift_det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"})
+    drift_det.fit(calibration, array)
+    out = run(drift_det, ImuBlock(t_ns=block.t_ns, gyro=gyro), 64)
+    assert out.alarm[320:].all()
+
+
 @pytest.mark.slow
 def test_cfv_alone_picks_the_alpha_bound_and_the_validation_fault_does_not():
     """The degeneracy of the paper's fitness, and the cfv+delay fix, on an array signal."""
