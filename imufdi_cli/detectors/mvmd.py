@@ -312,7 +312,7 @@ def mvmd_gains(
             done[:] = True
         done &= active
         if done.any():
-            for row in np.flatnonzero(done):
+            for row in (int(r) for r in np.flatnonzero(done)):
                 b = int(index[row])
                 K = int(Ks[b])
                 out[b] = (

@@ -1091,7 +1091,7 @@ class WoaMvmdGltDetector:
                 float(p["delay_weight"]),
                 float(p["alpha"]),
             )
-        settings = {
+        settings: dict[str, Any] = {
             "population": int(p["population"]),
             "iterations": int(p["iterations"]),
             "k_bounds": (int(p["k_min"]), int(p["k_max"])),
