@@ -945,8 +945,8 @@ class WoaMvmdGltDetector:
         "outliers": Param(
             "choice",
             "clip",
-            "sparse spikes: clip each sample's standardised parity residual at outlier_cut"
-            " before the decomposition (clip), add their calibration variance to sigma"
+            "sparse spikes: clip each sample's largest standardised parity residual at"
+            " outlier_cut before the decomposition (clip), add their calibration variance to sigma"
             " (variance), or nothing (ignore)",
             choices=OUTLIER_CHOICES,
         ),
