@@ -251,6 +251,7 @@ def mvmd_gains(
         used[b, :K] = True
     alpha_col = np.asarray(alphas, dtype=np.float64)[:, None]
     unused_inf = np.where(used, 0.0, np.inf)[:, :, None]  # (B, K_max, 1)
+    all_used = bool(used.all())
     moving = np.ones(k_max, dtype=bool)  # centre frequencies updated by (B')
     moving[0] = not dc
 
@@ -267,7 +268,10 @@ def mvmd_gains(
 
     def omega_history(b: int, row: int, n_iter: int, K: int) -> np.ndarray:
         if not history:
-            return np.vstack([track[0, b, :K], omega[row, :K]])
+            ends = np.empty((2, K))
+            ends[0] = track[0, b, :K]
+            ends[1] = omega[row, :K]
+            return ends
         return track[: n_iter + 1, b, :K].copy()
 
     n_iter = 0
@@ -280,7 +284,8 @@ def mvmd_gains(
         den = freqs[..., None, :] - omega[:, :, None]
         den *= den
         den *= alpha_col[:, :, None]
-        den += unused_inf
+        if not all_used:
+            den += unused_inf
         den += 1.0
         for k in range(k_max):  # Gauss-Seidel: mode k sees the new modes < k
             gain = gains[:, k]
