@@ -921,7 +921,7 @@ class _TypeState:
         both cut). A one-sample spike on one sensor is cut to c; a step larger than c sigma
         is cut too, sample by sample, but stays far above the threshold once u_best
         averages it (the amplitude is estimated on the unclipped signal). Gaussian noise is
-        left alone but with probability about 2 n Phi(-c) per sample (1e-3 at c = 4, n = 48).
+        left alone but with probability about 2 n Phi(-c) per sample (3e-3 at c = 4, n = 48).
 
         One at a time: a fault of hundreds of sigma on one sensor also pushes every other
         sensor's residual past c (by about 1/n of it); cutting them all at once moved the
