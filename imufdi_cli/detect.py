@@ -21,7 +21,7 @@ import numpy as np
 
 from imufdi_cli import __version__
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors import DETECTORS, make_detector
+from imufdi_cli.detectors import DETECTORS, make_detectors
 from imufdi_cli.detectors.base import DetectionBlock, Detector
 from imufdi_cli.episodes import EpisodeBuilder, episode_builders
 from imufdi_cli.errors import CalibrationError, DetectorConfigError, McapInputError
@@ -322,7 +322,7 @@ def detect_file(
     -------
     DetectResult
     """
-    instances = [make_detector(name, dict(params)) for name, params in detectors]
+    instances, notes = make_detectors((name, dict(params)) for name, params in detectors)
     cal_start_s, cal_end_s = calibrate
     reader = ImuArrayReader(source, topics=topics, strict=strict, time_source=time_source)
     log_array = reader.array
@@ -330,7 +330,7 @@ def detect_file(
     conditioner = Conditioner(log_array, array)
     test_start_s, test_end_s = window if window is not None else (0.0, None)
     tracks = [_Track(det, array) for det in instances]
-    warnings: list[str] = []
+    warnings: list[str] = notes  # e.g. a renamed detector parameter
     n_samples = 0
     t_first: int | None = None
     t_last = 0

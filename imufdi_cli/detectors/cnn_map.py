@@ -89,8 +89,8 @@ from imufdi_cli.detectors.base import (
     ALPHA,
     NO_ISOLATION,
     DetectionBlock,
+    DetectorBase,
     Param,
-    parse_params,
 )
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.nn import ACTIVATIONS, Adam, Conv1d, Dense, Sequential, mse_loss
@@ -342,7 +342,7 @@ def gamma_shape(energies: np.ndarray) -> float:
     return mean * mean / variance
 
 
-class CnnMapDetector:
+class CnnMapDetector(DetectorBase):
     """CNN accelerometer-to-rate mapping residuals (Chen, Su, Xu); see the module docstring.
 
     Parameters
@@ -422,10 +422,6 @@ class CnnMapDetector:
         self.filters = int(filters)
         self.kernel = int(kernel)
         self.activation = str(activation)
-        if self.activation not in ACTIVATIONS:
-            raise DetectorConfigError(
-                f"cnn-map.activation: {activation!r} is not valid; valid: {', '.join(ACTIVATIONS)}"
-            )
         self.epochs = int(epochs)
         self.batch = int(batch)
         self.patience = int(patience)
@@ -438,11 +434,6 @@ class CnnMapDetector:
         self.mapping: MappingNetwork | None = None
         self.network: Sequential | None = None
         self._glt: GltDetector | None = None
-
-    @classmethod
-    def from_params(cls, raw: dict[str, Any] | None = None) -> CnnMapDetector:
-        """Construct from raw (string) parameters, as the CLI does."""
-        return cls(**parse_params(cls.PARAMS, raw or {}, cls.name))
 
     # --- geometry and reference --------------------------------------------------------
 

@@ -50,8 +50,11 @@ from imufdi_cli.detectors.base import (
     ALPHA,
     NO_ISOLATION,
     NOT_ISOLABLE,
+    TYPES,
     DetectionBlock,
+    DetectorBase,
     Param,
+    parse_sensor_types,
 )
 from imufdi_cli.detectors.mvmd import (
     MIN_SAMPLES,
@@ -613,14 +616,6 @@ def _weights_check(value: Any) -> str | None:
     return None
 
 
-def _types_check(value: Any) -> str | None:
-    parts = [p.strip() for p in str(value).split(",") if p.strip()]
-    bad = [p for p in parts if p not in ("gyro", "accel", "mag")]
-    if not parts or bad:
-        return "sensor types must be a comma-separated subset of gyro, accel, mag"
-    return None
-
-
 @dataclass
 class _TypeState:
     sensor_type: str
@@ -672,7 +667,7 @@ class _TypeState:
         return np.asarray(values - excess * self.sigma / scale)
 
 
-class WoaMvmdGltDetector:
+class WoaMvmdGltDetector(DetectorBase):
     """WOA-tuned MVMD + GLT detector (module docstring), CLI name ``woa-mvmd-glt``."""
 
     name: ClassVar[str] = "woa-mvmd-glt"
@@ -735,34 +730,46 @@ class WoaMvmdGltDetector:
         ),
         "tune_samples": Param("int", 250, "calibration samples used for tuning", low=MIN_SAMPLES),
         "seed": Param("int", 0, "seed of the WOA search", low=0),
-        "types": Param("str", "gyro,accel", "sensor types tested", check=_types_check),
+        "types": TYPES,
         "tol": Param("float", 1e-6, "MVMD relative convergence tolerance", low=0, low_open=True),
         "max_iter": Param("int", 300, "MVMD iteration cap", low=1),
     }
 
-    def __init__(self, **params: Any) -> None:
-        values = {key: spec.default for key, spec in self.PARAMS.items()}
-        unknown = set(params) - set(values)
-        if unknown:
-            raise DetectorConfigError(
-                f"unknown parameter {self.name}.{sorted(unknown)[0]};"
-                f" valid: {', '.join(sorted(values))}"
-            )
-        values.update(params)
+    def __init__(
+        self,
+        alpha: float = 0.01,
+        window: int = 50,
+        overlap: int = 40,
+        combine: str = "end",
+        outliers: str = "clip",
+        outlier_cut: float = 4.0,
+        fitness: str = "cfv+delay",
+        validation_step: float = 4.0,
+        delay_weight: float = 100.0,
+        params: str | None = None,
+        K: int | None = None,
+        mvmd_alpha: float | None = None,
+        population: int = 8,
+        iterations: int = 6,
+        k_min: int = 2,
+        k_max: int = 5,
+        alpha_min: float = 50.0,
+        alpha_max: float = 5000.0,
+        weights: str = "1,1,1",
+        tune_samples: int = 250,
+        seed: int = 0,
+        types: str = "gyro,accel",
+        tol: float = 1e-6,
+        max_iter: int = 300,
+    ) -> None:
+        arguments = locals()
+        values = {key: arguments[key] for key in self.PARAMS}  # each PARAMS name, typed
         self.params = values
         window = int(values["window"])
         overlap = int(values["overlap"])
-        if window < MIN_SAMPLES:
-            raise DetectorConfigError(
-                f"{self.name}.window: must be >= {MIN_SAMPLES} samples, got {window}"
-            )
         if not 0 <= overlap < window:
             raise DetectorConfigError(
                 f"{self.name}.overlap: must be >= 0 and < window ({window}), got {overlap}"
-            )
-        if int(values["population"]) < 2:
-            raise DetectorConfigError(
-                f"{self.name}.population: must be >= 2, got {values['population']}"
             )
         if values["k_min"] > values["k_max"]:
             raise DetectorConfigError(f"{self.name}: k_min must be <= k_max")
@@ -772,12 +779,10 @@ class WoaMvmdGltDetector:
             raise DetectorConfigError(f"{self.name}: give both K and mvmd_alpha, or neither")
         if values["K"] is not None:
             check_mvmd_params(values["K"], values["mvmd_alpha"])
-        if values["combine"] not in COMBINE_CHOICES:
-            raise DetectorConfigError(f"{self.name}.combine: valid: {', '.join(COMBINE_CHOICES)}")
         self.window = window
         self.hop = window - overlap
         self.weights = tuple(float(v) for v in str(values["weights"]).split(","))
-        self.types = [p.strip() for p in str(values["types"]).split(",") if p.strip()]
+        self.types = list(parse_sensor_types(types, self.name))
         self.tuned_file = TuneResult.load(values["params"]) if values["params"] else None
         self._states: dict[str, _TypeState] = {}
         self._array: ArrayConfig | None = None

@@ -170,7 +170,7 @@ def test_chip_biases_false_alarm_rate_is_nominal_while_plain_glt_alarms():
                 chip_biases={"gyro": "0.5deg/s"},
             )
         )
-        out = run(make({"sensors": "gyro"}), array, block)["gyro"]
+        out = run(make({"types": "gyro"}), array, block)["gyro"]
         rates.append(out.alarm.mean())
         glt = GltDetector(**parse_params(GltDetector.PARAMS, {"bias": False}, "glt"))
         plain = run(glt, array, block)["gyro"]
@@ -199,7 +199,7 @@ def test_streaming_gives_the_same_rows_for_any_block_size():
         ({"space": "pca"}, "valid: parity, raw"),
         ({"components": "0"}, ">= 1"),
         ({"window": "5m/s"}, "time"),
-        ({"sensors": "gyro,baro"}, "valid: gyro, accel, mag"),
+        ({"types": "gyro,baro"}, "valid: gyro, accel, mag"),
         ({"nope": "1"}, "valid: alpha"),
     ],
 )
@@ -213,7 +213,7 @@ def test_short_or_missing_calibration_raises():
     with pytest.raises(CalibrationError, match="at least"):
         make().fit(block.slice(0, 15), array)
     with pytest.raises(CalibrationError, match="nothing to test"):
-        make({"sensors": "accel"}).fit(block.slice(0, 200), array)
+        make({"types": "accel"}).fit(block.slice(0, 200), array)
     with pytest.raises(CalibrationError, match="before fit"):
         make().process(block)
 
@@ -313,4 +313,4 @@ def test_accelerometers_with_lever_arms_are_not_tested_and_say_why():
     assert set(out) == {"gyro"}
     assert "lever-arm" in detector.metadata()["untested"]["accel"]
     with pytest.raises(CalibrationError, match="lever-arm"):
-        run(make({"sensors": "accel"}), array, block)
+        run(make({"types": "accel"}), array, block)
