@@ -4,26 +4,20 @@ ground truth (part of :mod:`imufdi_cli.faults`).
 
 from __future__ import annotations
 
+import io
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from imufdi_cli.array import ArrayConfig
 from imufdi_cli.errors import FaultSpecError
 from imufdi_cli.faults.injector import FaultInjector
 from imufdi_cli.faults.models import METADATA_NAME, TRUTH_TOPIC, Fault
 from imufdi_cli.faults.spec import load_fault_file, parse_fault_spec
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
-
-
-# --- file level: imufdi inject -------------------------------------------------------------
 
 
 @dataclass
@@ -127,49 +121,107 @@ def inject_file(
     McapInputError
         Unreadable input or no IMU channel (exit code 3).
     """
-    import io
-
-    from imufdi_cli import mcapio
-    from imufdi_cli.errors import McapInputError, UsageError
-    from imufdi_cli.mcapio.events import (
-        decode_events,
-        encode_fault_events,
-        encode_fdi_event_dicts,
-        is_event_channel,
-        register_events_channel,
-        register_truth_channel,
-    )
+    from imufdi_cli.errors import UsageError
 
     if not faults_specs and not fault_files:
         raise FaultSpecError("inject needs at least one --fault SPEC or --faults FILE")
     source_name, output_name = str(source), str(output)
     if output_name != "-" and source_name != "-" and _same_file(source_name, output_name):
         raise UsageError(f"output {output_name} is the input file; inputs are never modified")
+    open_input = _input_opener(source_name)
+    layout = _read_layout(open_input, topics, time_source)
+    scan = _scan_log(open_input, layout, source_name)
+    # Validate every spec before writing anything.
+    faults = [parse_fault_spec(spec, layout.array) for spec in faults_specs]
+    for path in fault_files:
+        faults += load_fault_file(path, layout.array)
+    duration_s = (scan.last_ns - scan.first_ns) * 1e-9
+    injector = FaultInjector(
+        faults,
+        layout.array,
+        seed=seed,
+        t0_ns=scan.first_ns,
+        log_duration_s=duration_s,
+        previous_metadata=scan.metadata.get(METADATA_NAME),
+    )
+    _check_streams(injector, scan, layout)
+    result = InjectResult(
+        output=output_name,
+        seed=injector.seed,
+        faults=injector.faults,
+        previous_faults=[
+            Fault.from_dict(item) for run in injector.previous_runs for item in run["faults"]
+        ],
+        t0_ns=scan.first_ns,
+        duration_s=duration_s,
+        imu_topics=layout.imu_topics,
+        warnings=layout.warnings,
+    )
+    _copy_with_faults(open_input, output, compression, layout, scan, injector, result)
+    return result
 
-    buffered: io.BytesIO | None = None
-    if source_name == "-":
-        buffered = io.BytesIO(sys.stdin.buffer.read())
 
-    def open_input() -> Any:
-        if buffered is not None:
-            buffered.seek(0)
-            return buffered
-        return source_name
+def _input_opener(source_name: str) -> Callable[[], Any]:
+    """A function giving the input afresh for each pass (stdin is buffered in memory)."""
+    if source_name != "-":
+        return lambda: source_name
+    buffered = io.BytesIO(sys.stdin.buffer.read())
 
-    # The array and the topic -> IMU index rule, exactly as the reader sees them.
-    with mcapio.ImuArrayReader(
-        open_input(), topics=topics, time_source=time_source
-    ) as array_reader:
-        array = array_reader.array
-        imu_topics = list(array_reader.imu_topics)
-        imu_fields = dict(array_reader.imu_fields)
-        use_log_time = array_reader.time_source == "log_time"
-        reader_warnings = list(array_reader.warnings)
-        mag_topics = list(array_reader.mag_topics) if array.has("mag") else []
-    imu_index = {topic: k for k, topic in enumerate(imu_topics)}
-    mag_index = {topic: k for k, topic in enumerate(mag_topics)}
+    def rewound() -> io.BytesIO:
+        buffered.seek(0)
+        return buffered
 
-    # Pass 1: channels, metadata, the IMU time span (and truth on older JSON channels).
+    return rewound
+
+
+@dataclass
+class _Layout:
+    """The array and the topic -> IMU index rule, exactly as the reader sees them."""
+
+    array: ArrayConfig
+    imu_topics: list[str]
+    imu_fields: dict[str, str]  # topic -> path of the Imu inside its messages
+    mag_topics: list[str]
+    use_log_time: bool
+    warnings: list[str]
+
+
+def _read_layout(
+    open_input: Callable[[], Any], topics: Sequence[str] | None, time_source: str
+) -> _Layout:
+    from imufdi_cli import mcapio
+
+    with mcapio.ImuArrayReader(open_input(), topics=topics, time_source=time_source) as reader:
+        array = reader.array
+        return _Layout(
+            array=array,
+            imu_topics=list(reader.imu_topics),
+            imu_fields=dict(reader.imu_fields),
+            mag_topics=list(reader.mag_topics) if array.has("mag") else [],
+            use_log_time=reader.time_source == "log_time",
+            warnings=list(reader.warnings),
+        )
+
+
+@dataclass
+class _Scan:
+    """Pass 1: channels, metadata, the IMU time span (and truth on older JSON channels)."""
+
+    first_ns: int
+    last_ns: int
+    channels: dict[int, Any]
+    metadata: dict[str, dict[str, str]]
+    imu_channels: dict[int, int]  # channel id -> IMU index
+    mag_channels: dict[int, int]
+    legacy_truth: list[dict[str, Any]]
+    legacy_alarms: list[tuple[int, dict[str, Any]]]
+
+
+def _scan_log(open_input: Callable[[], Any], layout: _Layout, source_name: str) -> _Scan:
+    from imufdi_cli import mcapio
+    from imufdi_cli.errors import McapInputError
+    from imufdi_cli.mcapio.events import decode_events, is_event_channel
+
     first_ns: int | None = None
     last_ns: int | None = None
     legacy_truth: list[dict[str, Any]] = []
@@ -184,78 +236,93 @@ def inject_file(
                         legacy_truth += decode_events(sub, channel)
                     else:
                         legacy_alarms += zip(sub.log_time.tolist(), decode_events(sub, channel))
-            # one bulk decode per schema: channels sharing a schema share a codec
-            groups: dict[tuple[Any, str, str], list[int]] = {}
-            for cid in np.unique(batch.channel_id).tolist():
-                channel = reader.channels[cid]
-                if _is_imu_source(channel, imu_fields):
-                    key = (channel.schema, channel.message_encoding, imu_fields[channel.topic])
-                    groups.setdefault(key, []).append(cid)
-            for (_, _, imu_path), cids in groups.items():
-                part = batch.select(np.flatnonzero(np.isin(batch.channel_id, cids)))
-                decoded = mcapio.decode_imu(part, reader.channels[cids[0]], imu_path)
-                stamps = decoded.log_time if use_log_time else decoded.t_ns
-                if stamps.size:
-                    low, high = int(stamps.min()), int(stamps.max())
-                    first_ns = low if first_ns is None else min(first_ns, low)
-                    last_ns = high if last_ns is None else max(last_ns, high)
+            span = _imu_span(batch, reader.channels, layout)
+            if span is not None:
+                first_ns = span[0] if first_ns is None else min(first_ns, span[0])
+                last_ns = span[1] if last_ns is None else max(last_ns, span[1])
         channels = dict(reader.channels)
         metadata = {name: dict(values) for name, values in reader.metadata.items()}
     if first_ns is None or last_ns is None:
         raise McapInputError(f"{source_name}: no sensor_msgs/msg/Imu messages to inject into")
-    imu_channels = {
-        cid: imu_index[ch.topic] for cid, ch in channels.items() if _is_imu_source(ch, imu_fields)
-    }
-    mag_channels = {
-        cid: mag_index[ch.topic]
-        for cid, ch in channels.items()
-        if ch.topic in mag_index and mcapio.is_mag_channel(ch)
-    }
-    array_recorded = "imufdi.array" in metadata
-
-    # Validate every spec before writing anything.
-    faults = [parse_fault_spec(spec, array) for spec in faults_specs]
-    for path in fault_files:
-        faults += load_fault_file(path, array)
-    duration_s = (last_ns - first_ns) * 1e-9
-    injector = FaultInjector(
-        faults,
-        array,
-        seed=seed,
-        t0_ns=first_ns,
-        log_duration_s=duration_s,
-        previous_metadata=metadata.get(METADATA_NAME),
+    imu_index = {topic: k for k, topic in enumerate(layout.imu_topics)}
+    mag_index = {topic: k for k, topic in enumerate(layout.mag_topics)}
+    return _Scan(
+        first_ns=first_ns,
+        last_ns=last_ns,
+        channels=channels,
+        metadata=metadata,
+        imu_channels={
+            cid: imu_index[ch.topic]
+            for cid, ch in channels.items()
+            if _is_imu_source(ch, layout.imu_fields)
+        },
+        mag_channels={
+            cid: mag_index[ch.topic]
+            for cid, ch in channels.items()
+            if ch.topic in mag_index and mcapio.is_mag_channel(ch)
+        },
+        legacy_truth=legacy_truth,
+        legacy_alarms=legacy_alarms,
     )
-    # Every faulted stream must exist in the log and be patchable (CDR) before writing.
-    streams = {(k, t): cid for cid, k in imu_channels.items() for t in ("gyro", "accel")}
-    streams.update({(k, "mag"): cid for cid, k in mag_channels.items()})
+
+
+def _imu_span(batch: Any, channels: Mapping[int, Any], layout: _Layout) -> tuple[int, int] | None:
+    """First and last IMU stamp of a batch (the time source the faults refer to), or None."""
+    from imufdi_cli import mcapio
+
+    # one bulk decode per schema: channels sharing a schema share a codec
+    groups: dict[tuple[Any, str, str], list[int]] = {}
+    for cid in np.unique(batch.channel_id).tolist():
+        channel = channels[cid]
+        if _is_imu_source(channel, layout.imu_fields):
+            key = (channel.schema, channel.message_encoding, layout.imu_fields[channel.topic])
+            groups.setdefault(key, []).append(cid)
+    span: tuple[int, int] | None = None
+    for (_, _, imu_path), cids in groups.items():
+        part = batch.select(np.flatnonzero(np.isin(batch.channel_id, cids)))
+        decoded = mcapio.decode_imu(part, channels[cids[0]], imu_path)
+        stamps = decoded.log_time if layout.use_log_time else decoded.t_ns
+        if stamps.size:
+            low, high = int(stamps.min()), int(stamps.max())
+            span = (low, high) if span is None else (min(span[0], low), max(span[1], high))
+    return span
+
+
+def _check_streams(injector: FaultInjector, scan: _Scan, layout: _Layout) -> None:
+    """Every faulted stream must exist in the log and be patchable (CDR) before writing."""
+    from imufdi_cli.errors import McapInputError
+
+    streams = {(k, t): cid for cid, k in scan.imu_channels.items() for t in ("gyro", "accel")}
+    streams.update({(k, "mag"): cid for cid, k in scan.mag_channels.items()})
     for fault in injector.faults:
         cid = streams.get((fault.imu, fault.sensor_type))
         if cid is None:
             raise FaultSpecError(
                 f"fault {fault.spec!r}: the log has no {fault.sensor_type} topic for "
-                f"imu{fault.imu}; IMU topics: {', '.join(imu_topics)}"
+                f"imu{fault.imu}; IMU topics: {', '.join(layout.imu_topics)}"
             )
-        if channels[cid].message_encoding != "cdr":
+        channel = scan.channels[cid]
+        if channel.message_encoding != "cdr":
             raise McapInputError(
-                f"fault {fault.spec!r}: {channels[cid].topic} is "
-                f"{channels[cid].message_encoding!r}-encoded; only CDR messages can be patched"
+                f"fault {fault.spec!r}: {channel.topic} is "
+                f"{channel.message_encoding!r}-encoded; only CDR messages can be patched"
             )
-    previous_faults = [
-        Fault.from_dict(item) for run in injector.previous_runs for item in run["faults"]
-    ]
-    result = InjectResult(
-        output=output_name,
-        seed=injector.seed,
-        faults=injector.faults,
-        previous_faults=previous_faults,
-        t0_ns=first_ns,
-        duration_s=duration_s,
-        imu_topics=imu_topics,
-        warnings=reader_warnings,
-    )
 
-    # Pass 2: copy, patching the faulted IMU messages.
+
+def _copy_with_faults(
+    open_input: Callable[[], Any],
+    output: str | Path,
+    compression: str,
+    layout: _Layout,
+    scan: _Scan,
+    injector: FaultInjector,
+    result: InjectResult,
+) -> None:
+    """Pass 2: copy, patching the faulted IMU messages; adds truth and metadata."""
+    from imufdi_cli import mcapio
+    from imufdi_cli.mcapio.events import is_event_channel
+
+    channels = scan.channels
     with (
         mcapio.McapSource(open_input()) as reader,
         mcapio.McapWriter(output, compression=compression) as writer,
@@ -267,29 +334,13 @@ def inject_file(
             if ch.message_encoding == "json" and is_event_channel(ch)
         ]
         writer.copy_channels({c: ch for c, ch in channels.items() if c not in legacy_ids})
-        for name, values in metadata.items():
+        for name, values in scan.metadata.items():
             if name != METADATA_NAME:
                 writer.add_metadata(name, values)
-        if not array_recorded:
-            writer.add_metadata("imufdi.array", {"json": array.to_json()})
+        if "imufdi.array" not in scan.metadata:
+            writer.add_metadata("imufdi.array", {"json": layout.array.to_json()})
         writer.add_metadata(METADATA_NAME, injector.metadata())
-        truth_ids = [
-            cid
-            for cid, ch in channels.items()
-            if ch.topic == TRUTH_TOPIC and ch.message_encoding == "cdr" and is_event_channel(ch)
-        ]
-        truth_channel = truth_ids[0] if truth_ids else register_truth_channel(writer)
-        events = legacy_truth + injector.truth_events()
-        writer.add_batch(encode_fault_events(truth_channel, events))
-        result.truth_messages += len(events) - len(legacy_truth)
-        if legacy_alarms:
-            writer.add_batch(
-                encode_fdi_event_dicts(
-                    register_events_channel(writer),
-                    [t for t, _ in legacy_alarms],
-                    [e for _, e in legacy_alarms],
-                )
-            )
+        result.truth_messages += _write_events(writer, scan, injector)
         for batch in reader.batches():
             if legacy_ids:
                 batch = batch.select(~np.isin(batch.channel_id, legacy_ids))
@@ -297,16 +348,44 @@ def inject_file(
             patched, count = _patch_batch(
                 batch,
                 channels,
-                imu_channels,
-                mag_channels,
+                scan.imu_channels,
+                scan.mag_channels,
                 injector,
-                imu_fields=imu_fields,
-                use_log_time=use_log_time,
+                imu_fields=layout.imu_fields,
+                use_log_time=layout.use_log_time,
             )
             result.messages_patched += count
             writer.add_batch(patched)
         result.warnings = list(reader.warnings)
-    return result
+
+
+def _write_events(writer: Any, scan: _Scan, injector: FaultInjector) -> int:
+    """Truth events (earlier ones kept) and re-encoded legacy alarms; new truth messages."""
+    from imufdi_cli.mcapio.events import (
+        encode_fault_events,
+        encode_fdi_event_dicts,
+        is_event_channel,
+        register_events_channel,
+        register_truth_channel,
+    )
+
+    truth_ids = [
+        cid
+        for cid, ch in scan.channels.items()
+        if ch.topic == TRUTH_TOPIC and ch.message_encoding == "cdr" and is_event_channel(ch)
+    ]
+    truth_channel = truth_ids[0] if truth_ids else register_truth_channel(writer)
+    events = scan.legacy_truth + injector.truth_events()
+    writer.add_batch(encode_fault_events(truth_channel, events))
+    if scan.legacy_alarms:
+        writer.add_batch(
+            encode_fdi_event_dicts(
+                register_events_channel(writer),
+                [t for t, _ in scan.legacy_alarms],
+                [e for _, e in scan.legacy_alarms],
+            )
+        )
+    return len(events) - len(scan.legacy_truth)
 
 
 def _is_imu_source(channel: Any, imu_fields: Mapping[str, str]) -> bool:

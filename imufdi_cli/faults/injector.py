@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import json
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -18,12 +17,6 @@ from imufdi_cli.faults.models import METADATA_FORMAT, Fault
 from imufdi_cli.faults.spec import validate_faults
 from imufdi_cli.faults.truth import _load_record, faults_from_metadata
 from imufdi_cli.log import ImuBlock
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
-
 
 # --- injection --------------------------------------------------------------------------
 

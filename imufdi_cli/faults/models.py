@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Final
@@ -13,12 +12,6 @@ import numpy as np
 
 from imufdi_cli.array import AXES
 from imufdi_cli.errors import TruthError
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
-
 
 #: Name of the MCAP metadata record describing injected faults.
 METADATA_NAME: Final[str] = "imufdi.faults"

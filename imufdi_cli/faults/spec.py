@@ -7,7 +7,8 @@ from __future__ import annotations
 import math
 import re
 import sys
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
@@ -40,6 +41,147 @@ def _parse_events_per_second(text: Any, name: str) -> float:
     return parse_quantity(text, "frequency", name=name)
 
 
+@dataclass(frozen=True)
+class _RawSpec:
+    """One fault's raw key -> value (str or number) while it is being checked."""
+
+    model: str
+    values: Mapping[str, Any]
+    where: str  # ``fault 'SPEC'``: the prefix of every message
+
+    def error(self, message: str) -> FaultSpecError:
+        return FaultSpecError(f"{self.where}: {message}")
+
+    def quantity(self, key: str, dimension: str) -> float:
+        """``values[key]`` in SI, finite."""
+        try:
+            value = parse_quantity(self.values[key], dimension, name=key)
+        except UnitError as err:
+            raise self.error(str(err)) from err
+        if not math.isfinite(value):
+            raise self.error(f"{key}: {self.values[key]!r} is not a finite number")
+        return value
+
+    def require(self, *keys: str) -> None:
+        if not any(k in self.values for k in keys):
+            alternatives = " or ".join(f"{k}=" for k in keys)
+            raise self.error(f"{self.model} needs {alternatives}")
+
+    def exclusive(self, *keys: str) -> None:
+        if sum(k in self.values for k in keys) > 1:
+            raise self.error(f"give only one of {', '.join(keys)}")
+
+
+def _window(raw: _RawSpec) -> tuple[float, float | None]:
+    """``at`` and ``until`` (or ``at + duration``), seconds from the log start."""
+    at_s = raw.quantity("at", "time") if "at" in raw.values else 0.0
+    if at_s < 0:
+        raise raw.error("at must be >= 0 s (seconds from the log start)")
+    raw.exclusive("until", "duration")
+    if "until" in raw.values:
+        until_s = raw.quantity("until", "time")
+        if until_s <= at_s:
+            raise raw.error(
+                f"until ({until_s:g} s) must be after at ({at_s:g} s): negative or zero duration"
+            )
+        return at_s, until_s
+    if "duration" in raw.values:
+        duration = raw.quantity("duration", "time")
+        if duration <= 0:
+            raise raw.error(f"duration must be > 0 s, got {duration:g} s")
+        return at_s, at_s + duration
+    return at_s, None
+
+
+def _fault_id(raw: _RawSpec) -> str:
+    if "id" not in raw.values:
+        return ""
+    fault_id = str(raw.values["id"])
+    if not _ID_PATTERN.match(fault_id):
+        raise raw.error(f"id {fault_id!r} must be 1-64 of A-Z a-z 0-9 _ . -")
+    return fault_id
+
+
+def _step_params(raw: _RawSpec, sensor_type: str, array: ArrayConfig) -> dict[str, float]:
+    raw.require("amp")
+    return {"amp": raw.quantity("amp", sensor_dimension(sensor_type))}
+
+
+def _drift_params(raw: _RawSpec, sensor_type: str, array: ArrayConfig) -> dict[str, float]:
+    raw.require("rate")
+    return {"rate": raw.quantity("rate", rate_dimension(sensor_type))}
+
+
+def _noise_params(raw: _RawSpec, sensor_type: str, array: ArrayConfig) -> dict[str, float]:
+    """``sigma`` (added std) directly, or from ``factor`` and the nominal ``sigma0``."""
+    dim = sensor_dimension(sensor_type)
+    raw.require("factor", "sigma")
+    raw.exclusive("factor", "sigma")
+    if "sigma" in raw.values:
+        if "sigma0" in raw.values:
+            raise raw.error("sigma0 is only used with factor=")
+        sigma = raw.quantity("sigma", dim)
+        if sigma <= 0:
+            raise raw.error("sigma (added noise std) must be > 0")
+        return {"sigma": sigma}
+    factor = raw.quantity("factor", "dimensionless")
+    if factor < 1:
+        raise raw.error(f"factor must be >= 1 (noise grows by adding noise), got {factor:g}")
+    if "sigma0" in raw.values:
+        sigma0 = raw.quantity("sigma0", dim)
+    elif sensor_type in array.noise:
+        sigma0 = float(array.noise[sensor_type])
+    else:
+        raise raw.error(
+            f"factor needs the nominal noise: give sigma0= or set "
+            f"noise.{sensor_type} in the array config (or give sigma=)"
+        )
+    if sigma0 <= 0:
+        raise raw.error("sigma0 must be > 0")
+    return {"factor": factor, "sigma0": sigma0, "sigma": sigma0 * math.sqrt(factor * factor - 1.0)}
+
+
+def _stuck_params(raw: _RawSpec, sensor_type: str, array: ArrayConfig) -> dict[str, float]:
+    return {}
+
+
+def _scale_params(raw: _RawSpec, sensor_type: str, array: ArrayConfig) -> dict[str, float]:
+    raw.require("factor", "ppm")
+    raw.exclusive("factor", "ppm")
+    if "factor" in raw.values:
+        return {"factor": raw.quantity("factor", "dimensionless")}
+    return {"factor": 1.0 + raw.quantity("ppm", "dimensionless") * 1e-6}
+
+
+def _spikes_params(raw: _RawSpec, sensor_type: str, array: ArrayConfig) -> dict[str, float]:
+    raw.require("rate")
+    raw.require("amp")
+    try:
+        rate = _parse_events_per_second(raw.values["rate"], "rate")
+    except UnitError as err:
+        raise raw.error(f"{err} (events per second, e.g. 2Hz, 0.5/s)") from err
+    if rate <= 0:
+        raise raw.error("rate (events per second) must be > 0")
+    amp = raw.quantity("amp", sensor_dimension(sensor_type))
+    width = 1.0
+    if "width" in raw.values:
+        width = raw.quantity("width", "dimensionless")
+        if width < 1 or width != int(width):
+            raise raw.error(f"width must be a whole number of samples >= 1, got {width:g}")
+    return {"rate": rate, "amp": amp, "width": float(width)}
+
+
+#: Per model: its parameters in SI (``Fault.params``) from the raw spec.
+_MODEL_PARAMS: Final[dict[str, Callable[[_RawSpec, str, ArrayConfig], dict[str, float]]]] = {
+    "step": _step_params,
+    "drift": _drift_params,
+    "noise": _noise_params,
+    "stuck": _stuck_params,
+    "scale": _scale_params,
+    "spikes": _spikes_params,
+}
+
+
 def _build_fault(
     model: str,
     sensor: str,
@@ -48,133 +190,27 @@ def _build_fault(
     spec: str,
 ) -> Fault:
     """Validate one fault given as model, sensor and raw key -> value (str or number)."""
-    where = f"fault {spec!r}"
+    raw = _RawSpec(model, values, f"fault {spec!r}")
     if model not in MODEL_KEYS:
-        raise FaultSpecError(f"{where}: unknown model {model!r}; valid: {', '.join(MODELS)}")
+        raise raw.error(f"unknown model {model!r}; valid: {', '.join(MODELS)}")
     valid_keys = MODEL_KEYS[model] | _COMMON_KEYS
     for key in values:
         if key not in valid_keys:
-            raise FaultSpecError(
-                f"{where}: unknown key {key!r} for {model}; valid: {', '.join(sorted(valid_keys))}"
+            raise raw.error(
+                f"unknown key {key!r} for {model}; valid: {', '.join(sorted(valid_keys))}"
             )
     try:
         imu, sensor_type, axes = parse_sensor_id(sensor, array)
     except ArrayConfigError as err:
-        raise FaultSpecError(f"{where}: sensor: {err}") from err
-    sensors = [f"imu{imu}.{sensor_type}.{a}" for a in axes]
-    dim = sensor_dimension(sensor_type)
-
-    def quantity(key: str, dimension: str) -> float:
-        try:
-            value = parse_quantity(values[key], dimension, name=key)
-        except UnitError as err:
-            raise FaultSpecError(f"{where}: {err}") from err
-        if not math.isfinite(value):
-            raise FaultSpecError(f"{where}: {key}: {values[key]!r} is not a finite number")
-        return value
-
-    def require(*keys: str) -> None:
-        if not any(k in values for k in keys):
-            alternatives = " or ".join(f"{k}=" for k in keys)
-            raise FaultSpecError(f"{where}: {model} needs {alternatives}")
-
-    def exclusive(*keys: str) -> None:
-        if sum(k in values for k in keys) > 1:
-            raise FaultSpecError(f"{where}: give only one of {', '.join(keys)}")
-
-    at_s = quantity("at", "time") if "at" in values else 0.0
-    if at_s < 0:
-        raise FaultSpecError(f"{where}: at must be >= 0 s (seconds from the log start)")
-    exclusive("until", "duration")
-    until_s: float | None = None
-    if "until" in values:
-        until_s = quantity("until", "time")
-        if until_s <= at_s:
-            raise FaultSpecError(
-                f"{where}: until ({until_s:g} s) must be after at ({at_s:g} s): "
-                "negative or zero duration"
-            )
-    elif "duration" in values:
-        duration = quantity("duration", "time")
-        if duration <= 0:
-            raise FaultSpecError(f"{where}: duration must be > 0 s, got {duration:g} s")
-        until_s = at_s + duration
-
-    fault_id = ""
-    if "id" in values:
-        fault_id = str(values["id"])
-        if not _ID_PATTERN.match(fault_id):
-            raise FaultSpecError(f"{where}: id {fault_id!r} must be 1-64 of A-Z a-z 0-9 _ . -")
-
-    params: dict[str, float] = {}
-    if model == "step":
-        require("amp")
-        params["amp"] = quantity("amp", dim)
-    elif model == "drift":
-        require("rate")
-        params["rate"] = quantity("rate", rate_dimension(sensor_type))
-    elif model == "noise":
-        require("factor", "sigma")
-        exclusive("factor", "sigma")
-        if "sigma" in values:
-            if "sigma0" in values:
-                raise FaultSpecError(f"{where}: sigma0 is only used with factor=")
-            sigma = quantity("sigma", dim)
-            if sigma <= 0:
-                raise FaultSpecError(f"{where}: sigma (added noise std) must be > 0")
-        else:
-            factor = quantity("factor", "dimensionless")
-            if factor < 1:
-                raise FaultSpecError(
-                    f"{where}: factor must be >= 1 (noise grows by adding noise), got {factor:g}"
-                )
-            if "sigma0" in values:
-                sigma0 = quantity("sigma0", dim)
-            elif sensor_type in array.noise:
-                sigma0 = float(array.noise[sensor_type])
-            else:
-                raise FaultSpecError(
-                    f"{where}: factor needs the nominal noise: give sigma0= or set "
-                    f"noise.{sensor_type} in the array config (or give sigma=)"
-                )
-            if sigma0 <= 0:
-                raise FaultSpecError(f"{where}: sigma0 must be > 0")
-            sigma = sigma0 * math.sqrt(factor * factor - 1.0)
-            params["factor"] = factor
-            params["sigma0"] = sigma0
-        params["sigma"] = sigma
-    elif model == "scale":
-        require("factor", "ppm")
-        exclusive("factor", "ppm")
-        if "factor" in values:
-            params["factor"] = quantity("factor", "dimensionless")
-        else:
-            params["factor"] = 1.0 + quantity("ppm", "dimensionless") * 1e-6
-    elif model == "spikes":
-        require("rate")
-        require("amp")
-        try:
-            rate = _parse_events_per_second(values["rate"], "rate")
-        except UnitError as err:
-            raise FaultSpecError(f"{where}: {err} (events per second, e.g. 2Hz, 0.5/s)") from err
-        if rate <= 0:
-            raise FaultSpecError(f"{where}: rate (events per second) must be > 0")
-        params["rate"] = rate
-        params["amp"] = quantity("amp", dim)
-        width = 1.0
-        if "width" in values:
-            width = quantity("width", "dimensionless")
-            if width < 1 or width != int(width):
-                raise FaultSpecError(
-                    f"{where}: width must be a whole number of samples >= 1, got {width:g}"
-                )
-        params["width"] = float(width)
+        raise raw.error(f"sensor: {err}") from err
+    at_s, until_s = _window(raw)
+    fault_id = _fault_id(raw)
     return Fault(
         model=model,
-        sensors=sensors,
+        sensors=[f"imu{imu}.{sensor_type}.{a}" for a in axes],
         at_s=at_s,
         until_s=until_s,
-        params=params,
+        params=_MODEL_PARAMS[model](raw, sensor_type, array),
         id=fault_id,
         spec=spec,
     )

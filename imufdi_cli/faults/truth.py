@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import json
-import sys
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -13,12 +12,6 @@ import numpy as np
 
 from imufdi_cli.errors import TruthError
 from imufdi_cli.faults.models import METADATA_NAME, Fault
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
-
 
 # --- ground truth -----------------------------------------------------------------------
 
