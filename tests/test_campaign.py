@@ -404,6 +404,7 @@ def campaign_200(tmp_path_factory):
     return spec, root, result
 
 
+@pytest.mark.slow
 def test_campaign_of_200_runs_on_the_preset(campaign_200):
     _, root, result = campaign_200
     assert (result.total, result.executed, result.failed) == (200, 200, 0)
@@ -424,6 +425,7 @@ def test_campaign_of_200_runs_on_the_preset(campaign_200):
     assert (root / "pool" / "summary.md").read_text().startswith("# Campaign ci-200")
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_gives_identical_runs_csv(campaign_200):
     pytest.importorskip("dask.distributed")
     spec, root, _ = campaign_200

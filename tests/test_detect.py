@@ -11,7 +11,7 @@ from numpy.testing import assert_array_equal
 
 from imufdi_cli.detect import calibration_window_ns, decision_positions, detect_file
 from imufdi_cli.detectors import DETECTORS
-from imufdi_cli.detectors.base import DetectionBlock
+from imufdi_cli.detectors.base import DetectionBlock, DetectorBase
 from imufdi_cli.mcapio import McapSource, read_status
 
 
@@ -29,7 +29,7 @@ def test_calibration_window_ns():
     assert calibration_window_ns(10**9, 5 * 10**9, 0.0, None) == [10**9, 5 * 10**9 + 1]
 
 
-class HoldBack:
+class HoldBack(DetectorBase):
     """Test detector: holds every sample back ``lookahead_samples`` samples; statistic =
     sample index, so rows can be matched to samples."""
 

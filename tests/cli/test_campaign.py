@@ -162,6 +162,7 @@ def alive(pid: int) -> bool:
     return state != "Z"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_sigkill_half_way_then_resume_equals_uninterrupted(cli, tmp_path):
     spec = write(tmp_path, RESUME_SPEC)
@@ -256,6 +257,7 @@ def test_a_second_campaign_on_one_directory_is_refused_naming_the_holder(cli, tm
     assert (out / LOCK_NAME).read_text().split()[0] == str(os.getpid())
 
 
+@pytest.mark.slow
 def test_a_lock_held_by_another_process_names_its_pid(cli, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
