@@ -218,9 +218,9 @@ def test_short_calibration_is_rejected():
         make(FAST).fit(block.slice(0, 60), array)
 
 
-def test_model_trained_at_another_rate_is_rejected(short_log, tmp_path):
+def test_model_trained_at_another_rate_is_rejected(short_log, trained, tmp_path):
     array, block = short_log
-    detector = make(FAST)
+    detector = make({"model": trained[1]})  # a copy of the trained network
     detector.fit(block.mask(block.t_s() < 6.0), array)
     assert detector.mapping is not None
     detector.mapping.rate_hz = 200.0
