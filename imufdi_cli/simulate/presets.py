@@ -5,7 +5,7 @@ options (part of :mod:`imufdi_cli.simulate`).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any, Final
 
@@ -133,87 +133,104 @@ def grid_positions(n_imus: int, pitch: float = 0.03) -> np.ndarray:
     return np.stack([x, y, np.zeros(n_imus)], axis=-1)
 
 
+def _paper_table4(n_imus: int | None) -> SimConfig:
+    array = ArrayConfig.co_aligned(
+        16 if n_imus is None else n_imus, 100.0, sensors=("gyro", "accel")
+    )
+    return SimConfig(
+        array=array,
+        duration_s=5.0,
+        motion=TurntableMotion(rate=(10 * _DEG, 10 * _DEG, 10 * _DEG)),
+        errors={
+            "gyro": SensorErrors(
+                noise=0.15 * _DEG, outlier_probability=0.001, outlier_amplitude=1.0 * _DEG
+            ),
+            "accel": SensorErrors(noise=0.02),
+        },
+        name="paper-table4",
+    )
+
+
+def _conical6(n_imus: int | None) -> SimConfig:
+    return SimConfig(
+        array=conical_array(6 if n_imus is None else n_imus, 100.0),
+        duration_s=10.0,
+        motion=SwingMotion(
+            amplitude=(20 * _DEG, 15 * _DEG, 30 * _DEG),
+            frequency_hz=(0.5, 0.35, 0.25),
+            phase=(0.0, 0.8, 2.1),
+            pivot_offset=(0.0, 0.0, 0.0),
+            start=1.0,
+            ramp=0.5,
+        ),
+        errors={
+            "gyro": SensorErrors(
+                noise=0.03 * _DEG,
+                chip_bias_sigma=0.1 * _DEG,
+                scale_factor_sigma=500e-6,
+                misalignment_sigma=0.5e-3,
+            )
+        },
+        name="conical6",
+    )
+
+
+def _wearable12(n_imus: int | None) -> SimConfig:
+    n = 12 if n_imus is None else n_imus
+    array = ArrayConfig.co_aligned(n, 100.0, sensors=("gyro", "accel"), positions=grid_positions(n))
+    return SimConfig(
+        array=array,
+        duration_s=30.0,
+        motion=SwingMotion(
+            amplitude=(30 * _DEG, 8 * _DEG, 5 * _DEG),
+            frequency_hz=(1.0, 0.8, 0.45),
+            phase=(0.0, 0.6, 1.7),
+            pivot_offset=(0.0, 0.0, -0.3),
+            start=0.0,
+            ramp=1.0,
+        ),
+        errors={"gyro": SensorErrors(noise=0.1 * _DEG), "accel": SensorErrors(noise=0.03)},
+        name="wearable12",
+    )
+
+
+def _quadrotor_marg(n_imus: int | None) -> SimConfig:
+    n = 1 if n_imus is None else n_imus
+    array = ArrayConfig.co_aligned(n, 100.0, sensors=("gyro", "accel", "mag"))
+    field_magnitude = float(np.linalg.norm(DEFAULT_MAGNETIC_FIELD))
+    return SimConfig(
+        array=array,
+        duration_s=10.0,
+        motion=AttitudeMotion(
+            initial_rpy=(-25 * _DEG, -35 * _DEG, -10 * _DEG),
+            moves=(
+                (1.0, 1.0, (0.0, 0.0, 0.0)),
+                (5.0, 1.0, (10 * _DEG, -20 * _DEG, 5 * _DEG)),
+            ),
+        ),
+        errors={
+            "gyro": SensorErrors(noise=0.01),
+            "accel": SensorErrors(noise=0.002 * STANDARD_GRAVITY),
+            "mag": SensorErrors(noise=0.0007 * field_magnitude),
+        },
+        magnetic_field=DEFAULT_MAGNETIC_FIELD,
+        name="quadrotor-marg",
+    )
+
+
+#: Preset name -> its SimConfig for a number of IMUs (None: the preset's own).
+_PRESET_BUILDERS: Final[dict[str, Callable[[int | None], SimConfig]]] = {
+    "paper-table4": _paper_table4,
+    "conical6": _conical6,
+    "wearable12": _wearable12,
+    "quadrotor-marg": _quadrotor_marg,
+}
+
+
 def _preset_base(name: str, n_imus: int | None) -> SimConfig:
-    if name == "paper-table4":
-        n = 16 if n_imus is None else n_imus
-        array = ArrayConfig.co_aligned(n, 100.0, sensors=("gyro", "accel"))
-        return SimConfig(
-            array=array,
-            duration_s=5.0,
-            motion=TurntableMotion(rate=(10 * _DEG, 10 * _DEG, 10 * _DEG)),
-            errors={
-                "gyro": SensorErrors(
-                    noise=0.15 * _DEG, outlier_probability=0.001, outlier_amplitude=1.0 * _DEG
-                ),
-                "accel": SensorErrors(noise=0.02),
-            },
-            name=name,
-        )
-    if name == "conical6":
-        n = 6 if n_imus is None else n_imus
-        return SimConfig(
-            array=conical_array(n, 100.0),
-            duration_s=10.0,
-            motion=SwingMotion(
-                amplitude=(20 * _DEG, 15 * _DEG, 30 * _DEG),
-                frequency_hz=(0.5, 0.35, 0.25),
-                phase=(0.0, 0.8, 2.1),
-                pivot_offset=(0.0, 0.0, 0.0),
-                start=1.0,
-                ramp=0.5,
-            ),
-            errors={
-                "gyro": SensorErrors(
-                    noise=0.03 * _DEG,
-                    chip_bias_sigma=0.1 * _DEG,
-                    scale_factor_sigma=500e-6,
-                    misalignment_sigma=0.5e-3,
-                )
-            },
-            name=name,
-        )
-    if name == "wearable12":
-        n = 12 if n_imus is None else n_imus
-        array = ArrayConfig.co_aligned(
-            n, 100.0, sensors=("gyro", "accel"), positions=grid_positions(n)
-        )
-        return SimConfig(
-            array=array,
-            duration_s=30.0,
-            motion=SwingMotion(
-                amplitude=(30 * _DEG, 8 * _DEG, 5 * _DEG),
-                frequency_hz=(1.0, 0.8, 0.45),
-                phase=(0.0, 0.6, 1.7),
-                pivot_offset=(0.0, 0.0, -0.3),
-                start=0.0,
-                ramp=1.0,
-            ),
-            errors={"gyro": SensorErrors(noise=0.1 * _DEG), "accel": SensorErrors(noise=0.03)},
-            name=name,
-        )
-    if name == "quadrotor-marg":
-        n = 1 if n_imus is None else n_imus
-        array = ArrayConfig.co_aligned(n, 100.0, sensors=("gyro", "accel", "mag"))
-        field_magnitude = float(np.linalg.norm(DEFAULT_MAGNETIC_FIELD))
-        return SimConfig(
-            array=array,
-            duration_s=10.0,
-            motion=AttitudeMotion(
-                initial_rpy=(-25 * _DEG, -35 * _DEG, -10 * _DEG),
-                moves=(
-                    (1.0, 1.0, (0.0, 0.0, 0.0)),
-                    (5.0, 1.0, (10 * _DEG, -20 * _DEG, 5 * _DEG)),
-                ),
-            ),
-            errors={
-                "gyro": SensorErrors(noise=0.01),
-                "accel": SensorErrors(noise=0.002 * STANDARD_GRAVITY),
-                "mag": SensorErrors(noise=0.0007 * field_magnitude),
-            },
-            magnetic_field=DEFAULT_MAGNETIC_FIELD,
-            name=name,
-        )
-    raise UsageError(f"unknown preset {name!r}; valid: {', '.join(sorted(PRESETS))}")
+    if name not in _PRESET_BUILDERS:
+        raise UsageError(f"unknown preset {name!r}; valid: {', '.join(sorted(PRESETS))}")
+    return _PRESET_BUILDERS[name](n_imus)
 
 
 PRESET_OVERRIDES: Final[tuple[str, ...]] = (
