@@ -22,26 +22,19 @@ Public entry points: :func:`simulate` (streaming), :func:`simulate_block` (in me
 :func:`config_from_options` (validated construction for the CLI).
 
 Modules: :mod:`~imufdi_cli.simulate.motions` (rotations, motion profiles),
-:mod:`~imufdi_cli.simulate.config` (sensor errors, SimConfig),
-:mod:`~imufdi_cli.simulate.generate` (the simulator), :mod:`~imufdi_cli.simulate.presets`
+:mod:`~imufdi_cli.simulate.errors` (sensor errors, SimConfig),
+:mod:`~imufdi_cli.simulate.run` (the simulator), :mod:`~imufdi_cli.simulate.presets`
 (reference scenarios, CLI options). Everything public is re-exported here: import from
 ``imufdi_cli.simulate``. The MCAP writing is :func:`imufdi_cli.pipeline.simulate_file`.
 """
 
 from __future__ import annotations
 
-from imufdi_cli.simulate.config import (
+from imufdi_cli.simulate.errors import (
     DEFAULT_MAGNETIC_FIELD,
     DEFAULT_T0_NS,
     SensorErrors,
     SimConfig,
-)
-from imufdi_cli.simulate.generate import (
-    CHUNK_SAMPLES,
-    simulate,
-    simulate_block,
-    true_block,
-    true_motion,
 )
 from imufdi_cli.simulate.motions import (
     GRAVITY_NAV,
@@ -69,6 +62,13 @@ from imufdi_cli.simulate.presets import (
     conical_array,
     grid_positions,
     preset,
+)
+from imufdi_cli.simulate.run import (
+    CHUNK_SAMPLES,
+    simulate,
+    simulate_block,
+    true_block,
+    true_motion,
 )
 
 __all__ = [

@@ -13,7 +13,7 @@ import numpy as np
 
 from imufdi_cli.array import SENSOR_TYPES, ArrayConfig, ImuSpec
 from imufdi_cli.errors import UnitError, UsageError
-from imufdi_cli.simulate.config import DEFAULT_MAGNETIC_FIELD, SensorErrors, SimConfig
+from imufdi_cli.simulate.errors import DEFAULT_MAGNETIC_FIELD, SensorErrors, SimConfig
 from imufdi_cli.simulate.motions import (
     AttitudeMotion,
     SwingMotion,

@@ -14,7 +14,7 @@ import numpy as np
 from imufdi_cli.array import AXES, SENSOR_TYPES, ArrayConfig
 from imufdi_cli.errors import UsageError
 from imufdi_cli.log import ImuBlock, rechunk
-from imufdi_cli.simulate.config import SensorErrors, SimConfig
+from imufdi_cli.simulate.errors import SensorErrors, SimConfig
 from imufdi_cli.simulate.motions import MotionState, rotation_from_rotvec
 
 #: Samples per internal random-number chunk (fixed: results never depend on block_size).
