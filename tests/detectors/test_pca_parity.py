@@ -27,7 +27,7 @@ DEG = np.pi / 180.0
 
 
 def make(params: dict | None = None) -> PcaParityDetector:
-    return PcaParityDetector(**parse_params(PcaParityDetector.PARAMS, params or {}, "pca-parity"))
+    return PcaParityDetector.from_params(params)  # old parameter names accepted, as on the CLI
 
 
 def run(detector, array, block, calibrate=(0.0, 2.0), block_size=173):
@@ -313,4 +313,4 @@ def test_accelerometers_with_lever_arms_are_not_tested_and_say_why():
     assert set(out) == {"gyro"}
     assert "lever-arm" in detector.metadata()["untested"]["accel"]
     with pytest.raises(CalibrationError, match="lever-arm"):
-        run(make({"types": "accel"}), array, block)
+        run(make({"sensors": "accel"}), array, block)
