@@ -34,6 +34,7 @@ through ``RENAMED_PARAMS`` with a :class:`ParameterRenamedWarning` (docs/writing
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from collections.abc import Callable, Mapping
@@ -286,21 +287,42 @@ class DetectorBase:
             or out of bounds, a parameter given under both names, or an inconsistent
             combination (checked by ``__init__``).
         """
-        given = dict(raw or {})
-        for old, new in cls.RENAMED_PARAMS.items():
-            if old not in given:
-                continue
-            if new in given:
-                raise DetectorConfigError(
-                    f"{cls.name}: give {new} only ({old} is its deprecated old name)"
-                )
-            warnings.warn(
-                f"{cls.name}.{old} is deprecated; use {cls.name}.{new}",
-                ParameterRenamedWarning,
-                stacklevel=2,
-            )
-            given[new] = given.pop(old)
+        given = _current_names(cls, dict(raw or {}), stacklevel=3)
         return cls(**parse_params(cls.PARAMS, given, cls.name))
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """A class with ``RENAMED_PARAMS`` also accepts the old names as keywords of its
+        constructor (Python callers), with the same warning as :meth:`from_params`."""
+        super().__init_subclass__(**kwargs)
+        init = cls.__dict__.get("__init__")
+        if not cls.RENAMED_PARAMS or init is None:
+            return
+
+        @functools.wraps(init)
+        def accepting_old_names(self: Any, *args: Any, **given: Any) -> None:
+            init(self, *args, **_current_names(type(self), given, stacklevel=3))
+
+        cls.__init__ = accepting_old_names  # type: ignore[method-assign]
+
+
+def _current_names(
+    cls: type[DetectorBase], given: dict[str, Any], *, stacklevel: int
+) -> dict[str, Any]:
+    """``given`` with renamed parameters under their current names (one warning each)."""
+    for old, new in cls.RENAMED_PARAMS.items():
+        if old not in given:
+            continue
+        if new in given:
+            raise DetectorConfigError(
+                f"{cls.name}: give {new} only ({old} is its deprecated old name)"
+            )
+        warnings.warn(
+            f"{cls.name}.{old} is deprecated; use {cls.name}.{new}",
+            ParameterRenamedWarning,
+            stacklevel=stacklevel,
+        )
+        given[new] = given.pop(old)
+    return given
 
 
 def sensor_types_problem(text: Any) -> str | None:

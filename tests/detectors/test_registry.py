@@ -74,6 +74,10 @@ def test_old_sensors_name_is_accepted_with_a_warning(name: str) -> None:
     assert notes == [f"{name}.sensors is deprecated; use {name}.types"]
     with pytest.raises(DetectorConfigError, match="give types only"):
         make_detector(name, {"sensors": "gyro", "types": "gyro"})
+    cls = detector_class(name)
+    with pytest.warns(ParameterRenamedWarning, match=rf"{name}\.sensors is deprecated"):
+        direct = cls(sensors="accel")  # type: ignore[call-arg]  # Python callers too
+    assert direct.sensor_types == ("accel",)  # type: ignore[attr-defined]
 
 
 @pytest.mark.parametrize(
