@@ -132,6 +132,7 @@ def test_fewer_than_two_accelerometer_triads_are_rejected():
         make(FAST).fit(block, array)
 
 
+@pytest.mark.slow  # 12 s: three trainings and three passes over 8 s of wearable12
 def test_block_size_invariance_and_json_metadata(short_log):
     array, block = short_log
     a = run(make(FAST), array, block, (0.0, 6.0), block_size=97)
