@@ -652,7 +652,7 @@ class CnnMapDetector(DetectorBase):
         self.mapping_alpha = self.alpha
         if not self.input_test:
             return
-        glr = NoiseGlrDetector(alpha=self.alpha, sensors="accel")
+        glr = NoiseGlrDetector(alpha=self.alpha, types="accel")
         try:
             glr.fit(calibration, array)
         except CalibrationError as err:
