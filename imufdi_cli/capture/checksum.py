@@ -125,7 +125,7 @@ def crc32(data: np.ndarray) -> np.ndarray:
     n_frames, length = data.shape
     if n_frames == 0 or length == 0:
         return np.zeros(n_frames, np.uint32)
-    flat = memoryview(data).cast("B")
+    flat = data.reshape(-1).data
     return np.fromiter(
         (zlib.crc32(flat[i : i + length]) for i in range(0, n_frames * length, length)),
         dtype=np.uint32,

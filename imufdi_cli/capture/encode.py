@@ -324,7 +324,7 @@ class CaptureEncoder:
         seed: int | None = 0,
         rng: np.random.Generator | None = None,
     ) -> None:
-        from imufdi_cli.capture.layout import mpu6500_array
+        from imufdi_cli.capture.layouts import mpu6500_array
 
         self.array = array
         self.layout = layout if layout is not None else mpu6500_array()

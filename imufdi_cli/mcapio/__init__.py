@@ -37,7 +37,7 @@ from imufdi_cli.mcapio.imu import (
     read_array,
     write_array,
 )
-from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch, SchemaInfo
+from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch, SchemaInfo
 from imufdi_cli.mcapio.source import McapSource
 from imufdi_cli.mcapio.status import (
     STATUS_FRAME_ID,
@@ -49,6 +49,7 @@ from imufdi_cli.mcapio.status import (
     register_status_channel,
 )
 from imufdi_cli.mcapio.summary import LogSummary, TopicSummary, summarize
+from imufdi_cli.mcapio.writer import McapWriter
 
 __all__ = [
     "ARRAY_METADATA",
