@@ -1,12 +1,13 @@
 """``imufdi detect``: run detectors over a log and write the annotated MCAP (DESIGN.md §4).
 
-One streaming pass: every input message is copied to the output as raw bytes; the aligned
-IMU samples go through each detector; per-sample status messages (fixed-layout CDR, encoded
-in bulk) go to ``/imufdi/<detector>/<type>``, alarm start/end events
+One streaming pass: every input message is copied to the output as raw bytes (a whole
+input chunk of messages only is written as it is, without recompression: docs/formats.md);
+the aligned IMU samples go through each detector; per-sample status messages (fixed-layout
+CDR, encoded in bulk) go to ``/imufdi/<detector>/<type>``, alarm start/end events
 (``imufdi_msgs/msg/FdiEvent``, CDR, encoded in bulk per block) to ``/imufdi/events``, and
 each detector's parameters and calibration to the ``imufdi.detect.<name>`` metadata record.
-Ground truth on the JSON channel of an older imufdi is re-encoded as FaultEvent. Memory is bounded by the block size and the
-calibration window, not by the log length.
+Ground truth on the JSON channel of an older imufdi is re-encoded as FaultEvent. Memory is
+bounded by the block size and the calibration window, not by the log length.
 """
 
 from __future__ import annotations
@@ -125,6 +126,7 @@ class ChannelCopier:
         self.writer = writer
         self.mapping: dict[int, int] = {}
         self._lut: np.ndarray | None = None
+        self._identity: bool | None = None
 
     @property
     def known(self) -> set[int]:
@@ -145,9 +147,17 @@ class ChannelCopier:
             self.writer.copy_channels({out_id: replace(info, id=out_id, schema=schema)})
             self.mapping[cid] = out_id
             self._lut = None
+            self._identity = None
+
+    @property
+    def identity(self) -> bool:
+        """Every input channel keeps its id (messages can be copied as they are)."""
+        if self._identity is None:
+            self._identity = all(k == v for k, v in self.mapping.items())
+        return self._identity
 
     def remap(self, batch: MessageBatch) -> MessageBatch:
-        if all(k == v for k, v in self.mapping.items()):
+        if self.identity:
             return batch
         if self._lut is None:
             self._lut = np.arange(65536, dtype=np.uint16)
@@ -323,7 +333,9 @@ def detect_file(
     DetectResult
     """
     instances = [make_detector(name, dict(params)) for name, params in detectors]
-    reader = ImuArrayReader(source, topics=topics, strict=strict, time_source=time_source)
+    reader = ImuArrayReader(
+        source, topics=topics, strict=strict, time_source=time_source, keep_raw_chunks=True
+    )
     log_array = reader.array
     array = log_array if array is None else array.check_matches(log_array)
     with McapWriter(output, compression=compression) as writer:
@@ -377,19 +389,43 @@ class _DetectRun:
         self.backlog: list[tuple[ImuBlock, Flags]] = []
         self.fitted = False
         self.cal_samples = 0
-        self.events_channel = register_events_channel(writer)
         self.rerun = {det.name for det in instances}
         self.copier = ChannelCopier(writer)
         self.dropped: set[int] = set()  # input channels replaced by this run's output
         self.legacy_truth: set[int] = set()  # JSON truth channels of an older imufdi
         self.truth_channel: int | None = None
+        # The input channels known so far first, so they keep their ids (their chunks can
+        # then be copied verbatim); this run's own channels take the next free ids.
+        self._admit(set(reader.source.channels))
+        self.events_channel = register_events_channel(writer)
 
     # --- copying the input ------------------------------------------------------------
 
     def copy_batch(self, batch: MessageBatch) -> None:
         """Copy a raw input batch, leaving out (or re-encoding) what this run replaces."""
         channels = self.reader.source.channels
-        new = {int(c) for c in np.unique(batch.channel_id)} - self.copier.known - self.dropped
+        self._admit({int(c) for c in np.unique(batch.channel_id)})
+        if self.dropped:
+            keep = ~np.isin(batch.channel_id, list(self.dropped))
+            for cid in np.unique(batch.channel_id[~keep]).tolist():
+                self._replace_dropped(batch, channels[cid])
+            if not bool(keep.all()):
+                batch = batch.select(keep)
+        if not len(batch):
+            return
+        if self.copier.identity:
+            raw = self.reader.source.raw_chunk(batch)  # None unless batch is a whole chunk
+            if raw is not None and raw.compression == self.writer.compression:
+                # the input chunk as it is: no record building, no recompression
+                self.writer.add_raw_chunk(raw, batch)
+                return
+        self.writer.add_batch(self.copier.remap(batch))
+
+    def _admit(self, ids: set[int]) -> None:
+        """Input channels met for the first time: copied (same id where free), or dropped
+        when this run replaces them (its detectors' status, the events, JSON truth)."""
+        channels = self.reader.source.channels
+        new = ids - self.copier.known - self.dropped
         for c in sorted(new):
             topic = channels[c].topic
             parts = topic.split("/")
@@ -401,13 +437,6 @@ class _DetectRun:
                 self.dropped.add(c)
                 self.legacy_truth.add(c)
         self.copier.ensure(channels, new - self.dropped)
-        if self.dropped:
-            keep = ~np.isin(batch.channel_id, list(self.dropped))
-            for cid in np.unique(batch.channel_id[~keep]).tolist():
-                self._replace_dropped(batch, channels[cid])
-            batch = batch.select(keep)
-        if len(batch):
-            self.writer.add_batch(self.copier.remap(batch))
 
     def _replace_dropped(self, batch: MessageBatch, channel: ChannelInfo) -> None:
         """Events of detectors not run again are kept; JSON truth becomes FaultEvent."""

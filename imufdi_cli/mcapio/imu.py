@@ -102,6 +102,9 @@ class ImuArrayReader:
     tolerance_ns : int, optional
         Stamps of different topics closer than this are the same sample (default: 30 % of
         the sample period).
+    keep_raw_chunks : bool
+        Open a path with :class:`McapSource` ``keep_raw_chunks`` (``source.raw_chunk(batch)``
+        then gives the Chunk record of a batch :meth:`stream` yields, for verbatim copying).
 
     Attributes
     ----------
@@ -125,13 +128,16 @@ class ImuArrayReader:
         time_source: str = "auto",
         block_size: int = 4096,
         tolerance_ns: int | None = None,
+        keep_raw_chunks: bool = False,
     ) -> None:
         if time_source not in ("auto", "header", "log_time"):
             raise UsageError(f"unknown time source {time_source!r}; valid: auto, header, log_time")
         if block_size < 1:
             raise UsageError(f"block_size must be >= 1, got {block_size}")
         self.source = (
-            source if isinstance(source, McapSource) else McapSource(source, strict=strict)
+            source
+            if isinstance(source, McapSource)
+            else McapSource(source, strict=strict, keep_raw_chunks=keep_raw_chunks)
         )
         self.time_source = time_source
         self.block_size = block_size

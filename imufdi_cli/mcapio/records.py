@@ -238,6 +238,31 @@ class ChannelInfo:
     schema: SchemaInfo | None = None
 
 
+@dataclass(frozen=True)
+class RawChunk:
+    """An input Chunk record kept as read, for copying it verbatim (no recompression).
+
+    Attributes
+    ----------
+    content : bytes
+        The record's content (everything after opcode and length): times, sizes, CRC,
+        compression name and the compressed records.
+    start_time, end_time : int
+        The chunk's message time range, ns (as the record says).
+    uncompressed_size, compressed_size : int
+        Bytes of its records before and after compression.
+    compression : str
+        ``"zstd"``, ``"lz4"`` or ``""`` (none).
+    """
+
+    content: bytes
+    start_time: int
+    end_time: int
+    uncompressed_size: int
+    compressed_size: int
+    compression: str
+
+
 # --- record serialisation helpers -------------------------------------------------------
 
 

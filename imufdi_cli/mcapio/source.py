@@ -14,6 +14,7 @@ import os
 import struct
 import sys
 import zlib
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -36,6 +37,7 @@ from imufdi_cli.mcapio.records import (
     OP_SCHEMA,
     ChannelInfo,
     MessageBatch,
+    RawChunk,
     SchemaInfo,
     gather_bytes,
 )
@@ -85,6 +87,8 @@ _OPCODE_NAMES = {
 _HELD = (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_METADATA)
 #: Records a chunk may hold.
 _IN_CHUNK = frozenset((OP_SCHEMA, OP_CHANNEL, OP_MESSAGE))
+#: Raw chunks remembered for McapSource.raw_chunk (older ones are forgotten).
+_RAW_CHUNKS_KEPT = 64
 #: Reads from the stream are done in pieces of at most this many bytes, so a record
 #: length that no file could satisfy never becomes one huge allocation.
 _READ_PIECE = 16 << 20
@@ -140,8 +144,14 @@ class McapSource:
         strict: bool = False,
         validate_crcs: bool | None = True,
         limits: ReaderLimits | None = None,
+        keep_raw_chunks: bool = False,
     ) -> None:
         self.strict = strict
+        #: Remember the Chunk record of each batch that is exactly one whole chunk, for
+        #: :meth:`raw_chunk` (detect copies such chunks without recompressing them).
+        self.keep_raw_chunks = keep_raw_chunks
+        self._raw_chunks: deque[tuple[MessageBatch, RawChunk]] = deque(maxlen=_RAW_CHUNKS_KEPT)
+        self._chunk_clean = False
         self.validate_crcs = validate_crcs is not False  # None (unset) also checks them
         self.limits = limits if limits is not None else ReaderLimits.from_env()
         self.channels: dict[int, ChannelInfo] = {}
@@ -419,6 +429,16 @@ class McapSource:
             self._iterator = self._read_batches()
         return self._with_pushback(self._iterator)
 
+    def raw_chunk(self, batch: MessageBatch) -> RawChunk | None:
+        """The input Chunk record holding exactly ``batch``'s messages and no other record,
+        when the source was opened with ``keep_raw_chunks`` (else None). Only the last
+        ``_RAW_CHUNKS_KEPT`` such batches are remembered; ``batch`` must be the object
+        :meth:`batches` yielded (a selected or remapped copy has none)."""
+        for held, raw in getattr(self, "_raw_chunks", ()):  # a BagDirSource keeps none
+            if held is batch:
+                return raw
+        return None
+
     def push_back(self, batches: list[MessageBatch]) -> None:
         """Hand batches back so that the next :meth:`batches` iteration yields them first."""
         self._pushback[:0] = batches
@@ -519,6 +539,7 @@ class McapSource:
     def _read_batches(self) -> Iterator[MessageBatch]:
         self._ahead, self._ahead_pos = b"", 0
         pending = _PendingMessages()
+        raw_chunk: tuple[RawChunk, int] | None = None  # the pending batch's one whole chunk
         position = len(MAGIC)
         while True:
             record = self._next_record(position)
@@ -538,7 +559,10 @@ class McapSource:
                 assert content is not None
                 part = self._chunk_part(content, here)
                 if part is not None:
+                    alone = not pending.parts
                     pending.add_chunk(*part, here)
+                    if alone and self.keep_raw_chunks and self._chunk_clean and pending.full():
+                        raw_chunk = (_raw_chunk(content), len(part[1]))
             elif opcode in (OP_SCHEMA, OP_CHANNEL, OP_METADATA):
                 # Not a message: the pending messages before it stay in the current batch,
                 # so the channels of a file that declares each just before its first message
@@ -556,6 +580,9 @@ class McapSource:
                 self._problem(f"record with unknown opcode {opcode:#04x} at byte {here} skipped")
             if pending.full():
                 batch = self._flush(pending)
+                if raw_chunk is not None and len(batch) == raw_chunk[1]:
+                    self._raw_chunks.append((batch, raw_chunk[0]))
+                raw_chunk = None
                 if len(batch):
                     yield batch
         batch = self._flush(pending)
@@ -654,6 +681,7 @@ class McapSource:
     ) -> tuple[bytes, np.ndarray | list[int], np.ndarray | list[int]] | None:
         """A chunk's records, and the content starts and lengths of its Message records
         (its Schema and Channel records are registered); None if the chunk is unusable."""
+        self._chunk_clean = False
         raw = self._chunk_records(content, chunk_offset)
         if raw is None:
             return None
@@ -662,6 +690,8 @@ class McapSource:
         buf = np.frombuffer(raw, dtype=np.uint8)
         starts, opcodes, lengths, end = scan_records(buf, _IN_CHUNK)
         is_message = opcodes == OP_MESSAGE
+        # only Message records, all of them well formed: the chunk can be copied verbatim
+        self._chunk_clean = end == buf.shape[0] and bool(is_message.all())
         if end != buf.shape[0]:
             self._problem(
                 f"chunk at byte {chunk_offset}: malformed record at byte {end} of its"
@@ -702,6 +732,21 @@ class McapSource:
                 f" {size} record bytes; the {len(starts)} message(s) before it kept"
             )
         return raw, starts, lengths
+
+
+def _raw_chunk(content: bytes) -> RawChunk:
+    """A :class:`RawChunk` of a Chunk record's content (already checked by the reader)."""
+    start_time, end_time, uncompressed_size, _, name_length = _CHUNK_HEAD.unpack_from(content)
+    records_at = _CHUNK_HEAD.size + name_length + 8
+    compression = content[_CHUNK_HEAD.size : records_at - 8].decode("utf-8", "replace")
+    return RawChunk(
+        content=content,
+        start_time=int(start_time),
+        end_time=int(end_time),
+        uncompressed_size=int(uncompressed_size),
+        compressed_size=len(content) - records_at,
+        compression=compression,
+    )
 
 
 def _error_text(err: BaseException) -> str:

@@ -43,6 +43,7 @@ from imufdi_cli.mcapio.records import (
     OP_SUMMARY_OFFSET,
     ChannelInfo,
     MessageBatch,
+    RawChunk,
     SchemaInfo,
     _bytes32,
     _record,
@@ -442,7 +443,6 @@ class McapWriter:
         record_offsets = np.concatenate(offset_parts)
         channel_ids = np.concatenate([p.channel_id for p in parts])
         log_time = np.concatenate([p.log_time for p in parts])
-        n_messages = int(log_time.shape[0])
         start_time = int(log_time.min())
         end_time = int(log_time.max())
         if self._executor is None:
@@ -461,14 +461,7 @@ class McapWriter:
                 record_offsets,
             )
         )
-        counts = np.bincount(channel_ids.astype(np.int64))
-        for cid in np.flatnonzero(counts).tolist():
-            self._channel_counts[cid] = self._channel_counts.get(cid, 0) + int(counts[cid])
-        self._message_count += n_messages
-        self._start_time = (
-            start_time if self._start_time is None else min(self._start_time, start_time)
-        )
-        self._end_time = end_time if self._end_time is None else max(self._end_time, end_time)
+        self._count_messages(channel_ids, start_time, end_time)
         self._drain(MAX_CHUNKS_IN_FLIGHT)
 
     def _drain(self, keep: int) -> None:
@@ -488,9 +481,28 @@ class McapWriter:
         self._write_now(struct.pack("<BQ", OP_CHUNK, len(content) + len(payload)) + content)
         self._write_now(payload)
         chunk_length = self._position - chunk_offset
-        # One MessageIndex record per channel, entries sorted by log time.
-        channel_ids = job.channel_id
-        log_time = job.log_time
+        index_offsets, index_length = self._write_message_indexes(
+            job.channel_id, job.log_time, job.record_offsets
+        )
+        self._chunk_index.append(
+            _ChunkIndexEntry(
+                job.start_time,
+                job.end_time,
+                chunk_offset,
+                chunk_length,
+                index_offsets,
+                index_length,
+                self.compression,
+                len(payload),
+                job.uncompressed_size,
+            )
+        )
+
+    def _write_message_indexes(
+        self, channel_ids: np.ndarray, log_time: np.ndarray, record_offsets: np.ndarray
+    ) -> tuple[dict[int, int], int]:
+        """One MessageIndex record per channel of a chunk just written, entries sorted by
+        log time; returns the position of each channel's record and their total length."""
         order = np.lexsort((log_time, channel_ids))
         channels_sorted = channel_ids[order]
         bounds = np.flatnonzero(np.diff(channels_sorted.astype(np.int64))) + 1
@@ -498,7 +510,7 @@ class McapWriter:
         index_start = self._position
         entries = np.empty(order.shape[0], dtype=[("t", "<u8"), ("offset", "<u8")])
         entries["t"] = log_time[order]
-        entries["offset"] = job.record_offsets[order]
+        entries["offset"] = record_offsets[order]
         all_bodies = entries.tobytes()
         index_records = []
         position = self._position
@@ -515,19 +527,63 @@ class McapWriter:
             index_records.append(record)
             position += len(record)
         self._write_now(b"".join(index_records))
+        return index_offsets, self._position - index_start
+
+    def add_raw_chunk(self, chunk: RawChunk, batch: MessageBatch) -> None:
+        """Write an input Chunk record verbatim (no recompression) with its MessageIndex
+        records; ``batch`` is exactly its messages (as read from it: payload offsets into
+        its records, channel ids already registered here with the same ids).
+
+        Messages queued before of the same channels are written first, so every channel
+        stays in time order in the file.
+        """
+        n = len(batch)
+        if n == 0:
+            return
+        ids = np.unique(batch.channel_id)
+        unknown = np.setdiff1d(ids, list(self.channels))
+        if unknown.size:
+            raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
+        self._check_log_time(batch.channel_id, batch.log_time)
+        if self._pending:
+            queued = np.concatenate([np.unique(p.channel_id) for p in self._pending])
+            if bool(np.isin(ids, queued).any()):
+                self._flush_chunk()
+        log_time = np.asarray(batch.log_time, np.int64)
+        record_offsets = np.asarray(batch.offset, np.int64) - MESSAGE_HEADER_SIZE
+        self._drain(0)  # chunks still compressing are written first, in call order
+        chunk_offset = self._position
+        self._write_now(struct.pack("<BQ", OP_CHUNK, len(chunk.content)))
+        self._write_now(chunk.content)
+        chunk_length = self._position - chunk_offset
+        index_offsets, index_length = self._write_message_indexes(
+            batch.channel_id, log_time, record_offsets
+        )
         self._chunk_index.append(
             _ChunkIndexEntry(
-                job.start_time,
-                job.end_time,
+                chunk.start_time,
+                chunk.end_time,
                 chunk_offset,
                 chunk_length,
                 index_offsets,
-                self._position - index_start,
-                self.compression,
-                len(payload),
-                job.uncompressed_size,
+                index_length,
+                chunk.compression,
+                chunk.compressed_size,
+                chunk.uncompressed_size,
             )
         )
+        self._count_messages(batch.channel_id, int(log_time.min()), int(log_time.max()))
+
+    def _count_messages(self, channel_ids: np.ndarray, start_time: int, end_time: int) -> None:
+        """Statistics: messages per channel and the time range."""
+        counts = np.bincount(channel_ids.astype(np.int64))
+        for cid in np.flatnonzero(counts).tolist():
+            self._channel_counts[cid] = self._channel_counts.get(cid, 0) + int(counts[cid])
+        self._message_count += int(channel_ids.shape[0])
+        self._start_time = (
+            start_time if self._start_time is None else min(self._start_time, start_time)
+        )
+        self._end_time = end_time if self._end_time is None else max(self._end_time, end_time)
 
     # --- finishing ---------------------------------------------------------------------
 
