@@ -413,13 +413,19 @@ class _DetectRun:
                 batch = batch.select(keep)
         if not len(batch):
             return
-        if self.copier.identity:
-            raw = self.reader.source.raw_chunk(batch)  # None unless batch is a whole chunk
+        runs = self.reader.source.raw_chunks(batch) if self.copier.identity else None
+        if runs is None:
+            self.writer.add_batch(self.copier.remap(batch))
+            return
+        start = 0
+        for raw, count, records_at in runs:
+            part = batch.select(slice(start, start + count))
             if raw is not None and raw.compression == self.writer.compression:
                 # the input chunk as it is: no record building, no recompression
-                self.writer.add_raw_chunk(raw, batch)
-                return
-        self.writer.add_batch(self.copier.remap(batch))
+                self.writer.add_raw_chunk(raw, part, records_at)
+            else:
+                self.writer.add_batch(part)
+            start += count
 
     def _admit(self, ids: set[int]) -> None:
         """Input channels met for the first time: copied (same id where free), or dropped

@@ -1,6 +1,6 @@
 """Fast MCAP I/O for IMU arrays (DESIGN.md §4).
 
-Low level: :class:`McapSource` (streaming reader, one :class:`MessageBatch` per chunk) and
+Low level: :class:`McapSource` (streaming reader, :class:`MessageBatch` of whole chunks, about 4 MiB each) and
 :class:`McapWriter` (bulk writer, atomic rename). IMU arrays: :class:`ImuArrayReader`,
 :class:`ImuArrayWriter`, :func:`read_array`, :func:`write_array`; per-channel codecs
 :func:`decode_imu`, :func:`patch_imu`, :func:`decode_mag`, :func:`patch_mag`. Detector

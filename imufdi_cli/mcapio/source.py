@@ -1,4 +1,4 @@
-"""Streaming MCAP reader: records in file order, one :class:`MessageBatch` per chunk.
+"""Streaming MCAP reader: records in file order, batches of whole chunks.
 
 Records inside a decompressed chunk are located in bulk: a few records are walked one by
 one, the repeating pattern of record lengths (e.g. 16 IMU channels interleaved) is found,
@@ -150,7 +150,9 @@ class McapSource:
         #: Remember the Chunk record of each batch that is exactly one whole chunk, for
         #: :meth:`raw_chunk` (detect copies such chunks without recompressing them).
         self.keep_raw_chunks = keep_raw_chunks
-        self._raw_chunks: deque[tuple[MessageBatch, RawChunk]] = deque(maxlen=_RAW_CHUNKS_KEPT)
+        self._raw_chunks: deque[tuple[MessageBatch, list[ChunkRun]]] = deque(
+            maxlen=_RAW_CHUNKS_KEPT
+        )
         self._chunk_clean = False
         self.validate_crcs = validate_crcs is not False  # None (unset) also checks them
         self.limits = limits if limits is not None else ReaderLimits.from_env()
@@ -420,7 +422,8 @@ class McapSource:
     # --- data ------------------------------------------------------------------------------
 
     def batches(self) -> Iterator[MessageBatch]:
-        """Message batches in file order: one per chunk; un-chunked messages are grouped.
+        """Message batches in file order: whole chunks (and un-chunked messages) joined into
+        batches of about 4 MiB.
 
         The file is read once: calling this again continues where the last iteration
         stopped (batches handed back with :meth:`push_back` come first).
@@ -429,14 +432,15 @@ class McapSource:
             self._iterator = self._read_batches()
         return self._with_pushback(self._iterator)
 
-    def raw_chunk(self, batch: MessageBatch) -> RawChunk | None:
-        """The input Chunk record holding exactly ``batch``'s messages and no other record,
-        when the source was opened with ``keep_raw_chunks`` (else None). Only the last
-        ``_RAW_CHUNKS_KEPT`` such batches are remembered; ``batch`` must be the object
-        :meth:`batches` yielded (a selected or remapped copy has none)."""
-        for held, raw in getattr(self, "_raw_chunks", ()):  # a BagDirSource keeps none
+    def raw_chunks(self, batch: MessageBatch) -> list[ChunkRun] | None:
+        """Where ``batch``'s messages came from, in order, when the source was opened with
+        ``keep_raw_chunks`` (else None): runs of (Chunk record holding exactly those
+        messages and no other record, or None; message count; byte offset of the chunk's
+        records in ``batch.data``). Only the last ``_RAW_CHUNKS_KEPT`` batches are
+        remembered; ``batch`` must be the object :meth:`batches` yielded."""
+        for held, runs in getattr(self, "_raw_chunks", ()):  # a BagDirSource keeps none
             if held is batch:
-                return raw
+                return runs
         return None
 
     def push_back(self, batches: list[MessageBatch]) -> None:
@@ -539,7 +543,7 @@ class McapSource:
     def _read_batches(self) -> Iterator[MessageBatch]:
         self._ahead, self._ahead_pos = b"", 0
         pending = _PendingMessages()
-        raw_chunk: tuple[RawChunk, int] | None = None  # the pending batch's one whole chunk
+        runs: list[ChunkRun] = []  # where the pending messages come from (keep_raw_chunks)
         position = len(MAGIC)
         while True:
             record = self._next_record(position)
@@ -554,15 +558,17 @@ class McapSource:
             position += 9 + length
             if opcode == OP_MESSAGE:
                 assert content is not None
+                if self.keep_raw_chunks:
+                    runs.append((None, 1, pending.n_bytes))
                 pending.add_loose(content, here)
             elif opcode == OP_CHUNK:
                 assert content is not None
                 part = self._chunk_part(content, here)
                 if part is not None:
-                    alone = not pending.parts
+                    if self.keep_raw_chunks:
+                        raw = _raw_chunk(content) if self._chunk_clean else None
+                        runs.append((raw, len(part[1]), pending.n_bytes))
                     pending.add_chunk(*part, here)
-                    if alone and self.keep_raw_chunks and self._chunk_clean and pending.full():
-                        raw_chunk = (_raw_chunk(content), len(part[1]))
             elif opcode in (OP_SCHEMA, OP_CHANNEL, OP_METADATA):
                 # Not a message: the pending messages before it stay in the current batch,
                 # so the channels of a file that declares each just before its first message
@@ -580,18 +586,24 @@ class McapSource:
                 self._problem(f"record with unknown opcode {opcode:#04x} at byte {here} skipped")
             if pending.full():
                 batch = self._flush(pending)
-                if raw_chunk is not None and len(batch) == raw_chunk[1]:
-                    self._raw_chunks.append((batch, raw_chunk[0]))
-                raw_chunk = None
+                self._note_runs(batch, runs)
+                runs = []
                 if len(batch):
                     yield batch
         batch = self._flush(pending)
+        self._note_runs(batch, runs)
         if len(batch):
             yield batch
 
+    def _note_runs(self, batch: MessageBatch, runs: list[ChunkRun]) -> None:
+        """Remember where a batch's messages came from, when every one is accounted for
+        (none was dropped as malformed or of an unknown channel) and a chunk is whole."""
+        if sum(count for _, count, _ in runs) == len(batch) and any(r for r, _, _ in runs):
+            self._raw_chunks.append((batch, runs))
+
     def _flush(self, pending: _PendingMessages) -> MessageBatch:
         """One batch of the pending messages (small chunks and loose messages are joined,
-        so the cost per batch is paid per megabyte, not per chunk)."""
+        so the cost per batch is paid per 4 MiB, not per chunk)."""
         if not pending.parts:
             return MessageBatch.empty()
         where = pending.where()
@@ -732,6 +744,10 @@ class McapSource:
                 f" {size} record bytes; the {len(starts)} message(s) before it kept"
             )
         return raw, starts, lengths
+
+
+#: (chunk copied verbatim or None, message count, byte offset of its records in the batch)
+ChunkRun = tuple[RawChunk | None, int, int]
 
 
 def _raw_chunk(content: bytes) -> RawChunk:

@@ -529,10 +529,11 @@ class McapWriter:
         self._write_now(b"".join(index_records))
         return index_offsets, self._position - index_start
 
-    def add_raw_chunk(self, chunk: RawChunk, batch: MessageBatch) -> None:
+    def add_raw_chunk(self, chunk: RawChunk, batch: MessageBatch, records_at: int = 0) -> None:
         """Write an input Chunk record verbatim (no recompression) with its MessageIndex
         records; ``batch`` is exactly its messages (as read from it: payload offsets into
-        its records, channel ids already registered here with the same ids).
+        ``batch.data``, where the chunk's records start at byte ``records_at``; channel ids
+        already registered here with the same ids).
 
         Messages queued before of the same channels are written first, so every channel
         stays in time order in the file.
@@ -550,7 +551,7 @@ class McapWriter:
             if bool(np.isin(ids, queued).any()):
                 self._flush_chunk()
         log_time = np.asarray(batch.log_time, np.int64)
-        record_offsets = np.asarray(batch.offset, np.int64) - MESSAGE_HEADER_SIZE
+        record_offsets = np.asarray(batch.offset, np.int64) - MESSAGE_HEADER_SIZE - records_at
         self._drain(0)  # chunks still compressing are written first, in call order
         chunk_offset = self._position
         self._write_now(struct.pack("<BQ", OP_CHUNK, len(chunk.content)))
