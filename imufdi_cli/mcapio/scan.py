@@ -14,6 +14,8 @@ from imufdi_cli.mcapio.records import (
     gather_bytes,
 )
 
+#: Record header: opcode u8, content length u64 LE.
+_RECORD_HEAD = struct.Struct("<BQ")
 #: Bytes of records checked at once by scan_records' vectorised pattern test.
 _SCAN_BLOCK = 4 << 20
 #: Messages (whole chunks, or un-chunked) are joined into batches of about this size: the
@@ -123,6 +125,12 @@ def scan_records(
             np.array([w[2] for w in walked], np.int64),
         )
 
+    buf = np.ascontiguousarray(buf, dtype=np.uint8)
+    unpack = _RECORD_HEAD.unpack_from  # a record head without numpy scalar indexing
+
+    def head_of(at: int) -> tuple[int, int]:
+        return unpack(buf, at)  # type: ignore[arg-type,no-any-return]
+
     pos = 0
     probe = 32
     while pos + 9 <= size:
@@ -130,8 +138,7 @@ def scan_records(
         walked: list[tuple[int, int, int]] = []
         p = pos
         while p + 9 <= size and len(walked) < probe:
-            opcode = int(buf[p])
-            length = int(buf[p + 1 : p + 9].view("<u8")[0])
+            opcode, length = head_of(p)
             if p + 9 + length > size or opcode not in allowed:
                 break
             walked.append((p, opcode, length))
