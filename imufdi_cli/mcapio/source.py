@@ -87,8 +87,9 @@ _OPCODE_NAMES = {
 _HELD = (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_METADATA)
 #: Records a chunk may hold.
 _IN_CHUNK = frozenset((OP_SCHEMA, OP_CHANNEL, OP_MESSAGE))
-#: Raw chunks remembered for McapSource.raw_chunk (older ones are forgotten).
-_RAW_CHUNKS_KEPT = 64
+#: Batches whose raw chunks are remembered for McapSource.raw_chunks (older ones are
+#: forgotten and their messages re-encoded); each holds its ~4 MiB buffer until asked for.
+_RAW_CHUNKS_KEPT = 8
 #: Reads from the stream are done in pieces of at most this many bytes, so a record
 #: length that no file could satisfy never becomes one huge allocation.
 _READ_PIECE = 16 << 20
@@ -437,9 +438,14 @@ class McapSource:
         ``keep_raw_chunks`` (else None): runs of (Chunk record holding exactly those
         messages and no other record, or None; message count; byte offset of the chunk's
         records in ``batch.data``). Only the last ``_RAW_CHUNKS_KEPT`` batches are
-        remembered; ``batch`` must be the object :meth:`batches` yielded."""
-        for held, runs in getattr(self, "_raw_chunks", ()):  # a BagDirSource keeps none
+        remembered, each until it is asked for once; ``batch`` must be the object
+        :meth:`batches` yielded."""
+        kept = getattr(self, "_raw_chunks", None)  # a BagDirSource keeps none
+        if not kept:
+            return None
+        for index, (held, runs) in enumerate(kept):
             if held is batch:
+                del kept[index]  # asked once: the batch and its chunks are not held longer
                 return runs
         return None
 
