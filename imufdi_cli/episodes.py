@@ -327,6 +327,20 @@ def fit_models(
     end = _fault_end(fits, r, sigma_k**2 + consensus_sigma**2)
     if end is None:
         return [replace(f, curve=None) for f in fits]
+    for _ in range(2):  # the end found by the best model on the whole window, refined once
+        cut = _fit_window(
+            r[:end],
+            o[:end],
+            t[:end],
+            raw_arr[:end],
+            (onset_range[0], min(onset_range[1], end - 2)),
+            None,
+            **options,
+        )
+        refined = _fault_end(cut, r[:end], sigma_k**2 + consensus_sigma**2)
+        if refined is None or refined == end:
+            break
+        end = refined
     # the fault ended before the window did (the detector's alarms outlast it): refit on
     # the samples up to its end; the healthy tail adds the same to every model's -2 log L,
     # and the end is one more parameter of each fault model
@@ -358,17 +372,19 @@ def fit_models(
 
 
 def _fault_end(fits: list[FaultFit], r: np.ndarray, var0: float) -> int | None:
-    """Where the best Gaussian fault model's fault ends, when it ends clearly before the
-    window does: the end maximises the log-likelihood ratio of the model against the
-    calibrated noise summed from the onset to the end (the samples after it are better
-    explained as healthy). None when the best model is not a Gaussian fault model (none,
-    stuck, spikes: their episodes end with their last anomaly) or the end is within 2 %
-    of the window's."""
-    best = next((f for f in fits if f.model != "stuck"), None)
-    if best is None or best.curve is None or best.onset_index < 0:
+    """Where the fault ends, when it ends clearly before the window does: by the best
+    fitted model with a fitted curve (step, drift, noise, scale), the end maximises its
+    log-likelihood ratio against the calibrated noise summed from the onset to the end
+    (the samples after it are better explained as healthy). None when the best model is a
+    frozen output (stuck: the repeats say where it ends), no model has a curve, or the end
+    does not earn its BIC penalty."""
+    if fits and fits[0].model == "stuck":
+        return None
+    best = next((f for f in fits if f.curve is not None), None)
+    if best is None or best.onset_index < 0:
         return None
     mean, variance = best.curve
-    segment = r[best.onset_index :]
+    segment = r[best.onset_index : best.onset_index + mean.shape[0]]
     llr = -0.5 * ((segment - mean) ** 2 / variance + math.log(variance)) + 0.5 * (
         segment**2 / var0 + math.log(var0)
     )
@@ -448,16 +464,16 @@ def _fit_window(
         X = np.stack([u, np.ones_like(u)], axis=1) if lam is None else (u + lam)[:, None]
         fits.append(_linear_fit("drift", r[onset:], X, onset, bic, **linear))
 
-    # noise: r ~ N(mu, f^2 sigma_k^2 + sigma_c^2); variance fitted (bounded below by var0)
-    # and a free mean: a noise fault has none, but a fault on a sensor of the consensus
-    # (another detector's, or one too small to alarm) shifts r, and a zero-mean fit would
-    # count that shift as noise
-    ss_centred = np.maximum(s_rr - n_after * a**2, 0.0)
-    var_hat = np.maximum(ss_centred / n_after, var0)
-    j, bic = best(_gaussian_nll(ss_centred, n_after, var_hat), 2)
+    # noise: r ~ N(0, f^2 sigma_k^2 + sigma_c^2); variance fitted (bounded below by var0).
+    # The class is decided with a zero mean (a noise fault has none; a free mean would nest
+    # the step model). The factor is sized from the spread about the mean: a fault on a
+    # sensor of the consensus (another detector's, or one too small to alarm) shifts r,
+    # and that shift is not noise.
+    var_hat = np.maximum(s_rr / n_after, var0)
+    j, bic = best(_gaussian_nll(s_rr, n_after, var_hat), 1)
     fits.append(
         _noise_fit(
-            float(ss_centred[j]),
+            float(max(s_rr[j] - n_after[j] * a[j] ** 2, 0.0)),
             int(n_after[j]),
             float(a[j]),
             sigma_k,
@@ -466,6 +482,7 @@ def _fit_window(
             lo + j,
             bic,
             calibration_samples,
+            ranking_var=float(var_hat[j]),
         )
     )
 
@@ -610,9 +627,12 @@ def _linear_fit(
     ``c0 +- t_{(1 + confidence)/2} sqrt(var)``.
     """
     n, p = X.shape
-    pinv = np.linalg.pinv(X)
-    coef = pinv @ y
-    w = pinv[0]
+    gram = X.T @ X  # p <= 2 columns: the normal equations are well within precision
+    if not np.all(np.isfinite(gram)) or abs(float(np.linalg.det(gram))) <= 1e-300:
+        return FaultFit(model, math.nan, -math.inf, math.inf, onset, bic)
+    weights = np.linalg.solve(gram, X.T)  # (p, n): coef = weights @ y
+    coef = weights @ y
+    w = weights[0]
     size = float(coef[0]) + shift
     dof = n - p
     if dof < 1:
@@ -670,6 +690,7 @@ def _noise_fit(
     onset: int,
     bic: float,
     calibration_samples: int | None = None,
+    ranking_var: float | None = None,
 ) -> FaultFit:
     """Noise factor f with Var r = f^2 sigma_k^2 + sigma_c^2 from the sum of squares ``ss``
     of n residuals about their mean: ss / Var r is chi-square with n - 1 degrees of freedom,
@@ -688,7 +709,9 @@ def _noise_fit(
     else:
         low = factor(ss / _chi2_quantile(1 - tail, dof))
         high = factor(ss / _chi2_quantile(tail, dof))
-    curve = (np.full(n, mean), max(ss / n, sigma_k**2 + consensus_sigma**2))
+    # the model the class was ranked with: zero mean, variance ranking_var
+    var0 = sigma_k**2 + consensus_sigma**2
+    curve = (np.zeros(n), max(var0, ranking_var if ranking_var is not None else ss / n))
     extra = {"mean": mean}
     return FaultFit("noise", factor(var_hat), low, high, onset, bic, extra, curve=curve)
 
@@ -908,7 +931,7 @@ class EpisodeBuilder:
             "calibration_mean": calibration_mean,
         }
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
-        self._references: dict[int, Any] = {}
+        self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
         self._history_t: np.ndarray = np.zeros(0, np.int64)
@@ -1140,36 +1163,50 @@ class EpisodeBuilder:
     def _reference(self, k: int, window: np.ndarray) -> Reference | None:
         """The other sensors' residuals over ``window`` (:class:`Reference`), each against
         the consensus of the sensors other than itself and ``k``."""
-        cached = self._references.get(k)
-        if cached is None:
-            columns, variances = [], []
-            for j in range(self.H.shape[0]):
-                if j == k:
-                    continue
-                try:
-                    gain, c = _consensus_gain(self.H, self.sigma, j, exclude=k)
-                except ValueError:
-                    continue  # without k, the others do not span 3 axes around j
-                column = -gain
-                column[j] += 1.0
-                columns.append(column)
-                variances.append(self.sigma[j] ** 2 + c**2)
-            if len(columns) < 2:
-                self._references[k] = None
-                return None
-            A = np.stack(columns, axis=1)
-            variance = np.asarray(variances)
-            offset = np.zeros(A.shape[1])
-            offset_var = np.zeros(A.shape[1])
-            if self.calibration_mean is not None:
-                offset = self.calibration_mean @ A
-                if self.calibration_samples:
-                    offset_var = variance / self.calibration_samples
-            cached = self._references[k] = (A, offset, variance, offset_var)
+        if k not in self._references:
+            self._references[k] = self._reference_matrix(k)
+        cached = self._references[k]
         if cached is None:
             return None
         A, offset, variance, offset_var = cached
         return Reference(window @ A - offset, variance, offset_var)
+
+    def _reference_matrix(
+        self, k: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """``A`` (n, m) with ``window @ A`` the residuals of the m sensors j != k whose
+        leave-two-out consensus exists, their calibrated offsets, white variances and
+        offset variances. All m consensuses at once from the information matrix
+        ``M = H^T W H`` by downdating: ``M_{-jk} = M - h_k h_k^T / s_k^2 - h_j h_j^T / s_j^2``,
+        gain ``g_{j,i} = h_j^T M_{-jk}^{-1} h_i / s_i^2`` (i not j, k) and consensus
+        variance ``h_j^T M_{-jk}^{-1} h_j``."""
+        H, sigma = self.H, np.asarray(self.sigma, dtype=np.float64)
+        n = H.shape[0]
+        weights = 1.0 / sigma**2
+        outer = np.einsum("ia,ib->iab", H, H) * weights[:, None, None]
+        others = np.flatnonzero(np.arange(n) != k)
+        M = outer.sum(axis=0) - outer[k] - outer[others]  # (m, 3, 3)
+        eig = np.linalg.eigvalsh(M)
+        scale = float(np.max(np.linalg.eigvalsh(outer.sum(axis=0))))
+        spans = eig[:, 0] > 1e-9 * scale
+        others, M = others[spans], M[spans]
+        if others.size < 2:
+            return None
+        solved = np.linalg.solve(M, H[others][:, :, None])[:, :, 0]  # M^-1 h_j, (m, 3)
+        gains = (H @ solved.T) * weights[:, None]  # (n, m): g_{j,i} in column j
+        gains[k] = 0.0
+        gains[others, np.arange(others.size)] = 0.0
+        consensus_var = np.einsum("ma,ma->m", H[others], solved)
+        A = -gains
+        A[others, np.arange(others.size)] += 1.0
+        variance = sigma[others] ** 2 + consensus_var
+        offset = np.zeros(others.size)
+        offset_var = np.zeros(others.size)
+        if self.calibration_mean is not None:
+            offset = self.calibration_mean @ A
+            if self.calibration_samples:
+                offset_var = variance / self.calibration_samples
+        return A, offset, variance, offset_var
 
     def _gain(self, k: int) -> tuple[np.ndarray, float]:
         found = self._gains.get(k)
@@ -1178,8 +1215,12 @@ class EpisodeBuilder:
         return found
 
     def for_detector(self, detector: str) -> EpisodeBuilder:
-        """A fresh builder with the same calibration, for another detector."""
-        return EpisodeBuilder(detector, *self._arguments, **self._options)
+        """A fresh builder with the same calibration, for another detector (it shares the
+        consensus gains, which depend only on the calibration)."""
+        builder = EpisodeBuilder(detector, *self._arguments, **self._options)
+        builder._gains = self._gains
+        builder._references = self._references
+        return builder
 
     def _loudest(self, window: np.ndarray) -> int:
         """For detectors that do not isolate: the sensor with the largest normalised
