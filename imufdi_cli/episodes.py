@@ -1,9 +1,14 @@
 """Alarm episodes and what they mean: which sensor, which kind of fault, how big, and why.
 
-An **episode** is a run of alarms of one detector on one sensor type, merged across gaps of
-at most ``merge_gap`` quiet samples (a detector at its nominal false-alarm level flickers
-inside a fault; a gap that short is not a recovery). Its start and end are the first and
-last alarmed samples; the decision times are those of the status rows.
+An **episode** is a run of alarms of one detector on one sensor type. Alarms are merged
+across gaps of at most ``merge_gap`` quiet samples (0.1 s: a detector at its nominal
+false-alarm level flickers inside a fault; a gap that short is not a recovery), whatever
+they isolate. Such a run is then joined to the previous episode of the **same isolated
+sensor** when at most ``join_gap`` (1 s) separates them: a fault that a detector sees in
+fragments (noise growth, spikes) is one fault, and is explained over its whole span,
+quiet gaps included, instead of over the fragments where the statistic happened to be
+highest. Its start and end are the first and last alarmed samples; the decision times are
+those of the status rows.
 
 Explaining an episode works on the isolated sensor ``k`` alone, against the consensus of
 the others (leave-one-out least squares, :func:`leave_one_out`)::
@@ -13,15 +18,16 @@ the others (leave-one-out least squares, :func:`leave_one_out`)::
 so ``r`` is the sensor's own error, whatever the motion. Over an analysis window (the
 episode plus a margin before it) the fault models of ``imufdi inject`` are fitted to ``r``
 with an unknown onset ``tau`` (profile likelihood over every sample of the margin and the
-episode's first part):
+episode's first part) and, when the detector's alarms outlast the fault, an end
+(:func:`_fault_end`):
 
 ======  ==========================================  ==================================
 model   r(t) for t >= tau (before: N(0, sigma_r^2))  size (90 % interval)
 ======  ==========================================  ==================================
-step    a + e                                        amp: a_hat +- t s / sqrt(n)
+step    a + e                                        amp: t interval (:func:`_linear_fit`)
 drift   b (t - t_f) + e, t_f between two samples     rate: t interval of the LS slope
-noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: F(n, n_cal) interval
-scale   beta o(t) + e, o the consensus prediction    factor: 1 + beta_hat +- t se
+noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: F(n - 1, n_cal) interval
+scale   beta o(t) + e, o the consensus prediction    factor: 1 + beta_hat, t interval
 spikes  e + s A on a fraction p of samples           amp A (t interval), rate (Poisson)
 stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
 ======  ==========================================  ==================================
@@ -29,17 +35,21 @@ stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
 The models are ranked by BIC (Schwarz 1978): the Gaussian log-likelihood of the whole
 window minus half the number of free parameters times ln n. ``none`` (no fault: the
 residual is the calibrated noise throughout) is ranked with them, so an episode that no
-fault model explains better than chance is called a false alarm, with its evidence. ``stuck`` is not a Gaussian
-model (a frozen output has no noise at all): it is declared when the raw output repeats
-exactly on at least ``stuck_share`` of the samples after the onset (a healthy sensor always
-carries its own noise, so long exact repeats do not happen), and then ranks first.
+fault model explains better than chance is called a false alarm, with its evidence.
+``stuck`` is not a Gaussian model (a frozen output has no noise at all): it is declared
+when the raw output repeats exactly on at least ``stuck_share`` of the samples after the
+onset (a healthy sensor always carries its own noise, so long exact repeats do not
+happen), and then ranks first.
 
-The least-squares intervals (step, drift, scale) are t intervals whose noise variance is
-estimated from the fit's own residuals after the onset (s^2 = SSE / (n - k)), so outliers
-and a calibrated sigma that is off widen them; the noise factor's interval is F(n, n_cal)
-because sigma_k itself was estimated from n_cal calibration samples. Their coverage is
-measured in ``tests/test_episodes.py``, ``benchmarks/bench_episodes.py`` and
-docs/episodes.md.
+The least-squares sizes (step, drift, scale) are linear estimates ``w^T r``; their variance
+propagates the noise (estimated from the fit's own residuals, with their autocorrelation,
+Newey & West 1994), and the calibrated bias taken out of ``r`` (a constant estimated from
+n_cal samples). The other sensors, each against a consensus without ``k``, give the same
+estimate where there is no fault: when they spread significantly more than that variance
+says (chi-square test at 95 %), the interval is widened to their dispersion
+(:func:`_linear_fit`). The noise factor's interval is F(n - 1, n_cal) because sigma_k
+itself was estimated from n_cal calibration samples. Coverage is measured in
+``tests/test_episodes.py``, ``benchmarks/bench_episodes.py`` and docs/episodes.md.
 """
 
 from __future__ import annotations
@@ -314,7 +324,7 @@ def fit_models(
     r = np.asarray(residual, dtype=np.float64)
     o = np.asarray(prediction, dtype=np.float64)
     t = np.asarray(t_s, dtype=np.float64)
-    options = {
+    options: dict[str, Any] = {
         "sigma_k": sigma_k,
         "consensus_sigma": consensus_sigma,
         "confidence": confidence,
@@ -381,7 +391,7 @@ def _fault_end(fits: list[FaultFit], r: np.ndarray, var0: float) -> int | None:
     if fits and fits[0].model == "stuck":
         return None
     best = next((f for f in fits if f.curve is not None), None)
-    if best is None or best.onset_index < 0:
+    if best is None or best.curve is None or best.onset_index < 0:
         return None
     mean, variance = best.curve
     segment = r[best.onset_index : best.onset_index + mean.shape[0]]
@@ -440,7 +450,7 @@ def _fit_window(
         j = int(np.argmin(total))
         return j, float(2 * total[j] + (k_params + 1) * ln_n)  # +1: the onset
 
-    linear = {
+    linear: dict[str, Any] = {
         "var0": var0,
         "offset_var": offset_var or 0.0,
         "confidence": confidence,

@@ -348,6 +348,7 @@ def test_leave_two_out_reference_matches_the_direct_least_squares() -> None:
     H = rng.normal(size=(9, 3))
     H /= np.linalg.norm(H, axis=1)[:, None]
     sigma = rng.uniform(0.5, 2.0, 9)
+    mean = rng.normal(size=9)
     builder = EpisodeBuilder(
         "x",
         "gyro",
@@ -355,7 +356,7 @@ def test_leave_two_out_reference_matches_the_direct_least_squares() -> None:
         [str(i) for i in range(9)],
         sigma,
         RATE,
-        calibration_mean=rng.normal(size=9),
+        calibration_mean=mean,
         calibration_samples=50,
     )
     k = 3
@@ -369,6 +370,7 @@ def test_leave_two_out_reference_matches_the_direct_least_squares() -> None:
         assert_allclose(A[:, column], expected, atol=1e-12)
         assert variance[column] == pytest.approx(sigma[j] ** 2 + consensus**2)
     assert_allclose(offset_var, variance / 50)
+    assert_allclose(offset, mean @ A)
 
 
 # --- fault end, noise mean, fragments ------------------------------------------------------
