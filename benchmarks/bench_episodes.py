@@ -29,6 +29,7 @@ changed after it); evaluation sets must not have been used for any choice.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -73,6 +74,77 @@ def gyro_axes(path: str) -> list[str]:
     return list(ImuArrayReader(path).array.sensor_ids("gyro"))
 
 
+def merge(states: list[dict[str, Any]]) -> dict[str, Any]:
+    """Tallies of several runs (``--dump`` files of disjoint seed ranges) as one."""
+    out = dict(states[0])
+    for key in ("rows", "detected", "wrong", "false_episodes"):
+        out[key] = {}
+    out["seeds"], out["fault_free_hours"], out["faults_per_model"] = [], 0.0, 0
+    for state in states:
+        for key in ("preset", "faults_per_log", "detectors", "models"):
+            if state[key] != out[key]:
+                raise SystemExit(f"cannot merge runs with different {key}")
+        out["seeds"] += state["seeds"]
+        out["fault_free_hours"] += state["fault_free_hours"]
+        out["faults_per_model"] += state["faults_per_model"]
+        for k, v in state["rows"].items():
+            out["rows"][k] = out["rows"].get(k, []) + v
+        for k, v in state["detected"].items():
+            out["detected"][k] = out["detected"].get(k, []) + v
+        for key in ("wrong", "false_episodes"):
+            for k, v in state[key].items():
+                out[key][k] = out[key].get(k, 0) + v
+    return out
+
+
+def print_tables(state: dict[str, Any]) -> None:
+    """The Markdown table of docs/episodes.md and the false-episode rates."""
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    seeds = ", ".join(f"{a}-{b - 1}" for a, b in state["seeds"])
+    n_faults = state["faults_per_model"]
+    print(
+        f"{state['preset']} gyro, seeds {seeds}, {state['faults_per_log']} faults per log"
+        f" ({n_faults} per model); load average {load}"
+    )
+    print()
+    print(
+        "| detector | fault | detected | episodes (wrong sensor) | class right |"
+        " 90 % interval covers | coverage 95 % CI | classes found |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for detector in state["detectors"]:
+        for model in state["models"]:
+            key = f"{detector}|{model}"
+            got = state["rows"].get(key, [])
+            n = len(got)
+            right = sum(bool(r["class_right"]) for r in got)
+            sized = [r for r in got if r["covered"] is not None]
+            covered = sum(bool(r["covered"]) for r in sized)
+            found: dict[str, int] = defaultdict(int)
+            for r in got:
+                found[str(r["class"])] += 1
+            klass = f"{100 * right / n:.1f} %" if n else "-"
+            if sized:
+                cov = f"{100 * covered / len(sized):.1f} % ({covered}/{len(sized)})"
+                c_lo, c_hi = clopper_pearson(covered, len(sized))
+                ci = f"{100 * c_lo:.0f}-{100 * c_hi:.0f} %"
+            else:
+                cov = ci = "-"
+            classes = ", ".join(f"{k} {v}" for k, v in sorted(found.items(), key=lambda x: -x[1]))
+            print(
+                f"| {detector} | {model} | {len(state['detected'].get(key, []))}/{n_faults} |"
+                f" {n} ({state['wrong'].get(key, 0)}) | {klass} | {cov} | {ci} | {classes} |"
+            )
+    print()
+    hours = state["fault_free_hours"]
+    for detector in state["detectors"]:
+        count = state["false_episodes"].get(detector, 0)
+        print(
+            f"{detector}: false episodes between calibration and first onset:"
+            f" {count / hours:.0f} per hour ({count} in {hours * 3600:.0f} s)"
+        )
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--preset", default="paper-table4")
@@ -81,8 +153,14 @@ def main() -> int:
     parser.add_argument("--faults", type=int, default=3, help="faults per log (K)")
     parser.add_argument("--models", default=",".join(FAULTS))
     parser.add_argument("--timing", action="store_true")
-    parser.add_argument("--dump", help="write every matched episode's fit to this JSON file")
+    parser.add_argument("--dump", help="write the tallies and every matched episode's fit (JSON)")
+    parser.add_argument(
+        "--merge", nargs="+", help="print the tables of these --dump files (disjoint seeds)"
+    )
     args = parser.parse_args()
+    if args.merge:
+        print_tables(merge([json.loads(Path(p).read_text()) for p in args.merge]))
+        return 0
     lo, hi = (int(x) for x in args.seeds.split(":"))
     detectors = args.detectors.split(",")
     models = args.models.split(",")
@@ -163,6 +241,7 @@ def main() -> int:
                                     "low": best.get("low"),
                                     "high": best.get("high"),
                                     "extra": best.get("extra"),
+                                    "true_size": match.get("true_size"),
                                 }
                             )
                             detected[key].add(f"{seed}:{match['fault_id']}")
@@ -172,57 +251,28 @@ def main() -> int:
                             false_episodes[detector] += 1
                 fault_free_hours += (first_at - CALIBRATION_S) / 3600
             print(f"seed {seed} done", file=sys.stderr, flush=True)
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    n_faults = injected // max(len(models), 1)
-    print(
-        f"{args.preset} gyro, seeds {lo}-{hi - 1}, {K} faults per log ({n_faults} per model);"
-        f" load average {load}"
-    )
-    print()
-    print(
-        "| detector | fault | detected | episodes (wrong sensor) | class right |"
-        " 90 % interval covers | coverage 95 % CI | classes found |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
-    for detector in detectors:
-        for model in models:
-            key = (detector, model)
-            got = rows[key]
-            n = len(got)
-            right = sum(bool(r["class_right"]) for r in got)
-            sized = [r for r in got if r["covered"] is not None]
-            covered = sum(bool(r["covered"]) for r in sized)
-            found: dict[str, int] = defaultdict(int)
-            for r in got:
-                found[str(r["class"])] += 1
-            klass = f"{100 * right / n:.1f} %" if n else "-"
-            if sized:
-                cov = f"{100 * covered / len(sized):.1f} % ({covered}/{len(sized)})"
-                c_lo, c_hi = clopper_pearson(covered, len(sized))
-                ci = f"{100 * c_lo:.0f}-{100 * c_hi:.0f} %"
-            else:
-                cov = ci = "-"
-            classes = ", ".join(f"{k} {v}" for k, v in sorted(found.items(), key=lambda x: -x[1]))
-            print(
-                f"| {detector} | {model} | {len(detected[key])}/{n_faults} | {n} ({wrong[key]}) |"
-                f" {klass} | {cov} | {ci} | {classes} |"
-            )
-    print()
-    for detector in detectors:
-        print(
-            f"{detector}: false episodes between calibration and first onset:"
-            f" {false_episodes[detector] / fault_free_hours:.0f} per hour"
-            f" ({false_episodes[detector]} in {fault_free_hours * 3600:.0f} s)"
-        )
+    state = {
+        "preset": args.preset,
+        "seeds": [[lo, hi]],
+        "faults_per_log": K,
+        "detectors": detectors,
+        "models": models,
+        "rows": {f"{d}|{m}": got for (d, m), got in rows.items()},
+        "detected": {f"{d}|{m}": sorted(ids) for (d, m), ids in detected.items()},
+        "wrong": {f"{d}|{m}": n for (d, m), n in wrong.items()},
+        "false_episodes": dict(false_episodes),
+        "fault_free_hours": fault_free_hours,
+        "faults_per_model": injected // max(len(models), 1),
+    }
     if args.dump:
-        import json
-
-        dump = {f"{d}.{m}": got for (d, m), got in rows.items()}
-        Path(args.dump).write_text(json.dumps(dump, indent=1))
+        Path(args.dump).write_text(json.dumps(state))
+    print_tables(state)
     if args.timing:
+        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
         print(
             f"detect time with explanations / without: {time_on / time_off:.2f}x;"
             f" report time on the explained / unexplained output: {report_on / report_off:.2f}x"
+            f" (load average {load})"
         )
     return 0
 
