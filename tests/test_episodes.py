@@ -370,6 +370,10 @@ def test_leave_two_out_reference_matches_the_direct_least_squares() -> None:
         assert_allclose(A[:, column], expected, atol=1e-12)
         assert variance[column] == pytest.approx(sigma[j] ** 2 + consensus**2)
     assert_allclose(offset_var, variance / 50)
+    gain, consensus = builder._gain(k)
+    direct_gain, direct_consensus = _consensus_gain(H, sigma, k)
+    assert_allclose(gain, direct_gain, atol=1e-12)
+    assert consensus == pytest.approx(direct_consensus)
     assert_allclose(offset, mean @ A)
 
 
@@ -429,3 +433,15 @@ def test_fragments_on_the_same_sensor_are_one_episode_and_others_stay_apart() ->
     assert fault.fault_class == "noise"
     assert fault.fits[0].low <= math.sqrt(5) <= fault.fits[0].high
     assert [e.decided_end_ns for e in episodes] == sorted(e.decided_end_ns for e in episodes)
+
+
+def test_fast_quantiles_are_scipy_stats_quantiles() -> None:
+    from scipy import stats
+
+    from imufdi_cli.episodes import _chi2_quantile, _f_quantile, _t_quantile
+
+    for p in (0.05, 0.95, 0.999):
+        for dof in (1, 5, 47, 1000):
+            assert _t_quantile(p, dof) == pytest.approx(stats.t.ppf(p, dof), rel=1e-12)
+            assert _chi2_quantile(p, dof) == pytest.approx(stats.chi2.ppf(p, dof), rel=1e-12)
+            assert _f_quantile(p, dof, 200) == pytest.approx(stats.f.ppf(p, dof, 200), rel=1e-12)
