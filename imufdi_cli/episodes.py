@@ -111,7 +111,8 @@ class FaultFit:
     #: index in the analysis window where the fitted fault ends (exclusive; None: it lasts
     #: to the window's end)
     end_index: int | None = None
-    #: fitted mean and variance of the residual from the onset on (for the end search)
+    #: fitted mean and variance of the residual from the onset on (for the end search; not
+    #: serialised)
     curve: tuple[np.ndarray, float] | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -343,7 +344,7 @@ def fit_models(
     fits = _fit_window(r, o, t, raw_arr, onset_range, reference, **options)
     end = _fault_end(fits, r, sigma_k**2 + consensus_sigma**2)
     if end is None:
-        return [replace(f, curve=None) for f in fits]
+        return fits
     for _ in range(2):  # the end found by the best model on the whole window, refined once
         cut = _fit_window(
             r[:end],
@@ -379,9 +380,9 @@ def fit_models(
     if not cut:
         return fits
     out = [
-        replace(f, bic=f.bic + tail + ln_n, end_index=end, curve=None)
+        replace(f, bic=f.bic + tail + ln_n, end_index=end)
         if f.model != "none"
-        else replace(f, bic=f.bic + tail, curve=None)
+        else replace(f, bic=f.bic + tail)
         for f in cut
     ]
     out.sort(key=lambda f: (f.bic, MODELS.index(f.model)))  # stuck (-inf) stays first
