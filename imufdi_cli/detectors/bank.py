@@ -71,6 +71,7 @@ from imufdi_cli.detectors.parity import (
     sigma_estimate_variance,
     whiten,
 )
+from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 
@@ -150,13 +151,14 @@ def leave_one_out_matrix(
     weights = 1.0 / sigma**2
     for j in range(n):  # n small, once per exclusion set (cached)
         used = np.array([i for i in range(n) if i != j and i not in excluded], dtype=np.intp)
-        if used.size < 3:
+        if used.size < H.shape[1]:
             continue
         H_used = H[used]
         normal = H_used.T @ (weights[used, None] * H_used)
-        if np.linalg.matrix_rank(normal, tol=1e-9 * max(np.abs(normal).max(), 1e-300)) < 3:
+        rank = np.linalg.matrix_rank(normal, tol=1e-9 * max(np.abs(normal).max(), 1e-300))
+        if rank < H.shape[1]:
             continue
-        gain = np.linalg.solve(normal, H_used.T * weights[used])  # (3, |U|)
+        gain = np.linalg.solve(normal, H_used.T * weights[used])  # (q, |U|)
         row = np.zeros(n)
         row[j] = 1.0
         row[used] -= H[j] @ gain
@@ -257,9 +259,11 @@ def _fit_array_test(
     values: np.ndarray, H: np.ndarray, sensor_type: str, alpha: float, max_faults: int
 ) -> _ArrayTest:
     n = H.shape[0]
-    if n < 4:
+    if n < H.shape[1] + 1:
         raise CalibrationError(
-            f"bank: {sensor_type} has {n} sensors; the leave-one-out bank needs at least 4"
+            f"bank: {sensor_type} has {n} sensors; the leave-one-out bank needs at least"
+            f" {H.shape[1] + 1}"
+            + ("" if H.shape[1] == 3 else " with the lever-arm terms of these IMU positions")
         )
     calibration_stats(values)  # checks the window length
     sigma = residual_sigma(H, values)
@@ -532,7 +536,10 @@ class BankDetector:
             values = array.select(data, sensor_type)
             self.tests[sensor_type] = _fit_array_test(
                 values,
-                array.measurement_matrix(sensor_type),
+                # accelerometers at different points: rigid-body lever arms (detectors/rigid.py)
+                accel_design(array)
+                if sensor_type == "accel"
+                else array.measurement_matrix(sensor_type),
                 sensor_type,
                 self.alpha,
                 self.max_faults,
