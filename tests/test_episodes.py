@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -445,3 +446,65 @@ def test_fast_quantiles_are_scipy_stats_quantiles() -> None:
             assert _t_quantile(p, dof) == pytest.approx(stats.t.ppf(p, dof), rel=1e-12)
             assert _chi2_quantile(p, dof) == pytest.approx(stats.chi2.ppf(p, dof), rel=1e-12)
             assert _f_quantile(p, dof, 200) == pytest.approx(stats.f.ppf(p, dof, 200), rel=1e-12)
+
+
+# --- the real 8-IMU recording (docs/episodes.md, docs/real-arrays.md) ----------------------
+
+SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
+LAYOUT = Path(__file__).resolve().parents[1] / "docs" / "layouts" / "mimu4444.toml"
+
+
+@pytest.mark.slow
+def test_real_step_and_noise_growth_are_explained(tmp_path: Path) -> None:
+    """On the MIMU4444 cut, a 0.9 deg/s step on imu2.gyro.y and noise growth on imu5.gyro.x
+    (0.3 deg/s added) from 110 s to 120 s: glt explains the step as one `step` episode
+    whose interval holds 0.9 deg/s, noise-glr the noise as one `noise` episode (its 10
+    alarm runs joined) whose interval holds the true factor sqrt(s^2 + 0.3^2) / s, s the
+    sensor's sigma as calibrated on 0-10 s."""
+    from imufdi_cli.array import ArrayConfig
+    from imufdi_cli.detectors.parity import residual_sigma
+    from imufdi_cli.mcapio import read_array, read_events
+    from tests.cli.conftest import invoke
+
+    cut, faulty, detected = tmp_path / "cut.mcap", tmp_path / "f.mcap", tmp_path / "d.mcap"
+    calibrated = SAMPLES / "mimu4444-calibrated.toml"
+    steps = [
+        ["ingest", SAMPLES / "mimu4444-exp1-cut.bin", "--layout", LAYOUT,
+         "--array", SAMPLES / "mimu4444-array.toml", "-o", cut],
+        ["inject", cut, "--fault", "step:imu2.gyro.y,at=110s,until=120s,amp=0.9deg/s",
+         "--fault", "noise:imu5.gyro.x,at=110s,until=120s,sigma=0.3deg/s", "-o", faulty],
+        ["detect", faulty, "-d", "glt", "-d", "noise-glr", "--array", calibrated,
+         "--calibrate", "0s:10s", "--start", "100s", "--end", "126s", "-o", detected],
+    ]  # fmt: skip
+    for args in steps:
+        result = invoke([str(a) for a in args])
+        assert result.code == 0, result.stderr
+    _, block = read_array(str(cut))
+    t0 = int(block.t_ns[0])
+    # episodes that start while the faults are on (false alarms elsewhere in 100-126 s
+    # are explained too, but are not the question here)
+    episodes = [
+        e["episode"]
+        for _, e in read_events(str(detected), "/imufdi/events")
+        if e["event"] == "episode"
+        and e["sensor_type"] == "gyro"
+        and t0 + 110e9 <= e["episode"]["start_ns"] < t0 + 120e9
+    ]
+    step = [e for e in episodes if e["detector"] == "glt" and e["sensors"][0] == "imu2.gyro.y"]
+    assert len(step) == 1 and step[0]["fault_class"] == "step"
+    fit = step[0]["fits"][0]
+    assert fit["low"] <= np.deg2rad(0.9) <= fit["high"]
+    noise = [e for e in episodes if e["detector"] == "noise-glr"]
+    assert len(noise) == 1 and noise[0]["sensors"][0] == "imu5.gyro.x"
+    assert noise[0]["fault_class"] == "noise" and noise[0]["fragments"] > 1
+    # the sensor's calibrated sigma, as detect estimates it (calibrated chips, 0-10 s)
+    array = ArrayConfig.load(calibrated)
+    early = (block.t_ns - block.t_ns[0]) < 10e9
+    triads = array.calibrate_triads(block.get("gyro")[early], "gyro")
+    m = array.select(triads, "gyro")
+    m = m[np.all(np.isfinite(m), axis=1)]
+    k = array.sensor_ids("gyro").index("imu5.gyro.x")
+    s = residual_sigma(array.measurement_matrix("gyro"), m)[k]
+    truth = math.sqrt(s**2 + np.deg2rad(0.3) ** 2) / s
+    fit = noise[0]["fits"][0]
+    assert fit["low"] <= truth <= fit["high"]
