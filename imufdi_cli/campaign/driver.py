@@ -12,10 +12,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from imufdi_cli.campaign.executors import DaskExecutor, LocalExecutor, _Executor
 from imufdi_cli.campaign.plots import plot_curves
+from imufdi_cli.campaign.run import run_order, write_json_atomic
 from imufdi_cli.campaign.spec import CampaignSpec, load_spec, run_key
 from imufdi_cli.campaign.summary import (
     _rows,
@@ -26,11 +25,6 @@ from imufdi_cli.campaign.summary import (
 )
 from imufdi_cli.errors import CampaignFailedError, UsageError
 from imufdi_cli.fileio import check_outputs, write_text
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
 
 
 @dataclass
@@ -96,18 +90,6 @@ def results_lock(out: Path) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
-def _write_json_atomic(path: Path, data: Any, *, sweep: bool = True) -> None:
-    write_text(str(path), json.dumps(data, sort_keys=True, default=_jsonable) + "\n", sweep=sweep)
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (np.floating,)):
-        return float(value)
-    raise TypeError(type(value).__name__)
-
-
 def run_campaign(
     spec: CampaignSpec,
     results_dir: str | Path,
@@ -134,8 +116,9 @@ def run_campaign(
     if scheduler:
         executor = DaskExecutor(scheduler)  # a bad address fails before anything is written
     else:
-        executor = LocalExecutor(jobs or os.cpu_count() or 1)
+        executor = LocalExecutor(jobs or default_jobs())
     try:
+        executor.start(len(_todo(spec, out / "runs", resume)))  # before the lock: see start()
         try:
             out.mkdir(parents=True, exist_ok=True)
         except OSError as err:
@@ -145,6 +128,28 @@ def run_campaign(
             return _run_locked(spec, out, executor, resume=resume, progress=progress, start=start)
     finally:
         executor.close()
+
+
+def default_jobs() -> int:
+    """``--jobs`` by default: the cores this process may run on.
+
+    Pool workers fork from the campaign process in milliseconds with everything imported
+    and write their own results, so a worker per core is the fastest setting even for a
+    few short runs (docs/campaign.md, "Throughput"); a pool is not started for one run.
+    """
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def _todo(spec: CampaignSpec, runs_dir: Path, resume: bool) -> list[dict[str, Any]]:
+    """The runs still to execute (with --resume: those without a result file), one per
+    key, grouped by base and seed (:func:`~imufdi_cli.campaign.run.run_order`)."""
+    keyed = {run_key(desc): desc for desc in spec.runs}
+    done = {p.stem for p in runs_dir.glob("*.json")} if resume and runs_dir.is_dir() else set()
+    todo = [desc for key, desc in keyed.items() if key not in done]
+    return sorted(todo, key=run_order)
 
 
 def _check_fresh(out: Path, resume: bool) -> None:
@@ -169,10 +174,9 @@ def _run_locked(
 ) -> CampaignResult:
     """The campaign proper, with the results directory locked by this process."""
     runs_dir = out / "runs"
-    existing = sorted(runs_dir.glob("*.json")) if runs_dir.is_dir() else []
     keyed = {run_key(desc): desc for desc in spec.runs}
-    done_keys = {p.stem for p in existing} & set(keyed) if resume else set()
-    todo = [desc for key, desc in keyed.items() if key not in done_keys]
+    todo = _todo(spec, runs_dir, resume)
+    done_keys = set(keyed) - {run_key(desc) for desc in todo}
     total = len(keyed)
     executed = 0
     runs_dir.mkdir(parents=True, exist_ok=True)
@@ -181,9 +185,7 @@ def _run_locked(
         stale.unlink(missing_ok=True)
     if progress:
         progress(len(done_keys), total, None)
-    for result in executor.run(todo):
-        # runs/ was swept once above: no directory listing per result
-        _write_json_atomic(runs_dir / f"{result['key']}.json", result, sweep=False)
+    for result in executor.run(todo, runs_dir):  # each result written as it finishes
         executed += 1
         if progress:
             progress(len(done_keys) + executed, total, result)
@@ -195,7 +197,7 @@ def _run_locked(
     rows = _rows(results)
     summary = summarize(spec, results)
     write_text(str(out / "runs.csv"), _rows_csv(rows))
-    _write_json_atomic(out / "summary.json", summary)
+    write_json_atomic(out / "summary.json", summary)
     write_text(str(out / "summary.md"), summary_markdown(summary))
     try:
         plot_curves(summary, out)
@@ -249,11 +251,19 @@ def run_campaign_cli(
     resume: bool,
     gates: Sequence[str],
     console: Any,
+    progress: bool | None = None,
 ) -> int:
     """What ``imufdi campaign`` does; returns the exit code (0, or 1 when a gate fails).
 
+    The closing line and the gates go to ``console``; the progress bar always goes to
+    stderr: with ``progress=None`` only when stderr is a terminal and ``console`` is not
+    quiet (rich's ``Console(quiet=True)``), ``False`` never (``--quiet``), ``True`` always.
+    The bar is redrawn when runs finish, without a refresh thread (pool workers fork from
+    a single-threaded process: :func:`~imufdi_cli.campaign.executors.start_method`).
+
     Raises CampaignFailedError (exit 3, or 4 on internal errors) when every run failed.
     """
+    from rich.console import Console
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -268,26 +278,30 @@ def run_campaign_cli(
     spec = load_spec(spec_path)
     for gate in gates:
         parse_gate(gate, DETECTORS)  # bad gates fail before any run
+    if progress is None:
+        progress = sys.stderr.isatty() and not getattr(console, "quiet", False)
     with Progress(
         TextColumn("[bold]campaign[/] {task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
         TextColumn("failed {task.fields[failed]}"),
         TimeRemainingColumn(),
-        console=console,
+        console=Console(stderr=True),
         transient=False,
+        auto_refresh=False,
+        disable=not progress,
     ) as bar:
         task = bar.add_task(spec.name, total=len({run_key(r) for r in spec.runs}), failed=0)
         failed = 0
 
-        def progress(done: int, total: int, result: dict[str, Any] | None) -> None:
+        def advance(done: int, total: int, result: dict[str, Any] | None) -> None:
             nonlocal failed
             if result is not None and not result["ok"]:
                 failed += 1
-            bar.update(task, completed=done, failed=failed)
+            bar.update(task, completed=done, failed=failed, refresh=True)
 
         result = run_campaign(
-            spec, results_dir, jobs=jobs, scheduler=scheduler, resume=resume, progress=progress
+            spec, results_dir, jobs=jobs, scheduler=scheduler, resume=resume, progress=advance
         )
     console.print(
         f"{result.total} runs ({result.executed} executed, {result.skipped} resumed, "

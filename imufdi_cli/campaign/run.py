@@ -2,30 +2,26 @@
 
 from __future__ import annotations
 
-import sys
+import json
 import time
 import traceback
 from collections.abc import Mapping, Sequence
+from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from imufdi_cli.campaign.spec import DEFAULT_MATCH_FAR, _read_base, run_key
 from imufdi_cli.errors import ImufdiError
+from imufdi_cli.fileio import write_text
 from imufdi_cli.metrics import (
     METRIC_NAMES,
     FaultWindow,
 )
 
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
-
-
+#: Samples per block streamed through a detector (as `imufdi detect` reads a log).
 BLOCK_SAMPLES = 4096
-
-
 NS_PER_S = 1_000_000_000
 
 
@@ -83,19 +79,62 @@ def execute_run(desc: Mapping[str, Any]) -> dict[str, Any]:
         }
 
 
+@lru_cache(maxsize=2)
+def _simulated(preset: str, options: str, seed: int) -> tuple[Any, Any]:
+    """The simulated base log of a run: ``(ArrayConfig, ImuBlock)``, kept for the next runs
+    of the same base and seed (the executors hand out runs grouped by base and seed; every
+    run injects into a copy, :meth:`~imufdi_cli.faults.FaultInjector.apply_block`)."""
+    from imufdi_cli.simulate import config_from_options, simulate_block
+
+    config = config_from_options(preset, seed=seed, **json.loads(options))
+    return simulate_block(config)
+
+
+def run_order(desc: Mapping[str, Any]) -> tuple[str, int]:
+    """Sort key grouping runs by base and seed, so that consecutive runs reuse one
+    simulated base log (:func:`_simulated`); the order of execution changes no output."""
+    return json.dumps(desc["base"], sort_keys=True), int(desc["seed"])
+
+
+def write_json_atomic(path: Path, data: Any, *, sweep: bool = True) -> None:
+    """``data`` as sorted-key JSON, written atomically (numpy scalars as Python numbers)."""
+    write_text(str(path), json.dumps(data, sort_keys=True, default=_jsonable) + "\n", sweep=sweep)
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    raise TypeError(type(value).__name__)
+
+
+def store_result(result: Mapping[str, Any], runs_dir: Path) -> dict[str, Any]:
+    """Write a run's result to ``runs_dir/<key>.json`` (atomically, without sweeping the
+    directory for stale temporary files: the campaign swept it once) and return its status:
+    key, ok, seconds and, for a failed run, error and internal."""
+    write_json_atomic(runs_dir / f"{result['key']}.json", result, sweep=False)
+    return {k: result[k] for k in ("key", "ok", "seconds", "error", "internal") if k in result}
+
+
+def run_and_store(descs: Sequence[Mapping[str, Any]], runs_dir: str) -> list[dict[str, Any]]:
+    """Execute runs one after the other in this process, each result written as soon as it
+    is known; returns their statuses (what a pool worker sends back to the campaign)."""
+    return [store_result(execute_run(desc), Path(runs_dir)) for desc in descs]
+
+
 def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
     from imufdi_cli.detect import calibration_window_ns, decision_positions, lookahead_of
     from imufdi_cli.detectors import make_detector
     from imufdi_cli.faults import FaultInjector, parse_fault_spec
     from imufdi_cli.log import iter_blocks
     from imufdi_cli.metrics import MetricsAccumulator
-    from imufdi_cli.simulate import config_from_options, simulate_block
 
     base = desc["base"]
     seed = int(desc["seed"])
     if "preset" in base:
-        config = config_from_options(base["preset"], seed=seed, **base.get("options", {}))
-        array, block = simulate_block(config)
+        options = json.dumps(base.get("options", {}), sort_keys=True)
+        array, block = _simulated(base["preset"], options, seed)
     else:
         array, block = _read_base(base["file"])
     specs, onsets = jittered_specs(desc["faults"], desc.get("at_jitter"), seed, array)

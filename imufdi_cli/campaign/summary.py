@@ -6,7 +6,6 @@ import csv
 import io
 import json
 import os
-import sys
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -16,12 +15,6 @@ from imufdi_cli.metrics import (
     METRIC_NAMES,
     mean_metrics,
 )
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
-
 
 _AMPLITUDE_KEYS = ("amp", "rate", "factor", "sigma")
 
