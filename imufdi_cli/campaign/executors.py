@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import threading
 import time
@@ -157,6 +158,10 @@ class LocalExecutor(_Executor):
         if method == "forkserver":
             context.set_forkserver_preload(["imufdi_cli.campaign.run"])
         workers = max(1, min(self.jobs, runs))
+        if method == "fork":
+            # objects of this process go to a permanent generation that the workers'
+            # collector never walks: no copy-on-write of the parent's pages by GC
+            gc.freeze()
         with worker_thread_env():
             self._pool = ProcessPoolExecutor(
                 max_workers=workers,
@@ -165,8 +170,11 @@ class LocalExecutor(_Executor):
                 initargs=(None if method == "forkserver" else os.getpid(), method == "fork"),
             )
             # start every worker now (fork: all at once, while this process is single-threaded)
-            for future in [self._pool.submit(os.getpid) for _ in range(workers)]:
-                future.result()
+            try:
+                for future in [self._pool.submit(os.getpid) for _ in range(workers)]:
+                    future.result()
+            finally:
+                gc.unfreeze()  # this process collects as before
 
     def run(self, runs: Sequence[dict[str, Any]], runs_dir: Path) -> Iterator[dict[str, Any]]:
         if not self._use_pool(len(runs)):
