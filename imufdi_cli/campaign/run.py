@@ -124,72 +124,32 @@ def run_and_store(descs: Sequence[Mapping[str, Any]], runs_dir: str) -> list[dic
 
 
 def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
-    from imufdi_cli.detect import calibration_window_ns, decision_positions, lookahead_of
+    """The figures of one run per sensor type: metrics (out-of-sample FAR, delays at
+    decision time, MAR at the matched FAR), per-fault events, onsets and faults applied."""
+    from imufdi_cli.detect import calibration_window_ns
     from imufdi_cli.detectors import make_detector
     from imufdi_cli.faults import FaultInjector, parse_fault_spec
     from imufdi_cli.log import iter_blocks
-    from imufdi_cli.metrics import MetricsAccumulator
 
-    base = desc["base"]
     seed = int(desc["seed"])
-    if "preset" in base:
-        options = json.dumps(base.get("options", {}), sort_keys=True)
-        array, block = _simulated(base["preset"], options, seed)
-    else:
-        array, block = _read_base(base["file"])
+    array, block = _base_log(desc["base"], seed)
     specs, onsets = jittered_specs(desc["faults"], desc.get("at_jitter"), seed, array)
     faults = [parse_fault_spec(spec, array) for spec in specs]
     t0 = int(block.t_ns[0])
-    injector = FaultInjector(faults, array, seed=seed, t0_ns=t0)
-    faulty = injector.apply_block(block)
+    faulty = FaultInjector(faults, array, seed=seed, t0_ns=t0).apply_block(block)
     detector = make_detector(desc["detector"], desc["params"])
-    cal_start, cal_end = desc["calibrate"]
-    window = calibration_window_ns(t0, int(faulty.t_ns[-1]), cal_start, cal_end)
+    window = calibration_window_ns(t0, int(faulty.t_ns[-1]), *desc["calibrate"])
     assert window is not None
     keep = (faulty.t_ns >= window[0]) & (faulty.t_ns < window[1])
     detector.fit(faulty.mask(keep), array)
-    lookahead = lookahead_of(detector)
-    accumulators: dict[str, MetricsAccumulator] = {}
-    emitted: dict[str, int] = {}
-    passed = 0
-
-    def score(outputs: Mapping[str, Any]) -> None:
-        for sensor_type, out in outputs.items():
-            if sensor_type not in accumulators:
-                ids = array.sensor_ids(sensor_type)
-                windows = []
-                for fault in faults:
-                    if fault.sensor_type != sensor_type:
-                        continue
-                    columns = [ids.index(s) for s in fault.sensors if s in ids]
-                    end = None if fault.until_ns is None else t0 + fault.until_ns
-                    windows.append(FaultWindow(fault.id, tuple(columns), t0 + fault.at_ns, end))
-                accumulators[sensor_type] = MetricsAccumulator(
-                    len(ids), windows, calibration_ns=(window[0], window[1])
-                )
-                emitted[sensor_type] = 0
-            rows = len(out)
-            first = emitted[sensor_type]
-            positions = decision_positions(first, rows, passed, lookahead)
-            accumulators[sensor_type].update(
-                faulty.t_ns[first : first + rows],
-                out.alarm,
-                out.isolated,
-                decided_ns=faulty.t_ns[positions],
-                isolated_set=out.isolated_set,
-                statistic=out.statistic,
-                threshold=out.threshold,
-                scores=out.scores,
-            )
-            emitted[sensor_type] = first + rows
-
+    scorer = _Scorer(array, faults, faulty.t_ns, window, detector)
     for part in iter_blocks(faulty, BLOCK_SAMPLES):
-        passed += len(part)
-        score(detector.process(part))
-    score(detector.flush())
+        scorer.passed += len(part)
+        scorer.score(detector.process(part))
+    scorer.score(detector.flush())
     target = float(desc.get("match_far", DEFAULT_MATCH_FAR))
     figures: dict[str, Any] = {}
-    for sensor_type, acc in accumulators.items():
+    for sensor_type, acc in scorer.accumulators.items():
         metrics = acc.result()
         note = acc.matched(metrics, target)
         figures[sensor_type] = {name: metrics.value(name) for name in METRIC_NAMES} | {
@@ -200,3 +160,69 @@ def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
             "notes": [note] if note else [],
         }
     return figures
+
+
+def _base_log(base: Mapping[str, Any], seed: int) -> tuple[Any, Any]:
+    """``(ArrayConfig, ImuBlock)`` of a run's base: the preset simulated with the run's
+    seed, or the file (both cached, never modified)."""
+    if "preset" in base:
+        return _simulated(base["preset"], json.dumps(base.get("options", {}), sort_keys=True), seed)
+    return _read_base(base["file"])
+
+
+class _Scorer:
+    """Feeds a detector's outputs to one MetricsAccumulator per sensor type, each row
+    stamped with its decision time (as :mod:`imufdi_cli.detect` writes it)."""
+
+    def __init__(
+        self, array: Any, faults: Sequence[Any], t_ns: np.ndarray, window: Any, detector: Any
+    ) -> None:
+        from imufdi_cli.detect import lookahead_of
+
+        self.array = array
+        self.faults = faults
+        self.t_ns = t_ns
+        self.t0 = int(t_ns[0])
+        self.window = (window[0], window[1])
+        self.lookahead = lookahead_of(detector)
+        self.accumulators: dict[str, Any] = {}
+        self.emitted: dict[str, int] = {}
+        self.passed = 0  # samples given to the detector so far
+
+    def _accumulator(self, sensor_type: str) -> Any:
+        from imufdi_cli.metrics import MetricsAccumulator
+
+        if sensor_type not in self.accumulators:
+            ids = self.array.sensor_ids(sensor_type)
+            windows = []
+            for fault in self.faults:
+                if fault.sensor_type != sensor_type:
+                    continue
+                columns = [ids.index(s) for s in fault.sensors if s in ids]
+                end = None if fault.until_ns is None else self.t0 + fault.until_ns
+                windows.append(FaultWindow(fault.id, tuple(columns), self.t0 + fault.at_ns, end))
+            self.accumulators[sensor_type] = MetricsAccumulator(
+                len(ids), windows, calibration_ns=self.window
+            )
+            self.emitted[sensor_type] = 0
+        return self.accumulators[sensor_type]
+
+    def score(self, outputs: Mapping[str, Any]) -> None:
+        from imufdi_cli.detect import decision_positions
+
+        for sensor_type, out in outputs.items():
+            accumulator = self._accumulator(sensor_type)
+            rows = len(out)
+            first = self.emitted[sensor_type]
+            positions = decision_positions(first, rows, self.passed, self.lookahead)
+            accumulator.update(
+                self.t_ns[first : first + rows],
+                out.alarm,
+                out.isolated,
+                decided_ns=self.t_ns[positions],
+                isolated_set=out.isolated_set,
+                statistic=out.statistic,
+                threshold=out.threshold,
+                scores=out.scores,
+            )
+            self.emitted[sensor_type] = first + rows

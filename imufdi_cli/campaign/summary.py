@@ -259,33 +259,28 @@ def detection_curves(groups: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]
     return out
 
 
-def summary_markdown(summary: Mapping[str, Any]) -> str:
-    metrics = summary["metrics"]
-    scale = {
-        m: (
-            100.0
-            if m
-            in {
-                "far",
-                "mar",
-                "accuracy",
-                "fir",
-                "isolation_accuracy",
-                "detection_rate",
-                "detection_probability",
-                "alarm_rate",
-                "far_calibration",
-                "rate_after_first_detection",
-                "mar_at_far",
-                "fir_at_far",
-            }
-            else 1.0
-        )
-        for m in metrics
+#: Metrics that are rates, shown in % in summary.md.
+PERCENT_METRICS = frozenset(
+    {
+        "far",
+        "mar",
+        "accuracy",
+        "fir",
+        "isolation_accuracy",
+        "detection_rate",
+        "detection_probability",
+        "alarm_rate",
+        "far_calibration",
+        "rate_after_first_detection",
+        "mar_at_far",
+        "fir_at_far",
     }
-    head = ["base", "detector", "params", "fault", "amplitude", "type", "runs"] + [
-        f"{m} {'%' if scale[m] == 100.0 else ''}".strip() for m in metrics
-    ]
+)
+
+
+def summary_markdown(summary: Mapping[str, Any]) -> str:
+    """``summary.md``: the groups as a Markdown table (rates in %, mean ± std over seeds),
+    the detection-probability curves, and the failed runs."""
     lines = [
         f"# Campaign {summary['name']}",
         "",
@@ -298,14 +293,32 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
             else "."
         ),
         "",
-        "| " + " | ".join(head) + " |",
-        "|" + "|".join("---" for _ in head) + "|",
+        *_groups_table(summary["groups"], summary["metrics"]),
     ]
-    for g in summary["groups"]:
+    curves = summary.get("curves") or []
+    if curves:
+        lines += ["", "## Detection probability against amplitude", "", *_curves_table(curves)]
+    if summary["failures"]:
+        lines += ["", "## Failed runs", ""]
+        lines += [f"- `{f['key']}`: {f['error']}" for f in summary["failures"]]
+    return "\n".join(lines) + "\n"
+
+
+def _params_text(params: Mapping[str, Any]) -> str:
+    return ", ".join(f"{k}={v}" for k, v in params.items()) or "default"
+
+
+def _groups_table(groups: Sequence[Mapping[str, Any]], metrics: Sequence[str]) -> list[str]:
+    scale = {m: 100.0 if m in PERCENT_METRICS else 1.0 for m in metrics}
+    head = ["base", "detector", "params", "fault", "amplitude", "type", "runs"] + [
+        f"{m} {'%' if scale[m] == 100.0 else ''}".strip() for m in metrics
+    ]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for g in groups:
         cells = [
             g["base"],
             g["detector"],
-            ", ".join(f"{k}={v}" for k, v in g["params"].items()) or "default",
+            _params_text(g["params"]),
             g.get("fault", g["model"]),
             g["amplitude"],
             g["sensor_type"],
@@ -320,30 +333,25 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
             else:
                 cells.append(f"{stat['mean'] * scale[m]:.3g} ± {stat['std'] * scale[m]:.2g}")
         lines.append("| " + " | ".join(cells) + " |")
-    curves = summary.get("curves") or []
-    if curves:
-        lines += [
-            "",
-            "## Detection probability against amplitude",
-            "",
-            "| base | detector | params | fault | type | amplitude: probability % |",
-            "|---|---|---|---|---|---|",
-        ]
-        for c in curves:
-            points = ", ".join(
-                f"{p['amplitude'] or '-'}: "
-                + ("undefined" if p["mean"] is None else f"{100.0 * p['mean']:.3g}")
-                for p in c["points"]
-            )
-            params = ", ".join(f"{k}={v}" for k, v in c["params"].items()) or "default"
-            lines.append(
-                f"| {c['base']} | {c['detector']} | {params} | {c.get('fault', c['model'])}"
-                f" | {c['sensor_type']} | {points} |"
-            )
-    if summary["failures"]:
-        lines += ["", "## Failed runs", ""]
-        lines += [f"- `{f['key']}`: {f['error']}" for f in summary["failures"]]
-    return "\n".join(lines) + "\n"
+    return lines
+
+
+def _curves_table(curves: Sequence[Mapping[str, Any]]) -> list[str]:
+    lines = [
+        "| base | detector | params | fault | type | amplitude: probability % |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in curves:
+        points = ", ".join(
+            f"{p['amplitude'] or '-'}: "
+            + ("undefined" if p["mean"] is None else f"{100.0 * p['mean']:.3g}")
+            for p in c["points"]
+        )
+        lines.append(
+            f"| {c['base']} | {c['detector']} | {_params_text(c['params'])}"
+            f" | {c.get('fault', c['model'])} | {c['sensor_type']} | {points} |"
+        )
+    return lines
 
 
 def evaluate_summary_gates(
