@@ -11,6 +11,8 @@ so its wall time includes interpreter start-up, imports, spec loading, pool star
 summary files. Figures:
 
 - **wall**: seconds of each command, and ``wall(--jobs 1) / wall(--jobs 2)``;
+- **pool start**: starting and stopping a 2-worker pool in this process, forked (now)
+  and spawned (before), in wall and CPU seconds;
 - **CPU**: user + system seconds of the command and its workers; ``CPU / wall`` is how
   many cores the pass actually got, and ``CPU(--jobs 2) / CPU(--jobs 1)`` what the pool
   costs in work (1.0 = nothing);
@@ -108,6 +110,26 @@ def steady_rate(finished: dict[str, float], weight: dict[str, float]) -> float:
     return (w1 - w0) / (t1 - t0)
 
 
+def pool_start(spec: Path) -> None:
+    """Start and stop a 2-worker pool in this process, forked and spawned (the method
+    before issue 20), after loading the spec as the command does: wall and CPU."""
+    from imufdi_cli.campaign import load_spec
+    from imufdi_cli.campaign.executors import LocalExecutor
+
+    load_spec(spec)
+    for method in ("fork", "spawn"):
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        cpu = usage.ru_utime + usage.ru_stime + cpu_of_children()
+        start = time.perf_counter()
+        executor = LocalExecutor(2, method=method)
+        executor.start(10)
+        wall = time.perf_counter() - start
+        executor.close()
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        cpu = usage.ru_utime + usage.ru_stime + cpu_of_children() - cpu
+        print(f"pool start, 2 workers, {method:5s}: {wall:5.2f} s wall, {cpu:4.2f} s CPU")
+
+
 def load() -> str:
     return ", ".join(f"{x:.1f}" for x in os.getloadavg())
 
@@ -164,6 +186,7 @@ def main() -> None:
             f"CPU of --jobs 2 / --jobs 1: {cpu2 / cpu1:.2f}x (the pool's own cost; the wall"
             " speed-up is bounded by the cores the machine leaves free: see docs/campaign.md)"
         )
+        pool_start(spec)
         print(f"load average after: {load()}")
 
 
