@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from imufdi_cli.campaign.spec import DEFAULT_MATCH_FAR, _read_base, run_key
+from imufdi_cli.campaign.spec import DEFAULT_MATCH_FAR, read_base, run_key
 from imufdi_cli.errors import ImufdiError
 from imufdi_cli.fileio import write_text
 from imufdi_cli.metrics import (
@@ -167,7 +167,7 @@ def _base_log(base: Mapping[str, Any], seed: int) -> tuple[Any, Any]:
     seed, or the file (both cached, never modified)."""
     if "preset" in base:
         return _simulated(base["preset"], json.dumps(base.get("options", {}), sort_keys=True), seed)
-    return _read_base(base["file"])
+    return read_base(base["file"])
 
 
 class _Scorer:

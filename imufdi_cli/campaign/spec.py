@@ -312,7 +312,7 @@ def _file_bases(
     bases = []
     for file in matched:
         try:
-            array, block = _read_base(os.path.abspath(file))
+            array, block = read_base(os.path.abspath(file))
         except ImufdiError as err:
             raise CampaignSpecError(f"{where}: unreadable base log {file}: {err}") from err
         if len(block) == 0:
@@ -458,7 +458,10 @@ def run_key(desc: Mapping[str, Any]) -> str:
 
 
 @lru_cache(maxsize=8)
-def _read_base(path: str) -> tuple[Any, Any]:
+def read_base(path: str) -> tuple[Any, Any]:
+    """``(ArrayConfig, ImuBlock)`` of a base log file, read once per process (the spec
+    reads every file base to validate it; forked pool workers inherit the cache). Never
+    modified by a run: the injection works on a copy."""
     from imufdi_cli.mcapio import read_array
 
     return read_array(path)
