@@ -11,6 +11,8 @@ so its wall time includes interpreter start-up, imports, spec loading, pool star
 summary files. Figures:
 
 - **wall**: seconds of each command, and ``wall(--jobs 1) / wall(--jobs 2)``;
+- **cores available**: before the passes, what one and two busy-looping processes of
+  this session get (the machine's bound on any speed-up at that moment);
 - **pool start**: starting and stopping a 2-worker pool in this process, forked (now)
   and spawned (before), in wall and CPU seconds;
 - **CPU**: user + system seconds of the command and its workers; ``CPU / wall`` is how
@@ -110,6 +112,18 @@ def steady_rate(finished: dict[str, float], weight: dict[str, float]) -> float:
     return (w1 - w0) / (t1 - t0)
 
 
+def cores_available(processes: int, seconds: float = 5.0) -> float:
+    """Cores that ``processes`` busy-looping processes of this session got together over
+    ``seconds`` (CPU seconds / wall seconds): with 2 idle cores, 1.0 for one and 2.0 for
+    two; on a machine saturated by other sessions, the session's share either way."""
+    cpu = cpu_of_children()
+    loop = f"import time\nt = time.time()\nwhile time.time() - t < {seconds}: pass"
+    procs = [subprocess.Popen([sys.executable, "-c", loop]) for _ in range(processes)]
+    for proc in procs:
+        proc.wait()
+    return (cpu_of_children() - cpu) / seconds
+
+
 def pool_start(spec: Path) -> None:
     """Start and stop a 2-worker pool in this process, forked and spawned (the method
     before issue 20), after loading the spec as the command does: wall and CPU."""
@@ -149,6 +163,11 @@ def main() -> None:
             f"docs/campaigns/compare.toml, first {args.seeds} seed(s)"
             + (f", without {', '.join(args.skip)}" if args.skip else "")
             + f"; cores {os.cpu_count()}; passes {plan}; load average before: {load()}"
+        )
+        one, two = cores_available(1), cores_available(2)
+        print(
+            f"cores this session gets now: {one:.2f} for 1 busy process, {two:.2f} for 2"
+            " (the bound on any speed-up here: 2 processes need 2 free cores)"
         )
         walls: dict[int, list[float]] = {1: [], 2: []}
         cpus: dict[int, list[float]] = {1: [], 2: []}
