@@ -185,6 +185,11 @@ def main() -> None:
     parser.add_argument("--train", default="exp_1")
     parser.add_argument("--test", default="exp_2")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument(
+        "--runs", default="0,1,2,3,4",
+        help="which detection runs (0 nominal, 1 before: glt sigma from the window and no"
+        " lever arms, 2 glt sigma from the window, 3 defaults, 4 track_bias=300s)",
+    )  # fmt: skip
     args = parser.parse_args()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -217,15 +222,22 @@ def main() -> None:
     }
 
     tables = {}
-    runs = [
+    before = {"glt": {"sigma_source": "calibration", "lever_arm": "false"}}
+    window_sigma = {"glt": {"sigma_source": "calibration"}}
+    runs: list[tuple[str, ArrayConfig, dict[str, dict[str, Any]]]] = [
         ("nominal", ArrayConfig.load(BASE), {}),
+        ("calibrated, glt sigma from the 10 s window, no lever arms", result.array, before),
+        ("calibrated, glt sigma from the 10 s window", result.array, window_sigma),
         ("calibrated", result.array, {}),
-        ("calibrated, track_bias=300s", result.array, {"track_bias": "300s"}),
-        ("calibrated, track_bias=60s", result.array, {"track_bias": "60s"}),
-    ]
+        ("calibrated, track_bias=300s", result.array,
+         {d: {"track_bias": "300s"} for d in DETECTORS}),
+    ]  # fmt: skip
+    chosen = {int(v) for v in args.runs.split(",")}
     for n, (label, config, params) in enumerate(runs):
+        if n not in chosen:
+            continue
         detected = out / f"{args.test}-run{n}.mcap"
-        detect_file(str(test), str(detected), [(d, dict(params)) for d in DETECTORS],
+        detect_file(str(test), str(detected), [(d, dict(params.get(d, {}))) for d in DETECTORS],
                     calibrate=CALIBRATION, array=config)  # fmt: skip
         tables[label] = alarm_table(detected, intervals, motion_start)
     figures["alarm_rates"] = tables

@@ -146,6 +146,27 @@ def _check_calibration(matrix: Any, bias: Any, where: str, unit: str) -> TriadCa
     return TriadCalibration(matrix=m, bias=b)
 
 
+def _check_noise(value: Any, where: str, sensor_type: str) -> np.ndarray:
+    """A per-axis noise sigma ``[x, y, z]`` (numbers in SI or quantities with units)."""
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise ArrayConfigError(f"{where}: must be [x, y, z] noise sigmas")
+    try:
+        out = np.asarray(
+            [
+                parse_quantity(v, sensor_dimension(sensor_type), name=where)
+                if isinstance(v, str)
+                else float(v)
+                for v in value
+            ],
+            dtype=float,
+        )
+    except (TypeError, ValueError, UnitError) as err:
+        raise ArrayConfigError(f"{where}: noise must be numbers ({err})") from err
+    if not (np.all(np.isfinite(out)) and np.all(out > 0)):
+        raise ArrayConfigError(f"{where}: noise sigmas must be positive and finite")
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class ImuSpec:
     """One IMU of the array.
@@ -161,6 +182,10 @@ class ImuSpec:
         an empty tuple means the IMU has no such sensor.
     calibration : dict
         Per sensor type, the chip's :class:`TriadCalibration` (absent: identity).
+    noise : dict
+        Per sensor type, the white-noise standard deviation of each axis after
+        calibration, shape (3,), SI (``imufdi calibrate`` measures it over every static
+        orientation of a log). Absent: the array-wide ``ArrayConfig.noise``.
     """
 
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
@@ -169,6 +194,7 @@ class ImuSpec:
         default_factory=lambda: {"gyro": AXES, "accel": AXES, "mag": ()}
     )
     calibration: Mapping[str, TriadCalibration] = field(default_factory=dict)
+    noise: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def axes_of(self, sensor_type: str) -> tuple[str, ...]:
         return tuple(self.axes.get(sensor_type, ()))
@@ -280,6 +306,38 @@ class ArrayConfig:
         rotations = np.stack([imu.rotation for imu in self.imus])  # (m, 3, 3)
         return rotations[imu_idx, :, axis_idx]  # row j = R_k[:, a]
 
+    def sensor_noise(self, sensor_type: str) -> np.ndarray | None:
+        """Per-sensor noise sigma (n_s,), SI, in sensor-id order: each IMU's ``<type>_noise``
+        where given, else the array-wide ``noise.<type>``; None when some sensor has
+        neither."""
+        imu_idx, axis_idx = self.sensor_index(sensor_type)
+        common = self.noise.get(sensor_type)
+        out = np.empty(imu_idx.size)
+        for j, (k, a) in enumerate(zip(imu_idx, axis_idx)):
+            per = self.imus[k].noise.get(sensor_type)
+            if per is not None:
+                out[j] = float(per[a])
+            elif common is not None:
+                out[j] = float(common)
+            else:
+                return None
+        return out
+
+    @property
+    def per_sensor_noise(self) -> bool:
+        """Whether any IMU carries its own per-axis noise levels."""
+        return any(imu.noise for imu in self.imus)
+
+    def with_sensor_noise(self, noise: Sequence[Mapping[str, np.ndarray]]) -> ArrayConfig:
+        """This array with each IMU's per-axis noise sigmas replaced (one dict per IMU)."""
+        if len(noise) != self.n_imus:
+            raise ArrayConfigError(f"{len(noise)} noise tables given for {self.n_imus} IMUs")
+        imus = tuple(
+            replace(imu, noise={s: np.asarray(v, float).copy() for s, v in n.items()})
+            for imu, n in zip(self.imus, noise)
+        )
+        return replace(self, imus=imus)
+
     def positions(self) -> np.ndarray:
         """IMU positions in the body frame, shape (m, 3), metres."""
         return np.stack([np.asarray(imu.position, float) for imu in self.imus])
@@ -335,6 +393,7 @@ class ArrayConfig:
                             (f"{s}_bias", np.asarray(cal.bias, float).tolist()),
                         )
                     },
+                    **{f"{s}_noise": np.asarray(v, float).tolist() for s, v in imu.noise.items()},
                 }
                 for imu in self.imus
             ],
@@ -410,7 +469,7 @@ class ArrayConfig:
             "rotation",
             "quaternion",
             "position",
-            *(f"{s}_{key}" for s in SENSOR_TYPES for key in ("axes", "matrix", "bias")),
+            *(f"{s}_{key}" for s in SENSOR_TYPES for key in ("axes", "matrix", "bias", "noise")),
         }
         for k, item in enumerate(imus_raw):
             where = f"{source}: imu[{k}]"
@@ -449,12 +508,18 @@ class ArrayConfig:
                         f"{source}: imu{k} {s} calibration",
                         sensor_dimension(s),
                     )
+            sensor_noise = {
+                s: _check_noise(item[f"{s}_noise"], f"{source}: imu{k} {s}_noise", s)
+                for s in SENSOR_TYPES
+                if f"{s}_noise" in item
+            }
             imus.append(
                 ImuSpec(
                     rotation=_check_rotation(rotation, where),
                     position=position,
                     axes=axes,
                     calibration=calibration,
+                    noise=sensor_noise,
                 )
             )
         return cls(imus=tuple(imus), rate_hz=rate, noise=noise, range=ranges)
@@ -503,6 +568,9 @@ class ArrayConfig:
                     f"{s}_matrix = [{mat}]  # imu{k}: calibrated = M (raw - b)",
                     f"{s}_bias = [{bias}]  # SI, chip frame",
                 ]
+            for s, sig in imu.noise.items():
+                values = ", ".join(repr(float(v)) for v in np.asarray(sig))
+                lines.append(f"{s}_noise = [{values}]  # white-noise sigma per axis, SI")
             lines.append("")
         return "\n".join(lines)
 

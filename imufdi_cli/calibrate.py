@@ -35,6 +35,21 @@ M_k (w_k - b_k)``, by alternating least squares again, with the gauge ``mean_k R
 R_k^T = I`` (the array's mean scale and axes stay nominal: agreement, not truth). Without
 motion on every axis (RMS consensus rate under :data:`MIN_MOTION_RATE`) only biases are
 estimated, with a warning.
+
+**Noise levels** — each sensor's white-noise sigma after calibration, from the parity
+residuals of every static interval, pooled over the intervals (:func:`static_noise`). On the MIMU4444 board
+the gyro noise changes with the orientation (a narrow-band 8-16 Hz component on some
+z-axis gyros, up to 1.5x in sigma, docs/real-arrays.md), so the typical level over many
+orientations is a better reference for a parity test than a few seconds in one of them.
+Stored per IMU as ``<type>_noise``; glt uses it (``sigma_source=auto``).
+
+**Chip time offsets** (a diagnostic, not applied) — a chip sampling ``dt_k`` later than
+the others reads ``w(t + dt_k) ~ w + w_dot dt_k``; its gyro residual from the consensus in
+motion is regressed on the consensus angular acceleration, giving ``dt_k`` (relative to
+the array's mean sampling instant) and the share of that chip's residual it explains.
+On the MIMU4444 recordings every offset is below 0.01 ms and explains nothing
+(docs/real-arrays.md), so no compensation is built; a warning names chips where an offset
+explains more than :data:`TIME_OFFSET_WARNING` of the residual.
 """
 
 from __future__ import annotations
@@ -65,6 +80,8 @@ GOOD_COVERAGE = 0.3
 #: RMS consensus rate needed on every body axis to estimate the gyro matrices (rad/s).
 MIN_MOTION_RATE = np.radians(20.0)
 ALS_ITERATIONS = 30
+#: Warn when a chip time offset explains more than this share of its motion residual.
+TIME_OFFSET_WARNING = 0.1
 #: Accelerometer Gauss-Newton: largest step count and step size (M entries, m/s^2) to stop.
 ACCEL_GN_MAX_STEPS = 50
 ACCEL_GN_TOLERANCE = 1e-9
@@ -112,6 +129,8 @@ class CalibrationResult:
     residual_rms: dict[str, tuple[float, float]]  # type -> (before, after), SI
     warnings: list[str] = field(default_factory=list)
     runtime_s: float = 0.0
+    time_offsets_s: list[float] = field(default_factory=list)  # per IMU, gyro motion
+    time_offset_explained: list[float] = field(default_factory=list)  # share of residual
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -124,6 +143,8 @@ class CalibrationResult:
             "residual_rms": {k: list(v) for k, v in self.residual_rms.items()},
             "triads": [f.__dict__ for f in self.figures],
             "warnings": self.warnings,
+            "time_offsets_s": self.time_offsets_s,
+            "time_offset_explained": self.time_offset_explained,
         }
 
 
@@ -352,6 +373,114 @@ def _figures(k: int, sensor_type: str, cal: TriadCalibration) -> TriadFigures:
     )
 
 
+def time_offsets(
+    array: ArrayConfig, gyro: np.ndarray, t_s: np.ndarray, motion: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-IMU sampling-time offset from calibrated gyro triads in motion.
+
+    Each chip's body-frame rate minus the array consensus ``w`` is regressed on the
+    consensus angular acceleration ``w_dot`` (central differences):
+    ``R_k w_k - w ~ w_dot dt_k``, least squares over the motion rows and three axes.
+
+    Parameters
+    ----------
+    array : ArrayConfig
+    gyro : ndarray, shape (N, m, 3)
+        Calibrated rates, rad/s (IMU frames).
+    t_s : ndarray, shape (N,)
+    motion : ndarray, shape (N,), bool
+        Rows to use (moving, not clipped; their neighbours enter the differences).
+
+    Returns
+    -------
+    offsets : ndarray, shape (m,), s
+        Relative to the array's mean sampling instant (they sum to ~0).
+    explained : ndarray, shape (m,)
+        Share of each chip's residual energy on those rows that the offset explains.
+    """
+    m = gyro.shape[1]
+    if np.count_nonzero(motion) < 3 or len(t_s) < 3:
+        return np.zeros(m), np.zeros(m)
+    body = np.einsum("kij,nkj->nki", array.rotations(), gyro)
+    consensus = body.mean(axis=1)
+    rate_dot = np.gradient(consensus, t_s, axis=0)  # (N, 3)
+    x = rate_dot[motion].ravel()
+    energy = float(x @ x)
+    offsets, explained = np.zeros(m), np.zeros(m)
+    if energy <= 0:
+        return offsets, explained
+    for k in range(m):
+        y = (body[motion, k] - consensus[motion]).ravel()
+        offsets[k] = float(x @ y) / energy
+        total = float(y @ y)
+        if total > 0:
+            explained[k] = 1.0 - float(np.sum((y - offsets[k] * x) ** 2)) / total
+    return offsets, explained
+
+
+def static_noise(
+    array: ArrayConfig,
+    accel: np.ndarray,
+    gyro: np.ndarray | None,
+    t_s: np.ndarray,
+    static: np.ndarray,
+    intervals: list[StaticInterval],
+) -> list[dict[str, np.ndarray]]:
+    """Per-IMU, per-type noise sigma (3,) of the calibrated sensors at rest (SI).
+
+    For every sensor type with a parity space (>= 4 sensors), the least-squares residuals
+    ``r = (I - H H^+) m`` of each static interval (motion and common offsets cancel) about
+    their interval mean give pooled residual variances ``v`` (weighted by the intervals'
+    sample counts); per-sensor variances solve ``((I - S) o (I - S)) sigma^2 = v`` as in
+    :func:`~imufdi_cli.detectors.parity.residual_sigma` (plain least squares: the pooled
+    system is well determined; a non-positive solution falls back to the common
+    ``sum v / (n - 3)``). Axes a type lacks keep no entry.
+
+    Parameters
+    ----------
+    array : ArrayConfig
+        Geometry with the chip calibration to apply.
+    accel, gyro : ndarray, shape (N, m, 3)
+        Raw samples (SI).
+    t_s : ndarray, shape (N,)
+    static : ndarray, shape (N,), bool
+    intervals : list of StaticInterval
+    """
+    out: list[dict[str, np.ndarray]] = [{} for _ in range(array.n_imus)]
+    for sensor_type, raw in (("accel", accel), ("gyro", gyro)):
+        if raw is None or array.n_sensors(sensor_type) < 4:
+            continue
+        values = array.select(array.calibrate_triads(raw, sensor_type), sensor_type)
+        H = array.measurement_matrix(sensor_type)
+        n = H.shape[0]
+        projector = np.eye(n) - H @ np.linalg.pinv(H)
+        residual = values @ projector.T  # (N, n)
+        squares = np.zeros(n)
+        dof = 0
+        for item in intervals:
+            lo, hi = np.searchsorted(t_s, [item.start_s, item.end_s], side="left")
+            part = residual[lo : hi + 1][static[lo : hi + 1]]
+            if part.shape[0] < 10:
+                continue
+            squares += part.var(axis=0) * part.shape[0]
+            dof += part.shape[0] - 1
+        if dof == 0:
+            continue
+        variances = squares / dof
+        sigma2, *_ = np.linalg.lstsq(projector**2, variances, rcond=None)
+        if not np.all(sigma2 > 0):
+            sigma2 = np.full(n, variances.sum() / (n - 3))
+        sigma = np.sqrt(sigma2)
+        imu_idx, axis_idx = array.sensor_index(sensor_type)
+        for k in range(array.n_imus):
+            mine = imu_idx == k
+            if np.count_nonzero(mine) == 3:
+                triad = np.empty(3)
+                triad[axis_idx[mine]] = sigma[mine]
+                out[k][sensor_type] = triad
+    return out
+
+
 def calibrate_block(
     array: ArrayConfig,
     block: ImuBlock,
@@ -428,6 +557,8 @@ def calibrate_block(
     }
     cals: list[dict[str, TriadCalibration]] = [{"accel": c} for c in accel_cal]
     motion_s = 0.0
+    full_gyro = False
+    offsets = explained = np.zeros(0)
     if gyro is not None:
         w = round(STATIC_WINDOW_S * array.rate_hz)
         near_static = np.convolve(static.astype(float), np.ones(2 * w + 1), "same") > 0
@@ -448,6 +579,21 @@ def calibrate_block(
         else:
             warnings.append("no motion in the log: gyro biases only (matrices need motion)")
         gyro_cal = calibrate_gyro(array, gyro, static, motion, full_gyro)
+        if full_gyro:
+            calibrated = array.with_calibration([{"gyro": c} for c in gyro_cal])
+            # motion rows whose neighbours are usable too (central differences)
+            inner = motion & np.roll(~clipped, 1) & np.roll(~clipped, -1)
+            inner[[0, -1]] = False
+            offsets, explained = time_offsets(
+                array, calibrated.calibrate_triads(gyro, "gyro"), t_s, inner
+            )
+            if np.any(explained > TIME_OFFSET_WARNING):
+                worst = int(np.argmax(explained))
+                warnings.append(
+                    f"chip sampling-time offsets (up to {abs(offsets[worst]) * 1e3:.3g} ms on"
+                    f" imu{worst}) explain {explained[worst]:.0%} of its gyro residual in"
+                    " motion; they are not compensated"
+                )
         for k, gcal in enumerate(gyro_cal):
             cals[k]["gyro"] = gcal
         sample = gyro[motion] if motion.any() else gyro[static]
@@ -455,13 +601,14 @@ def calibrate_block(
             _residual_rms(array, sample, None),
             _residual_rms(array, sample, gyro_cal),
         )
+    noise = static_noise(array.with_calibration(cals), accel, gyro, t_s, static, intervals)
     figures = [
         _figures(k, s, c)
         for k, per in enumerate(cals)
         for s, c in sorted(per.items(), reverse=True)
     ]
-    out = array.with_calibration(cals)
-    return CalibrationResult(
+    out = array.with_calibration(cals).with_sensor_noise(noise)
+    result = CalibrationResult(
         array=out,
         intervals=intervals,
         orientations=orientations,
@@ -474,6 +621,10 @@ def calibrate_block(
         warnings=warnings,
         runtime_s=time.perf_counter() - started,
     )
+    if offsets.size:
+        result.time_offsets_s = [float(v) for v in offsets]
+        result.time_offset_explained = [float(v) for v in explained]
+    return result
 
 
 def calibrate_file(

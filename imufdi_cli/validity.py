@@ -21,9 +21,12 @@ and the detectors of ``imufdi detect``:
    ``x_hat = H_v^+ (y_v - beta_v)`` and ``beta`` each sensor's mean offset from the
    consensus in the calibration window. It then carries no parity residual: the tests see
    only the valid sensors (the statistic of the n-1 others against the n-sensor threshold,
-   slightly conservative). When the valid sensors do not span 3 dimensions (every gyro of
-   an axis clipped at once), the whole sample of that type is *held*: every sensor gets the
-   last consensus, so nothing alarms on a sample that cannot be tested.
+   slightly conservative). For accelerometers of IMUs at different positions H is the
+   rigid-body design ``[H | lever-arm columns]`` (:mod:`imufdi_cli.detectors.rigid`), so
+   the replacement includes the lever-arm terms. When the valid sensors do not span the
+   model (every gyro of an axis clipped at once), the whole sample of that type is *held*:
+   every sensor gets the last consensus, so nothing alarms on a sample that cannot be
+   tested.
 
 Every row with a flagged sensor is counted (``clipped``, ``invalid``, ``held`` rows) and
 listed in time intervals (``clipped_ns``, ``invalid_ns``) in the detector's
@@ -153,6 +156,7 @@ class Conditioner:
         )
         self.offsets: dict[str, np.ndarray] = {}
         self.last_rate: dict[str, np.ndarray] = {}
+        self._designs: dict[str, np.ndarray] = {}
         self.counts: dict[str, TypeValidity] = {
             s: TypeValidity() for s in self.array.sensor_types()
         }
@@ -189,9 +193,9 @@ class Conditioner:
             y = self.array.select(triads, s)
             bad = self._bad(flags, s)
             good = ~bad.any(axis=1)
-            h = self.array.measurement_matrix(s)
+            h = self._design(s)
             offsets = np.zeros(h.shape[0])
-            if good.any() and np.linalg.matrix_rank(h) == 3:
+            if good.any() and np.linalg.matrix_rank(h) == h.shape[1]:
                 yg = y[good]
                 residual = yg - yg @ np.linalg.pinv(h).T @ h.T
                 offsets = residual.mean(axis=0)
@@ -236,6 +240,17 @@ class Conditioner:
                 c.invalid_runs.add(block.t_ns, np.asarray(invalid.any(axis=1)))
         return ImuBlock(t_ns=block.t_ns, **fields)
 
+    def _design(self, s: str) -> np.ndarray:
+        """Consensus model of a type: H, or for accelerometers of IMUs at different
+        positions the rigid-body design [H | lever-arm columns] (detectors/rigid.py), so a
+        replaced sample carries no lever-arm residual either."""
+        if s not in self._designs:
+            from imufdi_cli.detectors.rigid import accel_design
+
+            h = accel_design(self.array) if s == "accel" else self.array.measurement_matrix(s)
+            self._designs[s] = h
+        return self._designs[s]
+
     def _bad(self, flags: Mapping[str, tuple[np.ndarray, np.ndarray]], s: str) -> np.ndarray:
         clipped, invalid = flags[s]
         return self.array.select(clipped | invalid, s)
@@ -243,7 +258,8 @@ class Conditioner:
     def _replace(self, s: str, y: np.ndarray, bad: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """In place on ``y`` (N, n_s): flagged entries of ``rows`` -> consensus. Returns
         the rows held (no 3-dimensional consensus)."""
-        h = self.array.measurement_matrix(s)
+        h = self._design(s)
+        q = h.shape[1]
         beta = self.offsets.get(s, np.zeros(h.shape[0]))
         held = np.zeros(y.shape[0], dtype=bool)
         if rows.size == 0:
@@ -254,14 +270,14 @@ class Conditioner:
             sel = rows[inverse == p]
             valid = ~pattern
             hv = h[valid]
-            if hv.shape[0] >= 3 and np.linalg.matrix_rank(hv) == 3:
+            if hv.shape[0] >= q and np.linalg.matrix_rank(hv) == q:
                 x_hat = (y[np.ix_(sel, valid)] - beta[valid]) @ np.linalg.pinv(hv).T
                 y[np.ix_(sel, pattern)] = x_hat @ h[pattern].T + beta[pattern]
             else:
                 held[sel] = True
         if held.any():
             # hold: every sensor gets the consensus of the last testable row before it
-            x_prev = self.last_rate.get(s, np.zeros(3))
+            x_prev = self.last_rate.get(s, np.zeros(q))
             pinv = np.linalg.pinv(h)
             good_rows = ~bad.any(axis=1)
             for i in np.flatnonzero(held | good_rows):
@@ -276,7 +292,7 @@ class Conditioner:
             return
         good = np.flatnonzero(~bad.any(axis=1))
         if good.size:
-            h = self.array.measurement_matrix(s)
+            h = self._design(s)
             beta = self.offsets.get(s, np.zeros(h.shape[0]))
             y = self.array.select(triads[good[-1:]], s)[0]
             self.last_rate[s] = np.linalg.pinv(h) @ (y - beta)

@@ -99,3 +99,25 @@ def test_with_calibration_and_check_matches(tmp_path):
     assert plain.with_range({"gyro": 1.0}).range["gyro"] == array.range["gyro"]  # kept
     with pytest.raises(ArrayConfigError, match="2 IMUs but the log has 3"):
         array.check_matches(ArrayConfig.co_aligned(3))
+
+
+def test_per_imu_noise_parsed_round_trip_and_checked(tmp_path):
+    text = TOML.replace(
+        "accel_bias = [0.1, -0.2, 0.3]",
+        'accel_bias = [0.1, -0.2, 0.3]\ngyro_noise = ["0.2deg/s", "0.25deg/s", "0.3deg/s"]',
+    )
+    array = _load(tmp_path, text)
+    assert_allclose(array.imus[0].noise["gyro"], np.radians([0.2, 0.25, 0.3]))
+    assert array.per_sensor_noise
+    # imu1 has no gyro_noise and there is no array-wide noise.gyro: no per-sensor sigmas
+    assert array.sensor_noise("gyro") is None
+    filled = array.with_sensor_noise([{"gyro": np.full(3, 0.01)}, {"gyro": np.full(3, 0.02)}])
+    assert_allclose(filled.sensor_noise("gyro"), [0.01] * 3 + [0.02] * 3)
+    assert ArrayConfig.from_json(filled.to_json()) == filled
+    again = tmp_path / "noise.toml"
+    filled.save(again)
+    assert ArrayConfig.load(again) == filled
+    with pytest.raises(ArrayConfigError, match=r"imu0 gyro_noise.*positive"):
+        _load(tmp_path, text.replace('"0.2deg/s"', "-1"))
+    with pytest.raises(ArrayConfigError, match=r"imu0 gyro_noise.*\[x, y, z\]"):
+        _load(tmp_path, text.replace('"0.2deg/s", ', ""))

@@ -98,6 +98,11 @@ def test_recovers_known_calibration():
     before, after = result.residual_rms["accel"]
     assert after < 0.01 * before
     assert after < 5e-3
+    # per-sensor noise at rest: 12 intervals of ~7 s (8,000+ rows); the relative standard
+    # error of a residual-based sigma is ~ sqrt(Var(sigma^2 est) / 4) ~ 1 % here: 6 %
+    # tolerance is 6 standard errors
+    assert_allclose(result.array.sensor_noise("gyro"), 0.002, rtol=0.06)
+    assert_allclose(result.array.sensor_noise("accel"), 0.02, rtol=0.06)
 
 
 def test_few_orientations_and_no_motion_warn_and_estimate_biases_only():
@@ -127,3 +132,30 @@ def test_needs_accelerometers():
     block = ImuBlock(t_ns=np.arange(10), gyro=np.zeros((10, 4, 3)))
     with pytest.raises(CalibrationError, match="needs accelerometers"):
         calibrate_block(_geometry(), block)
+
+
+def test_time_offsets_recovered_on_synthetic_motion():
+    """Chips sampling a smooth rotation dt_k late: w_k(t) = w(t + dt_k); the regression on
+    the consensus angular acceleration recovers dt_k - mean(dt) (the second-order term
+    w_ddot dt^2 / 2 is ~1e-4 of the first at these rates: tolerance 2 % of the offsets)."""
+    from imufdi_cli.calibrate import time_offsets
+
+    array = _geometry(4)
+    t = np.arange(2000) / RATE
+    dt = np.array([0.002, -0.001, 0.0005, -0.0015])
+
+    def rate(time):
+        return np.stack(
+            [2 * np.sin(2 * np.pi * 0.7 * time), np.cos(2 * np.pi * 1.1 * time), np.sin(time)],
+            axis=-1,
+        )
+
+    rot = array.rotations()
+    gyro = np.stack([rate(t + dt[k]) @ rot[k] for k in range(4)], axis=1)  # R_k^T w
+    offsets, explained = time_offsets(array, gyro, t, np.ones(len(t), bool))
+    assert_allclose(offsets, dt - dt.mean(), atol=0.02 * np.abs(dt).max())
+    assert np.all(explained > 0.99)
+    # no offset: nothing to explain
+    same = np.stack([rate(t) @ rot[k] for k in range(4)], axis=1)
+    offsets, _ = time_offsets(array, same, t, np.ones(len(t), bool))
+    assert_allclose(offsets, 0.0, atol=1e-9)

@@ -16,8 +16,10 @@ minimises ``sum_{c != i} (y_c - h_c . C(q)^T r_c)^2`` over the attitude q (nonli
 squares, batched Gauss-Newton from an SVD/Wahba warm start), a seventh uses all six. Its
 residual vector ``R_i = y - y_hat(q_i)``; with a fault f on component j only ``R_j`` keeps
 a single non-zero component, ``R_j[j] = f`` (Table 1). Gyro residuals (Table 2): the
-attitude of the fault-free estimator (the full one, or the one blind to the isolated
-accel/mag component) gives the body rate from ``q_dot = 1/2 Xi(q) w`` by finite differences
+attitude of a fault-free estimator (the full one; during an accel/mag alarm, the clean
+series, among those of the estimators blind to a component isolated since the alarm
+began, with the smallest peak z^2, the test abstaining while one of them is unobservable;
+a series idle for over ``GYRO_MAX_GAP_S`` restarts) gives the body rate from ``q_dot = 1/2 Xi(q) w`` by finite differences
 (``w = 2 Xi(q_mid)^T (q_k - q_{k-1}) / Te``); the residual ``g - H_g w`` (gyro averaged over
 the same interval) is smoothed by the first-order filter ``y_k = a y_{k-1} + (1 - a) x_k``,
 ``a = exp(-Te / tau)``. A gyro fault shows only in its own residual.
@@ -71,6 +73,7 @@ from imufdi_cli.detectors.parity import (
     sigma_estimate_variance,
     whiten,
 )
+from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 
@@ -150,13 +153,14 @@ def leave_one_out_matrix(
     weights = 1.0 / sigma**2
     for j in range(n):  # n small, once per exclusion set (cached)
         used = np.array([i for i in range(n) if i != j and i not in excluded], dtype=np.intp)
-        if used.size < 3:
+        if used.size < H.shape[1]:
             continue
         H_used = H[used]
         normal = H_used.T @ (weights[used, None] * H_used)
-        if np.linalg.matrix_rank(normal, tol=1e-9 * max(np.abs(normal).max(), 1e-300)) < 3:
+        rank = np.linalg.matrix_rank(normal, tol=1e-9 * max(np.abs(normal).max(), 1e-300))
+        if rank < H.shape[1]:
             continue
-        gain = np.linalg.solve(normal, H_used.T * weights[used])  # (3, |U|)
+        gain = np.linalg.solve(normal, H_used.T * weights[used])  # (q, |U|)
         row = np.zeros(n)
         row[j] = 1.0
         row[used] -= H[j] @ gain
@@ -257,9 +261,11 @@ def _fit_array_test(
     values: np.ndarray, H: np.ndarray, sensor_type: str, alpha: float, max_faults: int
 ) -> _ArrayTest:
     n = H.shape[0]
-    if n < 4:
+    if n < H.shape[1] + 1:
         raise CalibrationError(
-            f"bank: {sensor_type} has {n} sensors; the leave-one-out bank needs at least 4"
+            f"bank: {sensor_type} has {n} sensors; the leave-one-out bank needs at least"
+            f" {H.shape[1] + 1}"
+            + ("" if H.shape[1] == 3 else " with the lever-arm terms of these IMU positions")
         )
     calibration_stats(values)  # checks the window length
     sigma = residual_sigma(H, values)
@@ -299,6 +305,10 @@ MAX_BLIND_STD_RATIO = 20.0
 #: Blind estimators feed the gyro residuals only where their blind residual's predicted std
 #: is at most this multiple of the noise (weakly observable attitudes are too noisy there).
 GYRO_BLIND_STD_RATIO = 3.0
+
+#: marg mode: a gyro-residual series whose estimator was not clean for longer than this, s,
+#: restarts from its next clean sample instead of comparing across the gap.
+GYRO_MAX_GAP_S = 0.05
 
 #: Gauss-Newton counts as converged when its last increment is below this, rad.
 CONVERGED_STEP = 1e-6
@@ -491,6 +501,7 @@ class BankDetector:
         self._filter_pole = 0.0
         self._sample_period = 0.0
         self._gyro_H: np.ndarray | None = None
+        self._gyro_chosen = np.zeros(0, dtype=np.intp)
         self._reset_stream()
 
     # --- streaming state ---------------------------------------------------------------
@@ -500,6 +511,7 @@ class BankDetector:
         self._gyro_last: np.ndarray | None = None  # (n_g,)
         self._t_last: int | None = None
         self._filter_state: np.ndarray | None = None  # (7, 1, n_g)
+        self._episode_counts = np.zeros(6)  # accel/mag isolations in the current alarm
         self._variance_state: np.ndarray | None = None  # (7, 1, n_g)
         self._gyro_integral = np.zeros(0)  # (n_g,) running gyro integral, rad
         self._t_origin = 0  # ns, origin of the float times below
@@ -532,7 +544,10 @@ class BankDetector:
             values = array.select(data, sensor_type)
             self.tests[sensor_type] = _fit_array_test(
                 values,
-                array.measurement_matrix(sensor_type),
+                # accelerometers at different points: rigid-body lever arms (detectors/rigid.py)
+                accel_design(array)
+                if sensor_type == "accel"
+                else array.measurement_matrix(sensor_type),
                 sensor_type,
                 self.alpha,
                 self.max_faults,
@@ -730,16 +745,28 @@ class BankDetector:
         well_conditioned = np.ones_like(solution.usable)
         well_conditioned[:, :6] = solution.blind_std <= GYRO_BLIND_STD_RATIO * model.noise
         clean = solution.usable & well_conditioned & ~alarm[:, None]
-        clean[rows_all[alarm], best[alarm]] = (solution.usable & well_conditioned)[
-            rows_all[alarm], best[alarm]
-        ]
+        # During an accel/mag alarm, every component isolated since the alarm began is a
+        # candidate for the faulty one (the isolation hesitates at an onset while the
+        # faulty component's blind estimator drops in and out of observability). Only the
+        # series of the estimator blind to the faulty component is fault-free; a gyro fault
+        # shows in every series. The gyro test takes, per sample, the clean candidate
+        # series with the smallest largest z^2 (``_gyro_test``), and abstains where any
+        # candidate is not clean (its series could be the only fault-free one).
+        seen = self._episode_components(alarm, best)  # (N, 6)
+        usable = (solution.usable & well_conditioned)[:, :6]
+        candidates = np.zeros_like(clean)
+        candidates[:, :6] = seen & usable
+        candidates[:, FULL_ESTIMATOR] = ~alarm
+        clean[:, :6] |= candidates[:, :6]
+        abstain = ~candidates.any(axis=1) | np.any(seen & ~usable, axis=1)
         chosen = np.where(alarm & clean[rows_all, best], best, FULL_ESTIMATOR)
         q = make_continuous(q, self._q_last)
         gyro_residuals = None
         if self._gyro_H is not None and block.gyro is not None and n_samples > 0:
             out["gyro"], isolated_sets["gyro"], gyro_residuals = self._gyro_test(
-                block, array, q, clean, chosen, solution.covariance
+                block, array, q, clean, candidates, solution.covariance, abstain
             )
+            chosen = self._gyro_chosen
         if n_samples > 0:
             self._q_last = q[:, -1, :].copy()
         self.last_details = BankDetails(
@@ -755,21 +782,42 @@ class BankDetector:
                 det.isolated_set = chosen_set
         return out
 
+    def _episode_components(self, alarm: np.ndarray, best: np.ndarray) -> np.ndarray:
+        """Accel/mag components isolated at least once since the current alarm began,
+        (N, 6) bool (all False where no alarm). State carries over blocks."""
+        n = alarm.shape[0]
+        if n == 0:
+            return np.zeros((0, 6), dtype=bool)
+        onehot = np.zeros((n, 6))
+        onehot[np.flatnonzero(alarm), best[alarm]] = 1.0
+        previous = np.concatenate([[self._episode_counts.sum() > 0], alarm[:-1]])
+        starts = alarm & ~previous
+        segment = np.cumsum(starts)  # 0: the episode carried over from the last block
+        cumulative = np.cumsum(onehot, axis=0)
+        start_rows = np.flatnonzero(starts)
+        base = np.empty((start_rows.size + 1, 6))
+        base[0] = -self._episode_counts
+        base[1:] = np.where((start_rows > 0)[:, None], cumulative[np.maximum(start_rows - 1, 0)], 0)
+        counts = cumulative - base[segment]
+        self._episode_counts = counts[-1].copy() if alarm[-1] else np.zeros(6)
+        return (counts > 0) & alarm[:, None]  # type: ignore[no-any-return]
+
     def _gyro_test(
         self,
         block: ImuBlock,
         array: ArrayConfig,
         q: np.ndarray,
         clean: np.ndarray,
-        chosen: np.ndarray,
+        candidates: np.ndarray,
         covariance: np.ndarray,
+        abstain: np.ndarray,
     ) -> tuple[DetectionBlock, np.ndarray, np.ndarray]:
         """Table 2 residuals: filtered ``gyro - H_g w(attitude of a fault-free estimator)``.
 
         One filtered residual series per estimator (7 x n_g channels), each built from its
         own attitude only, so that choosing another estimator never inserts a jump; an
         interval where the estimator is not clean at both ends contributes 0. The output
-        takes, per sample, the series of the ``chosen`` estimator.
+        takes, per sample, the candidate series with the smallest largest z^2.
 
         Noise of the filtered residual ``y = (1-a) sum_i a^i x_{k-i}``: the trapezoid gyro
         average of white noise sigma_g gives ``sigma_g^2 (1-a)/2``; the finite-difference
@@ -782,8 +830,13 @@ class BankDetector:
         q : ndarray, shape (7, N, 4)
             Sign-continuous attitudes of the estimators.
         clean : ndarray, shape (N, 7), bool
-        chosen : ndarray, shape (N,)
+        candidates : ndarray, shape (N, 7), bool
+            Series the output may take per sample (the full one without an accel/mag
+            alarm); the one with the smallest largest z^2 is taken.
         covariance : ndarray, shape (7, N, 3, 3)
+        abstain : ndarray, shape (N,), bool
+            Samples without a clean candidate: no gyro decision (statistic 0; the
+            residual shown is the full estimator's).
         """
         assert block.gyro is not None and self._gyro_H is not None
         assert self._gyro_bias is not None and self._gyro_variance is not None
@@ -830,7 +883,11 @@ class BankDetector:
         )
         t_from = np.where(from_block, t_s[safe], self._clean_t[:, None])
         span = t_s[None, :] - t_from  # (7, N), inf/nan where there is no clean sample yet
-        valid = clean.T & np.isfinite(span) & (span > 0)
+        # A series idle for longer than GYRO_MAX_GAP_S restarts instead of taking the gap:
+        # its attitude change over a long gap is not a constant-rate rotation (an a_y step
+        # made the long-unobservable a_y-blind estimator clean again after seconds, and its
+        # first sample raised gyro alarms on healthy gyros for 0.5 s).
+        valid = clean.T & np.isfinite(span) & (span > 0) & (span <= GYRO_MAX_GAP_S)
         span = np.where(valid, span, self._sample_period)
         q_from = np.where(valid[..., None], q_from, q)
         rate = body_rate_from_quaternions(q_from, q, span)  # (7, N, 3)
@@ -865,11 +922,16 @@ class BankDetector:
         self._gyro_last = gyro[-1].copy()
         self._t_last = int(block.t_ns[-1])
         rows = index
-        residual = filtered[chosen, rows]  # (N, n_g)
-        variance = self._gyro_variance * (
+        variances = self._gyro_variance * (
             (1 - a) / 2 + self._bias_weight_energy
-        ) + 2 * smoothed_rate_variance[chosen, rows] * (1 - a) ** 2 / (1 + a)
-        z2 = residual**2 / np.maximum(variance, SIGMA_FLOOR**2)
+        ) + 2 * smoothed_rate_variance * (1 - a) ** 2 / (1 + a)  # (7, N, n_g)
+        z2_all = filtered**2 / np.maximum(variances, SIGMA_FLOOR**2)
+        peak = np.where(candidates.T, z2_all.max(axis=2), np.inf)  # (7, N)
+        chosen = np.where(abstain, FULL_ESTIMATOR, np.argmin(peak, axis=0))
+        self._gyro_chosen = chosen
+        residual = filtered[chosen, rows]  # (N, n_g)
+        z2 = z2_all[chosen, rows]
+        z2[abstain] = 0.0
         statistic = z2.max(axis=1)
         alarm = statistic > self._gyro_threshold
         best = np.argmax(z2, axis=1)

@@ -33,6 +33,12 @@ Beyond the paper (all optional):
 - ``window``: moving average of the whitened measurements over w samples (k < w at the
   start); statistics are multiplied by k so that they stay chi2(n - 3) / chi2(1).
 
+- ``lever_arm`` (default on): accelerometers at different positions of a rigid body
+  measure ``f_0 + K r_k`` (:mod:`.rigid`, eq. 1), so H is augmented with the observable
+  lever-arm columns (``[H | B]``, q = 3 + 6 for a planar array, 3 + 9 in 3-D) and the parity
+  space (n - q dimensions) is blind to every rigid motion; without it, rotation of a
+  distributed array is alarmed as a fault. No effect on gyros or on co-located IMUs.
+
 Isolation is impossible for a sensor whose fault direction v_i is parallel to another
 (e.g. 2 co-aligned IMUs): an alarm whose argmax is such a sensor reports NOT_ISOLABLE.
 Sensor types with fewer than 4 sensors have no parity space: they are not tested (listed
@@ -66,8 +72,14 @@ from imufdi_cli.detectors.parity import (
     sigma_estimate_variance,
     whiten,
 )
+from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
-from imufdi_cli.errors import CalibrationError, DetectorConfigError, InputDataError
+from imufdi_cli.errors import (
+    ArrayConfigError,
+    CalibrationError,
+    DetectorConfigError,
+    InputDataError,
+)
 from imufdi_cli.log import ImuBlock
 
 #: Minimum number of calibration samples.
@@ -124,8 +136,9 @@ class _Configuration:
     h_excluded_t: np.ndarray  # (3, n_x) H_wx^T
     inverse_energy: np.ndarray  # (n_a,) 1 / (v_i^T v_i) = 1 / P_ii
     isolable: np.ndarray  # (n_a,) bool
-    threshold: float  # g chi2_{1-alpha}(h): chi2_{1-alpha}(n_a - 3) corrected for estimation
+    threshold: float  # g chi2_{1-alpha}(h): chi2_{1-alpha}(n_a - q) corrected for estimation
     excluded_scale: np.ndarray  # (n_x,) 1/sqrt(1 + h (H^T H)^-1 h^T)
+    removable: np.ndarray  # (n_a,) bool: excluding it leaves a parity space of full rank
 
     @classmethod
     def build(
@@ -138,11 +151,18 @@ class _Configuration:
         mean_samples: float = float("inf"),
     ) -> _Configuration:
         h_active = h_white[active]
-        V = parity_matrix(h_active)  # Potter's V, (n_a - 3, n_a)
+        V = parity_matrix(h_active)  # Potter's V, (n_a - q, n_a)
         energy = np.einsum("ij,ij->j", V, V)  # v_i^T v_i = P_ii
         h_excluded = h_white[excluded]  # (n_x, 3)
         normal_inverse = np.linalg.inv(h_active.T @ h_active)
         variance = 1.0 + np.einsum("ij,jk,ik->i", h_excluded, normal_inverse, h_excluded)
+        q = h_active.shape[1]
+        removable = np.zeros(active.size, dtype=bool)
+        if active.size - 1 >= max(MIN_ACTIVE_SENSORS, q + 1):
+            for i in range(active.size):
+                rest = np.delete(h_active, i, axis=0)
+                singular = np.linalg.svd(rest, compute_uv=False)
+                removable[i] = singular[-1] > 1e-9 * singular[0]
         return cls(
             active=active,
             excluded=excluded,
@@ -159,6 +179,7 @@ class _Configuration:
                 mean_samples,
             )[0],
             excluded_scale=1.0 / np.sqrt(variance),
+            removable=removable,
         )
 
 
@@ -170,10 +191,11 @@ class _TypeState:
     sensor_ids: list[str]
     imu_index: np.ndarray  # (n,) IMU of each sensor (ArrayConfig.sensor_index)
     axis_index: np.ndarray  # (n,) axis 0..2 of each sensor
-    H: np.ndarray  # (n, 3)
+    H: np.ndarray  # (n, q): directions (n, 3), then lever-arm columns (q = 3 without)
     sigma: np.ndarray  # (n,) SI
+    sigma_from_config: bool  # sigma from the array config (else the calibration window)
     bias: np.ndarray  # (n,) SI
-    h_white: np.ndarray  # (n, 3)
+    h_white: np.ndarray  # (n, q)
     inverse_sigma: np.ndarray  # (n,) 1 / sigma
     bias_white: np.ndarray  # (n,) bias / sigma
     scale_variance: np.ndarray | None  # (n,) Var(sigma_hat^2)/sigma^4; None: sigma known
@@ -216,12 +238,18 @@ class GltDetector:
         Remove a confirmed faulty sensor, rebuild V, keep monitoring it.
     window : int
         Moving average of the whitened measurements over this many samples (1 = none).
-    sigma_source : {"calibration", "config"}
-        Per-sensor sigma from the calibration residuals, or ArrayConfig.noise.
+    sigma_source : {"auto", "calibration", "config"}
+        Per-sensor sigma from the calibration residuals, or from the array config (each
+        IMU's ``<type>_noise``, else ``noise.<type>``). ``auto``: the IMUs' own
+        ``<type>_noise`` when every sensor of the type has one (what ``imufdi calibrate``
+        measures over many orientations), else the calibration window.
     bias : bool
         Remove per-sensor biases (calibration residual means); false = plain GLT.
     types : str
         ``auto`` (every type with >= 4 sensors) or a comma list such as ``gyro``.
+    lever_arm : bool
+        Model rigid-body lever arms between accelerometers (positions from the array
+        config, :mod:`.rigid`).
     """
 
     name: ClassVar[str] = "glt"
@@ -237,12 +265,18 @@ class GltDetector:
         "window": Param("int", 1, "moving average of the parity vector, samples", low=1),
         "sigma_source": Param(
             "choice",
-            "calibration",
-            "per-sensor sigma from the calibration window or from the array config noise",
-            choices=("calibration", "config"),
+            "auto",
+            "per-sensor sigma from the calibration window or from the array config noise"
+            " (auto: the per-IMU noise imufdi calibrate measured, when present)",
+            choices=("auto", "calibration", "config"),
         ),
         "bias": Param("bool", True, "remove per-sensor biases found in the calibration window"),
         "track_bias": TRACK_BIAS,
+        "lever_arm": Param(
+            "bool",
+            True,
+            "model rigid-body lever arms between accelerometers (IMU positions)",
+        ),
         "types": Param(
             "str", "auto", "sensor types to test: auto or e.g. gyro,accel", check=_check_types
         ),
@@ -255,10 +289,11 @@ class GltDetector:
         confirm: int = 1,
         reconfigure: bool = False,
         window: int = 1,
-        sigma_source: str = "calibration",
+        sigma_source: str = "auto",
         bias: bool = True,
         types: str = "auto",
         track_bias: float = 0.0,
+        lever_arm: bool = True,
     ) -> None:
         self.alpha = float(alpha)
         self.persistence = int(persistence)
@@ -268,6 +303,7 @@ class GltDetector:
         self.sigma_source = sigma_source
         self.remove_bias = bool(bias)
         self.types = types
+        self.lever_arm = bool(lever_arm)
         self.tracker = BiasTracker(track_bias)
         self.threshold_excluded = float(chi2.ppf(1.0 - self.alpha, 1))
         self._states: dict[str, _TypeState] = {}
@@ -287,7 +323,8 @@ class GltDetector:
         CalibrationError
             Fewer than 10 calibration samples, non-finite data or a zero sigma.
         """
-        self.tracker.fit(calibration, array)
+        designs = {s: self._design(array, s) for s in array.sensor_types()}
+        self.tracker.fit(calibration, array, designs)
         if self.types == "auto":
             requested = array.sensor_types()
         else:
@@ -302,7 +339,14 @@ class GltDetector:
                     f"{n} sensors: a parity test needs at least {MIN_ACTIVE_SENSORS}"
                 )
                 continue
-            self._states[sensor_type] = self._calibrate(calibration, array, sensor_type)
+            design = designs.get(sensor_type)
+            if design is not None and n <= design.shape[1]:
+                self._untested[sensor_type] = (
+                    f"{n} sensors: with the lever-arm terms of these positions a parity test"
+                    f" needs at least {design.shape[1] + 1} (or glt.lever_arm=false)"
+                )
+                continue
+            self._states[sensor_type] = self._calibrate(calibration, array, sensor_type, design)
         if not self._states:
             counts = ", ".join(f"{s}: {array.n_sensors(s)}" for s in requested) or "none"
             raise DetectorConfigError(
@@ -310,7 +354,22 @@ class GltDetector:
                 f" n - 3 >= 1); this array has {counts}"
             )
 
-    def _calibrate(self, calibration: ImuBlock, array: ArrayConfig, sensor_type: str) -> _TypeState:
+    def _design(self, array: ArrayConfig, sensor_type: str) -> np.ndarray:
+        """Measurement matrix of a type: H, with the lever-arm columns for accelerometers."""
+        if sensor_type == "accel" and self.lever_arm:
+            try:
+                return accel_design(array, sensor_type)
+            except ArrayConfigError:
+                pass
+        return array.measurement_matrix(sensor_type)
+
+    def _calibrate(
+        self,
+        calibration: ImuBlock,
+        array: ArrayConfig,
+        sensor_type: str,
+        design: np.ndarray | None = None,
+    ) -> _TypeState:
         triads = calibration.get(sensor_type)
         if triads is None:
             raise CalibrationError(f"calibration window has no {sensor_type} data")
@@ -322,27 +381,30 @@ class GltDetector:
             )
         if not np.all(np.isfinite(values)):
             raise CalibrationError(f"calibration window has non-finite {sensor_type} samples")
-        H = array.measurement_matrix(sensor_type)
+        H = array.measurement_matrix(sensor_type) if design is None else design
         imu_index, axis_index = array.sensor_index(sensor_type)
         n = H.shape[0]
-        if self.sigma_source == "config":
-            if sensor_type not in array.noise:
+        configured = array.sensor_noise(sensor_type)
+        from_config = self.sigma_source == "config" or (
+            self.sigma_source == "auto"
+            and configured is not None
+            and all(sensor_type in array.imus[k].noise for k in set(imu_index.tolist()))
+        )
+        if from_config:
+            if configured is None:
                 raise DetectorConfigError(
-                    f"glt.sigma_source=config but the array config has no noise.{sensor_type};"
-                    " add it or use sigma_source=calibration"
+                    f"glt.sigma_source=config but the array config has no noise.{sensor_type}"
+                    f" (nor {sensor_type}_noise on every IMU); add it or use"
+                    " sigma_source=calibration"
                 )
-            sigma = np.full(n, float(array.noise[sensor_type]))
+            sigma = configured
         else:
             sigma = residual_sigma(H, values)
         # Bias: the part of the calibration mean not explained by H (any LS fit gives the same
         # parity vectors, since V H = 0 for every subset of sensors).
         bias = residuals(H, values.mean(axis=0)[None, :])[0] if self.remove_bias else np.zeros(n)
         h_white = whiten(H, sigma)
-        scale_variance = (
-            sigma_estimate_variance(H, sigma, values.shape[0])
-            if self.sigma_source == "calibration"
-            else None
-        )
+        scale_variance = None if from_config else sigma_estimate_variance(H, sigma, values.shape[0])
         mean_samples = float(values.shape[0]) if self.remove_bias else float("inf")
         config = _Configuration.build(
             h_white,
@@ -367,6 +429,7 @@ class GltDetector:
             axis_index=axis_index,
             H=H,
             sigma=sigma,
+            sigma_from_config=from_config,
             bias=bias,
             h_white=h_white,
             inverse_sigma=1.0 / sigma,
@@ -538,8 +601,8 @@ class GltDetector:
         )
 
         event: int | None = None
-        if self.reconfigure and config.active.size - 1 >= MIN_ACTIVE_SENSORS:
-            hits = np.flatnonzero(confirmed)
+        if self.reconfigure and config.removable.any():
+            hits = np.flatnonzero(confirmed & config.removable[best_local])
             if hits.size:
                 event = int(hits[0])
         return _Segment(
@@ -564,12 +627,14 @@ class GltDetector:
             types[sensor_type] = {
                 "sensor_ids": state.sensor_ids,
                 "sigma": state.sigma.tolist(),
+                "sigma_from": "array config" if state.sigma_from_config else "calibration",
                 "bias": state.bias.tolist(),
                 "threshold": config.threshold,
                 "threshold_excluded": self.threshold_excluded,
                 "active": [state.sensor_ids[i] for i in config.active],
                 "excluded": [state.sensor_ids[i] for i in config.excluded],
                 "not_isolable": [state.sensor_ids[i] for i in config.active[~config.isolable]],
+                "lever_arm_columns": int(state.H.shape[1] - 3),
                 "reconfigurations": list(state.events),
             }
         return {
@@ -584,6 +649,7 @@ class GltDetector:
                 "bias": self.remove_bias,
                 "types": self.types,
                 "track_bias": self.tracker.tau_s,
+                "lever_arm": self.lever_arm,
             },
             "tracked_bias_change": self.tracker.metadata(),
             "types": types,

@@ -22,6 +22,11 @@ That is Potter's V (unique when the leading block is invertible). Any orthonorma
 the same statistics (they are invariant under p -> Q p), so the choice only matters for
 reproducible parity vectors in output files.
 
+The same maths holds for an augmented model ``m = A x + f + e`` with A (n, q), q > 3
+columns (the rigid-body accelerometer model of :mod:`.rigid`: specific force plus
+lever-arm terms): every function below accepts such a full-column-rank A, and the parity
+space then has ``n - q`` dimensions.
+
 Noise whitening: with per-sensor standard deviations sigma (n,), ``H_w = H / sigma[:, None]``
 and ``m_w = m / sigma`` have unit white noise, and the parity vector of the whitened
 problem is chi-square distributed with n-3 degrees of freedom when there is no fault.
@@ -42,29 +47,33 @@ def check_measurement_matrix(H: np.ndarray) -> np.ndarray:
 
     Parameters
     ----------
-    H : array_like, shape (n, 3)
-        Row j is the body-frame direction of sensor j's sensing axis.
+    H : array_like, shape (n, 3) or (n, q), q > 3
+        Row j is the body-frame direction of sensor j's sensing axis (an augmented model
+        appends columns, e.g. lever-arm terms, :mod:`.rigid`).
 
     Raises
     ------
     ArrayConfigError
-        Wrong shape, non-finite values, fewer than 3 sensors, or rank < 3 (the sensors do
-        not span the three body axes).
+        Wrong shape, non-finite values, fewer sensors than columns, or rank < q (the
+        sensors do not span the body axes and the extra unknowns).
     """
     H = np.asarray(H, dtype=np.float64)
-    if H.ndim != 2 or H.shape[1] != 3:
+    if H.ndim != 2 or H.shape[1] < 3:
         raise ArrayConfigError(f"measurement matrix must have shape (n, 3), got {H.shape}")
     if not np.all(np.isfinite(H)):
         raise ArrayConfigError("measurement matrix has non-finite entries")
-    if H.shape[0] < 3:
+    q = H.shape[1]
+    if H.shape[0] < q:
         raise ArrayConfigError(
-            f"measurement matrix has {H.shape[0]} sensors; at least 3 are needed to span 3 axes"
+            f"measurement matrix has {H.shape[0]} sensors; at least {q} are needed to span"
+            f" {'3 axes' if q == 3 else f'its {q} unknowns'}"
         )
     singular = np.linalg.svd(H, compute_uv=False)
     rank = int(np.sum(singular > RANK_RTOL * singular[0])) if singular[0] > 0 else 0
-    if rank < 3:
+    if rank < q:
         raise ArrayConfigError(
-            f"measurement matrix has rank {rank} < 3: the sensing axes do not span the body frame"
+            f"measurement matrix has rank {rank} < {q}: the sensing axes do not span the"
+            f" body frame{'' if q == 3 else ' and the lever-arm unknowns'}"
         )
     return H
 
@@ -85,12 +94,12 @@ def parity_matrix(H: np.ndarray) -> np.ndarray:
         invertible. Shape (0, 3) for n = 3 (no redundancy).
     """
     H = check_measurement_matrix(H)
-    n = H.shape[0]
-    n_parity = n - 3
+    n, q = H.shape
+    n_parity = n - q
     if n_parity == 0:
         return np.zeros((0, n))
     left, _, _ = np.linalg.svd(H, full_matrices=True)
-    basis = left[:, 3:].T  # (n-3, n), orthonormal rows, basis @ H = 0 to rounding
+    basis = left[:, q:].T  # (n-q, n), orthonormal rows, basis @ H = 0 to rounding
     q, r = np.linalg.qr(basis[:, :n_parity])
     V = q.T @ basis
     # Fix signs: positive diagonal of the leading triangular block (Potter's convention).
@@ -333,10 +342,12 @@ def residual_sigma(
     measurements = np.asarray(measurements, dtype=np.float64)
     if measurements.shape[0] < 2:
         raise CalibrationError("calibration window needs at least 2 samples to estimate sigma")
-    n = H.shape[0]
-    n_parity = n - 3
+    n, q = H.shape
+    n_parity = n - q
     if n_parity == 0:
-        raise CalibrationError("with 3 sensors there are no residuals to estimate sigma from")
+        raise CalibrationError(
+            f"with {n} sensors and {q} unknowns there are no residuals to estimate sigma from"
+        )
     r = residuals(H, measurements)
     if outlier_cut is not None:
         centre = np.median(r, axis=0)

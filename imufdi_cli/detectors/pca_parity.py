@@ -83,6 +83,7 @@ from imufdi_cli.detectors.base import (
     parse_sensor_types,
 )
 from imufdi_cli.detectors.parity import isolable_sensors, parity_matrix
+from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
 from imufdi_cli.errors import CalibrationError
 from imufdi_cli.log import ImuBlock
@@ -97,7 +98,8 @@ COVERAGE_LEVERAGE = 20.0
 #: Share of the processed samples beyond the calibrated range above which the detector
 #: warns that its calibration window lacked the motion the leak model needs.
 COVERAGE_WARNING = 0.05
-#: Accelerometers of IMUs further apart than this (m) are not tested (lever arms).
+#: Accelerometers of IMUs further apart than this (m) are tested on the rigid-body design
+#: with lever-arm columns (detectors/rigid.py) instead of H alone.
 MAX_LEVER_ARM = 1e-3
 #: Significance level (Bonferroni over the parity components) of the F test that keeps a
 #: parity component's fitted leak.
@@ -431,7 +433,8 @@ class PcaParityDetector:
             Window too short, no testable sensor type, or degenerate (zero-variance) data.
         """
         self.array = array
-        self.tracker.fit(calibration, array)
+        designs = {s: self._design(array, s) for s in array.sensor_types()}
+        self.tracker.fit(calibration, array, designs)
         self.window_samples = max(1, round(self.window_s * array.rate_hz))
         self.models = {}
         self.untested = {}
@@ -440,18 +443,15 @@ class PcaParityDetector:
             triads = calibration.get(sensor_type)
             if triads is None or array.n_sensors(sensor_type) <= minimum:
                 continue
-            spread = lever_arm_spread(array, sensor_type)
-            if sensor_type == "accel" and spread > MAX_LEVER_ARM:
-                # w x (w x r) and dw/dt x r differ between IMUs: the parity space of the
-                # accelerometers does not cancel the motion (noise-glr models this).
+            design = designs[sensor_type]
+            if self.space == "parity" and design.shape[0] <= design.shape[1]:
                 self.untested[sensor_type] = (
-                    f"IMUs up to {spread:.3g} m apart: lever-arm terms are not modelled"
+                    f"{design.shape[0]} sensors: with the lever-arm terms of these IMU"
+                    f" positions the parity space needs at least {design.shape[1] + 1}"
                 )
                 continue
             measurements = array.select(triads, sensor_type)
-            self.models[sensor_type] = self._fit_type(
-                measurements, array.measurement_matrix(sensor_type), sensor_type
-            )
+            self.models[sensor_type] = self._fit_type(measurements, design, sensor_type)
         if not self.models:
             need = "at least 4 sensors of a type" if self.space == "parity" else "sensors"
             if self.untested:
@@ -461,12 +461,21 @@ class PcaParityDetector:
                 f"{'/'.join(self.sensor_types)} data with {need}"
             )
 
+    @staticmethod
+    def _design(array: ArrayConfig, sensor_type: str) -> np.ndarray:
+        """H (n, 3); for accelerometers of IMUs more than MAX_LEVER_ARM apart, the rigid-body
+        design [H | lever-arm columns] (n, 3 + q) of :mod:`.rigid`, so the parity space
+        cancels w x (w x r) and dw/dt x r."""
+        if sensor_type == "accel" and lever_arm_spread(array, sensor_type) > MAX_LEVER_ARM:
+            return accel_design(array, sensor_type)
+        return array.measurement_matrix(sensor_type)
+
     def _fit_type(self, measurements: np.ndarray, H: np.ndarray, sensor_type: str) -> _TypeModel:
         n_train = measurements.shape[0]
         minimum = max(10, 2 * self.window_samples)
         calibration_stats(measurements, min_samples=minimum)
         n = H.shape[0]
-        estimator = np.linalg.pinv(H)  # (3, n)
+        estimator = np.linalg.pinv(H)[:3]  # (3, n): the body-frame quantity (f_0 with levers)
         if self.space == "parity":
             projection = parity_matrix(H)  # (n-3, n), Potter's V
             isolable = isolable_sensors(projection)

@@ -59,16 +59,26 @@ class BiasTracker:
     def enabled(self) -> bool:
         return self.tau_s > 0
 
-    def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
-        """Projector, per-sensor sigma and reference offset of every type with parity."""
+    def fit(
+        self,
+        calibration: ImuBlock,
+        array: ArrayConfig,
+        designs: dict[str, np.ndarray] | None = None,
+    ) -> None:
+        """Projector, per-sensor sigma and reference offset of every type with parity.
+
+        ``designs``: the measurement matrix (n, q) a detector uses per type (e.g. with
+        lever-arm columns, :mod:`.rigid`); default the array's H (n, 3)."""
         self.array = array
         self._state = {}
         if not self.enabled:
             return
         for sensor_type in array.sensor_types():
             triads = calibration.get(sensor_type)
-            h = array.measurement_matrix(sensor_type)
-            if triads is None or h.shape[0] <= 3 or len(calibration) < 2:
+            h = (designs or {}).get(sensor_type)
+            if h is None:
+                h = array.measurement_matrix(sensor_type)
+            if triads is None or h.shape[0] <= h.shape[1] or len(calibration) < 2:
                 continue
             projector = np.eye(h.shape[0]) - h @ np.linalg.pinv(h)
             residual = array.select(triads, sensor_type) @ projector.T

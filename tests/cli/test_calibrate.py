@@ -69,6 +69,16 @@ def test_calibrate_improves_triad_agreement(cli, real_log, tmp_path):
             np.testing.assert_allclose(
                 new.calibration_of(s).bias, old.calibration_of(s).bias, atol=1e-9
             )
+            np.testing.assert_allclose(new.noise[s], old.noise[s], rtol=1e-9)
+    # per-IMU noise at rest, after calibration (the board: gyro 0.1-0.6 deg/s, accel
+    # 0.03-0.12 m/s^2 per axis)
+    assert np.all(
+        (np.degrees(cal.sensor_noise("gyro")) > 0.05) & (np.degrees(cal.sensor_noise("gyro")) < 1)
+    )
+    assert np.all((cal.sensor_noise("accel") > 0.01) & (cal.sensor_noise("accel") < 0.2))
+    # chip time offsets: a diagnostic; on this board none (< 0.1 ms, explaining < 5 %)
+    assert np.all(np.abs(figures["time_offsets_s"]) < 1e-4)
+    assert max(figures["time_offset_explained"]) < 0.05
 
 
 def test_calibrate_start_end_and_missing_static(cli, real_log, tmp_path):

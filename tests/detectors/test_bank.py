@@ -251,7 +251,9 @@ def test_gyro_bias_shows_only_in_its_residual_table2(
     gyro = out["gyro"]
     assert gyro.alarm[settled].mean() >= 0.98
     assert np.all(gyro.isolated[settled & gyro.alarm] == 2)
-    assert_allclose(np.median(gyro.amplitude[t >= 7.5]), 0.1, rtol=0.05)
+    # amplitude where the test decides (it abstains while an accel/mag false alarm points
+    # at a component whose blind estimator is unobservable)
+    assert_allclose(np.median(gyro.amplitude[(t >= 7.5) & gyro.alarm]), 0.1, rtol=0.05)
     # only g3's residual responds
     threshold = gyro.threshold[0]
     assert details.isolated_sets["gyro"][settled][:, :2].mean() <= 0.05
@@ -378,8 +380,10 @@ def test_accel_step_on_any_axis_is_detected_and_isolated(axis: int) -> None:
         out = run(detector, block)
         accel = out["accel"]
         after = block.t_s() >= 5.0
-        if axis != 1:  # healthy gyros quiet (on a_y: 9.6 % of samples, see the docs)
-            assert out["gyro"].alarm[after].mean() <= 0.05
+        # healthy gyros at their level: the issue's per-seed bound 4 alpha (on a_y they
+        # alarmed on 9.6 % of the samples before the gyro test took the clean candidate
+        # series and restarted series after long gaps)
+        assert out["gyro"].alarm[after].mean() <= 4 * 0.01
         missed += int((~accel.alarm[after]).sum())
         faulty += int(after.sum())
         isolated += int((accel.isolated[after & accel.alarm] == axis).sum())
@@ -412,3 +416,33 @@ def test_marg_level_on_fault_free_logs() -> None:
         clump = 50 if sensor_type == "gyro" else 1
         mean = total * 0.015
         assert count <= mean + 3.1 * np.sqrt(clump * mean), (sensor_type, count)
+
+
+@pytest.mark.slow
+def test_each_of_two_simultaneous_gyro_faults_gets_its_amplitude() -> None:
+    """The preset's 0.5 rad/s step on g3 and 0.1 rad/s^2 drift on g1: both isolated, and
+    each one's filtered residual (``last_details.gyro_residuals``, the per-gyro amplitude;
+    the status carries the isolated sensor's only) within 5 % of its true value (the
+    drift's, lagged by the filter's tau) wherever that gyro is isolated."""
+    specs = ("step:imu0.gyro.z,at=5s,amp=0.5rad/s", "drift:imu0.gyro.x,at=5s,rate=0.1rad/s^2")
+    for seed in (3, 4):
+        array, clean = simulate_block(preset("quadrotor-marg", seed=seed))
+        faults = [parse_fault_spec(spec, array) for spec in specs]
+        block = FaultInjector(faults, array, seed=seed, t0_ns=int(clean.t_ns[0])).apply_block(clean)
+        detector = make_detector()
+        detector.fit(block.slice(0, 200), array)
+        outputs, residuals = [], []
+        for piece in iter_blocks(block, 250):
+            outputs.append(detector.process(piece)["gyro"])
+            assert detector.last_details is not None
+            residuals.append(detector.last_details.gyro_residuals)
+        gyro = DetectionBlock.concatenate(outputs)
+        residual = np.concatenate(residuals)
+        t = block.t_s()
+        late = (t >= 6.5) & gyro.alarm
+        sets = gyro.isolation_set()
+        assert sets[late][:, [0, 2]].all(axis=1).mean() >= 0.98
+        on_z, on_x = late & sets[:, 2], late & sets[:, 0]
+        assert_allclose(np.median(residual[on_z, 2]), 0.5, rtol=0.05)
+        lagged = 0.1 * (t - 5.0 - detector.tau)
+        assert_allclose(np.median(residual[on_x, 0] / lagged[on_x]), 1.0, rtol=0.05)

@@ -129,8 +129,13 @@ def test_block_size_invariance_and_json_metadata(short_log):
     assert_array_equal(a.alarm, b.alarm)
     assert_array_equal(a.isolated, b.isolated)
     assert a.scores.shape == (len(block), 36)
-    # first L - 1 + p samples: no whitened residual, calibrated mean energy (R = 1)
-    assert_allclose(a.statistic[:30], 1.0)
+    # first L - 1 + p samples: no whitened residual, calibrated mean energy (R = 1); the
+    # mapping test's own statistic (input test off)
+    plain = run(make({**FAST, "input_test": "false"}), array, block, (0.0, 6.0))
+    assert_allclose(plain.statistic[:30], 1.0)
+    # with the input test, the statistic is normalised by the thresholds (threshold 1)
+    assert_allclose(a.threshold, 1.0)
+    assert np.all(a.statistic[:30] < 1.0)
     detector = make(FAST)
     run(detector, array, block, (0.0, 6.0))
     meta = json.loads(json.dumps(detector.metadata()))
@@ -236,6 +241,36 @@ def test_wearable12_noise_growth_is_detected_and_isolated():
     # the faulty sensor, imu0.accel.x (sensor 0), most of the time
     assert (out.isolated[out.alarm & fault] == 0).mean() > 0.8
     assert np.nanmedian(out.amplitude[out.alarm & fault]) > 2.0  # energy ratio
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("seed", "sensor"), [(3, "imu5.accel.y"), (4, "imu9.accel.z")])
+def test_noise_growth_on_y_and_z_accelerometers_is_detected_by_the_input_test(seed, sensor):
+    """Issue 16: noise x3 on any accel axis: 1 - MAR >= 98 % (mean over seeds, measured by
+    docs/campaigns/levels-cnn-map.toml), delay <= 0.4 s, recovery <= 0.5 s. The mapping
+    barely passes y/z noise through (its gain is 9-16x lower than for x), the input test
+    sees every axis; it does not depend on the mapping's quality, so the network is
+    trained briefly here. Per run, 3 points below the mean target are allowed: one dip of
+    the capped CUSUM under its threshold lasts about 0.18 s (3 % of the 6 s fault)."""
+    array, block = simulate_block(preset("wearable12", seed=seed))
+    spec = f"noise:{sensor},at=12s,until=18s,factor=3"
+    block = FaultInjector(
+        [parse_fault_spec(spec, array)], array, seed=seed, t0_ns=int(block.t_ns[0])
+    ).apply_block(block)
+    detector = make(FAST)
+    out = run(detector, array, block)
+    t = block.t_s()
+    fault = (t >= 12.0) & (t < 18.0)
+    hits = np.flatnonzero(out.alarm & fault)
+    assert t[hits[0]] - 12.0 <= 0.4
+    assert out.alarm[fault].mean() >= 0.95
+    late = np.flatnonzero(out.alarm & (t >= 18.0) & (t < 20.0))
+    assert late.size == 0 or t[late[-1]] - 18.0 + 0.01 <= 0.5
+    column = array.sensor_ids("accel").index(sensor)
+    assert (out.isolated[out.alarm & fault] == column).mean() >= 0.95
+    # the added noise standard deviation (scores): sqrt(3^2 - 1) x 0.03 m/s^2
+    assert_allclose(np.median(out.scores[fault, column]), np.sqrt(8.0) * 0.03, rtol=0.25)
+    assert detector.metadata()["input_test"]["status"] == "on"
 
 
 # --- issue 16: calibration motion, GLT gyro screen re-admission ------------------------------

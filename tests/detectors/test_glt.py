@@ -220,7 +220,7 @@ def test_configuration_errors() -> None:
         make_detector(sigma_source="config").fit(make_block(array, 50, rng), array)
     with pytest.raises(DetectorConfigError, match="valid: auto"):
         make_detector(types="gyro,baro")
-    with pytest.raises(DetectorConfigError, match="valid: calibration, config"):
+    with pytest.raises(DetectorConfigError, match="valid: auto, calibration, config"):
         make_detector(sigma_source="nominal")
     with pytest.raises(DetectorConfigError, match=">= 1"):
         make_detector(persistence=0)
@@ -275,3 +275,28 @@ def test_paper_table4_glt_row() -> None:
     assert 0.02 <= fir <= 0.08
     clean = np.array([table4_figures(seed, outliers=False) for seed in range(20)])
     assert 0.006 <= clean[:, 0].mean() <= 0.016
+
+
+def test_sigma_source_auto_uses_the_per_imu_noise_of_the_array() -> None:
+    array = ArrayConfig.co_aligned(6)
+    rng = np.random.default_rng(21)
+    block = make_block(array, 200, rng, sigma=0.01)
+    det = make_detector()
+    det.fit(block, array)
+    window = det.metadata()["types"]["gyro"]
+    assert window["sigma_from"] == "calibration"
+    noisy = array.with_sensor_noise([{"gyro": np.full(3, 0.05)} for _ in range(6)])
+    det = make_detector()
+    det.fit(block, noisy)
+    meta = det.metadata()["types"]
+    assert meta["gyro"]["sigma_from"] == "array config"
+    assert_allclose(meta["gyro"]["sigma"], 0.05)
+    # accelerometers have no per-IMU noise in this config: the calibration window
+    assert meta["accel"]["sigma_from"] == "calibration"
+    # sigma known: the plain chi2 threshold, no estimation correction
+    from scipy.stats import chi2
+
+    assert_allclose(meta["gyro"]["threshold"], chi2.ppf(0.99, 15) * (1 + 1 / 200))
+    det = make_detector(sigma_source="calibration")
+    det.fit(block, noisy)
+    assert det.metadata()["types"]["gyro"]["sigma_from"] == "calibration"

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from imufdi_cli.detectors.mvmd import mirror_extend, mvmd, mvmd_batch, spectrum
+from imufdi_cli.detectors.mvmd import (
+    channel_power,
+    mirror_extend,
+    mvmd,
+    mvmd_batch,
+    mvmd_gains,
+    spectrum,
+)
 from imufdi_cli.errors import DetectorConfigError
 
 RATE = 1000.0
@@ -89,6 +96,38 @@ def test_batch_matches_single_runs():
         single = mvmd(x, K, alpha)
         assert result.n_iter == single.n_iter
         assert_allclose(result.modes, single.modes, atol=1e-12)
+
+
+def test_windows_in_one_batch_equal_one_at_a_time():
+    # many signals of one length (per-row power), as woa-mvmd-glt batches a block's windows:
+    # each row converges on its own, as if alone
+    rng = np.random.default_rng(5)
+    t = np.arange(50) / 100.0
+    windows = 0.2 + 0.01 * rng.standard_normal((12, 6, 50)) + 0.05 * np.sin(2 * np.pi * 3 * t)
+    spectra = [spectrum(w) for w in windows]
+    power = np.stack([channel_power(spec) for spec, _, _ in spectra])
+    freqs = spectra[0][1]
+    Ks = [2, 3] * 6
+    alphas = list(np.linspace(100.0, 2000.0, 12))
+    batch = mvmd_gains(power, freqs, Ks, alphas, tol=1e-6, max_iter=300, history=False)
+    n_iters = set()
+    for row, (gains, history, n_iter, converged) in enumerate(batch):
+        single = mvmd_gains(power[row], freqs, [Ks[row]], [alphas[row]], tol=1e-6, max_iter=300)
+        assert n_iter == single[0][2]
+        assert converged == single[0][3]
+        assert_allclose(gains, single[0][0], rtol=0, atol=1e-12)
+        # without history: the initial and the final centre frequencies
+        assert history.shape == (2, Ks[row])
+        assert_allclose(history[-1], single[0][1][-1], rtol=0, atol=1e-12)
+        assert_allclose(history[0], single[0][1][0])
+        n_iters.add(n_iter)
+    assert len(n_iters) > 1  # rows left the batch at different iterations
+
+
+def test_power_shape_must_match_the_rows():
+    _, freqs, _ = spectrum(two_channel())
+    with pytest.raises(DetectorConfigError, match="power must have shape"):
+        mvmd_gains(np.ones((3, freqs.size)), freqs, [2, 2], [100.0, 100.0])
 
 
 def test_dc_mode_and_inits():
