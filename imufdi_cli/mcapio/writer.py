@@ -96,14 +96,12 @@ class _ChunkJob:
 def _compress_and_checksum(raw: np.ndarray, compression: str) -> tuple[bytes, int]:
     """Compressed records and the chunk's ``uncompressed_crc`` (worker thread).
 
-    Uncompressed chunks carry the CRC-32 of their records. zstd and lz4 chunks carry 0
-    ("not computed", MCAP spec): their frames hold a content checksum of the same records
-    (xxHash, written by :func:`compress`) that every decoder verifies, so a second checksum
-    would only cost time (CRC-32 was about a fifth of the compression thread's work).
+    Every chunk carries the CRC-32 of its uncompressed records, whatever the compression,
+    so that readers which check chunk CRCs (the ``mcap`` package, ``mcap doctor``, our own
+    reader) verify our files end to end; zstd and lz4 frames also carry their own content
+    checksum. zlib's CRC-32 releases the GIL and runs on this worker thread.
     """
     view = raw.data
-    if compression:
-        return compress(view, compression), 0
     return compress(view, compression), zlib.crc32(view)
 
 
