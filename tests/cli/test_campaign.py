@@ -297,27 +297,27 @@ def test_all_runs_failing_on_their_data_exits_3(cli, tmp_path):
 
 
 def test_all_runs_failing_on_a_bug_exits_4(cli, tmp_path, monkeypatch):
-    import imufdi_cli.campaign
+    import imufdi_cli.campaign.run
 
     def bug(desc):
         raise ZeroDivisionError("division by zero")
 
-    monkeypatch.setattr(imufdi_cli.campaign, "_execute", bug)
+    monkeypatch.setattr(imufdi_cli.campaign.run, "_execute", bug)
     result = cli(["campaign", write(tmp_path, SPEC), "-o", tmp_path / "out", "--jobs", "1"])
     assert_one_line_error(result, 4, "ZeroDivisionError: division by zero")
 
 
 def test_some_runs_failing_still_exits_0(cli, tmp_path, monkeypatch):
-    import imufdi_cli.campaign
+    import imufdi_cli.campaign.run
 
-    real = imufdi_cli.campaign._execute
+    real = imufdi_cli.campaign.run._execute
 
     def flaky(desc):
         if desc["seed"] == 1:
             raise ZeroDivisionError("division by zero")
         return real(desc)
 
-    monkeypatch.setattr(imufdi_cli.campaign, "_execute", flaky)
+    monkeypatch.setattr(imufdi_cli.campaign.run, "_execute", flaky)
     result = cli(["campaign", write(tmp_path, SPEC), "-o", tmp_path / "out", "--jobs", "1"])
     assert result.code == 0, result.stderr
     assert "2 failed" in result.out

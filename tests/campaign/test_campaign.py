@@ -434,6 +434,15 @@ def test_dask_local_cluster_gives_identical_runs_csv(campaign_200):
     assert (root / "dask" / "runs.csv").read_text() == (root / "pool" / "runs.csv").read_text()
 
 
+@pytest.mark.slow
+def test_in_process_gives_identical_outputs_to_the_pool(campaign_200):
+    spec, root, _ = campaign_200
+    result = run_campaign(spec, root / "serial", jobs=1)
+    assert (result.total, result.executed, result.failed) == (200, 200, 0)
+    for name in ("runs.csv", "summary.json", "summary.md"):
+        assert (root / "serial" / name).read_bytes() == (root / "pool" / name).read_bytes()
+
+
 def test_bad_scheduler_forms(tmp_path):
     pytest.importorskip("dask.distributed")
     spec = load_spec(write_spec(tmp_path, SMALL))
