@@ -8,6 +8,9 @@ Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary direct
   mcap_ros2's make_reader(..., decoder_factories=[DecoderFactory()]).iter_decoded_messages()
   on the same file (the latter on a subset of messages if --baseline-fraction < 1, rate
   extrapolated), prints messages/s and the ratio,
+- times the floor on the same file: zstd decompression of every chunk plus one copy of its
+  records (what any reader must at least do), and prints the reader's rate as a share of it
+  (issue 20 target: >= 50 %),
 - measures peak memory (ru_maxrss of a fresh subprocess) reading the base log and a 10x
   longer log.
 """
@@ -15,6 +18,8 @@ Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary direct
 from __future__ import annotations
 
 import argparse
+import os
+import struct
 import subprocess
 import sys
 import tempfile
@@ -53,13 +58,46 @@ def make_log(path: Path, n_imus: int, n_samples: int, block: int = 50_000) -> fl
     return elapsed
 
 
-def time_imufdi(path: Path) -> tuple[float, int]:
+def time_imufdi(path: Path) -> tuple[float, int, float]:
+    """(wall s, messages, CPU s) of reading the whole log (decoded and aligned)."""
     t0 = time.perf_counter()
+    c0 = time.process_time()
     n = 0
     with ImuArrayReader(path) as reader:
         for block in reader.blocks():
             n += len(block) * block.n_imus
-    return time.perf_counter() - t0, n
+    return time.perf_counter() - t0, n, time.process_time() - c0
+
+
+def time_floor(path: Path) -> tuple[float, float]:
+    """(wall s, CPU s) to zstd-decompress every chunk of the file and copy its records
+    once (best of three)."""
+    import zstandard
+
+    raw = path.read_bytes()
+    chunks = []
+    position = 8
+    while position + 9 <= len(raw):
+        opcode, length = struct.unpack_from("<BQ", raw, position)
+        if opcode == 0x06:
+            content = memoryview(raw)[position + 9 : position + 9 + length]
+            uncompressed = struct.unpack_from("<Q", content, 16)[0]
+            name_length = struct.unpack_from("<I", content, 28)[0]
+            records_at = 32 + name_length + 8
+            chunks.append((content[records_at:], uncompressed))
+        elif opcode == 0x0F:  # DataEnd
+            break
+        position += 9 + length
+    dctx = zstandard.ZstdDecompressor()
+    best = (float("inf"), float("inf"))
+    for _ in range(3):
+        t0 = time.perf_counter()
+        c0 = time.process_time()
+        for data, size in chunks:
+            records = dctx.decompress(data, max_output_size=size)
+            np.frombuffer(records, np.uint8).copy()
+        best = min(best, (time.perf_counter() - t0, time.process_time() - c0))
+    return best
 
 
 def time_mcap_ros2(path: Path, max_messages: int) -> tuple[float, int]:
@@ -106,6 +144,7 @@ def main() -> None:
     )
     parser.add_argument("--skip-memory", action="store_true")
     args = parser.parse_args()
+    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())} ({os.cpu_count()} cores)")
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(tmp) / "base.mcap"
         n_messages = args.imus * args.samples
@@ -116,10 +155,19 @@ def main() -> None:
             f" {size_mb:.1f} MB (zstd)"
         )
         print(f"imufdi writer        : {write_s:7.2f} s  {n_messages / write_s:12,.0f} msg/s")
-        ours_s, ours_n = time_imufdi(base)
+        ours_s, ours_n, ours_cpu = min(time_imufdi(base) for _ in range(3))
         assert ours_n == n_messages, (ours_n, n_messages)
         ours_rate = ours_n / ours_s
         print(f"imufdi reader        : {ours_s:7.2f} s  {ours_rate:12,.0f} msg/s (decoded+aligned)")
+        floor_s, floor_cpu = time_floor(base)
+        print(
+            f"zstd floor           : {floor_s:7.2f} s  {n_messages / floor_s:12,.0f} msg/s"
+            f" (decompress + copy the same chunks), CPU {floor_cpu:.2f} s"
+        )
+        print(
+            f"reader / floor       : {floor_s / ours_s:7.1%} wall, {floor_cpu / ours_cpu:.1%} CPU"
+            f" (reader CPU {ours_cpu:.2f} s)  (target >= 50 %)"
+        )
         ref_s, ref_n = time_mcap_ros2(base, args.baseline_messages)
         ref_rate = ref_n / ref_s
         print(
@@ -129,6 +177,7 @@ def main() -> None:
         print(
             f"speed-up             : {ours_rate / ref_rate:7.1f} x  (target >= 25 x, >= 1e6 msg/s)"
         )
+        print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         if not args.skip_memory:
             long = Path(tmp) / "long.mcap"
             make_log(long, args.imus, args.samples * 10)

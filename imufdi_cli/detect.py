@@ -1,12 +1,13 @@
 """``imufdi detect``: run detectors over a log and write the annotated MCAP (DESIGN.md §4).
 
-One streaming pass: every input message is copied to the output as raw bytes; the aligned
-IMU samples go through each detector; per-sample status messages (fixed-layout CDR, encoded
-in bulk) go to ``/imufdi/<detector>/<type>``, alarm start/end events
+One streaming pass: every input message is copied to the output as raw bytes (a whole
+input chunk of messages only is written as it is, without recompression: docs/formats.md);
+the aligned IMU samples go through each detector; per-sample status messages (fixed-layout
+CDR, encoded in bulk) go to ``/imufdi/<detector>/<type>``, alarm start/end events
 (``imufdi_msgs/msg/FdiEvent``, CDR, encoded in bulk per block) to ``/imufdi/events``, and
 each detector's parameters and calibration to the ``imufdi.detect.<name>`` metadata record.
-Ground truth on the JSON channel of an older imufdi is re-encoded as FaultEvent. Memory is bounded by the block size and the
-calibration window, not by the log length.
+Ground truth on the JSON channel of an older imufdi is re-encoded as FaultEvent. Memory is
+bounded by the block size and the calibration window, not by the log length.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 from imufdi_cli import __version__
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors import DETECTORS, make_detector
+from imufdi_cli.detectors import DETECTORS, make_detectors
 from imufdi_cli.detectors.base import DetectionBlock, Detector
 from imufdi_cli.episodes import EpisodeBuilder, episode_builders
 from imufdi_cli.errors import CalibrationError, DetectorConfigError, McapInputError
@@ -126,6 +127,7 @@ class ChannelCopier:
         self.writer = writer
         self.mapping: dict[int, int] = {}
         self._lut: np.ndarray | None = None
+        self._identity: bool | None = None
 
     @property
     def known(self) -> set[int]:
@@ -146,9 +148,17 @@ class ChannelCopier:
             self.writer.copy_channels({out_id: replace(info, id=out_id, schema=schema)})
             self.mapping[cid] = out_id
             self._lut = None
+            self._identity = None
+
+    @property
+    def identity(self) -> bool:
+        """Every input channel keeps its id (messages can be copied as they are)."""
+        if self._identity is None:
+            self._identity = all(k == v for k, v in self.mapping.items())
+        return self._identity
 
     def remap(self, batch: MessageBatch) -> MessageBatch:
-        if all(k == v for k, v in self.mapping.items()):
+        if self.identity:
             return batch
         if self._lut is None:
             self._lut = np.arange(65536, dtype=np.uint16)
@@ -326,238 +336,340 @@ def detect_file(
     -------
     DetectResult
     """
-    instances = [make_detector(name, dict(params)) for name, params in detectors]
-    cal_start_s, cal_end_s = calibrate
-    reader = ImuArrayReader(source, topics=topics, strict=strict, time_source=time_source)
+    instances, notes = make_detectors((name, dict(params)) for name, params in detectors)
+    reader = ImuArrayReader(
+        source, topics=topics, strict=strict, time_source=time_source, keep_raw_chunks=True
+    )
     log_array = reader.array
     array = log_array if array is None else array.check_matches(log_array)
-    conditioner = Conditioner(log_array, array)
-    test_start_s, test_end_s = window if window is not None else (0.0, None)
-    tracks = [_Track(det, array) for det in instances]
-    warnings: list[str] = []
-    n_samples = 0
-    t_first: int | None = None
-    t_last = 0
-    calibration: list[tuple[ImuBlock, Flags]] = []
-    backlog: list[tuple[ImuBlock, Flags]] = []
-    fitted = False
-    cal_samples = 0
-
     with McapWriter(output, compression=compression) as writer:
-        events_channel = register_events_channel(writer)
-
-        rerun = {det.name for det in instances}
-        copier = ChannelCopier(writer)
-        dropped: set[int] = set()  # input channels replaced by this run's output
-        legacy_truth: set[int] = set()  # JSON truth channels of an older imufdi
-        truth_channel: int | None = None
-
-        def copy_batch(batch: MessageBatch) -> None:
-            nonlocal truth_channel
-            new = {int(c) for c in np.unique(batch.channel_id)} - copier.known - dropped
-            for c in sorted(new):
-                topic = reader.source.channels[c].topic
-                parts = topic.split("/")
-                if topic == EVENTS_TOPIC or (
-                    len(parts) == 4 and parts[1] == "imufdi" and parts[2] in rerun
-                ):
-                    dropped.add(c)
-                elif topic == TRUTH_TOPIC and reader.source.channels[c].message_encoding == "json":
-                    dropped.add(c)
-                    legacy_truth.add(c)
-            copier.ensure(reader.source.channels, new - dropped)
-            if dropped:
-                keep = ~np.isin(batch.channel_id, list(dropped))
-                for cid in np.unique(batch.channel_id[~keep]).tolist():
-                    channel = reader.source.channels[cid]
-                    if channel.topic == EVENTS_TOPIC and is_event_channel(channel):
-                        _keep_events(writer, events_channel, batch, channel, rerun)
-                    elif cid in legacy_truth:
-                        if truth_channel is None:
-                            truth_channel = register_truth_channel(writer)
-                        old = decode_events(batch.select(batch.channel_id == cid), channel)
-                        writer.add_batch(encode_fault_events(truth_channel, old))
-                batch = batch.select(keep)
-            if len(batch):
-                writer.add_batch(copier.remap(batch))
-
-        def emit(track: _Track, outputs: Mapping[str, DetectionBlock]) -> None:
-            rows = {len(v) for v in outputs.values()}
-            if not rows:
-                return
-            if len(rows) != 1:
-                raise DetectorConfigError(
-                    f"detector {track.detector.name} returned blocks of different lengths"
-                )
-            t_ns, decided_ns = track.take_times(rows.pop())
-            if t_ns.size == 0:
-                return
-            for sensor_type, out in outputs.items():
-                if sensor_type not in track.channels:
-                    track.channels[sensor_type] = register_status_channel(
-                        writer, track.detector.name, sensor_type, array.sensor_ids(sensor_type)
-                    )
-                    track.summary[sensor_type] = TypeSummary()
-                writer.add_batch(encode_status(track.channels[sensor_type], t_ns, out, decided_ns))
-                summary = track.summary[sensor_type]
-                summary.samples += len(out)
-                summary.alarms += int(np.count_nonzero(out.alarm))
-                ids = array.sensor_ids(sensor_type)
-                iso = out.isolated[out.alarm & (out.isolated >= 0)]
-                for index, count in zip(*np.unique(iso, return_counts=True)):
-                    sid = ids[int(index)]
-                    summary.isolated[sid] = summary.isolated.get(sid, 0) + int(count)
-                events, starts = _events(track, events_channel, sensor_type, t_ns, out)
-                summary.events += starts
-                writer.add_batch(events)
-                builder = track.episodes.get(sensor_type)
-                if builder is not None:
-                    add_episodes(track, builder.rows(t_ns, decided_ns, out))
-            for sensor_type in set(track.episodes) - set(outputs):
-                del track.episodes[sensor_type]  # a type this detector does not test
-
-        def add_episodes(track: _Track, episodes: Sequence[Any]) -> None:
-            if not episodes:
-                return
-            writer.add_batch(encode_episode_events(events_channel, [e.to_dict() for e in episodes]))
-            for episode in episodes:
-                counts = track.summary[episode.sensor_type].episodes
-                label = episode.fault_class or "unexplained"
-                counts[label] = counts.get(label, 0) + 1
-
-        def run(block: ImuBlock, flags: Flags) -> None:
-            block = conditioner.sanitize(block, flags)
-            for track in tracks:
-                track.feed(block.t_ns)
-                for sensor_type, builder in track.episodes.items():
-                    triads = block.get(sensor_type)
-                    assert triads is not None  # builders exist only for types in the log
-                    builder.feed(array.select(triads, sensor_type))
-                emit(track, track.detector.process(block))
-
-        def fit() -> None:
-            nonlocal fitted, cal_samples
-            whole = ImuBlock.concatenate(b for b, _ in calibration)
-            whole_flags = _concat_flags([f for _, f in calibration])
-            cal_samples = len(whole)
-            if cal_samples == 0:
-                raise CalibrationError(
-                    f"calibration window {cal_start_s:g}s:{'' if cal_end_s is None else f'{cal_end_s:g}s'}"
-                    " holds no samples; choose one inside the log with --calibrate START:END"
-                )
-            conditioner.fit(whole, whole_flags)
-            whole = conditioner.sanitize(whole, whole_flags, count=False)
-            for track in tracks:
-                track.detector.fit(whole, array)
-            builders = episode_builders(whole, array) if explain else {}
-            for track in tracks:
-                track.episodes = {
-                    t: b.for_detector(track.detector.name) for t, b in builders.items()
-                }
-            fitted = True
-            calibration.clear()
-            for pending, pending_flags in backlog:
-                run(pending, pending_flags)
-            backlog.clear()
-
+        run = _DetectRun(
+            reader,
+            writer,
+            instances,
+            array,
+            Conditioner(log_array, array),
+            calibrate=calibrate,
+            window=window if window is not None else (0.0, None),
+            explain=explain,
+        )
+        run.warnings.extend(notes)  # e.g. a renamed detector parameter
         tracker = LogTimeProgress(progress, getattr(reader.source, "summary_time_range", None))
         for batch, block in reader.stream():
-            copy_batch(batch)
+            run.copy_batch(batch)
             tracker.batch(batch)
-            if len(block) == 0:
-                continue
-            if t_first is None:
-                t_first = int(block.t_ns[0])
-            t_last = int(block.t_ns[-1])
-            block, flags = conditioner.prepare(block)
-            rel = (block.t_ns - t_first) / NS_PER_S
-            tested = rel >= test_start_s
-            if test_end_s is not None:
-                tested &= rel < test_end_s
-            test_block, test_flags = block, flags
-            if not tested.all():
-                test_block, test_flags = block.mask(tested), _mask_flags(flags, tested)
-            n_samples += len(test_block)
-            if fitted:
-                if len(test_block):
-                    run(test_block, test_flags)
-                continue
-            cal_window = calibration_window_ns(t_first, t_last, cal_start_s, cal_end_s)
-            assert cal_window is not None
-            inside = block.t_ns >= cal_window[0]
-            if cal_end_s is not None:
-                inside &= block.t_ns < cal_window[1]
-            if inside.any():
-                calibration.append((block.mask(inside).copy(), _mask_flags(flags, inside)))
+            if len(block):
+                run.add_block(block)
+        run.finish(strict)
+    return run.result(output if isinstance(output, str) else "<stream>")
+
+
+class _DetectRun:
+    """One streaming detect pass: input messages copied, blocks calibrated on and tested,
+    status and events written (the state :func:`detect_file` works through)."""
+
+    def __init__(
+        self,
+        reader: ImuArrayReader,
+        writer: McapWriter,
+        instances: Sequence[Detector],
+        array: ArrayConfig,
+        conditioner: Conditioner,
+        *,
+        calibrate: tuple[float, float | None],
+        window: tuple[float, float | None],
+        explain: bool,
+    ) -> None:
+        self.reader = reader
+        self.writer = writer
+        self.array = array
+        self.conditioner = conditioner
+        self.cal_start_s, self.cal_end_s = calibrate
+        self.test_start_s, self.test_end_s = window
+        self.explain = explain
+        self.tracks = [_Track(det, array) for det in instances]
+        self.warnings: list[str] = []
+        self.n_samples = 0
+        self.t_first: int | None = None
+        self.t_last = 0
+        self.calibration: list[tuple[ImuBlock, Flags]] = []
+        self.backlog: list[tuple[ImuBlock, Flags]] = []
+        self.fitted = False
+        self.cal_samples = 0
+        self.rerun = {det.name for det in instances}
+        self.copier = ChannelCopier(writer)
+        self.dropped: set[int] = set()  # input channels replaced by this run's output
+        self.legacy_truth: set[int] = set()  # JSON truth channels of an older imufdi
+        self.truth_channel: int | None = None
+        # The input channels known so far first, so they keep their ids (their chunks can
+        # then be copied verbatim); this run's own channels take the next free ids.
+        self._admit(set(reader.source.channels))
+        self.events_channel = register_events_channel(writer)
+
+    # --- copying the input ------------------------------------------------------------
+
+    def copy_batch(self, batch: MessageBatch) -> None:
+        """Copy a raw input batch, leaving out (or re-encoding) what this run replaces."""
+        channels = self.reader.source.channels
+        self._admit({int(c) for c in np.unique(batch.channel_id)})
+        if self.dropped:
+            keep = ~np.isin(batch.channel_id, list(self.dropped))
+            for cid in np.unique(batch.channel_id[~keep]).tolist():
+                self._replace_dropped(batch, channels[cid])
+            if not bool(keep.all()):
+                batch = batch.select(keep)
+        if not len(batch):
+            return
+        runs = self.reader.source.raw_chunks(batch) if self.copier.identity else None
+        if runs is None:
+            self.writer.add_batch(self.copier.remap(batch))
+            return
+        start = 0
+        for raw, count, records_at in runs:
+            part = batch.select(slice(start, start + count))
+            if raw is not None and raw.compression == self.writer.compression:
+                # the input chunk as it is: no record building, no recompression
+                self.writer.add_raw_chunk(raw, part, records_at)
+            else:
+                self.writer.add_batch(part)
+            start += count
+
+    def _admit(self, ids: set[int]) -> None:
+        """Input channels met for the first time: copied (same id where free), or dropped
+        when this run replaces them (its detectors' status, the events, JSON truth)."""
+        channels = self.reader.source.channels
+        new = ids - self.copier.known - self.dropped
+        for c in sorted(new):
+            topic = channels[c].topic
+            parts = topic.split("/")
+            if topic == EVENTS_TOPIC or (
+                len(parts) == 4 and parts[1] == "imufdi" and parts[2] in self.rerun
+            ):
+                self.dropped.add(c)
+            elif topic == TRUTH_TOPIC and channels[c].message_encoding == "json":
+                self.dropped.add(c)
+                self.legacy_truth.add(c)
+        self.copier.ensure(channels, new - self.dropped)
+
+    def _replace_dropped(self, batch: MessageBatch, channel: ChannelInfo) -> None:
+        """Events of detectors not run again are kept; JSON truth becomes FaultEvent."""
+        if channel.topic == EVENTS_TOPIC and is_event_channel(channel):
+            _keep_events(self.writer, self.events_channel, batch, channel, self.rerun)
+        elif channel.id in self.legacy_truth:
+            if self.truth_channel is None:
+                self.truth_channel = register_truth_channel(self.writer)
+            old = decode_events(batch.select(batch.channel_id == channel.id), channel)
+            self.writer.add_batch(encode_fault_events(self.truth_channel, old))
+
+    # --- detecting --------------------------------------------------------------------
+
+    def add_block(self, block: ImuBlock) -> None:
+        """An aligned block: into the calibration window and backlog until the detectors
+        are fitted, then straight through them."""
+        if self.t_first is None:
+            self.t_first = int(block.t_ns[0])
+        self.t_last = int(block.t_ns[-1])
+        block, flags = self.conditioner.prepare(block)
+        rel = (block.t_ns - self.t_first) / NS_PER_S
+        tested = rel >= self.test_start_s
+        if self.test_end_s is not None:
+            tested &= rel < self.test_end_s
+        test_block, test_flags = block, flags
+        if not tested.all():
+            test_block, test_flags = block.mask(tested), _mask_flags(flags, tested)
+        self.n_samples += len(test_block)
+        if self.fitted:
             if len(test_block):
-                backlog.append((test_block.copy(), test_flags))
-            if cal_end_s is not None and block.t_ns[-1] >= cal_window[1]:
-                fit()
-        if not fitted:
-            if t_first is not None and cal_end_s is not None:
-                warnings.append(
-                    f"the log ({(t_last - t_first) / NS_PER_S:.3g} s) is shorter than the"
-                    f" calibration window end ({cal_end_s:g} s); calibrated on what there is"
+                self._process(test_block, test_flags)
+            return
+        cal_window = calibration_window_ns(
+            self.t_first, self.t_last, self.cal_start_s, self.cal_end_s
+        )
+        assert cal_window is not None
+        inside = block.t_ns >= cal_window[0]
+        if self.cal_end_s is not None:
+            inside &= block.t_ns < cal_window[1]
+        if inside.any():
+            self.calibration.append((block.mask(inside).copy(), _mask_flags(flags, inside)))
+        if len(test_block):
+            self.backlog.append((test_block.copy(), test_flags))
+        if self.cal_end_s is not None and block.t_ns[-1] >= cal_window[1]:
+            self._fit()
+
+    def _process(self, block: ImuBlock, flags: Flags) -> None:
+        block = self.conditioner.sanitize(block, flags)
+        for track in self.tracks:
+            track.feed(block.t_ns)
+            for sensor_type, builder in track.episodes.items():
+                triads = block.get(sensor_type)
+                assert triads is not None  # builders exist only for types in the log
+                builder.feed(self.array.select(triads, sensor_type))
+            self._emit(track, track.detector.process(block))
+
+    def _fit(self) -> None:
+        whole = ImuBlock.concatenate(b for b, _ in self.calibration)
+        whole_flags = _concat_flags([f for _, f in self.calibration])
+        self.cal_samples = len(whole)
+        if self.cal_samples == 0:
+            end = "" if self.cal_end_s is None else f"{self.cal_end_s:g}s"
+            raise CalibrationError(
+                f"calibration window {self.cal_start_s:g}s:{end}"
+                " holds no samples; choose one inside the log with --calibrate START:END"
+            )
+        self.conditioner.fit(whole, whole_flags)
+        whole = self.conditioner.sanitize(whole, whole_flags, count=False)
+        for track in self.tracks:
+            track.detector.fit(whole, self.array)
+        builders = episode_builders(whole, self.array) if self.explain else {}
+        for track in self.tracks:
+            track.episodes = {t: b.for_detector(track.detector.name) for t, b in builders.items()}
+        self.fitted = True
+        self.calibration.clear()
+        for pending, pending_flags in self.backlog:
+            self._process(pending, pending_flags)
+        self.backlog.clear()
+
+    # --- writing results --------------------------------------------------------------
+
+    def _emit(self, track: _Track, outputs: Mapping[str, DetectionBlock]) -> None:
+        """Status, events and episodes of the rows a detector returned."""
+        rows = {len(v) for v in outputs.values()}
+        if not rows:
+            return
+        if len(rows) != 1:
+            raise DetectorConfigError(
+                f"detector {track.detector.name} returned blocks of different lengths"
+            )
+        t_ns, decided_ns = track.take_times(rows.pop())
+        if t_ns.size == 0:
+            return
+        for sensor_type, out in outputs.items():
+            self._emit_type(track, sensor_type, out, t_ns, decided_ns)
+        for sensor_type in set(track.episodes) - set(outputs):
+            del track.episodes[sensor_type]  # a type this detector does not test
+
+    def _emit_type(
+        self,
+        track: _Track,
+        sensor_type: str,
+        out: DetectionBlock,
+        t_ns: np.ndarray,
+        decided_ns: np.ndarray,
+    ) -> None:
+        writer, array = self.writer, self.array
+        if sensor_type not in track.channels:
+            track.channels[sensor_type] = register_status_channel(
+                writer, track.detector.name, sensor_type, array.sensor_ids(sensor_type)
+            )
+            track.summary[sensor_type] = TypeSummary()
+        writer.add_batch(encode_status(track.channels[sensor_type], t_ns, out, decided_ns))
+        summary = track.summary[sensor_type]
+        summary.samples += len(out)
+        summary.alarms += int(np.count_nonzero(out.alarm))
+        ids = array.sensor_ids(sensor_type)
+        iso = out.isolated[out.alarm & (out.isolated >= 0)]
+        for index, count in zip(*np.unique(iso, return_counts=True)):
+            sid = ids[int(index)]
+            summary.isolated[sid] = summary.isolated.get(sid, 0) + int(count)
+        events, starts = _events(track, self.events_channel, sensor_type, t_ns, out)
+        summary.events += starts
+        writer.add_batch(events)
+        builder = track.episodes.get(sensor_type)
+        if builder is not None:
+            self._add_episodes(track, builder.rows(t_ns, decided_ns, out))
+
+    def _add_episodes(self, track: _Track, episodes: Sequence[Any]) -> None:
+        if not episodes:
+            return
+        self.writer.add_batch(
+            encode_episode_events(self.events_channel, [e.to_dict() for e in episodes])
+        )
+        for episode in episodes:
+            counts = track.summary[episode.sensor_type].episodes
+            label = episode.fault_class or "unexplained"
+            counts[label] = counts.get(label, 0) + 1
+
+    def finish(self, strict: bool) -> None:
+        """Fit if the log ended inside the calibration window, flush the detectors, check
+        their calibration, and write the metadata records."""
+        if not self.fitted:
+            if self.t_first is not None and self.cal_end_s is not None:
+                self.warnings.append(
+                    f"the log ({(self.t_last - self.t_first) / NS_PER_S:.3g} s) is shorter"
+                    f" than the calibration window end ({self.cal_end_s:g} s); calibrated on"
+                    " what there is"
                 )
-            fit()
-        for track in tracks:
-            emit(track, track.detector.flush())
+            self._fit()
+        for track in self.tracks:
+            self._emit(track, track.detector.flush())
             for builder in track.episodes.values():
-                add_episodes(track, builder.finish())
+                self._add_episodes(track, builder.finish())
             if track.pending and sum(p.size for p in track.pending):
                 raise DetectorConfigError(
                     f"detector {track.detector.name} left samples without output"
                 )
-        window_ns = calibration_window_ns(t_first, t_last, cal_start_s, cal_end_s)
-        for track in tracks:
+        for track in self.tracks:
             # A detector may judge its calibration window from what it processed (e.g.
             # pca-parity: motion beyond the calibrated range); --strict makes that fatal.
             judge = getattr(track.detector, "calibration_warnings", None)
             found = list(judge()) if judge is not None else []
             if strict and found:
                 raise CalibrationError(f"{found[0]} (--strict)")
-            warnings.extend(found)
-        for track in tracks:
+            self.warnings.extend(found)
+        self._write_metadata()
+
+    def _write_metadata(self) -> None:
+        """``imufdi.detect.<name>`` per detector, then the input's other metadata records."""
+        log_array = self.reader.array
+        window_ns = calibration_window_ns(
+            self.t_first, self.t_last, self.cal_start_s, self.cal_end_s
+        )
+        for track in self.tracks:
             record = {
                 "detector": track.detector.name,
                 "version": __version__,
-                "calibration_s": [cal_start_s, cal_end_s],
+                "calibration_s": [self.cal_start_s, self.cal_end_s],
                 "calibration_window_ns": window_ns,
-                "calibration_samples": cal_samples,
+                "calibration_samples": self.cal_samples,
                 "lookahead_samples": track.lookahead,
                 "detector_metadata": track.detector.metadata(),
-                "t0_ns": t_first,
-                "window_s": [test_start_s, test_end_s],
-                "array_source": "log" if array is log_array else "--array",
-                "validity": conditioner.metadata(),
+                "t0_ns": self.t_first,
+                "window_s": [self.test_start_s, self.test_end_s],
+                "array_source": "log" if self.array is log_array else "--array",
+                "validity": self.conditioner.metadata(),
             }
-            if array is not log_array:
-                record["array"] = array.to_dict()
-            writer.add_metadata(
+            if self.array is not log_array:
+                record["array"] = self.array.to_dict()
+            self.writer.add_metadata(
                 f"imufdi.detect.{track.detector.name}",
                 {"json": json.dumps(record, default=_json_default)},
             )
-        for name, data in reader.source.metadata.items():
+        names = {t.detector.name for t in self.tracks}
+        for name, data in self.reader.source.metadata.items():
             if not name.startswith("imufdi.detect."):
-                writer.add_metadata(name, data)
-            elif name.removeprefix("imufdi.detect.") not in {t.detector.name for t in tracks}:
-                writer.add_metadata(name, data)
-        if "imufdi.array" not in reader.source.metadata:
-            writer.add_metadata("imufdi.array", {"json": array.to_json()})
+                self.writer.add_metadata(name, data)
+            elif name.removeprefix("imufdi.detect.") not in names:
+                self.writer.add_metadata(name, data)
+        if "imufdi.array" not in self.reader.source.metadata:
+            self.writer.add_metadata("imufdi.array", {"json": self.array.to_json()})
 
-    warnings = list(reader.warnings) + warnings
-    return DetectResult(
-        output=output if isinstance(output, str) else "<stream>",
-        samples=n_samples,
-        duration_s=(t_last - t_first) / NS_PER_S if t_first is not None else 0.0,
-        calibration_s=(cal_start_s, cal_end_s if cal_end_s is not None else float("nan")),
-        calibration_samples=cal_samples,
-        array=array,
-        summaries={t.detector.name: t.summary for t in tracks},
-        alignment=reader.stats,
-        warnings=warnings,
-        validity={s: c.to_dict() for s, c in conditioner.counts.items()},
-    )
+    def result(self, output: str) -> DetectResult:
+        t_first = self.t_first
+        return DetectResult(
+            output=output,
+            samples=self.n_samples,
+            duration_s=(self.t_last - t_first) / NS_PER_S if t_first is not None else 0.0,
+            calibration_s=(
+                self.cal_start_s,
+                self.cal_end_s if self.cal_end_s is not None else float("nan"),
+            ),
+            calibration_samples=self.cal_samples,
+            array=self.array,
+            summaries={t.detector.name: t.summary for t in self.tracks},
+            alignment=self.reader.stats,
+            warnings=list(self.reader.warnings) + self.warnings,
+            validity={s: c.to_dict() for s, c in self.conditioner.counts.items()},
+        )
 
 
 def calibration_window_ns(

@@ -1,9 +1,14 @@
 """Alarm episodes and what they mean: which sensor, which kind of fault, how big, and why.
 
-An **episode** is a run of alarms of one detector on one sensor type, merged across gaps of
-at most ``merge_gap`` quiet samples (a detector at its nominal false-alarm level flickers
-inside a fault; a gap that short is not a recovery). Its start and end are the first and
-last alarmed samples; the decision times are those of the status rows.
+An **episode** is a run of alarms of one detector on one sensor type. Alarms are merged
+across gaps of at most ``merge_gap`` quiet samples (0.1 s: a detector at its nominal
+false-alarm level flickers inside a fault; a gap that short is not a recovery), whatever
+they isolate. Such a run is then joined to the previous episode of the **same isolated
+sensor** when at most ``join_gap`` (1 s) separates them: a fault that a detector sees in
+fragments (noise growth, spikes) is one fault, and is explained over its whole span,
+quiet gaps included, instead of over the fragments where the statistic happened to be
+highest. Its start and end are the first and last alarmed samples; the decision times are
+those of the status rows.
 
 Explaining an episode works on the isolated sensor ``k`` alone, against the consensus of
 the others (leave-one-out least squares, :func:`leave_one_out`)::
@@ -13,15 +18,16 @@ the others (leave-one-out least squares, :func:`leave_one_out`)::
 so ``r`` is the sensor's own error, whatever the motion. Over an analysis window (the
 episode plus a margin before it) the fault models of ``imufdi inject`` are fitted to ``r``
 with an unknown onset ``tau`` (profile likelihood over every sample of the margin and the
-episode's first part):
+episode's first part) and, when the detector's alarms outlast the fault, an end
+(:func:`_fault_end`):
 
 ======  ==========================================  ==================================
 model   r(t) for t >= tau (before: N(0, sigma_r^2))  size (90 % interval)
 ======  ==========================================  ==================================
-step    a + e                                        amp: a_hat +- t s / sqrt(n)
+step    a + e                                        amp: t interval (:func:`_linear_fit`)
 drift   b (t - t_f) + e, t_f between two samples     rate: t interval of the LS slope
-noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: F(n, n_cal) interval
-scale   beta o(t) + e, o the consensus prediction    factor: 1 + beta_hat +- t se
+noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: F(n - 1, n_cal) interval
+scale   beta o(t) + e, o the consensus prediction    factor: 1 + beta_hat, t interval
 spikes  e + s A on a fraction p of samples           amp A (t interval), rate (Poisson)
 stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
 ======  ==========================================  ==================================
@@ -29,17 +35,21 @@ stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
 The models are ranked by BIC (Schwarz 1978): the Gaussian log-likelihood of the whole
 window minus half the number of free parameters times ln n. ``none`` (no fault: the
 residual is the calibrated noise throughout) is ranked with them, so an episode that no
-fault model explains better than chance is called a false alarm, with its evidence. ``stuck`` is not a Gaussian
-model (a frozen output has no noise at all): it is declared when the raw output repeats
-exactly on at least ``stuck_share`` of the samples after the onset (a healthy sensor always
-carries its own noise, so long exact repeats do not happen), and then ranks first.
+fault model explains better than chance is called a false alarm, with its evidence.
+``stuck`` is not a Gaussian model (a frozen output has no noise at all): it is declared
+when the raw output repeats exactly on at least ``stuck_share`` of the samples after the
+onset (a healthy sensor always carries its own noise, so long exact repeats do not
+happen), and then ranks first.
 
-The least-squares intervals (step, drift, scale) are t intervals whose noise variance is
-estimated from the fit's own residuals after the onset (s^2 = SSE / (n - k)), so outliers
-and a calibrated sigma that is off widen them; the noise factor's interval is F(n, n_cal)
-because sigma_k itself was estimated from n_cal calibration samples. Their coverage is
-measured in ``tests/test_episodes.py``, ``benchmarks/bench_episodes.py`` and
-docs/episodes.md.
+The least-squares sizes (step, drift, scale) are linear estimates ``w^T r``; their variance
+propagates the noise (estimated from the fit's own residuals, with their autocorrelation,
+Newey & West 1994), and the calibrated bias taken out of ``r`` (a constant estimated from
+n_cal samples). The other sensors, each against a consensus without ``k``, give the same
+estimate where there is no fault: when they spread significantly more than that variance
+says (chi-square test at 95 %), the interval is widened to their dispersion
+(:func:`_linear_fit`). The noise factor's interval is F(n - 1, n_cal) because sigma_k
+itself was estimated from n_cal calibration samples. Coverage is measured in
+``tests/test_episodes.py``, ``benchmarks/bench_episodes.py`` and docs/episodes.md.
 """
 
 from __future__ import annotations
@@ -98,6 +108,12 @@ class FaultFit:
     onset_index: int
     bic: float
     extra: dict[str, float] = field(default_factory=dict)
+    #: index in the analysis window where the fitted fault ends (exclusive; None: it lasts
+    #: to the window's end)
+    end_index: int | None = None
+    #: fitted mean and variance of the residual from the onset on (for the end search; not
+    #: serialised)
+    curve: tuple[np.ndarray, float] | None = field(default=None, repr=False, compare=False)
 
     @property
     def size_name(self) -> str:
@@ -112,6 +128,7 @@ class FaultFit:
                 "low": self.low,
                 "high": self.high,
                 "onset_index": self.onset_index,
+                "end_index": self.end_index,
                 "bic": self.bic,
                 "extra": dict(self.extra),
             }
@@ -196,13 +213,17 @@ def leave_one_out(
     return m[:, k] - prediction, prediction, consensus_sigma
 
 
-def _consensus_gain(H: np.ndarray, sigma: np.ndarray | float, k: int) -> tuple[np.ndarray, float]:
-    """(n,) weights of the prediction of sensor k from the others (0 for k itself), and the
-    prediction's standard deviation."""
+def _consensus_gain(
+    H: np.ndarray, sigma: np.ndarray | float, k: int, exclude: int | None = None
+) -> tuple[np.ndarray, float]:
+    """(n,) weights of the prediction of sensor k from the others (0 for k itself and for
+    ``exclude``), and the prediction's standard deviation."""
     H = check_measurement_matrix(H)
     n = H.shape[0]
     sigma_arr = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))
-    others = np.flatnonzero(np.arange(n) != k)
+    others = np.flatnonzero(
+        (np.arange(n) != k) & (np.arange(n) != (-1 if exclude is None else exclude))
+    )
     H_o = H[others]
     if np.linalg.matrix_rank(H_o) < 3:
         raise ValueError(f"sensor {k}: the other sensors do not span 3 axes")
@@ -214,26 +235,33 @@ def _consensus_gain(H: np.ndarray, sigma: np.ndarray | float, k: int) -> tuple[n
 # --- fitting the fault models -------------------------------------------------------------
 
 
+# Quantiles through scipy.special's inverse distribution functions (ufuncs: microseconds a
+# call, where scipy.stats' ppf checks its arguments for milliseconds, and every episode
+# length is a new degree of freedom); cached for the lengths that repeat.
+
+
 @functools.lru_cache(maxsize=4096)
 def _chi2_quantile(p: float, dof: int) -> float:
-    """Chi-square quantile (cached: episodes repeat the same few lengths)."""
-    from scipy.stats import chi2
+    """Chi-square quantile: ``chdtri`` inverts the upper tail."""
+    from scipy.special import chdtri
 
-    return float(chi2.ppf(p, dof))
+    return float(chdtri(dof, 1.0 - p))
 
 
 @functools.lru_cache(maxsize=4096)
 def _f_quantile(p: float, dof1: int, dof2: int) -> float:
-    from scipy.stats import f as f_distribution
+    """F(dof1, dof2) quantile."""
+    from scipy.special import fdtri
 
-    return float(f_distribution.ppf(p, dof1, dof2))
+    return float(fdtri(dof1, dof2, p))
 
 
 @functools.lru_cache(maxsize=4096)
 def _t_quantile(p: float, dof: int) -> float:
-    from scipy.stats import t as t_distribution
+    """Student t quantile."""
+    from scipy.special import stdtrit
 
-    return float(t_distribution.ppf(p, dof))
+    return float(stdtrit(dof, p))
 
 
 def _gaussian_nll(ss: Any, n: Any, var: Any) -> Any:
@@ -261,6 +289,7 @@ def fit_models(
     raw: np.ndarray | None = None,
     calibration_samples: int | None = None,
     offset_var: float | None = None,
+    reference: Reference | None = None,
 ) -> list[FaultFit]:
     """Fit every fault model to one sensor's residual over an analysis window.
 
@@ -288,8 +317,12 @@ def fit_models(
         Samples ``sigma_k`` was estimated from; the noise factor's interval then accounts
         for that estimate (F instead of chi-square).
     offset_var : float, optional
-        Variance of the bias taken out of the residual (its calibration estimate), added to
-        the step amplitude's interval.
+        Variance of the bias taken out of the residual (its calibration estimate); it is
+        propagated into the step, drift and scale intervals (:func:`_linear_fit`).
+    reference : Reference, optional
+        The other sensors' residuals over the same window: the same estimators applied to
+        them check the noise model, and widen the step, drift and scale intervals when the
+        healthy sensors spread significantly more than it predicts.
 
     Returns
     -------
@@ -299,6 +332,106 @@ def fit_models(
     r = np.asarray(residual, dtype=np.float64)
     o = np.asarray(prediction, dtype=np.float64)
     t = np.asarray(t_s, dtype=np.float64)
+    options: dict[str, Any] = {
+        "sigma_k": sigma_k,
+        "consensus_sigma": consensus_sigma,
+        "confidence": confidence,
+        "stuck_share": stuck_share,
+        "calibration_samples": calibration_samples,
+        "offset_var": offset_var,
+    }
+    raw_arr = r + o if raw is None else np.asarray(raw, dtype=np.float64)
+    fits = _fit_window(r, o, t, raw_arr, onset_range, reference, **options)
+    end = _fault_end(fits, r, sigma_k**2 + consensus_sigma**2)
+    if end is None:
+        return fits
+    for _ in range(2):  # the end found by the best model on the whole window, refined once
+        cut = _fit_window(
+            r[:end],
+            o[:end],
+            t[:end],
+            raw_arr[:end],
+            (onset_range[0], min(onset_range[1], end - 2)),
+            None,
+            **options,
+        )
+        refined = _fault_end(cut, r[:end], sigma_k**2 + consensus_sigma**2)
+        if refined is None or refined == end:
+            break
+        end = refined
+    # the fault ended before the window did (the detector's alarms outlast it): refit on
+    # the samples up to its end; the healthy tail adds the same to every model's -2 log L,
+    # and the end is one more parameter of each fault model
+    var0 = sigma_k**2 + consensus_sigma**2
+    tail = float(2 * _gaussian_nll(float(np.sum(r[end:] ** 2)), float(r.shape[0] - end), var0))
+    ln_n = math.log(r.shape[0])
+    reference_cut = (
+        None if reference is None else replace(reference, residuals=reference.residuals[:end])
+    )
+    cut = _fit_window(
+        r[:end],
+        o[:end],
+        t[:end],
+        raw_arr[:end],
+        (onset_range[0], min(onset_range[1], end - 2)),
+        reference_cut,
+        **options,
+    )
+    if not cut:
+        return fits
+    out = [
+        replace(f, bic=f.bic + tail + ln_n, end_index=end)
+        if f.model != "none"
+        else replace(f, bic=f.bic + tail)
+        for f in cut
+    ]
+    out.sort(key=lambda f: (f.bic, MODELS.index(f.model)))  # stuck (-inf) stays first
+    return out
+
+
+def _fault_end(fits: list[FaultFit], r: np.ndarray, var0: float) -> int | None:
+    """Where the fault ends, when it ends clearly before the window does: by the best
+    fitted model with a fitted curve (step, drift, noise, scale), the end maximises its
+    log-likelihood ratio against the calibrated noise summed from the onset to the end
+    (the samples after it are better explained as healthy). None when the best model is a
+    frozen output (stuck: the repeats say where it ends), no model has a curve, or the end
+    does not earn its BIC penalty."""
+    if fits and fits[0].model == "stuck":
+        return None
+    best = next((f for f in fits if f.curve is not None), None)
+    if best is None or best.curve is None or best.onset_index < 0:
+        return None
+    mean, variance = best.curve
+    segment = r[best.onset_index : best.onset_index + mean.shape[0]]
+    llr = -0.5 * ((segment - mean) ** 2 / variance + math.log(variance)) + 0.5 * (
+        segment**2 / var0 + math.log(var0)
+    )
+    cumulative = np.cumsum(llr)
+    j = int(np.argmax(cumulative))
+    end = best.onset_index + j + 1
+    # the end is one more parameter: it must earn its BIC penalty (ln n) in -2 log L
+    gain = 2 * float(cumulative[j] - cumulative[-1])
+    if end - best.onset_index < 4 or gain <= math.log(r.shape[0]):
+        return None
+    return end
+
+
+def _fit_window(
+    r: np.ndarray,
+    o: np.ndarray,
+    t: np.ndarray,
+    raw: np.ndarray,
+    onset_range: tuple[int, int],
+    reference: Reference | None,
+    *,
+    sigma_k: float,
+    consensus_sigma: float,
+    confidence: float,
+    stuck_share: float,
+    calibration_samples: int | None,
+    offset_var: float | None,
+) -> list[FaultFit]:
+    """:func:`fit_models` with every fault lasting to the window's end."""
     length = r.shape[0]
     lo, hi = max(0, int(onset_range[0])), min(length - 2, int(onset_range[1]))
     if length < 4 or hi <= lo:
@@ -325,41 +458,49 @@ def fit_models(
         j = int(np.argmin(total))
         return j, float(2 * total[j] + (k_params + 1) * ln_n)  # +1: the onset
 
+    linear: dict[str, Any] = {
+        "var0": var0,
+        "offset_var": offset_var or 0.0,
+        "confidence": confidence,
+        "reference": reference,
+    }
+
     # step: r = a + e
     a = s_r / n_after
     j, bic = best(_gaussian_nll(s_rr - n_after * a**2, n_after, var0), 1)
-    half = _half_width(
-        float(s_rr[j] - n_after[j] * a[j] ** 2),
-        int(n_after[j]),
-        1,
-        1.0 / n_after[j],
-        confidence,
-        extra_var=offset_var or 0.0,
-    )
-    fits.append(FaultFit("step", float(a[j]), float(a[j] - half), float(a[j] + half), lo + j, bic))
+    onset = lo + j
+    fits.append(_linear_fit("step", r[onset:], np.ones((length - onset, 1)), onset, bic, **linear))
 
     # drift: r = b (t - t_f) + e from an onset t_f between samples tau - 1 and tau, i.e.
     # r = b (u + lam) with u = t - t_tau and lam = t_tau - t_f in [0, dt]: the offset
     # lam is fitted per tau (interior least squares, else the better bound)
-    fits.extend(
-        _drift_fit(
-            t, taus, n_after, s_r, s_rr, s_t, s_tt, s_tr, nll_before, var0, confidence, ln_n, lo
-        )
-    )
+    drift = _drift_search(t, taus, n_after, s_r, s_rr, s_t, s_tt, s_tr, nll_before, var0, ln_n)
+    if drift is not None:
+        j, lam, bic = drift
+        onset = lo + j
+        u = t[onset:] - t[onset]
+        X = np.stack([u, np.ones_like(u)], axis=1) if lam is None else (u + lam)[:, None]
+        fits.append(_linear_fit("drift", r[onset:], X, onset, bic, **linear))
 
-    # noise: r ~ N(0, f^2 sigma_k^2 + sigma_c^2); variance fitted (bounded below by var0)
+    # noise: r ~ N(0, f^2 sigma_k^2 + sigma_c^2); variance fitted (bounded below by var0).
+    # The class is decided with a zero mean (a noise fault has none; a free mean would nest
+    # the step model). The factor is sized from the spread about the mean: a fault on a
+    # sensor of the consensus (another detector's, or one too small to alarm) shifts r,
+    # and that shift is not noise.
     var_hat = np.maximum(s_rr / n_after, var0)
     j, bic = best(_gaussian_nll(s_rr, n_after, var_hat), 1)
     fits.append(
         _noise_fit(
-            float(s_rr[j]),
+            float(max(s_rr[j] - n_after[j] * a[j] ** 2, 0.0)),
             int(n_after[j]),
+            float(a[j]),
             sigma_k,
             consensus_sigma,
             confidence,
             lo + j,
             bic,
             calibration_samples,
+            ranking_var=float(var_hat[j]),
         )
     )
 
@@ -367,23 +508,11 @@ def fit_models(
     with np.errstate(divide="ignore", invalid="ignore"):
         beta = np.where(s_oo > 0, s_or / s_oo, 0.0)
     j, bic = best(_gaussian_nll(s_rr - beta * s_or, n_after, var0), 1)
-    half = (
-        _half_width(
-            float(s_rr[j] - beta[j] * s_or[j]), int(n_after[j]), 1, 1.0 / s_oo[j], confidence
+    onset = lo + j
+    if s_oo[j] > 0:
+        fits.append(
+            _linear_fit("scale", r[onset:], o[onset:, None], onset, bic, shift=1.0, **linear)
         )
-        if s_oo[j] > 0
-        else math.inf
-    )
-    fits.append(
-        FaultFit(
-            "scale",
-            float(1 + beta[j]),
-            float(1 + beta[j] - half),
-            float(1 + beta[j] + half),
-            lo + j,
-            bic,
-        )
-    )
 
     # none: the residual is the sensor's calibrated noise over the whole window (a false
     # alarm of chance: no fault model earns its extra parameters)
@@ -395,13 +524,13 @@ def fit_models(
         fits.append(spikes)
     fits.sort(key=lambda f: (f.bic, MODELS.index(f.model)))
 
-    stuck = _stuck_fit(r + o if raw is None else np.asarray(raw), lo, hi, stuck_share)
+    stuck = _stuck_fit(raw, lo, hi, stuck_share)
     if stuck is not None:
         fits.insert(0, stuck)
     return fits
 
 
-def _drift_fit(
+def _drift_search(
     t: np.ndarray,
     taus: np.ndarray,
     n: np.ndarray,
@@ -412,13 +541,11 @@ def _drift_fit(
     s_tr: np.ndarray,
     nll_before: np.ndarray,
     var0: float,
-    confidence: float,
     ln_n: float,
-    lo: int,
-) -> list[FaultFit]:
-    """Ramp from an onset between two samples; the rate's interval from the fit's
-    least-squares variance (two parameters when the onset offset is interior, one at a
-    bound)."""
+) -> tuple[int, float | None, float] | None:
+    """Onset of a ramp starting between two samples, by profile likelihood: returns the
+    onset (index into ``taus``), the sub-sample offset ``lam`` (None: free, fitted as an
+    intercept) and the BIC; None when no onset fits."""
     dt = float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
     t0 = t[taus]
     s_u = s_t - n * t0
@@ -428,13 +555,11 @@ def _drift_fit(
     with np.errstate(divide="ignore", invalid="ignore"):
         b_free = (n * s_ur - s_u * s_r) / det
         lam_free = (s_r - b_free * s_u) / n / b_free
-    best: tuple[float, float, float, float, int, int] | None = None
+    best: tuple[float, int, float | None] | None = None
     for lam in (None, 0.0, dt):
         if lam is None:
             b = b_free
             sse = s_rr - (s_r - b * s_u) / n * s_r - b * s_ur
-            gain_inv = n / det
-            k_params = 2
             # a free offset is a sub-sample onset; at the window's first sample it may also
             # be a ramp already in progress (an episode that starts mid-fault, after an
             # earlier alarm episode of the same fault)
@@ -446,59 +571,167 @@ def _drift_fit(
             with np.errstate(divide="ignore", invalid="ignore"):
                 b = s_vr / s_vv
             sse = s_rr - b * s_vr
-            gain_inv = 1.0 / s_vv
-            k_params = 1
             valid = s_vv > 0
         total = np.where(valid, nll_before + _gaussian_nll(sse, n, var0), np.inf)
         j = int(np.argmin(total))
         if np.isfinite(total[j]) and (best is None or total[j] < best[0]):
-            best = (float(total[j]), float(b[j]), float(sse[j]), float(gain_inv[j]), k_params, j)
+            best = (float(total[j]), j, lam)
     if best is None:
-        return []
-    total_nll, rate, sse_j, gain_j, k_params, j = best
-    half = _half_width(sse_j, int(n[j]), k_params, gain_j, confidence)
-    bic = 2 * total_nll + 3 * ln_n  # rate, offset, onset
-    return [FaultFit("drift", rate, rate - half, rate + half, lo + j, bic)]
+        return None
+    total_nll, j, lam = best
+    return j, lam, 2 * total_nll + 3 * ln_n  # rate, offset, onset
 
 
-def _half_width(
-    sse: float, n: int, k: int, gain_inv: float, confidence: float, extra_var: float = 0.0
-) -> float:
-    """Half width of a least-squares coefficient's t interval, with the noise variance
-    estimated from the fit's own residuals after the onset (``sse / (n - k)``): outliers and
-    an imprecise calibrated sigma widen it, as they should."""
-    dof = n - k
-    if dof < 1 or not math.isfinite(gain_inv):
-        return math.inf
-    variance = max(sse, 0.0) / dof * gain_inv + extra_var
-    return _t_quantile(0.5 + confidence / 2, dof) * math.sqrt(variance)
+@dataclass(frozen=True)
+class Reference:
+    """The other sensors over an episode's window: what the estimators give on sensors
+    that are not faulty (:meth:`EpisodeBuilder` builds it).
+
+    Attributes
+    ----------
+    residuals : ndarray, shape (L, m)
+        Residual of each of m other sensors against the consensus of the sensors other than
+        itself and the isolated one (a fault on the isolated sensor does not leak into
+        them), with its calibrated bias taken out; SI.
+    variance : ndarray, shape (m,)
+        White-noise variance of each residual, sigma_j^2 + consensus variance (SI^2).
+    offset_var : ndarray, shape (m,)
+        Variance of the calibrated bias taken out of each (SI^2; zeros when none was).
+    """
+
+    residuals: np.ndarray
+    variance: np.ndarray
+    offset_var: np.ndarray
+
+
+#: level of the test that the healthy sensors spread more than the noise model says
+DISPERSION_LEVEL = 0.95
+
+
+def _linear_fit(
+    model: str,
+    y: np.ndarray,
+    X: np.ndarray,
+    onset: int,
+    bic: float,
+    *,
+    var0: float,
+    offset_var: float,
+    confidence: float,
+    reference: Reference | None,
+    shift: float = 0.0,
+) -> FaultFit:
+    """Least squares ``y = X c + e`` after the onset; the size is ``c[0] + shift``.
+
+    The size is a linear estimate ``c0 = w^T y`` (w the first row of ``X^+``), and its
+    variance is propagated from everything ``y`` carries:
+
+    * the noise, ``s^2 sum_i sum_j w_i w_j rho_|i-j|``: s^2 = SSE / (n - p) from the fit's
+      own residuals (outliers and a calibrated sigma that is off are in it) and rho their
+      autocorrelation, Bartlett-weighted up to the Newey & West (1994) lag
+      ``floor(4 (n/100)^(2/9))`` (:func:`_autocorrelation_factor`): coloured noise has
+      fewer independent samples than it has samples;
+    * the calibrated bias taken out of ``y`` (a constant with variance ``offset_var``):
+      ``offset_var (sum_i w_i)^2`` (1 for a step, 0 when X has an intercept).
+
+    With a ``reference``, the same ``w`` is applied to the m other sensors' residuals over
+    the same samples. Under the white-noise model ``Q = sum_j est_j^2 / v_j`` (v_j their
+    predicted variance, as above with their calibrated sigma) is chi-square with m degrees
+    of freedom. Only when Q exceeds its ``DISPERSION_LEVEL`` quantile (the healthy sensors
+    spread significantly more than white noise explains: bias wander since calibration,
+    unmodelled motion) is the variance raised to ``Q / m`` times the white-noise variance of
+    this sensor's estimate, with a t quantile on m degrees of freedom (a quasi-likelihood
+    dispersion estimate, McCullagh & Nelder 1989 §4.5). The interval is the t interval
+    ``c0 +- t_{(1 + confidence)/2} sqrt(var)``.
+    """
+    n, p = X.shape
+    gram = X.T @ X  # p <= 2 columns: the normal equations are well within precision
+    if not np.all(np.isfinite(gram)) or abs(float(np.linalg.det(gram))) <= 1e-300:
+        return FaultFit(model, math.nan, -math.inf, math.inf, onset, bic)
+    weights = np.linalg.solve(gram, X.T)  # (p, n): coef = weights @ y
+    coef = weights @ y
+    w = weights[0]
+    size = float(coef[0]) + shift
+    dof = n - p
+    if dof < 1:
+        return FaultFit(model, size, -math.inf, math.inf, onset, bic)
+    e = y - X @ coef
+    sw2, sw = float(w @ w), float(np.sum(w))
+    s2 = float(e @ e) / dof
+    variance = s2 * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
+    quantile = _t_quantile(0.5 + confidence / 2, dof)
+    extra: dict[str, float] = {}
+    if reference is not None and reference.residuals.shape[1] >= 2:
+        estimates = w @ reference.residuals[-n:]
+        predicted = reference.variance * sw2 + reference.offset_var * sw**2
+        m = estimates.shape[0]
+        q = float(np.sum(estimates**2 / predicted))
+        dispersion = q / m
+        extra["dispersion"] = dispersion
+        if q > _chi2_quantile(DISPERSION_LEVEL, m):
+            white = dispersion * (var0 * sw2 + offset_var * sw**2)
+            if white > variance:
+                variance, quantile = white, _t_quantile(0.5 + confidence / 2, m)
+    half = quantile * math.sqrt(max(variance, 0.0))
+    return FaultFit(
+        model, size, size - half, size + half, onset, bic, extra, curve=(X @ coef, var0)
+    )
+
+
+def _autocorrelation_factor(e: np.ndarray, w: np.ndarray) -> float:
+    """``Var(w^T e) / (s^2 w^T w)`` for a stationary e: ``1 + 2 sum_k kappa_k rho_k
+    sum_i w_i w_{i+k} / w^T w`` with the sample autocorrelation rho_k of ``e`` and Bartlett
+    weights ``kappa_k = 1 - k / (L + 1)`` up to ``L = floor(4 (n/100)^(2/9))`` (Newey &
+    West 1994), which keep it non-negative; 1 for white noise (up to its sampling error,
+    about ``2 sqrt(L / 3 n)``). Floored at 0.1."""
+    n = e.shape[0]
+    lags = min(n - 2, int(4 * (n / 100) ** (2 / 9)))
+    e0 = e - e.mean()
+    c0 = float(e0 @ e0)
+    sw2 = float(w @ w)
+    if lags < 1 or c0 <= 0 or sw2 <= 0:
+        return 1.0
+    total = 1.0
+    for k in range(1, lags + 1):
+        rho = float(e0[:-k] @ e0[k:]) / c0
+        total += 2 * (1 - k / (lags + 1)) * rho * float(w[:-k] @ w[k:]) / sw2
+    return max(total, 0.1)
 
 
 def _noise_fit(
     ss: float,
     n: int,
+    mean: float,
     sigma_k: float,
     consensus_sigma: float,
     confidence: float,
     onset: int,
     bic: float,
     calibration_samples: int | None = None,
+    ranking_var: float | None = None,
 ) -> FaultFit:
-    """Noise factor f with Var r = f^2 sigma_k^2 + sigma_c^2; chi-square interval on Var r."""
+    """Noise factor f with Var r = f^2 sigma_k^2 + sigma_c^2 from the sum of squares ``ss``
+    of n residuals about their mean: ss / Var r is chi-square with n - 1 degrees of freedom,
+    and with sigma_k estimated from ``calibration_samples`` the variance ratio is F(n - 1,
+    n_cal) distributed; the interval is that of Var r mapped through f."""
 
     def factor(var: float) -> float:
         return math.sqrt(max(var - consensus_sigma**2, 0.0)) / sigma_k
 
     tail = (1 - confidence) / 2
-    var_hat = ss / n
+    dof = max(n - 1, 1)
+    var_hat = ss / dof
     if calibration_samples:
-        # sigma_k was estimated too: the variance ratio is F(n, n_cal) distributed
-        low = factor(var_hat / _f_quantile(1 - tail, n, calibration_samples))
-        high = factor(var_hat / _f_quantile(tail, n, calibration_samples))
+        low = factor(var_hat / _f_quantile(1 - tail, dof, calibration_samples))
+        high = factor(var_hat / _f_quantile(tail, dof, calibration_samples))
     else:
-        low = factor(ss / _chi2_quantile(1 - tail, n))
-        high = factor(ss / _chi2_quantile(tail, n))
-    return FaultFit("noise", factor(var_hat), low, high, onset, bic)
+        low = factor(ss / _chi2_quantile(1 - tail, dof))
+        high = factor(ss / _chi2_quantile(tail, dof))
+    # the model the class was ranked with: zero mean, variance ranking_var
+    var0 = sigma_k**2 + consensus_sigma**2
+    curve = (np.zeros(n), max(var0, ranking_var if ranking_var is not None else ss / n))
+    extra = {"mean": mean}
+    return FaultFit("noise", factor(var_hat), low, high, onset, bic, extra, curve=curve)
 
 
 def _spike_fit(
@@ -590,6 +823,7 @@ class Episode:
     fits: list[FaultFit] = field(default_factory=list)
     isolated_by: str = "detector"
     invalid_samples: int = 0
+    fragments: int = 1
 
     @property
     def duration_s(self) -> float:
@@ -652,9 +886,11 @@ class EpisodeBuilder:
         :func:`imufdi_cli.detectors.parity.residual_sigma` on the calibration window.
     rate_hz : float
         Nominal sample rate.
-    merge_gap_s, margin_s, max_window_s : float
-        Quiet time that does not end an episode; analysis margin before the first alarm
-        (onset candidates); longest stretch of an episode kept for the fit.
+    merge_gap_s, join_gap_s, margin_s, max_window_s : float
+        Quiet time that does not end an episode; longer quiet time (at least
+        ``merge_gap_s``) across which an alarm run that isolates the same sensor as the
+        episode is joined to it as a fragment of the same fault; analysis margin before the
+        first alarm (onset candidates); longest stretch of an episode kept for the fit.
     confidence : float
         Level of the size intervals.
     explain : bool
@@ -677,6 +913,7 @@ class EpisodeBuilder:
         rate_hz: float,
         *,
         merge_gap_s: float = 0.1,
+        join_gap_s: float = 1.0,
         margin_s: float = 2.0,
         max_window_s: float = 30.0,
         confidence: float = 0.9,
@@ -690,6 +927,7 @@ class EpisodeBuilder:
         self.sensor_ids = list(sensor_ids)
         self.sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (self.H.shape[0],))
         self.merge_gap = max(0, round(merge_gap_s * rate_hz))
+        self.join_gap = max(self.merge_gap, round(join_gap_s * rate_hz))
         self.margin = max(2, round(margin_s * rate_hz))
         self.max_window = max(4, round(max_window_s * rate_hz))
         self.confidence = confidence
@@ -702,6 +940,7 @@ class EpisodeBuilder:
         self._arguments = (sensor_type, H, sensor_ids, sigma, rate_hz)
         self._options: dict[str, Any] = {
             "merge_gap_s": merge_gap_s,
+            "join_gap_s": join_gap_s,
             "margin_s": margin_s,
             "max_window_s": max_window_s,
             "confidence": confidence,
@@ -710,10 +949,13 @@ class EpisodeBuilder:
             "calibration_mean": calibration_mean,
         }
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
+        self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
         self._history_t: np.ndarray = np.zeros(0, np.int64)
-        self._open: dict[str, Any] | None = None
+        self._open: dict[str, Any] | None = None  # the alarm run under way
+        self._waiting: dict[int, dict[str, Any]] = {}  # sensor -> episode awaiting fragments
+        self._pos = 0
 
     # measurements arrive with the input blocks, rows when the detector emits them
     def feed(self, measurements: np.ndarray) -> None:
@@ -735,21 +977,24 @@ class EpisodeBuilder:
 
     def rows(self, t_ns: np.ndarray, decided_ns: np.ndarray, out: Any) -> list[Episode]:
         """Status rows (a DetectionBlock ``out`` with sample and decision times, in order);
-        returns the episodes that closed within them."""
+        returns the episodes that closed within them (ordered by their decision time)."""
         n = len(t_ns)
         t_ns = np.asarray(t_ns, dtype=np.int64)
         m = self._take(n)
         alarm = np.asarray(out.alarm, dtype=bool)
+        isolated_rows = np.asarray(out.isolated)
         idx = np.flatnonzero(alarm)
         groups = np.split(idx, np.flatnonzero(np.diff(idx) - 1 > self.merge_gap) + 1)
         closed: list[Episode] = []
-        pos = 0  # next row of this block not yet in the open episode's window
+        self._pos = 0  # next row of this block not yet appended to the open states
         for group in groups if idx.size else []:
             first, last = int(group[0]), int(group[-1])
+            self._advance(m, t_ns, first, closed)
             state = self._open
-            if state is None or state["quiet"] + first > self.merge_gap:
-                if state is not None:
-                    closed.append(self._close(state))
+            if state is not None and state["quiet"] > self.merge_gap:
+                self._run_closed(state, closed)
+                state = self._open = None
+            if state is None:
                 history = np.concatenate([self._history, m[:first]])[-self.margin :]
                 history_t = np.concatenate([self._history_t, t_ns[:first]])[-self.margin :]
                 state = self._open = {
@@ -761,31 +1006,96 @@ class EpisodeBuilder:
                     "alarm_index": history.shape[0],
                     "alarms": 0,
                     "isolated": [],
+                    "counts": np.zeros(len(self.sensor_ids), np.int64),
+                    "fragments": 1,
                     "peak": -math.inf,
+                    "quiet": 0,
+                    # episodes this run may still join: they wait until it has ended
+                    "may_join": set(self._waiting),
                 }
-                pos = first
-            self._append(state, m, t_ns, pos, last + 1)
-            pos = last + 1
+            self._advance(m, t_ns, last + 1, closed, alarmed=True)
+            group_isolated = isolated_rows[group]
             state["end_ns"] = int(t_ns[last])
             state["decided_end_ns"] = int(decided_ns[last])
             state["quiet"] = 0
             state["alarms"] += int(group.size)
-            state["isolated"].append(np.asarray(out.isolated)[group])
+            state["isolated"].append(group_isolated)
+            valid = group_isolated[(group_isolated >= 0) & (group_isolated < len(self.sensor_ids))]
+            state["counts"] += np.bincount(valid, minlength=len(self.sensor_ids))
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio = np.asarray(out.statistic)[group] / np.asarray(out.threshold)[group]
             ratio = ratio[np.isfinite(ratio)]
             if ratio.size:
                 state["peak"] = max(state["peak"], float(ratio.max()))
+        self._advance(m, t_ns, n, closed)
         state = self._open
-        if state is not None:
-            self._append(state, m, t_ns, pos, n)
-            state["quiet"] += n - pos
-            if state["quiet"] > self.merge_gap:
-                closed.append(self._close(state))
-                self._open = None
+        if state is not None and state["quiet"] > self.merge_gap:
+            self._run_closed(state, closed)
+            self._open = None
         self._history = np.concatenate([self._history, m])[-self.margin :]
         self._history_t = np.concatenate([self._history_t, t_ns])[-self.margin :]
+        closed.sort(key=lambda e: e.decided_end_ns)
         return closed
+
+    def _advance(
+        self,
+        m: np.ndarray,
+        t_ns: np.ndarray,
+        stop: int,
+        closed: list[Episode],
+        alarmed: bool = False,
+    ) -> None:
+        """Append rows ``[pos, stop)`` of the block to the open run and to every episode
+        waiting for a fragment; count them as quiet (unless they are the open run's
+        alarms); explain the waiting episodes that have waited ``join_gap`` in vain."""
+        lo = self._pos
+        if stop <= lo:
+            return
+        self._pos = stop
+        if self._open is not None:
+            self._append(self._open, m, t_ns, lo, stop)
+            if not alarmed:
+                self._open["quiet"] += stop - lo
+        held = set() if self._open is None else self._open["may_join"]
+        for sensor, waiting in list(self._waiting.items()):
+            self._append(waiting, m, t_ns, lo, stop)
+            waiting["quiet"] += stop - lo
+            if sensor not in held:
+                self._expire(sensor, closed)
+
+    def _expire(self, sensor: int, closed: list[Episode]) -> None:
+        """Explain the episode waiting on ``sensor`` if it has waited ``join_gap`` in vain."""
+        waiting = self._waiting[sensor]
+        if waiting["quiet"] > self.join_gap:
+            del self._waiting[sensor]
+            closed.append(self._close(waiting))
+
+    def _run_closed(self, run: dict[str, Any], closed: list[Episode]) -> None:
+        """An alarm run has ended (``merge_gap`` quiet rows follow it). With an isolated
+        sensor it joins that sensor's waiting episode when one ended at most ``join_gap``
+        rows before it (the waiting episode already holds every row since), or starts to
+        wait itself; without one it is explained at once."""
+        if not run["counts"].any():
+            closed.append(self._close(run))
+            for other in list(self._waiting):  # no longer held by this run
+                self._expire(other, closed)
+            return
+        sensor = int(np.argmax(run["counts"]))
+        waiting = self._waiting.get(sensor)
+        if waiting is not None:
+            # the rows of the run, and its quiet rows since, are in the waiting window
+            waiting["end_ns"] = run["end_ns"]
+            waiting["decided_end_ns"] = run["decided_end_ns"]
+            waiting["quiet"] = run["quiet"]
+            waiting["alarms"] += run["alarms"]
+            waiting["isolated"].extend(run["isolated"])
+            waiting["counts"] += run["counts"]
+            waiting["fragments"] += run["fragments"]
+            waiting["peak"] = max(waiting["peak"], run["peak"])
+        else:
+            self._waiting[sensor] = run
+        for other in list(self._waiting):  # no longer held by this run
+            self._expire(other, closed)
 
     def _append(
         self, state: dict[str, Any], m: np.ndarray, t_ns: np.ndarray, lo: int, hi: int
@@ -797,11 +1107,16 @@ class EpisodeBuilder:
             state["kept"] += hi - lo
 
     def finish(self) -> list[Episode]:
-        """The episode still open at the end of the log, explained."""
-        if self._open is None:
-            return []
-        state, self._open = self._open, None
-        return [self._close(state)]
+        """The episodes still open or waiting at the end of the log, explained."""
+        closed: list[Episode] = []
+        if self._open is not None:
+            self._run_closed(self._open, closed)
+            self._open = None
+        for waiting in self._waiting.values():
+            closed.append(self._close(waiting))
+        self._waiting.clear()
+        closed.sort(key=lambda e: e.decided_end_ns)
+        return closed
 
     def _close(self, state: dict[str, Any]) -> Episode:
         window = np.concatenate(state["window"])
@@ -823,6 +1138,7 @@ class EpisodeBuilder:
             peak_ratio=state["peak"],
             runner_up=runner_up,
             runner_up_share=share,
+            fragments=state["fragments"],
         )
         if not self.explain or window.shape[0] < 4:
             return episode
@@ -858,57 +1174,82 @@ class EpisodeBuilder:
             raw=window[:, k],
             calibration_samples=self.calibration_samples,
             offset_var=offset_var,
+            reference=self._reference(k, window),
         )
-        episode.fits = [self._widen_by_array(f, window, t_s, k) for f in episode.fits]
         return episode
 
-    def _widen_by_array(
-        self, fit: FaultFit, window: np.ndarray, t_s: np.ndarray, k: int
-    ) -> FaultFit:
-        """A step's amplitude or a drift's rate, estimated the same way on every other
-        sensor over the same samples, spreads by what healthy sensors do on their own
-        (white noise, but also bias wander that the white-noise interval ignores). The
-        interval is widened to at least that spread (robust: 1.4826 MAD over the others,
-        t quantile with their count), so it holds whatever the noise's colour."""
-        if fit.model not in ("step", "drift") or fit.onset_index < 0:
-            return fit
-        others = [j for j in range(self.H.shape[0]) if j != k]
-        if len(others) < 3:
-            return fit
-        onset = fit.onset_index
-        residuals = np.empty((window.shape[0] - onset, len(others)))
-        for column, j in enumerate(others):
-            try:
-                gain, _ = self._gain(j)
-            except ValueError:
-                return fit
-            r = window[onset:, j] - window[onset:] @ gain
-            if self.calibration_mean is not None:
-                r = r - (self.calibration_mean[j] - self.calibration_mean @ gain)
-            residuals[:, column] = r
-        if fit.model == "step":
-            estimates = residuals.mean(axis=0)
-        else:
-            u = t_s[onset:] - t_s[onset]
-            denominator = float(u @ u)
-            if denominator <= 0:
-                return fit
-            estimates = u @ residuals / denominator
-        spread = 1.4826 * float(np.median(np.abs(estimates - np.median(estimates))))
-        half = _t_quantile(0.5 + self.confidence / 2, len(others) - 1) * spread
-        if half <= (fit.high - fit.low) / 2:
-            return fit
-        return replace(fit, low=fit.size - half, high=fit.size + half)
+    def _reference(self, k: int, window: np.ndarray) -> Reference | None:
+        """The other sensors' residuals over ``window`` (:class:`Reference`), each against
+        the consensus of the sensors other than itself and ``k``."""
+        if k not in self._references:
+            self._references[k] = self._reference_matrix(k)
+        cached = self._references[k]
+        if cached is None:
+            return None
+        A, offset, variance, offset_var = cached
+        return Reference(window @ A - offset, variance, offset_var)
+
+    def _reference_matrix(
+        self, k: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """``A`` (n, m) with ``window @ A`` the residuals of the m sensors j != k whose
+        leave-two-out consensus exists, their calibrated offsets, white variances and
+        offset variances. All m consensuses at once from the information matrix
+        ``M = H^T W H`` by downdating: ``M_{-jk} = M - h_k h_k^T / s_k^2 - h_j h_j^T / s_j^2``,
+        gain ``g_{j,i} = h_j^T M_{-jk}^{-1} h_i / s_i^2`` (i not j, k) and consensus
+        variance ``h_j^T M_{-jk}^{-1} h_j``."""
+        H, sigma = self.H, np.asarray(self.sigma, dtype=np.float64)
+        n = H.shape[0]
+        weights = 1.0 / sigma**2
+        outer = np.einsum("ia,ib->iab", H, H) * weights[:, None, None]
+        others = np.flatnonzero(np.arange(n) != k)
+        M = outer.sum(axis=0) - outer[k] - outer[others]  # (m, 3, 3)
+        eig = np.linalg.eigvalsh(M)
+        scale = float(np.max(np.linalg.eigvalsh(outer.sum(axis=0))))
+        spans = eig[:, 0] > 1e-9 * scale
+        others, M = others[spans], M[spans]
+        if others.size < 2:
+            return None
+        solved = np.linalg.solve(M, H[others][:, :, None])[:, :, 0]  # M^-1 h_j, (m, 3)
+        gains = (H @ solved.T) * weights[:, None]  # (n, m): g_{j,i} in column j
+        gains[k] = 0.0
+        gains[others, np.arange(others.size)] = 0.0
+        consensus_var = np.einsum("ma,ma->m", H[others], solved)
+        A = -gains
+        A[others, np.arange(others.size)] += 1.0
+        variance = sigma[others] ** 2 + consensus_var
+        offset = np.zeros(others.size)
+        offset_var = np.zeros(others.size)
+        if self.calibration_mean is not None:
+            offset = self.calibration_mean @ A
+            if self.calibration_samples:
+                offset_var = variance / self.calibration_samples
+        return A, offset, variance, offset_var
 
     def _gain(self, k: int) -> tuple[np.ndarray, float]:
+        """:func:`_consensus_gain` of sensor k, from the information matrix downdated by k's
+        own term (cached; one 3x3 solve instead of a pseudo-inverse)."""
         found = self._gains.get(k)
         if found is None:
-            found = self._gains[k] = _consensus_gain(self.H, self.sigma, k)
+            H, sigma = self.H, np.asarray(self.sigma, dtype=np.float64)
+            weights = 1.0 / sigma**2
+            M = (H.T * weights) @ H
+            M_k = M - np.outer(H[k], H[k]) * weights[k]
+            if float(np.linalg.eigvalsh(M_k)[0]) <= 1e-9 * float(np.linalg.eigvalsh(M)[-1]):
+                raise ValueError(f"sensor {k}: the other sensors do not span 3 axes")
+            solved = np.linalg.solve(M_k, H[k])
+            gain = (H @ solved) * weights
+            gain[k] = 0.0
+            found = self._gains[k] = (gain, float(np.sqrt(H[k] @ solved)))
         return found
 
     def for_detector(self, detector: str) -> EpisodeBuilder:
-        """A fresh builder with the same calibration, for another detector."""
-        return EpisodeBuilder(detector, *self._arguments, **self._options)
+        """A fresh builder with the same calibration, for another detector (it shares the
+        consensus gains, which depend only on the calibration)."""
+        builder = EpisodeBuilder(detector, *self._arguments, **self._options)
+        builder._gains = self._gains
+        builder._references = self._references
+        return builder
 
     def _loudest(self, window: np.ndarray) -> int:
         """For detectors that do not isolate: the sensor with the largest normalised

@@ -546,6 +546,9 @@ class _EpisodeCollector:
         return rel >= start_s and (end_s is None or rel < end_s)
 
     def scores(self, hours: dict[tuple[str, str], float]) -> dict[str, dict[str, Any]]:
+        if self.pending:  # read before their channel's first status row: windowed now
+            pending, self.pending = self.pending, []
+            self._take(pending)
         if self.pending:  # channels without status rows: no origin, nothing to window
             self.window, pending, self.pending = None, self.pending, []
             self._take(pending)

@@ -11,7 +11,7 @@ from numpy.testing import assert_array_equal
 
 from imufdi_cli.detect import calibration_window_ns, decision_positions, detect_file
 from imufdi_cli.detectors import DETECTORS
-from imufdi_cli.detectors.base import DetectionBlock
+from imufdi_cli.detectors.base import DetectionBlock, DetectorBase
 from imufdi_cli.mcapio import McapSource, read_status
 
 
@@ -29,7 +29,7 @@ def test_calibration_window_ns():
     assert calibration_window_ns(10**9, 5 * 10**9, 0.0, None) == [10**9, 5 * 10**9 + 1]
 
 
-class HoldBack:
+class HoldBack(DetectorBase):
     """Test detector: holds every sample back ``lookahead_samples`` samples; statistic =
     sample index, so rows can be matched to samples."""
 
@@ -96,3 +96,72 @@ def test_rows_carry_decision_times(sim_log, tmp_path, monkeypatch):
     assert record["lookahead_samples"] == 0
     inside = (glt.t_ns >= t0) & (glt.t_ns < t0 + 10**9)
     assert record["calibration_samples"] == int(np.count_nonzero(inside))
+
+
+def _chunk_contents(path) -> list[bytes]:
+    """Contents of the Chunk records of an MCAP file, in file order."""
+    import struct
+
+    raw = path.read_bytes()
+    out = []
+    position = 8
+    while position + 9 <= len(raw):
+        opcode, length = struct.unpack_from("<BQ", raw, position)
+        if opcode == 0x06:
+            out.append(raw[position + 9 : position + 9 + length])
+        if opcode == 0x0F:
+            break
+        position += 9 + length
+    return out
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_whole_input_chunks_are_copied_verbatim(tmp_path, compression):
+    """Input chunks of exactly one batch are written as they are (no recompression); the
+    others, and the new channels, go through the writer; every message is kept."""
+    from mcap.reader import make_reader
+
+    from imufdi_cli.mcapio import write_array
+    from imufdi_cli.simulate import config_from_options, simulate_block
+
+    path = tmp_path / "in.mcap"
+    array, block = simulate_block(config_from_options("paper-table4", seed=5, duration="8s"))
+    write_array(str(path), array, block, compression=compression)
+    out = tmp_path / "out.mcap"
+    detect_file(str(path), str(out), [("glt", {})], compression=compression)
+    before = _chunk_contents(path)
+    after = set(_chunk_contents(out))
+    copied = [c for c in before if c in after]
+    # 8 s of 16 IMUs: 12,800 messages of 355 bytes in ~1 MiB chunks; all but the last
+    # (short) one are whole batches
+    assert len(before) >= 4
+    assert len(copied) >= len(before) - 1
+
+    def messages(p):
+        with open(p, "rb") as stream:
+            reader = make_reader(stream, validate_crcs=True)
+            return sorted(
+                (c.topic, m.log_time, m.sequence, m.data)
+                for _, c, m in reader.iter_messages(log_time_order=True)
+            )
+
+    ours = messages(out)
+    assert [m for m in ours if not m[0].startswith("/imufdi")] == messages(path)
+    with McapSource(out) as src:
+        counts = src.summary_channel_counts
+        assert counts is not None and sum(counts.values()) == len(ours)
+        assert sum(len(b) for b in src.batches()) == len(ours)
+        assert not src.warnings
+
+
+def test_recompressed_when_the_compression_differs(tmp_path):
+    from imufdi_cli.mcapio import write_array
+    from imufdi_cli.simulate import config_from_options, simulate_block
+
+    path = tmp_path / "in.mcap"
+    array, block = simulate_block(config_from_options("paper-table4", seed=5, duration="4s"))
+    write_array(str(path), array, block, compression="zstd")
+    out = tmp_path / "out.mcap"
+    detect_file(str(path), str(out), [("glt", {})], compression="lz4")
+    assert not set(_chunk_contents(path)) & set(_chunk_contents(out))
+    assert all(b"lz4" in c[:40] for c in _chunk_contents(out))

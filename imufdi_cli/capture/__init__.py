@@ -21,10 +21,8 @@ from imufdi_cli.capture.layout import (
     HeaderField,
     Layout,
     RecordField,
-    layout_from_dict,
-    load_layout,
-    mpu6500_array,
 )
+from imufdi_cli.capture.layouts import layout_from_dict, load_layout, mpu6500_array
 from imufdi_cli.capture.parse import DEFAULT_CHUNK_SIZE, ingest, parse_capture
 from imufdi_cli.capture.stats import IngestStats
 

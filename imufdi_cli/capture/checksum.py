@@ -2,8 +2,10 @@
 
 Every function takes ``data`` of shape (F, L), uint8 (F frames, the L covered bytes of
 each) and returns one checksum per frame, shape (F,), as uint32. Table-driven CRCs loop
-over the L byte columns only; each step is one numpy operation over all F frames, so the
-cost per byte is a few vector operations, never a Python call.
+over the columns only (CRC-16 two bytes per step, "slicing by two"); each step is a couple
+of numpy operations over all F frames, never a Python call per byte. CRC-32 runs zlib's C
+implementation once per frame (one Python call per frame, about 5x fewer CPU cycles than
+the column loop for frames of a few hundred bytes).
 
 Definitions (the "catalogue of parametrised CRC algorithms", R. Williams 1993, and the
 reveng catalogue):
@@ -19,6 +21,7 @@ reveng catalogue):
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Callable
 from typing import Final
 
@@ -55,23 +58,21 @@ def _crc16_ccitt_table() -> np.ndarray:
     return table
 
 
-def _crc32_table() -> np.ndarray:
-    table = np.zeros(256, dtype=np.uint32)
-    for byte in range(256):
-        crc = byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xEDB88320 if crc & 1 else crc >> 1
-        table[byte] = crc
-    return table
+def _crc16_pair_table(table: np.ndarray) -> np.ndarray:
+    """``T2[x]``: the CRC-16 register after two zero bytes starting from register ``x``.
+
+    With ``Z(x) = ((x << 8) & 0xFF00) ^ T[x >> 8]`` (one zero byte), one data byte ``b``
+    maps the register ``c`` to ``Z(c ^ (b << 8))``, and ``Z(x) ^ (b << 8) = Z(x ^ b)`` for
+    ``b < 256``; so two bytes ``b0, b1`` map ``c`` to ``Z(Z(c ^ (b0 << 8 | b1)))``.
+    """
+    x = np.arange(1 << 16, dtype=np.uint32)
+    for _ in range(2):
+        x = ((x << 8) & 0xFF00) ^ table[x >> 8]
+    return x.astype(np.uint16)
 
 
 _CRC16_TABLE: Final[np.ndarray] = _crc16_ccitt_table()
-_CRC32_TABLE: Final[np.ndarray] = _crc32_table()
-
-
-def _columns(data: np.ndarray) -> np.ndarray:
-    """(L, F) contiguous copy, so each byte column is one contiguous vector."""
-    return np.ascontiguousarray(np.asarray(data, dtype=np.uint8).T)
+_CRC16_PAIR_TABLE: Final[np.ndarray] = _crc16_pair_table(_CRC16_TABLE)
 
 
 def sum8(data: np.ndarray) -> np.ndarray:
@@ -95,36 +96,41 @@ def xor8(data: np.ndarray) -> np.ndarray:
 def crc16_ccitt_false(data: np.ndarray) -> np.ndarray:
     """CRC-16/CCITT-FALSE of each row of ``data`` (F, L) -> (F,) uint32 (16-bit values).
 
-    Table-driven, most significant bit first:
-    ``crc = (crc << 8) ^ T[(crc >> 8) ^ byte]``, init 0xFFFF.
+    Table-driven, most significant bit first, init 0xFFFF, two bytes per step:
+    ``crc = T2[crc ^ (b0 << 8 | b1)]`` (:func:`_crc16_pair_table`); an odd last byte
+    takes the one-byte step ``crc = (crc << 8) ^ T[(crc >> 8) ^ byte]``.
     """
-    columns = _columns(data)
-    crc = np.full(columns.shape[1], 0xFFFF, dtype=np.uint32)
-    index = np.empty_like(crc)
-    for column in columns:
-        np.right_shift(crc, 8, out=index)
-        np.bitwise_xor(index, column, out=index)
-        np.left_shift(crc, 8, out=crc)
-        np.bitwise_and(crc, 0xFF00, out=crc)
-        np.bitwise_xor(crc, _CRC16_TABLE[index], out=crc)
-    return crc
+    data = np.asarray(data, dtype=np.uint8)
+    n_frames, length = data.shape
+    crc = np.full(n_frames, 0xFFFF, dtype=np.uint16)
+    pairs = length // 2
+    if pairs:
+        words = np.ascontiguousarray(data[:, : 2 * pairs]).view(">u2").astype(np.uint16)
+        for column in np.ascontiguousarray(words.T):
+            np.bitwise_xor(crc, column, out=crc)
+            crc = _CRC16_PAIR_TABLE[crc]
+    out = crc.astype(np.uint32)
+    if length % 2:
+        index = (out >> 8) ^ data[:, -1]
+        out = ((out << 8) & 0xFF00) ^ _CRC16_TABLE[index]
+    return out
 
 
 def crc32(data: np.ndarray) -> np.ndarray:
     """CRC-32 (zlib) of each row of ``data`` (F, L) -> (F,) uint32.
 
-    Table-driven, reflected: ``crc = T[(crc ^ byte) & 0xFF] ^ (crc >> 8)``, init and
-    final xor 0xFFFFFFFF.
+    Reflected, init and final xor 0xFFFFFFFF: :func:`zlib.crc32` of each row.
     """
-    columns = _columns(data)
-    crc = np.full(columns.shape[1], 0xFFFFFFFF, dtype=np.uint32)
-    index = np.empty_like(crc)
-    for column in columns:
-        np.bitwise_xor(crc, column, out=index)
-        np.bitwise_and(index, 0xFF, out=index)
-        np.right_shift(crc, 8, out=crc)
-        np.bitwise_xor(crc, _CRC32_TABLE[index], out=crc)
-    return crc ^ np.uint32(0xFFFFFFFF)
+    data = np.ascontiguousarray(data, dtype=np.uint8)
+    n_frames, length = data.shape
+    if n_frames == 0 or length == 0:
+        return np.zeros(n_frames, np.uint32)
+    flat = data.reshape(-1).data
+    return np.fromiter(
+        (zlib.crc32(flat[i : i + length]) for i in range(0, n_frames * length, length)),
+        dtype=np.uint32,
+        count=n_frames,
+    )
 
 
 def _none(data: np.ndarray) -> np.ndarray:

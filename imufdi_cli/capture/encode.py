@@ -227,6 +227,33 @@ def encode_capture(
         raise LayoutError(
             f"layout {layout.name!r} has no checksum: flipped bits would not be detectable"
         )
+    chosen, (garbage_at, flipped, cut, dropped, duplicated) = _choose_damage(
+        corrupt, n_samples, rng
+    )
+    intact[flipped] = False
+    intact[cut] = False
+    intact[dropped] = False
+    data, garbage_total, cut_total = _damaged_bytes(
+        frames, layout, corrupt, chosen, (garbage_at, flipped, cut, duplicated), rng
+    )
+    return EncodedCapture(
+        data=data,
+        frame_size=frame_size,
+        intact=intact,
+        garbage_bytes=garbage_total,
+        flipped=flipped,
+        cut=cut,
+        dropped=dropped,
+        duplicated=duplicated,
+        cut_bytes=cut_total,
+    )
+
+
+def _choose_damage(
+    corrupt: Corruption, n_samples: int, rng: np.random.Generator
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Frames to damage (samples 1..N-2, three apart) and, per kind (garbage, flipped,
+    cut, dropped, duplicated), the sorted frame indices of that kind."""
     slots = np.arange(1, n_samples - 1, 3)
     if corrupt.events > slots.size:
         raise CaptureError(
@@ -238,12 +265,22 @@ def encode_capture(
         np.arange(5),
         [corrupt.garbage, corrupt.flipped, corrupt.cut, corrupt.dropped, corrupt.duplicated],
     )
-    by_kind = [np.sort(chosen[kinds == k]) for k in range(5)]
-    garbage_at, flipped, cut, dropped, duplicated = by_kind
-    intact[flipped] = False
-    intact[cut] = False
-    intact[dropped] = False
+    return chosen, [np.sort(chosen[kinds == k]) for k in range(5)]
 
+
+def _damaged_bytes(
+    frames: np.ndarray,
+    layout: Layout,
+    corrupt: Corruption,
+    chosen: np.ndarray,
+    kinds: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    rng: np.random.Generator,
+) -> tuple[bytes, int, int]:
+    """The frames (F, L) as bytes with the chosen ones damaged: garbage before, a flipped
+    bit in the records, cut short, duplicated, or (any other) dropped. Returns (bytes,
+    garbage bytes, bytes of cut frames)."""
+    garbage_at, flipped, cut, duplicated = kinds
+    frame_size = frames.shape[1]
     records_start = layout.header_end
     records_end = (
         frame_size
@@ -279,17 +316,7 @@ def encode_capture(
         # dropped: nothing
         previous = index + 1
     pieces.append(frames[previous:].tobytes())
-    return EncodedCapture(
-        data=b"".join(pieces),
-        frame_size=frame_size,
-        intact=intact,
-        garbage_bytes=garbage_total,
-        flipped=flipped,
-        cut=cut,
-        dropped=dropped,
-        duplicated=duplicated,
-        cut_bytes=cut_total,
-    )
+    return b"".join(pieces), garbage_total, cut_total
 
 
 #: corruption injected per block by ``CaptureEncoder(corrupt=True)``
@@ -324,7 +351,7 @@ class CaptureEncoder:
         seed: int | None = 0,
         rng: np.random.Generator | None = None,
     ) -> None:
-        from imufdi_cli.capture.layout import mpu6500_array
+        from imufdi_cli.capture.layouts import mpu6500_array
 
         self.array = array
         self.layout = layout if layout is not None else mpu6500_array()

@@ -7,15 +7,28 @@ used, so ``imufdi --help``, ``info`` and every stage of a shell pipeline start f
 uses ``click.Choice(sorted(DETECTORS))`` so names cannot drift; a test checks that every
 entry imports and that the class's ``name`` matches its key.
 
-Adding a detector is one module in this package plus one line here.
+Every class inherits :class:`imufdi_cli.detectors.base.DetectorBase`, so every detector is
+built the same way: ``make_detector(name, raw)`` is ``detector_class(name).from_params(raw)``.
+
+Adding a detector is one module in this package plus one line here
+(docs/writing-a-detector.md).
 """
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Iterable, Mapping
 from importlib import import_module
 from typing import Any
 
-from imufdi_cli.detectors.base import DetectionBlock, Detector, Param, parse_params
+from imufdi_cli.detectors.base import (
+    DetectionBlock,
+    Detector,
+    DetectorBase,
+    Param,
+    ParameterRenamedWarning,
+    parse_params,
+)
 from imufdi_cli.errors import DetectorConfigError
 
 DETECTORS: dict[str, str] = {
@@ -30,7 +43,7 @@ DETECTORS: dict[str, str] = {
 }
 
 
-def detector_class(name: str) -> type:
+def detector_class(name: str) -> type[DetectorBase]:
     """The class registered as ``name`` (its module is imported on first use)."""
     try:
         location = DETECTORS[name]
@@ -39,23 +52,55 @@ def detector_class(name: str) -> type:
             f"unknown detector {name!r}; valid: {', '.join(sorted(DETECTORS))}"
         ) from None
     module_name, _, class_name = location.partition(":")
-    cls: type = getattr(import_module(module_name), class_name)
+    cls: type[DetectorBase] = getattr(import_module(module_name), class_name)
     return cls
 
 
-def make_detector(name: str, raw_params: dict[str, Any] | None = None) -> Detector:
-    """Instantiate a registered detector with parameters parsed from strings or values."""
-    cls = detector_class(name)
-    params = parse_params(cls.PARAMS, raw_params or {}, name)  # type: ignore[attr-defined]
-    return cls(**params)  # type: ignore[no-any-return]
+def make_detector(name: str, raw_params: Mapping[str, Any] | None = None) -> Detector:
+    """The registered detector ``name`` built from raw parameters (strings or values).
+
+    Raises
+    ------
+    DetectorConfigError
+        Unknown detector or parameter, or a bad value (see ``DetectorBase.from_params``).
+    """
+    detector: Detector = detector_class(name).from_params(raw_params)  # type: ignore[assignment]
+    return detector
+
+
+def make_detectors(
+    specs: Iterable[tuple[str, Mapping[str, Any]]],
+) -> tuple[list[Detector], list[str]]:
+    """Build several detectors; renamed-parameter notes are returned, not emitted.
+
+    Returns
+    -------
+    detectors : list of Detector
+        In the order of ``specs`` (name, raw parameters).
+    notes : list of str
+        One line per :class:`ParameterRenamedWarning` (for a command's ``warning:`` lines).
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ParameterRenamedWarning)
+        detectors = [make_detector(name, params) for name, params in specs]
+    notes = []
+    for item in caught:
+        if issubclass(item.category, ParameterRenamedWarning):
+            notes.append(str(item.message))
+        else:  # not ours: pass it on unchanged
+            warnings.warn_explicit(item.message, item.category, item.filename, item.lineno)
+    return detectors, notes
 
 
 __all__ = [
     "DETECTORS",
     "DetectionBlock",
     "Detector",
+    "DetectorBase",
     "Param",
+    "ParameterRenamedWarning",
     "detector_class",
     "make_detector",
+    "make_detectors",
     "parse_params",
 ]

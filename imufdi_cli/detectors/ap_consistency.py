@@ -42,7 +42,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import DetectionBlock, Param
+from imufdi_cli.detectors.base import DetectionBlock, DetectorBase, Param
 from imufdi_cli.detectors.vectors import (
     TriadLayout,
     compared_layouts,
@@ -98,7 +98,7 @@ class _TypeState:
     seen: int = 0
 
 
-class ApConsistencyDetector:
+class ApConsistencyDetector(DetectorBase):
     """ArduPilot pre-arm style IMU consistency check (module docstring); ``ap-consistency``."""
 
     name: ClassVar[str] = "ap-consistency"
@@ -155,10 +155,6 @@ class ApConsistencyDetector:
         bias: bool = True,
         types: str = "gyro,accel",
     ) -> None:
-        if reference not in REFERENCES:
-            raise DetectorConfigError(
-                f"{self.name}.reference: {reference!r} is not valid; valid: {', '.join(REFERENCES)}"
-            )
         self.accel_threshold = float(accel_threshold)
         self.gyro_threshold = float(gyro_threshold)
         self.hold = float(hold)

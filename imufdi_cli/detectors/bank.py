@@ -63,6 +63,7 @@ from imufdi_cli.detectors.base import (
     NO_ISOLATION,
     NOT_ISOLABLE,
     DetectionBlock,
+    DetectorBase,
     Param,
     calibration_stats,
 )
@@ -429,7 +430,7 @@ class _MargSolution:
     usable: np.ndarray  # (N, 7) estimator observable and converged
 
 
-class BankDetector:
+class BankDetector(DetectorBase):
     """Bank of estimators with structured residuals (Berbra, Gentil, Lesecq).
 
     Parameters
@@ -474,14 +475,6 @@ class BankDetector:
         max_faults: int = 2,
         iterations: int = 20,
     ) -> None:
-        for key, value in (
-            ("alpha", alpha),
-            ("mode", mode),
-            ("tau", tau),
-            ("max_faults", max_faults),
-            ("iterations", iterations),
-        ):
-            self.PARAMS[key].parse(value, f"bank.{key}")
         self.alpha = float(alpha)
         self.mode = mode
         self.tau = float(tau)

@@ -1,8 +1,9 @@
 """The detector interface, its output, and typed parameters.
 
-Every detector is one module with one class that follows :class:`Detector`::
+Every detector is one module with one class that follows :class:`Detector` and inherits
+:class:`DetectorBase`, and is built one way, from its declared :class:`Param` specs::
 
-    det = GltDetector(**parse_params(GltDetector.PARAMS, {"alpha": "0.001"}, "glt"))
+    det = GltDetector.from_params({"alpha": "0.001"})   # or make_detector("glt", {...})
     det.fit(calibration_block, array)         # fault-free window: sigma, biases, ...
     for block in blocks:                       # consecutive ImuBlocks, streaming state inside
         out = det.process(block)               # {"gyro": DetectionBlock, "accel": ...}
@@ -20,18 +21,29 @@ on samples up to i only). The pipeline stamps each row with its decision time (s
 :func:`imufdi_cli.detect.decision_positions`), so a detector that looks ahead pays for it in
 the reported delays. Sensor indices refer to
 ``ArrayConfig.sensor_ids(sensor_type)`` (global, never renumbered by reconfiguration).
+
+Construction: :meth:`DetectorBase.from_params` is the only place raw parameters (strings from
+the CLI or campaign specs, or values) are checked, against the class's ``PARAMS``: unknown
+names, kinds, bounds, choices and per-parameter checks. It then calls ``__init__`` with one
+typed keyword argument per ``PARAMS`` entry, so ``__init__`` takes exactly those names (a
+test checks every registered detector) and does not re-check them; it only checks
+constraints between parameters (e.g. ``overlap < window``). The sensor types a detector
+tests are its ``types`` parameter (:data:`TYPES`); a renamed parameter stays accepted
+through ``RENAMED_PARAMS`` with a :class:`ParameterRenamedWarning` (docs/writing-a-detector.md).
 """
 
 from __future__ import annotations
 
+import functools
 import math
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
-from imufdi_cli.array import ArrayConfig
+from imufdi_cli.array import SENSOR_TYPES, ArrayConfig
 from imufdi_cli.errors import DetectorConfigError, UnitError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.units import parse_quantity
@@ -140,6 +152,11 @@ class Detector(Protocol):
         """JSON-ready parameters and calibration results (the ``imufdi.detect.<name>`` record)."""
         ...
 
+    @classmethod
+    def from_params(cls, raw: Mapping[str, Any] | None = None) -> Detector:
+        """The detector built from raw parameters (see :meth:`DetectorBase.from_params`)."""
+        ...
+
 
 # --- typed parameters ------------------------------------------------------------------
 
@@ -231,21 +248,114 @@ def parse_params(
     return values
 
 
+class ParameterRenamedWarning(FutureWarning):
+    """A detector parameter was given under its old name (still accepted, to be removed).
+
+    A FutureWarning, so Python shows it by default; ``imufdi detect`` turns it into a
+    ``warning:`` line on stderr (:func:`imufdi_cli.detectors.make_detectors`).
+    """
+
+
+_D = TypeVar("_D", bound="DetectorBase")
+
+
+class DetectorBase:
+    """The construction every detector shares: :meth:`from_params`.
+
+    A detector class inherits this and declares ``name``, ``PARAMS`` and an ``__init__``
+    whose keyword arguments are exactly the ``PARAMS`` names, with the same defaults.
+    """
+
+    name: ClassVar[str]
+    PARAMS: ClassVar[Mapping[str, Param]]
+    #: Old parameter name -> current name; the old name is accepted with a
+    #: :class:`ParameterRenamedWarning`.
+    RENAMED_PARAMS: ClassVar[Mapping[str, str]] = {}
+
+    @classmethod
+    def from_params(cls: type[_D], raw: Mapping[str, Any] | None = None) -> _D:
+        """Build the detector from raw parameters (strings as on the command line, or values).
+
+        Renamed parameters are mapped to their current name (with a warning), then every
+        value is parsed and checked by :func:`parse_params` against ``PARAMS``; omitted ones
+        take their defaults.
+
+        Raises
+        ------
+        DetectorConfigError
+            Unknown parameter (the message lists the valid ones), a value of the wrong kind
+            or out of bounds, a parameter given under both names, or an inconsistent
+            combination (checked by ``__init__``).
+        """
+        given = _current_names(cls, dict(raw or {}), stacklevel=3)
+        return cls(**parse_params(cls.PARAMS, given, cls.name))
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """A class with ``RENAMED_PARAMS`` also accepts the old names as keywords of its
+        constructor (Python callers), with the same warning as :meth:`from_params`."""
+        super().__init_subclass__(**kwargs)
+        init = cls.__dict__.get("__init__")
+        if not cls.RENAMED_PARAMS or init is None:
+            return
+
+        @functools.wraps(init)
+        def accepting_old_names(self: Any, *args: Any, **given: Any) -> None:
+            init(self, *args, **_current_names(type(self), given, stacklevel=3))
+
+        cls.__init__ = accepting_old_names  # type: ignore[method-assign]
+
+
+def _current_names(
+    cls: type[DetectorBase], given: dict[str, Any], *, stacklevel: int
+) -> dict[str, Any]:
+    """``given`` with renamed parameters under their current names (one warning each)."""
+    for old, new in cls.RENAMED_PARAMS.items():
+        if old not in given:
+            continue
+        if new in given:
+            raise DetectorConfigError(
+                f"{cls.name}: give {new} only ({old} is its deprecated old name)"
+            )
+        warnings.warn(
+            f"{cls.name}.{old} is deprecated; use {cls.name}.{new}",
+            ParameterRenamedWarning,
+            stacklevel=stacklevel,
+        )
+        given[new] = given.pop(old)
+    return given
+
+
+def sensor_types_problem(text: Any) -> str | None:
+    """Why ``text`` is not a comma list of sensor types, or None (a :attr:`Param.check`)."""
+    types = [item.strip() for item in str(text).split(",") if item.strip()]
+    for item in types:
+        if item not in SENSOR_TYPES:
+            return f"unknown sensor type {item!r}; valid: {', '.join(SENSOR_TYPES)}"
+    if not types:
+        return f"give at least one of {', '.join(SENSOR_TYPES)}"
+    return None
+
+
 def parse_sensor_types(text: str, detector: str) -> tuple[str, ...]:
-    """``"gyro,accel"`` -> ``("gyro", "accel")`` for a detector's ``sensors`` parameter.
+    """``"gyro,accel"`` -> ``("gyro", "accel")`` for a detector's ``types`` parameter.
 
     Raises DetectorConfigError naming the valid types for an unknown or empty list.
     """
-    types = tuple(item.strip() for item in text.split(",") if item.strip())
-    for item in types:
-        if item not in ("gyro", "accel", "mag"):
-            raise DetectorConfigError(
-                f"{detector}.sensors: unknown sensor type {item!r}; valid: gyro, accel, mag"
-            )
-    if not types:
-        raise DetectorConfigError(f"{detector}.sensors: give at least one of gyro, accel, mag")
-    return types
+    problem = sensor_types_problem(text)
+    if problem:
+        raise DetectorConfigError(f"{detector}.types: {problem}")
+    return tuple(item.strip() for item in text.split(",") if item.strip())
 
+
+TYPES = Param(
+    "str",
+    "gyro,accel",
+    "sensor types to test, comma-separated (gyro, accel, mag)",
+    check=sensor_types_problem,
+)
+"""The common ``types`` parameter: which sensor types a detector tests (parse it with
+:func:`parse_sensor_types`). Detectors that accept only some types, or ``auto``, declare
+their own ``types`` Param with another default or check, under the same name."""
 
 ALPHA = Param("float", 0.01, "false-alarm level of the test", low=0.0, high=0.5, low_open=True)
 """The common ``alpha`` parameter (0 < alpha <= 0.5)."""

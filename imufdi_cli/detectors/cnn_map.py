@@ -108,8 +108,8 @@ from imufdi_cli.detectors.base import (
     ALPHA,
     NO_ISOLATION,
     DetectionBlock,
+    DetectorBase,
     Param,
-    parse_params,
 )
 from imufdi_cli.detectors.cusum import CusumDesign, cusum_threshold, run_cusum
 from imufdi_cli.detectors.glt import GltDetector
@@ -374,7 +374,7 @@ def gamma_shape(energies: np.ndarray) -> float:
     return mean * mean / variance
 
 
-class CnnMapDetector:
+class CnnMapDetector(DetectorBase):
     """CNN accelerometer-to-rate mapping residuals (Chen, Su, Xu); see the module docstring.
 
     Parameters
@@ -464,10 +464,6 @@ class CnnMapDetector:
         self.filters = int(filters)
         self.kernel = int(kernel)
         self.activation = str(activation)
-        if self.activation not in ACTIVATIONS:
-            raise DetectorConfigError(
-                f"cnn-map.activation: {activation!r} is not valid; valid: {', '.join(ACTIVATIONS)}"
-            )
         self.epochs = int(epochs)
         self.batch = int(batch)
         self.patience = int(patience)
@@ -484,11 +480,6 @@ class CnnMapDetector:
         self._input: NoiseGlrDetector | None = None
         self.input_note = "not fitted"
         self.mapping_alpha = self.alpha
-
-    @classmethod
-    def from_params(cls, raw: dict[str, Any] | None = None) -> CnnMapDetector:
-        """Construct from raw (string) parameters, as the CLI does."""
-        return cls(**parse_params(cls.PARAMS, raw or {}, cls.name))
 
     # --- geometry and reference --------------------------------------------------------
 
@@ -666,7 +657,7 @@ class CnnMapDetector:
         self.mapping_alpha = self.alpha
         if not self.input_test:
             return
-        glr = NoiseGlrDetector(alpha=self.alpha, sensors="accel")
+        glr = NoiseGlrDetector(alpha=self.alpha, types="accel")
         try:
             glr.fit(calibration, array)
         except CalibrationError as err:

@@ -61,6 +61,7 @@ from imufdi_cli.detectors.base import (
     NO_ISOLATION,
     NOT_ISOLABLE,
     DetectionBlock,
+    DetectorBase,
     Param,
 )
 from imufdi_cli.detectors.parity import (
@@ -223,7 +224,7 @@ class _Segment:
     event: int | None  # local index of the confirmed isolation that triggers reconfiguration
 
 
-class GltDetector:
+class GltDetector(DetectorBase):
     """Generalized likelihood test on the parity vector (Li et al. 2026, §2.1).
 
     Parameters

@@ -79,7 +79,9 @@ from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
     ALPHA,
     NO_ISOLATION,
+    TYPES,
     DetectionBlock,
+    DetectorBase,
     Param,
     calibration_stats,
     parse_sensor_types,
@@ -292,7 +294,7 @@ class _TypeModel:
         return np.diff(joined, axis=0) / np.sqrt(self.scale)
 
 
-class NoiseGlrDetector:
+class NoiseGlrDetector(DetectorBase):
     """Windowed-variance GLR on leave-one-out consensus residuals; see the module docstring.
 
     Parameters
@@ -310,11 +312,13 @@ class NoiseGlrDetector:
         to isolated outliers and bias steps; 1000 in effect turns clipping off).
     lever_arm : bool
         Model lever arms of accelerometers (needs positions and gyros).
-    sensors : str
-        Comma-separated sensor types to test.
+    types : str
+        Comma-separated sensor types to test; ``sensors``, its old name, is still accepted
+        with a warning.
     """
 
     name: ClassVar[str] = "noise-glr"
+    RENAMED_PARAMS: ClassVar[dict[str, str]] = {"sensors": "types"}
     #: Causal: the row of sample i depends on samples up to i only.
     lookahead_samples: int = 0
     PARAMS: ClassVar[dict[str, Param]] = {
@@ -348,7 +352,7 @@ class NoiseGlrDetector:
             high=1000.0,
         ),
         "lever_arm": Param("bool", True, "model accelerometer lever arms (w x (w x r), dw/dt x r)"),
-        "sensors": Param("str", "gyro,accel", "sensor types to test, comma-separated"),
+        "types": TYPES,
     }
 
     def __init__(
@@ -359,7 +363,7 @@ class NoiseGlrDetector:
         release_window: float = 0.1,
         clip: float = 3.0,
         lever_arm: bool = True,
-        sensors: str = "gyro,accel",
+        types: str = "gyro,accel",
     ) -> None:
         self.alpha = float(alpha)
         self.window_s = float(window)
@@ -367,7 +371,7 @@ class NoiseGlrDetector:
         self.release_window_s = float(release_window)
         self.clip = float(clip)
         self.lever_arm = bool(lever_arm)
-        self.sensor_types = parse_sensor_types(sensors, self.name)
+        self.sensor_types = parse_sensor_types(types, self.name)
         self.array: ArrayConfig | None = None
         self.models: dict[str, _TypeModel] = {}
         self.window_samples = 0
@@ -563,7 +567,7 @@ class NoiseGlrDetector:
                 "release_window_samples": self.release_window_samples,
                 "clip": self.clip,
                 "lever_arm": self.lever_arm,
-                "sensors": ",".join(self.sensor_types),
+                "types": ",".join(self.sensor_types),
             },
             "statistic": (
                 "max_j nu/2 (u_j - 1 - ln u_j), u_j = mean(min(z^2, c^2))/E0, z = standardized"

@@ -77,7 +77,9 @@ from imufdi_cli.detectors.base import (
     ALPHA,
     NO_ISOLATION,
     NOT_ISOLABLE,
+    TYPES,
     DetectionBlock,
+    DetectorBase,
     Param,
     calibration_stats,
     parse_sensor_types,
@@ -353,7 +355,7 @@ class _TypeModel:
         return parity - self.mean
 
 
-class PcaParityDetector:
+class PcaParityDetector(DetectorBase):
     """PCA of parity vectors with a moving-mean test (Hao & Wang); see the module docstring.
 
     Parameters
@@ -371,11 +373,13 @@ class PcaParityDetector:
     leak : {"regress", "none"}
         Fit and remove the motion leaking into the parity space through scale-factor and
         misalignment errors (needs motion in the training window to have any effect).
-    sensors : str
-        Comma-separated sensor types to test (those present with enough sensors are used).
+    types : str
+        Comma-separated sensor types to test (those present with enough sensors are used);
+        ``sensors``, its old name, is still accepted with a warning.
     """
 
     name: ClassVar[str] = "pca-parity"
+    RENAMED_PARAMS: ClassVar[dict[str, str]] = {"sensors": "types"}
     #: Causal: the row of sample i depends on samples up to i only.
     lookahead_samples: int = 0
     PARAMS: ClassVar[dict[str, Param]] = {
@@ -394,7 +398,7 @@ class PcaParityDetector:
             "remove motion leaking into the parity space (scale/misalignment errors)",
             choices=("regress", "none"),
         ),
-        "sensors": Param("str", "gyro,accel", "sensor types to test, comma-separated"),
+        "types": TYPES,
         "track_bias": TRACK_BIAS,
     }
 
@@ -406,7 +410,7 @@ class PcaParityDetector:
         space: str = "parity",
         residual_test: bool = True,
         leak: str = "regress",
-        sensors: str = "gyro,accel",
+        types: str = "gyro,accel",
         track_bias: float = 0.0,
     ) -> None:
         self.alpha = float(alpha)
@@ -415,7 +419,7 @@ class PcaParityDetector:
         self.space = space
         self.residual_test = bool(residual_test)
         self.leak = leak
-        self.sensor_types = parse_sensor_types(sensors, self.name)
+        self.sensor_types = parse_sensor_types(types, self.name)
         self.tracker = BiasTracker(track_bias)
         self.array: ArrayConfig | None = None
         self.models: dict[str, _TypeModel] = {}
@@ -711,7 +715,7 @@ class PcaParityDetector:
                 "space": self.space,
                 "residual_test": self.residual_test,
                 "leak": self.leak,
-                "sensors": ",".join(self.sensor_types),
+                "types": ",".join(self.sensor_types),
                 "track_bias": self.tracker.tau_s,
             },
             "tracked_bias_change": self.tracker.metadata(),

@@ -43,7 +43,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import DetectionBlock, Param
+from imufdi_cli.detectors.base import DetectionBlock, DetectorBase, Param
 from imufdi_cli.detectors.vectors import (
     TriadLayout,
     block_steps,
@@ -116,7 +116,7 @@ class _TypeState:
     first_alarm_sample: int | None = None
 
 
-class Px4SelectorDetector:
+class Px4SelectorDetector(DetectorBase):
     """PX4 EKF2-selector style IMU consistency check (module docstring); ``px4-selector``."""
 
     name: ClassVar[str] = "px4-selector"

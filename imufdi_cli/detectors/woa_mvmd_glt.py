@@ -37,7 +37,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -51,8 +51,11 @@ from imufdi_cli.detectors.base import (
     ALPHA,
     NO_ISOLATION,
     NOT_ISOLABLE,
+    TYPES,
     DetectionBlock,
+    DetectorBase,
     Param,
+    parse_sensor_types,
 )
 from imufdi_cli.detectors.mvmd import (
     MIN_SAMPLES,
@@ -697,14 +700,11 @@ class _WindowStream:
     #: Most windows evaluated in one call (bounds the memory of a large block).
     BATCH: ClassVar[int] = 512
 
-    def __init__(self, window: int, hop: int, combine: str, evaluate: Any) -> None:
+    def __init__(self, window: int, hop: int, combine: str) -> None:
         self.window = window
         self.hop = hop
         self.pad = (window - hop) // 2
         self.combine = combine
-        # evaluate(windows (W, L, n), first_row) -> dict of (W, L - first_row, ...) arrays
-        # for rows first_row .. L - 1 of each window, "statistic" first
-        self.evaluate = evaluate
         self.buffer: np.ndarray | None = None
         self.buffer_start = 0  # global index of buffer[0]
         self.received = 0
@@ -755,18 +755,27 @@ class _WindowStream:
         lo = 0 if start == 0 else start + self.pad
         return lo, start + self.pad + self.hop
 
-    def push(self, values: np.ndarray) -> list[dict[str, np.ndarray]]:
+    def push(
+        self, values: np.ndarray, evaluate: Callable[[np.ndarray, int], dict[str, np.ndarray]]
+    ) -> list[dict[str, np.ndarray] | int]:
+        """Rows decided by the samples ``values`` (N, columns), oldest first.
+
+        ``evaluate(windows (W, L, columns), first_row)`` gives, for rows ``first_row .. L - 1``
+        of each window, a dict of (W, L - first_row, ...) arrays, ``"statistic"`` first. Each
+        returned part is such a dict of rows, or an int: that many rows no window decides
+        (the first ``window - hop`` rows with ``combine=end``, a tail too short to test).
+        """
         if self.buffer is None:
             self.buffer = values.copy()
         else:
             self.buffer = np.concatenate([self.buffer, values])
         self.received += values.shape[0]
-        outputs: list[dict[str, np.ndarray]] = []
+        outputs: list[dict[str, np.ndarray] | int] = []
         if self.combine == "end":
             # rows before the first window's last hop are never decided: emit them now
             quiet = min(self.received, self.window - self.hop) - self.emitted
             if quiet > 0:
-                outputs.append({"__quiet__": np.zeros(quiet)})
+                outputs.append(quiet)
                 self.emitted += quiet
         count = max((self.received - self.window) // self.hop + 1 - self.next_window, 0)
         for first in range(0, count, self.BATCH):
@@ -775,7 +784,7 @@ class _WindowStream:
             local = starts - self.buffer_start
             stack = self.buffer[local[:, None] + np.arange(self.window)]  # (W, L, columns)
             if self.combine == "end":
-                rows = self.evaluate(stack, self.window - self.hop)  # the last hop rows
+                rows = evaluate(stack, self.window - self.hop)  # the last hop rows
                 # contributions are consecutive, disjoint and final at once: the last hop
                 # rows of each window, in order (pending is empty between pushes)
                 outputs.append(
@@ -787,7 +796,7 @@ class _WindowStream:
                 self.emitted = int(starts[-1]) + self.window
                 self.next_window += starts.size
                 continue
-            rows = self.evaluate(stack, 0)
+            rows = evaluate(stack, 0)
             for i, start in enumerate(int(s) for s in starts):
                 lo, hi = self._window_rows(start, self.window)
                 self._store(lo, {k: v[i, lo - start : hi - start] for k, v in rows.items()})
@@ -806,23 +815,25 @@ class _WindowStream:
             self.buffer_start = keep_from
         return outputs
 
-    def flush(self) -> list[dict[str, np.ndarray]]:
-        """Cover the tail with one last window ending at the last sample."""
+    def flush(
+        self, evaluate: Callable[[np.ndarray, int], dict[str, np.ndarray]]
+    ) -> list[dict[str, np.ndarray] | int]:
+        """Cover the tail with one last window ending at the last sample (see :meth:`push`)."""
         if self.emitted >= self.received or self.buffer is None:
             return []
         total = self.received
         length = min(self.window, total)
         start = total - length
         if length < MIN_SAMPLES:
-            return [{"__quiet__": np.zeros(total - self.emitted)}]
+            return [total - self.emitted]
         # the tail window may start before buffer_start: keep the buffer long enough
         if start < self.buffer_start:
             start = self.buffer_start
             length = total - start
             if length < MIN_SAMPLES:
-                return [{"__quiet__": np.zeros(total - self.emitted)}]
+                return [total - self.emitted]
         lo = max(start, self.emitted)
-        rows = self.evaluate(self.buffer[None, start - self.buffer_start :], lo - start)
+        rows = evaluate(self.buffer[None, start - self.buffer_start :], lo - start)
         self._store(lo, {k: v[0] for k, v in rows.items()})
         out = self._take(total)
         return [out] if out is not None else []
@@ -849,14 +860,6 @@ def _weights_check(value: Any) -> str | None:
         return "weights must be three comma-separated numbers, e.g. 1,1,1"
     if len(parts) != 3 or any(not np.isfinite(p) or p < 0 for p in parts):
         return "weights must be three comma-separated non-negative numbers, e.g. 1,1,1"
-    return None
-
-
-def _types_check(value: Any) -> str | None:
-    parts = [p.strip() for p in str(value).split(",") if p.strip()]
-    bad = [p for p in parts if p not in ("gyro", "accel", "mag")]
-    if not parts or bad:
-        return "sensor types must be a comma-separated subset of gyro, accel, mag"
     return None
 
 
@@ -941,7 +944,7 @@ class _TypeState:
         return np.asarray(values - shift)
 
 
-class WoaMvmdGltDetector:
+class WoaMvmdGltDetector(DetectorBase):
     """WOA-tuned MVMD + GLT detector (module docstring), CLI name ``woa-mvmd-glt``."""
 
     name: ClassVar[str] = "woa-mvmd-glt"
@@ -1004,34 +1007,46 @@ class WoaMvmdGltDetector:
         ),
         "tune_samples": Param("int", 250, "calibration samples used for tuning", low=MIN_SAMPLES),
         "seed": Param("int", 0, "seed of the WOA search", low=0),
-        "types": Param("str", "gyro,accel", "sensor types tested", check=_types_check),
+        "types": TYPES,
         "tol": Param("float", 1e-6, "MVMD relative convergence tolerance", low=0, low_open=True),
         "max_iter": Param("int", 300, "MVMD iteration cap", low=1),
     }
 
-    def __init__(self, **params: Any) -> None:
-        values = {key: spec.default for key, spec in self.PARAMS.items()}
-        unknown = set(params) - set(values)
-        if unknown:
-            raise DetectorConfigError(
-                f"unknown parameter {self.name}.{sorted(unknown)[0]};"
-                f" valid: {', '.join(sorted(values))}"
-            )
-        values.update(params)
+    def __init__(
+        self,
+        alpha: float = 0.01,
+        window: int = 50,
+        overlap: int = 40,
+        combine: str = "end",
+        outliers: str = "clip",
+        outlier_cut: float = 4.0,
+        fitness: str = "cfv+delay",
+        validation_step: float = 4.0,
+        delay_weight: float = 100.0,
+        params: str | None = None,
+        K: int | None = None,
+        mvmd_alpha: float | None = None,
+        population: int = 8,
+        iterations: int = 6,
+        k_min: int = 2,
+        k_max: int = 5,
+        alpha_min: float = 50.0,
+        alpha_max: float = 5000.0,
+        weights: str = "1,1,1",
+        tune_samples: int = 250,
+        seed: int = 0,
+        types: str = "gyro,accel",
+        tol: float = 1e-6,
+        max_iter: int = 300,
+    ) -> None:
+        arguments = locals()
+        values = {key: arguments[key] for key in self.PARAMS}  # each PARAMS name, typed
         self.params = values
         window = int(values["window"])
         overlap = int(values["overlap"])
-        if window < MIN_SAMPLES:
-            raise DetectorConfigError(
-                f"{self.name}.window: must be >= {MIN_SAMPLES} samples, got {window}"
-            )
         if not 0 <= overlap < window:
             raise DetectorConfigError(
                 f"{self.name}.overlap: must be >= 0 and < window ({window}), got {overlap}"
-            )
-        if int(values["population"]) < 2:
-            raise DetectorConfigError(
-                f"{self.name}.population: must be >= 2, got {values['population']}"
             )
         if values["k_min"] > values["k_max"]:
             raise DetectorConfigError(f"{self.name}: k_min must be <= k_max")
@@ -1041,14 +1056,14 @@ class WoaMvmdGltDetector:
             raise DetectorConfigError(f"{self.name}: give both K and mvmd_alpha, or neither")
         if values["K"] is not None:
             check_mvmd_params(values["K"], values["mvmd_alpha"])
-        if values["combine"] not in COMBINE_CHOICES:
-            raise DetectorConfigError(f"{self.name}.combine: valid: {', '.join(COMBINE_CHOICES)}")
         self.window = window
         self.hop = window - overlap
         self.weights = tuple(float(v) for v in str(values["weights"]).split(","))
-        self.types = [p.strip() for p in str(values["types"]).split(",") if p.strip()]
+        self.types = list(parse_sensor_types(types, self.name))
         self.tuned_file = TuneResult.load(values["params"]) if values["params"] else None
         self._states: dict[str, _TypeState] = {}
+        #: Per sensor type: the window evaluation its stream is pushed with (see _evaluator).
+        self._evaluators: dict[str, Callable[[np.ndarray, int], dict[str, np.ndarray]]] = {}
         self._array: ArrayConfig | None = None
 
     @property
@@ -1158,6 +1173,7 @@ class WoaMvmdGltDetector:
     def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
         self._array = array
         self._states = {}
+        self._evaluators = {}
         for sensor_type in self.types:
             triads = calibration.get(sensor_type)
             n = array.n_sensors(sensor_type)
@@ -1216,13 +1232,13 @@ class WoaMvmdGltDetector:
                 V=V,
                 isolable=isolable_sensors(V),
                 threshold=float(chi2.ppf(1.0 - float(self.params["alpha"]), n - 3)),
-                stream=_WindowStream(self.window, self.hop, self.params["combine"], None),
+                stream=_WindowStream(self.window, self.hop, self.params["combine"]),
                 n_calibration=int(values.shape[0]),
                 outlier_variance=outlier_variance,
                 outlier_cut=outlier_cut,
             )
-            state.stream.evaluate = self._evaluator(state, decompose)
             self._states[sensor_type] = state
+            self._evaluators[sensor_type] = self._evaluator(state, decompose)
         if not self._states:
             raise CalibrationError(
                 f"{self.name}: no tested sensor type ({', '.join(self.types)}) in the log"
@@ -1266,11 +1282,11 @@ class WoaMvmdGltDetector:
 
     # -- streaming ------------------------------------------------------------------
 
-    def _rows(self, state: _TypeState, parts: list[dict[str, np.ndarray]]) -> DetectionBlock:
+    def _rows(self, state: _TypeState, parts: list[dict[str, np.ndarray] | int]) -> DetectionBlock:
         blocks = []
         for part in parts:
-            if "__quiet__" in part:
-                blocks.append(DetectionBlock.empty(part["__quiet__"].shape[0], state.n))
+            if isinstance(part, int):  # rows no window decides
+                blocks.append(DetectionBlock.empty(part, state.n))
                 continue
             statistic = part["statistic"]
             count = statistic.shape[0]
@@ -1306,11 +1322,14 @@ class WoaMvmdGltDetector:
                 raise InputDataError(f"{self.name}: block has no {sensor_type} data")
             values = self._array.select(triads, sensor_type)
             carried = np.concatenate([state.clip(values), values], axis=1)
-            out[sensor_type] = self._rows(state, state.stream.push(carried))
+            evaluate = self._evaluators[sensor_type]
+            out[sensor_type] = self._rows(state, state.stream.push(carried, evaluate))
         return out
 
     def flush(self) -> dict[str, DetectionBlock]:
-        return {t: self._rows(s, s.stream.flush()) for t, s in self._states.items()}
+        return {
+            t: self._rows(s, s.stream.flush(self._evaluators[t])) for t, s in self._states.items()
+        }
 
     def metadata(self) -> dict[str, Any]:
         params = {k: v for k, v in self.params.items()}

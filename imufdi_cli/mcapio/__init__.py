@@ -1,6 +1,6 @@
 """Fast MCAP I/O for IMU arrays (DESIGN.md §4).
 
-Low level: :class:`McapSource` (streaming reader, one :class:`MessageBatch` per chunk) and
+Low level: :class:`McapSource` (streaming reader, :class:`MessageBatch` of whole chunks, about 4 MiB each) and
 :class:`McapWriter` (bulk writer, atomic rename). IMU arrays: :class:`ImuArrayReader`,
 :class:`ImuArrayWriter`, :func:`read_array`, :func:`write_array`; per-channel codecs
 :func:`decode_imu`, :func:`patch_imu`, :func:`decode_mag`, :func:`patch_mag`. Detector
@@ -37,7 +37,7 @@ from imufdi_cli.mcapio.imu import (
     read_array,
     write_array,
 )
-from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch, SchemaInfo
+from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch, SchemaInfo
 from imufdi_cli.mcapio.source import McapSource
 from imufdi_cli.mcapio.status import (
     STATUS_FRAME_ID,
@@ -49,6 +49,7 @@ from imufdi_cli.mcapio.status import (
     register_status_channel,
 )
 from imufdi_cli.mcapio.summary import LogSummary, TopicSummary, summarize
+from imufdi_cli.mcapio.writer import McapWriter
 
 __all__ = [
     "ARRAY_METADATA",

@@ -139,7 +139,10 @@ class BagDirSource(McapSource):
         strict: bool = False,
         validate_crcs: bool | None = None,
         limits: ReaderLimits | None = None,
+        keep_raw_chunks: bool = False,
     ) -> None:
+        # keep_raw_chunks is accepted and ignored: the split files' channels are renumbered
+        # into one set, so their chunks are never copied verbatim (raw_chunk gives None).
         if not isinstance(source, (str, os.PathLike)):
             raise McapInputError("a rosbag2 directory must be given as a path")
         self.strict = strict

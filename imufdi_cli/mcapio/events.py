@@ -25,7 +25,7 @@ import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
 from imufdi_cli.mcapio.cdr import codec_for, decode_cdr_message, decode_json_payloads
-from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch
+from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch
 from imufdi_cli.mcapio.schemas import (
     FAULT_EVENT_SCHEMA,
     FAULT_EVENT_SCHEMA_NAME,
@@ -33,6 +33,7 @@ from imufdi_cli.mcapio.schemas import (
     FDI_EVENT_SCHEMA_NAME,
 )
 from imufdi_cli.mcapio.source import McapSource
+from imufdi_cli.mcapio.writer import McapWriter
 
 NS_PER_S = 1_000_000_000
 TRUTH_TOPIC = "/imufdi/truth"

@@ -1,4 +1,4 @@
-"""Streaming MCAP reader: records in file order, one :class:`MessageBatch` per chunk.
+"""Streaming MCAP reader: records in file order, batches of whole chunks.
 
 Records inside a decompressed chunk are located in bulk: a few records are walked one by
 one, the repeating pattern of record lengths (e.g. 16 IMU channels interleaved) is found,
@@ -14,6 +14,7 @@ import os
 import struct
 import sys
 import zlib
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -21,6 +22,7 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError
+from imufdi_cli.mcapio.compression import decompress
 from imufdi_cli.mcapio.limits import ReaderLimits
 from imufdi_cli.mcapio.records import (
     MAGIC,
@@ -35,17 +37,25 @@ from imufdi_cli.mcapio.records import (
     OP_SCHEMA,
     ChannelInfo,
     MessageBatch,
+    RawChunk,
     SchemaInfo,
-    decompress,
     gather_bytes,
 )
+from imufdi_cli.mcapio.scan import (
+    _Cursor,
+    _PendingMessages,
+    parse_channel,
+    parse_metadata,
+    parse_schema,
+    scan_records,
+)
+
+__all__ = ["McapSource", "parse_channel", "parse_metadata", "parse_schema", "scan_records"]
 
 _MESSAGE_FIELDS = np.dtype(
     [("channel_id", "<u2"), ("sequence", "<u4"), ("log_time", "<u8"), ("publish_time", "<u8")]
 )
 _FOOTER_SIZE = 9 + 20
-#: Bytes of records checked at once by scan_records' vectorised pattern test.
-_SCAN_BLOCK = 4 << 20
 #: Chunk record fields before the compression name: start/end time, uncompressed size,
 #: CRC, and the compression name's length.
 _CHUNK_HEAD = struct.Struct("<QQQII")
@@ -54,160 +64,6 @@ _RECORD_HEAD = struct.Struct("<BQ")
 _SMALL_CHUNK = 4096
 #: Read-ahead of the data section; larger records are read straight from the stream.
 _READ_AHEAD = 256 << 10
-#: Messages (of small chunks, or un-chunked) are joined into batches of about this size.
-_BATCH_MESSAGES = 4096
-_BATCH_BYTES = 1 << 20
-
-
-class _Cursor:
-    """Reads little-endian MCAP primitives from a bytes object."""
-
-    def __init__(self, raw: bytes | memoryview, where: str) -> None:
-        self.raw = raw
-        self.pos = 0
-        self.where = where
-
-    def take(self, n: int) -> bytes:
-        if self.pos + n > len(self.raw):
-            raise McapInputError(f"malformed {self.where} record (field past its end)")
-        out = bytes(self.raw[self.pos : self.pos + n])
-        self.pos += n
-        return out
-
-    def u16(self) -> int:
-        return int(struct.unpack("<H", self.take(2))[0])
-
-    def u32(self) -> int:
-        return int(struct.unpack("<I", self.take(4))[0])
-
-    def u64(self) -> int:
-        return int(struct.unpack("<Q", self.take(8))[0])
-
-    def string(self) -> str:
-        raw = self.take(self.u32())
-        try:
-            return raw.decode("utf-8")
-        except UnicodeDecodeError as err:
-            raise McapInputError(f"malformed {self.where} record (string is not UTF-8)") from err
-
-    def bytes32(self) -> bytes:
-        return self.take(self.u32())
-
-    def string_map(self) -> dict[str, str]:
-        end = self.u32() + self.pos
-        out: dict[str, str] = {}
-        while self.pos < end:
-            key = self.string()
-            out[key] = self.string()
-        return out
-
-
-def parse_schema(content: bytes) -> SchemaInfo:
-    cur = _Cursor(content, "Schema")
-    schema_id = cur.u16()
-    name = cur.string()
-    encoding = cur.string()
-    return SchemaInfo(schema_id, name, encoding, cur.bytes32())
-
-
-def parse_channel(content: bytes) -> tuple[int, int, str, str, dict[str, str]]:
-    cur = _Cursor(content, "Channel")
-    channel_id = cur.u16()
-    schema_id = cur.u16()
-    topic = cur.string()
-    encoding = cur.string()
-    return channel_id, schema_id, topic, encoding, cur.string_map()
-
-
-def parse_metadata(content: bytes) -> tuple[str, dict[str, str]]:
-    cur = _Cursor(content, "Metadata")
-    name = cur.string()
-    return name, cur.string_map()
-
-
-def scan_records(
-    buf: np.ndarray, allowed: frozenset[int] = frozenset(range(0x01, 0x10))
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Locate the records in a buffer of concatenated MCAP records.
-
-    Parameters
-    ----------
-    buf : ndarray, uint8
-    allowed : set of int
-        Opcodes that may occur; the scan stops at any other (default: every MCAP opcode).
-
-    Returns
-    -------
-    starts, opcodes, lengths : ndarray, shape (R,)
-        Record start offsets, opcodes and content lengths.
-    end : int
-        Offset after the last complete record (``< len(buf)`` if the buffer is cut or
-        holds a record with an opcode not allowed).
-
-    Runs of a repeating record pattern are checked with numpy in blocks of at most
-    ``_SCAN_BLOCK`` bytes, so the work memory is bounded whatever the buffer holds.
-    """
-    size = buf.shape[0]
-    starts: list[np.ndarray] = []
-    pos = 0
-    probe = 32
-    while pos + 9 <= size:
-        # Walk a few records one by one.
-        walked: list[tuple[int, int, int]] = []
-        p = pos
-        while p + 9 <= size and len(walked) < probe:
-            opcode = int(buf[p])
-            length = int(buf[p + 1 : p + 9].view("<u8")[0])
-            if p + 9 + length > size or opcode not in allowed:
-                break
-            walked.append((p, opcode, length))
-            p += 9 + length
-        if not walked:
-            break
-        if pos == 0 and len(walked) < probe:
-            # A small buffer, walked whole: no pattern search, no second gather.
-            return (
-                np.array([w[0] for w in walked], np.int64),
-                np.array([w[1] for w in walked], np.uint8),
-                np.array([w[2] for w in walked], np.int64),
-                p,
-            )
-        # Find the shortest repeating pattern of (opcode, length) in the walked records.
-        keys = [(op, ln) for _, op, ln in walked]
-        period = 0
-        for candidate in range(1, len(keys) // 2 + 1):
-            if all(keys[i] == keys[i % candidate] for i in range(len(keys))):
-                period = candidate
-                break
-        if period == 0 or len(walked) < probe:
-            starts.append(np.array([w[0] for w in walked], dtype=np.int64))
-            pos = p
-            continue
-        pattern_offsets = np.array([w[0] - pos for w in walked[:period]], dtype=np.int64)
-        stride = sum(9 + ln for _, ln in keys[:period])
-        n_periods = min((size - pos) // stride, max(1, _SCAN_BLOCK // stride))
-        candidates = pos + stride * np.arange(n_periods, dtype=np.int64)[:, None] + pattern_offsets
-        heads = gather_bytes(buf, candidates.reshape(-1), 9)
-        expected_ops = np.array([op for op, _ in keys[:period]], dtype=np.uint8)
-        expected_len = np.array([ln for _, ln in keys[:period]], dtype=np.uint64)
-        ok = (heads[:, 0].reshape(n_periods, period) == expected_ops) & (
-            heads[:, 1:].copy().view("<u8").reshape(n_periods, period) == expected_len
-        )
-        good = ok.all(axis=1)
-        n_good = int(np.argmin(good)) if not bool(good.all()) else n_periods
-        if n_good == 0:
-            starts.append(np.array([w[0] for w in walked], dtype=np.int64))
-            pos = p
-            continue
-        starts.append(candidates[:n_good].reshape(-1))
-        pos = pos + n_good * stride
-    all_starts = np.concatenate(starts) if starts else np.zeros(0, np.int64)
-    if all_starts.size == 0:
-        return all_starts, np.zeros(0, np.uint8), np.zeros(0, np.int64), 0
-    heads = gather_bytes(buf, all_starts, 9)
-    opcodes = heads[:, 0].copy()
-    lengths = heads[:, 1:].copy().view("<u8").reshape(-1).astype(np.int64)
-    return all_starts, opcodes, lengths, pos
 
 
 _OPCODE_NAMES = {
@@ -231,6 +87,9 @@ _OPCODE_NAMES = {
 _HELD = (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_METADATA)
 #: Records a chunk may hold.
 _IN_CHUNK = frozenset((OP_SCHEMA, OP_CHANNEL, OP_MESSAGE))
+#: Batches whose raw chunks are remembered for McapSource.raw_chunks (older ones are
+#: forgotten and their messages re-encoded); each holds its ~4 MiB buffer until asked for.
+_RAW_CHUNKS_KEPT = 8
 #: Reads from the stream are done in pieces of at most this many bytes, so a record
 #: length that no file could satisfy never becomes one huge allocation.
 _READ_PIECE = 16 << 20
@@ -286,8 +145,16 @@ class McapSource:
         strict: bool = False,
         validate_crcs: bool | None = True,
         limits: ReaderLimits | None = None,
+        keep_raw_chunks: bool = False,
     ) -> None:
         self.strict = strict
+        #: Remember the Chunk record of each batch that is exactly one whole chunk, for
+        #: :meth:`raw_chunk` (detect copies such chunks without recompressing them).
+        self.keep_raw_chunks = keep_raw_chunks
+        self._raw_chunks: deque[tuple[MessageBatch, list[ChunkRun]]] = deque(
+            maxlen=_RAW_CHUNKS_KEPT
+        )
+        self._chunk_clean = False
         self.validate_crcs = validate_crcs is not False  # None (unset) also checks them
         self.limits = limits if limits is not None else ReaderLimits.from_env()
         self.channels: dict[int, ChannelInfo] = {}
@@ -556,7 +423,8 @@ class McapSource:
     # --- data ------------------------------------------------------------------------------
 
     def batches(self) -> Iterator[MessageBatch]:
-        """Message batches in file order: one per chunk; un-chunked messages are grouped.
+        """Message batches in file order: whole chunks (and un-chunked messages) joined into
+        batches of about 4 MiB.
 
         The file is read once: calling this again continues where the last iteration
         stopped (batches handed back with :meth:`push_back` come first).
@@ -564,6 +432,22 @@ class McapSource:
         if self._iterator is None:
             self._iterator = self._read_batches()
         return self._with_pushback(self._iterator)
+
+    def raw_chunks(self, batch: MessageBatch) -> list[ChunkRun] | None:
+        """Where ``batch``'s messages came from, in order, when the source was opened with
+        ``keep_raw_chunks`` (else None): runs of (Chunk record holding exactly those
+        messages and no other record, or None; message count; byte offset of the chunk's
+        records in ``batch.data``). Only the last ``_RAW_CHUNKS_KEPT`` batches are
+        remembered, each until it is asked for once; ``batch`` must be the object
+        :meth:`batches` yielded."""
+        kept = getattr(self, "_raw_chunks", None)  # a BagDirSource keeps none
+        if not kept:
+            return None
+        for index, (held, runs) in enumerate(kept):
+            if held is batch:
+                del kept[index]  # asked once: the batch and its chunks are not held longer
+                return runs
+        return None
 
     def push_back(self, batches: list[MessageBatch]) -> None:
         """Hand batches back so that the next :meth:`batches` iteration yields them first."""
@@ -665,6 +549,7 @@ class McapSource:
     def _read_batches(self) -> Iterator[MessageBatch]:
         self._ahead, self._ahead_pos = b"", 0
         pending = _PendingMessages()
+        runs: list[ChunkRun] = []  # where the pending messages come from (keep_raw_chunks)
         position = len(MAGIC)
         while True:
             record = self._next_record(position)
@@ -679,11 +564,16 @@ class McapSource:
             position += 9 + length
             if opcode == OP_MESSAGE:
                 assert content is not None
+                if self.keep_raw_chunks:
+                    runs.append((None, 1, pending.n_bytes))
                 pending.add_loose(content, here)
             elif opcode == OP_CHUNK:
                 assert content is not None
                 part = self._chunk_part(content, here)
                 if part is not None:
+                    if self.keep_raw_chunks:
+                        raw = _raw_chunk(content) if self._chunk_clean else None
+                        runs.append((raw, len(part[1]), pending.n_bytes))
                     pending.add_chunk(*part, here)
             elif opcode in (OP_SCHEMA, OP_CHANNEL, OP_METADATA):
                 # Not a message: the pending messages before it stay in the current batch,
@@ -702,15 +592,24 @@ class McapSource:
                 self._problem(f"record with unknown opcode {opcode:#04x} at byte {here} skipped")
             if pending.full():
                 batch = self._flush(pending)
+                self._note_runs(batch, runs)
+                runs = []
                 if len(batch):
                     yield batch
         batch = self._flush(pending)
+        self._note_runs(batch, runs)
         if len(batch):
             yield batch
 
+    def _note_runs(self, batch: MessageBatch, runs: list[ChunkRun]) -> None:
+        """Remember where a batch's messages came from, when every one is accounted for
+        (none was dropped as malformed or of an unknown channel) and a chunk is whole."""
+        if sum(count for _, count, _ in runs) == len(batch) and any(r for r, _, _ in runs):
+            self._raw_chunks.append((batch, runs))
+
     def _flush(self, pending: _PendingMessages) -> MessageBatch:
         """One batch of the pending messages (small chunks and loose messages are joined,
-        so the cost per batch is paid per megabyte, not per chunk)."""
+        so the cost per batch is paid per 4 MiB, not per chunk)."""
         if not pending.parts:
             return MessageBatch.empty()
         where = pending.where()
@@ -800,6 +699,7 @@ class McapSource:
     ) -> tuple[bytes, np.ndarray | list[int], np.ndarray | list[int]] | None:
         """A chunk's records, and the content starts and lengths of its Message records
         (its Schema and Channel records are registered); None if the chunk is unusable."""
+        self._chunk_clean = False
         raw = self._chunk_records(content, chunk_offset)
         if raw is None:
             return None
@@ -808,6 +708,8 @@ class McapSource:
         buf = np.frombuffer(raw, dtype=np.uint8)
         starts, opcodes, lengths, end = scan_records(buf, _IN_CHUNK)
         is_message = opcodes == OP_MESSAGE
+        # only Message records, all of them well formed: the chunk can be copied verbatim
+        self._chunk_clean = end == buf.shape[0] and bool(is_message.all())
         if end != buf.shape[0]:
             self._problem(
                 f"chunk at byte {chunk_offset}: malformed record at byte {end} of its"
@@ -850,74 +752,23 @@ class McapSource:
         return raw, starts, lengths
 
 
-class _PendingMessages:
-    """Message records waiting to become one batch: whole chunks' records and loose
-    (un-chunked) Message records, in file order."""
+#: (chunk copied verbatim or None, message count, byte offset of its records in the batch)
+ChunkRun = tuple[RawChunk | None, int, int]
 
-    def __init__(self) -> None:
-        self.parts: list[bytes] = []
-        self.starts: list[np.ndarray] = []
-        self.lengths: list[np.ndarray] = []
-        self.loose_starts: list[int] = []
-        self.loose_lengths: list[int] = []
-        self.n_bytes = 0
-        self.n_messages = 0
-        self.first_byte = -1
-        self.last_byte = -1
 
-    def _note(self, position: int, n_bytes: int, n_messages: int) -> None:
-        if self.first_byte < 0:
-            self.first_byte = position
-        self.last_byte = position
-        self.n_bytes += n_bytes
-        self.n_messages += n_messages
-
-    def _close_loose(self) -> None:
-        if self.loose_starts:
-            self.starts.append(np.array(self.loose_starts, np.int64))
-            self.lengths.append(np.array(self.loose_lengths, np.int64))
-            self.loose_starts, self.loose_lengths = [], []
-
-    def add_loose(self, content: bytes, position: int) -> None:
-        self.loose_starts.append(self.n_bytes)
-        self.loose_lengths.append(len(content))
-        self.parts.append(content)
-        self._note(position, len(content), 1)
-
-    def add_chunk(
-        self,
-        raw: bytes,
-        starts: np.ndarray | list[int],
-        lengths: np.ndarray | list[int],
-        position: int,
-    ) -> None:
-        if isinstance(starts, list):  # a small chunk: kept in lists like loose messages
-            shift = self.n_bytes
-            self.loose_starts.extend(start + shift for start in starts)
-            self.loose_lengths.extend(lengths)
-        else:
-            self._close_loose()
-            self.starts.append(starts + self.n_bytes)
-            self.lengths.append(np.asarray(lengths))
-        self.parts.append(raw)
-        self._note(position, len(raw), len(starts))
-
-    def full(self) -> bool:
-        return self.n_bytes >= _BATCH_BYTES or self.n_messages >= _BATCH_MESSAGES
-
-    def where(self) -> str:
-        if self.first_byte == self.last_byte:
-            return f"record at byte {self.first_byte}"
-        return f"records at bytes {self.first_byte}-{self.last_byte}"
-
-    def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(buffer, content starts, content lengths) of everything pending; empties it."""
-        self._close_loose()
-        raw = self.parts[0] if len(self.parts) == 1 else b"".join(self.parts)
-        starts = self.starts[0] if len(self.starts) == 1 else np.concatenate(self.starts)
-        lengths = self.lengths[0] if len(self.lengths) == 1 else np.concatenate(self.lengths)
-        self.__init__()  # type: ignore[misc]
-        return np.frombuffer(raw, dtype=np.uint8), starts, lengths
+def _raw_chunk(content: bytes) -> RawChunk:
+    """A :class:`RawChunk` of a Chunk record's content (already checked by the reader)."""
+    start_time, end_time, uncompressed_size, _, name_length = _CHUNK_HEAD.unpack_from(content)
+    records_at = _CHUNK_HEAD.size + name_length + 8
+    compression = content[_CHUNK_HEAD.size : records_at - 8].decode("utf-8", "replace")
+    return RawChunk(
+        content=content,
+        start_time=int(start_time),
+        end_time=int(end_time),
+        uncompressed_size=int(uncompressed_size),
+        compressed_size=len(content) - records_at,
+        compression=compression,
+    )
 
 
 def _error_text(err: BaseException) -> str:

@@ -34,9 +34,10 @@ import numpy as np
 from imufdi_cli.errors import McapInputError, UsageError
 from imufdi_cli.mcapio.cdr import codec_for, decode_json_payloads
 from imufdi_cli.mcapio.events import decode_events, is_event_channel
-from imufdi_cli.mcapio.records import ChannelInfo, McapWriter, MessageBatch, gather_bytes
+from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch, gather_bytes
 from imufdi_cli.mcapio.schemas import STATUS_SCHEMA, STATUS_SCHEMA_NAME
 from imufdi_cli.mcapio.source import McapSource
+from imufdi_cli.mcapio.writer import McapWriter
 
 if TYPE_CHECKING:
     from imufdi_cli.detectors.base import DetectionBlock

@@ -169,6 +169,7 @@ def alive(pid: int) -> bool:
     return state != "Z"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_sigkill_half_way_then_resume_equals_uninterrupted(cli, tmp_path):
     spec = write(tmp_path, RESUME_SPEC)
@@ -263,6 +264,7 @@ def test_a_second_campaign_on_one_directory_is_refused_naming_the_holder(cli, tm
     assert (out / LOCK_NAME).read_text().split()[0] == str(os.getpid())
 
 
+@pytest.mark.slow
 def test_a_lock_held_by_another_process_names_its_pid(cli, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
@@ -302,27 +304,27 @@ def test_all_runs_failing_on_their_data_exits_3(cli, tmp_path):
 
 
 def test_all_runs_failing_on_a_bug_exits_4(cli, tmp_path, monkeypatch):
-    import imufdi_cli.campaign
+    import imufdi_cli.campaign.run
 
     def bug(desc):
         raise ZeroDivisionError("division by zero")
 
-    monkeypatch.setattr(imufdi_cli.campaign, "_execute", bug)
+    monkeypatch.setattr(imufdi_cli.campaign.run, "_execute", bug)
     result = cli(["campaign", write(tmp_path, SPEC), "-o", tmp_path / "out", "--jobs", "1"])
     assert_one_line_error(result, 4, "ZeroDivisionError: division by zero")
 
 
 def test_some_runs_failing_still_exits_0(cli, tmp_path, monkeypatch):
-    import imufdi_cli.campaign
+    import imufdi_cli.campaign.run
 
-    real = imufdi_cli.campaign._execute
+    real = imufdi_cli.campaign.run._execute
 
     def flaky(desc):
         if desc["seed"] == 1:
             raise ZeroDivisionError("division by zero")
         return real(desc)
 
-    monkeypatch.setattr(imufdi_cli.campaign, "_execute", flaky)
+    monkeypatch.setattr(imufdi_cli.campaign.run, "_execute", flaky)
     result = cli(["campaign", write(tmp_path, SPEC), "-o", tmp_path / "out", "--jobs", "1"])
     assert result.code == 0, result.stderr
     assert "2 failed" in result.stderr

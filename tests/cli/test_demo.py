@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import pytest
 
+
+@pytest.mark.slow
 def test_demo_keep(cli, tmp_path):
     result = cli(["demo", "--keep", tmp_path])
     assert result.code == 0, result.stderr

@@ -220,6 +220,7 @@ def _wait_for_partial_output(process: subprocess.Popen, directory: Path) -> None
     pytest.fail("the simulation never started writing")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("signum", "code", "fragment"),
     [(signal.SIGTERM, 143, "terminated by SIGTERM"), (signal.SIGINT, 130, "interrupted")],
@@ -235,6 +236,7 @@ def test_a_signal_mid_write_removes_the_partial_outputs(tmp_path, signum, code, 
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_temps_of_a_killed_writer_are_removed_by_the_next_write(cli, tmp_path):
     process = _start_long_simulate(tmp_path)
     _wait_for_partial_output(process, tmp_path)
@@ -258,6 +260,7 @@ def test_temps_of_a_killed_writer_are_removed_by_the_next_write(cli, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["long.bin", "long.mcap"]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_FSIZE semantics")
 def test_a_file_size_limit_mid_write_is_exit_3_and_leaves_nothing(tmp_path):
     import resource
@@ -330,6 +333,7 @@ def test_a_log_time_beyond_int64_is_bad_data_not_a_bug(cli, workdir, tmp_path, c
     assert sorted(p.name for p in tmp_path.iterdir()) == ["huge.mcap"]
 
 
+@pytest.mark.slow
 def test_an_ignored_signal_stays_ignored(tmp_path):
     """nohup (SIGHUP ignored) must keep working: the handler is not installed over SIG_IGN."""
     process = subprocess.Popen(

@@ -51,6 +51,18 @@ def short_log():
     return wearable12(1, duration=8.0, factor=None)
 
 
+@pytest.fixture(scope="module")
+def trained(short_log, tmp_path_factory):
+    """One FAST network trained on short_log's first 6 s and its saved model file, shared by
+    the tests that need a trained mapping but do not test training itself."""
+    array, block = short_log
+    detector = make(FAST)
+    detector.fit(block.mask(block.t_s() < 6.0), array)
+    path = tmp_path_factory.mktemp("cnn") / "model.npz"
+    detector.save_model(path)
+    return detector, str(path)
+
+
 def test_input_windows_end_at_their_sample():
     body = np.arange(5 * 2 * 3, dtype=float).reshape(5, 2, 3)
     windows = input_windows(body, 3)
@@ -120,6 +132,7 @@ def test_fewer_than_two_accelerometer_triads_are_rejected():
         make(FAST).fit(block, array)
 
 
+@pytest.mark.slow  # 12 s: three trainings and three passes over 8 s of wearable12
 def test_block_size_invariance_and_json_metadata(short_log):
     array, block = short_log
     a = run(make(FAST), array, block, (0.0, 6.0), block_size=97)
@@ -149,10 +162,14 @@ def test_block_size_invariance_and_json_metadata(short_log):
     assert len(meta["excluded_gyros"]) <= 36 - 3
 
 
-def test_alarm_episode_isolation_does_not_depend_on_block_size():
+@pytest.mark.slow
+def test_alarm_episode_isolation_does_not_depend_on_block_size(tmp_path):
     array, block = wearable12(2, duration=16.0)  # fault from 12 s to the end
-    a = run(make(FAST), array, block, (0.0, 6.0), block_size=37)
-    b = run(make(FAST), array, block, (0.0, 6.0), block_size=1000)
+    first = make(FAST)  # trained once; the second run loads the same network
+    a = run(first, array, block, (0.0, 6.0), block_size=37)
+    model = tmp_path / "model.npz"
+    first.save_model(model)
+    b = run(make({"model": str(model)}), array, block, (0.0, 6.0), block_size=1000)
     fault = block.t_s() >= 12.0
     assert a.alarm[fault].mean() > 0.5  # episodes cross many block boundaries
     assert_array_equal(a.alarm, b.alarm)
@@ -169,14 +186,11 @@ def test_training_reduces_the_loss(short_log):
     assert training["train_mae_rad_s"] < training["reference_rms_rad_s"]
 
 
-def test_saved_model_reproduces_the_network(short_log, tmp_path):
+def test_saved_model_reproduces_the_network(short_log, trained):
     array, block = short_log
-    first = make(FAST)
+    first, path = trained
     t = block.t_s()
-    first.fit(block.mask(t < 6.0), array)
-    path = tmp_path / "model.npz"
-    first.save_model(path)
-    second = make({"model": str(path)})
+    second = make({"model": path})
     second.fit(block.mask(t < 6.0), array)
     assert first.mapping is not None and second.mapping is not None
     for w1, w2 in zip(first.mapping.weights, second.mapping.weights):
@@ -211,9 +225,9 @@ def test_short_calibration_is_rejected():
         make(FAST).fit(block.slice(0, 60), array)
 
 
-def test_model_trained_at_another_rate_is_rejected(short_log, tmp_path):
+def test_model_trained_at_another_rate_is_rejected(short_log, trained, tmp_path):
     array, block = short_log
-    detector = make(FAST)
+    detector = make({"model": trained[1]})  # a copy of the trained network
     detector.fit(block.mask(block.t_s() < 6.0), array)
     assert detector.mapping is not None
     detector.mapping.rate_hz = 200.0

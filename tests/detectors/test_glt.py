@@ -155,9 +155,9 @@ def test_chunked_processing_matches_one_block() -> None:
     rng = np.random.default_rng(3)
     array = ArrayConfig.co_aligned(6)
     calibration = make_block(array, 300, rng)
-    test = make_block(array, 3000, rng, start=300)
-    gyro_of(test)[1000:, 2, 2] += 0.1
-    gyro_of(test)[2000:, 4, 0] -= 0.1
+    test = make_block(array, 1500, rng, start=300)
+    gyro_of(test)[500:, 2, 2] += 0.1
+    gyro_of(test)[1000:, 4, 0] -= 0.1
     outputs = []
     for chunk in (None, 1, 251):
         det = make_detector(window=4, persistence=2)

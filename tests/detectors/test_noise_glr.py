@@ -148,7 +148,7 @@ def test_streaming_gives_the_same_rows_for_any_block_size():
     [
         ({"window": "-1s"}, "must be >"),
         ({"alpha": "0.9"}, "<= 0.5"),
-        ({"sensors": "baro"}, "valid: gyro, accel, mag"),
+        ({"types": "baro"}, "valid: gyro, accel, mag"),
         ({"lever_arm": "maybe"}, "boolean"),
     ],
 )

@@ -28,7 +28,7 @@ DEG = np.pi / 180.0
 
 
 def make(params: dict | None = None) -> PcaParityDetector:
-    return PcaParityDetector(**parse_params(PcaParityDetector.PARAMS, params or {}, "pca-parity"))
+    return PcaParityDetector.from_params(params)  # old parameter names accepted, as on the CLI
 
 
 def run(detector, array, block, calibrate=(0.0, 2.0), block_size=173):
@@ -171,7 +171,7 @@ def test_chip_biases_false_alarm_rate_is_nominal_while_plain_glt_alarms():
                 chip_biases={"gyro": "0.5deg/s"},
             )
         )
-        out = run(make({"sensors": "gyro"}), array, block)["gyro"]
+        out = run(make({"types": "gyro"}), array, block)["gyro"]
         rates.append(out.alarm.mean())
         glt = GltDetector(**parse_params(GltDetector.PARAMS, {"bias": False}, "glt"))
         plain = run(glt, array, block)["gyro"]
@@ -200,7 +200,7 @@ def test_streaming_gives_the_same_rows_for_any_block_size():
         ({"space": "pca"}, "valid: parity, raw"),
         ({"components": "0"}, ">= 1"),
         ({"window": "5m/s"}, "time"),
-        ({"sensors": "gyro,baro"}, "valid: gyro, accel, mag"),
+        ({"types": "gyro,baro"}, "valid: gyro, accel, mag"),
         ({"nope": "1"}, "valid: alpha"),
     ],
 )
@@ -214,7 +214,7 @@ def test_short_or_missing_calibration_raises():
     with pytest.raises(CalibrationError, match="at least"):
         make().fit(block.slice(0, 15), array)
     with pytest.raises(CalibrationError, match="nothing to test"):
-        make({"sensors": "accel"}).fit(block.slice(0, 200), array)
+        make({"types": "accel"}).fit(block.slice(0, 200), array)
     with pytest.raises(CalibrationError, match="before fit"):
         make().process(block)
 

@@ -32,10 +32,10 @@ from imufdi_cli.mcapio import McapSource, decode_imu, read_events, read_status
 from tests.cli.conftest import invoke
 
 N_IMUS = 16
-N_SAMPLES = 300  # 3 s at 100 Hz
+N_SAMPLES = 200  # 2 s at 100 Hz
 FAULTS = (
-    "step:imu0.gyro.x,at=2s,amp=0.9deg/s",
-    "drift:imu2.gyro.z,at=0.5s,until=1.5s,rate=2deg/s^2",
+    "step:imu0.gyro.x,at=1.5s,amp=0.9deg/s",
+    "drift:imu2.gyro.z,at=0.5s,until=1.2s,rate=2deg/s^2",
 )
 DETECTORS = ("glt", "pca-parity")
 HERE = Path(__file__).parent
@@ -59,7 +59,7 @@ def outputs(tmp_path_factory) -> dict[str, Path]:
 
     sim = d / "simulate.mcap"
     capture = d / "capture.bin"
-    simulate = ["simulate", "--preset", "paper-table4", "--duration", "3s"]
+    simulate = ["simulate", "--preset", "paper-table4", "--duration", "2s"]
     _run([*simulate, "--seed", 3, "-o", sim, "--capture", capture, "--corrupt"])
     files["simulate"] = sim
     keep("simulate-stdout", _run([*simulate, "--seed", 3, "-o", "-"]))
@@ -70,7 +70,7 @@ def outputs(tmp_path_factory) -> dict[str, Path]:
     files["inject"] = d / "inject.mcap"
     _run(["inject", sim, *faults, "-o", files["inject"]])
     keep("inject-stdout", _run(["inject", "-", *faults, "-o", "-"], stdin=sim.read_bytes()))
-    dets = [a for name in DETECTORS for a in ("-d", name)]
+    dets = [a for name in DETECTORS for a in ("-d", name)] + ["--calibrate", "0s:1s"]
     files["detect"] = d / "detect.mcap"
     _run(["detect", files["inject"], *dets, "-o", files["detect"]])
     keep(
@@ -79,7 +79,18 @@ def outputs(tmp_path_factory) -> dict[str, Path]:
     )
     # detect on an ingested log (device-time stamps, lost frames)
     files["detect-ingest"] = d / "detect-ingest.mcap"
-    _run(["detect", files["ingest"], "-d", "glt", "-o", files["detect-ingest"]])
+    _run(
+        [
+            "detect",
+            files["ingest"],
+            "-d",
+            "glt",
+            "--calibrate",
+            "0s:1s",
+            "-o",
+            files["detect-ingest"],
+        ]
+    )
     return files
 
 
@@ -239,7 +250,7 @@ def test_rosbags_any_reader(outputs, name) -> None:
         step = next(m for m in truth if m.model == "step")
         assert step.param_names == ["amp"]
         assert step.param_values[0] == pytest.approx(math.radians(0.9))
-        assert math.isnan(step.until_s) and step.at_s == 2.0
+        assert math.isnan(step.until_s) and step.at_s == 1.5
 
 
 @pytest.mark.parametrize("name", ALL)

@@ -134,6 +134,7 @@ def _huge_record_length() -> tuple[bytes, int]:
     return bytes(bad), chunks[2]
 
 
+@pytest.mark.slow
 def test_bombs_exit_3_under_memory_and_time_limits(tmp_path) -> None:
     """Every bomb exits 3 with one line (also through a pipe with --strict); a huge record
     length is read past (exit 0, a warning naming its offset, reading resumed at the next

@@ -81,6 +81,11 @@ def test_mcap_package_reads_our_file(tmp_path, compression: str, variable: bool)
     with open(path, "rb") as stream:
         records = list(StreamReader(stream, validate_crcs=True).records)
     assert type(records[-1]).__name__ == "Footer"
+    # every chunk carries a real CRC-32 (0 would mean "not computed" and skip the check)
+    with open(path, "rb") as stream:
+        raw = list(StreamReader(stream, emit_chunks=True, validate_crcs=True).records)
+    chunks = [r for r in raw if type(r).__name__ == "Chunk"]
+    assert chunks and all(c.uncompressed_crc != 0 for c in chunks)
 
 
 def test_our_source_reads_batches(tmp_path) -> None:

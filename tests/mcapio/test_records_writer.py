@@ -12,7 +12,7 @@ from mcap.reader import make_reader
 
 from imufdi_cli.errors import McapInputError, OutputError
 from imufdi_cli.mcapio import McapWriter, MessageBatch
-from imufdi_cli.mcapio.records import compress, decompress
+from imufdi_cli.mcapio.compression import compress, decompress
 
 
 class _Full:

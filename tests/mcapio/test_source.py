@@ -100,13 +100,17 @@ def test_late_imu_channel_is_reported_not_dropped_silently() -> None:
             if op == opcode and (channel is None or data[o + 9] == channel)
         ]
 
-    # /imu1's channel and messages only after 6000 messages of /imu0 (past the read-ahead)
+    # /imu1's channel and messages only after more messages of /imu0 than one read batch
+    # holds (past the read-ahead)
+    from imufdi_cli.mcapio.scan import _BATCH_MESSAGES
+
     schema, channels = raw(0x03), raw(0x04)
     first, second = (channel[9] for channel in channels)  # their ids (low bytes)
+    repeat = _BATCH_MESSAGES // len(raw(0x05, first)) + 100
     late = wrap(
         b"".join(schema)
         + channels[0]
-        + b"".join(raw(0x05, first) * 300)
+        + b"".join(raw(0x05, first) * repeat)
         + channels[1]
         + b"".join(raw(0x05, second))
     )

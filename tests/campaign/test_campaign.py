@@ -404,6 +404,7 @@ def campaign_200(tmp_path_factory):
     return spec, root, result
 
 
+@pytest.mark.slow
 def test_campaign_of_200_runs_on_the_preset(campaign_200):
     _, root, result = campaign_200
     assert (result.total, result.executed, result.failed) == (200, 200, 0)
@@ -424,12 +425,22 @@ def test_campaign_of_200_runs_on_the_preset(campaign_200):
     assert (root / "pool" / "summary.md").read_text().startswith("# Campaign ci-200")
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_gives_identical_runs_csv(campaign_200):
     pytest.importorskip("dask.distributed")
     spec, root, _ = campaign_200
     result = run_campaign(spec, root / "dask", scheduler="local:2")
     assert (result.total, result.executed, result.failed) == (200, 200, 0)
     assert (root / "dask" / "runs.csv").read_text() == (root / "pool" / "runs.csv").read_text()
+
+
+@pytest.mark.slow
+def test_in_process_gives_identical_outputs_to_the_pool(campaign_200):
+    spec, root, _ = campaign_200
+    result = run_campaign(spec, root / "serial", jobs=1)
+    assert (result.total, result.executed, result.failed) == (200, 200, 0)
+    for name in ("runs.csv", "summary.json", "summary.md"):
+        assert (root / "serial" / name).read_bytes() == (root / "pool" / name).read_bytes()
 
 
 def test_bad_scheduler_forms(tmp_path):

@@ -1,0 +1,107 @@
+"""Chunk compression and bounded decompression (zstd, lz4, none) for MCAP chunks."""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from imufdi_cli.errors import McapInputError
+
+_ZSTD: dict[str, Any] = {}
+#: Per-thread zstd compressors (a ZstdCompressor must not be shared between threads).
+_ZSTD_LOCAL = threading.local()
+#: zstd compression level of chunks. Fast level -3 compresses these CDR records about 1.8x
+#: faster than level 1 for ~1% larger chunks (standard zstd frames; every decoder reads them).
+ZSTD_LEVEL = -3
+
+
+def compress(raw: bytes | memoryview, compression: str) -> bytes:
+    """Compress a chunk's records (``compression`` "zstd", "lz4" or "" / "none"); thread-safe."""
+    if compression == "zstd":
+        compressor = getattr(_ZSTD_LOCAL, "compressor", None)
+        if compressor is None:
+            import zstandard
+
+            # with the frame's content checksum: every zstd decoder verifies it
+            compressor = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True)
+            _ZSTD_LOCAL.compressor = compressor
+        return bytes(compressor.compress(raw))
+    if compression == "lz4":
+        import lz4.frame
+
+        return bytes(lz4.frame.compress(raw, content_checksum=True))
+    return bytes(raw)
+
+
+def _error_text(err: BaseException) -> str:
+    """``str(err)``, or the exception's type when it has no message (never empty)."""
+    text = " ".join(str(err).split())
+    return text or type(err).__name__
+
+
+def _zstd_decompress(raw: bytes | memoryview, size: int) -> bytes:
+    import zstandard
+
+    if "d" not in _ZSTD:
+        _ZSTD["d"] = zstandard.ZstdDecompressor()
+    dctx = _ZSTD["d"]
+    # ``decompress`` allocates what the frame header claims (ignoring max_output_size), so
+    # it is used only when that claim is the chunk's declared size; otherwise read at most
+    # one byte more than declared through a stream reader (also reads across frames).
+    if zstandard.frame_content_size(raw) == size:
+        out = bytes(dctx.decompress(raw))
+        if len(out) == size:
+            return out
+    with dctx.stream_reader(raw, read_across_frames=True) as reader:
+        out = bytes(reader.read(size + 1))
+    return out
+
+
+def _lz4_decompress(raw: bytes | memoryview, size: int) -> bytes:
+    import lz4.frame
+
+    dctx = lz4.frame.LZ4FrameDecompressor()
+    out = bytes(dctx.decompress(raw, max_length=size + 1))
+    if len(out) <= size and not dctx.eof:
+        raise McapInputError(f"lz4 frame incomplete after {len(out)} of {size} declared bytes")
+    return out
+
+
+def decompress(raw: bytes | memoryview, compression: str, uncompressed_size: int) -> bytes:
+    """Decompress chunk records, producing at most ``uncompressed_size`` bytes.
+
+    The output is bounded by the declared size for every compression (a decompression bomb
+    stops one byte past it); a size other than the declared one is an error.
+
+    Raises
+    ------
+    McapInputError
+        Unknown compression, corrupt data, or a size other than ``uncompressed_size``
+        (the message says which, never empty).
+    """
+    if compression not in ("", "zstd", "lz4"):
+        raise McapInputError(
+            f"unsupported chunk compression {compression[:40]!r}; supported: zstd, lz4"
+        )
+    try:
+        if compression == "":
+            out = bytes(raw)
+        elif compression == "zstd":
+            out = _zstd_decompress(raw, uncompressed_size)
+        else:
+            out = _lz4_decompress(raw, uncompressed_size)
+    except McapInputError:
+        raise
+    except Exception as err:  # zstandard.ZstdError, lz4's RuntimeError, ...
+        raise McapInputError(f"corrupt {compression} chunk ({_error_text(err)})") from err
+    if len(out) > uncompressed_size:
+        raise McapInputError(
+            f"{compression or 'uncompressed'} records exceed the declared size of"
+            f" {uncompressed_size} bytes"
+        )
+    if len(out) < uncompressed_size:
+        raise McapInputError(
+            f"{compression or 'uncompressed'} records hold {len(out)} bytes, not the declared"
+            f" {uncompressed_size}"
+        )
+    return out

@@ -1,0 +1,294 @@
+"""``sensor_msgs/msg/Imu`` and ``MagneticField`` in MCAP: which channels hold them, and
+bulk decoding and in-place patching of their CDR (or JSON) messages (DESIGN.md §4)."""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.errors import McapInputError, UsageError
+from imufdi_cli.mcapio.cdr import CdrCodec, codec_for
+from imufdi_cli.mcapio.records import (
+    ChannelInfo,
+    MessageBatch,
+)
+
+ARRAY_METADATA = "imufdi.array"
+IMU_TYPE_NAMES = ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")
+MAG_TYPE_NAMES = ("sensor_msgs/msg/MagneticField", "sensor_msgs/MagneticField")
+NS_PER_S = 1_000_000_000
+
+
+@dataclass
+class ImuFields:
+    """Decoded values of N Imu (or MagneticField) messages of one channel.
+
+    Attributes
+    ----------
+    t_ns : ndarray, shape (N,), int64
+        ``header.stamp`` in nanoseconds.
+    log_time : ndarray, shape (N,), int64
+        MCAP log time, nanoseconds.
+    gyro : ndarray, shape (N, 3), float64, or None
+        ``angular_velocity``, rad/s.
+    accel : ndarray, shape (N, 3), float64, or None
+        ``linear_acceleration``, m/s^2.
+    mag : ndarray, shape (N, 3), float64, or None
+        ``magnetic_field``, tesla.
+    has_stamp : bool
+        False when the messages have no ``header.stamp`` (``t_ns`` is then the log time).
+    """
+
+    t_ns: np.ndarray
+    log_time: np.ndarray
+    gyro: np.ndarray | None = None
+    accel: np.ndarray | None = None
+    mag: np.ndarray | None = None
+    has_stamp: bool = True
+
+
+def natural_key(text: str) -> list[Any]:
+    """Sort key ordering ``/imu2`` before ``/imu10``."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text)]
+
+
+def schema_name(channel: ChannelInfo) -> str:
+    return channel.schema.name if channel.schema is not None else ""
+
+
+def imu_fields_of(channel: ChannelInfo) -> list[str]:
+    """Where a channel's messages hold a ``sensor_msgs/msg/Imu``: ``[""]`` for Imu messages,
+    else the field paths of Imu fields inside a CDR message (e.g. ``["imu"]`` for a
+    ``custom_interfaces/msg/Vectornav`` with an Imu field ``imu``); empty when none."""
+    if schema_name(channel) in IMU_TYPE_NAMES and channel.message_encoding in ("cdr", "json"):
+        return [""]
+    schema = channel.schema
+    if channel.message_encoding != "cdr" or schema is None or schema.encoding != "ros2msg":
+        return []
+    try:
+        codec = codec_for(schema.name, schema.data)
+    except Exception:  # a schema we cannot parse holds no Imu we could read
+        return []
+    found: list[str] = []
+
+    def walk(type_name: str, prefix: str, depth: int) -> None:
+        definition = codec.defs.get(type_name)
+        if definition is None or depth > 8:
+            return
+        for fdef in definition.fields:
+            if fdef.array is not None or "/" not in fdef.type_name:
+                continue
+            if fdef.type_name == IMU_TYPE_NAMES[0]:
+                found.append(prefix + fdef.name)
+            else:
+                walk(fdef.type_name, f"{prefix}{fdef.name}.", depth + 1)
+
+    walk(codec.root, "", 0)
+    return found
+
+
+def is_imu_channel(channel: ChannelInfo) -> bool:
+    """An Imu channel, or a CDR channel whose type holds exactly one Imu field."""
+    return len(imu_fields_of(channel)) == 1
+
+
+def is_mag_channel(channel: ChannelInfo) -> bool:
+    return schema_name(channel) in MAG_TYPE_NAMES and channel.message_encoding in ("cdr", "json")
+
+
+# --- decoding ---------------------------------------------------------------------------
+
+_VECTORS = {"gyro": "angular_velocity", "accel": "linear_acceleration", "mag": "magnetic_field"}
+
+
+def _codec(channel: ChannelInfo) -> CdrCodec:
+    if channel.schema is None or channel.schema.encoding != "ros2msg":
+        enc = channel.schema.encoding if channel.schema else "none"
+        raise McapInputError(
+            f"channel {channel.topic}: CDR messages need a ros2msg schema, got {enc!r}"
+        )
+    return codec_for(channel.schema.name, channel.schema.data)
+
+
+def _vector_paths(codec: CdrCodec, field_name: str) -> str:  # field_name may be nested
+    """Path of ``<field>.x``, checking that y and z follow it as contiguous float64."""
+    leaves = codec.layout.leaves
+    first = leaves.get(f"{field_name}.x")
+    ok = first is not None and first.dtype == "f8"
+    for i, axis in enumerate("yz", start=1):
+        leaf = leaves.get(f"{field_name}.{axis}")
+        ok = ok and leaf is not None and first is not None
+        ok = ok and leaf.segment == first.segment and leaf.offset == first.offset + 8 * i  # type: ignore[union-attr]
+        ok = ok and leaf.dtype == "f8"  # type: ignore[union-attr]
+    if not ok:
+        raise McapInputError(f"{codec.root}: {field_name} is not a float64 x, y, z vector")
+    return f"{field_name}.x"
+
+
+def _decode_cdr(
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    kinds: Sequence[str],
+    field: str = "",
+    valid: np.ndarray | None = None,
+) -> ImuFields:
+    codec = _codec(channel)
+    prefix = f"{field}." if field else ""
+    vector_paths = {kind: _vector_paths(codec, prefix + _VECTORS[kind]) for kind in kinds}
+    stamp = [f"{prefix}header.stamp.sec", f"{prefix}header.stamp.nanosec"]
+    has_stamp = all(path in codec.layout.leaves for path in stamp)
+    paths = [*(stamp if has_stamp else []), *vector_paths.values()]
+    little, positions, _ = codec.positions(batch, paths, valid)
+    if valid is not None and not bool(valid.all()):
+        batch = batch.select(valid)
+        little = little[valid]
+        positions = {path: value[valid] for path, value in positions.items()}
+    log_time = batch.log_time.astype(np.int64)
+    if has_stamp:
+        sec = codec.read(batch, little, positions[stamp[0]], "i4", 1)[:, 0]
+        nanosec = codec.read(batch, little, positions[stamp[1]], "u4", 1)[:, 0]
+        t_ns = sec.astype(np.int64) * NS_PER_S + nanosec.astype(np.int64)
+    else:
+        t_ns = log_time.copy()
+    out = ImuFields(t_ns=t_ns, log_time=log_time, has_stamp=has_stamp)
+    for kind, path in vector_paths.items():
+        setattr(out, kind, codec.read(batch, little, positions[path], "f8", 3).astype(np.float64))
+    return out
+
+
+def _decode_json(
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    kinds: Sequence[str],
+    field: str = "",
+    valid: np.ndarray | None = None,
+) -> ImuFields:
+    n = len(batch)
+    t_ns = batch.log_time.astype(np.int64).copy()
+    has_stamp = True
+    vectors = {kind: np.zeros((n, 3)) for kind in kinds}
+    for i in range(n):
+        try:
+            obj = json.loads(batch.payload(i))
+            for part in field.split(".") if field else []:
+                obj = obj[part]
+            if i == 0:
+                has_stamp = isinstance(obj, dict) and "header" in obj
+            if has_stamp:
+                stamp = obj["header"]["stamp"]
+                nanosec = int(stamp.get("nanosec", stamp.get("nsec", 0)))
+                t_ns[i] = int(stamp["sec"]) * NS_PER_S + nanosec
+            for kind in kinds:
+                vec = obj[_VECTORS[kind]]
+                vectors[kind][i] = (float(vec["x"]), float(vec["y"]), float(vec["z"]))
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as err:
+            if valid is not None:
+                valid[i] = False
+                continue
+            raise McapInputError(
+                f"channel {channel.topic}: JSON message {i} is not a {schema_name(channel)}"
+                f" ({type(err).__name__}: {err})"
+            ) from err
+    log_time = batch.log_time.astype(np.int64)
+    if valid is not None and not bool(valid.all()):
+        t_ns, log_time = t_ns[valid], log_time[valid]
+        vectors = {kind: value[valid] for kind, value in vectors.items()}
+    return ImuFields(t_ns=t_ns, log_time=log_time, has_stamp=has_stamp, **vectors)
+
+
+def _decode(
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    kinds: Sequence[str],
+    field: str = "",
+    valid: np.ndarray | None = None,
+) -> ImuFields:
+    """Decode one channel's messages (``field``: path of an embedded Imu, "" for the message
+    itself). Malformed messages raise McapInputError, unless ``valid`` (N,) bool is given:
+    then they are left out and their entries set False."""
+    if channel.message_encoding == "cdr":
+        return _decode_cdr(batch, channel, kinds, field, valid)
+    if channel.message_encoding == "json":
+        return _decode_json(batch, channel, kinds, field, valid)
+    raise McapInputError(
+        f"channel {channel.topic}: message encoding {channel.message_encoding!r} is not"
+        " supported; supported: cdr, json"
+    )
+
+
+def decode_imu(batch: MessageBatch, channel: ChannelInfo, field: str = "") -> ImuFields:
+    """Stamps, angular velocity and linear acceleration of Imu messages (one channel).
+
+    ``field`` is the path of the Imu inside a larger message (``""``: the message is an
+    Imu). Without a ``header.stamp`` the stamps are the log times (``has_stamp`` False).
+    CDR payloads are decoded in bulk (one position per message, gathers of 24 bytes);
+    JSON payloads one by one.
+    """
+    return _decode(batch, channel, ("gyro", "accel"), field)
+
+
+def decode_mag(batch: MessageBatch, channel: ChannelInfo) -> ImuFields:
+    """Stamps and magnetic field (tesla) of MagneticField messages (one channel)."""
+    return _decode(batch, channel, ("mag",))
+
+
+def _patch(
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    values: dict[str, np.ndarray | None],
+    field: str = "",
+) -> MessageBatch:
+    if channel.message_encoding != "cdr":
+        raise McapInputError(
+            f"channel {channel.topic}: only CDR messages can be patched in place, got"
+            f" {channel.message_encoding!r}"
+        )
+    n = len(batch)
+    # Copy the payloads into a fresh buffer so the input batch is left untouched.
+    data = batch.data.copy()
+    out = MessageBatch(
+        channel_id=batch.channel_id.copy(),
+        sequence=batch.sequence.copy(),
+        log_time=batch.log_time.copy(),
+        publish_time=batch.publish_time.copy(),
+        data=data,
+        offset=batch.offset.copy(),
+        length=batch.length.copy(),
+    )
+    codec = _codec(channel)
+    requested = {k: v for k, v in values.items() if v is not None}
+    if not requested or n == 0:
+        return out
+    prefix = f"{field}." if field else ""
+    paths = {kind: _vector_paths(codec, prefix + _VECTORS[kind]) for kind in requested}
+    little, positions, _ = codec.positions(out, list(paths.values()))
+    for kind, array in requested.items():
+        array = np.asarray(array, dtype=np.float64)
+        if array.shape != (n, 3):
+            raise UsageError(f"{kind} values must have shape ({n}, 3), got {array.shape}")
+        codec.write(out, little, positions[paths[kind]], "f8", array)
+    return out
+
+
+def patch_imu(
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    *,
+    gyro: np.ndarray | None = None,
+    accel: np.ndarray | None = None,
+    field: str = "",
+) -> MessageBatch:
+    """The same Imu messages with angular velocity and/or linear acceleration (N, 3)
+    replaced; every other byte is identical. The input batch is not modified. ``field``:
+    path of the Imu inside a larger message, as in :func:`decode_imu`."""
+    return _patch(batch, channel, {"gyro": gyro, "accel": accel}, field)
+
+
+def patch_mag(batch: MessageBatch, channel: ChannelInfo, *, mag: np.ndarray) -> MessageBatch:
+    """The same MagneticField messages with ``magnetic_field`` (N, 3) replaced."""
+    return _patch(batch, channel, {"mag": mag})

@@ -1,0 +1,266 @@
+"""Parsing of MCAP records in bulk: Schema/Channel/Metadata contents, the record scan of a
+decompressed chunk (repeating patterns checked with numpy), and the batching of pending
+message records. Used by :class:`~imufdi_cli.mcapio.source.McapSource`."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from imufdi_cli.errors import McapInputError
+from imufdi_cli.mcapio.records import (
+    SchemaInfo,
+    gather_bytes,
+)
+
+#: Record header: opcode u8, content length u64 LE.
+_RECORD_HEAD = struct.Struct("<BQ")
+#: Bytes of records checked at once by scan_records' vectorised pattern test.
+_SCAN_BLOCK = 4 << 20
+#: Messages (whole chunks, or un-chunked) are joined into batches of about this size: the
+#: numpy work per batch (record scan, CDR decoding, alignment) is then paid per ~4 MiB,
+#: about 20 % less reader CPU than 1 MiB batches on 16-IMU logs of 1 MiB chunks.
+_BATCH_MESSAGES = 16384
+_BATCH_BYTES = 4 << 20
+
+
+class _Cursor:
+    """Reads little-endian MCAP primitives from a bytes object."""
+
+    def __init__(self, raw: bytes | memoryview, where: str) -> None:
+        self.raw = raw
+        self.pos = 0
+        self.where = where
+
+    def take(self, n: int) -> bytes:
+        if self.pos + n > len(self.raw):
+            raise McapInputError(f"malformed {self.where} record (field past its end)")
+        out = bytes(self.raw[self.pos : self.pos + n])
+        self.pos += n
+        return out
+
+    def u16(self) -> int:
+        return int(struct.unpack("<H", self.take(2))[0])
+
+    def u32(self) -> int:
+        return int(struct.unpack("<I", self.take(4))[0])
+
+    def u64(self) -> int:
+        return int(struct.unpack("<Q", self.take(8))[0])
+
+    def string(self) -> str:
+        raw = self.take(self.u32())
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise McapInputError(f"malformed {self.where} record (string is not UTF-8)") from err
+
+    def bytes32(self) -> bytes:
+        return self.take(self.u32())
+
+    def string_map(self) -> dict[str, str]:
+        end = self.u32() + self.pos
+        out: dict[str, str] = {}
+        while self.pos < end:
+            key = self.string()
+            out[key] = self.string()
+        return out
+
+
+def parse_schema(content: bytes) -> SchemaInfo:
+    cur = _Cursor(content, "Schema")
+    schema_id = cur.u16()
+    name = cur.string()
+    encoding = cur.string()
+    return SchemaInfo(schema_id, name, encoding, cur.bytes32())
+
+
+def parse_channel(content: bytes) -> tuple[int, int, str, str, dict[str, str]]:
+    cur = _Cursor(content, "Channel")
+    channel_id = cur.u16()
+    schema_id = cur.u16()
+    topic = cur.string()
+    encoding = cur.string()
+    return channel_id, schema_id, topic, encoding, cur.string_map()
+
+
+def parse_metadata(content: bytes) -> tuple[str, dict[str, str]]:
+    cur = _Cursor(content, "Metadata")
+    name = cur.string()
+    return name, cur.string_map()
+
+
+def scan_records(
+    buf: np.ndarray, allowed: frozenset[int] = frozenset(range(0x01, 0x10))
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Locate the records in a buffer of concatenated MCAP records.
+
+    Parameters
+    ----------
+    buf : ndarray, uint8
+    allowed : set of int
+        Opcodes that may occur; the scan stops at any other (default: every MCAP opcode).
+
+    Returns
+    -------
+    starts, opcodes, lengths : ndarray, shape (R,)
+        Record start offsets, opcodes and content lengths.
+    end : int
+        Offset after the last complete record (``< len(buf)`` if the buffer is cut or
+        holds a record with an opcode not allowed).
+
+    Runs of a repeating record pattern are checked with numpy in blocks of at most
+    ``_SCAN_BLOCK`` bytes, so the work memory is bounded whatever the buffer holds.
+    """
+    size = buf.shape[0]
+    # (starts, opcodes, lengths) of each run found; a pattern run's heads were all
+    # checked, so its opcodes and lengths are the pattern's, repeated
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def walked_part(walked: list[tuple[int, int, int]]) -> tuple[np.ndarray, ...]:
+        return (
+            np.array([w[0] for w in walked], np.int64),
+            np.array([w[1] for w in walked], np.uint8),
+            np.array([w[2] for w in walked], np.int64),
+        )
+
+    buf = np.ascontiguousarray(buf, dtype=np.uint8)
+    unpack = _RECORD_HEAD.unpack_from  # a record head without numpy scalar indexing
+
+    def head_of(at: int) -> tuple[int, int]:
+        return unpack(buf, at)  # type: ignore[arg-type,no-any-return]
+
+    pos = 0
+    probe = 32
+    while pos + 9 <= size:
+        # Walk a few records one by one.
+        walked: list[tuple[int, int, int]] = []
+        p = pos
+        while p + 9 <= size and len(walked) < probe:
+            opcode, length = head_of(p)
+            if p + 9 + length > size or opcode not in allowed:
+                break
+            walked.append((p, opcode, length))
+            p += 9 + length
+        if not walked:
+            break
+        if pos == 0 and len(walked) < probe:
+            # A small buffer, walked whole: no pattern search, no second gather.
+            starts, opcodes, lengths = walked_part(walked)
+            return starts, opcodes, lengths, p
+        # Find the shortest repeating pattern of (opcode, length) in the walked records.
+        keys = [(op, ln) for _, op, ln in walked]
+        period = 0
+        for candidate in range(1, len(keys) // 2 + 1):
+            if all(keys[i] == keys[i % candidate] for i in range(len(keys))):
+                period = candidate
+                break
+        if period == 0 or len(walked) < probe:
+            parts.append(walked_part(walked))  # type: ignore[arg-type]
+            pos = p
+            continue
+        pattern_offsets = np.array([w[0] - pos for w in walked[:period]], dtype=np.int64)
+        stride = sum(9 + ln for _, ln in keys[:period])
+        n_periods = min((size - pos) // stride, max(1, _SCAN_BLOCK // stride))
+        candidates = pos + stride * np.arange(n_periods, dtype=np.int64)[:, None] + pattern_offsets
+        heads = gather_bytes(buf, candidates.reshape(-1), 9)
+        expected_ops = np.array([op for op, _ in keys[:period]], dtype=np.uint8)
+        expected_len = np.array([ln for _, ln in keys[:period]], dtype=np.uint64)
+        ok = (heads[:, 0].reshape(n_periods, period) == expected_ops) & (
+            heads[:, 1:].copy().view("<u8").reshape(n_periods, period) == expected_len
+        )
+        good = ok.all(axis=1)
+        n_good = int(np.argmin(good)) if not bool(good.all()) else n_periods
+        if n_good == 0:
+            parts.append(walked_part(walked))  # type: ignore[arg-type]
+            pos = p
+            continue
+        parts.append(
+            (
+                candidates[:n_good].reshape(-1),
+                np.tile(expected_ops, n_good),
+                np.tile(expected_len.astype(np.int64), n_good),
+            )
+        )
+        pos = pos + n_good * stride
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int64), 0
+    if len(parts) == 1:
+        return (*parts[0], pos)
+    return (
+        np.concatenate([part[0] for part in parts]),
+        np.concatenate([part[1] for part in parts]),
+        np.concatenate([part[2] for part in parts]),
+        pos,
+    )
+
+
+class _PendingMessages:
+    """Message records waiting to become one batch: whole chunks' records and loose
+    (un-chunked) Message records, in file order."""
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+        self.starts: list[np.ndarray] = []
+        self.lengths: list[np.ndarray] = []
+        self.loose_starts: list[int] = []
+        self.loose_lengths: list[int] = []
+        self.n_bytes = 0
+        self.n_messages = 0
+        self.first_byte = -1
+        self.last_byte = -1
+
+    def _note(self, position: int, n_bytes: int, n_messages: int) -> None:
+        if self.first_byte < 0:
+            self.first_byte = position
+        self.last_byte = position
+        self.n_bytes += n_bytes
+        self.n_messages += n_messages
+
+    def _close_loose(self) -> None:
+        if self.loose_starts:
+            self.starts.append(np.array(self.loose_starts, np.int64))
+            self.lengths.append(np.array(self.loose_lengths, np.int64))
+            self.loose_starts, self.loose_lengths = [], []
+
+    def add_loose(self, content: bytes, position: int) -> None:
+        self.loose_starts.append(self.n_bytes)
+        self.loose_lengths.append(len(content))
+        self.parts.append(content)
+        self._note(position, len(content), 1)
+
+    def add_chunk(
+        self,
+        raw: bytes,
+        starts: np.ndarray | list[int],
+        lengths: np.ndarray | list[int],
+        position: int,
+    ) -> None:
+        if isinstance(starts, list):  # a small chunk: kept in lists like loose messages
+            shift = self.n_bytes
+            self.loose_starts.extend(start + shift for start in starts)
+            self.loose_lengths.extend(lengths)
+        else:
+            self._close_loose()
+            self.starts.append(starts + self.n_bytes)
+            self.lengths.append(np.asarray(lengths))
+        self.parts.append(raw)
+        self._note(position, len(raw), len(starts))
+
+    def full(self) -> bool:
+        return self.n_bytes >= _BATCH_BYTES or self.n_messages >= _BATCH_MESSAGES
+
+    def where(self) -> str:
+        if self.first_byte == self.last_byte:
+            return f"record at byte {self.first_byte}"
+        return f"records at bytes {self.first_byte}-{self.last_byte}"
+
+    def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(buffer, content starts, content lengths) of everything pending; empties it."""
+        self._close_loose()
+        raw = self.parts[0] if len(self.parts) == 1 else b"".join(self.parts)
+        starts = self.starts[0] if len(self.starts) == 1 else np.concatenate(self.starts)
+        lengths = self.lengths[0] if len(self.lengths) == 1 else np.concatenate(self.lengths)
+        self.__init__()  # type: ignore[misc]
+        return np.frombuffer(raw, dtype=np.uint8), starts, lengths
