@@ -17,7 +17,7 @@ from imufdi_cli.detectors.rigid import (
     observable_lever_arm,
     rigid_specific_force,
 )
-from imufdi_cli.errors import DetectorConfigError
+from imufdi_cli.errors import ArrayTooSmallError
 from imufdi_cli.log import ImuBlock
 
 FLIP = np.array([[0.0, -1, 0], [-1, 0, 0], [0, 0, -1]])  # the MIMU4444 bottom face
@@ -139,7 +139,7 @@ def test_glt_reports_lever_arm_columns_and_untested_when_too_few():
     # 3 IMUs at distinct points of a plane: 9 sensors, 9 unknowns -> untested
     three = ArrayConfig.co_aligned(3, positions=np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]]))
     det = GltDetector(types="accel")
-    with pytest.raises(DetectorConfigError, match="at least 4 sensors"):
+    with pytest.raises(ArrayTooSmallError, match="at least 4 sensors"):  # exit 3: the data
         det.fit(_rotating_block(three, 300, 0.03, seed=2), three)
     assert "accel" in det._untested and "lever_arm=false" in det._untested["accel"]
 
