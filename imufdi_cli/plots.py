@@ -248,7 +248,8 @@ def _isolation_panel(ax: Any, report: Report, entry: ReportEntry, t: np.ndarray)
         positive = scores[np.isfinite(scores) & (scores > 0)]
         scores = np.where(
             np.isfinite(scores),
-            np.maximum(scores, max(positive.min(), positive.max() * 1e-8)),
+            # noise dips below the 1st percentile carry no information on a log axis
+            np.maximum(scores, float(np.percentile(positive, 1.0))),
             np.nan,
         )
     others = [j for j in range(scores.shape[1]) if j not in chosen]
