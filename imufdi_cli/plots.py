@@ -10,27 +10,14 @@ detector has the same colour in every figure.
 from __future__ import annotations
 
 import textwrap
-import zlib
 from typing import Any
 
 import numpy as np
 
+from imufdi_cli.colours import detector_colour
 from imufdi_cli.errors import UsageError
 from imufdi_cli.report import Report, ReportEntry, format_size
 
-#: fixed colour per known detector, the same in every figure (others: PALETTE by hash)
-DETECTOR_COLOURS = {
-    "glt": "#1f77b4",
-    "woa-mvmd-glt": "#ff7f0e",
-    "pca-parity": "#2ca02c",
-    "bank": "#9467bd",
-    "noise-glr": "#8c564b",
-    "cnn-map": "#17becf",
-    "px4-selector": "#e377c2",
-    "ap-consistency": "#7f7f7f",
-}
-#: colours for detectors not in DETECTOR_COLOURS and for the suspect sensors
-PALETTE = ("#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#31a354")
 #: colours of the isolated (not truly faulty) suspect sensors: none red, none alike
 SUSPECT_COLOURS = ("#9467bd", "#17becf", "#8c564b", "#e377c2")
 ALARM_COLOUR = "#d62728"
@@ -60,14 +47,6 @@ def pyplot() -> Any:
             " (or drop --plot)"
         ) from err
     return plt
-
-
-def detector_colour(name: str) -> str:
-    """The colour of a detector in every figure (a fixed table; an unknown name gets a
-    colour from its hash, so it too is the same in every figure and run)."""
-    if name in DETECTOR_COLOURS:
-        return DETECTOR_COLOURS[name]
-    return PALETTE[zlib.crc32(name.encode()) % len(PALETTE)]
 
 
 def _headroom(ax: Any, share: float = 0.5) -> None:

@@ -59,13 +59,6 @@ def test_suspects_are_the_faulty_then_the_wrongly_isolated():
     assert plots.suspects(entry(scores, isolated, alarm, none)) == [3]  # the worst false one
 
 
-def test_detector_colours_are_fixed_and_distinct():
-    known = list(plots.DETECTOR_COLOURS)
-    assert len({plots.detector_colour(n) for n in known}) == len(known)
-    assert plots.detector_colour("glt") == plots.detector_colour("glt")
-    assert plots.detector_colour("a-new-one") in plots.PALETTE
-
-
 def test_plot_report_writes_a_png(tmp_path):
     pytest.importorskip("matplotlib")
     rng = np.random.default_rng(1)

@@ -2,7 +2,7 @@
 
 ``detection_probability.png`` has one panel per base x fault (spec without its amplitude)
 x scored sensor type. Each detector configuration is one colour in every panel (the
-detector's colour, :data:`DETECTOR_COLOURS`, in shades for its parameter sets) and one
+detector's colour, :data:`imufdi_cli.colours.DETECTOR_COLOURS`, in shades for its parameter sets) and one
 marker; its per-event detection probability is a solid line, the per-sample detection
 rate 1 - MAR a dashed one. Curves that coincide (several detectors at 100 %) stay visible:
 each configuration is shifted sideways by a small fixed step and drawn with its own
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import zlib
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -23,22 +22,10 @@ from typing import Any
 
 import numpy as np
 
+from imufdi_cli.colours import detector_colour as base_colour
 from imufdi_cli.errors import ImufdiError, UsageError
 from imufdi_cli.fileio import atomic_path
 
-#: Fixed colour per registered detector (the report figures use the same table), so a
-#: detector has one colour in every panel, figure and run; other names: PALETTE by hash.
-DETECTOR_COLOURS = {
-    "glt": "#1f77b4",
-    "woa-mvmd-glt": "#ff7f0e",
-    "pca-parity": "#2ca02c",
-    "bank": "#9467bd",
-    "noise-glr": "#8c564b",
-    "cnn-map": "#17becf",
-    "px4-selector": "#e377c2",
-    "ap-consistency": "#7f7f7f",
-}
-PALETTE = ("#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#31a354")
 #: Markers of the configurations, in legend order (large ones first: drawn behind).
 MARKERS = ("o", "s", "D", "^", "v", "P", "X", "<", ">", "*")
 MARKER_SIZES = (9.0, 7.5, 6.5, 6.5, 6.5, 6.5, 6.0, 6.0, 6.0, 7.0)
@@ -71,7 +58,7 @@ def detector_colour(detector: str, variant: int = 0, variants: int = 1) -> str:
     (the first, usually the defaults, in the colour itself, the others darker)."""
     import matplotlib.colors as mcolors
 
-    base = DETECTOR_COLOURS.get(detector) or PALETTE[zlib.crc32(detector.encode()) % len(PALETTE)]
+    base = base_colour(detector)
     if variant == 0 or variants <= 1:
         return base
     shade = 1.0 - 0.45 * variant / (variants - 1 if variants > 2 else 1)

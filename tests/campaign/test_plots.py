@@ -7,7 +7,6 @@ import math
 import pytest
 
 from imufdi_cli.campaign.plots import (
-    DETECTOR_COLOURS,
     _styles,
     detector_colour,
     detector_label,
@@ -15,6 +14,7 @@ from imufdi_cli.campaign.plots import (
     plot_curves,
     pretty_unit,
 )
+from imufdi_cli.colours import DETECTOR_COLOURS
 
 
 def test_detector_label_has_no_json():
