@@ -481,6 +481,84 @@ def static_noise(
     return out
 
 
+def _zero_clipped_rows(
+    array: ArrayConfig, accel: np.ndarray, gyro: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Rows with any clipped or invalid accel/gyro value (per the array's ranges), zeroed.
+
+    Returns ``(accel (N, m, 3), gyro (N, m, 3) or None, clipped (N,) bool)``.
+    """
+    clipped = np.zeros(accel.shape[0], dtype=bool)
+    for s, data in (("accel", accel), ("gyro", gyro)):
+        if data is not None:
+            c, i = flag_values(data, s, array.range.get(s))
+            clipped |= (c | i).any(axis=(1, 2))
+    accel = np.where(clipped[:, None, None], 0.0, accel)
+    gyro = None if gyro is None else np.where(clipped[:, None, None], 0.0, gyro)
+    return accel, gyro, clipped
+
+
+def _gyro_stage(
+    array: ArrayConfig,
+    gyro: np.ndarray,
+    t_s: np.ndarray,
+    static: np.ndarray,
+    clipped: np.ndarray,
+    warnings: list[str],
+) -> tuple[list[TriadCalibration], float, np.ndarray, np.ndarray, tuple[float, float]]:
+    """Gyro calibration of :func:`calibrate_block`: biases from the static rows, matrices
+    when the motion excites every body axis, chip time offsets (reported, not compensated).
+
+    Parameters
+    ----------
+    gyro : (N, m, 3) rad/s, clipped rows zeroed; t_s : (N,) s; static, clipped : (N,) bool.
+    warnings : appended to.
+
+    Returns
+    -------
+    (per-IMU gyro calibrations, motion duration s, time offsets (m,) s or empty,
+    share of the residual they explain (m,) or empty, residual RMS before/after, rad/s)
+    """
+    offsets = explained = np.zeros(0)
+    w = round(STATIC_WINDOW_S * array.rate_hz)
+    near_static = np.convolve(static.astype(float), np.ones(2 * w + 1), "same") > 0
+    motion = ~near_static & ~clipped
+    motion_s = float(np.count_nonzero(motion) / array.rate_hz)
+    full_gyro = False
+    if motion.any():
+        consensus = body_consensus(array, gyro[motion] - gyro[static].mean(axis=0))
+        rms = np.sqrt(np.mean(consensus**2, axis=0))
+        full_gyro = bool(np.all(rms >= MIN_MOTION_RATE))
+        if not full_gyro:
+            warnings.append(
+                "motion RMS rate per body axis "
+                + "/".join(f"{np.degrees(v):.1f}" for v in rms)
+                + f" deg/s: gyro matrices need >= {np.degrees(MIN_MOTION_RATE):g} deg/s on"
+                " every axis; gyro biases only"
+            )
+    else:
+        warnings.append("no motion in the log: gyro biases only (matrices need motion)")
+    gyro_cal = calibrate_gyro(array, gyro, static, motion, full_gyro)
+    if full_gyro:
+        calibrated = array.with_calibration([{"gyro": c} for c in gyro_cal])
+        # motion rows whose neighbours are usable too (central differences)
+        inner = motion & np.roll(~clipped, 1) & np.roll(~clipped, -1)
+        inner[[0, -1]] = False
+        offsets, explained = time_offsets(
+            array, calibrated.calibrate_triads(gyro, "gyro"), t_s, inner
+        )
+        if np.any(explained > TIME_OFFSET_WARNING):
+            worst = int(np.argmax(explained))
+            warnings.append(
+                f"chip sampling-time offsets (up to {abs(offsets[worst]) * 1e3:.3g} ms on"
+                f" imu{worst}) explain {explained[worst]:.0%} of its gyro residual in"
+                " motion; they are not compensated"
+            )
+    sample = gyro[motion] if motion.any() else gyro[static]
+    residual = (_residual_rms(array, sample, None), _residual_rms(array, sample, gyro_cal))
+    return gyro_cal, motion_s, offsets, explained, residual
+
+
 def calibrate_block(
     array: ArrayConfig,
     block: ImuBlock,
@@ -512,14 +590,7 @@ def calibrate_block(
         raise CalibrationError("calibrate needs accelerometers (the log has none)")
     if len(block) == 0:
         raise CalibrationError("calibrate: no samples in the selected time range")
-    accel, gyro = block.accel, block.gyro
-    clipped = np.zeros(len(block), dtype=bool)
-    for s, data in (("accel", accel), ("gyro", gyro)):
-        if data is not None:
-            c, i = flag_values(data, s, array.range.get(s))
-            clipped |= (c | i).any(axis=(1, 2))
-    accel = np.where(clipped[:, None, None], 0.0, accel)
-    gyro = None if gyro is None else np.where(clipped[:, None, None], 0.0, gyro)
+    accel, gyro, clipped = _zero_clipped_rows(array, block.accel, block.gyro)
     t_s = block.t_s()
     intervals, static = find_static(array, accel, gyro, t_s, ~clipped, min_static_s=min_static_s)
     if not intervals:
@@ -557,50 +628,13 @@ def calibrate_block(
     }
     cals: list[dict[str, TriadCalibration]] = [{"accel": c} for c in accel_cal]
     motion_s = 0.0
-    full_gyro = False
     offsets = explained = np.zeros(0)
     if gyro is not None:
-        w = round(STATIC_WINDOW_S * array.rate_hz)
-        near_static = np.convolve(static.astype(float), np.ones(2 * w + 1), "same") > 0
-        motion = ~near_static & ~clipped
-        motion_s = float(np.count_nonzero(motion) / array.rate_hz)
-        full_gyro = False
-        if motion.any():
-            consensus = body_consensus(array, gyro[motion] - gyro[static].mean(axis=0))
-            rms = np.sqrt(np.mean(consensus**2, axis=0))
-            full_gyro = bool(np.all(rms >= MIN_MOTION_RATE))
-            if not full_gyro:
-                warnings.append(
-                    "motion RMS rate per body axis "
-                    + "/".join(f"{np.degrees(v):.1f}" for v in rms)
-                    + f" deg/s: gyro matrices need >= {np.degrees(MIN_MOTION_RATE):g} deg/s on"
-                    " every axis; gyro biases only"
-                )
-        else:
-            warnings.append("no motion in the log: gyro biases only (matrices need motion)")
-        gyro_cal = calibrate_gyro(array, gyro, static, motion, full_gyro)
-        if full_gyro:
-            calibrated = array.with_calibration([{"gyro": c} for c in gyro_cal])
-            # motion rows whose neighbours are usable too (central differences)
-            inner = motion & np.roll(~clipped, 1) & np.roll(~clipped, -1)
-            inner[[0, -1]] = False
-            offsets, explained = time_offsets(
-                array, calibrated.calibrate_triads(gyro, "gyro"), t_s, inner
-            )
-            if np.any(explained > TIME_OFFSET_WARNING):
-                worst = int(np.argmax(explained))
-                warnings.append(
-                    f"chip sampling-time offsets (up to {abs(offsets[worst]) * 1e3:.3g} ms on"
-                    f" imu{worst}) explain {explained[worst]:.0%} of its gyro residual in"
-                    " motion; they are not compensated"
-                )
+        gyro_cal, motion_s, offsets, explained, residual["gyro"] = _gyro_stage(
+            array, gyro, t_s, static, clipped, warnings
+        )
         for k, gcal in enumerate(gyro_cal):
             cals[k]["gyro"] = gcal
-        sample = gyro[motion] if motion.any() else gyro[static]
-        residual["gyro"] = (
-            _residual_rms(array, sample, None),
-            _residual_rms(array, sample, gyro_cal),
-        )
     noise = static_noise(array.with_calibration(cals), accel, gyro, t_s, static, intervals)
     figures = [
         _figures(k, s, c)

@@ -87,7 +87,7 @@ from imufdi_cli.detectors.base import (
     parse_sensor_types,
 )
 from imufdi_cli.detectors.pca_parity import MovingWindow
-from imufdi_cli.errors import CalibrationError
+from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
 from imufdi_cli.log import ImuBlock
 
 #: Sensors whose leverage P_jj exceeds this are not redundant (their leave-one-out
@@ -418,8 +418,10 @@ class NoiseGlrDetector(DetectorBase):
 
         Raises
         ------
+        ArrayTooSmallError
+            No sensor type with at least 4 redundant, testable sensors (exit 3, with a hint).
         CalibrationError
-            Window too short, no testable sensors, or a zero residual variance.
+            Window too short, or a zero residual variance.
         """
         self.array = array
         self.window_samples = max(2, round(self.window_s * array.rate_hz))
@@ -470,7 +472,7 @@ class NoiseGlrDetector(DetectorBase):
                 release_level=self.release_level,
             )
         if not self.models:
-            raise CalibrationError(
+            raise ArrayTooSmallError(
                 f"{self.name}: nothing to test: the calibration block has no "
                 f"{'/'.join(self.sensor_types)} data with at least 4 redundant sensors"
             )

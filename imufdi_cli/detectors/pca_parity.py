@@ -87,7 +87,7 @@ from imufdi_cli.detectors.base import (
 from imufdi_cli.detectors.parity import isolable_sensors, parity_matrix
 from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
-from imufdi_cli.errors import CalibrationError
+from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
 from imufdi_cli.log import ImuBlock
 
 #: Excitation test of the leak regression: a direction of xhat counts as excited when its
@@ -433,8 +433,10 @@ class PcaParityDetector(DetectorBase):
 
         Raises
         ------
+        ArrayTooSmallError
+            No sensor type with enough sensors to test (exit 3, with a hint).
         CalibrationError
-            Window too short, no testable sensor type, or degenerate (zero-variance) data.
+            Window too short, or degenerate (zero-variance) data.
         """
         self.array = array
         designs = {s: self._design(array, s) for s in array.sensor_types()}
@@ -460,7 +462,7 @@ class PcaParityDetector(DetectorBase):
             need = "at least 4 sensors of a type" if self.space == "parity" else "sensors"
             if self.untested:
                 need += " (" + "; ".join(f"{k}: {v}" for k, v in self.untested.items()) + ")"
-            raise CalibrationError(
+            raise ArrayTooSmallError(
                 f"{self.name}: nothing to test: the calibration block has no "
                 f"{'/'.join(self.sensor_types)} data with {need}"
             )

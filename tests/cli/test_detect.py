@@ -76,3 +76,19 @@ def test_a_single_imu_log_is_bad_data_for_every_detector(cli, tmp_path, detector
     assert_one_line_error(result, 3, "`imufdi info LOG` shows its IMUs")
     assert "bank mode=marg" in result.stderr
     assert not out.exists()
+
+
+@pytest.mark.parametrize("detector", ["noise-glr", "pca-parity"])
+def test_too_small_log_for_noise_glr_and_pca_parity_names_detector_and_hint(
+    cli, tmp_path, detector
+):
+    """These two need 4+ redundant sensor axes of a type; one IMU has 3: exit 3, one line
+    naming the detector, with the same hint as the other detectors."""
+    log = tmp_path / "one.mcap"
+    assert cli(["simulate", "--imus", "1", "--duration", "3s", "-o", log]).code == 0
+    out = tmp_path / "d.mcap"
+    result = cli(["detect", log, "-d", detector, "-o", out])
+    assert_one_line_error(result, 3, f"imufdi: error: {detector}: nothing to test")
+    assert "`imufdi info LOG` shows its IMUs" in result.stderr
+    assert "bank mode=marg" in result.stderr
+    assert not out.exists()

@@ -19,7 +19,7 @@ from imufdi_cli.detectors.pca_parity import (
     PcaParityDetector,
     mean_variance_inflation,
 )
-from imufdi_cli.errors import CalibrationError, DetectorConfigError
+from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.faults import FaultInjector, parse_fault_spec
 from imufdi_cli.log import ImuBlock, iter_blocks
 from imufdi_cli.simulate import preset, simulate_block
@@ -213,7 +213,7 @@ def test_short_or_missing_calibration_raises():
     array, block = conical6(seed=0, fault=False)
     with pytest.raises(CalibrationError, match="at least"):
         make().fit(block.slice(0, 15), array)
-    with pytest.raises(CalibrationError, match="nothing to test"):
+    with pytest.raises(ArrayTooSmallError, match="nothing to test"):
         make({"types": "accel"}).fit(block.slice(0, 200), array)
     with pytest.raises(CalibrationError, match="before fit"):
         make().process(block)
