@@ -475,8 +475,6 @@ class CdrCodec:
         self.defs = parse_ros2msg(schema_name, schema_text)
         self.root = normalize_type(schema_name, schema_name.split("/")[0])
         self.layout = CdrLayout.compile(self.defs, self.root, limits)
-        # uniform_positions: (paths, payload length, string length) -> field offsets
-        self._uniform_memo: dict[tuple[tuple[str, ...], int, int], dict[str, int] | None] = {}
 
     def positions(
         self, batch: MessageBatch, paths: Sequence[str], valid: np.ndarray | None = None
@@ -527,103 +525,6 @@ class CdrCodec:
                 else:
                     sizes[path][mask] = value
         return little, positions, sizes
-
-    def uniform_positions(
-        self, batch: MessageBatch, paths: Sequence[str], max_groups: int = 8
-    ) -> dict[str, np.ndarray] | None:
-        """Fast path of :meth:`positions` for batches of identically laid-out messages.
-
-        Applies when every message of the batch has the same payload length and a CDR_LE
-        encapsulation header, and at most one string (no sequence) precedes the wanted
-        fields (``sensor_msgs/Imu``: ``header.frame_id``). That string's length field then
-        sits at the same offset in every payload, and messages whose string has the same
-        length have every field at the same offset from their payload's start. One message
-        of each string length (at most ``max_groups`` distinct lengths) is located with the
-        general walk (memoised per payload and string length); when all give the same field
-        offsets, every position is its payload's offset plus the field's. A message is well
-        formed exactly when its group's representative is.
-
-        Returns
-        -------
-        positions : dict path -> (N,) int64, or None
-            Absolute positions in ``batch.data`` of each leaf (all messages little-endian
-            and valid), or None when a check fails (then use :meth:`positions`).
-        """
-        n = len(batch)
-        if n < 2:
-            return None
-        length = int(batch.length[0])
-        if length < 4 or not bool(np.all(batch.length == length)):
-            return None
-        head = gather_bytes(batch.data, batch.offset, 2)
-        if not (bool(np.all(head[:, 0] == 0)) and bool(np.all(head[:, 1] == 1))):
-            return None
-
-        key_paths = tuple(paths)
-
-        def locate_one(i: int, count: int) -> dict[str, int] | None:
-            """Field offsets from the payload start of message i, whose first string
-            (if any) has ``count`` bytes; None if it is malformed. Memoised: with the
-            payload length and string length fixed, the walk is the same for any message."""
-            key = (key_paths, length, count)
-            if key in self._uniform_memo:
-                return self._uniform_memo[key]
-            ok = np.ones(1, bool)
-            self.layout._endian = "<"
-            try:
-                pos, sizes = self.layout.locate(
-                    batch.data, batch.offset[i : i + 1], batch.length[i : i + 1], paths, ok
-                )
-            except McapInputError:
-                return None  # not memoised: the general path reports it
-            found = None
-            if bool(ok[0]) and len(sizes) <= 1 and set(sizes) <= string_steps:
-                origin = int(batch.offset[i])
-                found = {path: int(value[0]) - origin for path, value in pos.items()}
-                found.update({f"{path}#size": int(value[0]) for path, value in sizes.items()})
-            if len(self._uniform_memo) < 256:
-                self._uniform_memo[key] = found
-            return found
-
-        string_steps = {
-            step.path for step in self.layout.steps if step.kind in ("string", "wstring")
-        }
-        string_path = next((step.path for step in self.layout.steps if step.kind != "align"), None)
-        if string_path is None or string_path not in string_steps:
-            rel = locate_one(0, -1) if string_path is None else None
-            if rel is None:
-                return None
-            return {path: batch.offset + rel[path] for path in paths}
-        # the first string's u32 length field: at the same offset in every payload
-        rel0 = locate_one(0, -2)  # walk of message 0 without trusting any memo
-        self._uniform_memo.pop((key_paths, length, -2), None)
-        if rel0 is None or string_path not in rel0:
-            return None
-        counts = (
-            gather_bytes(batch.data, batch.offset + (rel0[string_path] - 4), 4)
-            .view("<u4")
-            .reshape(-1)
-            .astype(np.int64)
-        )
-        low, high = int(counts.min()), int(counts.max())
-        if high - low >= 64:
-            return None
-        present = np.flatnonzero(np.bincount(counts - low, minlength=high - low + 1))
-        if present.shape[0] > max_groups:
-            return None
-        first_rel: dict[str, int] | None = None
-        for g in present.tolist():
-            i = int(np.argmax(counts == low + g))
-            found = locate_one(i, low + g)
-            if found is None or found.get(f"{string_path}#size") != low + g:
-                return None
-            first_rel = first_rel or found
-            # with one payload length the fields after the string share their offsets;
-            # anything else (fields inside the string's padding) takes the general path
-            if any(found[path] != first_rel[path] for path in paths):
-                return None
-        assert first_rel is not None
-        return {path: batch.offset + first_rel[path] for path in paths}
 
     def read(
         self, batch: MessageBatch, little: np.ndarray, position: np.ndarray, code: str, count: int

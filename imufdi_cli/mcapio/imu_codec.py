@@ -143,11 +143,7 @@ def _decode_cdr(
     stamp = [f"{prefix}header.stamp.sec", f"{prefix}header.stamp.nanosec"]
     has_stamp = all(path in codec.layout.leaves for path in stamp)
     paths = [*(stamp if has_stamp else []), *vector_paths.values()]
-    uniform = codec.uniform_positions(batch, paths)
-    if uniform is not None:  # identically laid-out messages, all little-endian and valid
-        little, positions = np.ones(len(batch), bool), uniform
-    else:
-        little, positions, _ = codec.positions(batch, paths, valid)
+    little, positions, _ = codec.positions(batch, paths, valid)
     if valid is not None and not bool(valid.all()):
         batch = batch.select(valid)
         little = little[valid]

@@ -13,7 +13,6 @@ importable from here).
 
 from __future__ import annotations
 
-import itertools
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -91,41 +90,8 @@ def gather_bytes(data: np.ndarray, positions: np.ndarray, n_bytes: int) -> np.nd
                 data[first:], shape=(n, n_bytes), strides=(step, 1), writeable=False
             )
             return np.array(view, copy=True)
-        runs = _strided_runs(data, positions, n_bytes)
-        if runs is not None:
-            return runs
     index = positions[:, None] + np.arange(n_bytes, dtype=np.int64)[None, :]
     return data[index]
-
-
-def _strided_runs(data: np.ndarray, positions: np.ndarray, n_bytes: int) -> np.ndarray | None:
-    """``gather_bytes`` for positions made of a few evenly spaced runs (the messages of
-    several chunks joined in one batch): one void-element strided copy per run.
-
-    None when the runs are many (over one per 16 positions), a run does not go forward,
-    a row lies outside ``data``, or ``data`` is not a contiguous buffer.
-    """
-    n = positions.shape[0]
-    if n_bytes <= 0 or not data.flags.c_contiguous or data.ndim != 1:
-        return None
-    if int(positions.min()) < 0 or int(positions.max()) + n_bytes > data.shape[0]:
-        return None
-    step = np.diff(positions)
-    # position i starts a new run when the step into it differs from the step before
-    starts = np.flatnonzero(step[1:] != step[:-1]) + 1
-    if starts.shape[0] + 1 > max(1, n // 16):
-        return None
-    bounds = [0, *starts.tolist(), n]
-    out = np.empty(n, dtype=f"V{n_bytes}")
-    for a, b in itertools.pairwise(bounds):
-        first = int(positions[a])
-        stride = int(positions[a + 1] - positions[a]) if b - a > 1 else 1
-        if stride <= 0:
-            return None
-        out[a:b] = np.ndarray(
-            (b - a,), dtype=f"V{n_bytes}", buffer=data, offset=first, strides=(stride,)
-        )
-    return out.view(np.uint8).reshape(n, n_bytes)
 
 
 @dataclass

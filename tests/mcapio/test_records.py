@@ -9,11 +9,9 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
-from numpy.testing import assert_array_equal
 
 from imufdi_cli.errors import UsageError
 from imufdi_cli.mcapio import McapSource, McapWriter, MessageBatch
-from imufdi_cli.mcapio.records import gather_bytes
 from imufdi_cli.mcapio.source import scan_records
 
 
@@ -196,22 +194,3 @@ def test_metadata_index_points_at_metadata_records(tmp_path, compression) -> Non
             ("after2", {"k": "2"}),
         ]
         assert sum(1 for _ in reader.iter_messages()) == 600
-
-
-@pytest.mark.parametrize("seed", range(4))
-def test_gather_bytes_of_several_evenly_spaced_runs(seed) -> None:
-    """Positions made of a few evenly spaced runs (chunks joined in a batch) take the
-    per-run strided copy; the bytes are those of plain indexing, whatever the runs."""
-    rng = np.random.default_rng(seed)
-    data = rng.integers(0, 256, 20_000, dtype=np.uint8)
-    for _ in range(200):
-        n_bytes = int(rng.integers(1, 40))
-        runs = [
-            int(rng.integers(0, 10_000))
-            + int(rng.integers(-2, 300)) * np.arange(rng.integers(1, 60))
-            for _ in range(int(rng.integers(2, 6)))
-        ]
-        positions = np.concatenate(runs)
-        positions = positions[(positions >= 0) & (positions + n_bytes <= data.shape[0])]
-        expected = data[positions[:, None] + np.arange(n_bytes)[None, :]]
-        assert_array_equal(gather_bytes(data, positions, n_bytes), expected)
