@@ -10,7 +10,9 @@ Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary direct
   extrapolated), prints messages/s and the ratio,
 - times the floor on the same file: zstd decompression of every chunk plus one copy of its
   records (what any reader must at least do), and prints the reader's rate as a share of it
-  (issue 20 target: >= 50 %),
+  (issue 20 target: >= 50 %); also the floor with the CRC-32 of every chunk's records,
+  which the reader verifies by default, and the reader with CRC checks off (the
+  bench_small_chunks.py way: McapSource(validate_crcs=False)),
 - measures peak memory (ru_maxrss of a fresh subprocess) reading the base log and a 10x
   longer log.
 """
@@ -58,20 +60,34 @@ def make_log(path: Path, n_imus: int, n_samples: int, block: int = 50_000) -> fl
     return elapsed
 
 
-def time_imufdi(path: Path) -> tuple[float, int, float]:
+def time_imufdi(path: Path, validate_crcs: bool = True) -> tuple[float, int, float]:
     """(wall s, messages, CPU s) of reading the whole log (decoded and aligned)."""
-    t0 = time.perf_counter()
-    c0 = time.process_time()
-    n = 0
-    with ImuArrayReader(path) as reader:
-        for block in reader.blocks():
-            n += len(block) * block.n_imus
-    return time.perf_counter() - t0, n, time.process_time() - c0
+    from imufdi_cli.mcapio import source as source_module
+
+    original = source_module.McapSource.__init__
+
+    def init(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        kwargs["validate_crcs"] = validate_crcs
+        original(self, *args, **kwargs)
+
+    source_module.McapSource.__init__ = init  # type: ignore[method-assign]
+    try:
+        t0 = time.perf_counter()
+        c0 = time.process_time()
+        n = 0
+        with ImuArrayReader(path) as reader:
+            for block in reader.blocks():
+                n += len(block) * block.n_imus
+        return time.perf_counter() - t0, n, time.process_time() - c0
+    finally:
+        source_module.McapSource.__init__ = original  # type: ignore[method-assign]
 
 
-def time_floor(path: Path) -> tuple[float, float]:
+def time_floor(path: Path, crc: bool = False) -> tuple[float, float]:
     """(wall s, CPU s) to zstd-decompress every chunk of the file and copy its records
-    once (best of three)."""
+    once (best of three); with ``crc``, also the CRC-32 of each chunk's records."""
+    import zlib
+
     import zstandard
 
     raw = path.read_bytes()
@@ -96,6 +112,8 @@ def time_floor(path: Path) -> tuple[float, float]:
         for data, size in chunks:
             records = dctx.decompress(data, max_output_size=size)
             np.frombuffer(records, np.uint8).copy()
+            if crc:
+                zlib.crc32(records)
         best = min(best, (time.perf_counter() - t0, time.process_time() - c0))
     return best
 
@@ -167,6 +185,18 @@ def main() -> None:
         print(
             f"reader / floor       : {floor_s / ours_s:7.1%} wall, {floor_cpu / ours_cpu:.1%} CPU"
             f" (reader CPU {ours_cpu:.2f} s)  (target >= 50 %)"
+        )
+        crc_s, crc_cpu = time_floor(base, crc=True)
+        print(
+            f"zstd + CRC-32 floor  : {crc_s:7.2f} s  {n_messages / crc_s:12,.0f} msg/s"
+            f" (as above, plus the CRC-32 the reader verifies), CPU {crc_cpu:.2f} s"
+        )
+        print(f"reader / CRC floor   : {crc_s / ours_s:7.1%} wall, {crc_cpu / ours_cpu:.1%} CPU")
+        nocrc_s, nocrc_n, nocrc_cpu = min(time_imufdi(base, validate_crcs=False) for _ in range(3))
+        assert nocrc_n == n_messages, (nocrc_n, n_messages)
+        print(
+            f"reader, CRCs off     : {nocrc_s:7.2f} s  {n_messages / nocrc_s:12,.0f} msg/s,"
+            f" {floor_s / nocrc_s:.1%} of the zstd floor (wall), {floor_cpu / nocrc_cpu:.1%} (CPU)"
         )
         ref_s, ref_n = time_mcap_ros2(base, args.baseline_messages)
         ref_rate = ref_n / ref_s
