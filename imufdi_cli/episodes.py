@@ -341,42 +341,38 @@ def fit_models(
         "offset_var": offset_var,
     }
     raw_arr = r + o if raw is None else np.asarray(raw, dtype=np.float64)
-    fits = _fit_window(r, o, t, raw_arr, onset_range, reference, **options)
-    end = _fault_end(fits, r, sigma_k**2 + consensus_sigma**2)
-    if end is None:
-        return fits
-    for _ in range(2):  # the end found by the best model on the whole window, refined once
-        cut = _fit_window(
+    var0 = sigma_k**2 + consensus_sigma**2
+
+    def fit_until(end: int, ref: Reference | None) -> list[FaultFit]:
+        """The window's fits on its samples up to ``end`` (the fault's fitted end)."""
+        return _fit_window(
             r[:end],
             o[:end],
             t[:end],
             raw_arr[:end],
             (onset_range[0], min(onset_range[1], end - 2)),
-            None,
+            ref,
             **options,
         )
-        refined = _fault_end(cut, r[:end], sigma_k**2 + consensus_sigma**2)
+
+    fits = _fit_window(r, o, t, raw_arr, onset_range, reference, **options)
+    end = _fault_end(fits, r, var0)
+    if end is None:
+        return fits
+    for _ in range(2):  # the end found by the best model on the whole window, refined once
+        refined = _fault_end(fit_until(end, None), r[:end], var0)
         if refined is None or refined == end:
             break
         end = refined
     # the fault ended before the window did (the detector's alarms outlast it): refit on
     # the samples up to its end; the healthy tail adds the same to every model's -2 log L,
     # and the end is one more parameter of each fault model
-    var0 = sigma_k**2 + consensus_sigma**2
     tail = float(2 * _gaussian_nll(float(np.sum(r[end:] ** 2)), float(r.shape[0] - end), var0))
     ln_n = math.log(r.shape[0])
     reference_cut = (
         None if reference is None else replace(reference, residuals=reference.residuals[:end])
     )
-    cut = _fit_window(
-        r[:end],
-        o[:end],
-        t[:end],
-        raw_arr[:end],
-        (onset_range[0], min(onset_range[1], end - 2)),
-        reference_cut,
-        **options,
-    )
+    cut = fit_until(end, reference_cut)
     if not cut:
         return fits
     out = [
