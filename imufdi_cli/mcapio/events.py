@@ -32,7 +32,7 @@ from imufdi_cli.mcapio.schemas import (
     FDI_EVENT_SCHEMA,
     FDI_EVENT_SCHEMA_NAME,
 )
-from imufdi_cli.mcapio.source import McapSource
+from imufdi_cli.mcapio.source import McapSource, iter_topic
 from imufdi_cli.mcapio.writer import McapWriter
 
 NS_PER_S = 1_000_000_000
@@ -318,25 +318,14 @@ def read_events(
 ) -> list[tuple[int, dict[str, Any]]]:
     """All events on ``topic`` (``/imufdi/truth`` or ``/imufdi/events``, CDR or the JSON of
     older versions) as ``(log_time ns, event dict)``, in file order."""
-    own = not isinstance(source, McapSource)
-    src = McapSource(source) if not isinstance(source, McapSource) else source
     out: list[tuple[int, dict[str, Any]]] = []
-    try:
-        for batch in src.batches():
-            for cid in np.unique(batch.channel_id).tolist():
-                channel = src.channels[cid]
-                if channel.topic != topic:
-                    continue
-                if not is_event_channel(channel):
-                    raise McapInputError(
-                        f"topic {topic} has type {channel.schema.name if channel.schema else '?'}"
-                        f" ({channel.message_encoding}), not an imufdi event type"
-                    )
-                sub = batch.select(batch.channel_id == cid)
-                out.extend(zip(sub.log_time.tolist(), decode_events(sub, channel)))
-    finally:
-        if own:
-            src.close()
+    for channel, sub in iter_topic(source, topic):
+        if not is_event_channel(channel):
+            raise McapInputError(
+                f"topic {topic} has type {channel.schema.name if channel.schema else '?'}"
+                f" ({channel.message_encoding}), not an imufdi event type"
+            )
+        out.extend(zip(sub.log_time.tolist(), decode_events(sub, channel)))
     return out
 
 

@@ -774,3 +774,22 @@ def _raw_chunk(content: bytes) -> RawChunk:
 def _error_text(err: BaseException) -> str:
     text = " ".join(str(err).split())
     return text or type(err).__name__
+
+
+def iter_topic(
+    source: str | os.PathLike[str] | IO[bytes] | McapSource, topic: str
+) -> Iterator[tuple[ChannelInfo, MessageBatch]]:
+    """The messages on ``topic``, one ``(channel, batch)`` per channel of each batch read,
+    in file order. A path or stream is opened here and closed when the iteration ends; an
+    open :class:`McapSource` is left open."""
+    own = not isinstance(source, McapSource)
+    src = source if isinstance(source, McapSource) else McapSource(source)
+    try:
+        for batch in src.batches():
+            for cid in np.unique(batch.channel_id).tolist():
+                channel = src.channels[cid]
+                if channel.topic == topic:
+                    yield channel, batch.select(batch.channel_id == cid)
+    finally:
+        if own:
+            src.close()

@@ -36,7 +36,7 @@ from imufdi_cli.mcapio.cdr import codec_for, decode_json_payloads
 from imufdi_cli.mcapio.events import decode_events, is_event_channel
 from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch, gather_bytes
 from imufdi_cli.mcapio.schemas import STATUS_SCHEMA, STATUS_SCHEMA_NAME
-from imufdi_cli.mcapio.source import McapSource
+from imufdi_cli.mcapio.source import McapSource, iter_topic
 from imufdi_cli.mcapio.writer import McapWriter
 
 if TYPE_CHECKING:
@@ -354,25 +354,14 @@ def read_json_topic(
     The imufdi event topics (``/imufdi/truth``, ``/imufdi/events``), CDR since this version,
     are decoded to the same dicts (see :func:`imufdi_cli.mcapio.events.read_events`).
     """
-    own = not isinstance(source, McapSource)
-    src = McapSource(source) if not isinstance(source, McapSource) else source
     out: list[tuple[int, Any]] = []
-    try:
-        for batch in src.batches():
-            for cid in np.unique(batch.channel_id).tolist():
-                channel = src.channels[cid]
-                if channel.topic != topic:
-                    continue
-                sub = batch.select(batch.channel_id == cid)
-                if channel.message_encoding != "json" and is_event_channel(channel):
-                    out.extend(zip(sub.log_time.tolist(), decode_events(sub, channel)))
-                    continue
-                if channel.message_encoding != "json":
-                    raise McapInputError(
-                        f"topic {topic} has message encoding {channel.message_encoding!r}, not json"
-                    )
-                out.extend(zip(sub.log_time.tolist(), decode_json_payloads(sub)))
-    finally:
-        if own:
-            src.close()
+    for channel, sub in iter_topic(source, topic):
+        if channel.message_encoding != "json" and is_event_channel(channel):
+            out.extend(zip(sub.log_time.tolist(), decode_events(sub, channel)))
+            continue
+        if channel.message_encoding != "json":
+            raise McapInputError(
+                f"topic {topic} has message encoding {channel.message_encoding!r}, not json"
+            )
+        out.extend(zip(sub.log_time.tolist(), decode_json_payloads(sub)))
     return out
