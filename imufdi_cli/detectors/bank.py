@@ -246,6 +246,9 @@ class _ArrayTest:
             isolated=strongest,
             amplitude=amplitude,
             scores=z2,
+            # every excluded sensor's residual against the others without the excluded
+            # ones: its amplitude (SI)
+            amplitudes=np.where(excluded, e, np.nan),
         )
         return block, excluded
 
@@ -810,13 +813,10 @@ class BankDetector(DetectorBase):
         One filtered residual series per estimator (7 x n_g channels), each built from its
         own attitude only, so that choosing another estimator never inserts a jump; an
         interval where the estimator is not clean at both ends contributes 0. The output
-        takes, per sample, the candidate series with the smallest largest z^2.
-
-        Noise of the filtered residual ``y = (1-a) sum_i a^i x_{k-i}``: the trapezoid gyro
-        average of white noise sigma_g gives ``sigma_g^2 (1-a)/2``; the finite-difference
-        rate ``(n_k - n_{k-1}) / Te`` of white attitude noise n (covariance P from the
-        estimator, ``s^2 = h^T P h / Te^2``, smoothed by the same filter) gives
-        ``2 s^2 (1-a)^2 / (1+a)``.
+        takes, per sample, the candidate series with the smallest largest z^2. Steps:
+        :meth:`_gyro_integral_of` (gyro integral), :meth:`_raw_gyro_residuals` (per series,
+        against its attitude change), :meth:`_filtered_gyro_residuals` (first-order filter
+        and noise model), :meth:`_gyro_decision` (series choice, alarm, isolation).
 
         Parameters
         ----------
@@ -830,13 +830,31 @@ class BankDetector(DetectorBase):
         abstain : ndarray, shape (N,), bool
             Samples without a clean candidate: no gyro decision (statistic 0; the
             residual shown is the full estimator's).
+
+        Returns
+        -------
+        detection : DetectionBlock
+        isolated_set : ndarray, shape (N, n_g), bool
+        residual : ndarray, shape (N, n_g)
+            The chosen series' filtered residual, rad/s.
         """
         assert block.gyro is not None and self._gyro_H is not None
-        assert self._gyro_bias is not None and self._gyro_variance is not None
-        n_samples = len(block)
-        n_est = q.shape[0]
-        H = self._gyro_H
         gyro = array.select(block.gyro, "gyro")
+        dt, integral, t_s = self._gyro_integral_of(block, gyro, q.shape[0])
+        raw, valid = self._raw_gyro_residuals(q, clean, integral, t_s)
+        self._gyro_integral = integral[-1].copy()
+        filtered, variances = self._filtered_gyro_residuals(raw, valid, covariance, dt)
+        self._gyro_last = gyro[-1].copy()
+        self._t_last = int(block.t_ns[-1])
+        return self._gyro_decision(filtered, variances, candidates, abstain)
+
+    def _gyro_integral_of(
+        self, block: ImuBlock, gyro: np.ndarray, n_est: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sample intervals dt (N,) s, the running trapezoid integral (N, n_g) of the
+        bias-corrected gyro, rad, and sample times (N,) s from the stream's origin; starts
+        the stream state on the first block."""
+        assert self._gyro_bias is not None
         if self._gyro_last is None or self._t_last is None:
             self._t_origin = int(block.t_ns[0])
             self._gyro_integral = np.zeros(gyro.shape[1])
@@ -852,16 +870,26 @@ class BankDetector(DetectorBase):
             integral_start = self._gyro_integral
         dt = (block.t_ns - t_prev).astype(float) * 1e-9
         dt = np.where(dt > 0, dt, 0.0)
-        # Running trapezoid integral of the bias-corrected gyro, rad.
         integral = integral_start + np.cumsum(
             (0.5 * (gyro + gyro_prev) - self._gyro_bias) * dt[:, None], axis=0
         )
         t_s = (block.t_ns - self._t_origin).astype(float) * 1e-9
-        # Each series compares the gyro integral with the attitude change since its last
-        # clean sample L (L = k - 1 normally): x_k = (int_L^k g - H w (t_k - t_L)) / Te with
-        # w the least-squares rate of q_dot = 1/2 Xi(q) w between q_L and q_k. Unclean
-        # samples give x = 0 and the next clean one takes the whole gap, so the filtered sum
-        # still telescopes (no spike when estimators drop out).
+        return dt, integral, t_s
+
+    def _raw_gyro_residuals(
+        self, q: np.ndarray, clean: np.ndarray, integral: np.ndarray, t_s: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Unfiltered residual of every series (7, N, n_g), rad/s, and where it is valid
+        (7, N); remembers each series' last clean sample for the next block.
+
+        Each series compares the gyro integral with the attitude change since its last
+        clean sample L (L = k - 1 normally): x_k = (int_L^k g - H w (t_k - t_L)) / Te with
+        w the least-squares rate of q_dot = 1/2 Xi(q) w between q_L and q_k. Unclean
+        samples give x = 0 and the next clean one takes the whole gap, so the filtered sum
+        still telescopes (no spike when estimators drop out).
+        """
+        assert self._gyro_H is not None
+        n_est, n_samples = q.shape[0], q.shape[1]
         index = np.arange(n_samples)
         marker = np.where(clean.T, index[None, :], -1)  # (7, N)
         last_clean = np.concatenate(
@@ -885,10 +913,9 @@ class BankDetector(DetectorBase):
         q_from = np.where(valid[..., None], q_from, q)
         rate = body_rate_from_quaternions(q_from, q, span)  # (7, N, 3)
         raw = (
-            integral[None] - integral_from - (rate @ H.T) * span[..., None]
+            integral[None] - integral_from - (rate @ self._gyro_H.T) * span[..., None]
         ) / self._sample_period
         raw[~valid] = 0.0
-        # Remember each series' last clean sample for the next block.
         has_clean = np.asarray(clean.any(axis=0), dtype=bool)
         last_index = n_samples - 1 - np.argmax(clean[::-1], axis=0)
         self._clean_q = np.where(has_clean[:, None], q[np.arange(n_est), last_index], self._clean_q)
@@ -896,28 +923,52 @@ class BankDetector(DetectorBase):
             has_clean[:, None], integral[last_index], self._clean_integral
         )
         self._clean_t = np.where(has_clean, t_s[last_index], self._clean_t)
-        self._gyro_integral = integral[-1].copy()
+        return raw, valid
+
+    def _filtered_gyro_residuals(
+        self, raw: np.ndarray, valid: np.ndarray, covariance: np.ndarray, dt: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """First-order filtered residuals (7, N, n_g), rad/s, and their variances, (rad/s)^2.
+
+        Noise of the filtered residual ``y = (1-a) sum_i a^i x_{k-i}``: the trapezoid gyro
+        average of white noise sigma_g gives ``sigma_g^2 (1-a)/2``; the finite-difference
+        rate ``(n_k - n_{k-1}) / Te`` of white attitude noise n (covariance P from the
+        estimator, ``s^2 = h^T P h / Te^2``, smoothed by the same filter) gives
+        ``2 s^2 (1-a)^2 / (1+a)``; the calibrated bias adds ``sigma_g^2 sum w^2``.
+        """
+        assert self._gyro_H is not None and self._gyro_variance is not None
+        H = self._gyro_H
         dt = np.where(dt > 0, dt, self._sample_period)
         rate_variance = np.einsum("gi,enij,gj->eng", H, covariance, H) / dt[None, :, None] ** 2
         rate_variance[~valid] = 0.0
         raw = np.nan_to_num(raw)
         a = self._filter_pole
-        if self._filter_state is None:
-            self._filter_state = np.zeros((n_est, 1, gyro.shape[1]))
-            self._variance_state = np.zeros((n_est, 1, gyro.shape[1]))
-        assert self._variance_state is not None
+        if self._filter_state is None or self._variance_state is None:
+            self._filter_state = np.zeros((raw.shape[0], 1, raw.shape[2]))
+            self._variance_state = np.zeros((raw.shape[0], 1, raw.shape[2]))
         filtered, self._filter_state = signal.lfilter(
             [1.0 - a], [1.0, -a], raw, axis=1, zi=self._filter_state
         )
         smoothed_rate_variance, self._variance_state = signal.lfilter(
             [1.0 - a], [1.0, -a], rate_variance, axis=1, zi=self._variance_state
         )
-        self._gyro_last = gyro[-1].copy()
-        self._t_last = int(block.t_ns[-1])
-        rows = index
         variances = self._gyro_variance * (
             (1 - a) / 2 + self._bias_weight_energy
         ) + 2 * smoothed_rate_variance * (1 - a) ** 2 / (1 + a)  # (7, N, n_g)
+        return filtered, variances
+
+    def _gyro_decision(
+        self,
+        filtered: np.ndarray,
+        variances: np.ndarray,
+        candidates: np.ndarray,
+        abstain: np.ndarray,
+    ) -> tuple[DetectionBlock, np.ndarray, np.ndarray]:
+        """Per sample, the candidate series with the smallest largest z^2; alarm when its
+        largest z^2 exceeds the threshold; every gyro above it is isolated and gets its
+        filtered residual as amplitude (several simultaneous gyro faults)."""
+        n_samples = filtered.shape[1]
+        rows = np.arange(n_samples)
         z2_all = filtered**2 / np.maximum(variances, SIGMA_FLOOR**2)
         peak = np.where(candidates.T, z2_all.max(axis=2), np.inf)  # (7, N)
         chosen = np.where(abstain, FULL_ESTIMATOR, np.argmin(peak, axis=0))
@@ -930,6 +981,7 @@ class BankDetector(DetectorBase):
         best = np.argmax(z2, axis=1)
         isolated = np.where(alarm, best, NO_ISOLATION).astype(np.int32)
         amplitude = np.where(alarm, residual[rows, best], np.nan)
+        isolated_set = z2 > self._gyro_threshold
         detection = DetectionBlock(
             statistic=statistic,
             threshold=np.full(n_samples, self._gyro_threshold),
@@ -937,8 +989,9 @@ class BankDetector(DetectorBase):
             isolated=isolated,
             amplitude=amplitude,
             scores=z2,
+            amplitudes=np.where(isolated_set, residual, np.nan),
         )
-        return detection, z2 > self._gyro_threshold, residual
+        return detection, isolated_set, residual
 
     def flush(self) -> dict[str, DetectionBlock]:
         """Causal detector: nothing is held back."""

@@ -76,6 +76,10 @@ class DetectionBlock:
     isolated_set : ndarray, shape (N, n_s), bool, or None
         Every sensor isolated at each sample, for detectors that isolate several
         simultaneous faults; None means "just ``isolated``" (see :meth:`isolation_set`).
+    amplitudes : ndarray, shape (N, n_s), float64, or None
+        Estimated fault amplitude of every sensor, SI units (NaN where not estimated), for
+        detectors that identify several simultaneous faults; None means "just
+        ``amplitude``, on the isolated sensor" (see :meth:`amplitude_set`).
     """
 
     statistic: np.ndarray
@@ -85,6 +89,7 @@ class DetectionBlock:
     amplitude: np.ndarray
     scores: np.ndarray
     isolated_set: np.ndarray | None = None
+    amplitudes: np.ndarray | None = None
 
     def isolation_set(self) -> np.ndarray:
         """(N, n_s) bool: ``isolated_set``, or the one-hot of ``isolated`` when it is None."""
@@ -94,6 +99,17 @@ class DetectionBlock:
         out = np.zeros((n, n_sensors), dtype=bool)
         rows = np.flatnonzero(self.isolated >= 0)
         out[rows, self.isolated[rows]] = True
+        return out
+
+    def amplitude_set(self) -> np.ndarray:
+        """(N, n_s) float64: ``amplitudes``, or ``amplitude`` on the column of ``isolated``
+        (NaN elsewhere) when it is None."""
+        if self.amplitudes is not None:
+            return np.asarray(self.amplitudes, dtype=np.float64)
+        n, n_sensors = self.scores.shape[0], self.scores.shape[1]
+        out = np.full((n, n_sensors), np.nan)
+        rows = np.flatnonzero((self.isolated >= 0) & (self.isolated < n_sensors))
+        out[rows, self.isolated[rows]] = np.asarray(self.amplitude, dtype=np.float64)[rows]
         return out
 
     def __len__(self) -> int:
@@ -123,6 +139,9 @@ class DetectionBlock:
             isolated_set=None
             if all(b.isolated_set is None for b in blocks)
             else np.concatenate([b.isolation_set() for b in blocks], axis=0),
+            amplitudes=None
+            if all(b.amplitudes is None for b in blocks)
+            else np.concatenate([b.amplitude_set() for b in blocks], axis=0),
         )
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -150,7 +151,16 @@ def _table4_double_fault(seed: int) -> dict[str, dict[str, float]]:
             sets[np.flatnonzero(isolated), out.isolated[isolated]] = True
         any_fault = truth.any(axis=1)
         detected = out.alarm & any_fault
+        amplitudes = out.amplitude_set()
         figures[name] = {
+            # median estimated amplitude of each faulty gyro where it is isolated / 0.9 deg/s
+            **{
+                f"amplitude_{k}": float(
+                    np.median(amplitudes[sets[:, target] & detected, target]) / math.radians(0.9)
+                )
+                for k, target in enumerate(targets)
+                if (sets[:, target] & detected).any()
+            },
             "FAR": float(out.alarm[~any_fault].mean()),
             "MAR": float((~out.alarm[any_fault]).mean()),
             "FIR": float((sets[detected] & ~truth[detected]).any(axis=1).mean()),
@@ -169,6 +179,8 @@ def test_table4_two_simultaneous_steps_are_both_isolated_unlike_glt() -> None:
     assert bank["both"] >= 0.85
     assert bank["FIR"] <= 0.1
     assert bank["FAR"] <= 0.08  # outliers of p = 0.001 on 48 channels, as for GLT
+    # each fault's own amplitude (DetectionBlock.amplitudes), not only the strongest's
+    assert_allclose([bank["amplitude_0"], bank["amplitude_1"]], 1.0, rtol=0.05)
     # a single-fault GLT isolates one sensor per sample: never both
     assert glt["both"] == 0.0
     assert glt["isolated_0"] + glt["isolated_1"] <= 1.0 + 1e-12
@@ -421,9 +433,9 @@ def test_marg_level_on_fault_free_logs() -> None:
 @pytest.mark.slow
 def test_each_of_two_simultaneous_gyro_faults_gets_its_amplitude() -> None:
     """The preset's 0.5 rad/s step on g3 and 0.1 rad/s^2 drift on g1: both isolated, and
-    each one's filtered residual (``last_details.gyro_residuals``, the per-gyro amplitude;
-    the status carries the isolated sensor's only) within 5 % of its true value (the
-    drift's, lagged by the filter's tau) wherever that gyro is isolated."""
+    each one's amplitude in the output (``DetectionBlock.amplitudes``, the filtered residual
+    of every isolated gyro) within 5 % of its true value (the drift's, lagged by the
+    filter's tau) wherever that gyro is isolated; NaN on gyros not isolated."""
     specs = ("step:imu0.gyro.z,at=5s,amp=0.5rad/s", "drift:imu0.gyro.x,at=5s,rate=0.1rad/s^2")
     for seed in (3, 4):
         array, clean = simulate_block(preset("quadrotor-marg", seed=seed))
@@ -438,11 +450,50 @@ def test_each_of_two_simultaneous_gyro_faults_gets_its_amplitude() -> None:
             residuals.append(detector.last_details.gyro_residuals)
         gyro = DetectionBlock.concatenate(outputs)
         residual = np.concatenate(residuals)
+        amplitudes = gyro.amplitude_set()
+        sets = gyro.isolation_set()
+        np.testing.assert_array_equal(np.isfinite(amplitudes), sets)
+        assert_allclose(amplitudes[sets], residual[sets], rtol=0, atol=0)
         t = block.t_s()
         late = (t >= 6.5) & gyro.alarm
-        sets = gyro.isolation_set()
         assert sets[late][:, [0, 2]].all(axis=1).mean() >= 0.98
         on_z, on_x = late & sets[:, 2], late & sets[:, 0]
-        assert_allclose(np.median(residual[on_z, 2]), 0.5, rtol=0.05)
+        assert_allclose(np.median(amplitudes[on_z, 2]), 0.5, rtol=0.05)
         lagged = 0.1 * (t - 5.0 - detector.tau)
-        assert_allclose(np.median(residual[on_x, 0] / lagged[on_x]), 1.0, rtol=0.05)
+        assert_allclose(np.median(amplitudes[on_x, 0] / lagged[on_x]), 1.0, rtol=0.05)
+
+
+def test_gyro_test_split_gives_the_outputs_of_the_single_function() -> None:
+    """``_gyro_test`` was split by concern (issue 21); its outputs are those the single
+    144-line function gave on this machine (``data/bank_gyro_reference.npz``, written by
+    it: two simultaneous gyro faults, and the 0.3 g a_y step that exercises the candidate
+    series and abstention; seed 3, blocks of 250)."""
+    reference = np.load(Path(__file__).parent / "data" / "bank_gyro_reference.npz")
+    scenarios = {
+        "two3": ("step:imu0.gyro.z,at=5s,amp=0.5rad/s", "drift:imu0.gyro.x,at=5s,rate=0.1rad/s^2"),
+        "ay3": ("step:imu0.accel.y,at=5s,amp=0.3g",),
+    }
+    for name, specs in scenarios.items():
+        array, clean = simulate_block(preset("quadrotor-marg", seed=3))
+        faults = [parse_fault_spec(spec, array) for spec in specs]
+        block = FaultInjector(faults, array, seed=3, t0_ns=int(clean.t_ns[0])).apply_block(clean)
+        detector = BankDetector()
+        detector.fit(block.slice(0, 200), array)
+        outputs, residuals, chosen = [], [], []
+        for piece in iter_blocks(block, 250):
+            outputs.append(detector.process(piece)["gyro"])
+            assert detector.last_details is not None
+            residuals.append(detector.last_details.gyro_residuals)
+            chosen.append(detector.last_details.chosen_estimator)
+        gyro = DetectionBlock.concatenate(outputs)
+        got = {
+            "statistic": gyro.statistic,
+            "isolated": gyro.isolated,
+            "amplitude": gyro.amplitude,
+            "scores": gyro.scores,
+            "isolated_set": gyro.isolation_set(),
+            "residual": np.concatenate(residuals),
+            "chosen": np.concatenate(chosen),
+        }
+        for key, value in got.items():
+            np.testing.assert_array_equal(value, reference[f"{name}_{key}"], err_msg=key)
