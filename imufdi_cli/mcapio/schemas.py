@@ -105,6 +105,7 @@ int32 isolated      # index into the channel's sensor_ids; -1 none, -2 not isola
 float64 amplitude   # estimated fault amplitude (SI), NaN when none
 float64[] scores    # per-sensor isolation scores
 bool[] isolated_set # every sensor isolated at this sample (several simultaneous faults)
+float64[] amplitudes  # estimated fault amplitude of every sensor (SI), NaN where none
 """
 
 

@@ -14,11 +14,17 @@ multiple of 8)::
     S+16 bool    alarm              S+20 int32 isolated
     S+24 float64 amplitude          S+32 uint32 len(scores) = n
     S+40 float64 scores[n]          (absent, and no padding, when n = 0)
-    S+40+8n (S+36 when n = 0)  uint32 len(isolated_set) = n, then n bool bytes
+    I = S+40+8n (S+36 when n = 0)  uint32 len(isolated_set) = n, then n bool bytes
+    A = I+4+n rounded up to 4 from the CDR origin (offset 4)  uint32 len(amplitudes) = m
+    A+4 rounded up to 8 from the origin  float64 amplitudes[m]  (absent when m = 0)
 
-With the default frame id ``imu_array`` (F = 10): P = 28, S = 36. Status channels written
-before the header and decision time existed (``builtin_interfaces/Time stamp`` first, then
-``statistic``) are still read; their decision time is the sample time.
+``m = n`` for detectors that estimate every isolated sensor's amplitude
+(``DetectionBlock.amplitudes``), else 0: the amplitude is then ``amplitude`` on the
+isolated sensor. With the default frame id ``imu_array`` (F = 10): P = 28, S = 36; for
+n = 3: I = 100, A = 108, 112 bytes (m = 0) or 140 (m = 3, amplitudes at 116). Status
+channels written before the header and decision time existed (``builtin_interfaces/Time
+stamp`` first, then ``statistic``) are still read; their decision time is the sample
+time. Channels written before ``amplitudes`` existed read as m = 0.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ from typing import IO, TYPE_CHECKING, Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
-from imufdi_cli.mcapio.cdr import codec_for, decode_json_payloads
+from imufdi_cli.mcapio.cdr import CdrCodec, codec_for, decode_json_payloads
 from imufdi_cli.mcapio.events import decode_events, is_event_channel
 from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch, gather_bytes
 from imufdi_cli.mcapio.schemas import STATUS_SCHEMA, STATUS_SCHEMA_NAME
@@ -63,6 +69,10 @@ class StatusArrays:
     sensor_ids : list of str
     isolated_set : ndarray (N, n) bool
         Every sensor isolated at each sample.
+    amplitudes : ndarray (N, n) float64
+        Estimated fault amplitude of every sensor, SI, NaN where not estimated; for
+        messages without per-sensor amplitudes (single-isolation detectors, channels
+        written before the field existed) ``amplitude`` on the ``isolated`` column.
     decided_ns : ndarray (N,) int64
         When the decision on each sample became available (``decided``), ns; equal to
         ``t_ns`` for channels written without it (``has_decided`` False).
@@ -81,6 +91,7 @@ class StatusArrays:
     isolated_set: np.ndarray | None = None
     decided_ns: np.ndarray | None = None
     has_decided: bool = False
+    amplitudes: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t_ns.shape[0])
@@ -151,7 +162,11 @@ def encode_status(
     p = 4 + body_stat  # payload offset of statistic
     scores_at = p + 40 if n_scores else p + 36
     set_at = scores_at + 8 * n_scores
-    length = set_at + 4 + n_scores
+    # per-sensor amplitudes only for detectors that give them (else an empty sequence)
+    n_amplitudes = n_scores if det.amplitudes is not None else 0
+    amplitudes_len_at = 4 + _up(set_at + 4 + n_scores - 4, 4)  # CDR aligns from offset 4
+    amplitudes_at = 4 + _up(amplitudes_len_at, 8) if n_amplitudes else amplitudes_len_at + 4
+    length = amplitudes_at + 8 * n_amplitudes
     out = np.zeros((n, length), dtype=np.uint8)
     out[:, 0:4] = np.frombuffer(b"\x00\x01\x00\x00", np.uint8)  # CDR little-endian
     sec = np.floor_divide(t_ns, NS_PER_S)
@@ -171,7 +186,12 @@ def encode_status(
     if n_scores:
         _put(out, scores_at, scores, "<f8")
     out[:, set_at : set_at + 4] = np.frombuffer(np.array([n_scores], "<u4").tobytes(), np.uint8)
-    out[:, set_at + 4 :] = det.isolation_set().reshape(n, n_scores)
+    out[:, set_at + 4 : set_at + 4 + n_scores] = det.isolation_set().reshape(n, n_scores)
+    out[:, amplitudes_len_at : amplitudes_len_at + 4] = np.frombuffer(
+        np.array([n_amplitudes], "<u4").tobytes(), np.uint8
+    )
+    if n_amplitudes:
+        _put(out, amplitudes_at, det.amplitude_set().reshape(n, n_amplitudes), "<f8")
     return MessageBatch(
         channel_id=np.full(n, channel_id, np.uint16),
         sequence=np.arange(n, dtype=np.int64).astype(np.uint32),
@@ -209,7 +229,9 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
     if "decided.sec" in codec.layout.leaves:
         scalars["decided_sec"] = ("decided.sec", "i4")
         scalars["decided_nanosec"] = ("decided.nanosec", "u4")
+    has_amplitudes = "amplitudes" in codec.layout.leaves
     paths = [p for p, _ in scalars.values()] + ["scores", "isolated_set"]
+    paths += ["amplitudes"] if has_amplitudes else []
     little, positions, sizes = codec.positions(batch, paths)
     raw = {
         key: codec.read(batch, little, positions[path], code, 1)[:, 0]
@@ -245,6 +267,35 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
     if n and width and bool(np.all(set_counts == width)):
         isolated_set = codec.read(batch, little, positions["isolated_set"], "u1", width) != 0
     out["isolated_set"] = isolated_set
+    out["amplitudes"] = _amplitudes(batch, codec, little, positions, sizes, out, width)
+    return out
+
+
+def _amplitudes(
+    batch: MessageBatch,
+    codec: CdrCodec,
+    little: np.ndarray,
+    positions: dict[str, np.ndarray],
+    sizes: dict[str, np.ndarray],
+    rows: dict[str, np.ndarray],
+    width: int,
+) -> np.ndarray:
+    """(N, width) per-sensor amplitudes: the ``amplitudes`` field where a message carries
+    one per sensor; elsewhere (an empty field, or a channel written before it existed)
+    ``amplitude`` on the column of ``isolated`` and NaN on the others, as
+    :meth:`DetectionBlock.amplitude_set` gives for detectors that estimate one."""
+    n = len(batch)
+    out = np.full((n, width), np.nan)
+    isolated = rows["isolated"]
+    one = np.flatnonzero((isolated >= 0) & (isolated < width))
+    out[one, isolated[one]] = rows["amplitude"][one]
+    if "amplitudes" not in positions or not (n and width):
+        return out
+    full = sizes["amplitudes"] == width
+    if bool(full.any()):
+        out[full] = codec.read(
+            batch.select(full), little[full], positions["amplitudes"][full], "f8", width
+        )
     return out
 
 
@@ -268,7 +319,8 @@ def iter_status(
     ------
     detector, sensor_type, sensor_ids, rows
         ``rows`` maps ``t_ns``, ``statistic``, ``threshold``, ``alarm``, ``isolated``,
-        ``amplitude``, ``scores`` (k, n), ``isolated_set`` (k, n) and, when the channel
+        ``amplitude``, ``scores`` (k, n), ``isolated_set`` (k, n), ``amplitudes`` (k, n)
+        and, when the channel
         carries it, ``decided_ns`` to the next k rows of that channel, in file order.
     """
     for batch in source.batches():
@@ -340,6 +392,7 @@ def read_status(
             scores=padded("scores", np.nan),
             sensor_ids=ids_of[key],
             isolated_set=padded("isolated_set", False),
+            amplitudes=padded("amplitudes", np.nan),
             decided_ns=cat("decided_ns") if has_decided else t_ns.copy(),
             has_decided=has_decided,
         )

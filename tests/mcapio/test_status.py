@@ -6,6 +6,7 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from numpy.testing import assert_array_equal
+from rosbags.highlevel import AnyReader
 
 from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.mcapio import (
@@ -134,3 +135,51 @@ def test_old_status_channels_without_header_are_still_read(tmp_path) -> None:
     assert_array_equal(got.statistic, np.arange(5.0))
     assert got.alarm.tolist() == [False, False, False, True, True]
     assert_array_equal(got.scores[:, 1], np.arange(5.0))
+    # written before per-sensor amplitudes existed: ``amplitude`` on the isolated column
+    expected = np.full((5, 2), np.nan)
+    expected[1, 0] = expected[2, 1] = 0.5
+    assert_array_equal(got.amplitudes, expected)
+
+
+def test_per_sensor_amplitudes_round_trip_and_independent_readers(tmp_path) -> None:
+    """``amplitudes`` (one per sensor, NaN where none) follows the one-byte-per-sensor
+    ``isolated_set``, so its length and float64 values need CDR padding: every sensor count
+    mod 8 is written and read back by imufdi, mcap-ros2-support and rosbags. Detectors that
+    give no per-sensor amplitudes write an empty field, read as ``amplitude`` on the
+    isolated sensor's column."""
+    path = tmp_path / "a.mcap"
+    t_ns = 10**18 + np.arange(40, dtype=np.int64) * 10_000_000
+    rng = np.random.default_rng(3)
+    blocks = {}
+    with McapWriter(path) as writer:
+        for n_sensors in range(0, 9):
+            det = _detections(40, n_sensors, seed=n_sensors)
+            if n_sensors % 2:
+                det.amplitudes = np.where(
+                    rng.random((40, n_sensors)) > 0.5, rng.normal(size=(40, n_sensors)), np.nan
+                )
+            ids = [f"imu{k}.gyro.x" for k in range(n_sensors)]
+            cid = register_status_channel(writer, f"d{n_sensors}", "gyro", ids)
+            writer.add_batch(encode_status(cid, t_ns, det))
+            blocks[f"/imufdi/d{n_sensors}/gyro"] = det
+    status = read_status(path)
+    for topic, det in blocks.items():
+        got = status[(topic.split("/")[2], "gyro")]
+        assert_array_equal(got.amplitudes, det.amplitude_set())
+        assert_array_equal(got.scores, det.scores)
+        assert_array_equal(got.isolated_set, det.isolation_set())
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        by_topic: dict[str, list[list[float]]] = {}
+        for _, channel, _, msg in reader.iter_decoded_messages():
+            by_topic.setdefault(channel.topic, []).append(list(msg.amplitudes))
+    with AnyReader([path]) as bag:
+        rosbags = {topic: [] for topic in blocks}
+        for connection, _, raw in bag.messages():
+            msg = bag.deserialize(raw, connection.msgtype)
+            rosbags[connection.topic].append(np.asarray(msg.amplitudes, dtype=np.float64))
+    for topic, det in blocks.items():
+        given = det.amplitudes is not None
+        expected = det.amplitude_set() if given else np.zeros((40, 0))
+        assert_array_equal(np.array(by_topic[topic]).reshape(expected.shape), expected)
+        assert_array_equal(np.array(rosbags[topic]).reshape(expected.shape), expected)
