@@ -820,6 +820,9 @@ class Episode:
     isolated_by: str = "detector"
     invalid_samples: int = 0
     fragments: int = 1
+    #: the detector's own amplitude estimate of ``sensors[0]`` (median over the episode's
+    #: alarms isolating it, from the status' per-sensor amplitudes), SI; None when none
+    amplitude: float | None = None
 
     @property
     def duration_s(self) -> float:
@@ -836,6 +839,18 @@ class Episode:
         out["fault_class"] = self.fault_class
         out["fits"] = [f.to_dict() for f in self.fits]
         return out
+
+
+def _sensor_amplitude(
+    pairs: list[tuple[np.ndarray, np.ndarray]], sensor_ids: Sequence[str], names: list[str]
+) -> float | None:
+    """Median of the detector's amplitudes of the episode's sensor ``names[0]`` (``pairs``:
+    (sensor index, amplitude) arrays of its alarms), or None."""
+    if not names or not pairs:
+        return None
+    k = sensor_ids.index(names[0])
+    values = np.concatenate([v[c == k] for c, v in pairs])
+    return float(np.median(values)) if values.size else None
 
 
 def isolation_summary(
@@ -979,6 +994,7 @@ class EpisodeBuilder:
         m = self._take(n)
         alarm = np.asarray(out.alarm, dtype=bool)
         isolated_rows = np.asarray(out.isolated)
+        amplitudes = out.amplitude_set() if hasattr(out, "amplitude_set") else None
         idx = np.flatnonzero(alarm)
         groups = np.split(idx, np.flatnonzero(np.diff(idx) - 1 > self.merge_gap) + 1)
         closed: list[Episode] = []
@@ -1002,6 +1018,7 @@ class EpisodeBuilder:
                     "alarm_index": history.shape[0],
                     "alarms": 0,
                     "isolated": [],
+                    "amplitudes": [],  # (sensor, amplitude) of alarms with an estimate
                     "counts": np.zeros(len(self.sensor_ids), np.int64),
                     "fragments": 1,
                     "peak": -math.inf,
@@ -1016,6 +1033,9 @@ class EpisodeBuilder:
             state["quiet"] = 0
             state["alarms"] += int(group.size)
             state["isolated"].append(group_isolated)
+            if amplitudes is not None:
+                found = np.nonzero(np.isfinite(amplitudes[group]))
+                state["amplitudes"].append((found[1], amplitudes[group][found]))
             valid = group_isolated[(group_isolated >= 0) & (group_isolated < len(self.sensor_ids))]
             state["counts"] += np.bincount(valid, minlength=len(self.sensor_ids))
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -1085,6 +1105,7 @@ class EpisodeBuilder:
             waiting["quiet"] = run["quiet"]
             waiting["alarms"] += run["alarms"]
             waiting["isolated"].extend(run["isolated"])
+            waiting["amplitudes"].extend(run["amplitudes"])
             waiting["counts"] += run["counts"]
             waiting["fragments"] += run["fragments"]
             waiting["peak"] = max(waiting["peak"], run["peak"])
@@ -1135,6 +1156,7 @@ class EpisodeBuilder:
             runner_up=runner_up,
             runner_up_share=share,
             fragments=state["fragments"],
+            amplitude=_sensor_amplitude(state["amplitudes"], self.sensor_ids, names),
         )
         if not self.explain or window.shape[0] < 4:
             return episode

@@ -53,12 +53,19 @@ class FaultWindow:
         Onset, ns.
     end_ns : int or None
         End of the fault, ns; None when it lasts to the end of the log.
+    model : str
+        Fault model (``step``, ``drift``, ...; empty when unknown).
+    size : float or None
+        True size the detector's amplitude estimates are compared to, SI: a step's ``amp``,
+        a drift's ``rate`` (per second); None for the other models.
     """
 
     fault_id: str
     sensors: tuple[int, ...]
     start_ns: int
     end_ns: int | None = None
+    model: str = ""
+    size: float | None = None
 
 
 @dataclass
@@ -73,9 +80,43 @@ class FaultFigures:
     isolated_correctly: float | None  # fraction of the fault's detected samples isolated to it
     faulty_samples: int
     rate_after_first_detection: float | None  # alarmed / faulty samples from the first alarm on
+    #: per faulty sensor the detector gave an amplitude for (:class:`AmplitudeFigure`)
+    amplitudes: list[AmplitudeFigure] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+@dataclass
+class AmplitudeFigure:
+    """A detector's estimate of one faulty sensor's fault size, from its status rows.
+
+    Over the fault's detected samples on which the sensor is isolated and has an estimated
+    amplitude (``amplitudes`` of the status): for a drift the least-squares slope of the
+    amplitude against time (``size_name`` ``rate``, SI per second: a filter's lag shifts the
+    line but not its slope), otherwise the median amplitude (``amp``, SI).
+
+    Attributes
+    ----------
+    sensor : str
+        Sensor id (or its index when the ids are unknown).
+    size_name : str
+        ``amp`` or ``rate``.
+    estimate : float
+    true : float or None
+        The injected size (step ``amp``, drift ``rate``); None for other models.
+    ratio : float or None
+        ``estimate / true``.
+    samples : int
+        Samples the estimate is made of.
+    """
+
+    sensor: str
+    size_name: str
+    estimate: float
+    true: float | None
+    ratio: float | None
+    samples: int
 
 
 @dataclass
@@ -227,6 +268,52 @@ class _FaultState:
         self.quiet_from_t: int | None = None  # its sample time
         self.quiet = 0  # quiet samples since then
         self.recovered_ns: int | None = None  # decision time of the recovery sample, once known
+        #: per faulty sensor: its estimated amplitudes while isolated (AmplitudeFigure)
+        self.amplitudes = {s: _AmplitudeTrack() for s in window.sensors}
+
+
+#: Amplitude samples kept per faulty sensor for the median (evenly decimated beyond).
+AMPLITUDE_POINTS = 20_000
+
+
+class _AmplitudeTrack:
+    """A faulty sensor's estimated amplitudes, in bounded memory: least-squares sums for
+    the slope against time, and an evenly decimated copy (every ``stride``-th value, at
+    most 2 x AMPLITUDE_POINTS) for the median."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.sums = np.zeros(4)  # sum of t, a, t^2 and t a over every sample
+        self.kept: list[np.ndarray] = []
+        self.n_kept = 0
+        self.stride = 1
+        self.seen = 0
+
+    def add(self, t_s: np.ndarray, values: np.ndarray) -> None:
+        if values.size == 0:
+            return
+        self.count += int(values.size)
+        self.sums += [t_s.sum(), values.sum(), (t_s * t_s).sum(), (t_s * values).sum()]
+        first = (-self.seen) % self.stride
+        self.seen += int(values.size)
+        picked = values[first :: self.stride]
+        self.kept.append(picked)
+        self.n_kept += int(picked.size)
+        if self.n_kept > 2 * AMPLITUDE_POINTS:
+            self.kept = [np.concatenate(self.kept)[::2]]
+            self.n_kept = int(self.kept[0].size)
+            self.stride *= 2
+
+    def median(self) -> float:
+        return float(np.median(np.concatenate(self.kept)))
+
+    def slope(self) -> float | None:
+        n = self.count
+        st, sa, stt, sta = self.sums
+        spread = n * stt - st * st
+        if n < 2 or spread <= 0:
+            return None
+        return float((n * sta - st * sa) / spread)
 
 
 class MetricsAccumulator:
@@ -251,6 +338,8 @@ class MetricsAccumulator:
     merge_gap_s : float
         Recovery: an alarm that comes back within this time of the candidate recovery
         sample belongs to the same alarm episode (flicker), s.
+    sensor_ids : sequence of str, optional
+        Names of the sensors in the per-fault amplitude figures (default: their indices).
     """
 
     def __init__(
@@ -262,8 +351,11 @@ class MetricsAccumulator:
         persist: int = 1,
         sweep: bool = True,
         merge_gap_s: float = 0.1,
+        sensor_ids: Sequence[str] | None = None,
     ) -> None:
         from imufdi_cli.sweep import SweepAccumulator
+
+        self.sensor_ids = None if sensor_ids is None else list(sensor_ids)
 
         self.merge_gap_ns = round(merge_gap_s * NS_PER_S)
         self.n_sensors = int(n_sensors)
@@ -308,6 +400,7 @@ class MetricsAccumulator:
         threshold: np.ndarray | None = None,
         scores: np.ndarray | None = None,
         faulty: np.ndarray | None = None,
+        amplitudes: np.ndarray | None = None,
     ) -> None:
         """Add k consecutive rows.
 
@@ -323,6 +416,9 @@ class MetricsAccumulator:
             detector left unisolated by their largest score
         faulty : (k, n) bool, optional
             Ground truth per row and sensor; default: from the fault windows
+        amplitudes : (k, n) float64, optional
+            Estimated amplitude of every sensor, SI, NaN where none (the status'
+            ``amplitudes``), for the per-fault :class:`AmplitudeFigure`
         """
         t_ns = np.asarray(t_ns, dtype=np.int64)
         k = int(t_ns.size)
@@ -382,6 +478,13 @@ class MetricsAccumulator:
         else:
             iso_set = np.asarray(isolated_set, dtype=bool).reshape(k, n_s)
         in_faults = [self._update_fault(st, t_ns, decided, alarm, iso_set) for st in self.states]
+        if amplitudes is not None:
+            values = np.asarray(amplitudes, dtype=np.float64).reshape(k, n_s)
+            for st, inside in zip(self.states, in_faults):
+                for sensor, track in st.amplitudes.items():
+                    use = inside & alarm & iso_set[:, sensor] & np.isfinite(values[:, sensor])
+                    t_s = (t_ns[use] - st.window.start_ns).astype(np.float64) * 1e-9
+                    track.add(t_s, values[use, sensor])
 
         if self.sweep is not None and statistic is not None and threshold is not None:
             from imufdi_cli.sweep import ratio_bins
@@ -515,6 +618,7 @@ class MetricsAccumulator:
                     isolated_correctly=_ratio(st.isolated_ok, st.alarmed),
                     faulty_samples=st.samples,
                     rate_after_first_detection=_ratio(st.alarmed_after_first, st.after_first),
+                    amplitudes=self._amplitude_figures(st),
                 )
             )
             after_first += st.after_first
@@ -552,6 +656,31 @@ class MetricsAccumulator:
             rate_after_first_detection=_ratio(alarmed_after_first, after_first),
         )
 
+    def _amplitude_figures(self, st: _FaultState) -> list[AmplitudeFigure]:
+        """One :class:`AmplitudeFigure` per faulty sensor with estimated amplitudes."""
+        w = st.window
+        figures = []
+        for sensor, track in st.amplitudes.items():
+            if track.count == 0:
+                continue
+            size_name = "rate" if w.model == "drift" else "amp"
+            estimate = track.slope() if size_name == "rate" else track.median()
+            if estimate is None:
+                continue
+            true = w.size if w.model in ("step", "drift") else None
+            name = self.sensor_ids[sensor] if self.sensor_ids is not None else str(sensor)
+            figures.append(
+                AmplitudeFigure(
+                    sensor=name,
+                    size_name=size_name,
+                    estimate=estimate,
+                    true=true,
+                    ratio=estimate / true if true else None,
+                    samples=track.count,
+                )
+            )
+        return figures
+
     def matched(self, metrics: Metrics, target_far: float) -> str | None:
         """Fill the ``*_at_far`` figures of ``metrics`` at ``target_far``; returns a note
         (why a figure is undefined, or where the match sits) or None."""
@@ -582,6 +711,7 @@ def compute_metrics(
     scores: np.ndarray | None = None,
     match_far: float | None = None,
     n_sensors: int | None = None,
+    amplitudes: np.ndarray | None = None,
 ) -> Metrics:
     """Per-sample metrics of one detector on one sensor type, in one call.
 
@@ -610,6 +740,8 @@ def compute_metrics(
         For the matched-FAR sweep (``match_far``).
     match_far : float, optional
         Target FAR for the ``*_at_far`` figures.
+    amplitudes : ndarray, shape (N, n_s), float64, optional
+        Estimated amplitude of every sensor (per-fault :class:`AmplitudeFigure`).
 
     Returns
     -------
@@ -632,6 +764,7 @@ def compute_metrics(
         threshold=threshold,
         scores=scores,
         faulty=faulty,
+        amplitudes=amplitudes,
     )
     metrics = acc.result()
     if match_far is not None:

@@ -25,6 +25,7 @@ from imufdi_cli.errors import GateError, McapInputError, UsageError
 from imufdi_cli.jsonout import dumps as json_dumps
 from imufdi_cli.metrics import (
     METRIC_NAMES,
+    AmplitudeFigure,
     FaultWindow,
     Metrics,
     MetricsAccumulator,
@@ -94,6 +95,8 @@ class TruthWindow:
     sensors: tuple[str, ...]
     start_ns: int
     end_ns: int | None
+    model: str = ""
+    size: float | None = None  # step amp or drift rate, SI (FaultWindow.size)
 
 
 @dataclass
@@ -123,7 +126,17 @@ def truth_windows(metadata: dict[str, dict[str, str]]) -> Truth | None:
             for item in run.get("faults", []):
                 fault = Fault.from_dict(item)
                 end = None if fault.until_ns is None else t0 + fault.until_ns
-                windows.append(TruthWindow(fault.id, tuple(fault.sensors), t0 + fault.at_ns, end))
+                size = fault.params.get({"step": "amp", "drift": "rate"}.get(fault.model, ""))
+                windows.append(
+                    TruthWindow(
+                        fault.id,
+                        tuple(fault.sensors),
+                        t0 + fault.at_ns,
+                        end,
+                        fault.model,
+                        None if size is None else float(size),
+                    )
+                )
                 descriptions.append(fault.to_dict())
     except (KeyError, TypeError, ValueError) as err:
         raise TruthError(f"{METADATA_NAME} metadata is malformed ({err})") from err
@@ -340,6 +353,7 @@ def build_report(
                     statistic=rows["statistic"],
                     threshold=rows["threshold"],
                     scores=rows["scores"],
+                    amplitudes=rows["amplitudes"],
                 )
                 if keep_series:
                     series[key].add(
@@ -576,11 +590,20 @@ def _accumulator(
     windows: list[FaultWindow] = []
     if truth is not None:
         windows = [
-            FaultWindow(w.fault_id, tuple(ids.index(s) for s in w.sensors), w.start_ns, w.end_ns)
+            FaultWindow(
+                w.fault_id,
+                tuple(ids.index(s) for s in w.sensors),
+                w.start_ns,
+                w.end_ns,
+                w.model,
+                w.size,
+            )
             for w in truth.windows
             if all(s in ids for s in w.sensors)
         ]
-    return MetricsAccumulator(len(ids), windows, calibration_ns=calibration, persist=persist)
+    return MetricsAccumulator(
+        len(ids), windows, calibration_ns=calibration, persist=persist, sensor_ids=ids
+    )
 
 
 def parse_far(text: str) -> float:
@@ -805,15 +828,16 @@ def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
             "## Per fault",
             "",
             "| Fault | Detector | Sensor | Detected | Delay s | Iso delay s | Recovery s"
-            " | Isolated to it % |",
-            "|---|---|---|---|---|---|---|---|",
+            " | Isolated to it % | Estimated size (/ true) |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         lines += [
             f"| {f.fault_id} | {e.detector} | {e.sensor_type} | {'yes' if f.detected else 'no'} | "
             f"{format_value(f.detection_delay_s, 1.0, '{:.3f}')} | "
             f"{format_value(f.isolation_delay_s, 1.0, '{:.3f}')} | "
             f"{format_value(f.recovery_delay_s, 1.0, '{:.3f}')} | "
-            f"{format_value(f.isolated_correctly, 100.0, '{:.1f}')} |"
+            f"{format_value(f.isolated_correctly, 100.0, '{:.1f}')} | "
+            f"{format_amplitudes(f.amplitudes, e.sensor_type)} |"
             for e, f in per_fault
         ]
     lines += _episodes_markdown(report)
@@ -839,6 +863,17 @@ _SIZE_UNITS = {
     ("mag", "rate"): (1e6, "uT/s"),
     ("mag", "value"): (1e6, "uT"),
 }
+
+
+def format_amplitudes(figures: Sequence[AmplitudeFigure], sensor_type: str) -> str:
+    """``imu0.gyro.z 28.5 deg/s (0.995); ...``: each faulty sensor's estimated size in
+    display units, and its ratio to the injected one when known; ``-`` when none."""
+    parts = []
+    for a in figures:
+        scale, unit = _SIZE_UNITS.get((sensor_type, a.size_name), (1.0, "SI"))
+        ratio = "" if a.ratio is None else f" ({a.ratio:.3f})"
+        parts.append(f"{a.sensor} {a.estimate * scale:.4g} {unit}{ratio}")
+    return "; ".join(parts) or "-"
 
 
 def format_size(episode: dict[str, Any]) -> str:
@@ -877,6 +912,7 @@ EPISODE_COLUMNS = [
     "alarms",
     "match",
     "fault_id",
+    "detector_amplitude",
 ]
 
 
@@ -902,6 +938,8 @@ def episode_rows(report: Report) -> list[dict[str, Any]]:
                 "alarms": e.get("alarms"),
                 "match": e.get("match"),
                 "fault_id": e.get("fault_id"),
+                # the detector's own estimate for the episode's sensor, SI (None: none)
+                "detector_amplitude": e.get("amplitude"),
             }
         )
     return rows
@@ -938,14 +976,18 @@ def _episodes_markdown(report: Report) -> list[str]:
     lines += [
         "",
         "| Detector | Sensor | Start s | Duration s | Isolated | Class | Size [90 % interval]"
-        " | Runner-up class | Peak stat/threshold | Match |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        " | Detector's amplitude | Runner-up class | Peak stat/threshold | Match |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in episode_rows(report):
+        scale, unit = _SIZE_UNITS.get((row["sensor_type"], "amp"), (1.0, "SI"))
+        amplitude = row["detector_amplitude"]
         lines.append(
             f"| {row['detector']} | {row['sensor_type']} | {row['start_s']:.3f} | "
             f"{format_value(row['duration_s'], 1.0, '{:.3f}')} | {row['sensor'] or '-'} | "
-            f"{row['fault_class'] or '-'} | {row['size']} | {row['runner_up_class'] or '-'} | "
+            f"{row['fault_class'] or '-'} | {row['size']} | "
+            f"{'-' if amplitude is None else f'{amplitude * scale:.4g} {unit}'} | "
+            f"{row['runner_up_class'] or '-'} | "
             f"{format_value(row['peak_ratio'], 1.0, '{:.3g}')} | "
             f"{row['match'] or '-'}{' ' + row['fault_id'] if row['fault_id'] else ''} |"
         )

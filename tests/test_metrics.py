@@ -298,3 +298,74 @@ def test_detection_rate_is_one_minus_mar_and_rate_after_first_detection_is_apart
     assert m.value("detection_rate") == pytest.approx(0.5)
     assert m.to_dict()["detection_rate"] == pytest.approx(0.5)
     assert m.rate_after_first_detection == pytest.approx(1.0)
+
+
+def test_per_fault_amplitudes_median_for_a_step_and_slope_for_a_drift():
+    """Analytic: a step's estimate is the median amplitude where its sensor is isolated
+    (rows without an alarm or isolated elsewhere are ignored); a drift's is the slope of the
+    amplitude against time, unchanged by a lag (the estimate shifted by 0.5 s)."""
+    from imufdi_cli.metrics import MetricsAccumulator
+
+    n = 1000
+    t = _t(n)
+    t_s = t * 1e-9
+    step = FaultWindow("s", (0,), 200 * MS10, None, "step", 0.5)
+    drift = FaultWindow("d", (2,), 300 * MS10, None, "drift", 0.1)
+    alarm = t >= 200 * MS10
+    isolated_set = np.zeros((n, 3), bool)
+    isolated_set[200:, 0] = True
+    isolated_set[350:, 2] = True
+    amplitudes = np.full((n, 3), np.nan)
+    amplitudes[:, 0] = 0.5 + 0.01 * np.sin(np.arange(n))  # symmetric wiggle: median 0.5
+    amplitudes[:, 1] = 7.0  # a healthy sensor: not part of any fault's figure
+    amplitudes[:, 2] = 0.1 * (t_s - 3.0 - 0.5)  # the drift lagged by 0.5 s
+    amplitudes[600:610, 0] = 100.0  # outliers the median ignores...
+    isolated_set[600:610, 0] = True
+    alarm[900:] = False  # ...and rows without alarm that would bias the slope
+    amplitudes[900:, 2] = -50.0
+    acc = MetricsAccumulator(3, [step, drift], sensor_ids=["a", "b", "c"])
+    for lo in range(0, n, 97):  # streaming in uneven blocks
+        hi = min(lo + 97, n)
+        acc.update(
+            t[lo:hi],
+            alarm[lo:hi],
+            np.full(hi - lo, -1),
+            isolated_set=isolated_set[lo:hi],
+            amplitudes=amplitudes[lo:hi],
+        )
+    figures = {f.fault_id: f.amplitudes for f in acc.result().faults}
+    (a_step,) = figures["s"]
+    assert (a_step.sensor, a_step.size_name, a_step.true) == ("a", "amp", 0.5)
+    # 10 outliers in 700 move the median by 5 ranks: 5/700 of the quantile range, times
+    # the arcsine spread at its centre, pi x 0.01: 2.2e-4
+    assert a_step.estimate == pytest.approx(0.5, abs=3e-4)
+    assert a_step.samples == 700
+    (a_drift,) = figures["d"]
+    assert (a_drift.sensor, a_drift.size_name, a_drift.samples) == ("c", "rate", 550)
+    assert a_drift.estimate == pytest.approx(0.1, rel=1e-9)
+    assert a_drift.ratio == pytest.approx(1.0, rel=1e-9)
+    # without per-sensor amplitudes there is no figure
+    plain = compute_metrics(t, alarm, np.zeros(n, int), faults=[step], n_sensors=3)
+    assert plain.faults[0].amplitudes == []
+
+
+def test_per_fault_amplitude_median_in_bounded_memory():
+    """Beyond 2 x AMPLITUDE_POINTS samples the median comes from an evenly decimated copy:
+    memory stays bounded and, for a smooth distribution, the median is still right to a
+    fraction of the spread."""
+    from imufdi_cli.metrics import AMPLITUDE_POINTS, MetricsAccumulator
+
+    rng = np.random.default_rng(0)
+    n = 10 * AMPLITUDE_POINTS
+    values = rng.normal(2.0, 0.1, n)
+    acc = MetricsAccumulator(1, [FaultWindow("f", (0,), 0, None, "step", 2.0)])
+    for lo in range(0, n, 4999):
+        hi = min(lo + 4999, n)
+        k = hi - lo
+        acc.update(_t(n)[lo:hi], np.ones(k, bool), np.zeros(k, int), amplitudes=values[lo:hi, None])
+    track = acc.states[0].amplitudes[0]
+    assert track.n_kept <= 2 * AMPLITUDE_POINTS
+    (figure,) = acc.result().faults[0].amplitudes
+    assert figure.samples == n
+    # the decimated median's std is about 1.25 sigma / sqrt(kept) = 0.001; 5 of them
+    assert figure.estimate == pytest.approx(float(np.median(values)), abs=0.005)

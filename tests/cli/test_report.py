@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import xml.etree.ElementTree as ET
 
+import pytest
+
 from tests.cli.conftest import assert_one_line_error
 
 
@@ -249,3 +251,38 @@ def test_plot_without_matplotlib_fails_before_any_work(cli, tmp_path, detected_l
     assert "pip install" in result.stderr
     assert not out.exists() and not (tmp_path / "p.png").exists()
     assert result.stdout == b""  # no table either: nothing was computed
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [5, 6])
+def test_each_of_two_simultaneous_faults_gets_its_amplitude_in_the_files(cli, tmp_path, seed):
+    """Issue 16 (bank): two simultaneous gyro faults, each with its own amplitude in the
+    written status (FdiStatus ``amplitudes``), read back by ``imufdi report``: the per-fault
+    estimate (a step's median amplitude, a drift's slope) within 5 % of the injected size,
+    and the episode of the strongest fault carries the detector's amplitude."""
+    clean, faulty, detected = (tmp_path / f"{k}.mcap" for k in ("s", "f", "d"))
+    report, table = tmp_path / "r.json", tmp_path / "r.md"
+    steps = [
+        ["simulate", "--preset", "quadrotor-marg", "--seed", seed, "-o", clean],
+        ["inject", clean, "--seed", seed, "-o", faulty]
+        + ["--fault", "step:imu0.gyro.z,at=5s,amp=0.5rad/s"]
+        + ["--fault", "drift:imu0.gyro.x,at=5s,rate=0.1rad/s^2"],
+        ["detect", faulty, "-d", "bank", "--calibrate", "0s:2s", "-o", detected],
+        ["report", detected, "--json", report, "--markdown", table],
+    ]
+    for args in steps:
+        result = cli([args[0], "-q", *args[1:]])
+        assert result.code == 0, (args[0], result.stderr)
+    data = json.loads(report.read_text())
+    gyro = next(r for r in data["results"] if r["sensor_type"] == "gyro")
+    figures = {f["fault_id"]: f["amplitudes"] for f in gyro["faults"]}
+    assert [(a["sensor"], a["size_name"]) for a in figures["f0"]] == [("imu0.gyro.z", "amp")]
+    assert [(a["sensor"], a["size_name"]) for a in figures["f1"]] == [("imu0.gyro.x", "rate")]
+    for fault_id in ("f0", "f1"):
+        assert figures[fault_id][0]["ratio"] == pytest.approx(1.0, abs=0.05), fault_id
+    assert "imu0.gyro.z 28" in table.read_text()  # 0.5 rad/s = 28.6 deg/s
+    episode = next(
+        e for e in data["episodes"] if e.get("fault_id") == "f0" and e["sensor_type"] == "gyro"
+    )
+    assert episode["sensors"][0] == "imu0.gyro.z"
+    assert episode["amplitude"] == pytest.approx(0.5, rel=0.05)
