@@ -734,28 +734,8 @@ class BankDetector(DetectorBase):
             isolated_sets[sensor_type] = np.zeros((n_samples, 3), dtype=bool)
             isolated_sets[sensor_type][mine, isolated[mine] - offset] = True
 
-        # An estimator is clean at a sample when it converged, observes the attitude and
-        # does not use the component isolated there; the gyro residuals use the clean
-        # estimator blind to the isolated component, else the full one.
-        rows_all = np.arange(n_samples)
-        well_conditioned = np.ones_like(solution.usable)
-        well_conditioned[:, :6] = solution.blind_std <= GYRO_BLIND_STD_RATIO * model.noise
-        clean = solution.usable & well_conditioned & ~alarm[:, None]
-        # During an accel/mag alarm, every component isolated since the alarm began is a
-        # candidate for the faulty one (the isolation hesitates at an onset while the
-        # faulty component's blind estimator drops in and out of observability). Only the
-        # series of the estimator blind to the faulty component is fault-free; a gyro fault
-        # shows in every series. The gyro test takes, per sample, the clean candidate
-        # series with the smallest largest z^2 (``_gyro_test``), and abstains where any
-        # candidate is not clean (its series could be the only fault-free one).
-        seen = self._episode_components(alarm, best)  # (N, 6)
-        usable = (solution.usable & well_conditioned)[:, :6]
-        candidates = np.zeros_like(clean)
-        candidates[:, :6] = seen & usable
-        candidates[:, FULL_ESTIMATOR] = ~alarm
-        clean[:, :6] |= candidates[:, :6]
-        abstain = ~candidates.any(axis=1) | np.any(seen & ~usable, axis=1)
-        chosen = np.where(alarm & clean[rows_all, best], best, FULL_ESTIMATOR)
+        clean, candidates, abstain = self._gyro_candidates(solution, model.noise, alarm, best)
+        chosen = np.where(alarm & clean[np.arange(n_samples), best], best, FULL_ESTIMATOR)
         q = make_continuous(q, self._q_last)
         gyro_residuals = None
         if self._gyro_H is not None and block.gyro is not None and n_samples > 0:
@@ -777,6 +757,34 @@ class BankDetector(DetectorBase):
             if chosen_set is not None and chosen_set.shape == det.scores.shape:
                 det.isolated_set = chosen_set
         return out
+
+    def _gyro_candidates(
+        self, solution: _MargSolution, noise: np.ndarray, alarm: np.ndarray, best: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which estimators' attitudes the gyro test may use: ``clean`` (N, 7), the
+        ``candidates`` (N, 7) it chooses among, and where it ``abstain``s (N,).
+
+        An estimator is clean at a sample when it converged, observes the attitude and
+        does not use the component isolated there. During an accel/mag alarm, every
+        component isolated since the alarm began is a candidate for the faulty one (the
+        isolation hesitates at an onset while the faulty component's blind estimator drops
+        in and out of observability). Only the series of the estimator blind to the faulty
+        component is fault-free; a gyro fault shows in every series. The gyro test takes,
+        per sample, the clean candidate series with the smallest largest z^2
+        (``_gyro_decision``), and abstains where any candidate is not clean (its series
+        could be the only fault-free one).
+        """
+        well_conditioned = np.ones_like(solution.usable)
+        well_conditioned[:, :6] = solution.blind_std <= GYRO_BLIND_STD_RATIO * noise
+        clean = solution.usable & well_conditioned & ~alarm[:, None]
+        seen = self._episode_components(alarm, best)  # (N, 6)
+        usable = (solution.usable & well_conditioned)[:, :6]
+        candidates = np.zeros_like(clean)
+        candidates[:, :6] = seen & usable
+        candidates[:, FULL_ESTIMATOR] = ~alarm
+        clean[:, :6] |= candidates[:, :6]
+        abstain = ~candidates.any(axis=1) | np.any(seen & ~usable, axis=1)
+        return clean, candidates, abstain
 
     def _episode_components(self, alarm: np.ndarray, best: np.ndarray) -> np.ndarray:
         """Accel/mag components isolated at least once since the current alarm began,
