@@ -11,6 +11,7 @@ Usage: python benchmarks/bench_bank.py [--duration 60] [--block 1000]
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import numpy as np
@@ -82,6 +83,7 @@ def main() -> None:
         f" -> {log_seconds / baseline_seconds:.1f}x real time"
     )
     print(f"speed-up of the batched bank over the baseline: {baseline_seconds / bank_seconds:.0f}x")
+    print(f"load average (1, 5, 15 min): {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
 
 
 if __name__ == "__main__":
