@@ -320,8 +320,8 @@ def iter_status(
     detector, sensor_type, sensor_ids, rows
         ``rows`` maps ``t_ns``, ``statistic``, ``threshold``, ``alarm``, ``isolated``,
         ``amplitude``, ``scores`` (k, n), ``isolated_set`` (k, n), ``amplitudes`` (k, n)
-        and, when the channel
-        carries it, ``decided_ns`` to the next k rows of that channel, in file order.
+        and, when the channel carries it, ``decided_ns`` to the next k rows of that
+        channel, in file order.
     """
     for batch in source.batches():
         for cid in np.unique(batch.channel_id).tolist():
