@@ -264,9 +264,16 @@ def test_each_of_two_simultaneous_faults_gets_its_amplitude_in_the_files(cli, tm
     report, table = tmp_path / "r.json", tmp_path / "r.md"
     steps = [
         ["simulate", "--preset", "quadrotor-marg", "--seed", seed, "-o", clean],
-        ["inject", clean, "--seed", seed, "-o", faulty]
-        + ["--fault", "step:imu0.gyro.z,at=5s,amp=0.5rad/s"]
-        + ["--fault", "drift:imu0.gyro.x,at=5s,rate=0.1rad/s^2"],
+        [
+            "inject",
+            clean,
+            "--seed",
+            seed,
+            "-o",
+            faulty,
+            *("--fault", "step:imu0.gyro.z,at=5s,amp=0.5rad/s"),
+            *("--fault", "drift:imu0.gyro.x,at=5s,rate=0.1rad/s^2"),
+        ],
         ["detect", faulty, "-d", "bank", "--calibrate", "0s:2s", "-o", detected],
         ["report", detected, "--json", report, "--markdown", table],
     ]
