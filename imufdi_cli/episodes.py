@@ -269,16 +269,11 @@ def _gaussian_nll(ss: Any, n: Any, var: Any) -> Any:
     return 0.5 * (ss / var + n * np.log(2 * math.pi * var))
 
 
-def _suffixes(columns: Sequence[np.ndarray], taus: np.ndarray) -> np.ndarray:
-    """Suffix sums ``S[c, i] = sum(columns[c][taus[i]:])`` of k series of length L at the
-    onsets ``taus`` (all below L), shape (k, len(taus)).
-
-    One reversed cumulative sum down an (L, k) matrix: each column is accumulated by the
-    same sequential additions, in the same order, as a cumulative sum of that series alone,
-    so the sums are the same floats as one call per series, at a fraction of the calls.
-    """
-    stacked = np.stack(columns, axis=1)[::-1]
-    return np.cumsum(stacked, axis=0)[::-1][taus].T
+def _suffix(values: np.ndarray) -> np.ndarray:
+    """S[j] = sum(values[j:]), shape (L + 1,)."""
+    out = np.zeros(values.shape[0] + 1)
+    out[:-1] = np.cumsum(values[::-1])[::-1]
+    return out
 
 
 def fit_models(
@@ -448,7 +443,10 @@ def _fit_window(
     sq = r**2
     healthy_before = np.concatenate(([0.0], np.cumsum(sq)))[taus]
     nll_before = _gaussian_nll(healthy_before, taus.astype(np.float64), var0)
-    s_r, s_rr, s_t, s_tt, s_tr, s_oo, s_or = _suffixes((r, sq, t, t * t, t * r, o * o, o * r), taus)
+    s_r, s_rr = _suffix(r)[taus], _suffix(sq)[taus]
+    s_t, s_tt, s_tr = _suffix(t)[taus], _suffix(t * t)[taus], _suffix(t * r)[taus]
+    s_o, s_oo, s_or = _suffix(o)[taus], _suffix(o * o)[taus], _suffix(o * r)[taus]
+    del s_o
     fits: list[FaultFit] = []
 
     def best(nll_after: np.ndarray, k_params: int) -> tuple[int, float]:
@@ -743,21 +741,15 @@ def _spike_fit(
 ) -> FaultFit | None:
     """Sparse spikes: residuals beyond SPIKE_CUT sigma_r, amplitude and Poisson rate."""
     flagged = np.abs(r) > SPIKE_CUT * sigma_r
-    if not flagged[taus[0] :].any():  # no spike at or after the first onset candidate
+    count_after = _suffix(flagged.astype(np.float64))[taus]
+    if count_after.max(initial=0.0) < 1:
         return None
-    sq = r**2
-    count_after, abs_after, sq_quiet_after, sq_spikes_after = _suffixes(
-        (
-            flagged.astype(np.float64),
-            np.where(flagged, np.abs(r), 0.0),
-            np.where(flagged, 0.0, sq),
-            np.where(flagged, sq, 0.0),
-        ),
-        taus,
-    )
+    abs_after = _suffix(np.where(flagged, np.abs(r), 0.0))[taus]
+    sq_quiet_after = _suffix(np.where(flagged, 0.0, r**2))[taus]
     n_after = (r.shape[0] - taus).astype(np.float64)
     p = np.clip(count_after / n_after, 1e-12, 1 - 1e-12)
     amp = np.where(count_after > 0, abs_after / np.maximum(count_after, 1), 0.0)
+    sq_spikes_after = _suffix(np.where(flagged, r**2, 0.0))[taus]
     # spikes about +-amp, quiet samples about 0, one common variance; mixture weights p
     ss_spikes = sq_spikes_after - count_after * amp**2
     nll_after = _gaussian_nll(sq_quiet_after + ss_spikes, n_after, sigma_r**2) - (
