@@ -14,10 +14,12 @@ from imufdi_cli.detectors.base import parse_params
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.jitter import (
     MotionInflation,
+    array_inflation,
     consensus_projector,
     fit_jitter,
     minimum_detectable_step,
 )
+from imufdi_cli.detectors.pca_parity import PcaParityDetector
 from imufdi_cli.errors import ArrayConfigError
 from imufdi_cli.log import ImuBlock
 
@@ -212,6 +214,29 @@ def test_glt_holds_its_level_in_motion_with_the_jitter_model():
     n = 9700
     assert rate <= 1.5 * binom.ppf(0.999, n, 0.01) / n
     assert det.metadata()["types"]["gyro"]["jitter_s"] == pytest.approx(fitted)
+
+
+def test_pca_parity_hook_divides_by_the_window_mean_factor():
+    rng = np.random.default_rng(4)
+    plain_array = skewed_array()
+    block, _ = moving_gyro(plain_array, 2000, rng, 5e-4)
+    calibration = block.slice(0, 400)
+
+    def run(array: ArrayConfig):
+        det = PcaParityDetector(types="gyro")
+        det.fit(calibration, array)
+        return det.process(block)["gyro"]
+
+    plain = run(plain_array)
+    assert_array_equal(run(plain_array.with_jitter({"gyro": 0.0})).statistic, plain.statistic)
+    jittered = run(skewed_array(jitter=5e-4))
+    inflation = array_inflation(
+        plain_array.with_jitter({"gyro": 5e-4}), "gyro", plain_array.measurement_matrix("gyro"),
+        window=round(0.2 * RATE),
+    )  # fmt: skip
+    assert inflation is not None
+    factors = inflation.factors(plain_array.select(block.gyro, "gyro"), block.t_ns)
+    assert_allclose(jittered.statistic, plain.statistic / factors, rtol=1e-12)
 
 
 def test_consensus_projector_is_the_hat_matrix():
