@@ -119,6 +119,10 @@ def test_singular_calibration_is_usage_error_naming_the_imu(cli, real_log, tmp_p
     assert_one_line_error(result, 2, "imu3 accel calibration: matrix is singular")
     result = cli(["calibrate", real_log, "--array", bad, "-o", tmp_path / "c.toml"])
     assert_one_line_error(result, 2, "imu3 accel calibration")
+    negative = tmp_path / "negative.toml"
+    negative.write_text(text.replace("gyro = 0.00", "gyro = -0.00", 1))
+    result = cli(["detect", real_log, "-d", "glt", "--array", negative, "-o", tmp_path / "d.mcap"])
+    assert_one_line_error(result, 2, "jitter.gyro: must be finite and >= 0")
 
 
 @pytest.mark.slow
