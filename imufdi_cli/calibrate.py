@@ -68,7 +68,7 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig, TriadCalibration
-from imufdi_cli.detectors.jitter import fit_jitter
+from imufdi_cli.detectors.jitter import MAX_JITTER_S, fit_jitter
 from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.errors import ArrayConfigError, CalibrationError
 from imufdi_cli.log import ImuBlock
@@ -712,6 +712,13 @@ def calibrate_block(
     ]
     out = array.with_calibration(cals).with_sensor_noise(noise)
     jitter = jitter_stage(out, {"accel": accel, "gyro": gyro}, t_s, static, clipped, jitter_fit)
+    for sensor_type, value in jitter.items():
+        if value >= MAX_JITTER_S:
+            warnings.append(
+                f"{sensor_type}: no sampling-time jitter up to {MAX_JITTER_S * 1e3:g} ms holds the"
+                " level in this log's motion (residuals unrelated to the motion?); the tests"
+                " will be blind in motion: check the calibration, or --jitter-fit moments/off"
+            )
     out = out.with_jitter(jitter)
     result = CalibrationResult(
         array=out,

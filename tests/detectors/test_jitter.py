@@ -13,6 +13,7 @@ from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import parse_params
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.jitter import (
+    MAX_JITTER_S,
     MotionInflation,
     array_inflation,
     consensus_projector,
@@ -153,6 +154,10 @@ def test_fits_recover_the_jitter_of_data_drawn_from_the_model():
     # no motion excess: nothing fitted
     still = SIGMA * rng.standard_normal(white.shape) / SIGMA
     assert fit_jitter(H / SIGMA, still, t_s, rows, alpha=0.01) == 0.0
+    # at rest, a residual no motion explains (a 50 sigma offset on one sensor, not
+    # removed): no sigma_t holds the level, the fit says so by returning its cap
+    still[:, 4] += 50.0
+    assert fit_jitter(H / SIGMA, still, t_s, rows, alpha=0.01) == MAX_JITTER_S
 
 
 # --- detectors -------------------------------------------------------------------------
