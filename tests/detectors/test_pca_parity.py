@@ -359,6 +359,20 @@ def test_cross_fit_halves_alternate_blocks_and_span_the_window():
     assert cross_fit_split(12, 20) == 6  # block capped at a quarter of the rows
 
 
+def test_halves_shorter_than_the_parity_dimension_still_give_variances():
+    """paper-table4 (45 parity dimensions per type) on 0.5 s: each half holds about 25 rows,
+    fewer than the dimensions. Half A's directions are then partly arbitrary, but half B's
+    variance along each is still an unbiased, positive estimate on ~24 degrees of freedom,
+    which the F thresholds take into account."""
+    array, block = simulate_block(preset("paper-table4", seed=1, duration=2.0, outliers=False))
+    detector = make()
+    out = run(detector, array, block, calibrate=(0.0, 0.5))
+    assert set(out) == {"gyro", "accel"}
+    meta = detector.metadata()["types"]["gyro"]
+    assert meta["dimension"] == 45
+    assert 15 < min(meta["variance_dof"]) <= max(meta["variance_dof"]) <= 25  # N_B (1-r^2)/(1+r^2)
+
+
 def test_plug_in_quantile_is_student_squared_for_one_component():
     """X = z^2 / s^2 with s^2 on nu degrees of freedom is t(nu)^2 = F(1, nu)."""
     for nu in (5.0, 50.0, 400.0):
