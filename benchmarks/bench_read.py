@@ -12,7 +12,7 @@ Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary direct
   records (what any reader must at least do), and prints the reader's rate as a share of it
   (issue 20 target: >= 50 %); also the floor with the CRC-32 of every chunk's records,
   which the reader verifies by default, and the reader with CRC checks off (the
-  bench_small_chunks.py way: McapSource(validate_crcs=False)),
+  ImuArrayReader(path, validate_crcs=False)),
 - measures peak memory (ru_maxrss of a fresh subprocess) reading the base log and a 10x
   longer log.
 """
@@ -62,25 +62,13 @@ def make_log(path: Path, n_imus: int, n_samples: int, block: int = 50_000) -> fl
 
 def time_imufdi(path: Path, validate_crcs: bool = True) -> tuple[float, int, float]:
     """(wall s, messages, CPU s) of reading the whole log (decoded and aligned)."""
-    from imufdi_cli.mcapio import source as source_module
-
-    original = source_module.McapSource.__init__
-
-    def init(self, *args, **kwargs):  # type: ignore[no-untyped-def]
-        kwargs["validate_crcs"] = validate_crcs
-        original(self, *args, **kwargs)
-
-    source_module.McapSource.__init__ = init  # type: ignore[method-assign]
-    try:
-        t0 = time.perf_counter()
-        c0 = time.process_time()
-        n = 0
-        with ImuArrayReader(path) as reader:
-            for block in reader.blocks():
-                n += len(block) * block.n_imus
-        return time.perf_counter() - t0, n, time.process_time() - c0
-    finally:
-        source_module.McapSource.__init__ = original  # type: ignore[method-assign]
+    t0 = time.perf_counter()
+    c0 = time.process_time()
+    n = 0
+    with ImuArrayReader(path, validate_crcs=validate_crcs) as reader:
+        for block in reader.blocks():
+            n += len(block) * block.n_imus
+    return time.perf_counter() - t0, n, time.process_time() - c0
 
 
 def time_floor(path: Path, crc: bool = False) -> tuple[float, float]:

@@ -105,6 +105,11 @@ class ImuArrayReader:
     keep_raw_chunks : bool
         Open a path with :class:`McapSource` ``keep_raw_chunks`` (``source.raw_chunk(batch)``
         then gives the Chunk record of a batch :meth:`stream` yields, for verbatim copying).
+    validate_crcs : bool
+        Check the CRC-32 of every chunk's records (default; a chunk that fails is skipped
+        with a warning, or raises with ``strict``). False skips the check (benchmarks, or
+        logs known to be intact); the zstd/lz4 frame checksums are still verified. Applies
+        when the reader opens ``source`` itself; an open McapSource keeps its own setting.
 
     Attributes
     ----------
@@ -129,6 +134,7 @@ class ImuArrayReader:
         block_size: int = 4096,
         tolerance_ns: int | None = None,
         keep_raw_chunks: bool = False,
+        validate_crcs: bool = True,
     ) -> None:
         if time_source not in ("auto", "header", "log_time"):
             raise UsageError(f"unknown time source {time_source!r}; valid: auto, header, log_time")
@@ -137,7 +143,12 @@ class ImuArrayReader:
         self.source = (
             source
             if isinstance(source, McapSource)
-            else McapSource(source, strict=strict, keep_raw_chunks=keep_raw_chunks)
+            else McapSource(
+                source,
+                strict=strict,
+                keep_raw_chunks=keep_raw_chunks,
+                validate_crcs=validate_crcs,
+            )
         )
         self.time_source = time_source
         self.block_size = block_size

@@ -786,10 +786,10 @@ def iter_topic(
     src = source if isinstance(source, McapSource) else McapSource(source)
     try:
         for batch in src.batches():
-            for cid in np.unique(batch.channel_id).tolist():
+            for cid, part in batch.by_channel():
                 channel = src.channels[cid]
                 if channel.topic == topic:
-                    yield channel, batch.select(batch.channel_id == cid)
+                    yield channel, part
     finally:
         if own:
             src.close()

@@ -145,6 +145,23 @@ def test_chunk_crc_is_checked_by_default() -> None:
         assert sum(len(b) for b in source.batches()) == good
 
 
+def test_array_reader_and_summarize_pass_validate_crcs() -> None:
+    data, offset = _file_with_bad_chunk()
+    clean = imu_file(chunked=True, compression="none", n_imus=2, n_samples=60, chunk_size=800)
+    with ImuArrayReader(io.BytesIO(clean)) as reader:
+        n_good = sum(len(b) for b in reader.blocks())
+    with ImuArrayReader(io.BytesIO(data)) as reader:
+        assert reader.source.validate_crcs
+        n_checked = sum(len(b) for b in reader.blocks())
+        assert any(f"chunk at byte {offset} skipped: CRC mismatch" in w for w in reader.warnings)
+    with ImuArrayReader(io.BytesIO(data), validate_crcs=False) as reader:
+        assert not reader.source.validate_crcs
+        assert sum(len(b) for b in reader.blocks()) == n_good > n_checked
+        assert not any("CRC" in w for w in reader.warnings)
+    assert summarize(io.BytesIO(data), validate_crcs=False).n_samples == n_good
+    assert summarize(io.BytesIO(data)).n_samples == n_checked
+
+
 def _read_strict(data: bytes) -> None:
     with McapSource(Unseekable(data), strict=True) as source:
         for _ in source.batches():
