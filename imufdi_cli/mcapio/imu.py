@@ -454,7 +454,7 @@ class ImuArrayReader:
                 continue
             selected = batch if bool(mask.all()) else batch.select(mask)
             valid = np.ones(len(selected), bool)
-            fields = _decode(selected, channel, kinds, path, valid)
+            fields = _decode(selected, channel, kinds, path, valid, contiguous=False)
             streams = stream_of_message[mask]
             if not bool(valid.all()):
                 streams = streams[valid]
@@ -472,16 +472,19 @@ class ImuArrayReader:
     def _block(self, t_ns: np.ndarray, values: list[np.ndarray]) -> ImuBlock:
         m = len(self.imu_topics)
         n = t_ns.shape[0]
-        imu = np.stack(values[:m], axis=1) if m else np.zeros((n, 0, 6))
-        gyro = imu[:, :, 0:3] if self.array.has("gyro") else None
-        accel = imu[:, :, 3:6] if self.array.has("accel") else None
+
+        def stacked(columns: slice) -> np.ndarray:  # (n, m, 3), one copy
+            if not m:
+                return np.zeros((n, 0, 3))
+            return np.stack([v[:, columns] for v in values[:m]], axis=1)
+
         mag = None
         if self.mag_topics and self.array.has("mag"):
             mag = np.stack(values[m:], axis=1)
         return ImuBlock(
             t_ns=t_ns,
-            gyro=None if gyro is None else np.ascontiguousarray(gyro),
-            accel=None if accel is None else np.ascontiguousarray(accel),
+            gyro=stacked(slice(0, 3)) if self.array.has("gyro") else None,
+            accel=stacked(slice(3, 6)) if self.array.has("accel") else None,
             mag=mag,
         )
 
