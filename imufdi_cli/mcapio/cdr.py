@@ -476,9 +476,12 @@ def encapsulation_endian(batch: MessageBatch) -> np.ndarray:
 def _encapsulation_flags(batch: MessageBatch) -> tuple[np.ndarray, np.ndarray]:
     """Per message: little-endian flag, and whether the encapsulation is CDR_LE/CDR_BE."""
     ok = batch.length >= 4
-    head = np.zeros((len(batch), 2), np.uint8)
-    if bool(ok.any()):
-        head[ok] = gather_bytes(batch.data, batch.offset[ok], 2)
+    if bool(ok.all()):
+        head = gather_bytes(batch.data, batch.offset, 2)
+    else:
+        head = np.zeros((len(batch), 2), np.uint8)
+        if bool(ok.any()):
+            head[ok] = gather_bytes(batch.data, batch.offset[ok], 2)
     ok &= (head[:, 0] == 0) & (head[:, 1] <= 1)
     return (head[:, 1] == 1) | ~ok, ok
 
