@@ -147,6 +147,11 @@ class McapSource:
     :class:`~imufdi_cli.mcapio.bagdir.BagDirSource`: its split files read as one log.
     """
 
+    #: Problems met while reading ahead, replayed in file order (see _prefetched); class
+    #: defaults so that subclasses with their own __init__ (BagDirSource) have them too.
+    _deferred: list[tuple[bool, str]] | None = None
+    _pool: ThreadPoolExecutor | None = None
+
     def __new__(cls, source: Any = None, *args: Any, **kwargs: Any) -> McapSource:
         if cls is McapSource and isinstance(source, (str, os.PathLike)) and source != "-":
             from imufdi_cli.mcapio.bagdir import BagDirSource, is_bag_dir
@@ -175,9 +180,8 @@ class McapSource:
             maxlen=_RAW_CHUNKS_KEPT
         )
         self._chunk_clean = False
-        #: Problems met while reading ahead, replayed in file order (see _prefetched).
-        self._deferred: list[tuple[bool, str]] | None = None
-        self._pool: ThreadPoolExecutor | None = None
+        self._deferred = None
+        self._pool = None
         self.validate_crcs = validate_crcs is not False  # None (unset) also checks them
         self.limits = limits if limits is not None else ReaderLimits.from_env()
         self.channels: dict[int, ChannelInfo] = {}
@@ -275,7 +279,7 @@ class McapSource:
         return skipped
 
     def close(self) -> None:
-        pool = getattr(self, "_pool", None)
+        pool = self._pool
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
