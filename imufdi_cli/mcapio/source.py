@@ -151,6 +151,7 @@ class McapSource:
     #: defaults so that subclasses with their own __init__ (BagDirSource) have them too.
     _deferred: list[tuple[bool, str]] | None = None
     _pool: ThreadPoolExecutor | None = None
+    _pool_pid = -1
 
     def __new__(cls, source: Any = None, *args: Any, **kwargs: Any) -> McapSource:
         if cls is McapSource and isinstance(source, (str, os.PathLike)) and source != "-":
@@ -604,14 +605,14 @@ class McapSource:
 
     def _prefetched(
         self,
-    ) -> Iterator[tuple[tuple[int, int, bytes | None, int], Future[_Unpacked] | None]]:
+    ) -> Iterator[tuple[tuple[int, int, bytes | None, int], _Ahead | None]]:
         """:meth:`_records`, with large chunks decompressed and CRC-checked on a worker
         thread up to ``_PREFETCH_CHUNKS`` chunks ahead: each record comes with the future of
-        its chunk's records (or None). Problems met while reading ahead are held and
+        its chunk's records and the id of the process that asked for it (or None). Problems met while reading ahead are held and
         reported (or raised, with ``strict``) when the record they precede is handed out,
         so warnings, errors and batches come in the same order as without read-ahead."""
         records = self._records()
-        queue: deque[tuple[Any, list[tuple[bool, str]], Future[_Unpacked] | None, int]] = deque()
+        queue: deque[tuple[Any, list[tuple[bool, str]], _Ahead | None, int]] = deque()
         in_flight = 0  # chunks on the worker
         in_flight_bytes = 0
         exhausted = False
@@ -633,19 +634,20 @@ class McapSource:
                         item = next(records, None)
                     finally:
                         self._deferred = None
-                    future = None
+                    future: _Ahead | None = None
                     size = 0
                     if item is None:
                         exhausted = True
                     elif item[0] == OP_CHUNK and item[2] is not None:
                         size = _declared_size(item[2])
                         if size >= _THREAD_CHUNK and self.read_ahead:
-                            future = self._worker().submit(
+                            job = self._worker().submit(
                                 _unpack_chunk,
                                 item[2],
                                 self.limits.max_chunk_bytes,
                                 self.validate_crcs,
                             )
+                            future = (job, os.getpid())
                             in_flight += 1
                             in_flight_bytes += size
                     queue.append((item, notes, future, size))
@@ -666,11 +668,14 @@ class McapSource:
         finally:
             for _, _, future, _ in queue:
                 if future is not None:
-                    future.cancel()
+                    future[0].cancel()
 
     def _worker(self) -> ThreadPoolExecutor:
-        if self._pool is None:
+        """The read-ahead thread's executor, made on first use (and anew in a forked child
+        process, where the parent's thread does not exist)."""
+        if self._pool is None or self._pool_pid != os.getpid():
             self._pool = ThreadPoolExecutor(1, thread_name_prefix="imufdi-chunks")
+            self._pool_pid = os.getpid()
         return self._pool
 
     def _read_batches(self) -> Iterator[MessageBatch]:
@@ -774,20 +779,20 @@ class McapSource:
         return self._known
 
     def _chunk_records(
-        self, content: bytes, chunk_offset: int, future: Future[_Unpacked] | None = None
+        self, content: bytes, chunk_offset: int, future: _Ahead | None = None
     ) -> bytes | None:
         """The decompressed, CRC-checked records of a Chunk record (None if unusable);
         ``future``: the same, computed ahead on the worker thread."""
-        if future is not None:
-            raw, error = future.result()
-        else:
+        if future is not None and future[1] == os.getpid():
+            raw, error = future[0].result()
+        else:  # in line (also in a forked child: the parent's worker never answers there)
             raw, error = _unpack_chunk(content, self.limits.max_chunk_bytes, self.validate_crcs)
         if raw is None:
             self._problem(f"chunk at byte {chunk_offset} skipped: {error}")
         return raw
 
     def _chunk_part(
-        self, content: bytes, chunk_offset: int, future: Future[_Unpacked] | None = None
+        self, content: bytes, chunk_offset: int, future: _Ahead | None = None
     ) -> tuple[bytes, np.ndarray | list[int], np.ndarray | list[int]] | None:
         """A chunk's records, and the content starts and lengths of its Message records
         (its Schema and Channel records are registered); None if the chunk is unusable."""
@@ -849,6 +854,9 @@ ChunkRun = tuple[RawChunk | None, int, int]
 
 #: (records, "") of a usable chunk, or (None, why it is not)
 _Unpacked = tuple[bytes | None, str]
+#: A chunk being unpacked on the worker thread, and the process id that asked for it (a
+#: forked child never gets the answer: it unpacks the chunk itself)
+_Ahead = tuple["Future[_Unpacked]", int]
 
 
 def _declared_size(content: bytes) -> int:

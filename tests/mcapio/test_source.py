@@ -4,6 +4,8 @@ the IMU set of files read without their summary (stdin, truncated)."""
 from __future__ import annotations
 
 import io
+import os
+import signal
 import struct
 import zlib
 
@@ -342,3 +344,34 @@ def test_read_ahead_on_the_worker_thread_keeps_the_order(strict: bool) -> None:
     with McapSource(io.BytesIO(data), read_ahead=False) as source:
         assert sum(len(b) for b in source.batches()) == n_threaded == 4 * 1500
         assert source._pool is None
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
+def test_read_ahead_survives_a_fork(monkeypatch) -> None:
+    """A child forked while chunks are in flight on the parent's worker thread (which the
+    child does not have) reads the rest of the file itself instead of waiting forever."""
+    import time
+
+    import imufdi_cli.mcapio.source as source_module
+
+    unpack = source_module._unpack_chunk
+
+    def slow_unpack(*args):  # type: ignore[no-untyped-def]
+        time.sleep(0.1)  # chunks are still in flight when the fork happens
+        return unpack(*args)
+
+    monkeypatch.setattr(source_module, "_unpack_chunk", slow_unpack)
+    n = 4 * 4000  # 5.7 MB of records: the first 4 MiB batch leaves chunks in flight
+    data = imu_file(chunked=True, compression="zstd", n_imus=4, n_samples=4000, chunk_size=150_000)
+    with McapSource(io.BytesIO(data)) as source:
+        batches = source.batches()
+        first = len(next(batches))
+        assert source._pool is not None and first < n
+        pid = os.fork()
+        if pid == 0:  # the child: exit code 0 if it reads every remaining message
+            signal.alarm(30)  # a hang kills the child; the parent then sees a failure
+            rest = sum(len(b) for b in batches)
+            os._exit(0 if first + rest == n else 1)
+        _, status = os.waitpid(pid, 0)
+        assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+        assert first + sum(len(b) for b in batches) == n
