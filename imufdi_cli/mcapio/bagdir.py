@@ -140,7 +140,7 @@ class BagDirSource(McapSource):
         validate_crcs: bool | None = None,
         limits: ReaderLimits | None = None,
         keep_raw_chunks: bool = False,
-        read_ahead: bool = True,
+        read_ahead: bool = False,
     ) -> None:
         # keep_raw_chunks is accepted and ignored: the split files' channels are renumbered
         # into one set, so their chunks are never copied verbatim (raw_chunk gives None).

@@ -132,11 +132,12 @@ class McapSource:
     or truncated file is read up to the problem (a bad chunk is skipped) with a warning; with
     ``strict`` every such problem raises :class:`McapInputError` instead.
 
-    With ``read_ahead`` (the default), chunks of at least 64 KiB of records are
-    decompressed and CRC-checked on one worker thread, up to four chunks ahead of the one
-    being decoded (zstd, lz4 and the CRC release the GIL); results, warnings and errors
-    come in file order as without it. False keeps everything on the calling thread (a
-    little less CPU in all; slower on more than one free core).
+    With ``read_ahead``, chunks of at least 64 KiB of records are decompressed and
+    CRC-checked on one worker thread, up to four chunks ahead of the one being decoded
+    (zstd, lz4 and the CRC release the GIL); results, warnings and errors come in file
+    order as without it. It is off by default: on the shared 2-core build machine it cost
+    5-20 % more CPU and gained no wall time (docs/performance.md); it can only help where a
+    core is free, and moves at most the decompression (~15 % of reading) off the caller.
 
     Chunk CRCs are checked when ``validate_crcs`` is true (the default). With zlib-ng (a
     dependency) the CRC-32 costs about 0.07 ms per MiB of records, a few per cent of
@@ -169,7 +170,7 @@ class McapSource:
         validate_crcs: bool | None = True,
         limits: ReaderLimits | None = None,
         keep_raw_chunks: bool = False,
-        read_ahead: bool = True,
+        read_ahead: bool = False,
     ) -> None:
         self.strict = strict
         #: Decompress and CRC-check chunks of >= _THREAD_CHUNK bytes on a worker thread.

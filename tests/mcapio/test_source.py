@@ -333,7 +333,7 @@ def test_read_ahead_on_the_worker_thread_keeps_the_order(strict: bool) -> None:
     bad = bytearray(data)
     bad[chunks[2][0] + 9 + 24] ^= 0x01  # the CRC field of the third chunk
     cut = bytes(bad[: chunks[5][0] + 9 + chunks[5][1] // 2])  # the sixth chunk cut short
-    with McapSource(io.BytesIO(data)) as source:
+    with McapSource(io.BytesIO(data), read_ahead=True) as source:
         n_threaded = sum(len(b) for b in source.batches())
         assert source._pool is not None  # the large chunks did go through the worker
     threaded = _read_all(cut, strict, read_ahead=True)
@@ -363,7 +363,7 @@ def test_read_ahead_survives_a_fork(monkeypatch) -> None:
     monkeypatch.setattr(source_module, "_unpack_chunk", slow_unpack)
     n = 4 * 4000  # 5.7 MB of records: the first 4 MiB batch leaves chunks in flight
     data = imu_file(chunked=True, compression="zstd", n_imus=4, n_samples=4000, chunk_size=150_000)
-    with McapSource(io.BytesIO(data)) as source:
+    with McapSource(io.BytesIO(data), read_ahead=True) as source:
         batches = source.batches()
         first = len(next(batches))
         assert source._pool is not None and first < n
