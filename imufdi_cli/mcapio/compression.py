@@ -87,6 +87,47 @@ def _lz4_decompress(raw: bytes | memoryview, size: int) -> bytes:
     return out
 
 
+def decompress_into(raw: bytes | memoryview, compression: str, out: memoryview) -> None:
+    """Decompress chunk records into ``out``, which must be exactly the declared size.
+
+    Same checks and messages as :func:`decompress` (a size other than ``len(out)`` is an
+    error; nothing past ``len(out)`` is produced but one byte), without allocating the
+    records: zstd frames are decoded straight into ``out`` (the reader's batch buffer).
+
+    Raises
+    ------
+    McapInputError
+        As :func:`decompress`; ``out`` then holds partial data.
+    """
+    size = len(out)
+    if compression != "zstd":
+        out[:] = decompress(raw, compression, size)
+        return
+    import zstandard
+
+    dctx = getattr(_ZSTD_LOCAL, "decompressor", None)
+    if dctx is None:
+        dctx = zstandard.ZstdDecompressor()
+        _ZSTD_LOCAL.decompressor = dctx
+    filled = 0
+    try:
+        with dctx.stream_reader(raw, read_across_frames=True) as reader:
+            while filled < size:
+                n = reader.readinto(out[filled:])
+                if not n:
+                    break
+                filled += n
+            # one byte more: past the declared size (a bomb), and the end of the last
+            # frame is reached, so its content checksum is verified
+            extra = reader.read(1) if filled == size else b""
+    except Exception as err:  # zstandard.ZstdError
+        raise McapInputError(f"corrupt zstd chunk ({_error_text(err)})") from err
+    if extra:
+        raise McapInputError(f"zstd records exceed the declared size of {size} bytes")
+    if filled < size:
+        raise McapInputError(f"zstd records hold {filled} bytes, not the declared {size}")
+
+
 def decompress(raw: bytes | memoryview, compression: str, uncompressed_size: int) -> bytes:
     """Decompress chunk records, producing at most ``uncompressed_size`` bytes.
 

@@ -14,7 +14,7 @@ import os
 import struct
 import sys
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import IO, Any
@@ -22,7 +22,7 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError
-from imufdi_cli.mcapio.compression import crc32, decompress
+from imufdi_cli.mcapio.compression import crc32, decompress, decompress_into
 from imufdi_cli.mcapio.limits import ReaderLimits
 from imufdi_cli.mcapio.records import (
     MAGIC,
@@ -690,7 +690,7 @@ class McapSource:
                 pending.add_loose(content, here)
             elif opcode == OP_CHUNK:
                 assert content is not None
-                part = self._chunk_part(content, here, future)
+                part = self._chunk_part(content, here, future, pending)
                 if part is not None:
                     if self.keep_raw_chunks:
                         raw = _raw_chunk(content) if self._chunk_clean else None
@@ -728,7 +728,7 @@ class McapSource:
     def _flush(self, pending: _PendingMessages) -> MessageBatch:
         """One batch of the pending messages (small chunks and loose messages are joined,
         so the cost per batch is paid per 4 MiB, not per chunk)."""
-        if not pending.parts:
+        if not pending.n_parts:
             return MessageBatch.empty()
         where = pending.where()
         buf, starts, lengths = pending.take()
@@ -780,29 +780,46 @@ class McapSource:
         return self._known
 
     def _chunk_records(
-        self, content: bytes, chunk_offset: int, future: _Ahead | None = None
-    ) -> bytes | None:
-        """The decompressed, CRC-checked records of a Chunk record (None if unusable);
-        ``future``: the same, computed ahead on the worker thread."""
+        self,
+        content: bytes,
+        chunk_offset: int,
+        future: _Ahead | None = None,
+        slot: Callable[[int], memoryview] | None = None,
+    ) -> bytes | memoryview | None:
+        """The decompressed, CRC-checked records of a Chunk record (None if unusable):
+        large zstd chunks decompressed into ``slot(size)`` (the batch buffer), others as
+        bytes; ``future``: the same, computed ahead on the worker thread."""
         if future is not None and future[1] == os.getpid():
             raw, error = future[0].result()
         else:  # in line (also in a forked child: the parent's worker never answers there)
-            raw, error = _unpack_chunk(content, self.limits.max_chunk_bytes, self.validate_crcs)
+            raw, error = _unpack_chunk(
+                content, self.limits.max_chunk_bytes, self.validate_crcs, slot
+            )
         if raw is None:
             self._problem(f"chunk at byte {chunk_offset} skipped: {error}")
         return raw
 
     def _chunk_part(
-        self, content: bytes, chunk_offset: int, future: _Ahead | None = None
-    ) -> tuple[bytes, np.ndarray | list[int], np.ndarray | list[int]] | None:
-        """A chunk's records, and the content starts and lengths of its Message records
-        (its Schema and Channel records are registered); None if the chunk is unusable."""
+        self,
+        content: bytes,
+        chunk_offset: int,
+        future: _Ahead | None,
+        pending: _PendingMessages,
+    ) -> tuple[int, np.ndarray | list[int], np.ndarray | list[int]] | None:
+        """A chunk's records placed after the pending ones (``pending.slot``, to be counted
+        by ``pending.add_chunk``): their size, and the content starts and lengths of its
+        Message records (its Schema and Channel records are registered); None if the
+        chunk is unusable."""
         self._chunk_clean = False
-        raw = self._chunk_records(content, chunk_offset, future)
+        raw = self._chunk_records(content, chunk_offset, future, pending.slot)
         if raw is None:
             return None
-        if len(raw) <= _SMALL_CHUNK:
-            return self._small_chunk_part(raw, chunk_offset)
+        size = len(raw)
+        if isinstance(raw, bytes):  # not decompressed in place: copied there
+            pending.slot(size)[:] = raw
+        if size <= _SMALL_CHUNK:
+            assert isinstance(raw, bytes)
+            return (size, *self._small_chunk_part(raw, chunk_offset))
         buf = np.frombuffer(raw, dtype=np.uint8)
         starts, opcodes, lengths, end = scan_records(buf, _IN_CHUNK)
         is_message = opcodes == OP_MESSAGE
@@ -818,15 +835,13 @@ class McapSource:
             # Schema/Channel records inside the chunk must be known before its messages.
             for index in np.flatnonzero(~is_message).tolist():
                 start = int(starts[index]) + 9
-                body = raw[start : start + int(lengths[index])]
+                body = bytes(raw[start : start + int(lengths[index])])
                 self._add_record(int(opcodes[index]), body, chunk_offset)
             starts = starts[is_message]
             lengths = lengths[is_message]
-        return raw, starts + 9, lengths
+        return size, starts + 9, lengths
 
-    def _small_chunk_part(
-        self, raw: bytes, chunk_offset: int
-    ) -> tuple[bytes, list[int], list[int]]:
+    def _small_chunk_part(self, raw: bytes, chunk_offset: int) -> tuple[list[int], list[int]]:
         """:meth:`_chunk_part` for a chunk of a few records: walked in Python, no numpy."""
         starts: list[int] = []
         lengths: list[int] = []
@@ -847,14 +862,14 @@ class McapSource:
                 f"chunk at byte {chunk_offset}: malformed record at byte {position} of its"
                 f" {size} record bytes; the {len(starts)} message(s) before it kept"
             )
-        return raw, starts, lengths
+        return starts, lengths
 
 
 #: (chunk copied verbatim or None, message count, byte offset of its records in the batch)
 ChunkRun = tuple[RawChunk | None, int, int]
 
 #: (records, "") of a usable chunk, or (None, why it is not)
-_Unpacked = tuple[bytes | None, str]
+_Unpacked = tuple[bytes | memoryview | None, str]
 #: A chunk being unpacked on the worker thread, and the process id that asked for it (a
 #: forked child never gets the answer: it unpacks the chunk itself)
 _Ahead = tuple["Future[_Unpacked]", int]
@@ -867,9 +882,16 @@ def _declared_size(content: bytes) -> int:
     return int(_CHUNK_HEAD.unpack_from(content)[2])
 
 
-def _unpack_chunk(content: bytes, max_chunk_bytes: int, validate_crcs: bool) -> _Unpacked:
+def _unpack_chunk(
+    content: bytes,
+    max_chunk_bytes: int,
+    validate_crcs: bool,
+    slot: Callable[[int], memoryview] | None = None,
+) -> _Unpacked:
     """A Chunk record's records, decompressed and (with ``validate_crcs``) CRC-checked, or
-    why the chunk is unusable. Touches no reader state (runs on the worker thread)."""
+    why the chunk is unusable. A zstd chunk of more than ``_SMALL_CHUNK`` bytes is
+    decompressed into ``slot(size)`` when given (no allocation, no later copy). Touches
+    no reader state (runs on the worker thread, without ``slot``)."""
     try:
         if len(content) < _CHUNK_HEAD.size + 8:
             raise McapInputError("malformed Chunk record (shorter than its fields)")
@@ -889,7 +911,13 @@ def _unpack_chunk(content: bytes, max_chunk_bytes: int, validate_crcs: bool) -> 
                 f"declares {uncompressed_size} uncompressed bytes, over the limit of"
                 f" {max_chunk_bytes} (IMUFDI_MAX_CHUNK_BYTES)"
             )
-        raw = decompress(memoryview(content)[records_at:], compression, uncompressed_size)
+        data = memoryview(content)[records_at:]
+        raw: bytes | memoryview
+        if slot is not None and compression == "zstd" and uncompressed_size > _SMALL_CHUNK:
+            raw = slot(uncompressed_size)
+            decompress_into(data, compression, raw)
+        else:
+            raw = decompress(data, compression, uncompressed_size)
     except McapInputError as err:
         return None, str(err)
     if validate_crcs and crc != 0:
