@@ -613,6 +613,10 @@ class McapSource:
         reported (or raised, with ``strict``) when the record they precede is handed out,
         so warnings, errors and batches come in the same order as without read-ahead."""
         records = self._records()
+        if not self.read_ahead:  # nothing is read ahead: records as they come
+            for record in records:
+                yield record, None
+            return
         queue: deque[tuple[Any, list[tuple[bool, str]], _Ahead | None, int]] = deque()
         in_flight = 0  # chunks on the worker
         in_flight_bytes = 0
