@@ -52,8 +52,6 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.stats import chi2
-from scipy.stats import f as f_distribution
 
 from imufdi_cli.array import SENSOR_TYPES, ArrayConfig
 from imufdi_cli.detectors.base import (
@@ -83,6 +81,8 @@ from imufdi_cli.errors import (
     InputDataError,
 )
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.quantiles import chi2
+from imufdi_cli.quantiles import f as f_distribution
 
 #: Minimum number of calibration samples.
 MIN_CALIBRATION_SAMPLES = 10
