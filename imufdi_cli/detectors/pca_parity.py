@@ -84,6 +84,7 @@ from imufdi_cli.detectors.base import (
     calibration_stats,
     parse_sensor_types,
 )
+from imufdi_cli.detectors.jitter import MotionInflation, array_inflation
 from imufdi_cli.detectors.parity import isolable_sensors, parity_matrix
 from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
@@ -425,6 +426,7 @@ class PcaParityDetector(DetectorBase):
         self.models: dict[str, _TypeModel] = {}
         self.untested: dict[str, str] = {}
         self.window_samples = 0
+        self.inflations: dict[str, MotionInflation | None] = {}  # jitter model (detectors/jitter)
 
     # --- training ----------------------------------------------------------------------
 
@@ -444,6 +446,7 @@ class PcaParityDetector(DetectorBase):
         self.window_samples = max(1, round(self.window_s * array.rate_hz))
         self.models = {}
         self.untested = {}
+        self.inflations = {}
         minimum = 3 if self.space == "parity" else 0
         for sensor_type in self.sensor_types:
             triads = calibration.get(sensor_type)
@@ -458,6 +461,8 @@ class PcaParityDetector(DetectorBase):
                 continue
             measurements = array.select(triads, sensor_type)
             self.models[sensor_type] = self._fit_type(measurements, design, sensor_type)
+            inflation = array_inflation(array, sensor_type, design, self.window_samples)
+            self.inflations[sensor_type] = inflation if self.space == "parity" else None
         if not self.models:
             need = "at least 4 sensors of a type" if self.space == "parity" else "sensors"
             if self.untested:
@@ -583,10 +588,14 @@ class PcaParityDetector(DetectorBase):
                 out[sensor_type] = DetectionBlock.empty(len(block), n_sensors)
                 continue
             measurements = self.array.select(triads, sensor_type)
-            out[sensor_type] = self._process_type(model, measurements)
+            inflation = self.inflations.get(sensor_type)
+            factors = None if inflation is None else inflation.factors(measurements, block.t_ns)
+            out[sensor_type] = self._process_type(model, measurements, factors)
         return out
 
-    def _process_type(self, model: _TypeModel, measurements: np.ndarray) -> DetectionBlock:
+    def _process_type(
+        self, model: _TypeModel, measurements: np.ndarray, factors: np.ndarray | None = None
+    ) -> DetectionBlock:
         n_samples = measurements.shape[0]
         n_sensors = model.projection.shape[1]
         deviation = model.transform(measurements)  # (N, q)
@@ -616,6 +625,8 @@ class PcaParityDetector(DetectorBase):
                 counts, leverage_q
             )
             statistic = np.maximum(statistic, residual / threshold_q)
+        if factors is not None:  # sampling-time jitter in motion (detectors/jitter.py)
+            statistic = statistic / factors
         alarm = statistic > 1.0
         scores = np.full((n_samples, n_sensors), np.nan)
         isolated = np.full(n_samples, NO_ISOLATION, dtype=np.int32)
