@@ -821,7 +821,8 @@ class Episode:
     invalid_samples: int = 0
     fragments: int = 1
     #: the detector's own amplitude estimate of ``sensors[0]`` (median over the episode's
-    #: alarms isolating it, from the status' per-sensor amplitudes), SI; None when none
+    #: alarms isolating it, from the status' per-sensor amplitudes), SI; None (and no
+    #: ``amplitude`` key in :meth:`to_dict`) when none
     amplitude: float | None = None
 
     @property
@@ -834,7 +835,8 @@ class Episode:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite numbers become None)."""
-        out = _finite({k: v for k, v in vars(self).items() if k != "fits"})
+        skip = {"fits"} | ({"amplitude"} if self.amplitude is None else set())
+        out = _finite({k: v for k, v in vars(self).items() if k not in skip})
         out["duration_s"] = self.duration_s
         out["fault_class"] = self.fault_class
         out["fits"] = [f.to_dict() for f in self.fits]
