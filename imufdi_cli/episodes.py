@@ -249,7 +249,7 @@ def _chi2_quantile(p: float, dof: int) -> float:
 
 
 @functools.lru_cache(maxsize=4096)
-def _f_quantile(p: float, dof1: int, dof2: int) -> float:
+def _f_quantile(p: float, dof1: float, dof2: float) -> float:
     """F(dof1, dof2) quantile."""
     from scipy.special import fdtri
 
@@ -290,6 +290,7 @@ def fit_models(
     calibration_samples: int | None = None,
     offset_var: float | None = None,
     reference: Reference | None = None,
+    white: tuple[float, float, float] | None = None,
 ) -> list[FaultFit]:
     """Fit every fault model to one sensor's residual over an analysis window.
 
@@ -323,6 +324,12 @@ def fit_models(
         The other sensors' residuals over the same window: the same estimators applied to
         them check the noise model, and widen the step, drift and scale intervals when the
         healthy sensors spread significantly more than it predicts.
+    white : (float, float, float), optional
+        ``(sigma_k, consensus_sigma, dof)``: the white-noise part of the calibrated noise
+        (from successive differences, :func:`white_sigma`) and the degrees of freedom of
+        that estimate. The noise factor is then sized from the successive differences of
+        the residual (:func:`_noise_fit`), which slow motion-dependent errors (scale and
+        misalignment under motion) and a shift of the consensus do not enter.
 
     Returns
     -------
@@ -339,6 +346,7 @@ def fit_models(
         "stuck_share": stuck_share,
         "calibration_samples": calibration_samples,
         "offset_var": offset_var,
+        "white": white,
     }
     raw_arr = r + o if raw is None else np.asarray(raw, dtype=np.float64)
     var0 = sigma_k**2 + consensus_sigma**2
@@ -426,6 +434,7 @@ def _fit_window(
     stuck_share: float,
     calibration_samples: int | None,
     offset_var: float | None,
+    white: tuple[float, float, float] | None,
 ) -> list[FaultFit]:
     """:func:`fit_models` with every fault lasting to the window's end."""
     length = r.shape[0]
@@ -485,20 +494,27 @@ def _fit_window(
     # and that shift is not noise.
     var_hat = np.maximum(s_rr / n_after, var0)
     j, bic = best(_gaussian_nll(s_rr, n_after, var_hat), 1)
-    fits.append(
-        _noise_fit(
-            float(max(s_rr[j] - n_after[j] * a[j] ** 2, 0.0)),
-            int(n_after[j]),
-            float(a[j]),
-            sigma_k,
-            consensus_sigma,
-            confidence,
-            lo + j,
-            bic,
-            calibration_samples,
-            ranking_var=float(var_hat[j]),
+    if white is None:
+        fits.append(
+            _noise_fit(
+                float(max(s_rr[j] - n_after[j] * a[j] ** 2, 0.0)),
+                int(n_after[j]),
+                float(a[j]),
+                sigma_k,
+                consensus_sigma,
+                confidence,
+                lo + j,
+                bic,
+                calibration_samples,
+                ranking_var=float(var_hat[j]),
+            )
         )
-    )
+    else:
+        fits.append(
+            _white_noise_fit(
+                r[lo + j :], float(a[j]), white, confidence, lo + j, bic, var0, float(var_hat[j])
+            )
+        )
 
     # scale: r = beta o + e
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -730,6 +746,67 @@ def _noise_fit(
     return FaultFit("noise", factor(var_hat), low, high, onset, bic, extra, curve=curve)
 
 
+def successive_difference_dof(n: int) -> float:
+    """Degrees of freedom of the successive-difference variance estimate of n white samples.
+
+    ``q = sum_i (e_{i+1} - e_i)^2 / 2`` has mean ``(n - 1) sigma^2`` and variance
+    ``(3 n - 4) sigma^4`` (neighbouring differences correlate with -1/2; von Neumann
+    1941); a scaled chi-square with the same two moments has ``nu = 2 (n - 1)^2 / (3 n -
+    4)`` degrees of freedom (Satterthwaite 1946), about 2 n / 3.
+    """
+    return 2.0 * (n - 1) ** 2 / max(3 * n - 4, 1)
+
+
+def _white_noise_fit(
+    r: np.ndarray,
+    mean: float,
+    white: tuple[float, float, float],
+    confidence: float,
+    onset: int,
+    bic: float,
+    var0: float,
+    ranking_var: float,
+) -> FaultFit:
+    """Noise factor from the successive differences of the residual after the onset.
+
+    The white part of ``Var r`` is ``f^2 sigma_k^2 + sigma_c^2`` (``white`` holds sigma_k,
+    sigma_c and the degrees of freedom of their calibration estimate). Its estimate
+    ``q / (n - 1)`` with ``q = sum (r_{i+1} - r_i)^2 / 2`` (von Neumann 1941) leaves out
+    what varies slowly: motion-dependent scale and misalignment errors (at 0.5 Hz a sample
+    step of 0.01 s changes them by 3 %) and a shift of the consensus. Against the
+    calibration's white variance, estimated the same way, the ratio is F(nu, nu_cal)
+    distributed, nu from :func:`successive_difference_dof`; the interval is that of the
+    variance mapped through f.
+    """
+    sigma_k, consensus_sigma, dof_cal = white
+    n = r.shape[0]
+    if n < 3 or sigma_k <= 0:
+        return FaultFit("noise", math.nan, -math.inf, math.inf, onset, bic, {"mean": mean})
+
+    def factor(var: float) -> float:
+        return math.sqrt(max(var - consensus_sigma**2, 0.0)) / sigma_k
+
+    var_hat = float(np.sum(np.diff(r) ** 2)) / (2 * (n - 1))
+    dof = successive_difference_dof(n)
+    tail = (1 - confidence) / 2
+    low = factor(var_hat / _f_quantile(1 - tail, dof, dof_cal))
+    high = factor(var_hat / _f_quantile(tail, dof, dof_cal))
+    curve = (np.zeros(n), max(var0, ranking_var))
+    extra = {"mean": mean}
+    return FaultFit("noise", factor(var_hat), low, high, onset, bic, extra, curve=curve)
+
+
+def _local_level(r: np.ndarray) -> np.ndarray:
+    """Running median of five samples (two each side; fewer at the ends): the residual's
+    slowly varying level, which single-sample spikes do not move (one or two of five)."""
+    n = r.shape[0]
+    padded = np.concatenate((np.full(2, np.nan), r, np.full(2, np.nan)))
+    window = np.stack([padded[i : i + n] for i in range(5)])
+    with np.errstate(all="ignore"):
+        level = np.nanmedian(window, axis=0) if n > 0 else np.zeros(0)
+    return np.where(np.isfinite(level), level, 0.0)
+
+
 def _spike_fit(
     r: np.ndarray,
     t: np.ndarray,
@@ -739,25 +816,39 @@ def _spike_fit(
     ln_n: float,
     confidence: float,
 ) -> FaultFit | None:
-    """Sparse spikes: residuals beyond SPIKE_CUT sigma_r, amplitude and Poisson rate."""
-    flagged = np.abs(r) > SPIKE_CUT * sigma_r
+    """Sparse spikes: samples further than SPIKE_CUT sigma_r from their local level (a
+    running median of five, :func:`_local_level`: slow motion-dependent errors of the
+    residual are not spikes), the amplitude as their mean absolute residual (the
+    local level itself is biased towards a neighbouring spike), and the Poisson rate. The quiet samples have a variance of their own, bounded below by the
+    calibrated one (one more parameter): under motion the residual carries scale and
+    misalignment errors, which would otherwise be charged to the spike model and make the
+    noise model win; so do the spikes' distances from amp."""
+    d = r - _local_level(r)
+    flagged = np.abs(d) > SPIKE_CUT * sigma_r
     count_after = _suffix(flagged.astype(np.float64))[taus]
     if count_after.max(initial=0.0) < 1:
         return None
     abs_after = _suffix(np.where(flagged, np.abs(r), 0.0))[taus]
     sq_quiet_after = _suffix(np.where(flagged, 0.0, r**2))[taus]
     n_after = (r.shape[0] - taus).astype(np.float64)
+    n_quiet = np.maximum(n_after - count_after, 1.0)
     p = np.clip(count_after / n_after, 1e-12, 1 - 1e-12)
     amp = np.where(count_after > 0, abs_after / np.maximum(count_after, 1), 0.0)
     sq_spikes_after = _suffix(np.where(flagged, r**2, 0.0))[taus]
-    # spikes about +-amp, quiet samples about 0, one common variance; mixture weights p
-    ss_spikes = sq_spikes_after - count_after * amp**2
-    nll_after = _gaussian_nll(sq_quiet_after + ss_spikes, n_after, sigma_r**2) - (
-        count_after * np.log(p / 2) + (n_after - count_after) * np.log(1 - p)
+    # spikes about +-amp, quiet samples about 0, each group with its
+    # own variance (at least sigma_r^2: two spikes within two samples, or one at the
+    # window's edge, move the local level); mixture weights p
+    ss_spikes = np.maximum(sq_spikes_after - count_after * amp**2, 0.0)
+    var_quiet = np.maximum(sq_quiet_after / n_quiet, sigma_r**2)
+    var_spikes = np.maximum(ss_spikes / np.maximum(count_after, 1.0), sigma_r**2)
+    nll_after = (
+        _gaussian_nll(sq_quiet_after, n_after - count_after, var_quiet)
+        + _gaussian_nll(ss_spikes, count_after, var_spikes)
+        - (count_after * np.log(p / 2) + (n_after - count_after) * np.log(1 - p))
     )
     total = nll_before + nll_after
     j = int(np.argmin(total))
-    bic = float(2 * total[j] + 3 * ln_n)
+    bic = float(2 * total[j] + 5 * ln_n)  # amplitude, rate, two variances, onset
     onset = int(taus[j])
     spikes = np.abs(r[onset:][flagged[onset:]])
     m = spikes.shape[0]
@@ -772,7 +863,8 @@ def _spike_fit(
     rate_low = 0.5 * _chi2_quantile(tail, 2 * m) / duration if m > 0 else 0.0
     rate_high = 0.5 * _chi2_quantile(1 - tail, 2 * m + 2) / duration
     extra = {"rate_hz": m / duration, "rate_low_hz": rate_low, "rate_high_hz": rate_high}
-    return FaultFit("spikes", float(spikes.mean()), low, high, onset, bic, extra)
+    size = float(spikes.mean()) if m else math.nan
+    return FaultFit("spikes", size, low, high, onset, bic, extra)
 
 
 def _stuck_fit(raw: np.ndarray, lo: int, hi: int, share: float) -> FaultFit | None:
@@ -897,6 +989,10 @@ class EpisodeBuilder:
     calibration_mean : ndarray, shape (n,), optional
         Mean measurements of the calibration window: each sensor's bias against the
         consensus is taken out of its residual (a fault is what changed since).
+    white_sigma : ndarray, shape (n,), optional
+        The white part of each sensor's noise (:func:`white_sigma`, SI), estimated from
+        ``calibration_samples`` samples; the noise factor is then sized against it from
+        successive differences (:func:`_white_noise_fit`).
     """
 
     def __init__(
@@ -916,6 +1012,7 @@ class EpisodeBuilder:
         explain: bool = True,
         calibration_samples: int | None = None,
         calibration_mean: np.ndarray | None = None,
+        white_sigma: np.ndarray | None = None,
     ) -> None:
         self.detector = detector
         self.sensor_type = sensor_type
@@ -943,7 +1040,13 @@ class EpisodeBuilder:
             "explain": explain,
             "calibration_samples": calibration_samples,
             "calibration_mean": calibration_mean,
+            "white_sigma": white_sigma,
         }
+        self.white_sigma = (
+            None
+            if white_sigma is None
+            else np.broadcast_to(np.asarray(white_sigma, np.float64), (self.H.shape[0],))
+        )
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
         self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
@@ -1171,8 +1274,17 @@ class EpisodeBuilder:
             calibration_samples=self.calibration_samples,
             offset_var=offset_var,
             reference=self._reference(k, window),
+            white=self._white(k, gain),
         )
         return episode
+
+    def _white(self, k: int, gain: np.ndarray) -> tuple[float, float, float] | None:
+        """(sigma_k, consensus sigma, dof) of the white noise for :func:`fit_models`."""
+        if self.white_sigma is None or not self.calibration_samples:
+            return None
+        consensus = float(np.sqrt(np.sum((gain * self.white_sigma) ** 2)))
+        dof = successive_difference_dof(self.calibration_samples)
+        return float(self.white_sigma[k]), consensus, dof
 
     def _reference(self, k: int, window: np.ndarray) -> Reference | None:
         """The other sensors' residuals over ``window`` (:class:`Reference`), each against
@@ -1262,6 +1374,30 @@ class EpisodeBuilder:
         return int(np.argmax(energies))
 
 
+def white_sigma(H: np.ndarray, measurements: np.ndarray) -> np.ndarray:
+    """Per-sensor white-noise sigma from successive differences of a fault-free window.
+
+    :func:`~imufdi_cli.detectors.parity.residual_sigma` of the differenced measurements,
+    divided by sqrt(2): differencing white noise doubles its variance, and what varies
+    slowly (motion-dependent scale and misalignment errors, bias wander) nearly vanishes,
+    where the parity residuals of the measurements themselves carry it (on conical6, whose
+    calibration window spans the start of the motion: 0.041 deg/s against a white 0.030).
+
+    Parameters
+    ----------
+    H : array_like, shape (n, 3)
+    measurements : array_like, shape (N, n), N >= 3, SI
+
+    Returns
+    -------
+    ndarray, shape (n,), SI
+    """
+    from imufdi_cli.detectors.parity import residual_sigma
+
+    m = np.asarray(measurements, dtype=np.float64)
+    return residual_sigma(H, np.diff(m, axis=0)) / math.sqrt(2.0)
+
+
 def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, EpisodeBuilder]:
     """One builder per sensor type of ``array`` present in the calibration block (an
     :class:`~imufdi_cli.log.ImuBlock`), with per-sensor sigma from its parity residuals
@@ -1285,6 +1421,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
         sigma = np.ones(H.shape[0])
         n_cal: int | None = None
         mean: np.ndarray | None = None
+        white: np.ndarray | None = None
         if explain:
             measurements = array.select(triads, sensor_type)
             finite = np.all(np.isfinite(measurements), axis=1)
@@ -1292,6 +1429,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
             mean = measurements[finite].mean(axis=0) if n_cal else None
             try:
                 sigma = residual_sigma(H, measurements[finite])
+                white = white_sigma(H, measurements[finite])
             except CalibrationError:
                 explain = False
             explain = explain and bool(np.all(np.isfinite(sigma)) and np.all(sigma > 0))
@@ -1305,6 +1443,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
             explain=explain,
             calibration_samples=n_cal if explain else None,
             calibration_mean=mean if explain else None,
+            white_sigma=white if explain else None,
             **options,
         )
     return builders
@@ -1457,5 +1596,7 @@ __all__ = [
     "leave_one_out",
     "match_episodes",
     "score_episodes",
+    "successive_difference_dof",
     "truth_size",
+    "white_sigma",
 ]
