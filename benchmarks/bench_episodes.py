@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.detect import detect_file
-from imufdi_cli.episodes import match_episodes
+from imufdi_cli.episodes import VARIANCE_DROP, match_episodes
 from imufdi_cli.faults import inject_file
 from imufdi_cli.mcapio import McapSource, read_events
 from imufdi_cli.pipeline import simulate_file
@@ -162,7 +162,9 @@ def main() -> int:
         print_tables(merge([json.loads(Path(p).read_text()) for p in args.merge]))
         return 0
     lo, hi = (int(x) for x in args.seeds.split(":"))
-    detectors = args.detectors.split(",")
+    # the variance-drop monitor's episodes (a detection of the explanation layer, written
+    # once per sensor type) are scored like a detector's
+    detectors = [*args.detectors.split(","), VARIANCE_DROP]
     models = args.models.split(",")
     K = args.faults
     # (detector, model) -> matched episode records; (detector, model) -> detected fault ids
@@ -194,7 +196,9 @@ def main() -> int:
                 inject_file(base, faulty, specs, [], seed=seed)
                 injected += K
                 out = str(work / "d.mcap")
-                pairs: list[tuple[str, dict[str, Any]]] = [(d, {}) for d in detectors]
+                pairs: list[tuple[str, dict[str, Any]]] = [
+                    (d, {}) for d in detectors if d != VARIANCE_DROP
+                ]
                 if args.timing:
                     quiet = str(work / "q.mcap")
                     start = time.perf_counter()

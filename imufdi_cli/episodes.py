@@ -951,6 +951,113 @@ def isolation_summary(
     return names, names[1], float(counts[order[1]] / valid.size)
 
 
+# --- a detection of its own: the variance drop of a frozen output ------------------------
+
+#: name under which variance-drop episodes are written (``detector`` field)
+VARIANCE_DROP = "variance-drop"
+
+
+@dataclass
+class _Rows:
+    """Status rows in the shape :meth:`EpisodeBuilder.rows` reads (a DetectionBlock's
+    alarm, isolated, statistic and threshold)."""
+
+    alarm: np.ndarray
+    isolated: np.ndarray
+    statistic: np.ndarray
+    threshold: np.ndarray
+
+
+class VarianceDropMonitor:
+    """One-sided test that a sensor's white noise has dropped: a frozen (stuck) output.
+
+    A frozen output on a motion the sensor would have tracked exactly (a constant-rate
+    turntable) equals the truth plus its bias; only its noise is gone, so the mean-shift
+    tests of the detectors cannot see it. Against the consensus of the others its
+    residual ``r_k`` (:func:`leave_one_out`) then carries only the consensus noise. Over
+    the last ``W`` successive differences, ``q_k = sum (r_{k,i+1} - r_{k,i})^2 / (2 W)``
+    estimates the white variance of ``r_k`` (slow motion errors do not enter it) and is
+    compared with its calibrated value ``v_k = sigma_k^2 + sigma_c^2`` (white parts,
+    :func:`white_sigma`). Both are successive-difference estimates, so ``q_k / v_k`` is
+    about F(nu_W, nu_cal) (:func:`successive_difference_dof`); the test alarms when the
+    smallest ratio over the sensors falls below the F quantile at ``alpha``, and isolates
+    that sensor. The test is one-sided: more noise, outliers and unmodelled motion only
+    raise ``q_k``.
+
+    The status row of a sample is decided at that sample (no look-ahead); ``statistic``
+    is ``-ln(min ratio)`` and ``threshold`` ``-ln(quantile)`` (an alarm when statistic >
+    threshold). Memory: the last W differences per sensor.
+
+    Parameters
+    ----------
+    residual_matrix : ndarray, shape (n, n)
+        ``measurements @ residual_matrix`` are the leave-one-out residuals of all sensors
+        (column k: ``e_k - g_k``); sensors without a consensus have a zero column.
+    white_variance : ndarray, shape (n,)
+        Calibrated white variance of each residual, SI^2 (inf: never tested).
+    window : int
+        W, successive differences per test.
+    alpha : float
+        Probability that one healthy sensor's window falls below the threshold.
+    calibration_dof : float
+        Degrees of freedom of the white variance's calibration estimate.
+    """
+
+    def __init__(
+        self,
+        residual_matrix: np.ndarray,
+        white_variance: np.ndarray,
+        *,
+        window: int,
+        alpha: float,
+        calibration_dof: float,
+    ) -> None:
+        self.A = np.asarray(residual_matrix, dtype=np.float64)
+        self.variance = np.asarray(white_variance, dtype=np.float64)
+        self.window = int(window)
+        self.quantile = _f_quantile(
+            alpha, successive_difference_dof(self.window + 1), calibration_dof
+        )
+        self._last: np.ndarray | None = None  # last residual row
+        self._tail = np.zeros((0, self.A.shape[1]))  # last W half squared differences
+
+    def update(self, measurements: np.ndarray) -> _Rows:
+        """Status rows of the next N samples (N, n) in SI units."""
+        r = np.asarray(measurements, dtype=np.float64) @ self.A
+        n = r.shape[0]
+        previous = r[:1] if self._last is None else self._last[None, :]
+        half_sq = 0.5 * np.diff(np.concatenate([previous, r]), axis=0) ** 2
+        if self._last is None and n:
+            half_sq = half_sq[1:]  # the first sample has no difference
+        # an invalid sample gives no evidence either way: its difference counts as expected
+        half_sq = np.where(np.isfinite(half_sq), half_sq, self.variance)
+        if n:
+            self._last = r[-1]
+        held, fresh = self._tail.shape[0], half_sq.shape[0]
+        joined = np.concatenate([self._tail, half_sq])
+        cumulative = np.concatenate([np.zeros((1, joined.shape[1])), np.cumsum(joined, axis=0)])
+        stop = np.arange(held + 1, held + fresh + 1)  # window of the j-th new difference
+        ready = stop >= self.window
+        sums = cumulative[stop] - cumulative[np.maximum(stop - self.window, 0)]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = sums / self.window / self.variance
+        ratio = np.where(np.isfinite(ratio), ratio, np.inf)
+        worst = np.argmin(ratio, axis=1) if ratio.shape[0] else np.zeros(0, np.int64)
+        lowest = ratio[np.arange(ratio.shape[0]), worst]
+        alarm = ready & (lowest < self.quantile)
+        statistic = np.where(ready, -np.log(np.maximum(lowest, 1e-300)), -np.inf)
+        self._tail = joined[-self.window :]
+        pad = n - half_sq.shape[0]  # the very first sample of the log: no test yet
+        return _Rows(
+            alarm=np.concatenate([np.zeros(pad, bool), alarm]),
+            isolated=np.concatenate([np.full(pad, -1), np.where(alarm, worst, -1)]).astype(
+                np.int64
+            ),
+            statistic=np.concatenate([np.full(pad, -np.inf), statistic]),
+            threshold=np.full(n, -math.log(self.quantile)),
+        )
+
+
 # --- streaming: episodes of one detector on one sensor type, explained as they close ----
 
 
@@ -993,6 +1100,14 @@ class EpisodeBuilder:
         The white part of each sensor's noise (:func:`white_sigma`, SI), estimated from
         ``calibration_samples`` samples; the noise factor is then sized against it from
         successive differences (:func:`_white_noise_fit`).
+    variance_drop : bool
+        Also run the :class:`VarianceDropMonitor` on the measurements and return its
+        explained episodes (``detector`` :data:`VARIANCE_DROP`) with this builder's: a
+        detection of its own, for frozen outputs the detectors cannot see. Needs
+        ``white_sigma`` and ``calibration_samples``.
+    variance_drop_window_s, variance_drop_alpha : float
+        The monitor's window and the probability that one healthy sensor's window falls
+        below its threshold.
     """
 
     def __init__(
@@ -1013,6 +1128,9 @@ class EpisodeBuilder:
         calibration_samples: int | None = None,
         calibration_mean: np.ndarray | None = None,
         white_sigma: np.ndarray | None = None,
+        variance_drop: bool = False,
+        variance_drop_window_s: float = 1.0,
+        variance_drop_alpha: float = 1e-7,
     ) -> None:
         self.detector = detector
         self.sensor_type = sensor_type
@@ -1041,6 +1159,8 @@ class EpisodeBuilder:
             "calibration_samples": calibration_samples,
             "calibration_mean": calibration_mean,
             "white_sigma": white_sigma,
+            "variance_drop_window_s": variance_drop_window_s,
+            "variance_drop_alpha": variance_drop_alpha,
         }
         self.white_sigma = (
             None
@@ -1055,6 +1175,14 @@ class EpisodeBuilder:
         self._open: dict[str, Any] | None = None  # the alarm run under way
         self._waiting: dict[int, dict[str, Any]] = {}  # sensor -> episode awaiting fragments
         self._pos = 0
+        self._monitor_issued = False  # for_detector: the first builder gets the monitor
+        self._drop: tuple[VarianceDropMonitor, EpisodeBuilder] | None = None
+        if variance_drop and self.white_sigma is not None and calibration_samples and explain:
+            window = max(2, round(variance_drop_window_s * rate_hz))
+            self._drop = (
+                self._variance_monitor(window, variance_drop_alpha),
+                EpisodeBuilder(VARIANCE_DROP, *self._arguments, **self._options),
+            )
 
     # measurements arrive with the input blocks, rows when the detector emits them
     def feed(self, measurements: np.ndarray) -> None:
@@ -1133,8 +1261,36 @@ class EpisodeBuilder:
             self._open = None
         self._history = np.concatenate([self._history, m])[-self.margin :]
         self._history_t = np.concatenate([self._history_t, t_ns])[-self.margin :]
+        if self._drop is not None:
+            monitor, builder = self._drop
+            builder._gains, builder._references = self._gains, self._references
+            builder.feed(m)
+            closed.extend(builder.rows(t_ns, t_ns, monitor.update(m)))
         closed.sort(key=lambda e: e.decided_end_ns)
         return closed
+
+    def _variance_monitor(self, window: int, alpha: float) -> VarianceDropMonitor:
+        """The :class:`VarianceDropMonitor` of this sensor type (white sigma, leave-one-out
+        gains of every sensor with a consensus)."""
+        assert self.white_sigma is not None and self.calibration_samples
+        n = self.H.shape[0]
+        A = np.zeros((n, n))
+        variance = np.full(n, np.inf)
+        for k in range(n):
+            try:
+                gain, _ = self._gain(k)
+            except ValueError:
+                continue
+            A[:, k] = -gain
+            A[k, k] += 1.0
+            variance[k] = self.white_sigma[k] ** 2 + float(np.sum((gain * self.white_sigma) ** 2))
+        return VarianceDropMonitor(
+            A,
+            variance,
+            window=window,
+            alpha=alpha,
+            calibration_dof=successive_difference_dof(self.calibration_samples),
+        )
 
     def _advance(
         self,
@@ -1214,6 +1370,8 @@ class EpisodeBuilder:
         for waiting in self._waiting.values():
             closed.append(self._close(waiting))
         self._waiting.clear()
+        if self._drop is not None:
+            closed.extend(self._drop[1].finish())
         closed.sort(key=lambda e: e.decided_end_ns)
         return closed
 
@@ -1354,7 +1512,10 @@ class EpisodeBuilder:
     def for_detector(self, detector: str) -> EpisodeBuilder:
         """A fresh builder with the same calibration, for another detector (it shares the
         consensus gains, which depend only on the calibration)."""
-        builder = EpisodeBuilder(detector, *self._arguments, **self._options)
+        # the variance-drop monitor is a detection of its own: one builder runs it
+        monitor = not self._monitor_issued
+        self._monitor_issued = True
+        builder = EpisodeBuilder(detector, *self._arguments, **self._options, variance_drop=monitor)
         builder._gains = self._gains
         builder._references = self._references
         return builder
@@ -1585,10 +1746,12 @@ def score_episodes(matches: Sequence[dict[str, Any]], hours: float | None) -> di
 
 __all__ = [
     "MODELS",
+    "VARIANCE_DROP",
     "Episode",
     "EpisodeBuilder",
     "EpisodeTally",
     "FaultFit",
+    "VarianceDropMonitor",
     "episode_builders",
     "find_episodes",
     "fit_models",
