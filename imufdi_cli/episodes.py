@@ -378,7 +378,13 @@ def fit_models(
     tail = float(2 * _gaussian_nll(float(np.sum(r[end:] ** 2)), float(r.shape[0] - end), var0))
     ln_n = math.log(r.shape[0])
     reference_cut = (
-        None if reference is None else replace(reference, residuals=reference.residuals[:end])
+        None
+        if reference is None
+        else replace(
+            reference,
+            residuals=reference.residuals[:end],
+            motion=None if reference.motion is None else reference.motion[:end],
+        )
     )
     cut = fit_until(end, reference_cut)
     if not cut:
@@ -468,6 +474,7 @@ def _fit_window(
         "offset_var": offset_var or 0.0,
         "confidence": confidence,
         "reference": reference,
+        "window": r,
     }
 
     # step: r = a + e
@@ -609,11 +616,17 @@ class Reference:
         White-noise variance of each residual, sigma_j^2 + consensus variance (SI^2).
     offset_var : ndarray, shape (m,)
         Variance of the calibrated bias taken out of each (SI^2; zeros when none was).
+    motion : ndarray, shape (L, 3), optional
+        The consensus of the sensors other than the isolated one (x_hat_{-k}).
     """
 
     residuals: np.ndarray
     variance: np.ndarray
     offset_var: np.ndarray
+    #: (L, 3) the consensus estimate of the sensed vector without the isolated sensor,
+    #: less its calibration-window mean (SI), for the motion-dependent errors of
+    #: :func:`_linear_fit`; None: not modelled
+    motion: np.ndarray | None = None
 
 
 #: level of the test that the healthy sensors spread more than the noise model says
@@ -631,6 +644,7 @@ def _linear_fit(
     offset_var: float,
     confidence: float,
     reference: Reference | None,
+    window: np.ndarray | None = None,
     shift: float = 0.0,
 ) -> FaultFit:
     """Least squares ``y = X c + e`` after the onset; the size is ``c[0] + shift``.
@@ -673,21 +687,121 @@ def _linear_fit(
     variance = s2 * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
     quantile = _t_quantile(0.5 + confidence / 2, dof)
     extra: dict[str, float] = {}
+    curve = (X @ coef, var0)
     if reference is not None and reference.residuals.shape[1] >= 2:
-        estimates = w @ reference.residuals[-n:]
-        predicted = reference.variance * sw2 + reference.offset_var * sw**2
-        m = estimates.shape[0]
-        q = float(np.sum(estimates**2 / predicted))
-        dispersion = q / m
+        dispersion, widened = _dispersion(w, reference, var0, offset_var, confidence)
         extra["dispersion"] = dispersion
-        if q > _chi2_quantile(DISPERSION_LEVEL, m):
-            white = dispersion * (var0 * sw2 + offset_var * sw**2)
-            if white > variance:
-                variance, quantile = white, _t_quantile(0.5 + confidence / 2, m)
+        if window is not None and reference.motion is not None:
+            # the motion-dependent errors: fitted when the healthy sensors spread too much
+            # or the sensor's own residual carries them (partial F test, both at 95 %)
+            pre = window[: window.shape[0] - n]
+            motion = _motion_fit(
+                window,
+                X,
+                onset,
+                reference,
+                var0,
+                offset_var,
+                confidence,
+                sse_without=float(pre @ pre + e @ e),
+                force=widened is not None,
+            )
+            if motion is not None:
+                size, half, extra["motion_dispersion"] = motion
+                size += shift
+                return FaultFit(
+                    model, size, size - half, size + half, onset, bic, extra, curve=curve
+                )
+        if widened is not None and widened[0] > variance:
+            variance, quantile = widened
     half = quantile * math.sqrt(max(variance, 0.0))
-    return FaultFit(
-        model, size, size - half, size + half, onset, bic, extra, curve=(X @ coef, var0)
-    )
+    return FaultFit(model, size, size - half, size + half, onset, bic, extra, curve=curve)
+
+
+def _dispersion(
+    w: np.ndarray, reference: Reference, var0: float, offset_var: float, confidence: float
+) -> tuple[float, tuple[float, float] | None]:
+    """The healthy sensors' check of the noise model for the linear estimate ``w^T r``
+    over the window's last ``len(w)`` samples: their dispersion ``Q / m``, and the widened
+    (variance, quantile) of this sensor's estimate when Q exceeds its DISPERSION_LEVEL
+    chi-square quantile (None otherwise). See :func:`_linear_fit`."""
+    n = w.shape[0]
+    sw2, sw = float(w @ w), float(np.sum(w))
+    estimates = w @ reference.residuals[-n:]
+    predicted = reference.variance * sw2 + reference.offset_var * sw**2
+    m = estimates.shape[0]
+    q = float(np.sum(estimates**2 / predicted))
+    if q <= _chi2_quantile(DISPERSION_LEVEL, m):
+        return q / m, None
+    white = q / m * (var0 * sw2 + offset_var * sw**2)
+    return q / m, (white, _t_quantile(0.5 + confidence / 2, m))
+
+
+def _motion_fit(
+    r: np.ndarray,
+    X: np.ndarray,
+    onset: int,
+    reference: Reference,
+    var0: float,
+    offset_var: float,
+    confidence: float,
+    *,
+    sse_without: float,
+    force: bool,
+) -> tuple[float, float, float] | None:
+    """The size with the motion-dependent errors of the residual fitted alongside.
+
+    Scale-factor and misalignment errors of the sensor and of the consensus make the
+    residual carry ``c^T omega(t)``, linear in the sensed vector; the healthy sensors
+    then spread beyond white noise (the dispersion test of :func:`_linear_fit`), each
+    with its own c. Over the whole window (the margin before the onset identifies c) the
+    model is ``r = X_f c_f + M c + e``, with the fault columns ``X_f`` zero before the
+    onset and ``M`` the consensus estimate of the sensed vector less its mean over the
+    calibration window (``reference.motion``: the calibrated offset taken out of r holds
+    ``c^T`` times that mean).
+    The size is ``w^T r`` with w the fault row of the least-squares pseudo-inverse, which
+    is orthogonal to M: every sensor's motion error drops out of its estimate, the healthy
+    sensors' too. Its variance and the healthy sensors' check follow :func:`_linear_fit`
+    (noise with its autocorrelation, the calibrated bias, widening by their dispersion
+    only if it is still significant). It is used when ``force`` (the healthy sensors
+    spread too much without it) or when M explains the sensor's own residual
+    significantly (partial F test at DISPERSION_LEVEL against ``sse_without``, the sum of
+    squares of the margin and the fault model's residuals). Returns (size without shift,
+    half-width, the healthy sensors' dispersion), or None when it is not used or M adds
+    nothing the fault columns do not already span (a constant rate)."""
+    assert reference.motion is not None
+    length = r.shape[0]
+    M = reference.motion[:length]
+    full = np.zeros((length, X.shape[1]))
+    full[onset:] = X
+    design = np.concatenate([full, M], axis=1)
+    scale = np.linalg.norm(design, axis=0)
+    if not np.all(np.isfinite(design)) or np.any(scale <= 0):
+        return None
+    normalised = design / scale
+    singular = np.linalg.svd(normalised, compute_uv=False)
+    if singular[-1] <= 1e-6 * singular[0]:
+        return None
+    pinv = np.linalg.pinv(normalised) / scale[:, None]  # (p + 3, L)
+    w = pinv[0]
+    coef = pinv @ r
+    e = r - design @ coef
+    dof = length - design.shape[1]
+    if dof < 2:
+        return None
+    sse = float(e @ e)
+    # partial F test of the motion columns against the fit without them (``sse_without``:
+    # the healthy margin and the fault model's residuals)
+    f_stat = (sse_without - sse) / M.shape[1] / (sse / dof) if sse > 0 else math.inf
+    if not force and f_stat <= _f_quantile(DISPERSION_LEVEL, M.shape[1], dof):
+        return None
+    sw2, sw = float(w @ w), float(np.sum(w))
+    variance = float(e @ e) / dof * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
+    quantile = _t_quantile(0.5 + confidence / 2, dof)
+    dispersion, widened = _dispersion(w, reference, var0, offset_var, confidence)
+    if widened is not None and widened[0] > variance:
+        variance, quantile = widened
+    return float(coef[0]), quantile * math.sqrt(max(variance, 0.0)), dispersion
 
 
 def _autocorrelation_factor(e: np.ndarray, w: np.ndarray) -> float:
@@ -1169,6 +1283,7 @@ class EpisodeBuilder:
         )
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
         self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
+        self._estimators: dict[int, np.ndarray] = {}  # k -> _estimator(k)
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
         self._history_t: np.ndarray = np.zeros(0, np.int64)
@@ -1453,7 +1568,12 @@ class EpisodeBuilder:
         if cached is None:
             return None
         A, offset, variance, offset_var = cached
-        return Reference(window @ A - offset, variance, offset_var)
+        # the sensed vector relative to its calibration mean: the calibrated offsets taken
+        # out of the residuals hold the motion errors of the calibration window too
+        motion = window @ self._estimator(k)
+        if self.calibration_mean is not None:
+            motion = motion - self.calibration_mean @ self._estimator(k)
+        return Reference(window @ A - offset, variance, offset_var, motion)
 
     def _reference_matrix(
         self, k: int
@@ -1491,6 +1611,19 @@ class EpisodeBuilder:
             if self.calibration_samples:
                 offset_var = variance / self.calibration_samples
         return A, offset, variance, offset_var
+
+    def _estimator(self, k: int) -> np.ndarray:
+        """(n, 3) ``B`` with ``window @ B`` the weighted least-squares estimate of the
+        sensed vector from the sensors other than k (cached)."""
+        found = self._estimators.get(k)
+        if found is None:
+            H, sigma = self.H, np.asarray(self.sigma, dtype=np.float64)
+            weights = 1.0 / sigma**2
+            M = (H.T * weights) @ H - np.outer(H[k], H[k]) * weights[k]
+            found = (H * weights[:, None]) @ np.linalg.inv(M)
+            found[k] = 0.0
+            self._estimators[k] = found
+        return found
 
     def _gain(self, k: int) -> tuple[np.ndarray, float]:
         """:func:`_consensus_gain` of sensor k, from the information matrix downdated by k's
