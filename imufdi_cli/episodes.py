@@ -26,7 +26,7 @@ model   r(t) for t >= tau (before: N(0, sigma_r^2))  size (90 % interval)
 ======  ==========================================  ==================================
 step    a + e                                        amp: t interval (:func:`_linear_fit`)
 drift   b (t - t_f) + e, t_f between two samples     rate: t interval of the LS slope
-noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: F(n - 1, n_cal) interval
+noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: successive differences, F
 scale   beta o(t) + e, o the consensus prediction    factor: 1 + beta_hat, t interval
 spikes  e + s A on a fraction p of samples           amp A (t interval), rate (Poisson)
 stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
@@ -47,9 +47,19 @@ Newey & West 1994), and the calibrated bias taken out of ``r`` (a constant estim
 n_cal samples). The other sensors, each against a consensus without ``k``, give the same
 estimate where there is no fault: when they spread significantly more than that variance
 says (chi-square test at 95 %), the interval is widened to their dispersion
-(:func:`_linear_fit`). The noise factor's interval is F(n - 1, n_cal) because sigma_k
-itself was estimated from n_cal calibration samples. Coverage is measured in
-``tests/test_episodes.py``, ``benchmarks/bench_episodes.py`` and docs/episodes.md.
+(:func:`_linear_fit`); when they still spread too much, or the sensor's own residual
+carries the motion, the motion-dependent errors (scale, misalignment: linear in the
+sensed vector) are fitted alongside over the whole window (:func:`_motion_fit`). The noise
+factor is sized from successive differences against the white part of the calibrated
+noise (:func:`white_sigma`), F(nu, nu_cal) (:func:`_white_noise_fit`): slow errors and
+shifts of the consensus do not enter it.
+
+A frozen output on a motion the sensor tracks exactly (a constant-rate turntable) loses
+only its noise, which no mean-shift detector sees: :class:`VarianceDropMonitor`, a
+one-sided successive-difference variance test, raises episodes of its own under the name
+``variance-drop`` (one builder per sensor type runs it). Coverage and false episodes are
+measured in ``tests/test_episodes.py``, ``benchmarks/bench_episodes.py`` and
+docs/episodes.md.
 """
 
 from __future__ import annotations
