@@ -16,6 +16,8 @@ average is printed: on a shared machine only the ratios mean something.
 
     python benchmarks/bench_detect.py                 # 60 min base log, 10x for memory
     python benchmarks/bench_detect.py --minutes 10    # quicker
+    python benchmarks/bench_detect.py --minutes 10 --stages --skip-memory --skip-copy
+                                                      # + detect's CPU split by stage
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ CHILD = textwrap.dedent(
     if mode in ("detect", "detect-no-explain"):
         from imufdi_cli.detect import detect_file
         detect_file(src, dst, [("glt", {})], explain=mode == "detect")
+    elif mode == "stages":
+        split = stages(src, dst)
     elif mode == "info":
         from imufdi_cli.pipeline import log_info
         log_info(src)
@@ -75,7 +79,64 @@ CHILD = textwrap.dedent(
     seconds = time.perf_counter() - start
     cpu = time.process_time() - cpu
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(json.dumps({"seconds": seconds, "cpu": cpu, "peak_mib": peak_kib / 1024}))
+    out = {"seconds": seconds, "cpu": cpu, "peak_mib": peak_kib / 1024}
+    if mode == "stages":
+        out["stages"] = split
+    print(json.dumps(out))
+    """
+)
+
+# Where detect's CPU goes: wrappers around its stages, each charged its own CPU (process
+# CPU time, all threads: the writer's compression threads are charged to whatever the main
+# thread was doing), nested stages subtracted from their callers. Imports are timed first.
+STAGES = textwrap.dedent(
+    """
+    def stages(src, dst):
+        import collections
+        cpu0 = time.process_time()
+        import scipy.special  # noqa: F401  (glt's thresholds and the episode intervals)
+        import imufdi_cli.detect as dt
+        import imufdi_cli.episodes as ep
+        from imufdi_cli.detectors.glt import GltDetector
+        acc = collections.Counter({"imports (numpy, imufdi, scipy.special)":
+                                   time.process_time() - cpu0})
+        active = []
+
+        def wrap(owner, name, key):
+            inner = getattr(owner, name)
+
+            def timed(*args, **kwargs):
+                begin = time.process_time()
+                active.append(key)
+                try:
+                    return inner(*args, **kwargs)
+                finally:
+                    active.pop()
+                    spent = time.process_time() - begin
+                    acc[key] += spent
+                    if active:
+                        acc[active[-1]] -= spent
+            setattr(owner, name, timed)
+
+        wrap(dt._DetectRun, "copy_batch", "copying the input (verbatim chunks, indexes)")
+        wrap(dt._DetectRun, "add_block", "conditioner (validity masks, sanitising)")
+        wrap(dt._DetectRun, "_fit", "calibration fits (conditioner, glt, builders)")
+        wrap(GltDetector, "process", "glt process")
+        wrap(dt, "encode_status", "status and events: encode, queue, compress")
+        wrap(dt, "_events", "status and events: encode, queue, compress")
+        wrap(dt.McapWriter, "add_batch", "status and events: encode, queue, compress")
+        wrap(ep, "fit_models", "episodes: fit_models")
+        wrap(ep.EpisodeBuilder, "rows", "episodes: bookkeeping, residuals, reference")
+        wrap(dt._DetectRun, "_add_episodes", "episodes: to_dict and JSON event")
+        wrap(dt._DetectRun, "finish", "finish (flush, metadata)")
+        begin = time.process_time()
+        result = dt.detect_file(src, dst, [("glt", {})])
+        total = time.process_time() - begin
+        acc["reading and aligning (reader.stream), the rest"] = total - sum(
+            v for k, v in acc.items() if not k.startswith("imports"))
+        acc["episodes"] = sum(
+            sum(s.episodes.values()) for t in result.summaries.values() for s in t.values())
+        return dict(acc)
     """
 )
 
@@ -83,7 +144,7 @@ CHILD = textwrap.dedent(
 def child(mode: str, src: str, dst: str) -> dict[str, float]:
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     done = subprocess.run(
-        [sys.executable, "-c", CHILD, mode, src, dst],
+        [sys.executable, "-c", STAGES + CHILD, mode, src, dst],
         capture_output=True,
         text=True,
         check=True,
@@ -109,6 +170,9 @@ def main() -> int:
     parser.add_argument("--skip-memory", action="store_true", help="no 10x longer log")
     parser.add_argument("--skip-copy", action="store_true", help="no mcap package copy")
     parser.add_argument("--dir", help="where to put the logs (default: a temporary directory)")
+    parser.add_argument(
+        "--stages", action="store_true", help="also split detect's CPU by stage (clean log)"
+    )
     args = parser.parse_args()
     workdir = Path(args.dir or tempfile.mkdtemp(prefix="imufdi-bench-detect-"))
     workdir.mkdir(parents=True, exist_ok=True)
@@ -144,6 +208,14 @@ def main() -> int:
                 f" (CPU {run['cpu'] / info['cpu']:.2f}x)  (target <= 1.3x)"
             )
     base_det = det[("clean", "detect")]
+    if args.stages:
+        run = child("stages", str(base), out)
+        split = run["stages"]
+        episodes = int(split.pop("episodes"))
+        print(f"detect CPU by stage (clean log, {episodes:,} episodes; load {load()}):")
+        for key, value in sorted(split.items(), key=lambda kv: -kv[1]):
+            print(f"  {key:52s} {value:7.2f} s  {value / run['cpu']:6.1%}")
+        print(f"  {'total':52s} {run['cpu']:7.2f} s")
     print(f"  array samples/s through detect (clean): {samples / base_det['seconds']:,.0f}")
     if not args.skip_copy:
         copy = child("mcap-copy", str(base), str(workdir / "copy.mcap"))

@@ -89,7 +89,10 @@ def main() -> None:
     parser.add_argument("--memory-minutes", type=float, default=2.0, help="base for memory")
     parser.add_argument("--repeat", type=int, default=2, help="ingest runs (best is shown)")
     args = parser.parse_args()
+    from imufdi_cli.mcapio.compression import CRC32_IMPLEMENTATION
+
     print(f"load average before: {load()} ({os.cpu_count()} cores)")
+    print(f"chunk CRC-32 by {CRC32_IMPLEMENTATION}")
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         big = root / "big.cap"

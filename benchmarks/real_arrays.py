@@ -10,7 +10,12 @@ default exp_2) with only a 10 s bias calibration at its start, and measure out o
 3. a 0.9 deg/s gyro step and a 0.05 g accel step injected for 10 s in the middle of every
    static orientation (a different sensor each time): MAR, FIR and FAR of pca-parity and
    glt over the static phase;
-4. ``calibrate`` runtime on the training recording.
+4. ``calibrate`` runtime on the training recording;
+5. the price of the sampling-time jitter model (ArrayConfig ``[jitter]``,
+   imufdi_cli/detectors/jitter.py): glt's smallest detectable step (50 % per-sample
+   detection at alpha = 1 %) at rest and in the motion phase (median and 90th percentile
+   of the widening), and steps of that median size injected in the motion phase (their
+   glt MAR should be near 50 %).
 
 The recordings are not in the repository (github hcarlsso/Self-Calibration-Inertial-
 Sensor-Arrays-BCD.jl, ``experimental_data/calibration/exp_N/data.bin``, MIT licence)::
@@ -24,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -37,6 +43,8 @@ sys.path.insert(0, str(ROOT))
 from imufdi_cli.array import ArrayConfig  # noqa: E402
 from imufdi_cli.calibrate import calibrate_file, find_static  # noqa: E402
 from imufdi_cli.detect import detect_file  # noqa: E402
+from imufdi_cli.detectors.jitter import array_inflation, minimum_detectable_step  # noqa: E402
+from imufdi_cli.detectors.rigid import accel_design  # noqa: E402
 from imufdi_cli.faults import inject_file  # noqa: E402
 from imufdi_cli.mcapio import read_array  # noqa: E402
 from imufdi_cli.pipeline import ingest_file  # noqa: E402
@@ -171,6 +179,70 @@ def injection(
     return figures
 
 
+def _design(array: ArrayConfig, sensor_type: str) -> np.ndarray:
+    return accel_design(array, sensor_type) if sensor_type == "accel" else (
+        array.measurement_matrix(sensor_type))  # fmt: skip
+
+
+def jitter_price(test: Path, cal_array: ArrayConfig, motion_start: float,
+                 out: Path) -> dict[str, Any]:  # fmt: skip
+    """glt's smallest detectable step at rest and in motion under the jitter model, and an
+    injected check in the motion phase (see the module docstring, item 5)."""
+    from imufdi_cli.validity import flag_values
+
+    _, block = read_array(str(test))
+    t = block.t_s()
+    calibrated = apply_calibration(block, cal_array)
+    figures: dict[str, Any] = {}
+    specs = []
+    motion_rows = t >= motion_start
+    clipped = np.zeros(len(t), dtype=bool)
+    for s in ("gyro", "accel"):
+        c, i = flag_values(block.get(s), s, cal_array.range.get(s))
+        clipped |= (c | i).any(axis=(1, 2))
+    for s in ("gyro", "accel"):
+        H = _design(cal_array, s)
+        sigma = cal_array.sensor_noise(s)
+        inflation = array_inflation(cal_array, s, H)
+        if sigma is None:
+            continue
+        values = cal_array.select(calibrated.get(s), s)
+        factors = np.ones(len(t)) if inflation is None else inflation.factors(values, block.t_ns)
+        rows = motion_rows & ~clipped & ~np.roll(clipped, 1)
+        dof = H.shape[0] - H.shape[1]
+        white = H / sigma[:, None]
+        energy = np.diag(np.eye(H.shape[0]) - white @ np.linalg.pinv(white))  # P_jj
+        rest = np.array([minimum_detectable_step(e, dof, 0.01) for e in energy]) * sigma
+        median, p90 = np.percentile(factors[rows], [50, 90])
+        k = int(np.argmin(np.abs(rest - np.median(rest))))  # a typical sensor
+        moving = minimum_detectable_step(energy[k], dof, 0.01, median) * sigma[k]
+        figures[s] = {
+            "rest_median": float(np.median(rest)),
+            "motion_median_widening": float(np.sqrt(median)),
+            "motion_p90_widening": float(np.sqrt(p90)),
+            "motion_median": float(np.median(rest) * np.sqrt(median)),
+            "motion_p90": float(np.median(rest) * np.sqrt(p90)),
+            "sensor": cal_array.sensor_ids(s)[k],
+            "injected_amplitude": float(moving),
+        }
+        end = float(t[-1])
+        for at in np.linspace(motion_start + 5.0, end - 10.0, 6):
+            specs.append(f"step:{figures[s]['sensor']},at={at:.3f}s,until={at + 5.0:.3f}s,"
+                         f"amp={float(moving)!r}")  # fmt: skip
+    faulty = out / "motion-faulty.mcap"
+    inject_file(str(test), str(faulty), specs, [], seed=0)
+    detected = out / "motion-faulty-detect.mcap"
+    detect_file(str(faulty), str(detected), [("glt", {})], calibrate=CALIBRATION,
+                array=cal_array)  # fmt: skip
+    rep = build_report(str(detected), window=(motion_start, None))
+    for entry in rep.entries:
+        if entry.sensor_type in figures:
+            figures[entry.sensor_type]["injected_mar"] = entry.metrics.mar
+            figures[entry.sensor_type]["injected_far"] = entry.metrics.far
+    figures["faults"] = specs
+    return figures
+
+
 def pct(value: Any) -> str:
     return (
         "—"
@@ -187,8 +259,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument(
         "--runs", default="0,1,2,3,4",
-        help="which detection runs (0 nominal, 1 before: glt sigma from the window and no"
-        " lever arms, 2 glt sigma from the window, 3 defaults, 4 track_bias=300s)",
+        help="which detection runs (0 nominal, 1 calibrated without the jitter model, 2 jitter"
+        " fitted by moments, 3 defaults (jitter fitted for the level), 4 track_bias=300s)",
     )  # fmt: skip
     args = parser.parse_args()
     out: Path = args.out
@@ -209,8 +281,12 @@ def main() -> None:
             "coverage": result.coverage,
             "residual_rms": result.residual_rms,
             "warnings": result.warnings,
+            "jitter_s": result.jitter_s,
+            "load_average": os.getloadavg()[0],
         }
     }
+    moments = calibrate_file(str(train), base=ArrayConfig.load(BASE), jitter_fit="moments")
+    figures["calibrate"]["jitter_s_moments"] = moments.jitter_s
 
     intervals, static_end, t, array, block = static_intervals(test)
     motion_start = static_end + 2.0
@@ -222,12 +298,10 @@ def main() -> None:
     }
 
     tables = {}
-    before = {"glt": {"sigma_source": "calibration", "lever_arm": "false"}}
-    window_sigma = {"glt": {"sigma_source": "calibration"}}
     runs: list[tuple[str, ArrayConfig, dict[str, dict[str, Any]]]] = [
         ("nominal", ArrayConfig.load(BASE), {}),
-        ("calibrated, glt sigma from the 10 s window, no lever arms", result.array, before),
-        ("calibrated, glt sigma from the 10 s window", result.array, window_sigma),
+        ("calibrated, no jitter model", result.array.with_jitter({}), {}),
+        ("calibrated, jitter fitted by moments", moments.array, {}),
         ("calibrated", result.array, {}),
         ("calibrated, track_bias=300s", result.array,
          {d: {"track_bias": "300s"} for d in DETECTORS}),
@@ -242,6 +316,7 @@ def main() -> None:
         tables[label] = alarm_table(detected, intervals, motion_start)
     figures["alarm_rates"] = tables
     figures["injection"] = injection(test, cal, intervals, out, result.array)
+    figures["jitter_price"] = jitter_price(test, result.array, motion_start, out)
     (out / "figures.json").write_text(json.dumps(figures, indent=2, default=float))
     print_markdown(figures, args.train, args.test, intervals, motion_start)
 
@@ -251,10 +326,14 @@ def print_markdown(fig: dict[str, Any], train: str, test: str, intervals: list[A
     c = fig["calibrate"]
     print(f"calibrate {train}: {c['intervals']} static intervals, {c['orientations']} orientations,"
           f" coverage {c['coverage']:.2f}, runtime {c['runtime_s']:.2f} s wall, {c['cpu_s']:.2f} s CPU"
+          f" at load average {c['load_average']:.1f}"
           f" (reading the log included); residual RMS between"
           f" triads: accel {c['residual_rms']['accel'][0]:.4f} -> {c['residual_rms']['accel'][1]:.4f}"
           f" m/s^2 (at rest), gyro {np.degrees(c['residual_rms']['gyro'][0]):.2f} ->"
           f" {np.degrees(c['residual_rms']['gyro'][1]):.2f} deg/s (motion)\n")  # fmt: skip
+    j, jm = c["jitter_s"], c["jitter_s_moments"]
+    print("jitter sigma_t fitted on " + train + ": " + ", ".join(
+        f"{s} {1e3 * j[s]:.3f} ms (moments {1e3 * jm.get(s, 0.0):.3f} ms)" for s in j) + "\n")  # fmt: skip
     a = fig["agreement"]
     print(
         f"Accelerometer triad agreement at rest on {test} ({a['orientations']} orientations), m/s^2 RMS:\n"
@@ -301,6 +380,19 @@ def print_markdown(fig: dict[str, Any], train: str, test: str, intervals: list[A
         delay = "—" if v["detection_delay_s"] is None else f"{v['detection_delay_s']:.3f}"
         print(f"| {key} | {pct(v['far_static'])} | {pct(v['far_static_phase'])} | {pct(v['mar'])}"
               f" | {pct(v['fir'])} | {delay} |")  # fmt: skip
+    price = fig["jitter_price"]
+    print("\nglt smallest detectable step (50 % per-sample detection, alpha = 1 %), typical"
+          " sensor, at rest and in the motion phase (median / 90th percentile widening):\n")  # fmt: skip
+    print("| type | at rest | motion, median | motion, 90th pct | injected in motion: amplitude,"
+          " glt MAR % |\n|---|---|---|---|---|")  # fmt: skip
+    for s, unit, k in (("gyro", "deg/s", np.degrees(1.0)), ("accel", "m/s^2", 1.0)):
+        if s not in price:
+            continue
+        v = price[s]
+        print(f"| {s} | {k * v['rest_median']:.3g} {unit} | {k * v['motion_median']:.3g} {unit}"
+              f" ({v['motion_median_widening']:.0f}x) | {k * v['motion_p90']:.3g} {unit}"
+              f" ({v['motion_p90_widening']:.0f}x) | {k * v['injected_amplitude']:.3g} {unit}"
+              f" on {v['sensor']}: {pct(v.get('injected_mar'))} |")  # fmt: skip
 
 
 if __name__ == "__main__":

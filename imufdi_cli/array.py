@@ -220,12 +220,18 @@ class ArrayConfig:
     range : dict
         Measurement range (full scale) per sensor type, SI; samples at or near it are
         flagged as clipped (:mod:`imufdi_cli.validity`). Optional.
+    jitter : dict
+        Sampling-time jitter sigma_t per sensor type, seconds (``imufdi calibrate`` fits
+        it from the motion of a log; :mod:`imufdi_cli.detectors.jitter`): in motion each
+        sensor's noise variance grows by about ``sigma_t^2 |dm/dt|^2``, and glt and
+        pca-parity widen their tests by that much. Optional; absent or 0: no motion term.
     """
 
     imus: tuple[ImuSpec, ...]
     rate_hz: float = 100.0
     noise: Mapping[str, float] = field(default_factory=dict)
     range: Mapping[str, float] = field(default_factory=dict)
+    jitter: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if len(self.imus) == 0:
@@ -400,6 +406,8 @@ class ArrayConfig:
         }
         if self.range:
             data["range"] = {k: float(v) for k, v in self.range.items()}
+        if self.jitter:
+            data["jitter"] = {k: float(v) for k, v in self.jitter.items()}
         return data
 
     @property
@@ -436,12 +444,19 @@ class ArrayConfig:
         merged = {**{k: float(v) for k, v in ranges.items()}, **dict(self.range)}
         return replace(self, range=merged)
 
+    def with_jitter(self, jitter: Mapping[str, float]) -> ArrayConfig:
+        """This array with its sampling-time jitter table replaced (seconds per type)."""
+        checked = {k: _check_jitter(v, f"jitter.{k}") for k, v in jitter.items()}
+        for key in checked:
+            _check_type(key)
+        return replace(self, jitter=checked)
+
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], *, source: str = "array config") -> ArrayConfig:
         """Build from the dict form (TOML or JSON); quantities may carry units."""
         if not isinstance(data, Mapping):
             raise ArrayConfigError(f"{source}: expected a table at the top level")
-        known = {"rate_hz", "rate", "noise", "imu", "range"}
+        known = {"rate_hz", "rate", "noise", "imu", "range", "jitter"}
         for key in data:
             if key not in known:
                 raise ArrayConfigError(
@@ -459,6 +474,9 @@ class ArrayConfig:
             for key in ranges:
                 if not (math.isfinite(ranges[key]) and ranges[key] > 0):
                     raise ArrayConfigError(f"{source}: range.{key} must be positive and finite")
+            jitter = _per_type_quantities(data, "jitter", "{gyro = '0.3ms'}", source, "time")
+            for key in jitter:
+                _check_jitter(jitter[key], f"{source}: jitter.{key}")
         except UnitError as err:
             raise ArrayConfigError(str(err)) from err
         imus_raw = data.get("imu")
@@ -522,7 +540,7 @@ class ArrayConfig:
                     noise=sensor_noise,
                 )
             )
-        return cls(imus=tuple(imus), rate_hz=rate, noise=noise, range=ranges)
+        return cls(imus=tuple(imus), rate_hz=rate, noise=noise, range=ranges, jitter=jitter)
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), separators=(",", ":"))
@@ -545,6 +563,13 @@ class ArrayConfig:
         if self.range:
             lines.append("[range]  # full scale, SI (rad/s, m/s^2, T): samples near it are clipped")
             lines += [f"{k} = {float(v)!r}" for k, v in self.range.items()]
+            lines.append("")
+        if self.jitter:
+            lines.append(
+                "[jitter]  # sampling-time jitter sigma_t, s: in motion the noise variance grows"
+                " by sigma_t^2 |dm/dt|^2"
+            )
+            lines += [f"{k} = {float(v)!r}" for k, v in self.jitter.items()]
             lines.append("")
         for k, imu in enumerate(self.imus):
             rot = ", ".join(
@@ -606,13 +631,26 @@ class ArrayConfig:
             rate_hz=self.rate_hz,
             noise=dict(self.noise),
             range=dict(self.range),
+            jitter=dict(self.jitter),
         )
 
 
+def _check_jitter(value: Any, where: str) -> float:
+    """A sampling-time jitter sigma in seconds: finite and >= 0."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError) as err:
+        raise ArrayConfigError(f"{where}: must be a time in seconds") from err
+    if not (math.isfinite(out) and out >= 0):
+        raise ArrayConfigError(f"{where}: must be finite and >= 0 seconds, got {value!r}")
+    return out
+
+
 def _per_type_quantities(
-    data: Mapping[str, Any], key: str, example: str, source: str
+    data: Mapping[str, Any], key: str, example: str, source: str, dimension: str | None = None
 ) -> dict[str, float]:
-    """A ``[key]`` table of one quantity per sensor type (``noise``, ``range``), in SI."""
+    """A ``[key]`` table of one quantity per sensor type (``noise``, ``range``, ``jitter``),
+    in SI; ``dimension`` overrides the sensor type's own (e.g. ``time`` for jitter)."""
     raw = data.get(key, {})
     if not isinstance(raw, Mapping):
         raise ArrayConfigError(f"{source}: {key} must be a table like {example}")
@@ -623,7 +661,7 @@ def _per_type_quantities(
                 f"{source}: {key}.{sensor_type}: unknown sensor type; valid: gyro, accel, mag"
             )
         out[sensor_type] = parse_quantity(
-            value, sensor_dimension(sensor_type), name=f"{source}: {key}.{sensor_type}"
+            value, dimension or sensor_dimension(sensor_type), name=f"{source}: {key}.{sensor_type}"
         )
     return out
 

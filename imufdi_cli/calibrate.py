@@ -43,6 +43,13 @@ z-axis gyros, up to 1.5x in sigma, docs/real-arrays.md), so the typical level ov
 orientations is a better reference for a parity test than a few seconds in one of them.
 Stored per IMU as ``<type>_noise``; glt uses it (``sigma_source=auto``).
 
+**Sampling-time jitter** — the residual between triads grows from the noise at rest to
+~45x it in hand motion. Each type's ``sigma_t`` of the model of
+:mod:`imufdi_cli.detectors.jitter` (noise variance ``1 + sigma_t^2 |ydot_w|^2 / n`` in
+whitened units) is fitted by moments on the motion rows (not near a static interval, not
+clipped, predecessor usable) with the calibrated noise levels and the lever-arm design
+for accelerometers; stored as ArrayConfig ``[jitter]``, used by glt and pca-parity.
+
 **Chip time offsets** (a diagnostic, not applied) — a chip sampling ``dt_k`` later than
 the others reads ``w(t + dt_k) ~ w + w_dot dt_k``; its gyro residual from the consensus in
 motion is regressed on the consensus angular acceleration, giving ``dt_k`` (relative to
@@ -61,7 +68,9 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig, TriadCalibration
-from imufdi_cli.errors import CalibrationError
+from imufdi_cli.detectors.jitter import MAX_JITTER_S, fit_jitter
+from imufdi_cli.detectors.rigid import accel_design
+from imufdi_cli.errors import ArrayConfigError, CalibrationError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.validity import flag_values
 
@@ -131,6 +140,7 @@ class CalibrationResult:
     runtime_s: float = 0.0
     time_offsets_s: list[float] = field(default_factory=list)  # per IMU, gyro motion
     time_offset_explained: list[float] = field(default_factory=list)  # share of residual
+    jitter_s: dict[str, float] = field(default_factory=dict)  # per type, sampling jitter
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -145,6 +155,7 @@ class CalibrationResult:
             "warnings": self.warnings,
             "time_offsets_s": self.time_offsets_s,
             "time_offset_explained": self.time_offset_explained,
+            "jitter_s": self.jitter_s,
         }
 
 
@@ -498,6 +509,63 @@ def _zero_clipped_rows(
     return accel, gyro, clipped
 
 
+def motion_rows(array: ArrayConfig, static: np.ndarray, clipped: np.ndarray) -> np.ndarray:
+    """Rows (N,) bool more than one static window away from any static row, not clipped."""
+    w = round(STATIC_WINDOW_S * array.rate_hz)
+    near_static = np.convolve(static.astype(float), np.ones(2 * w + 1), "same") > 0
+    return np.asarray(~near_static & ~clipped)
+
+
+#: ``calibrate --jitter-fit`` choices: the per-sample level the fit holds in motion.
+JITTER_FITS = ("level", "moments", "off")
+JITTER_LEVEL_ALPHA = 0.01
+
+
+def jitter_stage(
+    array: ArrayConfig,
+    fields: dict[str, np.ndarray | None],
+    t_s: np.ndarray,
+    static: np.ndarray,
+    clipped: np.ndarray,
+    method: str = "level",
+) -> dict[str, float]:
+    """Sampling-time jitter sigma_t (s) per sensor type with a parity space and per-sensor
+    noise, fitted on the motion rows (:func:`imufdi_cli.detectors.jitter.fit_jitter`):
+    ``method`` ``level`` (the per-sample test at alpha = 1 % holds its level on those rows),
+    ``moments`` or ``off`` (nothing fitted).
+
+    Parameters
+    ----------
+    array : ArrayConfig
+        With the chip calibration and noise levels to use.
+    fields : dict
+        Raw triads (N, m, 3) per sensor type (None: absent), clipped rows zeroed.
+    t_s : (N,) s; static, clipped : (N,) bool.
+    """
+    motion = motion_rows(array, static, clipped)
+    rows = motion & np.roll(motion, 1)
+    out: dict[str, float] = {}
+    if method == "off" or not rows[1:].any():
+        return out
+    alpha = JITTER_LEVEL_ALPHA if method == "level" else None
+    for sensor_type, raw in fields.items():
+        sigma = array.sensor_noise(sensor_type)
+        if raw is None or sigma is None or array.n_sensors(sensor_type) < 4:
+            continue
+        design = array.measurement_matrix(sensor_type)
+        if sensor_type == "accel":
+            try:
+                design = accel_design(array, sensor_type)
+            except ArrayConfigError:
+                pass
+        if design.shape[0] <= design.shape[1]:
+            continue
+        white = array.select(array.calibrate_triads(raw, sensor_type), sensor_type) / sigma
+        offset = white[static].mean(axis=0) if static.any() else None
+        out[sensor_type] = fit_jitter(design / sigma[:, None], white, t_s, rows, offset, alpha)
+    return out
+
+
 def _gyro_stage(
     array: ArrayConfig,
     gyro: np.ndarray,
@@ -520,9 +588,7 @@ def _gyro_stage(
     share of the residual they explain (m,) or empty, residual RMS before/after, rad/s)
     """
     offsets = explained = np.zeros(0)
-    w = round(STATIC_WINDOW_S * array.rate_hz)
-    near_static = np.convolve(static.astype(float), np.ones(2 * w + 1), "same") > 0
-    motion = ~near_static & ~clipped
+    motion = motion_rows(array, static, clipped)
     motion_s = float(np.count_nonzero(motion) / array.rate_hz)
     full_gyro = False
     if motion.any():
@@ -565,6 +631,7 @@ def calibrate_block(
     *,
     gravity: float = STANDARD_GRAVITY,
     min_static_s: float = 5.0,
+    jitter_fit: str = "level",
 ) -> CalibrationResult:
     """Estimate every triad's calibration from raw samples (see the module docstring).
 
@@ -578,6 +645,8 @@ def calibrate_block(
         |f| at rest, m/s^2.
     min_static_s : float
         Shortest static interval used, s.
+    jitter_fit : {"level", "moments", "off"}
+        How the sampling-time jitter is fitted (:func:`jitter_stage`).
 
     Raises
     ------
@@ -642,6 +711,15 @@ def calibrate_block(
         for s, c in sorted(per.items(), reverse=True)
     ]
     out = array.with_calibration(cals).with_sensor_noise(noise)
+    jitter = jitter_stage(out, {"accel": accel, "gyro": gyro}, t_s, static, clipped, jitter_fit)
+    for sensor_type, value in jitter.items():
+        if value >= MAX_JITTER_S:
+            warnings.append(
+                f"{sensor_type}: no sampling-time jitter up to {MAX_JITTER_S * 1e3:g} ms holds the"
+                " level in this log's motion (residuals unrelated to the motion?); the tests"
+                " will be blind in motion: check the calibration, or --jitter-fit moments/off"
+            )
+    out = out.with_jitter(jitter)
     result = CalibrationResult(
         array=out,
         intervals=intervals,
@@ -654,6 +732,7 @@ def calibrate_block(
         residual_rms=residual,
         warnings=warnings,
         runtime_s=time.perf_counter() - started,
+        jitter_s=jitter,
     )
     if offsets.size:
         result.time_offsets_s = [float(v) for v in offsets]
@@ -669,6 +748,7 @@ def calibrate_file(
     gravity: float = STANDARD_GRAVITY,
     min_static_s: float = 5.0,
     topics: list[str] | None = None,
+    jitter_fit: str = "level",
 ) -> CalibrationResult:
     """Read a log, recover raw chip values and estimate the calibration.
 
@@ -696,7 +776,11 @@ def calibrate_file(
             keep &= rel < window[1]
         raw = raw.mask(keep)
     result = calibrate_block(
-        array.with_calibration(None), raw, gravity=gravity, min_static_s=min_static_s
+        array.with_calibration(None),
+        raw,
+        gravity=gravity,
+        min_static_s=min_static_s,
+        jitter_fit=jitter_fit,
     )
     result.runtime_s = time.perf_counter() - started
     return result

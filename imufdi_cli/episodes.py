@@ -1347,8 +1347,10 @@ class EpisodeBuilder:
                 self._run_closed(state, closed)
                 state = self._open = None
             if state is None:
-                history = np.concatenate([self._history, m[:first]])[-self.margin :]
-                history_t = np.concatenate([self._history_t, t_ns[:first]])[-self.margin :]
+                # only the last `margin` rows before the alarm are kept: copy no more
+                tail = max(0, first - self.margin)
+                history = np.concatenate([self._history, m[tail:first]])[-self.margin :]
+                history_t = np.concatenate([self._history_t, t_ns[tail:first]])[-self.margin :]
                 state = self._open = {
                     "start_ns": int(t_ns[first]),
                     "decided_start_ns": int(decided_ns[first]),
@@ -1384,8 +1386,9 @@ class EpisodeBuilder:
         if state is not None and state["quiet"] > self.merge_gap:
             self._run_closed(state, closed)
             self._open = None
-        self._history = np.concatenate([self._history, m])[-self.margin :]
-        self._history_t = np.concatenate([self._history_t, t_ns])[-self.margin :]
+        tail = max(0, n - self.margin)
+        self._history = np.concatenate([self._history, m[tail:]])[-self.margin :]
+        self._history_t = np.concatenate([self._history_t, t_ns[tail:]])[-self.margin :]
         if self._drop is not None:
             monitor, builder = self._drop
             builder._gains, builder._references = self._gains, self._references

@@ -276,124 +276,176 @@ def build_report(
     the bounded series of ``keep_series``.
     """
     from imufdi_cli.mcapio import McapSource, iter_status
-    from imufdi_cli.validity import select_rows
 
     if match_far is not None and not 0.0 < match_far < 1.0:
         raise UsageError(f"--match-far must be in (0, 1), got {match_far:g}")
     name = source if isinstance(source, str) else "<stream>"
     name = "<stdin>" if name == "-" else name
     stream, close = _open_seekable(source)
-    accumulators: dict[tuple[str, str], MetricsAccumulator] = {}
-    ids_of: dict[tuple[str, str], list[str]] = {}
-    series: dict[tuple[str, str], _Series] = {}
-    first_ns: dict[tuple[str, str], int] = {}
-    all_decided: dict[tuple[str, str], bool] = {}
-    last_ns: dict[tuple[str, str], int] = {}
-    validity: dict[tuple[str, str], dict[str, int]] = {}
-    notes: list[str] = []
-    problems: list[str] = []
     try:
         with McapSource(stream) as src:
             metadata = dict(src.metadata)  # seekable: read from the summary up front
-            truth = truth_windows(metadata)
-            windows_cal = calibration_windows(metadata)
-            episodes = _EpisodeCollector(truth, windows_cal, window, first_ns)
-            records = {d: _detect_record(metadata, d) for d in windows_cal}
+            scan = _StatusScan(metadata, window, persist, keep_series)
+            episodes = _EpisodeCollector(scan.truth, scan.windows_cal, window, scan.first_ns)
             tracker = LogTimeProgress(progress, getattr(src, "summary_time_range", None))
             for detector, sensor_type, ids, rows in iter_status(src, others=episodes.batch):
-                key = (detector, sensor_type)
                 if rows["t_ns"].size:
                     tracker.at(int(rows["t_ns"][-1]))
-                if key not in first_ns and rows["t_ns"].size:
-                    origin = int(rows["t_ns"][0])
-                else:
-                    origin = first_ns.get(key, 0)
-                if detector not in records:
-                    records[detector] = _detect_record(metadata, detector)
-                selection = select_rows(
-                    rows["t_ns"], records[detector], sensor_type, window, origin_ns=origin
-                )
-                counts = validity.setdefault(key, {"clipped": 0, "invalid": 0, "excluded": 0})
-                counts["clipped"] += selection.clipped
-                counts["invalid"] += selection.invalid
-                counts["excluded"] += selection.excluded
-                if not selection.keep.all():
-                    rows = {k: v[selection.keep] for k, v in rows.items()}
-                acc = accumulators.get(key)
-                if acc is None:
-                    acc = _accumulator(truth, ids, windows_cal.get(detector), persist)
-                    accumulators[key] = acc
-                    ids_of[key] = ids
-                    first_ns[key] = origin
-                    all_decided[key] = True
-                    if keep_series:
-                        series[key] = _Series()
-                all_decided[key] &= "decided_ns" in rows
-                if rows["t_ns"].size:
-                    last_ns[key] = int(rows["t_ns"][-1])
-                acc.update(
-                    rows["t_ns"],
-                    rows["alarm"],
-                    rows["isolated"],
-                    decided_ns=rows.get("decided_ns"),
-                    isolated_set=rows["isolated_set"],
-                    statistic=rows["statistic"],
-                    threshold=rows["threshold"],
-                    scores=rows["scores"],
-                )
-                if keep_series:
-                    series[key].add(
-                        {
-                            k: rows[k]
-                            for k in (
-                                "t_ns",
-                                "statistic",
-                                "threshold",
-                                "alarm",
-                                "isolated",
-                                "scores",
-                            )
-                        }
-                    )
+                scan.add(detector, sensor_type, ids, rows)
             problems = list(src.warnings)
     finally:
         if close:
             stream.close()
-    if not accumulators:
+    if not scan.accumulators:
         raise McapInputError(
             f"{name}: no detector status channels (/imufdi/<detector>/<type>); "
             "run `imufdi detect` on the log first" + (f"; {problems[0]}" if problems else "")
         )
-    # a damaged log is reported on what could be read, and says so
-    notes.extend(f"input: {problem}" for problem in problems)
-    has_truth = truth is not None
-    if not has_truth:
+    notes = scan.notes(problems)
+    entries = [scan.entry(key, match_far, keep_roc, notes) for key in sorted(scan.accumulators)]
+    if match_far is not None and scan.truth is not None:
         notes.append(
-            "no ground truth in this log (inject faults with `imufdi inject`): "
-            "FAR, MAR, FIR and delays need truth; alarm statistics only"
+            f"matched FAR {match_far:g}: the threshold of each detector's raw statistic is"
+            " scaled (alarm when statistic >= scale x threshold, per sample); confirmation"
+            " and persistence rules are not re-run (docs/metrics.md)"
         )
-    old = sorted({d for d, _ in accumulators if d not in windows_cal})
-    if old:
-        notes.append(
-            f"{', '.join(old)}: no calibration window recorded (log from an older imufdi):"
-            " FAR and alarm rate count every sample, including the in-sample calibration"
+    episode_scores = episodes.scores(scan.fault_free_hours(entries))  # takes pending ones
+    return Report(
+        source=name,
+        has_truth=scan.truth is not None,
+        faults=[] if scan.truth is None else scan.truth.descriptions,
+        entries=entries,
+        notes=notes,
+        t0_ns=min(scan.first_ns.values()) if scan.first_ns else 0,
+        match_far=match_far,
+        episode_scores=episode_scores,
+        episodes=episodes.listed,
+        records={d: r for d, r in scan.records.items() if r is not None},
+    )
+
+
+#: the status fields kept for plots (``keep_series``)
+_SERIES_FIELDS = ("t_ns", "statistic", "threshold", "alarm", "isolated", "scores")
+
+
+class _StatusScan:
+    """What :func:`build_report`'s pass over the status channels gathers per
+    ``(detector, sensor type)``: metric accumulators, sensor ids, first and last sample
+    times, whether every row had a decision time, validity counts and plot series."""
+
+    def __init__(
+        self,
+        metadata: dict[str, dict[str, str]],
+        window: tuple[float, float | None] | None,
+        persist: int,
+        keep_series: bool,
+    ) -> None:
+        self.truth = truth_windows(metadata)
+        self.windows_cal = calibration_windows(metadata)
+        self.metadata = metadata
+        self.window = window
+        self.persist = persist
+        self.keep_series = keep_series
+        self.records = {d: _detect_record(metadata, d) for d in self.windows_cal}
+        self.accumulators: dict[tuple[str, str], MetricsAccumulator] = {}
+        self.ids_of: dict[tuple[str, str], list[str]] = {}
+        self.series: dict[tuple[str, str], _Series] = {}
+        #: shared with the episode collector, which reads the origins as they appear
+        self.first_ns: dict[tuple[str, str], int] = {}
+        self.all_decided: dict[tuple[str, str], bool] = {}
+        self.last_ns: dict[tuple[str, str], int] = {}
+        self.validity: dict[tuple[str, str], dict[str, int]] = {}
+
+    def add(
+        self, detector: str, sensor_type: str, ids: list[str], rows: dict[str, np.ndarray]
+    ) -> None:
+        """Score one batch of status rows of a channel (those ``detect`` marked clipped or
+        invalid, and those outside the window, are counted and left out)."""
+        from imufdi_cli.validity import select_rows
+
+        key = (detector, sensor_type)
+        if key not in self.first_ns and rows["t_ns"].size:
+            origin = int(rows["t_ns"][0])
+        else:
+            origin = self.first_ns.get(key, 0)
+        if detector not in self.records:
+            self.records[detector] = _detect_record(self.metadata, detector)
+        selection = select_rows(
+            rows["t_ns"], self.records[detector], sensor_type, self.window, origin_ns=origin
         )
-    undecided = sorted({d for (d, _), ok in all_decided.items() if not ok})
-    if undecided:
-        notes.append(
-            f"{', '.join(undecided)}: status without decision times (older imufdi): delays"
-            " are at sample time"
+        counts = self.validity.setdefault(key, {"clipped": 0, "invalid": 0, "excluded": 0})
+        counts["clipped"] += selection.clipped
+        counts["invalid"] += selection.invalid
+        counts["excluded"] += selection.excluded
+        if not selection.keep.all():
+            rows = {k: v[selection.keep] for k, v in rows.items()}
+        acc = self.accumulators.get(key)
+        if acc is None:
+            acc = _accumulator(self.truth, ids, self.windows_cal.get(detector), self.persist)
+            self.accumulators[key] = acc
+            self.ids_of[key] = ids
+            self.first_ns[key] = origin
+            self.all_decided[key] = True
+            if self.keep_series:
+                self.series[key] = _Series()
+        self.all_decided[key] &= "decided_ns" in rows
+        if rows["t_ns"].size:
+            self.last_ns[key] = int(rows["t_ns"][-1])
+        acc.update(
+            rows["t_ns"],
+            rows["alarm"],
+            rows["isolated"],
+            decided_ns=rows.get("decided_ns"),
+            isolated_set=rows["isolated_set"],
+            statistic=rows["statistic"],
+            threshold=rows["threshold"],
+            scores=rows["scores"],
         )
-    for (detector, sensor_type), counts in sorted(validity.items()):
-        if counts["excluded"]:
+        if self.keep_series:
+            self.series[key].add({k: rows[k] for k in _SERIES_FIELDS})
+
+    def notes(self, problems: list[str]) -> list[str]:
+        """What the reader must know about the whole log: input damage, missing truth,
+        older logs, samples not scored."""
+        # a damaged log is reported on what could be read, and says so
+        notes = [f"input: {problem}" for problem in problems]
+        if self.truth is None:
             notes.append(
-                f"{detector}.{sensor_type}: {counts['excluded']} samples not scored"
-                f" ({counts['clipped']} clipped, {counts['invalid']} invalid in the range)"
+                "no ground truth in this log (inject faults with `imufdi inject`): "
+                "FAR, MAR, FIR and delays need truth; alarm statistics only"
             )
-    entries = []
-    for key in sorted(accumulators):
+        old = sorted({d for d, _ in self.accumulators if d not in self.windows_cal})
+        if old:
+            notes.append(
+                f"{', '.join(old)}: no calibration window recorded (log from an older imufdi):"
+                " FAR and alarm rate count every sample, including the in-sample calibration"
+            )
+        undecided = sorted({d for (d, _), ok in self.all_decided.items() if not ok})
+        if undecided:
+            notes.append(
+                f"{', '.join(undecided)}: status without decision times (older imufdi): delays"
+                " are at sample time"
+            )
+        for (detector, sensor_type), counts in sorted(self.validity.items()):
+            if counts["excluded"]:
+                notes.append(
+                    f"{detector}.{sensor_type}: {counts['excluded']} samples not scored"
+                    f" ({counts['clipped']} clipped, {counts['invalid']} invalid in the range)"
+                )
+        return notes
+
+    def entry(
+        self,
+        key: tuple[str, str],
+        match_far: float | None,
+        keep_roc: bool,
+        notes: list[str],
+    ) -> ReportEntry:
+        """The finished :class:`ReportEntry` of one channel (a matched-FAR problem is
+        appended to ``notes``); without truth the truth-based metrics are None."""
         detector, sensor_type = key
-        acc = accumulators[key]
+        has_truth = self.truth is not None
+        acc = self.accumulators[key]
         metrics = acc.result()
         roc = None
         if match_far is not None and has_truth:
@@ -406,51 +458,35 @@ def build_report(
             metrics.far = metrics.mar = metrics.accuracy = None
             metrics.fir = metrics.isolation_accuracy = None
             metrics.false_alarm_events_per_hour = metrics.far_calibration = None
-        arrays = series[key].arrays() if key in series else {}
-        n_s = len(ids_of[key])
+        arrays = self.series[key].arrays() if key in self.series else {}
+        n_s = len(self.ids_of[key])
         t_ns = arrays.get("t_ns", np.zeros(0, np.int64))
-        entries.append(
-            ReportEntry(
-                detector=detector,
-                sensor_type=sensor_type,
-                sensor_ids=ids_of[key],
-                metrics=metrics,
-                t_ns=t_ns,
-                statistic=arrays.get("statistic", np.zeros(0)),
-                threshold=arrays.get("threshold", np.zeros(0)),
-                alarm=arrays.get("alarm", np.zeros(0, bool)),
-                scores=arrays.get("scores", np.zeros((0, n_s))),
-                faulty=faulty_matrix(t_ns, acc.windows, n_s),
-                isolated=arrays.get("isolated", np.zeros(0, np.int64)),
-                roc=roc,
-                validity=validity.get(key, {}),
-            )
+        return ReportEntry(
+            detector=detector,
+            sensor_type=sensor_type,
+            sensor_ids=self.ids_of[key],
+            metrics=metrics,
+            t_ns=t_ns,
+            statistic=arrays.get("statistic", np.zeros(0)),
+            threshold=arrays.get("threshold", np.zeros(0)),
+            alarm=arrays.get("alarm", np.zeros(0, bool)),
+            scores=arrays.get("scores", np.zeros((0, n_s))),
+            faulty=faulty_matrix(t_ns, acc.windows, n_s),
+            isolated=arrays.get("isolated", np.zeros(0, np.int64)),
+            roc=roc,
+            validity=self.validity.get(key, {}),
         )
-    if match_far is not None and has_truth:
-        notes.append(
-            f"matched FAR {match_far:g}: the threshold of each detector's raw statistic is"
-            " scaled (alarm when statistic >= scale x threshold, per sample); confirmation"
-            " and persistence rules are not re-run (docs/metrics.md)"
-        )
-    hours = {}
-    for entry in entries:
-        key, metrics = (entry.detector, entry.sensor_type), entry.metrics
-        span_h = (last_ns.get(key, 0) - first_ns[key]) * 1e-9 / 3600
-        share = metrics.fault_free_samples / metrics.samples if metrics.samples else 0.0
-        hours[key] = span_h * (share if has_truth else 1.0)
-    episode_scores = episodes.scores(hours)  # first: it takes the episodes still pending
-    return Report(
-        source=name,
-        has_truth=has_truth,
-        faults=[] if truth is None else truth.descriptions,
-        entries=entries,
-        notes=notes,
-        t0_ns=min(first_ns.values()) if first_ns else 0,
-        match_far=match_far,
-        episode_scores=episode_scores,
-        episodes=episodes.listed,
-        records={d: r for d, r in records.items() if r is not None},
-    )
+
+    def fault_free_hours(self, entries: list[ReportEntry]) -> dict[tuple[str, str], float]:
+        """Hours of each channel's log span, times its fault-free share when there is
+        truth (the denominator of the episode rates)."""
+        hours = {}
+        for entry in entries:
+            key, metrics = (entry.detector, entry.sensor_type), entry.metrics
+            span_h = (self.last_ns.get(key, 0) - self.first_ns[key]) * 1e-9 / 3600
+            share = metrics.fault_free_samples / metrics.samples if metrics.samples else 0.0
+            hours[key] = span_h * (share if self.truth is not None else 1.0)
+        return hours
 
 
 def _detect_record(metadata: dict[str, dict[str, str]], detector: str) -> dict[str, Any] | None:

@@ -131,15 +131,6 @@ def test_undefined_rendering():
     assert rep.format_value(None) == "undefined"
 
 
-def test_plot_writes_png(tmp_path):
-    pytest.importorskip("matplotlib")
-    from imufdi_cli import plots
-
-    path = tmp_path / "plot.png"
-    plots.plot_report(_report(), str(path))
-    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-
-
 def test_plot_series_keep_every_alarm_when_decimating(monkeypatch):
     """The kept sample's alarm is the OR of the alarms since the previous kept sample,
     for any block sizes and after any number of halvings."""

@@ -15,7 +15,12 @@ from imufdi_cli.cli.ui import UI, common_options, make_console
 @cli.command()
 @click.argument("spec")
 @click.option("-o", "--output", "results_dir", required=True, help="Results directory.")
-@click.option("--jobs", type=click.IntRange(min=1), help="Worker processes (default: all cores).")
+@click.option(
+    "--jobs",
+    type=click.IntRange(min=1),
+    help="Worker processes (default: all cores, the fastest on an idle machine; use 1 when "
+    "other work keeps the cores busy, see docs/campaign.md).",
+)
 @click.option("--scheduler", help="dask scheduler: tcp://HOST:PORT or local:N.")
 @click.option(
     "--resume", is_flag=True, help="Skip runs whose results are already in the directory."

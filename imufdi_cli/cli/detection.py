@@ -265,6 +265,14 @@ def tune(
     "--min-static", default="5s", show_default=True, help="Shortest static interval used."
 )
 @click.option("--topic", "topics", multiple=True, help="Imu topics to use, in array order.")
+@click.option(
+    "--jitter-fit",
+    type=click.Choice(["level", "moments", "off"]),
+    default="level",
+    show_default=True,
+    help="Sampling-time jitter [jitter] from the motion: level (per-sample test holds 1 %"
+    " there), moments (matches the mean), off.",
+)
 @common_options(json_help="The calibration figures (intervals, per-triad scale, bias, RMS).")
 def calibrate(
     source: str,
@@ -275,6 +283,7 @@ def calibrate(
     gravity: str,
     min_static: str,
     topics: tuple[str, ...],
+    jitter_fit: str,
     ui: UI,
 ) -> None:
     """Per-IMU calibration (M, b of every triad) from static orientations and motion.
@@ -308,6 +317,7 @@ def calibrate(
         gravity=parse_quantity(gravity, "acceleration", name="--gravity"),
         min_static_s=parse_quantity(min_static, "time", name="--min-static"),
         topics=list(topics) or None,
+        jitter_fit=jitter_fit,
     )
     write_text(output, result.array.to_toml())
     ui.json(result.to_dict())
@@ -338,6 +348,11 @@ def calibrate(
         console.print(
             f"{sensor_type}: RMS between triads {where}: {before * factor:.4g} -> "
             f"{after * factor:.4g} {unit}"
+        )
+    for sensor_type, jitter in result.jitter_s.items():
+        console.print(
+            f"{sensor_type}: sampling-time jitter sigma_t {jitter * 1e3:.3g} ms in motion"
+            " (glt and pca-parity widen their tests by it)"
         )
     console.print(f"runtime {result.runtime_s:.2f} s")
     ui.warn(result.warnings)

@@ -42,8 +42,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import DetectionBlock, DetectorBase, Param
+from imufdi_cli.detectors.base import DetectionBlock, Param
 from imufdi_cli.detectors.vectors import (
+    CausalImuCheck,
     TriadLayout,
     compared_layouts,
     imu_isolation,
@@ -98,7 +99,7 @@ class _TypeState:
     seen: int = 0
 
 
-class ApConsistencyDetector(DetectorBase):
+class ApConsistencyDetector(CausalImuCheck):
     """ArduPilot pre-arm style IMU consistency check (module docstring); ``ap-consistency``."""
 
     name: ClassVar[str] = "ap-consistency"
@@ -255,10 +256,6 @@ class ApConsistencyDetector(DetectorBase):
             amplitude=amplitude,
             scores=scores,
         )
-
-    def flush(self) -> dict[str, DetectionBlock]:
-        """Causal: nothing is held back."""
-        return {t: DetectionBlock.empty(0, s.layout.n_sensors) for t, s in self._states.items()}
 
     def metadata(self) -> dict[str, Any]:
         """Parameters (SI), hold in samples, per-IMU limits and calibration offsets."""

@@ -69,18 +69,26 @@ devices (§2-3): accelerometer noise increase in a 12-IMU array. The paper's met
    for x, so a noise growth on y or z hardly moves R_k (detection 10-14 % at x3). Every
    axis is therefore also tested on its own: the leave-one-out residual of each
    accelerometer against the rigid-body consensus of the others (lever arms modelled; the
-   residual model and calibrated scale of
-   :class:`~imufdi_cli.detectors.noise_glr.NoiseGlrDetector`), first-differenced and
-   standardized (``z``), feeds a capped variance CUSUM (:mod:`.cusum`, design ratio
-   ``K = 9``, ``z^2`` clipped at 25, cap ``INPUT_RELEASE_S`` of null drift above h). The
-   threshold h is the per-channel Šidák share of ``alpha / 2``, from a seeded simulation
-   of the null (:func:`.cusum.cusum_threshold`). The mapping test then runs at
-   ``alpha / 2`` (Bonferroni).
-9. Combined output (with the input test): ``statistic = max(max_k R_k / T_map,
-   max_j S_j / h)``, threshold 1; an input-test alarm isolates its channel (the axis
-   itself) with ``amplitude`` = the variance ratio of its recent differences (mean z^2 over
-   ``window``), else the mapping's isolation and amplitude apply; ``scores`` = the added
-   noise standard deviation of every axis, ``sqrt(max(mean z^2 - 1, 0) tau / 2)``, m/s^2.
+   residual model of :class:`~imufdi_cli.detectors.noise_glr.NoiseGlrDetector`), minus
+   the mean of its ``INPUT_MEAN_S`` (8) previous samples and standardized by the
+   calibrated variance of that quantity (``z``, :func:`.cusum.local_mean_residual`),
+   feeds a capped variance CUSUM (:mod:`.cusum`, design ratio ``K = 9``, ``z^2`` clipped
+   at 25, cap ``INPUT_RELEASE_S`` of null drift above h). The threshold h is the
+   per-channel Šidák share of ``alpha``, from a seeded simulation of the null
+   (:func:`.cusum.cusum_threshold`).
+9. Output. By default (``mapping_test=report``) the mapping test (steps 1-7) does not
+   alarm: its threshold, fitted in-sample on the calibration window, does not hold its
+   level out of sample (alone at alpha: 5.05 alpha mean, 24.5 alpha worst of 10 fresh seeds; see
+   docs/algorithms/cnn-map.md), so it is computed and the samples over its threshold are
+   counted in the metadata (``mapping_report``), and the output is the input test's:
+   ``statistic = max_j S_j / h``, threshold 1, an alarm isolates its channel (the axis
+   itself) with ``amplitude`` = the variance ratio of its recent residuals (mean z^2 over
+   ``window``). With ``mapping_test=alarm`` both tests alarm, each at ``alpha / 2``
+   (Bonferroni): ``statistic = max(max_k R_k / T_map, max_j S_j / h)``, the mapping's
+   isolation and amplitude where only it alarms. ``mapping_test=off`` trains no network
+   (the output is the same as with ``report``). ``scores`` = the added noise standard
+   deviation of every axis, ``sqrt(max(mean z^2 - 1, 0) s^2)`` with s^2 the nominal
+   residual variance, m/s^2.
 
 Only ``accel`` is reported (the gyros are the reference; their screening is in
 :meth:`CnnMapDetector.metadata`). The first ``L - 1 + p`` samples of the log have no
@@ -111,10 +119,19 @@ from imufdi_cli.detectors.base import (
     DetectorBase,
     Param,
 )
-from imufdi_cli.detectors.cusum import CusumDesign, cusum_threshold, run_cusum
+from imufdi_cli.detectors.cusum import (
+    CusumDesign,
+    cusum_threshold,
+    local_mean_residual,
+    run_cusum,
+)
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.nn import ACTIVATIONS, Adam, Conv1d, Dense, Sequential, mse_loss
-from imufdi_cli.detectors.noise_glr import NoiseGlrDetector
+from imufdi_cli.detectors.noise_glr import (
+    NoiseGlrDetector,
+    clipped_square_moments,
+    robust_scale,
+)
 from imufdi_cli.detectors.parity import least_squares_matrix
 from imufdi_cli.detectors.pca_parity import MovingWindow
 from imufdi_cli.errors import (
@@ -143,6 +160,52 @@ INPUT_DESIGN = CusumDesign(ratio=9.0, clip=5.0)
 #: Input test: the CUSUM is capped this long (at its null drift) above its threshold, s, so
 #: that an alarm ends about this long after the noise returns to nominal.
 INPUT_RELEASE_S = 0.25
+#: Input test: each leave-one-out residual is compared with the mean of its previous
+#: samples over this span, s (8 samples at 100 Hz; :func:`.cusum.local_mean_residual`).
+INPUT_MEAN_S = 0.08
+#: What the mapping test does: ``report`` (computed, exceedances of its threshold counted
+#: in the metadata, no alarm), ``alarm`` (alarms, at alpha / 2 beside the input test) or
+#: ``off`` (no network is trained).
+MAPPING_MODES = ("report", "alarm", "off")
+
+
+@dataclass
+class _MappingReport:
+    """Running account of the mapping test when it only reports (``mapping_test=report``):
+    samples and episodes over its threshold, per isolated accelerometer axis."""
+
+    samples: int = 0
+    over: int = 0
+    episodes: int = 0
+    first_over: int = -1
+    max_ratio: float = 0.0
+    by_sensor: dict[int, int] = field(default_factory=dict)
+    _was_over: bool = False
+
+    def add(self, ratio: np.ndarray, isolated: np.ndarray) -> None:
+        """Account one block.
+
+        Parameters
+        ----------
+        ratio : ndarray, shape (N,)
+            Mapping statistic over its threshold (> 1: over).
+        isolated : ndarray, shape (N,), int
+            The mapping test's isolated accelerometer (valid where over).
+        """
+        over = ratio > 1.0
+        if over.any():
+            rows = np.flatnonzero(over)
+            if self.first_over < 0:
+                self.first_over = self.samples + int(rows[0])
+            previous = np.concatenate([[self._was_over], over[:-1]])
+            self.episodes += int(np.sum(over & ~previous))
+            for sensor, count in zip(*np.unique(isolated[rows], return_counts=True)):
+                self.by_sensor[int(sensor)] = self.by_sensor.get(int(sensor), 0) + int(count)
+            self.max_ratio = max(self.max_ratio, float(ratio.max()))
+        self.over += int(over.sum())
+        self.samples += int(ratio.size)
+        if ratio.size:
+            self._was_over = bool(over[-1])
 
 
 @dataclass
@@ -400,8 +463,14 @@ class CnnMapDetector(DetectorBase):
     model : str or None
         Path of a saved model (:meth:`save_model`): reuse it instead of training.
     input_test : bool
-        Also run the input test (step 8, beyond the paper); the level ``alpha`` is then
-        split in half between the mapping test and the input test (Bonferroni).
+        Also run the input test (step 8, beyond the paper).
+    mapping_test : {"report", "alarm", "off"}
+        ``report`` (default): the mapping test is computed but does not alarm; samples over
+        its threshold are counted in the metadata (``mapping_report``), the input test
+        alarms at ``alpha``. ``alarm``: both tests alarm, each at ``alpha / 2``
+        (Bonferroni); with ``input_test=false`` the mapping test alone at ``alpha``.
+        ``off``: no network is trained, the input test alone. If the input test cannot run
+        on the array, ``report`` falls back to the mapping test alarming at ``alpha``.
     """
 
     name: ClassVar[str] = "cnn-map"
@@ -438,6 +507,14 @@ class CnnMapDetector(DetectorBase):
             "also test every accelerometer axis for a noise growth of its leave-one-out"
             " residual (CUSUM, beyond the paper; off = the mapping test alone)",
         ),
+        "mapping_test": Param(
+            "choice",
+            "report",
+            "the mapping test: report (computed and counted in the metadata, no alarm: its"
+            " threshold does not hold out of sample), alarm (alarms at alpha/2 beside the"
+            " input test), off (no network trained)",
+            choices=MAPPING_MODES,
+        ),
     }
 
     def __init__(
@@ -457,6 +534,7 @@ class CnnMapDetector(DetectorBase):
         model: str | None = None,
         whiten: int = 8,
         input_test: bool = True,
+        mapping_test: str = "report",
     ) -> None:
         self.alpha = float(alpha)
         self.window_s = float(window)
@@ -473,6 +551,20 @@ class CnnMapDetector(DetectorBase):
         self.model_path = model
         self.whiten = int(whiten)
         self.input_test = bool(input_test)
+        self.mapping_test = str(mapping_test)
+        if self.mapping_test not in MAPPING_MODES:
+            raise DetectorConfigError(
+                f"cnn-map.mapping_test: {self.mapping_test!r} is not one of"
+                f" {', '.join(MAPPING_MODES)}"
+            )
+        if not self.input_test and self.mapping_test != "alarm":
+            raise DetectorConfigError(
+                "cnn-map: input_test=false leaves only the mapping test; it needs"
+                " mapping_test=alarm"
+            )
+        self.mapping_alarms = self.mapping_test == "alarm"
+        self.mapping_report = _MappingReport()
+        self.input_mean_window = 1
         self.array: ArrayConfig | None = None
         self.mapping: MappingNetwork | None = None
         self.network: Sequential | None = None
@@ -608,6 +700,20 @@ class CnnMapDetector(DetectorBase):
             glt = GltDetector(types="gyro")
             glt.fit(ImuBlock(t_ns=calibration.t_ns, gyro=calibration.gyro), array)
             self._glt = glt
+        self.mapping_alarms = self.mapping_test == "alarm"
+        self.mapping_report = _MappingReport()
+        self._fit_input_test(calibration, array)
+        if self.mapping_test == "off":
+            if self._input is None:
+                raise CalibrationError(
+                    f"cnn-map: mapping_test=off needs the input test, which cannot run here"
+                    f" ({self.input_note})"
+                )
+            self.mapping = None
+            self.network = None
+            return
+        if self._input is None:  # nothing else can alarm: the mapping test does, at alpha
+            self.mapping_alarms = True
         gyro = array.select(calibration.gyro, "gyro")
         reference = gyro @ self._estimator.T  # fault-free window: every gyro
         body = self._body_accel(calibration)
@@ -638,19 +744,21 @@ class CnnMapDetector(DetectorBase):
             holdout_start = windows_n - n_holdout
             self._train(body, reference, length, n_train, holdout_start, array.rate_hz)
         self.input_length = length
-        self._fit_input_test(calibration, array)
         self._calibrate_residuals(body, reference)
 
     def _fit_input_test(self, calibration: ImuBlock, array: ArrayConfig) -> None:
         """Step 8: leave-one-out accelerometer residuals and the CUSUM threshold.
 
-        The residual model (rigid body with lever arms) and the calibrated scale of the
-        residual differences are :class:`~imufdi_cli.detectors.noise_glr.NoiseGlrDetector`'s
-        (accelerometers only). The per-channel level is the Šidák share of ``alpha / 2``
-        over the tested channels; the threshold comes from :func:`.cusum.cusum_threshold`
-        (simulated null, seeded by ``seed``). Arrays whose accelerometers have no
-        leave-one-out redundancy run the mapping test alone (at ``alpha``), noted in the
-        metadata.
+        The residual model (rigid body with lever arms) is
+        :class:`~imufdi_cli.detectors.noise_glr.NoiseGlrDetector`'s (accelerometers only).
+        Each residual minus the mean of its ``INPUT_MEAN_S`` previous samples
+        (:func:`.cusum.local_mean_residual`) is standardized by its variance, estimated on
+        the calibration window robustly (Huber's proposal 2 at the clip, noise-glr's
+        ``robust_scale``). The per-channel level is the Šidák share over the tested
+        channels of ``alpha`` (``alpha / 2`` when the mapping test alarms too); the
+        threshold comes from :func:`.cusum.cusum_threshold` (simulated null, seeded by
+        ``seed``). Arrays whose accelerometers have no leave-one-out redundancy run the
+        mapping test alone (at ``alpha``), noted in the metadata.
         """
         self._input = None
         self.input_note = "off (input_test=false)"
@@ -667,10 +775,21 @@ class CnnMapDetector(DetectorBase):
             self.input_note = "not run: no redundant accelerometers"
             return
         model = glr.models["accel"]
+        share = self.alpha / 2.0 if self.mapping_alarms else self.alpha
+        self.input_mean_window = max(1, round(INPUT_MEAN_S * array.rate_hz))
+        residuals = glr._residuals("accel", model, calibration)
+        centred = local_mean_residual(residuals, self.input_mean_window)[self.input_mean_window :]
+        if centred.shape[0] < 20:
+            self.input_note = "not run: calibration window too short for the input test"
+            return
         self._input = glr
-        self.mapping_alpha = self.alpha / 2.0
+        self.mapping_alpha = share
+        moments = clipped_square_moments(INPUT_DESIGN.clip, 0.0)
+        scale = robust_scale(centred, INPUT_DESIGN.clip, moments[0])
+        self.input_scale = np.where(model.testable & (scale > 0), scale, 1.0)  # (n,), (m/s^2)^2
+        self._input_past = np.zeros((0, model.operator.shape[0]))
         n_tested = int(model.testable.sum())
-        self.input_level = -math.expm1(math.log1p(-self.alpha / 2.0) / n_tested)
+        self.input_level = -math.expm1(math.log1p(-share) / n_tested)
         self.input_margin = (
             INPUT_RELEASE_S
             * array.rate_hz
@@ -682,6 +801,7 @@ class CnnMapDetector(DetectorBase):
             self.input_margin,
             model.calibration_dof,
             np.random.default_rng([self.seed, 0x1C5]),
+            mean_window=self.input_mean_window,
         )
         self.input_note = "on"
         self._input_state = np.zeros(model.operator.shape[0])
@@ -694,7 +814,10 @@ class CnnMapDetector(DetectorBase):
         mean of z^2 (N, n_accel) and the added noise std estimate (N, n_accel), m/s^2."""
         assert self._input is not None
         model = self._input.models["accel"]
-        z = model.differences(self._input._residuals("accel", model, block))  # (N, n)
+        residuals = self._input._residuals("accel", model, block)  # (N, n)
+        z = local_mean_residual(residuals, self.input_mean_window, self._input_past)
+        z /= np.sqrt(self.input_scale)
+        self._input_past = np.concatenate([self._input_past, residuals])[-self.input_mean_window :]
         increments = INPUT_DESIGN.increments(z)
         increments[:, ~model.testable] = 0.0
         cusum, self._input_state = run_cusum(
@@ -702,8 +825,10 @@ class CnnMapDetector(DetectorBase):
         )
         cusum[:, ~model.testable] = np.nan
         sums, counts = self._input_window.push(np.where(np.isnan(z), 1.0, np.square(z)))
-        energy = sums / counts[:, None]  # variance ratio of the recent differences
-        added = np.sqrt(np.maximum(energy - 1.0, 0.0) * model.scale / 2.0)  # tau = 2 sigma^2
+        energy = sums / counts[:, None]  # variance ratio of the recent residuals
+        # added variance: (energy - 1) x the nominal variance, scale / (1 + 1/W)
+        nominal = self.input_scale / (1.0 + 1.0 / self.input_mean_window)
+        added = np.sqrt(np.maximum(energy - 1.0, 0.0) * nominal)
         added[:, ~model.testable] = np.nan
         return cusum, energy, added
 
@@ -915,14 +1040,53 @@ class CnnMapDetector(DetectorBase):
 
     def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
         """Test one block; one ``accel`` row per input sample (causal)."""
-        if self.network is None or self.array is None:
+        if self.array is None or (self.mapping_test != "off" and self.network is None):
             raise CalibrationError(f"{self.name}: process() called before fit()")
         if block.gyro is None or block.accel is None:
             raise InputDataError("cnn-map: the block needs gyro and accel data")
         n_samples = len(block)
-        m = len(self.tested)
         if n_samples == 0:
             return {"accel": DetectionBlock.empty(0, self.n_accel)}
+        mapped = self._mapping_block(block) if self.network is not None else None
+        self._samples_seen += n_samples
+        if self._input is None:  # the mapping test alone (it alarms, see fit)
+            assert mapped is not None
+            return {"accel": mapped}
+        # Step 9: the input test, with the mapping test alarming or only reporting
+        rows = np.arange(n_samples)
+        cusum, energy, added = self._input_statistics(block)
+        filled = np.where(np.isnan(cusum), -np.inf, cusum)
+        channel = np.argmax(filled, axis=1)
+        statistic = filled[rows, channel] / self.input_threshold
+        alarm = statistic > 1.0
+        isolated = np.where(alarm, channel, NO_ISOLATION)
+        amplitude = np.where(alarm, energy[rows, channel], np.nan)
+        if mapped is not None:
+            mapping_statistic = mapped.statistic / mapped.threshold
+            self.mapping_report.add(mapping_statistic, mapped.isolated)
+            if self.mapping_alarms:
+                statistic = np.maximum(mapping_statistic, statistic)
+                isolated = np.where(alarm, channel, mapped.isolated)
+                amplitude = np.where(alarm, amplitude, mapped.amplitude)
+                alarm = alarm | mapped.alarm
+        return {
+            "accel": DetectionBlock(
+                statistic=statistic,
+                threshold=np.ones(n_samples),
+                alarm=alarm,
+                isolated=isolated.astype(np.int32),
+                amplitude=amplitude,
+                scores=added,
+            )
+        }
+
+    def _mapping_block(self, block: ImuBlock) -> DetectionBlock:
+        """Steps 1-7 on one block: the mapping test's own output (statistic max_k R_k
+        against its threshold, isolation, amplitude, scores); stream state is kept."""
+        assert self.network is not None and self.array is not None
+        assert block.accel is not None
+        n_samples = len(block)
+        m = len(self.tested)
         reference = self._reference_rate(block)
         body = self._body_accel(block)
         joined = np.concatenate([self._tail, body], axis=0)
@@ -971,32 +1135,16 @@ class CnnMapDetector(DetectorBase):
         best_axis = self._episode_axes(
             alarm, best_imu, projection[rows, best_imu], norm2[rows, best_imu]
         )
-        isolated = np.where(alarm, self.sensor_of[best_imu, best_axis], NO_ISOLATION)
-        amplitude = np.where(alarm, statistic, np.nan)
-        if self._input is not None:
-            # Step 9: either test alarms; statistics normalised by their thresholds
-            cusum, energy, added = self._input_statistics(block)
-            filled = np.where(np.isnan(cusum), -np.inf, cusum)
-            channel = np.argmax(filled, axis=1)
-            input_statistic = filled[rows, channel] / self.input_threshold
-            input_alarm = input_statistic > 1.0
-            statistic = np.maximum(statistic / threshold, input_statistic)
-            threshold = np.ones(n_samples)
-            isolated = np.where(input_alarm, channel, isolated)
-            amplitude = np.where(input_alarm, energy[rows, channel], amplitude)
-            alarm = alarm | input_alarm
-            scores = added
-        self._samples_seen += n_samples
-        return {
-            "accel": DetectionBlock(
-                statistic=statistic,
-                threshold=threshold,
-                alarm=alarm,
-                isolated=isolated.astype(np.int32),
-                amplitude=amplitude,
-                scores=scores,
-            )
-        }
+        return DetectionBlock(
+            statistic=statistic,
+            threshold=threshold,
+            alarm=alarm,
+            isolated=np.where(alarm, self.sensor_of[best_imu, best_axis], NO_ISOLATION).astype(
+                np.int32
+            ),
+            amplitude=np.where(alarm, statistic, np.nan),
+            scores=scores,
+        )
 
     def _episode_axes(
         self, alarm: np.ndarray, imu: np.ndarray, projection: np.ndarray, norm2: np.ndarray
@@ -1090,9 +1238,31 @@ class CnnMapDetector(DetectorBase):
             "model": self.model_path,
             "whiten": self.whiten,
             "input_test": self.input_test,
+            "mapping_test": self.mapping_test,
         }
         out: dict[str, Any] = {"detector": self.name, "params": params}
-        if self.mapping is None or self.array is None:
+        if self.array is None:
+            return out
+        out.update(
+            {
+                "mapping_test": self.mapping_test,
+                "mapping_alarms": self.mapping_alarms,
+                "mapping_alpha": self.mapping_alpha,
+                "input_test": self._input_metadata(),
+                "scores": "estimated added noise std per accel axis, m/s^2",
+            }
+        )
+        if self._input is None:
+            out["statistic"] = "mapping: max_k R_k against its threshold"
+        elif self.mapping_alarms:
+            out["statistic"] = "max(mapping: max_k R_k / T_map, input: max_j S_j / h); threshold 1"
+        else:
+            out["statistic"] = "input: max_j S_j / h; threshold 1 (the mapping test only reports)"
+        out["amplitude"] = (
+            "the variance ratio of the isolated axis's recent residuals (input test), or the"
+            " energy ratio R_k of the isolated IMU against the other IMUs (mapping test)"
+        )
+        if self.mapping is None:
             return out
         mp = self.mapping
         out.update(
@@ -1120,23 +1290,28 @@ class CnnMapDetector(DetectorBase):
                 "excluded_now": [self.gyro_ids[i] for i in self.excluded_gyros],
                 "readmit_s": READMIT_S,
                 "calibration_motion_ratio": self.calibration_motion,
-                "mapping_alpha": self.mapping_alpha,
-                "input_test": self._input_metadata(),
-                "statistic": (
+                "mapping_statistic": (
                     "max_k R_k, R_k = E_k / mean_(j!=k) E_j, E_k = windowed mean of"
                     " (z_kc - mu_kc)^2 / v_c, z = AR-whitened mapping residual"
                 ),
-                "amplitude": (
-                    "energy ratio R_k of the isolated IMU against the other IMUs (mapping"
-                    " test), or the variance ratio of the isolated axis's recent residual"
-                    " differences (input test)"
-                ),
-                "scores": "estimated added noise std per accel axis, m/s^2",
+                "mapping_report": self._report_metadata(),
             }
         )
-        if self._input is not None:
-            out["statistic"] = "max(mapping: max_k R_k / T_map, input: max_j S_j / h); threshold 1"
         return out
+
+    def _report_metadata(self) -> dict[str, Any]:
+        """Samples and episodes over the mapping test's threshold so far (JSON-ready)."""
+        report = self.mapping_report
+        ids = self.array.sensor_ids("accel") if self.array is not None else []
+        return {
+            "samples": report.samples,
+            "over_threshold": report.over,
+            "rate": report.over / report.samples if report.samples else 0.0,
+            "episodes": report.episodes,
+            "first_over_sample": report.first_over,
+            "max_statistic_over_threshold": report.max_ratio,
+            "by_sensor": {ids[k]: v for k, v in sorted(report.by_sensor.items())},
+        }
 
     def _input_metadata(self) -> dict[str, Any]:
         """Step 8 calibration (JSON-ready)."""
@@ -1147,13 +1322,16 @@ class CnnMapDetector(DetectorBase):
         info.update(
             {
                 "design_variance_ratio": INPUT_DESIGN.ratio,
+                "mean_window_samples": int(self.input_mean_window),
                 "clip_sigma": INPUT_DESIGN.clip,
                 "channel_level": float(self.input_level),
                 "threshold": float(self.input_threshold),
                 "cap_above_threshold": float(self.input_margin),
                 "lever_arm": bool(model.lever_arm),
                 "tested": model.testable.tolist(),
-                "residual_sigma": np.sqrt(model.scale / 2.0).tolist(),
+                "residual_sigma": np.sqrt(
+                    self.input_scale / (1.0 + 1.0 / self.input_mean_window)
+                ).tolist(),
                 "calibration_dof": float(model.calibration_dof),
             }
         )

@@ -12,13 +12,15 @@ statistic needs to come back under ``h`` after the variance returns to nominal (
 drift ``E l = 1/2 (1 - 1/K) E min(z^2, c^2) - 1/2 ln K`` is negative, so the alarm ends
 about ``b / |E l|`` samples after the fault).
 
-The terms used here are first differences of a white residual, standardized by the
-calibrated ``Var(d)``, so consecutive z have correlation -1/2 and the textbook i.i.d. tail
-``P(S > h) ~ C exp(-h)`` does not apply exactly. :func:`cusum_threshold` therefore finds h
-by simulating the null process itself (differences of white Gaussian noise, with each
-simulated channel's scale drawn with the calibration's own estimation error), and
-extrapolates the simulated exceedance probability, which decays exponentially in h, to the
-required per-sample level.
+The terms used here are a white residual minus the mean of its ``W`` previous samples
+(:func:`local_mean_residual`; ``W = 1`` is the first difference), standardized by the
+calibrated variance of that quantity. Consecutive z are correlated
+(``-k / (W (W + 1))`` at lag k <= W; -1/2 for the first difference) and the scale is
+estimated, so the textbook i.i.d. tail ``P(S > h) ~ C exp(-h)`` does not apply exactly.
+:func:`cusum_threshold` therefore finds h by simulating the null process itself (the same
+transform of white Gaussian noise, with each simulated channel's scale drawn with the
+calibration's own estimation error), and extrapolates the simulated exceedance probability,
+which decays exponentially in h, to the required per-sample level.
 """
 
 from __future__ import annotations
@@ -60,6 +62,45 @@ class CusumDesign:
         return self.gain * z2 - self.offset  # type: ignore[no-any-return]
 
 
+def local_mean_residual(
+    series: np.ndarray, window: int, past: np.ndarray | None = None
+) -> np.ndarray:
+    """``(x_t - mean(x_{t-W}, .., x_{t-1})) / sqrt(1 + 1/W)`` per column, streaming.
+
+    For white x of variance s^2 the result has variance s^2 and consecutive values are
+    correlated ``-k / (W (W + 1))`` at lag k <= W (0 beyond); a constant offset of x drops
+    out, a step of x stays in the result for W samples. ``W = 1`` is the first difference
+    divided by sqrt(2).
+
+    Parameters
+    ----------
+    series : ndarray, shape (N, n)
+    window : int
+        W >= 1.
+    past : ndarray, shape (P, n), or None
+        The samples before ``series`` (the last W are used); rows of the result without W
+        previous samples (in ``past`` and ``series`` together) are NaN.
+
+    Returns
+    -------
+    ndarray, shape (N, n)
+    """
+    n = series.shape[0]
+    before = (
+        np.zeros((0, series.shape[1])) if past is None else past[max(0, past.shape[0] - window) :]
+    )
+    joined = np.concatenate([before, series], axis=0)
+    offset = before.shape[0]
+    cumulative = np.concatenate([np.zeros((1, joined.shape[1])), np.cumsum(joined, axis=0)])
+    out = np.full((n, series.shape[1]), np.nan)
+    first = max(0, window - offset)  # first row of series with W previous samples
+    if first < n:
+        rows = np.arange(first, n) + offset  # index in joined
+        means = (cumulative[rows] - cumulative[rows - window]) / window
+        out[first:] = (joined[rows] - means) / math.sqrt(1.0 + 1.0 / window)
+    return out
+
+
 def run_cusum(
     increments: np.ndarray, state: np.ndarray, cap: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -96,12 +137,14 @@ def cusum_threshold(
     rng: np.random.Generator,
     chains: int = 256,
     steps: int = 16384,
+    mean_window: int = 1,
 ) -> float:
     """Threshold h with per-sample ``P(S_t > h) = level`` for one channel under the null.
 
-    The null process is simulated: ``z_t = (e_t - e_{t-1}) / sqrt(2 (1 + delta))`` with
-    white ``e ~ N(0, 1)``, ``delta ~ N(0, 2 / calibration_dof)`` drawn once per chain (the
-    relative error of the calibrated Var(d)), the CUSUM capped at ``h + margin``. The first
+    The null process is simulated: ``z_t = local_mean_residual(e, W)_t / sqrt(1 + delta)``
+    with white ``e ~ N(0, 1)`` (``W = 1``: ``(e_t - e_{t-1}) / sqrt(2 (1 + delta))``),
+    ``delta ~ N(0, 2 / calibration_dof)`` drawn once per chain (the relative error of the
+    calibrated variance), the CUSUM capped at ``h + margin``. The first
     1024 steps of each chain are dropped (start-up). The exceedance probability of the
     uncapped statistic decays as ``C exp(-theta h)``; it is estimated where at least 100
     samples exceed h and extrapolated (least squares in ``ln P`` over the upper half of that
@@ -121,6 +164,8 @@ def cusum_threshold(
     rng : numpy.random.Generator
     chains, steps : int
         Simulation size.
+    mean_window : int
+        W of :func:`local_mean_residual` (1: first differences).
 
     Returns
     -------
@@ -129,10 +174,10 @@ def cusum_threshold(
     """
     burn = 1024
     scale = np.sqrt(
-        2.0 * np.maximum(1.0 + rng.normal(0.0, math.sqrt(2.0 / calibration_dof), chains), 0.05)
+        np.maximum(1.0 + rng.normal(0.0, math.sqrt(2.0 / calibration_dof), chains), 0.05)
     )
-    white = rng.standard_normal((steps + burn + 1, chains))
-    z = np.diff(white, axis=0) / scale
+    white = rng.standard_normal((steps + burn + mean_window, chains))
+    z = local_mean_residual(white, mean_window)[mean_window:] / scale
     increments = design.increments(z)
     h = _tail_threshold(run_cusum(increments, np.zeros(chains), math.inf)[0][burn:], level)
     capped = run_cusum(increments, np.zeros(chains), h + margin)[0][burn:]

@@ -33,6 +33,12 @@ Beyond the paper (all optional):
 - ``window``: moving average of the whitened measurements over w samples (k < w at the
   start); statistics are multiplied by k so that they stay chi2(n - 3) / chi2(1).
 
+- ``jitter`` (default on): when the array config has a sampling-time jitter
+  ``[jitter] <type> = sigma_t`` (``imufdi calibrate`` fits it), the noise covariance in
+  motion is ``(1 + A_t) I`` in whitened units with ``A_t = sigma_t^2 |ydot_w,t|^2 / n``
+  (:mod:`.jitter`): every statistic (D_FD, D_FI,i, the excluded sensors' z_j^2) is divided
+  by ``1 + A_t`` (its mean over ``window``), so the level holds in motion at the price of
+  sensitivity there. No jitter in the config: unchanged.
 - ``lever_arm`` (default on): accelerometers at different positions of a rigid body
   measure ``f_0 + K r_k`` (:mod:`.rigid`, eq. 1), so H is augmented with the observable
   lever-arm columns (``[H | B]``, q = 3 + 6 for a planar array, 3 + 9 in 3-D) and the parity
@@ -52,8 +58,6 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.stats import chi2
-from scipy.stats import f as f_distribution
 
 from imufdi_cli.array import SENSOR_TYPES, ArrayConfig
 from imufdi_cli.detectors.base import (
@@ -64,6 +68,7 @@ from imufdi_cli.detectors.base import (
     DetectorBase,
     Param,
 )
+from imufdi_cli.detectors.jitter import MotionInflation
 from imufdi_cli.detectors.parity import (
     estimated_sigma_threshold,
     isolable_sensors,
@@ -83,6 +88,8 @@ from imufdi_cli.errors import (
     InputDataError,
 )
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.quantiles import chi2
+from imufdi_cli.quantiles import f as f_distribution
 
 #: Minimum number of calibration samples.
 MIN_CALIBRATION_SAMPLES = 10
@@ -205,6 +212,7 @@ class _TypeState:
     full_triads: bool  # sensors are imu0.x, imu0.y, imu0.z, imu1.x, ... (all axes, in order)
     config: _Configuration
     history: np.ndarray  # (<= w-1, n) last whitened samples, for the moving average
+    inflation: MotionInflation | None = None  # motion (jitter) variance factor, None: off
     exceed_run: int = 0
     candidate: int = NO_ISOLATION
     candidate_run: int = 0
@@ -252,6 +260,9 @@ class GltDetector(DetectorBase):
     lever_arm : bool
         Model rigid-body lever arms between accelerometers (positions from the array
         config, :mod:`.rigid`).
+    jitter : bool
+        Widen the tests in motion by the array config's sampling-time jitter
+        (``[jitter]``, :mod:`.jitter`); no effect when the config has none.
     """
 
     name: ClassVar[str] = "glt"
@@ -282,6 +293,11 @@ class GltDetector(DetectorBase):
         "types": Param(
             "str", "auto", "sensor types to test: auto or e.g. gyro,accel", check=_check_types
         ),
+        "jitter": Param(
+            "bool",
+            True,
+            "widen the test in motion by the array config's sampling-time jitter (if any)",
+        ),
     }
 
     def __init__(
@@ -296,6 +312,7 @@ class GltDetector(DetectorBase):
         types: str = "auto",
         track_bias: float = 0.0,
         lever_arm: bool = True,
+        jitter: bool = True,
     ) -> None:
         self.alpha = float(alpha)
         self.persistence = int(persistence)
@@ -306,6 +323,7 @@ class GltDetector(DetectorBase):
         self.remove_bias = bool(bias)
         self.types = types
         self.lever_arm = bool(lever_arm)
+        self.jitter = bool(jitter)
         self.tracker = BiasTracker(track_bias)
         self.threshold_excluded = float(chi2.ppf(1.0 - self.alpha, 1))
         self._states: dict[str, _TypeState] = {}
@@ -424,6 +442,12 @@ class GltDetector(DetectorBase):
         else:
             excluded = float(chi2.ppf(1.0 - self.alpha, 1))
         self.threshold_excluded = excluded * (1.0 + 1.0 / mean_samples)
+        jitter_s = array.jitter.get(sensor_type, 0.0) if self.jitter else 0.0
+        inflation = (
+            MotionInflation(h_white, sigma, jitter_s, array.rate_hz, self.window)
+            if jitter_s > 0
+            else None
+        )
         return _TypeState(
             sensor_type=sensor_type,
             sensor_ids=array.sensor_ids(sensor_type),
@@ -441,6 +465,7 @@ class GltDetector(DetectorBase):
             full_triads=bool(np.array_equal(imu_index * 3 + axis_index, np.arange(n))),
             config=config,
             history=np.zeros((0, n)),
+            inflation=inflation,
         )
 
     # --- streaming ------------------------------------------------------------------
@@ -466,7 +491,7 @@ class GltDetector(DetectorBase):
                 values = triads.reshape(triads.shape[0], -1)  # every axis of every IMU: a view
             else:
                 values = triads[:, state.imu_index, state.axis_index]
-            out[sensor_type] = self._process_type(state, values)
+            out[sensor_type] = self._process_type(state, values, block.t_ns)
         self._samples_seen += len(block)
         return out
 
@@ -493,14 +518,28 @@ class GltDetector(DetectorBase):
         state.history = extended[-(self.window - 1) :].copy()
         return averaged, counts
 
-    def _process_type(self, state: _TypeState, values: np.ndarray) -> DetectionBlock:
+    def _motion_factors(
+        self, state: _TypeState, values: np.ndarray, t_ns: np.ndarray
+    ) -> np.ndarray | None:
+        """``1 + A_t`` (N,) of the jitter model, averaged over ``window`` (None: off)."""
+        return None if state.inflation is None else state.inflation.factors(values, t_ns)
+
+    def _process_type(
+        self, state: _TypeState, values: np.ndarray, t_ns: np.ndarray
+    ) -> DetectionBlock:
         n_samples, n = values.shape
+        factors = self._motion_factors(state, values, t_ns)
         averaged, counts = self._whitened_average(state, values)
         pieces: list[DetectionBlock] = []
         start = 0
         while start < n_samples:
             config = state.config
-            segment = self._segment(state, averaged[start:], counts[start:])
+            segment = self._segment(
+                state,
+                averaged[start:],
+                counts[start:],
+                None if factors is None else factors[start:],
+            )
             stop = n_samples - start if segment.event is None else segment.event + 1
             pieces.append(
                 DetectionBlock(
@@ -541,8 +580,15 @@ class GltDetector(DetectorBase):
             return DetectionBlock.empty(0, n)
         return pieces[0] if len(pieces) == 1 else DetectionBlock.concatenate(pieces)
 
-    def _segment(self, state: _TypeState, averaged: np.ndarray, counts: np.ndarray) -> _Segment:
-        """All statistics of a run of samples under the current configuration."""
+    def _segment(
+        self,
+        state: _TypeState,
+        averaged: np.ndarray,
+        counts: np.ndarray,
+        factors: np.ndarray | None = None,
+    ) -> _Segment:
+        """All statistics of a run of samples under the current configuration; ``factors``
+        (N,): the jitter model's variance factors ``1 + A_t`` (None: 1)."""
         config = state.config
         n_samples, n = averaged.shape
         active_values = averaged if config.all_active else averaged[:, config.active]
@@ -555,6 +601,9 @@ class GltDetector(DetectorBase):
         if self.window > 1:
             statistic *= counts
             isolation_scores *= counts[:, None]
+        if factors is not None:
+            statistic /= factors
+            isolation_scores /= factors[:, None]
         parity_exceed = statistic > config.threshold
 
         if config.all_active:
@@ -575,6 +624,8 @@ class GltDetector(DetectorBase):
             residual_white = averaged[:, config.excluded] - x_hat @ config.h_excluded_t
             normalized = residual_white * config.excluded_scale
             excluded_scores = normalized**2 * counts[:, None]
+            if factors is not None:
+                excluded_scores /= factors[:, None]
             scores[:, config.excluded] = excluded_scores
             worst = np.argmax(excluded_scores, axis=1)
             rows = np.arange(n_samples)
@@ -637,6 +688,7 @@ class GltDetector(DetectorBase):
                 "excluded": [state.sensor_ids[i] for i in config.excluded],
                 "not_isolable": [state.sensor_ids[i] for i in config.active[~config.isolable]],
                 "lever_arm_columns": int(state.H.shape[1] - 3),
+                "jitter_s": 0.0 if state.inflation is None else state.inflation.jitter_s,
                 "reconfigurations": list(state.events),
             }
         return {
@@ -652,6 +704,7 @@ class GltDetector(DetectorBase):
                 "types": self.types,
                 "track_bias": self.tracker.tau_s,
                 "lever_arm": self.lever_arm,
+                "jitter": self.jitter,
             },
             "tracked_bias_change": self.tracker.metadata(),
             "types": types,

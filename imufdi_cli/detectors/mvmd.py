@@ -216,6 +216,51 @@ def mvmd_gains(
     arrays when a quarter of the working rows have finished (they keep iterating until
     then; their saved result is the state at their own convergence).
     """
+    power, freqs = _gains_inputs(power, freqs, Ks, alphas, init, max_iter)
+    omega, used = _initial_omegas(Ks, init, freqs.shape[0], dc, rng)
+    rows = _GainRows(power, freqs, alphas, omega, used, tau=tau, dc=dc)
+    track = np.empty((max_iter + 1 if history else 1, len(Ks), omega.shape[1]))
+    track[0] = omega
+    out: list[tuple[np.ndarray, np.ndarray, int, bool] | None] = [None] * len(Ks)
+    for n_iter in range(1, max_iter + 1):
+        criterion = rows.iterate()
+        if history:
+            track[n_iter, rows.index] = rows.omega
+        done = criterion < tol
+        if n_iter == max_iter:
+            done[:] = True
+        done &= rows.active
+        if not done.any():
+            continue
+        for row in (int(r) for r in np.flatnonzero(done)):
+            b = int(rows.index[row])
+            K = int(Ks[b])
+            if history:
+                omega_history = track[: n_iter + 1, b, :K].copy()
+            else:
+                omega_history = np.empty((2, K))
+                omega_history[0] = track[0, b, :K]
+                omega_history[1] = rows.omega[row, :K]
+            out[b] = (rows.gains[row, :K].copy(), omega_history, n_iter, bool(criterion[row] < tol))
+        rows.active &= ~done
+        n_active = int(rows.active.sum())
+        if n_active == 0:
+            break
+        if n_active <= 0.75 * rows.active.size:
+            rows.keep(rows.active)
+    return [o for o in out if o is not None]
+
+
+def _gains_inputs(
+    power: np.ndarray,
+    freqs: np.ndarray,
+    Ks: Sequence[int],
+    alphas: Sequence[float],
+    init: str,
+    max_iter: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Check the arguments of :func:`mvmd_gains`; ``power`` as a contiguous (B, F) array
+    (broadcast when one spectrum is shared) and ``freqs`` as float64 (F,)."""
     n_cand = len(Ks)
     if n_cand != len(alphas) or n_cand == 0:
         raise DetectorConfigError("MVMD: give as many alphas as Ks (at least one)")
@@ -237,113 +282,118 @@ def mvmd_gains(
             f"MVMD: power must have shape (F,) or ({n_cand}, F) for freqs (F,),"
             f" got {power.shape} and {freqs.shape}"
         )
-    power = np.ascontiguousarray(power)
+    return np.ascontiguousarray(power), freqs
+
+
+def _initial_omegas(
+    Ks: Sequence[int], init: str, n_freqs: int, dc: bool, rng: np.random.Generator | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Initial centre frequencies of every row, shape (B, K_max), and which modes a row
+    uses (bool, same shape); rows of equal K share their start unless ``init='random'``."""
     k_max = max(int(K) for K in Ks)
-    n_samples = n_freqs - 1
-    omega = np.zeros((n_cand, k_max))
-    used = np.zeros((n_cand, k_max), dtype=bool)
+    omega = np.zeros((len(Ks), k_max))
+    used = np.zeros((len(Ks), k_max), dtype=bool)
     starts: dict[int, np.ndarray] = {}
     for b, K in enumerate(Ks):
         K = int(K)
         if init == "random" or K not in starts:
-            starts[K] = _initial_omega(init, K, n_freqs, n_samples, dc, rng)
+            starts[K] = _initial_omega(init, K, n_freqs, n_freqs - 1, dc, rng)
         omega[b, :K] = starts[K]
         used[b, :K] = True
-    alpha_col = np.asarray(alphas, dtype=np.float64)[:, None]
-    unused_inf = np.where(used, 0.0, np.inf)[:, :, None]  # (B, K_max, 1)
-    all_used = bool(used.all())
-    moving = np.ones(k_max, dtype=bool)  # centre frequencies updated by (B')
-    moving[0] = not dc
+    return omega, used
 
-    gains = np.zeros((n_cand, k_max, n_freqs))
-    total = np.zeros((n_cand, n_freqs))
-    lam = np.zeros((n_cand, n_freqs))
-    track = np.empty((max_iter + 1 if history else 1, n_cand, k_max))
-    track[0] = omega
-    weighted = freqs * power  # f P(f), (B, F)
-    energy_now = np.zeros((n_cand, k_max))  # sum_f g_k^2 P after the latest update
-    index = np.arange(n_cand)  # working row -> candidate
-    active = np.ones(n_cand, dtype=bool)  # working rows not yet converged
-    out: list[tuple[np.ndarray, np.ndarray, int, bool] | None] = [None] * n_cand
 
-    def omega_history(b: int, row: int, n_iter: int, K: int) -> np.ndarray:
-        if not history:
-            ends = np.empty((2, K))
-            ends[0] = track[0, b, :K]
-            ends[1] = omega[row, :K]
-            return ends
-        return track[: n_iter + 1, b, :K].copy()
+class _GainRows:
+    """The working rows of :func:`mvmd_gains`: gains g_k(f), multipliers l(f) and centre
+    frequencies of the rows still iterating (arrays of B' <= B rows; ``index`` maps a
+    working row to its candidate, ``active`` marks the rows not yet converged)."""
 
-    n_iter = 0
-    for n_iter in range(1, max_iter + 1):
-        numerator_base = 1.0 - 0.5 * lam if tau else 1.0
-        norm = energy_now  # sum_f (g_k^n)^2 P: the energy of the previous update
+    def __init__(
+        self,
+        power: np.ndarray,
+        freqs: np.ndarray,
+        alphas: Sequence[float],
+        omega: np.ndarray,
+        used: np.ndarray,
+        *,
+        tau: float,
+        dc: bool,
+    ) -> None:
+        n_cand, k_max = omega.shape
+        n_freqs = freqs.shape[0]
+        self.power = power  # (B, F)
+        self.freqs = freqs  # (F,)
+        self.tau = tau
+        self.omega = omega  # (B, K_max)
+        self.alpha_col = np.asarray(alphas, dtype=np.float64)[:, None]
+        self.unused_inf = np.where(used, 0.0, np.inf)[:, :, None]  # (B, K_max, 1)
+        self.all_used = bool(used.all())
+        self.moving = np.ones(k_max, dtype=bool)  # centre frequencies updated by (B')
+        self.moving[0] = not dc
+        self.gains = np.zeros((n_cand, k_max, n_freqs))
+        self.total = np.zeros((n_cand, n_freqs))
+        self.lam = np.zeros((n_cand, n_freqs))
+        self.weighted = freqs * power  # f P(f), (B, F)
+        self.energy_now = np.zeros((n_cand, k_max))  # sum_f g_k^2 P after the latest update
+        self.index = np.arange(n_cand)  # working row -> candidate
+        self.active = np.ones(n_cand, dtype=bool)  # working rows not yet converged
+
+    def iterate(self) -> np.ndarray:
+        """One sweep of (A') (Gauss-Seidel over k), (B') and (C') on every working row.
+
+        Returns the relative change ``sum_k |du_k|^2 / |u_k|^2`` of each working row,
+        shape (B',) (inf when a mode that was zero moved).
+        """
+        gains, omega, power = self.gains, self.omega, self.power
+        numerator_base = 1.0 - 0.5 * self.lam if self.tau else 1.0
+        norm = self.energy_now  # sum_f (g_k^n)^2 P: the energy of the previous update
         previous = gains.copy()
         # omega_k changes only after mode k's own update, so every denominator of this
         # sweep is known now: 1 + alpha (f - omega_k)^2, inf for a row's unused modes
-        den = freqs[..., None, :] - omega[:, :, None]
+        den = self.freqs[..., None, :] - omega[:, :, None]
         den *= den
-        den *= alpha_col[:, :, None]
-        if not all_used:
-            den += unused_inf
+        den *= self.alpha_col[:, :, None]
+        if not self.all_used:
+            den += self.unused_inf
         den += 1.0
-        for k in range(k_max):  # Gauss-Seidel: mode k sees the new modes < k
+        total = self.total
+        for k in range(gains.shape[1]):  # Gauss-Seidel: mode k sees the new modes < k
             gain = gains[:, k]
             others = total - gain
             np.subtract(numerator_base, others, out=gain)
             gain /= den[:, k]
             total = others + gain
+        self.total = total
         # (B') for all modes at once: they do not depend on each other within a sweep
         delta = gains - previous
         delta *= delta
         diff = np.vecdot(delta, power[:, None, :])
         energy = gains * gains
-        energy_now = np.vecdot(energy, power[:, None, :])
+        self.energy_now = np.vecdot(energy, power[:, None, :])
         np.divide(
-            np.vecdot(energy, weighted[:, None, :]),
-            energy_now,
+            np.vecdot(energy, self.weighted[:, None, :]),
+            self.energy_now,
             out=omega,
-            where=(energy_now > 0) & moving,
+            where=(self.energy_now > 0) & self.moving,
         )
-        if tau:
-            lam += tau * (total - 1.0)
-        if history:
-            track[n_iter, index] = omega
-        # relative change sum_k |du_k|^2 / |u_k|^2; a mode that was zero and moved: inf
+        if self.tau:
+            self.lam += self.tau * (total - 1.0)
         ratio = np.divide(diff, norm, out=np.where(diff > 0, np.inf, 0.0), where=norm > 0)
-        criterion = ratio.sum(axis=1)
-        done = criterion < tol
-        if n_iter == max_iter:
-            done[:] = True
-        done &= active
-        if done.any():
-            for row in (int(r) for r in np.flatnonzero(done)):
-                b = int(index[row])
-                K = int(Ks[b])
-                out[b] = (
-                    gains[row, :K].copy(),
-                    omega_history(b, row, n_iter, K),
-                    n_iter,
-                    bool(criterion[row] < tol),
-                )
-            active &= ~done
-            n_active = int(active.sum())
-            if n_active == 0:
-                break
-            if n_active <= 0.75 * active.size:
-                keep = active
-                index = index[keep]
-                gains = gains[keep]
-                total = total[keep]
-                lam = lam[keep]
-                omega = omega[keep]
-                alpha_col = alpha_col[keep]
-                unused_inf = unused_inf[keep]
-                power = power[keep]
-                weighted = weighted[keep]
-                energy_now = energy_now[keep]
-                active = active[keep]
-    return [o for o in out if o is not None]
+        return np.asarray(ratio.sum(axis=1))
+
+    def keep(self, rows: np.ndarray) -> None:
+        """Drop the working rows outside ``rows`` (bool, shape (B',))."""
+        self.index = self.index[rows]
+        self.gains = self.gains[rows]
+        self.total = self.total[rows]
+        self.lam = self.lam[rows]
+        self.omega = self.omega[rows]
+        self.alpha_col = self.alpha_col[rows]
+        self.unused_inf = self.unused_inf[rows]
+        self.power = self.power[rows]
+        self.weighted = self.weighted[rows]
+        self.energy_now = self.energy_now[rows]
+        self.active = self.active[rows]
 
 
 def mvmd_batch(

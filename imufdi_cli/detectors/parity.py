@@ -456,7 +456,7 @@ def estimated_sigma_threshold(
     threshold, scale, dof : float
         ``g chi2_{1-alpha}(h)``, g and h.
     """
-    from scipy.stats import chi2
+    from imufdi_cli.quantiles import chi2
 
     n = h_white.shape[0]
     base = _weighted_traces(h_white, np.zeros(n))

@@ -47,6 +47,13 @@ Beyond the paper:
   training centre h_t = 1/N (the earlier formula); where the motion leaves the training
   range the threshold widens instead of raising false alarms (the leak error then grows
   with |xbar|). The same factor multiplies the Q threshold.
+- Calibration of the variances (issue 16): the principal directions come from one half of
+  the window and their variances from the other (``cross_fitted_components``: the smallest
+  eigenvalue of a sample covariance is biased low, Lawley 1956); the thresholds are F
+  quantiles for a statistic standardised by an estimated variance (``plug_in_quantile``);
+  a negative lag-one autocorrelation estimate is floored at 0 (``RHO_FLOOR``); and once the
+  leak of one parity component is significant, every component's fitted leak is kept
+  (``KEEP_LEAKS_IF_ANY``), its error carried by the prediction variance.
 - Calibration coverage: the same leverage over all three directions, with the noise
   covariance of xhat as a floor (``coverage_inverse``), measures how far the motion goes
   beyond what the calibration window covered. When more than 5 % of the processed
@@ -84,6 +91,7 @@ from imufdi_cli.detectors.base import (
     calibration_stats,
     parse_sensor_types,
 )
+from imufdi_cli.detectors.jitter import MotionInflation, array_inflation
 from imufdi_cli.detectors.parity import isolable_sensors, parity_matrix
 from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
@@ -106,6 +114,16 @@ MAX_LEVER_ARM = 1e-3
 #: Significance level (Bonferroni over the parity components) of the F test that keeps a
 #: parity component's fitted leak.
 LEAK_SIGNIFICANCE = 1e-3
+#: Principal directions and their variances from the two halves of the window
+#: (``cross_fitted_components``) instead of one eigendecomposition.
+CROSS_FIT = True
+#: When the leak of some parity component is significant, keep the fitted leak of every
+#: component (see ``_fit_leak``); False: only the significant ones.
+KEEP_LEAKS_IF_ANY = True
+#: Thresholds from the F distribution of a statistic with an estimated scale.
+USE_F_THRESHOLD = True
+#: Floor of the estimated lag-one autocorrelation (see ``_lag_one_autocorrelation``).
+RHO_FLOOR = 0.0
 
 
 class MovingWindow:
@@ -158,11 +176,97 @@ def mean_variance_inflation(rho: np.ndarray, lengths: np.ndarray) -> np.ndarray:
 
 
 def _lag_one_autocorrelation(y: np.ndarray) -> np.ndarray:
-    """Per-column lag-one autocorrelation of centred rows (N, k), clipped to [-0.9, 0.99]."""
+    """Per-column lag-one autocorrelation of centred rows (N, k), clipped to [RHO_FLOOR, 0.99].
+
+    The floor (0 by default) keeps a chance negative estimate from shrinking the moving-mean
+    variance: for white noise the estimate has a standard error of about 1/sqrt(N) (0.07 for
+    a 2 s window at 100 Hz), and ``g(-0.15, 20) = 0.74`` would understate the moving-mean
+    variance by a quarter (measured on tuning seed 104 of conical6, where all three parity
+    components came out near -0.15). A truly negative autocorrelation is then treated as
+    white, which only makes the test conservative.
+    """
     energy = np.einsum("ij,ij->j", y, y)
     lagged = np.einsum("ij,ij->j", y[1:], y[:-1])
     rho = np.where(energy > 0, lagged / np.where(energy > 0, energy, 1.0), 0.0)
-    return np.clip(rho, -0.9, 0.99)
+    return np.clip(rho, RHO_FLOOR, 0.99)
+
+
+def plug_in_quantile(level: float, dof: np.ndarray, estimate_dof: float) -> np.ndarray:
+    """Upper ``level`` quantile of a chi2(dof) statistic whose scale was estimated.
+
+    With the variance estimated on ``estimate_dof`` degrees of freedom independent of the
+    tested data (the cross-fitted half, out of sample), ``X / dof`` with
+    ``X = sum z_i^2 / s_i^2`` follows ``F(dof, estimate_dof)`` instead of ``chi2(dof)/dof``
+    (the plug-in correction of Student's t; Hotelling's T^2 for a diagonal scale), so the
+    threshold is ``dof F^-1(1 - level; dof, estimate_dof)``. An infinite ``estimate_dof``
+    gives ``chi2^-1(1 - level; dof)``.
+
+    Parameters
+    ----------
+    level : float
+    dof : ndarray, shape (M,)
+    estimate_dof : float
+
+    Returns
+    -------
+    ndarray, shape (M,)
+    """
+    dof = np.asarray(dof, dtype=np.float64)
+    if not np.isfinite(estimate_dof) or not USE_F_THRESHOLD:
+        return np.asarray(chi2.ppf(1.0 - level, dof), dtype=np.float64)
+    return np.asarray(dof * f_distribution.ppf(1.0 - level, dof, estimate_dof), dtype=np.float64)
+
+
+def _half_a(n_rows: int, block: int) -> np.ndarray:
+    """Rows (n_rows,) bool of half A: the even blocks of ``block`` rows (at most n_rows/4)."""
+    block = max(1, min(int(block), n_rows // 4))
+    return np.asarray((np.arange(n_rows) // block) % 2 == 0)
+
+
+def cross_fit_split(n_rows: int, block: int) -> int:
+    """Number of rows in half A of ``cross_fitted_components`` (half B has the rest)."""
+    return int(np.count_nonzero(_half_a(n_rows, block)))
+
+
+def cross_fitted_components(centred: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Principal directions from one half of the window, their variances from the other.
+
+    The rows are split into alternating blocks of ``block`` samples (half A: even blocks,
+    half B: odd blocks, so both halves span the whole window and its motion). The
+    eigenvectors W of the covariance of half A give the directions and their order
+    (descending eigenvalue of A); the variance of each direction is ``w_i^T C_B w_i``, C_B
+    the covariance of half B about the full-window mean (divisor: its row count).
+
+    Why: the eigenvalues of a sample covariance are biased (Lawley 1956): the smallest is
+    too small, because its direction is chosen to minimise the variance of the same data
+    (on conical6, q = 3, N = 500: the out-of-sample variance along the last direction was
+    1.13x its eigenvalue). For directions fixed by half A, ``w^T C_B w`` is an unbiased
+    variance estimate (the halves' noise is independent for white noise, up to the block
+    boundaries).
+
+    Parameters
+    ----------
+    centred : ndarray, shape (N, q)
+        Training parity deviations about their mean (SI).
+    block : int
+        Block length in samples (the moving-mean window).
+
+    Returns
+    -------
+    variances : ndarray, shape (q,)
+        ``w_i^T C_B w_i`` in the order of half A's eigenvalues (SI squared).
+    directions : ndarray, shape (q, q)
+        Columns w_i (orthonormal).
+    """
+    n_rows = centred.shape[0]
+    half_a = _half_a(n_rows, block)
+    first, second = centred[half_a], centred[~half_a]
+    covariance_a = first.T @ first / max(first.shape[0] - 1, 1)
+    eigenvalues, directions = np.linalg.eigh(covariance_a)
+    directions = directions[:, np.argsort(eigenvalues)[::-1]]
+    projected = second @ directions
+    variances = np.einsum("ij,ij->j", projected, projected) / max(second.shape[0], 1)
+    return variances, directions
 
 
 def lever_arm_spread(array: ArrayConfig, sensor_type: str) -> float:
@@ -234,6 +338,7 @@ class _TypeModel:
         n_components: int,
         isolable: np.ndarray,
         motion: _MotionDesign | None = None,
+        variance_rows: float = np.inf,
     ) -> None:
         self.projection = projection  # (q, n): V (parity) or I (raw)
         self.estimator = estimator  # (3, n): H^+ (least-squares body-frame estimate)
@@ -244,6 +349,9 @@ class _TypeModel:
         self.rho = rho  # (q,)
         self.n_components = n_components
         self.n_train = n_train
+        # Equivalent degrees of freedom of each component's variance estimate (rows of the
+        # half it was measured on, less for autocorrelated rows); inf: treated as known.
+        self.variance_dof = variance_rows * (1.0 - rho**2) / (1.0 + rho**2)  # (q,)
         self.isolable = isolable  # (n,) bool
         lengths = np.arange(1, window + 1)
         # Variance of the moving-mean deviation of each component, per window fill (L, q).
@@ -329,7 +437,9 @@ class _TypeModel:
             weights = tail[None, :] * factor[:, None]  # (L, q-k)
             scale = (weights**2).sum(axis=1) / weights.sum(axis=1)
             dof = weights.sum(axis=1) ** 2 / (weights**2).sum(axis=1)
-            self._residual_thresholds[level] = scale * chi2.ppf(1.0 - level, dof)
+            tail_dof = self.variance_dof[k:]
+            estimate_dof = float(np.sum(tail) ** 2 / np.sum(tail**2 / tail_dof))
+            self._residual_thresholds[level] = scale * plug_in_quantile(level, dof, estimate_dof)
         return self._residual_thresholds[level]
 
     def residual_scale(self, counts: np.ndarray, leverage: np.ndarray) -> np.ndarray:
@@ -425,6 +535,7 @@ class PcaParityDetector(DetectorBase):
         self.models: dict[str, _TypeModel] = {}
         self.untested: dict[str, str] = {}
         self.window_samples = 0
+        self.inflations: dict[str, MotionInflation | None] = {}  # jitter model (detectors/jitter)
 
     # --- training ----------------------------------------------------------------------
 
@@ -444,6 +555,7 @@ class PcaParityDetector(DetectorBase):
         self.window_samples = max(1, round(self.window_s * array.rate_hz))
         self.models = {}
         self.untested = {}
+        self.inflations = {}
         minimum = 3 if self.space == "parity" else 0
         for sensor_type in self.sensor_types:
             triads = calibration.get(sensor_type)
@@ -458,6 +570,8 @@ class PcaParityDetector(DetectorBase):
                 continue
             measurements = array.select(triads, sensor_type)
             self.models[sensor_type] = self._fit_type(measurements, design, sensor_type)
+            inflation = array_inflation(array, sensor_type, design, self.window_samples)
+            self.inflations[sensor_type] = inflation if self.space == "parity" else None
         if not self.models:
             need = "at least 4 sensors of a type" if self.space == "parity" else "sensors"
             if self.untested:
@@ -497,12 +611,17 @@ class PcaParityDetector(DetectorBase):
         compensated = parity - (measurements @ estimator.T) @ leak.T
         mean = compensated.mean(axis=0)
         centred = compensated - mean
-        covariance = centred.T @ centred / (n_train - 1)
-        eigenvalues, eigenvectors = np.linalg.eigh(covariance)
-        order = np.argsort(eigenvalues)[::-1]
-        eigenvalues, eigenvectors = eigenvalues[order], eigenvectors[:, order]
-        if not np.all(np.isfinite(eigenvalues)) or eigenvalues[-1] <= 1e-30 * max(
-            float(eigenvalues[0]), 1e-300
+        variance_rows = float(n_train - 1)
+        if CROSS_FIT:
+            eigenvalues, eigenvectors = cross_fitted_components(centred, self.window_samples)
+            variance_rows = float(n_train - cross_fit_split(n_train, self.window_samples))
+        else:
+            covariance = centred.T @ centred / (n_train - 1)
+            eigenvalues, eigenvectors = np.linalg.eigh(covariance)
+            order = np.argsort(eigenvalues)[::-1]
+            eigenvalues, eigenvectors = eigenvalues[order], eigenvectors[:, order]
+        if not np.all(np.isfinite(eigenvalues)) or float(np.min(eigenvalues)) <= 1e-30 * max(
+            float(np.max(eigenvalues)), 1e-300
         ):
             raise CalibrationError(
                 f"{self.name}: {sensor_type} training data is degenerate (a zero-variance"
@@ -522,6 +641,7 @@ class PcaParityDetector(DetectorBase):
             n_components=min(self.components, q),
             isolable=isolable,
             motion=motion,
+            variance_rows=variance_rows,
         )
 
     @staticmethod
@@ -566,6 +686,13 @@ class PcaParityDetector(DetectorBase):
         dof = n_train - n_excited - 1
         ratio = (explained / n_excited) / np.maximum(unexplained / dof, 1e-300)
         significant = f_distribution.sf(ratio, n_excited, dof) < LEAK_SIGNIFICANCE / q
+        if KEEP_LEAKS_IF_ANY and significant.any():
+            # Scale-factor and misalignment errors leak into every parity component: once
+            # one component shows it, a component whose leak the test could not see on this
+            # window still has one (up to the test's critical value, several standard
+            # errors), and dropping it leaves that whole leak in the test. Kept, its error
+            # is the regression error, which the prediction variance carries.
+            significant[:] = True
         return (basis @ (coefficients * significant[None, :])).T, design  # (q, 3)
 
     # --- online --------------------------------------------------------------------------
@@ -583,10 +710,14 @@ class PcaParityDetector(DetectorBase):
                 out[sensor_type] = DetectionBlock.empty(len(block), n_sensors)
                 continue
             measurements = self.array.select(triads, sensor_type)
-            out[sensor_type] = self._process_type(model, measurements)
+            inflation = self.inflations.get(sensor_type)
+            factors = None if inflation is None else inflation.factors(measurements, block.t_ns)
+            out[sensor_type] = self._process_type(model, measurements, factors)
         return out
 
-    def _process_type(self, model: _TypeModel, measurements: np.ndarray) -> DetectionBlock:
+    def _process_type(
+        self, model: _TypeModel, measurements: np.ndarray, factors: np.ndarray | None = None
+    ) -> DetectionBlock:
         n_samples = measurements.shape[0]
         n_sensors = model.projection.shape[1]
         deviation = model.transform(measurements)  # (N, q)
@@ -608,7 +739,9 @@ class PcaParityDetector(DetectorBase):
         q = model.projection.shape[0]
         tests_residual = self.residual_test and q > k
         level = self.alpha / 2.0 if tests_residual else self.alpha
-        statistic = normalised[:, :k].sum(axis=1) / chi2.ppf(1.0 - level, k)
+        statistic = normalised[:, :k].sum(axis=1) / plug_in_quantile(
+            level, np.array([k]), float(np.min(model.variance_dof[:k]))
+        )
         if tests_residual:
             residual = (components[:, k:] ** 2).sum(axis=1)  # Q, squared norm
             leverage_q = 1.0 / model.n_train + extra * model.leak_weight_q
@@ -616,6 +749,8 @@ class PcaParityDetector(DetectorBase):
                 counts, leverage_q
             )
             statistic = np.maximum(statistic, residual / threshold_q)
+        if factors is not None:  # sampling-time jitter in motion (detectors/jitter.py)
+            statistic = statistic / factors
         alarm = statistic > 1.0
         scores = np.full((n_samples, n_sensors), np.nan)
         isolated = np.full(n_samples, NO_ISOLATION, dtype=np.int32)
@@ -696,6 +831,7 @@ class PcaParityDetector(DetectorBase):
                 "dimension": int(q),
                 "components": int(k),
                 "eigenvalues": model.eigenvalues.tolist(),
+                "variance_dof": model.variance_dof.tolist(),
                 "explained_variance": float(model.eigenvalues[:k].sum() / total) if total else None,
                 "lag1_autocorrelation": model.rho.tolist(),
                 "training_mean": model.mean.tolist(),

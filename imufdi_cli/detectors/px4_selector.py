@@ -43,8 +43,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import DetectionBlock, DetectorBase, Param
+from imufdi_cli.detectors.base import DetectionBlock, Param
 from imufdi_cli.detectors.vectors import (
+    CausalImuCheck,
     TriadLayout,
     block_steps,
     compared_layouts,
@@ -116,7 +117,7 @@ class _TypeState:
     first_alarm_sample: int | None = None
 
 
-class Px4SelectorDetector(DetectorBase):
+class Px4SelectorDetector(CausalImuCheck):
     """PX4 EKF2-selector style IMU consistency check (module docstring); ``px4-selector``."""
 
     name: ClassVar[str] = "px4-selector"
@@ -263,10 +264,6 @@ class Px4SelectorDetector(DetectorBase):
             amplitude=amplitude,
             scores=scores,
         )
-
-    def flush(self) -> dict[str, DetectionBlock]:
-        """Causal: nothing is held back."""
-        return {t: DetectionBlock.empty(0, s.layout.n_sensors) for t, s in self._states.items()}
 
     def metadata(self) -> dict[str, Any]:
         """Parameters (SI), compared IMUs, calibration offsets and the first alarm sample."""

@@ -10,12 +10,20 @@ sensor type, their vectors in the body frame, and where each IMU axis sits in
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import NO_ISOLATION, NOT_ISOLABLE, parse_sensor_types
+from imufdi_cli.detectors.base import (
+    NO_ISOLATION,
+    NOT_ISOLABLE,
+    DetectionBlock,
+    DetectorBase,
+    parse_sensor_types,
+)
 from imufdi_cli.errors import (
     ArrayTooSmallError,
     CalibrationError,
@@ -233,3 +241,19 @@ __all__ = [
     "imu_isolation",
     "parse_vector_types",
 ]
+
+
+class _TypeStateLike(Protocol):
+    layout: TriadLayout
+
+
+class CausalImuCheck(DetectorBase):
+    """What px4-selector and ap-consistency share as detectors: one state per tested
+    sensor type (``_states``, each with its :class:`TriadLayout`), filled by ``fit``, and
+    one output row per input sample, so nothing is left to :meth:`flush`."""
+
+    _states: Mapping[str, _TypeStateLike]
+
+    def flush(self) -> dict[str, DetectionBlock]:
+        """Causal: nothing is held back (an empty block per tested type)."""
+        return {t: DetectionBlock.empty(0, s.layout.n_sensors) for t, s in self._states.items()}

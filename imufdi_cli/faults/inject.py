@@ -242,10 +242,9 @@ def _scan_log(
         tracker = LogTimeProgress(progress, reader.summary_time_range, passes=2)
         for batch in reader.batches():
             tracker.batch(batch)
-            for cid in np.unique(batch.channel_id).tolist():
+            for cid, sub in batch.by_channel():
                 channel = reader.channels[cid]
                 if channel.message_encoding == "json" and is_event_channel(channel):
-                    sub = batch.select(batch.channel_id == cid)
                     if channel.topic == TRUTH_TOPIC:
                         legacy_truth += decode_events(sub, channel)
                     else:
@@ -432,8 +431,7 @@ def _patch_batch(
     pieces: list[Any] = []
     positions: list[np.ndarray] = []
     patched = 0
-    for cid in np.unique(batch.channel_id):
-        channel_id = int(cid)
+    for channel_id, where in batch.channel_indices():
         imu = imu_channels.get(channel_id, mag_channels.get(channel_id))
         if imu is None:
             continue
@@ -441,7 +439,6 @@ def _patch_batch(
         types = ("mag",) if is_mag else ("gyro", "accel")
         if not any(injector.affects(imu, t) for t in types):
             continue
-        where = np.flatnonzero(batch.channel_id == cid)
         part = batch.select(where)
         channel = channels[channel_id]
         path = "" if is_mag else (imu_fields or {}).get(channel.topic, "")

@@ -109,9 +109,12 @@ class _Aligner:
         if not self.pending:
             return self.empty()
         n_streams = len(self.names)
-        all_t = np.concatenate([p[0] for p in self.pending])
-        all_s = np.concatenate([p[1] for p in self.pending])
-        all_v = np.concatenate([p[2] for p in self.pending])
+        if len(self.pending) == 1:
+            all_t, all_s, all_v = self.pending[0]
+        else:
+            all_t = np.concatenate([p[0] for p in self.pending])
+            all_s = np.concatenate([p[1] for p in self.pending])
+            all_v = np.concatenate([p[2] for p in self.pending])
         regular = self._resolve_regular(all_t, all_s, all_v, final)
         if regular is not None:
             return regular

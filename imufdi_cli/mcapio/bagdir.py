@@ -140,6 +140,7 @@ class BagDirSource(McapSource):
         validate_crcs: bool | None = None,
         limits: ReaderLimits | None = None,
         keep_raw_chunks: bool = False,
+        read_ahead: bool = False,
     ) -> None:
         # keep_raw_chunks is accepted and ignored: the split files' channels are renumbered
         # into one set, so their chunks are never copied verbatim (raw_chunk gives None).
@@ -147,6 +148,7 @@ class BagDirSource(McapSource):
             raise McapInputError("a rosbag2 directory must be given as a path")
         self.strict = strict
         self.validate_crcs = validate_crcs is not False
+        self.read_ahead = read_ahead
         self.limits = limits if limits is not None else ReaderLimits.from_env()
         directory = Path(source)
         if directory.name == METADATA_FILE:
@@ -172,7 +174,11 @@ class BagDirSource(McapSource):
         try:
             for file in self.files:
                 part = McapSource(
-                    file, strict=strict, validate_crcs=validate_crcs, limits=self.limits
+                    file,
+                    strict=strict,
+                    validate_crcs=validate_crcs,
+                    limits=self.limits,
+                    read_ahead=read_ahead,
                 )
                 self._parts.append(part)
                 self._maps.append({})

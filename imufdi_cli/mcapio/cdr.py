@@ -196,124 +196,9 @@ class CdrLayout:
         (or recursive) raise McapInputError.
         """
         limits = limits if limits is not None else ReaderLimits.from_env()
-        layout = cls(root)
-        state = {"segment": 0, "const": 0, "base_align": 8, "fields": 0, "stopped": 0}
-        shapes: dict[str, tuple[int, int]] = {}
-
-        def shape(type_name: str, chain: tuple[str, ...] = ()) -> tuple[int, int]:
-            """(leaves of one element once expanded, nesting height) of a type, memoised;
-            nothing is expanded."""
-            if type_name in PRIMITIVES or type_name in STRING_TYPES:
-                return 1, 0
-            known = shapes.get(type_name)
-            if known is not None:
-                return known
-            if type_name in chain or len(chain) > limits.max_schema_depth:
-                raise McapInputError(
-                    f"ros2msg schema {root}: types nested deeper than"
-                    f" {limits.max_schema_depth} (IMUFDI_MAX_SCHEMA_DEPTH) or recursive"
-                )
-            msg = defs.get(type_name)
-            if msg is None:
-                raise McapInputError(
-                    f"ros2msg schema {root}: no definition of {type_name} in the schema text"
-                )
-            total, height = 0, 0
-            for fdef in msg.fields:
-                if fdef.array == "sequence" or fdef.type_name in PRIMITIVES:
-                    total += 1
-                    continue
-                leaves, sub_height = shape(fdef.type_name, (*chain, type_name))
-                total += leaves * (fdef.size if fdef.array == "fixed" else 1)
-                height = max(height, sub_height + 1)
-            shapes[type_name] = (total, height)
-            return total, height
-
-        def expanded(type_name: str, depth: int) -> int:
-            leaves, height = shape(type_name)
-            if depth + height > limits.max_schema_depth:
-                raise McapInputError(
-                    f"ros2msg schema {root}: types nested deeper than"
-                    f" {limits.max_schema_depth} (IMUFDI_MAX_SCHEMA_DEPTH)"
-                )
-            return leaves
-
-        def stop(path: str) -> None:
-            layout.steps.append(_Step("opaque", state["const"], path=path))
-            state["segment"] += 1
-            state["const"] = 0
-            state["stopped"] = 1
-
-        def need_runtime_align(alignment: int) -> None:
-            if alignment <= state["base_align"]:
-                state["const"] = -(-state["const"] // alignment) * alignment
-                return
-            layout.steps.append(_Step("align", state["const"], alignment))
-            state["segment"] += 1
-            state["const"] = 0
-            state["base_align"] = alignment
-
-        def primitive(path: str, type_name: str, count: int) -> None:
-            code, size = PRIMITIVES[type_name]
-            if state["const"] + size * count > limits.max_record_bytes:
-                stop(path)  # no message within the record limit holds this field
-                return
-            need_runtime_align(size)
-            layout.leaves[path] = _Leaf(path, code, count, state["segment"], state["const"])
-            state["const"] += size * count
-
-        def variable(path: str, kind: str, element_size: int) -> None:
-            need_runtime_align(4)
-            layout.leaves[path] = _Leaf(path, kind, 1, state["segment"], state["const"])
-            layout.steps.append(
-                _Step(kind, state["const"], max(element_size, 1), element_size, path)
-            )
-            state["segment"] += 1
-            state["const"] = 0
-            state["base_align"] = 1
-
-        def walk(type_name: str, prefix: str, depth: int) -> None:
-            expanded(type_name, depth)  # checks depth, recursion and definitions
-            for fdef in defs[type_name].fields:
-                if state["stopped"]:
-                    return
-                path = f"{prefix}{fdef.name}"
-                elem = fdef.type_name
-                cost = 1
-                if fdef.array != "sequence" and elem not in PRIMITIVES:
-                    cost = expanded(elem, depth + 1) * (fdef.size if fdef.array == "fixed" else 1)
-                if state["fields"] + cost > limits.max_schema_fields:
-                    stop(path)  # the rest of the type is out of the field budget
-                    return
-                state["fields"] += 1 if elem in PRIMITIVES or fdef.array == "sequence" else 0
-                if fdef.array == "sequence":
-                    if elem in PRIMITIVES:
-                        variable(path, "sequence", PRIMITIVES[elem][1])
-                        layout.leaves[path].dtype = PRIMITIVES[elem][0]
-                    else:
-                        # Sequences of strings or messages: skipping them needs a
-                        # per-message walk; the layout marks the rest as unreachable.
-                        stop(path)
-                        return
-                elif elem in PRIMITIVES:
-                    primitive(path, elem, fdef.size if fdef.array == "fixed" else 1)
-                elif elem in STRING_TYPES:
-                    count = fdef.size if fdef.array == "fixed" else 1
-                    state["fields"] += count
-                    for i in range(count):
-                        sub = f"{path}[{i}]" if fdef.array == "fixed" else path
-                        variable(sub, "string" if elem == "string" else "wstring", 1)
-                else:
-                    if fdef.array == "fixed":
-                        if cost == 0:
-                            continue  # elements without fields: nothing to lay out
-                        for i in range(fdef.size):
-                            walk(elem, f"{path}[{i}].", depth + 1)
-                    else:
-                        walk(elem, f"{path}.", depth + 1)
-
-        walk(root, "", 0)
-        return layout
+        builder = _LayoutBuilder(cls(root), defs, limits)
+        builder.walk(root, "", 0)
+        return builder.layout
 
     def locate(
         self,
@@ -433,6 +318,138 @@ class CdrLayout:
         return raw.view(self._endian + "u4").reshape(-1).astype(np.int64)
 
 
+class _LayoutBuilder:
+    """Compiles a :class:`CdrLayout` (:meth:`CdrLayout.compile`): walks the type tree,
+    keeping the constant offset within the current segment, the alignment known at the
+    segment's base, and the field budget."""
+
+    def __init__(self, layout: CdrLayout, defs: dict[str, MsgDef], limits: ReaderLimits):
+        self.layout = layout
+        self.defs = defs
+        self.limits = limits
+        self.root = layout.root
+        self.segment = 0
+        self.const = 0  # bytes from the current segment's base
+        self.base_align = 8  # alignment guaranteed at the segment's base
+        self.fields = 0  # leaves made so far (the field budget)
+        self.stopped = False
+        self._shapes: dict[str, tuple[int, int]] = {}
+
+    def shape(self, type_name: str, chain: tuple[str, ...] = ()) -> tuple[int, int]:
+        """(leaves of one element once expanded, nesting height) of a type, memoised;
+        nothing is expanded."""
+        if type_name in PRIMITIVES or type_name in STRING_TYPES:
+            return 1, 0
+        known = self._shapes.get(type_name)
+        if known is not None:
+            return known
+        depth_limit = self.limits.max_schema_depth
+        if type_name in chain or len(chain) > depth_limit:
+            raise McapInputError(
+                f"ros2msg schema {self.root}: types nested deeper than"
+                f" {depth_limit} (IMUFDI_MAX_SCHEMA_DEPTH) or recursive"
+            )
+        msg = self.defs.get(type_name)
+        if msg is None:
+            raise McapInputError(
+                f"ros2msg schema {self.root}: no definition of {type_name} in the schema text"
+            )
+        total, height = 0, 0
+        for fdef in msg.fields:
+            if fdef.array == "sequence" or fdef.type_name in PRIMITIVES:
+                total += 1
+                continue
+            leaves, sub_height = self.shape(fdef.type_name, (*chain, type_name))
+            total += leaves * (fdef.size if fdef.array == "fixed" else 1)
+            height = max(height, sub_height + 1)
+        self._shapes[type_name] = (total, height)
+        return total, height
+
+    def expanded(self, type_name: str, depth: int) -> int:
+        """Leaves of ``type_name`` met at ``depth``; too deep raises McapInputError."""
+        leaves, height = self.shape(type_name)
+        if depth + height > self.limits.max_schema_depth:
+            raise McapInputError(
+                f"ros2msg schema {self.root}: types nested deeper than"
+                f" {self.limits.max_schema_depth} (IMUFDI_MAX_SCHEMA_DEPTH)"
+            )
+        return leaves
+
+    def stop(self, path: str) -> None:
+        """End the layout at ``path`` (an opaque step: later fields are unreachable)."""
+        self.layout.steps.append(_Step("opaque", self.const, path=path))
+        self.segment += 1
+        self.const = 0
+        self.stopped = True
+
+    def need_runtime_align(self, alignment: int) -> None:
+        if alignment <= self.base_align:
+            self.const = -(-self.const // alignment) * alignment
+            return
+        self.layout.steps.append(_Step("align", self.const, alignment))
+        self.segment += 1
+        self.const = 0
+        self.base_align = alignment
+
+    def primitive(self, path: str, type_name: str, count: int) -> None:
+        code, size = PRIMITIVES[type_name]
+        if self.const + size * count > self.limits.max_record_bytes:
+            self.stop(path)  # no message within the record limit holds this field
+            return
+        self.need_runtime_align(size)
+        self.layout.leaves[path] = _Leaf(path, code, count, self.segment, self.const)
+        self.const += size * count
+
+    def variable(self, path: str, kind: str, element_size: int) -> None:
+        self.need_runtime_align(4)
+        self.layout.leaves[path] = _Leaf(path, kind, 1, self.segment, self.const)
+        self.layout.steps.append(_Step(kind, self.const, max(element_size, 1), element_size, path))
+        self.segment += 1
+        self.const = 0
+        self.base_align = 1
+
+    def walk(self, type_name: str, prefix: str, depth: int) -> None:
+        """Lay out the fields of ``type_name`` (at ``depth``) under ``prefix``."""
+        self.expanded(type_name, depth)  # checks depth, recursion and definitions
+        for fdef in self.defs[type_name].fields:
+            if self.stopped:
+                return
+            self._field(fdef, f"{prefix}{fdef.name}", depth)
+
+    def _field(self, fdef: FieldDef, path: str, depth: int) -> None:
+        elem = fdef.type_name
+        cost = 1
+        if fdef.array != "sequence" and elem not in PRIMITIVES:
+            cost = self.expanded(elem, depth + 1) * (fdef.size if fdef.array == "fixed" else 1)
+        if self.fields + cost > self.limits.max_schema_fields:
+            self.stop(path)  # the rest of the type is out of the field budget
+            return
+        self.fields += 1 if elem in PRIMITIVES or fdef.array == "sequence" else 0
+        if fdef.array == "sequence":
+            if elem in PRIMITIVES:
+                self.variable(path, "sequence", PRIMITIVES[elem][1])
+                self.layout.leaves[path].dtype = PRIMITIVES[elem][0]
+            else:
+                # Sequences of strings or messages: skipping them needs a per-message walk;
+                # the layout marks the rest as unreachable.
+                self.stop(path)
+        elif elem in PRIMITIVES:
+            self.primitive(path, elem, fdef.size if fdef.array == "fixed" else 1)
+        elif elem in STRING_TYPES:
+            count = fdef.size if fdef.array == "fixed" else 1
+            self.fields += count
+            for i in range(count):
+                sub = f"{path}[{i}]" if fdef.array == "fixed" else path
+                self.variable(sub, "string" if elem == "string" else "wstring", 1)
+        elif fdef.array == "fixed":
+            if cost == 0:
+                return  # elements without fields: nothing to lay out
+            for i in range(fdef.size):
+                self.walk(elem, f"{path}[{i}].", depth + 1)
+        else:
+            self.walk(elem, f"{path}.", depth + 1)
+
+
 PRIMITIVES_BY_CODE = {code: size for code, size in PRIMITIVES.values()}
 
 
@@ -459,9 +476,12 @@ def encapsulation_endian(batch: MessageBatch) -> np.ndarray:
 def _encapsulation_flags(batch: MessageBatch) -> tuple[np.ndarray, np.ndarray]:
     """Per message: little-endian flag, and whether the encapsulation is CDR_LE/CDR_BE."""
     ok = batch.length >= 4
-    head = np.zeros((len(batch), 2), np.uint8)
-    if bool(ok.any()):
-        head[ok] = gather_bytes(batch.data, batch.offset[ok], 2)
+    if bool(ok.all()):
+        head = gather_bytes(batch.data, batch.offset, 2)
+    else:
+        head = np.zeros((len(batch), 2), np.uint8)
+        if bool(ok.any()):
+            head[ok] = gather_bytes(batch.data, batch.offset[ok], 2)
     ok &= (head[:, 0] == 0) & (head[:, 1] <= 1)
     return (head[:, 1] == 1) | ~ok, ok
 

@@ -3,12 +3,29 @@
 from __future__ import annotations
 
 import threading
-from typing import Any
+import zlib
+from collections.abc import Callable
 
 from imufdi_cli.errors import McapInputError
 
-_ZSTD: dict[str, Any] = {}
-#: Per-thread zstd compressors (a ZstdCompressor must not be shared between threads).
+try:  # zlib-ng's CRC-32 (folding with PCLMULQDQ/VPCLMULQDQ): same value, ~6x zlib's speed
+    from zlib_ng import zlib_ng as _zlib_ng
+
+    _CRC32: Callable[..., int] = _zlib_ng.crc32
+    CRC32_IMPLEMENTATION = "zlib-ng"
+except ImportError:  # pragma: no cover - zlib-ng is a dependency; zlib gives the same values
+    _CRC32 = zlib.crc32
+    CRC32_IMPLEMENTATION = "zlib"
+
+
+def crc32(data: bytes | bytearray | memoryview, value: int = 0) -> int:
+    """CRC-32 (ISO-HDLC, the MCAP checksum: ``zlib.crc32``'s value) of ``data``, continuing
+    from ``value``. Computed by zlib-ng when installed (about 15 GB/s on the build machine
+    against zlib's 2.5), else by zlib."""
+    return int(_CRC32(data, value))
+
+
+#: Per-thread zstd compressors and decompressors (neither may be shared between threads).
 _ZSTD_LOCAL = threading.local()
 #: zstd compression level of chunks. Fast level -3 compresses these CDR records about 1.8x
 #: faster than level 1 for ~1% larger chunks (standard zstd frames; every decoder reads them).
@@ -42,9 +59,12 @@ def _error_text(err: BaseException) -> str:
 def _zstd_decompress(raw: bytes | memoryview, size: int) -> bytes:
     import zstandard
 
-    if "d" not in _ZSTD:
-        _ZSTD["d"] = zstandard.ZstdDecompressor()
-    dctx = _ZSTD["d"]
+    # per thread: readers decompress on a worker thread too, and a ZstdDecompressor must
+    # not be used by two threads at once
+    dctx = getattr(_ZSTD_LOCAL, "decompressor", None)
+    if dctx is None:
+        dctx = zstandard.ZstdDecompressor()
+        _ZSTD_LOCAL.decompressor = dctx
     # ``decompress`` allocates what the frame header claims (ignoring max_output_size), so
     # it is used only when that claim is the chunk's declared size; otherwise read at most
     # one byte more than declared through a stream reader (also reads across frames).
@@ -65,6 +85,47 @@ def _lz4_decompress(raw: bytes | memoryview, size: int) -> bytes:
     if len(out) <= size and not dctx.eof:
         raise McapInputError(f"lz4 frame incomplete after {len(out)} of {size} declared bytes")
     return out
+
+
+def decompress_into(raw: bytes | memoryview, compression: str, out: memoryview) -> None:
+    """Decompress chunk records into ``out``, which must be exactly the declared size.
+
+    Same checks and messages as :func:`decompress` (a size other than ``len(out)`` is an
+    error; nothing past ``len(out)`` is produced but one byte), without allocating the
+    records: zstd frames are decoded straight into ``out`` (the reader's batch buffer).
+
+    Raises
+    ------
+    McapInputError
+        As :func:`decompress`; ``out`` then holds partial data.
+    """
+    size = len(out)
+    if compression != "zstd":
+        out[:] = decompress(raw, compression, size)
+        return
+    import zstandard
+
+    dctx = getattr(_ZSTD_LOCAL, "decompressor", None)
+    if dctx is None:
+        dctx = zstandard.ZstdDecompressor()
+        _ZSTD_LOCAL.decompressor = dctx
+    filled = 0
+    try:
+        with dctx.stream_reader(raw, read_across_frames=True) as reader:
+            while filled < size:
+                n = reader.readinto(out[filled:])
+                if not n:
+                    break
+                filled += n
+            # one byte more: past the declared size (a bomb), and the end of the last
+            # frame is reached, so its content checksum is verified
+            extra = reader.read(1) if filled == size else b""
+    except Exception as err:  # zstandard.ZstdError
+        raise McapInputError(f"corrupt zstd chunk ({_error_text(err)})") from err
+    if extra:
+        raise McapInputError(f"zstd records exceed the declared size of {size} bytes")
+    if filled < size:
+        raise McapInputError(f"zstd records hold {filled} bytes, not the declared {size}")
 
 
 def decompress(raw: bytes | memoryview, compression: str, uncompressed_size: int) -> bytes:

@@ -105,6 +105,11 @@ class ImuArrayReader:
     keep_raw_chunks : bool
         Open a path with :class:`McapSource` ``keep_raw_chunks`` (``source.raw_chunk(batch)``
         then gives the Chunk record of a batch :meth:`stream` yields, for verbatim copying).
+    validate_crcs : bool
+        Check the CRC-32 of every chunk's records (default; a chunk that fails is skipped
+        with a warning, or raises with ``strict``). False skips the check (benchmarks, or
+        logs known to be intact); the zstd/lz4 frame checksums are still verified. Applies
+        when the reader opens ``source`` itself; an open McapSource keeps its own setting.
 
     Attributes
     ----------
@@ -129,6 +134,7 @@ class ImuArrayReader:
         block_size: int = 4096,
         tolerance_ns: int | None = None,
         keep_raw_chunks: bool = False,
+        validate_crcs: bool = True,
     ) -> None:
         if time_source not in ("auto", "header", "log_time"):
             raise UsageError(f"unknown time source {time_source!r}; valid: auto, header, log_time")
@@ -137,7 +143,12 @@ class ImuArrayReader:
         self.source = (
             source
             if isinstance(source, McapSource)
-            else McapSource(source, strict=strict, keep_raw_chunks=keep_raw_chunks)
+            else McapSource(
+                source,
+                strict=strict,
+                keep_raw_chunks=keep_raw_chunks,
+                validate_crcs=validate_crcs,
+            )
         )
         self.time_source = time_source
         self.block_size = block_size
@@ -443,7 +454,7 @@ class ImuArrayReader:
                 continue
             selected = batch if bool(mask.all()) else batch.select(mask)
             valid = np.ones(len(selected), bool)
-            fields = _decode(selected, channel, kinds, path, valid)
+            fields = _decode(selected, channel, kinds, path, valid, contiguous=False)
             streams = stream_of_message[mask]
             if not bool(valid.all()):
                 streams = streams[valid]
@@ -461,16 +472,19 @@ class ImuArrayReader:
     def _block(self, t_ns: np.ndarray, values: list[np.ndarray]) -> ImuBlock:
         m = len(self.imu_topics)
         n = t_ns.shape[0]
-        imu = np.stack(values[:m], axis=1) if m else np.zeros((n, 0, 6))
-        gyro = imu[:, :, 0:3] if self.array.has("gyro") else None
-        accel = imu[:, :, 3:6] if self.array.has("accel") else None
+
+        def stacked(columns: slice) -> np.ndarray:  # (n, m, 3), one copy
+            if not m:
+                return np.zeros((n, 0, 3))
+            return np.stack([v[:, columns] for v in values[:m]], axis=1)
+
         mag = None
         if self.mag_topics and self.array.has("mag"):
             mag = np.stack(values[m:], axis=1)
         return ImuBlock(
             t_ns=t_ns,
-            gyro=None if gyro is None else np.ascontiguousarray(gyro),
-            accel=None if accel is None else np.ascontiguousarray(accel),
+            gyro=stacked(slice(0, 3)) if self.array.has("gyro") else None,
+            accel=stacked(slice(3, 6)) if self.array.has("accel") else None,
             mag=mag,
         )
 

@@ -16,6 +16,7 @@ from imufdi_cli.mcapio.cdr import CdrCodec, codec_for
 from imufdi_cli.mcapio.records import (
     ChannelInfo,
     MessageBatch,
+    gather_bytes,
 )
 
 ARRAY_METADATA = "imufdi.array"
@@ -136,6 +137,7 @@ def _decode_cdr(
     kinds: Sequence[str],
     field: str = "",
     valid: np.ndarray | None = None,
+    contiguous: bool = True,
 ) -> ImuFields:
     codec = _codec(channel)
     prefix = f"{field}." if field else ""
@@ -156,8 +158,48 @@ def _decode_cdr(
     else:
         t_ns = log_time.copy()
     out = ImuFields(t_ns=t_ns, log_time=log_time, has_stamp=has_stamp)
+    joint = _read_vector_span(codec, batch, little, positions, vector_paths, contiguous)
     for kind, path in vector_paths.items():
-        setattr(out, kind, codec.read(batch, little, positions[path], "f8", 3).astype(np.float64))
+        if joint is not None:
+            setattr(out, kind, joint[kind])
+        else:
+            value = codec.read(batch, little, positions[path], "f8", 3)
+            setattr(out, kind, value.astype(np.float64, copy=False))
+    return out
+
+
+def _read_vector_span(
+    codec: CdrCodec,
+    batch: MessageBatch,
+    little: np.ndarray,
+    positions: dict[str, np.ndarray],
+    vector_paths: dict[str, str],
+    contiguous: bool,
+) -> dict[str, np.ndarray] | None:
+    """Several float64 x/y/z vectors at a constant distance from each other in every
+    message (``angular_velocity`` and ``linear_acceleration`` of an Imu: 96 bytes apart),
+    read with one gather of the span holding them; each (N, 3) float64, views of that span
+    unless ``contiguous``. None when they are not at constant distances, not all
+    little-endian, or there is only one."""
+    if len(vector_paths) < 2 or not bool(little.all()):
+        return None
+    leaves = codec.layout.leaves
+    first_path = min(vector_paths.values(), key=lambda p: leaves[p].offset)
+    first = leaves[first_path]
+    deltas = {}
+    for kind, path in vector_paths.items():
+        leaf = leaves[path]
+        if leaf.segment != first.segment or (leaf.offset - first.offset) % 8:
+            return None
+        deltas[kind] = (leaf.offset - first.offset) // 8
+    width = max(deltas.values()) + 3
+    if width > 64:  # far apart: separate gathers copy less
+        return None
+    span = gather_bytes(batch.data, positions[first_path], 8 * width).view("<f8")
+    span = span.reshape(len(batch), width)
+    out = {kind: span[:, d : d + 3] for kind, d in deltas.items()}
+    if contiguous:
+        out = {kind: np.ascontiguousarray(value) for kind, value in out.items()}
     return out
 
 
@@ -207,12 +249,14 @@ def _decode(
     kinds: Sequence[str],
     field: str = "",
     valid: np.ndarray | None = None,
+    contiguous: bool = True,
 ) -> ImuFields:
     """Decode one channel's messages (``field``: path of an embedded Imu, "" for the message
     itself). Malformed messages raise McapInputError, unless ``valid`` (N,) bool is given:
-    then they are left out and their entries set False."""
+    then they are left out and their entries set False. With ``contiguous`` False the
+    vectors may be strided views (the reader copies them once more anyway)."""
     if channel.message_encoding == "cdr":
-        return _decode_cdr(batch, channel, kinds, field, valid)
+        return _decode_cdr(batch, channel, kinds, field, valid, contiguous)
     if channel.message_encoding == "json":
         return _decode_json(batch, channel, kinds, field, valid)
     raise McapInputError(

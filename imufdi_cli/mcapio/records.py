@@ -13,6 +13,7 @@ importable from here).
 
 from __future__ import annotations
 
+import itertools
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -62,7 +63,8 @@ def gather_bytes(data: np.ndarray, positions: np.ndarray, n_bytes: int) -> np.nd
     """Bytes ``data[p : p + n_bytes]`` for every p in ``positions``, shape (N, n_bytes), uint8.
 
     Uses a strided view (one copy, no index array) when positions are evenly spaced, which
-    is the case for fixed-size messages interleaved regularly in a chunk.
+    is the case for fixed-size messages interleaved regularly in a chunk; otherwise one
+    ``V<n_bytes>`` element per position out of a sliding view (one memcpy per row).
     """
     positions = np.asarray(positions, dtype=np.int64)
     n = positions.shape[0]
@@ -90,6 +92,15 @@ def gather_bytes(data: np.ndarray, positions: np.ndarray, n_bytes: int) -> np.nd
                 data[first:], shape=(n, n_bytes), strides=(step, 1), writeable=False
             )
             return np.array(view, copy=True)
+    if data.flags.c_contiguous and 0 < n_bytes <= data.shape[0] and data.dtype == np.uint8:
+        # A sliding (B - n_bytes + 1,) view of n_bytes-wide void elements, one per byte
+        # offset: fancy indexing it copies each row with one memcpy, about 10x faster than
+        # an (N, n_bytes) index array (positions past the end still raise IndexError).
+        if int(positions.min()) >= 0:
+            windows = np.ndarray(
+                (data.shape[0] - n_bytes + 1,), dtype=f"V{n_bytes}", buffer=data, strides=(1,)
+            )
+            return windows[positions].view(np.uint8).reshape(n, n_bytes)
     index = positions[:, None] + np.arange(n_bytes, dtype=np.int64)[None, :]
     return data[index]
 
@@ -207,6 +218,37 @@ class MessageBatch:
             offset=np.concatenate(offsets),
             length=np.concatenate([b.length for b in batches]),
         )
+
+    def channel_indices(self) -> list[tuple[int, np.ndarray]]:
+        """``(channel id, indices)`` for each channel in the batch, ascending channel id;
+        ``indices`` (int64, ascending) are the positions of that channel's messages.
+
+        One stable sort of the channel ids (radix for uint16), not one mask per channel.
+        """
+        n = len(self)
+        if n == 0:
+            return []
+        ids = self.channel_id
+        first = ids[0]
+        if bool(np.all(ids == first)):
+            return [(int(first), np.arange(n, dtype=np.int64))]
+        order = np.argsort(ids, kind="stable")
+        ordered = ids[order]
+        cuts = np.flatnonzero(ordered[1:] != ordered[:-1]) + 1
+        bounds = [0, *cuts.tolist(), n]
+        return [
+            (int(ordered[a]), order[a:b].astype(np.int64, copy=False))
+            for a, b in itertools.pairwise(bounds)
+        ]
+
+    def by_channel(self) -> list[tuple[int, MessageBatch]]:
+        """``(channel id, that channel's messages in batch order)`` for each channel in the
+        batch, ascending channel id (what ``np.unique(channel_id)`` and one ``select`` per
+        id give); a batch of one channel is returned as it is, not copied."""
+        groups = self.channel_indices()
+        if len(groups) == 1:
+            return [(groups[0][0], self)]
+        return [(cid, self.select(index)) for cid, index in groups]
 
     def sorted_by_time(self) -> MessageBatch:
         """The same messages ordered by log time (stable)."""

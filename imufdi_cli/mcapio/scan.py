@@ -198,10 +198,12 @@ def scan_records(
 
 class _PendingMessages:
     """Message records waiting to become one batch: whole chunks' records and loose
-    (un-chunked) Message records, in file order."""
+    (un-chunked) Message records, in file order, in one buffer (chunks are decompressed
+    straight into it: :meth:`slot`), handed out without joining."""
 
     def __init__(self) -> None:
-        self.parts: list[bytes] = []
+        self.buffer: np.ndarray | None = None
+        self.n_parts = 0
         self.starts: list[np.ndarray] = []
         self.lengths: list[np.ndarray] = []
         self.loose_starts: list[int] = []
@@ -224,19 +226,36 @@ class _PendingMessages:
             self.lengths.append(np.array(self.loose_lengths, np.int64))
             self.loose_starts, self.loose_lengths = [], []
 
+    def slot(self, n: int) -> memoryview:
+        """Writable room for ``n`` bytes after the pending ones (not counted until
+        :meth:`add_chunk`); the buffer grows by copying only when a part does not fit."""
+        end = self.n_bytes + n
+        if self.buffer is None or end > self.buffer.shape[0]:
+            capacity = max(end, _BATCH_BYTES + (2 << 20))
+            if self.buffer is not None:
+                capacity = max(capacity, 2 * self.buffer.shape[0])
+            grown = np.empty(capacity, np.uint8)  # pages are touched only when written
+            if self.buffer is not None:
+                grown[: self.n_bytes] = self.buffer[: self.n_bytes]
+            self.buffer = grown
+        return memoryview(self.buffer)[self.n_bytes : end]  # type: ignore[arg-type]
+
     def add_loose(self, content: bytes, position: int) -> None:
+        self.slot(len(content))[:] = content
         self.loose_starts.append(self.n_bytes)
         self.loose_lengths.append(len(content))
-        self.parts.append(content)
+        self.n_parts += 1
         self._note(position, len(content), 1)
 
     def add_chunk(
         self,
-        raw: bytes,
+        size: int,
         starts: np.ndarray | list[int],
         lengths: np.ndarray | list[int],
         position: int,
     ) -> None:
+        """Count a chunk's ``size`` record bytes, already written at :meth:`slot`; starts
+        and lengths of its Message records' contents relative to the chunk."""
         if isinstance(starts, list):  # a small chunk: kept in lists like loose messages
             shift = self.n_bytes
             self.loose_starts.extend(start + shift for start in starts)
@@ -245,8 +264,8 @@ class _PendingMessages:
             self._close_loose()
             self.starts.append(starts + self.n_bytes)
             self.lengths.append(np.asarray(lengths))
-        self.parts.append(raw)
-        self._note(position, len(raw), len(starts))
+        self.n_parts += 1
+        self._note(position, size, len(starts))
 
     def full(self) -> bool:
         return self.n_bytes >= _BATCH_BYTES or self.n_messages >= _BATCH_MESSAGES
@@ -259,8 +278,8 @@ class _PendingMessages:
     def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(buffer, content starts, content lengths) of everything pending; empties it."""
         self._close_loose()
-        raw = self.parts[0] if len(self.parts) == 1 else b"".join(self.parts)
+        buf = np.zeros(0, np.uint8) if self.buffer is None else self.buffer[: self.n_bytes]
         starts = self.starts[0] if len(self.starts) == 1 else np.concatenate(self.starts)
         lengths = self.lengths[0] if len(self.lengths) == 1 else np.concatenate(self.lengths)
         self.__init__()  # type: ignore[misc]
-        return np.frombuffer(raw, dtype=np.uint8), starts, lengths
+        return buf, starts, lengths

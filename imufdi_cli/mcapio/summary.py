@@ -127,13 +127,15 @@ def summarize(
     topics: Sequence[str] | None = None,
     strict: bool = False,
     time_source: str = "auto",
+    validate_crcs: bool = True,
 ) -> LogSummary:
     """Topics, message counts, array, rate, duration, gaps/duplicates and metadata of a log.
 
     The whole log is streamed once (IMU messages are decoded and aligned to count gaps);
-    message counts come from the summary section when the file has one.
+    message counts come from the summary section when the file has one. ``validate_crcs``
+    as in :class:`McapSource` (chunk CRC-32 checks; on by default).
     """
-    src = McapSource(source, strict=strict)
+    src = McapSource(source, strict=strict, validate_crcs=validate_crcs)
     with src:
         summary = LogSummary(source=src.name)
         counts: dict[int, int] = {}

@@ -4,7 +4,7 @@
 structured header array, one payload copy), so writing cost does not involve per-message
 Python work. Fixed-size records built by the caller (:meth:`McapWriter.add_records`) go
 into chunks without further copies; chunks are compressed and checksummed on worker threads
-(zstandard, lz4 and zlib.crc32 release the GIL) while the caller builds the next ones, and
+(zstandard, lz4 and the CRC-32 release the GIL) while the caller builds the next ones, and
 written in order, so the output is the same bytes as a serial write.
 """
 
@@ -14,7 +14,6 @@ import io
 import os
 import struct
 import sys
-import zlib
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -24,7 +23,7 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError, OutputError, UsageError
-from imufdi_cli.mcapio.compression import compress
+from imufdi_cli.mcapio.compression import compress, crc32
 from imufdi_cli.mcapio.records import (
     COMPRESSIONS,
     MAGIC,
@@ -99,10 +98,10 @@ def _compress_and_checksum(raw: np.ndarray, compression: str) -> tuple[bytes, in
     Every chunk carries the CRC-32 of its uncompressed records, whatever the compression,
     so that readers which check chunk CRCs (the ``mcap`` package, ``mcap doctor``, our own
     reader) verify our files end to end; zstd and lz4 frames also carry their own content
-    checksum. zlib's CRC-32 releases the GIL and runs on this worker thread.
+    checksum. The CRC-32 (zlib-ng's, else zlib's) releases the GIL on this worker thread.
     """
     view = raw.data
-    return compress(view, compression), zlib.crc32(view)
+    return compress(view, compression), crc32(view)
 
 
 #: Worker threads compressing chunks, and how many chunks may wait to be written.
@@ -708,7 +707,7 @@ class McapWriter:
         )
         summary = b"".join(parts)
         footer_head = struct.pack("<BQQQ", OP_FOOTER, 20, summary_start, summary_offset_start)
-        summary_crc = zlib.crc32(footer_head, zlib.crc32(summary))
+        summary_crc = crc32(footer_head, crc32(summary))
         self._write(summary)
         self._write(footer_head + struct.pack("<I", summary_crc))
         self._write(MAGIC)

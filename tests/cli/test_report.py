@@ -74,12 +74,6 @@ def test_report_without_detection_is_bad_input(cli, table4_log):
     assert_one_line_error(cli(["report", table4_log]), 3, "imufdi detect")
 
 
-def test_plot(cli, tmp_path, detected_log):
-    png = tmp_path / "p.png"
-    assert cli(["report", detected_log, "--plot", png]).code == 0
-    assert png.read_bytes()[:4] == b"\x89PNG"
-
-
 def test_match_far_and_roc(cli, tmp_path, detected_log):
     out, roc, md = tmp_path / "r.json", tmp_path / "roc.csv", tmp_path / "r.md"
     result = cli(
@@ -112,13 +106,14 @@ def test_match_far_usage_errors(cli, detected_log, tmp_path):
     assert_one_line_error(result, 2, "--match-far")
 
 
-def test_roc_plot(cli, tmp_path, detected_log):
+def test_plot_and_roc_plot(cli, tmp_path, detected_log):
     import pytest
 
     pytest.importorskip("matplotlib")
     roc = tmp_path / "roc.csv"
     result = cli(["report", detected_log, "--roc", roc, "--plot", tmp_path / "p.png"])
     assert result.code == 0, result.stderr
+    assert (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"  # the report figure
     assert roc.exists() and (tmp_path / "roc.png").read_bytes()[:4] == b"\x89PNG"
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -144,7 +145,9 @@ def test_block_size_invariance_and_json_metadata(short_log):
     assert a.scores.shape == (len(block), 36)
     # first L - 1 + p samples: no whitened residual, calibrated mean energy (R = 1); the
     # mapping test's own statistic (input test off)
-    plain = run(make({**FAST, "input_test": "false"}), array, block, (0.0, 6.0))
+    plain = run(
+        make({**FAST, "input_test": "false", "mapping_test": "alarm"}), array, block, (0.0, 6.0)
+    )
     assert_allclose(plain.statistic[:30], 1.0)
     # with the input test, the statistic is normalised by the thresholds (threshold 1)
     assert_allclose(a.threshold, 1.0)
@@ -285,6 +288,70 @@ def test_noise_growth_on_y_and_z_accelerometers_is_detected_by_the_input_test(se
     # the added noise standard deviation (scores): sqrt(3^2 - 1) x 0.03 m/s^2
     assert_allclose(np.median(out.scores[fault, column]), np.sqrt(8.0) * 0.03, rtol=0.25)
     assert detector.metadata()["input_test"]["status"] == "on"
+
+
+# --- issue 16: the mapping test reports by default; the input test's level -----------------
+
+
+def test_mapping_test_modes(short_log, trained):
+    """report: the mapping test is computed and counted but never alarms, so the output is
+    the input test's alone, the same as with the mapping off (no network); alarm: both
+    tests alarm (the input test at alpha / 2, a higher threshold). The report counts the
+    samples where the mapping statistic is over its threshold at alpha, i.e. exactly the
+    alarms of the mapping test alone at alpha on the same network."""
+    array, block = short_log
+    path = trained[1]
+    free = (0.0, 6.0)
+    report = make({"model": path})
+    a = run(report, array, block, free, block_size=333)
+    off = make({"mapping_test": "off"})
+    b = run(off, array, block, free)
+    assert off.network is None and report.network is not None
+    assert_array_equal(a.alarm, b.alarm)
+    assert_allclose(a.statistic, b.statistic, rtol=1e-12)
+    assert_array_equal(a.isolated, b.isolated)
+    alone = make({"model": path, "input_test": "false", "mapping_test": "alarm"})
+    c = run(alone, array, block, free)
+    meta = json.loads(json.dumps(report.metadata()))
+    assert meta["mapping_test"] == "report" and not meta["mapping_alarms"]
+    assert meta["mapping_alpha"] == report.alpha
+    counted = meta["mapping_report"]
+    assert counted["samples"] == len(block)
+    assert counted["over_threshold"] == int(c.alarm.sum())
+    assert sum(counted["by_sensor"].values()) == counted["over_threshold"]
+    both = make({"model": path, "mapping_test": "alarm"})
+    d = run(both, array, block, free)
+    assert both.mapping_alpha == both.alpha / 2.0
+    assert both.input_threshold > report.input_threshold
+    assert json.loads(json.dumps(off.metadata()))["input_test"]["status"] == "on"
+    assert np.all(d.alarm[c.alarm & (c.statistic > 2 * c.threshold)])
+    with pytest.raises(DetectorConfigError, match="mapping_test=alarm"):
+        make({"input_test": "false"})
+    with pytest.raises(DetectorConfigError, match="valid: report, alarm, off"):
+        make({"mapping_test": "maybe"})
+
+
+@pytest.mark.slow
+def test_input_test_holds_its_level_on_fault_free_logs():
+    """Fault-free wearable12 (calibration 0-10 s, 20 s after it), the input test alone at
+    alpha = 0.01 (a level high enough to see tens of alarm episodes in a few logs). Alarms
+    come in episodes, so the count of alarmed samples is not binomial; with E episodes
+    expected (Poisson) of the observed mean length, the FAR may exceed alpha by 4 standard
+    deviations, alpha * 4 / sqrt(E). Seeds 5000-5003 were not used for any choice."""
+    alpha = 0.01
+    alarmed, samples, episodes = 0, 0, 0
+    for seed in range(5000, 5004):
+        array, block = wearable12(seed, factor=None)
+        out = run(make({"mapping_test": "off", "alpha": str(alpha)}), array, block, block_size=4096)
+        after = out.alarm[block.t_s() >= 10.0]
+        alarmed += int(after.sum())
+        samples += after.size
+        episodes += int(np.sum(after[1:] & ~after[:-1]) + after[0])
+    far = alarmed / samples
+    length = alarmed / max(episodes, 1)
+    expected_episodes = alpha * samples / max(length, 1.0)
+    assert far <= alpha * (1.0 + 4.0 / math.sqrt(expected_episodes))
+    assert far >= alpha * 0.2  # the threshold is not grossly conservative either
 
 
 # --- issue 16: calibration motion, GLT gyro screen re-admission ------------------------------

@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from imufdi_cli.detectors.cusum import CusumDesign, cusum_threshold, run_cusum
+from imufdi_cli.detectors.cusum import (
+    CusumDesign,
+    cusum_threshold,
+    local_mean_residual,
+    run_cusum,
+)
 
 
 def test_increment_is_the_variance_log_likelihood_ratio():
@@ -34,20 +39,51 @@ def test_run_cusum_is_the_capped_page_recursion_across_blocks():
     assert direct.max() == cap and direct.min() == 0.0
 
 
+def test_local_mean_residual_matches_its_definition_across_blocks():
+    rng = np.random.default_rng(4)
+    x = rng.normal(0.0, 1.0, (200, 2)) + np.array([5.0, -3.0])  # offsets drop out
+    for window in (1, 8):
+        direct = np.full_like(x, np.nan)
+        for t in range(window, 200):
+            direct[t] = (x[t] - x[t - window : t].mean(axis=0)) / math.sqrt(1.0 + 1.0 / window)
+        whole = local_mean_residual(x, window)
+        assert_allclose(whole, direct, equal_nan=True)
+        parts = [local_mean_residual(x[:3], window), local_mean_residual(x[3:50], window, x[:3])]
+        parts.append(local_mean_residual(x[50:], window, x[:50]))
+        assert_allclose(np.vstack(parts), direct, equal_nan=True)
+    # W = 1: the first difference over sqrt(2)
+    assert_allclose(local_mean_residual(x, 1)[1:], np.diff(x, axis=0) / math.sqrt(2.0))
+
+
+def test_local_mean_residual_of_white_noise_has_unit_variance_and_small_correlation():
+    """Var = 1 and lag-k correlation -k / (W (W + 1)) (k <= W); tolerances 5 standard
+    errors of a sample variance / correlation of n = 200000 values (sqrt(2/n), 1/sqrt(n))."""
+    n, window = 200_000, 8
+    z = local_mean_residual(np.random.default_rng(5).standard_normal((n, 1)), window)[window:, 0]
+    assert abs(z.var() - 1.0) <= 5 * math.sqrt(2.0 / n)
+    for lag in (1, 4, 8, 9):
+        expected = -lag / (window * (window + 1)) if lag <= window else 0.0
+        assert abs(np.corrcoef(z[:-lag], z[lag:])[0, 1] - expected) <= 5 / math.sqrt(n)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("level", [1e-3, 1e-4])
-def test_threshold_gives_the_level_on_an_independent_null_simulation(level):
+@pytest.mark.parametrize(("level", "window"), [(1e-3, 1), (1e-4, 1), (1e-4, 8)])
+def test_threshold_gives_the_level_on_an_independent_null_simulation(level, window):
     """h from one seeded simulation; the exceedance rate of an independent simulation of
-    the same null (differences of white noise, calibration error negligible) must match
-    the level. Tolerance from the spread over independent chains (alarms cluster, so the
-    binomial variance of single samples would be too small): 4 standard errors of the
-    mean over 256 chains, plus the extrapolation's own error, bounded at 35 %."""
+    the same null (white noise minus the mean of its W previous samples, computed here by
+    a convolution; calibration error negligible) must match the level. Tolerance from the
+    spread over independent chains (alarms cluster, so the binomial variance of single
+    samples would be too small): 4 standard errors of the mean over 256 chains, plus the
+    extrapolation's own error, bounded at 35 %."""
     design = CusumDesign(ratio=9.0, clip=5.0)
     margin = 15.0
-    h = cusum_threshold(level, design, margin, 1e12, np.random.default_rng(1))
+    h = cusum_threshold(level, design, margin, 1e12, np.random.default_rng(1), mean_window=window)
     chains, steps = 256, 40000
-    white = np.random.default_rng(2).standard_normal((steps + 1, chains))
-    z = np.diff(white, axis=0) / math.sqrt(2.0)
+    white = np.random.default_rng(2).standard_normal((steps + window, chains))
+    kernel = np.concatenate([[1.0], np.full(window, -1.0 / window)])
+    z = np.stack(
+        [np.convolve(white[:, c], kernel, mode="valid") for c in range(chains)], axis=1
+    ) / math.sqrt(1.0 + 1.0 / window)
     s, _ = run_cusum(design.increments(z), np.zeros(chains), h + margin)
     per_chain = (s[1024:] > h).mean(axis=0)
     mean = per_chain.mean()

@@ -220,6 +220,12 @@ def test_split_bag_directory_is_one_log(tmp_path) -> None:
         assert counts == {"/vectornav/imu": N, "/status": 1}
     _, block = read_array(bag)
     np.testing.assert_array_equal(block.gyro[:, 0], _expected_gyro())
+    with McapSource(bag, read_ahead=True, validate_crcs=False) as src:  # options reach parts
+        assert src.read_ahead and not src.validate_crcs
+        assert all(p.read_ahead and not p.validate_crcs for p in src._parts)
+        assert sum(len(b) for b in src.batches()) == N + 1
+        src._problem("a problem after reading")  # reported as in any source
+        assert src.warnings[-1] == "a problem after reading"
     summary = summarize(bag)
     assert (
         summary.n_samples == N

@@ -43,6 +43,42 @@ def test_batch_select_concatenate_sort() -> None:
     assert ordered.payload(2) == a.payload(2)
 
 
+def test_by_channel_matches_unique_and_select() -> None:
+    rng = np.random.default_rng(3)
+    batch = _batch(200, var=True)
+    batch.channel_id = rng.choice(np.array([9, 2, 40000, 5], np.uint16), 200)
+    groups = batch.by_channel()
+    expected = np.unique(batch.channel_id).tolist()
+    assert [cid for cid, _ in groups] == expected
+    for (cid, part), (cid2, index) in zip(groups, batch.channel_indices()):
+        reference = batch.select(batch.channel_id == cid)
+        assert cid == cid2 and isinstance(cid, int)
+        assert np.array_equal(index, np.flatnonzero(batch.channel_id == cid))
+        assert part.sequence.tolist() == reference.sequence.tolist()
+        assert [part.payload(i) for i in range(len(part))] == [
+            reference.payload(i) for i in range(len(reference))
+        ]
+    assert sum(len(part) for _, part in groups) == len(batch)
+    single = _batch(4, channel=7)
+    assert [(cid, part is single) for cid, part in single.by_channel()] == [(7, True)]
+    assert MessageBatch.empty().by_channel() == []
+
+
+def test_gather_bytes_irregular_positions() -> None:
+    from imufdi_cli.mcapio.records import gather_bytes
+
+    data = np.random.default_rng(1).integers(0, 256, 1000, dtype=np.uint8)
+    positions = np.array([0, 7, 3, 990, 500, 500], np.int64)
+    out = gather_bytes(data, positions, 10)
+    assert out.shape == (6, 10) and out.dtype == np.uint8
+    for row, p in zip(out, positions):
+        assert row.tolist() == data[p : p + 10].tolist()
+    with pytest.raises(IndexError):
+        gather_bytes(data, np.array([0, 5, 991]), 10)  # one byte past the end
+    strided = gather_bytes(data[::2], np.array([1, 4, 2]), 3)  # not contiguous
+    assert strided.tolist() == [data[::2][p : p + 3].tolist() for p in (1, 4, 2)]
+
+
 @pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
 @pytest.mark.parametrize("variable", [False, True])
 def test_mcap_package_reads_our_file(tmp_path, compression: str, variable: bool) -> None:

@@ -1,0 +1,60 @@
+"""Chunk compression helpers: the CRC-32 every chunk carries."""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+import pytest
+
+from imufdi_cli.errors import McapInputError
+from imufdi_cli.mcapio import compression
+from imufdi_cli.mcapio.compression import decompress_into
+
+
+def test_crc32_is_zlibs_crc32() -> None:
+    """zlib-ng's CRC-32 (when installed) gives zlib's values: MCAP's checksum, ISO-HDLC."""
+    rng = np.random.default_rng(0)
+    assert compression.crc32(b"123456789") == 0xCBF43926  # the CRC-32 check value
+    for size in (0, 1, 15, 64, 4095, 1 << 20):
+        data = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
+        assert compression.crc32(data) == zlib.crc32(data)
+        assert compression.crc32(memoryview(data)) == zlib.crc32(data)
+        head, tail = data[: size // 3], data[size // 3 :]
+        assert compression.crc32(tail, compression.crc32(head)) == zlib.crc32(data)
+    assert compression.CRC32_IMPLEMENTATION in ("zlib-ng", "zlib")
+
+
+def _into(raw: bytes, compression: str, size: int) -> bytes:
+    out = np.zeros(size, np.uint8)
+    decompress_into(raw, compression, memoryview(out))  # type: ignore[arg-type]
+    return out.tobytes()
+
+
+@pytest.mark.parametrize("kind", ["zstd", "lz4", ""])
+def test_decompress_into_matches_decompress(kind: str) -> None:
+    """The in-place decoder gives the same records, and the same errors, as decompress."""
+    import zstandard
+
+    rng = np.random.default_rng(2)
+    records = rng.integers(0, 4, 300_000, dtype=np.uint8).tobytes()
+    packed = compression.compress(records, kind or "none")
+    assert _into(packed, kind, len(records)) == records
+    cases = [
+        (len(records) - 1, "exceed|hold|past"),  # declared one byte short: a bomb's signature
+        (len(records) + 1, "hold|incomplete|not the declared"),  # declared one byte long
+    ]
+    if kind == "zstd":  # two frames, one without a content size: read across both
+        half = len(records) // 2
+        stream = zstandard.ZstdCompressor(write_content_size=False).compress(records[:half])
+        two = stream + zstandard.ZstdCompressor().compress(records[half:])
+        assert _into(two, kind, len(records)) == records
+        bad = bytearray(packed)
+        bad[-2] ^= 0xFF  # the frame's content checksum
+        with pytest.raises(McapInputError, match="corrupt zstd chunk"):
+            _into(bytes(bad), kind, len(records))
+    for size, pattern in cases[:2]:
+        with pytest.raises(McapInputError, match=pattern):
+            compression.decompress(packed, kind, size)
+        with pytest.raises(McapInputError, match=pattern):
+            _into(packed, kind, size)

@@ -1,0 +1,174 @@
+"""Episode explanations are unchanged, to the bit, by performance work on ``episodes.py``.
+
+A fixed synthetic log (seeded: 18 single-axis gyros of six rotated triads, 100 s at 100 Hz,
+every fault model of ``inject`` plus chance alarms, some without an isolated sensor) goes
+through :class:`~imufdi_cli.episodes.EpisodeBuilder` in blocks of random sizes; every
+episode's ``to_dict()`` (class, sizes, intervals, onsets, ends, BICs, evidence) must equal
+the reference recorded by the code before the fitting functions were made faster (commit
+7e6bd7a). Floats are compared exactly (JSON keeps every bit of a float).
+
+When the episodes' *classification logic* changes on purpose, record the new reference
+with ``PYTHONPATH=$PWD python tests/test_episodes_identical.py --write`` in the same commit
+and say so in its message; a performance-only change must pass unchanged.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.episodes import EpisodeBuilder
+
+REFERENCE = Path(__file__).with_name("episodes_identical.json")
+RATE = 100.0
+SIGMA = np.deg2rad(0.15)
+
+
+def _rotations(rng: np.random.Generator, count: int) -> np.ndarray:
+    """``count`` random proper rotations (QR of Gaussian matrices), shape (count, 3, 3)."""
+    out = []
+    for _ in range(count):
+        q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+        q = q * np.sign(np.diag(r))
+        if np.linalg.det(q) < 0:
+            q[:, 0] = -q[:, 0]
+        out.append(q)
+    return np.array(out)
+
+
+def synthetic_log(seed: int = 20261123) -> dict[str, Any]:
+    """The fixed log: measurements (N, 18) in rad/s, times, alarm rows and block sizes.
+
+    Faults (measurement index, onset s, duration s): step 0.9 deg/s on 2 (10, 8), drift
+    1 deg/s^2 on 4 (25, 10), noise x3 on 1 (40, 8), stuck on 3 (55, 6), spikes 3 deg/s at
+    5 Hz on 5 (70, 8), scale x1.05 on 0 (85, 8). Alarms follow each fault after a delay
+    (2 s for the drift, 0.3 s otherwise) with 20 % dropped rows (gaps to merge across),
+    5 % of alarm rows isolating another sensor; chance alarms at 1e-3 per row, a third of
+    them without an isolated sensor.
+    """
+    rng = np.random.default_rng(seed)
+    n_imus, length = 6, 10_000
+    H = _rotations(rng, n_imus).reshape(n_imus * 3, 3)
+    n = H.shape[0]
+    sigma = SIGMA * rng.uniform(0.7, 1.4, n)
+    t = np.arange(length) / RATE
+    omega = np.stack(
+        [np.sin(2 * np.pi * 0.1 * t), 0.5 * np.cos(2 * np.pi * 0.23 * t), 0.3 + 0 * t], axis=1
+    )
+    bias = rng.normal(0, np.deg2rad(0.2), n)
+    m = omega @ H.T + bias + rng.normal(size=(length, n)) * sigma
+    faults = [
+        (2, "step", 10.0, 8.0),
+        (4, "drift", 25.0, 10.0),
+        (1, "noise", 40.0, 8.0),
+        (3, "stuck", 55.0, 6.0),
+        (5, "spikes", 70.0, 8.0),
+        (0, "scale", 85.0, 8.0),
+    ]
+    alarm = np.zeros(length, bool)
+    isolated = np.full(length, -1, np.int32)
+    for k, model, onset_s, duration_s in faults:
+        a, b = round(onset_s * RATE), round((onset_s + duration_s) * RATE)
+        span = slice(a, b)
+        if model == "step":
+            m[span, k] += np.deg2rad(0.9)
+        elif model == "drift":
+            m[span, k] += np.deg2rad(1.0) * (t[span] - t[a])
+        elif model == "noise":
+            m[span, k] += rng.normal(0, sigma[k] * math.sqrt(8.0), b - a)
+        elif model == "stuck":
+            m[span, k] = m[a - 1, k]
+        elif model == "spikes":
+            hits = rng.random(b - a) < 0.05
+            m[span, k] += hits * np.deg2rad(3.0) * rng.choice([-1.0, 1.0], b - a)
+        elif model == "scale":
+            m[span, k] += 0.05 * (omega[span] @ H[k])
+        delay = round((2.0 if model == "drift" else 0.3) * RATE)
+        rows = np.arange(a + delay, b + 20)
+        rows = rows[rng.random(rows.size) > 0.2]
+        alarm[rows] = True
+        isolated[rows] = np.where(rng.random(rows.size) < 0.05, (k + 7) % n, k)
+    quiet = ~alarm
+    chance = quiet & (rng.random(length) < 1e-3)
+    alarm |= chance
+    isolated[chance] = np.where(
+        rng.random(int(chance.sum())) < 1 / 3, -1, rng.integers(0, n, int(chance.sum()))
+    )
+    statistic = np.where(alarm, rng.uniform(1.0, 20.0, length), rng.uniform(0, 1, length))
+    blocks = rng.integers(50, 700, 40)
+    return {
+        "H": H,
+        "sigma": sigma,
+        "m": m,
+        "t_ns": np.arange(length, dtype=np.int64) * 10_000_000,
+        "alarm": alarm,
+        "isolated": isolated,
+        "statistic": statistic,
+        "calibration": m[:200],
+        "blocks": blocks,
+    }
+
+
+def explained_episodes(calibrated: bool) -> list[dict[str, Any]]:
+    """Every episode of the fixed log, as ``Episode.to_dict()``, block by block; with the
+    calibration window's mean and size (``calibrated``) or without."""
+    log = synthetic_log()
+    n = log["H"].shape[0]
+    options: dict[str, Any] = {}
+    if calibrated:
+        options = {"calibration_samples": 200, "calibration_mean": log["calibration"].mean(0)}
+    builder = EpisodeBuilder(
+        "glt", "gyro", log["H"], [f"s{i}" for i in range(n)], log["sigma"], RATE, **options
+    )
+    out = []
+    start, length = 0, log["m"].shape[0]
+    sizes = iter(log["blocks"].tolist())
+    while start < length:
+        stop = min(length, start + next(sizes, 1000))
+        builder.feed(log["m"][start:stop])
+        status = SimpleNamespace(
+            alarm=log["alarm"][start:stop],
+            isolated=log["isolated"][start:stop],
+            statistic=log["statistic"][start:stop],
+            threshold=np.ones(stop - start),
+        )
+        t_ns = log["t_ns"][start:stop]
+        out += builder.rows(t_ns, t_ns + 3_000_000, status)
+        start = stop
+    out += builder.finish()
+    return [e.to_dict() for e in out]
+
+
+def _record() -> dict[str, Any]:
+    return {"calibrated": explained_episodes(True), "uncalibrated": explained_episodes(False)}
+
+
+def test_episode_explanations_are_identical_to_the_reference() -> None:
+    expected = json.loads(REFERENCE.read_text())
+    got = json.loads(json.dumps(_record()))
+    for key in ("calibrated", "uncalibrated"):
+        assert len(got[key]) == len(expected[key])
+        for mine, theirs in zip(got[key], expected[key]):
+            assert mine == theirs
+
+
+def test_the_reference_covers_every_fault_model_and_the_fault_end() -> None:
+    """The fixed log exercises what the fits compute: each model wins somewhere, some fault
+    ends inside its window, and some episode has no isolated sensor."""
+    expected = json.loads(REFERENCE.read_text())
+    episodes = expected["calibrated"] + expected["uncalibrated"]
+    classes = {e["fault_class"] for e in episodes}
+    assert {"step", "drift", "noise", "stuck", "spikes", "none"} <= classes
+    assert any(f["end_index"] is not None for e in episodes for f in e["fits"])
+    assert any(e["isolated_by"] == "residual" for e in episodes)
+
+
+if __name__ == "__main__" and sys.argv[1:] == ["--write"]:
+    REFERENCE.write_text(json.dumps(_record(), indent=0, sort_keys=True) + "\n")
+    print(f"wrote {REFERENCE}")

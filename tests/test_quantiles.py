@@ -1,0 +1,51 @@
+"""imufdi_cli.quantiles gives the same floats as scipy.stats, without importing it."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from imufdi_cli.quantiles import chi2, f
+
+PROBABILITIES = [0.0, 1e-12, 0.001, 0.05, 0.5, 0.9, 0.95, 0.999, 1 - 1e-9, 1.0]
+DOFS = [0.3, 1.0, 1.7, 2.0, 5.0, 12.25, 47.0, 1000.0, 1e6]
+
+
+@pytest.mark.parametrize("q", PROBABILITIES)
+@pytest.mark.parametrize("df", DOFS)
+def test_chi2_ppf_is_scipy_stats_to_the_bit(q: float, df: float) -> None:
+    assert chi2.ppf(q, df) == stats.chi2.ppf(q, df)
+
+
+@pytest.mark.parametrize("q", PROBABILITIES)
+@pytest.mark.parametrize("dfn", [1.0, 2.5, 7.0])
+@pytest.mark.parametrize("dfd", [0.8, 3.0, 40.0, 1e5])
+def test_f_ppf_is_scipy_stats_to_the_bit(q: float, dfn: float, dfd: float) -> None:
+    assert f.ppf(q, dfn, dfd) == stats.f.ppf(q, dfn, dfd)
+
+
+def test_arrays_broadcast_and_invalid_arguments_are_nan_as_in_scipy() -> None:
+    q = np.array([[-0.1], [0.0], [0.3], [1.0], [1.5], [np.nan]])
+    df = np.array([-1.0, 0.0, 0.5, 4.0, np.nan])
+    np.testing.assert_array_equal(chi2.ppf(q, df), stats.chi2.ppf(q, df))
+    np.testing.assert_array_equal(f.ppf(q, df, 3.0), stats.f.ppf(q, df, 3.0))
+    np.testing.assert_array_equal(f.ppf(q, 2.0, df), stats.f.ppf(q, 2.0, df))
+
+
+def test_scalars_come_back_as_numpy_scalars() -> None:
+    value = chi2.ppf(0.95, 3)
+    assert np.ndim(value) == 0 and isinstance(float(value), float)
+
+
+def test_importing_and_using_it_does_not_import_scipy_stats() -> None:
+    code = (
+        "import sys; from imufdi_cli.quantiles import chi2, f;"
+        "chi2.ppf(0.99, 3); f.ppf(0.99, 1, 40);"
+        "print('scipy.stats' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "False"
