@@ -926,8 +926,13 @@ def _local_level(r: np.ndarray) -> np.ndarray:
     n = r.shape[0]
     padded = np.concatenate((np.full(2, np.nan), r, np.full(2, np.nan)))
     window = np.stack([padded[i : i + n] for i in range(5)])
-    with np.errstate(all="ignore"):
-        level = np.nanmedian(window, axis=0) if n > 0 else np.zeros(0)
+    level = np.zeros(n)
+    if n >= 5:  # full windows: a plain median (nanmedian is ten times slower)
+        level[2:-2] = np.median(np.lib.stride_tricks.sliding_window_view(r, 5), axis=1)
+    edges = np.flatnonzero(np.isnan(window).any(axis=0) | ~np.isfinite(level))
+    if edges.size:
+        with np.errstate(all="ignore"):
+            level[edges] = np.nanmedian(window[:, edges], axis=0)
     return np.where(np.isfinite(level), level, 0.0)
 
 
