@@ -4,6 +4,8 @@ Usage::
 
     python benchmarks/bench_episodes.py --preset paper-table4 --seeds 9600:9620 \
         --detectors glt,pca-parity,bank,noise-glr [--faults 3] [--models step,drift] [--timing]
+    python benchmarks/bench_episodes.py --preset paper-table4 --seeds 14000:14002 \
+        --detectors noise-glr --far-s 1800     # fault-free episodes per hour
 
 For each seed a log of ``10 + 10 K`` s of the preset is simulated, and for each fault model
 K faults are injected one after another on K different IMUs (axis drawn from the seed), the
@@ -41,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.detect import detect_file
-from imufdi_cli.episodes import match_episodes
+from imufdi_cli.episodes import VARIANCE_DROP, match_episodes
 from imufdi_cli.faults import inject_file
 from imufdi_cli.mcapio import McapSource, read_events
 from imufdi_cli.pipeline import simulate_file
@@ -145,6 +147,38 @@ def print_tables(state: dict[str, Any]) -> None:
         )
 
 
+def fault_free(args: argparse.Namespace) -> int:
+    """Episodes per hour of each detector (and the variance-drop monitor) on fault-free
+    logs of ``--far-s`` seconds, after the calibration window, with the classes found."""
+    lo, hi = (int(x) for x in args.seeds.split(":"))
+    detectors = args.detectors.split(",")
+    counts: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
+    hours = 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in range(lo, hi):
+            base, out = str(Path(tmp) / "s.mcap"), str(Path(tmp) / "d.mcap")
+            simulate_file(args.preset, base, seed=seed, options={"duration": args.far_s})
+            detect_file(base, out, [(d, {}) for d in detectors])
+            for _, e in read_events(out, "/imufdi/events"):
+                if e["event"] != "episode" or e["sensor_type"] != "gyro":
+                    continue
+                episode = e["episode"]
+                counts[episode["detector"]][str(episode["fault_class"])] += 1
+            hours += (args.far_s - CALIBRATION_S) / 3600
+            print(f"seed {seed} done", file=sys.stderr, flush=True)
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(
+        f"{args.preset} gyro, fault-free, seeds {lo}-{hi - 1}, {hours * 3600:.0f} s after"
+        f" calibration; load average {load}"
+    )
+    for detector in [*detectors, VARIANCE_DROP]:
+        found = counts.get(detector, {})
+        total = sum(found.values())
+        classes = ", ".join(f"{k} {v}" for k, v in sorted(found.items(), key=lambda x: -x[1]))
+        print(f"{detector}: {total} episodes, {total / hours:.1f} per hour ({classes})")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--preset", default="paper-table4")
@@ -157,12 +191,21 @@ def main() -> int:
     parser.add_argument(
         "--merge", nargs="+", help="print the tables of these --dump files (disjoint seeds)"
     )
+    parser.add_argument(
+        "--far-s",
+        type=float,
+        help="instead: false episodes per hour on fault-free logs of this many seconds",
+    )
     args = parser.parse_args()
+    if args.far_s:
+        return fault_free(args)
     if args.merge:
         print_tables(merge([json.loads(Path(p).read_text()) for p in args.merge]))
         return 0
     lo, hi = (int(x) for x in args.seeds.split(":"))
-    detectors = args.detectors.split(",")
+    # the variance-drop monitor's episodes (a detection of the explanation layer, written
+    # once per sensor type) are scored like a detector's
+    detectors = [*args.detectors.split(","), VARIANCE_DROP]
     models = args.models.split(",")
     K = args.faults
     # (detector, model) -> matched episode records; (detector, model) -> detected fault ids
@@ -194,7 +237,9 @@ def main() -> int:
                 inject_file(base, faulty, specs, [], seed=seed)
                 injected += K
                 out = str(work / "d.mcap")
-                pairs: list[tuple[str, dict[str, Any]]] = [(d, {}) for d in detectors]
+                pairs: list[tuple[str, dict[str, Any]]] = [
+                    (d, {}) for d in detectors if d != VARIANCE_DROP
+                ]
                 if args.timing:
                     quiet = str(work / "q.mcap")
                     start = time.perf_counter()

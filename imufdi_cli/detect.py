@@ -584,7 +584,7 @@ class _DetectRun:
         self.writer.add_batch(
             encode_episode_events(self.events_channel, [e.to_dict() for e in episodes])
         )
-        for episode in episodes:
+        for episode in (e for e in episodes if e.detector == track.detector.name):
             counts = track.summary[episode.sensor_type].episodes
             label = episode.fault_class or "unexplained"
             counts[label] = counts.get(label, 0) + 1

@@ -26,7 +26,7 @@ model   r(t) for t >= tau (before: N(0, sigma_r^2))  size (90 % interval)
 ======  ==========================================  ==================================
 step    a + e                                        amp: t interval (:func:`_linear_fit`)
 drift   b (t - t_f) + e, t_f between two samples     rate: t interval of the LS slope
-noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: F(n - 1, n_cal) interval
+noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: successive differences, F
 scale   beta o(t) + e, o the consensus prediction    factor: 1 + beta_hat, t interval
 spikes  e + s A on a fraction p of samples           amp A (t interval), rate (Poisson)
 stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
@@ -47,9 +47,19 @@ Newey & West 1994), and the calibrated bias taken out of ``r`` (a constant estim
 n_cal samples). The other sensors, each against a consensus without ``k``, give the same
 estimate where there is no fault: when they spread significantly more than that variance
 says (chi-square test at 95 %), the interval is widened to their dispersion
-(:func:`_linear_fit`). The noise factor's interval is F(n - 1, n_cal) because sigma_k
-itself was estimated from n_cal calibration samples. Coverage is measured in
-``tests/test_episodes.py``, ``benchmarks/bench_episodes.py`` and docs/episodes.md.
+(:func:`_linear_fit`); when they still spread too much, or the sensor's own residual
+carries the motion, the motion-dependent errors (scale, misalignment: linear in the
+sensed vector) are fitted alongside over the whole window (:func:`_motion_fit`). The noise
+factor is sized from successive differences against the white part of the calibrated
+noise (:func:`white_sigma`), F(nu, nu_cal) (:func:`_white_noise_fit`): slow errors and
+shifts of the consensus do not enter it.
+
+A frozen output on a motion the sensor tracks exactly (a constant-rate turntable) loses
+only its noise, which no mean-shift detector sees: :class:`VarianceDropMonitor`, a
+one-sided successive-difference variance test, raises episodes of its own under the name
+``variance-drop`` (one builder per sensor type runs it). Coverage and false episodes are
+measured in ``tests/test_episodes.py``, ``benchmarks/bench_episodes.py`` and
+docs/episodes.md.
 """
 
 from __future__ import annotations
@@ -249,7 +259,7 @@ def _chi2_quantile(p: float, dof: int) -> float:
 
 
 @functools.lru_cache(maxsize=4096)
-def _f_quantile(p: float, dof1: int, dof2: int) -> float:
+def _f_quantile(p: float, dof1: float, dof2: float) -> float:
     """F(dof1, dof2) quantile."""
     from scipy.special import fdtri
 
@@ -290,6 +300,7 @@ def fit_models(
     calibration_samples: int | None = None,
     offset_var: float | None = None,
     reference: Reference | None = None,
+    white: tuple[float, float, float] | None = None,
 ) -> list[FaultFit]:
     """Fit every fault model to one sensor's residual over an analysis window.
 
@@ -323,6 +334,12 @@ def fit_models(
         The other sensors' residuals over the same window: the same estimators applied to
         them check the noise model, and widen the step, drift and scale intervals when the
         healthy sensors spread significantly more than it predicts.
+    white : (float, float, float), optional
+        ``(sigma_k, consensus_sigma, dof)``: the white-noise part of the calibrated noise
+        (from successive differences, :func:`white_sigma`) and the degrees of freedom of
+        that estimate. The noise factor is then sized from the successive differences of
+        the residual (:func:`_noise_fit`), which slow motion-dependent errors (scale and
+        misalignment under motion) and a shift of the consensus do not enter.
 
     Returns
     -------
@@ -339,6 +356,7 @@ def fit_models(
         "stuck_share": stuck_share,
         "calibration_samples": calibration_samples,
         "offset_var": offset_var,
+        "white": white,
     }
     raw_arr = r + o if raw is None else np.asarray(raw, dtype=np.float64)
     var0 = sigma_k**2 + consensus_sigma**2
@@ -370,7 +388,13 @@ def fit_models(
     tail = float(2 * _gaussian_nll(float(np.sum(r[end:] ** 2)), float(r.shape[0] - end), var0))
     ln_n = math.log(r.shape[0])
     reference_cut = (
-        None if reference is None else replace(reference, residuals=reference.residuals[:end])
+        None
+        if reference is None
+        else replace(
+            reference,
+            residuals=reference.residuals[:end],
+            motion=None if reference.motion is None else reference.motion[:end],
+        )
     )
     cut = fit_until(end, reference_cut)
     if not cut:
@@ -426,6 +450,7 @@ def _fit_window(
     stuck_share: float,
     calibration_samples: int | None,
     offset_var: float | None,
+    white: tuple[float, float, float] | None,
 ) -> list[FaultFit]:
     """:func:`fit_models` with every fault lasting to the window's end."""
     length = r.shape[0]
@@ -459,6 +484,7 @@ def _fit_window(
         "offset_var": offset_var or 0.0,
         "confidence": confidence,
         "reference": reference,
+        "window": r,
     }
 
     # step: r = a + e
@@ -485,20 +511,27 @@ def _fit_window(
     # and that shift is not noise.
     var_hat = np.maximum(s_rr / n_after, var0)
     j, bic = best(_gaussian_nll(s_rr, n_after, var_hat), 1)
-    fits.append(
-        _noise_fit(
-            float(max(s_rr[j] - n_after[j] * a[j] ** 2, 0.0)),
-            int(n_after[j]),
-            float(a[j]),
-            sigma_k,
-            consensus_sigma,
-            confidence,
-            lo + j,
-            bic,
-            calibration_samples,
-            ranking_var=float(var_hat[j]),
+    if white is None:
+        fits.append(
+            _noise_fit(
+                float(max(s_rr[j] - n_after[j] * a[j] ** 2, 0.0)),
+                int(n_after[j]),
+                float(a[j]),
+                sigma_k,
+                consensus_sigma,
+                confidence,
+                lo + j,
+                bic,
+                calibration_samples,
+                ranking_var=float(var_hat[j]),
+            )
         )
-    )
+    else:
+        fits.append(
+            _white_noise_fit(
+                r[lo + j :], float(a[j]), white, confidence, lo + j, bic, var0, float(var_hat[j])
+            )
+        )
 
     # scale: r = beta o + e
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -593,11 +626,17 @@ class Reference:
         White-noise variance of each residual, sigma_j^2 + consensus variance (SI^2).
     offset_var : ndarray, shape (m,)
         Variance of the calibrated bias taken out of each (SI^2; zeros when none was).
+    motion : ndarray, shape (L, 3), optional
+        The consensus of the sensors other than the isolated one (x_hat_{-k}).
     """
 
     residuals: np.ndarray
     variance: np.ndarray
     offset_var: np.ndarray
+    #: (L, 3) the consensus estimate of the sensed vector without the isolated sensor,
+    #: less its calibration-window mean (SI), for the motion-dependent errors of
+    #: :func:`_linear_fit`; None: not modelled
+    motion: np.ndarray | None = None
 
 
 #: level of the test that the healthy sensors spread more than the noise model says
@@ -615,6 +654,7 @@ def _linear_fit(
     offset_var: float,
     confidence: float,
     reference: Reference | None,
+    window: np.ndarray | None = None,
     shift: float = 0.0,
 ) -> FaultFit:
     """Least squares ``y = X c + e`` after the onset; the size is ``c[0] + shift``.
@@ -657,21 +697,121 @@ def _linear_fit(
     variance = s2 * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
     quantile = _t_quantile(0.5 + confidence / 2, dof)
     extra: dict[str, float] = {}
+    curve = (X @ coef, var0)
     if reference is not None and reference.residuals.shape[1] >= 2:
-        estimates = w @ reference.residuals[-n:]
-        predicted = reference.variance * sw2 + reference.offset_var * sw**2
-        m = estimates.shape[0]
-        q = float(np.sum(estimates**2 / predicted))
-        dispersion = q / m
+        dispersion, widened = _dispersion(w, reference, var0, offset_var, confidence)
         extra["dispersion"] = dispersion
-        if q > _chi2_quantile(DISPERSION_LEVEL, m):
-            white = dispersion * (var0 * sw2 + offset_var * sw**2)
-            if white > variance:
-                variance, quantile = white, _t_quantile(0.5 + confidence / 2, m)
+        if window is not None and reference.motion is not None:
+            # the motion-dependent errors: fitted when the healthy sensors spread too much
+            # or the sensor's own residual carries them (partial F test, both at 95 %)
+            pre = window[: window.shape[0] - n]
+            motion = _motion_fit(
+                window,
+                X,
+                onset,
+                reference,
+                var0,
+                offset_var,
+                confidence,
+                sse_without=float(pre @ pre + e @ e),
+                force=widened is not None,
+            )
+            if motion is not None:
+                size, half, extra["motion_dispersion"] = motion
+                size += shift
+                return FaultFit(
+                    model, size, size - half, size + half, onset, bic, extra, curve=curve
+                )
+        if widened is not None and widened[0] > variance:
+            variance, quantile = widened
     half = quantile * math.sqrt(max(variance, 0.0))
-    return FaultFit(
-        model, size, size - half, size + half, onset, bic, extra, curve=(X @ coef, var0)
-    )
+    return FaultFit(model, size, size - half, size + half, onset, bic, extra, curve=curve)
+
+
+def _dispersion(
+    w: np.ndarray, reference: Reference, var0: float, offset_var: float, confidence: float
+) -> tuple[float, tuple[float, float] | None]:
+    """The healthy sensors' check of the noise model for the linear estimate ``w^T r``
+    over the window's last ``len(w)`` samples: their dispersion ``Q / m``, and the widened
+    (variance, quantile) of this sensor's estimate when Q exceeds its DISPERSION_LEVEL
+    chi-square quantile (None otherwise). See :func:`_linear_fit`."""
+    n = w.shape[0]
+    sw2, sw = float(w @ w), float(np.sum(w))
+    estimates = w @ reference.residuals[-n:]
+    predicted = reference.variance * sw2 + reference.offset_var * sw**2
+    m = estimates.shape[0]
+    q = float(np.sum(estimates**2 / predicted))
+    if q <= _chi2_quantile(DISPERSION_LEVEL, m):
+        return q / m, None
+    white = q / m * (var0 * sw2 + offset_var * sw**2)
+    return q / m, (white, _t_quantile(0.5 + confidence / 2, m))
+
+
+def _motion_fit(
+    r: np.ndarray,
+    X: np.ndarray,
+    onset: int,
+    reference: Reference,
+    var0: float,
+    offset_var: float,
+    confidence: float,
+    *,
+    sse_without: float,
+    force: bool,
+) -> tuple[float, float, float] | None:
+    """The size with the motion-dependent errors of the residual fitted alongside.
+
+    Scale-factor and misalignment errors of the sensor and of the consensus make the
+    residual carry ``c^T omega(t)``, linear in the sensed vector; the healthy sensors
+    then spread beyond white noise (the dispersion test of :func:`_linear_fit`), each
+    with its own c. Over the whole window (the margin before the onset identifies c) the
+    model is ``r = X_f c_f + M c + e``, with the fault columns ``X_f`` zero before the
+    onset and ``M`` the consensus estimate of the sensed vector less its mean over the
+    calibration window (``reference.motion``: the calibrated offset taken out of r holds
+    ``c^T`` times that mean).
+    The size is ``w^T r`` with w the fault row of the least-squares pseudo-inverse, which
+    is orthogonal to M: every sensor's motion error drops out of its estimate, the healthy
+    sensors' too. Its variance and the healthy sensors' check follow :func:`_linear_fit`
+    (noise with its autocorrelation, the calibrated bias, widening by their dispersion
+    only if it is still significant). It is used when ``force`` (the healthy sensors
+    spread too much without it) or when M explains the sensor's own residual
+    significantly (partial F test at DISPERSION_LEVEL against ``sse_without``, the sum of
+    squares of the margin and the fault model's residuals). Returns (size without shift,
+    half-width, the healthy sensors' dispersion), or None when it is not used or M adds
+    nothing the fault columns do not already span (a constant rate)."""
+    assert reference.motion is not None
+    length = r.shape[0]
+    M = reference.motion[:length]
+    full = np.zeros((length, X.shape[1]))
+    full[onset:] = X
+    design = np.concatenate([full, M], axis=1)
+    scale = np.linalg.norm(design, axis=0)
+    if not np.all(np.isfinite(design)) or np.any(scale <= 0):
+        return None
+    normalised = design / scale
+    singular = np.linalg.svd(normalised, compute_uv=False)
+    if singular[-1] <= 1e-6 * singular[0]:
+        return None
+    pinv = np.linalg.pinv(normalised) / scale[:, None]  # (p + 3, L)
+    w = pinv[0]
+    coef = pinv @ r
+    e = r - design @ coef
+    dof = length - design.shape[1]
+    if dof < 2:
+        return None
+    sse = float(e @ e)
+    # partial F test of the motion columns against the fit without them (``sse_without``:
+    # the healthy margin and the fault model's residuals)
+    f_stat = (sse_without - sse) / M.shape[1] / (sse / dof) if sse > 0 else math.inf
+    if not force and f_stat <= _f_quantile(DISPERSION_LEVEL, M.shape[1], dof):
+        return None
+    sw2, sw = float(w @ w), float(np.sum(w))
+    variance = float(e @ e) / dof * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
+    quantile = _t_quantile(0.5 + confidence / 2, dof)
+    dispersion, widened = _dispersion(w, reference, var0, offset_var, confidence)
+    if widened is not None and widened[0] > variance:
+        variance, quantile = widened
+    return float(coef[0]), quantile * math.sqrt(max(variance, 0.0)), dispersion
 
 
 def _autocorrelation_factor(e: np.ndarray, w: np.ndarray) -> float:
@@ -730,6 +870,72 @@ def _noise_fit(
     return FaultFit("noise", factor(var_hat), low, high, onset, bic, extra, curve=curve)
 
 
+def successive_difference_dof(n: int) -> float:
+    """Degrees of freedom of the successive-difference variance estimate of n white samples.
+
+    ``q = sum_i (e_{i+1} - e_i)^2 / 2`` has mean ``(n - 1) sigma^2`` and variance
+    ``(3 n - 4) sigma^4`` (neighbouring differences correlate with -1/2; von Neumann
+    1941); a scaled chi-square with the same two moments has ``nu = 2 (n - 1)^2 / (3 n -
+    4)`` degrees of freedom (Satterthwaite 1946), about 2 n / 3.
+    """
+    return 2.0 * (n - 1) ** 2 / max(3 * n - 4, 1)
+
+
+def _white_noise_fit(
+    r: np.ndarray,
+    mean: float,
+    white: tuple[float, float, float],
+    confidence: float,
+    onset: int,
+    bic: float,
+    var0: float,
+    ranking_var: float,
+) -> FaultFit:
+    """Noise factor from the successive differences of the residual after the onset.
+
+    The white part of ``Var r`` is ``f^2 sigma_k^2 + sigma_c^2`` (``white`` holds sigma_k,
+    sigma_c and the degrees of freedom of their calibration estimate). Its estimate
+    ``q / (n - 1)`` with ``q = sum (r_{i+1} - r_i)^2 / 2`` (von Neumann 1941) leaves out
+    what varies slowly: motion-dependent scale and misalignment errors (at 0.5 Hz a sample
+    step of 0.01 s changes them by 3 %) and a shift of the consensus. Against the
+    calibration's white variance, estimated the same way, the ratio is F(nu, nu_cal)
+    distributed, nu from :func:`successive_difference_dof`; the interval is that of the
+    variance mapped through f.
+    """
+    sigma_k, consensus_sigma, dof_cal = white
+    n = r.shape[0]
+    if n < 3 or sigma_k <= 0:
+        return FaultFit("noise", math.nan, -math.inf, math.inf, onset, bic, {"mean": mean})
+
+    def factor(var: float) -> float:
+        return math.sqrt(max(var - consensus_sigma**2, 0.0)) / sigma_k
+
+    var_hat = float(np.sum(np.diff(r) ** 2)) / (2 * (n - 1))
+    dof = successive_difference_dof(n)
+    tail = (1 - confidence) / 2
+    low = factor(var_hat / _f_quantile(1 - tail, dof, dof_cal))
+    high = factor(var_hat / _f_quantile(tail, dof, dof_cal))
+    curve = (np.zeros(n), max(var0, ranking_var))
+    extra = {"mean": mean}
+    return FaultFit("noise", factor(var_hat), low, high, onset, bic, extra, curve=curve)
+
+
+def _local_level(r: np.ndarray) -> np.ndarray:
+    """Running median of five samples (two each side; fewer at the ends): the residual's
+    slowly varying level, which single-sample spikes do not move (one or two of five)."""
+    n = r.shape[0]
+    padded = np.concatenate((np.full(2, np.nan), r, np.full(2, np.nan)))
+    window = np.stack([padded[i : i + n] for i in range(5)])
+    level = np.zeros(n)
+    if n >= 5:  # full windows: a plain median (nanmedian is ten times slower)
+        level[2:-2] = np.median(np.lib.stride_tricks.sliding_window_view(r, 5), axis=1)
+    edges = np.flatnonzero(np.isnan(window).any(axis=0) | ~np.isfinite(level))
+    if edges.size:
+        with np.errstate(all="ignore"):
+            level[edges] = np.nanmedian(window[:, edges], axis=0)
+    return np.where(np.isfinite(level), level, 0.0)
+
+
 def _spike_fit(
     r: np.ndarray,
     t: np.ndarray,
@@ -739,25 +945,39 @@ def _spike_fit(
     ln_n: float,
     confidence: float,
 ) -> FaultFit | None:
-    """Sparse spikes: residuals beyond SPIKE_CUT sigma_r, amplitude and Poisson rate."""
-    flagged = np.abs(r) > SPIKE_CUT * sigma_r
+    """Sparse spikes: samples further than SPIKE_CUT sigma_r from their local level (a
+    running median of five, :func:`_local_level`: slow motion-dependent errors of the
+    residual are not spikes), the amplitude as their mean absolute residual (the
+    local level itself is biased towards a neighbouring spike), and the Poisson rate. The quiet samples have a variance of their own, bounded below by the
+    calibrated one (one more parameter): under motion the residual carries scale and
+    misalignment errors, which would otherwise be charged to the spike model and make the
+    noise model win; so do the spikes' distances from amp."""
+    d = r - _local_level(r)
+    flagged = np.abs(d) > SPIKE_CUT * sigma_r
     count_after = _suffix(flagged.astype(np.float64))[taus]
     if count_after.max(initial=0.0) < 1:
         return None
     abs_after = _suffix(np.where(flagged, np.abs(r), 0.0))[taus]
     sq_quiet_after = _suffix(np.where(flagged, 0.0, r**2))[taus]
     n_after = (r.shape[0] - taus).astype(np.float64)
+    n_quiet = np.maximum(n_after - count_after, 1.0)
     p = np.clip(count_after / n_after, 1e-12, 1 - 1e-12)
     amp = np.where(count_after > 0, abs_after / np.maximum(count_after, 1), 0.0)
     sq_spikes_after = _suffix(np.where(flagged, r**2, 0.0))[taus]
-    # spikes about +-amp, quiet samples about 0, one common variance; mixture weights p
-    ss_spikes = sq_spikes_after - count_after * amp**2
-    nll_after = _gaussian_nll(sq_quiet_after + ss_spikes, n_after, sigma_r**2) - (
-        count_after * np.log(p / 2) + (n_after - count_after) * np.log(1 - p)
+    # spikes about +-amp, quiet samples about 0, each group with its
+    # own variance (at least sigma_r^2: two spikes within two samples, or one at the
+    # window's edge, move the local level); mixture weights p
+    ss_spikes = np.maximum(sq_spikes_after - count_after * amp**2, 0.0)
+    var_quiet = np.maximum(sq_quiet_after / n_quiet, sigma_r**2)
+    var_spikes = np.maximum(ss_spikes / np.maximum(count_after, 1.0), sigma_r**2)
+    nll_after = (
+        _gaussian_nll(sq_quiet_after, n_after - count_after, var_quiet)
+        + _gaussian_nll(ss_spikes, count_after, var_spikes)
+        - (count_after * np.log(p / 2) + (n_after - count_after) * np.log(1 - p))
     )
     total = nll_before + nll_after
     j = int(np.argmin(total))
-    bic = float(2 * total[j] + 3 * ln_n)
+    bic = float(2 * total[j] + 5 * ln_n)  # amplitude, rate, two variances, onset
     onset = int(taus[j])
     spikes = np.abs(r[onset:][flagged[onset:]])
     m = spikes.shape[0]
@@ -772,7 +992,8 @@ def _spike_fit(
     rate_low = 0.5 * _chi2_quantile(tail, 2 * m) / duration if m > 0 else 0.0
     rate_high = 0.5 * _chi2_quantile(1 - tail, 2 * m + 2) / duration
     extra = {"rate_hz": m / duration, "rate_low_hz": rate_low, "rate_high_hz": rate_high}
-    return FaultFit("spikes", float(spikes.mean()), low, high, onset, bic, extra)
+    size = float(spikes.mean()) if m else math.nan
+    return FaultFit("spikes", size, low, high, onset, bic, extra)
 
 
 def _stuck_fit(raw: np.ndarray, lo: int, hi: int, share: float) -> FaultFit | None:
@@ -876,6 +1097,113 @@ def isolation_summary(
     return names, names[1], float(counts[order[1]] / valid.size)
 
 
+# --- a detection of its own: the variance drop of a frozen output ------------------------
+
+#: name under which variance-drop episodes are written (``detector`` field)
+VARIANCE_DROP = "variance-drop"
+
+
+@dataclass
+class _Rows:
+    """Status rows in the shape :meth:`EpisodeBuilder.rows` reads (a DetectionBlock's
+    alarm, isolated, statistic and threshold)."""
+
+    alarm: np.ndarray
+    isolated: np.ndarray
+    statistic: np.ndarray
+    threshold: np.ndarray
+
+
+class VarianceDropMonitor:
+    """One-sided test that a sensor's white noise has dropped: a frozen (stuck) output.
+
+    A frozen output on a motion the sensor would have tracked exactly (a constant-rate
+    turntable) equals the truth plus its bias; only its noise is gone, so the mean-shift
+    tests of the detectors cannot see it. Against the consensus of the others its
+    residual ``r_k`` (:func:`leave_one_out`) then carries only the consensus noise. Over
+    the last ``W`` successive differences, ``q_k = sum (r_{k,i+1} - r_{k,i})^2 / (2 W)``
+    estimates the white variance of ``r_k`` (slow motion errors do not enter it) and is
+    compared with its calibrated value ``v_k = sigma_k^2 + sigma_c^2`` (white parts,
+    :func:`white_sigma`). Both are successive-difference estimates, so ``q_k / v_k`` is
+    about F(nu_W, nu_cal) (:func:`successive_difference_dof`); the test alarms when the
+    smallest ratio over the sensors falls below the F quantile at ``alpha``, and isolates
+    that sensor. The test is one-sided: more noise, outliers and unmodelled motion only
+    raise ``q_k``.
+
+    The status row of a sample is decided at that sample (no look-ahead); ``statistic``
+    is ``-ln(min ratio)`` and ``threshold`` ``-ln(quantile)`` (an alarm when statistic >
+    threshold). Memory: the last W differences per sensor.
+
+    Parameters
+    ----------
+    residual_matrix : ndarray, shape (n, n)
+        ``measurements @ residual_matrix`` are the leave-one-out residuals of all sensors
+        (column k: ``e_k - g_k``); sensors without a consensus have a zero column.
+    white_variance : ndarray, shape (n,)
+        Calibrated white variance of each residual, SI^2 (inf: never tested).
+    window : int
+        W, successive differences per test.
+    alpha : float
+        Probability that one healthy sensor's window falls below the threshold.
+    calibration_dof : float
+        Degrees of freedom of the white variance's calibration estimate.
+    """
+
+    def __init__(
+        self,
+        residual_matrix: np.ndarray,
+        white_variance: np.ndarray,
+        *,
+        window: int,
+        alpha: float,
+        calibration_dof: float,
+    ) -> None:
+        self.A = np.asarray(residual_matrix, dtype=np.float64)
+        self.variance = np.asarray(white_variance, dtype=np.float64)
+        self.window = int(window)
+        self.quantile = _f_quantile(
+            alpha, successive_difference_dof(self.window + 1), calibration_dof
+        )
+        self._last: np.ndarray | None = None  # last residual row
+        self._tail = np.zeros((0, self.A.shape[1]))  # last W half squared differences
+
+    def update(self, measurements: np.ndarray) -> _Rows:
+        """Status rows of the next N samples (N, n) in SI units."""
+        r = np.asarray(measurements, dtype=np.float64) @ self.A
+        n = r.shape[0]
+        previous = r[:1] if self._last is None else self._last[None, :]
+        half_sq = 0.5 * np.diff(np.concatenate([previous, r]), axis=0) ** 2
+        if self._last is None and n:
+            half_sq = half_sq[1:]  # the first sample has no difference
+        # an invalid sample gives no evidence either way: its difference counts as expected
+        half_sq = np.where(np.isfinite(half_sq), half_sq, self.variance)
+        if n:
+            self._last = r[-1]
+        held, fresh = self._tail.shape[0], half_sq.shape[0]
+        joined = np.concatenate([self._tail, half_sq])
+        cumulative = np.concatenate([np.zeros((1, joined.shape[1])), np.cumsum(joined, axis=0)])
+        stop = np.arange(held + 1, held + fresh + 1)  # window of the j-th new difference
+        ready = stop >= self.window
+        sums = cumulative[stop] - cumulative[np.maximum(stop - self.window, 0)]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = sums / self.window / self.variance
+        ratio = np.where(np.isfinite(ratio), ratio, np.inf)
+        worst = np.argmin(ratio, axis=1) if ratio.shape[0] else np.zeros(0, np.int64)
+        lowest = ratio[np.arange(ratio.shape[0]), worst]
+        alarm = ready & (lowest < self.quantile)
+        statistic = np.where(ready, -np.log(np.maximum(lowest, 1e-300)), -np.inf)
+        self._tail = joined[-self.window :]
+        pad = n - half_sq.shape[0]  # the very first sample of the log: no test yet
+        return _Rows(
+            alarm=np.concatenate([np.zeros(pad, bool), alarm]),
+            isolated=np.concatenate([np.full(pad, -1), np.where(alarm, worst, -1)]).astype(
+                np.int64
+            ),
+            statistic=np.concatenate([np.full(pad, -np.inf), statistic]),
+            threshold=np.full(n, -math.log(self.quantile)),
+        )
+
+
 # --- streaming: episodes of one detector on one sensor type, explained as they close ----
 
 
@@ -914,6 +1242,18 @@ class EpisodeBuilder:
     calibration_mean : ndarray, shape (n,), optional
         Mean measurements of the calibration window: each sensor's bias against the
         consensus is taken out of its residual (a fault is what changed since).
+    white_sigma : ndarray, shape (n,), optional
+        The white part of each sensor's noise (:func:`white_sigma`, SI), estimated from
+        ``calibration_samples`` samples; the noise factor is then sized against it from
+        successive differences (:func:`_white_noise_fit`).
+    variance_drop : bool
+        Also run the :class:`VarianceDropMonitor` on the measurements and return its
+        explained episodes (``detector`` :data:`VARIANCE_DROP`) with this builder's: a
+        detection of its own, for frozen outputs the detectors cannot see. Needs
+        ``white_sigma`` and ``calibration_samples``.
+    variance_drop_window_s, variance_drop_alpha : float
+        The monitor's window and the probability that one healthy sensor's window falls
+        below its threshold.
     """
 
     def __init__(
@@ -933,6 +1273,10 @@ class EpisodeBuilder:
         explain: bool = True,
         calibration_samples: int | None = None,
         calibration_mean: np.ndarray | None = None,
+        white_sigma: np.ndarray | None = None,
+        variance_drop: bool = False,
+        variance_drop_window_s: float = 1.0,
+        variance_drop_alpha: float = 1e-7,
     ) -> None:
         self.detector = detector
         self.sensor_type = sensor_type
@@ -960,15 +1304,32 @@ class EpisodeBuilder:
             "explain": explain,
             "calibration_samples": calibration_samples,
             "calibration_mean": calibration_mean,
+            "white_sigma": white_sigma,
+            "variance_drop_window_s": variance_drop_window_s,
+            "variance_drop_alpha": variance_drop_alpha,
         }
+        self.white_sigma = (
+            None
+            if white_sigma is None
+            else np.broadcast_to(np.asarray(white_sigma, np.float64), (self.H.shape[0],))
+        )
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
         self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
+        self._estimators: dict[int, np.ndarray] = {}  # k -> _estimator(k)
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
         self._history_t: np.ndarray = np.zeros(0, np.int64)
         self._open: dict[str, Any] | None = None  # the alarm run under way
         self._waiting: dict[int, dict[str, Any]] = {}  # sensor -> episode awaiting fragments
         self._pos = 0
+        self._monitor_issued = False  # for_detector: the first builder gets the monitor
+        self._drop: tuple[VarianceDropMonitor, EpisodeBuilder] | None = None
+        if variance_drop and self.white_sigma is not None and calibration_samples and explain:
+            window = max(2, round(variance_drop_window_s * rate_hz))
+            self._drop = (
+                self._variance_monitor(window, variance_drop_alpha),
+                EpisodeBuilder(VARIANCE_DROP, *self._arguments, **self._options),
+            )
 
     # measurements arrive with the input blocks, rows when the detector emits them
     def feed(self, measurements: np.ndarray) -> None:
@@ -1055,8 +1416,36 @@ class EpisodeBuilder:
         tail = max(0, n - self.margin)
         self._history = np.concatenate([self._history, m[tail:]])[-self.margin :]
         self._history_t = np.concatenate([self._history_t, t_ns[tail:]])[-self.margin :]
+        if self._drop is not None:
+            monitor, builder = self._drop
+            builder._gains, builder._references = self._gains, self._references
+            builder.feed(m)
+            closed.extend(builder.rows(t_ns, t_ns, monitor.update(m)))
         closed.sort(key=lambda e: e.decided_end_ns)
         return closed
+
+    def _variance_monitor(self, window: int, alpha: float) -> VarianceDropMonitor:
+        """The :class:`VarianceDropMonitor` of this sensor type (white sigma, leave-one-out
+        gains of every sensor with a consensus)."""
+        assert self.white_sigma is not None and self.calibration_samples
+        n = self.H.shape[0]
+        A = np.zeros((n, n))
+        variance = np.full(n, np.inf)
+        for k in range(n):
+            try:
+                gain, _ = self._gain(k)
+            except ValueError:
+                continue
+            A[:, k] = -gain
+            A[k, k] += 1.0
+            variance[k] = self.white_sigma[k] ** 2 + float(np.sum((gain * self.white_sigma) ** 2))
+        return VarianceDropMonitor(
+            A,
+            variance,
+            window=window,
+            alpha=alpha,
+            calibration_dof=successive_difference_dof(self.calibration_samples),
+        )
 
     def _advance(
         self,
@@ -1137,6 +1526,8 @@ class EpisodeBuilder:
         for waiting in self._waiting.values():
             closed.append(self._close(waiting))
         self._waiting.clear()
+        if self._drop is not None:
+            closed.extend(self._drop[1].finish())
         closed.sort(key=lambda e: e.decided_end_ns)
         return closed
 
@@ -1198,8 +1589,17 @@ class EpisodeBuilder:
             calibration_samples=self.calibration_samples,
             offset_var=offset_var,
             reference=self._reference(k, window),
+            white=self._white(k, gain),
         )
         return episode
+
+    def _white(self, k: int, gain: np.ndarray) -> tuple[float, float, float] | None:
+        """(sigma_k, consensus sigma, dof) of the white noise for :func:`fit_models`."""
+        if self.white_sigma is None or not self.calibration_samples:
+            return None
+        consensus = float(np.sqrt(np.sum((gain * self.white_sigma) ** 2)))
+        dof = successive_difference_dof(self.calibration_samples)
+        return float(self.white_sigma[k]), consensus, dof
 
     def _reference(self, k: int, window: np.ndarray) -> Reference | None:
         """The other sensors' residuals over ``window`` (:class:`Reference`), each against
@@ -1210,7 +1610,12 @@ class EpisodeBuilder:
         if cached is None:
             return None
         A, offset, variance, offset_var = cached
-        return Reference(window @ A - offset, variance, offset_var)
+        # the sensed vector relative to its calibration mean: the calibrated offsets taken
+        # out of the residuals hold the motion errors of the calibration window too
+        motion = window @ self._estimator(k)
+        if self.calibration_mean is not None:
+            motion = motion - self.calibration_mean @ self._estimator(k)
+        return Reference(window @ A - offset, variance, offset_var, motion)
 
     def _reference_matrix(
         self, k: int
@@ -1249,6 +1654,19 @@ class EpisodeBuilder:
                 offset_var = variance / self.calibration_samples
         return A, offset, variance, offset_var
 
+    def _estimator(self, k: int) -> np.ndarray:
+        """(n, 3) ``B`` with ``window @ B`` the weighted least-squares estimate of the
+        sensed vector from the sensors other than k (cached)."""
+        found = self._estimators.get(k)
+        if found is None:
+            H, sigma = self.H, np.asarray(self.sigma, dtype=np.float64)
+            weights = 1.0 / sigma**2
+            M = (H.T * weights) @ H - np.outer(H[k], H[k]) * weights[k]
+            found = (H * weights[:, None]) @ np.linalg.inv(M)
+            found[k] = 0.0
+            self._estimators[k] = found
+        return found
+
     def _gain(self, k: int) -> tuple[np.ndarray, float]:
         """:func:`_consensus_gain` of sensor k, from the information matrix downdated by k's
         own term (cached; one 3x3 solve instead of a pseudo-inverse)."""
@@ -1269,7 +1687,10 @@ class EpisodeBuilder:
     def for_detector(self, detector: str) -> EpisodeBuilder:
         """A fresh builder with the same calibration, for another detector (it shares the
         consensus gains, which depend only on the calibration)."""
-        builder = EpisodeBuilder(detector, *self._arguments, **self._options)
+        # the variance-drop monitor is a detection of its own: one builder runs it
+        monitor = not self._monitor_issued
+        self._monitor_issued = True
+        builder = EpisodeBuilder(detector, *self._arguments, **self._options, variance_drop=monitor)
         builder._gains = self._gains
         builder._references = self._references
         return builder
@@ -1287,6 +1708,30 @@ class EpisodeBuilder:
             r = window[:, k] - window @ gain
             energies.append(float(np.sum(r**2)) / (self.sigma[k] ** 2 + c**2))
         return int(np.argmax(energies))
+
+
+def white_sigma(H: np.ndarray, measurements: np.ndarray) -> np.ndarray:
+    """Per-sensor white-noise sigma from successive differences of a fault-free window.
+
+    :func:`~imufdi_cli.detectors.parity.residual_sigma` of the differenced measurements,
+    divided by sqrt(2): differencing white noise doubles its variance, and what varies
+    slowly (motion-dependent scale and misalignment errors, bias wander) nearly vanishes,
+    where the parity residuals of the measurements themselves carry it (on conical6, whose
+    calibration window spans the start of the motion: 0.041 deg/s against a white 0.030).
+
+    Parameters
+    ----------
+    H : array_like, shape (n, 3)
+    measurements : array_like, shape (N, n), N >= 3, SI
+
+    Returns
+    -------
+    ndarray, shape (n,), SI
+    """
+    from imufdi_cli.detectors.parity import residual_sigma
+
+    m = np.asarray(measurements, dtype=np.float64)
+    return residual_sigma(H, np.diff(m, axis=0)) / math.sqrt(2.0)
 
 
 def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, EpisodeBuilder]:
@@ -1312,6 +1757,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
         sigma = np.ones(H.shape[0])
         n_cal: int | None = None
         mean: np.ndarray | None = None
+        white: np.ndarray | None = None
         if explain:
             measurements = array.select(triads, sensor_type)
             finite = np.all(np.isfinite(measurements), axis=1)
@@ -1319,6 +1765,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
             mean = measurements[finite].mean(axis=0) if n_cal else None
             try:
                 sigma = residual_sigma(H, measurements[finite])
+                white = white_sigma(H, measurements[finite])
             except CalibrationError:
                 explain = False
             explain = explain and bool(np.all(np.isfinite(sigma)) and np.all(sigma > 0))
@@ -1332,6 +1779,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
             explain=explain,
             calibration_samples=n_cal if explain else None,
             calibration_mean=mean if explain else None,
+            white_sigma=white if explain else None,
             **options,
         )
     return builders
@@ -1473,10 +1921,12 @@ def score_episodes(matches: Sequence[dict[str, Any]], hours: float | None) -> di
 
 __all__ = [
     "MODELS",
+    "VARIANCE_DROP",
     "Episode",
     "EpisodeBuilder",
     "EpisodeTally",
     "FaultFit",
+    "VarianceDropMonitor",
     "episode_builders",
     "find_episodes",
     "fit_models",
@@ -1484,5 +1934,7 @@ __all__ = [
     "leave_one_out",
     "match_episodes",
     "score_episodes",
+    "successive_difference_dof",
     "truth_size",
+    "white_sigma",
 ]

@@ -508,3 +508,198 @@ def test_real_step_and_noise_growth_are_explained(tmp_path: Path) -> None:
     truth = math.sqrt(s**2 + np.deg2rad(0.3) ** 2) / s
     fit = noise[0]["fits"][0]
     assert fit["low"] <= truth <= fit["high"]
+
+
+# --- motion-dependent errors, white noise, spikes, and the variance drop ------------------
+
+
+def _slow_error(length: int, rng: np.random.Generator, amplitude: float) -> np.ndarray:
+    """A slowly varying error (0.3-0.5 Hz, random phase) like the scale and misalignment
+    errors of a sensor under motion."""
+    t = np.arange(length) / RATE
+    f, phase = rng.uniform(0.3, 0.5), rng.uniform(0, 2 * np.pi)
+    return amplitude * np.sin(2 * np.pi * f * t + phase)
+
+
+def test_white_sigma_leaves_out_slow_errors_the_level_sigma_carries() -> None:
+    """Four co-aligned triads with white noise SIGMA and a slow error of 1.5 SIGMA on each
+    sensor: the parity-residual sigma is inflated (about sqrt(1 + 1.5^2 / 2) = 1.46 x),
+    on average; the successive-difference sigma is not. Its relative error is about
+    sqrt(3 / (4 N (n - 3) / n)) = 1.6 % for N = 4000 (per sensor); 5 of those allowed,
+    plus the 0.3 % the slow error still adds to the differences."""
+    from imufdi_cli.detectors.parity import residual_sigma
+    from imufdi_cli.episodes import white_sigma
+
+    rng = np.random.default_rng(21)
+    H = np.tile(np.eye(3), (4, 1))
+    length = 4000
+    m = rng.normal(0, SIGMA, (length, 12))
+    m += np.stack([_slow_error(length, rng, 1.5 * SIGMA) for _ in range(12)], axis=1)
+    assert float(np.mean(residual_sigma(H, m))) > 1.3 * SIGMA
+    assert_allclose(white_sigma(H, m), SIGMA, rtol=5 * 0.016 + 0.003)
+
+
+def test_successive_difference_dof_matches_the_moments_of_white_noise() -> None:
+    """q = sum(diff(e)^2) / 2 over n white samples: E q = (n - 1), Var q = 3 n - 4
+    (sigma = 1), hence nu = 2 (n - 1)^2 / (3 n - 4); checked by simulation within 4
+    standard errors of the sample variance."""
+    from imufdi_cli.episodes import successive_difference_dof
+
+    n, trials = 50, 20_000
+    e = np.random.default_rng(22).normal(size=(trials, n))
+    q = np.sum(np.diff(e, axis=1) ** 2, axis=1) / 2
+    assert q.mean() == pytest.approx(n - 1, abs=4 * math.sqrt((3 * n - 4) / trials))
+    var = q.var(ddof=1)
+    assert var == pytest.approx(3 * n - 4, rel=4 * math.sqrt(2 / (trials - 1)) * 1.2)
+    assert successive_difference_dof(n) == pytest.approx(2 * (n - 1) ** 2 / (3 * n - 4))
+
+
+def _white_calibration(rng: np.random.Generator, c: float, n_cal: int) -> float:
+    """sigma_k as the code estimates it: the successive-difference variance of a
+    calibration residual (sensor noise SIGMA plus consensus noise c) less c^2."""
+    r_cal = rng.normal(0, SIGMA, n_cal) + rng.normal(0, c, n_cal)
+    var = float(np.sum(np.diff(r_cal) ** 2)) / (2 * (n_cal - 1))
+    return math.sqrt(max(var - c**2, 1e-30))
+
+
+@pytest.mark.slow
+def test_noise_factor_from_differences_covers_despite_a_slow_error() -> None:
+    """Noise x3 on a residual that also carries a slow error of 2 SIGMA (scale and
+    misalignment under motion): against a level sigma inflated by that error the factor
+    would come out low (2.3 instead of 3); from successive differences against the white
+    sigma of a 200-sample calibration its F interval covers 90 % (binomial band)."""
+    from imufdi_cli.episodes import successive_difference_dof
+
+    rng = np.random.default_rng(23)
+    trials, n_cal, covered, right, sizes = 200, 200, 0, 0, []
+    for _ in range(trials):
+        r, o, t, c = _trace("noise", 3.0, rng)
+        r = r + _slow_error(r.shape[0], rng, 2 * SIGMA)
+        level = math.sqrt(SIGMA**2 + 2 * SIGMA**2)  # the inflated calibration sigma
+        white = (_white_calibration(rng, c, n_cal), c, successive_difference_dof(n_cal))
+        best = fit_models(r, o, t, level, c, onset_range=(50, 250), white=white)[0]
+        right += best.model == "noise"
+        if best.model == "noise":
+            covered += best.low <= 3.0 <= best.high
+            sizes.append(best.size)
+    assert right / trials >= 0.97
+    low, high = _coverage_band(right)
+    assert low <= covered / right <= high
+    assert float(np.median(sizes)) == pytest.approx(3.0, rel=0.05)
+
+
+def test_spikes_on_a_slow_error_are_spikes_and_their_amplitude_covers() -> None:
+    """Spikes of 3 deg/s (20 SIGMA) at 5 % of the samples on a residual with a slow error
+    of 3 SIGMA: flagged against the running median, with a quiet variance of their own,
+    they are still called spikes and the amplitude interval covers 90 % (binomial band)."""
+    rng = np.random.default_rng(24)
+    size, trials, right, covered = np.deg2rad(3), 200, 0, 0
+    for _ in range(trials):
+        r, o, t, c = _trace("spikes", size, rng)
+        r = r + _slow_error(r.shape[0], rng, 3 * SIGMA)
+        best = fit_models(r, o, t, SIGMA, c, onset_range=(50, 250))[0]
+        right += best.model == "spikes"
+        covered += best.model == "spikes" and best.low <= size <= best.high
+    assert right / trials >= 0.97
+    low, high = _coverage_band(right)
+    assert low <= covered / right <= high
+
+
+@pytest.mark.slow
+def test_motion_errors_are_fitted_out_of_step_intervals() -> None:
+    """A step of 0.9 deg/s on a sensor whose residual carries c^T omega(t) (its scale and
+    misalignment errors under a 3-axis swing, c ~ N(0, 1e-3) per axis, tens of deg/s of
+    motion: errors of several SIGMA), as do the 5 healthy sensors with their own c.
+    Without the motion columns the healthy sensors' spread widens the interval by a
+    quasi-likelihood factor that is wrong for this sensor; with them every motion error
+    drops out and the interval covers 90 % (binomial band)."""
+    rng = np.random.default_rng(25)
+    size, trials, covered, right, length, onset = np.deg2rad(0.9), 200, 0, 0, 600, 200
+    t = np.arange(length) / RATE
+    for _ in range(trials):
+        phase = rng.uniform(0, 2 * np.pi, 3)
+        omega = np.deg2rad([60, 40, 50]) * np.sin(
+            2 * np.pi * np.array([0.5, 0.35, 0.25]) * t[:, None] + phase
+        )
+        c = SIGMA / math.sqrt(5)
+        motion = omega + rng.normal(0, c, omega.shape)
+        r = rng.normal(0, math.hypot(SIGMA, c), length) + omega @ rng.normal(0, 1e-3, 3)
+        r[onset:] += size
+        healthy = rng.normal(0, math.hypot(SIGMA, c), (length, 5))
+        healthy += omega @ rng.normal(0, 1e-3, (3, 5))
+        variance = np.full(5, SIGMA**2 + c**2)
+        reference = Reference(healthy, variance, np.zeros(5), motion)
+        best = fit_models(
+            r, np.zeros(length), t, SIGMA, c, onset_range=(50, 350), reference=reference
+        )[0]
+        right += best.model == "step"
+        covered += best.model == "step" and best.low <= size <= best.high
+    assert right / trials >= 0.97
+    low, high = _coverage_band(right)
+    assert low <= covered / right <= high
+
+
+def test_variance_drop_monitor_false_alarm_probability_is_alpha() -> None:
+    """One sensor of white noise tested against its own variance (calibration dof large):
+    on non-overlapping windows (independent), the share below the threshold is alpha =
+    5 %; 1000 windows give Binomial(1000, 0.05), 50 +- 6.9; 3.5 of those allowed. The
+    result does not depend on the block size."""
+    from imufdi_cli.episodes import VarianceDropMonitor
+
+    window, windows = 100, 1000
+    x = np.random.default_rng(26).normal(0, SIGMA, (window * windows + 1, 1))
+    counts = []
+    for block in (window * windows + 1, 333):
+        monitor = VarianceDropMonitor(
+            np.eye(1), np.array([SIGMA**2]), window=window, alpha=0.05, calibration_dof=1e9
+        )
+        rows = [monitor.update(x[i : i + block]) for i in range(0, x.shape[0], block)]
+        alarm = np.concatenate([r.alarm for r in rows])
+        assert alarm[:window].sum() == 0  # no test before W differences
+        counts.append(int(alarm[window::window].sum()))
+    assert counts[0] == counts[1]
+    assert abs(counts[0] - 50) <= 3.5 * math.sqrt(1000 * 0.05 * 0.95)
+
+
+def test_a_frozen_output_on_a_constant_rate_is_found_by_the_variance_drop() -> None:
+    """Sixteen co-aligned triads on a constant rate; sensor 7 freezes at sample 1000 (its
+    output stays truth + bias: no mean shift) and no detector alarms. The builder's
+    variance-drop monitor raises one episode, isolates sensor 7, calls it stuck with its
+    onset; before the freeze (10 s of 48 healthy sensors at alpha = 1e-7 per window) it
+    raises none."""
+    from imufdi_cli.episodes import VARIANCE_DROP, white_sigma
+
+    rng = np.random.default_rng(27)
+    n, length, freeze = 48, 1600, 1000
+    H = np.tile(np.eye(3), (16, 1))
+    truth = np.deg2rad([10.0, 10.0, 10.0]) @ H.T
+    cal = truth + rng.normal(0, SIGMA, (200, n))
+    m = truth + rng.normal(0, SIGMA, (length, n))
+    m[freeze:, 7] = m[freeze - 1, 7]
+    ids = [f"s{i}" for i in range(n)]
+    template = EpisodeBuilder(
+        "",
+        "gyro",
+        H,
+        ids,
+        np.full(n, SIGMA),
+        RATE,
+        calibration_samples=200,
+        calibration_mean=cal.mean(axis=0),
+        white_sigma=white_sigma(H, cal),
+    )
+    builder = template.for_detector("glt")
+    assert template.for_detector("bank")._drop is None  # one builder per type runs it
+    t_ns = np.arange(length, dtype=np.int64) * 10_000_000
+    quiet = _status(np.zeros(length, bool), np.full(length, -1))
+    episodes = []
+    for start in range(0, length, 250):
+        stop = min(start + 250, length)
+        builder.feed(m[start:stop])
+        block = SimpleNamespace(**{k: v[start:stop] for k, v in vars(quiet).items()})
+        episodes += builder.rows(t_ns[start:stop], t_ns[start:stop], block)
+    episodes += builder.finish()
+    (episode,) = episodes
+    assert episode.detector == VARIANCE_DROP and episode.sensors == ["s7"]
+    assert episode.fault_class == "stuck"
+    assert freeze * 10_000_000 < episode.start_ns <= (freeze + 100) * 10_000_000
