@@ -320,9 +320,10 @@ PARTS: dict[str, Callable[[], list[Case]]] = {
 def bank_two_faults(seeds: list[int]) -> None:
     """quadrotor-marg, the preset's two simultaneous gyro faults: each fault's amplitude.
 
-    The status carries one amplitude per sample (the isolated sensor's); the filtered
-    residual of every gyro is ``BankDetector.last_details.gyro_residuals`` (Python API),
-    read here where that gyro is in the isolated set.
+    Read through the Python API: the filtered residual of every gyro is
+    ``BankDetector.last_details.gyro_residuals``, read here where that gyro is in the
+    isolated set. (The written status now carries each isolated sensor's amplitude too,
+    FdiStatus ``amplitudes``; ``benchmarks/bank_amplitudes.py`` measures it from the file.)
     """
     print("\n## bank (marg): two simultaneous gyro faults from 5 s, calibration 0-2 s")
     print(
