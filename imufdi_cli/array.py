@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -29,12 +28,8 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.errors import ArrayConfigError, UnitError
+from imufdi_cli.tomlfile import parse_toml
 from imufdi_cli.units import parse_quantity, sensor_dimension
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 SENSOR_TYPES: tuple[str, ...] = ("gyro", "accel", "mag")
 AXES: tuple[str, ...] = ("x", "y", "z")
@@ -609,15 +604,7 @@ class ArrayConfig:
             raise ArrayConfigError(f"cannot read array config {path}: {err.strerror}") from err
         if path.suffix.lower() == ".json":
             return cls.from_json(raw, source=str(path))
-        try:
-            data = tomllib.loads(raw.decode("utf-8"))
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-            raise ArrayConfigError(f"{path}: not valid TOML ({err})") from err
-        except RecursionError as err:  # tomllib parses nested arrays/tables recursively
-            raise ArrayConfigError(
-                f"{path}: not valid TOML (arrays or tables nested too deeply)"
-            ) from err
-        return cls.from_dict(data, source=str(path))
+        return cls.from_dict(parse_toml(raw, path, ArrayConfigError), source=str(path))
 
     def save(self, path: str | Path) -> None:
         from imufdi_cli.fileio import write_text

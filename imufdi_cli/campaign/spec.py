@@ -7,7 +7,6 @@ import hashlib
 import itertools
 import json
 import os
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
@@ -20,12 +19,7 @@ from imufdi_cli.errors import CampaignSpecError, ImufdiError
 from imufdi_cli.metrics import (
     METRIC_NAMES,
 )
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
-
+from imufdi_cli.tomlfile import parse_toml
 
 DEFAULT_METRICS = [
     "far",
@@ -195,15 +189,12 @@ class _Detector:
 
 def _read_toml(path: Path) -> dict[str, Any]:
     try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")  # universal newlines, as before
     except OSError as err:
         raise CampaignSpecError(f"cannot read campaign spec {path}: {err.strerror}") from err
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+    except UnicodeDecodeError as err:
         raise CampaignSpecError(f"{path}: not valid TOML ({err})") from err
-    except RecursionError as err:  # tomllib parses nested arrays/tables recursively
-        raise CampaignSpecError(
-            f"{path}: not valid TOML (arrays or tables nested too deeply)"
-        ) from err
+    return parse_toml(text, path, CampaignSpecError)
 
 
 def _parse_head(head: Any, path: Path) -> _Head:

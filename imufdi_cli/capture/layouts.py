@@ -6,7 +6,6 @@ in ``docs/capture.md``)."""
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Final
@@ -40,12 +39,7 @@ from imufdi_cli.capture.layout import (
     parse_sync,
 )
 from imufdi_cli.errors import LayoutError
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
-
+from imufdi_cli.tomlfile import parse_toml
 
 # --- the built-in layout -----------------------------------------------------------------
 
@@ -515,12 +509,7 @@ def load_layout(spec: str | Path, **builtin_options: Any) -> Layout:
         raw = path.read_bytes()
     except OSError as err:
         raise LayoutError(f"cannot read layout {path}: {err.strerror}") from err
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-        raise LayoutError(f"{path}: not valid TOML ({err})") from err
-    except RecursionError as err:  # tomllib parses nested arrays/tables recursively
-        raise LayoutError(f"{path}: not valid TOML (arrays or tables nested too deeply)") from err
+    data = parse_toml(raw, path, LayoutError)
     if builtin_options:
         data.update(builtin_options)
     return layout_from_dict(data, source=str(path))

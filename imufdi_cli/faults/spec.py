@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import re
-import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,13 +14,8 @@ from typing import Any, Final
 from imufdi_cli.array import ArrayConfig, parse_sensor_id
 from imufdi_cli.errors import ArrayConfigError, FaultSpecError, UnitError
 from imufdi_cli.faults.models import MODEL_KEYS, MODELS, Fault
+from imufdi_cli.tomlfile import parse_toml
 from imufdi_cli.units import parse_quantity, rate_dimension, sensor_dimension
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
-
 
 _COMMON_KEYS: Final[frozenset[str]] = frozenset({"at", "until", "duration", "id"})
 
@@ -305,14 +299,7 @@ def load_fault_file(path: str | Path, array: ArrayConfig) -> list[Fault]:
     except (OSError, UnicodeDecodeError) as err:
         reason = getattr(err, "strerror", None) or str(err)
         raise FaultSpecError(f"cannot read fault file {path}: {reason}") from err
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise FaultSpecError(f"{path}: not valid TOML ({err})") from err
-    except RecursionError as err:  # tomllib parses nested arrays/tables recursively
-        raise FaultSpecError(
-            f"{path}: not valid TOML (arrays or tables nested too deeply)"
-        ) from err
+    data = parse_toml(text, path, FaultSpecError)
     for key in data:
         if key != "fault":
             raise FaultSpecError(f"{path}: unknown top-level key {key!r}; valid: fault")
