@@ -365,9 +365,6 @@ def bank_two_faults(seeds: list[int]) -> None:
     )
 
 
-PARTS["bank-two"] = lambda: []
-
-
 def cnn_input_level(seeds: list[int]) -> None:
     """cnn-map's input test alone on fault-free wearable12 (calibration 0-10 s): its level
     without the mapping test (no network is trained: the input test does not use it)."""
@@ -390,9 +387,6 @@ def cnn_input_level(seeds: list[int]) -> None:
         ratios.append(alarm[t >= 10.0].mean() / detector.alpha)
         print(f"| {seed} | {ratios[-1]:.2f} | {detector.input_threshold:.2f} |", flush=True)
     print(f"| mean (worst) | {np.mean(ratios):.2f} ({np.max(ratios):.2f}) | |")
-
-
-PARTS["cnn-input"] = lambda: []
 
 
 #: The calibration choices of pca-parity (module constants of detectors/pca_parity.py),
@@ -448,9 +442,6 @@ def pca_calibration_ablation(seeds: list[int]) -> None:
             setattr(pca_parity, name, value)
 
 
-PARTS["pca-calibration"] = lambda: []
-
-
 def glr_calibration_spread(seeds: list[int]) -> None:
     """noise-glr: the per-log level that the calibration alone leaves, on an infinitely long log.
 
@@ -485,9 +476,6 @@ def glr_calibration_spread(seeds: list[int]) -> None:
                 f"| {n_sensors} | 0-{seconds:g} s | {per_log.mean():.2f} | {per_log.std():.2f} |"
                 f" {np.mean(per_log > 4):.3f} | {np.median(worst):.2f} |"
             )
-
-
-PARTS["glr-calibration-spread"] = lambda: []
 
 
 # --- campaign specs ----------------------------------------------------------------------
@@ -598,12 +586,24 @@ def run_spec(spec_path: str, results: str, jobs: int) -> None:
     campaign_tables(results)
 
 
+#: Parts measured by a function of their own after (or instead of) a level table.
+EXTRAS: dict[str, Callable[[list[int]], None]] = {
+    "cnn-map": cnn_map_faults,
+    "bank-marg": bank_marg_faults,
+    "bank-two": bank_two_faults,
+    "cnn-input": cnn_input_level,
+    "pca-calibration": pca_calibration_ablation,
+    "glr-calibration-spread": glr_calibration_spread,
+}
+ALL_PARTS = [*PARTS, *(name for name in EXTRAS if name not in PARTS)]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--seeds", default="7000:7020", help="START:STOP (evaluation seeds of --part)"
     )
-    parser.add_argument("--part", default=",".join(PARTS), help="comma-separated parts")
+    parser.add_argument("--part", default=",".join(ALL_PARTS), help="comma-separated parts")
     parser.add_argument("--spec", help="campaign spec (docs/campaigns/levels*.toml)")
     parser.add_argument("-o", "--output", help="results directory of --spec")
     parser.add_argument("--jobs", type=int, default=2, help="campaign worker processes")
@@ -615,23 +615,17 @@ def main() -> None:
         return
     start, stop = (int(v) for v in args.seeds.split(":"))
     seeds = list(range(start, stop))
-    for part in args.part.split(","):
+    parts = args.part.split(",")
+    unknown = [part for part in parts if part not in ALL_PARTS]
+    if unknown:
+        parser.error(f"unknown --part {', '.join(unknown)}; valid: {', '.join(ALL_PARTS)}")
+    for part in parts:
         print(f"\n## {part}: seeds {start}-{stop - 1}")
-        cases = PARTS[part]()
+        cases = PARTS[part]() if part in PARTS else []
         if cases:
             level_table(cases, seeds)
-        if part == "cnn-map":
-            cnn_map_faults(seeds)
-        if part == "bank-marg":
-            bank_marg_faults(seeds)
-        if part == "bank-two":
-            bank_two_faults(seeds)
-        if part == "cnn-input":
-            cnn_input_level(seeds)
-        if part == "pca-calibration":
-            pca_calibration_ablation(seeds)
-        if part == "glr-calibration-spread":
-            glr_calibration_spread(seeds)
+        if part in EXTRAS:
+            EXTRAS[part](seeds)
 
 
 if __name__ == "__main__":
