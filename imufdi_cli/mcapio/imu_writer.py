@@ -160,6 +160,10 @@ class _RecordTemplate:
         self.at = {name: int(fields[name][1]) for name in ("sequence", "log_time", "publish_time")}
         for name, offset in payloads[0][1].items():
             self.at[name] = MESSAGE_HEADER_SIZE + offset
+        # The sequence, log and publish times (end of the record header), the CDR
+        # encapsulation and the stamp are one run of bytes, the same for every IMU of a
+        # sample: built once per sample and copied as one 32-byte item per record.
+        self.stamp_span = (self.at["sequence"], self.at["nanosec"] + 4)
 
     def fill(
         self,
@@ -179,17 +183,25 @@ class _RecordTemplate:
         """
         out[...] = self.records
         at = self.at
-        _field_view(out, at["sequence"], "<u4")[..., 0] = sequence[:, None]
-        _field_view(out, at["log_time"], "<u8")[..., 0] = t_ns[:, None]
-        _field_view(out, at["publish_time"], "<u8")[..., 0] = t_ns[:, None]
-        _field_view(out, at["sec"], "<i4")[..., 0] = sec[:, None]
-        _field_view(out, at["nanosec"], "<u4")[..., 0] = nanosec[:, None]
+        n = t_ns.shape[0]
+        lo, hi = self.stamp_span
+        stamp = np.empty((n, hi - lo), np.uint8)
+        stamp[:] = self.records[0, lo:hi]
+        _field_view(stamp, at["sequence"] - lo, "<u4")[:, 0] = sequence
+        _field_view(stamp, at["log_time"] - lo, "<u8")[:, 0] = t_ns
+        _field_view(stamp, at["publish_time"] - lo, "<u8")[:, 0] = t_ns
+        _field_view(stamp, at["sec"] - lo, "<i4")[:, 0] = sec
+        _field_view(stamp, at["nanosec"] - lo, "<u4")[:, 0] = nanosec
+        item = np.dtype((np.void, hi - lo))
+        out[..., lo:hi].view(item)[..., 0] = stamp.view(item)[:, 0][:, None]
+        triad = np.dtype((np.void, 24))
         for name, values in (("gyro", gyro), ("accel", accel)):
-            target = _field_view(out, at[name], "<f8", 3)
+            target = out[..., at[name] : at[name] + 24].view(triad)[..., 0]
             if values is None:
-                target[...] = np.nan
+                target[...] = np.full(3, np.nan, "<f8").view(triad)[0]
             else:
-                target[...] = values
+                # one 24-byte item (x, y, z as little-endian float64) per record
+                target[...] = np.ascontiguousarray(values, "<f8").view(triad)[..., 0]
 
 
 class _ImuRecords:
