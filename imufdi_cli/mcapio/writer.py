@@ -493,9 +493,7 @@ class McapWriter:
         n = len(batch)
         if n == 0:
             return
-        unknown = np.setdiff1d(np.unique(batch.channel_id), list(self.channels))
-        if unknown.size:
-            raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
+        self._check_registered(batch.channel_id)
         self._check_log_time(batch.channel_id, batch.log_time)
         sizes = batch.length.astype(np.int64) + MESSAGE_HEADER_SIZE
         cumulative = np.cumsum(sizes)
@@ -541,9 +539,7 @@ class McapWriter:
         log_time = np.asarray(log_time, np.int64)
         if channel_id.shape != (n,) or log_time.shape != (n,):
             raise UsageError(f"need {n} channel ids and log times, one per record")
-        unknown = np.setdiff1d(np.unique(channel_id), list(self.channels))
-        if unknown.size:
-            raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
+        self._check_registered(channel_id)
         self._check_log_time(channel_id, log_time)
         size = int(records.shape[1])
         self._queue_fixed(
@@ -579,9 +575,7 @@ class McapWriter:
         log_time = np.asarray(log_time, np.int64)
         if channel_id.shape != (n,) or log_time.shape != (n,):
             raise UsageError(f"need {n} channel ids and log times, one per record")
-        unknown = np.setdiff1d(np.unique(channel_id), list(self.channels))
-        if unknown.size:
-            raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
+        self._check_registered(channel_id)
         self._check_log_time(channel_id, log_time)
         self._queue_fixed(
             n,
@@ -605,6 +599,18 @@ class McapWriter:
             start = stop
             if self._pending_bytes >= self.chunk_size:
                 self._flush_chunk()
+
+    def _check_registered(self, channel_id: np.ndarray) -> None:
+        """Refuse messages of channels not registered (a lookup table, no sorting)."""
+        channel_id = np.asarray(channel_id)
+        if channel_id.size == 0:
+            return
+        known = np.zeros(max(self.channels, default=-1) + 1, dtype=bool)
+        known[list(self.channels)] = True
+        if int(channel_id.max()) < known.shape[0] and bool(known[channel_id].all()):
+            return
+        unknown = np.setdiff1d(np.unique(channel_id), list(self.channels))
+        raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
 
     def _check_log_time(self, channel_id: np.ndarray, log_time: np.ndarray) -> None:
         """Refuse log times the file format and the int64 time base cannot hold.
