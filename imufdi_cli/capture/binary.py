@@ -402,7 +402,9 @@ def _decode_triads(layout: Layout, frames: np.ndarray, n_imus: int) -> dict[str,
         values = np.empty((n_frames, n_imus, 3), dtype=np.float64)
         for axis, item in enumerate(triad):
             raw = _field_values(records, item.offset, item.size, item.dtype)
-            values[:, :, axis] = raw * item.scale
+            # float fields carry whatever bits the board sent (NaN, huge): no warnings
+            with np.errstate(all="ignore"):
+                values[:, :, axis] = raw * item.scale
         triads[sensor] = values
     return triads
 
