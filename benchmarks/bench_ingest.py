@@ -149,12 +149,12 @@ def settings_table(chunks: list[bytes], mb: float) -> None:
 
     print("chunk compression settings (same records, one thread, CRC-32 included):")
     print("  compression        chunk   CPU s  MB capture/CPU-s  compressed MB")
-    for size in (1 << 20, 4 << 20, 256 << 10):
-        cut = chunks if size == 1 << 20 else rechunk(chunks, size)
+    for size in (4 << 20, 1 << 20, 256 << 10):
+        cut = rechunk(chunks, size)
         for level in (ZSTD_LEVEL, 1, -1, -5, -7):
             compressor = zstandard.ZstdCompressor(level=level, write_checksum=True)
             _, cpu, out = time_compression(cut, compressor.compress, repeat=2)
-            label = f"zstd {level}" + (" (default)" if level == ZSTD_LEVEL else "")
+            label = f"zstd {level}" + (" (writer)" if level == ZSTD_LEVEL else "")
             print(f"  {label:17s} {size >> 10:5d}K {cpu:7.3f} {mb / cpu:12.1f} {out / 1e6:14.2f}")
         _, cpu, out = time_compression(
             cut, lambda r: lz4.frame.compress(r, content_checksum=True), repeat=2
