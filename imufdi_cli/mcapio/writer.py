@@ -249,17 +249,19 @@ def _build_chunk(parts: list[_ChunkPart], compression: str) -> _BuiltChunk:
     total = sum(part.nbytes for part in parts)
     only = parts[0]
     in_place = False
-    if len(parts) == 1 and isinstance(only, _RecordPart) and only.records.flags.c_contiguous:
-        raw = only.records.reshape(-1)  # one part of ready records: compressed as they are
-        in_place = True
-    else:
+    if len(parts) == 1 and isinstance(only, (_RecordPart, _SerialPart)):
+        if only.records.flags.c_contiguous:
+            raw = only.records.reshape(-1)  # one part of ready records: compressed as they are
+            in_place = True
+    if not in_place:
         raw = np.empty(total, np.uint8)
     offset_parts = []
     shift = 0
     for part in parts:
         if isinstance(part, _SerialPart):
             size = part.nbytes
-            raw[shift : shift + size] = part.records
+            if not in_place:
+                raw[shift : shift + size] = part.records
             offset_parts.append(part.offsets + shift)
         else:
             record_size = (
