@@ -164,6 +164,8 @@ class _RecordTemplate:
         # encapsulation and the stamp are one run of bytes, the same for every IMU of a
         # sample: built once per sample and copied as one 32-byte item per record.
         self.stamp_span = (self.at["sequence"], self.at["nanosec"] + 4)
+        lo, hi = self.stamp_span
+        assert (self.records[:, lo:hi] == self.records[0, lo:hi]).all()
 
     def fill(
         self,
@@ -386,9 +388,9 @@ class ImuArrayWriter:
 
     def _write_imu_records(self, block: ImuBlock) -> None:
         """Imu messages only: queue the block's records, in slices of about 4 MB, to be
-        built (constant bytes from a template, fields through strided views) straight
-        into the chunk buffers on the writer's worker threads. The stamps are checked
-        here, so a bad one is reported by this call."""
+        built (constant bytes from a template, then one stamp item and two triad items
+        per record) straight into the chunk buffers on the writer's worker threads. The
+        stamps are checked here, so a bad one is reported by this call."""
         template = self._imu_records
         m = self.array.n_imus
         n = len(block)
