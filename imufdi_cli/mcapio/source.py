@@ -42,6 +42,7 @@ from imufdi_cli.mcapio.records import (
     gather_bytes,
 )
 from imufdi_cli.mcapio.scan import (
+    RecordPattern,
     _Cursor,
     _PendingMessages,
     parse_channel,
@@ -85,6 +86,10 @@ _OPCODE_NAMES = {
 }
 #: Records read into memory (the others are skipped without being held).
 _HELD = (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_METADATA)
+#: Records the data section may hold that the reader neither keeps nor checks (Header,
+#: MessageIndex, ChunkIndex, Attachment, AttachmentIndex, Statistics, MetadataIndex,
+#: SummaryOffset): skipped without being handed on.
+_IGNORED = frozenset((0x01, 0x07, 0x08, 0x09, 0x0A, 0x0B, 0x0D, 0x0E))
 #: Records a chunk may hold.
 _IN_CHUNK = frozenset((OP_SCHEMA, OP_CHANNEL, OP_MESSAGE))
 #: Batches whose raw chunks are remembered for McapSource.raw_chunks (older ones are
@@ -153,6 +158,8 @@ class McapSource:
     _deferred: list[tuple[bool, str]] | None = None
     _pool: ThreadPoolExecutor | None = None
     _pool_pid = -1
+    _pattern: RecordPattern | None = None
+    _phase = 0
 
     def __new__(cls, source: Any = None, *args: Any, **kwargs: Any) -> McapSource:
         if cls is McapSource and isinstance(source, (str, os.PathLike)) and source != "-":
@@ -182,6 +189,10 @@ class McapSource:
             maxlen=_RAW_CHUNKS_KEPT
         )
         self._chunk_clean = False
+        #: The record pattern of the last chunk scanned in full, and where the records
+        #: after the last chunk stand in it (chunks that continue it are checked at once).
+        self._pattern = None
+        self._phase = 0
         self._deferred = None
         self._pool = None
         self.validate_crcs = validate_crcs is not False  # None (unset) also checks them
@@ -599,10 +610,27 @@ class McapSource:
                 position = resume
                 continue
             opcode, length, content = record
-            yield opcode, length, content, position
+            if content is not None or opcode not in _IGNORED:
+                yield opcode, length, content, position
             position += 9 + length
             if opcode in (OP_FOOTER, OP_DATA_END):
                 return
+            # Records nobody reads (the MessageIndex records after every chunk) that lie
+            # whole in the read-ahead buffer are stepped over here, a few hundred ns each.
+            ahead, at = self._ahead, self._ahead_pos
+            end = len(ahead)
+            limit = None if self._file_size is None else self._file_size - 9
+            while at + 9 <= end:
+                opcode, length = _RECORD_HEAD.unpack_from(ahead, at)
+                if (
+                    opcode not in _IGNORED
+                    or at + 9 + length > end
+                    or (limit is not None and length > limit - position)
+                ):
+                    break
+                at += 9 + length
+                position += 9 + length
+            self._ahead_pos = at
 
     def _prefetched(
         self,
@@ -825,7 +853,16 @@ class McapSource:
             assert isinstance(raw, bytes)
             return (size, *self._small_chunk_part(raw, chunk_offset))
         buf = np.frombuffer(raw, dtype=np.uint8)
-        starts, opcodes, lengths, end = scan_records(buf, _IN_CHUNK)
+        found = None if self._pattern is None else self._pattern.match(buf, self._phase)
+        if found is not None:
+            starts, opcodes, lengths, self._phase = found
+            end = buf.shape[0]
+        else:
+            starts, opcodes, lengths, end = scan_records(buf, _IN_CHUNK)
+            pattern = RecordPattern.learn(opcodes, lengths, buf.shape[0]) if end == size else None
+            if pattern is not None:
+                self._pattern = pattern
+                self._phase = pattern.phase_after(0, lengths.shape[0])
         is_message = opcodes == OP_MESSAGE
         # only Message records, all of them well formed: the chunk can be copied verbatim
         self._chunk_clean = end == buf.shape[0] and bool(is_message.all())
