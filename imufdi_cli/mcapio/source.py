@@ -778,16 +778,32 @@ class McapSource:
             self._problem(f"{where}: {int(bad.sum())} malformed Message record(s) skipped")
             content_starts = content_starts[~bad]
             content_lengths = content_lengths[~bad]
-        fields = (
-            gather_bytes(buf, content_starts, MESSAGE_FIXED_CONTENT)
-            .reshape(-1)
-            .view(_MESSAGE_FIELDS)
-        )
+        step = _even_step(content_starts)
+        if step and int(content_starts[-1]) + MESSAGE_FIXED_CONTENT <= buf.shape[0]:
+            # evenly spaced records: each field through a typed strided view, copied once
+            # (a 22-byte element gather costs several times more)
+            n, first = content_starts.shape[0], int(content_starts[0])
+
+            def field(name: str, dtype: type) -> np.ndarray:
+                code, at = _MESSAGE_FIELDS.fields[name]  # type: ignore[index]
+                view = np.ndarray((n,), code, buf, first + at, (step,))
+                return view.astype(dtype)
+
+        else:
+            fields = (
+                gather_bytes(buf, content_starts, MESSAGE_FIXED_CONTENT)
+                .reshape(-1)
+                .view(_MESSAGE_FIELDS)
+            )
+
+            def field(name: str, dtype: type) -> np.ndarray:
+                return fields[name].astype(dtype)
+
         batch = MessageBatch(
-            channel_id=fields["channel_id"].astype(np.uint16),
-            sequence=fields["sequence"].astype(np.uint32),
-            log_time=fields["log_time"].astype(np.int64),
-            publish_time=fields["publish_time"].astype(np.int64),
+            channel_id=field("channel_id", np.uint16),
+            sequence=field("sequence", np.uint32),
+            log_time=field("log_time", np.int64),
+            publish_time=field("publish_time", np.int64),
             data=buf,
             offset=content_starts + MESSAGE_FIXED_CONTENT,
             length=content_lengths - MESSAGE_FIXED_CONTENT,
@@ -914,6 +930,21 @@ _Unpacked = tuple[bytes | memoryview | None, str]
 #: A chunk being unpacked on the worker thread, and the process id that asked for it (a
 #: forked child never gets the answer: it unpacks the chunk itself)
 _Ahead = tuple["Future[_Unpacked]", int]
+
+
+def _even_step(starts: np.ndarray) -> int:
+    """The constant positive distance between consecutive ``starts`` (at least two), or 0
+    when they are not evenly spaced."""
+    n = starts.shape[0]
+    if n < 2:
+        return 0
+    first = int(starts[0])
+    step = int(starts[1]) - first
+    if step <= 0 or int(starts[-1]) != first + (n - 1) * step:
+        return 0
+    if n > 2 and np.count_nonzero(np.diff(starts) != step):
+        return 0
+    return step
 
 
 def _declared_size(content: bytes) -> int:
