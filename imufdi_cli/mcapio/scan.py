@@ -276,9 +276,9 @@ class RecordPattern:
                 for j, (offset, length) in enumerate(zip(offsets.tolist(), lengths.tolist()))
             ):
                 continue
-            starts = (
-                self.stride * np.arange(n_full, dtype=np.int64)[:, None] + offsets
-            ).reshape(-1)
+            starts = (self.stride * np.arange(n_full, dtype=np.int64)[:, None] + offsets).reshape(
+                -1
+            )
             record_lengths = (
                 np.full(n_full, lengths[0]) if self.period == 1 else np.tile(lengths, n_full)
             )
