@@ -108,9 +108,11 @@ class ImuArrayReader:
         then gives the Chunk record of a batch :meth:`stream` yields, for verbatim copying).
     validate_crcs : bool
         Check the CRC-32 of every chunk's records (default; a chunk that fails is skipped
-        with a warning, or raises with ``strict``). False skips the check (benchmarks, or
-        logs known to be intact); the zstd/lz4 frame checksums are still verified. Applies
-        when the reader opens ``source`` itself; an open McapSource keeps its own setting.
+        with a warning, or raises with ``strict``), unless its zstd frame's content
+        checksum already covers them (see :class:`McapSource`). False skips the check
+        (benchmarks, or logs known to be intact); the zstd/lz4 frame checksums are still
+        verified. Applies when the reader opens ``source`` itself; an open McapSource
+        keeps its own setting.
 
     Attributes
     ----------
@@ -464,11 +466,11 @@ class ImuArrayReader:
                 self._fixed[key] = fixed
             quick = None if fixed is None else fixed.decode(selected, streams)
             if quick is not None:
-                stamps, values = quick
+                stamps, joint = quick
                 if self.time_source == "header" and stamps is not None:
-                    self._aligner.add(streams, stamps, values)
+                    self._aligner.add(streams, stamps, joint)
                 else:
-                    self._aligner.add(streams, selected.log_time.astype(np.int64), values)
+                    self._aligner.add(streams, selected.log_time.astype(np.int64), joint)
                 continue
             valid = np.ones(len(selected), bool)
             fields = _decode(selected, channel, kinds, path, valid, contiguous=False)

@@ -22,7 +22,12 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError
-from imufdi_cli.mcapio.compression import crc32, decompress, decompress_into
+from imufdi_cli.mcapio.compression import (
+    crc32,
+    decompress,
+    decompress_into,
+    frame_checksummed,
+)
 from imufdi_cli.mcapio.limits import ReaderLimits
 from imufdi_cli.mcapio.records import (
     MAGIC,
@@ -144,10 +149,13 @@ class McapSource:
     5-20 % more CPU and gained no wall time (docs/performance.md); it can only help where a
     core is free, and moves at most the decompression (~15 % of reading) off the caller.
 
-    Chunk CRCs are checked when ``validate_crcs`` is true (the default). With zlib-ng (a
-    dependency) the CRC-32 costs about 0.07 ms per MiB of records, a few per cent of
-    reading; with zlib's (the fallback) about 0.4 ms per MiB, as much as the zstd
-    decompression itself.
+    Chunk records are verified when ``validate_crcs`` is true (the default): by the
+    chunk's CRC-32, except that a zstd chunk whose frame carries a content checksum over
+    exactly the declared records (imufdi's writer adds one) is already verified by zstd
+    while it is decompressed, and its CRC-32 is then checked only with ``strict`` (a
+    mismatch there means a wrong CRC field over intact records). With zlib-ng (a
+    dependency) the CRC-32 costs about 0.07-0.1 ms per MiB of records, 5-8 % of reading;
+    with zlib's (the fallback) about 0.4 ms per MiB, as much as the zstd decompression.
 
     A rosbag2 directory (or its ``metadata.yaml``) gives a
     :class:`~imufdi_cli.mcapio.bagdir.BagDirSource`: its split files read as one log.
@@ -679,6 +687,8 @@ class McapSource:
                                 item[2],
                                 self.limits.max_chunk_bytes,
                                 self.validate_crcs,
+                                None,
+                                not self.strict,
                             )
                             future = (job, os.getpid())
                             in_flight += 1
@@ -785,7 +795,7 @@ class McapSource:
             n, first = content_starts.shape[0], int(content_starts[0])
 
             def field(name: str, dtype: type) -> np.ndarray:
-                code, at = _MESSAGE_FIELDS.fields[name]  # type: ignore[index]
+                code, at = _MESSAGE_FIELDS.fields[name][:2]  # type: ignore[index]
                 view = np.ndarray((n,), code, buf, first + at, (step,))
                 return view.astype(dtype)
 
@@ -841,7 +851,7 @@ class McapSource:
             raw, error = future[0].result()
         else:  # in line (also in a forked child: the parent's worker never answers there)
             raw, error = _unpack_chunk(
-                content, self.limits.max_chunk_bytes, self.validate_crcs, slot
+                content, self.limits.max_chunk_bytes, self.validate_crcs, slot, not self.strict
             )
         if raw is None:
             self._problem(f"chunk at byte {chunk_offset} skipped: {error}")
@@ -959,11 +969,14 @@ def _unpack_chunk(
     max_chunk_bytes: int,
     validate_crcs: bool,
     slot: Callable[[int], memoryview] | None = None,
+    trust_frame_checksum: bool = False,
 ) -> _Unpacked:
     """A Chunk record's records, decompressed and (with ``validate_crcs``) CRC-checked, or
     why the chunk is unusable. A zstd chunk of more than ``_SMALL_CHUNK`` bytes is
     decompressed into ``slot(size)`` when given (no allocation, no later copy). Touches
-    no reader state (runs on the worker thread, without ``slot``)."""
+    no reader state (runs on the worker thread, without ``slot``). With
+    ``trust_frame_checksum`` the CRC-32 is skipped when the zstd frame's content checksum
+    already verified every record byte (:func:`~imufdi_cli.mcapio.compression.frame_checksummed`)."""
     try:
         if len(content) < _CHUNK_HEAD.size + 8:
             raise McapInputError("malformed Chunk record (shorter than its fields)")
@@ -984,6 +997,11 @@ def _unpack_chunk(
                 f" {max_chunk_bytes} (IMUFDI_MAX_CHUNK_BYTES)"
             )
         data = memoryview(content)[records_at:]
+        framed = (
+            validate_crcs
+            and trust_frame_checksum
+            and frame_checksummed(data, compression, uncompressed_size)
+        )
         raw: bytes | memoryview
         if slot is not None and compression == "zstd" and uncompressed_size > _SMALL_CHUNK:
             raw = slot(uncompressed_size)
@@ -992,7 +1010,7 @@ def _unpack_chunk(
             raw = decompress(data, compression, uncompressed_size)
     except McapInputError as err:
         return None, str(err)
-    if validate_crcs and crc != 0:
+    if validate_crcs and crc != 0 and not framed:
         actual = crc32(raw)
         if actual != crc:
             return None, (f"CRC mismatch (records CRC-32 {actual:#010x}, chunk says {crc:#010x})")
