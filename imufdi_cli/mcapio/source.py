@@ -70,6 +70,8 @@ _RECORD_HEAD = struct.Struct("<BQ")
 _SMALL_CHUNK = 4096
 #: Read-ahead of the data section; larger records are read straight from the stream.
 _READ_AHEAD = 256 << 10
+#: Records of at least this many bytes are read into a buffer of their own (no joins).
+_READ_DIRECT = 64 << 10
 
 
 _OPCODE_NAMES = {
@@ -524,12 +526,38 @@ class McapSource:
             start = self._ahead_pos
             self._ahead_pos += n
             return self._ahead[start : start + n]
+        if n >= _READ_DIRECT and (self._file_size is not None or n <= _READ_PIECE):
+            # a large record (a chunk): what the read-ahead buffer holds of it, then the
+            # rest read straight into place (one copy; the size was checked against the
+            # rest of the file, or is small enough to allocate up front)
+            out = bytearray(n)
+            out[:available] = memoryview(self._ahead)[self._ahead_pos :]
+            self._ahead, self._ahead_pos = b"", 0
+            got = available + self._read_into(memoryview(out)[available:])
+            return out if got == n else out[:got]  # type: ignore[return-value]
         rest = self._ahead[self._ahead_pos :]
         self._ahead, self._ahead_pos = b"", 0
         if n > _READ_AHEAD:
             return rest + self._read_exact(n - len(rest))
         self._ahead = rest + self._read_exact(_READ_AHEAD - len(rest))
         return self._take(min(n, len(self._ahead)))
+
+    def _read_into(self, view: memoryview) -> int:
+        """Fill ``view`` from the stream (fewer bytes only at its end); returns how many
+        were read."""
+        readinto = getattr(self._stream, "readinto", None)
+        filled = 0
+        while filled < len(view):
+            if readinto is not None:
+                got = readinto(view[filled : filled + _READ_PIECE])
+            else:
+                part = self._stream.read(min(len(view) - filled, _READ_PIECE))
+                view[filled : filled + len(part)] = part
+                got = len(part)
+            if not got:
+                break
+            filled += got
+        return filled
 
     def _discard(self, n: int) -> int:
         """Skip ``n`` bytes of the data section; returns how many were skipped."""
