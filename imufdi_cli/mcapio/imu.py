@@ -200,6 +200,7 @@ class ImuArrayReader:
         self.stats = self._aligner.stats
         self._groups: list[tuple[np.ndarray, ChannelInfo, tuple[str, ...], str]] | None = None
         self._stream_of = np.zeros(0, np.int64)
+        self._group_of = np.zeros(0, np.int64)
         #: Per decode group: its fixed-layout decoder (CDR groups).
         self._fixed: dict[int, FixedLayoutDecoder] = {}
 
@@ -449,15 +450,17 @@ class ImuArrayReader:
                 self._stream_of[cid] = k
             for cid, k in self._mag_channel.items():
                 self._stream_of[cid] = m + k
+            self._group_of = np.full(65536, -1, np.int64)
+            for key, (ids, _, _, _) in enumerate(self._groups):
+                self._group_of[ids] = key
         stream_of_message = self._stream_of[batch.channel_id]
-        for key, (ids, channel, kinds, path) in enumerate(self._groups):
-            if ids.shape[0] == 1:
-                mask = batch.channel_id == ids[0]
-            else:
-                mask = np.isin(batch.channel_id, ids)
-            if not bool(mask.any()):
+        group_of_message = self._group_of[batch.channel_id]
+        for key, (_, channel, kinds, path) in enumerate(self._groups):
+            mask = group_of_message == key
+            n_selected = int(np.count_nonzero(mask))
+            if not n_selected:
                 continue
-            whole = bool(mask.all())
+            whole = n_selected == len(batch)
             selected = batch if whole else batch.select(mask)
             streams = stream_of_message if whole else stream_of_message[mask]
             fixed = self._fixed.get(key)

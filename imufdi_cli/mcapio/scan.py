@@ -249,15 +249,14 @@ class RecordPattern:
             self._rotations[phase] = known
         return known
 
-    def match(
-        self, buf: np.ndarray, phase: int
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
-        """:func:`scan_records` of a chunk's records ``buf`` (uint8, contiguous) when they
-        are whole Message records continuing this pattern from ``phase`` (tried first) or
-        another phase whose record length fits the first record: (starts, opcodes,
-        lengths, the phase after the chunk); None when the chunk does not follow it (it is
-        then scanned in full). Every record head (opcode and length) is checked, through
-        one strided view per record of the period (no gather)."""
+    def match(self, buf: np.ndarray, phase: int) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """The records of a chunk ``buf`` (uint8, contiguous) when they are whole Message
+        records continuing this pattern from ``phase`` (tried first) or another phase whose
+        record length fits the first record: (content starts, content lengths, the phase
+        after the chunk), what :func:`scan_records` finds (its starts + 9, its lengths,
+        opcodes all 0x05); None when the chunk does not follow the pattern (it is then
+        scanned in full). Every record head (opcode and length) is checked, through one
+        strided view per record of the period (no gather)."""
         size = buf.shape[0]
         if size < 9 or buf[0] != 0x05:
             return None
@@ -276,23 +275,16 @@ class RecordPattern:
                 for j, (offset, length) in enumerate(zip(offsets.tolist(), lengths.tolist()))
             ):
                 continue
-            starts = (self.stride * np.arange(n_full, dtype=np.int64)[:, None] + offsets).reshape(
-                -1
-            )
+            rows = self.stride * np.arange(n_full, dtype=np.int64)
+            starts = (rows[:, None] + (offsets + 9)).reshape(-1)
             record_lengths = (
                 np.full(n_full, lengths[0]) if self.period == 1 else np.tile(lengths, n_full)
             )
             if tail:
                 body = n_full * self.stride
-                starts = np.concatenate([starts, body + offsets[:tail]])
+                starts = np.concatenate([starts, body + 9 + offsets[:tail]])
                 record_lengths = np.concatenate([record_lengths, lengths[:tail]])
-            n = starts.shape[0]
-            return (
-                starts,
-                np.full(n, 0x05, np.uint8),
-                record_lengths,
-                (start + n) % self.period,
-            )
+            return starts, record_lengths, (start + starts.shape[0]) % self.period
         return None
 
 

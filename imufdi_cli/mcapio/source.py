@@ -908,15 +908,15 @@ class McapSource:
             return (size, *self._small_chunk_part(raw, chunk_offset))
         buf = np.frombuffer(raw, dtype=np.uint8)
         found = None if self._pattern is None else self._pattern.match(buf, self._phase)
-        if found is not None:
-            starts, opcodes, lengths, self._phase = found
-            end = buf.shape[0]
-        else:
-            starts, opcodes, lengths, end = scan_records(buf, _IN_CHUNK)
-            pattern = RecordPattern.learn(opcodes, lengths, buf.shape[0]) if end == size else None
-            if pattern is not None:
-                self._pattern = pattern
-                self._phase = pattern.phase_after(0, lengths.shape[0])
+        if found is not None:  # whole Message records only: the chunk is clean
+            content_starts, lengths, self._phase = found
+            self._chunk_clean = True
+            return size, content_starts, lengths
+        starts, opcodes, lengths, end = scan_records(buf, _IN_CHUNK)
+        pattern = RecordPattern.learn(opcodes, lengths, buf.shape[0]) if end == size else None
+        if pattern is not None:
+            self._pattern = pattern
+            self._phase = pattern.phase_after(0, lengths.shape[0])
         is_message = opcodes == OP_MESSAGE
         # only Message records, all of them well formed: the chunk can be copied verbatim
         self._chunk_clean = end == buf.shape[0] and bool(is_message.all())
