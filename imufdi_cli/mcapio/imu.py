@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -17,7 +17,7 @@ import numpy as np
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.errors import ArrayConfigError, McapInputError, UsageError
-from imufdi_cli.log import ImuBlock, rechunk
+from imufdi_cli.log import ImuBlock
 from imufdi_cli.mcapio.align import AlignmentStats, _Aligner
 from imufdi_cli.mcapio.imu_codec import (
     ARRAY_METADATA,
@@ -542,7 +542,7 @@ class ImuArrayReader:
 
     def blocks(self) -> Iterator[ImuBlock]:
         """Aligned array samples in blocks of ``block_size`` (the last may be shorter)."""
-        yield from rechunk((block for _, block in self.stream()), self.block_size)
+        yield from recut((block for _, block in self.stream()), self.block_size)
 
     def close(self) -> None:
         self.source.close()
@@ -552,6 +552,34 @@ class ImuArrayReader:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def recut(blocks: Iterable[ImuBlock], block_size: int) -> Iterator[ImuBlock]:
+    """The samples of ``blocks`` in blocks of exactly ``block_size`` (the last may be
+    shorter), as :func:`imufdi_cli.log.rechunk` cuts them, copying only the samples of a
+    block that straddles two input blocks (the others are views of the input blocks;
+    ``rechunk`` copies every sample once more). Memory stays bounded by the input blocks
+    and ``block_size``."""
+    rest: ImuBlock | None = None
+    for block in blocks:
+        n = len(block)
+        if n == 0:
+            continue
+        start = 0
+        if rest is not None:
+            need = block_size - len(rest)
+            if n < need:
+                rest = ImuBlock.concatenate([rest, block])
+                continue
+            yield ImuBlock.concatenate([rest, block.slice(0, need)])
+            rest, start = None, need
+        while n - start >= block_size:
+            yield block.slice(start, start + block_size)
+            start += block_size
+        if start < n:
+            rest = block.slice(start, n)
+    if rest is not None:
+        yield rest
 
 
 def read_array(source: str | Path | IO[bytes], **kw: Any) -> tuple[ArrayConfig, ImuBlock]:
