@@ -470,7 +470,8 @@ class FixedLayoutDecoder:
         float64: gyro then accel, or mag) of the group's messages ``batch`` whose stream
         indices are ``streams``; None when they do not all share the known layout."""
         n = len(batch)
-        if not self.usable or n == 0:
+        data = batch.data
+        if not self.usable or n == 0 or data.dtype != np.uint8 or not data.flags.c_contiguous:
             return None
         if np.count_nonzero(batch.length != (self.length if self.length >= 0 else batch.length[0])):
             return None
