@@ -478,11 +478,15 @@ class ImuArrayReader:
             valid = np.ones(len(selected), bool)
             fields = _decode(selected, channel, kinds, path, valid, contiguous=False)
             if not bool(valid.all()):
+                # one problem per topic (the group's channels share a schema, not a topic)
+                bad = np.bincount(streams[~valid], minlength=len(self._aligner.names))
                 streams = streams[valid]
-                self.source._problem(
-                    f"{int((~valid).sum())} malformed {schema_name(channel)} message(s) on"
-                    f" {channel.topic} skipped (fields past the message end or not decodable)"
-                )
+                for stream in np.flatnonzero(bad).tolist():
+                    self.source._problem(
+                        f"{int(bad[stream])} malformed {schema_name(channel)} message(s) on"
+                        f" {self._aligner.names[stream]} skipped (fields past the message end"
+                        " or not decodable)"
+                    )
             t = fields.t_ns if self.time_source == "header" else fields.log_time
             if kinds == ("mag",):
                 values = fields.mag

@@ -3,6 +3,7 @@ alignment statistics, bad input."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import struct
 from pathlib import Path
@@ -381,7 +382,7 @@ def test_recut_cuts_as_rechunk(sizes, block_size) -> None:
 
     whole = make_block(sum(sizes), 2, mag=True)
     bounds = np.cumsum([0, *sizes])
-    parts = [whole.slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+    parts = [whole.slice(int(a), int(b)) for a, b in itertools.pairwise(bounds.tolist())]
     got = list(recut(iter(parts), block_size))
     want = list(rechunk(iter(parts), block_size))
     assert [len(b) for b in got] == [len(b) for b in want]
