@@ -54,12 +54,22 @@ class CusumDesign:
     def offset(self) -> float:
         return 0.5 * math.log(self.ratio)
 
-    def increments(self, z: np.ndarray) -> np.ndarray:
+    def increments(self, z: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``l = gain min(z^2, c^2) - offset`` (same shape as z; NaN z gives the null mean
         of a term, i.e. ``gain E min(z^2, c^2) - offset`` with z ~ N(0, 1), taken as
-        ``gain - offset`` for the clip values used)."""
-        z2 = np.where(np.isnan(z), 1.0, np.minimum(np.square(z), self.clip**2))
-        return self.gain * z2 - self.offset  # type: ignore[no-any-return]
+        ``gain - offset`` for the clip values used).
+
+        ``out`` (float64, z's shape; may be z itself) receives the result in place of a
+        new array, with the same values.
+        """
+        nan = np.isnan(z)
+        z2 = np.square(z, out=out)
+        np.minimum(z2, self.clip**2, out=z2)
+        if nan.any():
+            np.copyto(z2, 1.0, where=nan)
+        z2 *= self.gain
+        z2 -= self.offset
+        return z2
 
 
 def local_mean_residual(
@@ -85,19 +95,35 @@ def local_mean_residual(
     -------
     ndarray, shape (N, n)
     """
-    n = series.shape[0]
-    before = (
-        np.zeros((0, series.shape[1])) if past is None else past[max(0, past.shape[0] - window) :]
-    )
-    joined = np.concatenate([before, series], axis=0)
+    n, columns = series.shape
+    before = np.zeros((0, columns)) if past is None else past[max(0, past.shape[0] - window) :]
     offset = before.shape[0]
-    cumulative = np.concatenate([np.zeros((1, joined.shape[1])), np.cumsum(joined, axis=0)])
-    out = np.full((n, series.shape[1]), np.nan)
-    first = max(0, window - offset)  # first row of series with W previous samples
-    if first < n:
-        rows = np.arange(first, n) + offset  # index in joined
-        means = (cumulative[rows] - cumulative[rows - window]) / window
-        out[first:] = (joined[rows] - means) / math.sqrt(1.0 + 1.0 / window)
+    # the dtype the arithmetic has always run in: float64 zeros (no past) promote float32
+    dtype = np.result_type(before, series)
+    joined = series if offset == 0 and series.dtype == dtype else np.concatenate([before, series])
+    out = np.empty((n, columns), dtype=np.float64)
+    first = min(n, max(0, window - offset))  # first row of series with W previous samples
+    out[:first] = np.nan
+    if first == n:
+        return out
+    # cumulative[k] = sum of joined[:k] (sequential sums in dtype, as numpy's cumsum)
+    cumulative = np.empty((joined.shape[0] + 1, columns), dtype=np.float64)
+    cumulative[0] = 0.0
+    if dtype != np.float64:
+        cumulative[1:] = np.cumsum(joined, axis=0)
+    elif columns < 64:
+        np.cumsum(joined, axis=0, out=cumulative[1:])
+    else:  # the same sums row by row: numpy's cumsum down a C-ordered axis 0 is slower
+        previous = cumulative[0]
+        for row, total in zip(joined, cumulative[1:]):
+            np.add(previous, row, out=total)
+            previous = total
+    lo, hi = first + offset, n + offset  # rows of joined with W previous samples
+    result = out[first:]
+    np.subtract(cumulative[lo:hi], cumulative[lo - window : hi - window], out=result)
+    result /= window  # the mean of the W previous samples
+    np.subtract(joined[lo:hi], result, out=result)
+    result /= math.sqrt(1.0 + 1.0 / window)
     return out
 
 
@@ -106,6 +132,9 @@ def run_cusum(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Capped CUSUM over a block.
 
+    One pass over time, numpy across the channels (the recursion is sequential in time and
+    independent across channels), every step written in place into the output.
+
     Parameters
     ----------
     increments : ndarray, shape (N, n)
@@ -113,7 +142,7 @@ def run_cusum(
     state : ndarray, shape (n,)
         S before the block (0 at the start of a log).
     cap : float
-        Upper bound ``h + b`` of S.
+        Upper bound ``h + b`` of S (``inf``: uncapped).
 
     Returns
     -------
@@ -123,10 +152,23 @@ def run_cusum(
     """
     out = np.empty_like(increments, dtype=np.float64)
     current = np.asarray(state, dtype=np.float64).copy()
-    for i in range(increments.shape[0]):
-        current = np.minimum(np.maximum(current + increments[i], 0.0), cap)
-        out[i] = current
+    _page_recursion(increments, current, cap, out)
+    if out.shape[0]:
+        current = out[-1].copy()
     return out, current
+
+
+def _page_recursion(increments: np.ndarray, start: np.ndarray, cap: float, out: np.ndarray) -> None:
+    """``out[t] = min(max(out[t-1] + increments[t], 0), cap)`` from ``out[-1] = start``, in
+    place (the minimum is skipped for an infinite cap: it changes nothing)."""
+    previous = start
+    capped = not math.isinf(cap)
+    for step, row in zip(increments, out):
+        np.add(previous, step, out=row)
+        np.maximum(row, 0.0, out=row)
+        if capped:
+            np.minimum(row, cap, out=row)
+        previous = row
 
 
 def cusum_threshold(
@@ -151,6 +193,11 @@ def cusum_threshold(
     range) when ``level`` is smaller. The cap lowers the stationary tail only slightly for
     the margins used (it is applied in the simulation with h set to the estimate, and the
     estimate is refined once).
+
+    The capped run is not simulated again from the start: a chain whose uncapped statistic
+    never exceeds ``h + margin`` has the same capped path (the minimum never acts), and the
+    others are rerun from the first step any of them exceeds it. The threshold is the same,
+    bit for bit, as two full runs.
 
     Parameters
     ----------
@@ -177,18 +224,52 @@ def cusum_threshold(
         np.maximum(1.0 + rng.normal(0.0, math.sqrt(2.0 / calibration_dof), chains), 0.05)
     )
     white = rng.standard_normal((steps + burn + mean_window, chains))
-    z = local_mean_residual(white, mean_window)[mean_window:] / scale
-    increments = design.increments(z)
-    h = _tail_threshold(run_cusum(increments, np.zeros(chains), math.inf)[0][burn:], level)
-    capped = run_cusum(increments, np.zeros(chains), h + margin)[0][burn:]
-    return _tail_threshold(capped, level, cap=h + margin)
+    increments = local_mean_residual(white, mean_window)[mean_window:]
+    increments /= scale  # z
+    design.increments(increments, out=increments)
+    path = white[mean_window:]  # white is not read again: its memory holds S
+    _page_recursion(increments, np.zeros(chains), math.inf, path)
+    top = _TopValues(path[burn:], level)
+    h = _tail_threshold(top, level)
+    cap = h + margin
+    over = path > cap
+    hit = np.flatnonzero(over.any(axis=0))  # chains the cap would change
+    if hit.size:
+        since = int(over[:, hit].argmax(axis=0).min())
+        start = path[since - 1, hit] if since > 0 else np.zeros(hit.size)
+        rerun = np.empty((path.shape[0] - since, hit.size))
+        _page_recursion(increments[since:, hit], start, cap, rerun)
+        path[since:, hit] = rerun
+        top = _TopValues(path[burn:], level)
+    return _tail_threshold(top, level, cap=cap)
 
 
-def _tail_threshold(values: np.ndarray, level: float, cap: float = math.inf) -> float:
+class _TopValues:
+    """The largest values of a sample, in decreasing order, as far as the tail estimates of
+    :func:`_tail_threshold` reads them at ``level`` (the ``level`` and 5 % quantiles).
+
+    A partial sort: the values read are the order statistics of the full sort, exactly.
+    """
+
+    def __init__(self, values: np.ndarray, level: float) -> None:
+        flat = values.ravel()
+        self.n = flat.size
+        keep = min(self.n, int(max(level, 0.05) * self.n) + 102)
+        # S is mostly 0 under the null, and selection is slow among many equal values:
+        # the largest values are among the positive ones when there are enough of them
+        positive = flat[flat > 0.0]
+        if positive.size >= keep:
+            flat = positive
+        if keep < flat.size:
+            flat = np.partition(flat, flat.size - keep)[flat.size - keep :]
+        self.descending = np.sort(flat)[::-1]
+
+
+def _tail_threshold(top: _TopValues, level: float, cap: float = math.inf) -> float:
     """h with ``P(values > h) = level`` from the empirical tail, extrapolated exponentially
     below the smallest probability it can estimate (100 exceedances)."""
-    flat = np.sort(values.ravel())[::-1]
-    n = flat.size
+    flat = top.descending  # flat[k]: the (k+1)-th largest value
+    n = top.n
     reliable = 100
     if level * n >= reliable:
         return float(flat[int(level * n)])

@@ -10,6 +10,7 @@ from numpy.testing import assert_allclose
 
 from imufdi_cli.detectors.cusum import (
     CusumDesign,
+    _TopValues,
     cusum_threshold,
     local_mean_residual,
     run_cusum,
@@ -100,3 +101,106 @@ def test_calibration_error_raises_the_threshold():
     exact = cusum_threshold(1e-4, design, 15.0, 1e12, np.random.default_rng(3), **size)
     estimated = cusum_threshold(1e-4, design, 15.0, 100.0, np.random.default_rng(3), **size)
     assert estimated > exact
+
+
+#: Thresholds computed by the implementation on main before the session-17 speed-up
+#: (commit df86f2b: index arrays, a Python step per sample, a full sort, two full runs):
+#: level, ratio, clip, margin, dof, seed, chains, steps, W, h. The first is cnn-map's input
+#: test on a wearable12 log (seed 0, alpha 0.01); the fifth drifts upwards (the cap acts).
+STORED_THRESHOLDS = [
+    (2.7791289747827936e-05, 9.0, 5.0, 16.354196105591633, 132.0354088144793, [0, 0x1C5],
+     256, 16384, 8, 11.673540537347879),
+    (1e-4, 9.0, 5.0, 15.0, 1e12, 3, 64, 4096, 1, 11.09612732418254),
+    (1e-4, 9.0, 5.0, 15.0, 100.0, 3, 64, 4096, 1, 15.023554275898421),
+    (1e-3, 4.0, 3.0, 5.0, 50.0, 7, 64, 4096, 1, 129.82002401972613),
+    (1e-4, 9.0, 5.0, 15.0, 1e12, 1, 64, 4096, 8, 7.3111767764265005),
+    (1e-6, 9.0, 5.0, 2.0, 40.0, 11, 32, 2048, 3, 27.531483656654345),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("case", STORED_THRESHOLDS)
+def test_threshold_is_the_one_computed_before_the_speed_up(case):
+    """Same draws, same arithmetic order: an empirical quantile (level x samples >= 100)
+    is an order statistic of identical values and must match exactly; an extrapolated one
+    goes through a LAPACK least-squares fit, whose last bits may differ between builds, so
+    it must match to 1e-12 relative."""
+    level, ratio, clip, margin, dof, seed, chains, steps, window, stored = case
+    h = cusum_threshold(
+        level,
+        CusumDesign(ratio=ratio, clip=clip),
+        margin,
+        dof,
+        np.random.default_rng(seed),
+        chains=chains,
+        steps=steps,
+        mean_window=window,
+    )
+    if level * chains * steps >= 100:
+        assert h == stored
+    else:
+        assert h == pytest.approx(stored, rel=1e-12, abs=0.0)
+
+
+def test_run_cusum_is_bit_identical_to_the_step_by_step_recursion():
+    """Exact equality with ``min(max(S + l, 0), cap)`` one sample at a time (float64, and
+    float32 increments added to the float64 state), a NaN carried on, capped and uncapped."""
+    rng = np.random.default_rng(6)
+    increments = rng.normal(-0.3, 1.5, (2000, 5))
+    increments[100:110, 2] = np.nan
+    for values in (increments, increments.astype(np.float32)):
+        for cap, start in ((6.0, np.full(5, 1.0)), (math.inf, np.zeros(5))):
+            s = start.copy()
+            expected = np.empty(values.shape)
+            for i in range(values.shape[0]):
+                s = np.minimum(np.maximum(s + values[i], 0.0), cap)
+                expected[i] = s
+            path, state = run_cusum(values, start, cap)
+            np.testing.assert_array_equal(path, expected)
+            np.testing.assert_array_equal(state, expected[-1])
+    path, state = run_cusum(np.zeros((0, 3)), np.ones(3), 2.0)
+    assert path.shape == (0, 3)
+    np.testing.assert_array_equal(state, np.ones(3))
+
+
+@pytest.mark.parametrize("columns", [3, 80])  # below and above the row-loop switch
+def test_local_mean_residual_is_bit_identical_to_its_cumulative_sum_form(columns):
+    """Exact equality with the cumulative-sum expression it has always computed (float64
+    and float32 input, with and without past samples)."""
+
+    def reference(series, window, past=None):
+        before = np.zeros((0, series.shape[1])) if past is None else past[-window:]
+        joined = np.concatenate([before, series], axis=0)
+        offset = before.shape[0]
+        cumulative = np.concatenate([np.zeros((1, joined.shape[1])), np.cumsum(joined, axis=0)])
+        out = np.full(series.shape, np.nan)
+        first = max(0, window - offset)
+        if first < series.shape[0]:
+            rows = np.arange(first, series.shape[0]) + offset
+            means = (cumulative[rows] - cumulative[rows - window]) / window
+            out[first:] = (joined[rows] - means) / math.sqrt(1.0 + 1.0 / window)
+        return out
+
+    x = np.random.default_rng(7).normal(3.0, 1.0, (600, columns))
+    for series in (x, x.astype(np.float32)):
+        for window in (1, 8, 13):
+            np.testing.assert_array_equal(
+                local_mean_residual(series, window), reference(series, window)
+            )
+            for past in (series[:4], series[:300]):
+                np.testing.assert_array_equal(
+                    local_mean_residual(series[300:], window, past),
+                    reference(series[300:], window, past),
+                )
+        np.testing.assert_array_equal(local_mean_residual(series[:5], 8), reference(series[:5], 8))
+
+
+@pytest.mark.parametrize("positive_share", [0.5, 0.01])  # enough positives, and too few
+def test_top_values_are_the_order_statistics_of_a_full_sort(positive_share):
+    rng = np.random.default_rng(8)
+    values = np.where(rng.random((3000, 7)) < positive_share, rng.exponential(1.0, (3000, 7)), 0.0)
+    descending = np.sort(values.ravel())[::-1]
+    for level in (1e-4, 0.02, 0.09):
+        top = _TopValues(values, level)
+        assert top.n == values.size
+        np.testing.assert_array_equal(top.descending, descending[: top.descending.size])
+        assert top.descending.size > max(int(level * values.size), int(0.05 * values.size))
