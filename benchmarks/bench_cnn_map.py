@@ -14,17 +14,26 @@ over the calibration window, beside the detector's own alarm rate (the input tes
 imu5.accel.x at 15 s; sigma = 0.03 m/s^2) does to the input test, which compares each
 residual with its 8-sample local mean (``mapping_test=off``: the default's alarms without
 training a network).
+
+``--part library``: CPU of the two library costs of a cnn-map fit against their former
+implementations (kept here as the baseline, measured in the same run; issues 20, 21):
+``cusum.cusum_threshold`` at the input test's wearable12 setting (W = 8, alpha = 0.001 over
+36 channels) and ``Sequential.input_gradients`` on the default network (8 filters, kernel 5,
+a batch of 2048 windows of 24 samples), with the results checked equal, bit for bit.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import time
 
 import numpy as np
 
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
-from imufdi_cli.detectors.cnn_map import CnnMapDetector
+from imufdi_cli.detectors.cnn_map import INPUT_DESIGN, CnnMapDetector, MappingNetwork
+from imufdi_cli.detectors.cusum import CusumDesign, cusum_threshold
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.noise_glr import NoiseGlrDetector
 from imufdi_cli.faults import FaultInjector, active_mask, parse_fault_spec
@@ -188,10 +197,119 @@ def input_step_part(first_seed: int, seeds: int) -> None:
         )
 
 
+def _former_threshold(level, design, margin, dof, rng, chains=256, steps=16384, window=1):
+    """cusum_threshold as it was before session 17: index arrays, a new array per sample of
+    the recursion, two full runs, full sorts."""
+
+    def residual(series):
+        cumulative = np.concatenate([np.zeros((1, series.shape[1])), np.cumsum(series, axis=0)])
+        out = np.full(series.shape, np.nan)
+        rows = np.arange(window, series.shape[0])
+        means = (cumulative[rows] - cumulative[rows - window]) / window
+        out[window:] = (series[rows] - means) / math.sqrt(1.0 + 1.0 / window)
+        return out
+
+    def recursion(increments, cap):
+        out = np.empty_like(increments)
+        current = np.zeros(increments.shape[1])
+        for i in range(increments.shape[0]):
+            current = np.minimum(np.maximum(current + increments[i], 0.0), cap)
+            out[i] = current
+        return out
+
+    def tail(values, cap=math.inf):
+        flat = np.sort(values.ravel())[::-1]
+        n = flat.size
+        if level * n >= 100:
+            return float(flat[int(level * n)])
+        counts = np.unique(np.geomspace(100, 0.05 * n, 24).astype(np.int64))
+        heights = flat[counts]
+        keep = heights < cap - 1e-9
+        heights, probabilities = heights[keep], counts[keep] / n
+        upper = slice(len(heights) // 2, None)
+        slope, intercept = np.polyfit(heights[upper], np.log(probabilities[upper]), 1)
+        if not slope < 0:
+            return float(flat[100])
+        return float((math.log(level) - intercept) / slope)
+
+    burn = 1024
+    scale = np.sqrt(np.maximum(1.0 + rng.normal(0.0, math.sqrt(2.0 / dof), chains), 0.05))
+    white = rng.standard_normal((steps + burn + window, chains))
+    z = residual(white)[window:] / scale
+    increments = design.increments(z)
+    h = tail(recursion(increments, math.inf)[burn:])
+    return tail(recursion(increments, h + margin)[burn:], h + margin)
+
+
+def _former_input_gradients(network, x):
+    """Sequential.input_gradients before session 17: a forward pass and a full backward pass
+    (parameter gradients included) per output."""
+    outputs = network.forward(x)
+    jacobian = np.empty((x.shape[0], outputs.shape[1], *x.shape[1:]))
+    for o in range(outputs.shape[1]):
+        network.forward(x)
+        seed = np.zeros_like(outputs)
+        seed[:, o] = 1.0
+        jacobian[:, o] = network.backward(seed)
+    return jacobian
+
+
+def _cpu(function, repeats):
+    """Median process CPU time of ``repeats`` calls, s, and the last result."""
+    times, result = [], None
+    for _ in range(repeats):
+        start = time.process_time()
+        result = function()
+        times.append(time.process_time() - start)
+    return float(np.median(times)), result
+
+
+def library_part(repeats: int = 5) -> None:
+    print(f"## library costs of a cnn-map fit (median CPU of {repeats}; load {os.getloadavg()})")
+    # the input test's setting on wearable12 (seed 0): alpha 0.001 over 36 channels, W = 8,
+    # a 0.25 s release at 100 Hz, the calibration's degrees of freedom
+    level = -math.expm1(math.log1p(-0.001) / 36)
+    margin = 0.25 * 100.0 * (INPUT_DESIGN.offset - INPUT_DESIGN.gain)
+    design = CusumDesign(INPUT_DESIGN.ratio, INPUT_DESIGN.clip)
+    args = (level, design, margin, 132.0354088144793)
+    former, h_former = _cpu(
+        lambda: _former_threshold(*args, np.random.default_rng([0, 0x1C5]), window=8), repeats
+    )
+    now, h_now = _cpu(
+        lambda: cusum_threshold(*args, np.random.default_rng([0, 0x1C5]), mean_window=8), repeats
+    )
+    assert h_now == h_former, (h_now, h_former)
+    print(
+        f"cusum_threshold: {now:.3f} s CPU, former {former:.3f} s, ratio {former / now:.2f}"
+        f" (h = {h_now!r}, identical)"
+    )
+    mapping = MappingNetwork(
+        input_length=24,
+        filters=8,
+        kernel=5,
+        activation="relu",
+        rate_hz=100.0,
+        input_mean=np.zeros(3),
+        input_std=np.ones(3),
+        output_mean=np.zeros(3),
+        output_std=np.ones(3),
+    )
+    network = mapping.build(np.random.default_rng(1))
+    x = np.random.default_rng(2).standard_normal((2048, 24, 3))
+    former, j_former = _cpu(lambda: _former_input_gradients(network, x), repeats)
+    now, j_now = _cpu(lambda: network.input_gradients(x), repeats)
+    assert np.array_equal(j_now, j_former)
+    print(
+        f"input_gradients (2048 windows): {now:.3f} s CPU, former {former:.3f} s,"
+        f" ratio {former / now:.2f} (identical)"
+    )
+    print(f"load after: {os.getloadavg()}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seeds", type=int, default=20)
-    parts = ("all", "speed", "table", "mapping-level", "input-step")
+    parts = ("all", "speed", "table", "mapping-level", "input-step", "library")
     parser.add_argument("--part", choices=parts, default="all")
     parser.add_argument(
         "--first-seed", type=int, default=12000, help="of --part mapping-level, input-step"
@@ -202,6 +320,9 @@ def main() -> None:
         return
     if args.part == "input-step":
         input_step_part(args.first_seed, args.seeds)
+        return
+    if args.part == "library":
+        library_part()
         return
     if args.part in ("all", "speed"):
         speed_part()

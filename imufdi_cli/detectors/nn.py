@@ -6,9 +6,12 @@ a batch of sequences has shape (B, L, C) (batch, time, channel). Convolutions us
 ``numpy.lib.stride_tricks.sliding_window_view`` so that a whole batch is one matrix product;
 the backward pass scatters the column gradients back with one strided add per kernel tap.
 
-Every layer keeps what its backward pass needs from the last ``forward`` call; ``backward``
-takes dLoss/dOutput, stores the parameter gradients in ``grads`` (same order as ``params``)
-and returns dLoss/dInput.
+Every layer keeps what its backward pass needs from the last ``forward`` call (``backward``
+only reads it, so one forward pass serves several backward passes); ``backward`` takes
+dLoss/dOutput, stores the parameter gradients in ``grads`` (same order as ``params``) and
+returns dLoss/dInput. Either can be skipped (``param_grads=False``: ``grads`` keep their
+last values; ``input_grad=False``: an empty array is returned), e.g. the parameter gradients
+when only the input gradient is wanted, or the first layer's input gradient in training.
 """
 
 from __future__ import annotations
@@ -30,7 +33,9 @@ class Layer:
     def forward(self, x: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def backward(self, grad_out: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+    def backward(
+        self, grad_out: np.ndarray, param_grads: bool = True, input_grad: bool = True
+    ) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def output_shape(self, input_shape: tuple[int, ...]) -> tuple[int, ...]:
@@ -91,16 +96,21 @@ class Conv1d(Layer):
         weight, bias = self.params
         return columns @ weight.reshape(channels * self.kernel, self.out_channels) + bias  # type: ignore[no-any-return]
 
-    def backward(self, grad_out: np.ndarray) -> np.ndarray:
+    def backward(
+        self, grad_out: np.ndarray, param_grads: bool = True, input_grad: bool = True
+    ) -> np.ndarray:
         assert self._columns is not None
         columns = self._columns
         batch, out_length, width = columns.shape
         weight = self.params[0]
         flat_weight = weight.reshape(width, self.out_channels)
-        self.grads[0] = (
-            columns.reshape(-1, width).T @ grad_out.reshape(-1, self.out_channels)
-        ).reshape(weight.shape)
-        self.grads[1] = grad_out.sum(axis=(0, 1))
+        if param_grads:
+            self.grads[0] = (
+                columns.reshape(-1, width).T @ grad_out.reshape(-1, self.out_channels)
+            ).reshape(weight.shape)
+            self.grads[1] = grad_out.sum(axis=(0, 1))
+        if not input_grad:
+            return np.empty(0)
         grad_columns = (grad_out @ flat_weight.T).reshape(
             batch, out_length, self.in_channels, self.kernel
         )
@@ -137,10 +147,15 @@ class Dense(Layer):
         self._input = flat
         return flat @ self.params[0] + self.params[1]  # type: ignore[no-any-return]
 
-    def backward(self, grad_out: np.ndarray) -> np.ndarray:
+    def backward(
+        self, grad_out: np.ndarray, param_grads: bool = True, input_grad: bool = True
+    ) -> np.ndarray:
         assert self._input is not None
-        self.grads[0] = self._input.T @ grad_out
-        self.grads[1] = grad_out.sum(axis=0)
+        if param_grads:
+            self.grads[0] = self._input.T @ grad_out
+            self.grads[1] = grad_out.sum(axis=0)
+        if not input_grad:
+            return np.empty(0)
         return (grad_out @ self.params[0].T).reshape(self._input_shape)  # type: ignore[no-any-return]
 
 
@@ -155,8 +170,12 @@ class Relu(Layer):
         self._positive = x > 0.0
         return np.where(self._positive, x, 0.0)
 
-    def backward(self, grad_out: np.ndarray) -> np.ndarray:
+    def backward(
+        self, grad_out: np.ndarray, param_grads: bool = True, input_grad: bool = True
+    ) -> np.ndarray:
         assert self._positive is not None
+        if not input_grad:
+            return np.empty(0)
         return np.where(self._positive, grad_out, 0.0)
 
 
@@ -171,8 +190,12 @@ class Tanh(Layer):
         self._output = np.tanh(x)
         return self._output
 
-    def backward(self, grad_out: np.ndarray) -> np.ndarray:
+    def backward(
+        self, grad_out: np.ndarray, param_grads: bool = True, input_grad: bool = True
+    ) -> np.ndarray:
         assert self._output is not None
+        if not input_grad:
+            return np.empty(0)
         return grad_out * (1.0 - self._output**2)  # type: ignore[no-any-return]
 
 
@@ -212,9 +235,18 @@ class Sequential:
             x = layer.forward(x)
         return x
 
-    def backward(self, grad_out: np.ndarray) -> np.ndarray:
-        for layer in reversed(self.layers):
-            grad_out = layer.backward(grad_out)
+    def backward(
+        self, grad_out: np.ndarray, param_grads: bool = True, input_grad: bool = True
+    ) -> np.ndarray:
+        """Back-propagate dLoss/dOutput through the layers of the last ``forward``.
+
+        ``param_grads=False`` leaves every layer's ``grads`` as they were (input gradients
+        only); ``input_grad=False`` skips dLoss/dInput of the first layer, which training
+        does not use (an empty array is returned). Neither changes what is computed.
+        """
+        last = len(self.layers) - 1
+        for index, layer in enumerate(reversed(self.layers)):
+            grad_out = layer.backward(grad_out, param_grads, input_grad or index < last)
         return grad_out
 
     def predict(self, x: np.ndarray, batch_size: int = 4096) -> np.ndarray:
@@ -235,16 +267,17 @@ class Sequential:
         Returns
         -------
         ndarray, shape (B, n_outputs, ...)
-            ``[b, o, ...] = d y[b, o] / d x[b, ...]`` (one backward pass per output).
+            ``[b, o, ...] = d y[b, o] / d x[b, ...]`` (one forward pass, one backward pass
+            per output without the parameter gradients: ``grads`` are left as they were).
         """
         outputs = self.forward(x)
         n_outputs = outputs.shape[1]
         jacobian = np.empty((x.shape[0], n_outputs, *x.shape[1:]))
+        seed = np.zeros_like(outputs)
         for o in range(n_outputs):
-            self.forward(x)
-            seed = np.zeros_like(outputs)
             seed[:, o] = 1.0
-            jacobian[:, o] = self.backward(seed)
+            jacobian[:, o] = self.backward(seed, param_grads=False)
+            seed[:, o] = 0.0
         return jacobian
 
 

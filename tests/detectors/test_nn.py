@@ -159,3 +159,33 @@ def test_training_fits_a_linear_filter():
         net.backward(grad)
         optimiser.step(net.grads)
     assert mse_loss(net.forward(x), y)[0] < 1e-4
+
+
+def test_skipped_gradients_change_nothing_that_is_computed():
+    """``input_grad=False`` gives the same parameter gradients, ``param_grads=False`` the same
+    input gradient and leaves ``grads`` as they were, and ``input_gradients`` (one forward
+    pass, no parameter gradients) is exactly a forward and a full backward pass per output."""
+    rng = np.random.default_rng(8)
+    net = Sequential(
+        [Conv1d(3, 4, 5, 1, rng), Relu(), Conv1d(4, 4, 3, 2, rng), Tanh(), Dense(4 * 5, 2, rng)]
+    )
+    x = rng.standard_normal((6, 16, 3))
+    _, grad = mse_loss(net.forward(x), rng.standard_normal((6, 2)))
+    full_input = net.backward(grad)
+    full_params = [g.copy() for g in net.grads]
+    assert net.backward(grad, input_grad=False).size == 0
+    for g, expected in zip(net.grads, full_params):
+        np.testing.assert_array_equal(g, expected)
+    stale = [np.full_like(g, 7.0) for g in net.grads]
+    for layer in net.layers:
+        layer.grads = [s.copy() for s in stale[: len(layer.grads)]]
+        stale = stale[len(layer.grads) :]
+    np.testing.assert_array_equal(net.backward(grad, param_grads=False), full_input)
+    assert all(np.all(g == 7.0) for g in net.grads)
+    jacobian = net.input_gradients(x)
+    assert all(np.all(g == 7.0) for g in net.grads)
+    for o in range(2):
+        outputs = net.forward(x)
+        seed = np.zeros_like(outputs)
+        seed[:, o] = 1.0
+        np.testing.assert_array_equal(jacobian[:, o], net.backward(seed))
