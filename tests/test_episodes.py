@@ -703,3 +703,56 @@ def test_a_frozen_output_on_a_constant_rate_is_found_by_the_variance_drop() -> N
     assert episode.detector == VARIANCE_DROP and episode.sensors == ["s7"]
     assert episode.fault_class == "stuck"
     assert freeze * 10_000_000 < episode.start_ns <= (freeze + 100) * 10_000_000
+
+
+def test_white_sigma_covariance_matches_the_spread_of_white_sigma() -> None:
+    """Six co-aligned triads with different white sigmas, 200 calibration samples:
+    :func:`white_sigma_covariance` (NNLS mixing propagated) against the Monte Carlo
+    covariance of :func:`white_sigma`'s squared sigmas over 800 draws. For one sensor the
+    variance is more than the successive-difference 2 sigma^4 / nu (its parity residual
+    carries the others' noise). Tolerances: 4 standard errors of a sample variance
+    (sqrt(2 / T), times 1.2 for the estimates' excess kurtosis); the shared term B of
+    sensor 0 and its consensus, which may be near zero, within 4 sqrt((A D + B^2) / T)."""
+    from imufdi_cli.episodes import (
+        _consensus_gain,
+        successive_difference_dof,
+        white_sigma,
+        white_sigma_covariance,
+        white_sigma_spread,
+    )
+
+    rng = np.random.default_rng(31)
+    H = np.tile(np.eye(3), (6, 1))
+    sigma = SIGMA * np.linspace(0.8, 1.3, 18)
+    n_cal, trials = 200, 800
+    draws = np.array(
+        [white_sigma(H, rng.normal(0, sigma, (n_cal, 18))) ** 2 for _ in range(trials)]
+    )
+    cov = white_sigma_covariance(H, sigma, n_cal)
+    rel = 4 * math.sqrt(2 / (trials - 1)) * 1.2
+    assert_allclose(draws.var(axis=0, ddof=1), np.diag(cov), rtol=rel)
+    nu = successive_difference_dof(n_cal)
+    assert np.all(np.diag(cov) > 1.05 * 2 * sigma**4 / nu)
+    gain, _ = _consensus_gain(H, sigma, 0)
+    a_term, b_term, d_term = white_sigma_spread(cov, gain, 0)
+    consensus = draws @ gain**2
+    assert float(consensus.var(ddof=1)) == pytest.approx(a_term, rel=rel)
+    shared = float(np.cov(consensus, draws[:, 0])[0, 1])
+    assert abs(shared - b_term) <= 4 * math.sqrt((a_term * d_term + b_term**2) / trials)
+    assert d_term == pytest.approx(float(cov[0, 0]))
+
+
+def test_calibration_dof_is_the_successive_difference_dof_for_a_lone_known_consensus() -> None:
+    """With the consensus variance known (A = B = 0) and sigma_k^2 estimated with
+    2 sigma^4 / nu, log f^2 = log(v - c^2) - log s_k carries 2 / nu from the calibration;
+    the F interval maps v through sqrt(v - c^2), which scales its error by a = v / (v -
+    c^2), so nu_cal = nu a^2 (nu itself when c = 0); degenerate inputs give the default."""
+    from imufdi_cli.episodes import _calibration_dof
+
+    nu, s, c = 133.0, 0.01, 0.004
+    spread = (0.0, 0.0, 2 * s**4 / nu)
+    assert _calibration_dof(9 * s**2, s, 0.0, spread, 7.0) == pytest.approx(nu)
+    v = 9 * s**2 + c**2
+    assert _calibration_dof(v, s, c, spread, 7.0) == pytest.approx(nu * (v / (v - c**2)) ** 2)
+    assert _calibration_dof(c**2 / 2, s, c, spread, 7.0) == 7.0
+    assert _calibration_dof(v, s, c, (0.0, 0.0, 0.0), 7.0) == 7.0
