@@ -344,9 +344,10 @@ def fit_models(
         calibrated noise (from successive differences, :func:`white_sigma`) and the
         degrees of freedom of that estimate; ``spread`` (:func:`white_sigma_spread`), when
         given, replaces ``dof`` by the calibration's actual degrees of freedom for this
-        sensor's factor (:func:`_calibration_dof`). The noise factor is then sized from the successive differences of
-        the residual (:func:`_noise_fit`), which slow motion-dependent errors (scale and
-        misalignment under motion) and a shift of the consensus do not enter.
+        sensor's factor (:func:`_calibration_dof`). The noise factor is then sized from
+        the successive differences of the residual (:func:`_noise_fit`), which slow
+        motion-dependent errors (scale and misalignment under motion) and a shift of the
+        consensus do not enter.
 
     Returns
     -------
@@ -1292,6 +1293,11 @@ class EpisodeBuilder:
         The white part of each sensor's noise (:func:`white_sigma`, SI), estimated from
         ``calibration_samples`` samples; the noise factor is then sized against it from
         successive differences (:func:`_white_noise_fit`).
+    white_excess : float
+        How much more the white variances spread than Gaussian white noise says
+        (:func:`white_sigma_excess`: outliers that pass the cut, heavy tails); it scales
+        :func:`white_sigma_covariance` and so lowers the calibration's degrees of freedom
+        in the noise factor's interval.
     variance_drop : bool
         Also run the :class:`VarianceDropMonitor` on the measurements and return its
         explained episodes (``detector`` :data:`VARIANCE_DROP`) with this builder's: a
@@ -1320,6 +1326,7 @@ class EpisodeBuilder:
         calibration_samples: int | None = None,
         calibration_mean: np.ndarray | None = None,
         white_sigma: np.ndarray | None = None,
+        white_excess: float = 1.0,
         variance_drop: bool = False,
         variance_drop_window_s: float = 1.0,
         variance_drop_alpha: float = 1e-7,
@@ -1351,6 +1358,7 @@ class EpisodeBuilder:
             "calibration_samples": calibration_samples,
             "calibration_mean": calibration_mean,
             "white_sigma": white_sigma,
+            "white_excess": white_excess,
             "variance_drop_window_s": variance_drop_window_s,
             "variance_drop_alpha": variance_drop_alpha,
         }
@@ -1361,6 +1369,7 @@ class EpisodeBuilder:
         )
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
         self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
+        self.white_excess = float(white_excess)
         self._white_cov: np.ndarray | None = None  # white_sigma_covariance, once
         self._estimators: dict[int, np.ndarray] = {}  # k -> _estimator(k)
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
@@ -1649,7 +1658,7 @@ class EpisodeBuilder:
         consensus = float(np.sqrt(np.sum((gain * self.white_sigma) ** 2)))
         dof = successive_difference_dof(self.calibration_samples)
         if self._white_cov is None:
-            self._white_cov = white_sigma_covariance(
+            self._white_cov = self.white_excess * white_sigma_covariance(
                 self.H, self.white_sigma, self.calibration_samples
             )
         if self._white_cov.size == 0:
@@ -1835,6 +1844,72 @@ def white_sigma_covariance(H: np.ndarray, sigma: np.ndarray, n_samples: int) -> 
     return inverse @ spread @ inverse.T
 
 
+def white_sigma_excess(
+    H: np.ndarray, measurements: np.ndarray, *, outlier_cut: float = 4.0
+) -> float:
+    """How much more the white variances of :func:`white_sigma` spread than Gaussian white
+    noise says, measured on the calibration window itself (>= 1).
+
+    :func:`white_sigma_covariance` assumes Gaussian white noise. The variances are
+    ``s = M^-1 v`` (:func:`white_sigma_covariance`), v the means of ``x_t = r_t^2`` (the
+    squared parity residuals of the differenced samples), so each ``s_k`` is the mean of
+    the series ``z_t = (M^-1 x_t)_k``, whose mean has the variance ``(g0 + 2 g1) / N'``
+    (autocovariances of z to lag 1: neighbouring differences correlate, the others do
+    not). Under Gaussian white noise ``g0 + 2 g1 = 3 w^T (C∘C) w`` (w the row k of
+    ``M^-1``, C the covariance of the differenced residuals; Isserlis, neighbouring
+    differences correlating with -1/2). Outliers that pass the 4-sigma cut once
+    differenced (each spreads over two differences, at 1/sqrt(2) of its size; on
+    paper-table4 about a quarter of them) and heavy-tailed noise make the measured value
+    larger. The factor is the measured over the Gaussian value, averaged over the sensors
+    (one window then estimates it to a few per cent), times ``N_diff / N'`` for the rows
+    the cut left out (the same cut as
+    :func:`~imufdi_cli.detectors.parity.residual_sigma`); floored at 1, the Gaussian value.
+
+    Parameters
+    ----------
+    H : array_like, shape (n, 3)
+    measurements : array_like, shape (N, n), N >= 4, fault-free, SI
+
+    Returns
+    -------
+    float
+        1 for Gaussian white noise (up to its sampling error), more with outliers; 1 when
+        the per-sensor variances are not identifiable (singular M) or too few samples.
+    """
+    from imufdi_cli.detectors.parity import residuals
+
+    H = np.asarray(H, dtype=np.float64)
+    m = np.asarray(measurements, dtype=np.float64)
+    n, q = H.shape
+    if m.ndim != 2 or m.shape[0] < 4 or n <= q:
+        return 1.0
+    projector = np.eye(n) - H @ np.linalg.pinv(H)
+    mixing = projector**2
+    singular = np.linalg.svd(mixing, compute_uv=False)
+    if not singular[-1] > 1e-8 * singular[0]:
+        return 1.0
+    inverse = np.linalg.inv(mixing)
+    r = residuals(H, np.diff(m, axis=0))
+    centre = np.median(r, axis=0)
+    robust_std = 1.4826 * np.median(np.abs(r - centre), axis=0)
+    inlier = np.all(np.abs(r - centre) <= outlier_cut * robust_std, axis=1)
+    kept = r[inlier] if np.count_nonzero(inlier) >= max(2, r.shape[0] // 2) else r
+    if kept.shape[0] < 3:
+        return 1.0
+    z = (kept**2) @ inverse.T  # (N', n): z_t,k has mean s_k (differenced: 2 sigma_k^2)
+    variance = np.clip(z.mean(axis=0), 0.0, None)
+    zc = z - z.mean(axis=0)
+    measured = np.mean(zc**2, axis=0) + 2 * np.sum(zc[1:] * zc[:-1], axis=0) / z.shape[0]
+    covariance = projector @ np.diag(variance) @ projector.T
+    gaussian = 3 * np.einsum("ki,ij,kj->k", inverse, covariance**2, inverse)
+    use = gaussian > 0
+    if not np.any(use):
+        return 1.0
+    ratio = float(np.mean(measured[use] / gaussian[use]))
+    factor = max(ratio, 1.0) * r.shape[0] / kept.shape[0]
+    return factor if math.isfinite(factor) else 1.0
+
+
 def white_sigma_spread(cov: np.ndarray, gain: np.ndarray, k: int) -> tuple[float, float, float]:
     """``(A, B, D)`` for :func:`_calibration_dof`: with ``g2 = gain^2`` (the consensus
     weights of sensor k, :func:`leave_one_out`) and ``cov`` from
@@ -1869,6 +1944,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
         n_cal: int | None = None
         mean: np.ndarray | None = None
         white: np.ndarray | None = None
+        excess = 1.0
         if explain:
             measurements = array.select(triads, sensor_type)
             finite = np.all(np.isfinite(measurements), axis=1)
@@ -1877,6 +1953,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
             try:
                 sigma = residual_sigma(H, measurements[finite])
                 white = white_sigma(H, measurements[finite])
+                excess = white_sigma_excess(H, measurements[finite])
             except CalibrationError:
                 explain = False
             explain = explain and bool(np.all(np.isfinite(sigma)) and np.all(sigma > 0))
@@ -1891,6 +1968,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
             calibration_samples=n_cal if explain else None,
             calibration_mean=mean if explain else None,
             white_sigma=white if explain else None,
+            white_excess=excess,
             **options,
         )
     return builders
@@ -2049,5 +2127,6 @@ __all__ = [
     "truth_size",
     "white_sigma",
     "white_sigma_covariance",
+    "white_sigma_excess",
     "white_sigma_spread",
 ]
