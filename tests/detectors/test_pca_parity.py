@@ -20,8 +20,11 @@ from imufdi_cli.detectors.pca_parity import (
     _lag_one_autocorrelation,
     cross_fit_split,
     cross_fitted_components,
+    cross_validated_components,
+    fold_labels,
     mean_variance_inflation,
     plug_in_quantile,
+    principal_components,
 )
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.faults import FaultInjector, parse_fault_spec
@@ -370,7 +373,9 @@ def test_halves_shorter_than_the_parity_dimension_still_give_variances():
     assert set(out) == {"gyro", "accel"}
     meta = detector.metadata()["types"]["gyro"]
     assert meta["dimension"] == 45
-    assert 15 < min(meta["variance_dof"]) <= max(meta["variance_dof"]) <= 25  # N_B (1-r^2)/(1+r^2)
+    dof = meta["variance_dof"]  # rows (1 - r^2) / (1 + r^2): N - 1 kept, N / 2 discarded
+    assert 35 < min(dof[:2]) <= max(dof[:2]) <= 49
+    assert 15 < min(dof[2:]) <= max(dof[2:]) <= 25
 
 
 def test_plug_in_quantile_is_student_squared_for_one_component():
@@ -433,3 +438,97 @@ def test_conical6_level_holds_on_long_logs_after_the_documented_calibration():
         alarms += int(out.alarm[after].sum())
         total += int(after.sum())
     assert alarms <= far_bound(total, 1.5 * detector.alpha, detector.window_samples)
+
+
+# --- out-of-fold variances: the level of the halves at full length (issue 16, power) ----
+
+
+def test_fold_labels_interleave_blocks_and_fill_every_fold():
+    labels = fold_labels(200, 20, 10)
+    assert_allclose(labels[::20], np.arange(10))  # one 20-row block per fold, in turn
+    assert np.all(np.bincount(labels) == 20)
+    short = fold_labels(30, 20, 10)  # blocks shortened so that every fold gets rows
+    assert set(short.tolist()) == set(range(10))
+
+
+def test_out_of_fold_variance_is_unbiased_where_the_smallest_eigenvalue_is_not():
+    """Isotropic white noise (q = 3, N = 500, sigma = 1): the out-of-fold variance of the
+    last whole-window direction is unbiased, where its eigenvalue is about 0.9.
+
+    Tolerance: the detector counts each out-of-fold variance on N/2 degrees of freedom
+    (measured: sd 0.089 at N = 500, sqrt(2/250) = 0.089); the mean of R replications has
+    sd sqrt(2/(N/2 R)), and 4 sd bound it (two-sided 6e-5).
+    """
+    rng = np.random.default_rng(17)
+    n_rows, q, reps = 500, 3, 400
+    values = []
+    for _ in range(reps):
+        rows = rng.standard_normal((n_rows, q))
+        centred = rows - rows.mean(axis=0)
+        variances, directions = cross_validated_components(centred, 20, 10)
+        assert_allclose(directions.T @ directions, np.eye(q), atol=1e-12)
+        whole = np.linalg.eigh(centred.T @ centred)[1][:, ::-1]
+        assert_allclose(np.abs(directions.T @ whole), np.eye(q), atol=1e-9)  # whole window
+        values.append(variances[-1])
+    sd = np.sqrt(2.0 / (n_rows / 2 * reps))
+    assert abs(np.mean(values) - 1.0) < 4 * sd
+
+
+def test_mixed_variances_keep_the_eigenvalues_of_the_kept_components():
+    """Isotropic noise in 45 dimensions on 200 rows (paper-table4's gyro parity space):
+    the two kept components keep their sample eigenvalues, which lie near the upper edge
+    of the Marchenko-Pastur bulk, (1 + sqrt(45/200))^2 = 2.2, far above the true 1: the T
+    test is conservative there and cannot take the false-alarm budget of the Q test, which
+    carries a fault of a random direction (the power lost by the halves at matched FAR).
+    The discarded ones get out-of-fold variances, unbiased on average: their mean over
+    the 43 directions has sd at most sqrt(2/(N/2 * 43)) per replication (the detector's
+    N/2 dof; measured 0.016 against 0.022), and 4 sd of the mean of R replications bound
+    it. The sample eigenvalues average 0.95 there (biased low: the Q test was liberal),
+    more than 8 sd below 1."""
+    rng = np.random.default_rng(18)
+    n_rows, q, k, reps = 200, 45, 2, 40
+    kept, tail, sample_tail = [], [], []
+    for _ in range(reps):
+        rows = rng.standard_normal((n_rows, q))
+        centred = rows - rows.mean(axis=0)
+        variances, _directions, dof_rows = principal_components(centred, k, 20)
+        eigenvalues = np.linalg.eigvalsh(centred.T @ centred / (n_rows - 1))[::-1]
+        assert_allclose(variances[:k], eigenvalues[:k], rtol=1e-9)
+        assert_allclose(dof_rows, [n_rows - 1] * k + [n_rows / 2] * (q - k))
+        kept.append(variances[:k])
+        tail.append(variances[k:].mean())
+        sample_tail.append(eigenvalues[k:].mean())
+    assert np.min(kept) > 1.5
+    sd = np.sqrt(2.0 / (n_rows / 2 * (q - k) * reps))
+    assert abs(np.mean(tail) - 1.0) < 4 * sd
+    assert np.mean(sample_tail) < 1.0 - 8 * sd
+
+
+def matched_far_mar(statistic, t, onset, calibration_end=2.0, far=0.01):
+    """MAR with the threshold at the (1 - far) quantile of the out-of-sample fault-free
+    statistic (the campaign's ``mar_at_far``, per run)."""
+    free = (t >= calibration_end) & (t < onset)
+    threshold = np.quantile(statistic[free], 1.0 - far)
+    return float(np.mean(statistic[t >= onset] <= threshold))
+
+
+@pytest.mark.slow
+def test_small_step_power_at_matched_far_is_not_lost_to_the_kept_components():
+    """paper-table4, 0.3 deg/s step on imu0.gyro.x, tuning seeds 0-9, MAR at matched FAR 1 %.
+
+    The issue-16 halves left the kept components' variances 2-3 sd low on some seeds; the
+    T test then alarmed on the fault-free part, the matched threshold rose and the Q test,
+    which carries the fault, lost it (compare seeds 1000/1017: 53 % and 66 %; here seed 8:
+    75 %, mean over seeds 0-9: 12.8 %). Bound: the issue-15 figure, mean 2.8 % over 20
+    seeds, plus 3 standard errors of a mean of 10 seeds with a seed-to-seed sd of 5 %
+    (heavier than the 1.9 % measured, to allow a seed like tuning seed 13 at 17 %): 7.5 %.
+    """
+    detector = make({"types": "gyro"})
+    mars = []
+    for seed in range(10):
+        array, block = simulate_block(preset("paper-table4", seed=seed, duration=20.0))
+        faults = [parse_fault_spec("step:imu0.gyro.x,at=12s,amp=0.3deg/s", array)]
+        block = FaultInjector(faults, array, seed=seed, t0_ns=int(block.t_ns[0])).apply_block(block)
+        out = run(detector, array, block, block_size=4096)["gyro"]
+        mars.append(matched_far_mar(out.statistic, block.t_s(), 12.0))
+    assert np.mean(mars) <= 0.028 + 3 * 0.05 / np.sqrt(10)
