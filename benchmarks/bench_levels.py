@@ -396,6 +396,7 @@ PCA_VARIANTS: list[tuple[str, dict[str, Any]]] = [
         "issue-15 detector",
         {
             "VARIANCE_ESTIMATE": "sample",
+            "SCHEFFE_LEAK": False,
             "RHO_FLOOR": -0.9,
             "USE_F_THRESHOLD": False,
             "KEEP_LEAKS_IF_ANY": False,
@@ -406,10 +407,8 @@ PCA_VARIANTS: list[tuple[str, dict[str, Any]]] = [
     ("+ F thresholds", {"USE_F_THRESHOLD": True}),
     ("+ every leak kept once one is significant (issue 16)", {"KEEP_LEAKS_IF_ANY": True}),
     ("every variance out of fold instead of halves", {"VARIANCE_ESTIMATE": "folds"}),
-    (
-        "kept: sample eigenvalues; discarded: out of fold (current)",
-        {"VARIANCE_ESTIMATE": "mixed"},
-    ),
+    ("kept: sample eigenvalues; discarded: out of fold", {"VARIANCE_ESTIMATE": "mixed"}),
+    ("+ Scheffé allowance on the leak error (current)", {"SCHEFFE_LEAK": True}),
 ]
 
 

@@ -47,9 +47,12 @@ Beyond the paper:
   training centre h_t = 1/N (the earlier formula); where the motion leaves the training
   range the threshold widens instead of raising false alarms (the leak error then grows
   with |xbar|). The same factor multiplies the Q threshold.
-- Calibration of the variances (issue 16): the principal directions come from one half of
-  the window and their variances from the other (``cross_fitted_components``: the smallest
-  eigenvalue of a sample covariance is biased low, Lawley 1956); the thresholds are F
+- Calibration of the variances (issue 16): the principal directions come from the whole
+  window; the kept components keep their sample eigenvalues and the discarded ones get
+  out-of-fold variances (``principal_components``, ``cross_validated_components``: the
+  smallest eigenvalues of a sample covariance are biased low, Lawley 1956; taking the
+  directions from one half of the window, ``cross_fitted_components``, held the level but
+  cost power at a matched false-alarm rate); the thresholds are F
   quantiles for a statistic standardised by an estimated variance (``plug_in_quantile``);
   a negative lag-one autocorrelation estimate is floored at 0 (``RHO_FLOOR``); and once the
   leak of one parity component is significant, every component's fitted leak is kept
@@ -125,6 +128,12 @@ FOLDS = 10
 #: When the leak of some parity component is significant, keep the fitted leak of every
 #: component (see ``_fit_leak``); False: only the significant ones.
 KEEP_LEAKS_IF_ANY = True
+#: Allowance for the leak error of one calibration: the leak-error term ``xbar^T G xbar`` of
+#: the prediction variance is multiplied by e, the number of excited directions. For one
+#: calibration the leak error at the worst motion is ``chi2(e)`` times that term (Scheffe),
+#: and e is that ratio's mean; without it (False) the variance is right only on average over
+#: calibrations, and one calibration in 20 raised 7-9 alpha (see docs/algorithms/pca-parity.md).
+SCHEFFE_LEAK = True
 #: Thresholds from the F distribution of a statistic with an estimated scale.
 USE_F_THRESHOLD = True
 #: Floor of the estimated lag-one autocorrelation (see ``_lag_one_autocorrelation``).
@@ -487,6 +496,9 @@ class _TypeModel:
         norms = np.linalg.norm(projection, axis=0)
         self.direction_norms = norms  # |v_j|, (n,)
         self.motion = motion if motion is not None else _MotionDesign.static()
+        # Scheffe allowance on the leak error (``SCHEFFE_LEAK``): e, the mean of chi2(e).
+        excited = self.motion.basis.shape[1]
+        self.leak_tolerance = float(excited) if excited and SCHEFFE_LEAK else 1.0
         self.motion_window = MovingWindow(window, 3)
         self.inflation_n = mean_variance_inflation(rho, np.array([n_train]))[0]  # g(rho_i, N)
         self.inflation_l = mean_variance_inflation(rho, lengths) / lengths[:, None]  # (L, q)
@@ -842,6 +854,7 @@ class PcaParityDetector(DetectorBase):
         mean_deviation = sums / counts[:, None]  # dp_t, (N, q)
         components = mean_deviation @ model.eigenvectors  # (N, q)
         extra, coverage = model.leverage(measurements @ model.estimator.T)
+        extra = extra * model.leak_tolerance  # SCHEFFE_LEAK: the mean worst-motion ratio
         # prediction variance: moving-mean noise + error of the fitted mean and leak at xbar_t
         leverage = 1.0 / model.n_train + extra[:, None] * model.leak_weight[None, :]  # (N, q)
         variance = model.eigenvalues[None, :] * (
@@ -974,6 +987,12 @@ class PcaParityDetector(DetectorBase):
                 "track_bias": self.tracker.tau_s,
             },
             "tracked_bias_change": self.tracker.metadata(),
+            "variances": (
+                f"{VARIANCE_ESTIMATE} (kept components: sample eigenvalues; discarded:"
+                f" out of {FOLDS} folds)"
+                if VARIANCE_ESTIMATE == "mixed"
+                else VARIANCE_ESTIMATE
+            ),
             "statistic": "max(T/chi2_{1-a}(k), Q/chi2_{1-a}(q-k)), a = alpha/2; threshold 1",
             "untested": dict(self.untested),
             "scores": "angle between each sensor's parity direction and the mean parity"

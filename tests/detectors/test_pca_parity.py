@@ -236,6 +236,7 @@ def test_metadata_is_json_ready():
     assert meta["types"]["gyro"]["dimension"] == 3
     assert meta["types"]["gyro"]["components"] == 2
     assert meta["params"]["window_samples"] == 20
+    assert meta["variances"].startswith("mixed")
 
 
 # --- issue 16: level out of sample, calibration coverage ------------------------------------
@@ -532,3 +533,41 @@ def test_small_step_power_at_matched_far_is_not_lost_to_the_kept_components():
         out = run(detector, array, block, block_size=4096)["gyro"]
         mars.append(matched_far_mar(out.statistic, block.t_s(), 12.0))
     assert np.mean(mars) <= 0.028 + 3 * 0.05 / np.sqrt(10)
+
+
+def test_worst_motion_leak_error_of_one_calibration_is_chi2_with_mean_e():
+    """Scheffe: for a least-squares fit on a design X (N, e), the error d of the fitted
+    coefficients satisfies sup_x (x.d)^2 / (sigma^2 x^T G x) = d^T G^-1 d / sigma^2 ~
+    chi2(e), G = (X^T X)^-1. Its mean, e, is the allowance the detector puts on the leak
+    error term (SCHEFFE_LEAK). Tolerance: 4 sd of the mean of R chi2(e) draws,
+    4 sqrt(2 e / R)."""
+    rng = np.random.default_rng(19)
+    n_rows, e, reps = 200, 3, 2000
+    design = rng.standard_normal((n_rows, e)) * np.array([1.0, 5.0, 20.0])
+    gram = design.T @ design
+    ratios = []
+    for _ in range(reps):
+        noise = rng.standard_normal(n_rows)
+        error = np.linalg.solve(gram, design.T @ noise)  # fitted minus true coefficients
+        ratios.append(error @ gram @ error)
+    assert abs(np.mean(ratios) - e) < 4 * np.sqrt(2 * e / reps)
+
+
+def test_leak_error_allowance_is_the_number_of_excited_directions(monkeypatch):
+    """conical6 on 0-2 s: three excited directions, a leak fitted: allowance 3. wearable12
+    swings too, but no leak is significant, none is fitted, and the statistic is the same
+    with and without the allowance."""
+    detector = make()
+    array, block = simulate_block(preset("conical6", seed=3, duration=4.0))
+    run(detector, array, block, calibrate=(0.0, 2.0))
+    model = detector.models["gyro"]
+    assert model.leak_fitted and model.motion.basis.shape[1] == 3
+    assert model.leak_tolerance == 3.0
+    from imufdi_cli.detectors import pca_parity
+
+    array, block = simulate_block(preset("wearable12", seed=3, duration=4.0))
+    with_allowance = run(make(), array, block, calibrate=(0.0, 2.0))
+    monkeypatch.setattr(pca_parity, "SCHEFFE_LEAK", False)
+    without = run(make(), array, block, calibrate=(0.0, 2.0))
+    for sensor_type, out in with_allowance.items():
+        assert_allclose(out.statistic, without[sensor_type].statistic, rtol=0, atol=0)
