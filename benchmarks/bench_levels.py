@@ -560,7 +560,7 @@ def campaign_tables(results: str) -> None:
             groups.setdefault(
                 (r["detector"], r["params"], r["base"], r["faults"].split(",at=")[0]), []
             ).append(r)
-    for (detector, _params, base, fault), members in groups.items():
+    for (detector, params, base, fault), members in groups.items():
         own = [m for m in members if m["sensor_type"] == fault_type[m["key"]]]
         others: dict[str, list[float]] = {}
         for m in members:
@@ -580,8 +580,10 @@ def campaign_tables(results: str) -> None:
         other = "; ".join(
             f"{t} {np.nanmean(v):.2%} / {np.nanmax(v):.2%}" for t, v in sorted(others.items())
         )
+        shown = ", ".join(f"{k}={v}" for k, v in json.loads(params).items())
         print(
-            f"| {detector} | {base} | {fault} | {len(own)} | {stat(rate, np.nanmin, '.2%')} |"
+            f"| {detector}{f' ({shown})' if shown else ''} | {base} | {fault} | {len(own)} |"
+            f" {stat(rate, np.nanmin, '.2%')} |"
             f" {stat(delay, np.nanmax, '.3f')} | {stat(recovery, np.nanmax, '.3f')} |"
             f" {np.nanmean(fir) if np.isfinite(fir).any() else float('nan'):.3f} |"
             f" {_spread(matched)} | {other or '—'} |"
