@@ -46,7 +46,10 @@ Beyond the paper:
   regression prediction variance instead of the training-mean variance alone. At the
   training centre h_t = 1/N (the earlier formula); where the motion leaves the training
   range the threshold widens instead of raising false alarms (the leak error then grows
-  with |xbar|). The same factor multiplies the Q threshold.
+  with |xbar|). The same factor multiplies the Q threshold. The leak-error term is
+  multiplied by e, the number of excited directions (``SCHEFFE_LEAK``): for one
+  calibration the leak error at the worst motion is chi2(e) times its average-case
+  variance (Scheffe), and e is that ratio's mean.
 - Calibration of the variances (issue 16): the principal directions come from the whole
   window; the kept components keep their sample eigenvalues and the discarded ones get
   out-of-fold variances (``principal_components``, ``cross_validated_components``: the
