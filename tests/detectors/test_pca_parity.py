@@ -363,11 +363,12 @@ def test_cross_fit_halves_alternate_blocks_and_span_the_window():
     assert cross_fit_split(12, 20) == 6  # block capped at a quarter of the rows
 
 
-def test_halves_shorter_than_the_parity_dimension_still_give_variances():
-    """paper-table4 (45 parity dimensions per type) on 0.5 s: each half holds about 25 rows,
-    fewer than the dimensions. Half A's directions are then partly arbitrary, but half B's
-    variance along each is still an unbiased, positive estimate on ~24 degrees of freedom,
-    which the F thresholds take into account."""
+def test_windows_shorter_than_the_parity_dimension_still_give_variances():
+    """paper-table4 (45 parity dimensions per type) on 0.5 s: 50 rows, each fold's rest 45,
+    no more than the dimensions. The out-of-fold directions are then partly arbitrary, but
+    the held-out variance along each is still a positive estimate, counted on N/2 = 25
+    degrees of freedom (the kept components' eigenvalues on N - 1 = 49), which the F
+    thresholds take into account."""
     array, block = simulate_block(preset("paper-table4", seed=1, duration=2.0, outliers=False))
     detector = make()
     out = run(detector, array, block, calibrate=(0.0, 0.5))
