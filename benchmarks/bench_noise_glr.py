@@ -372,8 +372,9 @@ def real_part(train: str, test: str, seed: int, factor: float) -> None:
             hits = [det.alarm[rows].mean() for rows, _ in truth[s]]
             iso = [np.mean(det.isolated[rows][det.alarm[rows]] == j) for rows, j in truth[s]
                    if det.alarm[rows].any()]  # fmt: skip
+            weakest = cal.sensor_ids(s)[truth[s][int(np.argmin(hits))][1]]
             print(f"{label} | {s} | {len(hits)} | {100 * np.mean(hits):.1f}"
-                  f" ({100 * np.min(hits):.1f}) | {100 * np.mean(iso):.1f}")  # fmt: skip
+                  f" ({100 * np.min(hits):.1f}, {weakest}) | {100 * np.mean(iso):.1f}")  # fmt: skip
 
 
 def main() -> None:
