@@ -36,18 +36,25 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
    ``mean(min(d^2/tau, c^2)) = mu``) on the N calibration samples.
 5. Windowed ratio over the last k <= w differences: ``u = sum(q)/(k mu)`` (1 in
    expectation). Its null law is approximated by matching two moments (Satterthwaite):
-   ``u ~ chi2(nu_k)/nu_k`` with ``nu_k = 2 (k mu)^2 / (k v + 2 (k - 1) c1)``. The scale
-   tau is itself estimated; to first order its error multiplies u by a factor whose
-   variance is that of a calibration-window mean of q, i.e. ``2/nu_{N-1}``, so
-   ``u ~ F(nu_k, nu_{N-1})`` (-> chi2(nu_k)/nu_k for long calibration windows).
+   ``u ~ chi2(nu_k)/nu_k`` with ``nu_k = 2 (k mu)^2 / (k v + 2 (k - 1) c1)``.
    GLR for a variance growth on nu_k equivalent degrees of freedom::
 
        g = nu_k/2 (u - 1 - ln u) for u > 1, else 0
 
    g is increasing in u for u > 1, so ``g > h`` is ``u > u_c`` with
-   ``u_c = F^{-1}(1 - a; nu_k, nu_{N-1})`` and ``h = nu_k/2 (u_c - 1 - ln u_c)``. With n
-   tested sensors the per-sensor level is the Šidák ``a = 1 - (1 - alpha)^(1/n)`` so that
-   the array-level false-alarm rate is alpha. Without clipping (c -> inf) mu = 1, v = 2,
+   ``h = nu_k/2 (u_c - 1 - ln u_c)``. With n tested sensors the per-sensor level is the
+   Šidák ``a = 1 - (1 - alpha)^(1/n)`` so that the array-level false-alarm rate is alpha.
+   The scale tau is estimated once, on the calibration window, and its error stays for
+   the whole log: ``tau_hat/tau ~ chi2(nu_cal)/nu_cal`` with ``nu_cal`` the estimator's
+   equivalent dof (``scale_estimator_dof``), and a log whose tau_hat is low by 12 % (one
+   standard error of a 2 s window) has several times the nominal level. The threshold
+   therefore holds the level of each log, not only on average over calibrations:
+   ``u_c = u_0 nu_cal / chi2_{1 - conf}(nu_cal)`` with ``u_0 = chi2_{1 - a}(nu_k)/nu_k``
+   the known-scale threshold and conf = ``level_confidence``: with probability conf
+   over the calibration window, the sensor's level is at most a (Albers & Kallenberg
+   2004; Gandy & Kvaløy 2013). ``level_confidence = 0`` gives the predictive threshold
+   ``u_c = F^{-1}(1 - a; nu_k, nu_cal)`` (level a on average over calibrations, with a
+   wide spread from log to log). Without clipping (c -> inf) mu = 1, v = 2,
    c1 = 1/2 and nu_k = 2k^2/(3k - 1) ~ 2k/3: differencing costs about a third of the
    degrees of freedom, the price of being blind to the mean.
    Until the window has filled at the start of the log, k is the number of differences
@@ -60,10 +67,23 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
    When it is below ``F^{-1}(release; ...)`` (a one-sided test for a variance decrease)
    the sensor's g is set to 0. During a fault this drops at most a fraction ``release``
    of the faulty samples; after it, the alarm ends about w_r samples later instead of w.
-6. Output: statistic = max_j g_j (threshold h), scores = g_j, isolated sensor = argmax_j g_j,
+6. Healthy noise spread (optional). On a real board a healthy chip's noise changes with
+   the orientation (MIMU4444: z gyros up to 1.8x in sigma, docs/real-arrays.md), which a
+   calibration window in one orientation cannot know. When the array carries each
+   sensor's variance spread kappa_i (``<type>_noise_spread``, measured by ``imufdi
+   calibrate`` over the static orientations of a calibration log), the null hypothesis
+   becomes ``Var(d_j) <= kappa_eff_j tau_j`` (one-sided) with
+   ``kappa_eff_j = sum_i R_ji^2 kappa_i sigma_i^2 / sum_i R_ji^2 sigma_i^2`` the spread of
+   residual j when every sensor sits at the top of its range (:func:`residual_spread`).
+   The GLR of a variance growth against that composite null, at its boundary, is step 5
+   with tau_j replaced by kappa_eff_j tau_j (below the boundary the level is lower), so
+   the scale is multiplied and nothing else changes; without the field (or with
+   ``noise_spread=false``) the detector is bit-identical to the one without this step.
+7. Output: statistic = max_j g_j (threshold h), scores = g_j, isolated sensor = argmax_j g_j,
    ``amplitude = sqrt(mean(d^2)/tau)`` of the isolated sensor over the window (unclipped):
    the estimated noise-standard-deviation ratio sigma1/sigma0 (dimensionless, the one
-   exception to SI amplitudes).
+   exception to SI amplitudes; relative to the calibration window's tau, not
+   kappa_eff tau).
 """
 
 from __future__ import annotations
@@ -72,8 +92,8 @@ from dataclasses import replace
 from typing import Any, ClassVar
 
 import numpy as np
+from scipy.stats import chi2, norm
 from scipy.stats import f as f_distribution
-from scipy.stats import norm
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
@@ -148,6 +168,17 @@ def leave_one_out_operator(model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (np.eye(n) - hat) * scale[:, None], testable
 
 
+#: Default ``level_confidence``: each sensor's level is within its share of alpha on this
+#: share of calibrations (chosen on seeds 0-19 and 100-219; docs/algorithms/noise-glr.md).
+DEFAULT_LEVEL_CONFIDENCE = 0.95
+
+#: ``calibration_warnings`` reports a calibration window whose scale error raises the
+#: variance thresholds by more than this factor over a known noise variance.
+WARN_CALIBRATION_FACTOR = 1.25
+
+#: The factor a calibration window long enough for this detector gives (named in the warning).
+GOOD_CALIBRATION_FACTOR = 1.1
+
 #: Lag-1 correlation of the differences of a white sequence.
 DIFFERENCE_CORRELATION = -0.5
 
@@ -210,6 +241,48 @@ def equivalent_dof(counts: np.ndarray, moments: tuple[float, ...]) -> np.ndarray
     return 2.0 * (k * mean) ** 2 / (k * variance + 2.0 * np.maximum(k - 1.0, 0.0) * lag1)
 
 
+def scale_estimator_dof(count: int, clip: float) -> float:
+    """Equivalent degrees of freedom of the calibrated scale tau (``robust_scale``).
+
+    Parameters
+    ----------
+    count : int
+        N, the number of calibration differences (lag-1 correlated, rho = -1/2).
+    clip : float
+        c, in standard deviations (``inf``: the plain mean square).
+
+    Returns
+    -------
+    float
+        ``nu_cal = 2 / Var(ln tau_hat)``, so that ``tau_hat / tau ~ chi2(nu_cal)/nu_cal``
+        to two moments. Linearizing the estimating equation ``mean(min(d^2/tau, c^2)) = mu``
+        gives ``Var(ln tau_hat) = Var(mean q) / s^2`` with ``s = E[z^2 ; |z| < c]`` (the
+        derivative of the clipped square; Huber, *Robust Statistics*, 1981, §5.3) and
+        ``Var(mean q) = (N v + 2 (N - 1) c1) / N^2`` (lag-1 dependent q). Hence
+        ``nu_cal = nu_N (s / mu)^2`` with ``nu_N`` of :func:`equivalent_dof`: clipping at
+        c = 3 costs 5 % of the calibration's degrees of freedom (``s/mu = 0.976``).
+    """
+    moments = clipped_square_moments(clip)
+    mean = moments[0]
+    inner = mean - clip**2 * 2.0 * norm.sf(clip) if np.isfinite(clip) else 1.0
+    dof = float(equivalent_dof(np.array([max(count, 1)]), moments)[0])
+    return dof * (inner / mean) ** 2
+
+
+def calibration_factor(calibration_dof: float, confidence: float) -> float:
+    """Factor on a variance threshold that covers the calibrated scale's error.
+
+    With ``tau_hat / tau ~ chi2(nu)/nu`` (``nu`` = ``calibration_dof``), the true scale is
+    at most ``tau_hat nu / chi2_{1 - confidence}(nu)`` with probability ``confidence``.
+    A threshold ``u_0`` for a known scale, raised by this factor, keeps the sensor's
+    false-alarm level at most its nominal share with that probability over the
+    calibration (the exceedance-probability criterion of Albers & Kallenberg, *Metrika*
+    59, 2004, §3; the guaranteed conditional performance of Gandy & Kvaløy,
+    *Scand. J. Statist.* 40(4), 2013). ``confidence = 0.5`` is about 1 + 2/(3 nu).
+    """
+    return float(calibration_dof / chi2.ppf(1.0 - confidence, calibration_dof))
+
+
 def robust_scale(differences: np.ndarray, clip: float, mean: float) -> np.ndarray:
     """Per-column tau with ``mean(min(d^2/tau, c^2)) = E q`` (Huber's proposal 2).
 
@@ -238,6 +311,55 @@ def robust_scale(differences: np.ndarray, clip: float, mean: float) -> np.ndarra
     return tau
 
 
+def samples_for_factor(factor: float, clip: float, confidence: float) -> int:
+    """Calibration samples whose :func:`calibration_factor` is at most ``factor``.
+
+    The factor decreases with the sample count; bisection on the count.
+    """
+    lo, hi = 2, 4
+    while calibration_factor(scale_estimator_dof(hi - 1, clip), confidence) > factor:
+        lo, hi = hi, 2 * hi
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if calibration_factor(scale_estimator_dof(mid - 1, clip), confidence) > factor:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
+def residual_spread(
+    operator: np.ndarray, kappa: np.ndarray, sigma: np.ndarray | None
+) -> np.ndarray:
+    """Healthy variance spread of each leave-one-out residual from the sensors' spreads.
+
+    Parameters
+    ----------
+    operator : ndarray, shape (n, n)
+        R of :func:`leave_one_out_operator` (``r = m @ R.T``).
+    kappa : ndarray, shape (n,)
+        Each sensor's healthy noise-variance spread (>= 1, ArrayConfig
+        ``<type>_noise_spread``).
+    sigma : ndarray, shape (n,) or None
+        Each sensor's noise sigma (ArrayConfig ``<type>_noise``, SI); None: equal.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        ``kappa_eff_j = sum_i R_ji^2 kappa_i sigma_i^2 / sum_i R_ji^2 sigma_i^2``: the
+        variance ratio of residual j when every sensor sits at the top of its healthy
+        range relative to the calibration window (the worst case of independent
+        noises; residual j's variance is ``sum_i R_ji^2 sigma_i^2``). Rows of
+        untestable sensors (all zero) give 1.
+    """
+    variance = np.ones(len(kappa)) if sigma is None else np.asarray(sigma, float) ** 2
+    weights = operator**2 * variance[None, :]
+    total = weights.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        spread = (weights @ np.asarray(kappa, float)) / total
+    return np.where(total > 0, spread, 1.0)
+
+
 class _TypeModel:
     def __init__(
         self,
@@ -252,12 +374,14 @@ class _TypeModel:
         clip: float = np.inf,
         release_window: int = 1,
         release_level: float = 0.0,
+        level_confidence: float = 0.0,
     ) -> None:
         self.operator = operator
         self.testable = testable
         self.lever_arm = lever_arm
         self.bias = bias
-        self.scale = scale  # tau_j = Var(d_j), (n,)
+        self.scale = scale  # tau_j = Var(d_j), (n,), times kappa_j when given
+        self.spread: np.ndarray | None = None  # kappa_j of the scale, (n,), or None
         self.n_train = n_train
         self.clip = clip
         self.moments = clipped_square_moments(clip)
@@ -265,10 +389,18 @@ class _TypeModel:
         self.sensor_level = -np.expm1(np.log1p(-alpha) / n_tested)  # Šidák
         counts = np.arange(1, window + 1, dtype=np.float64)
         self.dof = equivalent_dof(counts, self.moments)  # nu_k, (w,)
-        self.calibration_dof = float(
-            equivalent_dof(np.array([max(n_train - 1, 1)]), self.moments)[0]
-        )
-        critical_ratio = f_distribution.ppf(1.0 - self.sensor_level, self.dof, self.calibration_dof)
+        self.calibration_dof = scale_estimator_dof(n_train - 1, clip)
+        self.level_confidence = level_confidence
+        # u_0: the critical ratio for a known scale, chi2(nu_k)/nu_k
+        self.known_ratio = chi2.isf(self.sensor_level, self.dof) / self.dof
+        if level_confidence > 0.0:
+            self.calibration_factor = calibration_factor(self.calibration_dof, level_confidence)
+            critical_ratio = self.known_ratio * self.calibration_factor
+        else:  # predictive: the level is the nominal one on average over calibrations
+            critical_ratio = f_distribution.ppf(
+                1.0 - self.sensor_level, self.dof, self.calibration_dof
+            )
+            self.calibration_factor = float(critical_ratio[-1] / self.known_ratio[-1])
         self.critical_ratio = critical_ratio  # u_c per window fill, (w,)
         self.threshold = 0.5 * self.dof * (critical_ratio - 1.0 - np.log(critical_ratio))
         n = operator.shape[0]
@@ -312,6 +444,16 @@ class NoiseGlrDetector(DetectorBase):
         to isolated outliers and bias steps; 1000 in effect turns clipping off).
     lever_arm : bool
         Model lever arms of accelerometers (needs positions and gyros).
+    level_confidence : float
+        Probability, over the calibration window's noise, that each sensor's false-alarm
+        level is at most its Šidák share of ``alpha`` (thresholds raised by
+        :func:`calibration_factor`); 0 gives the predictive F threshold (``alpha`` on
+        average over calibrations, with a wide spread from log to log).
+    noise_spread : bool
+        When the array carries each sensor's healthy noise-variance spread kappa
+        (``<type>_noise_spread``, written by ``imufdi calibrate``), test
+        ``sigma^2 <= kappa_eff sigma_cal^2`` (:func:`residual_spread`); without the field,
+        or False, the detector is unchanged (bit-identical).
     types : str
         Comma-separated sensor types to test; ``sensors``, its old name, is still accepted
         with a warning.
@@ -352,6 +494,20 @@ class NoiseGlrDetector(DetectorBase):
             high=1000.0,
         ),
         "lever_arm": Param("bool", True, "model accelerometer lever arms (w x (w x r), dw/dt x r)"),
+        "level_confidence": Param(
+            "float",
+            DEFAULT_LEVEL_CONFIDENCE,
+            "probability over the calibration window that each sensor's false-alarm level is"
+            " within its share of alpha (0: predictive F threshold, alpha on average only)",
+            low=0.0,
+            high=0.999,
+        ),
+        "noise_spread": Param(
+            "bool",
+            True,
+            "test growth beyond the array's healthy noise-variance spread (ArrayConfig"
+            " <type>_noise_spread from calibrate) when it carries one",
+        ),
         "types": TYPES,
     }
 
@@ -363,9 +519,13 @@ class NoiseGlrDetector(DetectorBase):
         release_window: float = 0.1,
         clip: float = 3.0,
         lever_arm: bool = True,
+        level_confidence: float = DEFAULT_LEVEL_CONFIDENCE,
+        noise_spread: bool = True,
         types: str = "gyro,accel",
     ) -> None:
         self.alpha = float(alpha)
+        self.noise_spread = bool(noise_spread)
+        self.level_confidence = float(level_confidence)
         self.window_s = float(window)
         self.release_level = float(release)
         self.release_window_s = float(release_window)
@@ -458,7 +618,7 @@ class NoiseGlrDetector(DetectorBase):
                     f"{self.name}: {sensor_type} residual variance is zero or not finite for"
                     " some sensor; check the calibration window"
                 )
-            self.models[sensor_type] = _TypeModel(
+            model = _TypeModel(
                 operator,
                 testable,
                 lever_arm,
@@ -470,7 +630,15 @@ class NoiseGlrDetector(DetectorBase):
                 clip=self.clip,
                 release_window=self.release_window_samples,
                 release_level=self.release_level,
+                level_confidence=self.level_confidence,
             )
+            kappa = array.sensor_noise_spread(sensor_type) if self.noise_spread else None
+            if kappa is not None:
+                spread = residual_spread(operator, kappa, array.sensor_noise(sensor_type))
+                spread = np.where(testable, spread, 1.0)
+                model.spread = spread
+                model.scale = model.scale * spread
+            self.models[sensor_type] = model
         if not self.models:
             raise ArrayTooSmallError(
                 f"{self.name}: nothing to test: the calibration block has no "
@@ -527,6 +695,8 @@ class NoiseGlrDetector(DetectorBase):
         alarm = statistic > threshold
         isolated = np.where(alarm, best, NO_ISOLATION).astype(np.int32)
         amplitude = np.where(alarm, np.sqrt(raw_sums[rows, best] / counts), np.nan)
+        if model.spread is not None:  # back to the calibration window's variance
+            amplitude = amplitude * np.sqrt(model.spread[best])
         return DetectionBlock(
             statistic=statistic,
             threshold=threshold,
@@ -542,6 +712,37 @@ class NoiseGlrDetector(DetectorBase):
             s: DetectionBlock.empty(0, model.operator.shape[0]) for s, model in self.models.items()
         }
 
+    def calibration_warnings(self) -> list[str]:
+        """One warning per sensor type whose calibration window is short for this detector.
+
+        The window is short when the error of the calibrated noise variances raises the
+        thresholds by more than ``WARN_CALIBRATION_FACTOR`` (level held, power lost); the
+        message names the calibration's degrees of freedom and the window that would bring
+        the factor to ``GOOD_CALIBRATION_FACTOR``. ``imufdi detect`` prints it; ``--strict``
+        makes it exit 3.
+        """
+        if self.array is None:
+            return []
+        messages = []
+        for sensor_type, model in self.models.items():
+            if model.calibration_factor <= WARN_CALIBRATION_FACTOR:
+                continue
+            needed = samples_for_factor(
+                GOOD_CALIBRATION_FACTOR, model.clip, model.level_confidence or 0.5
+            )
+            messages.append(
+                f"{self.name}: {sensor_type}: the calibration window is short for this"
+                f" detector: {model.n_train} samples give each noise variance"
+                f" {model.calibration_dof:.0f} degrees of freedom"
+                f" (+-{100 * np.sqrt(2 / model.calibration_dof):.0f} %), so the variance"
+                f" thresholds are {model.calibration_factor:.2f}x those of a known variance"
+                f" (a noise growth must exceed {model.critical_ratio[-1]:.2f}x in variance"
+                f" over the window, not {model.known_ratio[-1]:.2f}x); a"
+                f" {needed / self.array.rate_hz:.0f} s window (--calibrate) would make it"
+                f" {GOOD_CALIBRATION_FACTOR:g}x"
+            )
+        return messages
+
     def metadata(self) -> dict[str, Any]:
         """Parameters and calibration results (JSON-ready)."""
         types: dict[str, Any] = {}
@@ -550,14 +751,20 @@ class NoiseGlrDetector(DetectorBase):
                 "lever_arm": bool(model.lever_arm),
                 "testable": model.testable.tolist(),
                 "residual_bias": model.bias.tolist(),
-                "residual_sigma": np.sqrt(model.scale / 2.0).tolist(),
+                "residual_sigma": np.sqrt(
+                    model.scale / (1.0 if model.spread is None else model.spread) / 2.0
+                ).tolist(),
                 "clip": float(model.clip),
                 "equivalent_dof": float(model.dof[-1]),
                 "calibration_dof": float(model.calibration_dof),
                 "calibration_samples": int(model.n_train),
+                "level_confidence": float(model.level_confidence),
+                "calibration_factor": float(model.calibration_factor),
+                "known_variance_ratio": float(model.known_ratio[-1]),
                 "sensor_level": float(model.sensor_level),
                 "critical_variance_ratio": float(model.critical_ratio[-1]),
                 "threshold": float(model.threshold[-1]),
+                **({"noise_spread": model.spread.tolist()} if model.spread is not None else {}),
             }
         return {
             "detector": self.name,
@@ -569,6 +776,8 @@ class NoiseGlrDetector(DetectorBase):
                 "release_window_samples": self.release_window_samples,
                 "clip": self.clip,
                 "lever_arm": self.lever_arm,
+                "level_confidence": self.level_confidence,
+                "noise_spread": self.noise_spread,
                 "types": ",".join(self.sensor_types),
             },
             "statistic": (
