@@ -762,6 +762,29 @@ def test_calibration_dof_is_the_successive_difference_dof_for_a_lone_known_conse
     assert _calibration_dof(v, s, c, (0.0, 0.0, 0.0), 7.0) == 7.0
 
 
+def test_white_sigma_excess_without_identifiable_sigmas_is_one_and_outliers_raise_it() -> None:
+    """The cheap checks of :func:`white_sigma_excess` (the Monte Carlo one is slow): six
+    single-axis gyros on a cone (singular mixing: one common sigma) and windows of fewer
+    than 4 samples give 1; on six co-aligned triads it is at least 1, near 1 for
+    Gaussian noise (within 6 of its standard deviations, about 0.015 here), and ten 5-sigma
+    outliers, which pass the cut once differenced, raise it."""
+    from imufdi_cli.episodes import white_sigma_excess
+    from imufdi_cli.simulate.presets import conical_array
+
+    rng = np.random.default_rng(59)
+    cone = conical_array().measurement_matrix("gyro")
+    assert white_sigma_excess(cone, rng.normal(0, SIGMA, (200, 6))) == 1.0
+    H = np.tile(np.eye(3), (6, 1))
+    assert white_sigma_excess(H, rng.normal(0, SIGMA, (3, 18))) == 1.0
+    m = rng.normal(0, SIGMA, (200, 18))
+    clean = white_sigma_excess(H, m)
+    assert 1.0 <= clean <= 1.09
+    rows = np.arange(10, 200, 20)
+    m[rows, np.arange(10)] += 5 * SIGMA * np.where(np.arange(10) % 2, 1.0, -1.0)
+    assert white_sigma_excess(H, m) > clean
+
+
+@pytest.mark.slow  # 600 calibration windows, 1.3 s
 def test_white_sigma_excess_is_one_for_gaussian_noise_and_grows_with_outliers() -> None:
     """Six co-aligned triads, 200 calibration samples. Gaussian white noise: the measured
     excess is 1 up to its sampling error (mean within 4 standard errors plus the floor's
@@ -799,6 +822,7 @@ def test_white_sigma_excess_is_one_for_gaussian_noise_and_grows_with_outliers() 
     assert float(np.mean(predicted * measured / empirical)) <= 1 + 4 * math.sqrt(2 / trials) * 1.5
 
 
+@pytest.mark.slow  # 400 calibrations and fits on 36 channels, 3 s
 def test_noise_factor_interval_covers_with_the_calibrations_degrees_of_freedom() -> None:
     """Twelve co-aligned triads (wearable12's gyros), white noise, 200 calibration
     samples, noise x3 on one sensor for 400 samples: the factor against the calibrated
