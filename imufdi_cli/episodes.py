@@ -693,11 +693,10 @@ def _linear_fit(
         return FaultFit(model, size, -math.inf, math.inf, onset, bic)
     e = y - X @ coef
     sw2, sw = float(w @ w), float(np.sum(w))
-    s2 = float(e @ e) / dof
-    variance = s2 * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
     quantile = _t_quantile(0.5 + confidence / 2, dof)
     extra: dict[str, float] = {}
     curve = (X @ coef, var0)
+    widened = None
     if reference is not None and reference.residuals.shape[1] >= 2:
         dispersion, widened = _dispersion(w, reference, var0, offset_var, confidence)
         extra["dispersion"] = dispersion
@@ -722,8 +721,11 @@ def _linear_fit(
                 return FaultFit(
                     model, size, size - half, size + half, onset, bic, extra, curve=curve
                 )
-        if widened is not None and widened[0] > variance:
-            variance, quantile = widened
+    # (the noise variance is needed only without the motion fit)
+    s2 = float(e @ e) / dof
+    variance = s2 * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
+    if widened is not None and widened[0] > variance:
+        variance, quantile = widened
     half = quantile * math.sqrt(max(variance, 0.0))
     return FaultFit(model, size, size - half, size + half, onset, bic, extra, curve=curve)
 
@@ -782,6 +784,9 @@ def _motion_fit(
     assert reference.motion is not None
     length = r.shape[0]
     M = reference.motion[:length]
+    dof = length - X.shape[1] - M.shape[1]
+    if dof < 2:
+        return None
     full = np.zeros((length, X.shape[1]))
     full[onset:] = X
     design = np.concatenate([full, M], axis=1)
@@ -789,16 +794,19 @@ def _motion_fit(
     if not np.all(np.isfinite(design)) or np.any(scale <= 0):
         return None
     normalised = design / scale
-    singular = np.linalg.svd(normalised, compute_uv=False)
-    if singular[-1] <= 1e-6 * singular[0]:
+    u, singular, vt = np.linalg.svd(normalised, full_matrices=False)  # pinv's own
+    if abs(singular[-1] - 1e-6 * singular[0]) <= 1e-10 * singular[0]:
+        # at the cut itself, decide on the singular values computed alone (with the
+        # vectors their last bits may differ; both are within about 1e-15 of singular[0])
+        alone = np.linalg.svd(normalised, compute_uv=False)
+        if alone[-1] <= 1e-6 * alone[0]:
+            return None
+    elif singular[-1] <= 1e-6 * singular[0]:
         return None
-    pinv = np.linalg.pinv(normalised) / scale[:, None]  # (p + 3, L)
+    pinv = _pinv_from_svd(u, singular, vt) / scale[:, None]  # (p + 3, L)
     w = pinv[0]
     coef = pinv @ r
     e = r - design @ coef
-    dof = length - design.shape[1]
-    if dof < 2:
-        return None
     sse = float(e @ e)
     # partial F test of the motion columns against the fit without them (``sse_without``:
     # the healthy margin and the fault model's residuals)
@@ -812,6 +820,27 @@ def _motion_fit(
     if widened is not None and widened[0] > variance:
         variance, quantile = widened
     return float(coef[0]), quantile * math.sqrt(max(variance, 0.0)), dispersion
+
+
+def _pinv_from_svd(u: np.ndarray, singular: np.ndarray, vt: np.ndarray) -> np.ndarray:
+    """``numpy.linalg.pinv(a)`` (default cut-off) from ``svd(a, full_matrices=False)``:
+    the same operations on the same factors, so the same floats (checked against numpy in
+    tests/test_episodes.py), without a second decomposition.
+
+    Parameters
+    ----------
+    u : ndarray, shape (L, k)
+    singular : ndarray, shape (k,)
+    vt : ndarray, shape (k, k)
+
+    Returns
+    -------
+    ndarray, shape (k, L)
+    """
+    large = singular > 1e-15 * np.max(singular)
+    inverse = np.divide(1, singular, where=large, out=singular.copy())
+    inverse[~large] = 0
+    return np.matmul(np.transpose(vt), np.multiply(inverse[:, np.newaxis], np.transpose(u)))
 
 
 def _autocorrelation_factor(e: np.ndarray, w: np.ndarray) -> float:
@@ -924,6 +953,23 @@ def _local_level(r: np.ndarray) -> np.ndarray:
     """Running median of five samples (two each side; fewer at the ends): the residual's
     slowly varying level, which single-sample spikes do not move (one or two of five)."""
     n = r.shape[0]
+    if n >= 5 and math.isfinite(float(np.sum(r))):
+        # every value finite (a sum is finite only then, or on overflow, which takes the
+        # general path below): the median of five is one of them, chosen by a min/max
+        # selection network (exact); the four ends from their three or four values, the
+        # mean of the middle two of four as numpy's median takes it
+        a, b, c, d, e = r[:-4], r[1:-3], r[2:-2], r[3:-1], r[4:]
+        low = np.maximum(np.minimum(a, b), np.minimum(c, d))
+        high = np.minimum(np.maximum(a, b), np.maximum(c, d))
+        level = np.empty(n)
+        level[2:-2] = np.maximum(np.minimum(e, low), np.minimum(np.maximum(e, low), high))
+        head, tail = r[:4].tolist(), r[-4:].tolist()
+        first, second = sorted(head[:3]), sorted(head)
+        last, before_last = sorted(tail[1:]), sorted(tail)
+        level[0], level[-1] = first[1], last[1]
+        level[1] = (second[1] + second[2]) / 2
+        level[-2] = (before_last[1] + before_last[2]) / 2
+        return level
     padded = np.concatenate((np.full(2, np.nan), r, np.full(2, np.nan)))
     window = np.stack([padded[i : i + n] for i in range(5)])
     level = np.zeros(n)
