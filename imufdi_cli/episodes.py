@@ -470,8 +470,7 @@ def _fit_window(
     nll_before = _gaussian_nll(healthy_before, taus.astype(np.float64), var0)
     s_r, s_rr = _suffix(r)[taus], _suffix(sq)[taus]
     s_t, s_tt, s_tr = _suffix(t)[taus], _suffix(t * t)[taus], _suffix(t * r)[taus]
-    s_o, s_oo, s_or = _suffix(o)[taus], _suffix(o * o)[taus], _suffix(o * r)[taus]
-    del s_o
+    s_oo, s_or = _suffix(o * o)[taus], _suffix(o * r)[taus]
     fits: list[FaultFit] = []
 
     def best(nll_after: np.ndarray, k_params: int) -> tuple[int, float]:
@@ -1047,6 +1046,8 @@ def _stuck_fit(raw: np.ndarray, lo: int, hi: int, share: float) -> FaultFit | No
     [lo - 1, hi) covers at least ``share`` of the samples from its start to the window's
     end. The onset is the first repeated sample (the frozen value is the one before it)."""
     repeat = np.concatenate(([False], np.diff(raw) == 0))
+    if not repeat.any():
+        return None  # (no run below)
     padded = np.concatenate(([False], repeat, [False]))
     edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
     starts, stops = edges[0::2], edges[1::2]
