@@ -558,6 +558,19 @@ def _fit_window(
     return fits
 
 
+def _median(values: np.ndarray) -> float:
+    """``float(np.median(values))`` of a 1-D array, sorted directly (the middle value, or
+    the mean of the middle two as numpy takes it: their sum halved); numpy's own for
+    non-finite values."""
+    n = values.shape[0]
+    if n == 0 or not math.isfinite(float(np.add.reduce(values))):
+        return float(np.median(values))
+    ordered = np.sort(values)
+    if n % 2:
+        return float(ordered[n // 2])
+    return (float(ordered[n // 2 - 1]) + float(ordered[n // 2])) / 2
+
+
 def _drift_search(
     t: np.ndarray,
     taus: np.ndarray,
@@ -574,7 +587,7 @@ def _drift_search(
     """Onset of a ramp starting between two samples, by profile likelihood: returns the
     onset (index into ``taus``), the sub-sample offset ``lam`` (None: free, fitted as an
     intercept) and the BIC; None when no onset fits."""
-    dt = float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
+    dt = _median(np.diff(t)) if t.shape[0] > 1 else 0.0
     t0 = t[taus]
     s_u = s_t - n * t0
     s_uu = s_tt - 2 * t0 * s_t + n * t0**2
@@ -850,7 +863,7 @@ def _autocorrelation_factor(e: np.ndarray, w: np.ndarray) -> float:
     about ``2 sqrt(L / 3 n)``). Floored at 0.1."""
     n = e.shape[0]
     lags = min(n - 2, int(4 * (n / 100) ** (2 / 9)))
-    e0 = e - e.mean()
+    e0 = e - np.add.reduce(e) / n  # e.mean(), without its Python overhead
     c0 = float(e0 @ e0)
     sw2 = float(w @ w)
     if lags < 1 or c0 <= 0 or sw2 <= 0:

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from imufdi_cli.episodes import EpisodeBuilder, _local_level, _pinv_from_svd
+from imufdi_cli.episodes import EpisodeBuilder, _local_level, _median, _pinv_from_svd
 
 REFERENCE = Path(__file__).with_name("episodes_identical.json")
 RATE = 100.0
@@ -203,6 +203,21 @@ def test_local_level_is_the_running_median_of_five() -> None:
             )
             expected = np.where(np.isfinite(expected), expected, 0.0)
             assert np.array_equal(_local_level(r), expected), (n, trial)
+
+
+def test_median_is_numpys_median() -> None:
+    """The drift search's sample step: odd and even counts, ties, non-finite values."""
+    rng = np.random.default_rng(9)
+    for n in range(1, 40):
+        for trial in range(10):
+            v = rng.normal(size=n) * 10.0 ** rng.integers(-9, 9)
+            if trial % 3 == 1:
+                v = np.round(np.abs(v), 2)
+            if trial % 5 == 4:
+                v[rng.integers(n)] = np.inf if trial % 2 else np.nan
+            expected = float(np.median(v))
+            got = _median(v)
+            assert got == expected or (math.isnan(got) and math.isnan(expected)), (n, v)
 
 
 if __name__ == "__main__" and sys.argv[1:] == ["--write"]:
