@@ -1133,7 +1133,7 @@ def _sensor_amplitude(
         return None
     k = sensor_ids.index(names[0])
     values = np.concatenate([v[c == k] for c, v in pairs])
-    return float(np.median(values)) if values.size else None
+    return _median(values) if values.size else None
 
 
 def isolation_summary(
@@ -1244,7 +1244,13 @@ class VarianceDropMonitor:
         cumulative = np.concatenate([np.zeros((1, joined.shape[1])), np.cumsum(joined, axis=0)])
         stop = np.arange(held + 1, held + fresh + 1)  # window of the j-th new difference
         ready = stop >= self.window
-        sums = cumulative[stop] - cumulative[np.maximum(stop - self.window, 0)]
+        if held + 1 >= self.window:  # every window complete: the same rows as slices
+            sums = (
+                cumulative[held + 1 : held + fresh + 1]
+                - cumulative[held + 1 - self.window : held + fresh + 1 - self.window]
+            )
+        else:
+            sums = cumulative[stop] - cumulative[np.maximum(stop - self.window, 0)]
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = sums / self.window / self.variance
         ratio = np.where(np.isfinite(ratio), ratio, np.inf)
