@@ -37,10 +37,18 @@ SMALL = ROOT / "sample_logs" / "paper-table4.mcap"
 
 
 def _time(cmd: list[str], env: dict[str, str]) -> tuple[float, float]:
-    """(wall, CPU) seconds of one run; CPU = user + system of the child."""
+    """(wall, CPU) seconds of one run; CPU = user + system of the child. It runs in the
+    timed checkout (``-m`` and ``-c`` put the working directory first on sys.path)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    subprocess.run(
+        cmd,
+        check=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+        cwd=env["IMUFDI_BENCH_TREE"],
+    )
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -52,6 +60,7 @@ def _environment(bytecode: str, tree: Path = ROOT) -> dict[str, str]:
     ``imufdi_cli`` of checkout ``tree``."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(tree), env.get("PYTHONPATH")]))
+    env["IMUFDI_BENCH_TREE"] = str(tree)
     if bytecode == "source":
         for cache in (tree / "imufdi_cli").rglob("__pycache__"):
             shutil.rmtree(cache, ignore_errors=True)
@@ -119,14 +128,16 @@ def main() -> int:
         f"for m in sys.modules if m.startswith({heavy!r}) and not m.endswith('.base')}}))"
     )
     env = _environment("warm", args.tree)
-    done = subprocess.run([py, "-c", probe], capture_output=True, text=True, check=True, env=env)
+    done = subprocess.run(
+        [py, "-c", probe], capture_output=True, text=True, check=True, env=env, cwd=args.tree
+    )
     imported = done.stdout.strip().splitlines()[-1]
     print(f"heavy modules imported by --help: {imported}")
     pipe_probe = probe.replace("'--help'", f"'info', {str(SMALL)!r}").replace(
         f"m.startswith({heavy!r})", "m.startswith('rich')"
     )
     done = subprocess.run(
-        [py, "-c", pipe_probe], capture_output=True, text=True, check=True, env=env
+        [py, "-c", pipe_probe], capture_output=True, text=True, check=True, env=env, cwd=args.tree
     )
     print(f"rich modules imported by info in a pipe: {done.stdout.strip().splitlines()[-1]}")
     for mode, by_command in ratios.items():
