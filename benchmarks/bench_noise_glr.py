@@ -1,6 +1,8 @@
 """Figures of the noise-glr and pca-parity detectors on the reference scenarios, and speed.
 
-Run: ``python benchmarks/bench_noise_glr.py [--seeds 20] [--first-seed 7000] [--part ...]``.
+Run: ``python benchmarks/bench_noise_glr.py [--seeds 20] [--first-seed 7000] [--part ...]``;
+``--part levels`` gives noise-glr's fault-free levels (issue 16) and its bias-fault rows,
+``--part noise`` its power against noise growth.
 Prints the tables quoted in docs/algorithms/noise-glr.md and docs/algorithms/pca-parity.md.
 Means over seeds; "worst" is the worst seed.
 """
@@ -65,6 +67,8 @@ def noise_part(seeds: range) -> None:
     )
     for label, cls, params in (
         ("noise-glr defaults", NoiseGlrDetector, {}),
+        ("noise-glr level_confidence=0 (F)", NoiseGlrDetector, {"level_confidence": 0.0}),
+        ("noise-glr level_confidence=0.99", NoiseGlrDetector, {"level_confidence": 0.99}),
         ("noise-glr release=0", NoiseGlrDetector, {"release": 0.0}),
         ("noise-glr a=0.01", NoiseGlrDetector, {"alpha": 0.01}),
         ("noise-glr lever_arm=false", NoiseGlrDetector, {"lever_arm": False}),
@@ -100,6 +104,81 @@ def noise_part(seeds: range) -> None:
             f" iso {np.nanmean(r[:, 4]):.3f}, 1-MAR {np.nanmean(r[:, 5]):.3f},"
             f" FAR {np.nanmean(r[:, 0]):.4f}, detected {np.isfinite(r[:, 1]).sum()}/{len(seeds)}"
         )
+
+
+#: Fault-free level cases: label, preset, options, calibration window (s).
+LEVEL_CASES: tuple[tuple[str, str, dict, tuple[float, float]], ...] = (
+    ("wearable12, 30 s", "wearable12", {}, (0.0, 2.0)),
+    ("paper-table4 with its outliers, 20 s", "paper-table4", {"duration": 20.0}, (0.0, 2.0)),
+    ("conical6, 20 s, calibration 0-5 s", "conical6", {"duration": 20.0}, (0.0, 5.0)),
+    ("wearable12, 30 s, calibration 0-10 s", "wearable12", {}, (0.0, 10.0)),
+    ("conical6, 30 s, calibration 0-10 s", "conical6", {"duration": 30.0}, (0.0, 10.0)),
+    ("wearable12, 200 s", "wearable12", {"duration": 200.0}, (0.0, 2.0)),
+    ("paper-table4 with its outliers, 200 s", "paper-table4", {"duration": 200.0}, (0.0, 2.0)),
+    ("conical6, 200 s, calibration 0-5 s", "conical6", {"duration": 200.0}, (0.0, 5.0)),
+)
+
+
+def level_thresholds(params: dict, array: ArrayConfig, calibration: ImuBlock, n: int) -> dict:
+    """Per-sample thresholds (n,) of each sensor type for ``params`` (the statistic does not
+    depend on ``level_confidence``, only the threshold does)."""
+    detector = NoiseGlrDetector(**parse_params(NoiseGlrDetector.PARAMS, params, "noise-glr"))
+    detector.fit(calibration, array)
+    fill = np.minimum(np.arange(n), detector.window_samples - 1)  # window fill - 1
+    return {s: m.threshold[fill] for s, m in detector.models.items()}
+
+
+def episodes(alarm: np.ndarray) -> int:
+    """Alarm episodes (rising edges)."""
+    return int(np.count_nonzero(np.diff(alarm.astype(np.int8), prepend=0) == 1))
+
+
+def levels_part(seeds: range, long_seeds: range, confidences: tuple[float, ...]) -> None:
+    """Fault-free out-of-sample FAR per preset and sensor type, for several
+    ``level_confidence`` values (one detector pass per log; thresholds differ)."""
+    alpha = 0.001
+    print(f"\n## noise-glr fault-free levels, alpha = {alpha}; FAR after the calibration window")
+    print("case | type | level_confidence | mean/alpha | worst seed/alpha | seeds > 4 alpha |"
+          " episodes (seeds) | threshold on the variance ratio")  # fmt: skip
+    for label, name, options, calibrate in LEVEL_CASES:
+        use = long_seeds if options.get("duration", 0.0) >= 100.0 else seeds
+        rows: dict[tuple[str, float], list] = {}
+        for seed in use:
+            array, block = make_log(name, seed, **options)
+            t = block.t_s()
+            calibration = block.mask((t >= calibrate[0]) & (t < calibrate[1]))
+            out = run(NoiseGlrDetector, {}, array, block, calibrate)
+            after = t >= calibrate[1]
+            for c in confidences:
+                thresholds = level_thresholds({"level_confidence": c}, array, calibration, len(t))
+                for sensor_type, o in out.items():
+                    alarm = (o.statistic > thresholds[sensor_type]) & after
+                    rows.setdefault((sensor_type, c), []).append(
+                        (alarm[after].mean() / alpha, episodes(alarm), thresholds[sensor_type][-1])
+                    )
+        for (sensor_type, c), values in rows.items():
+            r = np.array(values)
+            print(
+                f"{label} | {sensor_type} | {c:g} | {r[:, 0].mean():.2f} | {r[:, 0].max():.2f} |"
+                f" {int((r[:, 0] > 4).sum())} | {int(r[:, 1].sum())} ({int((r[:, 1] > 0).sum())})"
+                f" | h = {r[0, 2]:.1f}"
+            )
+
+
+def bias_part(seeds: range) -> None:
+    """Mean changes noise-glr must not call noise growth (paper-table4 without outliers)."""
+    print("\n## bias faults on paper-table4 (outliers=False, 20 s): gyro noise alarms during the"
+          " fault (1 - MAR), defaults")  # fmt: skip
+    for label, spec, start in (
+        ("0.9 deg/s step on imu0.gyro.x at 5 s", "step:imu0.gyro.x,at=5s,amp=0.9deg/s", 5.0),
+        ("0.05 deg/s/min drift on imu5.gyro.z from 2 s", "drift:imu5.gyro.z,at=2s,rate=0.05deg/s/min", 2.0),
+    ):  # fmt: skip
+        rates = []
+        for seed in seeds:
+            array, block = make_log("paper-table4", seed, (spec,), outliers=False, duration=20.0)
+            out = run(NoiseGlrDetector, {}, array, block)["gyro"]
+            rates.append(out.alarm[block.t_s() >= max(start, 2.0)].mean())
+        print(f"{label} | mean {np.mean(rates):.5f} | worst seed {np.max(rates):.5f}")
 
 
 def pca_part(seeds: range) -> None:
@@ -209,8 +288,27 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seeds", type=int, default=20, help="number of seeds")
     parser.add_argument("--first-seed", type=int, default=7000, help="evaluation seeds start")
-    parser.add_argument("--part", choices=("all", "noise", "pca", "speed"), default="all")
+    parser.add_argument("--part", choices=("all", "noise", "levels", "pca", "speed"), default="all")
+    parser.add_argument(
+        "--long-first-seed",
+        type=int,
+        default=None,
+        help="seeds of the 200 s logs (default: --first-seed)",
+    )
+    parser.add_argument(
+        "--confidences",
+        default="0.95",
+        help="level_confidence values for --part levels (comma-separated)",
+    )
     args = parser.parse_args()
+    if args.part in ("all", "levels"):
+        first_long = args.first_seed if args.long_first_seed is None else args.long_first_seed
+        levels_part(
+            range(args.first_seed, args.first_seed + args.seeds),
+            range(first_long, first_long + args.seeds),
+            tuple(float(c) for c in args.confidences.split(",")),
+        )
+        bias_part(range(args.first_seed, args.first_seed + args.seeds))
     if args.part in ("all", "noise"):
         noise_part(range(args.first_seed, args.first_seed + args.seeds))
     if args.part in ("all", "pca"):

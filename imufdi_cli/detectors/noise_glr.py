@@ -36,18 +36,25 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
    ``mean(min(d^2/tau, c^2)) = mu``) on the N calibration samples.
 5. Windowed ratio over the last k <= w differences: ``u = sum(q)/(k mu)`` (1 in
    expectation). Its null law is approximated by matching two moments (Satterthwaite):
-   ``u ~ chi2(nu_k)/nu_k`` with ``nu_k = 2 (k mu)^2 / (k v + 2 (k - 1) c1)``. The scale
-   tau is itself estimated; to first order its error multiplies u by a factor whose
-   variance is that of a calibration-window mean of q, i.e. ``2/nu_{N-1}``, so
-   ``u ~ F(nu_k, nu_{N-1})`` (-> chi2(nu_k)/nu_k for long calibration windows).
+   ``u ~ chi2(nu_k)/nu_k`` with ``nu_k = 2 (k mu)^2 / (k v + 2 (k - 1) c1)``.
    GLR for a variance growth on nu_k equivalent degrees of freedom::
 
        g = nu_k/2 (u - 1 - ln u) for u > 1, else 0
 
    g is increasing in u for u > 1, so ``g > h`` is ``u > u_c`` with
-   ``u_c = F^{-1}(1 - a; nu_k, nu_{N-1})`` and ``h = nu_k/2 (u_c - 1 - ln u_c)``. With n
-   tested sensors the per-sensor level is the Šidák ``a = 1 - (1 - alpha)^(1/n)`` so that
-   the array-level false-alarm rate is alpha. Without clipping (c -> inf) mu = 1, v = 2,
+   ``h = nu_k/2 (u_c - 1 - ln u_c)``. With n tested sensors the per-sensor level is the
+   Šidák ``a = 1 - (1 - alpha)^(1/n)`` so that the array-level false-alarm rate is alpha.
+   The scale tau is estimated once, on the calibration window, and its error stays for
+   the whole log: ``tau_hat/tau ~ chi2(nu_cal)/nu_cal`` with ``nu_cal`` the estimator's
+   equivalent dof (``scale_estimator_dof``), and a log whose tau_hat is low by 12 % (one
+   standard error of a 2 s window) has several times the nominal level. The threshold
+   therefore holds the level of each log, not only on average over calibrations:
+   ``u_c = u_0 nu_cal / chi2_{1 - conf}(nu_cal)`` with ``u_0 = chi2_{1 - a}(nu_k)/nu_k``
+   the known-scale threshold and conf = ``level_confidence``: with probability conf
+   over the calibration window, the sensor's level is at most a (Albers & Kallenberg
+   2004; Gandy & Kvaløy 2013). ``level_confidence = 0`` gives the predictive threshold
+   ``u_c = F^{-1}(1 - a; nu_k, nu_cal)`` (level a on average over calibrations, with a
+   wide spread from log to log). Without clipping (c -> inf) mu = 1, v = 2,
    c1 = 1/2 and nu_k = 2k^2/(3k - 1) ~ 2k/3: differencing costs about a third of the
    degrees of freedom, the price of being blind to the mean.
    Until the window has filled at the start of the log, k is the number of differences
@@ -72,8 +79,8 @@ from dataclasses import replace
 from typing import Any, ClassVar
 
 import numpy as np
+from scipy.stats import chi2, norm
 from scipy.stats import f as f_distribution
-from scipy.stats import norm
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
@@ -148,6 +155,17 @@ def leave_one_out_operator(model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (np.eye(n) - hat) * scale[:, None], testable
 
 
+#: Default ``level_confidence``: each sensor's level is within its share of alpha on this
+#: share of calibrations (chosen on seeds 0-19 and 100-219; docs/algorithms/noise-glr.md).
+DEFAULT_LEVEL_CONFIDENCE = 0.95
+
+#: ``calibration_warnings`` reports a calibration window whose scale error raises the
+#: variance thresholds by more than this factor over a known noise variance.
+WARN_CALIBRATION_FACTOR = 1.25
+
+#: The factor a calibration window long enough for this detector gives (named in the warning).
+GOOD_CALIBRATION_FACTOR = 1.1
+
 #: Lag-1 correlation of the differences of a white sequence.
 DIFFERENCE_CORRELATION = -0.5
 
@@ -210,6 +228,48 @@ def equivalent_dof(counts: np.ndarray, moments: tuple[float, ...]) -> np.ndarray
     return 2.0 * (k * mean) ** 2 / (k * variance + 2.0 * np.maximum(k - 1.0, 0.0) * lag1)
 
 
+def scale_estimator_dof(count: int, clip: float) -> float:
+    """Equivalent degrees of freedom of the calibrated scale tau (``robust_scale``).
+
+    Parameters
+    ----------
+    count : int
+        N, the number of calibration differences (lag-1 correlated, rho = -1/2).
+    clip : float
+        c, in standard deviations (``inf``: the plain mean square).
+
+    Returns
+    -------
+    float
+        ``nu_cal = 2 / Var(ln tau_hat)``, so that ``tau_hat / tau ~ chi2(nu_cal)/nu_cal``
+        to two moments. Linearizing the estimating equation ``mean(min(d^2/tau, c^2)) = mu``
+        gives ``Var(ln tau_hat) = Var(mean q) / s^2`` with ``s = E[z^2 ; |z| < c]`` (the
+        derivative of the clipped square; Huber, *Robust Statistics*, 1981, §5.3) and
+        ``Var(mean q) = (N v + 2 (N - 1) c1) / N^2`` (lag-1 dependent q). Hence
+        ``nu_cal = nu_N (s / mu)^2`` with ``nu_N`` of :func:`equivalent_dof`: clipping at
+        c = 3 costs 5 % of the calibration's degrees of freedom (``s/mu = 0.976``).
+    """
+    moments = clipped_square_moments(clip)
+    mean = moments[0]
+    inner = mean - clip**2 * 2.0 * norm.sf(clip) if np.isfinite(clip) else 1.0
+    dof = float(equivalent_dof(np.array([max(count, 1)]), moments)[0])
+    return dof * (inner / mean) ** 2
+
+
+def calibration_factor(calibration_dof: float, confidence: float) -> float:
+    """Factor on a variance threshold that covers the calibrated scale's error.
+
+    With ``tau_hat / tau ~ chi2(nu)/nu`` (``nu`` = ``calibration_dof``), the true scale is
+    at most ``tau_hat nu / chi2_{1 - confidence}(nu)`` with probability ``confidence``.
+    A threshold ``u_0`` for a known scale, raised by this factor, keeps the sensor's
+    false-alarm level at most its nominal share with that probability over the
+    calibration (the exceedance-probability criterion of Albers & Kallenberg, *Metrika*
+    59, 2004, §3; the guaranteed conditional performance of Gandy & Kvaløy,
+    *Scand. J. Statist.* 40(4), 2013). ``confidence = 0.5`` is about 1 + 2/(3 nu).
+    """
+    return float(calibration_dof / chi2.ppf(1.0 - confidence, calibration_dof))
+
+
 def robust_scale(differences: np.ndarray, clip: float, mean: float) -> np.ndarray:
     """Per-column tau with ``mean(min(d^2/tau, c^2)) = E q`` (Huber's proposal 2).
 
@@ -238,6 +298,23 @@ def robust_scale(differences: np.ndarray, clip: float, mean: float) -> np.ndarra
     return tau
 
 
+def samples_for_factor(factor: float, clip: float, confidence: float) -> int:
+    """Calibration samples whose :func:`calibration_factor` is at most ``factor``.
+
+    The factor decreases with the sample count; bisection on the count.
+    """
+    lo, hi = 2, 4
+    while calibration_factor(scale_estimator_dof(hi - 1, clip), confidence) > factor:
+        lo, hi = hi, 2 * hi
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if calibration_factor(scale_estimator_dof(mid - 1, clip), confidence) > factor:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
 class _TypeModel:
     def __init__(
         self,
@@ -252,6 +329,7 @@ class _TypeModel:
         clip: float = np.inf,
         release_window: int = 1,
         release_level: float = 0.0,
+        level_confidence: float = 0.0,
     ) -> None:
         self.operator = operator
         self.testable = testable
@@ -265,10 +343,18 @@ class _TypeModel:
         self.sensor_level = -np.expm1(np.log1p(-alpha) / n_tested)  # Šidák
         counts = np.arange(1, window + 1, dtype=np.float64)
         self.dof = equivalent_dof(counts, self.moments)  # nu_k, (w,)
-        self.calibration_dof = float(
-            equivalent_dof(np.array([max(n_train - 1, 1)]), self.moments)[0]
-        )
-        critical_ratio = f_distribution.ppf(1.0 - self.sensor_level, self.dof, self.calibration_dof)
+        self.calibration_dof = scale_estimator_dof(n_train - 1, clip)
+        self.level_confidence = level_confidence
+        # u_0: the critical ratio for a known scale, chi2(nu_k)/nu_k
+        self.known_ratio = chi2.isf(self.sensor_level, self.dof) / self.dof
+        if level_confidence > 0.0:
+            self.calibration_factor = calibration_factor(self.calibration_dof, level_confidence)
+            critical_ratio = self.known_ratio * self.calibration_factor
+        else:  # predictive: the level is the nominal one on average over calibrations
+            critical_ratio = f_distribution.ppf(
+                1.0 - self.sensor_level, self.dof, self.calibration_dof
+            )
+            self.calibration_factor = float(critical_ratio[-1] / self.known_ratio[-1])
         self.critical_ratio = critical_ratio  # u_c per window fill, (w,)
         self.threshold = 0.5 * self.dof * (critical_ratio - 1.0 - np.log(critical_ratio))
         n = operator.shape[0]
@@ -312,6 +398,11 @@ class NoiseGlrDetector(DetectorBase):
         to isolated outliers and bias steps; 1000 in effect turns clipping off).
     lever_arm : bool
         Model lever arms of accelerometers (needs positions and gyros).
+    level_confidence : float
+        Probability, over the calibration window's noise, that each sensor's false-alarm
+        level is at most its Šidák share of ``alpha`` (thresholds raised by
+        :func:`calibration_factor`); 0 gives the predictive F threshold (``alpha`` on
+        average over calibrations, with a wide spread from log to log).
     types : str
         Comma-separated sensor types to test; ``sensors``, its old name, is still accepted
         with a warning.
@@ -352,6 +443,14 @@ class NoiseGlrDetector(DetectorBase):
             high=1000.0,
         ),
         "lever_arm": Param("bool", True, "model accelerometer lever arms (w x (w x r), dw/dt x r)"),
+        "level_confidence": Param(
+            "float",
+            DEFAULT_LEVEL_CONFIDENCE,
+            "probability over the calibration window that each sensor's false-alarm level is"
+            " within its share of alpha (0: predictive F threshold, alpha on average only)",
+            low=0.0,
+            high=0.999,
+        ),
         "types": TYPES,
     }
 
@@ -363,9 +462,11 @@ class NoiseGlrDetector(DetectorBase):
         release_window: float = 0.1,
         clip: float = 3.0,
         lever_arm: bool = True,
+        level_confidence: float = DEFAULT_LEVEL_CONFIDENCE,
         types: str = "gyro,accel",
     ) -> None:
         self.alpha = float(alpha)
+        self.level_confidence = float(level_confidence)
         self.window_s = float(window)
         self.release_level = float(release)
         self.release_window_s = float(release_window)
@@ -470,6 +571,7 @@ class NoiseGlrDetector(DetectorBase):
                 clip=self.clip,
                 release_window=self.release_window_samples,
                 release_level=self.release_level,
+                level_confidence=self.level_confidence,
             )
         if not self.models:
             raise ArrayTooSmallError(
@@ -542,6 +644,37 @@ class NoiseGlrDetector(DetectorBase):
             s: DetectionBlock.empty(0, model.operator.shape[0]) for s, model in self.models.items()
         }
 
+    def calibration_warnings(self) -> list[str]:
+        """One warning per sensor type whose calibration window is short for this detector.
+
+        The window is short when the error of the calibrated noise variances raises the
+        thresholds by more than ``WARN_CALIBRATION_FACTOR`` (level held, power lost); the
+        message names the calibration's degrees of freedom and the window that would bring
+        the factor to ``GOOD_CALIBRATION_FACTOR``. ``imufdi detect`` prints it; ``--strict``
+        makes it exit 3.
+        """
+        if self.array is None:
+            return []
+        messages = []
+        for sensor_type, model in self.models.items():
+            if model.calibration_factor <= WARN_CALIBRATION_FACTOR:
+                continue
+            needed = samples_for_factor(
+                GOOD_CALIBRATION_FACTOR, model.clip, model.level_confidence or 0.5
+            )
+            messages.append(
+                f"{self.name}: {sensor_type}: the calibration window is short for this"
+                f" detector: {model.n_train} samples give each noise variance"
+                f" {model.calibration_dof:.0f} degrees of freedom"
+                f" (+-{100 * np.sqrt(2 / model.calibration_dof):.0f} %), so the variance"
+                f" thresholds are {model.calibration_factor:.2f}x those of a known variance"
+                f" (a noise growth must exceed {model.critical_ratio[-1]:.2f}x in variance"
+                f" over the window, not {model.known_ratio[-1]:.2f}x); a"
+                f" {needed / self.array.rate_hz:.0f} s window (--calibrate) would make it"
+                f" {GOOD_CALIBRATION_FACTOR:g}x"
+            )
+        return messages
+
     def metadata(self) -> dict[str, Any]:
         """Parameters and calibration results (JSON-ready)."""
         types: dict[str, Any] = {}
@@ -555,6 +688,9 @@ class NoiseGlrDetector(DetectorBase):
                 "equivalent_dof": float(model.dof[-1]),
                 "calibration_dof": float(model.calibration_dof),
                 "calibration_samples": int(model.n_train),
+                "level_confidence": float(model.level_confidence),
+                "calibration_factor": float(model.calibration_factor),
+                "known_variance_ratio": float(model.known_ratio[-1]),
                 "sensor_level": float(model.sensor_level),
                 "critical_variance_ratio": float(model.critical_ratio[-1]),
                 "threshold": float(model.threshold[-1]),
@@ -569,6 +705,7 @@ class NoiseGlrDetector(DetectorBase):
                 "release_window_samples": self.release_window_samples,
                 "clip": self.clip,
                 "lever_arm": self.lever_arm,
+                "level_confidence": self.level_confidence,
                 "types": ",".join(self.sensor_types),
             },
             "statistic": (
