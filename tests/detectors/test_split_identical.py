@@ -2,7 +2,9 @@
 
 ``detectors/bank.py``, ``detectors/cnn_map.py`` and ``detectors/woa_mvmd_glt.py`` were split
 into packages by concern (issue 21) with behaviour unchanged. The records in
-``data/split_identical.json`` were made with the single-module code (commit 1804bff): each
+``data/split_identical.json`` were made with the single-module code (commit 1804bff;
+re-recorded on 154d5a9, still single-module, when main's noise-glr threshold change moved
+cnn-map's input test — the other four cases were unchanged): each
 detector runs on a fixed seeded simulated log with injected faults, streamed in uneven
 blocks, and every array of every :class:`DetectionBlock` (statistic, threshold, alarm,
 isolated, amplitude, scores, isolated_set, amplitudes) is hashed (SHA-256 of its bytes) and
