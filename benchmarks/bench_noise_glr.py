@@ -2,7 +2,9 @@
 
 Run: ``python benchmarks/bench_noise_glr.py [--seeds 20] [--first-seed 7000] [--part ...]``;
 ``--part levels`` gives noise-glr's fault-free levels (issue 16) and its bias-fault rows,
-``--part noise`` its power against noise growth.
+``--part noise`` its power against noise growth, ``--part real --train A.mcap --test B.mcap``
+its levels and power on two MIMU4444 recordings (ingested by benchmarks/real_arrays.py),
+with and without the healthy noise spread that ``calibrate`` learns on ``--train``.
 Prints the tables quoted in docs/algorithms/noise-glr.md and docs/algorithms/pca-parity.md.
 Means over seeds; "worst" is the worst seed.
 """
@@ -10,7 +12,9 @@ Means over seeds; "worst" is the worst seed.
 from __future__ import annotations
 
 import argparse
+import os
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -284,11 +288,102 @@ def speed_part() -> None:
     print(f"noise-glr process: {len(block) / total / 1e3:.0f} k samples/s (gyro + accel, 12 IMUs)")
 
 
+#: Real recordings: bias calibration window of the test log (s) and injected fault length (s).
+REAL_CALIBRATION = (0.0, 10.0)
+REAL_FAULT_S = 10.0
+
+
+def _real_alarms(array: ArrayConfig, block: ImuBlock, params: dict) -> dict[str, DetectionBlock]:
+    return run(NoiseGlrDetector, params, array, block, calibrate=REAL_CALIBRATION)
+
+
+def real_part(train: str, test: str, seed: int, factor: float) -> None:
+    """Per-orientation alarm rates and injected noise growth on two MIMU4444 recordings.
+
+    ``calibrate`` on ``train`` gives the chip calibration, noise levels and noise spread;
+    ``test`` is calibrated with it and noise-glr fitted on its first 10 s. Fault-free:
+    alarm rate per static orientation of ``test`` (after 10 s) and in its motion phase
+    (clipped rows not scored). Injected: in the middle of every static orientation, for
+    10 s, white noise added to one gyro and one accelerometer axis (a different one each
+    time) so that its sigma becomes ``factor`` times its own sigma in that orientation
+    (``std(diff)/sqrt(2)`` of the interval); 1 - MAR = share of those samples alarmed,
+    and the share isolated to the faulty sensor. ``seed`` draws the added noise.
+    """
+    from imufdi_cli.calibrate import calibrate_file, find_static
+    from imufdi_cli.mcapio import read_array
+    from imufdi_cli.validity import apply_calibration, flag_values
+
+    base = ArrayConfig.load(Path(__file__).resolve().parents[1] / "sample_logs/mimu4444-array.toml")
+    result = calibrate_file(train, base=base)
+    cal = result.array
+    log_array, raw = read_array(test)
+    t = raw.t_s()
+    intervals, _ = find_static(log_array, raw.accel, raw.gyro, t, np.ones(len(t), bool))
+    motion_start = float(intervals[-1].end_s) + 2.0
+    clipped = np.zeros(len(t), dtype=bool)
+    for s in ("gyro", "accel"):
+        c, i = flag_values(raw.get(s), s, cal.range.get(s))
+        clipped |= (c | i).any(axis=(1, 2))
+    block = apply_calibration(raw, cal)
+    without = cal.with_noise_spread([{} for _ in range(cal.n_imus)])
+    print(f"## noise-glr on {Path(test).parent.name}/{Path(test).name}, calibrated on {train}"
+          f" ({result.orientations} orientations), --calibrate 0s:10s, defaults"
+          f" (alpha 0.1 %); load {os.getloadavg()[0]:.1f}")  # fmt: skip
+    for s in ("gyro", "accel"):
+        kappa = cal.sensor_noise_spread(s)
+        if kappa is not None:
+            ids = cal.sensor_ids(s)
+            top = np.argsort(kappa)[::-1][:5]
+            print(f"{s} noise spread kappa: median {np.median(kappa):.2f}, largest "
+                  + ", ".join(f"{ids[j]} {kappa[j]:.2f}" for j in top))  # fmt: skip
+    windows = [(max(i.start_s, REAL_CALIBRATION[1]), i.end_s) for i in intervals]
+    print("\narray | type | static mean % | worst orientation % | orientations > 4 alpha |"
+          " motion % (clipped rows not scored)")  # fmt: skip
+    for label, array in (("without spread", without), ("with spread", cal)):
+        out = _real_alarms(array, block, {})
+        for s, det in out.items():
+            rates = [det.alarm[(t >= a) & (t <= b)].mean() for a, b in windows if b > a]
+            motion = det.alarm[(t >= motion_start) & ~clipped].mean()
+            print(f"{label} | {s} | {100 * np.mean(rates):.2f} | {100 * np.max(rates):.2f} |"
+                  f" {sum(r > 0.004 for r in rates)}/{len(rates)} | {100 * motion:.1f}")  # fmt: skip
+    rng = np.random.default_rng(seed)
+    faulty = {s: np.array(block.get(s), copy=True) for s in ("gyro", "accel")}
+    truth: dict[str, list[tuple[np.ndarray, int]]] = {"gyro": [], "accel": []}
+    for n, item in enumerate(intervals):
+        mid = 0.5 * (max(item.start_s, REAL_CALIBRATION[1]) + item.end_s)
+        rows = (t >= mid - REAL_FAULT_S / 2) & (t < mid + REAL_FAULT_S / 2)
+        if item.end_s - item.start_s < REAL_FAULT_S + 2 or mid - REAL_FAULT_S / 2 < 12.0:
+            continue
+        for s, stride in (("gyro", 7), ("accel", 5)):
+            imu_idx, axis_idx = cal.sensor_index(s)
+            j = (n * stride) % len(imu_idx)
+            k, a = int(imu_idx[j]), int(axis_idx[j])
+            sigma0 = float(np.std(np.diff(faulty[s][rows, k, a])) / np.sqrt(2.0))
+            added = sigma0 * np.sqrt(factor**2 - 1.0)
+            faulty[s][rows, k, a] += added * rng.standard_normal(int(rows.sum()))
+            truth[s].append((rows, j))
+    injected = ImuBlock(t_ns=block.t_ns, gyro=faulty["gyro"], accel=faulty["accel"])
+    print(f"\ninjected noise x{factor:g} on one axis for {REAL_FAULT_S:g} s in each orientation"
+          f" (seed {seed})\narray | type | faults | 1-MAR % (worst fault) | isolated to the faulty"
+          " sensor % of alarms")  # fmt: skip
+    for label, array in (("without spread", without), ("with spread", cal)):
+        out = _real_alarms(array, injected, {})
+        for s, det in out.items():
+            hits = [det.alarm[rows].mean() for rows, _ in truth[s]]
+            iso = [np.mean(det.isolated[rows][det.alarm[rows]] == j) for rows, j in truth[s]
+                   if det.alarm[rows].any()]  # fmt: skip
+            weakest = cal.sensor_ids(s)[truth[s][int(np.argmin(hits))][1]]
+            print(f"{label} | {s} | {len(hits)} | {100 * np.mean(hits):.1f}"
+                  f" ({100 * np.min(hits):.1f}, {weakest}) | {100 * np.mean(iso):.1f}")  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seeds", type=int, default=20, help="number of seeds")
     parser.add_argument("--first-seed", type=int, default=7000, help="evaluation seeds start")
-    parser.add_argument("--part", choices=("all", "noise", "levels", "pca", "speed"), default="all")
+    parser.add_argument(
+        "--part", choices=("all", "noise", "levels", "pca", "speed", "real"), default="all"
+    )
     parser.add_argument(
         "--long-first-seed",
         type=int,
@@ -300,7 +395,15 @@ def main() -> None:
         default="0.95",
         help="level_confidence values for --part levels (comma-separated)",
     )
+    parser.add_argument("--train", help="--part real: calibration recording (ingested MCAP)")
+    parser.add_argument("--test", help="--part real: test recording (ingested MCAP)")
+    parser.add_argument("--factor", type=float, default=3.0, help="--part real: noise factor")
     args = parser.parse_args()
+    if args.part == "real":
+        if not (args.train and args.test):
+            parser.error("--part real needs --train and --test")
+        real_part(args.train, args.test, args.first_seed, args.factor)
+        return
     if args.part in ("all", "levels"):
         first_long = args.first_seed if args.long_first_seed is None else args.long_first_seed
         levels_part(

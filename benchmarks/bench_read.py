@@ -1,6 +1,11 @@
 """Benchmark of imufdi's MCAP reader and writer against mcap-ros2-support, same run.
 
 Usage: python benchmarks/bench_read.py [--imus 16] [--samples 62500] [--skip-memory]
+       [--log FILE]
+
+With ``--log`` the read timings (reader, floors, mcap-ros2-support) are made on that file
+instead of a generated one (e.g. ``imufdi simulate --imus 16 --duration 10min -o x.mcap``);
+the writer and memory lines then still use a generated log.
 
 Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary directory, then
 - times ImuArrayWriter (bulk CDR encoding + zstd chunks) writing it,
@@ -154,6 +159,7 @@ def main() -> None:
         help="messages decoded by mcap-ros2-support (rate extrapolated; it is slow)",
     )
     parser.add_argument("--skip-memory", action="store_true")
+    parser.add_argument("--log", type=Path, help="MCAP to time the readers on (default: generated)")
     args = parser.parse_args()
     from imufdi_cli.mcapio.compression import CRC32_IMPLEMENTATION
 
@@ -166,12 +172,14 @@ def main() -> None:
         base = Path(tmp) / "base.mcap"
         n_messages = args.imus * args.samples
         write_s = make_log(base, args.imus, args.samples)
-        size_mb = base.stat().st_size / 1e6
-        print(
-            f"log: {args.imus} IMUs x {args.samples} samples = {n_messages:,} Imu messages,"
-            f" {size_mb:.1f} MB (zstd)"
-        )
         print(f"imufdi writer        : {write_s:7.2f} s  {n_messages / write_s:12,.0f} msg/s")
+        generated = base
+        if args.log is not None:
+            base = args.log
+            with ImuArrayReader(base) as probe:
+                n_messages = sum(len(b) * b.n_imus for b in probe.blocks())
+        size_mb = base.stat().st_size / 1e6
+        print(f"log: {base.name}, {n_messages:,} Imu messages, {size_mb:.1f} MB")
         ours_s, ours_n, ours_cpu = min(time_imufdi(base) for _ in range(3))
         assert ours_n == n_messages, (ours_n, n_messages)
         ours_rate = ours_n / ours_s
@@ -217,7 +225,7 @@ def main() -> None:
         if not args.skip_memory:
             long = Path(tmp) / "long.mcap"
             make_log(long, args.imus, args.samples * 10)
-            rss_base = peak_rss_reading(base)
+            rss_base = peak_rss_reading(generated)
             rss_long = peak_rss_reading(long)
             print(
                 f"peak RSS reading     : base {rss_base / 1024:.1f} MB, 10x longer"

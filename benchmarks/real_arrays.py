@@ -260,7 +260,8 @@ def main() -> None:
     parser.add_argument(
         "--runs", default="0,1,2,3,4",
         help="which detection runs (0 nominal, 1 calibrated without the jitter model, 2 jitter"
-        " fitted by moments, 3 defaults (jitter fitted for the level), 4 track_bias=300s)",
+        " fitted by moments, 3 defaults (jitter fitted for the level), 4 track_bias=300s, 5 as 3"
+        " without the noise spread of calibrate)",
     )  # fmt: skip
     parser.add_argument(
         "--detectors", default=",".join(DETECTORS),
@@ -315,6 +316,8 @@ def main() -> None:
         ("calibrated", result.array, {}),
         ("calibrated, track_bias=300s", result.array,
          {d: {"track_bias": "300s"} for d in DETECTORS if d in detectors}),
+        ("calibrated, no noise spread", result.array.with_noise_spread(
+            [{} for _ in range(result.array.n_imus)]), {}),
     ]  # fmt: skip
     chosen = {int(v) for v in args.runs.split(",")}
     for n, (label, config, params) in enumerate(runs):

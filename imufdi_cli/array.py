@@ -162,6 +162,19 @@ def _check_noise(value: Any, where: str, sensor_type: str) -> np.ndarray:
     return out
 
 
+def _check_spread(value: Any, where: str) -> np.ndarray:
+    """A per-axis noise-variance spread ``[x, y, z]``, each >= 1 and finite."""
+    try:
+        out = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ArrayConfigError(f"{where}: must be [x, y, z] numbers ({err})") from err
+    if out.shape != (3,):
+        raise ArrayConfigError(f"{where}: must be [x, y, z] variance factors")
+    if not (np.all(np.isfinite(out)) and np.all(out >= 1.0)):
+        raise ArrayConfigError(f"{where}: variance factors must be finite and >= 1")
+    return out.copy()
+
+
 @dataclass(frozen=True, eq=False)
 class ImuSpec:
     """One IMU of the array.
@@ -181,6 +194,13 @@ class ImuSpec:
         Per sensor type, the white-noise standard deviation of each axis after
         calibration, shape (3,), SI (``imufdi calibrate`` measures it over every static
         orientation of a log). Absent: the array-wide ``ArrayConfig.noise``.
+    noise_spread : dict
+        Per sensor type, each axis' healthy noise-variance spread kappa >= 1, shape (3,),
+        dimensionless: over the static orientations of a calibration log the axis' white-
+        noise variance (from successive differences) ranged over a factor kappa, max over
+        min, net of the sampling error (``imufdi calibrate``,
+        :func:`imufdi_cli.calibrate.noise_spread`). noise-glr then tests growth beyond
+        kappa times the variance of its calibration window. Absent: no spread (1).
     """
 
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
@@ -190,6 +210,7 @@ class ImuSpec:
     )
     calibration: Mapping[str, TriadCalibration] = field(default_factory=dict)
     noise: Mapping[str, np.ndarray] = field(default_factory=dict)
+    noise_spread: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def axes_of(self, sensor_type: str) -> tuple[str, ...]:
         return tuple(self.axes.get(sensor_type, ()))
@@ -324,6 +345,34 @@ class ArrayConfig:
                 return None
         return out
 
+    def sensor_noise_spread(self, sensor_type: str) -> np.ndarray | None:
+        """Per-sensor healthy noise-variance spread kappa (n_s,) in sensor-id order (each
+        IMU's ``<type>_noise_spread``); None unless every IMU with that type carries one."""
+        imu_idx, axis_idx = self.sensor_index(sensor_type)
+        out = np.empty(imu_idx.size)
+        for j, (k, a) in enumerate(zip(imu_idx, axis_idx)):
+            per = self.imus[k].noise_spread.get(sensor_type)
+            if per is None:
+                return None
+            out[j] = float(per[a])
+        return out
+
+    def with_noise_spread(self, spread: Sequence[Mapping[str, np.ndarray]]) -> ArrayConfig:
+        """This array with each IMU's per-axis noise-variance spreads replaced (one dict per
+        IMU; values >= 1)."""
+        if len(spread) != self.n_imus:
+            raise ArrayConfigError(f"{len(spread)} spread tables given for {self.n_imus} IMUs")
+        imus = tuple(
+            replace(
+                imu,
+                noise_spread={
+                    s: _check_spread(v, f"imu{k} {s}_noise_spread") for s, v in n.items()
+                },
+            )
+            for k, (imu, n) in enumerate(zip(self.imus, spread))
+        )
+        return replace(self, imus=imus)
+
     @property
     def per_sensor_noise(self) -> bool:
         """Whether any IMU carries its own per-axis noise levels."""
@@ -395,6 +444,10 @@ class ArrayConfig:
                         )
                     },
                     **{f"{s}_noise": np.asarray(v, float).tolist() for s, v in imu.noise.items()},
+                    **{
+                        f"{s}_noise_spread": np.asarray(v, float).tolist()
+                        for s, v in imu.noise_spread.items()
+                    },
                 }
                 for imu in self.imus
             ],
@@ -482,7 +535,11 @@ class ArrayConfig:
             "rotation",
             "quaternion",
             "position",
-            *(f"{s}_{key}" for s in SENSOR_TYPES for key in ("axes", "matrix", "bias", "noise")),
+            *(
+                f"{s}_{key}"
+                for s in SENSOR_TYPES
+                for key in ("axes", "matrix", "bias", "noise", "noise_spread")
+            ),
         }
         for k, item in enumerate(imus_raw):
             where = f"{source}: imu[{k}]"
@@ -526,6 +583,11 @@ class ArrayConfig:
                 for s in SENSOR_TYPES
                 if f"{s}_noise" in item
             }
+            spread = {
+                s: _check_spread(item[f"{s}_noise_spread"], f"{source}: imu{k} {s}_noise_spread")
+                for s in SENSOR_TYPES
+                if f"{s}_noise_spread" in item
+            }
             imus.append(
                 ImuSpec(
                     rotation=_check_rotation(rotation, where),
@@ -533,6 +595,7 @@ class ArrayConfig:
                     axes=axes,
                     calibration=calibration,
                     noise=sensor_noise,
+                    noise_spread=spread,
                 )
             )
         return cls(imus=tuple(imus), rate_hz=rate, noise=noise, range=ranges, jitter=jitter)
@@ -591,6 +654,12 @@ class ArrayConfig:
             for s, sig in imu.noise.items():
                 values = ", ".join(repr(float(v)) for v in np.asarray(sig))
                 lines.append(f"{s}_noise = [{values}]  # white-noise sigma per axis, SI")
+            for s, kappa in imu.noise_spread.items():
+                values = ", ".join(repr(float(v)) for v in np.asarray(kappa))
+                lines.append(
+                    f"{s}_noise_spread = [{values}]  # healthy noise-variance spread over"
+                    " orientations (max/min, >= 1)"
+                )
             lines.append("")
         return "\n".join(lines)
 

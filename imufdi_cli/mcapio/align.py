@@ -65,6 +65,9 @@ class _Aligner:
         self.pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.counts = np.zeros(len(names), np.int64)
         self.boundary: int | None = None  # stamps <= boundary are resolved
+        #: After :meth:`resolve`: the (K, S, width) array whose [:, s, :widths[s]] are the
+        #: values it returned, when they came from the regular path (else None).
+        self.last_joint: np.ndarray | None = None
         self.stats = AlignmentStats(
             gaps=dict.fromkeys(names, 0),
             duplicates=dict.fromkeys(names, 0),
@@ -106,6 +109,7 @@ class _Aligner:
 
     def resolve(self, final: bool) -> tuple[np.ndarray, list[np.ndarray]]:
         """Stamps (K,) and per-stream values (K, width) of the time slots now complete."""
+        self.last_joint = None
         if not self.pending:
             return self.empty()
         n_streams = len(self.names)
@@ -213,6 +217,7 @@ class _Aligner:
         self.stats.n_aligned += k
         by_slot = all_v.reshape(k_all, n_streams, all_v.shape[1])
         values = [by_slot[:k, s, : self.widths[s]] for s in range(n_streams)]
+        self.last_joint = by_slot[:k]
         done = k * n_streams
         if done < n:
             self.pending = [(all_t[done:], all_s[done:], all_v[done:])]

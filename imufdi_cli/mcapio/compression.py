@@ -87,6 +87,22 @@ def _lz4_decompress(raw: bytes | memoryview, size: int) -> bytes:
     return out
 
 
+def frame_checksummed(raw: bytes | memoryview, compression: str, size: int) -> bool:
+    """Whether decompressing ``raw`` verifies all ``size`` record bytes by itself: a zstd
+    frame that declares exactly ``size`` bytes and carries a content checksum (XXH64 of
+    those bytes, which zstd checks when the frame ends; any further frame would give bytes
+    past ``size``, an error). Then a chunk CRC-32 over the same bytes adds no check."""
+    if compression != "zstd" or len(raw) < 6:
+        return False
+    import zstandard
+
+    try:
+        params = zstandard.get_frame_parameters(raw)
+    except zstandard.ZstdError:
+        return False
+    return bool(params.has_checksum) and params.content_size == size
+
+
 def decompress_into(raw: bytes | memoryview, compression: str, out: memoryview) -> None:
     """Decompress chunk records into ``out``, which must be exactly the declared size.
 

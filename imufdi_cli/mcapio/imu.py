@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -17,13 +17,14 @@ import numpy as np
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.errors import ArrayConfigError, McapInputError, UsageError
-from imufdi_cli.log import ImuBlock, rechunk
+from imufdi_cli.log import ImuBlock
 from imufdi_cli.mcapio.align import AlignmentStats, _Aligner
 from imufdi_cli.mcapio.imu_codec import (
     ARRAY_METADATA,
     IMU_TYPE_NAMES,
     MAG_TYPE_NAMES,
     NS_PER_S,
+    FixedLayoutDecoder,
     ImuFields,
     _decode,
     decode_imu,
@@ -107,9 +108,11 @@ class ImuArrayReader:
         then gives the Chunk record of a batch :meth:`stream` yields, for verbatim copying).
     validate_crcs : bool
         Check the CRC-32 of every chunk's records (default; a chunk that fails is skipped
-        with a warning, or raises with ``strict``). False skips the check (benchmarks, or
-        logs known to be intact); the zstd/lz4 frame checksums are still verified. Applies
-        when the reader opens ``source`` itself; an open McapSource keeps its own setting.
+        with a warning, or raises with ``strict``), unless its zstd frame's content
+        checksum already covers them (see :class:`McapSource`). False skips the check
+        (benchmarks, or logs known to be intact); the zstd/lz4 frame checksums are still
+        verified. Applies when the reader opens ``source`` itself; an open McapSource
+        keeps its own setting.
 
     Attributes
     ----------
@@ -197,6 +200,9 @@ class ImuArrayReader:
         self.stats = self._aligner.stats
         self._groups: list[tuple[np.ndarray, ChannelInfo, tuple[str, ...], str]] | None = None
         self._stream_of = np.zeros(0, np.int64)
+        self._group_of = np.zeros(0, np.int64)
+        #: Per decode group: its fixed-layout decoder (CDR groups).
+        self._fixed: dict[int, FixedLayoutDecoder] = {}
 
     # --- setup helpers --------------------------------------------------------------------
 
@@ -444,24 +450,43 @@ class ImuArrayReader:
                 self._stream_of[cid] = k
             for cid, k in self._mag_channel.items():
                 self._stream_of[cid] = m + k
+            self._group_of = np.full(65536, -1, np.int64)
+            for key, (ids, _, _, _) in enumerate(self._groups):
+                self._group_of[ids] = key
         stream_of_message = self._stream_of[batch.channel_id]
-        for ids, channel, kinds, path in self._groups:
-            if ids.shape[0] == 1:
-                mask = batch.channel_id == ids[0]
-            else:
-                mask = np.isin(batch.channel_id, ids)
-            if not bool(mask.any()):
+        group_of_message = self._group_of[batch.channel_id]
+        for key, (_, channel, kinds, path) in enumerate(self._groups):
+            mask = group_of_message == key
+            n_selected = int(np.count_nonzero(mask))
+            if not n_selected:
                 continue
-            selected = batch if bool(mask.all()) else batch.select(mask)
+            whole = n_selected == len(batch)
+            selected = batch if whole else batch.select(mask)
+            streams = stream_of_message if whole else stream_of_message[mask]
+            fixed = self._fixed.get(key)
+            if fixed is None and channel.message_encoding == "cdr":
+                fixed = FixedLayoutDecoder(channel, kinds, path, len(self._aligner.names))
+                self._fixed[key] = fixed
+            quick = None if fixed is None else fixed.decode(selected, streams)
+            if quick is not None:
+                stamps, joint = quick
+                if self.time_source == "header" and stamps is not None:
+                    self._aligner.add(streams, stamps, joint)
+                else:
+                    self._aligner.add(streams, selected.log_time.astype(np.int64), joint)
+                continue
             valid = np.ones(len(selected), bool)
             fields = _decode(selected, channel, kinds, path, valid, contiguous=False)
-            streams = stream_of_message[mask]
             if not bool(valid.all()):
+                # one problem per topic (the group's channels share a schema, not a topic)
+                bad = np.bincount(streams[~valid], minlength=len(self._aligner.names))
                 streams = streams[valid]
-                self.source._problem(
-                    f"{int((~valid).sum())} malformed {schema_name(channel)} message(s) on"
-                    f" {channel.topic} skipped (fields past the message end or not decodable)"
-                )
+                for stream in np.flatnonzero(bad).tolist():
+                    self.source._problem(
+                        f"{int(bad[stream])} malformed {schema_name(channel)} message(s) on"
+                        f" {self._aligner.names[stream]} skipped (fields past the message end"
+                        " or not decodable)"
+                    )
             t = fields.t_ns if self.time_source == "header" else fields.log_time
             if kinds == ("mag",):
                 values = fields.mag
@@ -469,18 +494,34 @@ class ImuArrayReader:
                 values = np.concatenate([fields.gyro, fields.accel], axis=1)  # type: ignore[list-item]
             self._aligner.add(streams, t, values)  # type: ignore[arg-type]
 
-    def _block(self, t_ns: np.ndarray, values: list[np.ndarray]) -> ImuBlock:
+    def _block(
+        self, t_ns: np.ndarray, values: list[np.ndarray], joint: np.ndarray | None = None
+    ) -> ImuBlock:
+        """The block of aligned samples: stamps (n,) and per-stream values (n, 6 or 3);
+        ``joint`` (n, S, 6), when given, holds the same values (``values[s]`` is
+        ``joint[:, s, :width]``) and is copied one component at a time (numpy copies
+        (n, m) planes much faster than stacking m (n, 3) pieces)."""
         m = len(self.imu_topics)
         n = t_ns.shape[0]
 
         def stacked(columns: slice) -> np.ndarray:  # (n, m, 3), one copy
             if not m:
                 return np.zeros((n, 0, 3))
+            if joint is not None:
+                out = np.empty((n, m, 3))
+                for axis in range(3):
+                    out[:, :, axis] = joint[:, :m, columns.start + axis]
+                return out
             return np.stack([v[:, columns] for v in values[:m]], axis=1)
 
         mag = None
         if self.mag_topics and self.array.has("mag"):
-            mag = np.stack(values[m:], axis=1)
+            if joint is not None:
+                mag = np.empty((n, len(self.mag_topics), 3))
+                for axis in range(3):
+                    mag[:, :, axis] = joint[:, m:, axis]
+            else:
+                mag = np.stack(values[m:], axis=1)
         return ImuBlock(
             t_ns=t_ns,
             gyro=stacked(slice(0, 3)) if self.array.has("gyro") else None,
@@ -496,16 +537,16 @@ class ImuArrayReader:
             # Resolve in large groups: per-call numpy overhead is paid per block, not per chunk.
             if self._aligner.min_pending() >= self.block_size:
                 t_ns, values = self._aligner.resolve(final=False)
-                yield batch, self._block(t_ns, values)
+                yield batch, self._block(t_ns, values, self._aligner.last_joint)
             else:
                 yield batch, self._block(*self._aligner.empty())
         t_ns, values = self._aligner.resolve(final=True)
         if t_ns.shape[0]:
-            yield MessageBatch.empty(), self._block(t_ns, values)
+            yield MessageBatch.empty(), self._block(t_ns, values, self._aligner.last_joint)
 
     def blocks(self) -> Iterator[ImuBlock]:
         """Aligned array samples in blocks of ``block_size`` (the last may be shorter)."""
-        yield from rechunk((block for _, block in self.stream()), self.block_size)
+        yield from recut((block for _, block in self.stream()), self.block_size)
 
     def close(self) -> None:
         self.source.close()
@@ -515,6 +556,34 @@ class ImuArrayReader:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def recut(blocks: Iterable[ImuBlock], block_size: int) -> Iterator[ImuBlock]:
+    """The samples of ``blocks`` in blocks of exactly ``block_size`` (the last may be
+    shorter), as :func:`imufdi_cli.log.rechunk` cuts them, copying only the samples of a
+    block that straddles two input blocks (the others are views of the input blocks;
+    ``rechunk`` copies every sample once more). Memory stays bounded by the input blocks
+    and ``block_size``."""
+    rest: ImuBlock | None = None
+    for block in blocks:
+        n = len(block)
+        if n == 0:
+            continue
+        start = 0
+        if rest is not None:
+            need = block_size - len(rest)
+            if n < need:
+                rest = ImuBlock.concatenate([rest, block])
+                continue
+            yield ImuBlock.concatenate([rest, block.slice(0, need)])
+            rest, start = None, need
+        while n - start >= block_size:
+            yield block.slice(start, start + block_size)
+            start += block_size
+        if start < n:
+            rest = block.slice(start, n)
+    if rest is not None:
+        yield rest
 
 
 def read_array(source: str | Path | IO[bytes], **kw: Any) -> tuple[ArrayConfig, ImuBlock]:

@@ -336,3 +336,178 @@ def patch_imu(
 def patch_mag(batch: MessageBatch, channel: ChannelInfo, *, mag: np.ndarray) -> MessageBatch:
     """The same MagneticField messages with ``magnetic_field`` (N, 3) replaced."""
     return _patch(batch, channel, {"mag": mag})
+
+
+# --- fixed-layout fast path ---------------------------------------------------------------
+
+
+class _Fields:
+    """Reads one primitive at a constant offset from each of N payloads of ``data``: a
+    typed strided view when the payloads are evenly spaced (one 1-D copy per field, no
+    gather), else a typed view sliding by one byte indexed at the payload starts."""
+
+    def __init__(self, data: np.ndarray, offsets: np.ndarray) -> None:
+        self.data = data
+        self.offsets = offsets
+        n = offsets.shape[0]
+        self.first = int(offsets[0])
+        self.step = int(offsets[1] - offsets[0]) if n > 1 else 1
+        self.regular = self.step > 0 and (
+            n <= 2
+            or (
+                int(offsets[-1]) == self.first + (n - 1) * self.step
+                and np.count_nonzero(np.diff(offsets) != self.step) == 0
+            )
+        )
+
+    def view(self, rel: int, dtype: str) -> np.ndarray:
+        """(N,) values of ``dtype`` at ``rel`` bytes into every payload (a view when the
+        payloads are evenly spaced, else a copy)."""
+        if self.regular:
+            return np.ndarray(
+                (self.offsets.shape[0],), dtype, self.data, self.first + rel, (self.step,)
+            )
+        size = np.dtype(dtype).itemsize
+        windows = np.ndarray((self.data.shape[0] - size + 1,), dtype, self.data, 0, (1,))
+        return windows[self.offsets + rel]
+
+
+class FixedLayoutDecoder:
+    """Stamps and vectors of a channel group's CDR messages read at constant offsets.
+
+    An Imu message's field positions depend only on its encapsulation header and the
+    lengths of the strings before the fields (``header.frame_id``); a logger writes the
+    same ones in every message of a topic. The first message of each channel is located
+    by the general decoder (:meth:`CdrCodec.positions`), which also gives those layout
+    keys; a batch whose messages all have that payload length and the keys of their
+    channel is then read with one strided copy per field and no position arithmetic
+    (:meth:`decode`). Anything else (another length, a different ``frame_id`` length,
+    big-endian CDR, sequences before the fields, channels laid out differently) returns
+    None and is decoded by the general path, with the same results.
+
+    Parameters
+    ----------
+    channel : ChannelInfo
+        A channel of the group (they share schema and Imu field).
+    kinds : tuple of str
+        ``("gyro", "accel")`` or ``("mag",)``.
+    field : str
+        Path of the Imu inside the message (``""``: the message is one).
+    n_streams : int
+        Stream indices of the reader (the table of layout keys has one row per stream).
+    """
+
+    def __init__(
+        self, channel: ChannelInfo, kinds: Sequence[str], field: str, n_streams: int
+    ) -> None:
+        self.kinds = tuple(kinds)
+        self.usable = True
+        self.length = -1
+        self.rel: dict[str, int] = {}
+        self.keys: list[int] = []
+        self.strings: list[str] = []
+        self.expected = np.zeros((n_streams, 0), np.uint32)
+        self.probed = np.zeros(n_streams, bool)
+        self.uniform: list[bool] = []
+        try:
+            codec = _codec(channel)
+            prefix = f"{field}." if field else ""
+            self.vector_paths = [_vector_paths(codec, prefix + _VECTORS[k]) for k in kinds]
+        except McapInputError:
+            self.usable = False
+            return
+        self.codec = codec
+        leaves = codec.layout.leaves
+        stamp = [f"{prefix}header.stamp.sec", f"{prefix}header.stamp.nanosec"]
+        self.has_stamp = all(path in leaves for path in stamp)
+        self.stamp = stamp if self.has_stamp else []
+        self.paths = [*self.stamp, *self.vector_paths]
+        last_segment = max(leaves[path].segment for path in self.paths)
+        for step in codec.layout.steps[:last_segment]:
+            if step.kind in ("string", "wstring"):
+                self.strings.append(step.path)
+            elif step.kind != "align":  # a sequence or an opaque step: the general path
+                self.usable = False
+
+    def _probe(self, one: MessageBatch, stream: int) -> bool:
+        """Locate the fields of one message of ``stream`` with the general decoder and
+        remember its layout keys; False if its layout cannot be shared."""
+        valid = np.ones(1, bool)
+        try:
+            little, positions, _ = self.codec.positions(one, self.paths + self.strings, valid)
+        except McapInputError:
+            return False
+        if not bool(valid[0]) or not bool(little[0]):
+            return False
+        base = int(one.offset[0])
+        rel = {path: int(positions[path][0]) - base for path in self.paths}
+        keys = [0] + [int(positions[path][0]) - 4 - base for path in self.strings]
+        length = int(one.length[0])
+        if self.length < 0:
+            self.rel, self.keys, self.length = rel, keys, length
+            self.expected = np.zeros((self.probed.shape[0], len(keys)), np.uint32)
+        elif rel != self.rel or keys != self.keys or length != self.length:
+            return False
+        payload = one.data[base : base + length]
+        self.expected[stream] = [int(payload[k : k + 4].view("<u4")[0]) for k in keys]
+        self.probed[stream] = True
+        return True
+
+    def _head(self, fields: _Fields) -> dict[int, np.ndarray]:
+        """{offset: (N,) uint32} of the layout keys and stamp fields, from one 16-byte
+        copy per payload when they all lie in the first 16 bytes (an Imu's encapsulation,
+        stamp and ``frame_id`` length do), else empty."""
+        wanted = [*self.keys, *(self.rel[path] for path in self.stamp)]
+        if any(rel % 4 or rel + 4 > 16 for rel in wanted) or self.length < 16:
+            return {}
+        words = fields.view(0, "V16").copy().view("<u4").reshape(-1, 4)
+        return {rel: words[:, rel // 4] for rel in wanted}
+
+    def decode(
+        self, batch: MessageBatch, streams: np.ndarray
+    ) -> tuple[np.ndarray | None, np.ndarray] | None:
+        """(stamps (N,) int64 ns or None without ``header.stamp``, values (N, 3 per kind)
+        float64: gyro then accel, or mag) of the group's messages ``batch`` whose stream
+        indices are ``streams``; None when they do not all share the known layout."""
+        n = len(batch)
+        data = batch.data
+        if not self.usable or n == 0 or data.dtype != np.uint8 or not data.flags.c_contiguous:
+            return None
+        if np.count_nonzero(batch.length != (self.length if self.length >= 0 else batch.length[0])):
+            return None
+        if not bool(self.probed[streams[0]]) or not bool(self.probed[streams[-1]]):
+            present = np.flatnonzero(np.bincount(streams, minlength=self.probed.shape[0]))
+            for stream in present.tolist():
+                if not self.probed[stream]:
+                    first = int(np.argmax(streams == stream))
+                    if not self._probe(batch.select(slice(first, first + 1)), stream):
+                        self.usable = False
+                        return None
+        fields = _Fields(batch.data, batch.offset)
+        head = self._head(fields)
+        table = self.expected
+        for j, rel in enumerate(self.keys):
+            got = head[rel] if rel in head else fields.view(rel, "<u4").copy()
+            column = table[:, j]
+            probed_values = column[self.probed]
+            if bool((probed_values == probed_values[0]).all()):
+                bad = np.count_nonzero(got != probed_values[0])
+            else:
+                bad = np.count_nonzero(got != column[streams])
+            if bad:
+                return None
+        t_ns = None
+        if self.has_stamp:
+            sec, nanosec = (self.rel[path] for path in self.stamp)
+            t_ns = (head[sec] if sec in head else fields.view(sec, "<u4")).view("<i4")
+            t_ns = t_ns.astype(np.int64)
+            t_ns *= NS_PER_S
+            t_ns += head[nanosec] if nanosec in head else fields.view(nanosec, "<u4")
+        values = np.empty((n, 3 * len(self.vector_paths)))
+        for k, path in enumerate(self.vector_paths):
+            rel = self.rel[path]
+            for axis in range(3):
+                # copied out first: numpy copies unaligned strided values to a strided
+                # column several times slower than to a contiguous array
+                values[:, 3 * k + axis] = fields.view(rel + 8 * axis, "<f8").copy()
+        return t_ns, values

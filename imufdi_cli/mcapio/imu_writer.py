@@ -160,32 +160,115 @@ class _RecordTemplate:
         self.at = {name: int(fields[name][1]) for name in ("sequence", "log_time", "publish_time")}
         for name, offset in payloads[0][1].items():
             self.at[name] = MESSAGE_HEADER_SIZE + offset
+        # The sequence, log and publish times (end of the record header), the CDR
+        # encapsulation and the stamp are one run of bytes, the same for every IMU of a
+        # sample: built once per sample and copied as one 32-byte item per record.
+        self.stamp_span = (self.at["sequence"], self.at["nanosec"] + 4)
+        lo, hi = self.stamp_span
+        assert (self.records[:, lo:hi] == self.records[0, lo:hi]).all()
 
     def fill(
         self,
+        out: np.ndarray,
         t_ns: np.ndarray,
+        sec: np.ndarray,
+        nanosec: np.ndarray,
         sequence: np.ndarray,
         gyro: np.ndarray | None,
         accel: np.ndarray | None,
-    ) -> np.ndarray:
-        """(N, m, R) records for N samples of the m IMUs (gyro/accel (N, m, 3), SI; None = NaN)."""
-        n = t_ns.shape[0]
-        sec, nanosec = _stamp_fields(t_ns)
-        out = np.empty((n, *self.records.shape), np.uint8)
+    ) -> None:
+        """Write the records of N samples of the m IMUs into ``out`` (N, m, R) uint8.
+
+        ``t_ns`` (N,) int64 ns, ``sec``/``nanosec`` (N,) its ROS 2 stamp
+        (:func:`_stamp_fields`), ``sequence`` (N,) uint32, gyro/accel (N, m, 3) float64
+        in SI (None: NaN).
+        """
         out[...] = self.records
         at = self.at
-        _field_view(out, at["sequence"], "<u4")[..., 0] = sequence[:, None]
-        _field_view(out, at["log_time"], "<u8")[..., 0] = t_ns[:, None]
-        _field_view(out, at["publish_time"], "<u8")[..., 0] = t_ns[:, None]
-        _field_view(out, at["sec"], "<i4")[..., 0] = sec[:, None]
-        _field_view(out, at["nanosec"], "<u4")[..., 0] = nanosec[:, None]
+        n = t_ns.shape[0]
+        lo, hi = self.stamp_span
+        stamp = np.empty((n, hi - lo), np.uint8)
+        stamp[:] = self.records[0, lo:hi]
+        _field_view(stamp, at["sequence"] - lo, "<u4")[:, 0] = sequence
+        _field_view(stamp, at["log_time"] - lo, "<u8")[:, 0] = t_ns
+        _field_view(stamp, at["publish_time"] - lo, "<u8")[:, 0] = t_ns
+        _field_view(stamp, at["sec"] - lo, "<i4")[:, 0] = sec
+        _field_view(stamp, at["nanosec"] - lo, "<u4")[:, 0] = nanosec
+        item = np.dtype((np.void, hi - lo))
+        out[..., lo:hi].view(item)[..., 0] = stamp.view(item)[:, 0][:, None]
+        triad = np.dtype((np.void, 24))
         for name, values in (("gyro", gyro), ("accel", accel)):
-            target = _field_view(out, at[name], "<f8", 3)
+            target = out[..., at[name] : at[name] + 24].view(triad)[..., 0]
             if values is None:
-                target[...] = np.nan
+                target[...] = np.full(3, np.nan, "<f8").view(triad)[0]
             else:
-                target[...] = values
-        return out
+                # one 24-byte item (x, y, z as little-endian float64) per record
+                target[...] = np.ascontiguousarray(values, "<f8").view(triad)[..., 0]
+
+
+class _ImuRecords:
+    """The Message records of a slice of samples, for every IMU (sample-major: for each
+    stamp imu0..imu(m-1)), built on the writer's worker thread
+    (:class:`~imufdi_cli.mcapio.writer.RecordSource`). Holds its own copies of the
+    samples, so the caller may reuse its arrays once ``write_block`` returns."""
+
+    def __init__(
+        self,
+        template: _RecordTemplate,
+        m: int,
+        t_ns: np.ndarray,
+        first_sequence: int,
+        gyro: np.ndarray | None,
+        accel: np.ndarray | None,
+    ) -> None:
+        self.template = template
+        self.m = m
+        self.t_ns = np.array(t_ns, dtype=np.int64)  # copies
+        self.sec, self.nanosec = _stamp_fields(self.t_ns)
+        self.sequence = np.arange(
+            first_sequence, first_sequence + self.t_ns.shape[0], dtype=np.int64
+        ).astype(np.uint32)
+        self.gyro = None if gyro is None else np.array(gyro, dtype=np.float64)
+        self.accel = None if accel is None else np.array(accel, dtype=np.float64)
+
+    @property
+    def record_size(self) -> int:
+        return self.template.record_size
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0]) * self.m
+
+    def _fill_samples(self, out: np.ndarray, first: int, last: int) -> None:
+        """Records of samples ``first..last-1`` into ``out`` ((last - first) m, R)."""
+        view = slice(first, last)
+        self.template.fill(
+            out.reshape(last - first, self.m, -1),
+            self.t_ns[view],
+            self.sec[view],
+            self.nanosec[view],
+            self.sequence[view],
+            None if self.gyro is None else self.gyro[view],
+            None if self.accel is None else self.accel[view],
+        )
+
+    def fill(self, out: np.ndarray, start: int, stop: int) -> None:
+        """Records ``start..stop-1`` (record k: sample k // m, IMU k % m) into ``out``."""
+        m = self.m
+        position = start
+        while position < stop:
+            sample, imu = divmod(position, m)
+            whole = (stop - position) // m
+            if imu == 0 and whole:
+                # whole samples, straight into the chunk buffer
+                end = position + whole * m
+                self._fill_samples(out[position - start : end - start], sample, sample + whole)
+            else:
+                # a sample cut by a chunk boundary: built whole, the rows needed copied
+                end = min(stop, (sample + 1) * m)
+                one = np.empty((m, self.record_size), np.uint8)
+                self._fill_samples(one, sample, sample + 1)
+                out[position - start : end - start] = one[imu : imu + end - position]
+            position = end
 
 
 class ImuArrayWriter:
@@ -304,9 +387,10 @@ class ImuArrayWriter:
         self._written += n
 
     def _write_imu_records(self, block: ImuBlock) -> None:
-        """Imu messages only: build whole Message records straight from the block's arrays
-        (constant bytes from a template, fields through strided views) in slices of about
-        4 MB, handed to the writer without further copies."""
+        """Imu messages only: queue the block's records, in slices of about 4 MB, to be
+        built (constant bytes from a template, then one stamp item and two triad items
+        per record) straight into the chunk buffers on the writer's worker threads. The
+        stamps are checked here, so a bad one is reported by this call."""
         template = self._imu_records
         m = self.array.n_imus
         n = len(block)
@@ -314,18 +398,16 @@ class ImuArrayWriter:
         ids = np.asarray(self.imu_channels, np.uint16)
         for start in range(0, n, step):
             stop = min(n, start + step)
-            t_ns = np.asarray(block.t_ns[start:stop], np.int64)
-            sequence = np.arange(self._written + start, self._written + stop).astype(np.uint32)
-            records = template.fill(
-                t_ns,
-                sequence,
+            source = _ImuRecords(
+                template,
+                m,
+                block.t_ns[start:stop],
+                self._written + start,
                 None if block.gyro is None else block.gyro[start:stop],
                 None if block.accel is None else block.accel[start:stop],
             )
-            self.writer.add_records(
-                records.reshape(-1, template.record_size),
-                np.tile(ids, stop - start),
-                np.repeat(t_ns, m),
+            self.writer.add_record_source(
+                source, np.tile(ids, stop - start), np.repeat(source.t_ns, m)
             )
         self._written += n
 

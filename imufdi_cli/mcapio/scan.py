@@ -196,6 +196,112 @@ def scan_records(
     )
 
 
+class RecordPattern:
+    """The repeating run of Message records a chunk was found to hold (e.g. one record
+    of each of 16 IMU channels), remembered across chunks: a later chunk that continues
+    it is checked in one vectorised pass (:meth:`match`) instead of being scanned anew.
+
+    Parameters
+    ----------
+    lengths : sequence of int
+        Content lengths of the P Message records of one period, in file order.
+    """
+
+    def __init__(self, lengths: list[int]) -> None:
+        self.lengths = [int(n) for n in lengths]
+        self.period = len(self.lengths)
+        self.stride = sum(9 + n for n in self.lengths)
+        self._rotations: dict[int, tuple[np.ndarray, np.ndarray, dict[int, int]]] = {}
+
+    @classmethod
+    def learn(cls, opcodes: np.ndarray, lengths: np.ndarray, size: int) -> RecordPattern | None:
+        """The shortest period of a chunk made only of Message records (``opcodes``,
+        ``lengths`` of all its records, ``size`` its record bytes), when the whole chunk
+        follows it and holds at least two periods; else None."""
+        n = lengths.shape[0]
+        if n < 2 or not bool((opcodes == 0x05).all()):
+            return None
+        head = lengths[: min(n, 64)].tolist()
+        for period in range(1, len(head) // 2 + 1):
+            if all(head[i] == head[i % period] for i in range(len(head))):
+                break
+        else:
+            return None
+        reps = -(-n // period)
+        if not bool((np.tile(lengths[:period], reps)[:n] == lengths).all()):
+            return None
+        pattern = cls(lengths[:period].tolist())
+        return pattern if int(lengths.sum()) + 9 * n == size else None
+
+    def phase_after(self, phase: int, n_records: int) -> int:
+        return (phase + n_records) % self.period
+
+    def _rotation(self, phase: int) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
+        """(record offsets in a period, their content lengths, {bytes of the first j
+        records: j}) of the pattern started at ``phase``."""
+        known = self._rotations.get(phase)
+        if known is None:
+            lengths = np.array(self.lengths[phase:] + self.lengths[:phase], np.int64)
+            cumulative = np.zeros(self.period + 1, np.int64)
+            np.cumsum(lengths + 9, out=cumulative[1:])
+            ends = {int(c): j for j, c in enumerate(cumulative[:-1].tolist())}
+            known = (cumulative[:-1], lengths, ends)
+            self._rotations[phase] = known
+        return known
+
+    def match(self, buf: np.ndarray, phase: int) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """The records of a chunk ``buf`` (uint8, contiguous) when they are whole Message
+        records continuing this pattern from ``phase`` (tried first) or another phase whose
+        record length fits the first record: (content starts, content lengths, the phase
+        after the chunk), what :func:`scan_records` finds (its starts + 9, its lengths,
+        opcodes all 0x05); None when the chunk does not follow the pattern (it is then
+        scanned in full). Every record head (opcode and length) is checked, through one
+        strided view per record of the period (no gather)."""
+        size = buf.shape[0]
+        if size < 9 or buf[0] != 0x05:
+            return None
+        first = int(buf[1:9].view("<u8")[0])
+        phases = [phase] + [p for p in range(self.period) if p != phase]
+        for start in phases:
+            if self.lengths[start] != first:
+                continue
+            offsets, lengths, cumulative = self._rotation(start)
+            n_full, rest = divmod(size, self.stride)
+            tail = cumulative.get(rest)
+            if tail is None:
+                continue
+            if not all(
+                _heads_are(buf, offset, self.stride, n_full + (j < tail), length)
+                for j, (offset, length) in enumerate(zip(offsets.tolist(), lengths.tolist()))
+            ):
+                continue
+            rows = self.stride * np.arange(n_full, dtype=np.int64)
+            starts = (rows[:, None] + (offsets + 9)).reshape(-1)
+            record_lengths = (
+                np.full(n_full, lengths[0]) if self.period == 1 else np.tile(lengths, n_full)
+            )
+            if tail:
+                body = n_full * self.stride
+                starts = np.concatenate([starts, body + 9 + offsets[:tail]])
+                record_lengths = np.concatenate([record_lengths, lengths[:tail]])
+            return starts, record_lengths, (start + starts.shape[0]) % self.period
+        return None
+
+
+def _heads_are(buf: np.ndarray, first: int, stride: int, count: int, length: int) -> bool:
+    """Whether the ``count`` record heads at ``first``, ``first + stride``, ... of ``buf``
+    are all a Message record's (opcode 0x05) with content length ``length`` (typed strided
+    views, copied once: comparing unaligned views in place is several times slower)."""
+    if count == 0:
+        return True
+    opcodes = np.ndarray((count,), np.uint8, buf, first, (stride,))
+    lengths = np.ndarray((count,), "<u8", buf, first + 1, (stride,))
+    return (
+        np.count_nonzero(opcodes.copy() != 0x05) == 0
+        and np.count_nonzero(lengths.copy() != length) == 0
+    )
+
+
 class _PendingMessages:
     """Message records waiting to become one batch: whole chunks' records and loose
     (un-chunked) Message records, in file order, in one buffer (chunks are decompressed

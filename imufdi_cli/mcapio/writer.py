@@ -3,9 +3,12 @@
 :class:`McapWriter` builds Message records for many messages at once with numpy (one
 structured header array, one payload copy), so writing cost does not involve per-message
 Python work. Fixed-size records built by the caller (:meth:`McapWriter.add_records`) go
-into chunks without further copies; chunks are compressed and checksummed on worker threads
-(zstandard, lz4 and the CRC-32 release the GIL) while the caller builds the next ones, and
-written in order, so the output is the same bytes as a serial write.
+into chunks without further copies; records a :class:`RecordSource` can build
+(:meth:`McapWriter.add_record_source`, used by the IMU writer) are built straight into the
+chunk buffer on a worker thread. Each chunk is assembled, checksummed, compressed and
+given its MessageIndex records on worker threads (numpy copies, zstandard, lz4 and the
+CRC-32 release the GIL) while the caller goes on, and written in order, so the output is
+the same bytes as a serial write.
 """
 
 from __future__ import annotations
@@ -15,10 +18,11 @@ import os
 import struct
 import sys
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
 import numpy as np
 
@@ -78,33 +82,225 @@ class _RecordPart:
     def __len__(self) -> int:
         return int(self.records.shape[0])
 
+    @property
+    def nbytes(self) -> int:
+        return int(self.records.shape[0] * self.records.shape[1])
+
+
+class RecordSource(Protocol):
+    """Fixed-size Message records that are built when their chunk is assembled (on a
+    worker thread): :meth:`McapWriter.add_record_source`.
+
+    ``fill`` must only read data the source owns (copies taken when it was made), since
+    it runs after the call that queued it has returned.
+    """
+
+    @property
+    def record_size(self) -> int:
+        """Bytes per record (header included)."""
+        ...
+
+    def __len__(self) -> int:
+        """Number of records."""
+        ...
+
+    def fill(self, out: np.ndarray, start: int, stop: int) -> None:
+        """Write records ``start..stop-1`` into ``out``, shape (stop - start, record_size),
+        uint8, C-contiguous."""
+        ...
+
+
+@dataclass
+class _SourcePart:
+    """Records ``start..stop-1`` of a :class:`RecordSource`, built on a worker thread."""
+
+    source: RecordSource
+    start: int
+    stop: int
+    channel_id: np.ndarray
+    log_time: np.ndarray
+
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+    @property
+    def nbytes(self) -> int:
+        return (self.stop - self.start) * int(self.source.record_size)
+
+
+@dataclass
+class _SerialPart:
+    """Message records serialised by the caller's thread (variable sizes)."""
+
+    records: np.ndarray  # (B,) uint8
+    offsets: np.ndarray  # (N,) int64, start of each record in ``records``
+    channel_id: np.ndarray
+    log_time: np.ndarray
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.records.shape[0])
+
+
+_ChunkPart = _RecordPart | _SourcePart | _SerialPart
+
+
+@dataclass
+class _BuiltChunk:
+    """What a worker thread made of a chunk's parts."""
+
+    payload: bytes  # compressed records
+    crc: int  # CRC-32 of the uncompressed records
+    uncompressed_size: int
+    start_time: int
+    end_time: int
+    #: the chunk's MessageIndex records, one per channel, and each one's offset in them
+    index_records: bytes
+    index_offsets: dict[int, int]
+    channel_counts: dict[int, int]
+    message_count: int
+
 
 @dataclass
 class _ChunkJob:
-    """A chunk whose records are being compressed on a worker thread."""
+    """A chunk being built on a worker thread."""
 
-    future: Future[tuple[bytes, int]]
-    start_time: int
-    end_time: int
-    uncompressed_size: int
-    channel_id: np.ndarray
-    log_time: np.ndarray
-    record_offsets: np.ndarray
+    future: Future[_BuiltChunk]
 
 
-def _compress_and_checksum(raw: np.ndarray, compression: str) -> tuple[bytes, int]:
-    """Compressed records and the chunk's ``uncompressed_crc`` (worker thread).
+#: The fixed part of a MessageIndex record: opcode, record length, channel id, bytes of
+#: entries (each entry: log time u64, record offset u64).
+_MESSAGE_INDEX_HEAD = np.dtype(
+    {
+        "names": ["opcode", "record_length", "channel_id", "entries_length"],
+        "formats": ["u1", "<u8", "<u2", "<u4"],
+        "offsets": [0, 1, 9, 11],
+        "itemsize": 15,
+    }
+)
+
+
+def message_index_records(
+    channel_ids: np.ndarray, log_time: np.ndarray, record_offsets: np.ndarray
+) -> tuple[bytes, dict[int, int], dict[int, int]]:
+    """The MessageIndex records of one chunk: one per channel, channels in increasing
+    order, entries (log time, record offset) sorted by log time (ties in chunk order).
+
+    Parameters
+    ----------
+    channel_ids : ndarray, shape (N,), unsigned
+    log_time : ndarray, shape (N,), int64, ns
+    record_offsets : ndarray, shape (N,), int64
+        Offset of each message's record in the chunk's uncompressed records.
+
+    Returns
+    -------
+    records : bytes
+    offsets : dict
+        Channel id -> offset of its MessageIndex record in ``records``.
+    counts : dict
+        Channel id -> number of its messages in the chunk.
+    """
+    channel_ids = np.asarray(channel_ids)
+    log_time = np.asarray(log_time, np.int64)
+    n = int(channel_ids.shape[0])
+    if n < 2 or bool(np.all(log_time[1:] >= log_time[:-1])):
+        # already in time order: a stable sort by channel is the (channel, time) sort
+        order = np.argsort(channel_ids, kind="stable")
+    else:
+        order = np.lexsort((log_time, channel_ids))
+    per_channel = np.bincount(channel_ids.astype(np.intp))
+    present = np.flatnonzero(per_channel)
+    sizes = per_channel[present].astype(np.int64)
+    firsts = np.zeros(present.shape[0], np.int64)
+    np.cumsum(sizes[:-1], out=firsts[1:])
+    head = np.empty(present.shape[0], _MESSAGE_INDEX_HEAD)
+    head["opcode"] = OP_MESSAGE_INDEX
+    head["record_length"] = 2 + 4 + 16 * sizes
+    head["channel_id"] = present
+    head["entries_length"] = 16 * sizes
+    entries = np.empty((n, 2), "<u8")
+    entries[:, 0] = log_time[order]
+    entries[:, 1] = record_offsets[order]
+    heads = head.view(np.uint8).data
+    bodies = entries.view(np.uint8).reshape(-1).data
+    pieces = []
+    for g, (first, size) in enumerate(zip(firsts.tolist(), sizes.tolist())):
+        pieces.append(heads[15 * g : 15 * g + 15])
+        pieces.append(bodies[16 * first : 16 * (first + size)])
+    starts = 15 * np.arange(present.shape[0], dtype=np.int64) + 16 * firsts
+    ids = present.tolist()
+    return (
+        b"".join(pieces),
+        dict(zip(ids, starts.tolist())),
+        dict(zip(ids, sizes.tolist())),
+    )
+
+
+def _build_chunk(parts: list[_ChunkPart], compression: str) -> _BuiltChunk:
+    """Assemble a chunk's records from its parts, checksum and compress them, and make
+    its MessageIndex records (worker thread).
 
     Every chunk carries the CRC-32 of its uncompressed records, whatever the compression,
     so that readers which check chunk CRCs (the ``mcap`` package, ``mcap doctor``, our own
     reader) verify our files end to end; zstd and lz4 frames also carry their own content
     checksum. The CRC-32 (zlib-ng's, else zlib's) releases the GIL on this worker thread.
     """
+    total = sum(part.nbytes for part in parts)
+    only = parts[0]
+    in_place = False
+    if len(parts) == 1 and isinstance(only, (_RecordPart, _SerialPart)):
+        if only.records.flags.c_contiguous:
+            raw = only.records.reshape(-1)  # one part of ready records: compressed as they are
+            in_place = True
+    if not in_place:
+        raw = np.empty(total, np.uint8)
+    offset_parts = []
+    shift = 0
+    for part in parts:
+        if isinstance(part, _SerialPart):
+            size = part.nbytes
+            if not in_place:
+                raw[shift : shift + size] = part.records
+            offset_parts.append(part.offsets + shift)
+        else:
+            record_size = (
+                int(part.records.shape[1])
+                if isinstance(part, _RecordPart)
+                else int(part.source.record_size)
+            )
+            count = len(part)
+            size = count * record_size
+            if isinstance(part, _SourcePart):
+                rows = raw[shift : shift + size].reshape(count, record_size)
+                part.source.fill(rows, part.start, part.stop)
+            elif not in_place:
+                raw[shift : shift + size] = part.records.reshape(-1)
+            offset_parts.append(np.arange(count, dtype=np.int64) * record_size + shift)
+        shift += size
+    record_offsets = offset_parts[0] if len(offset_parts) == 1 else np.concatenate(offset_parts)
+    channel_ids = np.concatenate([p.channel_id for p in parts])
+    log_time = np.concatenate([p.log_time for p in parts])
     view = raw.data
-    return compress(view, compression), crc32(view)
+    crc = crc32(view)
+    payload = compress(view, compression)
+    index_records, index_offsets, channel_counts = message_index_records(
+        channel_ids, log_time, record_offsets
+    )
+    return _BuiltChunk(
+        payload=payload,
+        crc=crc,
+        uncompressed_size=total,
+        start_time=int(log_time.min()),
+        end_time=int(log_time.max()),
+        index_records=index_records,
+        index_offsets=index_offsets,
+        channel_counts=channel_counts,
+        message_count=int(channel_ids.shape[0]),
+    )
 
 
-#: Worker threads compressing chunks, and how many chunks may wait to be written.
+#: Worker threads building chunks, and how many chunks may wait to be written.
 COMPRESS_THREADS = 2
 MAX_CHUNKS_IN_FLIGHT = 4
 
@@ -168,7 +364,7 @@ class McapWriter:
         self._channel_schema: dict[int, int] = {}
         self._metadata_index: list[tuple[int, int, str]] = []
         self._chunk_index: list[_ChunkIndexEntry] = []
-        self._pending: list[MessageBatch | _RecordPart] = []
+        self._pending: list[MessageBatch | _RecordPart | _SourcePart] = []
         self._pending_bytes = 0
         self._in_flight: deque[_ChunkJob] = deque()
         self._executor: ThreadPoolExecutor | None = None
@@ -299,9 +495,7 @@ class McapWriter:
         n = len(batch)
         if n == 0:
             return
-        unknown = np.setdiff1d(np.unique(batch.channel_id), list(self.channels))
-        if unknown.size:
-            raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
+        self._check_registered(batch.channel_id)
         self._check_log_time(batch.channel_id, batch.log_time)
         sizes = batch.length.astype(np.int64) + MESSAGE_HEADER_SIZE
         cumulative = np.cumsum(sizes)
@@ -347,23 +541,78 @@ class McapWriter:
         log_time = np.asarray(log_time, np.int64)
         if channel_id.shape != (n,) or log_time.shape != (n,):
             raise UsageError(f"need {n} channel ids and log times, one per record")
-        unknown = np.setdiff1d(np.unique(channel_id), list(self.channels))
-        if unknown.size:
-            raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
+        self._check_registered(channel_id)
         self._check_log_time(channel_id, log_time)
         size = int(records.shape[1])
+        self._queue_fixed(
+            n,
+            size,
+            lambda start, stop: _RecordPart(
+                records[start:stop], channel_id[start:stop], log_time[start:stop]
+            ),
+        )
+
+    def add_record_source(
+        self, source: RecordSource, channel_id: np.ndarray, log_time: np.ndarray
+    ) -> None:
+        """Queue records that ``source`` builds when their chunk is assembled, on a worker
+        thread, straight into the chunk buffer (no copy, and the caller's thread free).
+
+        Parameters
+        ----------
+        source : RecordSource
+            N records of ``source.record_size`` bytes.
+        channel_id : ndarray, shape (N,)
+            Channel of each record (must be registered; must match the records).
+        log_time : ndarray, shape (N,), int64
+            Log time of each record, ns (must match the records).
+
+        The output is the same bytes as :meth:`add_records` with the built records.
+        """
+        n = len(source)
+        if n == 0:
+            return
+        size = int(source.record_size)
+        channel_id = np.asarray(channel_id, np.uint16)
+        log_time = np.asarray(log_time, np.int64)
+        if channel_id.shape != (n,) or log_time.shape != (n,):
+            raise UsageError(f"need {n} channel ids and log times, one per record")
+        self._check_registered(channel_id)
+        self._check_log_time(channel_id, log_time)
+        self._queue_fixed(
+            n,
+            size,
+            lambda start, stop: _SourcePart(
+                source, start, stop, channel_id[start:stop], log_time[start:stop]
+            ),
+        )
+
+    def _queue_fixed(
+        self, n: int, size: int, make_part: Callable[[int, int], _RecordPart | _SourcePart]
+    ) -> None:
+        """Queue ``n`` records of ``size`` bytes as parts that fill the current chunk."""
         start = 0
         while start < n:
             room = self.chunk_size - self._pending_bytes
             # enough records to fill the current chunk (at least one)
             stop = min(n, start + max(1, -(-room // size)))
-            self._pending.append(
-                _RecordPart(records[start:stop], channel_id[start:stop], log_time[start:stop])
-            )
+            self._pending.append(make_part(start, stop))
             self._pending_bytes += (stop - start) * size
             start = stop
             if self._pending_bytes >= self.chunk_size:
                 self._flush_chunk()
+
+    def _check_registered(self, channel_id: np.ndarray) -> None:
+        """Refuse messages of channels not registered (a lookup table, no sorting)."""
+        channel_id = np.asarray(channel_id)
+        if channel_id.size == 0:
+            return
+        known = np.zeros(max(self.channels, default=-1) + 1, dtype=bool)
+        known[list(self.channels)] = True
+        if int(channel_id.max()) < known.shape[0] and bool(known[channel_id].all()):
+            return
+        unknown = np.setdiff1d(np.unique(channel_id), list(self.channels))
+        raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
 
     def _check_log_time(self, channel_id: np.ndarray, log_time: np.ndarray) -> None:
         """Refuse log times the file format and the int64 time base cannot hold.
@@ -409,122 +658,73 @@ class McapWriter:
         self.add_message(channel_id, log_time, json.dumps(obj, separators=(",", ":")).encode())
 
     def _flush_chunk(self) -> None:
-        """Join the queued messages into one chunk and hand it to a compression thread."""
+        """Hand the queued messages to a worker thread that builds and compresses the chunk."""
         if not self._pending:
             return
-        parts = self._pending
+        parts: list[_ChunkPart] = []
+        for part in self._pending:
+            if isinstance(part, MessageBatch):
+                # serialised now: a batch's arrays may be reused by the caller afterwards
+                records, offsets = build_message_records(part)
+                parts.append(_SerialPart(records, offsets, part.channel_id, part.log_time))
+            else:
+                parts.append(part)
         self._pending = []
         self._pending_bytes = 0
-        # Serialise each part from its own buffer (never join the big source buffers).
-        record_parts: list[np.ndarray] = []
-        offset_parts = []
-        shift = 0
-        for part in parts:
-            if isinstance(part, _RecordPart):
-                size = int(part.records.shape[1])
-                records = part.records.reshape(-1)
-                offsets = np.arange(len(part), dtype=np.int64) * size
-            else:
-                records, offsets = build_message_records(part)
-            record_parts.append(records)
-            offset_parts.append(offsets + shift)
-            shift += records.shape[0]
-        if len(record_parts) == 1 and record_parts[0].flags.c_contiguous:
-            raw = record_parts[0]
-        else:
-            raw = np.empty(shift, np.uint8)
-            position = 0
-            for records in record_parts:
-                raw[position : position + records.shape[0]] = records
-                position += records.shape[0]
-        record_offsets = np.concatenate(offset_parts)
-        channel_ids = np.concatenate([p.channel_id for p in parts])
-        log_time = np.concatenate([p.log_time for p in parts])
-        start_time = int(log_time.min())
-        end_time = int(log_time.max())
         if self._executor is None:
             self._executor = ThreadPoolExecutor(
                 max_workers=COMPRESS_THREADS, thread_name_prefix="mcap-chunk"
             )
-        future = self._executor.submit(_compress_and_checksum, raw, self.compression)
         self._in_flight.append(
-            _ChunkJob(
-                future,
-                start_time,
-                end_time,
-                int(raw.shape[0]),
-                channel_ids,
-                log_time,
-                record_offsets,
-            )
+            _ChunkJob(self._executor.submit(_build_chunk, parts, self.compression))
         )
-        self._count_messages(channel_ids, start_time, end_time)
         self._drain(MAX_CHUNKS_IN_FLIGHT)
 
     def _drain(self, keep: int) -> None:
-        """Write compressed chunks, oldest first, until at most ``keep`` are in flight."""
+        """Write built chunks, oldest first, until at most ``keep`` are in flight."""
         while len(self._in_flight) > keep:
             self._write_chunk(self._in_flight.popleft())
 
     def _write_chunk(self, job: _ChunkJob) -> None:
-        """Write a compressed chunk, its MessageIndex records, and note its ChunkIndex."""
-        payload, crc = job.future.result()
+        """Write a built chunk, its MessageIndex records, and note its ChunkIndex."""
+        built = job.future.result()
         content = (
-            struct.pack("<QQQI", job.start_time, job.end_time, job.uncompressed_size, crc)
+            struct.pack(
+                "<QQQI", built.start_time, built.end_time, built.uncompressed_size, built.crc
+            )
             + _string(self.compression)
-            + struct.pack("<Q", len(payload))
+            + struct.pack("<Q", len(built.payload))
         )
         chunk_offset = self._position
-        self._write_now(struct.pack("<BQ", OP_CHUNK, len(content) + len(payload)) + content)
-        self._write_now(payload)
+        self._write_now(struct.pack("<BQ", OP_CHUNK, len(content) + len(built.payload)) + content)
+        self._write_now(built.payload)
         chunk_length = self._position - chunk_offset
-        index_offsets, index_length = self._write_message_indexes(
-            job.channel_id, job.log_time, job.record_offsets
-        )
+        index_start = self._position
+        self._write_now(built.index_records)
         self._chunk_index.append(
             _ChunkIndexEntry(
-                job.start_time,
-                job.end_time,
+                built.start_time,
+                built.end_time,
                 chunk_offset,
                 chunk_length,
-                index_offsets,
-                index_length,
+                {cid: index_start + at for cid, at in built.index_offsets.items()},
+                len(built.index_records),
                 self.compression,
-                len(payload),
-                job.uncompressed_size,
+                len(built.payload),
+                built.uncompressed_size,
             )
         )
+        self._count(built.channel_counts, built.message_count, built.start_time, built.end_time)
 
     def _write_message_indexes(
         self, channel_ids: np.ndarray, log_time: np.ndarray, record_offsets: np.ndarray
     ) -> tuple[dict[int, int], int]:
         """One MessageIndex record per channel of a chunk just written, entries sorted by
         log time; returns the position of each channel's record and their total length."""
-        order = np.lexsort((log_time, channel_ids))
-        channels_sorted = channel_ids[order]
-        bounds = np.flatnonzero(np.diff(channels_sorted.astype(np.int64))) + 1
-        index_offsets: dict[int, int] = {}
+        records, offsets, _ = message_index_records(channel_ids, log_time, record_offsets)
         index_start = self._position
-        entries = np.empty(order.shape[0], dtype=[("t", "<u8"), ("offset", "<u8")])
-        entries["t"] = log_time[order]
-        entries["offset"] = record_offsets[order]
-        all_bodies = entries.tobytes()
-        index_records = []
-        position = self._position
-        group_starts = [0, *bounds.tolist()]
-        group_stops = [*bounds.tolist(), int(order.shape[0])]
-        for first, stop in zip(group_starts, group_stops):
-            channel_id = int(channels_sorted[first])
-            body = all_bodies[16 * first : 16 * stop]
-            index_offsets[channel_id] = position
-            record = (
-                struct.pack("<BQHI", OP_MESSAGE_INDEX, 2 + 4 + len(body), channel_id, len(body))
-                + body
-            )
-            index_records.append(record)
-            position += len(record)
-        self._write_now(b"".join(index_records))
-        return index_offsets, self._position - index_start
+        self._write_now(records)
+        return {cid: index_start + at for cid, at in offsets.items()}, len(records)
 
     def add_raw_chunk(self, chunk: RawChunk, batch: MessageBatch, records_at: int = 0) -> None:
         """Write an input Chunk record verbatim (no recompression) with its MessageIndex
@@ -575,9 +775,20 @@ class McapWriter:
     def _count_messages(self, channel_ids: np.ndarray, start_time: int, end_time: int) -> None:
         """Statistics: messages per channel and the time range."""
         counts = np.bincount(channel_ids.astype(np.int64))
-        for cid in np.flatnonzero(counts).tolist():
-            self._channel_counts[cid] = self._channel_counts.get(cid, 0) + int(counts[cid])
-        self._message_count += int(channel_ids.shape[0])
+        present = np.flatnonzero(counts)
+        self._count(
+            dict(zip(present.tolist(), counts[present].tolist())),
+            int(channel_ids.shape[0]),
+            start_time,
+            end_time,
+        )
+
+    def _count(
+        self, channel_counts: dict[int, int], message_count: int, start_time: int, end_time: int
+    ) -> None:
+        for cid, count in channel_counts.items():
+            self._channel_counts[cid] = self._channel_counts.get(cid, 0) + count
+        self._message_count += message_count
         self._start_time = (
             start_time if self._start_time is None else min(self._start_time, start_time)
         )

@@ -75,7 +75,8 @@ def _run_files(runs_dir):
     return {p.name: p.read_bytes() for p in sorted(runs_dir.glob("*.json"))}
 
 
-@pytest.mark.parametrize("method", ["fork", pytest.param("forkserver", marks=pytest.mark.slow)])
+@pytest.mark.slow  # a pool of two worker processes, 2 s
+@pytest.mark.parametrize("method", ["fork", "forkserver"])
 def test_pool_workers_write_the_same_results_as_this_process(runs, tmp_path, method):
     serial = tmp_path / "serial"
     serial.mkdir()

@@ -200,3 +200,83 @@ def test_mutated_captures_parse_and_account_for_every_byte(edits, chunk):
     assert kept == stats.frames_ok <= 40 + len(edits)
     size = BUILTIN.frame_size(stats.n_imus) if stats.n_imus else 0
     assert stats.bytes_total - stats.bytes_dropped == stats.frames_ok * size
+
+
+def _record_layout(record: list[dict], **extra) -> object:
+    return layout_from_dict(
+        {
+            "name": "decode-test",
+            "sync": "AA 55",
+            "endian": "little",
+            "n_imus": 3,
+            "rate": "100Hz",
+            "gyro_fs": "500dps",
+            "accel_fs": "4g",
+            "header": [{"name": "counter", "type": "u16", "role": "counter"}],
+            "record": record,
+            **extra,
+        }
+    )
+
+
+def _i16(name: str, **extra) -> dict:
+    return {"name": name, "type": "i16", **extra}
+
+
+DECODE_LAYOUTS = {
+    "builtin (one cast, adjacent triads)": BUILTIN,
+    "one type, axes interleaved": _record_layout(
+        [_i16(n) for n in ("gyro_x", "accel_x", "gyro_y", "accel_y", "gyro_z", "accel_z")]
+    ),
+    "one type, per-axis scales, mag, pad": _record_layout(
+        [
+            _i16("gyro_z", endian="big"),
+            _i16("gyro_x", endian="big"),
+            _i16("gyro_y", endian="big"),
+            _i16("accel_x", endian="big", scale="0.01m/s^2"),
+            _i16("accel_y", endian="big", scale="0.02m/s^2"),
+            _i16("accel_z", endian="big"),
+            {"name": "pad", "type": "pad", "size": 2},
+            _i16("mag_x", scale="0.15uT"),
+            _i16("mag_y", scale="0.15uT"),
+            _i16("mag_z", scale="0.15uT"),
+        ]
+    ),
+    "mixed types (per-field views)": _record_layout(
+        [
+            *(_i16(f"gyro_{a}") for a in "xyz"),
+            *({"name": f"accel_{a}", "type": "i32", "scale": "1e-6m/s^2"} for a in "xyz"),
+        ]
+    ),
+    "float fields (per-field views)": _record_layout(
+        [
+            *({"name": f"gyro_{a}", "type": "f32"} for a in "xyz"),
+            *({"name": f"accel_{a}", "type": "f64", "endian": "big"} for a in "xyz"),
+        ]
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(DECODE_LAYOUTS))
+def test_decoded_triads_match_a_per_field_reference(name):
+    """Whatever path decodes the records (one cast or per-field views), every value is
+    the field's own bytes as its type times its scale, to the bit."""
+    from imufdi_cli.capture.binary import _decode_triads
+
+    layout = DECODE_LAYOUTS[name]
+    m = 3
+    rng = np.random.default_rng(11)
+    frames = rng.integers(0, 256, (57, layout.frame_size(m)), dtype=np.uint8)
+    with np.errstate(all="raise"):  # random float bits: the decoder must not warn
+        triads = _decode_triads(layout, frames, m)
+    assert set(triads) == set(layout.sensor_types)
+    for sensor, values in triads.items():
+        assert values.shape == (57, m, 3) and values.dtype == np.float64
+        for axis, a in enumerate("xyz"):
+            item = next(f for f in layout.record if f.name == f"{sensor}_{a}")
+            for k in range(m):
+                at = layout.header_end + k * layout.record_size + item.offset
+                raw = np.ascontiguousarray(frames[:, at : at + item.size]).view(item.dtype)[:, 0]
+                with np.errstate(all="ignore"):
+                    expected = raw * item.scale
+                assert values[:, k, axis].tobytes() == expected.astype(np.float64).tobytes()

@@ -54,3 +54,32 @@ def test_streaming_encoder_continues_the_counter():
     blocks, stats = parse_capture(data, load_layout("mpu6500-array"))
     list(blocks)
     assert {k: getattr(stats, k) for k in encoder.expected} == encoder.expected
+
+
+def test_chunk_sizes_change_the_layout_not_the_samples(tmp_path):
+    """Small read rounds and MCAP chunks that cut samples: the same samples as the
+    defaults, every message found by the mcap package's indexed reader, in time order."""
+    from mcap.reader import make_reader
+
+    layout = load_layout("mpu6500-array")
+    block = random_block(300, 4, seed=2)
+    corrupt = Corruption(garbage=2, cut=1)
+    data = encode_capture(block, layout, corrupt=corrupt, rng=np.random.default_rng(4)).data
+    default = tmp_path / "default.mcap"
+    small = tmp_path / "small.mcap"
+    ingest(data, default, layout=layout)
+    ingest(data, small, layout=layout, chunk_size=999, mcap_chunk_size=3000)
+    _, expected = mcapio.read_array(default)
+    _, read = mcapio.read_array(small)
+    assert_array_equal(read.t_ns, expected.t_ns)
+    assert read.gyro.tobytes() == expected.gyro.tobytes()  # type: ignore[union-attr]
+    assert read.accel.tobytes() == expected.accel.tobytes()  # type: ignore[union-attr]
+    with small.open("rb") as stream:
+        reader = make_reader(stream)
+        summary = reader.get_summary()
+        assert summary is not None and len(summary.chunk_indexes) > 100
+        times = [m.log_time for _, _, m in reader.iter_messages(log_time_order=False)]
+    assert len(times) == 4 * len(expected.t_ns) and times == sorted(times)
+    with mcapio.McapSource(small) as source:
+        record = json.loads(source.metadata["imufdi.ingest"]["json"])
+    assert record["parameters"]["mcap_chunk_size"] == 3000

@@ -73,6 +73,8 @@ def test_campaign_writes_results_and_gates(cli, tmp_path):
     assert {"runs", "runs.csv", "summary.json", "summary.md"} <= names
     summary = json.loads((out / "summary.json").read_text())
     assert [g["amplitude"] for g in summary["groups"]] == ["0.3deg/s", "1.5deg/s"]
+    # existing results need --resume (exit 2, nothing run)
+    assert_one_line_error(cli(["campaign", spec, "-o", out]), 2, "use --resume")
     failing = cli(
         [
             "campaign", spec, "-o", out, "--resume", "--json",
@@ -145,13 +147,6 @@ def test_bad_gate_and_scheduler_exit_2_before_any_run(cli, tmp_path):
     result = cli(["campaign", spec, "-o", tmp_path / "o", "--scheduler", "ftp://x"])
     assert_one_line_error(result, 2, "tcp://HOST:PORT and local:N")
     assert not (tmp_path / "o").exists()
-
-
-def test_existing_results_need_resume(cli, tmp_path):
-    spec = write(tmp_path, SPEC)
-    assert cli(["campaign", spec, "-o", tmp_path / "o", "--jobs", "1"]).code == 0
-    result = cli(["campaign", spec, "-o", tmp_path / "o"])
-    assert_one_line_error(result, 2, "use --resume")
 
 
 def children_of(pid: int) -> list[int]:

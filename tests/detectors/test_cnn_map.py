@@ -52,12 +52,19 @@ def short_log():
     return wearable12(1, duration=8.0, factor=None)
 
 
+# The mapping network alone: no input test, whose CUSUM threshold is a simulation of about
+# a second per fit and does not bear on the tests of the mapping (training, model files,
+# axis gains); the input test is fitted where it is tested.
+MAPPING_ONLY = {"input_test": "false", "mapping_test": "alarm"}
+
+
 @pytest.fixture(scope="module")
 def trained(short_log, tmp_path_factory):
-    """One FAST network trained on short_log's first 6 s and its saved model file, shared by
-    the tests that need a trained mapping but do not test training itself."""
+    """One network trained for 15 epochs on short_log's first 6 s (mapping test only) and
+    its saved model file, shared by the tests of training, model files and the mapping's
+    statistics."""
     array, block = short_log
-    detector = make(FAST)
+    detector = make({"epochs": "15", "patience": "15", **MAPPING_ONLY})
     detector.fit(block.mask(block.t_s() < 6.0), array)
     path = tmp_path_factory.mktemp("cnn") / "model.npz"
     detector.save_model(path)
@@ -103,13 +110,13 @@ def test_energy_ratio_to_the_other_imus():
 
 
 @pytest.mark.parametrize(("order", "rtol"), [(0, 0.06), (2, 0.3)])
-def test_axis_gains_predict_the_whitened_noise_variance(short_log, order, rtol):
+def test_axis_gains_predict_the_whitened_noise_variance(short_log, trained, order, rtol):
     """Step 6: added white noise of std eps on one IMU axis raises the variance of the
     whitened residual by eps^2 G (Monte Carlo). Exact up to the linearisation without
     whitening; with it, G takes the Jacobian as constant over the p + 1 windows the filter
     combines, which the tolerance allows for."""
     array, block = short_log
-    detector = make({**FAST, "whiten": str(order)})
+    detector = make({"model": trained[1], "whiten": str(order), **MAPPING_ONLY})
     t = block.t_s()
     detector.fit(block.mask(t < 6.0), array)
     length = detector.input_length
@@ -179,12 +186,8 @@ def test_alarm_episode_isolation_does_not_depend_on_block_size(tmp_path):
     assert_array_equal(a.isolated, b.isolated)
 
 
-def test_training_reduces_the_loss(short_log):
-    array, block = short_log
-    detector = make({"epochs": "15", "patience": "15"})
-    t = block.t_s()
-    detector.fit(block.mask(t < 6.0), array)
-    training = detector.metadata()["training"]
+def test_training_reduces_the_loss(trained):
+    training = trained[0].metadata()["training"]  # 15 epochs on short_log's first 6 s
     assert training["train_loss"][-1] < 0.8 * training["train_loss"][0]
     assert training["train_mae_rad_s"] < training["reference_rms_rad_s"]
 
@@ -193,7 +196,7 @@ def test_saved_model_reproduces_the_network(short_log, trained):
     array, block = short_log
     first, path = trained
     t = block.t_s()
-    second = make({"model": path})
+    second = make({"model": path, **MAPPING_ONLY})
     second.fit(block.mask(t < 6.0), array)
     assert first.mapping is not None and second.mapping is not None
     for w1, w2 in zip(first.mapping.weights, second.mapping.weights):
@@ -208,14 +211,14 @@ def test_saved_model_reproduces_the_network(short_log, trained):
     assert_array_equal(loaded.weights[-1], first.mapping.weights[-1])
 
 
-def test_bad_model_file_and_params(tmp_path):
+def test_bad_model_file_and_params(short_log, tmp_path):
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not an npz")
-    array, block = wearable12(0, duration=4.0, factor=None)
+    array, block = short_log
     with pytest.raises(DetectorConfigError, match="cnn-map"):
-        make({"model": str(bad)}).fit(block, array)
+        make({"model": str(bad), **MAPPING_ONLY}).fit(block, array)
     with pytest.raises(DetectorConfigError, match="cannot read"):
-        make({"model": str(tmp_path / "missing.npz")}).fit(block, array)
+        make({"model": str(tmp_path / "missing.npz"), **MAPPING_ONLY}).fit(block, array)
     with pytest.raises(DetectorConfigError, match="valid: relu, tanh"):
         make({"activation": "sigmoid"})
     with pytest.raises(DetectorConfigError, match="unknown parameter"):
@@ -230,14 +233,14 @@ def test_short_calibration_is_rejected():
 
 def test_model_trained_at_another_rate_is_rejected(short_log, trained, tmp_path):
     array, block = short_log
-    detector = make({"model": trained[1]})  # a copy of the trained network
+    detector = make({"model": trained[1], **MAPPING_ONLY})  # a copy of the trained network
     detector.fit(block.mask(block.t_s() < 6.0), array)
     assert detector.mapping is not None
     detector.mapping.rate_hz = 200.0
     path = tmp_path / "m.npz"
     detector.save_model(path)
     with pytest.raises(DetectorConfigError, match="200 Hz"):
-        make({"model": str(path)}).fit(block, array)
+        make({"model": str(path), **MAPPING_ONLY}).fit(block, array)
 
 
 @pytest.mark.slow

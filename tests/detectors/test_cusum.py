@@ -92,7 +92,11 @@ def test_threshold_gives_the_level_on_an_independent_null_simulation(level, wind
 
 
 def test_calibration_error_raises_the_threshold():
+    """Paired (same draws): a calibrated variance of 100 dof gives a higher h than an exact
+    one. A smaller simulation than the detectors' (64 chains of 4096 steps, 1/13 of the
+    samples) keeps the test quick; over seeds 0-19 its ratio was 1.11-1.4 (mean 1.25)."""
     design = CusumDesign()
-    exact = cusum_threshold(1e-4, design, 15.0, 1e12, np.random.default_rng(3))
-    estimated = cusum_threshold(1e-4, design, 15.0, 100.0, np.random.default_rng(3))
+    size = {"chains": 64, "steps": 4096}
+    exact = cusum_threshold(1e-4, design, 15.0, 1e12, np.random.default_rng(3), **size)
+    estimated = cusum_threshold(1e-4, design, 15.0, 100.0, np.random.default_rng(3), **size)
     assert estimated > exact

@@ -8,6 +8,7 @@ from numpy.testing import assert_allclose
 from scipy.stats import chi2
 from scipy.stats import f as f_distribution
 
+from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import NO_ISOLATION, DetectionBlock, parse_params
 from imufdi_cli.detectors.noise_glr import (
     DEFAULT_LEVEL_CONFIDENCE,
@@ -17,13 +18,14 @@ from imufdi_cli.detectors.noise_glr import (
     clipped_square_moments,
     equivalent_dof,
     leave_one_out_operator,
+    residual_spread,
     robust_scale,
     scale_estimator_dof,
     skew,
 )
 from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.faults import FaultInjector, parse_fault_spec
-from imufdi_cli.log import iter_blocks
+from imufdi_cli.log import ImuBlock, iter_blocks
 from imufdi_cli.simulate import preset, simulate_block
 
 
@@ -375,3 +377,112 @@ def test_short_calibration_window_warns_with_its_dof_and_the_window_that_would_d
     long.fit(block.mask(t < 10.0), array)
     assert long.calibration_warnings() == []
     assert long.models["gyro"].calibration_factor < factor
+
+
+# --- healthy noise spread (ArrayConfig <type>_noise_spread) ------------------------------
+
+SPREAD_RATE = 100.0
+
+
+def static_gyro_log(sigma: np.ndarray, seed: int, seconds: float = 100.0, calibrate_s: float = 10.0,
+                    grow: np.ndarray | None = None):  # fmt: skip
+    """4 co-aligned IMUs at rest, gyros only: white noise of per-sensor sigma (12,) rad/s for
+    the first ``calibrate_s`` and ``sigma * grow`` after."""
+    array = ArrayConfig.co_aligned(4, SPREAD_RATE, sensors=("gyro",))
+    rng = np.random.default_rng(seed)
+    n, n_cal = int(seconds * SPREAD_RATE), int(calibrate_s * SPREAD_RATE)
+    scale = np.tile(sigma, (n, 1))
+    if grow is not None:
+        scale[n_cal:] *= grow
+    gyro = (scale * rng.standard_normal((n, 12))).reshape(n, 4, 3)
+    t_ns = (np.arange(n) * 1e9 / SPREAD_RATE).astype(np.int64)
+    return array, ImuBlock(t_ns=t_ns, gyro=gyro)
+
+
+def with_spread(array: ArrayConfig, kappa: float) -> ArrayConfig:
+    return array.with_noise_spread([{"gyro": np.full(3, kappa)} for _ in range(array.n_imus)])
+
+
+def test_residual_spread_is_the_weighted_mean_of_the_sensor_spreads():
+    array = ArrayConfig.co_aligned(4, SPREAD_RATE, sensors=("gyro",))
+    operator, _ = leave_one_out_operator(array.measurement_matrix("gyro"))
+    assert_allclose(residual_spread(operator, np.full(12, 2.5), None), 2.5, rtol=1e-12)
+    # co-aligned x axes: r_0 = m_0 - mean(m_3, m_6, m_9), weights 1 and 1/9 each
+    kappa = np.ones(12)
+    kappa[0] = 3.0
+    spread = residual_spread(operator, kappa, None)
+    assert_allclose(spread[0], (3.0 + 3 / 9) / (1 + 3 / 9), rtol=1e-12)
+    assert_allclose(spread[3], (1.0 + 3.0 / 9 + 2 / 9) / (1 + 3 / 9), rtol=1e-12)
+    assert_allclose(spread[1], 1.0, rtol=1e-12)
+    sigma = np.ones(12)
+    sigma[3] = 2.0  # a noisier neighbour weighs 4x in residual 0
+    assert_allclose(residual_spread(operator, kappa, sigma)[0], (3.0 + 6 / 9) / (1 + 6 / 9))
+
+
+def test_without_the_field_or_with_noise_spread_false_the_detector_is_unchanged():
+    array, block = wearable12(seed=2)
+    block = block.slice(0, 2500)
+    plain = run(make(), array, block)
+    spread_array = array.with_noise_spread(
+        [{s: np.full(3, 2.0) for s in ("gyro", "accel")} for _ in range(array.n_imus)]
+    )
+    off = run(make({"noise_spread": False}), spread_array, block)
+    on = run(make(), spread_array, block)
+    for sensor_type in plain:
+        for name in ("statistic", "threshold", "alarm", "isolated", "amplitude", "scores"):
+            a, b = getattr(plain[sensor_type], name), getattr(off[sensor_type], name)
+            assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+        assert not np.array_equal(plain[sensor_type].statistic, on[sensor_type].statistic)
+    detector = make()
+    detector.fit(block.slice(0, 200), array)
+    assert "noise_spread" not in detector.metadata()["types"]["accel"]
+
+
+def predicted_rate(model, ratio: float) -> tuple[float, float]:
+    """Per-sample alarm probability of a full window (no clipping) when the residual's
+    variance is ``ratio`` times the tested scale, for the calibrated scale at the edges of
+    its 99.9 % interval (tau_hat / tau ~ chi2(nu_cal) / nu_cal): ``P(u > u_c)`` with
+    ``u ~ ratio (tau / tau_hat) chi2(nu_k) / nu_k``."""
+    nu, nu_cal = model.dof[-1], model.calibration_dof
+    lo, hi = chi2.ppf([0.0005, 0.9995], nu_cal) / nu_cal  # tau_hat / tau
+    u_c = model.critical_ratio[-1]
+    # a high tau_hat lowers u: the low end of the rate comes from the high end of tau_hat
+    return float(chi2.sf(u_c * hi / ratio * nu, nu)), float(chi2.sf(u_c * lo / ratio * nu, nu))
+
+
+def test_one_sided_spread_test_holds_its_level_at_the_boundary_and_keeps_power_beyond():
+    """Null boundary: every gyro's sigma grows by sqrt(kappa) after the calibration window
+    (variance x kappa = 2.25); with the spread in the array the level is at most alpha
+    (99.9 % clumped-binomial bound, ``far_bound``), without it the same log alarms far
+    more. Beyond: one gyro's sigma x3 (variance x9) from 10 s: the LOO residual's variance
+    is ``1 + 8 (1 - P_jj)`` = 7 times the calibrated one, 7 / 2.25 over the null boundary;
+    its per-sample detection rate lies within the rates predicted at the edges of the
+    calibrated scale's 99.9 % interval (Satterthwaite chi-square, no clipping), minus a
+    4-sigma clumped-binomial margin."""
+    kappa = 2.25
+    params = {"alpha": 0.01, "clip": 1000.0}
+    sigma = np.full(12, 0.002)
+    array, block = static_gyro_log(sigma, seed=5, grow=np.full(12, np.sqrt(kappa)))
+    after = block.t_s() >= 10.0
+    det = make(params)
+    out = run(det, with_spread(array, kappa), block, calibrate=(0.0, 10.0))["gyro"]
+    n = int(after.sum())
+    assert out.alarm[after].sum() <= far_bound(n, det.alpha, det.window_samples)
+    plain = run(make(params), array, block, calibrate=(0.0, 10.0))["gyro"]
+    assert plain.alarm[after].mean() > 0.5  # the spread is what keeps the level
+    grow = np.ones(12)
+    grow[4] = 3.0
+    array, block = static_gyro_log(sigma, seed=6, grow=grow)
+    det = make(params)
+    out = run(det, with_spread(array, kappa), block, calibrate=(0.0, 10.0))["gyro"]
+    model = det.models["gyro"]
+    full = after & (np.arange(len(after)) >= 1000 + det.window_samples)
+    rate = out.alarm[full].mean()
+    lo, hi = predicted_rate(model, 7.0 / kappa)
+    margin = 4 * np.sqrt(det.window_samples * 0.25 / full.sum())
+    assert lo - margin <= rate <= hi + margin
+    assert (out.isolated[full & out.alarm] == 4).all()
+    assert_allclose(np.median(out.amplitude[full & out.alarm]), np.sqrt(7.0), rtol=0.25)
+    # the price: without the spread the same fault is detected at the higher predicted rate
+    plain = run(make(params), array, block, calibrate=(0.0, 10.0))["gyro"]
+    assert plain.alarm[full].mean() > rate

@@ -20,8 +20,11 @@ from imufdi_cli.detectors.pca_parity import (
     _lag_one_autocorrelation,
     cross_fit_split,
     cross_fitted_components,
+    cross_validated_components,
+    fold_labels,
     mean_variance_inflation,
     plug_in_quantile,
+    principal_components,
 )
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.faults import FaultInjector, parse_fault_spec
@@ -233,6 +236,7 @@ def test_metadata_is_json_ready():
     assert meta["types"]["gyro"]["dimension"] == 3
     assert meta["types"]["gyro"]["components"] == 2
     assert meta["params"]["window_samples"] == 20
+    assert meta["variances"].startswith("mixed")
 
 
 # --- issue 16: level out of sample, calibration coverage ------------------------------------
@@ -359,18 +363,21 @@ def test_cross_fit_halves_alternate_blocks_and_span_the_window():
     assert cross_fit_split(12, 20) == 6  # block capped at a quarter of the rows
 
 
-def test_halves_shorter_than_the_parity_dimension_still_give_variances():
-    """paper-table4 (45 parity dimensions per type) on 0.5 s: each half holds about 25 rows,
-    fewer than the dimensions. Half A's directions are then partly arbitrary, but half B's
-    variance along each is still an unbiased, positive estimate on ~24 degrees of freedom,
-    which the F thresholds take into account."""
+def test_windows_shorter_than_the_parity_dimension_still_give_variances():
+    """paper-table4 (45 parity dimensions per type) on 0.5 s: 50 rows, each fold's rest 45,
+    no more than the dimensions. The out-of-fold directions are then partly arbitrary, but
+    the held-out variance along each is still a positive estimate, counted on N/2 = 25
+    degrees of freedom (the kept components' eigenvalues on N - 1 = 49), which the F
+    thresholds take into account."""
     array, block = simulate_block(preset("paper-table4", seed=1, duration=2.0, outliers=False))
     detector = make()
     out = run(detector, array, block, calibrate=(0.0, 0.5))
     assert set(out) == {"gyro", "accel"}
     meta = detector.metadata()["types"]["gyro"]
     assert meta["dimension"] == 45
-    assert 15 < min(meta["variance_dof"]) <= max(meta["variance_dof"]) <= 25  # N_B (1-r^2)/(1+r^2)
+    dof = meta["variance_dof"]  # rows (1 - r^2) / (1 + r^2): N - 1 kept, N / 2 discarded
+    assert 35 < min(dof[:2]) <= max(dof[:2]) <= 49
+    assert 15 < min(dof[2:]) <= max(dof[2:]) <= 25
 
 
 def test_plug_in_quantile_is_student_squared_for_one_component():
@@ -433,3 +440,135 @@ def test_conical6_level_holds_on_long_logs_after_the_documented_calibration():
         alarms += int(out.alarm[after].sum())
         total += int(after.sum())
     assert alarms <= far_bound(total, 1.5 * detector.alpha, detector.window_samples)
+
+
+# --- out-of-fold variances: the level of the halves at full length (issue 16, power) ----
+
+
+def test_fold_labels_interleave_blocks_and_fill_every_fold():
+    labels = fold_labels(200, 20, 10)
+    assert_allclose(labels[::20], np.arange(10))  # one 20-row block per fold, in turn
+    assert np.all(np.bincount(labels) == 20)
+    short = fold_labels(30, 20, 10)  # blocks shortened so that every fold gets rows
+    assert set(short.tolist()) == set(range(10))
+
+
+def test_out_of_fold_variance_is_unbiased_where_the_smallest_eigenvalue_is_not():
+    """Isotropic white noise (q = 3, N = 500, sigma = 1): the out-of-fold variance of the
+    last whole-window direction is unbiased, where its eigenvalue is about 0.9.
+
+    Tolerance: the detector counts each out-of-fold variance on N/2 degrees of freedom
+    (measured: sd 0.089 at N = 500, sqrt(2/250) = 0.089); the mean of R replications has
+    sd sqrt(2/(N/2 R)), and 4 sd bound it (two-sided 6e-5).
+    """
+    rng = np.random.default_rng(17)
+    n_rows, q, reps = 500, 3, 400
+    values = []
+    for _ in range(reps):
+        rows = rng.standard_normal((n_rows, q))
+        centred = rows - rows.mean(axis=0)
+        variances, directions = cross_validated_components(centred, 20, 10)
+        assert_allclose(directions.T @ directions, np.eye(q), atol=1e-12)
+        whole = np.linalg.eigh(centred.T @ centred)[1][:, ::-1]
+        assert_allclose(np.abs(directions.T @ whole), np.eye(q), atol=1e-9)  # whole window
+        values.append(variances[-1])
+    sd = np.sqrt(2.0 / (n_rows / 2 * reps))
+    assert abs(np.mean(values) - 1.0) < 4 * sd
+
+
+def test_mixed_variances_keep_the_eigenvalues_of_the_kept_components():
+    """Isotropic noise in 45 dimensions on 200 rows (paper-table4's gyro parity space):
+    the two kept components keep their sample eigenvalues, which lie near the upper edge
+    of the Marchenko-Pastur bulk, (1 + sqrt(45/200))^2 = 2.2, far above the true 1: the T
+    test is conservative there and cannot take the false-alarm budget of the Q test, which
+    carries a fault of a random direction (the power lost by the halves at matched FAR).
+    The discarded ones get out-of-fold variances, unbiased on average: their mean over
+    the 43 directions has sd at most sqrt(2/(N/2 * 43)) per replication (the detector's
+    N/2 dof; measured 0.016 against 0.022), and 4 sd of the mean of R replications bound
+    it. The sample eigenvalues average 0.95 there (biased low: the Q test was liberal),
+    more than 8 sd below 1."""
+    rng = np.random.default_rng(18)
+    n_rows, q, k, reps = 200, 45, 2, 40
+    kept, tail, sample_tail = [], [], []
+    for _ in range(reps):
+        rows = rng.standard_normal((n_rows, q))
+        centred = rows - rows.mean(axis=0)
+        variances, _directions, dof_rows = principal_components(centred, k, 20)
+        eigenvalues = np.linalg.eigvalsh(centred.T @ centred / (n_rows - 1))[::-1]
+        assert_allclose(variances[:k], eigenvalues[:k], rtol=1e-9)
+        assert_allclose(dof_rows, [n_rows - 1] * k + [n_rows / 2] * (q - k))
+        kept.append(variances[:k])
+        tail.append(variances[k:].mean())
+        sample_tail.append(eigenvalues[k:].mean())
+    assert np.min(kept) > 1.5
+    sd = np.sqrt(2.0 / (n_rows / 2 * (q - k) * reps))
+    assert abs(np.mean(tail) - 1.0) < 4 * sd
+    assert np.mean(sample_tail) < 1.0 - 8 * sd
+
+
+def matched_far_mar(statistic, t, onset, calibration_end=2.0, far=0.01):
+    """MAR with the threshold at the (1 - far) quantile of the out-of-sample fault-free
+    statistic (the campaign's ``mar_at_far``, per run)."""
+    free = (t >= calibration_end) & (t < onset)
+    threshold = np.quantile(statistic[free], 1.0 - far)
+    return float(np.mean(statistic[t >= onset] <= threshold))
+
+
+@pytest.mark.slow
+def test_small_step_power_at_matched_far_is_not_lost_to_the_kept_components():
+    """paper-table4, 0.3 deg/s step on imu0.gyro.x, tuning seeds 0-9, MAR at matched FAR 1 %.
+
+    The issue-16 halves left the kept components' variances 2-3 sd low on some seeds; the
+    T test then alarmed on the fault-free part, the matched threshold rose and the Q test,
+    which carries the fault, lost it (compare seeds 1000/1017: 53 % and 66 %; here seed 8:
+    75 %, mean over seeds 0-9: 12.8 %). Bound: the issue-15 figure, mean 2.8 % over 20
+    seeds, plus 3 standard errors of a mean of 10 seeds with a seed-to-seed sd of 5 %
+    (heavier than the 1.9 % measured, to allow a seed like tuning seed 13 at 17 %): 7.5 %.
+    """
+    detector = make({"types": "gyro"})
+    mars = []
+    for seed in range(10):
+        array, block = simulate_block(preset("paper-table4", seed=seed, duration=20.0))
+        faults = [parse_fault_spec("step:imu0.gyro.x,at=12s,amp=0.3deg/s", array)]
+        block = FaultInjector(faults, array, seed=seed, t0_ns=int(block.t_ns[0])).apply_block(block)
+        out = run(detector, array, block, block_size=4096)["gyro"]
+        mars.append(matched_far_mar(out.statistic, block.t_s(), 12.0))
+    assert np.mean(mars) <= 0.028 + 3 * 0.05 / np.sqrt(10)
+
+
+def test_worst_motion_leak_error_of_one_calibration_is_chi2_with_mean_e():
+    """Scheffe: for a least-squares fit on a design X (N, e), the error d of the fitted
+    coefficients satisfies sup_x (x.d)^2 / (sigma^2 x^T G x) = d^T G^-1 d / sigma^2 ~
+    chi2(e), G = (X^T X)^-1. Its mean, e, is the allowance the detector puts on the leak
+    error term (SCHEFFE_LEAK). Tolerance: 4 sd of the mean of R chi2(e) draws,
+    4 sqrt(2 e / R)."""
+    rng = np.random.default_rng(19)
+    n_rows, e, reps = 200, 3, 2000
+    design = rng.standard_normal((n_rows, e)) * np.array([1.0, 5.0, 20.0])
+    gram = design.T @ design
+    ratios = []
+    for _ in range(reps):
+        noise = rng.standard_normal(n_rows)
+        error = np.linalg.solve(gram, design.T @ noise)  # fitted minus true coefficients
+        ratios.append(error @ gram @ error)
+    assert abs(np.mean(ratios) - e) < 4 * np.sqrt(2 * e / reps)
+
+
+def test_leak_error_allowance_is_the_number_of_excited_directions(monkeypatch):
+    """conical6 on 0-2 s: three excited directions, a leak fitted: allowance 3. wearable12
+    swings too, but no leak is significant, none is fitted, and the statistic is the same
+    with and without the allowance."""
+    detector = make()
+    array, block = simulate_block(preset("conical6", seed=3, duration=4.0))
+    run(detector, array, block, calibrate=(0.0, 2.0))
+    model = detector.models["gyro"]
+    assert model.leak_fitted and model.motion.basis.shape[1] == 3
+    assert model.leak_tolerance == 3.0
+    from imufdi_cli.detectors import pca_parity
+
+    array, block = simulate_block(preset("wearable12", seed=3, duration=4.0))
+    with_allowance = run(make(), array, block, calibrate=(0.0, 2.0))
+    monkeypatch.setattr(pca_parity, "SCHEFFE_LEAK", False)
+    without = run(make(), array, block, calibrate=(0.0, 2.0))
+    for sensor_type, out in with_allowance.items():
+        assert_allclose(out.statistic, without[sensor_type].statistic, rtol=0, atol=0)

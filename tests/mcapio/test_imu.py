@@ -3,6 +3,7 @@ alignment statistics, bad input."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import struct
 from pathlib import Path
@@ -371,3 +372,20 @@ def test_summarize_counts_gaps_of_every_topic(tmp_path, array4) -> None:
     assert summary.gaps["longest_s"] == pytest.approx(0.04)
     assert summary.rate_hz == pytest.approx(100.0)
     assert summary.stats is not None and sum(summary.stats.gaps.values()) == 0
+
+
+@pytest.mark.parametrize("sizes", [[5, 5, 5], [1, 9, 3, 30, 2], [12], [0, 4, 0, 4, 4], [3, 3]])
+@pytest.mark.parametrize("block_size", [1, 4, 7])
+def test_recut_cuts_as_rechunk(sizes, block_size) -> None:
+    from imufdi_cli.log import rechunk
+    from imufdi_cli.mcapio.imu import recut
+
+    whole = make_block(sum(sizes), 2, mag=True)
+    bounds = np.cumsum([0, *sizes])
+    parts = [whole.slice(int(a), int(b)) for a, b in itertools.pairwise(bounds.tolist())]
+    got = list(recut(iter(parts), block_size))
+    want = list(rechunk(iter(parts), block_size))
+    assert [len(b) for b in got] == [len(b) for b in want]
+    for a, b in zip(got, want):
+        for name in ("t_ns", "gyro", "accel", "mag"):
+            assert_array_equal(getattr(a, name), getattr(b, name))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import io
 import os
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 import zstandard
 from mcap.reader import make_reader
 
-from imufdi_cli.errors import McapInputError, OutputError
+from imufdi_cli.errors import McapInputError, OutputError, UsageError
 from imufdi_cli.mcapio import McapWriter, MessageBatch
 from imufdi_cli.mcapio.compression import compress, decompress
 
@@ -79,6 +80,25 @@ def test_a_log_time_beyond_int64_is_bad_data_naming_topic_and_value(tmp_path):
         records = np.zeros((2, 31), np.uint8)
         writer.add_records(records, np.array([channel, channel]), np.array([5, -1]))
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("ids", [[7], [0, 1, 2], [1, 65535, 2]])
+def test_messages_of_an_unregistered_channel_are_refused_naming_it(ids):
+    first_unknown = min(set(ids) - {0, 1})
+    with McapWriter(io.BytesIO()) as writer:
+        schema = writer.register_schema("s", "", b"")
+        for topic in ("/a", "/b"):
+            writer.register_channel(topic, "cdr", schema)
+        times = np.arange(len(ids), dtype=np.int64)
+        batch = MessageBatch.from_payloads(0, times, [b"x"] * len(ids))
+        batch.channel_id[:] = ids
+        with pytest.raises(UsageError, match=f"unregistered channel id {first_unknown}$"):
+            writer.add_batch(batch)
+        records = np.zeros((len(ids), 31), np.uint8)
+        with pytest.raises(UsageError, match=f"unregistered channel id {first_unknown}$"):
+            writer.add_records(records, np.array(ids), times)
+        # registered channels pass
+        writer.add_records(np.zeros((2, 31), np.uint8), np.array([1, 0]), np.array([0, 1]))
 
 
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])

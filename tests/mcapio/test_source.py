@@ -375,3 +375,43 @@ def test_read_ahead_survives_a_fork(monkeypatch) -> None:
         _, status = os.waitpid(pid, 0)
         assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
         assert first + sum(len(b) for b in batches) == n
+
+
+def test_zstd_frame_checksum_stands_in_for_the_chunk_crc(tmp_path) -> None:
+    """Chunks whose zstd frame carries a content checksum (imufdi's writer) are verified
+    by it; the CRC-32 is then checked only with ``strict``. A changed record byte is
+    caught either way."""
+    from imufdi_cli.array import ArrayConfig
+    from imufdi_cli.mcapio import write_array
+    from imufdi_cli.mcapio.compression import frame_checksummed
+
+    from .conftest import make_block
+
+    path = tmp_path / "z.mcap"
+    write_array(path, ArrayConfig.co_aligned(2, 100.0), make_block(3000, 2), compression="zstd")
+    data = path.read_bytes()
+    chunks = [(offset, length) for offset, opcode, length in _records(data) if opcode == 0x06]
+    assert len(chunks) >= 2
+    offset, length = chunks[1]
+    content = data[offset + 9 : offset + 9 + length]
+    (name_length,) = struct.unpack_from("<I", content, 28)
+    (size,) = struct.unpack_from("<Q", content, 16)
+    frame = content[32 + name_length + 8 :]
+    assert frame_checksummed(frame, "zstd", size)
+    assert not frame_checksummed(frame, "zstd", size + 1)
+    assert not frame_checksummed(frame, "lz4", size)
+    good = sum(len(b) for b in McapSource(io.BytesIO(data)).batches())
+    wrong_crc = bytearray(data)
+    wrong_crc[offset + 9 + 24] ^= 0x01  # the chunk's CRC field; its records are intact
+    with McapSource(io.BytesIO(bytes(wrong_crc))) as source:
+        assert sum(len(b) for b in source.batches()) == good
+        assert source.warnings == []
+    with pytest.raises(McapInputError, match=f"chunk at byte {offset} skipped: CRC mismatch"):
+        _read_strict(bytes(wrong_crc))
+    wrong_checksum = bytearray(data)
+    wrong_checksum[offset + 9 + length - 1] ^= 0x01  # the frame's checksum: records intact
+    with McapSource(io.BytesIO(bytes(wrong_checksum))) as source:
+        assert sum(len(b) for b in source.batches()) < good
+        assert any(
+            f"chunk at byte {offset} skipped: corrupt zstd chunk" in w for w in source.warnings
+        )

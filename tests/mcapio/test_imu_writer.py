@@ -1,0 +1,107 @@
+"""ImuArrayWriter's record sources (records built on the writer's worker threads) give the
+same bytes as the per-message encoder, whatever the chunk boundaries; MessageIndex records
+match a plain reference."""
+
+from __future__ import annotations
+
+import io
+import itertools
+import struct
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.errors import UsageError
+from imufdi_cli.mcapio import ImuArrayWriter, McapWriter, read_array
+from imufdi_cli.mcapio.records import OP_MESSAGE_INDEX
+from imufdi_cli.mcapio.writer import message_index_records
+
+from .conftest import make_block
+
+
+def _write(blocks, n_imus: int, chunk_size: int, compression: str, *, generic: bool) -> bytes:
+    out = io.BytesIO()
+    with McapWriter(out, compression=compression, chunk_size=chunk_size) as writer:
+        imu_writer = ImuArrayWriter(writer, ArrayConfig.co_aligned(n_imus, 100.0))
+        if generic:  # the per-message encoder (encode_messages, add_batch)
+            imu_writer._imu_records.uniform = False
+        for block in blocks:
+            imu_writer.write_block(block)
+    return out.getvalue()
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+@pytest.mark.parametrize("chunk_size", [1, 1000, 5 * 355 + 7, 1 << 20])
+def test_record_sources_write_the_bytes_of_the_message_encoder(compression, chunk_size) -> None:
+    # uneven blocks; chunk sizes that cut samples (and single records) at every phase
+    n = 41 if chunk_size < 2000 else 301
+    whole = make_block(n, 5, seed=3)
+    cuts = [0, 1, 2, n // 3, n // 2, n]
+    blocks = [whole.slice(a, b) for a, b in itertools.pairwise(cuts)]
+    fast = _write(blocks, 5, chunk_size, compression, generic=False)
+    generic = _write(blocks, 5, chunk_size, compression, generic=True)
+    assert fast == generic
+
+
+def test_missing_vectors_are_nan_in_both_paths() -> None:
+    block = replace(make_block(40, 3, seed=1), accel=None)
+    assert _write([block], 3, 700, "zstd", generic=False) == _write(
+        [block], 3, 700, "zstd", generic=True
+    )
+
+
+def test_the_block_may_change_once_written(tmp_path) -> None:
+    block = make_block(2000, 4, seed=2)
+    expected = (block.gyro.copy(), block.accel.copy())  # type: ignore[union-attr]
+    path = tmp_path / "a.mcap"
+    with McapWriter(path, chunk_size=4096) as writer:
+        imu_writer = ImuArrayWriter(writer, ArrayConfig.co_aligned(4, 100.0))
+        imu_writer.write_block(block)
+        # records are built later on worker threads: they must not see this
+        block.gyro[...] = 0.0  # type: ignore[index]
+        block.accel[...] = 0.0  # type: ignore[index]
+        block.t_ns[...] = 0
+    _, read = read_array(path)
+    assert read.gyro is not None and read.accel is not None
+    assert read.gyro.tobytes() == expected[0].tobytes()
+    assert read.accel.tobytes() == expected[1].tobytes()
+
+
+def test_a_stamp_beyond_int32_seconds_is_refused_by_write_block() -> None:
+    block = make_block(10, 2)
+    block = replace(block, t_ns=block.t_ns + (2**31) * 10**9)
+    with McapWriter(io.BytesIO()) as writer:
+        imu_writer = ImuArrayWriter(writer, ArrayConfig.co_aligned(2, 100.0))
+        with pytest.raises(UsageError, match="int32 seconds"):
+            imu_writer.write_block(block)
+
+
+def _reference_index(channels, times, offsets) -> tuple[bytes, dict[int, int]]:
+    """One record per channel (increasing ids), entries sorted by (time, chunk order)."""
+    out = b""
+    where = {}
+    for channel in sorted(set(channels.tolist())):
+        rows = [i for i in range(len(channels)) if channels[i] == channel]
+        rows.sort(key=lambda i: (int(times[i]), i))
+        body = b"".join(struct.pack("<QQ", int(times[i]), int(offsets[i])) for i in rows)
+        where[channel] = len(out)
+        out += struct.pack("<BQHI", OP_MESSAGE_INDEX, 6 + len(body), channel, len(body)) + body
+    return out, where
+
+
+@pytest.mark.parametrize("ordered", [True, False])
+def test_message_index_records_match_a_plain_reference(ordered) -> None:
+    rng = np.random.default_rng(7)
+    n = 500
+    channels = rng.choice(np.array([0, 3, 4, 9, 300], np.uint16), n)
+    times = rng.integers(0, 60, n).astype(np.int64)  # ties on purpose
+    if ordered:
+        times = np.sort(times)
+    offsets = np.cumsum(rng.integers(40, 400, n)).astype(np.int64)
+    records, where, counts = message_index_records(channels, times, offsets)
+    expected, expected_where = _reference_index(channels, times, offsets)
+    assert records == expected
+    assert where == expected_where
+    assert counts == {int(c): int((channels == c).sum()) for c in np.unique(channels)}

@@ -1,0 +1,75 @@
+"""RecordPattern: chunks continuing a known record pattern are located exactly as
+scan_records locates them, and anything else is left to scan_records."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+from imufdi_cli.mcapio.scan import RecordPattern, scan_records
+
+
+def records(lengths: list[int], opcode: int = 0x05) -> bytes:
+    return b"".join(
+        struct.pack("<BQ", opcode, n) + bytes([i % 251]) * n for i, n in enumerate(lengths)
+    )
+
+
+@pytest.mark.parametrize("period", [[30], [30, 31, 30], [40, 40, 12, 40]])
+@pytest.mark.parametrize("phase", [0, 1, 2])
+@pytest.mark.parametrize("count", [1, 7, 50, 51])
+def test_match_equals_scan_records(period: list[int], phase: int, count: int) -> None:
+    phase %= len(period)
+    lengths = [period[(phase + i) % len(period)] for i in range(count)]
+    buf = np.frombuffer(records(lengths), np.uint8)
+    pattern = RecordPattern(period)
+    found = pattern.match(buf, phase)
+    assert found is not None
+    starts, got, after = found
+    want = scan_records(buf)
+    assert want[3] == buf.shape[0] and bool((want[1] == 0x05).all())
+    np.testing.assert_array_equal(starts, want[0] + 9)
+    np.testing.assert_array_equal(got, want[2])
+    assert after == (phase + count) % len(period)
+
+
+def test_match_finds_another_phase() -> None:
+    period = [30, 50, 70]
+    buf = np.frombuffer(records([70, 30, 50, 70, 30]), np.uint8)
+    found = RecordPattern(period).match(buf, 0)  # the hint is wrong: phase 2 fits
+    assert found is not None
+    assert found[2] == (2 + 5) % 3
+    np.testing.assert_array_equal(found[0], scan_records(buf)[0] + 9)
+
+
+def test_match_refuses_what_does_not_follow_the_pattern() -> None:
+    pattern = RecordPattern([30, 31])
+    good = bytearray(records([30, 31] * 20))
+    assert pattern.match(np.frombuffer(bytes(good), np.uint8), 0) is not None
+    bad_length = bytearray(good)
+    bad_length[(9 + 30 + 9 + 31) * 7 + 1] ^= 0x04  # a record length in the middle
+    assert pattern.match(np.frombuffer(bytes(bad_length), np.uint8), 0) is None
+    bad_opcode = bytearray(good)
+    bad_opcode[(9 + 30 + 9 + 31) * 11] = 0x04  # a Channel record, not a Message
+    assert pattern.match(np.frombuffer(bytes(bad_opcode), np.uint8), 0) is None
+    cut = np.frombuffer(bytes(good[:-5]), np.uint8)  # the last record is cut
+    assert pattern.match(cut, 0) is None
+    assert pattern.match(np.frombuffer(bytes(good) + b"\x05", np.uint8), 0) is None
+    assert pattern.match(np.zeros(0, np.uint8), 0) is None
+
+
+def test_learn() -> None:
+    lengths = np.array([30, 31, 32] * 5 + [30], np.int64)
+    size = int(lengths.sum()) + 9 * lengths.shape[0]
+    pattern = RecordPattern.learn(np.full(16, 5, np.uint8), lengths, size)
+    assert pattern is not None and pattern.lengths == [30, 31, 32]
+    assert pattern.phase_after(0, 16) == 1
+    assert RecordPattern.learn(np.full(16, 5, np.uint8), lengths, size + 1) is None
+    ops = np.full(16, 5, np.uint8)
+    ops[3] = 4
+    assert RecordPattern.learn(ops, lengths, size) is None
+    irregular = np.arange(16, dtype=np.int64) + 30
+    size = int(irregular.sum()) + 9 * 16
+    assert RecordPattern.learn(np.full(16, 5, np.uint8), irregular, size) is None
