@@ -74,6 +74,11 @@ import numpy as np
 
 from imufdi_cli.detectors.parity import check_measurement_matrix, least_squares_matrix
 
+#: ``(sigma_k, consensus_sigma, dof)`` or ``(sigma_k, consensus_sigma, dof, (A, B, D))``:
+#: the white noise of a sensor and its consensus, and how well the calibration knows them
+#: (:func:`fit_models`, :func:`white_sigma_spread`)
+WhiteNoise = tuple[float, float, float] | tuple[float, float, float, tuple[float, float, float]]
+
 #: fault models an episode is explained by, in tie-break order
 MODELS = ("none", "step", "drift", "noise", "scale", "spikes", "stuck")
 #: what the size of each model is
@@ -300,7 +305,7 @@ def fit_models(
     calibration_samples: int | None = None,
     offset_var: float | None = None,
     reference: Reference | None = None,
-    white: tuple[float, float, float] | None = None,
+    white: WhiteNoise | None = None,
 ) -> list[FaultFit]:
     """Fit every fault model to one sensor's residual over an analysis window.
 
@@ -334,12 +339,15 @@ def fit_models(
         The other sensors' residuals over the same window: the same estimators applied to
         them check the noise model, and widen the step, drift and scale intervals when the
         healthy sensors spread significantly more than it predicts.
-    white : (float, float, float), optional
-        ``(sigma_k, consensus_sigma, dof)``: the white-noise part of the calibrated noise
-        (from successive differences, :func:`white_sigma`) and the degrees of freedom of
-        that estimate. The noise factor is then sized from the successive differences of
-        the residual (:func:`_noise_fit`), which slow motion-dependent errors (scale and
-        misalignment under motion) and a shift of the consensus do not enter.
+    white : (float, float, float) or (float, float, float, (float, float, float)), optional
+        ``(sigma_k, consensus_sigma, dof[, spread])``: the white-noise part of the
+        calibrated noise (from successive differences, :func:`white_sigma`) and the
+        degrees of freedom of that estimate; ``spread`` (:func:`white_sigma_spread`), when
+        given, replaces ``dof`` by the calibration's actual degrees of freedom for this
+        sensor's factor (:func:`_calibration_dof`). The noise factor is then sized from
+        the successive differences of the residual (:func:`_noise_fit`), which slow
+        motion-dependent errors (scale and misalignment under motion) and a shift of the
+        consensus do not enter.
 
     Returns
     -------
@@ -450,7 +458,7 @@ def _fit_window(
     stuck_share: float,
     calibration_samples: int | None,
     offset_var: float | None,
-    white: tuple[float, float, float] | None,
+    white: WhiteNoise | None,
 ) -> list[FaultFit]:
     """:func:`fit_models` with every fault lasting to the window's end."""
     length = r.shape[0]
@@ -881,10 +889,45 @@ def successive_difference_dof(n: int) -> float:
     return 2.0 * (n - 1) ** 2 / max(3 * n - 4, 1)
 
 
+def _calibration_dof(
+    var_hat: float,
+    sigma_k: float,
+    consensus_sigma: float,
+    spread: tuple[float, float, float],
+    default: float,
+) -> float:
+    """Degrees of freedom of the calibration's part of the noise factor's F interval.
+
+    The factor is ``f^2 = (v - c^2) / s_k`` with ``s = sigma_hat^2`` the white variances
+    of the calibration (``c^2 = sum_j g_j^2 s_j`` the consensus's) and v the episode's.
+    Their errors enter ``log f^2`` with the gradient ``-(g^2 / (v - c^2) + e_k / s_k)``,
+    so the calibration adds ``kappa = A / u^2 + 2 B / (u s_k) + D / s_k^2`` to its
+    variance (``u = v - c^2``; A, B, D from :func:`white_sigma_spread`). F(nu, nu_cal)
+    puts ``a^2 2 / nu_cal`` there (``a = v / u``: the interval is mapped through
+    ``v -> sqrt(v - c^2)``), so ``nu_cal = 2 a^2 / kappa`` matches the second moment
+    (Satterthwaite 1946). Two things make it differ from the successive-difference
+    dof of n_cal samples: each sensor's variance is solved from parity residuals that
+    carry the other sensors' noise (non-negative least squares in :func:`white_sigma`:
+    1.14 times the variance for 16 co-aligned IMUs), and the consensus's variance, taken
+    off, errs with the other sensors' estimates (negatively correlated with sensor k's
+    when few sensors share the residuals: the errors partly cancel). ``default`` when
+    ``v <= c^2`` or the spread is degenerate.
+    """
+    a_term, b_term, d_term = spread
+    u = var_hat - consensus_sigma**2
+    if u <= 0 or sigma_k <= 0:
+        return default
+    s_k = sigma_k**2
+    kappa = a_term / u**2 + 2 * b_term / (u * s_k) + d_term / s_k**2
+    if not math.isfinite(kappa) or kappa <= 0:
+        return default
+    return max(2 * (var_hat / u) ** 2 / kappa, 1.0)
+
+
 def _white_noise_fit(
     r: np.ndarray,
     mean: float,
-    white: tuple[float, float, float],
+    white: WhiteNoise,
     confidence: float,
     onset: int,
     bic: float,
@@ -894,15 +937,16 @@ def _white_noise_fit(
     """Noise factor from the successive differences of the residual after the onset.
 
     The white part of ``Var r`` is ``f^2 sigma_k^2 + sigma_c^2`` (``white`` holds sigma_k,
-    sigma_c and the degrees of freedom of their calibration estimate). Its estimate
-    ``q / (n - 1)`` with ``q = sum (r_{i+1} - r_i)^2 / 2`` (von Neumann 1941) leaves out
-    what varies slowly: motion-dependent scale and misalignment errors (at 0.5 Hz a sample
-    step of 0.01 s changes them by 3 %) and a shift of the consensus. Against the
-    calibration's white variance, estimated the same way, the ratio is F(nu, nu_cal)
-    distributed, nu from :func:`successive_difference_dof`; the interval is that of the
-    variance mapped through f.
+    sigma_c, the degrees of freedom of their calibration estimate and optionally its
+    spread). Its estimate ``q / (n - 1)`` with ``q = sum (r_{i+1} - r_i)^2 / 2`` (von
+    Neumann 1941) leaves out what varies slowly: motion-dependent scale and misalignment
+    errors (at 0.5 Hz a sample step of 0.01 s changes them by 3 %) and a shift of the
+    consensus. Against the calibration's white variance, estimated the same way, the ratio
+    is F(nu, nu_cal) distributed, nu from :func:`successive_difference_dof` and nu_cal from
+    :func:`_calibration_dof` (the calibration estimate's actual spread) when ``white``
+    carries it; the interval is that of the variance mapped through f.
     """
-    sigma_k, consensus_sigma, dof_cal = white
+    sigma_k, consensus_sigma, dof_cal = white[0], white[1], white[2]
     n = r.shape[0]
     if n < 3 or sigma_k <= 0:
         return FaultFit("noise", math.nan, -math.inf, math.inf, onset, bic, {"mean": mean})
@@ -912,11 +956,14 @@ def _white_noise_fit(
 
     var_hat = float(np.sum(np.diff(r) ** 2)) / (2 * (n - 1))
     dof = successive_difference_dof(n)
+    extra: dict[str, Any] = {"mean": mean}
+    if len(white) == 4:
+        dof_cal = _calibration_dof(var_hat, sigma_k, consensus_sigma, white[3], dof_cal)
+        extra["calibration_dof"] = dof_cal
     tail = (1 - confidence) / 2
     low = factor(var_hat / _f_quantile(1 - tail, dof, dof_cal))
     high = factor(var_hat / _f_quantile(tail, dof, dof_cal))
     curve = (np.zeros(n), max(var0, ranking_var))
-    extra = {"mean": mean}
     return FaultFit("noise", factor(var_hat), low, high, onset, bic, extra, curve=curve)
 
 
@@ -1246,6 +1293,11 @@ class EpisodeBuilder:
         The white part of each sensor's noise (:func:`white_sigma`, SI), estimated from
         ``calibration_samples`` samples; the noise factor is then sized against it from
         successive differences (:func:`_white_noise_fit`).
+    white_excess : float
+        How much more the white variances spread than Gaussian white noise says
+        (:func:`white_sigma_excess`: outliers that pass the cut, heavy tails); it scales
+        :func:`white_sigma_covariance` and so lowers the calibration's degrees of freedom
+        in the noise factor's interval.
     variance_drop : bool
         Also run the :class:`VarianceDropMonitor` on the measurements and return its
         explained episodes (``detector`` :data:`VARIANCE_DROP`) with this builder's: a
@@ -1274,6 +1326,7 @@ class EpisodeBuilder:
         calibration_samples: int | None = None,
         calibration_mean: np.ndarray | None = None,
         white_sigma: np.ndarray | None = None,
+        white_excess: float = 1.0,
         variance_drop: bool = False,
         variance_drop_window_s: float = 1.0,
         variance_drop_alpha: float = 1e-7,
@@ -1305,6 +1358,7 @@ class EpisodeBuilder:
             "calibration_samples": calibration_samples,
             "calibration_mean": calibration_mean,
             "white_sigma": white_sigma,
+            "white_excess": white_excess,
             "variance_drop_window_s": variance_drop_window_s,
             "variance_drop_alpha": variance_drop_alpha,
         }
@@ -1315,6 +1369,8 @@ class EpisodeBuilder:
         )
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
         self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
+        self.white_excess = float(white_excess)
+        self._white_cov: np.ndarray | None = None  # white_sigma_covariance, once
         self._estimators: dict[int, np.ndarray] = {}  # k -> _estimator(k)
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
@@ -1593,13 +1649,22 @@ class EpisodeBuilder:
         )
         return episode
 
-    def _white(self, k: int, gain: np.ndarray) -> tuple[float, float, float] | None:
-        """(sigma_k, consensus sigma, dof) of the white noise for :func:`fit_models`."""
+    def _white(self, k: int, gain: np.ndarray) -> WhiteNoise | None:
+        """(sigma_k, consensus sigma, dof, spread) of the white noise for
+        :func:`fit_models` (spread: :func:`white_sigma_spread`, left out when the
+        calibration's variances are not identifiable one by one)."""
         if self.white_sigma is None or not self.calibration_samples:
             return None
         consensus = float(np.sqrt(np.sum((gain * self.white_sigma) ** 2)))
         dof = successive_difference_dof(self.calibration_samples)
-        return float(self.white_sigma[k]), consensus, dof
+        if self._white_cov is None:
+            self._white_cov = self.white_excess * white_sigma_covariance(
+                self.H, self.white_sigma, self.calibration_samples
+            )
+        if self._white_cov.size == 0:
+            return float(self.white_sigma[k]), consensus, dof
+        spread = white_sigma_spread(self._white_cov, gain, k)
+        return float(self.white_sigma[k]), consensus, dof, spread
 
     def _reference(self, k: int, window: np.ndarray) -> Reference | None:
         """The other sensors' residuals over ``window`` (:class:`Reference`), each against
@@ -1734,6 +1799,127 @@ def white_sigma(H: np.ndarray, measurements: np.ndarray) -> np.ndarray:
     return residual_sigma(H, np.diff(m, axis=0)) / math.sqrt(2.0)
 
 
+def white_sigma_covariance(H: np.ndarray, sigma: np.ndarray, n_samples: int) -> np.ndarray:
+    """Covariance of the white variances :func:`white_sigma` estimates, SI^4.
+
+    :func:`~imufdi_cli.detectors.parity.residual_sigma` solves ``M s = v`` for the
+    variances s, ``M = (I - S)∘(I - S)``, v the variances of the parity residuals (here of
+    the differenced samples, halved). For Gaussian white noise ``Cov(v) = 2/nu (C∘C)``
+    with ``C = (I - S) diag(sigma^2) (I - S)^T`` (Isserlis) and nu the
+    successive-difference degrees of freedom of n_samples (:func:`successive_difference_dof`),
+    so ``Cov(s) = M^-1 Cov(v) M^-T`` (the same propagation as
+    :func:`~imufdi_cli.detectors.parity.sigma_estimate_variance`, with nu for N - 1, and
+    kept whole: the off-diagonal terms are what the consensus variance shares with
+    sigma_k^2).
+
+    Parameters
+    ----------
+    H : ndarray, shape (n, q)
+    sigma : ndarray, shape (n,), SI
+        The estimated white sigmas (plugged in for the true ones).
+    n_samples : int
+        Calibration samples.
+
+    Returns
+    -------
+    ndarray, shape (n, n); shape (0, 0) without parity residuals, with fewer than 3
+    samples, or when M is singular (e.g. six single-axis gyros on a cone: residual_sigma
+    then returns one common sigma; its pooled degrees of freedom, about (n - q) times
+    more, made conical6's intervals too narrow in the episodes, whose windows carry motion
+    errors the calibration does not, so the successive-difference dof of n_samples stays).
+    """
+    H = np.asarray(H, dtype=np.float64)
+    n, q = H.shape
+    if n_samples < 3 or n <= q:
+        return np.zeros((0, 0))
+    projector = np.eye(n) - H @ np.linalg.pinv(H)
+    mixing = projector**2
+    sig = np.asarray(sigma, dtype=np.float64)
+    covariance = projector @ np.diag(sig**2) @ projector.T
+    spread = 2.0 / successive_difference_dof(n_samples) * covariance**2  # Cov(v)
+    singular = np.linalg.svd(mixing, compute_uv=False)
+    if not singular[-1] > 1e-8 * singular[0]:
+        return np.zeros((0, 0))
+    inverse = np.linalg.inv(mixing)
+    return inverse @ spread @ inverse.T
+
+
+def white_sigma_excess(
+    H: np.ndarray, measurements: np.ndarray, *, outlier_cut: float = 4.0
+) -> float:
+    """How much more the white variances of :func:`white_sigma` spread than Gaussian white
+    noise says, measured on the calibration window itself (>= 1).
+
+    :func:`white_sigma_covariance` assumes Gaussian white noise. The variances are
+    ``s = M^-1 v`` (:func:`white_sigma_covariance`), v the means of ``x_t = r_t^2`` (the
+    squared parity residuals of the differenced samples), so each ``s_k`` is the mean of
+    the series ``z_t = (M^-1 x_t)_k``, whose mean has the variance ``(g0 + 2 g1) / N'``
+    (autocovariances of z to lag 1: neighbouring differences correlate, the others do
+    not). Under Gaussian white noise ``g0 + 2 g1 = 3 w^T (C∘C) w`` (w the row k of
+    ``M^-1``, C the covariance of the differenced residuals; Isserlis, neighbouring
+    differences correlating with -1/2). Outliers that pass the 4-sigma cut once
+    differenced (each spreads over two differences, at 1/sqrt(2) of its size; on
+    paper-table4 about a quarter of them) and heavy-tailed noise make the measured value
+    larger. The factor is the measured over the Gaussian value, averaged over the sensors
+    (one window then estimates it to a few per cent), times ``N_diff / N'`` for the rows
+    the cut left out (the same cut as
+    :func:`~imufdi_cli.detectors.parity.residual_sigma`); floored at 1, the Gaussian value.
+
+    Parameters
+    ----------
+    H : array_like, shape (n, 3)
+    measurements : array_like, shape (N, n), N >= 4, fault-free, SI
+
+    Returns
+    -------
+    float
+        1 for Gaussian white noise (up to its sampling error), more with outliers; 1 when
+        the per-sensor variances are not identifiable (singular M) or too few samples.
+    """
+    from imufdi_cli.detectors.parity import residuals
+
+    H = np.asarray(H, dtype=np.float64)
+    m = np.asarray(measurements, dtype=np.float64)
+    n, q = H.shape
+    if m.ndim != 2 or m.shape[0] < 4 or n <= q:
+        return 1.0
+    projector = np.eye(n) - H @ np.linalg.pinv(H)
+    mixing = projector**2
+    singular = np.linalg.svd(mixing, compute_uv=False)
+    if not singular[-1] > 1e-8 * singular[0]:
+        return 1.0
+    inverse = np.linalg.inv(mixing)
+    r = residuals(H, np.diff(m, axis=0))
+    centre = np.median(r, axis=0)
+    robust_std = 1.4826 * np.median(np.abs(r - centre), axis=0)
+    inlier = np.all(np.abs(r - centre) <= outlier_cut * robust_std, axis=1)
+    kept = r[inlier] if np.count_nonzero(inlier) >= max(2, r.shape[0] // 2) else r
+    if kept.shape[0] < 3:
+        return 1.0
+    z = (kept**2) @ inverse.T  # (N', n): z_t,k has mean s_k (differenced: 2 sigma_k^2)
+    variance = np.clip(z.mean(axis=0), 0.0, None)
+    zc = z - z.mean(axis=0)
+    measured = np.mean(zc**2, axis=0) + 2 * np.sum(zc[1:] * zc[:-1], axis=0) / z.shape[0]
+    covariance = projector @ np.diag(variance) @ projector.T
+    gaussian = 3 * np.einsum("ki,ij,kj->k", inverse, covariance**2, inverse)
+    use = gaussian > 0
+    if not np.any(use):
+        return 1.0
+    ratio = float(np.mean(measured[use] / gaussian[use]))
+    factor = max(ratio, 1.0) * r.shape[0] / kept.shape[0]
+    return factor if math.isfinite(factor) else 1.0
+
+
+def white_sigma_spread(cov: np.ndarray, gain: np.ndarray, k: int) -> tuple[float, float, float]:
+    """``(A, B, D)`` for :func:`_calibration_dof`: with ``g2 = gain^2`` (the consensus
+    weights of sensor k, :func:`leave_one_out`) and ``cov`` from
+    :func:`white_sigma_covariance`, ``A = g2^T cov g2`` (the consensus variance's),
+    ``B = (cov g2)_k`` (shared with sigma_k^2) and ``D = cov_kk`` (sigma_k^2's), SI^4."""
+    g2 = np.asarray(gain, dtype=np.float64) ** 2
+    shared = cov @ g2
+    return float(g2 @ shared), float(shared[k]), float(cov[k, k])
+
+
 def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, EpisodeBuilder]:
     """One builder per sensor type of ``array`` present in the calibration block (an
     :class:`~imufdi_cli.log.ImuBlock`), with per-sensor sigma from its parity residuals
@@ -1758,6 +1944,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
         n_cal: int | None = None
         mean: np.ndarray | None = None
         white: np.ndarray | None = None
+        excess = 1.0
         if explain:
             measurements = array.select(triads, sensor_type)
             finite = np.all(np.isfinite(measurements), axis=1)
@@ -1766,6 +1953,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
             try:
                 sigma = residual_sigma(H, measurements[finite])
                 white = white_sigma(H, measurements[finite])
+                excess = white_sigma_excess(H, measurements[finite])
             except CalibrationError:
                 explain = False
             explain = explain and bool(np.all(np.isfinite(sigma)) and np.all(sigma > 0))
@@ -1780,6 +1968,7 @@ def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, 
             calibration_samples=n_cal if explain else None,
             calibration_mean=mean if explain else None,
             white_sigma=white if explain else None,
+            white_excess=excess,
             **options,
         )
     return builders
@@ -1937,4 +2126,7 @@ __all__ = [
     "successive_difference_dof",
     "truth_size",
     "white_sigma",
+    "white_sigma_covariance",
+    "white_sigma_excess",
+    "white_sigma_spread",
 ]
