@@ -2,9 +2,10 @@
 
 ``detectors/bank.py``, ``detectors/cnn_map.py`` and ``detectors/woa_mvmd_glt.py`` were split
 into packages by concern (issue 21) with behaviour unchanged. The records in
-``data/split_identical.json`` were made with the single-module code (commit 1804bff;
-re-recorded on 154d5a9, still single-module, when main's noise-glr threshold change moved
-cnn-map's input test — the other four cases were unchanged): each
+``data/split_identical.json`` were made with the single-module code (first on commit
+1804bff; last on main dae5119, still single-module, after main's noise-glr change moved
+cnn-map's input test and with one BLAS thread per case, which moved woa-mvmd-glt's
+fixed-clip case; the package split matched every record made on the same code): each
 detector runs on a fixed seeded simulated log with injected faults, streamed in uneven
 blocks, and every array of every :class:`DetectionBlock` (statistic, threshold, alarm,
 isolated, amplitude, scores, isolated_set, amplitudes) is hashed (SHA-256 of its bytes) and
@@ -15,6 +16,9 @@ another CPU or numpy a different summation order may move the last bits, so ther
 fingerprints are compared instead: NaN count exact, (sum, sum of squares, sin-weighted sum)
 to 1e-9 of the sum |x| — any change of a row beyond rounding shows.
 
+Each case runs in a fresh interpreter with one BLAS thread (as the CLI runs): the thread
+count changes the summation order of matrix products, and so the last bits.
+
 Re-record (only for a deliberate change of outputs, saying why in the commit):
 ``PYTHONPATH=. python tests/detectors/test_split_identical.py``.
 """
@@ -23,7 +27,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import platform
+import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -38,6 +44,10 @@ from imufdi_cli.log import ImuBlock
 from imufdi_cli.simulate import preset, simulate_block
 
 RECORD = Path(__file__).parent / "data" / "split_identical.json"
+ROOT = Path(__file__).resolve().parents[2]
+#: one BLAS thread, as the CLI runs (imufdi_cli.cli): a different thread count changes the
+#: summation order of matrix products and so the last bits of the outputs
+THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 FIELDS = (
     "statistic",
     "threshold",
@@ -214,14 +224,34 @@ SLOW = ("bank-marg", "cnn-map-wearable12", "woa-mvmd-glt-tuned")
 def test_outputs_identical_to_the_single_module_code(name: str) -> None:
     recorded = json.loads(RECORD.read_text())
     exact = recorded["environment"] == _environment()
-    _assert_same(name, run_case(name), recorded["cases"][name], exact)
+    _assert_same(name, run_isolated(name), recorded["cases"][name], exact)
+
+
+def run_isolated(name: str) -> dict[str, Any]:
+    """:func:`run_case` in a fresh interpreter with one BLAS thread (:data:`THREADS`), so
+    that neither the test process's BLAS set-up nor earlier tests touch the bits."""
+    env = {**os.environ, **THREADS}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    done = subprocess.run(
+        [sys.executable, __file__, "--case", name],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
+    )
+    assert done.returncode == 0, done.stderr
+    record: dict[str, Any] = json.loads(done.stdout)
+    return record
 
 
 def _record() -> None:
-    cases = {name: run_case(name) for name in sorted(CASES)}
+    cases = {name: run_isolated(name) for name in sorted(CASES)}
     text = json.dumps({"environment": _environment(), "cases": cases}, indent=1, sort_keys=True)
     RECORD.write_text(text + "\n")
 
 
 if __name__ == "__main__":
-    _record()
+    if sys.argv[1:2] == ["--case"]:
+        print(json.dumps(run_case(sys.argv[2])))
+    else:
+        _record()
