@@ -478,8 +478,7 @@ def _fit_window(
     nll_before = _gaussian_nll(healthy_before, taus.astype(np.float64), var0)
     s_r, s_rr = _suffix(r)[taus], _suffix(sq)[taus]
     s_t, s_tt, s_tr = _suffix(t)[taus], _suffix(t * t)[taus], _suffix(t * r)[taus]
-    s_o, s_oo, s_or = _suffix(o)[taus], _suffix(o * o)[taus], _suffix(o * r)[taus]
-    del s_o
+    s_oo, s_or = _suffix(o * o)[taus], _suffix(o * r)[taus]
     fits: list[FaultFit] = []
 
     def best(nll_after: np.ndarray, k_params: int) -> tuple[int, float]:
@@ -567,6 +566,19 @@ def _fit_window(
     return fits
 
 
+def _median(values: np.ndarray) -> float:
+    """``float(np.median(values))`` of a 1-D array, sorted directly (the middle value, or
+    the mean of the middle two as numpy takes it: their sum halved); numpy's own for
+    non-finite values."""
+    n = values.shape[0]
+    if n == 0 or not math.isfinite(float(np.add.reduce(values))):
+        return float(np.median(values))
+    ordered = np.sort(values)
+    if n % 2:
+        return float(ordered[n // 2])
+    return (float(ordered[n // 2 - 1]) + float(ordered[n // 2])) / 2
+
+
 def _drift_search(
     t: np.ndarray,
     taus: np.ndarray,
@@ -583,7 +595,7 @@ def _drift_search(
     """Onset of a ramp starting between two samples, by profile likelihood: returns the
     onset (index into ``taus``), the sub-sample offset ``lam`` (None: free, fitted as an
     intercept) and the BIC; None when no onset fits."""
-    dt = float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
+    dt = _median(np.diff(t)) if t.shape[0] > 1 else 0.0
     t0 = t[taus]
     s_u = s_t - n * t0
     s_uu = s_tt - 2 * t0 * s_t + n * t0**2
@@ -701,11 +713,10 @@ def _linear_fit(
         return FaultFit(model, size, -math.inf, math.inf, onset, bic)
     e = y - X @ coef
     sw2, sw = float(w @ w), float(np.sum(w))
-    s2 = float(e @ e) / dof
-    variance = s2 * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
     quantile = _t_quantile(0.5 + confidence / 2, dof)
     extra: dict[str, float] = {}
     curve = (X @ coef, var0)
+    widened = None
     if reference is not None and reference.residuals.shape[1] >= 2:
         dispersion, widened = _dispersion(w, reference, var0, offset_var, confidence)
         extra["dispersion"] = dispersion
@@ -730,8 +741,11 @@ def _linear_fit(
                 return FaultFit(
                     model, size, size - half, size + half, onset, bic, extra, curve=curve
                 )
-        if widened is not None and widened[0] > variance:
-            variance, quantile = widened
+    # (the noise variance is needed only without the motion fit)
+    s2 = float(e @ e) / dof
+    variance = s2 * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
+    if widened is not None and widened[0] > variance:
+        variance, quantile = widened
     half = quantile * math.sqrt(max(variance, 0.0))
     return FaultFit(model, size, size - half, size + half, onset, bic, extra, curve=curve)
 
@@ -790,6 +804,9 @@ def _motion_fit(
     assert reference.motion is not None
     length = r.shape[0]
     M = reference.motion[:length]
+    dof = length - X.shape[1] - M.shape[1]
+    if dof < 2:
+        return None
     full = np.zeros((length, X.shape[1]))
     full[onset:] = X
     design = np.concatenate([full, M], axis=1)
@@ -797,16 +814,19 @@ def _motion_fit(
     if not np.all(np.isfinite(design)) or np.any(scale <= 0):
         return None
     normalised = design / scale
-    singular = np.linalg.svd(normalised, compute_uv=False)
-    if singular[-1] <= 1e-6 * singular[0]:
+    u, singular, vt = np.linalg.svd(normalised, full_matrices=False)  # pinv's own
+    if abs(singular[-1] - 1e-6 * singular[0]) <= 1e-10 * singular[0]:
+        # at the cut itself, decide on the singular values computed alone (with the
+        # vectors their last bits may differ; both are within about 1e-15 of singular[0])
+        alone = np.linalg.svd(normalised, compute_uv=False)
+        if alone[-1] <= 1e-6 * alone[0]:
+            return None
+    elif singular[-1] <= 1e-6 * singular[0]:
         return None
-    pinv = np.linalg.pinv(normalised) / scale[:, None]  # (p + 3, L)
+    pinv = _pinv_from_svd(u, singular, vt) / scale[:, None]  # (p + 3, L)
     w = pinv[0]
     coef = pinv @ r
     e = r - design @ coef
-    dof = length - design.shape[1]
-    if dof < 2:
-        return None
     sse = float(e @ e)
     # partial F test of the motion columns against the fit without them (``sse_without``:
     # the healthy margin and the fault model's residuals)
@@ -822,6 +842,27 @@ def _motion_fit(
     return float(coef[0]), quantile * math.sqrt(max(variance, 0.0)), dispersion
 
 
+def _pinv_from_svd(u: np.ndarray, singular: np.ndarray, vt: np.ndarray) -> np.ndarray:
+    """``numpy.linalg.pinv(a)`` (default cut-off) from ``svd(a, full_matrices=False)``:
+    the same operations on the same factors, so the same floats (checked against numpy in
+    tests/test_episodes.py), without a second decomposition.
+
+    Parameters
+    ----------
+    u : ndarray, shape (L, k)
+    singular : ndarray, shape (k,)
+    vt : ndarray, shape (k, k)
+
+    Returns
+    -------
+    ndarray, shape (k, L)
+    """
+    large = singular > 1e-15 * np.max(singular)
+    inverse = np.divide(1, singular, where=large, out=singular.copy())
+    inverse[~large] = 0
+    return np.matmul(np.transpose(vt), np.multiply(inverse[:, np.newaxis], np.transpose(u)))
+
+
 def _autocorrelation_factor(e: np.ndarray, w: np.ndarray) -> float:
     """``Var(w^T e) / (s^2 w^T w)`` for a stationary e: ``1 + 2 sum_k kappa_k rho_k
     sum_i w_i w_{i+k} / w^T w`` with the sample autocorrelation rho_k of ``e`` and Bartlett
@@ -830,7 +871,7 @@ def _autocorrelation_factor(e: np.ndarray, w: np.ndarray) -> float:
     about ``2 sqrt(L / 3 n)``). Floored at 0.1."""
     n = e.shape[0]
     lags = min(n - 2, int(4 * (n / 100) ** (2 / 9)))
-    e0 = e - e.mean()
+    e0 = e - np.add.reduce(e) / n  # e.mean(), without its Python overhead
     c0 = float(e0 @ e0)
     sw2 = float(w @ w)
     if lags < 1 or c0 <= 0 or sw2 <= 0:
@@ -971,6 +1012,23 @@ def _local_level(r: np.ndarray) -> np.ndarray:
     """Running median of five samples (two each side; fewer at the ends): the residual's
     slowly varying level, which single-sample spikes do not move (one or two of five)."""
     n = r.shape[0]
+    if n >= 5 and math.isfinite(float(np.sum(r))):
+        # every value finite (a sum is finite only then, or on overflow, which takes the
+        # general path below): the median of five is one of them, chosen by a min/max
+        # selection network (exact); the four ends from their three or four values, the
+        # mean of the middle two of four as numpy's median takes it
+        a, b, c, d, e = r[:-4], r[1:-3], r[2:-2], r[3:-1], r[4:]
+        low = np.maximum(np.minimum(a, b), np.minimum(c, d))
+        high = np.minimum(np.maximum(a, b), np.maximum(c, d))
+        level = np.empty(n)
+        level[2:-2] = np.maximum(np.minimum(e, low), np.minimum(np.maximum(e, low), high))
+        head, tail = r[:4].tolist(), r[-4:].tolist()
+        first, second = sorted(head[:3]), sorted(head)
+        last, before_last = sorted(tail[1:]), sorted(tail)
+        level[0], level[-1] = first[1], last[1]
+        level[1] = (second[1] + second[2]) / 2
+        level[-2] = (before_last[1] + before_last[2]) / 2
+        return level
     padded = np.concatenate((np.full(2, np.nan), r, np.full(2, np.nan)))
     window = np.stack([padded[i : i + n] for i in range(5)])
     level = np.zeros(n)
@@ -1048,6 +1106,8 @@ def _stuck_fit(raw: np.ndarray, lo: int, hi: int, share: float) -> FaultFit | No
     [lo - 1, hi) covers at least ``share`` of the samples from its start to the window's
     end. The onset is the first repeated sample (the frozen value is the one before it)."""
     repeat = np.concatenate(([False], np.diff(raw) == 0))
+    if not repeat.any():
+        return None  # (no run below)
     padded = np.concatenate(([False], repeat, [False]))
     edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
     starts, stops = edges[0::2], edges[1::2]
@@ -1120,7 +1180,7 @@ def _sensor_amplitude(
         return None
     k = sensor_ids.index(names[0])
     values = np.concatenate([v[c == k] for c, v in pairs])
-    return float(np.median(values)) if values.size else None
+    return _median(values) if values.size else None
 
 
 def isolation_summary(
@@ -1231,7 +1291,13 @@ class VarianceDropMonitor:
         cumulative = np.concatenate([np.zeros((1, joined.shape[1])), np.cumsum(joined, axis=0)])
         stop = np.arange(held + 1, held + fresh + 1)  # window of the j-th new difference
         ready = stop >= self.window
-        sums = cumulative[stop] - cumulative[np.maximum(stop - self.window, 0)]
+        if held + 1 >= self.window:  # every window complete: the same rows as slices
+            sums = (
+                cumulative[held + 1 : held + fresh + 1]
+                - cumulative[held + 1 - self.window : held + fresh + 1 - self.window]
+            )
+        else:
+            sums = cumulative[stop] - cumulative[np.maximum(stop - self.window, 0)]
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = sums / self.window / self.variance
         ratio = np.where(np.isfinite(ratio), ratio, np.inf)

@@ -22,8 +22,9 @@ from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
+import pytest
 
-from imufdi_cli.episodes import EpisodeBuilder
+from imufdi_cli.episodes import EpisodeBuilder, _local_level, _median, _pinv_from_svd
 
 REFERENCE = Path(__file__).with_name("episodes_identical.json")
 RATE = 100.0
@@ -167,6 +168,56 @@ def test_the_reference_covers_every_fault_model_and_the_fault_end() -> None:
     assert {"step", "drift", "noise", "stuck", "spikes", "none"} <= classes
     assert any(f["end_index"] is not None for e in episodes for f in e["fits"])
     assert any(e["isolated_by"] == "residual" for e in episodes)
+
+
+def test_pinv_from_the_svd_is_numpys_pinv_to_the_bit() -> None:
+    """_motion_fit takes the pseudo-inverse from the decomposition it tests the singular
+    values of: the floats must be numpy's (a numpy that changes pinv fails here)."""
+    rng = np.random.default_rng(7)
+    for rows, cols in [(201, 4), (201, 5), (30, 5), (8, 4), (2500, 5)]:
+        for rank_deficient in (False, True):
+            a = rng.normal(size=(rows, cols)) * 10.0 ** rng.integers(-3, 3, cols)
+            if rank_deficient:
+                a[:, -1] = a[:, 0] * 2.0
+            a = a / np.linalg.norm(a, axis=0)
+            u, s, vt = np.linalg.svd(a, full_matrices=False)
+            assert np.array_equal(_pinv_from_svd(u, s, vt), np.linalg.pinv(a))
+
+
+@pytest.mark.filterwarnings("ignore:All-NaN slice:RuntimeWarning")
+def test_local_level_is_the_running_median_of_five() -> None:
+    """The selection network and the four ends against numpy's median of each window
+    (values in [start, stop) of i - 2 .. i + 2), ties and non-finite values included."""
+    rng = np.random.default_rng(8)
+    for n in [1, 2, 4, 5, 6, 9, 201]:
+        for trial in range(20):
+            r = rng.normal(size=n) * 10.0 ** rng.integers(-6, 6)
+            if trial % 3 == 1:
+                r = np.round(r, 1)  # ties
+            if trial % 5 == 4:
+                r[rng.integers(n)] = np.nan
+            expected = np.array(
+                [np.nanmedian(r[max(0, i - 2) : i + 3]) for i in range(n)]
+                if np.isnan(r).any()
+                else [np.median(r[max(0, i - 2) : i + 3]) for i in range(n)]
+            )
+            expected = np.where(np.isfinite(expected), expected, 0.0)
+            assert np.array_equal(_local_level(r), expected), (n, trial)
+
+
+def test_median_is_numpys_median() -> None:
+    """The drift search's sample step: odd and even counts, ties, non-finite values."""
+    rng = np.random.default_rng(9)
+    for n in range(1, 40):
+        for trial in range(10):
+            v = rng.normal(size=n) * 10.0 ** rng.integers(-9, 9)
+            if trial % 3 == 1:
+                v = np.round(np.abs(v), 2)
+            if trial % 5 == 4:
+                v[rng.integers(n)] = np.inf if trial % 2 else np.nan
+            expected = float(np.median(v))
+            got = _median(v)
+            assert got == expected or (math.isnan(got) and math.isnan(expected)), (n, v)
 
 
 if __name__ == "__main__" and sys.argv[1:] == ["--write"]:

@@ -336,7 +336,7 @@ def residual_sigma(
     -------
     sigma : ndarray, shape (n,), SI units of the sensor type.
     """
-    from scipy.optimize import nnls
+    from imufdi_cli.nnls import nnls  # scipy.optimize.nnls without importing scipy.optimize
 
     H = check_measurement_matrix(H)
     measurements = np.asarray(measurements, dtype=np.float64)

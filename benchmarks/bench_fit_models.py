@@ -1,0 +1,145 @@
+"""Benchmark and identity check of the episode fits: this ``episodes.fit_models`` against a
+reference copy of ``episodes.py`` on calls captured from real detect runs.
+
+Performance work on the fitting functions must not change a float (issue 20; the episodes
+owner's classification is not the detect helper's to change). This captures every
+``fit_models`` call (arguments and result) of ``imufdi detect`` runs on simulated logs,
+replays each through the worktree's ``fit_models`` and through the reference module (for
+example the file as it is on main), compares the fits bit for bit (JSON of every field,
+fitted curves included) and prints the CPU of both, their ratio and the load average.
+
+    git show main:imufdi_cli/episodes.py > /tmp/episodes_ref.py
+    python benchmarks/bench_fit_models.py --reference /tmp/episodes_ref.py
+    python benchmarks/bench_fit_models.py --reference /tmp/episodes_ref.py --minutes 10
+
+Logs (made at run time; tuning seeds only): a 16-IMU 100 Hz turntable log of ``--minutes``
+(glt's false episodes), and paper-table4 with a step, drift, noise, stuck, spikes and scale
+fault injected, seed ``--seed``, run through glt, pca-parity, noise-glr and bank.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import imufdi_cli.episodes as episodes
+from imufdi_cli.detect import detect_file
+from imufdi_cli.faults import inject_file
+from imufdi_cli.pipeline import simulate_file
+
+FAULTS = [
+    "step:imu{i}.gyro.x,at={at}s,duration=4s,amp=0.9deg/s",
+    "drift:imu{i}.gyro.y,at={at}s,duration=4s,rate=10deg/s^2",
+    "noise:imu{i}.gyro.z,at={at}s,duration=4s,factor=3",
+    "stuck:imu{i}.gyro.x,at={at}s,duration=4s",
+    "spikes:imu{i}.gyro.y,at={at}s,duration=4s,rate=5Hz,amp=3deg/s",
+    "scale:imu{i}.gyro.z,at={at}s,duration=4s,factor=1.05",
+]
+
+
+def capture(workdir: Path, minutes: float, seed: int) -> list[tuple[Any, ...]]:
+    """Every fit_models call (args, kwargs) of the detect runs."""
+    calls: list[tuple[Any, ...]] = []
+    inner = episodes.fit_models
+
+    def spy(*args: Any, **kwargs: Any) -> Any:
+        calls.append((args, kwargs))
+        return inner(*args, **kwargs)
+
+    turntable, table4, faulty = (workdir / n for n in ("t.mcap", "p.mcap", "pf.mcap"))
+    out = workdir / "out.mcap"
+    simulate_file(
+        None,
+        str(turntable),
+        seed=seed,
+        options={
+            "imus": 16,
+            "rate": "100Hz",
+            "duration": f"{minutes * 60}s",
+            "motion": "turntable",
+        },
+    )
+    simulate_file("paper-table4", str(table4), seed=seed, options={"duration": 70.0})
+    specs = [f.format(i=j % 4, at=8 + 10 * j + 0.37) for j, f in enumerate(FAULTS)]
+    inject_file(str(table4), str(faulty), specs, [], seed=seed)
+    episodes.fit_models = spy  # type: ignore[assignment]
+    try:
+        detect_file(str(turntable), str(out), [("glt", {})])
+        for name in ("glt", "pca-parity", "noise-glr", "bank"):
+            detect_file(str(faulty), str(out), [(name, {})])
+    finally:
+        episodes.fit_models = inner  # type: ignore[assignment]
+    return calls
+
+
+def load_reference(path: str) -> Any:
+    spec = importlib.util.spec_from_file_location("episodes_reference", path)
+    if spec is None or spec.loader is None:
+        raise SystemExit(f"cannot load {path}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["episodes_reference"] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def fingerprint(fits: list[Any]) -> list[tuple[str, Any]]:
+    """Every field of every fit to the bit (JSON keeps a float's bits), curves included."""
+    out = []
+    for fit in fits:
+        curve = None if fit.curve is None else (fit.curve[0].tobytes(), float(fit.curve[1]).hex())
+        out.append((json.dumps(fit.to_dict(), sort_keys=True), curve))
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--reference", required=True, help="a copy of episodes.py to compare")
+    parser.add_argument("--minutes", type=float, default=3.0, help="turntable log length")
+    parser.add_argument("--seed", type=int, default=1, help="simulation seed (tuning seeds)")
+    parser.add_argument("--repeat", type=int, default=2, help="alternated passes (best kept)")
+    args = parser.parse_args()
+    reference = load_reference(args.reference)
+    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    with tempfile.TemporaryDirectory(prefix="imufdi-bench-fits-") as tmp:
+        calls = capture(Path(tmp), args.minutes, args.seed)
+    print(f"{len(calls)} fit_models calls captured")
+
+    def as_reference(kwargs: dict[str, Any]) -> dict[str, Any]:
+        ref = kwargs.get("reference")
+        if ref is None:
+            return kwargs
+        converted = reference.Reference(ref.residuals, ref.variance, ref.offset_var, ref.motion)
+        return {**kwargs, "reference": converted}
+
+    differ = 0
+    best = {"reference": float("inf"), "this": float("inf")}
+    for _ in range(args.repeat):
+        spent = {"reference": 0.0, "this": 0.0}
+        for call_args, kwargs in calls:
+            begin = time.process_time()
+            expected = reference.fit_models(*call_args, **as_reference(kwargs))
+            middle = time.process_time()
+            got = episodes.fit_models(*call_args, **kwargs)
+            spent["reference"] += middle - begin
+            spent["this"] += time.process_time() - middle
+            differ += fingerprint(expected) != fingerprint(got)
+        best = {k: min(best[k], v) for k, v in spent.items()}
+    print(f"fits that differ: {differ} of {len(calls) * args.repeat}")
+    print(
+        f"CPU: reference {best['reference']:.2f} s, this {best['this']:.2f} s"
+        f" ({best['this'] / max(len(calls), 1) * 1e3:.2f} ms a call),"
+        f" ratio {best['this'] / best['reference']:.3f}"
+    )
+    print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    return 1 if differ else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
