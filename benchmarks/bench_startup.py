@@ -6,7 +6,9 @@ Every stage of a shell pipeline and every TAB completion pays the CLI's start-up
 measured as a ratio against the floor any numpy tool pays: a fresh interpreter importing
 numpy. Each command runs ``--repeat`` times in fresh processes, interleaved so that a
 change of machine load hits all of them alike; the median wall time (the claim) and the
-median CPU time (user + system, less sensitive to a loaded machine) are reported.
+median CPU time (user + system, less sensitive to a loaded machine; compare it between
+checkouts, not to numpy: ``python -c "import numpy"`` spends CPU in OpenBLAS's threads,
+while imufdi sets one BLAS thread before numpy loads) are reported.
 
 Target (issue "Fast where users wait"): ``imufdi --help`` and ``imufdi info small.mcap``
 each <= 2x ``python -c "import numpy"``. Also prints which heavy modules (scipy, the
