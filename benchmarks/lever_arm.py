@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import imufdi_cli.detectors.bank as bank_module
+import imufdi_cli.detectors.bank.detector as bank_module
 from imufdi_cli.detectors.bank import BankDetector
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.pca_parity import PcaParityDetector

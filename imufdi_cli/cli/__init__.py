@@ -7,7 +7,8 @@ commands compose in pipelines::
 
     imufdi ingest cap.bin -o - | imufdi inject - --fault ... -o - | imufdi detect - -d glt -o - | imufdi report -
 
-Commands by group: :mod:`~imufdi_cli.cli.data` (simulate, ingest, inject),
+Commands by group (each module imported when its command runs, :data:`.app.COMMAND_MODULES`):
+:mod:`~imufdi_cli.cli.data` (simulate, ingest, inject),
 :mod:`~imufdi_cli.cli.describe` (info), :mod:`~imufdi_cli.cli.detection` (detect, tune,
 calibrate), :mod:`~imufdi_cli.cli.reporting` (report), :mod:`~imufdi_cli.cli.batch`
 (campaign, demo); the entry point and signal handling in :mod:`~imufdi_cli.cli.entry`.
@@ -27,13 +28,28 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-from imufdi_cli.cli import batch, data, describe, detection, reporting  # noqa: E402,F401
-from imufdi_cli.cli.app import cli  # noqa: E402
+from typing import TYPE_CHECKING, Any  # noqa: E402
+
 from imufdi_cli.cli.entry import (  # noqa: E402
     HANDLED_SIGNALS,
     Terminated,
     describe_exception,
     main,
 )
+
+if TYPE_CHECKING:
+    from imufdi_cli.cli.app import cli
+
+
+def __getattr__(name: str) -> Any:
+    """``cli``: the click group with every command loaded (tools, tests, embedding); the
+    console script (:func:`main`) loads only the command it runs."""
+    if name == "cli":
+        from imufdi_cli.cli.app import cli, load_all_commands
+
+        load_all_commands()
+        return cli
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = ["HANDLED_SIGNALS", "Terminated", "cli", "describe_exception", "main"]

@@ -2,9 +2,34 @@
 
 from __future__ import annotations
 
+from importlib import import_module
+
 import click
 
 from imufdi_cli import __version__
+
+#: command name -> the module whose ``@cli.command()`` defines it. A command's module is
+#: imported when that command is run or listed (``--help``, completion), so that
+#: ``imufdi info`` does not pay for compiling the others (start-up time, docs/performance.md);
+#: tests/cli/test_app.py checks that this table matches the commands.
+COMMAND_MODULES: dict[str, str] = {
+    "calibrate": "imufdi_cli.cli.detection",
+    "campaign": "imufdi_cli.cli.batch",
+    "demo": "imufdi_cli.cli.batch",
+    "detect": "imufdi_cli.cli.detection",
+    "info": "imufdi_cli.cli.describe",
+    "ingest": "imufdi_cli.cli.data",
+    "inject": "imufdi_cli.cli.data",
+    "report": "imufdi_cli.cli.reporting",
+    "simulate": "imufdi_cli.cli.data",
+    "tune": "imufdi_cli.cli.detection",
+}
+
+
+def load_all_commands() -> None:
+    """Import every command's module (``cli.commands`` is then complete)."""
+    for module in sorted(set(COMMAND_MODULES.values())):
+        import_module(module)
 
 
 def start_end(start: str | None, end: str | None) -> tuple[float, float | None] | None:
@@ -57,6 +82,16 @@ EXIT_CODES_TEXT = (
 
 
 class Group(click.Group):
+    """The ``imufdi`` group: commands from :data:`COMMAND_MODULES`, imported on demand."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(set(self.commands) | set(COMMAND_MODULES))
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in self.commands and cmd_name in COMMAND_MODULES:
+            import_module(COMMAND_MODULES[cmd_name])
+        return super().get_command(ctx, cmd_name)
+
     def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         formatter.write_paragraph()
         formatter.write_text(

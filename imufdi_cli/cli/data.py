@@ -6,7 +6,6 @@ import os
 from typing import Any
 
 import click
-from rich.table import Table
 
 from imufdi_cli.cli.app import cli, stamps_option, time_source, topic_option
 from imufdi_cli.cli.choices import LazyChoice, motions, presets
@@ -180,6 +179,8 @@ def ingest(
             start_time=start_time,
             progress=progress,
         )
+    from rich.table import Table
+
     table = Table(title=f"ingest: {capture} -> {output}", show_header=True)
     table.add_column("count")
     table.add_column("value", justify="right")

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
-from rich.console import Console
-from rich.markup import escape
-from rich.table import Table
 
 from imufdi_cli.cli.app import cli, stamps_option, time_source, topic_option
+from imufdi_cli.cli.plain import PLAIN_WIDTH, PlainTable, plain_safe
 from imufdi_cli.cli.ui import UI, common_options
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 
 @cli.command()
@@ -42,7 +43,11 @@ def info(log: str, topics: tuple[str, ...], stamps: str, strict: bool, ui: UI) -
         ui.json(summary)
         if ui.json_target == "-":
             return
-    render_info(ui.product, summary)
+    text = render_info_plain(summary) if ui.product_is_plain() else None
+    if text is not None:
+        ui.write_product(text)
+    else:
+        render_info(ui.product, summary)
 
 
 def log_info_summary(
@@ -59,12 +64,58 @@ def _has_cal(imu: dict[str, Any]) -> bool:
     return any(key.endswith(("_matrix", "_bias")) for key in imu)
 
 
-def render_info(console: Console, s: dict[str, Any]) -> None:
-    """The tables of ``imufdi info`` (warnings are printed separately)."""
-    console.print(f"[bold]{escape(str(s['source']))}[/]")
-    head = Table(show_header=False, box=None)
-    head.add_column(style="bold")
-    head.add_column()
+#: one part of the description: ("bold" | "text", line) or ("table", PlainTable)
+Part = tuple[str, Any]
+
+
+def info_parts(s: dict[str, Any]) -> list[Part]:
+    """What ``imufdi info`` prints, in order, as plain lines and tables (no markup)."""
+    parts: list[Part] = [("bold", str(s["source"])), ("table", _head_table(s))]
+    topics = PlainTable(("topic", "schema", "encoding", "messages"), title="topics")
+    for t in s.get("topics", []):
+        topics.add_row(
+            t["topic"], str(t.get("schema")), t["message_encoding"], str(t["message_count"])
+        )
+    parts.append(("table", topics))
+    array = s.get("array")
+    if array:
+        source = "metadata" if s.get("array_from_metadata") else "inferred"
+        parts.append(
+            (
+                "text",
+                f"array ({source}): {len(array['imu'])} IMUs, noise "
+                + (json.dumps(array.get("noise")) if array.get("noise") else "not given")
+                + (", per-IMU calibration" if any(_has_cal(imu) for imu in array["imu"]) else "")
+                + (f", range {json.dumps(array['range'])}" if array.get("range") else ""),
+            )
+        )
+    for sensor_type, counts in s.get("validity", {}).items():
+        parts.append(
+            (
+                "text",
+                f"{sensor_type}: {counts.get('clipped', 0)} clipped and"
+                f" {counts.get('invalid', 0)} invalid of {counts.get('rows', 0)} samples"
+                " (at ingest)",
+            )
+        )
+    for fault in s.get("faults", []):
+        parts.append(("text", f"fault {fault.get('id', '')}: {fault.get('spec') or fault}"))
+    for name, det in s.get("detectors", {}).items():
+        parts.append(("text", f"detector {name}: {json.dumps(det.get('params', {}))}"))
+        for sensor_type, counts in det.get("validity", {}).items():
+            parts.append(
+                (
+                    "text",
+                    f"  {sensor_type}: {counts.get('clipped', 0)} clipped,"
+                    f" {counts.get('invalid', 0)} invalid samples excluded from the tests",
+                )
+            )
+    return parts
+
+
+def _head_table(s: dict[str, Any]) -> PlainTable:
+    """The key/value table at the top of ``imufdi info``."""
+    head = PlainTable(("key", "value"), boxed=False, bold_first=True)
     for key in ("n_imus", "n_samples", "duration_s", "start_ns"):
         if key in s:
             value = s[key]
@@ -106,37 +157,34 @@ def render_info(console: Console, s: dict[str, Any]) -> None:
         else:
             text = str(value)
         head.add_row(f"alignment.{key}", text)
-    console.print(head)
-    topics = Table(title="topics")
-    for col in ("topic", "schema", "encoding", "messages"):
-        topics.add_column(col)
-    for t in s.get("topics", []):
-        topics.add_row(
-            t["topic"], str(t.get("schema")), t["message_encoding"], str(t["message_count"])
-        )
-    console.print(topics)
-    array = s.get("array")
-    if array:
-        source = "metadata" if s.get("array_from_metadata") else "inferred"
-        console.print(
-            escape(
-                f"array ({source}): {len(array['imu'])} IMUs, noise "
-                + (json.dumps(array.get("noise")) if array.get("noise") else "not given")
-                + (", per-IMU calibration" if any(_has_cal(imu) for imu in array["imu"]) else "")
-                + (f", range {json.dumps(array['range'])}" if array.get("range") else "")
-            )
-        )
-    for sensor_type, counts in s.get("validity", {}).items():
-        console.print(
-            f"{sensor_type}: {counts.get('clipped', 0)} clipped and {counts.get('invalid', 0)}"
-            f" invalid of {counts.get('rows', 0)} samples (at ingest)"
-        )
-    for fault in s.get("faults", []):
-        console.print(escape(f"fault {fault.get('id', '')}: {fault.get('spec') or fault}"))
-    for name, det in s.get("detectors", {}).items():
-        console.print(escape(f"detector {name}: {json.dumps(det.get('params', {}))}"))
-        for sensor_type, counts in det.get("validity", {}).items():
-            console.print(
-                f"  {sensor_type}: {counts.get('clipped', 0)} clipped, {counts.get('invalid', 0)}"
-                f" invalid samples excluded from the tests"
-            )
+    return head
+
+
+def render_info(console: Console, s: dict[str, Any]) -> None:
+    """The tables of ``imufdi info`` on a rich console (warnings are printed separately)."""
+    from rich.markup import escape
+
+    for kind, payload in info_parts(s):
+        if kind == "table":
+            console.print(payload.to_rich())
+        elif kind == "bold":
+            console.print(f"[bold]{escape(payload)}[/]")
+        else:
+            console.print(escape(payload))
+
+
+def render_info_plain(s: dict[str, Any], width: int = PLAIN_WIDTH) -> str | None:
+    """``imufdi info``'s description as rich prints it on a plain console of ``width``
+    columns, without importing rich; None when only rich can render it exactly."""
+    out = []
+    for kind, payload in info_parts(s):
+        if kind == "table":
+            text = payload.render(width)
+            if text is None:
+                return None
+            out.append(text)
+        elif plain_safe(payload):
+            out.append(payload + "\n")
+        else:
+            return None
+    return "".join(out)

@@ -6,8 +6,6 @@ import os
 from typing import Any
 
 import click
-from rich.markup import escape
-from rich.table import Table
 
 from imufdi_cli.cli.app import cli, stamps_option, start_end, time_range, time_source, topic_option
 from imufdi_cli.cli.choices import LazyChoice, detectors
@@ -113,6 +111,8 @@ def detect(
             explain=explain,
             progress=progress,
         )
+    from rich.table import Table
+
     shown = None if ui.verbose else 3
     table = Table(title=f"detect: {result.samples} samples, {result.duration_s:.3g} s -> {output}")
     columns = ("detector", "sensor", "alarm %", "events", "isolated (alarm samples)", "episodes")
@@ -223,6 +223,8 @@ def tune(
         settings[key.strip()] = value.strip()
     result = tune_file(log, window, sensor_type=sensor_type, seed=seed, settings=settings)
     if ui.verbose:
+        from rich.table import Table
+
         table = Table(title="WOA convergence (best CFV per iteration)")
         table.add_column("iteration", justify="right")
         table.add_column("best fitness", justify="right")
@@ -329,6 +331,9 @@ def calibrate(
         f" {result.coverage:.2f}; motion {result.motion_s:.0f} s; {result.clipped_rows}"
         " clipped/invalid rows unused"
     )
+    from rich.markup import escape
+    from rich.table import Table
+
     table = Table(title=f"calibrate: {escape(source)} -> {escape(output)}")
     for col in ("imu", "sensor", "scale ppm (x y z)", "misalign. mrad", "bias (x y z)"):
         table.add_column(col)

@@ -7,7 +7,6 @@ import os
 import signal
 import sys
 import threading
-import traceback
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -109,6 +108,15 @@ def _debug() -> bool:
     return os.environ.get("IMUFDI_DEBUG", "") not in ("", "0")
 
 
+def _print_traceback_if_debug() -> None:
+    """The current exception's traceback on stderr when IMUFDI_DEBUG is set (traceback is
+    imported only then: start-up time)."""
+    if _debug():
+        import traceback
+
+        traceback.print_exc()
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Console script: run the CLI, turning every error into one line and an exit code."""
     try:
@@ -119,8 +127,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 standalone_mode=False,
             )
     except ImufdiError as err:
-        if _debug():
-            traceback.print_exc()
+        _print_traceback_if_debug()
         _err(str(err) or type(err).__name__)
         sys.exit(err.exit_code)
     except Terminated as err:
@@ -146,13 +153,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         finally:
             sys.exit(0)
     except (MemoryError, OSError) as err:
-        if _debug():
-            traceback.print_exc()
+        _print_traceback_if_debug()
         _err(describe_exception(err))
         sys.exit(EXIT_BAD_INPUT)
     except Exception as err:  # a bug: one line, and the traceback only on request
-        if _debug():
-            traceback.print_exc()
+        _print_traceback_if_debug()
         _err(
             f"internal error ({describe_exception(err)}); "
             "please report it with the output of IMUFDI_DEBUG=1"

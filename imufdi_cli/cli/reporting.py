@@ -4,16 +4,16 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
-from rich.console import Console
-from rich.markup import escape
-from rich.table import Table
 
 from imufdi_cli.cli.app import cli, start_end
 from imufdi_cli.cli.ui import UI, common_options, error_line
 from imufdi_cli.errors import EXIT_GATE_FAILED
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 
 @cli.command()
@@ -124,6 +124,9 @@ def report(
             window=start_end(start, end),
             progress=progress,
         )
+    from rich.markup import escape
+    from rich.table import Table
+
     gate_results = rep.evaluate_gates(result, parsed)
     console = ui.product
     table = Table(title=f"imufdi report: {escape(result.source)}")
@@ -173,6 +176,9 @@ def report(
 
 def print_episodes(console: Console, result: Any, limit: int | None = 12) -> None:
     """The episode figures per detector and type, and the strongest episodes."""
+    from rich.markup import escape
+    from rich.table import Table
+
     from imufdi_cli import report as rep
 
     if not result.episode_scores:

@@ -25,10 +25,14 @@ import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import click
-from rich.console import Console
+
+from imufdi_cli.cli.plain import PLAIN_WIDTH
+
+if TYPE_CHECKING:  # rich is imported when a console is made (start-up time)
+    from rich.console import Console
 
 #: seconds of work before the progress bar appears (short commands never show one)
 PROGRESS_DELAY_S = 2.0
@@ -56,9 +60,11 @@ def make_console(stream: IO[Any], file: IO[str] | None = None, *, quiet: bool = 
     """A rich console rendering for ``stream`` (colour and width follow it) that writes to
     ``file`` (default: the stream itself). Styles only on a terminal without NO_COLOR;
     elsewhere plain text (no escape codes), wide enough that tables are not cut."""
+    from rich.console import Console
+
     terminal = is_terminal(stream)
     styled = terminal and not no_color()
-    width = shutil.get_terminal_size((120, 24)).columns if terminal else 160
+    width = shutil.get_terminal_size((120, 24)).columns if terminal else PLAIN_WIDTH
     return Console(
         file=file if file is not None else stream,
         force_terminal=terminal,  # a progress bar still redraws with NO_COLOR, uncoloured
@@ -145,6 +151,22 @@ class UI:
             else:
                 self._product = make_console(sys.stdout, self._product_buffer, quiet=self.quiet)
         return self._product
+
+    def product_is_plain(self) -> bool:
+        """Whether the product console would render without styles at
+        :data:`~imufdi_cli.cli.plain.PLAIN_WIDTH` (its stream is not a terminal), so that
+        text from :mod:`imufdi_cli.cli.plain` is what rich would print."""
+        return not is_terminal(sys.stderr if self._stdout_taken else sys.stdout)
+
+    def write_product(self, text: str) -> None:
+        """Add ready-rendered plain ``text`` to the product (nothing with ``--quiet``), in
+        order with what the product console prints."""
+        if self.quiet:
+            return
+        if self._stdout_taken:
+            self._summary_buffer.write(text)
+        else:
+            self._product_buffer.write(text)
 
     def live(self) -> Console:
         """Console writing straight to stderr (commands that show steps as they go)."""

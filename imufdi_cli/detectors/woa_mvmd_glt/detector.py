@@ -1,0 +1,593 @@
+"""The WOA-MVMD-GLT detector: parameters and construction, choice of (K, alpha) per sensor
+type, outlier clipping, and the GLT decision on u_best (paper §2.1, §3).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy.stats import chi2
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors.base import (
+    ALPHA,
+    NO_ISOLATION,
+    NOT_ISOLABLE,
+    TYPES,
+    DetectionBlock,
+    DetectorBase,
+    Param,
+    parse_sensor_types,
+)
+from imufdi_cli.detectors.mvmd import (
+    MIN_SAMPLES,
+    check_mvmd_params,
+)
+from imufdi_cli.detectors.parity import (
+    isolable_sensors,
+    isolation_statistics,
+    parity_matrix,
+    residual_sigma,
+    residuals,
+    whiten,
+)
+from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
+    DEFAULT_WEIGHTS,
+    FITNESS_CHOICES,
+    OUTLIER_CHOICES,
+    ValidationFault,
+    cfv,
+    cfv_components,
+)
+from imufdi_cli.detectors.woa_mvmd_glt.tuning import TuneResult, make_validation, tune, tune_signal
+from imufdi_cli.detectors.woa_mvmd_glt.windows import (
+    COMBINE_CHOICES,
+    _WindowStream,
+    best_mode,
+    decompose_windows,
+    filter_matrices,
+)
+from imufdi_cli.errors import (
+    ArrayTooSmallError,
+    CalibrationError,
+    DetectorConfigError,
+    InputDataError,
+)
+from imufdi_cli.log import ImuBlock
+
+# --- the detector ----------------------------------------------------------------------
+
+#: WOA results of this process, keyed by the tuning segment's bytes and every setting that
+#: enters the search (the search is deterministic given them): a campaign's runs of one
+#: seed share their calibration window, and so their tuning.
+_TUNING_CACHE: dict[tuple[Any, ...], TuneResult] = {}
+_TUNING_CACHE_SIZE = 64
+
+
+def clear_tuning_cache() -> None:
+    """Forget the WOA results reused across fits in this process (benchmarks, tests)."""
+    _TUNING_CACHE.clear()
+
+
+def _weights_check(value: Any) -> str | None:
+    try:
+        parts = [float(v) for v in str(value).split(",")]
+    except ValueError:
+        return "weights must be three comma-separated numbers, e.g. 1,1,1"
+    if len(parts) != 3 or any(not np.isfinite(p) or p < 0 for p in parts):
+        return "weights must be three comma-separated non-negative numbers, e.g. 1,1,1"
+    return None
+
+
+@dataclass
+class _TypeState:
+    sensor_type: str
+    n: int
+    K: int
+    alpha: float
+    tuned: dict[str, Any] | None
+    sigma: np.ndarray
+    bias: np.ndarray
+    V: np.ndarray  # whitened parity matrix (n-3, n)
+    isolable: np.ndarray
+    threshold: float
+    stream: _WindowStream
+    n_calibration: int = 0  # samples the biases were averaged over
+    outlier_variance: float = (
+        0.0  # variance added for outliers (variance: SI^2; clip: sigma^2 units)
+    )
+    outlier_cut: float | None = None  # outliers=clip: level of the standardised residual
+    clipped: int = 0  # residual entries clipped so far
+
+    @staticmethod
+    def clip_probe(
+        values: np.ndarray, bias: np.ndarray, sigma: np.ndarray, V: np.ndarray, cut: float
+    ) -> np.ndarray:
+        """(N, n) bool: the residuals :meth:`clip` cuts."""
+        return _TypeState._clip_shift(values, bias, sigma, V, cut)[1]
+
+    @staticmethod
+    def _clip_shift(
+        values: np.ndarray, bias: np.ndarray, sigma: np.ndarray, V: np.ndarray, cut: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The move of each sensor by :meth:`clip`, (N, n) in the units of ``values``, and
+        which entries were cut, (N, n) bool."""
+        projector = V.T @ V
+        scale = np.sqrt(np.diag(projector))
+        current = np.array(values, dtype=np.float64)
+        shift = np.zeros_like(current)
+        cut_mask = np.zeros(current.shape, dtype=bool)
+        active = np.arange(current.shape[0])
+        for _ in range(current.shape[1]):  # one sensor per sample and round
+            z = (((current[active] - bias) / sigma) @ projector) / scale
+            largest = np.argmax(np.abs(z), axis=1)
+            top = z[np.arange(active.size), largest]
+            over = np.abs(top) > cut
+            if not over.any():
+                break
+            rows, cols, top = active[over], largest[over], top[over]
+            delta = np.sign(top) * (np.abs(top) - cut) * sigma[cols] / scale[cols]
+            current[rows, cols] -= delta
+            shift[rows, cols] += delta
+            cut_mask[rows, cols] = True
+            active = rows
+        return shift, cut_mask
+
+    def clip(self, values: np.ndarray) -> np.ndarray:
+        """Clip each sample's standardised parity residuals at ``outlier_cut``, (N, n).
+
+        Whitened residual ``r = P x_w`` (``P = V^T V``, ``x_w = (x - bias) / sigma``),
+        standardised ``z_i = r_i / sqrt(P_ii)`` (``z_i^2`` is the GLT isolation statistic
+        of sensor i, eq. 6, since V V^T = I). Per sample, the sensor with the largest
+        ``|z_i|``, when it exceeds c, is moved by ``(|z_i| - c) sigma_i / sqrt(P_ii)``
+        toward the others, so that ``|z_i| = c``; the residuals are computed again and the
+        next largest is cut if still beyond c, until none is (two spikes in one sample are
+        both cut). A one-sample spike on one sensor is cut to c; a step larger than c sigma
+        is cut too, sample by sample, but stays far above the threshold once u_best
+        averages it (the amplitude is estimated on the unclipped signal). Gaussian noise is
+        left alone but with probability about 2 n Phi(-c) per sample (3e-3 at c = 4, n = 48).
+
+        One at a time: a fault of hundreds of sigma on one sensor also pushes every other
+        sensor's residual past c (by about 1/n of it); cutting them all at once moved the
+        healthy sensors toward the faulty one and erased the fault (a 10 deg/s^2 drift went
+        undetected from about 1.5 s after its onset). Once the faulty sensor is cut, the
+        others' residuals are back under c.
+        """
+        if self.outlier_cut is None:
+            return values
+        shift, cut_mask = self._clip_shift(values, self.bias, self.sigma, self.V, self.outlier_cut)
+        self.clipped += int(np.count_nonzero(cut_mask))
+        return np.asarray(values - shift)
+
+
+class WoaMvmdGltDetector(DetectorBase):
+    """WOA-tuned MVMD + GLT detector (module docstring), CLI name ``woa-mvmd-glt``."""
+
+    name: ClassVar[str] = "woa-mvmd-glt"
+    PARAMS: ClassVar[dict[str, Param]] = {
+        "alpha": ALPHA,
+        "window": Param("int", 50, "MVMD window length, samples", low=MIN_SAMPLES),
+        "overlap": Param("int", 40, "overlap of consecutive windows, samples", low=0),
+        "combine": Param(
+            "choice",
+            "end",
+            "per-sample row: from the first window that ends after the sample (causal,"
+            " look-ahead hop - 1), the window where it is central, or the min over all"
+            " windows containing it (look-ahead window - 1)",
+            choices=COMBINE_CHOICES,
+        ),
+        "outliers": Param(
+            "choice",
+            "clip",
+            "sparse spikes: clip each sample's largest standardised parity residual at"
+            " outlier_cut before the decomposition (clip), add their calibration variance to sigma"
+            " (variance), or nothing (ignore)",
+            choices=OUTLIER_CHOICES,
+        ),
+        "outlier_cut": Param(
+            "float",
+            4.0,
+            "clip level of outliers=clip, standardised residual",
+            low=0.0,
+            low_open=True,
+        ),
+        "fitness": Param(
+            "choice",
+            "cfv+delay",
+            "WOA fitness: the paper's CFV plus the expected missed fraction of a validation"
+            " step (cfv+delay), or CFV alone (cfv: picks the alpha upper bound)",
+            choices=FITNESS_CHOICES,
+        ),
+        "validation_step": Param(
+            "float", 4.0, "validation step of cfv+delay, in noise sigmas", low=0.0, low_open=True
+        ),
+        "delay_weight": Param(
+            "float", 100.0, "weight of the validation miss fraction in cfv+delay", low=0.0
+        ),
+        "params": Param("path", None, "JSON file of tuned (K, alpha) from `imufdi tune`"),
+        "K": Param("int", None, "number of MVMD modes (skips tuning, with mvmd_alpha)", low=1),
+        "mvmd_alpha": Param(
+            "float", None, "MVMD bandwidth penalty (f in cycles/sample)", low=0, low_open=True
+        ),
+        "population": Param("int", 8, "WOA population", low=2),
+        "iterations": Param("int", 6, "WOA iterations", low=0),
+        "k_min": Param("int", 2, "smallest K searched", low=1),
+        "k_max": Param("int", 5, "largest K searched", low=1),
+        "alpha_min": Param("float", 50.0, "smallest MVMD alpha searched", low=0, low_open=True),
+        "alpha_max": Param("float", 5000.0, "largest MVMD alpha searched", low=0, low_open=True),
+        "weights": Param(
+            "str",
+            "1,1,1",
+            "CFV weights w1,w2,w3 (entropy, correlation, compactness)",
+            check=_weights_check,
+        ),
+        "tune_samples": Param("int", 250, "calibration samples used for tuning", low=MIN_SAMPLES),
+        "seed": Param("int", 0, "seed of the WOA search", low=0),
+        "types": TYPES,
+        "tol": Param("float", 1e-6, "MVMD relative convergence tolerance", low=0, low_open=True),
+        "max_iter": Param("int", 300, "MVMD iteration cap", low=1),
+    }
+
+    def __init__(
+        self,
+        alpha: float = 0.01,
+        window: int = 50,
+        overlap: int = 40,
+        combine: str = "end",
+        outliers: str = "clip",
+        outlier_cut: float = 4.0,
+        fitness: str = "cfv+delay",
+        validation_step: float = 4.0,
+        delay_weight: float = 100.0,
+        params: str | None = None,
+        K: int | None = None,
+        mvmd_alpha: float | None = None,
+        population: int = 8,
+        iterations: int = 6,
+        k_min: int = 2,
+        k_max: int = 5,
+        alpha_min: float = 50.0,
+        alpha_max: float = 5000.0,
+        weights: str = "1,1,1",
+        tune_samples: int = 250,
+        seed: int = 0,
+        types: str = "gyro,accel",
+        tol: float = 1e-6,
+        max_iter: int = 300,
+    ) -> None:
+        arguments = locals()
+        values = {key: arguments[key] for key in self.PARAMS}  # each PARAMS name, typed
+        self.params = values
+        window = int(values["window"])
+        overlap = int(values["overlap"])
+        if not 0 <= overlap < window:
+            raise DetectorConfigError(
+                f"{self.name}.overlap: must be >= 0 and < window ({window}), got {overlap}"
+            )
+        if values["k_min"] > values["k_max"]:
+            raise DetectorConfigError(f"{self.name}: k_min must be <= k_max")
+        if values["alpha_min"] > values["alpha_max"]:
+            raise DetectorConfigError(f"{self.name}: alpha_min must be <= alpha_max")
+        if (values["K"] is None) != (values["mvmd_alpha"] is None):
+            raise DetectorConfigError(f"{self.name}: give both K and mvmd_alpha, or neither")
+        if values["K"] is not None:
+            check_mvmd_params(values["K"], values["mvmd_alpha"])
+        self.window = window
+        self.hop = window - overlap
+        self.weights = tuple(float(v) for v in str(values["weights"]).split(","))
+        self.types = list(parse_sensor_types(types, self.name))
+        self.tuned_file = TuneResult.load(values["params"]) if values["params"] else None
+        self._states: dict[str, _TypeState] = {}
+        #: Per sensor type: the window evaluation its stream is pushed with (see _evaluator).
+        self._evaluators: dict[str, Callable[[np.ndarray, int], dict[str, np.ndarray]]] = {}
+        self._array: ArrayConfig | None = None
+
+    @property
+    def lookahead_samples(self) -> int:
+        """Most samples a row is held back: its decision waits for a window's last sample.
+
+        ``end``: a sample in the last ``hop`` samples of a window is decided when that window
+        ends, ``hop - 1`` samples later at most. ``centre`` and ``min``: up to ``window - 1``
+        (the first window decides its first sample ``window - 1`` samples late; ``min`` waits
+        for the last window containing the sample).
+        """
+        if self.params["combine"] == "end":
+            return self.hop - 1
+        return self.window - 1
+
+    def decision_index(self, sample: np.ndarray, n_samples: int) -> np.ndarray:
+        """Index of the input sample at which each row's decision is available, (N,).
+
+        Exact for the window grid (``end``: the end of the first window that has the sample
+        in its last ``hop``; ``centre``: the end of the window where it is central; ``min``:
+        the end of the last window that contains it), capped at the last sample of the log
+        (the tail window of ``flush``).
+        """
+        sample = np.asarray(sample, dtype=np.int64)
+        window, hop = self.window, self.hop
+        combine = self.params["combine"]
+        if combine == "end":
+            first = np.maximum(-(-(sample - window + 1) // hop), 0)
+            decided = first * hop + window - 1
+            decided = np.where(sample < window - hop, sample, decided)  # quiet rows
+        elif combine == "centre":
+            pad = (window - hop) // 2
+            j = np.maximum((sample - pad) // hop, 0)
+            decided = j * hop + window - 1
+        else:
+            decided = (sample // hop) * hop + window - 1
+        return np.asarray(np.minimum(decided, n_samples - 1))
+
+    # -- calibration ----------------------------------------------------------------
+
+    def _choose(self, sensor_type: str, values: np.ndarray) -> tuple[int, float, dict | None]:
+        p = self.params
+        if p["K"] is not None:
+            return int(p["K"]), float(p["mvmd_alpha"]), None
+        if self.tuned_file is not None:
+            return self.tuned_file.K, self.tuned_file.alpha, {"source": "params file"}
+        segment = values[: int(p["tune_samples"])]
+        validation = None
+        if p["fitness"] == "cfv+delay":
+            validation = make_validation(
+                values.shape[1],
+                self.window,
+                self.hop,
+                float(p["validation_step"]),
+                float(p["delay_weight"]),
+                float(p["alpha"]),
+            )
+        settings: dict[str, Any] = {
+            "population": int(p["population"]),
+            "iterations": int(p["iterations"]),
+            "k_bounds": (int(p["k_min"]), int(p["k_max"])),
+            "alpha_bounds": (float(p["alpha_min"]), float(p["alpha_max"])),
+            "weights": self.weights,
+            "seed": int(p["seed"]),
+            "tol": float(p["tol"]),
+            "max_iter": int(p["max_iter"]),
+        }
+        segment = np.ascontiguousarray(segment, dtype=np.float64)
+        key = (
+            hashlib.sha256(segment.tobytes()).hexdigest(),
+            segment.shape,
+            repr(sorted(settings.items())),
+            repr(validation),
+        )
+        cached = _TUNING_CACHE.get(key)
+        if cached is None:
+            cached = tune_signal(segment.T, validation=validation, **settings)
+            if len(_TUNING_CACHE) >= _TUNING_CACHE_SIZE:
+                _TUNING_CACHE.pop(next(iter(_TUNING_CACHE)))
+            _TUNING_CACHE[key] = cached
+            reused = False
+        else:
+            reused = True
+        record = asdict(cached)
+        record["sensor_type"] = sensor_type
+        record["reused"] = reused
+        return cached.K, cached.alpha, record
+
+    def _decompose(self, K: int, alpha: float) -> Any:
+        tol = float(self.params["tol"])
+        max_iter = int(self.params["max_iter"])
+
+        def u_best(windows: np.ndarray, first_row: int) -> tuple[np.ndarray, np.ndarray]:
+            count = windows.shape[0]
+            u, F = decompose_windows(
+                windows,
+                [K] * count,
+                [alpha] * count,
+                tol=tol,
+                max_iter=max_iter,
+                first_row=first_row,
+            )
+            return u[:, first_row:], F
+
+        return u_best
+
+    def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
+        self._array = array
+        self._states = {}
+        self._evaluators = {}
+        for sensor_type in self.types:
+            triads = calibration.get(sensor_type)
+            n = array.n_sensors(sensor_type)
+            if triads is None or n == 0:
+                continue
+            if n < 4:
+                raise ArrayTooSmallError(
+                    f"{self.name}: {sensor_type} has {n} sensors; the GLT needs at least 4"
+                )
+            values = array.select(triads, sensor_type)
+            if values.shape[0] < max(self.window, 10):
+                raise CalibrationError(
+                    f"calibration window has {values.shape[0]} samples; {self.name} needs at"
+                    f" least {max(self.window, 10)} (one MVMD window); use --calibrate"
+                )
+            K, alpha, tuned = self._choose(sensor_type, values)
+            decompose = self._decompose(K, alpha)
+            # sigma and biases of the raw sensors (many degrees of freedom), carried into the
+            # u_best domain exactly through each window's filter matrix (filter_matrix)
+            H = array.measurement_matrix(sensor_type)
+            sigma = residual_sigma(H, values)
+            if np.any(~np.isfinite(sigma)) or np.any(sigma <= 0):
+                raise CalibrationError(
+                    f"{self.name}: {sensor_type} noise sigma is zero or not finite;"
+                    " the calibration window is degenerate"
+                )
+            outlier_variance = 0.0
+            outlier_cut = None
+            if self.params["outliers"] == "clip":
+                outlier_cut = float(self.params["outlier_cut"])
+            if self.params["outliers"] == "variance":
+                # sparse spikes, smoothed by u_best, act as extra white noise: their variance
+                # (all samples minus the spike-free fit), pooled over the sensors of the type
+                plain = residual_sigma(H, values, outlier_cut=None)
+                outlier_variance = float(np.mean(np.maximum(plain**2 - sigma**2, 0.0)))
+                sigma = np.sqrt(sigma**2 + outlier_variance)
+            bias = residuals(H, values).mean(axis=0)
+            V = parity_matrix(whiten(H, sigma))
+            if outlier_cut is not None:
+                # a clipped spike still carries c standardised sigmas: its variance, at the
+                # rate spikes were clipped in the calibration window, joins the noise
+                probe = _TypeState.clip_probe(values, bias, sigma, V, outlier_cut)
+                rate = float(np.mean(probe))
+                diagonal = np.einsum("ki,ki->i", V, V)
+                outlier_variance = rate * outlier_cut**2
+                sigma = sigma * np.sqrt(1.0 + outlier_variance / diagonal)
+                V = parity_matrix(whiten(H, sigma))
+            state = _TypeState(
+                sensor_type=sensor_type,
+                n=n,
+                K=K,
+                alpha=alpha,
+                tuned=tuned,
+                sigma=sigma,
+                bias=bias,
+                V=V,
+                isolable=isolable_sensors(V),
+                threshold=float(chi2.ppf(1.0 - float(self.params["alpha"]), n - 3)),
+                stream=_WindowStream(self.window, self.hop, self.params["combine"]),
+                n_calibration=int(values.shape[0]),
+                outlier_variance=outlier_variance,
+                outlier_cut=outlier_cut,
+            )
+            self._states[sensor_type] = state
+            self._evaluators[sensor_type] = self._evaluator(state, decompose)
+        if not self._states:
+            raise CalibrationError(
+                f"{self.name}: no tested sensor type ({', '.join(self.types)}) in the log"
+            )
+
+    def _evaluator(self, state: _TypeState, decompose: Any) -> Any:
+        def evaluate(windows: np.ndarray, first_row: int) -> dict[str, np.ndarray]:
+            # windows (W, L, 2n); the stream carries [clipped | raw] side by side (process);
+            # rows first_row .. L - 1 of each window: R = L - first_row
+            raw = windows[..., state.n :]
+            u, F = decompose(windows[..., : state.n], first_row)  # (W, R, n), (W, R, L)
+            noise_gain = np.sqrt(np.einsum("wij,wij->wi", F, F))  # sigma_u = sigma * gain
+            dc_gain = F.sum(axis=-1)  # (W, L): bias_u = bias * dc_gain
+            # the calibration bias (mean of n_cal samples) is off by N(0, sigma^2 / n_cal),
+            # carried as dc_gain * error: its variance against the filtered noise is
+            # dc_gain^2 / (gain^2 n_cal) (the filter's effective length over n_cal), not
+            # negligible once u_best has averaged the noise down
+            inflation = 1.0 + (dc_gain / noise_gain) ** 2 / max(state.n_calibration, 1)
+            row_scale = noise_gain * np.sqrt(inflation)
+            whitened = (u - dc_gain[..., None] * state.bias) / (
+                state.sigma[None, :] * row_scale[..., None]
+            )
+            p = whitened @ state.V.T
+            statistic = np.einsum("...j,...j->...", p, p)  # eq. 5, V V^T = I
+            d_fi, _ = isolation_statistics(p, state.V)  # eq. 6
+            if state.outlier_cut is not None:  # eq. 7 on the unclipped signal
+                raw_white = (F @ raw - dc_gain[..., None] * state.bias) / (
+                    state.sigma[None, :] * row_scale[..., None]
+                )
+                _, amplitude = isolation_statistics(raw_white @ state.V.T, state.V)
+            else:
+                _, amplitude = isolation_statistics(p, state.V)
+            # amplitude of a step in the raw signal: undo whitening and the filter's DC gain
+            scale = (
+                state.sigma[None, :]
+                * (row_scale / np.where(dc_gain != 0, dc_gain, np.nan))[..., None]
+            )
+            return {"statistic": statistic, "scores": d_fi, "amplitude": amplitude * scale}
+
+        return evaluate
+
+    # -- streaming ------------------------------------------------------------------
+
+    def _rows(self, state: _TypeState, parts: list[dict[str, np.ndarray] | int]) -> DetectionBlock:
+        blocks = []
+        for part in parts:
+            if isinstance(part, int):  # rows no window decides
+                blocks.append(DetectionBlock.empty(part, state.n))
+                continue
+            statistic = part["statistic"]
+            count = statistic.shape[0]
+            alarm = statistic > state.threshold
+            scores = part["scores"]
+            safe_scores = np.where(np.isfinite(scores), scores, -np.inf)
+            best = np.argmax(safe_scores, axis=1).astype(np.int32)
+            isolated = np.where(
+                alarm, np.where(state.isolable[best], best, NOT_ISOLABLE), NO_ISOLATION
+            ).astype(np.int32)
+            amplitude = np.where(isolated >= 0, part["amplitude"][np.arange(count), best], np.nan)
+            blocks.append(
+                DetectionBlock(
+                    statistic=statistic,
+                    threshold=np.full(count, state.threshold),
+                    alarm=alarm,
+                    isolated=isolated,
+                    amplitude=amplitude,
+                    scores=scores,
+                )
+            )
+        if not blocks:
+            return DetectionBlock.empty(0, state.n)
+        return DetectionBlock.concatenate(blocks)
+
+    def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
+        if not self._states or self._array is None:
+            raise CalibrationError(f"{self.name}: fit() must be called before process()")
+        out = {}
+        for sensor_type, state in self._states.items():
+            triads = block.get(sensor_type)
+            if triads is None:
+                raise InputDataError(f"{self.name}: block has no {sensor_type} data")
+            values = self._array.select(triads, sensor_type)
+            carried = np.concatenate([state.clip(values), values], axis=1)
+            evaluate = self._evaluators[sensor_type]
+            out[sensor_type] = self._rows(state, state.stream.push(carried, evaluate))
+        return out
+
+    def flush(self) -> dict[str, DetectionBlock]:
+        return {
+            t: self._rows(s, s.stream.flush(self._evaluators[t])) for t, s in self._states.items()
+        }
+
+    def metadata(self) -> dict[str, Any]:
+        params = {k: v for k, v in self.params.items()}
+        return {
+            "params": params,
+            "types": {
+                t: {
+                    "K": s.K,
+                    "mvmd_alpha": s.alpha,
+                    "tuning": s.tuned,
+                    "sigma_u_best": s.sigma.tolist(),
+                    "bias_u_best": s.bias.tolist(),
+                    "threshold": s.threshold,
+                    "window": self.window,
+                    "hop": self.hop,
+                    "lookahead_samples": self.lookahead_samples,
+                    "outlier_variance": s.outlier_variance,
+                    "clipped_residuals": s.clipped,
+                }
+                for t, s in self._states.items()
+            },
+        }
+
+
+__all__ = [
+    "COMBINE_CHOICES",
+    "DEFAULT_WEIGHTS",
+    "FITNESS_CHOICES",
+    "TuneResult",
+    "ValidationFault",
+    "WoaMvmdGltDetector",
+    "best_mode",
+    "cfv",
+    "cfv_components",
+    "clear_tuning_cache",
+    "decompose_windows",
+    "filter_matrices",
+    "make_validation",
+    "tune",
+    "tune_signal",
+]
