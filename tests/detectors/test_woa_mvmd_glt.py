@@ -10,6 +10,7 @@ from scipy.stats import chi2, ncx2
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
 from imufdi_cli.detectors.mvmd import mvmd
+from imufdi_cli.detectors.parity import parity_matrix, whiten
 from imufdi_cli.detectors.woa_mvmd_glt import (
     TuneResult,
     ValidationFault,
@@ -422,3 +423,81 @@ def test_far_and_step_mar_hold_the_issue_16_level_on_seeds_never_tuned_on():
     far, mar = free_alarms / free_rows, missed / fault_rows
     assert far <= bound(1.5 * alpha, free_rows), f"FAR {far:.4f}"
     assert mar <= bound(0.015, fault_rows), f"MAR {mar:.4f}"
+
+
+# --- healthy noise spread (ArrayConfig <type>_noise_spread) --------------------------------
+
+
+def spread_array(n_imus: int, kappa: np.ndarray | float) -> ArrayConfig:
+    """``coaligned(n_imus)`` with gyro noise-variance spreads ``kappa`` ((3 n_imus,) or one)."""
+    values = np.broadcast_to(np.asarray(kappa, dtype=float), (3 * n_imus,)).reshape(n_imus, 3)
+    return coaligned(n_imus).with_noise_spread([{"gyro": v} for v in values])
+
+
+def test_noise_spread_folds_kappa_into_sigma_and_is_bit_identical_without_it():
+    """Analytic: sigma_i -> sqrt(kappa_i) sigma_i and V recomputed from it, nothing else;
+    without the field, with ``noise_spread=false`` or with kappa = 1 the outputs are
+    bit-identical to the detector without the step."""
+    block = synthetic_block(step_at=300)
+    params = {"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"}
+    kappa = 1.0 + np.arange(18) / 6.0
+
+    def fitted(array: ArrayConfig, extra: dict | None = None) -> WoaMvmdGltDetector:
+        det = make({**params, **(extra or {})})
+        det.fit(block.slice(0, 200), array)
+        return det
+
+    plain = fitted(coaligned(6))
+    spread = fitted(spread_array(6, kappa))
+    state, wide = plain._states["gyro"], spread._states["gyro"]
+    assert_allclose(wide.sigma, state.sigma * np.sqrt(kappa), rtol=1e-15)
+    H = coaligned(6).measurement_matrix("gyro")
+    assert_allclose(wide.V, parity_matrix(whiten(H, wide.sigma)), rtol=0, atol=1e-15)
+    assert np.array_equal(wide.bias, state.bias)
+    assert wide.threshold == state.threshold
+    assert spread.metadata()["types"]["gyro"]["noise_spread"] == kappa.tolist()
+    assert "noise_spread" not in plain.metadata()["types"]["gyro"]
+
+    reference = run(plain, block, 64)
+    for det in (
+        fitted(spread_array(6, kappa), {"noise_spread": False}),
+        fitted(spread_array(6, 1.0)),
+    ):
+        out = run(det, block, 64)
+        for name in ("statistic", "alarm", "isolated", "amplitude", "scores"):
+            a, b = getattr(reference, name), getattr(out, name)
+            assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+    assert not np.array_equal(reference.statistic, run(spread, block, 64).statistic)
+
+
+@pytest.mark.slow
+def test_noise_spread_holds_the_level_when_the_noise_grows_to_its_bound():
+    """Simulated: 4 co-aligned gyro triads at rest, white noise sigma for the 2 s of
+    calibration and sigma sqrt(kappa) after (kappa = 2.25, the null boundary), 200 s.
+
+    With kappa in the array the whitened noise is again the calibration one, so the alarm
+    rate after the window is at most alpha plus 3 clumped-binomial standard errors (rows
+    in blocks of ``window``, Var(sum) <= 3 sum Var(block), as in the FAR test above).
+    Without it every row's statistic is about kappa chi2(9): P(2.25 chi2_9 >
+    chi2_{0.99}(9) = 21.67) = 0.38 per row; the test asks for more than 3 standard errors
+    below 0.25 (the calibration bias' variance term lowers the statistic a little)."""
+    rate, n_cal, n, kappa = 100.0, 200, 20200, 2.25
+    rng = np.random.default_rng(15)
+    sigma = 0.0026
+    gyro = 0.17 + sigma * rng.standard_normal((n, 4, 3))
+    gyro[n_cal:] = 0.17 + (gyro[n_cal:] - 0.17) * np.sqrt(kappa)
+    block = ImuBlock(t_ns=(np.arange(n) * 1e9 / rate).astype(np.int64), gyro=gyro)
+    params = {"K": 2, "mvmd_alpha": 3000.0, "types": "gyro", "alpha": 0.01}
+    rates = {}
+    for label, array in (("with", spread_array(4, kappa)), ("without", coaligned(4))):
+        det = make(params)
+        det.fit(block.slice(0, n_cal), array)
+        out = run(det, block, 5000)
+        rates[label] = float(out.alarm[n_cal:].mean())
+    rows = n - n_cal
+
+    def se(p: float) -> float:
+        return float(np.sqrt(3.0 * p * (1.0 - p) / (rows / 50)))
+
+    assert rates["with"] <= 0.01 + 3.0 * se(0.01), rates
+    assert rates["without"] >= 0.25 - 3.0 * se(0.25), rates

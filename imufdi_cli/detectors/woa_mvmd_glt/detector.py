@@ -102,6 +102,7 @@ class _TypeState:
     )
     outlier_cut: float | None = None  # outliers=clip: level of the standardised residual
     clipped: int = 0  # residual entries clipped so far
+    spread: np.ndarray | None = None  # kappa_i folded into sigma (noise_spread), or None
 
     @staticmethod
     def clip_probe(
@@ -208,6 +209,13 @@ class WoaMvmdGltDetector(DetectorBase):
         "delay_weight": Param(
             "float", 100.0, "weight of the validation miss fraction in cfv+delay", low=0.0
         ),
+        "noise_spread": Param(
+            "bool",
+            True,
+            "hold the level at the top of each sensor's healthy noise-variance range (ArrayConfig"
+            " <type>_noise_spread from calibrate: sigma_i^2 -> kappa_i sigma_i^2) when the"
+            " array carries one",
+        ),
         "params": Param("path", None, "JSON file of tuned (K, alpha) from `imufdi tune`"),
         "K": Param("int", None, "number of MVMD modes (skips tuning, with mvmd_alpha)", low=1),
         "mvmd_alpha": Param(
@@ -243,6 +251,7 @@ class WoaMvmdGltDetector(DetectorBase):
         fitness: str = "cfv+delay",
         validation_step: float = 4.0,
         delay_weight: float = 100.0,
+        noise_spread: bool = True,
         params: str | None = None,
         K: int | None = None,
         mvmd_alpha: float | None = None,
@@ -441,6 +450,14 @@ class WoaMvmdGltDetector(DetectorBase):
                 outlier_variance = rate * outlier_cut**2
                 sigma = sigma * np.sqrt(1.0 + outlier_variance / diagonal)
                 V = parity_matrix(whiten(H, sigma))
+            kappa = array.sensor_noise_spread(sensor_type) if self.params["noise_spread"] else None
+            if kappa is not None:
+                # the healthy noise of a chip changes with the orientation (MIMU4444 z gyros:
+                # variance up to 3.3x the calibration window's); the null hypothesis becomes
+                # Var(x_i) <= kappa_i sigma_i^2, whose boundary is the worst case (Anderson
+                # 1955: a chi-square form's exceedance grows with the covariance)
+                sigma = sigma * np.sqrt(kappa)
+                V = parity_matrix(whiten(H, sigma))
             state = _TypeState(
                 sensor_type=sensor_type,
                 n=n,
@@ -456,6 +473,7 @@ class WoaMvmdGltDetector(DetectorBase):
                 n_calibration=int(values.shape[0]),
                 outlier_variance=outlier_variance,
                 outlier_cut=outlier_cut,
+                spread=kappa,
             )
             self._states[sensor_type] = state
             self._evaluators[sensor_type] = self._evaluator(state, decompose)
@@ -568,6 +586,7 @@ class WoaMvmdGltDetector(DetectorBase):
                     "lookahead_samples": self.lookahead_samples,
                     "outlier_variance": s.outlier_variance,
                     "clipped_residuals": s.clipped,
+                    **({"noise_spread": s.spread.tolist()} if s.spread is not None else {}),
                 }
                 for t, s in self._states.items()
             },
