@@ -5,7 +5,10 @@ into packages by concern (issue 21) with behaviour unchanged. The records in
 ``data/split_identical.json`` were made with the single-module code (first on commit
 1804bff; last on main dae5119, still single-module, after main's noise-glr change moved
 cnn-map's input test and with one BLAS thread per case, which moved woa-mvmd-glt's
-fixed-clip case; the package split matched every record made on the same code): each
+fixed-clip case; the package split matched every record made on the same code; the two
+woa-mvmd-glt metadata hashes were re-recorded on s17-woareal when the detector gained the
+``noise_spread`` and ``u_best`` settings, which its metadata lists, with every output array
+unchanged): each
 detector runs on a fixed seeded simulated log with injected faults, streamed in uneven
 blocks, and every array of every :class:`DetectionBlock` (statistic, threshold, alarm,
 isolated, amplitude, scores, isolated_set, amplitudes) is hashed (SHA-256 of its bytes) and

@@ -501,3 +501,57 @@ def test_noise_spread_holds_the_level_when_the_noise_grows_to_its_bound():
 
     assert rates["with"] <= 0.01 + 3.0 * se(0.01), rates
     assert rates["without"] >= 0.25 - 3.0 * se(0.25), rates
+
+
+# --- u_best=lowest: the mode of lowest centre frequency -----------------------------------
+
+
+def test_lowest_rule_takes_the_lowest_centre_frequency_mode_where_inner_follows_the_signal():
+    """A zero-mean window dominated by a 0.3 cycles/sample tone over a weak 0.02 one: the
+    paper's rule (inner) tests the tone's mode, ``lowest`` the slow one, whatever the
+    window holds; with a large constant in the window both take the slow mode."""
+    rng = np.random.default_rng(6)
+    t = np.arange(50)
+    slow = 0.2 * np.sin(2 * np.pi * 0.02 * t)
+    fast = np.sin(2 * np.pi * 0.3 * t)
+    window = (slow + fast)[:, None] + 0.01 * rng.standard_normal((50, 4))
+    for offset, inner_is_slow in ((0.0, False), (10.0, True)):
+        x = window + offset
+        result = mvmd(x.T, 2, 500.0, tol=1e-6, max_iter=300)
+        lowest = int(np.argmin(result.omega))
+        assert (best_mode(result, x) == lowest) is inner_is_slow
+        for rule, k in (("inner", best_mode(result, x)), ("lowest", lowest)):
+            u, F = decompose_windows(x[None], [2], [500.0], tol=1e-6, max_iter=300, rule=rule)
+            assert_allclose(u[0], result.modes[k].T, rtol=0, atol=1e-12)
+            assert_allclose(F[0], filter_matrix(result.gains[k], 50), rtol=0, atol=1e-12)
+
+
+def test_lowest_rule_reaches_the_tuning_and_the_detector():
+    """``u_best`` is a detector setting: it reaches decompose_windows and the validation
+    fault of the WOA fitness (a different choice where the rules differ)."""
+    block = synthetic_block(step_at=300)
+    block = ImuBlock(t_ns=block.t_ns, gyro=block.gyro - 0.17)  # zero-mean: the rules differ
+    outputs = {}
+    for rule in ("inner", "lowest"):
+        det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro", "u_best": rule})
+        det.fit(block.slice(0, 200), coaligned(6))
+        outputs[rule] = run(det, block, 64)
+        assert det.metadata()["params"]["u_best"] == rule
+    assert not np.array_equal(outputs["inner"].statistic, outputs["lowest"].statistic)
+    assert outputs["lowest"].alarm[310:].all()
+    with pytest.raises(DetectorConfigError, match="u_best"):
+        make({"u_best": "highest"})
+    validation = make_validation(6 * 3, 50, 10, 4.0, 100.0, 0.01)
+    segment = block.gyro[:200].reshape(200, -1).T
+    found = {
+        rule: tune_signal(
+            segment,
+            population=3,
+            iterations=1,
+            k_bounds=(2, 4),
+            validation=validation,
+            rule=rule,
+        ).fitness
+        for rule in ("inner", "lowest")
+    }
+    assert found["inner"] != found["lowest"]

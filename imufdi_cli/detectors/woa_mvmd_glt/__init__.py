@@ -52,6 +52,7 @@ from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
 from imufdi_cli.detectors.woa_mvmd_glt.tuning import TuneResult, make_validation, tune, tune_signal
 from imufdi_cli.detectors.woa_mvmd_glt.windows import (
     COMBINE_CHOICES,
+    MODE_RULES,
     WindowSpectra,
     best_mode,
     decompose_windows,
@@ -63,6 +64,7 @@ __all__ = [
     "COMBINE_CHOICES",
     "DEFAULT_WEIGHTS",
     "FITNESS_CHOICES",
+    "MODE_RULES",
     "OUTLIER_CHOICES",
     "TuneResult",
     "ValidationFault",

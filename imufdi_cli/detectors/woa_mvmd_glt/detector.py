@@ -46,6 +46,7 @@ from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
 from imufdi_cli.detectors.woa_mvmd_glt.tuning import TuneResult, make_validation, tune, tune_signal
 from imufdi_cli.detectors.woa_mvmd_glt.windows import (
     COMBINE_CHOICES,
+    MODE_RULES,
     _WindowStream,
     best_mode,
     decompose_windows,
@@ -181,6 +182,14 @@ class WoaMvmdGltDetector(DetectorBase):
             " windows containing it (look-ahead window - 1)",
             choices=COMBINE_CHOICES,
         ),
+        "u_best": Param(
+            "choice",
+            "inner",
+            "mode tested: largest uncentred inner product with the raw window (inner, the"
+            " paper; on bias-free input it follows the noise) or lowest centre frequency"
+            " (lowest)",
+            choices=MODE_RULES,
+        ),
         "outliers": Param(
             "choice",
             "clip",
@@ -246,6 +255,7 @@ class WoaMvmdGltDetector(DetectorBase):
         window: int = 50,
         overlap: int = 40,
         combine: str = "end",
+        u_best: str = "inner",
         outliers: str = "clip",
         outlier_cut: float = 4.0,
         fitness: str = "cfv+delay",
@@ -359,6 +369,7 @@ class WoaMvmdGltDetector(DetectorBase):
             "seed": int(p["seed"]),
             "tol": float(p["tol"]),
             "max_iter": int(p["max_iter"]),
+            "rule": str(p["u_best"]),
         }
         segment = np.ascontiguousarray(segment, dtype=np.float64)
         key = (
@@ -384,6 +395,7 @@ class WoaMvmdGltDetector(DetectorBase):
     def _decompose(self, K: int, alpha: float) -> Any:
         tol = float(self.params["tol"])
         max_iter = int(self.params["max_iter"])
+        rule = str(self.params["u_best"])
 
         def u_best(windows: np.ndarray, first_row: int) -> tuple[np.ndarray, np.ndarray]:
             count = windows.shape[0]
@@ -394,6 +406,7 @@ class WoaMvmdGltDetector(DetectorBase):
                 tol=tol,
                 max_iter=max_iter,
                 first_row=first_row,
+                rule=rule,
             )
             return u[:, first_row:], F
 

@@ -127,6 +127,7 @@ def _validation_misses(
     alphas: list[float],
     tol: float,
     max_iter: int,
+    rule: str = "inner",
 ) -> np.ndarray:
     """(P,) expected missed fraction of the validation fault for each of P candidates,
     averaged over the ``n_windows`` validation windows of ``spectra``."""
@@ -142,7 +143,7 @@ def _validation_misses(
         max_iter=max_iter,
         history=False,
     )
-    _, F = stacked.u_best(raw, validation.window - validation.hop)  # decided rows
+    _, F = stacked.u_best(raw, validation.window - validation.hop, rule)  # decided rows
     return validation.miss_fractions(F).reshape(n_windows, len(Ks)).mean(axis=0)
 
 
@@ -158,13 +159,15 @@ def tune_signal(
     tol: float = 1e-6,
     max_iter: int = 300,
     validation: ValidationFault | None = None,
+    rule: str = "inner",
 ) -> TuneResult:
     """WOA search of (K, alpha) minimising CFV for one multichannel signal (C, T).
 
     The whole population of each WOA iteration is decomposed in one batched MVMD call.
     With ``validation``, the fitness is ``CFV + weight * miss``, ``miss`` the expected
     missed fraction of :meth:`ValidationFault.miss_fraction` averaged over a few windows of
-    the signal (each decomposed with the candidate, its u_best filter taken).
+    the signal (each decomposed with the candidate, its u_best filter taken, u_best chosen
+    by ``rule``, :data:`~imufdi_cli.detectors.woa_mvmd_glt.windows.MODE_RULES`).
     """
     _check_search(population, k_bounds, alpha_bounds, weights)
     signal = np.asarray(signal, dtype=np.float64)
@@ -194,7 +197,9 @@ def tune_signal(
         values = np.array([cfv(r, weights) for r in results])
         if validation is None or spectra is None:
             return values
-        misses = _validation_misses(validation, spectra, len(starts), Ks, alphas, tol, max_iter)
+        misses = _validation_misses(
+            validation, spectra, len(starts), Ks, alphas, tol, max_iter, rule
+        )
         return values + validation.weight * misses
 
     found = woa(

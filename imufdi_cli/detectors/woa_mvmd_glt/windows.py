@@ -23,6 +23,9 @@ from imufdi_cli.errors import (
 )
 
 COMBINE_CHOICES: tuple[str, ...] = ("end", "centre", "min")
+#: How u_best is chosen among a window's modes: the paper's largest uncentred inner product
+#: with the raw window (``inner``), or the mode of lowest centre frequency (``lowest``).
+MODE_RULES: tuple[str, ...] = ("inner", "lowest")
 # --- windowed decomposition ------------------------------------------------------------
 
 
@@ -156,12 +159,15 @@ class WindowSpectra:
         )
 
     def u_best(
-        self, raw: Sequence[tuple[np.ndarray, np.ndarray, int, bool]], first_row: int = 0
+        self,
+        raw: Sequence[tuple[np.ndarray, np.ndarray, int, bool]],
+        first_row: int = 0,
+        rule: str = "inner",
     ) -> tuple[np.ndarray, np.ndarray]:
         """u_best (W, L, n) and rows ``first_row`` .. L - 1 of its filter (W, L - first_row,
         L) from the outputs of :func:`mvmd_gains` (one per window), chosen as
-        :func:`best_mode` does (modes sorted by centre frequency), the filter as
-        :func:`filter_matrices`."""
+        :func:`best_mode` does (modes sorted by centre frequency; ``rule="lowest"``: the
+        first of them, whatever the window holds), the filter as :func:`filter_matrices`."""
         n_windows, _, n_samples = self.x.shape
         k_max = max(g.shape[0] for g, _, _, _ in raw)
         gains = np.zeros((n_windows, k_max, n_samples + 1))
@@ -178,7 +184,7 @@ class WindowSpectra:
         norms = np.linalg.norm(modes.reshape(n_windows, k_max, -1), axis=2)
         score = inner / np.where(norms > 0, norms, np.inf)
         score[unused] = -np.inf
-        best = np.argmax(score, axis=1)
+        best = np.argmax(score, axis=1) if rule == "inner" else np.zeros(n_windows, dtype=np.intp)
         rows = np.arange(n_windows)
         u = np.ascontiguousarray(np.swapaxes(modes[rows, best], 1, 2))
         return u, filter_matrices(gains[rows, best], n_samples, first_row)
@@ -192,6 +198,7 @@ def decompose_windows(
     tol: float,
     max_iter: int,
     first_row: int = 0,
+    rule: str = "inner",
 ) -> tuple[np.ndarray, np.ndarray]:
     """u_best of each window of a stack and its filter matrix, by one batched MVMD.
 
@@ -208,6 +215,9 @@ def decompose_windows(
     tol, max_iter : MVMD convergence settings
     first_row : int
         First row of the filter returned (the rows a caller uses).
+    rule : str
+        :data:`MODE_RULES`: ``inner`` (:func:`best_mode`, the paper) or ``lowest`` (the
+        mode of lowest centre frequency).
 
     Returns
     -------
@@ -226,7 +236,7 @@ def decompose_windows(
         max_iter=max_iter,
         history=False,
     )
-    return spectra.u_best(raw, first_row)
+    return spectra.u_best(raw, first_row, rule)
 
 
 class _WindowStream:
