@@ -13,10 +13,16 @@ For one sensor type (n sensors, measurement matrix H, measurements m (N, n)):
    the signal, so the mode that carries the rates and the biases is the one kept, §2.5).
    Since MVMD applies one filter to all channels (mvmd.py, "exact reduction"),
    ``V u_best`` is the same filter applied to the parity vector: the motion still cancels.
+   ``u_best=lowest`` takes the mode of lowest centre frequency instead: on input without
+   biases (a calibrated array) the paper's rule follows the noise of each window
+   (docs/algorithms/woa-mvmd-glt.md, "On the MIMU4444 recordings").
 3. GLT (§2.1, eqs. 5-7, :mod:`imufdi_cli.detectors.parity`) on u_best, whitened with the
    per-sensor sigma and with the per-sensor biases estimated on u_best of the calibration
    window (sigma re-estimated in the u_best domain: the filter removes most of the noise,
    which is why the step fault is detected with a small MAR). Threshold chi2_{1-alpha}(n-3).
+   When the array carries each sensor's healthy noise-variance spread kappa_i
+   (``<type>_noise_spread`` from ``imufdi calibrate``), sigma_i^2 becomes kappa_i sigma_i^2:
+   the level holds at the top of each chip's healthy range (``noise_spread``).
 4. Each sample gets its row from the first window that contains it, where it lies in the
    last ``hop`` samples (``end``, default: causal, decided when that window ends, at most
    ``hop - 1`` samples after the sample; the first ``window - hop`` samples of the log get
