@@ -461,11 +461,8 @@ def static_noise(
     for sensor_type, raw in (("accel", accel), ("gyro", gyro)):
         if raw is None or array.n_sensors(sensor_type) < 4:
             continue
-        values = array.select(array.calibrate_triads(raw, sensor_type), sensor_type)
-        H = array.measurement_matrix(sensor_type)
-        n = H.shape[0]
-        projector = np.eye(n) - H @ np.linalg.pinv(H)
-        residual = values @ projector.T  # (N, n)
+        projector, residual = _parity_residuals(array, raw, sensor_type)
+        n = projector.shape[0]
         squares = np.zeros(n)
         dof = 0
         for item in intervals:
@@ -481,15 +478,32 @@ def static_noise(
         sigma2, *_ = np.linalg.lstsq(projector**2, variances, rcond=None)
         if not np.all(sigma2 > 0):
             sigma2 = np.full(n, variances.sum() / (n - 3))
-        sigma = np.sqrt(sigma2)
-        imu_idx, axis_idx = array.sensor_index(sensor_type)
-        for k in range(array.n_imus):
-            mine = imu_idx == k
-            if np.count_nonzero(mine) == 3:
-                triad = np.empty(3)
-                triad[axis_idx[mine]] = sigma[mine]
-                out[k][sensor_type] = triad
+        _scatter_triads(array, sensor_type, np.sqrt(sigma2), out)
     return out
+
+
+def _parity_residuals(
+    array: ArrayConfig, raw: np.ndarray, sensor_type: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(I - H H^+)`` (n, n) and the parity residuals (N, n) of the calibrated sensors of
+    one type: motion and the array's common offsets cancel in them."""
+    values = array.select(array.calibrate_triads(raw, sensor_type), sensor_type)
+    H = array.measurement_matrix(sensor_type)
+    projector = np.eye(H.shape[0]) - H @ np.linalg.pinv(H)
+    return projector, values @ projector.T
+
+
+def _scatter_triads(
+    array: ArrayConfig, sensor_type: str, per_sensor: np.ndarray, out: list[dict[str, np.ndarray]]
+) -> None:
+    """Store per-sensor values (n,) as each complete IMU triad's (3,) in ``out[imu][type]``."""
+    imu_idx, axis_idx = array.sensor_index(sensor_type)
+    for k in range(array.n_imus):
+        mine = imu_idx == k
+        if np.count_nonzero(mine) == 3:
+            triad = np.empty(3)
+            triad[axis_idx[mine]] = per_sensor[mine]
+            out[k][sensor_type] = triad
 
 
 def expected_normal_range(count: int) -> float:
@@ -568,11 +582,8 @@ def noise_spread(
     for sensor_type, raw in (("accel", accel), ("gyro", gyro)):
         if raw is None or array.n_sensors(sensor_type) < 4:
             continue
-        values = array.select(array.calibrate_triads(raw, sensor_type), sensor_type)
-        H = array.measurement_matrix(sensor_type)
-        n = H.shape[0]
-        projector = np.eye(n) - H @ np.linalg.pinv(H)
-        residual = values @ projector.T  # (N, n)
+        projector, residual = _parity_residuals(array, raw, sensor_type)
+        n = projector.shape[0]
         sums: dict[int, np.ndarray] = {}
         counts: dict[int, int] = {}
         for item in intervals:
@@ -604,14 +615,7 @@ def noise_spread(
         se = float(np.sqrt(np.mean(2.0 / dof)))
         logs = np.log(table)
         excess = logs.max(axis=0) - logs.min(axis=0) - expected_normal_range(len(used)) * se
-        kappa = np.exp(np.maximum(excess, 0.0))
-        imu_idx, axis_idx = array.sensor_index(sensor_type)
-        for k in range(array.n_imus):
-            mine = imu_idx == k
-            if np.count_nonzero(mine) == 3:
-                triad = np.empty(3)
-                triad[axis_idx[mine]] = kappa[mine]
-                out[k][sensor_type] = triad
+        _scatter_triads(array, sensor_type, np.exp(np.maximum(excess, 0.0)), out)
     return out, tables
 
 

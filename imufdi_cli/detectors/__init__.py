@@ -10,7 +10,7 @@ entry imports and that the class's ``name`` matches its key.
 Every class inherits :class:`imufdi_cli.detectors.base.DetectorBase`, so every detector is
 built the same way: ``make_detector(name, raw)`` is ``detector_class(name).from_params(raw)``.
 
-Adding a detector is one module in this package plus one line here
+Adding a detector is one module (or subpackage) in this package plus one line here
 (docs/writing-a-detector.md).
 """
 
