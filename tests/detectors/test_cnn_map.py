@@ -17,6 +17,8 @@ from imufdi_cli.detectors.cnn_map import (
     fit_autoregression,
     gamma_shape,
     input_windows,
+    noise_across_accels,
+    noise_across_gyros,
     whiten,
 )
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
@@ -374,6 +376,129 @@ def test_check_motion_refuses_noise_and_names_what_is_missing():
     moving_force = still_force + 2.0 * np.sin(2 * np.pi * 0.5 * t)[:, None, None]
     ratios = check_motion(still_rate + swing, moving_force)
     assert ratios["rate"][0] > 100 and max(ratios["specific_force"]) > 10
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """[v]x for rows of v, (N, 3) -> (N, 3, 3)."""
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    return out - np.swapaxes(out, -1, -2)
+
+
+#: MIMU4444-like board: 8 IMUs at (+-9.45, +-9.45, +-1) mm, eight 3-axis gyros in random
+#: orientations (H stacks their rows), 62.5 Hz
+BOARD = np.array([[x, y, z] for x in (-9.45e-3, 9.45e-3) for y in (-9.45e-3, 9.45e-3)
+                  for z in (-1e-3, 1e-3)])  # fmt: skip
+RATE_HZ = 62.5
+GRAVITY = np.array([0.0, 0.0, 9.81])
+
+
+def _board_window(rng, rate, force, gyro_sigma=1.5e-3, accel_sigma=0.02, bias=0.0):
+    """Sensors of the board for a body rate (N, 3) rad/s and a specific force at the centre
+    (N, 3) m/s^2: gyros y = H w + bias + noise; accelerometers (body frame) f + K r_k +
+    noise with K = [dw/dt]x + [w]x^2 (rigid body). Returns reference, body, gyro, H."""
+    n = len(rate)
+    H = np.concatenate([np.linalg.qr(rng.standard_normal((3, 3)))[0] for _ in range(8)])
+    gyro = rate @ H.T + bias * rng.standard_normal(24) + rng.normal(0, gyro_sigma, (n, 24))
+    K = _skew(np.gradient(rate, 1 / RATE_HZ, axis=0)) + _skew(rate) @ _skew(rate)
+    body = force[:, None, :] + np.einsum("nab,kb->nka", K, BOARD)
+    body = body + rng.normal(0, accel_sigma, body.shape)
+    reference = gyro @ np.linalg.pinv(H).T
+    return reference, body, gyro, H
+
+
+def test_noise_across_sensors_is_the_white_noise_level_whatever_the_motion():
+    """Tumbling at up to ~20 rad/s: the gyros' parity residual and the accelerometers'
+    residual after the rigid-body fit hold no motion, so the estimates are the noise of the
+    least-squares rate, sigma sqrt(diag((H^T H)^-1)), and of the mean specific force,
+    sigma / sqrt(8). Tolerance: the sample median of N = 2500 chi^2_nu / nu values has a
+    relative standard error of 0.9 % (nu = 21, gyros) and 2.4 % (nu = 4, accels) in the
+    variance, so 0.5 % and 1.2 % in sigma; 6 % is over 5 standard errors, and covers
+    the Wilson-Hilferty median (< 0.3 % off at nu = 4)."""
+    rng = np.random.default_rng(7)
+    t = np.arange(2500) / RATE_HZ
+    rate = 12.0 * np.sin(2 * np.pi * np.array([1.3, 2.1, 0.7]) * t[:, None] + [0, 1, 2])
+    force = np.array([0, 0, 9.81]) + 15.0 * np.sin(2 * np.pi * 1.7 * t)[:, None]
+    _, body, gyro, H = _board_window(rng, rate, force)
+    want = 1.5e-3 * np.sqrt(np.diag(np.linalg.inv(H.T @ H)))
+    assert_allclose(noise_across_gyros(gyro, H), want, rtol=0.06)
+    assert_allclose(noise_across_accels(body, BOARD), 0.02 / np.sqrt(8), rtol=0.06)
+    assert noise_across_gyros(gyro[:, :3], H[:3]) is None  # no redundancy
+    corners = [0, 3, 5, 6]  # 4 IMUs off a plane: 4 unknowns per axis, no residual
+    assert noise_across_accels(body[:, corners], BOARD[corners]) is None
+
+
+def test_jerky_motion_at_a_low_rate_is_accepted_and_rest_still_refused():
+    """Issue 16 on real data: hand motion sampled at 62.5 Hz is not smooth, second
+    differences take it for noise (MIMU4444 exp_2: 'no rotation, 7.5x its noise').
+    Simulated: rate and acceleration as white sequences of 600 deg/s and 15 m/s^2 (motion
+    at every frequency up to Nyquist). The second-difference noise alone refuses the
+    window; with the sensors' disagreement it is accepted. At rest (chip bias differences
+    of 10x the noise inflate the disagreement) the window is still refused."""
+    rng = np.random.default_rng(3)
+    n = 2500
+    rate = np.radians(600.0) * rng.standard_normal((n, 3))
+    force = np.array([0, 0, 9.81]) + 15.0 * rng.standard_normal((n, 3))
+    reference, body, gyro, H = _board_window(rng, rate, force)
+    with pytest.raises(CalibrationError, match="no rotation"):
+        check_motion(reference, body)  # second differences alone
+    ratios = check_motion(
+        reference, body, noise_across_gyros(gyro, H), noise_across_accels(body, BOARD)
+    )
+    assert min(ratios["rate"]) > 100 and min(ratios["specific_force"]) > 100
+    still = np.zeros((n, 3))
+    reference, body, gyro, H = _board_window(rng, still, still + GRAVITY, bias=0.015)
+    rate_noise, force_noise = noise_across_gyros(gyro, H), noise_across_accels(body, BOARD)
+    with pytest.raises(CalibrationError, match=r"no rotation .* and no specific-force change"):
+        check_motion(reference, body, rate_noise, force_noise)
+
+
+@pytest.fixture(scope="module")
+def mimu4444_cut(tmp_path_factory):
+    """The MIMU4444 sample (300 s of exp_1: static orientations, then hand motion from
+    257 s) ingested, with its chip calibration applied."""
+    from pathlib import Path
+
+    from imufdi_cli.array import ArrayConfig
+    from imufdi_cli.mcapio import read_array
+    from imufdi_cli.pipeline import ingest_file
+    from imufdi_cli.validity import apply_calibration
+
+    root = Path(__file__).resolve().parents[2]
+    path = tmp_path_factory.mktemp("mimu") / "cut.mcap"
+    ingest_file(str(root / "sample_logs" / "mimu4444-exp1-cut.bin"), str(path),
+                layout=str(root / "docs" / "layouts" / "mimu4444.toml"),
+                array_path=str(root / "sample_logs" / "mimu4444-array.toml"))  # fmt: skip
+    _, block = read_array(str(path))
+    array = ArrayConfig.load(root / "sample_logs" / "mimu4444-calibrated.toml")
+    return array, apply_calibration(block, array)
+
+
+@pytest.mark.parametrize(("window", "moving"), [((3, 28), False), ((257, 297), True)])
+def test_real_recording_motion_accepted_and_rest_refused(mimu4444_cut, window, moving):
+    """MIMU4444 exp_1 at 62.5 Hz: the second-difference noise alone refuses its hand motion
+    (rotation 4.9-7.7x, specific force 1.2-1.4x); with the sensors' disagreement the
+    motion passes by far (> 80x) and the first static orientation is still refused."""
+    array, block = mimu4444_cut
+    t = block.t_s()
+    calibration = block.mask((t >= window[0]) & (t < window[1]))
+    detector = make()
+    detector._setup(array)
+    gyro = array.select(calibration.gyro, "gyro")
+    reference = gyro @ detector._estimator.T
+    body = detector._body_accel(calibration)
+    with pytest.raises(CalibrationError, match="no rotation"):
+        check_motion(reference, body)
+    noise = (
+        noise_across_gyros(gyro, detector.gyro_H),
+        noise_across_accels(body, array.positions()[detector.tested]),
+    )
+    if moving:
+        ratios = check_motion(reference, body, *noise)
+        assert min(ratios["rate"]) > 80 and min(ratios["specific_force"]) > 80
+    else:
+        with pytest.raises(CalibrationError, match=r"no rotation .* and no specific-force"):
+            check_motion(reference, body, *noise)
 
 
 def test_turntable_calibration_without_rotation_change_is_refused_with_exit_3(tmp_path):

@@ -12,7 +12,9 @@ unchanged): each
 detector runs on a fixed seeded simulated log with injected faults, streamed in uneven
 blocks, and every array of every :class:`DetectionBlock` (statistic, threshold, alarm,
 isolated, amplitude, scores, isolated_set, amplitudes) is hashed (SHA-256 of its bytes) and
-fingerprinted, as is the metadata JSON.
+fingerprinted, as is the metadata JSON. The cnn-map case's metadata hash was re-recorded
+once since (session 17, cnnreal): ``calibration_motion_ratio`` changed on purpose (the
+motion check's noise level), its outputs and every other metadata field kept their bytes.
 
 On the machine and numpy version of the record the hashes must match **byte for byte**. On
 another CPU or numpy a different summation order may move the last bits, so there the

@@ -11,7 +11,10 @@ devices (§2-3): accelerometer noise increase in a 12-IMU array. The paper's met
    isolation, so a GLT false alarm does not remove a healthy gyro for good; every
    exclusion and re-admission is logged in the metadata, ``excluded_gyros``). The
    calibration window must contain motion: rotation and specific-force change of at least
-   10x their noise on one body axis (``check_motion``), else fit refuses it.
+   10x their noise on one body axis (``check_motion``), else fit refuses it; the noise is
+   the smaller of a second-difference estimate and the sensors' disagreement (parity
+   residuals, which no motion reaches), so jerky motion sampled slowly is not taken for
+   noise.
 2. Mapping network (§2): two 1-D convolution layers and a fully connected layer (numpy,
    :mod:`imufdi_cli.detectors.nn`) map a window of ``L`` samples of one IMU's specific force, rotated to the body
    frame and standardised, to the reference rate at the window's last sample. One network
@@ -121,6 +124,8 @@ from imufdi_cli.detectors.cnn_map.signals import (
     fit_autoregression,
     gamma_shape,
     input_windows,
+    noise_across_accels,
+    noise_across_gyros,
     whiten,
 )
 
@@ -140,5 +145,7 @@ __all__ = [
     "fit_autoregression",
     "gamma_shape",
     "input_windows",
+    "noise_across_accels",
+    "noise_across_gyros",
     "whiten",
 ]

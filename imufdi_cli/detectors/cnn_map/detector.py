@@ -25,6 +25,8 @@ from imufdi_cli.detectors.cnn_map.signals import (
     MIN_TRAINING_WINDOWS,
     READMIT_S,
     check_motion,
+    noise_across_accels,
+    noise_across_gyros,
 )
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.nn import ACTIVATIONS
@@ -198,6 +200,16 @@ class CnnMapDetector(_MappingTest, DetectorBase):
             self._glt = glt
         self.mapping_alarms = self.mapping_test == "alarm"
         self.mapping_report = _MappingReport()
+        if self.mapping_test != "off":  # before the input test's threshold simulation
+            gyro = array.select(calibration.gyro, "gyro")
+            reference = gyro @ self._estimator.T  # fault-free window: every gyro
+            body = self._body_accel(calibration)
+            self.calibration_motion = check_motion(
+                reference,
+                body,
+                noise_across_gyros(gyro, self.gyro_H),
+                noise_across_accels(body, array.positions()[self.tested]),
+            )
         self._fit_input_test(calibration, array)
         if self.mapping_test == "off":
             if self._input is None:
@@ -210,10 +222,6 @@ class CnnMapDetector(_MappingTest, DetectorBase):
             return
         if self._input is None:  # nothing else can alarm: the mapping test does, at alpha
             self.mapping_alarms = True
-        gyro = array.select(calibration.gyro, "gyro")
-        reference = gyro @ self._estimator.T  # fault-free window: every gyro
-        body = self._body_accel(calibration)
-        self.calibration_motion = check_motion(reference, body)
 
         if self.model_path is not None:
             mapping = self._load(self.model_path)

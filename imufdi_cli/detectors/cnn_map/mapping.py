@@ -104,7 +104,7 @@ class _MappingTest(_InputTest):
             for start in range(0, n, self.batch):
                 pick = order[start : start + self.batch]
                 loss, grad = mse_loss(network.forward(train_in[pick]), train_out[pick])
-                network.backward(grad)
+                network.backward(grad, input_grad=False)
                 optimiser.step(network.grads)
                 total += loss * pick.size
             train_curve.append(total / n)

@@ -100,19 +100,114 @@ def whiten(residual: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
     return out
 
 
-def _excursion_ratio(series: np.ndarray) -> np.ndarray:
+def _excursion_ratio(series: np.ndarray, across: np.ndarray | None = None) -> np.ndarray:
     """Per-column motion excursion over the white-noise level, (c,) for (N, c) series.
 
-    Noise from second differences (``Var(D^2 x) = 6 sigma^2`` for white noise, smooth
-    motion cancels to O(Te^2)); excursion = the standard deviation left after the noise.
+    Two noise estimates, each at least the true white-noise level in expectation, and the
+    smaller one is used: second differences (``Var(D^2 x) = 6 sigma^2`` for white noise,
+    smooth motion cancels to O(Te^2), but jerky motion sampled slowly does not: hand
+    motion at 62.5 Hz puts ~130 deg/s into them) and ``across`` (the spread across the
+    redundant sensors, :func:`noise_across_gyros` / :func:`noise_across_accels`: motion
+    cancels, chip bias differences and timing jitter do not). Excursion = the standard
+    deviation left after the noise.
+
+    Parameters
+    ----------
+    series : ndarray, shape (N, c)
+    across : ndarray, shape (c,), optional
+        Noise level of ``series`` from the spread across sensors, same unit.
     """
     noise = MAD_TO_STD * np.median(np.abs(np.diff(series, n=2, axis=0)), axis=0) / np.sqrt(6.0)
+    if across is not None:
+        noise = np.minimum(noise, across)
     spread = np.sqrt(np.maximum(series.var(axis=0) - noise**2, 0.0))
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(noise > 0, spread / noise, np.where(spread > 0, np.inf, 0.0))
 
 
-def check_motion(reference: np.ndarray, body: np.ndarray) -> dict[str, list[float]]:
+def _parity_variance(residual: np.ndarray, dof: int) -> np.ndarray:
+    """Noise variance per sensor from parity residuals: the median over samples of
+    ``|P y|^2 / dof``, divided by the median of chi^2_dof / dof (Wilson-Hilferty,
+    ``(1 - 2 / (9 dof))^3``) so that white Gaussian noise gives sigma^2 unbiased.
+
+    Parameters
+    ----------
+    residual : ndarray, shape (N, n, ...)
+        Projections ``P y`` of n sensors onto the complement of the common signal.
+    dof : int
+        Rank of that complement, >= 1.
+
+    Returns
+    -------
+    ndarray, shape (...)
+    """
+    per_sample = np.sum(residual**2, axis=1) / dof
+    return np.median(per_sample, axis=0) / (1.0 - 2.0 / (9.0 * dof)) ** 3  # type: ignore[no-any-return]
+
+
+def _complement(design: np.ndarray) -> tuple[np.ndarray, int]:
+    """Projector onto the orthogonal complement of ``design``'s columns, and its rank."""
+    rank = int(np.linalg.matrix_rank(design))
+    return np.eye(design.shape[0]) - design @ np.linalg.pinv(design), design.shape[0] - rank
+
+
+def noise_across_gyros(gyro: np.ndarray, measurement: np.ndarray) -> np.ndarray | None:
+    """Noise of the least-squares body rate from the gyros' disagreement, (3,) rad/s.
+
+    The parity residual ``P y`` (``P = I - H H^+``) holds no rotation whatever the
+    motion; with equal white noise sigma on every gyro, ``E|P y|^2 = (n - 3) sigma^2``
+    and the least-squares rate has the standard deviations ``sigma sqrt(diag((H^T H)^-1))``.
+
+    Parameters
+    ----------
+    gyro : ndarray, shape (N, n), rad/s
+    measurement : ndarray, shape (n, 3)
+        H, sensor axes in the body frame.
+
+    Returns
+    -------
+    ndarray, shape (3,), or None with fewer than 4 gyros (no redundancy).
+    """
+    projector, dof = _complement(measurement)
+    if dof < 1:
+        return None
+    sigma2 = float(_parity_variance((gyro @ projector.T)[:, :, None], dof)[0])
+    return np.sqrt(sigma2 * np.diag(np.linalg.inv(measurement.T @ measurement)))  # type: ignore[no-any-return]
+
+
+def noise_across_accels(body: np.ndarray, positions: np.ndarray) -> np.ndarray | None:
+    """Noise of the mean specific force over the IMUs from their disagreement, (3,) m/s^2.
+
+    A rigid body's specific force at position r_k is ``f(t) + K(t) r_k`` (K: the angular
+    acceleration and centripetal terms), so per body axis the residual of the IMUs after a
+    fit on ``[1, r_k]`` holds no rigid motion; its variance per IMU, divided by m, is that
+    of the mean over the m IMUs.
+
+    Parameters
+    ----------
+    body : ndarray, shape (N, m, 3), m/s^2
+        Specific force per IMU in the body frame.
+    positions : ndarray, shape (m, 3), m
+
+    Returns
+    -------
+    ndarray, shape (3,), or None when the IMUs leave no residual (m <= 4 off a plane).
+    """
+    m = body.shape[1]
+    design = np.column_stack([np.ones(m), positions - positions.mean(axis=0)])
+    projector, dof = _complement(design)
+    if dof < 1:
+        return None
+    residual = np.einsum("jk,nka->nja", projector, body)
+    return np.sqrt(_parity_variance(residual, dof) / m)  # type: ignore[no-any-return]
+
+
+def check_motion(
+    reference: np.ndarray,
+    body: np.ndarray,
+    rate_noise: np.ndarray | None = None,
+    force_noise: np.ndarray | None = None,
+) -> dict[str, list[float]]:
     """Refuse a calibration window without the motion the mapping needs.
 
     The mapping learns the body rate from windows of specific force: the window must
@@ -123,6 +218,10 @@ def check_motion(reference: np.ndarray, body: np.ndarray) -> dict[str, list[floa
     ----------
     reference : ndarray, shape (N, 3), rad/s
     body : ndarray, shape (N, m, 3), m/s^2
+    rate_noise, force_noise : ndarray, shape (3,), optional
+        Noise of ``reference`` and of ``body.mean(axis=1)`` from the spread across the
+        sensors (:func:`noise_across_gyros`, :func:`noise_across_accels`); the noise is
+        the smaller of this and the second-difference estimate (``_excursion_ratio``).
 
     Returns
     -------
@@ -134,8 +233,8 @@ def check_motion(reference: np.ndarray, body: np.ndarray) -> dict[str, list[floa
     CalibrationError
         Neither ratio reaches ``MIN_MOTION_RATIO`` on any axis; the message names which.
     """
-    rate = _excursion_ratio(reference)
-    force = _excursion_ratio(body.mean(axis=1))
+    rate = _excursion_ratio(reference, rate_noise)
+    force = _excursion_ratio(body.mean(axis=1), force_noise)
     missing = [
         f"{what} (excursion {', '.join(f'{v:.2g}' for v in ratio)} x its noise about x, y, z)"
         for what, ratio in (("rotation", rate), ("specific-force change", force))
