@@ -15,6 +15,8 @@ isolated, amplitude, scores, isolated_set, amplitudes) is hashed (SHA-256 of its
 fingerprinted, as is the metadata JSON. The cnn-map case's metadata hash was re-recorded
 once since (session 17, cnnreal): ``calibration_motion_ratio`` changed on purpose (the
 motion check's noise level), its outputs and every other metadata field kept their bytes.
+The two woa-mvmd-glt metadata hashes were re-recorded once more when ``u_best=lowest``
+became the default (the metadata names the rule); every output array kept its bytes.
 
 On the machine and numpy version of the record the hashes must match **byte for byte**. On
 another CPU or numpy a different summation order may move the last bits, so there the

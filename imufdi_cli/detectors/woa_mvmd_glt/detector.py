@@ -46,6 +46,7 @@ from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
 from imufdi_cli.detectors.woa_mvmd_glt.tuning import TuneResult, make_validation, tune, tune_signal
 from imufdi_cli.detectors.woa_mvmd_glt.windows import (
     COMBINE_CHOICES,
+    DEFAULT_MODE_RULE,
     MODE_RULES,
     _WindowStream,
     best_mode,
@@ -184,10 +185,10 @@ class WoaMvmdGltDetector(DetectorBase):
         ),
         "u_best": Param(
             "choice",
-            "inner",
-            "mode tested: largest uncentred inner product with the raw window (inner, the"
-            " paper; on bias-free input it follows the noise) or lowest centre frequency"
-            " (lowest)",
+            DEFAULT_MODE_RULE,
+            "mode tested: lowest centre frequency (lowest, the default) or largest uncentred"
+            " inner product with the raw window (inner, the paper's rule; on bias-free input"
+            " it follows the noise)",
             choices=MODE_RULES,
         ),
         "outliers": Param(
@@ -255,7 +256,7 @@ class WoaMvmdGltDetector(DetectorBase):
         window: int = 50,
         overlap: int = 40,
         combine: str = "end",
-        u_best: str = "inner",
+        u_best: str = DEFAULT_MODE_RULE,
         outliers: str = "clip",
         outlier_cut: float = 4.0,
         fitness: str = "cfv+delay",

@@ -31,7 +31,7 @@ from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
     cfv,
     validation_windows,
 )
-from imufdi_cli.detectors.woa_mvmd_glt.windows import WindowSpectra
+from imufdi_cli.detectors.woa_mvmd_glt.windows import DEFAULT_MODE_RULE, WindowSpectra
 from imufdi_cli.errors import (
     CalibrationError,
     DetectorConfigError,
@@ -127,7 +127,7 @@ def _validation_misses(
     alphas: list[float],
     tol: float,
     max_iter: int,
-    rule: str = "inner",
+    rule: str = DEFAULT_MODE_RULE,
 ) -> np.ndarray:
     """(P,) expected missed fraction of the validation fault for each of P candidates,
     averaged over the ``n_windows`` validation windows of ``spectra``."""
@@ -159,7 +159,7 @@ def tune_signal(
     tol: float = 1e-6,
     max_iter: int = 300,
     validation: ValidationFault | None = None,
-    rule: str = "inner",
+    rule: str = DEFAULT_MODE_RULE,
 ) -> TuneResult:
     """WOA search of (K, alpha) minimising CFV for one multichannel signal (C, T).
 

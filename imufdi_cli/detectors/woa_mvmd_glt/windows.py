@@ -26,6 +26,9 @@ COMBINE_CHOICES: tuple[str, ...] = ("end", "centre", "min")
 #: How u_best is chosen among a window's modes: the paper's largest uncentred inner product
 #: with the raw window (``inner``), or the mode of lowest centre frequency (``lowest``).
 MODE_RULES: tuple[str, ...] = ("inner", "lowest")
+#: u_best rule by default: the lowest-frequency mode (the paper's "inner" follows the noise
+#: on bias-free input; identical figures on the paper's scenario, docs/algorithms/woa-mvmd-glt.md)
+DEFAULT_MODE_RULE = "lowest"
 # --- windowed decomposition ------------------------------------------------------------
 
 
@@ -162,7 +165,7 @@ class WindowSpectra:
         self,
         raw: Sequence[tuple[np.ndarray, np.ndarray, int, bool]],
         first_row: int = 0,
-        rule: str = "inner",
+        rule: str = DEFAULT_MODE_RULE,
     ) -> tuple[np.ndarray, np.ndarray]:
         """u_best (W, L, n) and rows ``first_row`` .. L - 1 of its filter (W, L - first_row,
         L) from the outputs of :func:`mvmd_gains` (one per window), chosen as
@@ -198,7 +201,7 @@ def decompose_windows(
     tol: float,
     max_iter: int,
     first_row: int = 0,
-    rule: str = "inner",
+    rule: str = DEFAULT_MODE_RULE,
 ) -> tuple[np.ndarray, np.ndarray]:
     """u_best of each window of a stack and its filter matrix, by one batched MVMD.
 
