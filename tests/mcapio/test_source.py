@@ -346,6 +346,7 @@ def test_read_ahead_on_the_worker_thread_keeps_the_order(strict: bool) -> None:
         assert source._pool is None
 
 
+@pytest.mark.slow  # multi-process, 4 s (docs/testing.md); the read-ahead path has default tests
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
 def test_read_ahead_survives_a_fork(monkeypatch) -> None:
     """A child forked while chunks are in flight on the parent's worker thread (which the
