@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -332,29 +332,31 @@ class ArrayConfig:
         """Per-sensor noise sigma (n_s,), SI, in sensor-id order: each IMU's ``<type>_noise``
         where given, else the array-wide ``noise.<type>``; None when some sensor has
         neither."""
+        return self._per_sensor(sensor_type, lambda imu: imu.noise, self.noise.get(sensor_type))
+
+    def sensor_noise_spread(self, sensor_type: str) -> np.ndarray | None:
+        """Per-sensor healthy noise-variance spread kappa (n_s,) in sensor-id order (each
+        IMU's ``<type>_noise_spread``); None unless every IMU with that type carries one."""
+        return self._per_sensor(sensor_type, lambda imu: imu.noise_spread)
+
+    def _per_sensor(
+        self,
+        sensor_type: str,
+        table: Callable[[ImuSpec], Mapping[str, np.ndarray]],
+        common: float | None = None,
+    ) -> np.ndarray | None:
+        """Per-sensor values (n_s,) in sensor-id order from each IMU's per-axis ``table``
+        entry for ``sensor_type``, else ``common``; None when some sensor has neither."""
         imu_idx, axis_idx = self.sensor_index(sensor_type)
-        common = self.noise.get(sensor_type)
         out = np.empty(imu_idx.size)
         for j, (k, a) in enumerate(zip(imu_idx, axis_idx)):
-            per = self.imus[k].noise.get(sensor_type)
+            per = table(self.imus[k]).get(sensor_type)
             if per is not None:
                 out[j] = float(per[a])
             elif common is not None:
                 out[j] = float(common)
             else:
                 return None
-        return out
-
-    def sensor_noise_spread(self, sensor_type: str) -> np.ndarray | None:
-        """Per-sensor healthy noise-variance spread kappa (n_s,) in sensor-id order (each
-        IMU's ``<type>_noise_spread``); None unless every IMU with that type carries one."""
-        imu_idx, axis_idx = self.sensor_index(sensor_type)
-        out = np.empty(imu_idx.size)
-        for j, (k, a) in enumerate(zip(imu_idx, axis_idx)):
-            per = self.imus[k].noise_spread.get(sensor_type)
-            if per is None:
-                return None
-            out[j] = float(per[a])
         return out
 
     def with_noise_spread(self, spread: Sequence[Mapping[str, np.ndarray]]) -> ArrayConfig:

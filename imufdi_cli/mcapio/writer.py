@@ -537,12 +537,7 @@ class McapWriter:
             return
         if records.ndim != 2 or records.dtype != np.uint8 or not records.flags.c_contiguous:
             raise UsageError("records must be a C-contiguous (N, R) uint8 array")
-        channel_id = np.asarray(channel_id, np.uint16)
-        log_time = np.asarray(log_time, np.int64)
-        if channel_id.shape != (n,) or log_time.shape != (n,):
-            raise UsageError(f"need {n} channel ids and log times, one per record")
-        self._check_registered(channel_id)
-        self._check_log_time(channel_id, log_time)
+        channel_id, log_time = self._record_keys(n, channel_id, log_time)
         size = int(records.shape[1])
         self._queue_fixed(
             n,
@@ -573,12 +568,7 @@ class McapWriter:
         if n == 0:
             return
         size = int(source.record_size)
-        channel_id = np.asarray(channel_id, np.uint16)
-        log_time = np.asarray(log_time, np.int64)
-        if channel_id.shape != (n,) or log_time.shape != (n,):
-            raise UsageError(f"need {n} channel ids and log times, one per record")
-        self._check_registered(channel_id)
-        self._check_log_time(channel_id, log_time)
+        channel_id, log_time = self._record_keys(n, channel_id, log_time)
         self._queue_fixed(
             n,
             size,
@@ -586,6 +576,19 @@ class McapWriter:
                 source, start, stop, channel_id[start:stop], log_time[start:stop]
             ),
         )
+
+    def _record_keys(
+        self, n: int, channel_id: np.ndarray, log_time: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``channel_id`` (N,) uint16 and ``log_time`` (N,) int64 of N queued records,
+        checked: one per record, registered channels, log times as :meth:`_check_log_time`."""
+        channel_id = np.asarray(channel_id, np.uint16)
+        log_time = np.asarray(log_time, np.int64)
+        if channel_id.shape != (n,) or log_time.shape != (n,):
+            raise UsageError(f"need {n} channel ids and log times, one per record")
+        self._check_registered(channel_id)
+        self._check_log_time(channel_id, log_time)
+        return channel_id, log_time
 
     def _queue_fixed(
         self, n: int, size: int, make_part: Callable[[int, int], _RecordPart | _SourcePart]
