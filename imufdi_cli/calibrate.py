@@ -831,14 +831,15 @@ def calibrate_block(
         )
         for k, gcal in enumerate(gyro_cal):
             cals[k]["gyro"] = gcal
-    noise = static_noise(array.with_calibration(cals), accel, gyro, t_s, static, intervals)
-    spread, _ = noise_spread(array.with_calibration(cals), accel, gyro, t_s, static, intervals)
+    calibrated = array.with_calibration(cals)
+    noise = static_noise(calibrated, accel, gyro, t_s, static, intervals)
+    spread, _ = noise_spread(calibrated, accel, gyro, t_s, static, intervals)
     figures = [
         _figures(k, s, c)
         for k, per in enumerate(cals)
         for s, c in sorted(per.items(), reverse=True)
     ]
-    out = array.with_calibration(cals).with_sensor_noise(noise).with_noise_spread(spread)
+    out = calibrated.with_sensor_noise(noise).with_noise_spread(spread)
     jitter = jitter_stage(out, {"accel": accel, "gyro": gyro}, t_s, static, clipped, jitter_fit)
     for sensor_type, value in jitter.items():
         if value >= MAX_JITTER_S:
