@@ -69,6 +69,7 @@ import numpy as np
 
 from imufdi_cli.array import ArrayConfig, TriadCalibration
 from imufdi_cli.detectors.jitter import MAX_JITTER_S, fit_jitter
+from imufdi_cli.detectors.parity import residual_projector
 from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.errors import ArrayConfigError, CalibrationError
 from imufdi_cli.log import ImuBlock
@@ -489,7 +490,7 @@ def _parity_residuals(
     one type: motion and the array's common offsets cancel in them."""
     values = array.select(array.calibrate_triads(raw, sensor_type), sensor_type)
     H = array.measurement_matrix(sensor_type)
-    projector = np.eye(H.shape[0]) - H @ np.linalg.pinv(H)
+    projector = residual_projector(H)
     return projector, values @ projector.T
 
 

@@ -72,7 +72,11 @@ from typing import Any
 
 import numpy as np
 
-from imufdi_cli.detectors.parity import check_measurement_matrix, least_squares_matrix
+from imufdi_cli.detectors.parity import (
+    check_measurement_matrix,
+    least_squares_matrix,
+    residual_projector,
+)
 
 #: ``(sigma_k, consensus_sigma, dof)`` or ``(sigma_k, consensus_sigma, dof, (A, B, D))``:
 #: the white noise of a sensor and its consensus, and how well the calibration knows them
@@ -1898,7 +1902,7 @@ def white_sigma_covariance(H: np.ndarray, sigma: np.ndarray, n_samples: int) -> 
     n, q = H.shape
     if n_samples < 3 or n <= q:
         return np.zeros((0, 0))
-    projector = np.eye(n) - H @ np.linalg.pinv(H)
+    projector = residual_projector(H)
     mixing = projector**2
     sig = np.asarray(sigma, dtype=np.float64)
     covariance = projector @ np.diag(sig**2) @ projector.T
@@ -1949,7 +1953,7 @@ def white_sigma_excess(
     n, q = H.shape
     if m.ndim != 2 or m.shape[0] < 4 or n <= q:
         return 1.0
-    projector = np.eye(n) - H @ np.linalg.pinv(H)
+    projector = residual_projector(H)
     mixing = projector**2
     singular = np.linalg.svd(mixing, compute_uv=False)
     if not singular[-1] > 1e-8 * singular[0]:

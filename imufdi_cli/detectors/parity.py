@@ -78,6 +78,18 @@ def check_measurement_matrix(H: np.ndarray) -> np.ndarray:
     return H
 
 
+def residual_projector(H: np.ndarray) -> np.ndarray:
+    """``I - H H^+`` (n, n): the projector onto the complement of H's columns, which maps
+    measurements ``m = H x + e`` to their least-squares residuals (x cancels).
+
+    Parameters
+    ----------
+    H : ndarray, shape (n, q)
+        Measurement (or design) matrix, any rank.
+    """
+    return np.eye(H.shape[0]) - H @ np.linalg.pinv(H)  # type: ignore[no-any-return]
+
+
 def parity_matrix(H: np.ndarray) -> np.ndarray:
     """Potter's parity matrix V of a measurement matrix (module docstring, eq. 1).
 
@@ -356,7 +368,7 @@ def residual_sigma(
         if np.count_nonzero(inlier) >= max(2, r.shape[0] // 2):
             r = r[inlier]
     variances = r.var(axis=0, ddof=1)
-    mixing = (np.eye(n) - H @ np.linalg.pinv(H)) ** 2
+    mixing = residual_projector(H) ** 2
     singular = np.linalg.svd(mixing, compute_uv=False)
     common = variances.sum() / n_parity
     if singular[-1] > 1e-8 * singular[0]:
@@ -416,8 +428,7 @@ def sigma_estimate_variance(H: np.ndarray, sigma: np.ndarray, n_samples: int) ->
     -------
     ndarray, shape (n,)
     """
-    n = H.shape[0]
-    mixing = np.eye(n) - H @ np.linalg.pinv(H)
+    mixing = residual_projector(H)
     covariance = mixing @ np.diag(sigma**2) @ mixing.T
     inverse = np.linalg.pinv(mixing**2)
     spread = inverse @ (2.0 / max(n_samples - 1, 1) * covariance**2) @ inverse.T

@@ -28,6 +28,7 @@ import numpy as np
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import Param
+from imufdi_cli.detectors.parity import residual_projector
 from imufdi_cli.log import ImuBlock
 
 #: The detector parameter (seconds; 0 = off).
@@ -80,7 +81,7 @@ class BiasTracker:
                 h = array.measurement_matrix(sensor_type)
             if triads is None or h.shape[0] <= h.shape[1] or len(calibration) < 2:
                 continue
-            projector = np.eye(h.shape[0]) - h @ np.linalg.pinv(h)
+            projector = residual_projector(h)
             residual = array.select(triads, sensor_type) @ projector.T
             reference = residual.mean(axis=0)
             sigma = np.maximum(residual.std(axis=0), 1e-12)

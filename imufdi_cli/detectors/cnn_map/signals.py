@@ -10,6 +10,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from imufdi_cli.detectors.cusum import (
     CusumDesign,
 )
+from imufdi_cli.detectors.parity import residual_projector
 from imufdi_cli.errors import (
     CalibrationError,
 )
@@ -148,7 +149,7 @@ def _parity_variance(residual: np.ndarray, dof: int) -> np.ndarray:
 def _complement(design: np.ndarray) -> tuple[np.ndarray, int]:
     """Projector onto the orthogonal complement of ``design``'s columns, and its rank."""
     rank = int(np.linalg.matrix_rank(design))
-    return np.eye(design.shape[0]) - design @ np.linalg.pinv(design), design.shape[0] - rank
+    return residual_projector(design), design.shape[0] - rank
 
 
 def noise_across_gyros(gyro: np.ndarray, measurement: np.ndarray) -> np.ndarray | None:
