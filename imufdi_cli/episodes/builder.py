@@ -28,7 +28,12 @@ from imufdi_cli.detectors.parity import check_measurement_matrix
 from imufdi_cli.episodes.episode import Episode, _sensor_amplitude, isolation_summary
 from imufdi_cli.episodes.fault_fit import WhiteNoise
 from imufdi_cli.episodes.fits import fit_models
-from imufdi_cli.episodes.reference import Reference
+from imufdi_cli.episodes.reference import (
+    Reference,
+    downdated_gain,
+    estimator_without,
+    leave_two_out,
+)
 from imufdi_cli.episodes.variance_drop import VARIANCE_DROP, VarianceDropMonitor
 from imufdi_cli.episodes.white_noise import (
     successive_difference_dof,
@@ -206,54 +211,16 @@ class EpisodeBuilder:
         for group in groups if idx.size else []:
             first, last = int(group[0]), int(group[-1])
             self._advance(m, t_ns, first, closed)
+            self._end_quiet_run(closed)
             state = self._open
-            if state is not None and state["quiet"] > self.merge_gap:
-                self._run_closed(state, closed)
-                state = self._open = None
             if state is None:
-                # only the last `margin` rows before the alarm are kept: copy no more
-                tail = max(0, first - self.margin)
-                history = np.concatenate([self._history, m[tail:first]])[-self.margin :]
-                history_t = np.concatenate([self._history_t, t_ns[tail:first]])[-self.margin :]
-                state = self._open = {
-                    "start_ns": int(t_ns[first]),
-                    "decided_start_ns": int(decided_ns[first]),
-                    "window": [history],
-                    "window_t": [history_t],
-                    "kept": history.shape[0],
-                    "alarm_index": history.shape[0],
-                    "alarms": 0,
-                    "isolated": [],
-                    "amplitudes": [],  # (sensor, amplitude) of alarms with an estimate
-                    "counts": np.zeros(len(self.sensor_ids), np.int64),
-                    "fragments": 1,
-                    "peak": -math.inf,
-                    "quiet": 0,
-                    # episodes this run may still join: they wait until it has ended
-                    "may_join": set(self._waiting),
-                }
+                state = self._open = self._new_run(m, t_ns, int(decided_ns[first]), first)
             self._advance(m, t_ns, last + 1, closed, alarmed=True)
-            group_isolated = isolated_rows[group]
             state["end_ns"] = int(t_ns[last])
             state["decided_end_ns"] = int(decided_ns[last])
-            state["quiet"] = 0
-            state["alarms"] += int(group.size)
-            state["isolated"].append(group_isolated)
-            if amplitudes is not None:
-                found = np.nonzero(np.isfinite(amplitudes[group]))
-                state["amplitudes"].append((found[1], amplitudes[group][found]))
-            valid = group_isolated[(group_isolated >= 0) & (group_isolated < len(self.sensor_ids))]
-            state["counts"] += np.bincount(valid, minlength=len(self.sensor_ids))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.asarray(out.statistic)[group] / np.asarray(out.threshold)[group]
-            ratio = ratio[np.isfinite(ratio)]
-            if ratio.size:
-                state["peak"] = max(state["peak"], float(ratio.max()))
+            self._add_alarms(state, group, isolated_rows[group], out, amplitudes)
         self._advance(m, t_ns, n, closed)
-        state = self._open
-        if state is not None and state["quiet"] > self.merge_gap:
-            self._run_closed(state, closed)
-            self._open = None
+        self._end_quiet_run(closed)
         tail = max(0, n - self.margin)
         self._history = np.concatenate([self._history, m[tail:]])[-self.margin :]
         self._history_t = np.concatenate([self._history_t, t_ns[tail:]])[-self.margin :]
@@ -264,6 +231,64 @@ class EpisodeBuilder:
             closed.extend(builder.rows(t_ns, t_ns, monitor.update(m)))
         closed.sort(key=lambda e: e.decided_end_ns)
         return closed
+
+    def _end_quiet_run(self, closed: list[Episode]) -> None:
+        """Close the open alarm run once more than ``merge_gap`` quiet rows follow it."""
+        state = self._open
+        if state is not None and state["quiet"] > self.merge_gap:
+            self._run_closed(state, closed)
+            self._open = None
+
+    def _new_run(
+        self, m: np.ndarray, t_ns: np.ndarray, decided_ns: int, first: int
+    ) -> dict[str, Any]:
+        """The state of an alarm run starting at row ``first`` of the block (decided at
+        ``decided_ns``), with the last ``margin`` rows before it."""
+        # only the last `margin` rows before the alarm are kept: copy no more
+        tail = max(0, first - self.margin)
+        history = np.concatenate([self._history, m[tail:first]])[-self.margin :]
+        history_t = np.concatenate([self._history_t, t_ns[tail:first]])[-self.margin :]
+        return {
+            "start_ns": int(t_ns[first]),
+            "decided_start_ns": decided_ns,
+            "window": [history],
+            "window_t": [history_t],
+            "kept": history.shape[0],
+            "alarm_index": history.shape[0],
+            "alarms": 0,
+            "isolated": [],
+            "amplitudes": [],  # (sensor, amplitude) of alarms with an estimate
+            "counts": np.zeros(len(self.sensor_ids), np.int64),
+            "fragments": 1,
+            "peak": -math.inf,
+            "quiet": 0,
+            # episodes this run may still join: they wait until it has ended
+            "may_join": set(self._waiting),
+        }
+
+    def _add_alarms(
+        self,
+        state: dict[str, Any],
+        group: np.ndarray,
+        group_isolated: np.ndarray,
+        out: Any,
+        amplitudes: np.ndarray | None,
+    ) -> None:
+        """Count the alarmed rows ``group`` of the block (isolating ``group_isolated``) in
+        the run ``state``: alarms, isolated sensors, amplitudes, peak statistic ratio."""
+        state["quiet"] = 0
+        state["alarms"] += int(group.size)
+        state["isolated"].append(group_isolated)
+        if amplitudes is not None:
+            found = np.nonzero(np.isfinite(amplitudes[group]))
+            state["amplitudes"].append((found[1], amplitudes[group][found]))
+        valid = group_isolated[(group_isolated >= 0) & (group_isolated < len(self.sensor_ids))]
+        state["counts"] += np.bincount(valid, minlength=len(self.sensor_ids))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.asarray(out.statistic)[group] / np.asarray(out.threshold)[group]
+        ratio = ratio[np.isfinite(ratio)]
+        if ratio.size:
+            state["peak"] = max(state["peak"], float(ratio.max()))
 
     def _variance_monitor(self, window: int, alpha: float) -> VarianceDropMonitor:
         """The :class:`VarianceDropMonitor` of this sensor type (white sigma, leave-one-out
@@ -395,8 +420,18 @@ class EpisodeBuilder:
             fragments=state["fragments"],
             amplitude=_sensor_amplitude(state["amplitudes"], self.sensor_ids, names),
         )
-        if not self.explain or window.shape[0] < 4:
-            return episode
+        if self.explain and window.shape[0] >= 4:
+            self._explain(episode, window, window_t, state["alarm_index"])
+        return episode
+
+    def _explain(
+        self, episode: Episode, window: np.ndarray, window_t: np.ndarray, alarm_index: int
+    ) -> None:
+        """Fit the fault models (:func:`~imufdi_cli.episodes.fits.fit_models`) on the
+        episode's isolated sensor (or, when none was isolated, the loudest) over ``window``
+        (L, n) with times ``window_t`` (L,) ns, its first alarm at ``alarm_index``; sets
+        ``episode.fits`` (left empty when the other sensors give no consensus)."""
+        names = episode.sensors
         k = self.sensor_ids.index(names[0]) if names else self._loudest(window)
         if not names:
             episode.sensors = [self.sensor_ids[k]]
@@ -404,7 +439,7 @@ class EpisodeBuilder:
         try:
             gain, consensus_sigma = self._gain(k)
         except ValueError:
-            return episode
+            return
         prediction = window @ gain
         residual = window[:, k] - prediction
         offset_var = None
@@ -415,7 +450,7 @@ class EpisodeBuilder:
             if self.calibration_samples:
                 offset_var = (self.sigma[k] ** 2 + consensus_sigma**2) / self.calibration_samples
         t_s = (window_t - window_t[0]).astype(np.float64) * 1e-9
-        alarm_index = min(state["alarm_index"], max(len(window_t) - 2, 0))
+        alarm_index = min(alarm_index, max(len(window_t) - 2, 0))
         episode.fits = fit_models(
             residual,
             prediction,
@@ -432,7 +467,6 @@ class EpisodeBuilder:
             reference=self._reference(k, window),
             white=self._white(k, gain),
         )
-        return episode
 
     def _white(self, k: int, gain: np.ndarray) -> WhiteNoise | None:
         """(sigma_k, consensus sigma, dof, spread) of the white noise for
@@ -470,68 +504,22 @@ class EpisodeBuilder:
     def _reference_matrix(
         self, k: int
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-        """``A`` (n, m) with ``window @ A`` the residuals of the m sensors j != k whose
-        leave-two-out consensus exists, their calibrated offsets, white variances and
-        offset variances. All m consensuses at once from the information matrix
-        ``M = H^T W H`` by downdating: ``M_{-jk} = M - h_k h_k^T / s_k^2 - h_j h_j^T / s_j^2``,
-        gain ``g_{j,i} = h_j^T M_{-jk}^{-1} h_i / s_i^2`` (i not j, k) and consensus
-        variance ``h_j^T M_{-jk}^{-1} h_j``."""
-        H, sigma = self.H, np.asarray(self.sigma, dtype=np.float64)
-        n = H.shape[0]
-        weights = 1.0 / sigma**2
-        outer = np.einsum("ia,ib->iab", H, H) * weights[:, None, None]
-        others = np.flatnonzero(np.arange(n) != k)
-        M = outer.sum(axis=0) - outer[k] - outer[others]  # (m, 3, 3)
-        eig = np.linalg.eigvalsh(M)
-        scale = float(np.max(np.linalg.eigvalsh(outer.sum(axis=0))))
-        spans = eig[:, 0] > 1e-9 * scale
-        others, M = others[spans], M[spans]
-        if others.size < 2:
-            return None
-        solved = np.linalg.solve(M, H[others][:, :, None])[:, :, 0]  # M^-1 h_j, (m, 3)
-        gains = (H @ solved.T) * weights[:, None]  # (n, m): g_{j,i} in column j
-        gains[k] = 0.0
-        gains[others, np.arange(others.size)] = 0.0
-        consensus_var = np.einsum("ma,ma->m", H[others], solved)
-        A = -gains
-        A[others, np.arange(others.size)] += 1.0
-        variance = sigma[others] ** 2 + consensus_var
-        offset = np.zeros(others.size)
-        offset_var = np.zeros(others.size)
-        if self.calibration_mean is not None:
-            offset = self.calibration_mean @ A
-            if self.calibration_samples:
-                offset_var = variance / self.calibration_samples
-        return A, offset, variance, offset_var
+        """:func:`~imufdi_cli.episodes.reference.leave_two_out` of sensor k with this
+        builder's calibration."""
+        return leave_two_out(self.H, self.sigma, k, self.calibration_mean, self.calibration_samples)
 
     def _estimator(self, k: int) -> np.ndarray:
-        """(n, 3) ``B`` with ``window @ B`` the weighted least-squares estimate of the
-        sensed vector from the sensors other than k (cached)."""
+        """:func:`~imufdi_cli.episodes.reference.estimator_without` sensor k (cached)."""
         found = self._estimators.get(k)
         if found is None:
-            H, sigma = self.H, np.asarray(self.sigma, dtype=np.float64)
-            weights = 1.0 / sigma**2
-            M = (H.T * weights) @ H - np.outer(H[k], H[k]) * weights[k]
-            found = (H * weights[:, None]) @ np.linalg.inv(M)
-            found[k] = 0.0
-            self._estimators[k] = found
+            found = self._estimators[k] = estimator_without(self.H, self.sigma, k)
         return found
 
     def _gain(self, k: int) -> tuple[np.ndarray, float]:
-        """:func:`_consensus_gain` of sensor k, from the information matrix downdated by k's
-        own term (cached; one 3x3 solve instead of a pseudo-inverse)."""
+        """:func:`~imufdi_cli.episodes.reference.downdated_gain` of sensor k (cached)."""
         found = self._gains.get(k)
         if found is None:
-            H, sigma = self.H, np.asarray(self.sigma, dtype=np.float64)
-            weights = 1.0 / sigma**2
-            M = (H.T * weights) @ H
-            M_k = M - np.outer(H[k], H[k]) * weights[k]
-            if float(np.linalg.eigvalsh(M_k)[0]) <= 1e-9 * float(np.linalg.eigvalsh(M)[-1]):
-                raise ValueError(f"sensor {k}: the other sensors do not span 3 axes")
-            solved = np.linalg.solve(M_k, H[k])
-            gain = (H @ solved) * weights
-            gain[k] = 0.0
-            found = self._gains[k] = (gain, float(np.sqrt(H[k] @ solved)))
+            found = self._gains[k] = downdated_gain(self.H, self.sigma, k)
         return found
 
     def for_detector(self, detector: str) -> EpisodeBuilder:

@@ -330,3 +330,96 @@ def _autocorrelation_factor(e: np.ndarray, w: np.ndarray) -> float:
         rho = float(e0[:-k] @ e0[k:]) / c0
         total += 2 * (1 - k / (lags + 1)) * rho * float(w[:-k] @ w[k:]) / sw2
     return max(total, 0.1)
+
+
+# --- the consensus matrices of a calibration (cached by the builder) -----------------------
+
+
+def downdated_gain(H: np.ndarray, sigma: np.ndarray, k: int) -> tuple[np.ndarray, float]:
+    """:func:`_consensus_gain` of sensor k, from the information matrix downdated by k's
+    own term (one 3x3 solve instead of a pseudo-inverse).
+
+    Parameters
+    ----------
+    H : ndarray, shape (n, 3)
+    sigma : ndarray, shape (n,)
+        Per-sensor white-noise standard deviation, SI.
+    k : int
+
+    Returns
+    -------
+    gain : ndarray, shape (n,)
+        Weights of the prediction of sensor k from the others (0 for k).
+    consensus_sigma : float
+        Standard deviation of that prediction, SI.
+
+    Raises
+    ------
+    ValueError
+        When the other sensors do not span 3 axes.
+    """
+    sigma = np.asarray(sigma, dtype=np.float64)
+    weights = 1.0 / sigma**2
+    M = (H.T * weights) @ H
+    M_k = M - np.outer(H[k], H[k]) * weights[k]
+    if float(np.linalg.eigvalsh(M_k)[0]) <= 1e-9 * float(np.linalg.eigvalsh(M)[-1]):
+        raise ValueError(f"sensor {k}: the other sensors do not span 3 axes")
+    solved = np.linalg.solve(M_k, H[k])
+    gain = (H @ solved) * weights
+    gain[k] = 0.0
+    return gain, float(np.sqrt(H[k] @ solved))
+
+
+def estimator_without(H: np.ndarray, sigma: np.ndarray, k: int) -> np.ndarray:
+    """(n, 3) ``B`` with ``window @ B`` the weighted least-squares estimate of the sensed
+    vector from the sensors other than k (row k is zero); H (n, 3), sigma (n,) SI."""
+    sigma = np.asarray(sigma, dtype=np.float64)
+    weights = 1.0 / sigma**2
+    M = (H.T * weights) @ H - np.outer(H[k], H[k]) * weights[k]
+    found = (H * weights[:, None]) @ np.linalg.inv(M)
+    found[k] = 0.0
+    return found
+
+
+def leave_two_out(
+    H: np.ndarray,
+    sigma: np.ndarray,
+    k: int,
+    calibration_mean: np.ndarray | None,
+    calibration_samples: int | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """``A`` (n, m) with ``window @ A`` the residuals of the m sensors j != k whose
+    leave-two-out consensus exists, their calibrated offsets, white variances and
+    offset variances (the arrays of a :class:`Reference`; None with fewer than two such
+    sensors). All m consensuses at once from the information matrix
+    ``M = H^T W H`` by downdating: ``M_{-jk} = M - h_k h_k^T / s_k^2 - h_j h_j^T / s_j^2``,
+    gain ``g_{j,i} = h_j^T M_{-jk}^{-1} h_i / s_i^2`` (i not j, k) and consensus
+    variance ``h_j^T M_{-jk}^{-1} h_j``. ``calibration_mean`` (n,) gives the offsets,
+    ``calibration_samples`` their variances (zeros without)."""
+    sigma = np.asarray(sigma, dtype=np.float64)
+    n = H.shape[0]
+    weights = 1.0 / sigma**2
+    outer = np.einsum("ia,ib->iab", H, H) * weights[:, None, None]
+    others = np.flatnonzero(np.arange(n) != k)
+    M = outer.sum(axis=0) - outer[k] - outer[others]  # (m, 3, 3)
+    eig = np.linalg.eigvalsh(M)
+    scale = float(np.max(np.linalg.eigvalsh(outer.sum(axis=0))))
+    spans = eig[:, 0] > 1e-9 * scale
+    others, M = others[spans], M[spans]
+    if others.size < 2:
+        return None
+    solved = np.linalg.solve(M, H[others][:, :, None])[:, :, 0]  # M^-1 h_j, (m, 3)
+    gains = (H @ solved.T) * weights[:, None]  # (n, m): g_{j,i} in column j
+    gains[k] = 0.0
+    gains[others, np.arange(others.size)] = 0.0
+    consensus_var = np.einsum("ma,ma->m", H[others], solved)
+    A = -gains
+    A[others, np.arange(others.size)] += 1.0
+    variance = sigma[others] ** 2 + consensus_var
+    offset = np.zeros(others.size)
+    offset_var = np.zeros(others.size)
+    if calibration_mean is not None:
+        offset = calibration_mean @ A
+        if calibration_samples:
+            offset_var = variance / calibration_samples
+    return A, offset, variance, offset_var
