@@ -15,7 +15,8 @@ module             concern
 ``fits``           :func:`fit_models`: onset and end search, BIC ranking of the models
 ``model_fits``     the noise, spikes and stuck fits
 ``reference``      :func:`leave_one_out`, :class:`Reference` (the other sensors), the
-                   least-squares sizes (step, drift, scale) and their intervals
+                   least-squares sizes (step, drift, scale) and their intervals, the
+                   consensus matrices of a calibration
 ``white_noise``    :func:`white_sigma` and the spread of its calibration estimate
 ``variance_drop``  :class:`VarianceDropMonitor`: frozen outputs the detectors cannot see
 ``scoring``        :func:`match_episodes`, :class:`EpisodeTally`, :func:`score_episodes`
