@@ -103,7 +103,7 @@ STAGES = textwrap.dedent(
 
         ufunc("fdtri")  # (glt's thresholds; the episode intervals)
         import imufdi_cli.detect as dt
-        import imufdi_cli.episodes as ep
+        import imufdi_cli.episodes.builder as ep  # where EpisodeBuilder finds fit_models
         from imufdi_cli.detectors.glt import GltDetector
         acc = collections.Counter({"imports (numpy, imufdi, scipy.special ufuncs)":
                                    time.process_time() - cpu0})
