@@ -78,3 +78,26 @@ def test_with_the_package_imported_its_own_functions_are_returned() -> None:
     assert np.array_equal(
         ufunc("fdtri")(1.0, 10.0, [0.5, 0.99]), scipy.special.fdtri(1, 10, [0.5, 0.99])
     )
+
+
+def test_when_the_extension_cannot_be_loaded_alone_the_package_is_used() -> None:
+    code = textwrap.dedent(
+        """
+        import importlib, sys
+        real = importlib.import_module
+
+        def refuse(name, *args, **kwargs):
+            if name == "scipy.special._ufuncs":
+                raise ImportError("refused for the test")
+            return real(name, *args, **kwargs)
+
+        importlib.import_module = refuse
+        from imufdi_cli.special import ufunc
+        f = ufunc("fdtri")
+        importlib.import_module = real
+        import scipy.special
+        print("scipy.special" in sys.modules, f is scipy.special.fdtri)
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.split() == ["True", "True"]
