@@ -97,9 +97,13 @@ def _zstd_decompress(raw: bytes | memoryview, size: int) -> bytes:
     # it is used only when that claim is the chunk's declared size; otherwise read at most
     # one byte more than declared through a stream reader (also reads across frames).
     if zstandard.frame_content_size(raw) == size:
-        out = bytes(dctx.decompress(raw))
-        if len(out) == size:
-            return out
+        try:
+            out = bytes(dctx.decompress(raw))
+        except zstandard.ZstdError:
+            pass  # read again below: the stream reader's message, as decompress_into gives
+        else:
+            if len(out) == size:
+                return out
     with dctx.stream_reader(raw, read_across_frames=True) as reader:
         out = bytes(reader.read(size + 1))
     return out

@@ -65,8 +65,11 @@ def test_decompress_into_matches_decompress(kind: str) -> None:
         assert _into(two, kind, len(records)) == records
         bad = bytearray(packed)
         bad[-2] ^= 0xFF  # the frame's content checksum
-        with pytest.raises(McapInputError, match="corrupt zstd chunk"):
+        with pytest.raises(McapInputError, match="corrupt zstd chunk") as in_place:
             _into(bytes(bad), kind, len(records))
+        with pytest.raises(McapInputError) as whole:  # read-ahead and small chunks
+            compression.decompress(bytes(bad), kind, len(records))
+        assert str(whole.value) == str(in_place.value)  # one message, however read
     for size, pattern in cases[:2]:
         with pytest.raises(McapInputError, match=pattern):
             compression.decompress(packed, kind, size)
