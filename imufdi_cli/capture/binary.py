@@ -173,8 +173,10 @@ class BinaryFrameParser:
         fits = full + lengths <= size
         valid = np.zeros(full.size, dtype=bool)
         check = np.flatnonzero(plausible & fits)
-        for length in np.unique(lengths[check]):
-            group = check[lengths[check] == length]
+        checked = lengths[check]
+        one_length = checked.size == 0 or int(checked.min()) == int(checked.max())
+        for length in checked[:1] if one_length else np.unique(checked):
+            group = check if one_length else check[checked == length]
             frames = sliding_window_view(data, int(length))[full[group]]
             valid[group] = checksums_ok(layout, frames)
         if self.n_imus is None and valid.any():
