@@ -13,6 +13,9 @@ garbage, flipped bits, a cut frame), the same path as ``imufdi simulate --captur
   re-compressed on one thread; any writer of these bytes pays it), the same on two
   threads (every core compressing and nothing else: a bound no ingest reaches), and the
   ratios of ingest to them,
+- ``--pairs`` ingests each followed by one pass of the one-thread baseline, and the
+  median and range of the per-pair ratios (wall and CPU): the figure to quote on a shared
+  machine, where the load changes between the best-of runs,
 - the bound the CPU figures give with two free cores:
   ``capture / max(calling thread CPU, process CPU / 2)``,
 - peak traced memory (tracemalloc) of the ingest for a capture of size S and 4 S: the
@@ -23,7 +26,7 @@ garbage, flipped bits, a cut frame), the same path as ``imufdi simulate --captur
 Prints the load average before and after: the machine is often shared.
 
 Usage: python benchmarks/bench_ingest.py [--minutes 20] [--imus 16] [--repeat 3]
-       [--memory-minutes 2] [--skip-memory] [--settings]
+       [--pairs 5] [--memory-minutes 2] [--skip-memory] [--settings]
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from __future__ import annotations
 import argparse
 import gc
 import os
+import statistics
 import struct
 import tempfile
 import time
@@ -195,6 +199,9 @@ def main() -> None:
     parser.add_argument("--imus", type=int, default=16)
     parser.add_argument("--memory-minutes", type=float, default=2.0, help="base for memory")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each (best is shown)")
+    parser.add_argument(
+        "--pairs", type=int, default=5, help="ingest / baseline pairs, alternated (median shown)"
+    )
     parser.add_argument("--skip-memory", action="store_true", help="no memory measurement")
     parser.add_argument(
         "--settings", action="store_true", help="also other zstd levels, chunk sizes, lz4"
@@ -219,6 +226,15 @@ def main() -> None:
         records_mb = sum(len(c) for c in chunks) / 1e6
         t_floor, cpu_floor, _ = time_compression(chunks, lambda r: compress(r, "zstd"))
         t_floor2 = time_compression_threads(chunks, 2)
+        # ingest and the one-thread baseline alternated: each pair is measured within a
+        # few seconds, so a change of load moves both (the best-of figures above do not)
+        pairs = []
+        for _ in range(args.pairs):
+            wall, cpu_run, _, _ = ingest_once(big, root / "big.mcap", trace=False)
+            wall_floor, cpu_floor_run, _ = time_compression(
+                chunks, lambda r: compress(r, "zstd"), repeat=1
+            )
+            pairs.append((wall / wall_floor, cpu_run / cpu_floor_run))
         print(
             f"capture: {mb:.1f} MB, {args.imus} IMUs, 100 Hz, {args.minutes:g} min,"
             f" mpu6500-array (simulate, corrupted stretches); MCAP {out_mb:.1f} MB"
@@ -247,6 +263,14 @@ def main() -> None:
             f" ingest MB/s = {t_floor / t_ingest:.0%} of the one-thread baseline's,"
             f" {t_floor2 / t_ingest:.0%} of the two-thread one's"
         )
+        if pairs:
+            walls = sorted(w for w, _ in pairs)
+            cpus = sorted(c for _, c in pairs)
+            print(
+                f"paired runs ({len(pairs)}): ingest / baseline median {statistics.median(walls):.2f}x"
+                f" wall (range {walls[0]:.2f}-{walls[-1]:.2f}),"
+                f" {statistics.median(cpus):.2f}x CPU (range {cpus[0]:.2f}-{cpus[-1]:.2f})"
+            )
         bound = mb / max(main_cpu, cpu / 2)
         print(
             f"two free cores  : at most {bound:.1f} MB/s"
