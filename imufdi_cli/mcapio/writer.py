@@ -741,14 +741,14 @@ class McapWriter:
         n = len(batch)
         if n == 0:
             return
-        ids = np.unique(batch.channel_id)
-        unknown = np.setdiff1d(ids, list(self.channels))
-        if unknown.size:
+        ids = np.unique(batch.channel_id).tolist()  # (a few ids: set operations in Python)
+        unknown = [cid for cid in ids if cid not in self.channels]
+        if unknown:
             raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
         self._check_log_time(batch.channel_id, batch.log_time)
         if self._pending:
-            queued = np.concatenate([np.unique(p.channel_id) for p in self._pending])
-            if bool(np.isin(ids, queued).any()):
+            queued = {cid for p in self._pending for cid in np.unique(p.channel_id).tolist()}
+            if not queued.isdisjoint(ids):
                 self._flush_chunk()
         log_time = np.asarray(batch.log_time, np.int64)
         record_offsets = np.asarray(batch.offset, np.int64) - MESSAGE_HEADER_SIZE - records_at
