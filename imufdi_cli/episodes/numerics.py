@@ -27,7 +27,7 @@ def _finite(value: Any) -> Any:
 
 
 @functools.lru_cache(maxsize=4096)
-def _chi2_quantile(p: float, dof: int) -> float:
+def _chi2_quantile(p: float, dof: float) -> float:
     """Chi-square quantile: ``chdtri`` inverts the upper tail."""
     from scipy.special import chdtri
 
@@ -43,7 +43,7 @@ def _f_quantile(p: float, dof1: float, dof2: float) -> float:
 
 
 @functools.lru_cache(maxsize=4096)
-def _t_quantile(p: float, dof: int) -> float:
+def _t_quantile(p: float, dof: float) -> float:
     """Student t quantile."""
     from scipy.special import stdtrit
 
