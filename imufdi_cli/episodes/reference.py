@@ -95,7 +95,9 @@ class Reference:
         itself and the isolated one (a fault on the isolated sensor does not leak into
         them), with its calibrated bias taken out; SI.
     variance : ndarray, shape (m,)
-        White-noise variance of each residual, sigma_j^2 + consensus variance (SI^2).
+        Calibrated white-noise variance of each residual, sigma_j^2 + consensus variance
+        (SI^2). The healthy sensors' test takes only ``offset_var / variance`` from it and
+        measures each residual's white variance in the window (:attr:`white_variance`).
     offset_var : ndarray, shape (m,)
         Variance of the calibrated bias taken out of each (SI^2; zeros when none was).
     motion : ndarray, shape (L, 3), optional
