@@ -17,6 +17,7 @@ import io
 import os
 import struct
 import sys
+import threading
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -93,6 +94,11 @@ class RecordSource(Protocol):
 
     ``fill`` must only read data the source owns (copies taken when it was made), since
     it runs after the call that queued it has returned.
+
+    A source may also offer ``template_rows`` and ``fill_changing``
+    (:class:`TemplatedSource`):
+    then the worker thread keeps a buffer whose rows already hold the template's constant
+    bytes, and only the bytes that change are written per chunk.
     """
 
     @property
@@ -107,6 +113,25 @@ class RecordSource(Protocol):
     def fill(self, out: np.ndarray, start: int, stop: int) -> None:
         """Write records ``start..stop-1`` into ``out``, shape (stop - start, record_size),
         uint8, C-contiguous."""
+        ...
+
+
+class TemplatedSource(RecordSource, Protocol):
+    """A :class:`RecordSource` whose record ``k`` is row ``k % P`` of ``template_rows``
+    (P, R) except in bytes that ``fill_changing`` writes.
+
+    ``template_rows`` must be the same array object (never modified) for every source
+    sharing those constant bytes: a worker thread's primed buffer is reused while it is.
+    """
+
+    @property
+    def template_rows(self) -> np.ndarray:
+        """(P, record_size) uint8: the constant bytes of records with ``k % P == row``."""
+        ...
+
+    def fill_changing(self, out: np.ndarray, start: int, stop: int) -> None:
+        """As ``fill``, into rows ``out`` whose row ``i`` already holds template row
+        ``(start + i) % P``: every byte not written keeps its template value."""
         ...
 
 
@@ -152,6 +177,12 @@ class _BuiltChunk:
     payload: bytes  # compressed records
     crc: int  # CRC-32 of the uncompressed records
     uncompressed_size: int
+
+
+@dataclass
+class _ChunkKeys:
+    """What the caller's thread makes of a chunk's parts while a worker builds it."""
+
     start_time: int
     end_time: int
     #: the chunk's MessageIndex records, one per channel, and each one's offset in them
@@ -163,9 +194,10 @@ class _BuiltChunk:
 
 @dataclass
 class _ChunkJob:
-    """A chunk being built on a worker thread."""
+    """A chunk being built on a worker thread, and its index made by the caller."""
 
     future: Future[_BuiltChunk]
+    keys: _ChunkKeys
 
 
 #: The fixed part of a MessageIndex record: opcode, record length, channel id, bytes of
@@ -237,9 +269,57 @@ def message_index_records(
     )
 
 
+#: Per worker thread: a reusable buffer for chunk records (no fresh pages to fault in
+#: and zero for every chunk), and one whose rows hold a template's constant bytes.
+_THREAD = threading.local()
+
+
+def _thread_buffer(size: int) -> np.ndarray:
+    """(size,) uint8 scratch of the calling thread, reused from chunk to chunk (its
+    contents are garbage; nothing built from it may keep a reference)."""
+    buffer: np.ndarray | None = getattr(_THREAD, "buffer", None)
+    if buffer is None or buffer.shape[0] < size:
+        buffer = np.empty(size, np.uint8)
+        _THREAD.buffer = buffer
+    return buffer[:size]
+
+
+def _primed_rows(parts: list[_ChunkPart]) -> np.ndarray | None:
+    """Rows (N, R) of the calling thread's primed buffer for a chunk made only of parts of
+    :class:`TemplatedSource` objects sharing one template, positioned so that row ``i``
+    holds template row ``(first record + i) % P``; None for any other chunk."""
+    if not all(isinstance(part, _SourcePart) for part in parts):
+        return None
+    template = getattr(parts[0].source, "template_rows", None)  # type: ignore[union-attr]
+    if template is None:
+        return None
+    period, size = template.shape
+    phase = parts[0].start % period  # type: ignore[union-attr]
+    at = phase
+    for part in parts:
+        assert isinstance(part, _SourcePart)
+        if (
+            getattr(part.source, "template_rows", None) is not template
+            or part.start % period != at % period
+        ):
+            return None
+        at += len(part)
+    count = at - phase
+    state = getattr(_THREAD, "primed", None)
+    if state is None or state[0] is not template or state[1].shape[0] < at:
+        samples = -(-(count + period) // period)  # room for any phase
+        buffer = np.empty((samples, period, size), np.uint8)
+        buffer[...] = template
+        state = (template, buffer.reshape(samples * period, size))
+        _THREAD.primed = state
+    rows: np.ndarray = state[1][phase:at]
+    return rows
+
+
 def _build_chunk(parts: list[_ChunkPart], compression: str) -> _BuiltChunk:
-    """Assemble a chunk's records from its parts, checksum and compress them, and make
-    its MessageIndex records (worker thread).
+    """Assemble a chunk's records from its parts, checksum and compress them (worker
+    thread). The MessageIndex records are made by the caller meanwhile (:func:`_chunk_keys`):
+    this thread needs the GIL only between its few large numpy copies and C calls.
 
     Every chunk carries the CRC-32 of its uncompressed records, whatever the compression,
     so that readers which check chunk CRCs (the ``mcap`` package, ``mcap doctor``, our own
@@ -249,48 +329,51 @@ def _build_chunk(parts: list[_ChunkPart], compression: str) -> _BuiltChunk:
     total = sum(part.nbytes for part in parts)
     only = parts[0]
     in_place = False
-    if len(parts) == 1 and isinstance(only, (_RecordPart, _SerialPart)):
+    primed = _primed_rows(parts)
+    if primed is not None:
+        raw = primed.reshape(-1)  # the template's constant bytes are already there
+    elif len(parts) == 1 and isinstance(only, (_RecordPart, _SerialPart)):
         if only.records.flags.c_contiguous:
             raw = only.records.reshape(-1)  # one part of ready records: compressed as they are
             in_place = True
-    if not in_place:
-        raw = np.empty(total, np.uint8)
+    if primed is None and not in_place:
+        raw = _thread_buffer(total)
+    shift = 0
+    for part in parts:
+        size = part.nbytes
+        if isinstance(part, _SourcePart):
+            rows = raw[shift : shift + size].reshape(len(part), -1)
+            if primed is not None:
+                part.source.fill_changing(rows, part.start, part.stop)  # type: ignore[attr-defined]
+            else:
+                part.source.fill(rows, part.start, part.stop)
+        elif not in_place:
+            raw[shift : shift + size] = part.records.reshape(-1)
+        shift += size
+    view = raw.data
+    return _BuiltChunk(
+        payload=compress(view, compression), crc=crc32(view), uncompressed_size=total
+    )
+
+
+def _chunk_keys(parts: list[_ChunkPart]) -> _ChunkKeys:
+    """Time range, MessageIndex records and counts of a chunk's parts (caller's thread)."""
     offset_parts = []
     shift = 0
     for part in parts:
         if isinstance(part, _SerialPart):
-            size = part.nbytes
-            if not in_place:
-                raw[shift : shift + size] = part.records
             offset_parts.append(part.offsets + shift)
         else:
-            record_size = (
-                int(part.records.shape[1])
-                if isinstance(part, _RecordPart)
-                else int(part.source.record_size)
-            )
-            count = len(part)
-            size = count * record_size
-            if isinstance(part, _SourcePart):
-                rows = raw[shift : shift + size].reshape(count, record_size)
-                part.source.fill(rows, part.start, part.stop)
-            elif not in_place:
-                raw[shift : shift + size] = part.records.reshape(-1)
-            offset_parts.append(np.arange(count, dtype=np.int64) * record_size + shift)
-        shift += size
+            record_size = part.nbytes // len(part)
+            offset_parts.append(np.arange(len(part), dtype=np.int64) * record_size + shift)
+        shift += part.nbytes
     record_offsets = offset_parts[0] if len(offset_parts) == 1 else np.concatenate(offset_parts)
     channel_ids = np.concatenate([p.channel_id for p in parts])
     log_time = np.concatenate([p.log_time for p in parts])
-    view = raw.data
-    crc = crc32(view)
-    payload = compress(view, compression)
     index_records, index_offsets, channel_counts = message_index_records(
         channel_ids, log_time, record_offsets
     )
-    return _BuiltChunk(
-        payload=payload,
-        crc=crc,
-        uncompressed_size=total,
+    return _ChunkKeys(
         start_time=int(log_time.min()),
         end_time=int(log_time.max()),
         index_records=index_records,
@@ -678,9 +761,9 @@ class McapWriter:
             self._executor = ThreadPoolExecutor(
                 max_workers=COMPRESS_THREADS, thread_name_prefix="mcap-chunk"
             )
-        self._in_flight.append(
-            _ChunkJob(self._executor.submit(_build_chunk, parts, self.compression))
-        )
+        future = self._executor.submit(_build_chunk, parts, self.compression)
+        # the index is made here while a worker builds the chunk
+        self._in_flight.append(_ChunkJob(future, _chunk_keys(parts)))
         self._drain(MAX_CHUNKS_IN_FLIGHT)
 
     def _drain(self, keep: int) -> None:
@@ -691,10 +774,9 @@ class McapWriter:
     def _write_chunk(self, job: _ChunkJob) -> None:
         """Write a built chunk, its MessageIndex records, and note its ChunkIndex."""
         built = job.future.result()
+        keys = job.keys
         content = (
-            struct.pack(
-                "<QQQI", built.start_time, built.end_time, built.uncompressed_size, built.crc
-            )
+            struct.pack("<QQQI", keys.start_time, keys.end_time, built.uncompressed_size, built.crc)
             + _string(self.compression)
             + struct.pack("<Q", len(built.payload))
         )
@@ -703,21 +785,21 @@ class McapWriter:
         self._write_now(built.payload)
         chunk_length = self._position - chunk_offset
         index_start = self._position
-        self._write_now(built.index_records)
+        self._write_now(keys.index_records)
         self._chunk_index.append(
             _ChunkIndexEntry(
-                built.start_time,
-                built.end_time,
+                keys.start_time,
+                keys.end_time,
                 chunk_offset,
                 chunk_length,
-                {cid: index_start + at for cid, at in built.index_offsets.items()},
-                len(built.index_records),
+                {cid: index_start + at for cid, at in keys.index_offsets.items()},
+                len(keys.index_records),
                 self.compression,
                 len(built.payload),
                 built.uncompressed_size,
             )
         )
-        self._count(built.channel_counts, built.message_count, built.start_time, built.end_time)
+        self._count(keys.channel_counts, keys.message_count, keys.start_time, keys.end_time)
 
     def _write_message_indexes(
         self, channel_ids: np.ndarray, log_time: np.ndarray, record_offsets: np.ndarray
@@ -741,14 +823,14 @@ class McapWriter:
         n = len(batch)
         if n == 0:
             return
-        ids = np.unique(batch.channel_id)
-        unknown = np.setdiff1d(ids, list(self.channels))
-        if unknown.size:
+        ids = np.unique(batch.channel_id).tolist()  # (a few ids: set operations in Python)
+        unknown = [cid for cid in ids if cid not in self.channels]
+        if unknown:
             raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
         self._check_log_time(batch.channel_id, batch.log_time)
         if self._pending:
-            queued = np.concatenate([np.unique(p.channel_id) for p in self._pending])
-            if bool(np.isin(ids, queued).any()):
+            queued = {cid for p in self._pending for cid in np.unique(p.channel_id).tolist()}
+            if not queued.isdisjoint(ids):
                 self._flush_chunk()
         log_time = np.asarray(batch.log_time, np.int64)
         record_offsets = np.asarray(batch.offset, np.int64) - MESSAGE_HEADER_SIZE - records_at
