@@ -30,7 +30,7 @@ def _finite(value: Any) -> Any:
 
 
 @functools.lru_cache(maxsize=4096)
-def _chi2_quantile(p: float, dof: int) -> float:
+def _chi2_quantile(p: float, dof: float) -> float:
     """Chi-square quantile: ``chdtri`` inverts the upper tail."""
     chdtri = ufunc("chdtri")  # scipy.special's own ufunc, without importing the package
 
@@ -46,7 +46,7 @@ def _f_quantile(p: float, dof1: float, dof2: float) -> float:
 
 
 @functools.lru_cache(maxsize=4096)
-def _t_quantile(p: float, dof: int) -> float:
+def _t_quantile(p: float, dof: float) -> float:
     """Student t quantile."""
     stdtrit = ufunc("stdtrit")  # scipy.special's own ufunc, without importing the package
 
