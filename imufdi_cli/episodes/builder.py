@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.detectors.parity import check_measurement_matrix
-from imufdi_cli.episodes.episode import Episode, _sensor_amplitude, isolation_summary
+from imufdi_cli.episodes.episode import Episode, _sensor_amplitude
 from imufdi_cli.episodes.fault_fit import WhiteNoise
 from imufdi_cli.episodes.fits import fit_models
 from imufdi_cli.episodes.reference import (
@@ -164,6 +164,10 @@ class EpisodeBuilder:
         self.white_excess = float(white_excess)
         self._white_cov: np.ndarray | None = None  # white_sigma_covariance, once
         self._estimators: dict[int, np.ndarray] = {}  # k -> _estimator(k)
+        # per-sensor values that depend only on the calibration, computed once per k:
+        # k -> (correlation_sq of its leave-two-out A, calibration mean @ _estimator(k))
+        self._reference_constants: dict[int, tuple[float, np.ndarray | None]] = {}
+        self._whites: dict[int, WhiteNoise | None] = {}  # k -> _white(k, gain of k)
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
         self._history_t: np.ndarray = np.zeros(0, np.int64)
@@ -210,6 +214,12 @@ class EpisodeBuilder:
         groups = np.split(idx, np.flatnonzero(np.diff(idx) - 1 > self.merge_gap) + 1)
         closed: list[Episode] = []
         self._pos = 0  # next row of this block not yet appended to the open states
+        ratios = None
+        if idx.size:
+            # the statistic ratio of the alarmed rows, elementwise as per group
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratios = np.asarray(out.statistic)[idx] / np.asarray(out.threshold)[idx]
+        offset = 0  # where the group starts in idx (and in ratios)
         for group in groups if idx.size else []:
             first, last = int(group[0]), int(group[-1])
             self._advance(m, t_ns, first, closed)
@@ -220,7 +230,15 @@ class EpisodeBuilder:
             self._advance(m, t_ns, last + 1, closed, alarmed=True)
             state["end_ns"] = int(t_ns[last])
             state["decided_end_ns"] = int(decided_ns[last])
-            self._add_alarms(state, group, isolated_rows[group], out, amplitudes)
+            assert ratios is not None
+            self._add_alarms(
+                state,
+                group,
+                isolated_rows[group],
+                ratios[offset : offset + group.size],
+                amplitudes,
+            )
+            offset += group.size
         self._advance(m, t_ns, n, closed)
         self._end_quiet_run(closed)
         tail = max(0, n - self.margin)
@@ -247,9 +265,12 @@ class EpisodeBuilder:
         """The state of an alarm run starting at row ``first`` of the block (decided at
         ``decided_ns``), with the last ``margin`` rows before it."""
         # only the last `margin` rows before the alarm are kept: copy no more
-        tail = max(0, first - self.margin)
-        history = np.concatenate([self._history, m[tail:first]])[-self.margin :]
-        history_t = np.concatenate([self._history_t, t_ns[tail:first]])[-self.margin :]
+        if first >= self.margin:  # all inside the block: one copy (C order, as joined)
+            history = np.ascontiguousarray(m[first - self.margin : first])
+            history_t = t_ns[first - self.margin : first].copy()
+        else:
+            history = np.concatenate([self._history, m[:first]])[-self.margin :]
+            history_t = np.concatenate([self._history_t, t_ns[:first]])[-self.margin :]
         return {
             "start_ns": int(t_ns[first]),
             "decided_start_ns": decided_ns,
@@ -258,7 +279,9 @@ class EpisodeBuilder:
             "kept": history.shape[0],
             "alarm_index": history.shape[0],
             "alarms": 0,
-            "isolated": [],
+            # alarmed rows that isolated a sensor (negative: none); those isolating one
+            # of the sensors are counted per sensor in "counts"
+            "isolated_rows": 0,
             "amplitudes": [],  # (sensor, amplitude) of alarms with an estimate
             "counts": np.zeros(len(self.sensor_ids), np.int64),
             "fragments": 1,
@@ -273,21 +296,22 @@ class EpisodeBuilder:
         state: dict[str, Any],
         group: np.ndarray,
         group_isolated: np.ndarray,
-        out: Any,
+        ratio: np.ndarray,
         amplitudes: np.ndarray | None,
     ) -> None:
-        """Count the alarmed rows ``group`` of the block (isolating ``group_isolated``) in
-        the run ``state``: alarms, isolated sensors, amplitudes, peak statistic ratio."""
+        """Count the alarmed rows ``group`` of the block (isolating ``group_isolated``,
+        statistic / threshold ``ratio``) in the run ``state``: alarms, isolated sensors,
+        amplitudes, peak statistic ratio."""
         state["quiet"] = 0
         state["alarms"] += int(group.size)
-        state["isolated"].append(group_isolated)
+        nonnegative = group_isolated >= 0
+        state["isolated_rows"] += int(np.count_nonzero(nonnegative))
         if amplitudes is not None:
-            found = np.nonzero(np.isfinite(amplitudes[group]))
-            state["amplitudes"].append((found[1], amplitudes[group][found]))
-        valid = group_isolated[(group_isolated >= 0) & (group_isolated < len(self.sensor_ids))]
+            group_amplitudes = amplitudes[group]
+            found = np.nonzero(np.isfinite(group_amplitudes))
+            state["amplitudes"].append((found[1], group_amplitudes[found]))
+        valid = group_isolated[nonnegative & (group_isolated < len(self.sensor_ids))]
         state["counts"] += np.bincount(valid, minlength=len(self.sensor_ids))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.asarray(out.statistic)[group] / np.asarray(out.threshold)[group]
         ratio = ratio[np.isfinite(ratio)]
         if ratio.size:
             state["peak"] = max(state["peak"], float(ratio.max()))
@@ -375,7 +399,7 @@ class EpisodeBuilder:
             waiting["decided_end_ns"] = run["decided_end_ns"]
             waiting["quiet"] = run["quiet"]
             waiting["alarms"] += run["alarms"]
-            waiting["isolated"].extend(run["isolated"])
+            waiting["isolated_rows"] += run["isolated_rows"]
             waiting["amplitudes"].extend(run["amplitudes"])
             waiting["counts"] += run["counts"]
             waiting["fragments"] += run["fragments"]
@@ -414,8 +438,7 @@ class EpisodeBuilder:
         # drop the quiet rows after the last alarm (they are not part of the fault)
         last = int(np.searchsorted(window_t, state["end_ns"], side="right"))
         window, window_t = window[:last], window_t[:last]
-        isolated = np.concatenate([np.zeros(0, np.int64), *state["isolated"]]).astype(np.int64)
-        names, runner_up, share = isolation_summary(isolated, self.sensor_ids)
+        names, runner_up, share = self._isolation_summary(state)
         episode = Episode(
             detector=self.detector,
             sensor_type=self.sensor_type,
@@ -434,6 +457,24 @@ class EpisodeBuilder:
         if self.explain and window.shape[0] >= 4:
             self._explain(episode, window, window_t, state["alarm_index"])
         return episode
+
+    def _isolation_summary(
+        self, state: dict[str, Any]
+    ) -> tuple[list[str], str | None, float | None]:
+        """:func:`~imufdi_cli.episodes.episode.isolation_summary` of the run ``state``'s alarmed rows, from the counts
+        per sensor kept while they arrived (the same order, stable, and share)."""
+        counts = state["counts"].tolist()
+        total = state["isolated_rows"]
+        if total != sum(counts):
+            # an index past the sensors: isolation_summary says what is wrong with it
+            raise IndexError(f"isolated sensor index out of range ({len(counts)} sensors)")
+        if total == 0:
+            return [], None, None
+        order = sorted((i for i, c in enumerate(counts) if c > 0), key=lambda i: -counts[i])
+        names = [self.sensor_ids[i] for i in order]
+        if len(order) < 2:
+            return names, None, 0.0
+        return names, names[1], float(counts[order[1]] / total)
 
     def _explain(
         self, episode: Episode, window: np.ndarray, window_t: np.ndarray, alarm_index: int
@@ -476,8 +517,14 @@ class EpisodeBuilder:
             calibration_samples=self.calibration_samples,
             offset_var=offset_var,
             reference=self._reference(k, window),
-            white=self._white(k, gain),
+            white=self._white_of(k, gain),
         )
+
+    def _white_of(self, k: int, gain: np.ndarray) -> WhiteNoise | None:
+        """:meth:`_white` of sensor k (``gain`` its :meth:`_gain`), computed once."""
+        if k not in self._whites:
+            self._whites[k] = self._white(k, gain)
+        return self._whites[k]
 
     def _white(self, k: int, gain: np.ndarray) -> WhiteNoise | None:
         """(sigma_k, consensus sigma, dof, spread) of the white noise for
@@ -502,14 +549,24 @@ class EpisodeBuilder:
         if cached is None:
             return None
         A, offset, variance, offset_var = cached
+        constants = self._reference_constants.get(k)
+        if constants is None:
+            mean_motion = (
+                None
+                if self.calibration_mean is None
+                else self.calibration_mean @ self._estimator(k)
+            )
+            constants = self._reference_constants[k] = (
+                correlation_sq(A, self.sigma),
+                mean_motion,
+            )
+        correlation, mean_motion = constants
         # the sensed vector relative to its calibration mean: the calibrated offsets taken
         # out of the residuals hold the motion errors of the calibration window too
         motion = window @ self._estimator(k)
-        if self.calibration_mean is not None:
-            motion = motion - self.calibration_mean @ self._estimator(k)
-        return Reference(
-            window @ A - offset, variance, offset_var, motion, correlation_sq(A, self.sigma)
-        )
+        if mean_motion is not None:
+            motion = motion - mean_motion
+        return Reference(window @ A - offset, variance, offset_var, motion, correlation)
 
     def _reference_matrix(
         self, k: int
