@@ -43,6 +43,12 @@ LEGACY_SCHEMA_NAMES = ("imufdi/FaultEvent", "imufdi_msgs/FdiEvent")
 
 
 _FORMATS = {"u1": "B", "i4": "i", "u4": "I", "f8": "d"}
+#: code -> (size, packer) of each primitive, little-endian
+_PACKERS = {
+    code: (struct.calcsize(fmt), struct.Struct("<" + fmt).pack) for code, fmt in _FORMATS.items()
+}
+#: the episode JSON of an FdiEvent (what ``json.dumps(episode, allow_nan=False)`` makes)
+_EPISODE_JSON = json.JSONEncoder(allow_nan=False)
 
 
 class _CdrBuilder:
@@ -56,10 +62,13 @@ class _CdrBuilder:
         self.body += b"\0" * ((-len(self.body)) % size)
 
     def prim(self, code: str, value: float | int) -> int:
-        size = struct.calcsize(_FORMATS[code])
-        self._align(size)
-        offset = len(self.body) + 4
-        self.body += struct.pack("<" + _FORMATS[code], value)
+        size, pack = _PACKERS[code]
+        body = self.body
+        pad = (-len(body)) % size
+        if pad:
+            body += b"\0" * pad
+        offset = len(body) + 4
+        body += pack(value)
         return offset
 
     def string(self, text: str) -> None:
@@ -360,7 +369,7 @@ def _episode_fields(cdr: _CdrBuilder, episode: dict[str, Any] | None) -> None:
     for key in ("size", "low", "high"):
         value = fit.get(key)
         cdr.prim("f8", math.nan if value is None else float(value))
-    cdr.string("" if episode is None else json.dumps(episode, allow_nan=False))
+    cdr.string("" if episode is None else _EPISODE_JSON.encode(episode))
 
 
 def encode_episode_events(channel_id: int, episodes: Sequence[dict[str, Any]]) -> MessageBatch:
