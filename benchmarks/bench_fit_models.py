@@ -26,6 +26,7 @@ fault injected, seed ``--seed``, run through glt, pca-parity, noise-glr and bank
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import json
 import os
@@ -136,7 +137,10 @@ def main() -> int:
         ref = kwargs.get("reference")
         if ref is None:
             return kwargs
-        converted = reference.Reference(ref.residuals, ref.variance, ref.offset_var, ref.motion)
+        # every field the reference's Reference has (an older one may lack the newer ones,
+        # e.g. correlation_sq: leaving a field out would compare different inputs)
+        names = [f.name for f in dataclasses.fields(reference.Reference)]
+        converted = reference.Reference(**{name: getattr(ref, name) for name in names})
         return {**kwargs, "reference": converted}
 
     differ = 0

@@ -168,6 +168,7 @@ class EpisodeBuilder:
         # k -> (correlation_sq of its leave-two-out A, calibration mean @ _estimator(k))
         self._reference_constants: dict[int, tuple[float, np.ndarray | None]] = {}
         self._whites: dict[int, WhiteNoise | None] = {}  # k -> _white(k, gain of k)
+        self._biases: dict[int, Any] = {}  # k -> calibrated bias against the consensus
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
         self._history_t: np.ndarray = np.zeros(0, np.int64)
@@ -498,7 +499,10 @@ class EpisodeBuilder:
         if self.calibration_mean is not None:
             # the sensor's own bias against the consensus, as calibrated: a fault is what
             # changed since (its estimate's variance widens the step interval)
-            residual = residual - (self.calibration_mean[k] - self.calibration_mean @ gain)
+            bias = self._biases.get(k)
+            if bias is None:  # once per sensor
+                bias = self._biases[k] = self.calibration_mean[k] - self.calibration_mean @ gain
+            residual = residual - bias
             if self.calibration_samples:
                 offset_var = (self.sigma[k] ** 2 + consensus_sigma**2) / self.calibration_samples
         t_s = (window_t - window_t[0]).astype(np.float64) * 1e-9
