@@ -27,3 +27,17 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     pytest runs at the end of a session to report unraisable exceptions. Objects made by
     the tests are collected as before."""
     gc.freeze()
+
+
+@pytest.fixture(autouse=True)
+def _campaign_figure(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A campaign draws ``detection_probability.png`` at its end (matplotlib, 0.3-0.9 s of
+    CPU per campaign), which only the tests marked ``campaign_figure`` look at; the others
+    (resume, locks, gates, failures, summaries) get a driver that skips the figure. The
+    figure itself is tested in ``campaign/test_plots.py`` and, drawn by the driver, in the
+    marked test(s). Campaigns run in a subprocess draw it as usual."""
+    if request.node.get_closest_marker("campaign_figure") is not None:
+        return
+    from imufdi_cli.campaign import driver
+
+    monkeypatch.setattr(driver, "plot_curves", lambda summary, out: None)
