@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import os
+import sys
 
 import pytest
 
@@ -15,8 +16,22 @@ import pytest
 # module imports numpy; xdist workers inherit it from the controller. A value set by the
 # user is kept. The outputs are those of the command (and of the split-identical records,
 # made with one thread).
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+for _var in THREAD_VARS:
     os.environ.setdefault(_var, "1")
+#: numpy (and so its BLAS) not loaded yet and every cap at one thread: this process's BLAS
+#: runs one thread, as the command's does
+_ONE_BLAS_THREAD = "numpy" not in sys.modules and all(os.environ[v] == "1" for v in THREAD_VARS)
+
+
+@pytest.fixture(scope="session")
+def one_blas_thread() -> bool:
+    """Whether numpy's and scipy's BLAS run one thread in this test process (pinned above
+    before numpy was imported; False when a user's value or an earlier import of numpy
+    stood in the way). With one thread, products have the bits of the ``imufdi`` command,
+    so a test comparing bits with records made that way may run in-process instead of in
+    a fresh interpreter."""
+    return _ONE_BLAS_THREAD
 
 
 @pytest.hookimpl(trylast=True)
