@@ -96,7 +96,7 @@ STAGES = textwrap.dedent(
         cpu0 = time.process_time()
         import scipy.special  # noqa: F401  (glt's thresholds and the episode intervals)
         import imufdi_cli.detect as dt
-        import imufdi_cli.episodes as ep
+        import imufdi_cli.episodes.builder as ep  # where EpisodeBuilder finds fit_models
         from imufdi_cli.detectors.glt import GltDetector
         acc = collections.Counter({"imports (numpy, imufdi, scipy.special)":
                                    time.process_time() - cpu0})

@@ -1,5 +1,6 @@
 """Benchmark and identity check of the episode fits: this ``episodes.fit_models`` against a
-reference copy of ``episodes.py`` on calls captured from real detect runs.
+reference copy of the ``episodes`` package (or of the ``episodes.py`` it was split from) on
+calls captured from real detect runs.
 
 Performance work on the fitting functions must not change a float (issue 20; the episodes
 owner's classification is not the detect helper's to change). This captures every
@@ -8,9 +9,14 @@ replays each through the worktree's ``fit_models`` and through the reference mod
 example the file as it is on main), compares the fits bit for bit (JSON of every field,
 fitted curves included) and prints the CPU of both, their ratio and the load average.
 
-    git show main:imufdi_cli/episodes.py > /tmp/episodes_ref.py
-    python benchmarks/bench_fit_models.py --reference /tmp/episodes_ref.py
-    python benchmarks/bench_fit_models.py --reference /tmp/episodes_ref.py --minutes 10
+    rm -rf /tmp/episodes_ref && mkdir /tmp/episodes_ref
+    git archive main imufdi_cli/episodes | tar -x -C /tmp/episodes_ref
+    python benchmarks/bench_fit_models.py --reference /tmp/episodes_ref/imufdi_cli/episodes
+    python benchmarks/bench_fit_models.py --reference /tmp/episodes_ref/imufdi_cli/episodes \
+        --minutes 10
+
+(a single file, e.g. ``git show 1234abc:imufdi_cli/episodes.py`` from before the split, is
+loaded as it is.)
 
 Logs (made at run time; tuning seeds only): a 16-IMU 100 Hz turntable log of ``--minutes``
 (glt's false episodes), and paper-table4 with a step, drift, noise, stuck, spikes and scale
@@ -30,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import imufdi_cli.episodes as episodes
+import imufdi_cli.episodes.builder as builder_module
 from imufdi_cli.detect import detect_file
 from imufdi_cli.faults import inject_file
 from imufdi_cli.pipeline import simulate_file
@@ -47,7 +54,7 @@ FAULTS = [
 def capture(workdir: Path, minutes: float, seed: int) -> list[tuple[Any, ...]]:
     """Every fit_models call (args, kwargs) of the detect runs."""
     calls: list[tuple[Any, ...]] = []
-    inner = episodes.fit_models
+    inner = builder_module.fit_models  # the name EpisodeBuilder calls
 
     def spy(*args: Any, **kwargs: Any) -> Any:
         calls.append((args, kwargs))
@@ -69,18 +76,30 @@ def capture(workdir: Path, minutes: float, seed: int) -> list[tuple[Any, ...]]:
     simulate_file("paper-table4", str(table4), seed=seed, options={"duration": 70.0})
     specs = [f.format(i=j % 4, at=8 + 10 * j + 0.37) for j, f in enumerate(FAULTS)]
     inject_file(str(table4), str(faulty), specs, [], seed=seed)
-    episodes.fit_models = spy  # type: ignore[assignment]
+    builder_module.fit_models = spy  # type: ignore[assignment]
     try:
         detect_file(str(turntable), str(out), [("glt", {})])
         for name in ("glt", "pca-parity", "noise-glr", "bank"):
             detect_file(str(faulty), str(out), [(name, {})])
     finally:
-        episodes.fit_models = inner  # type: ignore[assignment]
+        builder_module.fit_models = inner  # type: ignore[assignment]
     return calls
 
 
 def load_reference(path: str) -> Any:
-    spec = importlib.util.spec_from_file_location("episodes_reference", path)
+    """The reference module: one file, or a copy of the package (a directory), loaded as
+    ``episodes_reference`` with its own ``imufdi_cli.episodes`` imports pointed at itself."""
+    if Path(path).is_dir():
+        copy = Path(tempfile.mkdtemp(prefix="imufdi-episodes-ref-")) / "episodes_reference"
+        copy.mkdir()
+        for source in Path(path).glob("*.py"):
+            text = source.read_text().replace("imufdi_cli.episodes", "episodes_reference")
+            (copy / source.name).write_text(text)
+        spec = importlib.util.spec_from_file_location(
+            "episodes_reference", copy / "__init__.py", submodule_search_locations=[str(copy)]
+        )
+    else:
+        spec = importlib.util.spec_from_file_location("episodes_reference", path)
     if spec is None or spec.loader is None:
         raise SystemExit(f"cannot load {path}")
     module = importlib.util.module_from_spec(spec)
@@ -100,7 +119,9 @@ def fingerprint(fits: list[Any]) -> list[tuple[str, Any]]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--reference", required=True, help="a copy of episodes.py to compare")
+    parser.add_argument(
+        "--reference", required=True, help="copy of the episodes package or episodes.py"
+    )
     parser.add_argument("--minutes", type=float, default=3.0, help="turntable log length")
     parser.add_argument("--seed", type=int, default=1, help="simulation seed (tuning seeds)")
     parser.add_argument("--repeat", type=int, default=2, help="alternated passes (best kept)")

@@ -389,7 +389,7 @@ def cnn_input_level(seeds: list[int]) -> None:
     print(f"| mean (worst) | {np.mean(ratios):.2f} ({np.max(ratios):.2f}) | |")
 
 
-#: The calibration choices of pca-parity (module constants of detectors/pca_parity.py),
+#: The calibration choices of pca-parity (module constants of detectors/pca_parity/choices.py),
 #: added one at a time from the issue-15 detector to the current one.
 PCA_VARIANTS: list[tuple[str, dict[str, Any]]] = [
     (
@@ -415,9 +415,9 @@ PCA_VARIANTS: list[tuple[str, dict[str, Any]]] = [
 def pca_calibration_ablation(seeds: list[int]) -> None:
     """pca-parity's level with each calibration choice added in turn (the choices were made
     on seeds 100-109 with this table; on other seeds it is an out-of-sample check)."""
-    from imufdi_cli.detectors import pca_parity
+    from imufdi_cli.detectors.pca_parity import choices
 
-    saved = {name: getattr(pca_parity, name) for _, change in PCA_VARIANTS for name in change}
+    saved = {name: getattr(choices, name) for _, change in PCA_VARIANTS for name in change}
     cases = [c for c in pca_parity_cases() if "outliers" not in c.overrides]
     print("\n## pca-parity calibration choices, added in turn (mean / worst seed, in α)")
     print(
@@ -429,7 +429,7 @@ def pca_calibration_ablation(seeds: list[int]) -> None:
     try:
         for label, change in PCA_VARIANTS:
             for name, value in change.items():
-                setattr(pca_parity, name, value)
+                setattr(choices, name, value)
             cells = []
             for case in cases:
                 rows = [out_of_sample_far(case, seed)[0] for seed in seeds]
@@ -443,7 +443,7 @@ def pca_calibration_ablation(seeds: list[int]) -> None:
             print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
     finally:
         for name, value in saved.items():
-            setattr(pca_parity, name, value)
+            setattr(choices, name, value)
 
 
 def glr_calibration_spread(seeds: list[int]) -> None:

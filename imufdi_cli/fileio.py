@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import os
 import re
-import secrets
 import stat
 import sys
 from collections.abc import Iterable, Iterator, Sequence
@@ -111,7 +110,7 @@ def create_temp(path: str | Path, *, suffix: str = "", sweep: bool = True) -> tu
         remove_stale_temps(target)
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
     for _ in range(100):
-        temp = directory / f".{target.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp{suffix}"
+        temp = directory / f".{target.name}.{os.getpid()}.{os.urandom(6).hex()}.tmp{suffix}"
         try:
             fd = os.open(temp, flags, 0o666)  # the umask applies, as for any new file
         except FileExistsError:

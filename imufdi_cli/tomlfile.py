@@ -9,11 +9,6 @@ from typing import Any
 
 from imufdi_cli.errors import ImufdiError
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
-
 
 def parse_toml(raw: bytes | str, where: str | Path, error: type[ImufdiError]) -> dict[str, Any]:
     """The TOML document ``raw`` (bytes are decoded as UTF-8) as a dict.
@@ -21,6 +16,10 @@ def parse_toml(raw: bytes | str, where: str | Path, error: type[ImufdiError]) ->
     Invalid UTF-8, a TOML syntax error, or arrays/tables nested deeper than tomllib's
     recursive parser can follow raise ``error`` with ``"<where>: not valid TOML (...)"``.
     """
+    if sys.version_info >= (3, 11):  # imported here: its regexes cost start-up time
+        import tomllib
+    else:  # pragma: no cover
+        import tomli as tomllib
     try:
         text = raw.decode("utf-8") if isinstance(raw, bytes) else raw
         return tomllib.loads(text)

@@ -106,7 +106,7 @@ from imufdi_cli.detectors.base import (
     calibration_stats,
     parse_sensor_types,
 )
-from imufdi_cli.detectors.pca_parity import MovingWindow
+from imufdi_cli.detectors.moving import MovingWindow
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
 from imufdi_cli.log import ImuBlock
 

@@ -8,21 +8,49 @@ from collections.abc import Callable
 
 from imufdi_cli.errors import McapInputError
 
-try:  # zlib-ng's CRC-32 (folding with PCLMULQDQ/VPCLMULQDQ): same value, ~6x zlib's speed
-    from zlib_ng import zlib_ng as _zlib_ng
+#: The CRC-32 function, loaded on first use (see _load_crc32): a reader that never checks a
+#: CRC (zstd frames with content checksums, lenient reading) does not import zlib-ng
+#: (start-up time, docs/performance.md).
+_CRC32: Callable[..., int] | None = None
+_CRC32_NAME = ""
+#: Bytes checked by zlib's CRC-32 before zlib-ng is loaded (see crc32).
+_ZLIB_FIRST = 2 << 20
+_ZLIB_LEFT = _ZLIB_FIRST
 
-    _CRC32: Callable[..., int] = _zlib_ng.crc32
-    CRC32_IMPLEMENTATION = "zlib-ng"
-except ImportError:  # pragma: no cover - zlib-ng is a dependency; zlib gives the same values
-    _CRC32 = zlib.crc32
-    CRC32_IMPLEMENTATION = "zlib"
+
+def _load_crc32() -> Callable[..., int]:
+    """zlib-ng's CRC-32 (folding with PCLMULQDQ/VPCLMULQDQ: same value, ~6x zlib's
+    speed), or zlib's when zlib-ng is not installed."""
+    global _CRC32, _CRC32_NAME
+    try:
+        from zlib_ng import zlib_ng
+
+        _CRC32, _CRC32_NAME = zlib_ng.crc32, "zlib-ng"
+    except ImportError:  # pragma: no cover - zlib-ng is a dependency; zlib: same values
+        _CRC32, _CRC32_NAME = zlib.crc32, "zlib"
+    return _CRC32
+
+
+def __getattr__(name: str) -> str:
+    if name == "CRC32_IMPLEMENTATION":  # "zlib-ng" or "zlib": which computes crc32
+        _load_crc32()
+        return _CRC32_NAME
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def crc32(data: bytes | bytearray | memoryview, value: int = 0) -> int:
     """CRC-32 (ISO-HDLC, the MCAP checksum: ``zlib.crc32``'s value) of ``data``, continuing
     from ``value``. Computed by zlib-ng when installed (about 15 GB/s on the build machine
-    against zlib's 2.5), else by zlib."""
-    return int(_CRC32(data, value))
+    against zlib's 2.5), else by zlib. The first ``_ZLIB_FIRST`` bytes of a process are
+    checked by zlib: loading zlib-ng costs about as much CPU as zlib's CRC of 2 MB, so a
+    command reading a small log (``imufdi info``) does not load it."""
+    global _ZLIB_LEFT
+    if _CRC32 is None:
+        if len(data) <= _ZLIB_LEFT:
+            _ZLIB_LEFT -= len(data)
+            return zlib.crc32(data, value)
+        _load_crc32()
+    return int(_CRC32(data, value))  # type: ignore[misc]
 
 
 #: Per-thread zstd compressors and decompressors (neither may be shared between threads).
@@ -69,9 +97,13 @@ def _zstd_decompress(raw: bytes | memoryview, size: int) -> bytes:
     # it is used only when that claim is the chunk's declared size; otherwise read at most
     # one byte more than declared through a stream reader (also reads across frames).
     if zstandard.frame_content_size(raw) == size:
-        out = bytes(dctx.decompress(raw))
-        if len(out) == size:
-            return out
+        try:
+            out = bytes(dctx.decompress(raw))
+        except zstandard.ZstdError:
+            pass  # read again below: the stream reader's message, as decompress_into gives
+        else:
+            if len(out) == size:
+                return out
     with dctx.stream_reader(raw, read_across_frames=True) as reader:
         out = bytes(reader.read(size + 1))
     return out

@@ -11,7 +11,7 @@ import math
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -37,12 +37,14 @@ from imufdi_cli.mcapio.imu_codec import (
     patch_mag,
     schema_name,
 )
-from imufdi_cli.mcapio.imu_writer import ImuArrayWriter, encode_messages, write_array
 from imufdi_cli.mcapio.records import (
     ChannelInfo,
     MessageBatch,
 )
 from imufdi_cli.mcapio.source import McapSource
+
+if TYPE_CHECKING:
+    from imufdi_cli.mcapio.imu_writer import ImuArrayWriter, encode_messages, write_array
 
 __all__ = [
     "ARRAY_METADATA",
@@ -66,6 +68,21 @@ __all__ = [
     "schema_name",
     "write_array",
 ]
+
+#: Re-exported names of the writer, imported on first use: reading commands (``info``,
+#: ``detect``'s input) do not pay for compiling the writer (start-up, docs/performance.md).
+_WRITER_NAMES = frozenset({"ImuArrayWriter", "encode_messages", "write_array"})
+
+
+def __getattr__(name: str) -> Any:
+    if name in _WRITER_NAMES:
+        from imufdi_cli.mcapio import imu_writer
+
+        value = getattr(imu_writer, name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 #: Read-ahead when a reader starts (see ImuArrayReader._prefetch_setup).
 _SETUP_MESSAGES = 8

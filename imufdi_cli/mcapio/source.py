@@ -15,9 +15,8 @@ import struct
 import sys
 from collections import deque
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -55,6 +54,9 @@ from imufdi_cli.mcapio.scan import (
     parse_schema,
     scan_records,
 )
+
+if TYPE_CHECKING:  # the read-ahead pool is imported when first used (start-up time)
+    from concurrent.futures import Future, ThreadPoolExecutor
 
 __all__ = ["McapSource", "parse_channel", "parse_metadata", "parse_schema", "scan_records"]
 
@@ -172,7 +174,14 @@ class McapSource:
     _phase = 0
 
     def __new__(cls, source: Any = None, *args: Any, **kwargs: Any) -> McapSource:
-        if cls is McapSource and isinstance(source, (str, os.PathLike)) and source != "-":
+        if (
+            cls is McapSource
+            and isinstance(source, (str, os.PathLike))
+            and source != "-"
+            # only these can be a bag directory (bagdir.is_bag_dir): a plain file does
+            # not import the module (start-up time)
+            and (os.path.isdir(source) or os.path.basename(source) == "metadata.yaml")
+        ):
             from imufdi_cli.mcapio.bagdir import BagDirSource, is_bag_dir
 
             if is_bag_dir(source):
@@ -745,6 +754,8 @@ class McapSource:
         """The read-ahead thread's executor, made on first use (and anew in a forked child
         process, where the parent's thread does not exist)."""
         if self._pool is None or self._pool_pid != os.getpid():
+            from concurrent.futures import ThreadPoolExecutor
+
             self._pool = ThreadPoolExecutor(1, thread_name_prefix="imufdi-chunks")
             self._pool_pid = os.getpid()
         return self._pool

@@ -2,12 +2,8 @@
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 from scipy.stats import binom, chi2, t
 
@@ -15,7 +11,6 @@ from imufdi_cli.detectors.base import NO_ISOLATION, NOT_ISOLABLE, DetectionBlock
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.parity import parity_matrix
 from imufdi_cli.detectors.pca_parity import (
-    MovingWindow,
     PcaParityDetector,
     _lag_one_autocorrelation,
     cross_fit_split,
@@ -60,22 +55,6 @@ def gyro_block(values: np.ndarray, rate_hz: float = 100.0) -> ImuBlock:
 
 
 # --- helpers -------------------------------------------------------------------------
-
-
-@settings(max_examples=40, deadline=None)
-@given(
-    length=st.integers(1, 12),
-    cuts=st.lists(st.integers(0, 60), max_size=5),
-)
-def test_moving_window_matches_direct_sums_across_block_boundaries(length, cuts):
-    values = np.random.default_rng(length).standard_normal((60, 2))
-    window = MovingWindow(length, 2)
-    edges = [0, *sorted(cuts), 60]
-    sums, counts = zip(*(window.push(values[a:b]) for a, b in itertools.pairwise(edges)))
-    sums_all, counts_all = np.concatenate(sums), np.concatenate(counts)
-    expected = np.array([values[max(0, i - length + 1) : i + 1].sum(axis=0) for i in range(60)])
-    assert_allclose(sums_all, expected, atol=1e-12)
-    assert_allclose(counts_all, np.minimum(np.arange(1, 61), length))
 
 
 def test_variance_inflation_matches_the_ar1_sum():
@@ -568,7 +547,7 @@ def test_leak_error_allowance_is_the_number_of_excited_directions(monkeypatch):
 
     array, block = simulate_block(preset("wearable12", seed=3, duration=4.0))
     with_allowance = run(make(), array, block, calibrate=(0.0, 2.0))
-    monkeypatch.setattr(pca_parity, "SCHEFFE_LEAK", False)
+    monkeypatch.setattr(pca_parity.choices, "SCHEFFE_LEAK", False)
     without = run(make(), array, block, calibrate=(0.0, 2.0))
     for sensor_type, out in with_allowance.items():
         assert_allclose(out.statistic, without[sensor_type].statistic, rtol=0, atol=0)

@@ -1,4 +1,7 @@
-"""bank, cnn-map and woa-mvmd-glt give the outputs recorded before their package split.
+"""bank, cnn-map, pca-parity and woa-mvmd-glt give the outputs recorded before their package split.
+
+The two pca-parity cases were recorded on main de59088 (single module, session 18) before
+``detectors/pca_parity.py`` became a package.
 
 ``detectors/bank.py``, ``detectors/cnn_map.py`` and ``detectors/woa_mvmd_glt.py`` were split
 into packages by concern (issue 21) with behaviour unchanged. The records in
@@ -101,6 +104,26 @@ CASES: dict[
         ("noise:imu0.accel.x,at=8s,until=11s,factor=3",),
         6.0,
         (250, 77),
+    ),
+    "pca-parity-conical6": (
+        "pca-parity",
+        {},
+        "conical6",
+        7,
+        6.0,
+        ("step:imu1.gyro,at=4s,amp=0.5deg/s", "drift:imu2.gyro,at=3s,rate=0.2deg/s^2"),
+        3.0,
+        (90, 203, 17),
+    ),
+    "pca-parity-wearable12": (
+        "pca-parity",
+        {"leak": "none"},
+        "wearable12",
+        8,
+        5.0,
+        ("step:imu4.accel.z,at=3.5s,amp=0.2m/s^2",),
+        2.5,
+        (128, 41),
     ),
     "woa-mvmd-glt-tuned": (
         "woa-mvmd-glt",
@@ -224,7 +247,13 @@ def _assert_same(name: str, got: dict[str, Any], want: dict[str, Any], exact: bo
 
 
 #: the cases costing over a second of CPU each run only with ``-m slow`` (CI runs both)
-SLOW = ("bank-marg", "cnn-map-wearable12", "woa-mvmd-glt-tuned")
+SLOW = (
+    "bank-marg",
+    "cnn-map-wearable12",
+    "pca-parity-conical6",
+    "pca-parity-wearable12",
+    "woa-mvmd-glt-tuned",
+)
 
 
 @pytest.mark.parametrize(

@@ -25,6 +25,20 @@ def test_crc32_is_zlibs_crc32() -> None:
     assert compression.CRC32_IMPLEMENTATION in ("zlib-ng", "zlib")
 
 
+def test_crc32_switches_from_zlib_to_zlib_ng_with_the_same_values(monkeypatch) -> None:
+    """The first bytes of a process go through zlib (zlib-ng not loaded: start-up time),
+    the rest through the loaded implementation; continued CRCs across the switch agree."""
+    monkeypatch.setattr(compression, "_CRC32", None)
+    monkeypatch.setattr(compression, "_ZLIB_LEFT", 1000)
+    rng = np.random.default_rng(1)
+    data = rng.integers(0, 256, 5000, dtype=np.uint8).tobytes()
+    first = compression.crc32(data[:600])  # by zlib: 400 bytes left
+    assert compression._CRC32 is None and compression._ZLIB_LEFT == 400
+    assert compression.crc32(data[600:], first) == zlib.crc32(data)  # loads the fast one
+    assert compression._CRC32 is not None
+    assert compression.crc32(data[:10]) == zlib.crc32(data[:10])
+
+
 def _into(raw: bytes, compression: str, size: int) -> bytes:
     out = np.zeros(size, np.uint8)
     decompress_into(raw, compression, memoryview(out))  # type: ignore[arg-type]
@@ -51,8 +65,11 @@ def test_decompress_into_matches_decompress(kind: str) -> None:
         assert _into(two, kind, len(records)) == records
         bad = bytearray(packed)
         bad[-2] ^= 0xFF  # the frame's content checksum
-        with pytest.raises(McapInputError, match="corrupt zstd chunk"):
+        with pytest.raises(McapInputError, match="corrupt zstd chunk") as in_place:
             _into(bytes(bad), kind, len(records))
+        with pytest.raises(McapInputError) as whole:  # read-ahead and small chunks
+            compression.decompress(bytes(bad), kind, len(records))
+        assert str(whole.value) == str(in_place.value)  # one message, however read
     for size, pattern in cases[:2]:
         with pytest.raises(McapInputError, match=pattern):
             compression.decompress(packed, kind, size)

@@ -17,12 +17,12 @@ from imufdi_cli.detectors.cusum import (
     local_mean_residual,
     run_cusum,
 )
+from imufdi_cli.detectors.moving import MovingWindow
 from imufdi_cli.detectors.noise_glr import (
     NoiseGlrDetector,
     clipped_square_moments,
     robust_scale,
 )
-from imufdi_cli.detectors.pca_parity import MovingWindow
 from imufdi_cli.errors import (
     CalibrationError,
 )

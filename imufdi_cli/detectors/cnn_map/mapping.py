@@ -24,8 +24,8 @@ from imufdi_cli.detectors.cnn_map.signals import (
     input_windows,
     whiten,
 )
+from imufdi_cli.detectors.moving import MovingWindow
 from imufdi_cli.detectors.nn import Adam, mse_loss
-from imufdi_cli.detectors.pca_parity import MovingWindow
 from imufdi_cli.errors import (
     CalibrationError,
     DetectorConfigError,

@@ -1,4 +1,5 @@
-"""Episode explanations are unchanged, to the bit, by performance work on ``episodes.py``.
+"""Episode explanations are unchanged, to the bit, by performance work on the
+``imufdi_cli.episodes`` package.
 
 A fixed synthetic log (seeded: 18 single-axis gyros of six rotated triads, 100 s at 100 Hz,
 every fault model of ``inject`` plus chance alarms, some without an isolated sensor) goes
@@ -8,8 +9,9 @@ the reference recorded by the code before the fitting functions were made faster
 7e6bd7a). Floats are compared exactly (JSON keeps every bit of a float).
 
 When the episodes' *classification logic* changes on purpose, record the new reference
-with ``PYTHONPATH=$PWD python tests/test_episodes_identical.py --write`` in the same commit
-and say so in its message; a performance-only change must pass unchanged.
+with ``PYTHONPATH=$PWD python tests/episodes/test_episodes_identical.py --write`` in the
+same commit and say so in its message; a performance-only change (or a split of the module
+into a package, issue 21) must pass unchanged.
 """
 
 from __future__ import annotations

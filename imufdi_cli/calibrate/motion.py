@@ -1,0 +1,135 @@
+"""What calibrate learns from the motion: chip time offsets (a diagnostic) and the
+sampling-time jitter term ``[jitter]`` of :mod:`imufdi_cli.detectors.jitter`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.calibrate.static import STATIC_WINDOW_S
+from imufdi_cli.detectors.jitter import fit_jitter
+from imufdi_cli.detectors.rigid import accel_design
+from imufdi_cli.errors import ArrayConfigError
+from imufdi_cli.validity import flag_values
+
+#: Warn when a chip time offset explains more than this share of its motion residual.
+TIME_OFFSET_WARNING = 0.1
+
+
+def time_offsets(
+    array: ArrayConfig, gyro: np.ndarray, t_s: np.ndarray, motion: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-IMU sampling-time offset from calibrated gyro triads in motion.
+
+    Each chip's body-frame rate minus the array consensus ``w`` is regressed on the
+    consensus angular acceleration ``w_dot`` (central differences):
+    ``R_k w_k - w ~ w_dot dt_k``, least squares over the motion rows and three axes.
+
+    Parameters
+    ----------
+    array : ArrayConfig
+    gyro : ndarray, shape (N, m, 3)
+        Calibrated rates, rad/s (IMU frames).
+    t_s : ndarray, shape (N,)
+    motion : ndarray, shape (N,), bool
+        Rows to use (moving, not clipped; their neighbours enter the differences).
+
+    Returns
+    -------
+    offsets : ndarray, shape (m,), s
+        Relative to the array's mean sampling instant (they sum to ~0).
+    explained : ndarray, shape (m,)
+        Share of each chip's residual energy on those rows that the offset explains.
+    """
+    m = gyro.shape[1]
+    if np.count_nonzero(motion) < 3 or len(t_s) < 3:
+        return np.zeros(m), np.zeros(m)
+    body = np.einsum("kij,nkj->nki", array.rotations(), gyro)
+    consensus = body.mean(axis=1)
+    rate_dot = np.gradient(consensus, t_s, axis=0)  # (N, 3)
+    x = rate_dot[motion].ravel()
+    energy = float(x @ x)
+    offsets, explained = np.zeros(m), np.zeros(m)
+    if energy <= 0:
+        return offsets, explained
+    for k in range(m):
+        y = (body[motion, k] - consensus[motion]).ravel()
+        offsets[k] = float(x @ y) / energy
+        total = float(y @ y)
+        if total > 0:
+            explained[k] = 1.0 - float(np.sum((y - offsets[k] * x) ** 2)) / total
+    return offsets, explained
+
+
+def _zero_clipped_rows(
+    array: ArrayConfig, accel: np.ndarray, gyro: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Rows with any clipped or invalid accel/gyro value (per the array's ranges), zeroed.
+
+    Returns ``(accel (N, m, 3), gyro (N, m, 3) or None, clipped (N,) bool)``.
+    """
+    clipped = np.zeros(accel.shape[0], dtype=bool)
+    for s, data in (("accel", accel), ("gyro", gyro)):
+        if data is not None:
+            c, i = flag_values(data, s, array.range.get(s))
+            clipped |= (c | i).any(axis=(1, 2))
+    accel = np.where(clipped[:, None, None], 0.0, accel)
+    gyro = None if gyro is None else np.where(clipped[:, None, None], 0.0, gyro)
+    return accel, gyro, clipped
+
+
+def motion_rows(array: ArrayConfig, static: np.ndarray, clipped: np.ndarray) -> np.ndarray:
+    """Rows (N,) bool more than one static window away from any static row, not clipped."""
+    w = round(STATIC_WINDOW_S * array.rate_hz)
+    near_static = np.convolve(static.astype(float), np.ones(2 * w + 1), "same") > 0
+    return np.asarray(~near_static & ~clipped)
+
+
+#: ``calibrate --jitter-fit`` choices: the per-sample level the fit holds in motion.
+JITTER_FITS = ("level", "moments", "off")
+JITTER_LEVEL_ALPHA = 0.01
+
+
+def jitter_stage(
+    array: ArrayConfig,
+    fields: dict[str, np.ndarray | None],
+    t_s: np.ndarray,
+    static: np.ndarray,
+    clipped: np.ndarray,
+    method: str = "level",
+) -> dict[str, float]:
+    """Sampling-time jitter sigma_t (s) per sensor type with a parity space and per-sensor
+    noise, fitted on the motion rows (:func:`imufdi_cli.detectors.jitter.fit_jitter`):
+    ``method`` ``level`` (the per-sample test at alpha = 1 % holds its level on those rows),
+    ``moments`` or ``off`` (nothing fitted).
+
+    Parameters
+    ----------
+    array : ArrayConfig
+        With the chip calibration and noise levels to use.
+    fields : dict
+        Raw triads (N, m, 3) per sensor type (None: absent), clipped rows zeroed.
+    t_s : (N,) s; static, clipped : (N,) bool.
+    """
+    motion = motion_rows(array, static, clipped)
+    rows = motion & np.roll(motion, 1)
+    out: dict[str, float] = {}
+    if method == "off" or not rows[1:].any():
+        return out
+    alpha = JITTER_LEVEL_ALPHA if method == "level" else None
+    for sensor_type, raw in fields.items():
+        sigma = array.sensor_noise(sensor_type)
+        if raw is None or sigma is None or array.n_sensors(sensor_type) < 4:
+            continue
+        design = array.measurement_matrix(sensor_type)
+        if sensor_type == "accel":
+            try:
+                design = accel_design(array, sensor_type)
+            except ArrayConfigError:
+                pass
+        if design.shape[0] <= design.shape[1]:
+            continue
+        white = array.select(array.calibrate_triads(raw, sensor_type), sensor_type) / sigma
+        offset = white[static].mean(axis=0) if static.any() else None
+        out[sensor_type] = fit_jitter(design / sigma[:, None], white, t_s, rows, offset, alpha)
+    return out

@@ -1,0 +1,200 @@
+"""Each sensor's white-noise level after calibration, pooled over the static intervals, and
+its healthy spread over the orientations (``<type>_noise``, ``<type>_noise_spread``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imufdi_cli.array import ArrayConfig
+from imufdi_cli.calibrate.static import StaticInterval
+from imufdi_cli.detectors.parity import residual_projector
+
+
+def static_noise(
+    array: ArrayConfig,
+    accel: np.ndarray,
+    gyro: np.ndarray | None,
+    t_s: np.ndarray,
+    static: np.ndarray,
+    intervals: list[StaticInterval],
+) -> list[dict[str, np.ndarray]]:
+    """Per-IMU, per-type noise sigma (3,) of the calibrated sensors at rest (SI).
+
+    For every sensor type with a parity space (>= 4 sensors), the least-squares residuals
+    ``r = (I - H H^+) m`` of each static interval (motion and common offsets cancel) about
+    their interval mean give pooled residual variances ``v`` (weighted by the intervals'
+    sample counts); per-sensor variances solve ``((I - S) o (I - S)) sigma^2 = v`` as in
+    :func:`~imufdi_cli.detectors.parity.residual_sigma` (plain least squares: the pooled
+    system is well determined; a non-positive solution falls back to the common
+    ``sum v / (n - 3)``). Axes a type lacks keep no entry.
+
+    Parameters
+    ----------
+    array : ArrayConfig
+        Geometry with the chip calibration to apply.
+    accel, gyro : ndarray, shape (N, m, 3)
+        Raw samples (SI).
+    t_s : ndarray, shape (N,)
+    static : ndarray, shape (N,), bool
+    intervals : list of StaticInterval
+    """
+    out: list[dict[str, np.ndarray]] = [{} for _ in range(array.n_imus)]
+    for sensor_type, raw in (("accel", accel), ("gyro", gyro)):
+        if raw is None or array.n_sensors(sensor_type) < 4:
+            continue
+        projector, residual = _parity_residuals(array, raw, sensor_type)
+        n = projector.shape[0]
+        squares = np.zeros(n)
+        dof = 0
+        for item in intervals:
+            lo, hi = np.searchsorted(t_s, [item.start_s, item.end_s], side="left")
+            part = residual[lo : hi + 1][static[lo : hi + 1]]
+            if part.shape[0] < 10:
+                continue
+            squares += part.var(axis=0) * part.shape[0]
+            dof += part.shape[0] - 1
+        if dof == 0:
+            continue
+        variances = squares / dof
+        sigma2, *_ = np.linalg.lstsq(projector**2, variances, rcond=None)
+        if not np.all(sigma2 > 0):
+            sigma2 = np.full(n, variances.sum() / (n - 3))
+        _scatter_triads(array, sensor_type, np.sqrt(sigma2), out)
+    return out
+
+
+def _parity_residuals(
+    array: ArrayConfig, raw: np.ndarray, sensor_type: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(I - H H^+)`` (n, n) and the parity residuals (N, n) of the calibrated sensors of
+    one type: motion and the array's common offsets cancel in them."""
+    values = array.select(array.calibrate_triads(raw, sensor_type), sensor_type)
+    H = array.measurement_matrix(sensor_type)
+    projector = residual_projector(H)
+    return projector, values @ projector.T
+
+
+def _scatter_triads(
+    array: ArrayConfig, sensor_type: str, per_sensor: np.ndarray, out: list[dict[str, np.ndarray]]
+) -> None:
+    """Store per-sensor values (n,) as each complete IMU triad's (3,) in ``out[imu][type]``."""
+    imu_idx, axis_idx = array.sensor_index(sensor_type)
+    for k in range(array.n_imus):
+        mine = imu_idx == k
+        if np.count_nonzero(mine) == 3:
+            triad = np.empty(3)
+            triad[axis_idx[mine]] = per_sensor[mine]
+            out[k][sensor_type] = triad
+
+
+def expected_normal_range(count: int) -> float:
+    """E[max - min] of ``count`` independent standard normal variables.
+
+    ``d_n = integral of (1 - Phi(x)^n - (1 - Phi(x))^n) dx`` (Tippett, *Biometrika* 17,
+    1925); 0 for n < 2, 1.128 for n = 2, 3.735 for n = 20.
+    """
+    if count < 2:
+        return 0.0
+    from scipy.stats import norm
+
+    grid = np.linspace(-10.0, 10.0, 20001)
+    cdf = norm.cdf(grid)
+    inside = 1.0 - cdf**count - (1.0 - cdf) ** count
+    return float(np.sum(inside) * (grid[1] - grid[0]))
+
+
+#: An orientation enters the noise spread with at least this many successive differences.
+SPREAD_MIN_DIFFERENCES = 50
+
+
+def noise_spread(
+    array: ArrayConfig,
+    accel: np.ndarray,
+    gyro: np.ndarray | None,
+    t_s: np.ndarray,
+    static: np.ndarray,
+    intervals: list[StaticInterval],
+) -> tuple[list[dict[str, np.ndarray]], dict[str, np.ndarray]]:
+    """Each sensor's healthy white-noise variance spread over the static orientations.
+
+    For every sensor type with a parity space (>= 4 sensors) and every orientation o (the
+    static intervals grouped by :func:`group_orientations`), the mean square of the
+    successive differences of the parity residuals ``r = (I - H H^+) m`` inside its static
+    intervals gives ``v_o`` (n,); per-sensor difference variances solve
+    ``((I - S) o (I - S)) s_o = v_o`` (as :func:`static_noise` does for the pooled
+    variances; successive differences remove each interval's mean and slow drift, as
+    noise-glr's own differences do). The spread of sensor j is::
+
+        ln kappa_j = max(0, max_o ln s_jo - min_o ln s_jo - d_O se)
+
+    with ``se = sqrt(2 / nu)`` the standard error of ``ln s_jo`` (``nu = 2 N^2 / (3 N - 1)``
+    equivalent degrees of freedom of the mean square of N differences of white noise,
+    lag-1 correlation -1/2; root-mean-square over the orientations) and ``d_O`` the
+    expected range of O standard normals (:func:`expected_normal_range`): the range of O
+    estimates of one constant variance is about ``d_O se`` in the log, so a sensor whose
+    noise does not change with the orientation gets kappa ~ 1, and one whose variance
+    changes by a factor F gets about F (slightly less: the correction assumes no change).
+    The per-sensor solution's sampling error is taken as that of ``v_o`` (the operator
+    is close to diagonal for 24 sensors and 3 unknowns); coloured noise has fewer
+    degrees of freedom, which leaves kappa slightly high (the conservative side for a
+    test whose null hypothesis is ``sigma^2 <= kappa sigma_cal^2``).
+
+    Parameters
+    ----------
+    array : ArrayConfig
+        Geometry with the chip calibration to apply.
+    accel, gyro : ndarray, shape (N, m, 3)
+        Raw samples (SI).
+    t_s : ndarray, shape (N,)
+    static : ndarray, shape (N,), bool
+    intervals : list of StaticInterval
+        With their ``orientation`` numbers set.
+
+    Returns
+    -------
+    spread : list of dict
+        Per IMU, per sensor type, kappa (3,) (>= 1, dimensionless).
+    per_orientation : dict
+        Per sensor type, ``s_o`` (O, n): the difference variances per orientation (SI^2),
+        sensor-id order.
+    """
+    out: list[dict[str, np.ndarray]] = [{} for _ in range(array.n_imus)]
+    tables: dict[str, np.ndarray] = {}
+    for sensor_type, raw in (("accel", accel), ("gyro", gyro)):
+        if raw is None or array.n_sensors(sensor_type) < 4:
+            continue
+        projector, residual = _parity_residuals(array, raw, sensor_type)
+        n = projector.shape[0]
+        sums: dict[int, np.ndarray] = {}
+        counts: dict[int, int] = {}
+        for item in intervals:
+            lo, hi = np.searchsorted(t_s, [item.start_s, item.end_s], side="left")
+            rows = np.arange(lo, min(hi + 1, len(t_s)))
+            rows = rows[static[rows]]
+            if rows.size < 2:
+                continue
+            consecutive = np.diff(rows) == 1
+            diffs = np.diff(residual[rows], axis=0)[consecutive]
+            sums[item.orientation] = sums.get(item.orientation, np.zeros(n)) + np.sum(
+                diffs**2, axis=0
+            )
+            counts[item.orientation] = counts.get(item.orientation, 0) + diffs.shape[0]
+        used = sorted(o for o in counts if counts[o] >= SPREAD_MIN_DIFFERENCES)
+        if len(used) < 2:
+            continue
+        weights = projector**2
+        variances = []
+        for o in used:
+            s_o, *_ = np.linalg.lstsq(weights, sums[o] / counts[o], rcond=None)
+            if not np.all(s_o > 0):  # as static_noise: fall back to the common level
+                s_o = np.full(n, float(np.sum(sums[o] / counts[o])) / (n - 3))
+            variances.append(s_o)
+        table = np.stack(variances)  # (O, n)
+        tables[sensor_type] = table
+        count = np.array([counts[o] for o in used], dtype=float)
+        dof = 2.0 * count**2 / (3.0 * count - 1.0)
+        se = float(np.sqrt(np.mean(2.0 / dof)))
+        logs = np.log(table)
+        excess = logs.max(axis=0) - logs.min(axis=0) - expected_normal_range(len(used)) * se
+        _scatter_triads(array, sensor_type, np.exp(np.maximum(excess, 0.0)), out)
+    return out, tables

@@ -1,0 +1,602 @@
+"""Streaming: episodes of one detector on one sensor type, explained as they close.
+
+An **episode** is a run of alarms of one detector on one sensor type. Alarms are merged
+across gaps of at most ``merge_gap`` quiet samples (0.1 s: a detector at its nominal
+false-alarm level flickers inside a fault; a gap that short is not a recovery), whatever
+they isolate. Such a run is then joined to the previous episode of the **same isolated
+sensor** when at most ``join_gap`` (1 s) separates them: a fault that a detector sees in
+fragments (noise growth, spikes) is one fault, and is explained over its whole span,
+quiet gaps included, instead of over the fragments where the statistic happened to be
+highest. Its start and end are the first and last alarmed samples; the decision times are
+those of the status rows.
+
+A closed episode is explained on its isolated sensor against the consensus of the others
+(:mod:`~imufdi_cli.episodes.reference`) by the fault models of
+:mod:`~imufdi_cli.episodes.fits`. :func:`episode_builders` makes one builder per sensor
+type from the calibration window.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.detectors.parity import check_measurement_matrix
+from imufdi_cli.episodes.episode import Episode, _sensor_amplitude, isolation_summary
+from imufdi_cli.episodes.fault_fit import WhiteNoise
+from imufdi_cli.episodes.fits import fit_models
+from imufdi_cli.episodes.reference import (
+    Reference,
+    downdated_gain,
+    estimator_without,
+    leave_two_out,
+)
+from imufdi_cli.episodes.variance_drop import VARIANCE_DROP, VarianceDropMonitor
+from imufdi_cli.episodes.white_noise import (
+    successive_difference_dof,
+    white_sigma,
+    white_sigma_covariance,
+    white_sigma_excess,
+    white_sigma_spread,
+)
+
+
+class EpisodeBuilder:
+    """Builds explained episodes from a detector's status rows while a log streams by.
+
+    The builder keeps the last ``margin`` samples of the sensor type's measurements (the
+    fault usually starts before its first alarm: a drift is detected late) and, while an
+    episode is open, its samples up to ``max_window``; an episode closes once ``merge_gap``
+    quiet rows follow it, and is then explained (:func:`fit_models` on the isolated
+    sensor). Memory is bounded by ``margin + max_window`` samples whatever the log length.
+
+    Parameters
+    ----------
+    detector, sensor_type : str
+    H : ndarray, shape (n, 3)
+        Measurement matrix of the sensor type.
+    sensor_ids : sequence of str, length n
+    sigma : ndarray, shape (n,)
+        Calibrated per-sensor white-noise standard deviation (SI), e.g. from
+        :func:`imufdi_cli.detectors.parity.residual_sigma` on the calibration window.
+    rate_hz : float
+        Nominal sample rate.
+    merge_gap_s, join_gap_s, margin_s, max_window_s : float
+        Quiet time that does not end an episode; longer quiet time (at least
+        ``merge_gap_s``) across which an alarm run that isolates the same sensor as the
+        episode is joined to it as a fragment of the same fault; analysis margin before the
+        first alarm (onset candidates); longest stretch of an episode kept for the fit.
+    confidence : float
+        Level of the size intervals.
+    explain : bool
+        Fit the fault models; False (too few sensors for a consensus, or no calibrated
+        sigma) gives the episodes with their evidence but no fault class.
+    calibration_samples : int, optional
+        Samples ``sigma`` was estimated from (widens the noise factor's interval).
+    calibration_mean : ndarray, shape (n,), optional
+        Mean measurements of the calibration window: each sensor's bias against the
+        consensus is taken out of its residual (a fault is what changed since).
+    white_sigma : ndarray, shape (n,), optional
+        The white part of each sensor's noise (:func:`white_sigma`, SI), estimated from
+        ``calibration_samples`` samples; the noise factor is then sized against it from
+        successive differences (:func:`_white_noise_fit`).
+    white_excess : float
+        How much more the white variances spread than Gaussian white noise says
+        (:func:`white_sigma_excess`: outliers that pass the cut, heavy tails); it scales
+        :func:`white_sigma_covariance` and so lowers the calibration's degrees of freedom
+        in the noise factor's interval.
+    variance_drop : bool
+        Also run the :class:`VarianceDropMonitor` on the measurements and return its
+        explained episodes (``detector`` :data:`VARIANCE_DROP`) with this builder's: a
+        detection of its own, for frozen outputs the detectors cannot see. Needs
+        ``white_sigma`` and ``calibration_samples``.
+    variance_drop_window_s, variance_drop_alpha : float
+        The monitor's window and the probability that one healthy sensor's window falls
+        below its threshold.
+    """
+
+    def __init__(
+        self,
+        detector: str,
+        sensor_type: str,
+        H: np.ndarray,
+        sensor_ids: Sequence[str],
+        sigma: np.ndarray,
+        rate_hz: float,
+        *,
+        merge_gap_s: float = 0.1,
+        join_gap_s: float = 1.0,
+        margin_s: float = 2.0,
+        max_window_s: float = 30.0,
+        confidence: float = 0.9,
+        explain: bool = True,
+        calibration_samples: int | None = None,
+        calibration_mean: np.ndarray | None = None,
+        white_sigma: np.ndarray | None = None,
+        white_excess: float = 1.0,
+        variance_drop: bool = False,
+        variance_drop_window_s: float = 1.0,
+        variance_drop_alpha: float = 1e-7,
+    ) -> None:
+        self.detector = detector
+        self.sensor_type = sensor_type
+        self.H = check_measurement_matrix(H)
+        self.sensor_ids = list(sensor_ids)
+        self.sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (self.H.shape[0],))
+        self.merge_gap = max(0, round(merge_gap_s * rate_hz))
+        self.join_gap = max(self.merge_gap, round(join_gap_s * rate_hz))
+        self.margin = max(2, round(margin_s * rate_hz))
+        self.max_window = max(4, round(max_window_s * rate_hz))
+        self.confidence = confidence
+        self.explain = explain
+        self.calibration_samples = calibration_samples
+        self.calibration_mean = (
+            None if calibration_mean is None else np.asarray(calibration_mean, np.float64)
+        )
+        # what another detector's builder is made from (for_detector)
+        self._arguments = (sensor_type, H, sensor_ids, sigma, rate_hz)
+        self._options: dict[str, Any] = {
+            "merge_gap_s": merge_gap_s,
+            "join_gap_s": join_gap_s,
+            "margin_s": margin_s,
+            "max_window_s": max_window_s,
+            "confidence": confidence,
+            "explain": explain,
+            "calibration_samples": calibration_samples,
+            "calibration_mean": calibration_mean,
+            "white_sigma": white_sigma,
+            "white_excess": white_excess,
+            "variance_drop_window_s": variance_drop_window_s,
+            "variance_drop_alpha": variance_drop_alpha,
+        }
+        self.white_sigma = (
+            None
+            if white_sigma is None
+            else np.broadcast_to(np.asarray(white_sigma, np.float64), (self.H.shape[0],))
+        )
+        self._gains: dict[int, tuple[np.ndarray, float]] = {}
+        self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
+        self.white_excess = float(white_excess)
+        self._white_cov: np.ndarray | None = None  # white_sigma_covariance, once
+        self._estimators: dict[int, np.ndarray] = {}  # k -> _estimator(k)
+        self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
+        self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
+        self._history_t: np.ndarray = np.zeros(0, np.int64)
+        self._open: dict[str, Any] | None = None  # the alarm run under way
+        self._waiting: dict[int, dict[str, Any]] = {}  # sensor -> episode awaiting fragments
+        self._pos = 0
+        self._monitor_issued = False  # for_detector: the first builder gets the monitor
+        self._drop: tuple[VarianceDropMonitor, EpisodeBuilder] | None = None
+        if variance_drop and self.white_sigma is not None and calibration_samples and explain:
+            window = max(2, round(variance_drop_window_s * rate_hz))
+            self._drop = (
+                self._variance_monitor(window, variance_drop_alpha),
+                EpisodeBuilder(VARIANCE_DROP, *self._arguments, **self._options),
+            )
+
+    # measurements arrive with the input blocks, rows when the detector emits them
+    def feed(self, measurements: np.ndarray) -> None:
+        """Measurements (N, n) of the next N input samples, SI."""
+        self._pending.append(np.asarray(measurements, dtype=np.float64))
+
+    def _take(self, count: int) -> np.ndarray:
+        parts, need = [], count
+        while need > 0:
+            head = self._pending[0]
+            if head.shape[0] <= need:
+                parts.append(self._pending.pop(0))
+                need -= head.shape[0]
+            else:
+                parts.append(head[:need])
+                self._pending[0] = head[need:]
+                need = 0
+        return np.concatenate(parts) if parts else np.zeros((0, self.H.shape[0]))
+
+    def rows(self, t_ns: np.ndarray, decided_ns: np.ndarray, out: Any) -> list[Episode]:
+        """Status rows (a DetectionBlock ``out`` with sample and decision times, in order);
+        returns the episodes that closed within them (ordered by their decision time)."""
+        n = len(t_ns)
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        m = self._take(n)
+        alarm = np.asarray(out.alarm, dtype=bool)
+        isolated_rows = np.asarray(out.isolated)
+        amplitudes = out.amplitude_set() if hasattr(out, "amplitude_set") else None
+        idx = np.flatnonzero(alarm)
+        groups = np.split(idx, np.flatnonzero(np.diff(idx) - 1 > self.merge_gap) + 1)
+        closed: list[Episode] = []
+        self._pos = 0  # next row of this block not yet appended to the open states
+        for group in groups if idx.size else []:
+            first, last = int(group[0]), int(group[-1])
+            self._advance(m, t_ns, first, closed)
+            self._end_quiet_run(closed)
+            state = self._open
+            if state is None:
+                state = self._open = self._new_run(m, t_ns, int(decided_ns[first]), first)
+            self._advance(m, t_ns, last + 1, closed, alarmed=True)
+            state["end_ns"] = int(t_ns[last])
+            state["decided_end_ns"] = int(decided_ns[last])
+            self._add_alarms(state, group, isolated_rows[group], out, amplitudes)
+        self._advance(m, t_ns, n, closed)
+        self._end_quiet_run(closed)
+        tail = max(0, n - self.margin)
+        self._history = np.concatenate([self._history, m[tail:]])[-self.margin :]
+        self._history_t = np.concatenate([self._history_t, t_ns[tail:]])[-self.margin :]
+        if self._drop is not None:
+            monitor, builder = self._drop
+            builder._gains, builder._references = self._gains, self._references
+            builder.feed(m)
+            closed.extend(builder.rows(t_ns, t_ns, monitor.update(m)))
+        closed.sort(key=lambda e: e.decided_end_ns)
+        return closed
+
+    def _end_quiet_run(self, closed: list[Episode]) -> None:
+        """Close the open alarm run once more than ``merge_gap`` quiet rows follow it."""
+        state = self._open
+        if state is not None and state["quiet"] > self.merge_gap:
+            self._run_closed(state, closed)
+            self._open = None
+
+    def _new_run(
+        self, m: np.ndarray, t_ns: np.ndarray, decided_ns: int, first: int
+    ) -> dict[str, Any]:
+        """The state of an alarm run starting at row ``first`` of the block (decided at
+        ``decided_ns``), with the last ``margin`` rows before it."""
+        # only the last `margin` rows before the alarm are kept: copy no more
+        tail = max(0, first - self.margin)
+        history = np.concatenate([self._history, m[tail:first]])[-self.margin :]
+        history_t = np.concatenate([self._history_t, t_ns[tail:first]])[-self.margin :]
+        return {
+            "start_ns": int(t_ns[first]),
+            "decided_start_ns": decided_ns,
+            "window": [history],
+            "window_t": [history_t],
+            "kept": history.shape[0],
+            "alarm_index": history.shape[0],
+            "alarms": 0,
+            "isolated": [],
+            "amplitudes": [],  # (sensor, amplitude) of alarms with an estimate
+            "counts": np.zeros(len(self.sensor_ids), np.int64),
+            "fragments": 1,
+            "peak": -math.inf,
+            "quiet": 0,
+            # episodes this run may still join: they wait until it has ended
+            "may_join": set(self._waiting),
+        }
+
+    def _add_alarms(
+        self,
+        state: dict[str, Any],
+        group: np.ndarray,
+        group_isolated: np.ndarray,
+        out: Any,
+        amplitudes: np.ndarray | None,
+    ) -> None:
+        """Count the alarmed rows ``group`` of the block (isolating ``group_isolated``) in
+        the run ``state``: alarms, isolated sensors, amplitudes, peak statistic ratio."""
+        state["quiet"] = 0
+        state["alarms"] += int(group.size)
+        state["isolated"].append(group_isolated)
+        if amplitudes is not None:
+            found = np.nonzero(np.isfinite(amplitudes[group]))
+            state["amplitudes"].append((found[1], amplitudes[group][found]))
+        valid = group_isolated[(group_isolated >= 0) & (group_isolated < len(self.sensor_ids))]
+        state["counts"] += np.bincount(valid, minlength=len(self.sensor_ids))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.asarray(out.statistic)[group] / np.asarray(out.threshold)[group]
+        ratio = ratio[np.isfinite(ratio)]
+        if ratio.size:
+            state["peak"] = max(state["peak"], float(ratio.max()))
+
+    def _variance_monitor(self, window: int, alpha: float) -> VarianceDropMonitor:
+        """The :class:`VarianceDropMonitor` of this sensor type (white sigma, leave-one-out
+        gains of every sensor with a consensus)."""
+        assert self.white_sigma is not None and self.calibration_samples
+        n = self.H.shape[0]
+        A = np.zeros((n, n))
+        variance = np.full(n, np.inf)
+        for k in range(n):
+            try:
+                gain, _ = self._gain(k)
+            except ValueError:
+                continue
+            A[:, k] = -gain
+            A[k, k] += 1.0
+            variance[k] = self.white_sigma[k] ** 2 + float(np.sum((gain * self.white_sigma) ** 2))
+        return VarianceDropMonitor(
+            A,
+            variance,
+            window=window,
+            alpha=alpha,
+            calibration_dof=successive_difference_dof(self.calibration_samples),
+        )
+
+    def _advance(
+        self,
+        m: np.ndarray,
+        t_ns: np.ndarray,
+        stop: int,
+        closed: list[Episode],
+        alarmed: bool = False,
+    ) -> None:
+        """Append rows ``[pos, stop)`` of the block to the open run and to every episode
+        waiting for a fragment; count them as quiet (unless they are the open run's
+        alarms); explain the waiting episodes that have waited ``join_gap`` in vain."""
+        lo = self._pos
+        if stop <= lo:
+            return
+        self._pos = stop
+        if self._open is not None:
+            self._append(self._open, m, t_ns, lo, stop)
+            if not alarmed:
+                self._open["quiet"] += stop - lo
+        held = set() if self._open is None else self._open["may_join"]
+        for sensor, waiting in list(self._waiting.items()):
+            self._append(waiting, m, t_ns, lo, stop)
+            waiting["quiet"] += stop - lo
+            if sensor not in held:
+                self._expire(sensor, closed)
+
+    def _expire(self, sensor: int, closed: list[Episode]) -> None:
+        """Explain the episode waiting on ``sensor`` if it has waited ``join_gap`` in vain."""
+        waiting = self._waiting[sensor]
+        if waiting["quiet"] > self.join_gap:
+            del self._waiting[sensor]
+            closed.append(self._close(waiting))
+
+    def _run_closed(self, run: dict[str, Any], closed: list[Episode]) -> None:
+        """An alarm run has ended (``merge_gap`` quiet rows follow it). With an isolated
+        sensor it joins that sensor's waiting episode when one ended at most ``join_gap``
+        rows before it (the waiting episode already holds every row since), or starts to
+        wait itself; without one it is explained at once."""
+        if not run["counts"].any():
+            closed.append(self._close(run))
+            for other in list(self._waiting):  # no longer held by this run
+                self._expire(other, closed)
+            return
+        sensor = int(np.argmax(run["counts"]))
+        waiting = self._waiting.get(sensor)
+        if waiting is not None:
+            # the rows of the run, and its quiet rows since, are in the waiting window
+            waiting["end_ns"] = run["end_ns"]
+            waiting["decided_end_ns"] = run["decided_end_ns"]
+            waiting["quiet"] = run["quiet"]
+            waiting["alarms"] += run["alarms"]
+            waiting["isolated"].extend(run["isolated"])
+            waiting["amplitudes"].extend(run["amplitudes"])
+            waiting["counts"] += run["counts"]
+            waiting["fragments"] += run["fragments"]
+            waiting["peak"] = max(waiting["peak"], run["peak"])
+        else:
+            self._waiting[sensor] = run
+        for other in list(self._waiting):  # no longer held by this run
+            self._expire(other, closed)
+
+    def _append(
+        self, state: dict[str, Any], m: np.ndarray, t_ns: np.ndarray, lo: int, hi: int
+    ) -> None:
+        hi = min(hi, lo + max(0, self.max_window - state["kept"]))
+        if hi > lo:
+            state["window"].append(m[lo:hi])
+            state["window_t"].append(t_ns[lo:hi])
+            state["kept"] += hi - lo
+
+    def finish(self) -> list[Episode]:
+        """The episodes still open or waiting at the end of the log, explained."""
+        closed: list[Episode] = []
+        if self._open is not None:
+            self._run_closed(self._open, closed)
+            self._open = None
+        for waiting in self._waiting.values():
+            closed.append(self._close(waiting))
+        self._waiting.clear()
+        if self._drop is not None:
+            closed.extend(self._drop[1].finish())
+        closed.sort(key=lambda e: e.decided_end_ns)
+        return closed
+
+    def _close(self, state: dict[str, Any]) -> Episode:
+        window = np.concatenate(state["window"])
+        window_t = np.concatenate(state["window_t"])
+        # drop the quiet rows after the last alarm (they are not part of the fault)
+        last = int(np.searchsorted(window_t, state["end_ns"], side="right"))
+        window, window_t = window[:last], window_t[:last]
+        isolated = np.concatenate([np.zeros(0, np.int64), *state["isolated"]]).astype(np.int64)
+        names, runner_up, share = isolation_summary(isolated, self.sensor_ids)
+        episode = Episode(
+            detector=self.detector,
+            sensor_type=self.sensor_type,
+            start_ns=state["start_ns"],
+            end_ns=state["end_ns"],
+            decided_start_ns=state["decided_start_ns"],
+            decided_end_ns=state["decided_end_ns"],
+            alarms=state["alarms"],
+            sensors=names,
+            peak_ratio=state["peak"],
+            runner_up=runner_up,
+            runner_up_share=share,
+            fragments=state["fragments"],
+            amplitude=_sensor_amplitude(state["amplitudes"], self.sensor_ids, names),
+        )
+        if self.explain and window.shape[0] >= 4:
+            self._explain(episode, window, window_t, state["alarm_index"])
+        return episode
+
+    def _explain(
+        self, episode: Episode, window: np.ndarray, window_t: np.ndarray, alarm_index: int
+    ) -> None:
+        """Fit the fault models (:func:`~imufdi_cli.episodes.fits.fit_models`) on the
+        episode's isolated sensor (or, when none was isolated, the loudest) over ``window``
+        (L, n) with times ``window_t`` (L,) ns, its first alarm at ``alarm_index``; sets
+        ``episode.fits`` (left empty when the other sensors give no consensus)."""
+        names = episode.sensors
+        k = self.sensor_ids.index(names[0]) if names else self._loudest(window)
+        if not names:
+            episode.sensors = [self.sensor_ids[k]]
+            episode.isolated_by = "residual"
+        try:
+            gain, consensus_sigma = self._gain(k)
+        except ValueError:
+            return
+        prediction = window @ gain
+        residual = window[:, k] - prediction
+        offset_var = None
+        if self.calibration_mean is not None:
+            # the sensor's own bias against the consensus, as calibrated: a fault is what
+            # changed since (its estimate's variance widens the step interval)
+            residual = residual - (self.calibration_mean[k] - self.calibration_mean @ gain)
+            if self.calibration_samples:
+                offset_var = (self.sigma[k] ** 2 + consensus_sigma**2) / self.calibration_samples
+        t_s = (window_t - window_t[0]).astype(np.float64) * 1e-9
+        alarm_index = min(alarm_index, max(len(window_t) - 2, 0))
+        episode.fits = fit_models(
+            residual,
+            prediction,
+            t_s,
+            float(self.sigma[k]),
+            consensus_sigma,
+            # the onset may precede the first alarm (a drift is detected late) or follow
+            # it (a chance alarm just before the fault merges into its episode)
+            onset_range=(0, alarm_index + 1 + (len(window_t) - alarm_index) // 2),
+            confidence=self.confidence,
+            raw=window[:, k],
+            calibration_samples=self.calibration_samples,
+            offset_var=offset_var,
+            reference=self._reference(k, window),
+            white=self._white(k, gain),
+        )
+
+    def _white(self, k: int, gain: np.ndarray) -> WhiteNoise | None:
+        """(sigma_k, consensus sigma, dof, spread) of the white noise for
+        :func:`fit_models` (spread: :func:`white_sigma_spread`, left out when the
+        calibration's variances are not identifiable one by one)."""
+        if self.white_sigma is None or not self.calibration_samples:
+            return None
+        consensus = float(np.sqrt(np.sum((gain * self.white_sigma) ** 2)))
+        dof = successive_difference_dof(self.calibration_samples)
+        if self._white_cov is None:
+            self._white_cov = self.white_excess * white_sigma_covariance(
+                self.H, self.white_sigma, self.calibration_samples
+            )
+        if self._white_cov.size == 0:
+            return float(self.white_sigma[k]), consensus, dof
+        spread = white_sigma_spread(self._white_cov, gain, k)
+        return float(self.white_sigma[k]), consensus, dof, spread
+
+    def _reference(self, k: int, window: np.ndarray) -> Reference | None:
+        """The other sensors' residuals over ``window`` (:class:`Reference`), each against
+        the consensus of the sensors other than itself and ``k``."""
+        if k not in self._references:
+            self._references[k] = self._reference_matrix(k)
+        cached = self._references[k]
+        if cached is None:
+            return None
+        A, offset, variance, offset_var = cached
+        # the sensed vector relative to its calibration mean: the calibrated offsets taken
+        # out of the residuals hold the motion errors of the calibration window too
+        motion = window @ self._estimator(k)
+        if self.calibration_mean is not None:
+            motion = motion - self.calibration_mean @ self._estimator(k)
+        return Reference(window @ A - offset, variance, offset_var, motion)
+
+    def _reference_matrix(
+        self, k: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """:func:`~imufdi_cli.episodes.reference.leave_two_out` of sensor k with this
+        builder's calibration."""
+        return leave_two_out(self.H, self.sigma, k, self.calibration_mean, self.calibration_samples)
+
+    def _estimator(self, k: int) -> np.ndarray:
+        """:func:`~imufdi_cli.episodes.reference.estimator_without` sensor k (cached)."""
+        found = self._estimators.get(k)
+        if found is None:
+            found = self._estimators[k] = estimator_without(self.H, self.sigma, k)
+        return found
+
+    def _gain(self, k: int) -> tuple[np.ndarray, float]:
+        """:func:`~imufdi_cli.episodes.reference.downdated_gain` of sensor k (cached)."""
+        found = self._gains.get(k)
+        if found is None:
+            found = self._gains[k] = downdated_gain(self.H, self.sigma, k)
+        return found
+
+    def for_detector(self, detector: str) -> EpisodeBuilder:
+        """A fresh builder with the same calibration, for another detector (it shares the
+        consensus gains, which depend only on the calibration)."""
+        # the variance-drop monitor is a detection of its own: one builder runs it
+        monitor = not self._monitor_issued
+        self._monitor_issued = True
+        builder = EpisodeBuilder(detector, *self._arguments, **self._options, variance_drop=monitor)
+        builder._gains = self._gains
+        builder._references = self._references
+        return builder
+
+    def _loudest(self, window: np.ndarray) -> int:
+        """For detectors that do not isolate: the sensor with the largest normalised
+        leave-one-out residual energy over the episode."""
+        energies = []
+        for k in range(self.H.shape[0]):
+            try:
+                gain, c = self._gain(k)
+            except ValueError:
+                energies.append(-math.inf)
+                continue
+            r = window[:, k] - window @ gain
+            energies.append(float(np.sum(r**2)) / (self.sigma[k] ** 2 + c**2))
+        return int(np.argmax(energies))
+
+
+def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, EpisodeBuilder]:
+    """One builder per sensor type of ``array`` present in the calibration block (an
+    :class:`~imufdi_cli.log.ImuBlock`), with per-sensor sigma from its parity residuals
+    (:func:`~imufdi_cli.detectors.parity.residual_sigma`). Types with fewer than 4 sensors
+    (no leave-one-out consensus) get episodes without explanation. Use
+    :meth:`EpisodeBuilder.for_detector` to get each detector its own builder."""
+    from imufdi_cli.detectors.parity import residual_sigma
+    from imufdi_cli.errors import ArrayConfigError, CalibrationError
+
+    builders = {}
+    for sensor_type in array.sensor_types():
+        triads = calibration.get(sensor_type)
+        if triads is None:
+            continue
+        H = array.measurement_matrix(sensor_type)
+        try:
+            check_measurement_matrix(H)
+        except ArrayConfigError:
+            continue  # the detectors say what is wrong with such a geometry; no episodes
+        explain = H.shape[0] >= 4
+        sigma = np.ones(H.shape[0])
+        n_cal: int | None = None
+        mean: np.ndarray | None = None
+        white: np.ndarray | None = None
+        excess = 1.0
+        if explain:
+            measurements = array.select(triads, sensor_type)
+            finite = np.all(np.isfinite(measurements), axis=1)
+            n_cal = int(np.count_nonzero(finite))
+            mean = measurements[finite].mean(axis=0) if n_cal else None
+            try:
+                sigma = residual_sigma(H, measurements[finite])
+                white = white_sigma(H, measurements[finite])
+                excess = white_sigma_excess(H, measurements[finite])
+            except CalibrationError:
+                explain = False
+            explain = explain and bool(np.all(np.isfinite(sigma)) and np.all(sigma > 0))
+        builders[sensor_type] = EpisodeBuilder(
+            "",
+            sensor_type,
+            H,
+            array.sensor_ids(sensor_type),
+            sigma,
+            array.rate_hz,
+            explain=explain,
+            calibration_samples=n_cal if explain else None,
+            calibration_mean=mean if explain else None,
+            white_sigma=white if explain else None,
+            white_excess=excess,
+            **options,
+        )
+    return builders

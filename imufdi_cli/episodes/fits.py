@@ -1,0 +1,372 @@
+"""Fitting the fault models to an episode's residual, with unknown onset and end.
+
+Over an analysis window (the episode plus a margin before it) the fault models of
+``imufdi inject`` are fitted to the isolated sensor's residual ``r``
+(:func:`~imufdi_cli.episodes.reference.leave_one_out`) with an unknown onset ``tau``
+(profile likelihood over every sample of the margin and the episode's first part) and,
+when the detector's alarms outlast the fault, an end (:func:`_fault_end`):
+
+======  ==========================================  ==================================
+model   r(t) for t >= tau (before: N(0, sigma_r^2))  size (90 % interval)
+======  ==========================================  ==================================
+step    a + e                                        amp: t interval (:func:`_linear_fit`)
+drift   b (t - t_f) + e, t_f between two samples     rate: t interval of the LS slope
+noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: successive differences, F
+scale   beta o(t) + e, o the consensus prediction    factor: 1 + beta_hat, t interval
+spikes  e + s A on a fraction p of samples           amp A (t interval), rate (Poisson)
+stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
+======  ==========================================  ==================================
+
+The models are ranked by BIC (Schwarz 1978): the Gaussian log-likelihood of the whole
+window minus half the number of free parameters times ln n. ``none`` (no fault: the
+residual is the calibrated noise throughout) is ranked with them, so an episode that no
+fault model explains better than chance is called a false alarm, with its evidence.
+``stuck`` is not a Gaussian model (a frozen output has no noise at all): it is declared
+when the raw output repeats exactly on at least ``stuck_share`` of the samples after the
+onset (a healthy sensor always carries its own noise, so long exact repeats do not
+happen), and then ranks first.
+
+The sizes and intervals of the linear models are :func:`_linear_fit`'s (in
+:mod:`~imufdi_cli.episodes.reference`), those of noise, spikes and stuck
+:mod:`~imufdi_cli.episodes.model_fits`'.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from imufdi_cli.episodes.fault_fit import MODELS, FaultFit, WhiteNoise
+from imufdi_cli.episodes.model_fits import _noise_fit, _spike_fit, _stuck_fit, _white_noise_fit
+from imufdi_cli.episodes.numerics import _gaussian_nll, _median, _suffix
+from imufdi_cli.episodes.reference import Reference, _linear_fit
+
+
+def fit_models(
+    residual: np.ndarray,
+    prediction: np.ndarray,
+    t_s: np.ndarray,
+    sigma_k: float,
+    consensus_sigma: float,
+    *,
+    onset_range: tuple[int, int],
+    confidence: float = 0.9,
+    stuck_share: float = 0.9,
+    raw: np.ndarray | None = None,
+    calibration_samples: int | None = None,
+    offset_var: float | None = None,
+    reference: Reference | None = None,
+    white: WhiteNoise | None = None,
+) -> list[FaultFit]:
+    """Fit every fault model to one sensor's residual over an analysis window.
+
+    Parameters
+    ----------
+    residual, prediction : ndarray, shape (L,)
+        From :func:`leave_one_out`, over the analysis window (SI units).
+    t_s : ndarray, shape (L,)
+        Sample times, seconds.
+    sigma_k : float
+        Calibrated white-noise standard deviation of sensor k (SI).
+    consensus_sigma : float
+        Standard deviation of the consensus prediction error (SI).
+    onset_range : (int, int)
+        Onset candidates ``[lo, hi)`` (indices into the window); the fault is assumed to
+        last from its onset to the end of the window.
+    confidence : float
+        Level of the size intervals.
+    stuck_share : float
+        Share of exactly repeated raw outputs after the onset that means "stuck".
+    raw : ndarray, shape (L,), optional
+        The sensor's own output (for "stuck": exact repeats); default ``residual +
+        prediction``, which rounding may keep from repeating exactly.
+    calibration_samples : int, optional
+        Samples ``sigma_k`` was estimated from; the noise factor's interval then accounts
+        for that estimate (F instead of chi-square).
+    offset_var : float, optional
+        Variance of the bias taken out of the residual (its calibration estimate); it is
+        propagated into the step, drift and scale intervals (:func:`_linear_fit`).
+    reference : Reference, optional
+        The other sensors' residuals over the same window: the same estimators applied to
+        them check the noise model, and widen the step, drift and scale intervals when the
+        healthy sensors spread significantly more than it predicts.
+    white : (float, float, float) or (float, float, float, (float, float, float)), optional
+        ``(sigma_k, consensus_sigma, dof[, spread])``: the white-noise part of the
+        calibrated noise (from successive differences, :func:`white_sigma`) and the
+        degrees of freedom of that estimate; ``spread`` (:func:`white_sigma_spread`), when
+        given, replaces ``dof`` by the calibration's actual degrees of freedom for this
+        sensor's factor (:func:`_calibration_dof`). The noise factor is then sized from
+        the successive differences of the residual (:func:`_noise_fit`), which slow
+        motion-dependent errors (scale and misalignment under motion) and a shift of the
+        consensus do not enter.
+
+    Returns
+    -------
+    list of FaultFit
+        Best first (stuck when detected, then by BIC).
+    """
+    r = np.asarray(residual, dtype=np.float64)
+    o = np.asarray(prediction, dtype=np.float64)
+    t = np.asarray(t_s, dtype=np.float64)
+    options: dict[str, Any] = {
+        "sigma_k": sigma_k,
+        "consensus_sigma": consensus_sigma,
+        "confidence": confidence,
+        "stuck_share": stuck_share,
+        "calibration_samples": calibration_samples,
+        "offset_var": offset_var,
+        "white": white,
+    }
+    raw_arr = r + o if raw is None else np.asarray(raw, dtype=np.float64)
+    var0 = sigma_k**2 + consensus_sigma**2
+
+    def fit_until(end: int, ref: Reference | None) -> list[FaultFit]:
+        """The window's fits on its samples up to ``end`` (the fault's fitted end)."""
+        return _fit_window(
+            r[:end],
+            o[:end],
+            t[:end],
+            raw_arr[:end],
+            (onset_range[0], min(onset_range[1], end - 2)),
+            ref,
+            **options,
+        )
+
+    fits = _fit_window(r, o, t, raw_arr, onset_range, reference, **options)
+    end = _fault_end(fits, r, var0)
+    if end is None:
+        return fits
+    for _ in range(2):  # the end found by the best model on the whole window, refined once
+        refined = _fault_end(fit_until(end, None), r[:end], var0)
+        if refined is None or refined == end:
+            break
+        end = refined
+    # the fault ended before the window did (the detector's alarms outlast it): refit on
+    # the samples up to its end; the healthy tail adds the same to every model's -2 log L,
+    # and the end is one more parameter of each fault model
+    tail = float(2 * _gaussian_nll(float(np.sum(r[end:] ** 2)), float(r.shape[0] - end), var0))
+    ln_n = math.log(r.shape[0])
+    reference_cut = (
+        None
+        if reference is None
+        else replace(
+            reference,
+            residuals=reference.residuals[:end],
+            motion=None if reference.motion is None else reference.motion[:end],
+        )
+    )
+    cut = fit_until(end, reference_cut)
+    if not cut:
+        return fits
+    out = [
+        replace(f, bic=f.bic + tail + ln_n, end_index=end)
+        if f.model != "none"
+        else replace(f, bic=f.bic + tail)
+        for f in cut
+    ]
+    out.sort(key=lambda f: (f.bic, MODELS.index(f.model)))  # stuck (-inf) stays first
+    return out
+
+
+def _fault_end(fits: list[FaultFit], r: np.ndarray, var0: float) -> int | None:
+    """Where the fault ends, when it ends clearly before the window does: by the best
+    fitted model with a fitted curve (step, drift, noise, scale), the end maximises its
+    log-likelihood ratio against the calibrated noise summed from the onset to the end
+    (the samples after it are better explained as healthy). None when the best model is a
+    frozen output (stuck: the repeats say where it ends), no model has a curve, or the end
+    does not earn its BIC penalty."""
+    if fits and fits[0].model == "stuck":
+        return None
+    best = next((f for f in fits if f.curve is not None), None)
+    if best is None or best.curve is None or best.onset_index < 0:
+        return None
+    mean, variance = best.curve
+    segment = r[best.onset_index : best.onset_index + mean.shape[0]]
+    llr = -0.5 * ((segment - mean) ** 2 / variance + math.log(variance)) + 0.5 * (
+        segment**2 / var0 + math.log(var0)
+    )
+    cumulative = np.cumsum(llr)
+    j = int(np.argmax(cumulative))
+    end = best.onset_index + j + 1
+    # the end is one more parameter: it must earn its BIC penalty (ln n) in -2 log L
+    gain = 2 * float(cumulative[j] - cumulative[-1])
+    if end - best.onset_index < 4 or gain <= math.log(r.shape[0]):
+        return None
+    return end
+
+
+def _fit_window(
+    r: np.ndarray,
+    o: np.ndarray,
+    t: np.ndarray,
+    raw: np.ndarray,
+    onset_range: tuple[int, int],
+    reference: Reference | None,
+    *,
+    sigma_k: float,
+    consensus_sigma: float,
+    confidence: float,
+    stuck_share: float,
+    calibration_samples: int | None,
+    offset_var: float | None,
+    white: WhiteNoise | None,
+) -> list[FaultFit]:
+    """:func:`fit_models` with every fault lasting to the window's end."""
+    length = r.shape[0]
+    lo, hi = max(0, int(onset_range[0])), min(length - 2, int(onset_range[1]))
+    if length < 4 or hi <= lo:
+        return []
+    var0 = sigma_k**2 + consensus_sigma**2
+    sigma_r = math.sqrt(var0)
+    taus = np.arange(lo, hi)
+    n_after = (length - taus).astype(np.float64)
+    n_total = float(length)
+    ln_n = math.log(n_total)
+
+    # prefix: healthy samples before tau; suffix sums after tau
+    sq = r**2
+    healthy_before = np.concatenate(([0.0], np.cumsum(sq)))[taus]
+    nll_before = _gaussian_nll(healthy_before, taus.astype(np.float64), var0)
+    s_r, s_rr = _suffix(r)[taus], _suffix(sq)[taus]
+    s_t, s_tt, s_tr = _suffix(t)[taus], _suffix(t * t)[taus], _suffix(t * r)[taus]
+    s_oo, s_or = _suffix(o * o)[taus], _suffix(o * r)[taus]
+    fits: list[FaultFit] = []
+
+    def best(nll_after: np.ndarray, k_params: int) -> tuple[int, float]:
+        total = nll_before + nll_after
+        j = int(np.argmin(total))
+        return j, float(2 * total[j] + (k_params + 1) * ln_n)  # +1: the onset
+
+    linear: dict[str, Any] = {
+        "var0": var0,
+        "offset_var": offset_var or 0.0,
+        "confidence": confidence,
+        "reference": reference,
+        "window": r,
+    }
+
+    # step: r = a + e
+    a = s_r / n_after
+    j, bic = best(_gaussian_nll(s_rr - n_after * a**2, n_after, var0), 1)
+    onset = lo + j
+    fits.append(_linear_fit("step", r[onset:], np.ones((length - onset, 1)), onset, bic, **linear))
+
+    # drift: r = b (t - t_f) + e from an onset t_f between samples tau - 1 and tau, i.e.
+    # r = b (u + lam) with u = t - t_tau and lam = t_tau - t_f in [0, dt]: the offset
+    # lam is fitted per tau (interior least squares, else the better bound)
+    drift = _drift_search(t, taus, n_after, s_r, s_rr, s_t, s_tt, s_tr, nll_before, var0, ln_n)
+    if drift is not None:
+        j, lam, bic = drift
+        onset = lo + j
+        u = t[onset:] - t[onset]
+        X = np.stack([u, np.ones_like(u)], axis=1) if lam is None else (u + lam)[:, None]
+        fits.append(_linear_fit("drift", r[onset:], X, onset, bic, **linear))
+
+    # noise: r ~ N(0, f^2 sigma_k^2 + sigma_c^2); variance fitted (bounded below by var0).
+    # The class is decided with a zero mean (a noise fault has none; a free mean would nest
+    # the step model). The factor is sized from the spread about the mean: a fault on a
+    # sensor of the consensus (another detector's, or one too small to alarm) shifts r,
+    # and that shift is not noise.
+    var_hat = np.maximum(s_rr / n_after, var0)
+    j, bic = best(_gaussian_nll(s_rr, n_after, var_hat), 1)
+    if white is None:
+        fits.append(
+            _noise_fit(
+                float(max(s_rr[j] - n_after[j] * a[j] ** 2, 0.0)),
+                int(n_after[j]),
+                float(a[j]),
+                sigma_k,
+                consensus_sigma,
+                confidence,
+                lo + j,
+                bic,
+                calibration_samples,
+                ranking_var=float(var_hat[j]),
+            )
+        )
+    else:
+        fits.append(
+            _white_noise_fit(
+                r[lo + j :], float(a[j]), white, confidence, lo + j, bic, var0, float(var_hat[j])
+            )
+        )
+
+    # scale: r = beta o + e
+    with np.errstate(divide="ignore", invalid="ignore"):
+        beta = np.where(s_oo > 0, s_or / s_oo, 0.0)
+    j, bic = best(_gaussian_nll(s_rr - beta * s_or, n_after, var0), 1)
+    onset = lo + j
+    if s_oo[j] > 0:
+        fits.append(
+            _linear_fit("scale", r[onset:], o[onset:, None], onset, bic, shift=1.0, **linear)
+        )
+
+    # none: the residual is the sensor's calibrated noise over the whole window (a false
+    # alarm of chance: no fault model earns its extra parameters)
+    nll_healthy = float(_gaussian_nll(np.sum(sq), n_total, var0))
+    fits.append(FaultFit("none", math.nan, math.nan, math.nan, -1, 2 * nll_healthy))
+
+    spikes = _spike_fit(r, t, sigma_r, taus, nll_before, ln_n, confidence)
+    if spikes is not None:
+        fits.append(spikes)
+    fits.sort(key=lambda f: (f.bic, MODELS.index(f.model)))
+
+    stuck = _stuck_fit(raw, lo, hi, stuck_share)
+    if stuck is not None:
+        fits.insert(0, stuck)
+    return fits
+
+
+def _drift_search(
+    t: np.ndarray,
+    taus: np.ndarray,
+    n: np.ndarray,
+    s_r: np.ndarray,
+    s_rr: np.ndarray,
+    s_t: np.ndarray,
+    s_tt: np.ndarray,
+    s_tr: np.ndarray,
+    nll_before: np.ndarray,
+    var0: float,
+    ln_n: float,
+) -> tuple[int, float | None, float] | None:
+    """Onset of a ramp starting between two samples, by profile likelihood: returns the
+    onset (index into ``taus``), the sub-sample offset ``lam`` (None: free, fitted as an
+    intercept) and the BIC; None when no onset fits."""
+    dt = _median(np.diff(t)) if t.shape[0] > 1 else 0.0
+    t0 = t[taus]
+    s_u = s_t - n * t0
+    s_uu = s_tt - 2 * t0 * s_t + n * t0**2
+    s_ur = s_tr - t0 * s_r
+    det = n * s_uu - s_u**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b_free = (n * s_ur - s_u * s_r) / det
+        lam_free = (s_r - b_free * s_u) / n / b_free
+    best: tuple[float, int, float | None] | None = None
+    for lam in (None, 0.0, dt):
+        if lam is None:
+            b = b_free
+            sse = s_rr - (s_r - b * s_u) / n * s_r - b * s_ur
+            # a free offset is a sub-sample onset; at the window's first sample it may also
+            # be a ramp already in progress (an episode that starts mid-fault, after an
+            # earlier alarm episode of the same fault)
+            in_progress = (taus == 0) & (det > 0)
+            valid = ((det > 0) & (lam_free >= 0) & (lam_free <= dt)) | in_progress
+        else:
+            s_vv = s_uu + 2 * lam * s_u + n * lam**2
+            s_vr = s_ur + lam * s_r
+            with np.errstate(divide="ignore", invalid="ignore"):
+                b = s_vr / s_vv
+            sse = s_rr - b * s_vr
+            valid = s_vv > 0
+        total = np.where(valid, nll_before + _gaussian_nll(sse, n, var0), np.inf)
+        j = int(np.argmin(total))
+        if np.isfinite(total[j]) and (best is None or total[j] < best[0]):
+            best = (float(total[j]), j, lam)
+    if best is None:
+        return None
+    total_nll, j, lam = best
+    return j, lam, 2 * total_nll + 3 * ln_n  # rate, offset, onset

@@ -1,0 +1,75 @@
+"""Small numerical helpers of the episode fits: distribution quantiles, Gaussian
+log-likelihoods, suffix sums, the median, and JSON-ready floats."""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any
+
+import numpy as np
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by None, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
+# Quantiles through scipy.special's inverse distribution functions (ufuncs: microseconds a
+# call, where scipy.stats' ppf checks its arguments for milliseconds, and every episode
+# length is a new degree of freedom); cached for the lengths that repeat.
+
+
+@functools.lru_cache(maxsize=4096)
+def _chi2_quantile(p: float, dof: int) -> float:
+    """Chi-square quantile: ``chdtri`` inverts the upper tail."""
+    from scipy.special import chdtri
+
+    return float(chdtri(dof, 1.0 - p))
+
+
+@functools.lru_cache(maxsize=4096)
+def _f_quantile(p: float, dof1: float, dof2: float) -> float:
+    """F(dof1, dof2) quantile."""
+    from scipy.special import fdtri
+
+    return float(fdtri(dof1, dof2, p))
+
+
+@functools.lru_cache(maxsize=4096)
+def _t_quantile(p: float, dof: int) -> float:
+    """Student t quantile."""
+    from scipy.special import stdtrit
+
+    return float(stdtrit(dof, p))
+
+
+def _gaussian_nll(ss: Any, n: Any, var: Any) -> Any:
+    """-log L of n samples with sum of squares ss about their model, variance var."""
+    return 0.5 * (ss / var + n * np.log(2 * math.pi * var))
+
+
+def _suffix(values: np.ndarray) -> np.ndarray:
+    """S[j] = sum(values[j:]), shape (L + 1,)."""
+    out = np.zeros(values.shape[0] + 1)
+    out[:-1] = np.cumsum(values[::-1])[::-1]
+    return out
+
+
+def _median(values: np.ndarray) -> float:
+    """``float(np.median(values))`` of a 1-D array, sorted directly (the middle value, or
+    the mean of the middle two as numpy takes it: their sum halved); numpy's own for
+    non-finite values."""
+    n = values.shape[0]
+    if n == 0 or not math.isfinite(float(np.add.reduce(values))):
+        return float(np.median(values))
+    ordered = np.sort(values)
+    if n % 2:
+        return float(ordered[n // 2])
+    return (float(ordered[n // 2 - 1]) + float(ordered[n // 2])) / 2

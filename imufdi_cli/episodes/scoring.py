@@ -1,0 +1,139 @@
+"""Scoring explained episodes against injected truth: which fault each episode matches
+(:func:`match_episodes`), and the class accuracy and interval coverage per true model
+(:class:`EpisodeTally`, :func:`score_episodes`)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+#: the fault parameter each model's size estimates (faults.py keys, SI)
+TRUTH_SIZE_KEYS = {
+    "step": "amp",
+    "drift": "rate",
+    "noise": "factor",
+    "scale": "factor",
+    "spikes": "amp",
+}
+
+
+def truth_size(fault: dict[str, Any]) -> float | None:
+    """The size an explanation of ``fault`` (a :meth:`Fault.to_dict`) should find, or None
+    (stuck, or a noise fault given by sigma without a factor)."""
+    key = TRUTH_SIZE_KEYS.get(str(fault.get("model")))
+    value = None if key is None else fault.get("params", {}).get(key)
+    return None if value is None else float(value)
+
+
+def match_episodes(
+    episodes: Sequence[dict[str, Any]], faults: Sequence[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Match each episode (:meth:`Episode.to_dict`) to the injected fault it explains.
+
+    ``faults`` hold ``id``, ``model``, ``sensors``, ``params`` and absolute ``start_ns`` /
+    ``end_ns`` (None: to the end of the log). An episode matches a fault when its first
+    isolated sensor is one of the fault's sensors and its alarms overlap the fault's
+    window; it is ``wrong_sensor`` when it overlaps a fault on another sensor of its type,
+    and ``false`` otherwise. Returns one record per episode: ``{"match": "fault" |
+    "wrong_sensor" | "false", "fault_id", "true_class", "class_right", "true_size",
+    "covered"}``.
+    """
+    out = []
+    for episode in episodes:
+        sensors = episode.get("sensors") or []
+        first = sensors[0] if sensors else None
+        kind, hit = "false", None
+        for fault in faults:
+            end = fault.get("end_ns")
+            overlaps = episode["end_ns"] >= fault["start_ns"] and (
+                end is None or episode["start_ns"] < end
+            )
+            same_type = any(
+                s.split(".")[1] == episode["sensor_type"] for s in fault.get("sensors", [])
+            )
+            if not overlaps or not same_type:
+                continue
+            if first in fault["sensors"]:
+                kind, hit = "fault", fault
+                break
+            kind = "wrong_sensor"
+        record: dict[str, Any] = {"match": kind, "fault_id": None if hit is None else hit["id"]}
+        if hit is not None:
+            fits = episode.get("fits") or []
+            best = fits[0] if fits else {}
+            size = truth_size(hit)
+            record["true_class"] = hit["model"]
+            record["class_right"] = best.get("model") == hit["model"]
+            record["true_size"] = size
+            low, high = best.get("low"), best.get("high")
+            record["covered"] = (
+                None
+                if size is None or not record["class_right"] or low is None or high is None
+                else bool(low <= size <= high)
+            )
+        out.append(record)
+    return out
+
+
+class EpisodeTally:
+    """Streaming figures of one detector and sensor type's episodes (bounded memory)."""
+
+    def __init__(self) -> None:
+        self.episodes = 0
+        self.matched = 0
+        self.wrong_sensor = 0
+        self.false = 0
+        self.calibration = 0  # in the calibration window: in sample, not scored
+        self.per_model: dict[str, dict[str, int]] = {}
+
+    def add(self, match: dict[str, Any]) -> None:
+        """Count one episode with its :func:`match_episodes` record."""
+        self.episodes += 1
+        if match["match"] == "false":
+            self.false += 1
+        elif match["match"] == "wrong_sensor":
+            self.wrong_sensor += 1
+        else:
+            self.matched += 1
+            row = self.per_model.setdefault(
+                match["true_class"], {"episodes": 0, "class_right": 0, "sized": 0, "covered": 0}
+            )
+            row["episodes"] += 1
+            row["class_right"] += bool(match["class_right"])
+            if match["covered"] is not None:
+                row["sized"] += 1
+                row["covered"] += bool(match["covered"])
+
+    def result(self, hours: float | None) -> dict[str, Any]:
+        """Episodes, false episodes (per hour of ``hours`` of fault-free log), and for
+        matched ones the share classified right and the share of size intervals covering
+        the truth, overall and per true fault model (None when undefined)."""
+        per_model = {}
+        for model, row in sorted(self.per_model.items()):
+            per_model[model] = {
+                **row,
+                "class_accuracy": row["class_right"] / row["episodes"],
+                "coverage": row["covered"] / row["sized"] if row["sized"] else None,
+            }
+        right = sum(r["class_right"] for r in self.per_model.values())
+        covered = sum(r["covered"] for r in self.per_model.values())
+        sized = sum(r["sized"] for r in self.per_model.values())
+        return {
+            "episodes": self.episodes,
+            "matched": self.matched,
+            "wrong_sensor": self.wrong_sensor,
+            "false": self.false,
+            "in_calibration": self.calibration,
+            "false_episodes_per_hour": self.false / hours if hours else None,
+            "class_accuracy": right / self.matched if self.matched else None,
+            "coverage": covered / sized if sized else None,
+            "per_model": per_model,
+        }
+
+
+def score_episodes(matches: Sequence[dict[str, Any]], hours: float | None) -> dict[str, Any]:
+    """:class:`EpisodeTally` figures of the :func:`match_episodes` records of a list."""
+    tally = EpisodeTally()
+    for match in matches:
+        tally.add(match)
+    return tally.result(hours)

@@ -1,0 +1,128 @@
+"""A detection of its own: the variance drop of a frozen output.
+
+A frozen output on a motion the sensor tracks exactly (a constant-rate turntable) loses
+only its noise, which no mean-shift detector sees: :class:`VarianceDropMonitor`, a
+one-sided successive-difference variance test, raises episodes of its own under the name
+``variance-drop`` (one builder per sensor type runs it,
+:class:`~imufdi_cli.episodes.builder.EpisodeBuilder`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from imufdi_cli.episodes.numerics import _f_quantile
+from imufdi_cli.episodes.white_noise import successive_difference_dof
+
+#: name under which variance-drop episodes are written (``detector`` field)
+VARIANCE_DROP = "variance-drop"
+
+
+@dataclass
+class _Rows:
+    """Status rows in the shape :meth:`EpisodeBuilder.rows` reads (a DetectionBlock's
+    alarm, isolated, statistic and threshold)."""
+
+    alarm: np.ndarray
+    isolated: np.ndarray
+    statistic: np.ndarray
+    threshold: np.ndarray
+
+
+class VarianceDropMonitor:
+    """One-sided test that a sensor's white noise has dropped: a frozen (stuck) output.
+
+    A frozen output on a motion the sensor would have tracked exactly (a constant-rate
+    turntable) equals the truth plus its bias; only its noise is gone, so the mean-shift
+    tests of the detectors cannot see it. Against the consensus of the others its
+    residual ``r_k`` (:func:`leave_one_out`) then carries only the consensus noise. Over
+    the last ``W`` successive differences, ``q_k = sum (r_{k,i+1} - r_{k,i})^2 / (2 W)``
+    estimates the white variance of ``r_k`` (slow motion errors do not enter it) and is
+    compared with its calibrated value ``v_k = sigma_k^2 + sigma_c^2`` (white parts,
+    :func:`white_sigma`). Both are successive-difference estimates, so ``q_k / v_k`` is
+    about F(nu_W, nu_cal) (:func:`successive_difference_dof`); the test alarms when the
+    smallest ratio over the sensors falls below the F quantile at ``alpha``, and isolates
+    that sensor. The test is one-sided: more noise, outliers and unmodelled motion only
+    raise ``q_k``.
+
+    The status row of a sample is decided at that sample (no look-ahead); ``statistic``
+    is ``-ln(min ratio)`` and ``threshold`` ``-ln(quantile)`` (an alarm when statistic >
+    threshold). Memory: the last W differences per sensor.
+
+    Parameters
+    ----------
+    residual_matrix : ndarray, shape (n, n)
+        ``measurements @ residual_matrix`` are the leave-one-out residuals of all sensors
+        (column k: ``e_k - g_k``); sensors without a consensus have a zero column.
+    white_variance : ndarray, shape (n,)
+        Calibrated white variance of each residual, SI^2 (inf: never tested).
+    window : int
+        W, successive differences per test.
+    alpha : float
+        Probability that one healthy sensor's window falls below the threshold.
+    calibration_dof : float
+        Degrees of freedom of the white variance's calibration estimate.
+    """
+
+    def __init__(
+        self,
+        residual_matrix: np.ndarray,
+        white_variance: np.ndarray,
+        *,
+        window: int,
+        alpha: float,
+        calibration_dof: float,
+    ) -> None:
+        self.A = np.asarray(residual_matrix, dtype=np.float64)
+        self.variance = np.asarray(white_variance, dtype=np.float64)
+        self.window = int(window)
+        self.quantile = _f_quantile(
+            alpha, successive_difference_dof(self.window + 1), calibration_dof
+        )
+        self._last: np.ndarray | None = None  # last residual row
+        self._tail = np.zeros((0, self.A.shape[1]))  # last W half squared differences
+
+    def update(self, measurements: np.ndarray) -> _Rows:
+        """Status rows of the next N samples (N, n) in SI units."""
+        r = np.asarray(measurements, dtype=np.float64) @ self.A
+        n = r.shape[0]
+        previous = r[:1] if self._last is None else self._last[None, :]
+        half_sq = 0.5 * np.diff(np.concatenate([previous, r]), axis=0) ** 2
+        if self._last is None and n:
+            half_sq = half_sq[1:]  # the first sample has no difference
+        # an invalid sample gives no evidence either way: its difference counts as expected
+        half_sq = np.where(np.isfinite(half_sq), half_sq, self.variance)
+        if n:
+            self._last = r[-1]
+        held, fresh = self._tail.shape[0], half_sq.shape[0]
+        joined = np.concatenate([self._tail, half_sq])
+        cumulative = np.concatenate([np.zeros((1, joined.shape[1])), np.cumsum(joined, axis=0)])
+        stop = np.arange(held + 1, held + fresh + 1)  # window of the j-th new difference
+        ready = stop >= self.window
+        if held + 1 >= self.window:  # every window complete: the same rows as slices
+            sums = (
+                cumulative[held + 1 : held + fresh + 1]
+                - cumulative[held + 1 - self.window : held + fresh + 1 - self.window]
+            )
+        else:
+            sums = cumulative[stop] - cumulative[np.maximum(stop - self.window, 0)]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = sums / self.window / self.variance
+        ratio = np.where(np.isfinite(ratio), ratio, np.inf)
+        worst = np.argmin(ratio, axis=1) if ratio.shape[0] else np.zeros(0, np.int64)
+        lowest = ratio[np.arange(ratio.shape[0]), worst]
+        alarm = ready & (lowest < self.quantile)
+        statistic = np.where(ready, -np.log(np.maximum(lowest, 1e-300)), -np.inf)
+        self._tail = joined[-self.window :]
+        pad = n - half_sq.shape[0]  # the very first sample of the log: no test yet
+        return _Rows(
+            alarm=np.concatenate([np.zeros(pad, bool), alarm]),
+            isolated=np.concatenate([np.full(pad, -1), np.where(alarm, worst, -1)]).astype(
+                np.int64
+            ),
+            statistic=np.concatenate([np.full(pad, -np.inf), statistic]),
+            threshold=np.full(n, -math.log(self.quantile)),
+        )

@@ -1,0 +1,165 @@
+"""The isolated sensor against the others, and the least-squares sizes' intervals
+(:mod:`imufdi_cli.episodes.reference`): the calibrated bias, autocorrelated noise, the
+healthy sensors' dispersion and the motion-dependent errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from imufdi_cli.episodes import Reference, fit_models, leave_one_out
+from imufdi_cli.episodes.reference import _autocorrelation_factor
+from tests.episodes.helpers import RATE, SIGMA, coverage_band, trace
+
+
+def test_leave_one_out_on_a_co_aligned_array_is_the_mean_of_the_others() -> None:
+    n = 6
+    H = np.tile(np.eye(3), (2, 1))
+    rng = np.random.default_rng(0)
+    m = rng.normal(size=(50, n))
+    residual, prediction, consensus = leave_one_out(H, m, 0.2, 1)
+    # sensor 1 is the y axis of the first triad; the only other y sensor is sensor 4
+    assert_allclose(prediction, m[:, 4])
+    assert_allclose(residual, m[:, 1] - m[:, 4])
+    assert consensus == pytest.approx(0.2)
+    H16 = np.tile(np.eye(3), (16, 1))
+    _, _, consensus16 = leave_one_out(H16, rng.normal(size=(5, 48)), 0.3, 0)
+    assert consensus16 == pytest.approx(0.3 / math.sqrt(15))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model", ["step", "drift"])
+def test_the_calibrated_bias_error_is_propagated_into_step_and_drift_intervals(
+    model: str,
+) -> None:
+    """The calibrated bias taken out of the residual is itself estimated (from n_cal
+    samples): its error is a constant offset c ~ N(0, var0 / n_cal) over the window. With
+    n_cal = 200 against 250 fault samples it dominates the step's error and biases a drift
+    fitted through the origin; the intervals must still cover 90 %."""
+    rng = np.random.default_rng(11)
+    size = {"step": np.deg2rad(0.9), "drift": np.deg2rad(10)}[model]
+    trials, n_cal, covered, right = 300, 200, 0, 0
+    for _ in range(trials):
+        r, o, t, c = trace(model, size, rng)
+        var0 = SIGMA**2 + c**2
+        r = r + rng.normal(0, math.sqrt(var0 / n_cal))
+        best = fit_models(r, o, t, SIGMA, c, onset_range=(50, 250), offset_var=var0 / n_cal)[0]
+        right += best.model == model
+        covered += best.model == model and best.low <= size <= best.high
+    assert right / trials >= 0.97
+    low, high = coverage_band(right)
+    assert low <= covered / right <= high
+
+
+@pytest.mark.slow
+def test_step_interval_covers_under_autocorrelated_noise() -> None:
+    """AR(1) noise with phi = 0.5 has a long-run variance 3x its variance: a white-noise
+    interval on the mean would cover only about 67 %; the Newey-West factor restores 90 %
+    (up to its small-sample bias, allowed for in the lower band)."""
+    rng = np.random.default_rng(12)
+    phi, size, trials, covered, right = 0.5, np.deg2rad(0.9), 300, 0, 0
+    for _ in range(trials):
+        r, o, t, c = trace("step", size, rng, length=1200, onset=400)
+        innovations = rng.normal(0, SIGMA * math.sqrt(1 - phi**2), r.size)
+        ar = np.zeros(r.size)
+        ar[0] = rng.normal(0, SIGMA)
+        for i in range(1, r.size):
+            ar[i] = phi * ar[i - 1] + innovations[i]
+        r = r + ar  # coloured noise on top of the white
+        var_white = 2 * SIGMA**2 + c**2
+        best = fit_models(r, o, t, math.sqrt(var_white - c**2), c, onset_range=(200, 600))[0]
+        right += best.model == "step"
+        covered += best.model == "step" and best.low <= size <= best.high
+    assert right / trials >= 0.97
+    low, high = coverage_band(right)
+    assert low - 0.03 <= covered / right <= high
+
+
+def test_autocorrelation_factor_is_one_for_white_noise_and_the_long_run_ratio_for_ar1() -> None:
+    rng = np.random.default_rng(13)
+    w = np.full(20_000, 1 / 20_000)
+    white = rng.normal(size=20_000)
+    # sampling error about 2 sqrt(L / 3 n) = 0.03 with L = 10
+    assert _autocorrelation_factor(white, w) == pytest.approx(1.0, abs=0.1)
+    phi = 0.3
+    ar = np.zeros(20_000)
+    for i in range(1, ar.size):
+        ar[i] = phi * ar[i - 1] + white[i]
+    # long-run / marginal variance (1 + phi) / (1 - phi) = 1.857; the Bartlett taper at
+    # L = 10 lags takes off about sum_k (k / 11) 2 phi^k = 0.09
+    assert _autocorrelation_factor(ar, w) == pytest.approx(1.857 - 0.09, abs=0.15)
+
+
+def _reference(rng: np.random.Generator, length: int, m: int, var: float, extra_sd: float):
+    """m healthy residuals: white noise plus a random constant per sensor (bias wander the
+    white-noise model does not know about) of standard deviation ``extra_sd``."""
+    residuals = rng.normal(0, math.sqrt(var), (length, m)) + rng.normal(0, extra_sd, m)
+    return Reference(residuals, np.full(m, var), np.zeros(m))
+
+
+@pytest.mark.slow  # 600 Monte Carlo fits with and without the reference, 3 s
+def test_healthy_sensors_widen_the_interval_only_when_they_spread_beyond_the_noise() -> None:
+    """The same sensor-to-sensor bias spread is added to the faulty sensor's residual: the
+    dispersion test must see it in the 47 others and widen the interval to keep 90 %
+    coverage; with white healthy sensors it widens only at the test's 5 % level."""
+    rng = np.random.default_rng(14)
+    size, trials, m = np.deg2rad(0.9), 300, 47
+    for extra_sd, expect_widened in ((0.0, False), (3 * SIGMA / math.sqrt(250), True)):
+        covered = widened = right = 0
+        for _ in range(trials):
+            r, o, t, c = trace("step", size, rng)
+            r = r + rng.normal(0, extra_sd)
+            reference = _reference(rng, r.size, m, SIGMA**2 + c**2, extra_sd)
+            fits = fit_models(r, o, t, SIGMA, c, onset_range=(50, 250), reference=reference)
+            if fits[0].model != "step":
+                continue
+            right += 1
+            plain = next(
+                f for f in fit_models(r, o, t, SIGMA, c, onset_range=(50, 250)) if f.model == "step"
+            )
+            covered += fits[0].low <= size <= fits[0].high
+            widened += fits[0].high - fits[0].low > plain.high - plain.low + 1e-15
+        assert right / trials >= 0.97
+        low, high = coverage_band(right)
+        assert low <= covered / right <= high
+        if expect_widened:
+            assert widened / right >= 0.95
+        else:  # binomial: 5 % of the trials, 3.5 sd above
+            assert widened / right <= 0.05 + 3.5 * math.sqrt(0.05 * 0.95 / right)
+
+
+@pytest.mark.slow
+def test_motion_errors_are_fitted_out_of_step_intervals() -> None:
+    """A step of 0.9 deg/s on a sensor whose residual carries c^T omega(t) (its scale and
+    misalignment errors under a 3-axis swing, c ~ N(0, 1e-3) per axis, tens of deg/s of
+    motion: errors of several SIGMA), as do the 5 healthy sensors with their own c.
+    Without the motion columns the healthy sensors' spread widens the interval by a
+    quasi-likelihood factor that is wrong for this sensor; with them every motion error
+    drops out and the interval covers 90 % (binomial band)."""
+    rng = np.random.default_rng(25)
+    size, trials, covered, right, length, onset = np.deg2rad(0.9), 200, 0, 0, 600, 200
+    t = np.arange(length) / RATE
+    for _ in range(trials):
+        phase = rng.uniform(0, 2 * np.pi, 3)
+        omega = np.deg2rad([60, 40, 50]) * np.sin(
+            2 * np.pi * np.array([0.5, 0.35, 0.25]) * t[:, None] + phase
+        )
+        c = SIGMA / math.sqrt(5)
+        motion = omega + rng.normal(0, c, omega.shape)
+        r = rng.normal(0, math.hypot(SIGMA, c), length) + omega @ rng.normal(0, 1e-3, 3)
+        r[onset:] += size
+        healthy = rng.normal(0, math.hypot(SIGMA, c), (length, 5))
+        healthy += omega @ rng.normal(0, 1e-3, (3, 5))
+        variance = np.full(5, SIGMA**2 + c**2)
+        reference = Reference(healthy, variance, np.zeros(5), motion)
+        best = fit_models(
+            r, np.zeros(length), t, SIGMA, c, onset_range=(50, 350), reference=reference
+        )[0]
+        right += best.model == "step"
+        covered += best.model == "step" and best.low <= size <= best.high
+    assert right / trials >= 0.97
+    low, high = coverage_band(right)
+    assert low <= covered / right <= high
