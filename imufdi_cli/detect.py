@@ -16,7 +16,7 @@ import json
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
 
@@ -24,7 +24,6 @@ from imufdi_cli import __version__
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors import DETECTORS, make_detectors
 from imufdi_cli.detectors.base import DetectionBlock, Detector
-from imufdi_cli.episodes import EpisodeBuilder, episode_builders
 from imufdi_cli.errors import CalibrationError, DetectorConfigError, McapInputError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.mcapio import (
@@ -49,6 +48,9 @@ from imufdi_cli.mcapio.events import (
 )
 from imufdi_cli.progress import LogTimeProgress, ProgressCallback
 from imufdi_cli.validity import Conditioner
+
+if TYPE_CHECKING:
+    from imufdi_cli.episodes import EpisodeBuilder
 
 NS_PER_S = 1_000_000_000
 DEFAULT_CALIBRATION = (0.0, 2.0)
@@ -520,7 +522,12 @@ class _DetectRun:
         whole = self.conditioner.sanitize(whole, whole_flags, count=False)
         for track in self.tracks:
             track.detector.fit(whole, self.array)
-        builders = episode_builders(whole, self.array) if self.explain else {}
+        builders: dict[str, EpisodeBuilder] = {}
+        if self.explain:
+            # imported when used: --no-explain runs do not load (or compile) it
+            from imufdi_cli.episodes import episode_builders
+
+            builders = episode_builders(whole, self.array)
         for track in self.tracks:
             track.episodes = {t: b.for_detector(track.detector.name) for t, b in builders.items()}
         self.fitted = True

@@ -166,3 +166,36 @@ def test_recompressed_when_the_compression_differs(tmp_path):
     detect_file(str(path), str(out), [("glt", {})], compression="lz4")
     assert not set(_chunk_contents(path)) & set(_chunk_contents(out))
     assert all(b"lz4" in c[:40] for c in _chunk_contents(out))
+
+
+def test_no_explain_writes_the_same_status_and_alarms_without_episodes(sim_log, tmp_path):
+    """--no-explain: the same status channels and alarm events, no episode events, and the
+    episodes package (with its scipy.special quantiles) is not even imported."""
+    import subprocess
+    import sys
+
+    from imufdi_cli.mcapio.events import EVENTS_TOPIC, read_events
+
+    explained, plain = tmp_path / "e.mcap", tmp_path / "p.mcap"
+    detect_file(str(sim_log), str(explained), [("glt", {})])
+    code = (
+        "import sys\n"
+        "from imufdi_cli.detect import detect_file\n"
+        f"detect_file({str(sim_log)!r}, {str(plain)!r}, [('glt', {{}})], explain=False)\n"
+        "print(sorted(m for m in ('imufdi_cli.episodes', 'scipy.special') if m in sys.modules))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"
+    status = {p: read_status(str(p), "glt") for p in (explained, plain)}
+    assert set(status[explained]) == set(status[plain]) == {("glt", "gyro"), ("glt", "accel")}
+    for key, a in status[explained].items():
+        b = status[plain][key]
+        assert_array_equal(a.statistic, b.statistic)
+        assert_array_equal(a.alarm, b.alarm)
+        assert_array_equal(a.isolated, b.isolated)
+    events = {p: read_events(str(p), EVENTS_TOPIC) for p in (explained, plain)}
+    kinds = {p: [e["event"] for _, e in ev] for p, ev in events.items()}
+    assert "episode" in kinds[explained]  # glt alarms on this log: episodes are explained
+    assert "episode" not in kinds[plain]
+    alarms = {p: [(t, e) for t, e in ev if e["event"] != "episode"] for p, ev in events.items()}
+    assert alarms[explained] == alarms[plain]

@@ -173,8 +173,10 @@ class BinaryFrameParser:
         fits = full + lengths <= size
         valid = np.zeros(full.size, dtype=bool)
         check = np.flatnonzero(plausible & fits)
-        for length in np.unique(lengths[check]):
-            group = check[lengths[check] == length]
+        checked = lengths[check]
+        one_length = checked.size == 0 or int(checked.min()) == int(checked.max())
+        for length in checked[:1] if one_length else np.unique(checked):
+            group = check if one_length else check[checked == length]
             frames = sliding_window_view(data, int(length))[full[group]]
             valid[group] = checksums_ok(layout, frames)
         if self.n_imus is None and valid.any():
@@ -356,9 +358,10 @@ def _decode_triads(layout: Layout, frames: np.ndarray, n_imus: int) -> dict[str,
     """Sensor triads (F, m, 3) float64 in SI of frames (F, frame size) uint8.
 
     ``value = raw * scale`` per field. When every sensor field is an integer of one type
-    and the record size is a multiple of it, the whole record region is converted to
-    float64 in one cast (byte order included) and each triad is one product; otherwise
-    each field is read through a strided view. The values are the same either way.
+    and the record size is a multiple of it, each triad's integers are gathered from the
+    record region with one ``np.take``, converted to float64 in one cast (byte order
+    included) and scaled in one product; otherwise each field is read through a strided
+    view. The values are the same either way.
     """
     n_frames = frames.shape[0]
     fields = _sensor_fields(layout)
@@ -377,13 +380,13 @@ def _decode_triads(layout: Layout, frames: np.ndarray, n_imus: int) -> dict[str,
     if uniform:
         assert dtype is not None
         columns = (
-            frames[:, start:stop]
-            .view(dtype)
-            .astype(np.float64)
-            .reshape(n_frames, n_imus, layout.record_size // size)
+            frames[:, start:stop].view(dtype).reshape(n_frames, n_imus, layout.record_size // size)
         )
         for sensor, triad in fields.items():
-            values = np.take(columns, [item.offset // size for item in triad], axis=2)
+            # the triad's integers gathered first, then one cast (byte order included):
+            # no float64 copy of the fields no triad uses
+            raw = np.take(columns, [item.offset // size for item in triad], axis=2)
+            values = raw.astype(np.float64)
             if triad[0].scale == triad[1].scale == triad[2].scale:
                 values *= triad[0].scale
             else:

@@ -104,11 +104,19 @@ def crc16_ccitt_false(data: np.ndarray) -> np.ndarray:
     n_frames, length = data.shape
     crc = np.full(n_frames, 0xFFFF, dtype=np.uint16)
     pairs = length // 2
-    if pairs:
-        words = np.ascontiguousarray(data[:, : 2 * pairs]).view(">u2").astype(np.uint16)
-        for column in np.ascontiguousarray(words.T):
+    if pairs and n_frames:
+        # the big-endian words of every frame, one row per word position: one strided copy
+        words = np.empty((pairs, n_frames), np.uint16)
+        head = data[:, : 2 * pairs]
+        if head.strides[-1] != 1:
+            head = np.ascontiguousarray(head)
+        words[...] = head.view(">u2").T
+        spare = np.empty_like(crc)
+        for column in words:
             np.bitwise_xor(crc, column, out=crc)
-            crc = _CRC16_PAIR_TABLE[crc]
+            # take into a second buffer (no new array per step); indices are < 65536
+            _CRC16_PAIR_TABLE.take(crc, out=spare, mode="wrap")
+            crc, spare = spare, crc
     out = crc.astype(np.uint32)
     if length % 2:
         index = (out >> 8) ^ data[:, -1]

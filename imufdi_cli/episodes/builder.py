@@ -30,6 +30,7 @@ from imufdi_cli.episodes.fault_fit import WhiteNoise
 from imufdi_cli.episodes.fits import fit_models
 from imufdi_cli.episodes.reference import (
     Reference,
+    correlation_sq,
     downdated_gain,
     estimator_without,
     leave_two_out,
@@ -41,6 +42,7 @@ from imufdi_cli.episodes.white_noise import (
     white_sigma_covariance,
     white_sigma_excess,
     white_sigma_spread,
+    white_variance_dof,
 )
 
 
@@ -297,6 +299,8 @@ class EpisodeBuilder:
         n = self.H.shape[0]
         A = np.zeros((n, n))
         variance = np.full(n, np.inf)
+        dof = np.full(n, successive_difference_dof(self.calibration_samples))
+        covariance = self._white_covariance()
         for k in range(n):
             try:
                 gain, _ = self._gain(k)
@@ -305,13 +309,20 @@ class EpisodeBuilder:
             A[:, k] = -gain
             A[k, k] += 1.0
             variance[k] = self.white_sigma[k] ** 2 + float(np.sum((gain * self.white_sigma) ** 2))
-        return VarianceDropMonitor(
-            A,
-            variance,
-            window=window,
-            alpha=alpha,
-            calibration_dof=successive_difference_dof(self.calibration_samples),
-        )
+            if covariance.size:
+                dof[k] = white_variance_dof(covariance, gain, k, variance[k], dof[k])
+        return VarianceDropMonitor(A, variance, window=window, alpha=alpha, calibration_dof=dof)
+
+    def _white_covariance(self) -> np.ndarray:
+        """Covariance of the calibrated white variances (:func:`white_sigma_covariance`
+        times the measured excess of outliers, :func:`white_sigma_excess`), computed once;
+        shape (0, 0) when they are not identifiable one by one."""
+        assert self.white_sigma is not None and self.calibration_samples
+        if self._white_cov is None:
+            self._white_cov = self.white_excess * white_sigma_covariance(
+                self.H, self.white_sigma, self.calibration_samples
+            )
+        return self._white_cov
 
     def _advance(
         self,
@@ -476,13 +487,10 @@ class EpisodeBuilder:
             return None
         consensus = float(np.sqrt(np.sum((gain * self.white_sigma) ** 2)))
         dof = successive_difference_dof(self.calibration_samples)
-        if self._white_cov is None:
-            self._white_cov = self.white_excess * white_sigma_covariance(
-                self.H, self.white_sigma, self.calibration_samples
-            )
-        if self._white_cov.size == 0:
+        covariance = self._white_covariance()
+        if covariance.size == 0:
             return float(self.white_sigma[k]), consensus, dof
-        spread = white_sigma_spread(self._white_cov, gain, k)
+        spread = white_sigma_spread(covariance, gain, k)
         return float(self.white_sigma[k]), consensus, dof, spread
 
     def _reference(self, k: int, window: np.ndarray) -> Reference | None:
@@ -499,7 +507,9 @@ class EpisodeBuilder:
         motion = window @ self._estimator(k)
         if self.calibration_mean is not None:
             motion = motion - self.calibration_mean @ self._estimator(k)
-        return Reference(window @ A - offset, variance, offset_var, motion)
+        return Reference(
+            window @ A - offset, variance, offset_var, motion, correlation_sq(A, self.sigma)
+        )
 
     def _reference_matrix(
         self, k: int

@@ -12,7 +12,8 @@ propagates the noise (estimated from the fit's own residuals, with their autocor
 Newey & West 1994), and the calibrated bias taken out of ``r`` (a constant estimated from
 n_cal samples). The other sensors (:class:`Reference`), each against a consensus without
 ``k``, give the same estimate where there is no fault: when they spread significantly more
-than that variance says (chi-square test at 95 %), the interval is widened to their
+than white noise says (a chi-square test at 95 % with the white variance each has in the
+window, and their correlation), the interval is widened to their
 dispersion (:func:`_linear_fit`); when they still spread too much, or the sensor's own
 residual carries the motion, the motion-dependent errors (scale, misalignment: linear in
 the sensed vector) are fitted alongside over the whole window (:func:`_motion_fit`).
@@ -20,8 +21,10 @@ the sensed vector) are fitted alongside over the whole window (:func:`_motion_fi
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -92,11 +95,16 @@ class Reference:
         itself and the isolated one (a fault on the isolated sensor does not leak into
         them), with its calibrated bias taken out; SI.
     variance : ndarray, shape (m,)
-        White-noise variance of each residual, sigma_j^2 + consensus variance (SI^2).
+        Calibrated white-noise variance of each residual, sigma_j^2 + consensus variance
+        (SI^2). The healthy sensors' test takes only ``offset_var / variance`` from it and
+        measures each residual's white variance in the window (:attr:`white_variance`).
     offset_var : ndarray, shape (m,)
         Variance of the calibrated bias taken out of each (SI^2; zeros when none was).
     motion : ndarray, shape (L, 3), optional
         The consensus of the sensors other than the isolated one (x_hat_{-k}).
+    correlation_sq : float, optional
+        ``tr R^2``, R the correlation matrix of the m residuals under white noise
+        (:func:`correlation_sq`); None: uncorrelated (m).
     """
 
     residuals: np.ndarray
@@ -106,6 +114,32 @@ class Reference:
     #: less its calibration-window mean (SI), for the motion-dependent errors of
     #: :func:`_linear_fit`; None: not modelled
     motion: np.ndarray | None = None
+    correlation_sq: float | None = None
+
+    @functools.cached_property
+    def white_variance(self) -> np.ndarray:
+        """(m,) white variance of each residual over the window, SI^2: from its successive
+        differences (:func:`successive_variance`), so the outliers the window holds are in
+        it and slow errors (bias wander, motion errors) are not."""
+        return np.asarray(successive_variance(self.residuals), dtype=np.float64)
+
+
+def successive_variance(x: np.ndarray) -> Any:
+    """``sum_i (x_{i+1} - x_i)^2 / (2 (L - 1))`` along axis 0 of x (L, ...): the white
+    variance of a series without what varies slowly (von Neumann 1941)."""
+    d = np.diff(x, axis=0)
+    return np.einsum("i...,i...->...", d, d) / (2 * max(x.shape[0] - 1, 1))
+
+
+def correlation_sq(A: np.ndarray, sigma: np.ndarray) -> float:
+    """``tr R^2`` of the residuals ``window @ A`` (A (n, m)) under independent white noise
+    of standard deviations ``sigma`` (n,): R is ``C = A^T diag(sigma^2) A`` normalised by its
+    diagonal. Equal to m when the residuals are uncorrelated; 50.2 for the 47 leave-two-out
+    residuals of 16 co-aligned triads (44 = m - 3 effective degrees of freedom)."""
+    sigma = np.asarray(sigma, dtype=np.float64)
+    C = (A.T * sigma**2) @ A
+    scale = np.sqrt(np.diag(C))
+    return float(np.sum((C / np.outer(scale, scale)) ** 2))
 
 
 #: level of the test that the healthy sensors spread more than the noise model says
@@ -140,13 +174,15 @@ def _linear_fit(
       ``offset_var (sum_i w_i)^2`` (1 for a step, 0 when X has an intercept).
 
     With a ``reference``, the same ``w`` is applied to the m other sensors' residuals over
-    the same samples. Under the white-noise model ``Q = sum_j est_j^2 / v_j`` (v_j their
-    predicted variance, as above with their calibrated sigma) is chi-square with m degrees
-    of freedom. Only when Q exceeds its ``DISPERSION_LEVEL`` quantile (the healthy sensors
-    spread significantly more than white noise explains: bias wander since calibration,
-    unmodelled motion) is the variance raised to ``Q / m`` times the white-noise variance of
-    this sensor's estimate, with a t quantile on m degrees of freedom (a quasi-likelihood
-    dispersion estimate, McCullagh & Nelder 1989 §4.5). The interval is the t interval
+    the same samples (:func:`_dispersion`). Under the white-noise model ``Q = sum_j est_j^2
+    / v_j`` (v_j their predicted variance, as above with the white variance each residual
+    has in the window) is a scaled chi-square with ``d = m^2 / tr R^2`` degrees of freedom
+    (R their correlation). Only when Q exceeds its ``DISPERSION_LEVEL`` quantile (the
+    healthy sensors spread significantly more than white noise explains: bias wander since
+    calibration, unmodelled motion) is the variance raised to ``Q / m`` times the
+    white-noise variance of this sensor's estimate (its own white variance, measured the
+    same way), with a t quantile on d degrees of freedom (a quasi-likelihood dispersion
+    estimate, McCullagh & Nelder 1989 §4.5). The interval is the t interval
     ``c0 +- t_{(1 + confidence)/2} sqrt(var)``.
     """
     n, p = X.shape
@@ -167,12 +203,20 @@ def _linear_fit(
     curve = (X @ coef, var0)
     widened = None
     if reference is not None and reference.residuals.shape[1] >= 2:
-        dispersion, widened = _dispersion(w, reference, var0, offset_var, confidence)
+        # the sensor's own white variance, measured as the healthy sensors' is: successive
+        # differences of the window before the onset and of the fit's residuals after it
+        pre = window[: window.shape[0] - n] if window is not None else y[:0]
+        white_var = float(successive_variance(pre)) * max(pre.shape[0] - 1, 0) + float(
+            successive_variance(e)
+        ) * (n - 1)
+        white_var /= max(pre.shape[0] + n - 2, 1)
+        dispersion, widened = _dispersion(
+            w, reference, white_var, offset_var / var0 if var0 > 0 else 0.0, confidence
+        )
         extra["dispersion"] = dispersion
         if window is not None and reference.motion is not None:
             # the motion-dependent errors: fitted when the healthy sensors spread too much
             # or the sensor's own residual carries them (partial F test, both at 95 %)
-            pre = window[: window.shape[0] - n]
             motion = _motion_fit(
                 window,
                 X,
@@ -200,22 +244,56 @@ def _linear_fit(
 
 
 def _dispersion(
-    w: np.ndarray, reference: Reference, var0: float, offset_var: float, confidence: float
+    w: np.ndarray,
+    reference: Reference,
+    white_var: float,
+    offset_ratio: float,
+    confidence: float,
 ) -> tuple[float, tuple[float, float] | None]:
     """The healthy sensors' check of the noise model for the linear estimate ``w^T r``
     over the window's last ``len(w)`` samples: their dispersion ``Q / m``, and the widened
     (variance, quantile) of this sensor's estimate when Q exceeds its DISPERSION_LEVEL
-    chi-square quantile (None otherwise). See :func:`_linear_fit`."""
+    quantile (None otherwise). See :func:`_linear_fit`.
+
+    Each healthy estimate ``est_j = w^T r_j`` is compared with the variance white noise of
+    its own window predicts, ``v_j (w^T w + rho_j (sum w)^2)``: v_j the white variance of
+    r_j over the window (:attr:`Reference.white_variance`: the outliers the window holds
+    are in it, as they are in the faulty sensor's own s^2; the calibrated sigma leaves
+    them out, and its own sampling error would add to Q), rho_j the calibrated offset's
+    share (offset variance over white variance). The m estimates are correlated (each
+    residual carries the others' noise through its consensus), so Q is a weighted sum of
+    chi-square(1) terms with mean m and variance ``2 tr R^2``; its reference is the
+    scaled chi-square with those two moments, ``(tr R^2 / m) chi2(d)``, ``d = m^2 / tr
+    R^2`` (Satterthwaite 1946; exact for co-aligned triads, where d = m - 3). A widened
+    interval takes ``Q / m`` times this sensor's white variance ``white_var (w^T w +
+    offset_ratio (sum w)^2)`` and a t quantile on d degrees of freedom.
+
+    Parameters
+    ----------
+    w : ndarray, shape (n,)
+        Weights of the estimate over the window's last n samples.
+    reference : Reference
+    white_var : float
+        White variance of this sensor's residual (SI^2), measured as ``v_j``.
+    offset_ratio : float
+        Variance of its calibrated offset over its white variance (1 / n_cal; 0: none).
+    confidence : float
+        Level of the interval.
+    """
     n = w.shape[0]
     sw2, sw = float(w @ w), float(np.sum(w))
     estimates = w @ reference.residuals[-n:]
-    predicted = reference.variance * sw2 + reference.offset_var * sw**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(reference.variance > 0, reference.offset_var / reference.variance, 0.0)
+    predicted = reference.white_variance * (sw2 + share * sw**2)
     m = estimates.shape[0]
     q = float(np.sum(estimates**2 / predicted))
-    if q <= _chi2_quantile(DISPERSION_LEVEL, m):
+    tr_r2 = float(m if reference.correlation_sq is None else reference.correlation_sq)
+    dof = m * m / tr_r2
+    if not q > tr_r2 / m * _chi2_quantile(DISPERSION_LEVEL, dof):
         return q / m, None
-    white = q / m * (var0 * sw2 + offset_var * sw**2)
-    return q / m, (white, _t_quantile(0.5 + confidence / 2, m))
+    white = q / m * white_var * (sw2 + offset_ratio * sw**2)
+    return q / m, (white, _t_quantile(0.5 + confidence / 2, dof))
 
 
 def _motion_fit(
@@ -285,7 +363,13 @@ def _motion_fit(
     sw2, sw = float(w @ w), float(np.sum(w))
     variance = float(e @ e) / dof * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
     quantile = _t_quantile(0.5 + confidence / 2, dof)
-    dispersion, widened = _dispersion(w, reference, var0, offset_var, confidence)
+    dispersion, widened = _dispersion(
+        w,
+        reference,
+        float(successive_variance(e)),
+        offset_var / var0 if var0 > 0 else 0.0,
+        confidence,
+    )
     if widened is not None and widened[0] > variance:
         variance, quantile = widened
     return float(coef[0]), quantile * math.sqrt(max(variance, 0.0)), dispersion

@@ -43,14 +43,19 @@ class VarianceDropMonitor:
     estimates the white variance of ``r_k`` (slow motion errors do not enter it) and is
     compared with its calibrated value ``v_k = sigma_k^2 + sigma_c^2`` (white parts,
     :func:`white_sigma`). Both are successive-difference estimates, so ``q_k / v_k`` is
-    about F(nu_W, nu_cal) (:func:`successive_difference_dof`); the test alarms when the
-    smallest ratio over the sensors falls below the F quantile at ``alpha``, and isolates
-    that sensor. The test is one-sided: more noise, outliers and unmodelled motion only
+    about F(nu_W, nu_cal,k) (nu_W from :func:`successive_difference_dof`, nu_cal,k the
+    calibrated v_k's own degrees of freedom,
+    :func:`~imufdi_cli.episodes.white_noise.white_variance_dof`); the test alarms when a
+    sensor's ratio falls below its F quantile at ``alpha``, and isolates the sensor whose
+    ratio is furthest below (relative to its quantile). The test is one-sided: more noise, outliers and unmodelled motion only
     raise ``q_k``.
 
     The status row of a sample is decided at that sample (no look-ahead); ``statistic``
-    is ``-ln(min ratio)`` and ``threshold`` ``-ln(quantile)`` (an alarm when statistic >
-    threshold). Memory: the last W differences per sensor.
+    is ``-ln`` of the smallest ratio, each rescaled from its sensor's quantile to the
+    median one (``ratio_k * quantile / quantile_k``), and ``threshold`` ``-ln(quantile)``
+    of that median (an alarm when statistic > threshold; with one dof for all sensors,
+    ``-ln(min ratio)`` against the common quantile). Memory: the last W differences per
+    sensor.
 
     Parameters
     ----------
@@ -63,8 +68,9 @@ class VarianceDropMonitor:
         W, successive differences per test.
     alpha : float
         Probability that one healthy sensor's window falls below the threshold.
-    calibration_dof : float
-        Degrees of freedom of the white variance's calibration estimate.
+    calibration_dof : float or array_like, shape (n,)
+        Degrees of freedom of the white variances' calibration estimates (one for all
+        sensors, or one each).
     """
 
     def __init__(
@@ -74,14 +80,17 @@ class VarianceDropMonitor:
         *,
         window: int,
         alpha: float,
-        calibration_dof: float,
+        calibration_dof: float | np.ndarray,
     ) -> None:
         self.A = np.asarray(residual_matrix, dtype=np.float64)
         self.variance = np.asarray(white_variance, dtype=np.float64)
         self.window = int(window)
-        self.quantile = _f_quantile(
-            alpha, successive_difference_dof(self.window + 1), calibration_dof
-        )
+        dof_window = successive_difference_dof(self.window + 1)
+        dofs = np.broadcast_to(np.asarray(calibration_dof, dtype=np.float64), self.variance.shape)
+        #: (n,) each sensor's quantile of q_k / v_k at alpha
+        self.quantiles = np.array([_f_quantile(alpha, dof_window, float(d)) for d in dofs])
+        #: the quantile the statistic is expressed against: the sensors' median
+        self.quantile = float(np.median(self.quantiles)) if self.quantiles.size else 1.0
         self._last: np.ndarray | None = None  # last residual row
         self._tail = np.zeros((0, self.A.shape[1]))  # last W half squared differences
 
@@ -110,7 +119,8 @@ class VarianceDropMonitor:
         else:
             sums = cumulative[stop] - cumulative[np.maximum(stop - self.window, 0)]
         with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = sums / self.window / self.variance
+            # each ratio against its own sensor's quantile, expressed against the median
+            ratio = sums / self.window / self.variance * (self.quantile / self.quantiles)
         ratio = np.where(np.isfinite(ratio), ratio, np.inf)
         worst = np.argmin(ratio, axis=1) if ratio.shape[0] else np.zeros(0, np.int64)
         lowest = ratio[np.arange(ratio.shape[0]), worst]

@@ -208,3 +208,37 @@ def white_sigma_spread(cov: np.ndarray, gain: np.ndarray, k: int) -> tuple[float
     g2 = np.asarray(gain, dtype=np.float64) ** 2
     shared = cov @ g2
     return float(g2 @ shared), float(shared[k]), float(cov[k, k])
+
+
+def white_variance_dof(
+    cov: np.ndarray, gain: np.ndarray, k: int, variance: float, default: float
+) -> float:
+    """Degrees of freedom of the calibrated white variance of sensor k's leave-one-out
+    residual, ``v_k = s_k + sum_i g_i^2 s_i`` (s the white variances, g the consensus
+    gain): with ``(A, B, D)`` of :func:`white_sigma_spread`, ``Var v_k = D + 2 B + A``, and
+    a scaled chi-square with that variance has ``2 v_k^2 / Var v_k`` degrees of freedom
+    (Satterthwaite 1946). For Gaussian noise on 16 co-aligned triads and 200 samples that is
+    132 (sensor k's own estimate mixes the others' noise, 1.14 times the variance, but the
+    consensus variance's error partly cancels it), about the successive-difference dof of
+    the samples (133); with paper-table4's outliers (the measured excess) about 124.
+    ``default`` when the spread is degenerate.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (n, n)
+        :func:`white_sigma_covariance` (times the excess), SI^4.
+    gain : ndarray, shape (n,)
+    k : int
+    variance : float
+        ``v_k``, SI^2.
+    default : float
+
+    Returns
+    -------
+    float
+    """
+    a_term, b_term, d_term = white_sigma_spread(cov, gain, k)
+    spread = a_term + 2 * b_term + d_term
+    if not (math.isfinite(spread) and spread > 0 and math.isfinite(variance)):
+        return default
+    return 2 * variance**2 / spread

@@ -1,7 +1,9 @@
-"""Chunk compression and bounded decompression (zstd, lz4, none) for MCAP chunks."""
+"""Chunk compression and bounded decompression (zstd, lz4, none) for MCAP chunks, and the
+unpacking of a Chunk record read from a file (its fields, limit and CRC checked)."""
 
 from __future__ import annotations
 
+import struct
 import threading
 import zlib
 from collections.abc import Callable
@@ -214,3 +216,74 @@ def decompress(raw: bytes | memoryview, compression: str, uncompressed_size: int
             f" {uncompressed_size}"
         )
     return out
+
+
+#: Chunk record fields before the compression name: start/end time, uncompressed size,
+#: CRC, and the compression name's length.
+_CHUNK_HEAD = struct.Struct("<QQQII")
+#: Chunks of at most this many record bytes are walked in Python (numpy costs more there),
+#: and decompressed into bytes of their own (larger zstd chunks go into the batch buffer).
+_SMALL_CHUNK = 4096
+
+#: (records, "") of a usable chunk, or (None, why it is not)
+_Unpacked = tuple[bytes | memoryview | None, str]
+
+
+def _declared_size(content: bytes) -> int:
+    """The uncompressed size a Chunk record's content declares (0 if it is too short)."""
+    if len(content) < _CHUNK_HEAD.size:
+        return 0
+    return int(_CHUNK_HEAD.unpack_from(content)[2])
+
+
+def _unpack_chunk(
+    content: bytes,
+    max_chunk_bytes: int,
+    validate_crcs: bool,
+    slot: Callable[[int], memoryview] | None = None,
+    trust_frame_checksum: bool = False,
+) -> _Unpacked:
+    """A Chunk record's records, decompressed and (with ``validate_crcs``) CRC-checked, or
+    why the chunk is unusable. A zstd chunk of more than ``_SMALL_CHUNK`` bytes is
+    decompressed into ``slot(size)`` when given (no allocation, no later copy). Touches
+    no reader state (runs on the worker thread, without ``slot``). With
+    ``trust_frame_checksum`` the CRC-32 is skipped when the zstd frame's content checksum
+    already verified every record byte (:func:`~imufdi_cli.mcapio.compression.frame_checksummed`)."""
+    try:
+        if len(content) < _CHUNK_HEAD.size + 8:
+            raise McapInputError("malformed Chunk record (shorter than its fields)")
+        _, _, uncompressed_size, crc, name_length = _CHUNK_HEAD.unpack_from(content)
+        records_at = _CHUNK_HEAD.size + name_length + 8
+        if records_at > len(content):
+            raise McapInputError("malformed Chunk record (compression name past its end)")
+        compression = content[_CHUNK_HEAD.size : records_at - 8].decode("utf-8", "replace")
+        (records_length,) = struct.unpack_from("<Q", content, records_at - 8)
+        if records_length != len(content) - records_at:
+            raise McapInputError(
+                f"records length {records_length} does not match the record"
+                f" ({len(content) - records_at} bytes left)"
+            )
+        if uncompressed_size > max_chunk_bytes:
+            raise McapInputError(
+                f"declares {uncompressed_size} uncompressed bytes, over the limit of"
+                f" {max_chunk_bytes} (IMUFDI_MAX_CHUNK_BYTES)"
+            )
+        data = memoryview(content)[records_at:]
+        framed = (
+            validate_crcs
+            and trust_frame_checksum
+            and frame_checksummed(data, compression, uncompressed_size)
+        )
+        raw: bytes | memoryview
+        if slot is not None and compression == "zstd" and uncompressed_size > _SMALL_CHUNK:
+            raw = slot(uncompressed_size)
+            decompress_into(data, compression, raw)
+        else:
+            raw = decompress(data, compression, uncompressed_size)
+    except McapInputError as err:
+        return None, str(err)
+    if validate_crcs and crc != 0 and not framed:
+        actual = crc32(raw)
+        if actual != crc:
+            return None, (f"CRC mismatch (records CRC-32 {actual:#010x}, chunk says {crc:#010x})")
+    return raw, ""

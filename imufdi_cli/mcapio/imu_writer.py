@@ -167,25 +167,20 @@ class _RecordTemplate:
         lo, hi = self.stamp_span
         assert (self.records[:, lo:hi] == self.records[0, lo:hi]).all()
 
-    def fill(
-        self,
-        out: np.ndarray,
-        t_ns: np.ndarray,
-        sec: np.ndarray,
-        nanosec: np.ndarray,
-        sequence: np.ndarray,
-        gyro: np.ndarray | None,
-        accel: np.ndarray | None,
-    ) -> None:
-        """Write the records of N samples of the m IMUs into ``out`` (N, m, R) uint8.
+    def stamps(self, t_ns: np.ndarray, sequence: np.ndarray) -> np.ndarray:
+        """The bytes of the stamp run (sequence, log and publish times, encapsulation,
+        ROS 2 stamp) of N samples, (N, S) uint8, the same for every IMU of a sample.
 
-        ``t_ns`` (N,) int64 ns, ``sec``/``nanosec`` (N,) its ROS 2 stamp
-        (:func:`_stamp_fields`), ``sequence`` (N,) uint32, gyro/accel (N, m, 3) float64
-        in SI (None: NaN).
+        ``t_ns`` (N,) int64 ns, ``sequence`` (N,) uint32.
+
+        Raises
+        ------
+        UsageError
+            A stamp outside a ROS 2 ``builtin_interfaces/Time`` (int32 seconds).
         """
-        out[...] = self.records
         at = self.at
         n = t_ns.shape[0]
+        sec, nanosec = _stamp_fields(t_ns)
         lo, hi = self.stamp_span
         stamp = np.empty((n, hi - lo), np.uint8)
         stamp[:] = self.records[0, lo:hi]
@@ -194,11 +189,34 @@ class _RecordTemplate:
         _field_view(stamp, at["publish_time"] - lo, "<u8")[:, 0] = t_ns
         _field_view(stamp, at["sec"] - lo, "<i4")[:, 0] = sec
         _field_view(stamp, at["nanosec"] - lo, "<u4")[:, 0] = nanosec
+        return stamp
+
+    def fill(
+        self,
+        out: np.ndarray,
+        stamp: np.ndarray,
+        gyro: np.ndarray | None,
+        accel: np.ndarray | None,
+        *,
+        constant: bool = True,
+    ) -> None:
+        """Write the records of N samples of the m IMUs into ``out`` (N, m, R) uint8.
+
+        ``stamp`` (N, S) uint8 from :meth:`stamps`, gyro/accel (N, m, 3) float64 in SI
+        (None: NaN). With ``constant=False`` only the bytes that change (stamp run and
+        triads) are written: ``out`` already holds ``self.records`` in every sample. A
+        few large copies: the worker thread that runs this needs the GIL only between
+        them.
+        """
+        if constant:
+            out[...] = self.records
+        lo, hi = self.stamp_span
         item = np.dtype((np.void, hi - lo))
         out[..., lo:hi].view(item)[..., 0] = stamp.view(item)[:, 0][:, None]
         triad = np.dtype((np.void, 24))
         for name, values in (("gyro", gyro), ("accel", accel)):
-            target = out[..., at[name] : at[name] + 24].view(triad)[..., 0]
+            at = self.at[name]
+            target = out[..., at : at + 24].view(triad)[..., 0]
             if values is None:
                 target[...] = np.full(3, np.nan, "<f8").view(triad)[0]
             else:
@@ -223,35 +241,45 @@ class _ImuRecords:
     ) -> None:
         self.template = template
         self.m = m
-        self.t_ns = np.array(t_ns, dtype=np.int64)  # copies
-        self.sec, self.nanosec = _stamp_fields(self.t_ns)
-        self.sequence = np.arange(
-            first_sequence, first_sequence + self.t_ns.shape[0], dtype=np.int64
-        ).astype(np.uint32)
-        self.gyro = None if gyro is None else np.array(gyro, dtype=np.float64)
-        self.accel = None if accel is None else np.array(accel, dtype=np.float64)
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        sequence = np.arange(first_sequence, first_sequence + t_ns.shape[0], dtype=np.int64)
+        # built here, on the caller's thread (small arrays), so the worker thread's fill is
+        # a few large copies; these and the triads are this source's own copies
+        self.stamp = template.stamps(t_ns, sequence.astype(np.uint32))
+        self.gyro = None if gyro is None else np.array(gyro, dtype="<f8")
+        self.accel = None if accel is None else np.array(accel, dtype="<f8")
 
     @property
     def record_size(self) -> int:
         return self.template.record_size
 
-    def __len__(self) -> int:
-        return int(self.t_ns.shape[0]) * self.m
+    @property
+    def template_rows(self) -> np.ndarray:
+        """(m, R) uint8: record ``k`` is row ``k % m`` outside its stamp and triads."""
+        return self.template.records
 
-    def _fill_samples(self, out: np.ndarray, first: int, last: int) -> None:
+    def __len__(self) -> int:
+        return int(self.stamp.shape[0]) * self.m
+
+    def _fill_samples(
+        self, out: np.ndarray, first: int, last: int, *, constant: bool = True
+    ) -> None:
         """Records of samples ``first..last-1`` into ``out`` ((last - first) m, R)."""
         view = slice(first, last)
         self.template.fill(
             out.reshape(last - first, self.m, -1),
-            self.t_ns[view],
-            self.sec[view],
-            self.nanosec[view],
-            self.sequence[view],
+            self.stamp[view],
             None if self.gyro is None else self.gyro[view],
             None if self.accel is None else self.accel[view],
+            constant=constant,
         )
 
-    def fill(self, out: np.ndarray, start: int, stop: int) -> None:
+    def fill_changing(self, out: np.ndarray, start: int, stop: int) -> None:
+        """As :meth:`fill`, into rows that already hold the template (row ``i`` is
+        template row ``(start + i) % m``): only stamps and triads are written."""
+        self.fill(out, start, stop, constant=False)
+
+    def fill(self, out: np.ndarray, start: int, stop: int, *, constant: bool = True) -> None:
         """Records ``start..stop-1`` (record k: sample k // m, IMU k % m) into ``out``."""
         m = self.m
         position = start
@@ -261,7 +289,9 @@ class _ImuRecords:
             if imu == 0 and whole:
                 # whole samples, straight into the chunk buffer
                 end = position + whole * m
-                self._fill_samples(out[position - start : end - start], sample, sample + whole)
+                self._fill_samples(
+                    out[position - start : end - start], sample, sample + whole, constant=constant
+                )
             else:
                 # a sample cut by a chunk boundary: built whole, the rows needed copied
                 end = min(stop, (sample + 1) * m)
@@ -407,7 +437,7 @@ class ImuArrayWriter:
                 None if block.accel is None else block.accel[start:stop],
             )
             self.writer.add_record_source(
-                source, np.tile(ids, stop - start), np.repeat(source.t_ns, m)
+                source, np.tile(ids, stop - start), np.repeat(block.t_ns[start:stop], m)
             )
         self._written += n
 

@@ -4,14 +4,19 @@ Records inside a decompressed chunk are located in bulk: a few records are walke
 one, the repeating pattern of record lengths (e.g. 16 IMU channels interleaved) is found,
 and the whole run of the pattern is checked with numpy at once. Message headers are then
 read with one strided gather. Memory is bounded by one chunk.
+
+The parts: the file's records (summary section, data-section record stream, schema and
+channel registry) in :mod:`~imufdi_cli.mcapio.recordstream`, the base of
+:class:`McapSource`; a Chunk record's unpacking (limit, decompression, CRC) in
+:mod:`~imufdi_cli.mcapio.compression`; the record scan and message headers in
+:mod:`~imufdi_cli.mcapio.scan`; the worker-thread read-ahead in
+:mod:`~imufdi_cli.mcapio.readahead` (imported only when used). This module opens the
+source and assembles the message batches.
 """
 
 from __future__ import annotations
 
-import bisect
-import io
 import os
-import struct
 import sys
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -22,10 +27,9 @@ import numpy as np
 
 from imufdi_cli.errors import McapInputError
 from imufdi_cli.mcapio.compression import (
-    crc32,
-    decompress,
-    decompress_into,
-    frame_checksummed,
+    _CHUNK_HEAD,
+    _SMALL_CHUNK,
+    _unpack_chunk,
 )
 from imufdi_cli.mcapio.limits import ReaderLimits
 from imufdi_cli.mcapio.records import (
@@ -33,22 +37,20 @@ from imufdi_cli.mcapio.records import (
     MESSAGE_FIXED_CONTENT,
     OP_CHANNEL,
     OP_CHUNK,
-    OP_DATA_END,
     OP_FOOTER,
     OP_MESSAGE,
     OP_METADATA,
-    OP_METADATA_INDEX,
     OP_SCHEMA,
     ChannelInfo,
     MessageBatch,
     RawChunk,
     SchemaInfo,
-    gather_bytes,
 )
+from imufdi_cli.mcapio.recordstream import _RECORD_HEAD, RecordStream
 from imufdi_cli.mcapio.scan import (
     RecordPattern,
-    _Cursor,
     _PendingMessages,
+    message_batch,
     parse_channel,
     parse_metadata,
     parse_schema,
@@ -56,74 +58,20 @@ from imufdi_cli.mcapio.scan import (
 )
 
 if TYPE_CHECKING:  # the read-ahead pool is imported when first used (start-up time)
-    from concurrent.futures import Future, ThreadPoolExecutor
+    from concurrent.futures import ThreadPoolExecutor
+
+    from imufdi_cli.mcapio.readahead import _Ahead
 
 __all__ = ["McapSource", "parse_channel", "parse_metadata", "parse_schema", "scan_records"]
 
-_MESSAGE_FIELDS = np.dtype(
-    [("channel_id", "<u2"), ("sequence", "<u4"), ("log_time", "<u8"), ("publish_time", "<u8")]
-)
-_FOOTER_SIZE = 9 + 20
-#: Chunk record fields before the compression name: start/end time, uncompressed size,
-#: CRC, and the compression name's length.
-_CHUNK_HEAD = struct.Struct("<QQQII")
-_RECORD_HEAD = struct.Struct("<BQ")
-#: Chunks of at most this many record bytes are walked in Python (numpy costs more there).
-_SMALL_CHUNK = 4096
-#: Read-ahead of the data section; larger records are read straight from the stream.
-_READ_AHEAD = 256 << 10
-#: Records of at least this many bytes are read into a buffer of their own (no joins).
-_READ_DIRECT = 64 << 10
-
-
-_OPCODE_NAMES = {
-    0x01: "Header",
-    0x02: "Footer",
-    0x03: "Schema",
-    0x04: "Channel",
-    0x05: "Message",
-    0x06: "Chunk",
-    0x07: "MessageIndex",
-    0x08: "ChunkIndex",
-    0x09: "Attachment",
-    0x0A: "AttachmentIndex",
-    0x0B: "Statistics",
-    0x0C: "Metadata",
-    0x0D: "MetadataIndex",
-    0x0E: "SummaryOffset",
-    0x0F: "DataEnd",
-}
-#: Records read into memory (the others are skipped without being held).
-_HELD = (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_METADATA)
-#: Records the data section may hold that the reader neither keeps nor checks (Header,
-#: MessageIndex, ChunkIndex, Attachment, AttachmentIndex, Statistics, MetadataIndex,
-#: SummaryOffset): skipped without being handed on.
-_IGNORED = frozenset((0x01, 0x07, 0x08, 0x09, 0x0A, 0x0B, 0x0D, 0x0E))
 #: Records a chunk may hold.
 _IN_CHUNK = frozenset((OP_SCHEMA, OP_CHANNEL, OP_MESSAGE))
 #: Batches whose raw chunks are remembered for McapSource.raw_chunks (older ones are
 #: forgotten and their messages re-encoded); each holds its ~4 MiB buffer until asked for.
 _RAW_CHUNKS_KEPT = 8
-#: Reads from the stream are done in pieces of at most this many bytes, so a record
-#: length that no file could satisfy never becomes one huge allocation.
-_READ_PIECE = 16 << 20
-#: Chunks declaring at least this many record bytes are decompressed (and CRC-checked) on
-#: a worker thread ahead of their use (zstd, lz4 and the CRC-32 release the GIL), while the
-#: caller decodes the chunks before them; smaller chunks are decompressed in line (a thread
-#: hand-off costs more than they do).
-_THREAD_CHUNK = 64 << 10
-#: Read-ahead of that worker: at most this many chunks, and this many declared record
-#: bytes, in flight (memory stays bounded by a few chunks).
-_PREFETCH_CHUNKS = 4
-_PREFETCH_BYTES = 64 << 20
-_PREFETCH_RECORDS = 1024
 
 
-def _record_name(opcode: int) -> str:
-    return _OPCODE_NAMES.get(opcode, f"opcode {opcode:#04x}")
-
-
-class McapSource:
+class McapSource(RecordStream):
     """Low-level streaming reader over an MCAP file, path, ``"-"`` (stdin) or binary stream.
 
     Attributes
@@ -199,7 +147,7 @@ class McapSource:
         read_ahead: bool = False,
     ) -> None:
         self.strict = strict
-        #: Decompress and CRC-check chunks of >= _THREAD_CHUNK bytes on a worker thread.
+        #: Decompress and CRC-check chunks of >= readahead._THREAD_CHUNK bytes on a worker thread.
         self.read_ahead = read_ahead
         #: Remember the Chunk record of each batch that is exactly one whole chunk, for
         #: :meth:`raw_chunk` (detect copies such chunks without recompressing them).
@@ -275,41 +223,6 @@ class McapSource:
 
     # --- plumbing ------------------------------------------------------------------------
 
-    def _is_seekable(self) -> bool:
-        try:
-            return bool(self._stream.seekable())
-        except (AttributeError, OSError, ValueError):
-            return False
-
-    def _read_exact(self, n: int) -> bytes:
-        """Up to ``n`` bytes (fewer only at the end of the stream), read in bounded pieces."""
-        if n <= 0:
-            return b""
-        chunks = []
-        remaining = n
-        while remaining > 0:
-            part = self._stream.read(min(remaining, _READ_PIECE))
-            if not part:
-                break
-            chunks.append(part)
-            remaining -= len(part)
-        return chunks[0] if len(chunks) == 1 else b"".join(chunks)
-
-    def _skip(self, n: int) -> int:
-        """Skip ``n`` bytes; returns how many were skipped (fewer at the end of the stream)."""
-        if self._seekable:
-            here = self._stream.tell()
-            end = here + n if self._file_size is None else min(here + n, self._file_size)
-            self._stream.seek(end)
-            return end - here
-        skipped = 0
-        while skipped < n:
-            part = self._stream.read(min(n - skipped, _READ_PIECE))
-            if not part:
-                break
-            skipped += len(part)
-        return skipped
-
     def close(self) -> None:
         pool = self._pool
         if pool is not None:
@@ -324,167 +237,6 @@ class McapSource:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
-
-    def _problem(self, message: str) -> None:
-        if self._deferred is not None:  # reading ahead: reported when the reader gets there
-            self._deferred.append((True, message))
-            return
-        if self.strict:
-            raise McapInputError(f"{self.name}: {message}")
-        self.warnings.append(message)
-
-    def _add_schema(self, schema: SchemaInfo) -> None:
-        self.schemas[schema.id] = schema
-        # A channel may have arrived before its schema (allowed in chunks): resolve it now.
-        for channel_id, (schema_id, topic, enc, meta) in list(self._pending_channels.items()):
-            if schema_id == schema.id:
-                self.channels[channel_id] = ChannelInfo(channel_id, topic, enc, meta, schema)
-                del self._pending_channels[channel_id]
-
-    def _add_channel(self, content: bytes) -> None:
-        channel_id, schema_id, topic, encoding, meta = parse_channel(content)
-        if schema_id != 0 and schema_id not in self.schemas:
-            self._pending_channels[channel_id] = (schema_id, topic, encoding, meta)
-            return
-        self.channels[channel_id] = ChannelInfo(
-            channel_id, topic, encoding, meta, self.schemas.get(schema_id)
-        )
-
-    def _add_record(self, opcode: int, content: bytes, position: int) -> None:
-        """Register a Schema, Channel or Metadata record; a malformed one is a problem."""
-        try:
-            if opcode == OP_SCHEMA:
-                self._add_schema(parse_schema(content))
-            elif opcode == OP_CHANNEL:
-                self._add_channel(content)
-            elif opcode == OP_METADATA:
-                name, values = parse_metadata(content)
-                self.metadata[name] = values
-        except McapInputError as err:
-            self._problem(f"{_record_name(opcode)} record at byte {position} skipped: {err}")
-
-    # --- summary (seekable sources) -------------------------------------------------------
-
-    def _read_summary(self) -> None:
-        stream = self._stream
-        try:
-            file_size = stream.seek(0, io.SEEK_END)
-        except OSError:
-            self._seekable = False
-            return
-        self._file_size = file_size
-        summary_start = -1
-        summary_end = file_size - len(MAGIC) - _FOOTER_SIZE
-        summary_crc = 0
-        if file_size >= len(MAGIC) * 2 + _FOOTER_SIZE:
-            stream.seek(summary_end)
-            tail = self._read_exact(_FOOTER_SIZE + len(MAGIC))
-            if tail[-len(MAGIC) :] == MAGIC and tail[0] == OP_FOOTER:
-                summary_start = int(struct.unpack("<Q", tail[9:17])[0])
-                summary_crc = int(struct.unpack("<I", tail[25:29])[0])
-                if summary_start != 0 and not len(MAGIC) < summary_start <= summary_end:
-                    self._problem(
-                        f"footer points at a summary section at byte {summary_start}, outside"
-                        f" the file ({file_size} bytes); reading without it"
-                    )
-                    summary_start = -1
-        if summary_start > 0:
-            stream.seek(summary_start)
-            raw = self._read_exact(summary_end - summary_start)
-            if summary_crc != 0 and crc32(tail[:25], crc32(raw)) != summary_crc:
-                self._problem("summary section CRC mismatch; reading without it")
-            elif self._use_summary(raw, summary_start):
-                return
-            # Else: an unreadable summary, or a metadata index that does not point at
-            # metadata records (written by imufdi <= 0.1.0 while chunks were still being
-            # compressed): scan for the metadata instead.
-        # No usable footer/summary (e.g. a truncated file): scan the top-level records for
-        # metadata without decompressing chunks.
-        stream.seek(len(MAGIC))
-        position = len(MAGIC)
-        while True:
-            head = self._read_exact(9)
-            if len(head) < 9:
-                break
-            opcode = head[0]
-            length = int(struct.unpack("<Q", head[1:9])[0])
-            if length > file_size - position - 9 or opcode in (OP_DATA_END, OP_FOOTER):
-                break
-            if opcode == OP_METADATA and length <= self.limits.max_record_bytes:
-                self._add_record(opcode, self._read_exact(length), position)
-            else:
-                stream.seek(length, io.SEEK_CUR)
-            position += 9 + length
-
-    def _use_summary(self, raw: bytes, summary_start: int) -> bool:
-        """Read channels, statistics and metadata through the summary; False if it is
-        unusable or its metadata index is stale (the metadata are then found by a scan)."""
-        saved = (dict(self.schemas), dict(self.channels), dict(self._pending_channels))
-        try:
-            metadata_offsets = self._parse_summary(raw)
-        except (McapInputError, struct.error, ValueError) as err:
-            self.schemas, self.channels, self._pending_channels = saved
-            self._known_size = -1
-            self._chunk_starts = []
-            self.summary_channel_counts = None
-            self.summary_message_count = None
-            self.summary_time_range = None
-            self._problem(
-                f"summary section at byte {summary_start} unreadable ({_error_text(err)});"
-                " reading without it"
-            )
-            return False
-        assert self._file_size is not None
-        stale = False
-        for offset, length in metadata_offsets:
-            if (
-                offset < len(MAGIC)
-                or length < 9
-                or offset + length > self._file_size
-                or length > self.limits.max_record_bytes
-            ):
-                stale = True
-                continue
-            self._stream.seek(offset)
-            record = self._read_exact(length)
-            if record[0] == OP_METADATA:
-                self._add_record(OP_METADATA, record[9:], offset)
-            else:
-                stale = True
-        return not stale
-
-    def _parse_summary(self, raw: bytes) -> list[tuple[int, int]]:
-        buf = np.frombuffer(raw, dtype=np.uint8)
-        starts, opcodes, lengths, end = scan_records(buf)
-        if end != buf.shape[0]:
-            raise McapInputError(f"malformed record at byte {end} of the summary")
-        metadata_offsets = []
-        chunk_starts: list[int] = []
-        for start, opcode, length in zip(starts.tolist(), opcodes.tolist(), lengths.tolist()):
-            content = raw[start + 9 : start + 9 + length]
-            if opcode == OP_SCHEMA:
-                self._add_schema(parse_schema(content))
-            elif opcode == OP_CHANNEL:
-                self._add_channel(content)
-            elif opcode == OP_METADATA_INDEX:
-                offset, record_length = struct.unpack("<QQ", content[:16])
-                metadata_offsets.append((int(offset), int(record_length)))
-            elif opcode == 0x08:  # ChunkIndex: where each chunk starts
-                (chunk_start,) = struct.unpack_from("<Q", content, 16)
-                chunk_starts.append(int(chunk_start))
-            elif opcode == 0x0B:  # Statistics
-                cur = _Cursor(content, "Statistics")
-                self.summary_message_count = cur.u64()
-                cur.take(2 + 4 * 4)
-                self.summary_time_range = (cur.u64(), cur.u64())
-                end = cur.u32() + cur.pos
-                counts = {}
-                while cur.pos < end:
-                    cid = cur.u16()
-                    counts[cid] = cur.u64()
-                self.summary_channel_counts = counts
-        self._chunk_starts = sorted(chunk_starts)
-        return metadata_offsets
 
     # --- data ------------------------------------------------------------------------------
 
@@ -527,228 +279,19 @@ class McapSource:
             while self._pushback:
                 yield self._pushback.pop(0)
 
-    def _take(self, n: int) -> bytes:
-        """Up to ``n`` bytes of the data section (fewer only at the end of the stream),
-        through a read-ahead buffer: small records cost no stream call each."""
-        available = len(self._ahead) - self._ahead_pos
-        if n <= available:
-            start = self._ahead_pos
-            self._ahead_pos += n
-            return self._ahead[start : start + n]
-        if n >= _READ_DIRECT and (self._file_size is not None or n <= _READ_PIECE):
-            # a large record (a chunk): what the read-ahead buffer holds of it, then the
-            # rest read straight into place (one copy; the size was checked against the
-            # rest of the file, or is small enough to allocate up front)
-            out = bytearray(n)
-            out[:available] = memoryview(self._ahead)[self._ahead_pos :]
-            self._ahead, self._ahead_pos = b"", 0
-            got = available + self._read_into(memoryview(out)[available:])
-            return out if got == n else out[:got]  # type: ignore[return-value]
-        rest = self._ahead[self._ahead_pos :]
-        self._ahead, self._ahead_pos = b"", 0
-        if n > _READ_AHEAD:
-            return rest + self._read_exact(n - len(rest))
-        self._ahead = rest + self._read_exact(_READ_AHEAD - len(rest))
-        return self._take(min(n, len(self._ahead)))
-
-    def _read_into(self, view: memoryview) -> int:
-        """Fill ``view`` from the stream (fewer bytes only at its end); returns how many
-        were read."""
-        readinto = getattr(self._stream, "readinto", None)
-        filled = 0
-        while filled < len(view):
-            if readinto is not None:
-                got = readinto(view[filled : filled + _READ_PIECE])
-            else:
-                part = self._stream.read(min(len(view) - filled, _READ_PIECE))
-                view[filled : filled + len(part)] = part
-                got = len(part)
-            if not got:
-                break
-            filled += got
-        return filled
-
-    def _discard(self, n: int) -> int:
-        """Skip ``n`` bytes of the data section; returns how many were skipped."""
-        available = len(self._ahead) - self._ahead_pos
-        if n <= available:
-            self._ahead_pos += n
-            return n
-        self._ahead, self._ahead_pos = b"", 0
-        return available + self._skip(n - available)
-
-    def _next_record(self, position: int) -> tuple[int, int, bytes | None] | None:
-        """The record at ``position``: (opcode, content length, content or None if skipped),
-        or None at the end of the data (after reporting why)."""
-        head = self._take(9)
-        if len(head) < 9:
-            if head:
-                self._problem(f"truncated MCAP: record header cut at byte {position}")
-            else:
-                self._problem(f"truncated MCAP: file ends at byte {position} without a footer")
-            return None
-        opcode, length = _RECORD_HEAD.unpack(head)
-        if self._file_size is not None and length > self._file_size - position - 9:
-            remaining = max(self._file_size - position - 9, 0)
-            self._problem(
-                f"corrupt or truncated MCAP: {_record_name(opcode)} record at byte {position}"
-                f" claims {length} bytes but {remaining} remain"
-            )
-            return None
-        if opcode not in _HELD:
-            skipped = self._discard(length)
-            if skipped < length:
-                self._problem(
-                    f"truncated MCAP: {_record_name(opcode)} record at byte {position} is cut"
-                    f" after {skipped} of {length} bytes; read up to the cut"
-                )
-                return None
-            return opcode, length, None
-        if length > self.limits.max_record_bytes:
-            self._problem(
-                f"corrupt MCAP: {_record_name(opcode)} record at byte {position} claims"
-                f" {length} bytes, over the limit of {self.limits.max_record_bytes}"
-                " (IMUFDI_MAX_RECORD_BYTES)"
-            )
-            return None
-        content = self._take(length)
-        if len(content) < length:
-            self._problem(
-                f"truncated MCAP: {_record_name(opcode)} record at byte {position} is cut"
-                f" after {len(content)} of {length} bytes; read up to the cut"
-            )
-            return None
-        return opcode, length, content
-
-    def _resume_after(self, position: int) -> int | None:
-        """After a damaged record at ``position``: the next chunk the summary's chunk index
-        knows (seekable files with a usable summary), positioned to read; else None."""
-        if self._file_size is None or not self._chunk_starts:
-            return None
-        index = bisect.bisect_right(self._chunk_starts, position)
-        if index == len(self._chunk_starts):
-            return None
-        resume = self._chunk_starts[index]
-        if resume >= self._file_size:
-            return None
-        self._ahead, self._ahead_pos = b"", 0
-        self._stream.seek(resume)
-        message = f"resumed reading at the chunk at byte {resume} (from the summary's chunk index)"
-        if self._deferred is not None:
-            self._deferred.append((False, message))
-        else:
-            self.warnings.append(message)
-        return resume
-
-    def _records(self) -> Iterator[tuple[int, int, bytes | None, int]]:
-        """The data section's records in file order: (opcode, content length, content or
-        None if skipped, byte offset); after a damaged record, reading resumes at the next
-        chunk the summary knows. Ends after a DataEnd or Footer record."""
-        self._ahead, self._ahead_pos = b"", 0
-        position = len(MAGIC)
-        while True:
-            record = self._next_record(position)
-            if record is None:
-                resume = self._resume_after(position)
-                if resume is None:
-                    return
-                position = resume
-                continue
-            opcode, length, content = record
-            if content is not None or opcode not in _IGNORED:
-                yield opcode, length, content, position
-            position += 9 + length
-            if opcode in (OP_FOOTER, OP_DATA_END):
-                return
-            # Records nobody reads (the MessageIndex records after every chunk) that lie
-            # whole in the read-ahead buffer are stepped over here, a few hundred ns each.
-            ahead, at = self._ahead, self._ahead_pos
-            end = len(ahead)
-            limit = None if self._file_size is None else self._file_size - 9
-            while at + 9 <= end:
-                opcode, length = _RECORD_HEAD.unpack_from(ahead, at)
-                if (
-                    opcode not in _IGNORED
-                    or at + 9 + length > end
-                    or (limit is not None and length > limit - position)
-                ):
-                    break
-                at += 9 + length
-                position += 9 + length
-            self._ahead_pos = at
-
     def _prefetched(
         self,
     ) -> Iterator[tuple[tuple[int, int, bytes | None, int], _Ahead | None]]:
-        """:meth:`_records`, with large chunks decompressed and CRC-checked on a worker
-        thread up to ``_PREFETCH_CHUNKS`` chunks ahead: each record comes with the future of
-        its chunk's records and the id of the process that asked for it (or None). Problems met while reading ahead are held and
-        reported (or raised, with ``strict``) when the record they precede is handed out,
-        so warnings, errors and batches come in the same order as without read-ahead."""
+        """:meth:`_records`, each with the future of its chunk's records on the worker
+        thread (or None): see :func:`~imufdi_cli.mcapio.readahead.read_ahead`."""
         records = self._records()
         if not self.read_ahead:  # nothing is read ahead: records as they come
             for record in records:
                 yield record, None
             return
-        queue: deque[tuple[Any, list[tuple[bool, str]], _Ahead | None, int]] = deque()
-        in_flight = 0  # chunks on the worker
-        in_flight_bytes = 0
-        exhausted = False
-        try:
-            while True:
-                # read one record when there is none; more only while chunks are being
-                # decompressed, to find the next ones (bounded in chunks, bytes, records)
-                while not exhausted and (
-                    not queue
-                    or (
-                        0 < in_flight < _PREFETCH_CHUNKS
-                        and in_flight_bytes < _PREFETCH_BYTES
-                        and len(queue) < _PREFETCH_RECORDS
-                    )
-                ):
-                    notes: list[tuple[bool, str]] = []
-                    self._deferred = notes
-                    try:
-                        item = next(records, None)
-                    finally:
-                        self._deferred = None
-                    future: _Ahead | None = None
-                    size = 0
-                    if item is None:
-                        exhausted = True
-                    elif item[0] == OP_CHUNK and item[2] is not None:
-                        size = _declared_size(item[2])
-                        if size >= _THREAD_CHUNK and self.read_ahead:
-                            job = self._worker().submit(
-                                _unpack_chunk,
-                                item[2],
-                                self.limits.max_chunk_bytes,
-                                self.validate_crcs,
-                                None,
-                                not self.strict,
-                            )
-                            future = (job, os.getpid())
-                            in_flight += 1
-                            in_flight_bytes += size
-                    queue.append((item, notes, future, size))
-                if not queue:
-                    return
-                item, notes, future, size = queue.popleft()
-                if future is not None:
-                    in_flight -= 1
-                    in_flight_bytes -= size
-                for is_problem, message in notes:
-                    if is_problem:
-                        self._problem(message)
-                    else:
-                        self.warnings.append(message)
-                if item is None:
-                    return
-                yield item, future
-        finally:
-            for _, _, future, _ in queue:
-                if future is not None:
-                    future[0].cancel()
+        from imufdi_cli.mcapio.readahead import read_ahead
+
+        yield from read_ahead(self, records)
 
     def _worker(self) -> ThreadPoolExecutor:
         """The read-ahead thread's executor, made on first use (and anew in a forked child
@@ -827,36 +370,7 @@ class McapSource:
             self._problem(f"{where}: {int(bad.sum())} malformed Message record(s) skipped")
             content_starts = content_starts[~bad]
             content_lengths = content_lengths[~bad]
-        step = _even_step(content_starts)
-        if step and int(content_starts[-1]) + MESSAGE_FIXED_CONTENT <= buf.shape[0]:
-            # evenly spaced records: each field through a typed strided view, copied once
-            # (a 22-byte element gather costs several times more)
-            n, first = content_starts.shape[0], int(content_starts[0])
-
-            def field(name: str, dtype: type) -> np.ndarray:
-                code, at = _MESSAGE_FIELDS.fields[name][:2]  # type: ignore[index]
-                view = np.ndarray((n,), code, buf, first + at, (step,))
-                return view.astype(dtype)
-
-        else:
-            fields = (
-                gather_bytes(buf, content_starts, MESSAGE_FIXED_CONTENT)
-                .reshape(-1)
-                .view(_MESSAGE_FIELDS)
-            )
-
-            def field(name: str, dtype: type) -> np.ndarray:
-                return fields[name].astype(dtype)
-
-        batch = MessageBatch(
-            channel_id=field("channel_id", np.uint16),
-            sequence=field("sequence", np.uint32),
-            log_time=field("log_time", np.int64),
-            publish_time=field("publish_time", np.int64),
-            data=buf,
-            offset=content_starts + MESSAGE_FIXED_CONTENT,
-            length=content_lengths - MESSAGE_FIXED_CONTENT,
-        )
+        batch = message_batch(buf, content_starts, content_lengths)
         known = self._known_lookup()[batch.channel_id]
         if not bool(known.all()):
             missing = sorted(set(np.unique(batch.channel_id[~known]).tolist()))
@@ -974,87 +488,6 @@ class McapSource:
 #: (chunk copied verbatim or None, message count, byte offset of its records in the batch)
 ChunkRun = tuple[RawChunk | None, int, int]
 
-#: (records, "") of a usable chunk, or (None, why it is not)
-_Unpacked = tuple[bytes | memoryview | None, str]
-#: A chunk being unpacked on the worker thread, and the process id that asked for it (a
-#: forked child never gets the answer: it unpacks the chunk itself)
-_Ahead = tuple["Future[_Unpacked]", int]
-
-
-def _even_step(starts: np.ndarray) -> int:
-    """The constant positive distance between consecutive ``starts`` (at least two), or 0
-    when they are not evenly spaced."""
-    n = starts.shape[0]
-    if n < 2:
-        return 0
-    first = int(starts[0])
-    step = int(starts[1]) - first
-    if step <= 0 or int(starts[-1]) != first + (n - 1) * step:
-        return 0
-    if n > 2 and np.count_nonzero(np.diff(starts) != step):
-        return 0
-    return step
-
-
-def _declared_size(content: bytes) -> int:
-    """The uncompressed size a Chunk record's content declares (0 if it is too short)."""
-    if len(content) < _CHUNK_HEAD.size:
-        return 0
-    return int(_CHUNK_HEAD.unpack_from(content)[2])
-
-
-def _unpack_chunk(
-    content: bytes,
-    max_chunk_bytes: int,
-    validate_crcs: bool,
-    slot: Callable[[int], memoryview] | None = None,
-    trust_frame_checksum: bool = False,
-) -> _Unpacked:
-    """A Chunk record's records, decompressed and (with ``validate_crcs``) CRC-checked, or
-    why the chunk is unusable. A zstd chunk of more than ``_SMALL_CHUNK`` bytes is
-    decompressed into ``slot(size)`` when given (no allocation, no later copy). Touches
-    no reader state (runs on the worker thread, without ``slot``). With
-    ``trust_frame_checksum`` the CRC-32 is skipped when the zstd frame's content checksum
-    already verified every record byte (:func:`~imufdi_cli.mcapio.compression.frame_checksummed`)."""
-    try:
-        if len(content) < _CHUNK_HEAD.size + 8:
-            raise McapInputError("malformed Chunk record (shorter than its fields)")
-        _, _, uncompressed_size, crc, name_length = _CHUNK_HEAD.unpack_from(content)
-        records_at = _CHUNK_HEAD.size + name_length + 8
-        if records_at > len(content):
-            raise McapInputError("malformed Chunk record (compression name past its end)")
-        compression = content[_CHUNK_HEAD.size : records_at - 8].decode("utf-8", "replace")
-        (records_length,) = struct.unpack_from("<Q", content, records_at - 8)
-        if records_length != len(content) - records_at:
-            raise McapInputError(
-                f"records length {records_length} does not match the record"
-                f" ({len(content) - records_at} bytes left)"
-            )
-        if uncompressed_size > max_chunk_bytes:
-            raise McapInputError(
-                f"declares {uncompressed_size} uncompressed bytes, over the limit of"
-                f" {max_chunk_bytes} (IMUFDI_MAX_CHUNK_BYTES)"
-            )
-        data = memoryview(content)[records_at:]
-        framed = (
-            validate_crcs
-            and trust_frame_checksum
-            and frame_checksummed(data, compression, uncompressed_size)
-        )
-        raw: bytes | memoryview
-        if slot is not None and compression == "zstd" and uncompressed_size > _SMALL_CHUNK:
-            raw = slot(uncompressed_size)
-            decompress_into(data, compression, raw)
-        else:
-            raw = decompress(data, compression, uncompressed_size)
-    except McapInputError as err:
-        return None, str(err)
-    if validate_crcs and crc != 0 and not framed:
-        actual = crc32(raw)
-        if actual != crc:
-            return None, (f"CRC mismatch (records CRC-32 {actual:#010x}, chunk says {crc:#010x})")
-    return raw, ""
-
 
 def _raw_chunk(content: bytes) -> RawChunk:
     """A :class:`RawChunk` of a Chunk record's content (already checked by the reader)."""
@@ -1069,11 +502,6 @@ def _raw_chunk(content: bytes) -> RawChunk:
         compressed_size=len(content) - records_at,
         compression=compression,
     )
-
-
-def _error_text(err: BaseException) -> str:
-    text = " ".join(str(err).split())
-    return text or type(err).__name__
 
 
 def iter_topic(

@@ -38,3 +38,23 @@ def test_vectorised_crcs_match_per_frame_references(rows):
     data = np.frombuffer(b"".join(rows), dtype=np.uint8).reshape(len(rows), 7)
     assert_array_equal(crc32(data), [zlib.crc32(r) for r in rows])
     assert_array_equal(crc16_ccitt_false(data), [_crc16_bitwise(r) for r in rows])
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.integers(min_value=1, max_value=60),
+    st.integers(min_value=0, max_value=40),
+    st.integers(min_value=0, max_value=2**32 - 1),
+)
+def test_crc16_of_strided_frames_of_any_length_matches_binascii(length, n_frames, seed):
+    # binascii.crc_hqx with initial value 0xFFFF is CRC-16/CCITT-FALSE (poly 0x1021, not
+    # reflected, no final xor): an independent C implementation. Frames are overlapping
+    # windows of one buffer (row stride 3, not their length), as the parser passes them.
+    import binascii
+
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    buffer = np.random.default_rng(seed).integers(0, 256, 3 * n_frames + length, np.uint8)
+    frames = sliding_window_view(buffer, length)[::3][:n_frames]
+    expected = [binascii.crc_hqx(bytes(row), 0xFFFF) for row in frames]
+    assert_array_equal(crc16_ccitt_false(frames), np.array(expected, np.uint32))

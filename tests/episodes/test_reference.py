@@ -163,3 +163,77 @@ def test_motion_errors_are_fitted_out_of_step_intervals() -> None:
     assert right / trials >= 0.97
     low, high = coverage_band(right)
     assert low <= covered / right <= high
+
+
+def test_correlation_of_the_leave_two_out_residuals_of_co_aligned_triads() -> None:
+    """16 co-aligned triads, sensor 0 (an x gyro) isolated: the 15 other x residuals, each
+    against the mean of the 14 x gyros other than itself and sensor 0, correlate with -1/14;
+    the 16 y (and z) residuals, each against the mean of the other 15, with -1/15. So
+    tr R^2 = 15 + 15 * 14 / 14^2 + 2 (16 + 16 * 15 / 15^2) = 50.21 and the Satterthwaite
+    dof m^2 / tr R^2 = 44 = 47 - 3, the rank of the residuals."""
+    from imufdi_cli.episodes.reference import correlation_sq, leave_two_out
+
+    H = np.tile(np.eye(3), (16, 1))
+    found = leave_two_out(H, np.full(48, SIGMA), 0, None, None)
+    assert found is not None
+    A = found[0]
+    expected = 15 + 15 * 14 / 14**2 + 2 * (16 + 16 * 15 / 15**2)
+    assert correlation_sq(A, np.full(48, SIGMA)) == pytest.approx(expected, rel=1e-12)
+    assert 47**2 / expected == pytest.approx(44.0, abs=1e-3)
+    # uncorrelated residuals: tr R^2 = m
+    assert correlation_sq(np.eye(5), np.full(5, 2.0)) == pytest.approx(5.0)
+
+
+def test_successive_variance_is_von_neumanns_estimate() -> None:
+    from imufdi_cli.episodes.reference import Reference, successive_variance
+
+    x = np.array([[0.0, 1.0], [1.0, 1.0], [3.0, 1.0]])
+    # differences (1, 2) and (0, 0): (1 + 4) / (2 * 2)
+    assert_allclose(successive_variance(x), [1.25, 0.0])
+    assert_allclose(Reference(x, np.ones(2), np.zeros(2)).white_variance, [1.25, 0.0])
+
+
+@pytest.mark.slow  # 1500 windows of 48 gyros and 300 calibrations, about 4 s
+def test_the_healthy_sensors_test_holds_its_level_with_outliers_and_calibrated_sigmas() -> None:
+    """paper-table4's noise: 16 co-aligned triads, white sigma 0.15 deg/s and outliers of
+    +-1 deg/s on 0.1 % of the samples (4.4 % of the variance), sigmas calibrated from 200
+    samples (residual_sigma leaves the outliers out), the reference residuals of a builder,
+    no fault anywhere. The healthy sensors' test must widen a step's interval in 5 % of the
+    windows (its level): 1500 windows, Binomial(1500, 0.05), 3.5 sd allowed. Against the
+    calibrated sigmas and chi-square(47) it widened 9-10 % (diagnostic episodes of seeds
+    100-159: 9.5 %)."""
+    from imufdi_cli.detectors.parity import residual_sigma
+    from imufdi_cli.episodes import EpisodeBuilder
+    from imufdi_cli.episodes.reference import _dispersion
+
+    rng = np.random.default_rng(31)
+    H = np.tile(np.eye(3), (16, 1))
+    truth = np.deg2rad([10.0, 10.0, 10.0]) @ H.T
+
+    def noise(rows: int) -> np.ndarray:
+        out = rng.normal(0, SIGMA, (rows, 48))
+        hit = rng.random((rows, 48)) < 0.001
+        out[hit] += np.deg2rad(1.0) * rng.choice([-1.0, 1.0], int(hit.sum()))
+        return truth + out
+
+    trials, widened, length, n = 1500, 0, 400, 250
+    w = np.full(n, 1 / n)  # a step's estimate over the last n samples
+    for trial in range(trials):
+        if trial % 5 == 0:  # a new calibration every 5 windows (its errors count)
+            cal = noise(200)
+            builder = EpisodeBuilder(
+                "x",
+                "gyro",
+                H,
+                [str(i) for i in range(48)],
+                residual_sigma(H, cal),
+                RATE,
+                calibration_mean=cal.mean(axis=0),
+                calibration_samples=200,
+            )
+        k = int(rng.integers(48))
+        reference = builder._reference(k, noise(length))
+        assert reference is not None
+        _, wide = _dispersion(w, reference, SIGMA**2, 1 / 200, 0.9)
+        widened += wide is not None
+    assert abs(widened / trials - 0.05) <= 3.5 * math.sqrt(0.05 * 0.95 / trials)

@@ -75,3 +75,40 @@ def test_a_frozen_output_on_a_constant_rate_is_found_by_the_variance_drop() -> N
     assert episode.detector == VARIANCE_DROP and episode.sensors == ["s7"]
     assert episode.fault_class == "stuck"
     assert freeze * 10_000_000 < episode.start_ns <= (freeze + 100) * 10_000_000
+
+
+def test_each_sensor_is_tested_against_the_quantile_of_its_own_calibration_dof() -> None:
+    """Two sensors with the same windows of noise but different calibration dof: each
+    alarms exactly when its ratio falls below its own F quantile (a smaller dof lowers the
+    quantile), and one common dof gives the statistic -ln(min ratio) as before."""
+    from imufdi_cli.episodes import VarianceDropMonitor, successive_difference_dof
+    from imufdi_cli.episodes.numerics import _f_quantile
+
+    window = 50
+    rng = np.random.default_rng(35)
+    x = rng.normal(0, SIGMA, (4000, 1)) * np.array([[1.0, 1.0]])
+    x[:, 1] += rng.normal(0, 1e-12, 4000)  # the same ratios to 1e-9, not the same floats
+    dofs = np.array([30.0, 300.0])
+    monitor = VarianceDropMonitor(
+        np.eye(2), np.full(2, SIGMA**2), window=window, alpha=0.1, calibration_dof=dofs
+    )
+    rows = monitor.update(x)
+    quantiles = [_f_quantile(0.1, successive_difference_dof(window + 1), d) for d in dofs]
+    assert quantiles[0] < quantiles[1]
+    ratio = np.full((4000, 2), np.inf)
+    half = 0.5 * np.diff(x, axis=0) ** 2
+    sums = np.cumsum(half, axis=0)
+    ratio[window:] = (sums[window - 1 :] - np.concatenate([[[0, 0]], sums[:-window]])) / (
+        window * SIGMA**2
+    )
+    below = ratio < np.array(quantiles)
+    decided = np.abs(ratio / np.array(quantiles) - 1) > 1e-6  # away from the cut
+    assert np.all(rows.alarm[decided.all(axis=1)] == below.any(axis=1)[decided.all(axis=1)])
+    only_second = below[:, 1] & ~below[:, 0] & decided.all(axis=1)
+    assert only_second.any() and np.all(rows.isolated[only_second] == 1)
+    common = VarianceDropMonitor(
+        np.eye(2), np.full(2, SIGMA**2), window=window, alpha=0.1, calibration_dof=300.0
+    ).update(x)
+    assert np.all(common.threshold == -math.log(quantiles[1]))
+    ready = np.isfinite(ratio[:, 0])
+    assert np.allclose(common.statistic[ready], -np.log(ratio[ready].min(axis=1)), rtol=1e-9)

@@ -156,3 +156,30 @@ def test_white_sigma_excess_is_one_for_gaussian_noise_and_grows_with_outliers() 
     empirical = squared.var(axis=0, ddof=1)
     assert float(np.mean(empirical / predicted)) > measured
     assert float(np.mean(predicted * measured / empirical)) <= 1 + 4 * math.sqrt(2 / trials) * 1.5
+
+
+def test_white_variance_dof_matches_the_spread_of_the_calibrated_residual_variance() -> None:
+    """The variance-drop monitor's calibrated white variance of sensor k's residual,
+    ``v_k = s_k + sum_i g_i^2 s_i``, over 800 calibrations of six co-aligned triads with
+    different sigmas: :func:`white_variance_dof` (``2 v_k^2 / (D + 2 B + A)``) against the
+    Monte Carlo ``2 v_k^2 / Var(v_hat_k)`` for every sensor. Tolerance: 4 standard errors of
+    a sample variance (sqrt(2 / T), times 1.2 for the estimates' excess kurtosis)."""
+    from imufdi_cli.episodes import _consensus_gain, white_sigma, white_sigma_covariance
+    from imufdi_cli.episodes.white_noise import white_variance_dof
+
+    rng = np.random.default_rng(33)
+    H = np.tile(np.eye(3), (6, 1))
+    sigma = SIGMA * np.linspace(0.8, 1.3, 18)
+    n_cal, trials = 200, 800
+    draws = np.array(
+        [white_sigma(H, rng.normal(0, sigma, (n_cal, 18))) ** 2 for _ in range(trials)]
+    )
+    cov = white_sigma_covariance(H, sigma, n_cal)
+    rel = 4 * math.sqrt(2 / (trials - 1)) * 1.2
+    for k in range(18):
+        gain, _ = _consensus_gain(H, sigma, k)
+        v = sigma[k] ** 2 + float(np.sum(gain**2 * sigma**2))
+        measured = 2 * v**2 / float((draws[:, k] + draws @ gain**2).var(ddof=1))
+        assert white_variance_dof(cov, gain, k, v, 0.0) == pytest.approx(measured, rel=rel)
+    # a degenerate spread gives the default
+    assert white_variance_dof(np.zeros((18, 18)), gain, 0, 1.0, 7.0) == 7.0

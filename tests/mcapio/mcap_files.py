@@ -1,5 +1,6 @@
 """Small IMU-array MCAP files written by the ``mcap`` package (chunked or not), for the
-reader's robustness tests."""
+reader's robustness tests, and helpers to read them (through a pipe, with the ``mcap``
+package, record by record)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,10 @@ import zlib
 import lz4.frame
 import numpy as np
 import zstandard
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from imufdi_cli.mcapio import encode_messages
+from imufdi_cli.mcapio import McapSource, encode_messages
 from imufdi_cli.mcapio.schemas import IMU_SCHEMA, IMU_SCHEMA_NAME
 
 T0_NS = 1_700_000_000_000_000_000
@@ -136,3 +138,48 @@ def imu_file_with_schema(schema_text: bytes, *, n_samples: int = 20) -> bytes:
         writer.add_message(channel, int(t_ns[i]), batch.payload(i), int(t_ns[i]), i)
     writer.finish()
     return stream.getvalue()
+
+
+class Unseekable(io.BytesIO):
+    """A stream like stdin in a pipe: no seeking, so no summary."""
+
+    def seekable(self) -> bool:
+        return False
+
+
+def mcap_package_count(data: bytes) -> int:
+    """Messages the mcap package's non-indexed reader yields before it stops."""
+    count = 0
+    try:
+        for record in StreamReader(io.BytesIO(data), skip_magic=False).records:
+            count += type(record).__name__ == "Message"
+    except Exception:
+        pass
+    return count
+
+
+def read_count(data: bytes, *, seekable: bool) -> tuple[int, list[str]]:
+    """Messages McapSource reads from ``data`` (through a pipe unless ``seekable``), and
+    its warnings."""
+    stream = io.BytesIO(data) if seekable else Unseekable(data)
+    with McapSource(stream) as source:
+        return sum(len(batch) for batch in source.batches()), source.warnings
+
+
+def top_records(data: bytes) -> list[tuple[int, int, int]]:
+    """(offset, opcode, content length) of the top-level records of a whole file."""
+    out = []
+    position = 8
+    while position + 9 <= len(data) - 8:
+        opcode = data[position]
+        (length,) = struct.unpack_from("<Q", data, position + 1)
+        out.append((position, opcode, length))
+        position += 9 + length
+    return out
+
+
+def read_strict(data: bytes) -> None:
+    """Read ``data`` through a pipe with ``strict`` (raises at the first problem)."""
+    with McapSource(Unseekable(data), strict=True) as source:
+        for _ in source.batches():
+            pass

@@ -1,15 +1,18 @@
-"""Chunk compression helpers: the CRC-32 every chunk carries."""
+"""Chunk compression helpers: the CRC-32 every chunk carries, bounded decompression, and a
+Chunk record's unpacking (fields, limit, CRC) with the reader's warnings about it."""
 
 from __future__ import annotations
 
+import io
 import zlib
 
 import numpy as np
 import pytest
 
 from imufdi_cli.errors import McapInputError
-from imufdi_cli.mcapio import compression
+from imufdi_cli.mcapio import McapSource, compression
 from imufdi_cli.mcapio.compression import decompress_into
+from tests.mcapio.mcap_files import chunk_record, wrap
 
 
 def test_crc32_is_zlibs_crc32() -> None:
@@ -75,3 +78,55 @@ def test_decompress_into_matches_decompress(kind: str) -> None:
             compression.decompress(packed, kind, size)
         with pytest.raises(McapInputError, match=pattern):
             _into(packed, kind, size)
+
+
+@pytest.mark.parametrize("kind", ["zstd", "lz4", ""])
+@pytest.mark.parametrize("lie", ["small", "large"])
+def test_chunk_size_other_than_declared_is_a_named_problem(kind: str, lie: str) -> None:
+    records = bytes(range(200)) * 20
+    declared = 1000 if lie == "small" else len(records) + 1000
+    data = wrap(chunk_record(records, kind, declared=declared))
+    with McapSource(io.BytesIO(data)) as source:
+        assert list(source.batches()) == []
+    (warning,) = source.warnings
+    assert warning.startswith("chunk at byte 33 skipped: ")
+    assert "declared" in warning and not warning.endswith(":")
+
+
+def test_corrupt_compressed_data_has_a_reason() -> None:
+    records = bytes(range(200)) * 20
+    for kind in ("zstd", "lz4"):
+        chunk = bytearray(chunk_record(records, kind))
+        chunk[60:70] = b"\xff" * 10
+        with McapSource(io.BytesIO(wrap(bytes(chunk)))) as source:
+            list(source.batches())
+        (warning,) = source.warnings
+        reason = warning.split(":", 1)[1].strip()
+        assert reason and not warning.endswith(":"), warning
+
+
+@pytest.mark.parametrize("kind", ["zstd", "lz4", ""])
+def test_unpack_chunk_gives_the_records_or_why_not(kind: str) -> None:
+    """A Chunk record's content unpacks to its records, into a caller's buffer too (zstd
+    over 4 KiB); a wrong CRC, a size over the limit and a cut record are named reasons."""
+    records = bytes(range(256)) * 40  # 10240 bytes
+    content = chunk_record(records, kind)[9:]
+    assert compression._declared_size(content) == len(records)
+    raw, why = compression._unpack_chunk(content, 1 << 20, True)
+    assert bytes(raw) == records and why == ""  # type: ignore[arg-type]
+    target = bytearray(len(records))
+    raw, why = compression._unpack_chunk(content, 1 << 20, True, lambda n: memoryview(target)[:n])
+    assert bytes(raw) == records and why == ""  # type: ignore[arg-type]
+    assert (bytes(target) == records) == (kind == "zstd")  # only zstd goes into the slot
+    bad_crc = bytearray(content)
+    bad_crc[24] ^= 0x01
+    assert compression._unpack_chunk(bytes(bad_crc), 1 << 20, True)[1].startswith("CRC mismatch")
+    assert compression._unpack_chunk(bytes(bad_crc), 1 << 20, False)[0] is not None
+    raw, why = compression._unpack_chunk(content, len(records) - 1, True)
+    assert raw is None and "IMUFDI_MAX_CHUNK_BYTES" in why
+    raw, why = compression._unpack_chunk(content[:-1], 1 << 20, True)
+    assert raw is None and "records length" in why
+    assert compression._unpack_chunk(content[:30], 1 << 20, True) == (
+        None,
+        "malformed Chunk record (shorter than its fields)",
+    )

@@ -129,3 +129,81 @@ def test_the_mcap_package_reads_checksummed_chunks(tmp_path, compression):
     with open(path, "rb") as stream:
         reader = make_reader(stream, validate_crcs=True)
         assert [m.data for _, _, m in reader.iter_messages()] == payloads
+
+
+def _blob_log(path, channels: int = 2, per_channel: int = 200) -> None:
+    """A zstd log of one chunk (large enough to be copied verbatim): ``channels`` blob
+    channels of 64-byte messages, interleaved."""
+    with McapWriter(path) as writer:
+        schema = writer.register_schema("raw/Blob", "", b"")
+        ids = [writer.register_channel(f"/b{c}", "raw", schema) for c in range(channels)]
+        n = channels * per_channel
+        payload = (np.arange(n * 64) % 251).astype(np.uint8).tobytes()
+        writer.add_batch(
+            MessageBatch(
+                channel_id=np.tile(np.array(ids, np.uint16), per_channel),
+                sequence=np.zeros(n, np.uint32),
+                log_time=np.repeat(np.arange(per_channel, dtype=np.int64) * 10 + 100, channels),
+                publish_time=np.zeros(n, np.int64),
+                data=np.frombuffer(payload, np.uint8),
+                offset=np.arange(n, dtype=np.int64) * 64,
+                length=np.full(n, 64, np.uint32),
+            )
+        )
+
+
+def _raw_runs(path):
+    from imufdi_cli.mcapio.source import McapSource
+
+    source = McapSource(str(path), keep_raw_chunks=True)
+    out = []
+    for batch in source.batches():
+        out.append((batch, source.raw_chunks(batch)))
+    return source, out
+
+
+def test_add_raw_chunk_copies_the_chunk_and_writes_queued_messages_of_its_channels_first(
+    tmp_path,
+):
+    src = tmp_path / "in.mcap"
+    _blob_log(src)
+    source, runs = _raw_runs(src)
+    ((batch, chunk_runs),) = runs
+    ((raw, count, records_at),) = chunk_runs
+    assert raw is not None and count == len(batch)
+    out = tmp_path / "out.mcap"
+    with McapWriter(out) as writer:
+        for cid, info in sorted(source.channels.items()):
+            schema = writer.register_schema("raw/Blob", "", b"")
+            assert writer.register_channel(info.topic, "raw", schema) == cid
+        first = int(batch.channel_id[0])
+        # an earlier message of one of the chunk's channels, still queued: written first
+        writer.add_batch(
+            MessageBatch(
+                channel_id=np.array([first], np.uint16),
+                sequence=np.zeros(1, np.uint32),
+                log_time=np.array([50], np.int64),
+                publish_time=np.zeros(1, np.int64),
+                data=np.zeros(4, np.uint8),
+                offset=np.zeros(1, np.int64),
+                length=np.full(1, 4, np.uint32),
+            )
+        )
+        writer.add_raw_chunk(raw, batch, records_at)
+    assert raw.content in out.read_bytes()  # the input's chunk, byte for byte
+    with open(out, "rb") as f:
+        times = [m.log_time for _, _, m in make_reader(f).iter_messages(log_time_order=False)]
+    assert times == [50, *batch.log_time.tolist()]
+
+
+def test_add_raw_chunk_refuses_unregistered_channels(tmp_path):
+    src = tmp_path / "in.mcap"
+    _blob_log(src)
+    _, runs = _raw_runs(src)
+    ((batch, chunk_runs),) = runs
+    ((raw, _, records_at),) = chunk_runs
+    with McapWriter(tmp_path / "out.mcap") as writer:
+        schema = writer.register_schema("raw/Blob", "", b"")
+        writer.register_channel("/b0", "raw", schema)  # the second channel is not registered
+        with pytest.raises(UsageError, match="unregistered channel id 1"):
+            writer.add_raw_chunk(raw, batch, records_at)

@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from imufdi_cli.mcapio.scan import RecordPattern, scan_records
+from imufdi_cli.mcapio.scan import RecordPattern, message_batch, scan_records
 
 
 def records(lengths: list[int], opcode: int = 0x05) -> bytes:
@@ -73,3 +73,35 @@ def test_learn() -> None:
     irregular = np.arange(16, dtype=np.int64) + 30
     size = int(irregular.sum()) + 9 * 16
     assert RecordPattern.learn(np.full(16, 5, np.uint8), irregular, size) is None
+
+
+@pytest.mark.parametrize(
+    "lengths", [[30, 30, 30, 30], [30, 41, 22, 30, 25]], ids=["even", "uneven"]
+)
+def test_message_batch_reads_every_header(lengths: list[int]) -> None:
+    """Header fields of Message records (channel u16, sequence u32, log and publish time
+    u64) read at once, evenly spaced (strided view) or not (gather), as struct reads them."""
+    heads = [(3 + i, 100 + i, 10**18 + i, 2 * 10**18 - i) for i in range(len(lengths))]
+    parts = []
+    for (channel, sequence, log_time, publish_time), length in zip(heads, lengths):
+        content = struct.pack("<HIQQ", channel, sequence, log_time, publish_time)
+        content += bytes(range(length - len(content)))
+        parts.append(struct.pack("<BQ", 0x05, len(content)) + content)
+    buf = np.frombuffer(b"".join(parts), np.uint8)
+    starts, _, content_lengths, _ = scan_records(buf)
+    batch = message_batch(buf, starts + 9, content_lengths)
+    assert batch.channel_id.dtype == np.uint16 and batch.log_time.dtype == np.int64
+    assert (
+        list(
+            zip(
+                batch.channel_id.tolist(),
+                batch.sequence.tolist(),
+                batch.log_time.tolist(),
+                batch.publish_time.tolist(),
+            )
+        )
+        == heads
+    )
+    assert (batch.length == np.array(lengths) - 22).all()
+    for i in range(len(lengths)):
+        assert batch.payload(i) == bytes(range(lengths[i] - 22))

@@ -1,0 +1,87 @@
+"""Read-ahead of large chunks on a worker thread: the same batches, warnings and errors
+in the same order as in line, and a forked child that reads on by itself."""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+
+import pytest
+
+from imufdi_cli.errors import McapInputError
+from imufdi_cli.mcapio import McapSource
+from tests.mcapio.mcap_files import (
+    Unseekable,
+    imu_file,
+    top_records,
+)
+
+
+def _read_all(
+    data: bytes, strict: bool, read_ahead: bool
+) -> tuple[list[tuple[int, int]], list[str], str]:
+    """(length and first log time of each batch, warnings, error text or "")."""
+    seen: list[tuple[int, int]] = []
+    with McapSource(Unseekable(data), strict=strict, read_ahead=read_ahead) as source:
+        try:
+            for batch in source.batches():
+                seen.append((len(batch), int(batch.log_time[0])))
+        except McapInputError as err:
+            return seen, list(source.warnings), str(err)
+        return seen, list(source.warnings), ""
+
+
+@pytest.mark.parametrize("strict", [False, True], ids=["lenient", "strict"])
+def test_read_ahead_on_the_worker_thread_keeps_the_order(strict: bool) -> None:
+    """Large chunks are decompressed ahead on a worker thread: batches, warnings and the
+    strict error are the same, in the same order, as when every chunk is read in line."""
+    data = imu_file(chunked=True, compression="zstd", n_imus=4, n_samples=1500, chunk_size=150_000)
+    chunks = [(offset, length) for offset, opcode, length in top_records(data) if opcode == 0x06]
+    assert len(chunks) >= 6
+    bad = bytearray(data)
+    bad[chunks[2][0] + 9 + 24] ^= 0x01  # the CRC field of the third chunk
+    cut = bytes(bad[: chunks[5][0] + 9 + chunks[5][1] // 2])  # the sixth chunk cut short
+    with McapSource(io.BytesIO(data), read_ahead=True) as source:
+        n_threaded = sum(len(b) for b in source.batches())
+        assert source._pool is not None  # the large chunks did go through the worker
+    threaded = _read_all(cut, strict, read_ahead=True)
+    inline = _read_all(cut, strict, read_ahead=False)
+    assert threaded == inline
+    assert inline[1] or inline[2]
+    assert ("CRC mismatch" in inline[2]) if strict else any("CRC" in w for w in inline[1])
+    with McapSource(io.BytesIO(data), read_ahead=False) as source:
+        assert sum(len(b) for b in source.batches()) == n_threaded == 4 * 1500
+        assert source._pool is None
+
+
+@pytest.mark.slow  # multi-process, 4 s (docs/testing.md); the read-ahead path has default tests
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
+def test_read_ahead_survives_a_fork(monkeypatch) -> None:
+    """A child forked while chunks are in flight on the parent's worker thread (which the
+    child does not have) reads the rest of the file itself instead of waiting forever."""
+    import time
+
+    import imufdi_cli.mcapio.readahead as readahead_module
+
+    unpack = readahead_module._unpack_chunk
+
+    def slow_unpack(*args):  # type: ignore[no-untyped-def]
+        time.sleep(0.1)  # chunks are still in flight when the fork happens
+        return unpack(*args)
+
+    monkeypatch.setattr(readahead_module, "_unpack_chunk", slow_unpack)  # the worker's
+    n = 4 * 4000  # 5.7 MB of records: the first 4 MiB batch leaves chunks in flight
+    data = imu_file(chunked=True, compression="zstd", n_imus=4, n_samples=4000, chunk_size=150_000)
+    with McapSource(io.BytesIO(data), read_ahead=True) as source:
+        batches = source.batches()
+        first = len(next(batches))
+        assert source._pool is not None and first < n
+        pid = os.fork()
+        if pid == 0:  # the child: exit code 0 if it reads every remaining message
+            signal.alarm(30)  # a hang kills the child; the parent then sees a failure
+            rest = sum(len(b) for b in batches)
+            os._exit(0 if first + rest == n else 1)
+        _, status = os.waitpid(pid, 0)
+        assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+        assert first + sum(len(b) for b in batches) == n

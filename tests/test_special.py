@@ -1,0 +1,103 @@
+"""imufdi_cli.special: scipy.special's own ufuncs, loaded without importing scipy.special."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+
+from imufdi_cli.special import ufunc
+
+NAMES = ("gammaincinv", "fdtri", "chdtri", "stdtrit")
+
+# In a fresh interpreter: the ufuncs load without the package, give what the package's give
+# (checked after importing it: the same objects, so the same floats), and the package imports
+# normally afterwards.
+CHILD = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    import scipy
+    from imufdi_cli.special import ufunc
+    names = {names!r}
+    loaded = {{name: ufunc(name) for name in names}}
+    rng = np.random.default_rng(17200)
+    q = rng.uniform(0.0, 1.0, 200)
+    df = rng.uniform(0.5, 60.0, 200)
+    first = [
+        loaded["gammaincinv"](df, q),
+        loaded["fdtri"](df, df[::-1], q),
+        loaded["chdtri"](df, q),
+        loaded["stdtrit"](df, q),
+    ]
+    print("special" in vars(scipy), "scipy.special" in sys.modules)
+    import scipy.special as package
+    print(all(getattr(package, name) is loaded[name] for name in names))
+    second = [
+        package.gammaincinv(df, q),
+        package.fdtri(df, df[::-1], q),
+        package.chdtri(df, q),
+        package.stdtrit(df, q),
+    ]
+    print(all(a.tobytes() == b.tobytes() for a, b in zip(first, second)))
+    print(package.gamma(5.0) == 24.0)
+    from imufdi_cli.quantiles import chi2
+    print(chi2.ppf(0.99, 1) == 2 * package.gammaincinv(0.5, 0.99))
+    """
+)
+
+
+def test_loads_without_the_package_and_gives_its_ufuncs() -> None:
+    done = subprocess.run(
+        [sys.executable, "-c", CHILD.format(names=NAMES)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert done.stdout.split() == ["False", "False", "True", "True", "True", "True"]
+
+
+def test_quantiles_do_not_import_the_package() -> None:
+    code = (
+        "import sys\n"
+        "from imufdi_cli.quantiles import chi2, f\n"
+        "chi2.ppf(0.99, 1); f.ppf(0.99, 1, 50)\n"
+        "print('scipy.special' in sys.modules)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "False"
+
+
+def test_with_the_package_imported_its_own_functions_are_returned() -> None:
+    import scipy.special
+
+    for name in NAMES:
+        assert ufunc(name) is getattr(scipy.special, name)
+    assert np.array_equal(
+        ufunc("fdtri")(1.0, 10.0, [0.5, 0.99]), scipy.special.fdtri(1, 10, [0.5, 0.99])
+    )
+
+
+def test_when_the_extension_cannot_be_loaded_alone_the_package_is_used() -> None:
+    code = textwrap.dedent(
+        """
+        import importlib, sys
+        real = importlib.import_module
+
+        def refuse(name, *args, **kwargs):
+            if name == "scipy.special._ufuncs":
+                raise ImportError("refused for the test")
+            return real(name, *args, **kwargs)
+
+        importlib.import_module = refuse
+        from imufdi_cli.special import ufunc
+        f = ufunc("fdtri")
+        importlib.import_module = real
+        import scipy.special
+        print("scipy.special" in sys.modules, f is scipy.special.fdtri)
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.split() == ["True", "True"]
