@@ -287,6 +287,20 @@ def main() -> int:
                                     "high": best.get("high"),
                                     "extra": best.get("extra"),
                                     "true_size": match.get("true_size"),
+                                    # where the fit sits against the truth (diagnostics)
+                                    "start_ns": episode["start_ns"],
+                                    "end_ns": episode["end_ns"],
+                                    "fragments": episode.get("fragments"),
+                                    "onset_index": best.get("onset_index"),
+                                    "end_index": best.get("end_index"),
+                                    "fault_start_ns": next(
+                                        f["start_ns"]
+                                        for f in faults
+                                        if f["id"] == match["fault_id"]
+                                    ),
+                                    "fault_end_ns": next(
+                                        f["end_ns"] for f in faults if f["id"] == match["fault_id"]
+                                    ),
                                 }
                             )
                             detected[key].add(f"{seed}:{match['fault_id']}")

@@ -1,10 +1,37 @@
-"""Suite-wide hooks (docs/testing.md: suite time)."""
+"""Suite-wide settings and hooks (docs/testing.md: suite time)."""
 
 from __future__ import annotations
 
 import gc
+import os
+import sys
 
 import pytest
+
+# One BLAS thread per test process, as the `imufdi` command runs (imufdi_cli.cli): the suite
+# runs two xdist workers on two cores, and numpy's and scipy's OpenBLAS would each add a
+# thread per core to every worker; on thin matrices those threads only spin against the
+# other worker (tests/detectors 41-46 -> 32-35 s of CPU, pca-parity's 45-dimension
+# eigenvalue test 3-4 -> 0.3 s). Set here, when pytest loads this file and before any test
+# module imports numpy; xdist workers inherit it from the controller. A value set by the
+# user is kept. The outputs are those of the command (and of the split-identical records,
+# made with one thread).
+THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+for _var in THREAD_VARS:
+    os.environ.setdefault(_var, "1")
+#: numpy (and so its BLAS) not loaded yet and every cap at one thread: this process's BLAS
+#: runs one thread, as the command's does
+_ONE_BLAS_THREAD = "numpy" not in sys.modules and all(os.environ[v] == "1" for v in THREAD_VARS)
+
+
+@pytest.fixture(scope="session")
+def one_blas_thread() -> bool:
+    """Whether numpy's and scipy's BLAS run one thread in this test process (pinned above
+    before numpy was imported; False when a user's value or an earlier import of numpy
+    stood in the way). With one thread, products have the bits of the ``imufdi`` command,
+    so a test comparing bits with records made that way may run in-process instead of in
+    a fresh interpreter."""
+    return _ONE_BLAS_THREAD
 
 
 @pytest.hookimpl(trylast=True)
@@ -15,3 +42,17 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     pytest runs at the end of a session to report unraisable exceptions. Objects made by
     the tests are collected as before."""
     gc.freeze()
+
+
+@pytest.fixture(autouse=True)
+def _campaign_figure(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A campaign draws ``detection_probability.png`` at its end (matplotlib, 0.3-0.9 s of
+    CPU per campaign), which only the tests marked ``campaign_figure`` look at; the others
+    (resume, locks, gates, failures, summaries) get a driver that skips the figure. The
+    figure itself is tested in ``campaign/test_plots.py`` and, drawn by the driver, in the
+    marked test(s). Campaigns run in a subprocess draw it as usual."""
+    if request.node.get_closest_marker("campaign_figure") is not None:
+        return
+    from imufdi_cli.campaign import driver
+
+    monkeypatch.setattr(driver, "plot_curves", lambda summary, out: None)

@@ -26,8 +26,10 @@ another CPU or numpy a different summation order may move the last bits, so ther
 fingerprints are compared instead: NaN count exact, (sum, sum of squares, sin-weighted sum)
 to 1e-9 of the sum |x| — any change of a row beyond rounding shows.
 
-Each case runs in a fresh interpreter with one BLAS thread (as the CLI runs): the thread
-count changes the summation order of matrix products, and so the last bits.
+Each case runs with one BLAS thread (as the CLI runs): the thread count changes the
+summation order of matrix products, and so the last bits. In the test process when its
+BLAS was pinned to one thread before numpy loaded (``tests/conftest.py``, the
+``one_blas_thread`` fixture), else in a fresh interpreter with one thread.
 
 Re-record (only for a deliberate change of outputs, saying why in the commit):
 ``PYTHONPATH=. python tests/detectors/test_split_identical.py``.
@@ -257,10 +259,11 @@ SLOW = (
 @pytest.mark.parametrize(
     "name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in sorted(CASES)]
 )
-def test_outputs_identical_to_the_single_module_code(name: str) -> None:
+def test_outputs_identical_to_the_single_module_code(name: str, one_blas_thread: bool) -> None:
     recorded = json.loads(RECORD.read_text())
     exact = recorded["environment"] == _environment()
-    _assert_same(name, run_isolated(name), recorded["cases"][name], exact)
+    got = run_case(name) if one_blas_thread else run_isolated(name)
+    _assert_same(name, got, recorded["cases"][name], exact)
 
 
 def run_isolated(name: str) -> dict[str, Any]:
