@@ -56,20 +56,10 @@ def test_white_sigma_covariance_matches_the_spread_of_white_sigma() -> None:
     from imufdi_cli.episodes import (
         _consensus_gain,
         successive_difference_dof,
-        white_sigma,
-        white_sigma_covariance,
         white_sigma_spread,
     )
 
-    rng = np.random.default_rng(31)
-    H = np.tile(np.eye(3), (6, 1))
-    sigma = SIGMA * np.linspace(0.8, 1.3, 18)
-    n_cal, trials = 200, 800
-    draws = np.array(
-        [white_sigma(H, rng.normal(0, sigma, (n_cal, 18))) ** 2 for _ in range(trials)]
-    )
-    cov = white_sigma_covariance(H, sigma, n_cal)
-    rel = 4 * math.sqrt(2 / (trials - 1)) * 1.2
+    H, sigma, n_cal, draws, cov, rel = _white_variance_draws(31)
     assert_allclose(draws.var(axis=0, ddof=1), np.diag(cov), rtol=rel)
     nu = successive_difference_dof(n_cal)
     assert np.all(np.diag(cov) > 1.05 * 2 * sigma**4 / nu)
@@ -78,7 +68,7 @@ def test_white_sigma_covariance_matches_the_spread_of_white_sigma() -> None:
     consensus = draws @ gain**2
     assert float(consensus.var(ddof=1)) == pytest.approx(a_term, rel=rel)
     shared = float(np.cov(consensus, draws[:, 0])[0, 1])
-    assert abs(shared - b_term) <= 4 * math.sqrt((a_term * d_term + b_term**2) / trials)
+    assert abs(shared - b_term) <= 4 * math.sqrt((a_term * d_term + b_term**2) / len(draws))
     assert d_term == pytest.approx(float(cov[0, 0]))
 
 
@@ -164,18 +154,10 @@ def test_white_variance_dof_matches_the_spread_of_the_calibrated_residual_varian
     different sigmas: :func:`white_variance_dof` (``2 v_k^2 / (D + 2 B + A)``) against the
     Monte Carlo ``2 v_k^2 / Var(v_hat_k)`` for every sensor. Tolerance: 4 standard errors of
     a sample variance (sqrt(2 / T), times 1.2 for the estimates' excess kurtosis)."""
-    from imufdi_cli.episodes import _consensus_gain, white_sigma, white_sigma_covariance
+    from imufdi_cli.episodes import _consensus_gain
     from imufdi_cli.episodes.white_noise import white_variance_dof
 
-    rng = np.random.default_rng(33)
-    H = np.tile(np.eye(3), (6, 1))
-    sigma = SIGMA * np.linspace(0.8, 1.3, 18)
-    n_cal, trials = 200, 800
-    draws = np.array(
-        [white_sigma(H, rng.normal(0, sigma, (n_cal, 18))) ** 2 for _ in range(trials)]
-    )
-    cov = white_sigma_covariance(H, sigma, n_cal)
-    rel = 4 * math.sqrt(2 / (trials - 1)) * 1.2
+    H, sigma, _, draws, cov, rel = _white_variance_draws(33)
     for k in range(18):
         gain, _ = _consensus_gain(H, sigma, k)
         v = sigma[k] ** 2 + float(np.sum(gain**2 * sigma**2))
@@ -183,3 +165,24 @@ def test_white_variance_dof_matches_the_spread_of_the_calibrated_residual_varian
         assert white_variance_dof(cov, gain, k, v, 0.0) == pytest.approx(measured, rel=rel)
     # a degenerate spread gives the default
     assert white_variance_dof(np.zeros((18, 18)), gain, 0, 1.0, 7.0) == 7.0
+
+
+def _white_variance_draws(
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, float]:
+    """800 calibrations (200 samples) of 6 co-aligned triads with unequal sigmas: H (18, 3),
+    sigma (18,), n_cal, the white variances of each (800, 18), their predicted covariance
+    (:func:`white_sigma_covariance`, (18, 18)) and the relative tolerance of a sample
+    variance over the trials (4 standard errors, sqrt(2 / T), times 1.2 for the estimates'
+    excess kurtosis)."""
+    from imufdi_cli.episodes import white_sigma, white_sigma_covariance
+
+    rng = np.random.default_rng(seed)
+    H = np.tile(np.eye(3), (6, 1))
+    sigma = SIGMA * np.linspace(0.8, 1.3, 18)
+    n_cal, trials = 200, 800
+    draws = np.array(
+        [white_sigma(H, rng.normal(0, sigma, (n_cal, 18))) ** 2 for _ in range(trials)]
+    )
+    cov = white_sigma_covariance(H, sigma, n_cal)
+    return H, sigma, n_cal, draws, cov, 4 * math.sqrt(2 / (trials - 1)) * 1.2
