@@ -72,6 +72,14 @@ def plug_in_quantile(level: float, dof: np.ndarray, estimate_dof: float) -> np.n
     return np.asarray(dof * f_distribution.ppf(1.0 - level, dof, estimate_dof), dtype=np.float64)
 
 
+def descending_eigh(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (q,) and eigenvectors (columns, (q, q)) of a symmetric matrix (q, q), in
+    descending eigenvalue order (``numpy.linalg.eigh`` gives them ascending)."""
+    values, vectors = np.linalg.eigh(matrix)
+    order = np.argsort(values)[::-1]
+    return values[order], vectors[:, order]
+
+
 def _half_a(n_rows: int, block: int) -> np.ndarray:
     """Rows (n_rows,) bool of half A: the even blocks of ``block`` rows (at most n_rows/4)."""
     block = max(1, min(int(block), n_rows // 4))
@@ -117,8 +125,7 @@ def cross_fitted_components(centred: np.ndarray, block: int) -> tuple[np.ndarray
     half_a = _half_a(n_rows, block)
     first, second = centred[half_a], centred[~half_a]
     covariance_a = first.T @ first / max(first.shape[0] - 1, 1)
-    eigenvalues, directions = np.linalg.eigh(covariance_a)
-    directions = directions[:, np.argsort(eigenvalues)[::-1]]
+    _, directions = descending_eigh(covariance_a)
     projected = second @ directions
     variances = np.einsum("ij,ij->j", projected, projected) / max(second.shape[0], 1)
     return variances, directions
@@ -175,15 +182,13 @@ def cross_validated_components(
         Columns w_i of the whole window (orthonormal), descending eigenvalue.
     """
     n_rows, q = centred.shape
-    eigenvalues, directions = np.linalg.eigh(centred.T @ centred)
-    directions = directions[:, np.argsort(eigenvalues)[::-1]]
+    _, directions = descending_eigh(centred.T @ centred)
     labels = fold_labels(n_rows, block, folds)
     energy = np.zeros(q)
     for fold in np.unique(labels):
         held = labels == fold
         rest = centred[~held]
-        fold_values, fold_directions = np.linalg.eigh(rest.T @ rest)
-        projected = centred[held] @ fold_directions[:, np.argsort(fold_values)[::-1]]
+        projected = centred[held] @ descending_eigh(rest.T @ rest)[1]
         energy += np.einsum("ij,ij->j", projected, projected)
     return energy / max(n_rows - 1, 1), directions
 
@@ -236,6 +241,5 @@ def principal_components(
             )
             rows[:n_components] = n_rows - 1
         return variances, directions, rows
-    eigenvalues, directions = np.linalg.eigh(centred.T @ centred / max(n_rows - 1, 1))
-    order = np.argsort(eigenvalues)[::-1]
-    return eigenvalues[order], directions[:, order], rows
+    eigenvalues, directions = descending_eigh(centred.T @ centred / max(n_rows - 1, 1))
+    return eigenvalues, directions, rows
