@@ -1,0 +1,186 @@
+"""Benchmark: where the episode explanations of ``imufdi detect -d glt`` spend their CPU.
+
+Issue 20 (detect end to end <= 1.3x ``imufdi info``): on a clean 16-IMU turntable log glt
+at alpha = 1 % raises thousands of false alarm episodes an hour, and each is explained by
+the fault-model fits (issue 22). This runs ``detect -d glt`` on a simulated log (tuning seed
+``--seed``) with and without explanations, and with timers around the explanation's parts:
+
+- the builder's own work per closed episode (windows, consensus residuals, the episode
+  record) outside :func:`~imufdi_cli.episodes.fit_models`;
+- inside it, the onset scans (every model's profile likelihood over the onset candidates:
+  suffix sums, the drift search, the noise, spikes and stuck fits), which work on the
+  whole window, and the least-squares sizes after the onset
+  (:func:`~imufdi_cli.episodes.reference._linear_fit`, three an episode), of which the
+  motion fit (:func:`~imufdi_cli.episodes.reference._motion_fit`: an SVD of the window's
+  design) is a part.
+
+It prints CPU seconds, ms per episode, each part's share and the load average (a shared
+machine: the shares mean more than the seconds). The split says what batching episodes can
+reach without changing a bit: numpy's stacked SVD, matmul and row-wise cumsum / sums call
+the same kernels per matrix (checked here on the captured designs), but the sizes after the
+onset are reductions over ``L - onset`` samples, a different length for nearly every episode.
+
+    python benchmarks/bench_explain.py                # 10-minute log
+    python benchmarks/bench_explain.py --minutes 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # the CLI's pin: the thread count changes bits
+
+import numpy as np
+
+import imufdi_cli.episodes.builder as builder_module
+import imufdi_cli.episodes.fits as fits_module
+import imufdi_cli.episodes.reference as reference_module
+from imufdi_cli.detect import detect_file
+from imufdi_cli.pipeline import simulate_file
+
+
+def load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+class Timers:
+    """Process-CPU timers around module functions (restored by :meth:`restore`)."""
+
+    def __init__(self) -> None:
+        self.seconds: collections.Counter[str] = collections.Counter()
+        self.calls: collections.Counter[str] = collections.Counter()
+        self._restore: list[tuple[Any, str, Any]] = []
+        self.designs: list[np.ndarray] = []
+
+    def wrap(self, owner: Any, name: str, key: str) -> None:
+        inner = getattr(owner, name)
+
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            begin = time.process_time()
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                self.seconds[key] += time.process_time() - begin
+                self.calls[key] += 1
+
+        self._restore.append((owner, name, inner))
+        setattr(owner, name, timed)
+
+    def restore(self) -> None:
+        for owner, name, inner in reversed(self._restore):
+            setattr(owner, name, inner)
+        self._restore.clear()
+
+
+def stacked_identity(designs: list[np.ndarray]) -> tuple[int, int]:
+    """(groups, matrices) of the captured motion designs stacked by shape whose stacked
+    SVD equals the one-by-one SVD to the bit; raises if one differs."""
+    groups: dict[tuple[int, ...], list[np.ndarray]] = collections.defaultdict(list)
+    for design in designs:
+        groups[design.shape].append(design)
+    checked = 0
+    for members in groups.values():
+        if len(members) < 2:
+            continue
+        stack = np.stack(members)
+        u, s, vt = np.linalg.svd(stack, full_matrices=False)
+        for i, design in enumerate(members):
+            one = np.linalg.svd(design, full_matrices=False)
+            if not all(np.array_equal(a, b[i]) for a, b in zip(one, (u, s, vt))):
+                raise AssertionError(f"stacked SVD differs for a {design.shape} design")
+            checked += 1
+    return sum(len(m) >= 2 for m in groups.values()), checked
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--minutes", type=float, default=10.0, help="clean log length")
+    parser.add_argument("--seed", type=int, default=1, help="simulation seed (tuning seeds)")
+    parser.add_argument("--repeat", type=int, default=2, help="runs of each mode (best kept)")
+    args = parser.parse_args()
+    print(f"load average before: {load()} ({os.cpu_count()} cores)")
+    with tempfile.TemporaryDirectory(prefix="imufdi-bench-explain-") as tmp:
+        log, out = Path(tmp) / "clean.mcap", str(Path(tmp) / "out.mcap")
+        simulate_file(
+            None,
+            str(log),
+            seed=args.seed,
+            options={
+                "imus": 16,
+                "rate": "100Hz",
+                "duration": f"{args.minutes * 60}s",
+                "motion": "turntable",
+            },
+        )
+
+        def cpu(explain: bool) -> float:
+            best = float("inf")
+            for _ in range(args.repeat):
+                begin = time.process_time()
+                detect_file(str(log), out, [("glt", {})], explain=explain)
+                best = min(best, time.process_time() - begin)
+            return best
+
+        cpu(False)  # warm: imports, the quantile caches
+        plain, explained = cpu(False), cpu(True)
+        timers = Timers()
+        timers.wrap(builder_module.EpisodeBuilder, "_close", "close")
+        timers.wrap(builder_module, "fit_models", "fit_models")
+        timers.wrap(fits_module, "_linear_fit", "linear")
+        timers.wrap(reference_module, "_motion_fit", "motion")
+        svd = np.linalg.svd
+
+        def capture(a: Any, *rest: Any, **kwargs: Any) -> Any:
+            if len(timers.designs) < 4000 and kwargs.get("full_matrices") is False:
+                timers.designs.append(np.array(a))
+            return svd(a, *rest, **kwargs)
+
+        np.linalg.svd = capture  # type: ignore[assignment]
+        try:
+            begin = time.process_time()
+            detect_file(str(log), out, [("glt", {})])
+            timed = time.process_time() - begin
+        finally:
+            np.linalg.svd = svd  # type: ignore[assignment]
+            timers.restore()
+    episodes = timers.calls["close"]
+    explanation = explained - plain
+    sec = timers.seconds
+    parts = {
+        "builder outside fit_models (windows, consensus, records)": sec["close"]
+        - sec["fit_models"],
+        "onset scans, noise / spikes / stuck fits (whole window)": sec["fit_models"]
+        - sec["linear"],
+        "sizes after the onset (_linear_fit) less the motion fit": sec["linear"] - sec["motion"],
+        "motion fit (SVD of the window's design)": sec["motion"],
+    }
+    print(f"clean {args.minutes:g}-minute turntable log, seed {args.seed}: {episodes:,} episodes")
+    print(f"detect -d glt CPU: {explained:.2f} s, --no-explain {plain:.2f} s")
+    print(
+        f"explanations: {explanation:.2f} s = {explanation / max(episodes, 1) * 1e3:.2f} ms an"
+        f" episode ({explanation / explained:.0%} of detect's CPU)"
+    )
+    print(f"split (timed run, {timed:.2f} s CPU; closing episodes {sec['close']:.2f} s):")
+    for key, value in parts.items():
+        print(
+            f"  {key:58s} {value:6.2f} s  {value / max(sec['close'], 1e-9):6.1%}"
+            f"  {value / max(episodes, 1) * 1e3:6.3f} ms/episode"
+        )
+    groups, checked = stacked_identity(timers.designs)
+    print(
+        f"stacked SVD of {checked:,} captured motion designs in {groups} shape groups:"
+        " identical to one-by-one to the bit"
+    )
+    print(f"load average after: {load()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
