@@ -360,14 +360,14 @@ def _motion_fit(
     w = pinv[0]
     coef = pinv @ r
     e = r - design @ coef
-    sse = float(e @ e)  # (also the noise variance's numerator below)
+    sse = float(e @ e)
     # partial F test of the motion columns against the fit without them (``sse_without``:
     # the healthy margin and the fault model's residuals)
     f_stat = (sse_without - sse) / M.shape[1] / (sse / dof) if sse > 0 else math.inf
     if not force and f_stat <= _f_quantile(DISPERSION_LEVEL, M.shape[1], dof):
         return None
-    sw2, sw = float(w @ w), float(np.add.reduce(w))
-    variance = sse / dof * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
+    sw2, sw = float(w @ w), float(np.sum(w))
+    variance = float(e @ e) / dof * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
     quantile = _t_quantile(0.5 + confidence / 2, dof)
     dispersion, widened = _dispersion(
         w,
