@@ -22,12 +22,24 @@ onset are reductions over ``L - onset`` samples, a different length for nearly e
 
     python benchmarks/bench_explain.py                # 10-minute log
     python benchmarks/bench_explain.py --minutes 3
+
+With ``--reference`` (a copy of the ``episodes`` package, e.g. main's) it also replays every
+call detect made to its episode builders (construction, measurements, status rows, finish)
+through the reference package's builders and this one's, alternating call by call so that
+the load of a shared machine falls on both alike; it compares every explained episode
+(``to_dict()``, JSON: every bit of a float) and prints the CPU of both and their ratio::
+
+    rm -rf /tmp/episodes_ref && mkdir /tmp/episodes_ref
+    git archive main imufdi_cli/episodes | tar -x -C /tmp/episodes_ref
+    python benchmarks/bench_explain.py --reference /tmp/episodes_ref/imufdi_cli/episodes
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import copy
+import json
 import os
 import sys
 import tempfile
@@ -54,7 +66,7 @@ class Timers:
     """Process-CPU timers around module functions (restored by :meth:`restore`)."""
 
     def __init__(self) -> None:
-        self.seconds: collections.Counter[str] = collections.Counter()
+        self.seconds: dict[str, float] = collections.defaultdict(float)
         self.calls: collections.Counter[str] = collections.Counter()
         self._restore: list[tuple[Any, str, Any]] = []
         self.designs: list[np.ndarray] = []
@@ -77,6 +89,81 @@ class Timers:
         for owner, name, inner in reversed(self._restore):
             setattr(owner, name, inner)
         self._restore.clear()
+
+
+class BuilderCalls:
+    """Every top-level call detect makes to an :class:`EpisodeBuilder` (construction,
+    ``feed``, ``rows``, ``finish``), inputs copied, in order; nested ones (a builder's own
+    variance-drop builder) are left to the builder being replayed."""
+
+    def __init__(self) -> None:
+        self.events: list[tuple[str, int, tuple[Any, ...], dict[str, Any]]] = []
+        self._ids: dict[int, int] = {}
+        self._depth = 0
+        self._restore: list[tuple[str, Any]] = []
+
+    def start(self) -> None:
+        cls = builder_module.EpisodeBuilder
+        for name in ("__init__", "feed", "rows", "finish"):
+            inner = getattr(cls, name)
+            self._restore.append((name, inner))
+            setattr(cls, name, self._spy(name, inner))
+
+    def stop(self) -> None:
+        for name, inner in self._restore:
+            setattr(builder_module.EpisodeBuilder, name, inner)
+        self._restore.clear()
+
+    def _spy(self, name: str, inner: Any) -> Any:
+        def spy(builder: Any, *args: Any, **kwargs: Any) -> Any:
+            top = self._depth == 0
+            if top and name != "__init__" and id(builder) in self._ids:
+                self.events.append(
+                    (name, self._ids[id(builder)], copy.deepcopy(args), copy.deepcopy(kwargs))
+                )
+            self._depth += 1
+            try:
+                return inner(builder, *args, **kwargs)
+            finally:
+                self._depth -= 1
+                if top and name == "__init__":
+                    self._ids[id(builder)] = len(self._ids)
+                    self.events.append(
+                        (name, self._ids[id(builder)], copy.deepcopy(args), copy.deepcopy(kwargs))
+                    )
+
+        return spy
+
+
+def replay(
+    events: list[tuple[str, int, tuple[Any, ...], dict[str, Any]]], packages: dict[str, Any]
+) -> tuple[dict[str, float], int, int]:
+    """The calls through each package's EpisodeBuilder, alternating call by call (which goes
+    first alternates too): CPU per package, episodes, episodes that differ."""
+    builders: dict[str, dict[int, Any]] = {name: {} for name in packages}
+    spent = dict.fromkeys(packages, 0.0)
+    episodes = differ = 0
+    order = list(packages)
+    for i, (name, ident, args, kwargs) in enumerate(events):
+        outputs = {}
+        for side in order if i % 2 == 0 else order[::-1]:
+            call_args, call_kwargs = copy.deepcopy(args), copy.deepcopy(kwargs)
+            begin = time.process_time()
+            if name == "__init__":
+                builders[side][ident] = packages[side].EpisodeBuilder(*call_args, **call_kwargs)
+                result = None
+            else:
+                result = getattr(builders[side][ident], name)(*call_args, **call_kwargs)
+            spent[side] += time.process_time() - begin
+            if result is not None:
+                outputs[side] = [json.dumps(e.to_dict(), sort_keys=True) for e in result]
+        if outputs:
+            first, *rest = outputs.values()
+            episodes += len(first)
+            differ += sum(
+                any(a != b for a, b in zip(first, o)) or len(o) != len(first) for o in rest
+            )
+    return spent, episodes, differ
 
 
 def stacked_identity(designs: list[np.ndarray]) -> tuple[int, int]:
@@ -104,6 +191,9 @@ def main() -> int:
     parser.add_argument("--minutes", type=float, default=10.0, help="clean log length")
     parser.add_argument("--seed", type=int, default=1, help="simulation seed (tuning seeds)")
     parser.add_argument("--repeat", type=int, default=2, help="runs of each mode (best kept)")
+    parser.add_argument(
+        "--reference", help="copy of the episodes package to replay the builders' calls through"
+    )
     args = parser.parse_args()
     print(f"load average before: {load()} ({os.cpu_count()} cores)")
     with tempfile.TemporaryDirectory(prefix="imufdi-bench-explain-") as tmp:
@@ -150,6 +240,13 @@ def main() -> int:
         finally:
             np.linalg.svd = svd  # type: ignore[assignment]
             timers.restore()
+        calls = BuilderCalls()
+        if args.reference:
+            calls.start()
+            try:
+                detect_file(str(log), out, [("glt", {})])
+            finally:
+                calls.stop()
     episodes = timers.calls["close"]
     explanation = explained - plain
     sec = timers.seconds
@@ -178,6 +275,25 @@ def main() -> int:
         f"stacked SVD of {checked:,} captured motion designs in {groups} shape groups:"
         " identical to one-by-one to the bit"
     )
+    if args.reference:
+        from bench_fit_models import load_reference
+
+        import imufdi_cli.episodes as this_package
+
+        packages = {"reference": load_reference(args.reference), "this": this_package}
+        best: dict[str, float] = {}
+        for _ in range(args.repeat):
+            spent, count, differ = replay(calls.events, packages)
+            best = {k: min(best.get(k, float("inf")), v) for k, v in spent.items()}
+        print(
+            f"builders' calls replayed ({len(calls.events):,} calls, {count:,} episodes,"
+            f" alternated call by call): reference {best['reference']:.2f} s,"
+            f" this {best['this']:.2f} s CPU, ratio {best['this'] / best['reference']:.3f};"
+            f" episodes that differ: {differ}"
+        )
+        if differ:
+            print(f"load average after: {load()}")
+            return 1
     print(f"load average after: {load()}")
     return 0
 
