@@ -194,21 +194,23 @@ def main() -> int:
     parser.add_argument(
         "--reference", help="copy of the episodes package to replay the builders' calls through"
     )
+    parser.add_argument("--log", help="an existing MCAP log instead of the simulated one")
     args = parser.parse_args()
     print(f"load average before: {load()} ({os.cpu_count()} cores)")
     with tempfile.TemporaryDirectory(prefix="imufdi-bench-explain-") as tmp:
-        log, out = Path(tmp) / "clean.mcap", str(Path(tmp) / "out.mcap")
-        simulate_file(
-            None,
-            str(log),
-            seed=args.seed,
-            options={
-                "imus": 16,
-                "rate": "100Hz",
-                "duration": f"{args.minutes * 60}s",
-                "motion": "turntable",
-            },
-        )
+        log, out = Path(args.log or Path(tmp) / "clean.mcap"), str(Path(tmp) / "out.mcap")
+        if args.log is None:
+            simulate_file(
+                None,
+                str(log),
+                seed=args.seed,
+                options={
+                    "imus": 16,
+                    "rate": "100Hz",
+                    "duration": f"{args.minutes * 60}s",
+                    "motion": "turntable",
+                },
+            )
 
         def cpu(explain: bool) -> float:
             best = float("inf")
@@ -258,7 +260,8 @@ def main() -> int:
         "sizes after the onset (_linear_fit) less the motion fit": sec["linear"] - sec["motion"],
         "motion fit (SVD of the window's design)": sec["motion"],
     }
-    print(f"clean {args.minutes:g}-minute turntable log, seed {args.seed}: {episodes:,} episodes")
+    what = args.log or f"clean {args.minutes:g}-minute turntable log, seed {args.seed}"
+    print(f"{what}: {episodes:,} episodes")
     print(f"detect -d glt CPU: {explained:.2f} s, --no-explain {plain:.2f} s")
     print(
         f"explanations: {explanation:.2f} s = {explanation / max(episodes, 1) * 1e3:.2f} ms an"
