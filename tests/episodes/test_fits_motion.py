@@ -1,7 +1,9 @@
 """Noise growth against a scale-factor fault on a turning array
-(:func:`~imufdi_cli.episodes.fits.fit_models`): the noise model carries the scale model's
-``beta o`` as a nuisance, so the two are nested and the class between them is a test of
-the variance increase alone."""
+(:func:`~imufdi_cli.episodes.fits.fit_models`): the healthy residual's motion error is a
+nuisance of both models (the noise model's ``gamma o`` over the whole window, the scale
+model's ``beta_0 o`` before its onset), so neither is charged for what the other explains,
+and with three parameters each the class is decided by the likelihood after the onset: a
+change of variance (noise) or of the coefficient on o (scale)."""
 
 from __future__ import annotations
 
@@ -60,26 +62,27 @@ GAMMA, WHITE = 5.7e-3, 0.55
 def test_noise_growth_with_a_motion_error_is_noise_not_scale() -> None:
     """Noise x3 on a turning gyro whose residual carries a motion error (GAMMA of a 0.41 rad/s
     swing: 0.9 calibrated sigma) and white noise of WHITE calibrated sigma. A noise model
-    without the nuisance ``beta o`` charged the motion error to its variance and lost to the
-    scale model, whose beta absorbs it while its variance stays calibrated (the code before
-    this test: 46 of these 100 trials classed scale). With it, the noise model nests the
-    scale model, with a variance ratio x = v / var_beta of about (9 * 0.30 + 0.06) / 1.2 =
-    2.3 after the onset: 2 Delta log L = n (x - 1 - ln x) is about 250 * 0.47 = 117 against
-    ln 400 = 6, so the noise model should win every trial. At most 3 of 100 wrong (a class
-    error rate of 0.5 % gives 3 or more with probability 0.0014; step and drift are the
-    only other ways to lose)."""
+    without a nuisance on o charged the motion error to its variance and lost to the scale
+    model, whose beta absorbs it while its variance stays calibrated (the code before this
+    test: 46 of these 100 trials classed scale). Now both absorb it, and after the onset the
+    scale model keeps var_beta where the residual's variance is about (9 * 0.30 + 0.06) /
+    1.2 = 2.3 var_beta: 2 Delta log L = n (x - 1 - ln x) is about 250 * 0.47 = 117 for the
+    noise model, against a difference of zero in their penalties, so the noise model should
+    win every trial. At most 3 of 100 wrong (a class error rate of 0.5 % gives 3 or more
+    with probability 0.0014; step and drift are the only other ways to lose)."""
     classes = _classes("noise", 3.0, GAMMA, WHITE, trials=100, seed=221)
     assert classes.count("noise") >= 97, {c: classes.count(c) for c in set(classes)}
 
 
 def test_a_scale_fault_on_a_turning_array_stays_scale() -> None:
-    """A genuine scale factor 1.01 on the same array (motion error included): the noise model
-    nests the scale model with variance var_beta = sigma_k^2 + (1 + beta)^2 sigma_c^2 (the
-    consensus error enters r - beta o with 1 + beta), so it wins only when its variance
-    ratio passes the BIC's ln n = ln 400: with x - 1 about N(0, 2/n), n = 250 samples after
-    the onset, 2 Delta log L = n (x - 1 - ln x) is about chi2(1) and one-sided (v >= var_beta):
-    P = P(chi2(1) > ln 400) / 2 = 0.7 %. At most 4 of 100 wrong (binomial tail below 0.001
-    at 0.7 %; a step or drift would lose too)."""
+    """A genuine scale factor 1.01 on the same array (motion error included). The noise
+    model's gamma o, one coefficient over the whole window, cannot follow the coefficient's
+    change at the onset: with 150 samples before it and 250 after, gamma is about GAMMA +
+    0.01 * 0.63, and it leaves about 0.0063 and 0.0037 times the swing (0.41 rad/s), i.e.
+    1.0 and 0.6 calibrated sigma, to its variance before and after the onset, where the
+    scale model fits both coefficients: its -2 log L is lower by roughly 400 * 0.5, against
+    equal penalties. Even a one-sided chi2(1) chance of the noise model passing, P(chi2(1)
+    > ln 400) / 2 = 0.7 %, allows at most 4 of 100 wrong (binomial tail below 0.001)."""
     p = chi2.sf(math.log(LENGTH), 1) / 2
     assert 0.006 < p < 0.008
     classes = _classes("scale", 1.01, GAMMA, WHITE, trials=100, seed=222)
