@@ -258,13 +258,25 @@ def test_missing_spec_file(tmp_path):
 
 # --- run keys --------------------------------------------------------------------------
 
+# st.text()'s default alphabet, characters(codec="utf-8"), spelt as the same set (every code
+# point but the surrogates): Hypothesis finds the codec's set by encoding all 1.1 million
+# code points, 2 s of CPU in every fresh test process, while the category query reads its
+# bundled table.
+utf8_chars = st.characters(exclude_categories=["Cs"])
 json_scalars = st.one_of(
-    st.integers(-(10**6), 10**6), st.text(max_size=8), st.booleans(), st.floats(allow_nan=False)
+    st.integers(-(10**6), 10**6),
+    st.text(utf8_chars, max_size=8),
+    st.booleans(),
+    st.floats(allow_nan=False),
 )
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.dictionaries(st.text(min_size=1, max_size=6), json_scalars, min_size=1, max_size=6))
+@given(
+    st.dictionaries(
+        st.text(utf8_chars, min_size=1, max_size=6), json_scalars, min_size=1, max_size=6
+    )
+)
 def test_run_key_ignores_key_order_and_sees_every_value(desc):
     reordered = dict(reversed(list(desc.items())))
     assert run_key(desc) == run_key(reordered)
