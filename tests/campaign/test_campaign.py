@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import sys
 import textwrap
 from pathlib import Path
 
@@ -461,12 +462,14 @@ def test_in_process_gives_identical_outputs_to_the_pool(campaign_200):
 
 
 def test_bad_scheduler_forms(tmp_path):
-    pytest.importorskip("dask.distributed")
+    # refused before dask.distributed is imported (installed or not)
+    was_imported = "dask.distributed" in sys.modules  # by an earlier test of this process
     spec = load_spec(write_spec(tmp_path, SMALL))
     with pytest.raises(UsageError, match="valid forms are tcp://HOST:PORT and local:N"):
         run_campaign(spec, tmp_path / "o", scheduler="udp://x")
     with pytest.raises(UsageError, match="local:N needs N >= 1"):
         run_campaign(spec, tmp_path / "o2", scheduler="local:0")
+    assert was_imported or "dask.distributed" not in sys.modules
 
 
 JITTER = """
