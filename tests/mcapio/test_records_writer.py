@@ -207,3 +207,53 @@ def test_add_raw_chunk_refuses_unregistered_channels(tmp_path):
         writer.register_channel("/b0", "raw", schema)  # the second channel is not registered
         with pytest.raises(UsageError, match="unregistered channel id 1"):
             writer.add_raw_chunk(raw, batch, records_at)
+
+
+def _blob_batch(n: int) -> MessageBatch:
+    log_time = np.arange(n, dtype=np.int64) * 1_000
+    return MessageBatch.from_payloads(0, log_time, [bytes(8)] * n)
+
+
+def test_the_switch_interval_is_short_while_workers_run_and_restored_on_every_path(tmp_path):
+    """The writer shortens the interpreter's switch interval while its worker threads
+    exist (``chunks.fast_switching_on``) and gives the old value back on close, on abort,
+    and only when the last of two overlapping writers is done."""
+    import sys
+
+    from imufdi_cli.mcapio.writer import chunks
+
+    before = sys.getswitchinterval()
+    assert before > chunks.SWITCH_INTERVAL  # the interpreter's default, 5 ms
+
+    def open_writer(name: str) -> McapWriter:
+        writer = McapWriter(tmp_path / name, chunk_size=64)
+        writer.register_channel("/a", "raw", 0)
+        writer.add_batch(_blob_batch(50))  # several chunks: the worker threads start
+        return writer
+
+    first = open_writer("a.mcap")
+    assert sys.getswitchinterval() == pytest.approx(chunks.SWITCH_INTERVAL)
+    second = open_writer("b.mcap")
+    first.close()
+    assert sys.getswitchinterval() == pytest.approx(chunks.SWITCH_INTERVAL)  # b still runs
+    second.close()
+    assert sys.getswitchinterval() == before
+    with pytest.raises(RuntimeError), open_writer("c.mcap"):
+        assert sys.getswitchinterval() == pytest.approx(chunks.SWITCH_INTERVAL)
+        raise RuntimeError("stop")
+    assert sys.getswitchinterval() == before
+    assert not (tmp_path / "c.mcap").exists()
+
+
+def test_a_switch_interval_set_meanwhile_by_someone_else_is_kept(tmp_path):
+    import sys
+
+    before = sys.getswitchinterval()
+    try:
+        with McapWriter(tmp_path / "a.mcap", chunk_size=64) as writer:
+            writer.register_channel("/a", "raw", 0)
+            writer.add_batch(_blob_batch(50))
+            sys.setswitchinterval(0.001)  # the program's own choice: not undone
+        assert sys.getswitchinterval() == pytest.approx(0.001)
+    finally:
+        sys.setswitchinterval(before)

@@ -50,8 +50,11 @@ class _ChunkQueue(_Output):
     def _shutdown_executor(self) -> None:
         self._in_flight.clear()
         if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+            try:
+                self._executor.shutdown(wait=True, cancel_futures=True)
+            finally:
+                self._executor = None
+                chunks.fast_switching_off()
 
     def add_batch(self, batch: MessageBatch) -> None:
         """Queue messages (any channels, file order kept); chunks are written as they fill."""
@@ -241,6 +244,7 @@ class _ChunkQueue(_Output):
             self._executor = ThreadPoolExecutor(
                 max_workers=chunks.COMPRESS_THREADS, thread_name_prefix="mcap-chunk"
             )
+            chunks.fast_switching_on()
         future = self._executor.submit(_build_chunk, parts, self.compression)
         # the index is made here while a worker builds the chunk
         self._in_flight.append(_ChunkJob(future, _chunk_keys(parts)))
