@@ -75,6 +75,7 @@ class _ChunkQueue(_Output):
             stop = min(stop, n)
             part = batch.select(slice(start, stop))
             self._pending.append(part)
+            self._pending_ids.append(None)
             part_bytes = int(cumulative[stop - 1] - consumed)
             self._pending_bytes += part_bytes
             consumed = int(cumulative[stop - 1])
@@ -166,6 +167,7 @@ class _ChunkQueue(_Output):
             # enough records to fill the current chunk (at least one)
             stop = min(n, start + max(1, -(-room // size)))
             self._pending.append(make_part(start, stop))
+            self._pending_ids.append(None)
             self._pending_bytes += (stop - start) * size
             start = stop
             if self._pending_bytes >= self.chunk_size:
@@ -239,6 +241,7 @@ class _ChunkQueue(_Output):
             else:
                 parts.append(part)
         self._pending = []
+        self._pending_ids = []
         self._pending_bytes = 0
         if self._executor is None:
             self._executor = ThreadPoolExecutor(
@@ -285,16 +288,6 @@ class _ChunkQueue(_Output):
         )
         self._count(keys.channel_counts, keys.message_count, keys.start_time, keys.end_time)
 
-    def _write_message_indexes(
-        self, channel_ids: np.ndarray, log_time: np.ndarray, record_offsets: np.ndarray
-    ) -> tuple[dict[int, int], int]:
-        """One MessageIndex record per channel of a chunk just written, entries sorted by
-        log time; returns the position of each channel's record and their total length."""
-        records, offsets, _ = message_index_records(channel_ids, log_time, record_offsets)
-        index_start = self._position
-        self._write_now(records)
-        return {cid: index_start + at for cid, at in offsets.items()}, len(records)
-
     def add_raw_chunk(self, chunk: RawChunk, batch: MessageBatch, records_at: int = 0) -> None:
         """Write an input Chunk record verbatim (no recompression) with its MessageIndex
         records; ``batch`` is exactly its messages (as read from it: payload offsets into
@@ -307,15 +300,13 @@ class _ChunkQueue(_Output):
         n = len(batch)
         if n == 0:
             return
-        ids = np.unique(batch.channel_id).tolist()  # (a few ids: set operations in Python)
+        ids = np.flatnonzero(np.bincount(batch.channel_id.astype(np.intp))).tolist()  # (a few ids: set operations in Python)
         unknown = [cid for cid in ids if cid not in self.channels]
         if unknown:
             raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
         self._check_log_time(batch.channel_id, batch.log_time)
-        if self._pending:
-            queued = {cid for p in self._pending for cid in np.unique(p.channel_id).tolist()}
-            if not queued.isdisjoint(ids):
-                self._flush_chunk()
+        if self._pending and not self._queued_channels().isdisjoint(ids):
+            self._flush_chunk()
         log_time = np.asarray(batch.log_time, np.int64)
         record_offsets = np.asarray(batch.offset, np.int64) - MESSAGE_HEADER_SIZE - records_at
         self._drain(0)  # chunks still compressing are written first, in call order
@@ -323,34 +314,42 @@ class _ChunkQueue(_Output):
         self._write_now(struct.pack("<BQ", OP_CHUNK, len(chunk.content)))
         self._write_now(chunk.content)
         chunk_length = self._position - chunk_offset
-        index_offsets, index_length = self._write_message_indexes(
+        records, offsets, channel_counts = message_index_records(
             batch.channel_id, log_time, record_offsets
         )
+        index_start = self._position
+        self._write_now(records)
         self._chunk_index.append(
             _ChunkIndexEntry(
                 chunk.start_time,
                 chunk.end_time,
                 chunk_offset,
                 chunk_length,
-                index_offsets,
-                index_length,
+                {cid: index_start + at for cid, at in offsets.items()},
+                len(records),
                 chunk.compression,
                 chunk.compressed_size,
                 chunk.uncompressed_size,
             )
         )
-        self._count_messages(batch.channel_id, int(log_time.min()), int(log_time.max()))
+        self._count(channel_counts, n, int(log_time.min()), int(log_time.max()))
 
-    def _count_messages(self, channel_ids: np.ndarray, start_time: int, end_time: int) -> None:
-        """Statistics: messages per channel and the time range."""
-        counts = np.bincount(channel_ids.astype(np.int64))
-        present = np.flatnonzero(counts)
-        self._count(
-            dict(zip(present.tolist(), counts[present].tolist())),
-            int(channel_ids.shape[0]),
-            start_time,
-            end_time,
-        )
+    def _queued_channels(self) -> set[int]:
+        """The channel ids of the messages queued for the next chunk (each part's ids
+        found once, when first asked for)."""
+        queued: set[int] = set()
+        for k, part in enumerate(self._pending):
+            ids = self._pending_ids[k]
+            if ids is None:
+                channel_id = part.channel_id
+                low, high = int(channel_id.min()), int(channel_id.max())
+                if low == high:
+                    ids = {low}
+                else:
+                    ids = set(np.flatnonzero(np.bincount(channel_id.astype(np.intp))).tolist())
+                self._pending_ids[k] = ids
+            queued |= ids
+        return queued
 
     def _count(
         self, channel_counts: dict[int, int], message_count: int, start_time: int, end_time: int

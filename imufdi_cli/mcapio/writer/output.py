@@ -43,6 +43,8 @@ class _Output:
     # messages and chunks (_ChunkQueue)
     _chunk_index: list[_ChunkIndexEntry]
     _pending: list[MessageBatch | _RecordPart | _SourcePart]
+    #: each queued part's channel ids, found when first needed (add_raw_chunk)
+    _pending_ids: list[set[int] | None]
     _pending_bytes: int
     _in_flight: deque[_ChunkJob]
     _executor: ThreadPoolExecutor | None
