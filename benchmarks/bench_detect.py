@@ -129,7 +129,7 @@ STAGES = textwrap.dedent(
         wrap(dt._DetectRun, "add_block", "conditioner (validity masks, sanitising)")
         wrap(dt._DetectRun, "_fit", "calibration fits (conditioner, glt, builders)")
         wrap(GltDetector, "process", "glt process")
-        wrap(dt, "encode_status", "status and events: encode, queue, compress")
+        wrap(dt, "status_records", "status and events: encode, queue, compress")
         wrap(dt, "_events", "status and events: encode, queue, compress")
         wrap(dt.McapWriter, "add_batch", "status and events: encode, queue, compress")
         wrap(ep, "fit_models", "episodes: fit_models")

@@ -31,9 +31,9 @@ from imufdi_cli.mcapio import (
     ImuArrayReader,
     McapWriter,
     MessageBatch,
-    encode_status,
     register_status_channel,
 )
+from imufdi_cli.mcapio.status import status_records
 from imufdi_cli.mcapio.events import (
     EVENTS_TOPIC,
     TRUTH_TOPIC,
@@ -569,7 +569,11 @@ class _DetectRun:
                 writer, track.detector.name, sensor_type, array.sensor_ids(sensor_type)
             )
             track.summary[sensor_type] = TypeSummary()
-        writer.add_batch(encode_status(track.channels[sensor_type], t_ns, out, decided_ns))
+        channel = track.channels[sensor_type]
+        # whole records from a template (the bytes encode_status + add_batch make)
+        writer.add_records(
+            status_records(channel, t_ns, out, decided_ns), np.full(len(t_ns), channel), t_ns
+        )
         summary = track.summary[sensor_type]
         summary.samples += len(out)
         summary.alarms += int(np.count_nonzero(out.alarm))
