@@ -257,3 +257,77 @@ def test_a_switch_interval_set_meanwhile_by_someone_else_is_kept(tmp_path):
         assert sys.getswitchinterval() == pytest.approx(0.001)
     finally:
         sys.setswitchinterval(before)
+
+
+def _blob_batches(channel: int, seed: int = 0) -> list[MessageBatch]:
+    rng = np.random.default_rng(seed)
+    return [
+        MessageBatch.from_payloads(
+            channel,
+            (np.arange(2000, dtype=np.int64) + 2000 * k) * 1000,
+            [rng.bytes(40) for _ in range(2000)],
+        )
+        for k in range(3)
+    ]
+
+
+def _write_blobs(output, chunk_size: int = 4096) -> McapWriter:
+    writer = McapWriter(output, chunk_size=chunk_size)
+    schema = writer.register_schema("raw/Blob", "", b"")
+    channel = writer.register_channel("/a", "application/octet-stream", schema)
+    for batch in _blob_batches(channel):
+        writer.add_batch(batch)
+    return writer
+
+
+def test_a_file_written_behind_is_the_bytes_of_a_stream(tmp_path, monkeypatch):
+    """From the first chunk on, a file's bytes are written on a thread of their own
+    (``output._WriteBehind``): the same bytes as a stream written in place."""
+    import threading
+
+    from imufdi_cli.mcapio.writer import output
+
+    monkeypatch.setattr(output, "WRITE_BEHIND_FROM", 1024)
+    stream = io.BytesIO()
+    with _write_blobs(stream):
+        pass
+    writer = _write_blobs(tmp_path / "a.mcap")
+    assert writer._behind is not None
+    assert "mcap-write" in [t.name for t in threading.enumerate()]
+    writer.close()
+    assert writer._behind is None and "mcap-write" not in [t.name for t in threading.enumerate()]
+    assert (tmp_path / "a.mcap").read_bytes() == stream.getvalue()
+
+
+@pytest.mark.parametrize("on_close", [False, True])
+def test_disk_full_behind_the_caller_leaves_no_temp_and_keeps_the_target(
+    tmp_path, monkeypatch, on_close
+):
+    from imufdi_cli.mcapio.writer import output
+
+    monkeypatch.setattr(output, "WRITE_BEHIND_FROM", 1024)
+    path = tmp_path / "out.mcap"
+    path.write_bytes(b"previous")
+    with pytest.raises(OutputError) as info, McapWriter(path, chunk_size=4096) as writer:
+        schema = writer.register_schema("raw/Blob", "", b"")
+        channel = writer.register_channel("/a", "application/octet-stream", schema)
+        writer._stream = _Full(writer._stream, 30_000, errno.ENOSPC, on_close=on_close)
+        for batch in _blob_batches(channel):
+            writer.add_batch(batch)
+        assert writer._behind is not None
+    assert str(info.value).startswith(f"cannot write {path}: {os.strerror(errno.ENOSPC)}")
+    assert path.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mcap"]
+
+
+def test_an_interrupt_stops_the_write_behind_thread_and_removes_the_temp(tmp_path, monkeypatch):
+    import threading
+
+    from imufdi_cli.mcapio.writer import output
+
+    monkeypatch.setattr(output, "WRITE_BEHIND_FROM", 1024)
+    with pytest.raises(KeyboardInterrupt), _write_blobs(tmp_path / "a.mcap") as writer:
+        assert writer._behind is not None
+        raise KeyboardInterrupt
+    assert "mcap-write" not in [t.name for t in threading.enumerate()]
+    assert list(tmp_path.iterdir()) == []
