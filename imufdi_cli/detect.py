@@ -33,7 +33,6 @@ from imufdi_cli.mcapio import (
     MessageBatch,
     register_status_channel,
 )
-from imufdi_cli.mcapio.status import status_records
 from imufdi_cli.mcapio.events import (
     EVENTS_TOPIC,
     TRUTH_TOPIC,
@@ -46,6 +45,7 @@ from imufdi_cli.mcapio.events import (
     register_events_channel,
     register_truth_channel,
 )
+from imufdi_cli.mcapio.status import status_records
 from imufdi_cli.progress import LogTimeProgress, ProgressCallback
 from imufdi_cli.validity import Conditioner
 

@@ -221,14 +221,20 @@ def test_status_records_write_the_bytes_of_encode_status(tmp_path) -> None:
                 for half in (slice(0, 170), slice(170, 300)):
                     if use_records:
                         records = status_records(
-                            cid, t_ns[half], rows(det, half), None if dec is None else dec[half],
+                            cid,
+                            t_ns[half],
+                            rows(det, half),
+                            None if dec is None else dec[half],
                             frame_id=frame,
                         )
                         writer.add_records(records, np.full(records.shape[0], cid), t_ns[half])
                     else:
                         writer.add_batch(
                             encode_status(
-                                cid, t_ns[half], rows(det, half), None if dec is None else dec[half],
+                                cid,
+                                t_ns[half],
+                                rows(det, half),
+                                None if dec is None else dec[half],
                                 frame_id=frame,
                             )
                         )

@@ -126,9 +126,7 @@ def _index_layout(channel_ids: np.ndarray) -> _IndexLayout:
     """The layout of the MessageIndex records of a chunk with these channel ids (N,),
     remembered for the next chunks with the same sequence."""
     key = (channel_ids.dtype.str, channel_ids.tobytes())
-    cache: OrderedDict[tuple[str, bytes], _IndexLayout] | None = getattr(
-        _LAYOUTS, "cache", None
-    )
+    cache: OrderedDict[tuple[str, bytes], _IndexLayout] | None = getattr(_LAYOUTS, "cache", None)
     if cache is None:
         cache = _LAYOUTS.cache = OrderedDict()
     layout = cache.get(key)
@@ -218,7 +216,7 @@ def summary_section(
     schemas: dict[int, SchemaInfo],
     channels: dict[int, ChannelInfo],
     channel_schema: dict[int, int],
-    chunk_index: list[_ChunkIndexEntry],
+    chunk_index: list[bytes],
     metadata_index: list[tuple[int, int, str]],
     statistics: bytes,
 ) -> tuple[bytes, bytes]:
@@ -233,8 +231,9 @@ def summary_section(
         Id -> the schemas and channels registered (written in increasing id order).
     channel_schema : dict
         Channel id -> its schema id (0: none).
-    chunk_index : list of _ChunkIndexEntry
-        One entry per chunk written, in file order.
+    chunk_index : list of bytes
+        The ChunkIndex record of each chunk written (:func:`_chunk_index_record`), in
+        file order.
     metadata_index : list of (offset, length, name)
         One entry per Metadata record written.
     statistics : bytes
@@ -271,7 +270,7 @@ def summary_section(
         ],
     )
     group(OP_STATISTICS, [statistics])
-    group(OP_CHUNK_INDEX, [_chunk_index_record(entry) for entry in chunk_index])
+    group(OP_CHUNK_INDEX, chunk_index)
     group(
         OP_METADATA_INDEX,
         [

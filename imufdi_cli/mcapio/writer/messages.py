@@ -25,7 +25,11 @@ from imufdi_cli.mcapio.records import (
 )
 from imufdi_cli.mcapio.writer import chunks
 from imufdi_cli.mcapio.writer.chunks import _build_chunk, _chunk_keys
-from imufdi_cli.mcapio.writer.index import _ChunkIndexEntry, message_index_records
+from imufdi_cli.mcapio.writer.index import (
+    _chunk_index_record,
+    _ChunkIndexEntry,
+    message_index_records,
+)
 from imufdi_cli.mcapio.writer.output import _Output
 from imufdi_cli.mcapio.writer.parts import (
     RecordSource,
@@ -273,17 +277,19 @@ class _ChunkQueue(_Output):
         chunk_length = self._position - chunk_offset
         index_start = self._position
         self._write_now(keys.index_records)
-        self._chunk_index.append(
-            _ChunkIndexEntry(
-                keys.start_time,
-                keys.end_time,
-                chunk_offset,
-                chunk_length,
-                {cid: index_start + at for cid, at in keys.index_offsets.items()},
-                len(keys.index_records),
-                self.compression,
-                len(built.payload),
-                built.uncompressed_size,
+        self._chunk_index.append(  # the record (a few hundred bytes) kept, not the entry
+            _chunk_index_record(
+                _ChunkIndexEntry(
+                    keys.start_time,
+                    keys.end_time,
+                    chunk_offset,
+                    chunk_length,
+                    {cid: index_start + at for cid, at in keys.index_offsets.items()},
+                    len(keys.index_records),
+                    self.compression,
+                    len(built.payload),
+                    built.uncompressed_size,
+                )
             )
         )
         self._count(keys.channel_counts, keys.message_count, keys.start_time, keys.end_time)
@@ -300,7 +306,9 @@ class _ChunkQueue(_Output):
         n = len(batch)
         if n == 0:
             return
-        ids = np.flatnonzero(np.bincount(batch.channel_id.astype(np.intp))).tolist()  # (a few ids: set operations in Python)
+        ids = np.flatnonzero(
+            np.bincount(batch.channel_id.astype(np.intp))
+        ).tolist()  # (a few ids: set operations in Python)
         unknown = [cid for cid in ids if cid not in self.channels]
         if unknown:
             raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
@@ -319,17 +327,19 @@ class _ChunkQueue(_Output):
         )
         index_start = self._position
         self._write_now(records)
-        self._chunk_index.append(
-            _ChunkIndexEntry(
-                chunk.start_time,
-                chunk.end_time,
-                chunk_offset,
-                chunk_length,
-                {cid: index_start + at for cid, at in offsets.items()},
-                len(records),
-                chunk.compression,
-                chunk.compressed_size,
-                chunk.uncompressed_size,
+        self._chunk_index.append(  # the record (a few hundred bytes) kept, not the entry
+            _chunk_index_record(
+                _ChunkIndexEntry(
+                    chunk.start_time,
+                    chunk.end_time,
+                    chunk_offset,
+                    chunk_length,
+                    {cid: index_start + at for cid, at in offsets.items()},
+                    len(records),
+                    chunk.compression,
+                    chunk.compressed_size,
+                    chunk.uncompressed_size,
+                )
             )
         )
         self._count(channel_counts, n, int(log_time.min()), int(log_time.max()))

@@ -20,9 +20,7 @@ from typing import IO
 
 from imufdi_cli.errors import OutputError
 from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch, SchemaInfo
-from imufdi_cli.mcapio.writer.index import _ChunkIndexEntry
 from imufdi_cli.mcapio.writer.parts import _ChunkJob, _RecordPart, _SourcePart
-
 
 #: A file output's bytes go through a thread of their own (:class:`_WriteBehind`) from
 #: the first write of at least this size on (a chunk): small files never start one.
@@ -45,7 +43,7 @@ class _WriteBehind:
         Bytes queued at most before :meth:`write` waits.
     """
 
-    def __init__(self, write: Callable[[bytes], object], limit: int = 16 << 20) -> None:
+    def __init__(self, write: Callable[[bytes], object], limit: int = 4 << 20) -> None:
         self._sink = write
         self._limit = limit
         self._queue: deque[bytes] = deque()
@@ -127,7 +125,8 @@ class _Output:
     _channel_schema: dict[int, int]
     _metadata_index: list[tuple[int, int, str]]
     # messages and chunks (_ChunkQueue)
-    _chunk_index: list[_ChunkIndexEntry]
+    #: the ChunkIndex record of every chunk written, in file order
+    _chunk_index: list[bytes]
     _pending: list[MessageBatch | _RecordPart | _SourcePart]
     #: each queued part's channel ids, found when first needed (add_raw_chunk)
     _pending_ids: list[set[int] | None]
