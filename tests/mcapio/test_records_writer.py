@@ -196,6 +196,49 @@ def test_add_raw_chunk_copies_the_chunk_and_writes_queued_messages_of_its_channe
     assert times == [50, *batch.log_time.tolist()]
 
 
+def test_add_raw_chunk_does_not_wait_for_the_chunks_being_built(tmp_path, monkeypatch):
+    """An input chunk queued behind a chunk still being built on a worker thread is
+    written after it, in call order, without the caller waiting for it."""
+    import threading
+
+    from imufdi_cli.mcapio.writer import messages
+
+    src = tmp_path / "in.mcap"
+    _blob_log(src)
+    source, runs = _raw_runs(src)
+    ((batch, chunk_runs),) = runs
+    ((raw, _, records_at),) = chunk_runs
+    release = threading.Event()
+    build = messages._build_chunk
+
+    def held(parts, compression):
+        assert release.wait(10)
+        return build(parts, compression)
+
+    outputs = []
+    for hold in (False, True):
+        if hold:
+            monkeypatch.setattr(messages, "_build_chunk", held)
+        out = tmp_path / f"{hold}.mcap"
+        with McapWriter(out) as writer:
+            for cid, info in sorted(source.channels.items()):
+                schema = writer.register_schema("raw/Blob", "", b"")
+                writer.register_channel(info.topic, "raw", schema)
+            other = writer.register_channel("/other", "raw", 0)
+            writer.add_batch(
+                MessageBatch.from_payloads(other, np.arange(10, dtype=np.int64), [bytes(8)] * 10)
+            )
+            writer._flush_chunk()  # a chunk on a worker thread (held until released)
+            writer.add_raw_chunk(raw, batch, records_at)
+            if hold:
+                assert [job.raw is not None for job in writer._in_flight] == [False, True]
+                assert not writer._in_flight[0].future.done()
+                release.set()
+        outputs.append(out.read_bytes())
+    assert outputs[0] == outputs[1]
+    assert outputs[1].index(raw.content) > 0
+
+
 def test_add_raw_chunk_refuses_unregistered_channels(tmp_path):
     src = tmp_path / "in.mcap"
     _blob_log(src)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,7 @@ from imufdi_cli.mcapio.writer.output import _Output
 from imufdi_cli.mcapio.writer.parts import (
     RecordSource,
     _ChunkJob,
+    _ChunkKeys,
     _ChunkPart,
     _RecordPart,
     _SerialPart,
@@ -263,32 +265,45 @@ class _ChunkQueue(_Output):
             self._write_chunk(self._in_flight.popleft())
 
     def _write_chunk(self, job: _ChunkJob) -> None:
-        """Write a built chunk, its MessageIndex records, and note its ChunkIndex."""
-        built = job.future.result()
+        """Write a chunk (built on a worker thread, or an input chunk copied verbatim), its
+        MessageIndex records, and note its ChunkIndex."""
         keys = job.keys
-        content = (
-            struct.pack("<QQQI", keys.start_time, keys.end_time, built.uncompressed_size, built.crc)
-            + _string(self.compression)
-            + struct.pack("<Q", len(built.payload))
-        )
         chunk_offset = self._position
-        self._write_now(struct.pack("<BQ", OP_CHUNK, len(content) + len(built.payload)) + content)
-        self._write_now(built.payload)
+        raw = job.raw
+        if raw is None:
+            assert job.future is not None
+            built = job.future.result()
+            compression = self.compression
+            compressed_size, uncompressed_size = len(built.payload), built.uncompressed_size
+            start_time, end_time = keys.start_time, keys.end_time
+            content = (
+                struct.pack("<QQQI", start_time, end_time, uncompressed_size, built.crc)
+                + _string(compression)
+                + struct.pack("<Q", compressed_size)
+            )
+            self._write_now(struct.pack("<BQ", OP_CHUNK, len(content) + compressed_size) + content)
+            self._write_now(built.payload)
+        else:
+            compression = raw.compression
+            compressed_size, uncompressed_size = raw.compressed_size, raw.uncompressed_size
+            start_time, end_time = raw.start_time, raw.end_time  # as the input's record says
+            self._write_now(struct.pack("<BQ", OP_CHUNK, len(raw.content)))
+            self._write_now(raw.content)
         chunk_length = self._position - chunk_offset
         index_start = self._position
         self._write_now(keys.index_records)
         self._chunk_index.append(  # the record (a few hundred bytes) kept, not the entry
             _chunk_index_record(
                 _ChunkIndexEntry(
-                    keys.start_time,
-                    keys.end_time,
+                    start_time,
+                    end_time,
                     chunk_offset,
                     chunk_length,
                     {cid: index_start + at for cid, at in keys.index_offsets.items()},
                     len(keys.index_records),
-                    self.compression,
-                    len(built.payload),
-                    built.uncompressed_size,
+                    compression,
+                    compressed_size,
+                    uncompressed_size,
                 )
             )
         )
@@ -301,7 +316,8 @@ class _ChunkQueue(_Output):
         already registered here with the same ids).
 
         Messages queued before of the same channels are written first, so every channel
-        stays in time order in the file.
+        stays in time order in the file. The chunk joins the chunks being built on worker
+        threads, in call order: it is written after them without waiting for them here.
         """
         n = len(batch)
         if n == 0:
@@ -317,32 +333,21 @@ class _ChunkQueue(_Output):
             self._flush_chunk()
         log_time = np.asarray(batch.log_time, np.int64)
         record_offsets = np.asarray(batch.offset, np.int64) - MESSAGE_HEADER_SIZE - records_at
-        self._drain(0)  # chunks still compressing are written first, in call order
-        chunk_offset = self._position
-        self._write_now(struct.pack("<BQ", OP_CHUNK, len(chunk.content)))
-        self._write_now(chunk.content)
-        chunk_length = self._position - chunk_offset
         records, offsets, channel_counts = message_index_records(
             batch.channel_id, log_time, record_offsets
         )
-        index_start = self._position
-        self._write_now(records)
-        self._chunk_index.append(  # the record (a few hundred bytes) kept, not the entry
-            _chunk_index_record(
-                _ChunkIndexEntry(
-                    chunk.start_time,
-                    chunk.end_time,
-                    chunk_offset,
-                    chunk_length,
-                    {cid: index_start + at for cid, at in offsets.items()},
-                    len(records),
-                    chunk.compression,
-                    chunk.compressed_size,
-                    chunk.uncompressed_size,
-                )
-            )
+        keys = _ChunkKeys(
+            start_time=int(log_time.min()),
+            end_time=int(log_time.max()),
+            index_records=records,
+            index_offsets=offsets,
+            channel_counts=channel_counts,
+            message_count=n,
         )
-        self._count(channel_counts, n, int(log_time.min()), int(log_time.max()))
+        if not isinstance(chunk.content, bytes):  # held until written: our own copy
+            chunk = replace(chunk, content=bytes(chunk.content))
+        self._in_flight.append(_ChunkJob(None, keys, raw=chunk))
+        self._drain(chunks.MAX_CHUNKS_IN_FLIGHT)
 
     def _queued_channels(self) -> set[int]:
         """The channel ids of the messages queued for the next chunk (each part's ids
