@@ -221,7 +221,7 @@ def test_add_raw_chunk_does_not_wait_for_the_chunks_being_built(tmp_path, monkey
             monkeypatch.setattr(messages, "_build_chunk", held)
         out = tmp_path / f"{hold}.mcap"
         with McapWriter(out) as writer:
-            for cid, info in sorted(source.channels.items()):
+            for _cid, info in sorted(source.channels.items()):
                 schema = writer.register_schema("raw/Blob", "", b"")
                 writer.register_channel(info.topic, "raw", schema)
             other = writer.register_channel("/other", "raw", 0)
