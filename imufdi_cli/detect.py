@@ -29,6 +29,7 @@ from imufdi_cli.log import ImuBlock
 from imufdi_cli.mcapio import (
     ChannelInfo,
     ImuArrayReader,
+    McapSource,
     McapWriter,
     MessageBatch,
     register_status_channel,
@@ -307,6 +308,7 @@ def detect_file(
     time_source: str = "auto",
     explain: bool = True,
     progress: ProgressCallback | None = None,
+    read_ahead: bool = True,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -333,36 +335,43 @@ def detect_file(
         Write an explained ``episode`` event for every alarm episode (docs/episodes.md).
     progress : callable, optional
         ``progress(seconds done, log seconds or None)`` (:mod:`imufdi_cli.progress`).
+    read_ahead : bool
+        Decompress the input's large chunks on a worker thread ahead of their use
+        (:class:`~imufdi_cli.mcapio.McapSource`); the output is the same either way.
 
     Returns
     -------
     DetectResult
     """
     instances, notes = make_detectors((name, dict(params)) for name, params in detectors)
-    reader = ImuArrayReader(
-        source, topics=topics, strict=strict, time_source=time_source, keep_raw_chunks=True
-    )
-    log_array = reader.array
-    array = log_array if array is None else array.check_matches(log_array)
-    with McapWriter(output, compression=compression) as writer:
-        run = _DetectRun(
-            reader,
-            writer,
-            instances,
-            array,
-            Conditioner(log_array, array),
-            calibrate=calibrate,
-            window=window if window is not None else (0.0, None),
-            explain=explain,
-        )
-        run.warnings.extend(notes)  # e.g. a renamed detector parameter
-        tracker = LogTimeProgress(progress, getattr(reader.source, "summary_time_range", None))
-        for batch, block in reader.stream():
-            run.copy_batch(batch)
-            tracker.batch(batch)
-            if len(block):
-                run.add_block(block)
-        run.finish(strict)
+    # the input's large chunks are decompressed on a worker thread ahead of their use
+    # (read_ahead): the caller's thread, which reads, detects and copies, is the slowest
+    source = McapSource(source, strict=strict, keep_raw_chunks=True, read_ahead=read_ahead)
+    try:
+        reader = ImuArrayReader(source, topics=topics, strict=strict, time_source=time_source)
+        log_array = reader.array
+        array = log_array if array is None else array.check_matches(log_array)
+        with McapWriter(output, compression=compression) as writer:
+            run = _DetectRun(
+                reader,
+                writer,
+                instances,
+                array,
+                Conditioner(log_array, array),
+                calibrate=calibrate,
+                window=window if window is not None else (0.0, None),
+                explain=explain,
+            )
+            run.warnings.extend(notes)  # e.g. a renamed detector parameter
+            tracker = LogTimeProgress(progress, getattr(reader.source, "summary_time_range", None))
+            for batch, block in reader.stream():
+                run.copy_batch(batch)
+                tracker.batch(batch)
+                if len(block):
+                    run.add_block(block)
+            run.finish(strict)
+    finally:
+        source.close()  # (its read-ahead thread too, on every path)
     return run.result(output if isinstance(output, str) else "<stream>")
 
 
