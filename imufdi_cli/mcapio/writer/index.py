@@ -164,9 +164,8 @@ def _index_layout(channel_ids: np.ndarray) -> _IndexLayout:
 
 def _chunk_index_record(entry: _ChunkIndexEntry) -> bytes:
     """The ChunkIndex record of one chunk written."""
-    offsets = b"".join(
-        struct.pack("<HQ", cid, off) for cid, off in sorted(entry.message_index_offsets.items())
-    )
+    pairs = sorted(entry.message_index_offsets.items())
+    offsets = struct.pack("<" + "HQ" * len(pairs), *[value for pair in pairs for value in pair])
     return _record(
         OP_CHUNK_INDEX,
         struct.pack(
