@@ -346,9 +346,9 @@ def detect_file(
     instances, notes = make_detectors((name, dict(params)) for name, params in detectors)
     # the input's large chunks are decompressed on a worker thread ahead of their use
     # (read_ahead): the caller's thread, which reads, detects and copies, is the slowest
-    source = McapSource(source, strict=strict, keep_raw_chunks=True, read_ahead=read_ahead)
+    log = McapSource(source, strict=strict, keep_raw_chunks=True, read_ahead=read_ahead)
     try:
-        reader = ImuArrayReader(source, topics=topics, strict=strict, time_source=time_source)
+        reader = ImuArrayReader(log, topics=topics, strict=strict, time_source=time_source)
         log_array = reader.array
         array = log_array if array is None else array.check_matches(log_array)
         with McapWriter(output, compression=compression) as writer:
@@ -371,7 +371,7 @@ def detect_file(
                     run.add_block(block)
             run.finish(strict)
     finally:
-        source.close()  # (its read-ahead thread too, on every path)
+        log.close()  # (its read-ahead thread too, on every path)
     return run.result(output if isinstance(output, str) else "<stream>")
 
 
