@@ -195,12 +195,16 @@ class _Output:
         """Close (or flush) the stream and rename the temporary file into place."""
         # The last buffered bytes reach the file here: a flush/close error (ENOSPC,
         # EFBIG) must remove the temporary file like any other failure.
-        if self._behind is not None:
-            behind, self._behind = self._behind, None
+        behind = self._behind
+        if behind is not None:
+            # kept until its thread has ended: an interrupt while waiting for it leaves it
+            # to _discard_output to cancel
             try:
                 behind.finish()
             except OSError as err:
+                self._behind = None
                 self._write_failed(err)
+            self._behind = None
         if self._owns_stream:
             try:
                 self._stream.close()
