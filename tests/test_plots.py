@@ -59,6 +59,7 @@ def test_suspects_are_the_faulty_then_the_wrongly_isolated():
     assert plots.suspects(entry(scores, isolated, alarm, none)) == [3]  # the worst false one
 
 
+@pytest.mark.draws  # run early, on one worker (tests/conftest.py)
 def test_plot_report_writes_a_png(tmp_path):
     pytest.importorskip("matplotlib")
     rng = np.random.default_rng(1)

@@ -215,13 +215,9 @@ class DaskExecutor(_Executor):
     (a LocalCluster of N single-threaded worker processes on loopback)."""
 
     def __init__(self, scheduler: str) -> None:
-        try:
-            from dask.distributed import Client, LocalCluster
-        except ImportError as err:
-            raise UsageError(
-                "--scheduler needs dask.distributed: pip install 'imufdi-cli[dask]'"
-            ) from err
-        self.cluster = None
+        # the form is checked before dask.distributed is imported (about 1 s of CPU):
+        # a mistyped --scheduler is a usage error whether or not dask is installed
+        workers = 0
         if scheduler.startswith("local:"):
             try:
                 workers = int(scheduler.split(":", 1)[1])
@@ -231,6 +227,18 @@ class DaskExecutor(_Executor):
                 raise UsageError(
                     f"--scheduler {scheduler!r}: local:N needs N >= 1 workers"
                 ) from None
+        elif not scheduler.startswith("tcp://"):
+            raise UsageError(
+                f"--scheduler {scheduler!r}: valid forms are tcp://HOST:PORT and local:N"
+            )
+        try:
+            from dask.distributed import Client, LocalCluster
+        except ImportError as err:
+            raise UsageError(
+                "--scheduler needs dask.distributed: pip install 'imufdi-cli[dask]'"
+            ) from err
+        self.cluster = None
+        if workers:
             with worker_thread_env():
                 self.cluster = LocalCluster(
                     n_workers=workers,
@@ -240,15 +248,11 @@ class DaskExecutor(_Executor):
                     dashboard_address=None,
                 )
             self.client = Client(self.cluster)
-        elif scheduler.startswith("tcp://"):
+        else:
             try:
                 self.client = Client(scheduler, timeout=20)
             except OSError as err:
                 raise UsageError(f"--scheduler {scheduler}: cannot connect ({err})") from err
-        else:
-            raise UsageError(
-                f"--scheduler {scheduler!r}: valid forms are tcp://HOST:PORT and local:N"
-            )
 
     def run(self, runs: Sequence[dict[str, Any]], runs_dir: Path) -> Iterator[dict[str, Any]]:
         from dask.distributed import as_completed

@@ -78,6 +78,7 @@ def test_styles_are_keyed_by_detector_label_and_stable():
     assert detector_colour("my-detector") == detector_colour("my-detector")
 
 
+@pytest.mark.draws  # run early, on one worker (tests/conftest.py)
 def test_plot_curves_writes_a_png(tmp_path):
     pytest.importorskip("matplotlib")
     deg = math.pi / 180.0

@@ -179,6 +179,13 @@ def test_a_bug_is_exit_4_with_its_class(cli, workdir, monkeypatch):
 # --- signals ------------------------------------------------------------------------
 
 
+def _interruptible() -> None:
+    """In the child: SIGINT back to its default, as from a terminal. A pytest started as a
+    background job without job control ignores SIGINT, the child would inherit SIG_IGN,
+    and imufdi (rightly) keeps an ignored signal ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_long_simulate(directory: Path) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.pop("IMUFDI_DEBUG", None)
@@ -204,6 +211,7 @@ def _start_long_simulate(directory: Path) -> subprocess.Popen:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_interruptible,
     )
 
 

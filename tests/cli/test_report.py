@@ -108,6 +108,7 @@ def test_match_far_usage_errors(cli, detected_log, tmp_path):
     assert_one_line_error(result, 2, "--match-far")
 
 
+@pytest.mark.draws  # run early, on one worker (tests/conftest.py)
 def test_plot_and_roc_plot(cli, tmp_path, detected_log):
     import pytest
 

@@ -177,22 +177,18 @@ def test_progress_bar_waits_before_appearing():
     assert ui.DelayedBar("x", "B").amount(1.5 * 2**20, 20 * 2**20) == "1.5/20.0 MiB"
 
 
-def test_shell_completion_completes_detectors_and_presets():
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "_IMUFDI_COMPLETE": "bash_complete"}
-    done = subprocess.run(
-        [sys.executable, "-m", "imufdi_cli"],
-        env={**env, "COMP_WORDS": "imufdi detect x -d woa", "COMP_CWORD": "4"},
-        capture_output=True,
-        text=True,
-    )
-    assert done.returncode == 0 and done.stdout.split() == ["plain,woa-mvmd-glt"]
-    done = subprocess.run(
-        [sys.executable, "-m", "imufdi_cli"],
-        env={**env, "COMP_WORDS": "imufdi simulate --preset paper", "COMP_CWORD": "3"},
-        capture_output=True,
-        text=True,
-    )
-    assert done.stdout.split() == ["plain,paper-table4"]
+def test_shell_completion_completes_detectors_and_presets(cli, monkeypatch):
+    # the entry point in this process with the shell's variables (click reads them from the
+    # environment at each call; `python -m imufdi_cli` itself: test_main.test_python_dash_m)
+    monkeypatch.setenv("_IMUFDI_COMPLETE", "bash_complete")
+    monkeypatch.setenv("COMP_WORDS", "imufdi detect x -d woa")
+    monkeypatch.setenv("COMP_CWORD", "4")
+    done = cli([])
+    assert done.code == 0 and done.out.split() == ["plain,woa-mvmd-glt"]
+    monkeypatch.setenv("COMP_WORDS", "imufdi simulate --preset paper")
+    monkeypatch.setenv("COMP_CWORD", "3")
+    done = cli([])
+    assert done.code == 0 and done.out.split() == ["plain,paper-table4"]
 
 
 def test_a_bare_json_before_the_argument_is_explained(cli, tmp_path):

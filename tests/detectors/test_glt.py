@@ -155,14 +155,19 @@ def test_chunked_processing_matches_one_block() -> None:
     rng = np.random.default_rng(3)
     array = ArrayConfig.co_aligned(6)
     calibration = make_block(array, 300, rng)
-    test = make_block(array, 1500, rng, start=300)
-    gyro_of(test)[500:, 2, 2] += 0.1
-    gyro_of(test)[1000:, 4, 0] -= 0.1
+    # 600 samples (1500 before: the 1-sample chunks made it 0.9 s of CPU), the first fault
+    # 200 samples in and the second 200 after it (window 4): both alarm and isolate
+    test = make_block(array, 600, rng, start=300)
+    gyro_of(test)[200:, 2, 2] += 0.1
+    gyro_of(test)[400:, 4, 0] -= 0.1
     outputs = []
     for chunk in (None, 1, 251):
         det = make_detector(window=4, persistence=2)
         det.fit(calibration, array)
         outputs.append(run_all(det, test, chunk))
+    gyro = outputs[0]["gyro"]
+    # both faults are in play: imu2.gyro.z (channel 8) isolated, then imu4.gyro.x (12)
+    assert not gyro.alarm[:200].any() and gyro.isolated[210] == 8 and gyro.isolated[-1] == 12
     for other in outputs[1:]:
         for sensor_type in ("gyro", "accel"):
             a, b = outputs[0][sensor_type], other[sensor_type]
