@@ -434,11 +434,18 @@ class EpisodeBuilder:
         return closed
 
     def _close(self, state: dict[str, Any]) -> Episode:
-        window = np.concatenate(state["window"])
         window_t = np.concatenate(state["window_t"])
-        # drop the quiet rows after the last alarm (they are not part of the fault)
+        # drop the quiet rows after the last alarm (they are not part of the fault): only
+        # the pieces before them are joined (the same C-ordered rows as joining all)
         last = int(np.searchsorted(window_t, state["end_ns"], side="right"))
-        window, window_t = window[:last], window_t[:last]
+        window_t = window_t[:last]
+        pieces, need = [], last
+        for piece in state["window"]:
+            if need <= 0:
+                break
+            pieces.append(piece[:need])
+            need -= piece.shape[0]
+        window = np.concatenate(pieces) if pieces else state["window"][0][:0]
         names, runner_up, share = self._isolation_summary(state)
         episode = Episode(
             detector=self.detector,

@@ -123,11 +123,18 @@ class Reference:
         it and slow errors (bias wander, motion errors) are not."""
         return np.asarray(successive_variance(self.residuals), dtype=np.float64)
 
+    @functools.cached_property
+    def offset_share(self) -> np.ndarray:
+        """(m,) ``offset_var / variance`` (0 where the variance is not positive): the
+        calibrated offset's share in :func:`_dispersion`, computed once per episode."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.variance > 0, self.offset_var / self.variance, 0.0)
+
 
 def successive_variance(x: np.ndarray) -> Any:
     """``sum_i (x_{i+1} - x_i)^2 / (2 (L - 1))`` along axis 0 of x (L, ...): the white
     variance of a series without what varies slowly (von Neumann 1941)."""
-    d = np.diff(x, axis=0)
+    d = x[1:] - x[:-1]  # np.diff(x, axis=0), without its Python overhead
     return np.einsum("i...,i...->...", d, d) / (2 * max(x.shape[0] - 1, 1))
 
 
@@ -187,7 +194,7 @@ def _linear_fit(
     """
     n, p = X.shape
     gram = X.T @ X  # p <= 2 columns: the normal equations are well within precision
-    if not np.all(np.isfinite(gram)) or abs(float(np.linalg.det(gram))) <= 1e-300:
+    if not np.isfinite(gram).all() or abs(float(np.linalg.det(gram))) <= 1e-300:
         return FaultFit(model, math.nan, -math.inf, math.inf, onset, bic)
     weights = np.linalg.solve(gram, X.T)  # (p, n): coef = weights @ y
     coef = weights @ y
@@ -197,7 +204,7 @@ def _linear_fit(
     if dof < 1:
         return FaultFit(model, size, -math.inf, math.inf, onset, bic)
     e = y - X @ coef
-    sw2, sw = float(w @ w), float(np.sum(w))
+    sw2, sw = float(w @ w), float(np.add.reduce(w))
     quantile = _t_quantile(0.5 + confidence / 2, dof)
     extra: dict[str, float] = {}
     curve = (X @ coef, var0)
@@ -281,13 +288,11 @@ def _dispersion(
         Level of the interval.
     """
     n = w.shape[0]
-    sw2, sw = float(w @ w), float(np.sum(w))
+    sw2, sw = float(w @ w), float(np.add.reduce(w))
     estimates = w @ reference.residuals[-n:]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        share = np.where(reference.variance > 0, reference.offset_var / reference.variance, 0.0)
-    predicted = reference.white_variance * (sw2 + share * sw**2)
+    predicted = reference.white_variance * (sw2 + reference.offset_share * sw**2)
     m = estimates.shape[0]
-    q = float(np.sum(estimates**2 / predicted))
+    q = float(np.add.reduce(estimates**2 / predicted))
     tr_r2 = float(m if reference.correlation_sq is None else reference.correlation_sq)
     dof = m * m / tr_r2
     if not q > tr_r2 / m * _chi2_quantile(DISPERSION_LEVEL, dof):
@@ -345,11 +350,12 @@ def _motion_fit(
     dof = length - X.shape[1] - M.shape[1]
     if dof < 2:
         return None
-    full = np.zeros((length, X.shape[1]))
-    full[onset:] = X
-    design = np.concatenate([full, M], axis=1)
-    scale = np.linalg.norm(design, axis=0)
-    if not np.all(np.isfinite(design)) or np.any(scale <= 0):
+    p = X.shape[1]
+    design = np.zeros((length, p + M.shape[1]))  # [X zero before the onset, M]
+    design[onset:, :p] = X
+    design[:, p:] = M
+    scale = np.sqrt(np.add.reduce(design * design, axis=0))  # np.linalg.norm(design, axis=0)
+    if not np.isfinite(design).all() or (scale <= 0).any():
         return None
     normalised = design / scale
     u, singular, vt = np.linalg.svd(normalised, full_matrices=False)  # pinv's own
@@ -402,10 +408,13 @@ def _pinv_from_svd(u: np.ndarray, singular: np.ndarray, vt: np.ndarray) -> np.nd
     -------
     ndarray, shape (k, L)
     """
-    large = singular > 1e-15 * np.max(singular)
-    inverse = np.divide(1, singular, where=large, out=singular.copy())
-    inverse[~large] = 0
-    return np.matmul(np.transpose(vt), np.multiply(inverse[:, np.newaxis], np.transpose(u)))
+    large = singular > 1e-15 * singular.max()
+    if large.all():  # (nothing cut: the same division, without the masks)
+        inverse = np.divide(1, singular)
+    else:
+        inverse = np.divide(1, singular, where=large, out=singular.copy())
+        inverse[~large] = 0
+    return vt.T @ (inverse[:, np.newaxis] * u.T)
 
 
 def _autocorrelation_factor(e: np.ndarray, w: np.ndarray) -> float:

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 
 from imufdi_cli.episodes import EpisodeBuilder, _local_level, _median, _pinv_from_svd
+from imufdi_cli.episodes.reference import successive_variance
 
 REFERENCE = Path(__file__).with_name("episodes_identical.json")
 RATE = 100.0
@@ -184,6 +185,23 @@ def test_pinv_from_the_svd_is_numpys_pinv_to_the_bit() -> None:
             a = a / np.linalg.norm(a, axis=0)
             u, s, vt = np.linalg.svd(a, full_matrices=False)
             assert np.array_equal(_pinv_from_svd(u, s, vt), np.linalg.pinv(a))
+
+
+def test_motion_fit_shortcuts_are_numpys_own_to_the_bit() -> None:
+    """_motion_fit's column norms and successive_variance's differences skip numpy's
+    wrappers (``norm(axis=0)``, ``diff``): the floats must be those of the wrappers (a
+    numpy that computes them otherwise fails here)."""
+    rng = np.random.default_rng(11)
+    for rows, cols in [(201, 4), (201, 5), (8, 4), (2500, 5)]:
+        a = rng.normal(size=(rows, cols)) * 10.0 ** rng.integers(-3, 3, cols)
+        a[: rows // 2, 0] = 0.0  # a fault column, zero before its onset
+        shortcut = np.sqrt(np.add.reduce(a * a, axis=0))
+        assert np.array_equal(shortcut, np.linalg.norm(a, axis=0))
+        d = np.diff(a, axis=0)
+        expected = np.einsum("i...,i...->...", d, d) / (2 * (rows - 1))
+        assert np.array_equal(successive_variance(a), expected)
+        column = np.diff(a[:, 1])
+        assert successive_variance(a[:, 1]) == np.einsum("i,i->", column, column) / (2 * (rows - 1))
 
 
 @pytest.mark.filterwarnings("ignore:All-NaN slice:RuntimeWarning")
