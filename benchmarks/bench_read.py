@@ -9,7 +9,10 @@ the writer and memory lines then still use a generated log.
 
 Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary directory, then
 - times ImuArrayWriter (bulk CDR encoding + zstd chunks) writing it,
-- times ImuArrayReader.blocks() (all messages decoded and aligned) and
+- times ImuArrayReader.blocks() (all messages decoded and aligned; with the reader's
+  default settings, which for files of >= 32 MiB on two CPUs read ahead on a worker
+  thread, then also explicitly in line and with read-ahead, each with the CPU of all
+  threads and of the calling thread) and
   mcap_ros2's make_reader(..., decoder_factories=[DecoderFactory()]).iter_decoded_messages()
   on the same file (the latter on a subset of messages if --baseline-fraction < 1, rate
   extrapolated), prints messages/s and the ratio,
@@ -66,18 +69,26 @@ def make_log(path: Path, n_imus: int, n_samples: int, block: int = 50_000) -> fl
 
 
 def time_imufdi(
-    path: Path, validate_crcs: bool = True, read_ahead: bool = False
-) -> tuple[float, int, float]:
-    """(wall s, messages, CPU s, all threads) of reading the whole log (decoded and
-    aligned); ``read_ahead`` decompresses on the reader's worker thread."""
+    path: Path, validate_crcs: bool = True, read_ahead: bool | None = None
+) -> tuple[float, int, float, float]:
+    """(wall s, messages, CPU s of all threads, CPU s of the calling thread) of reading
+    the whole log (decoded and aligned); ``read_ahead``: McapSource's (None: its default,
+    on for files of >= 32 MiB with two CPUs; True: the worker thread decompresses and
+    reads the message heads; False: all in line)."""
     t0 = time.perf_counter()
     c0 = time.process_time()
+    m0 = time.thread_time()
     n = 0
     source = McapSource(path, validate_crcs=validate_crcs, read_ahead=read_ahead)
     with ImuArrayReader(source) as reader:
         for block in reader.blocks():
             n += len(block) * block.n_imus
-    return time.perf_counter() - t0, n, time.process_time() - c0
+    return (
+        time.perf_counter() - t0,
+        n,
+        time.process_time() - c0,
+        time.thread_time() - m0,
+    )
 
 
 def time_floor(path: Path, crc: bool = False) -> tuple[float, float]:
@@ -180,10 +191,16 @@ def main() -> None:
                 n_messages = sum(len(b) * b.n_imus for b in probe.blocks())
         size_mb = base.stat().st_size / 1e6
         print(f"log: {base.name}, {n_messages:,} Imu messages, {size_mb:.1f} MB")
-        ours_s, ours_n, ours_cpu = min(time_imufdi(base) for _ in range(3))
+        with McapSource(base) as probe_source:
+            default_ahead = probe_source.read_ahead
+        ours_s, ours_n, ours_cpu, ours_main = min(time_imufdi(base) for _ in range(3))
         assert ours_n == n_messages, (ours_n, n_messages)
         ours_rate = ours_n / ours_s
-        print(f"imufdi reader        : {ours_s:7.2f} s  {ours_rate:12,.0f} msg/s (decoded+aligned)")
+        print(
+            f"imufdi reader        : {ours_s:7.2f} s  {ours_rate:12,.0f} msg/s (decoded+aligned;"
+            f" default settings: read-ahead {'on' if default_ahead else 'off'}), CPU"
+            f" {ours_cpu:.2f} s, calling thread {ours_main:.2f} s"
+        )
         floor_s, floor_cpu = time_floor(base)
         print(
             f"zstd floor           : {floor_s:7.2f} s  {n_messages / floor_s:12,.0f} msg/s"
@@ -199,19 +216,27 @@ def main() -> None:
             f" (as above, plus the CRC-32 the reader verifies), CPU {crc_cpu:.2f} s"
         )
         print(f"reader / CRC floor   : {crc_s / ours_s:7.1%} wall, {crc_cpu / ours_cpu:.1%} CPU")
-        nocrc_s, nocrc_n, nocrc_cpu = min(time_imufdi(base, validate_crcs=False) for _ in range(3))
+        nocrc_s, nocrc_n, nocrc_cpu, _ = min(
+            time_imufdi(base, validate_crcs=False) for _ in range(3)
+        )
         assert nocrc_n == n_messages, (nocrc_n, n_messages)
         print(
             f"reader, CRCs off     : {nocrc_s:7.2f} s  {n_messages / nocrc_s:12,.0f} msg/s,"
             f" {floor_s / nocrc_s:.1%} of the zstd floor (wall), {floor_cpu / nocrc_cpu:.1%} (CPU)"
         )
-        line_s, line_n, line_cpu = min(time_imufdi(base, read_ahead=True) for _ in range(3))
-        assert line_n == n_messages, (line_n, n_messages)
-        print(
-            f"reader, read-ahead   : {line_s:7.2f} s  {n_messages / line_s:12,.0f} msg/s,"
-            f" {floor_s / line_s:.1%} of the zstd floor (wall), {floor_cpu / line_cpu:.1%} (CPU)"
-            " (read_ahead=True: chunks decompressed and CRC-checked on a worker thread)"
-        )
+        for label, ahead, what in (
+            ("in line", False, "read_ahead=False: one thread"),
+            ("read-ahead", True, "read_ahead=True: a worker thread decompresses and reads heads"),
+        ):
+            line_s, line_n, line_cpu, line_main = min(
+                time_imufdi(base, read_ahead=ahead) for _ in range(3)
+            )
+            assert line_n == n_messages, (line_n, n_messages)
+            print(
+                f"reader, {label:<13}: {line_s:7.2f} s  {n_messages / line_s:12,.0f} msg/s,"
+                f" {floor_s / line_s:.1%} of the zstd floor (wall), {floor_cpu / line_cpu:.1%}"
+                f" (CPU {line_cpu:.2f} s), calling thread {line_main:.2f} s ({what})"
+            )
         ref_s, ref_n = time_mcap_ros2(base, args.baseline_messages)
         ref_rate = ref_n / ref_s
         print(
