@@ -144,14 +144,21 @@ def time_mcap_ros2(path: Path, max_messages: int) -> tuple[float, int]:
 
 
 def peak_rss_reading(path: Path) -> int:
-    """ru_maxrss (kB) of a fresh Python process reading the whole log."""
+    """Peak resident memory (kB) of a fresh Python process reading the whole log: its
+    VmHWM (Linux; ru_maxrss elsewhere). Not ru_maxrss on Linux: the kernel carries it over
+    ``exec`` from the forked parent, so it reported this benchmark's own size (about
+    165-180 MB after writing the 10x log) rather than the reader's."""
     code = (
         "import resource, sys\n"
         "from imufdi_cli.mcapio import ImuArrayReader\n"
         "n = 0\n"
         "with ImuArrayReader(sys.argv[1]) as r:\n"
         "    for b in r.blocks(): n += len(b)\n"
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
+        "try:\n"
+        "    status = open('/proc/self/status').read().split('VmHWM:')[1]\n"
+        "    print(int(status.split()[0]))\n"
+        "except (OSError, IndexError):\n"
+        "    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", code, str(path)], check=True, capture_output=True, text=True
