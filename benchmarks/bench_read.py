@@ -10,9 +10,8 @@ the writer and memory lines then still use a generated log.
 Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary directory, then
 - times ImuArrayWriter (bulk CDR encoding + zstd chunks) writing it,
 - times ImuArrayReader.blocks() (all messages decoded and aligned; with the reader's
-  default settings, which for files of >= 32 MiB on two CPUs read ahead on a worker
-  thread, then also explicitly in line and with read-ahead, each with the CPU of all
-  threads and of the calling thread) and
+  default settings (in line unless IMUFDI_READ_AHEAD=1), then also explicitly in line
+  and with read-ahead, each with the CPU of all threads and of the calling thread) and
   mcap_ros2's make_reader(..., decoder_factories=[DecoderFactory()]).iter_decoded_messages()
   on the same file (the latter on a subset of messages if --baseline-fraction < 1, rate
   extrapolated), prints messages/s and the ratio,
@@ -73,8 +72,8 @@ def time_imufdi(
 ) -> tuple[float, int, float, float]:
     """(wall s, messages, CPU s of all threads, CPU s of the calling thread) of reading
     the whole log (decoded and aligned); ``read_ahead``: McapSource's (None: its default,
-    on for files of >= 32 MiB with two CPUs; True: the worker thread decompresses and
-    reads the message heads; False: all in line)."""
+    in line unless IMUFDI_READ_AHEAD=1; True: a worker thread decompresses and reads the
+    message heads and Imu fields; False: all in line)."""
     t0 = time.perf_counter()
     c0 = time.process_time()
     m0 = time.thread_time()
@@ -233,7 +232,7 @@ def main() -> None:
         )
         for label, ahead, what in (
             ("in line", False, "read_ahead=False: one thread"),
-            ("read-ahead", True, "read_ahead=True: a worker thread decompresses and reads heads"),
+            ("read-ahead", True, "read_ahead=True: a worker thread decompresses, reads heads"),
         ):
             line_s, line_n, line_cpu, line_main = min(
                 time_imufdi(base, read_ahead=ahead) for _ in range(3)

@@ -22,7 +22,7 @@ from imufdi_cli.mcapio.scan import (
     _BATCH_CAPACITY,
     Digest,
     PayloadFields,
-    uniform_message_heads,
+    chunk_digest,
 )
 
 if TYPE_CHECKING:
@@ -185,12 +185,5 @@ def _unpack_ahead(
     raw, error = _unpack_chunk(content, max_chunk_bytes, validate_crcs, slot, trust_frame_checksum)
     digest: Digest | None = None
     if raw is not None and length >= 0:
-        buf = np.frombuffer(raw, np.uint8)
-        heads = uniform_message_heads(buf, length)
-        if heads is not None:
-            read = None if fields is None else fields.read(buf, length)
-            if fields is None or read is None:
-                digest = (heads, None)
-            else:
-                digest = (heads, (fields, *read))
+        digest = chunk_digest(np.frombuffer(raw, np.uint8), length, fields)
     return raw, error, digest

@@ -52,6 +52,7 @@ from imufdi_cli.mcapio.scan import (
     PayloadFields,
     RecordPattern,
     _PendingMessages,
+    chunk_digest,
     message_batch,
     parse_channel,
     parse_metadata,
@@ -103,12 +104,11 @@ class McapSource(RecordStream):
     length (an IMU array's), the worker also checks every record head and reads the
     message heads and the payload fields the Imu reader asked for
     (:attr:`payload_fields`). Results, warnings and errors come in file order and are the
-    same as without it. The default (``None``) turns it on for files of at least
-    ``AUTO_READ_AHEAD_BYTES`` (32 MiB) when the process may use two CPUs or more, and the
-    environment variable ``IMUFDI_READ_AHEAD=0`` (or ``1``) forces it off (on) for every
-    file. It moves about half of the CPU of reading off the calling thread and adds about
-    a tenth in all; on a machine whose cores are all busy it can lose wall time
-    (docs/performance.md).
+    same as without it. It moves about half of the CPU of reading off the calling thread
+    and adds up to a tenth in all, but the two threads share the GIL, and on the 2-core
+    build machine it gained no wall time that could be told from the load's noise
+    (docs/performance.md): the default (``None``) is off, unless the environment variable
+    ``IMUFDI_READ_AHEAD=1`` turns it on for every source.
 
     Chunk records are verified when ``validate_crcs`` is true (the default): by the
     chunk's CRC-32, except that a zstd chunk whose frame carries a content checksum over
@@ -234,7 +234,7 @@ class McapSource(RecordStream):
                 raise
             self._stream.seek(len(MAGIC))
         if read_ahead is None:
-            self.read_ahead = _auto_read_ahead(self._file_size)
+            self.read_ahead = _default_read_ahead()
 
     # --- plumbing ------------------------------------------------------------------------
 
@@ -446,6 +446,17 @@ class McapSource(RecordStream):
                 None if pending is None else pending.slot,
                 not self.strict,
             )
+            pattern = self._pattern
+            if (
+                raw is not None
+                and pattern is not None
+                and pattern.uniform >= 0
+                and len(raw) > _SMALL_CHUNK
+            ):
+                # heads and fields read while the chunk is still in the cache
+                heads = chunk_digest(
+                    np.frombuffer(raw, np.uint8), pattern.uniform, self.payload_fields
+                )
         if raw is None:
             self._problem(f"chunk at byte {chunk_offset} skipped: {error}")
         return raw, heads
@@ -540,25 +551,14 @@ class McapSource(RecordStream):
 #: (chunk copied verbatim or None, message count, byte offset of its records in the batch)
 ChunkRun = tuple[RawChunk | None, int, int]
 
-#: Files at least this large are read with the read-ahead thread by default (when the
-#: process may use two CPUs): below it, starting the thread costs more than it saves.
-AUTO_READ_AHEAD_BYTES = 32 << 20
 
-
-def _auto_read_ahead(file_size: int | None) -> bool:
-    """The default of ``read_ahead``: on for a file (seekable, size known) of at least
-    ``AUTO_READ_AHEAD_BYTES`` when the process may run on two CPUs or more; the environment
-    variable ``IMUFDI_READ_AHEAD`` (``0`` or ``1``) overrides it for every file."""
-    forced = os.environ.get("IMUFDI_READ_AHEAD", "").strip()
-    if forced in ("0", "1"):
-        return forced == "1"
-    if file_size is None or file_size < AUTO_READ_AHEAD_BYTES:
-        return False
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        cpus = os.cpu_count() or 1
-    return cpus >= 2
+def _default_read_ahead() -> bool:
+    """The default of ``read_ahead``: off, unless the environment variable
+    ``IMUFDI_READ_AHEAD`` is ``1`` (then every source reads ahead; e.g. for long logs on a
+    machine with a free core). Off by default because the two threads share the GIL: on
+    the 2-core build machine the read-ahead reader took about as much wall time as the
+    in-line one (docs/performance.md, "Reader, fifth pass")."""
+    return os.environ.get("IMUFDI_READ_AHEAD", "").strip() == "1"
 
 
 def _raw_chunk(content: bytes) -> RawChunk:

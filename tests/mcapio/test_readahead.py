@@ -131,9 +131,10 @@ def _same(a: tuple[list, list, str], b: tuple[list, list, str]) -> None:
 def test_read_ahead_reads_heads_and_fields_on_the_worker(damage: str, monkeypatch) -> None:
     """With read-ahead, chunks of uniform Imu records are decompressed into the batch
     buffers (no copy) and the worker checks their record heads and reads the message
-    heads and the Imu fields the reader asked for: the batches, blocks, statistics and
-    warnings are those of reading in line, also with a bad chunk (the chunks after it are
-    copied, not used in place) and a cut one."""
+    heads and the Imu fields the reader asked for (in line, the same is read right after
+    each chunk's decompression): the batches, blocks, statistics and warnings are those
+    of reading in line and of reading every field per batch, also with a bad chunk (the
+    chunks after it are copied, not used in place) and a cut one."""
     import imufdi_cli.mcapio.readahead as readahead_module
     import imufdi_cli.mcapio.scan as scan_module
 
@@ -148,46 +149,42 @@ def test_read_ahead_reads_heads_and_fields_on_the_worker(damage: str, monkeypatc
         data = bytes(bad)
     elif damage == "cut":
         data = data[: chunks[20][0] + 9 + chunks[20][1] // 2]
+    import imufdi_cli.mcapio.source as source_module
+
     for strict in (False, True):
-        threaded = _whole_read(data, True, strict)
-        _same(threaded, _whole_read(data, False, strict))
+        inline = _whole_read(data, False, strict)
+        _same(_whole_read(data, True, strict), inline)
+        with monkeypatch.context() as patch:  # in line, every field read per batch
+            patch.setattr(source_module, "chunk_digest", lambda *args: None)
+            _same(_whole_read(data, False, strict), inline)
     if damage == "none":
         from imufdi_cli.mcapio import ImuArrayReader
 
-        source = McapSource(io.BytesIO(data), read_ahead=True)
-        with ImuArrayReader(source) as reader:
-            used = [hasattr(batch, "payload_fields") for batch, _ in reader.stream()]
-        assert source.payload_fields is not None and any(used)
+        for ahead in (True, False):
+            source = McapSource(io.BytesIO(data), read_ahead=ahead)
+            with ImuArrayReader(source) as reader:
+                used = [hasattr(batch, "payload_fields") for batch, _ in reader.stream()]
+            assert source.payload_fields is not None and any(used)
 
 
 def test_read_ahead_default(monkeypatch, tmp_path) -> None:
-    """On by default for files of at least AUTO_READ_AHEAD_BYTES when two CPUs may be
-    used; IMUFDI_READ_AHEAD=0/1 forces it; off for streams of unknown size."""
-    import imufdi_cli.mcapio.source as source_module
-
+    """Off by default; IMUFDI_READ_AHEAD=1 turns it on for every source (also a stream of
+    unknown size), anything else leaves it off; an explicit argument wins."""
     path = tmp_path / "imu.mcap"
     data = imu_file(chunked=True, n_imus=2, n_samples=200, chunk_size=4096)
     path.write_bytes(data)
     monkeypatch.delenv("IMUFDI_READ_AHEAD", raising=False)
-    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
-    monkeypatch.setattr(source_module, "AUTO_READ_AHEAD_BYTES", len(data))
+    with McapSource(path) as source:
+        assert not source.read_ahead
+    monkeypatch.setenv("IMUFDI_READ_AHEAD", "1")
     with McapSource(path) as source:
         assert source.read_ahead
-    with McapSource(path, read_ahead=False) as source:
-        assert not source.read_ahead
     with McapSource(Unseekable(data)) as source:
+        assert source.read_ahead
+    with McapSource(path, read_ahead=False) as source:
         assert not source.read_ahead
     monkeypatch.setenv("IMUFDI_READ_AHEAD", "0")
     with McapSource(path) as source:
         assert not source.read_ahead
-    monkeypatch.setenv("IMUFDI_READ_AHEAD", "1")
-    with McapSource(Unseekable(data)) as source:
+    with McapSource(path, read_ahead=True) as source:
         assert source.read_ahead
-    monkeypatch.delenv("IMUFDI_READ_AHEAD")
-    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0}, raising=False)
-    with McapSource(path) as source:
-        assert not source.read_ahead
-    monkeypatch.setattr(source_module, "AUTO_READ_AHEAD_BYTES", len(data) + 1)
-    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
-    with McapSource(path) as source:
-        assert not source.read_ahead
