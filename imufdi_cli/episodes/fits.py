@@ -6,21 +6,27 @@ Over an analysis window (the episode plus a margin before it) the fault models o
 (profile likelihood over every sample of the margin and the episode's first part) and,
 when the detector's alarms outlast the fault, an end (:func:`_fault_end`):
 
-======  ==========================================  ==================================
-model   r(t) for t >= tau (before: N(0, sigma_r^2))  size (90 % interval)
-======  ==========================================  ==================================
-step    a + e                                        amp: t interval (:func:`_linear_fit`)
-drift   b (t - t_f) + e, t_f between two samples     rate: t interval of the LS slope
-noise   e, Var e = f^2 sigma_k^2 + sigma_c^2         factor: successive differences, F
-scale   beta o(t) + e, o the consensus prediction    factor: 1 + beta_hat, t interval
-spikes  e + s A on a fraction p of samples           amp A (t interval), rate (Poisson)
-stuck   y_k(t) = y_k(tau - 1) exactly                value (exact)
-======  ==========================================  ==================================
+======  ==============================================  =====================================
+model   r(t) for t >= tau (before: N(0, sigma_r^2))     size (90 % interval)
+======  ==============================================  =====================================
+step    a + e                                           amp: t interval (:func:`_linear_fit`)
+drift   b (t - t_f) + e, t_f between two samples        rate: t interval of the LS slope
+noise   gamma o + e, Var e = f^2 sigma_k^2 + sigma_c^2  factor: successive differences, F
+scale   beta o(t) + e, o the consensus prediction       factor: 1 + beta_hat, t interval
+spikes  gamma o + e + s A on a fraction p of samples    amp A (t interval), rate (Poisson)
+stuck   y_k(t) = y_k(tau - 1) exactly                   value (exact)
+======  ==============================================  =====================================
 
 The models are ranked by BIC (Schwarz 1978): the Gaussian log-likelihood of the whole
-window minus half the number of free parameters times ln n. ``none`` (no fault: the
-residual is the calibrated noise throughout) is ranked with them, so an episode that no
-fault model explains better than chance is called a false alarm, with its evidence.
+window minus half the number of free parameters times ln n. Under motion a healthy sensor's
+residual already carries a motion-dependent error (calibrated scale and misalignment
+residue); its projection on o, ``gamma o`` over the whole window, is a nuisance of the
+noise and spikes models, and the scale model is ranked with ``beta_0 o`` before its onset
+(:func:`_fit_window`), so that noise growth on a turning array is not taken for a scale
+factor (docs/episodes.md, "Noise growth or scale factor on a turning array"). ``none``
+(no fault: the residual is the calibrated noise throughout) is ranked with them, so an
+episode that no fault model explains better than chance is called a false alarm, with its
+evidence.
 ``stuck`` is not a Gaussian model (a frozen output has no noise at all): it is declared
 when the raw output repeats exactly on at least ``stuck_share`` of the samples after the
 onset (a healthy sensor always carries its own noise, so long exact repeats do not
@@ -40,7 +46,14 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.episodes.fault_fit import MODELS, FaultFit, WhiteNoise
-from imufdi_cli.episodes.model_fits import _noise_fit, _spike_fit, _stuck_fit, _white_noise_fit
+from imufdi_cli.episodes.model_fits import (
+    SPIKE_CUT,
+    _local_level,
+    _noise_fit,
+    _spike_fit,
+    _stuck_fit,
+    _white_noise_fit,
+)
 from imufdi_cli.episodes.numerics import _gaussian_nll, _median, _suffix
 from imufdi_cli.episodes.reference import Reference, _linear_fit
 
@@ -137,13 +150,46 @@ def fit_models(
 
     fits = _fit_window(r, o, t, raw_arr, onset_range, reference, **options)
     end = _fault_end(fits, r, var0)
-    if end is None:
-        return fits
-    for _ in range(2):  # the end found by the best model on the whole window, refined once
-        refined = _fault_end(fit_until(end, None), r[:end], var0)
-        if refined is None or refined == end:
-            break
-        end = refined
+    if end is not None:
+        for _ in range(2):  # the end found by the best model on the whole window, refined once
+            refined = _fault_end(fit_until(end, None), r[:end], var0)
+            if refined is None or refined == end:
+                break
+            end = refined
+    # the end is a parameter of every fault model, not only of the best one: the runner-up
+    # model with a curve proposes its own end too (a scale fault that ended inside the
+    # window is fitted badly to the window's end, and a model with a free variance can then
+    # rank above it before its end is found); each model keeps the candidate end (or none,
+    # when the best model found none) that gives it the lowest BIC
+    curved = [f for f in fits if f.curve is not None]
+    runner_end = None
+    if len(curved) > 1 and fits[0].model != "stuck":
+        runner_end = _fault_end(fits, r, var0, curved[1].model)
+    variants = [fits if end is None else _cut(fits, end, r, var0, reference, fit_until)]
+    if runner_end is not None and runner_end != end:
+        variants.append(_cut(fits, runner_end, r, var0, reference, fit_until))
+    if len(variants) == 1:
+        return variants[0]
+    chosen: dict[str, FaultFit] = {}
+    for variant in variants:
+        for f in variant:
+            if f.model not in chosen or f.bic < chosen[f.model].bic:
+                chosen[f.model] = f
+    out = list(chosen.values())
+    out.sort(key=lambda f: (f.bic, MODELS.index(f.model)))  # stuck (-inf) stays first
+    return out
+
+
+def _cut(
+    fits: list[FaultFit],
+    end: int,
+    r: np.ndarray,
+    var0: float,
+    reference: Reference | None,
+    fit_until: Any,
+) -> list[FaultFit]:
+    """The fits on the window's samples up to ``end`` (``fit_until``), with the healthy
+    tail after it and the end's BIC penalty added; ``fits`` when nothing fits there."""
     # the fault ended before the window did (the detector's alarms outlast it): refit on
     # the samples up to its end; the healthy tail adds the same to every model's -2 log L,
     # and the end is one more parameter of each fault model
@@ -171,16 +217,19 @@ def fit_models(
     return out
 
 
-def _fault_end(fits: list[FaultFit], r: np.ndarray, var0: float) -> int | None:
+def _fault_end(
+    fits: list[FaultFit], r: np.ndarray, var0: float, model: str | None = None
+) -> int | None:
     """Where the fault ends, when it ends clearly before the window does: by the best
-    fitted model with a fitted curve (step, drift, noise, scale), the end maximises its
+    fitted model with a fitted curve (step, drift, noise, scale; or ``model``'s fit when
+    given), the end maximises its
     log-likelihood ratio against the calibrated noise summed from the onset to the end
     (the samples after it are better explained as healthy). None when the best model is a
     frozen output (stuck: the repeats say where it ends), no model has a curve, or the end
     does not earn its BIC penalty."""
     if fits and fits[0].model == "stuck":
         return None
-    best = next((f for f in fits if f.curve is not None), None)
+    best = next((f for f in fits if f.curve is not None and model in (None, f.model)), None)
     if best is None or best.curve is None or best.onset_index < 0:
         return None
     mean, variance = best.curve
@@ -265,13 +314,30 @@ def _fit_window(
         X = np.stack([u, np.ones_like(u)], axis=1) if lam is None else (u + lam)[:, None]
         fits.append(_linear_fit("drift", r[onset:], X, onset, bic, **linear))
 
-    # noise: r ~ N(0, f^2 sigma_k^2 + sigma_c^2); variance fitted (bounded below by var0).
-    # The class is decided with a zero mean (a noise fault has none; a free mean would nest
-    # the step model). The factor is sized from the spread about the mean: a fault on a
-    # sensor of the consensus (another detector's, or one too small to alarm) shifts r,
-    # and that shift is not noise.
-    var_hat = np.maximum(s_rr / n_after, var0)
-    j, bic = best(_gaussian_nll(s_rr, n_after, var_hat), 1)
+    # noise: r = gamma o + e over the whole window, e ~ N(0, var_gamma) before the onset and
+    # N(0, v) after it, v >= var_gamma fitted (v = f^2 sigma_k^2 + sigma_c^2 at gamma = 0).
+    # gamma o is a nuisance: the motion-dependent error a healthy sensor carries under motion
+    # (its calibrated scale and misalignment residue, projected on o), before the fault as
+    # after it; without it the noise model charged that error to its variance, and the
+    # scale model (whose beta absorbs it) won on noise growth under motion (conical6).
+    # gamma is the least-squares coefficient over the window (the noise is independent of
+    # o, so it is unbiased; the profile likelihood with it is a lower bound of the maximum).
+    # No free mean: a noise fault has none, and a free mean would nest the step model.
+    s_oo_all = float(np.dot(o, o))
+    gamma = float(np.dot(o, r)) / s_oo_all if s_oo_all > 0 else 0.0
+    var_gamma = sigma_k**2 + (1 + gamma) ** 2 * consensus_sigma**2
+    sq_g = (r - gamma * o) ** 2
+    before_g = np.concatenate(([0.0], np.cumsum(sq_g)))[taus]
+    after_g = _suffix(sq_g)[taus]
+    var_hat = np.maximum(after_g / n_after, var_gamma)
+    nll_before_g = _gaussian_nll(before_g, taus.astype(np.float64), var_gamma)
+    total_g = nll_before_g + _gaussian_nll(after_g, n_after, var_hat)
+    j = int(np.argmin(total_g))
+    bic = float(2 * total_g[j] + 3 * ln_n)  # gamma, v, onset
+    # the factor is sized from the successive differences (white path: gamma o varies
+    # slowly and drops out of them) or from the spread about the mean: a fault on a sensor
+    # of the consensus (another detector's, or one too small to alarm) shifts r, and that
+    # shift is not noise
     if white is None:
         fits.append(
             _noise_fit(
@@ -294,10 +360,34 @@ def _fit_window(
             )
         )
 
-    # scale: r = beta o + e
+    # scale: r = beta o + e from the onset on. The onset is where the residual turns from
+    # the calibrated noise to beta o + e (profile likelihood, as for step and drift); the
+    # class is decided with the likelihood of r = beta_0 o + e before that onset and beta o
+    # + e after it: beta_0 o is the same nuisance as the noise model's gamma o (the healthy
+    # motion error), so neither model is charged for what the other explains, and both
+    # have three parameters (beta_0, beta and the onset; gamma, v and the onset). (With
+    # the onset fitted on the two-coefficient likelihood too, a coefficient change at a
+    # fault's end would pass for an onset.) Each part's noise: o = x + e_c carries the
+    # consensus error, so with r = beta x + e_k - e_c, r - beta o = e_k - (1 + beta) e_c
+    # has variance sigma_k^2 + (1 + beta)^2 sigma_c^2 (var0 at beta = 0).
     with np.errstate(divide="ignore", invalid="ignore"):
         beta = np.where(s_oo > 0, s_or / s_oo, 0.0)
-    j, bic = best(_gaussian_nll(s_rr - beta * s_or, n_after, var0), 1)
+    sse_1 = np.maximum(s_rr - beta * s_or, 0.0)
+    nll_1 = _gaussian_nll(sse_1, n_after, sigma_k**2 + (1 + beta) ** 2 * consensus_sigma**2)
+    j = int(np.argmin(nll_before + nll_1))
+    tau = int(taus[j])
+    p_oo, p_or = float(np.dot(o[:tau], o[:tau])), float(np.dot(o[:tau], r[:tau]))
+    beta_0 = p_or / p_oo if p_oo > 0 else 0.0
+    nll_0 = _gaussian_nll(
+        max(float(healthy_before[j]) - beta_0 * p_or, 0.0),
+        float(tau),
+        sigma_k**2 + (1 + beta_0) ** 2 * consensus_sigma**2,
+    )
+    # beta_0, beta, onset; beta_0 only when there are samples before the onset (a window
+    # that starts inside the fault has r = beta o + e throughout: then a noise model whose
+    # nuisance gamma o takes up beta o and whose variance stays at its bound ties with it,
+    # with no evidence of noise growth at all)
+    bic = float(2 * (nll_0 + nll_1[j]) + (2 + (tau > 0)) * ln_n)
     onset = lo + j
     if s_oo[j] > 0:
         fits.append(
@@ -309,9 +399,27 @@ def _fit_window(
     nll_healthy = float(_gaussian_nll(np.sum(sq), n_total, var0))
     fits.append(FaultFit("none", math.nan, math.nan, math.nan, -1, 2 * nll_healthy))
 
-    spikes = _spike_fit(r, t, sigma_r, taus, nll_before, ln_n, confidence)
+    # spikes on r - gamma_s o: the noise model's nuisance (one more parameter), so that a
+    # slow motion error the nuisance explains is not charged to the spike model's quiet
+    # variance while the noise model is let off it. gamma_s is fitted on the samples that
+    # are not spikes (the spike model's own quiet samples): with the spikes in, their sign
+    # imbalance D moves it, and the amplitudes by about -A D^2 / (N m) (m spikes of N).
+    # The amplitude and its interval are still taken from r at the flagged samples (as
+    # before the nuisance: calibrated on the diagnostic seeds; on r - gamma_s o conical6's
+    # intervals covered 92-96 %)
+    quiet = np.abs(r - _local_level(r)) <= SPIKE_CUT * sigma_r
+    o_q = o[quiet]
+    s_oo_q = float(np.dot(o_q, o_q))
+    gamma_s = float(np.dot(o_q, r[quiet])) / s_oo_q if s_oo_q > 0 else 0.0
+    r_s = r - gamma_s * o
+    nll_before_s = _gaussian_nll(
+        np.concatenate(([0.0], np.cumsum(r_s**2)))[taus],
+        taus.astype(np.float64),
+        sigma_k**2 + (1 + gamma_s) ** 2 * consensus_sigma**2,
+    )
+    spikes = _spike_fit(r_s, t, sigma_r, taus, nll_before_s, ln_n, confidence, sized=r)
     if spikes is not None:
-        fits.append(spikes)
+        fits.append(replace(spikes, bic=spikes.bic + ln_n))
     fits.sort(key=lambda f: (f.bic, MODELS.index(f.model)))
 
     stuck = _stuck_fit(raw, lo, hi, stuck_share)

@@ -149,6 +149,7 @@ def _spike_fit(
     nll_before: np.ndarray,
     ln_n: float,
     confidence: float,
+    sized: np.ndarray | None = None,
 ) -> FaultFit | None:
     """Sparse spikes: samples further than SPIKE_CUT sigma_r from their local level (a
     running median of five, :func:`_local_level`: slow motion-dependent errors of the
@@ -156,7 +157,13 @@ def _spike_fit(
     local level itself is biased towards a neighbouring spike), and the Poisson rate. The quiet samples have a variance of their own, bounded below by the
     calibrated one (one more parameter): under motion the residual carries scale and
     misalignment errors, which would otherwise be charged to the spike model and make the
-    noise model win; so do the spikes' distances from amp."""
+    noise model win; so do the spikes' distances from amp.
+
+    ``sized`` (shape of r, default r) is the residual the amplitude and its interval are
+    taken from, at the samples flagged in r: :func:`~imufdi_cli.episodes.fits.fit_models`
+    ranks the model on r less the motion nuisance and sizes it on the residual itself
+    (with random signs, the motion error at the spikes averages out of the mean of |r|,
+    and the interval's spread carries it)."""
     d = r - _local_level(r)
     flagged = np.abs(d) > SPIKE_CUT * sigma_r
     count_after = _suffix(flagged.astype(np.float64))[taus]
@@ -184,7 +191,7 @@ def _spike_fit(
     j = int(np.argmin(total))
     bic = float(2 * total[j] + 5 * ln_n)  # amplitude, rate, two variances, onset
     onset = int(taus[j])
-    spikes = np.abs(r[onset:][flagged[onset:]])
+    spikes = np.abs((r if sized is None else sized)[onset:][flagged[onset:]])
     m = spikes.shape[0]
     tail = (1 - confidence) / 2
     if m >= 2:

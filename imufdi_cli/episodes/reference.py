@@ -322,7 +322,18 @@ def _motion_fit(
     is orthogonal to M: every sensor's motion error drops out of its estimate, the healthy
     sensors' too. Its variance and the healthy sensors' check follow :func:`_linear_fit`
     (noise with its autocorrelation, the calibrated bias, widening by their dispersion
-    only if it is still significant). It is used when ``force`` (the healthy sensors
+    only if it is still significant), except for the calibrated bias's variance:
+    ``offset_var / var0`` (1 / n_cal) times the white variance of the fit's residuals
+    (:func:`successive_variance`), not ``offset_var``. The offset taken out of r is r's
+    calibration mean; with M relative to its calibration mean, the motion part of that
+    mean is in ``M c``, so what is left of the offset's error is the mean of n_cal white
+    samples. ``var0`` (the calibrated sigma's) also holds the motion errors of a
+    calibration window that spans the start of a motion (conical6, seeds 100-129: 1.56
+    times the white variance on average, 0.99-2.30), and the offset is most of a step's
+    variance (71 % on 352 diagnostic conical6 steps, seeds 100-219), so with
+    ``offset_var`` the step intervals were too wide (94.6 % coverage there, 90.1 % now).
+    The healthy sensors' check predicts their offsets' errors the same way
+    (:func:`_dispersion`). It is used when ``force`` (the healthy sensors
     spread too much without it) or when M explains the sensor's own residual
     significantly (partial F test at DISPERSION_LEVEL against ``sse_without``, the sum of
     squares of the margin and the fault model's residuals). Returns (size without shift,
@@ -361,15 +372,16 @@ def _motion_fit(
     if not force and f_stat <= _f_quantile(DISPERSION_LEVEL, M.shape[1], dof):
         return None
     sw2, sw = float(w @ w), float(np.sum(w))
-    variance = float(e @ e) / dof * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
+    white = float(successive_variance(e))
+    offset_ratio = offset_var / var0 if var0 > 0 else 0.0
+    # the calibrated offset's error: what is left of the calibration window once M (taken
+    # relative to its calibration mean) holds the motion errors, i.e. the mean of n_cal
+    # samples of white noise, offset_ratio = 1 / n_cal times the white variance; the
+    # healthy sensors' check below predicts their offsets' error the same way
+    offset = offset_ratio * white if var0 > 0 else offset_var
+    variance = float(e @ e) / dof * _autocorrelation_factor(e, w) * sw2 + offset * sw**2
     quantile = _t_quantile(0.5 + confidence / 2, dof)
-    dispersion, widened = _dispersion(
-        w,
-        reference,
-        float(successive_variance(e)),
-        offset_var / var0 if var0 > 0 else 0.0,
-        confidence,
-    )
+    dispersion, widened = _dispersion(w, reference, white, offset_ratio, confidence)
     if widened is not None and widened[0] > variance:
         variance, quantile = widened
     return float(coef[0]), quantile * math.sqrt(max(variance, 0.0)), dispersion
