@@ -105,7 +105,7 @@ class McapSource(RecordStream):
     message heads and the payload fields the Imu reader asked for
     (:attr:`payload_fields`). Results, warnings and errors come in file order and are the
     same as without it. It moves about half of the CPU of reading off the calling thread
-    and adds up to a tenth in all, but the two threads share the GIL, and on the 2-core
+    and adds 5-15 % in all, but the two threads share the GIL, and on the 2-core
     build machine it gained no wall time that could be told from the load's noise
     (docs/performance.md): the default (``None``) is off, unless the environment variable
     ``IMUFDI_READ_AHEAD=1`` turns it on for every source.
