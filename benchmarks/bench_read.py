@@ -20,7 +20,10 @@ Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary direct
   (issue 20 target: >= 50 %); also the floor with the CRC-32 of every chunk's records,
   which the reader verifies by default, and the reader with CRC checks off (the
   ImuArrayReader(path, validate_crcs=False)),
-- measures peak memory (ru_maxrss of a fresh subprocess) reading the base log and a 10x
+- with --malloc, times the in-line reader and the floor again in fresh processes, without
+  and with glibc told to keep freed memory (MALLOC_MMAP_THRESHOLD_, MALLOC_TRIM_THRESHOLD_:
+  what mallopt in the entry point would give; page faults cost about 4 us each here),
+- measures peak memory (VmHWM of a fresh subprocess) reading the base log and a 10x
   longer log.
 """
 
@@ -165,6 +168,33 @@ def peak_rss_reading(path: Path) -> int:
     return int(out.stdout.strip().splitlines()[-1])
 
 
+#: glibc settings under which freed memory is kept (no page faults for re-allocated
+#: buffers): what ``mallopt`` in the entry point would give; see --malloc
+KEEP_MEMORY = {"MALLOC_MMAP_THRESHOLD_": "268435456", "MALLOC_TRIM_THRESHOLD_": "1073741824"}
+
+
+def time_in_process(path: Path, extra_env: dict[str, str]) -> tuple[float, float, float, float]:
+    """(reader wall, reader CPU, floor wall, floor CPU), best of three each, in line,
+    measured in a fresh process with ``extra_env`` added to its environment."""
+    code = (
+        "import sys\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from pathlib import Path\n"
+        "from bench_read import time_imufdi, time_floor\n"
+        "p = Path(sys.argv[1])\n"
+        "time_imufdi(p, read_ahead=False)\n"
+        "w, _, c, _ = min(time_imufdi(p, read_ahead=False) for _ in range(3))\n"
+        "fw, fc = time_floor(p)\n"
+        "print(w, c, fw, fc)\n"
+    )
+    env = dict(os.environ, **extra_env)
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(path)], check=True, capture_output=True, text=True, env=env
+    )
+    wall, cpu, floor_wall, floor_cpu = (float(x) for x in out.stdout.split()[-4:])
+    return wall, cpu, floor_wall, floor_cpu
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--imus", type=int, default=16)
@@ -176,6 +206,12 @@ def main() -> None:
         help="messages decoded by mcap-ros2-support (rate extrapolated; it is slow)",
     )
     parser.add_argument("--skip-memory", action="store_true")
+    parser.add_argument(
+        "--malloc",
+        action="store_true",
+        help="also time the in-line reader and the floor in fresh processes with and without"
+        " glibc keeping freed memory (MALLOC_MMAP/TRIM_THRESHOLD_): the page faults' share",
+    )
     parser.add_argument("--log", type=Path, help="MCAP to time the readers on (default: generated)")
     args = parser.parse_args()
     from imufdi_cli.mcapio.compression import CRC32_IMPLEMENTATION
@@ -243,6 +279,14 @@ def main() -> None:
                 f" {floor_s / line_s:.1%} of the zstd floor (wall), {floor_cpu / line_cpu:.1%}"
                 f" (CPU {line_cpu:.2f} s), calling thread {line_main:.2f} s ({what})"
             )
+        if args.malloc:
+            for label, extra in (("fresh process", {}), ("+ glibc keeps memory", KEEP_MEMORY)):
+                r_wall, r_cpu, f_wall, f_cpu = time_in_process(base, extra)
+                print(
+                    f"in line, {label:<20}: reader {r_wall:.2f} s (CPU {r_cpu:.2f} s), floor"
+                    f" {f_wall:.2f} s (CPU {f_cpu:.2f} s): {f_wall / r_wall:.1%} wall,"
+                    f" {f_cpu / r_cpu:.1%} CPU"
+                )
         ref_s, ref_n = time_mcap_ros2(base, args.baseline_messages)
         ref_rate = ref_n / ref_s
         print(
