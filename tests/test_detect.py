@@ -12,6 +12,7 @@ from numpy.testing import assert_array_equal
 from imufdi_cli.detect import calibration_window_ns, decision_positions, detect_file
 from imufdi_cli.detectors import DETECTORS
 from imufdi_cli.detectors.base import DetectionBlock, DetectorBase
+from imufdi_cli.errors import CalibrationError
 from imufdi_cli.mcapio import McapSource, read_status
 
 
@@ -199,3 +200,24 @@ def test_no_explain_writes_the_same_status_and_alarms_without_episodes(sim_log, 
     assert "episode" not in kinds[plain]
     alarms = {p: [(t, e) for t, e in ev if e["event"] != "episode"] for p, ev in events.items()}
     assert alarms[explained] == alarms[plain]
+
+
+def test_read_ahead_gives_the_same_output_and_its_thread_ends(sim_log, tmp_path):
+    """detect decompresses the input's large chunks on a worker thread (read_ahead, the
+    default): the same file as without, and the thread is shut down when detect returns,
+    or when it fails."""
+    import threading
+
+    outputs = []
+    for read_ahead in (False, True):
+        out = tmp_path / f"{read_ahead}.mcap"
+        detect_file(str(sim_log), str(out), [("glt", {})], explain=False, read_ahead=read_ahead)
+        outputs.append(out.read_bytes())
+    assert outputs[0] == outputs[1]
+    with pytest.raises(CalibrationError):
+        detect_file(str(sim_log), str(tmp_path / "x.mcap"), [("glt", {})], calibrate=(50.0, 60.0))
+    for thread in threading.enumerate():
+        if thread.name.startswith("imufdi-chunks"):
+            thread.join(5)
+    assert not [t for t in threading.enumerate() if t.name.startswith("imufdi-chunks")]
+    assert not (tmp_path / "x.mcap").exists()

@@ -29,8 +29,10 @@ time. Channels written before ``amplitudes`` existed read as m = 0.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
+import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, Any
@@ -40,7 +42,15 @@ import numpy as np
 from imufdi_cli.errors import McapInputError, UsageError
 from imufdi_cli.mcapio.cdr import CdrCodec, codec_for, decode_json_payloads
 from imufdi_cli.mcapio.events import decode_events, is_event_channel
-from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch, gather_bytes
+from imufdi_cli.mcapio.records import (
+    MESSAGE_FIXED_CONTENT,
+    MESSAGE_HEADER_DTYPE,
+    MESSAGE_HEADER_SIZE,
+    OP_MESSAGE,
+    ChannelInfo,
+    MessageBatch,
+    gather_bytes,
+)
 from imufdi_cli.mcapio.schemas import STATUS_SCHEMA, STATUS_SCHEMA_NAME
 from imufdi_cli.mcapio.source import McapSource, iter_topic
 from imufdi_cli.mcapio.writer import McapWriter
@@ -119,10 +129,124 @@ def _up(value: int, align: int) -> int:
 
 
 def _put(out: np.ndarray, offset: int, values: np.ndarray, dtype: str) -> None:
-    """Write one little-endian column (N,) or (N, k) at payload ``offset`` of every row."""
+    """Write one little-endian column (N,) or (N, k) at byte ``offset`` of every row."""
     raw = np.ascontiguousarray(values, dtype=dtype)
     width = raw.dtype.itemsize * (raw.shape[1] if raw.ndim == 2 else 1)
     out[:, offset : offset + width] = raw.view(np.uint8).reshape(out.shape[0], width)
+
+
+#: Byte offsets of the Message record header's fields.
+_HEADER_AT = {name: int(field[1]) for name, field in (MESSAGE_HEADER_DTYPE.fields or {}).items()}
+
+
+@functools.lru_cache(maxsize=64)
+def _status_template(
+    channel_id: int, frame: bytes, n_scores: int, n_amplitudes: int
+) -> tuple[bytes, dict[str, int]]:
+    """The constant bytes of a status Message record (header and CDR payload: opcode,
+    record length, channel id, encapsulation, frame id, sequence lengths, zero padding) and
+    the payload offsets of the fields that change (module docstring)."""
+    body_decided = _up(12 + len(frame), 4)  # CDR body offsets (payload offset - 4)
+    body_stat = _up(body_decided + 8, 8)
+    p = 4 + body_stat  # payload offset of statistic
+    scores_at = p + 40 if n_scores else p + 36
+    set_at = scores_at + 8 * n_scores
+    amplitudes_len_at = 4 + _up(set_at + 4 + n_scores - 4, 4)  # CDR aligns from offset 4
+    amplitudes_at = 4 + _up(amplitudes_len_at, 8) if n_amplitudes else amplitudes_len_at + 4
+    length = amplitudes_at + 8 * n_amplitudes
+    payload = bytearray(length)
+    payload[0:4] = b"\x00\x01\x00\x00"  # CDR little-endian
+    payload[12:16] = struct.pack("<I", len(frame))
+    payload[16 : 16 + len(frame)] = frame
+    payload[p + 32 : p + 36] = struct.pack("<I", n_scores)
+    payload[set_at : set_at + 4] = struct.pack("<I", n_scores)
+    payload[amplitudes_len_at : amplitudes_len_at + 4] = struct.pack("<I", n_amplitudes)
+    header = np.zeros(1, MESSAGE_HEADER_DTYPE)
+    header["opcode"] = OP_MESSAGE
+    header["record_length"] = MESSAGE_FIXED_CONTENT + length
+    header["channel_id"] = channel_id
+    at = {
+        "decided": 4 + body_decided,
+        "statistic": p,
+        "scores": scores_at,
+        "set": set_at + 4,
+        "amplitudes": amplitudes_at,
+        "length": length,
+    }
+    return header.tobytes() + bytes(payload), at
+
+
+def status_records(
+    channel_id: int,
+    t_ns: np.ndarray,
+    det: DetectionBlock,
+    decided_ns: np.ndarray | None = None,
+    *,
+    frame_id: str = STATUS_FRAME_ID,
+) -> np.ndarray:
+    """Whole Message records of one status message per sample, for
+    :meth:`~imufdi_cli.mcapio.writer.McapWriter.add_records`: the bytes
+    :func:`encode_status` + ``add_batch`` write (sequence 0..N-1, log and publish time =
+    ``t_ns``), built from a template of the constant bytes and one column write per
+    field.
+
+    Parameters
+    ----------
+    channel_id : int
+    t_ns : ndarray, shape (N,), int64
+        Sample times, ns (``header.stamp``, the log and publish times).
+    det : DetectionBlock
+        N rows.
+    decided_ns : ndarray, shape (N,), int64, optional
+        Decision times, ns (default: the sample times, a causal detector).
+    frame_id : str
+        ``header.frame_id``.
+
+    Returns
+    -------
+    ndarray, shape (N, 31 + L), uint8
+        Row i: the Message record header, then the L-byte CDR payload.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    n = t_ns.shape[0]
+    if len(det) != n:
+        raise UsageError(f"{len(det)} detector rows for {n} timestamps")
+    decided = t_ns if decided_ns is None else np.asarray(decided_ns, dtype=np.int64)
+    if decided.shape != t_ns.shape:
+        raise UsageError(f"{decided.shape[0]} decision times for {n} timestamps")
+    scores = np.asarray(det.scores, dtype=np.float64).reshape(n, -1)
+    n_scores = scores.shape[1]
+    # per-sensor amplitudes only for detectors that give them (else an empty sequence)
+    n_amplitudes = n_scores if det.amplitudes is not None else 0
+    template, at = _status_template(
+        int(channel_id), frame_id.encode("utf-8") + b"\0", n_scores, n_amplitudes
+    )
+    h = MESSAGE_HEADER_SIZE
+    records = np.empty((n, len(template)), np.uint8)
+    records[:] = np.frombuffer(template, np.uint8)
+    _put(records, _HEADER_AT["sequence"], np.arange(n, dtype=np.uint32), "<u4")
+    _put(records, _HEADER_AT["log_time"], t_ns, "<u8")
+    _put(records, _HEADER_AT["publish_time"], t_ns, "<u8")
+    sec = np.floor_divide(t_ns, NS_PER_S)
+    _put(records, h + 4, sec, "<i4")
+    _put(records, h + 8, t_ns - sec * NS_PER_S, "<u4")
+    dsec = np.floor_divide(decided, NS_PER_S)
+    _put(records, h + at["decided"], dsec, "<i4")
+    _put(records, h + at["decided"] + 4, decided - dsec * NS_PER_S, "<u4")
+    p = h + at["statistic"]
+    _put(records, p, det.statistic, "<f8")
+    _put(records, p + 8, det.threshold, "<f8")
+    records[:, p + 16] = np.asarray(det.alarm, dtype=bool)
+    _put(records, p + 20, det.isolated, "<i4")
+    _put(records, p + 24, det.amplitude, "<f8")
+    if n_scores:
+        _put(records, h + at["scores"], scores, "<f8")
+        records[:, h + at["set"] : h + at["set"] + n_scores] = det.isolation_set().reshape(
+            n, n_scores
+        )
+    if n_amplitudes:
+        _put(records, h + at["amplitudes"], det.amplitude_set().reshape(n, n_amplitudes), "<f8")
+    return records
 
 
 def encode_status(
@@ -133,7 +257,9 @@ def encode_status(
     *,
     frame_id: str = STATUS_FRAME_ID,
 ) -> MessageBatch:
-    """Bulk CDR encoding of one status message per sample (log time = ``t_ns``).
+    """Bulk CDR encoding of one status message per sample (log time = ``t_ns``): the
+    messages of :func:`status_records` as a batch (its payloads are views into the
+    records).
 
     Parameters
     ----------
@@ -147,59 +273,17 @@ def encode_status(
     frame_id : str
         ``header.frame_id``.
     """
+    records = status_records(channel_id, t_ns, det, decided_ns, frame_id=frame_id)
+    n, size = records.shape
     t_ns = np.asarray(t_ns, dtype=np.int64)
-    n = t_ns.shape[0]
-    if len(det) != n:
-        raise UsageError(f"{len(det)} detector rows for {n} timestamps")
-    decided = t_ns if decided_ns is None else np.asarray(decided_ns, dtype=np.int64)
-    if decided.shape != t_ns.shape:
-        raise UsageError(f"{decided.shape[0]} decision times for {n} timestamps")
-    scores = np.asarray(det.scores, dtype=np.float64).reshape(n, -1)
-    n_scores = scores.shape[1]
-    frame = frame_id.encode("utf-8") + b"\0"
-    body_decided = _up(12 + len(frame), 4)  # CDR body offsets (payload offset - 4)
-    body_stat = _up(body_decided + 8, 8)
-    p = 4 + body_stat  # payload offset of statistic
-    scores_at = p + 40 if n_scores else p + 36
-    set_at = scores_at + 8 * n_scores
-    # per-sensor amplitudes only for detectors that give them (else an empty sequence)
-    n_amplitudes = n_scores if det.amplitudes is not None else 0
-    amplitudes_len_at = 4 + _up(set_at + 4 + n_scores - 4, 4)  # CDR aligns from offset 4
-    amplitudes_at = 4 + _up(amplitudes_len_at, 8) if n_amplitudes else amplitudes_len_at + 4
-    length = amplitudes_at + 8 * n_amplitudes
-    out = np.zeros((n, length), dtype=np.uint8)
-    out[:, 0:4] = np.frombuffer(b"\x00\x01\x00\x00", np.uint8)  # CDR little-endian
-    sec = np.floor_divide(t_ns, NS_PER_S)
-    _put(out, 4, sec, "<i4")
-    _put(out, 8, t_ns - sec * NS_PER_S, "<u4")
-    out[:, 12:16] = np.frombuffer(np.array([len(frame)], "<u4").tobytes(), np.uint8)
-    out[:, 16 : 16 + len(frame)] = np.frombuffer(frame, np.uint8)
-    dsec = np.floor_divide(decided, NS_PER_S)
-    _put(out, 4 + body_decided, dsec, "<i4")
-    _put(out, 8 + body_decided, decided - dsec * NS_PER_S, "<u4")
-    _put(out, p, det.statistic, "<f8")
-    _put(out, p + 8, det.threshold, "<f8")
-    out[:, p + 16] = np.asarray(det.alarm, dtype=bool)
-    _put(out, p + 20, det.isolated, "<i4")
-    _put(out, p + 24, det.amplitude, "<f8")
-    out[:, p + 32 : p + 36] = np.frombuffer(np.array([n_scores], "<u4").tobytes(), np.uint8)
-    if n_scores:
-        _put(out, scores_at, scores, "<f8")
-    out[:, set_at : set_at + 4] = np.frombuffer(np.array([n_scores], "<u4").tobytes(), np.uint8)
-    out[:, set_at + 4 : set_at + 4 + n_scores] = det.isolation_set().reshape(n, n_scores)
-    out[:, amplitudes_len_at : amplitudes_len_at + 4] = np.frombuffer(
-        np.array([n_amplitudes], "<u4").tobytes(), np.uint8
-    )
-    if n_amplitudes:
-        _put(out, amplitudes_at, det.amplitude_set().reshape(n, n_amplitudes), "<f8")
     return MessageBatch(
         channel_id=np.full(n, channel_id, np.uint16),
         sequence=np.arange(n, dtype=np.int64).astype(np.uint32),
         log_time=t_ns.copy(),
         publish_time=t_ns.copy(),
-        data=out.reshape(-1),
-        offset=np.arange(n, dtype=np.int64) * length,
-        length=np.full(n, length, np.int64),
+        data=records.reshape(-1),
+        offset=np.arange(n, dtype=np.int64) * size + MESSAGE_HEADER_SIZE,
+        length=np.full(n, size - MESSAGE_HEADER_SIZE, np.int64),
     )
 
 

@@ -134,3 +134,20 @@ def test_message_index_records_match_a_plain_reference(ordered) -> None:
     assert records == expected
     assert where == expected_where
     assert counts == {int(c): int((channels == c).sum()) for c in np.unique(channels)}
+
+
+def test_message_index_records_of_a_repeated_channel_sequence_match_the_reference() -> None:
+    """The second chunk with the same channel ids uses the layout kept from the first
+    (sort, heads, offsets): its records are still those of its own times and offsets, in
+    time order or not."""
+    rng = np.random.default_rng(11)
+    channels = np.tile(np.array([4, 1, 7], np.uint16), 40)[5:]  # cycles, cut at a phase
+    n = channels.shape[0]
+    for ordered in (True, True, False, True):
+        times = np.sort(rng.integers(0, 30, n)) if ordered else rng.integers(0, 30, n)
+        offsets = np.cumsum(rng.integers(40, 400, n)).astype(np.int64)
+        records, where, counts = message_index_records(channels, times.astype(np.int64), offsets)
+        expected, expected_where = _reference_index(channels, times, offsets)
+        assert records == expected
+        assert where == expected_where
+        assert counts == {1: 38, 4: 38, 7: 39}

@@ -196,6 +196,49 @@ def test_add_raw_chunk_copies_the_chunk_and_writes_queued_messages_of_its_channe
     assert times == [50, *batch.log_time.tolist()]
 
 
+def test_add_raw_chunk_does_not_wait_for_the_chunks_being_built(tmp_path, monkeypatch):
+    """An input chunk queued behind a chunk still being built on a worker thread is
+    written after it, in call order, without the caller waiting for it."""
+    import threading
+
+    from imufdi_cli.mcapio.writer import messages
+
+    src = tmp_path / "in.mcap"
+    _blob_log(src)
+    source, runs = _raw_runs(src)
+    ((batch, chunk_runs),) = runs
+    ((raw, _, records_at),) = chunk_runs
+    release = threading.Event()
+    build = messages._build_chunk
+
+    def held(parts, compression):
+        assert release.wait(10)
+        return build(parts, compression)
+
+    outputs = []
+    for hold in (False, True):
+        if hold:
+            monkeypatch.setattr(messages, "_build_chunk", held)
+        out = tmp_path / f"{hold}.mcap"
+        with McapWriter(out) as writer:
+            for _cid, info in sorted(source.channels.items()):
+                schema = writer.register_schema("raw/Blob", "", b"")
+                writer.register_channel(info.topic, "raw", schema)
+            other = writer.register_channel("/other", "raw", 0)
+            writer.add_batch(
+                MessageBatch.from_payloads(other, np.arange(10, dtype=np.int64), [bytes(8)] * 10)
+            )
+            writer._flush_chunk()  # a chunk on a worker thread (held until released)
+            writer.add_raw_chunk(raw, batch, records_at)
+            if hold:
+                assert [job.raw is not None for job in writer._in_flight] == [False, True]
+                assert not writer._in_flight[0].future.done()
+                release.set()
+        outputs.append(out.read_bytes())
+    assert outputs[0] == outputs[1]
+    assert outputs[1].index(raw.content) > 0
+
+
 def test_add_raw_chunk_refuses_unregistered_channels(tmp_path):
     src = tmp_path / "in.mcap"
     _blob_log(src)
@@ -207,3 +250,127 @@ def test_add_raw_chunk_refuses_unregistered_channels(tmp_path):
         writer.register_channel("/b0", "raw", schema)  # the second channel is not registered
         with pytest.raises(UsageError, match="unregistered channel id 1"):
             writer.add_raw_chunk(raw, batch, records_at)
+
+
+def _blob_batch(n: int) -> MessageBatch:
+    log_time = np.arange(n, dtype=np.int64) * 1_000
+    return MessageBatch.from_payloads(0, log_time, [bytes(8)] * n)
+
+
+def test_the_switch_interval_is_short_while_workers_run_and_restored_on_every_path(tmp_path):
+    """The writer shortens the interpreter's switch interval while its worker threads
+    exist (``chunks.fast_switching_on``) and gives the old value back on close, on abort,
+    and only when the last of two overlapping writers is done."""
+    import sys
+
+    from imufdi_cli.mcapio.writer import chunks
+
+    before = sys.getswitchinterval()
+    assert before > chunks.SWITCH_INTERVAL  # the interpreter's default, 5 ms
+
+    def open_writer(name: str) -> McapWriter:
+        writer = McapWriter(tmp_path / name, chunk_size=64)
+        writer.register_channel("/a", "raw", 0)
+        writer.add_batch(_blob_batch(50))  # several chunks: the worker threads start
+        return writer
+
+    first = open_writer("a.mcap")
+    assert sys.getswitchinterval() == pytest.approx(chunks.SWITCH_INTERVAL)
+    second = open_writer("b.mcap")
+    first.close()
+    assert sys.getswitchinterval() == pytest.approx(chunks.SWITCH_INTERVAL)  # b still runs
+    second.close()
+    assert sys.getswitchinterval() == before
+    with pytest.raises(RuntimeError), open_writer("c.mcap"):
+        assert sys.getswitchinterval() == pytest.approx(chunks.SWITCH_INTERVAL)
+        raise RuntimeError("stop")
+    assert sys.getswitchinterval() == before
+    assert not (tmp_path / "c.mcap").exists()
+
+
+def test_a_switch_interval_set_meanwhile_by_someone_else_is_kept(tmp_path):
+    import sys
+
+    before = sys.getswitchinterval()
+    try:
+        with McapWriter(tmp_path / "a.mcap", chunk_size=64) as writer:
+            writer.register_channel("/a", "raw", 0)
+            writer.add_batch(_blob_batch(50))
+            sys.setswitchinterval(0.001)  # the program's own choice: not undone
+        assert sys.getswitchinterval() == pytest.approx(0.001)
+    finally:
+        sys.setswitchinterval(before)
+
+
+def _blob_batches(channel: int, seed: int = 0) -> list[MessageBatch]:
+    rng = np.random.default_rng(seed)
+    return [
+        MessageBatch.from_payloads(
+            channel,
+            (np.arange(2000, dtype=np.int64) + 2000 * k) * 1000,
+            [rng.bytes(40) for _ in range(2000)],
+        )
+        for k in range(3)
+    ]
+
+
+def _write_blobs(output, chunk_size: int = 4096) -> McapWriter:
+    writer = McapWriter(output, chunk_size=chunk_size)
+    schema = writer.register_schema("raw/Blob", "", b"")
+    channel = writer.register_channel("/a", "application/octet-stream", schema)
+    for batch in _blob_batches(channel):
+        writer.add_batch(batch)
+    return writer
+
+
+def test_a_file_written_behind_is_the_bytes_of_a_stream(tmp_path, monkeypatch):
+    """From the first chunk on, a file's bytes are written on a thread of their own
+    (``output._WriteBehind``): the same bytes as a stream written in place."""
+    import threading
+
+    from imufdi_cli.mcapio.writer import output
+
+    monkeypatch.setattr(output, "WRITE_BEHIND_FROM", 1024)
+    stream = io.BytesIO()
+    with _write_blobs(stream):
+        pass
+    writer = _write_blobs(tmp_path / "a.mcap")
+    assert writer._behind is not None
+    assert "mcap-write" in [t.name for t in threading.enumerate()]
+    writer.close()
+    assert writer._behind is None and "mcap-write" not in [t.name for t in threading.enumerate()]
+    assert (tmp_path / "a.mcap").read_bytes() == stream.getvalue()
+
+
+@pytest.mark.parametrize("on_close", [False, True])
+def test_disk_full_behind_the_caller_leaves_no_temp_and_keeps_the_target(
+    tmp_path, monkeypatch, on_close
+):
+    from imufdi_cli.mcapio.writer import output
+
+    monkeypatch.setattr(output, "WRITE_BEHIND_FROM", 1024)
+    path = tmp_path / "out.mcap"
+    path.write_bytes(b"previous")
+    with pytest.raises(OutputError) as info, McapWriter(path, chunk_size=4096) as writer:
+        schema = writer.register_schema("raw/Blob", "", b"")
+        channel = writer.register_channel("/a", "application/octet-stream", schema)
+        writer._stream = _Full(writer._stream, 30_000, errno.ENOSPC, on_close=on_close)
+        for batch in _blob_batches(channel):
+            writer.add_batch(batch)
+        assert writer._behind is not None
+    assert str(info.value).startswith(f"cannot write {path}: {os.strerror(errno.ENOSPC)}")
+    assert path.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mcap"]
+
+
+def test_an_interrupt_stops_the_write_behind_thread_and_removes_the_temp(tmp_path, monkeypatch):
+    import threading
+
+    from imufdi_cli.mcapio.writer import output
+
+    monkeypatch.setattr(output, "WRITE_BEHIND_FROM", 1024)
+    with pytest.raises(KeyboardInterrupt), _write_blobs(tmp_path / "a.mcap") as writer:
+        assert writer._behind is not None
+        raise KeyboardInterrupt
+    assert "mcap-write" not in [t.name for t in threading.enumerate()]
+    assert list(tmp_path.iterdir()) == []

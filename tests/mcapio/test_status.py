@@ -183,3 +183,63 @@ def test_per_sensor_amplitudes_round_trip_and_independent_readers(tmp_path) -> N
         expected = det.amplitude_set() if given else np.zeros((40, 0))
         assert_array_equal(np.array(by_topic[topic]).reshape(expected.shape), expected)
         assert_array_equal(np.array(rosbags[topic]).reshape(expected.shape), expected)
+
+
+def test_status_records_write_the_bytes_of_encode_status(tmp_path) -> None:
+    """``status_records`` + ``add_records`` (detect's path) and ``encode_status`` +
+    ``add_batch`` give the same file: records of 0 and 5 sensors, with and without
+    per-sensor amplitudes, another frame id, chunks cutting the blocks."""
+    import dataclasses
+
+    from imufdi_cli.mcapio.status import status_records
+
+    t_ns = 1_700_000_000 * 10**9 + np.arange(300, dtype=np.int64) * 10_000_000
+    decided = t_ns + 25_000_000
+    with_amplitudes = dataclasses.replace(
+        _detections(300, 5, seed=4), amplitudes=np.random.default_rng(5).normal(size=(300, 5))
+    )
+    blocks = [
+        (_detections(300, 5, seed=3), None, "imu_array"),
+        (_detections(300, 0, seed=6), decided, "imu_array"),
+        (with_amplitudes, decided, "body"),
+    ]
+
+    def rows(det: DetectionBlock, keep: slice) -> DetectionBlock:
+        return DetectionBlock(
+            **{
+                f.name: None if getattr(det, f.name) is None else getattr(det, f.name)[keep]
+                for f in dataclasses.fields(det)
+            }
+        )
+
+    outputs = []
+    for use_records in (False, True):
+        path = tmp_path / f"{use_records}.mcap"
+        with McapWriter(path, chunk_size=20_000) as writer:
+            for k, (det, dec, frame) in enumerate(blocks):
+                cid = register_status_channel(writer, f"d{k}", "gyro", [])
+                for half in (slice(0, 170), slice(170, 300)):
+                    if use_records:
+                        records = status_records(
+                            cid,
+                            t_ns[half],
+                            rows(det, half),
+                            None if dec is None else dec[half],
+                            frame_id=frame,
+                        )
+                        writer.add_records(records, np.full(records.shape[0], cid), t_ns[half])
+                    else:
+                        writer.add_batch(
+                            encode_status(
+                                cid,
+                                t_ns[half],
+                                rows(det, half),
+                                None if dec is None else dec[half],
+                                frame_id=frame,
+                            )
+                        )
+        outputs.append(path.read_bytes())
+    assert outputs[0] == outputs[1]
+    got = read_status(tmp_path / "True.mcap")[("d2", "gyro")]
+    assert_array_equal(got.amplitudes, with_amplitudes.amplitudes)
+    assert_array_equal(got.decided_ns, decided)

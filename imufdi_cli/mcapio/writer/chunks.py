@@ -5,6 +5,7 @@ records (:func:`_chunk_keys`)."""
 
 from __future__ import annotations
 
+import sys
 import threading
 
 import numpy as np
@@ -23,6 +24,51 @@ from imufdi_cli.mcapio.writer.parts import (
 #: Worker threads building chunks, and how many chunks may wait to be written.
 COMPRESS_THREADS = 2
 MAX_CHUNKS_IN_FLIGHT = 4
+#: The interpreter's thread switch interval (s) while any writer's worker threads exist
+#: (:func:`fast_switching_on`); None leaves it alone.
+SWITCH_INTERVAL: float | None = 2e-4
+
+_SWITCH_LOCK = threading.Lock()
+#: Writers holding the short switch interval, and the interval they found (restored when
+#: the last one lets go).
+_switch_users = 0
+_switch_saved: float | None = None
+
+
+def fast_switching_on() -> None:
+    """Shorten the interpreter's switch interval while a writer's worker threads run.
+
+    A worker thread takes the GIL back after each C call that released it (the chunk's
+    numpy copies, the CRC-32, the compression: about six per chunk). When the caller's
+    thread is busy in Python (parsing a capture, running a detector) the worker waits for
+    the switch interval before the caller is made to let go: 5 ms by default, longer than
+    the 5 ms of CPU a 4 MiB chunk costs, so the workers run at a fraction of a core
+    (docs/performance.md, "GIL hand-offs"). At 0.2 ms they wait little; the caller's
+    thread is asked to let go only when a worker is waiting. The interval is process-wide:
+    it is set when the first writer starts its workers and restored (unless someone else
+    changed it meanwhile) when the last one shuts them down. Pair every call with
+    :func:`fast_switching_off`.
+    """
+    global _switch_users, _switch_saved
+    with _SWITCH_LOCK:
+        if _switch_users == 0:
+            _switch_saved = None
+            current = sys.getswitchinterval()
+            if SWITCH_INTERVAL is not None and current > SWITCH_INTERVAL:
+                _switch_saved = current
+                sys.setswitchinterval(SWITCH_INTERVAL)
+        _switch_users += 1
+
+
+def fast_switching_off() -> None:
+    """Let go of :func:`fast_switching_on` (the last writer restores the interval)."""
+    global _switch_users, _switch_saved
+    with _SWITCH_LOCK:
+        _switch_users = max(0, _switch_users - 1)
+        if _switch_users == 0 and _switch_saved is not None:
+            if SWITCH_INTERVAL is None or abs(sys.getswitchinterval() - SWITCH_INTERVAL) < 1e-6:
+                sys.setswitchinterval(_switch_saved)
+            _switch_saved = None
 
 
 #: Per worker thread: a reusable buffer for chunk records (no fresh pages to fault in

@@ -5,6 +5,8 @@ MetadataIndex, SummaryOffset records) with the Footer that ends the file."""
 from __future__ import annotations
 
 import struct
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -74,15 +76,63 @@ def message_index_records(
         Channel id -> offset of its MessageIndex record in ``records``.
     counts : dict
         Channel id -> number of its messages in the chunk.
+
+    What depends on the channel ids alone (their sort, the record heads, the offsets) is
+    kept for the last sequences met (:func:`_index_layout`): an array logger's chunks
+    repeat a few, and a chunk then costs two gathers and a join.
     """
     channel_ids = np.asarray(channel_ids)
     log_time = np.asarray(log_time, np.int64)
     n = int(channel_ids.shape[0])
+    layout = _index_layout(channel_ids)
     if n < 2 or bool(np.all(log_time[1:] >= log_time[:-1])):
         # already in time order: a stable sort by channel is the (channel, time) sort
-        order = np.argsort(channel_ids, kind="stable")
+        order = layout.order
     else:
         order = np.lexsort((log_time, channel_ids))
+    entries = np.empty((n, 2), "<u8")
+    entries[:, 0] = log_time[order]
+    entries[:, 1] = np.asarray(record_offsets, np.int64)[order]
+    bodies = entries.view(np.uint8).reshape(-1).data
+    pieces: list[bytes | memoryview] = []
+    for head, (start, stop) in zip(layout.heads, layout.bounds):
+        pieces.append(head)
+        pieces.append(bodies[start:stop])
+    return b"".join(pieces), dict(layout.offsets), dict(layout.counts)
+
+
+@dataclass(frozen=True)
+class _IndexLayout:
+    """What the MessageIndex records of a chunk owe to its channel ids alone."""
+
+    #: (N,) the stable sort of the channel ids: the (channel, time) order of a chunk in
+    #: time order
+    order: np.ndarray
+    #: the 15-byte head of each channel's record, channels in increasing order
+    heads: list[bytes]
+    #: byte range of each channel's entries in the (N, 2) entries sorted by channel
+    bounds: list[tuple[int, int]]
+    offsets: dict[int, int]
+    counts: dict[int, int]
+
+
+#: Per thread: the layouts of the last channel id sequences met (an array logger's chunks
+#: repeat a few: one per phase of the sample at which a chunk starts, and the last one).
+_LAYOUTS = threading.local()
+_LAYOUTS_KEPT = 40
+
+
+def _index_layout(channel_ids: np.ndarray) -> _IndexLayout:
+    """The layout of the MessageIndex records of a chunk with these channel ids (N,),
+    remembered for the next chunks with the same sequence."""
+    key = (channel_ids.dtype.str, channel_ids.tobytes())
+    cache: OrderedDict[tuple[str, bytes], _IndexLayout] | None = getattr(_LAYOUTS, "cache", None)
+    if cache is None:
+        cache = _LAYOUTS.cache = OrderedDict()
+    layout = cache.get(key)
+    if layout is not None:
+        cache.move_to_end(key)
+        return layout
     per_channel = np.bincount(channel_ids.astype(np.intp))
     present = np.flatnonzero(per_channel)
     sizes = per_channel[present].astype(np.int64)
@@ -93,29 +143,29 @@ def message_index_records(
     head["record_length"] = 2 + 4 + 16 * sizes
     head["channel_id"] = present
     head["entries_length"] = 16 * sizes
-    entries = np.empty((n, 2), "<u8")
-    entries[:, 0] = log_time[order]
-    entries[:, 1] = record_offsets[order]
-    heads = head.view(np.uint8).data
-    bodies = entries.view(np.uint8).reshape(-1).data
-    pieces = []
-    for g, (first, size) in enumerate(zip(firsts.tolist(), sizes.tolist())):
-        pieces.append(heads[15 * g : 15 * g + 15])
-        pieces.append(bodies[16 * first : 16 * (first + size)])
+    raw = head.tobytes()
     starts = 15 * np.arange(present.shape[0], dtype=np.int64) + 16 * firsts
     ids = present.tolist()
-    return (
-        b"".join(pieces),
-        dict(zip(ids, starts.tolist())),
-        dict(zip(ids, sizes.tolist())),
+    layout = _IndexLayout(
+        order=np.argsort(channel_ids, kind="stable"),
+        heads=[raw[15 * g : 15 * g + 15] for g in range(len(ids))],
+        bounds=[
+            (16 * first, 16 * (first + size))
+            for first, size in zip(firsts.tolist(), sizes.tolist())
+        ],
+        offsets=dict(zip(ids, starts.tolist())),
+        counts=dict(zip(ids, sizes.tolist())),
     )
+    cache[key] = layout
+    if len(cache) > _LAYOUTS_KEPT:
+        cache.popitem(last=False)
+    return layout
 
 
 def _chunk_index_record(entry: _ChunkIndexEntry) -> bytes:
     """The ChunkIndex record of one chunk written."""
-    offsets = b"".join(
-        struct.pack("<HQ", cid, off) for cid, off in sorted(entry.message_index_offsets.items())
-    )
+    pairs = sorted(entry.message_index_offsets.items())
+    offsets = struct.pack("<" + "HQ" * len(pairs), *[value for pair in pairs for value in pair])
     return _record(
         OP_CHUNK_INDEX,
         struct.pack(
@@ -165,7 +215,7 @@ def summary_section(
     schemas: dict[int, SchemaInfo],
     channels: dict[int, ChannelInfo],
     channel_schema: dict[int, int],
-    chunk_index: list[_ChunkIndexEntry],
+    chunk_index: list[bytes],
     metadata_index: list[tuple[int, int, str]],
     statistics: bytes,
 ) -> tuple[bytes, bytes]:
@@ -180,8 +230,9 @@ def summary_section(
         Id -> the schemas and channels registered (written in increasing id order).
     channel_schema : dict
         Channel id -> its schema id (0: none).
-    chunk_index : list of _ChunkIndexEntry
-        One entry per chunk written, in file order.
+    chunk_index : list of bytes
+        The ChunkIndex record of each chunk written (:func:`_chunk_index_record`), in
+        file order.
     metadata_index : list of (offset, length, name)
         One entry per Metadata record written.
     statistics : bytes
@@ -218,7 +269,7 @@ def summary_section(
         ],
     )
     group(OP_STATISTICS, [statistics])
-    group(OP_CHUNK_INDEX, [_chunk_index_record(entry) for entry in chunk_index])
+    group(OP_CHUNK_INDEX, chunk_index)
     group(
         OP_METADATA_INDEX,
         [

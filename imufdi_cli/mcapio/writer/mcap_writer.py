@@ -71,6 +71,7 @@ class McapWriter(_ChunkQueue):
         self._metadata_index = []
         self._chunk_index = []
         self._pending = []
+        self._pending_ids = []
         self._pending_bytes = 0
         self._in_flight = deque()
         self._executor = None

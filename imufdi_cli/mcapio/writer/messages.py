@@ -10,6 +10,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -25,11 +26,16 @@ from imufdi_cli.mcapio.records import (
 )
 from imufdi_cli.mcapio.writer import chunks
 from imufdi_cli.mcapio.writer.chunks import _build_chunk, _chunk_keys
-from imufdi_cli.mcapio.writer.index import _ChunkIndexEntry, message_index_records
+from imufdi_cli.mcapio.writer.index import (
+    _chunk_index_record,
+    _ChunkIndexEntry,
+    message_index_records,
+)
 from imufdi_cli.mcapio.writer.output import _Output
 from imufdi_cli.mcapio.writer.parts import (
     RecordSource,
     _ChunkJob,
+    _ChunkKeys,
     _ChunkPart,
     _RecordPart,
     _SerialPart,
@@ -50,8 +56,11 @@ class _ChunkQueue(_Output):
     def _shutdown_executor(self) -> None:
         self._in_flight.clear()
         if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+            try:
+                self._executor.shutdown(wait=True, cancel_futures=True)
+            finally:
+                self._executor = None
+                chunks.fast_switching_off()
 
     def add_batch(self, batch: MessageBatch) -> None:
         """Queue messages (any channels, file order kept); chunks are written as they fill."""
@@ -72,6 +81,7 @@ class _ChunkQueue(_Output):
             stop = min(stop, n)
             part = batch.select(slice(start, stop))
             self._pending.append(part)
+            self._pending_ids.append(None)
             part_bytes = int(cumulative[stop - 1] - consumed)
             self._pending_bytes += part_bytes
             consumed = int(cumulative[stop - 1])
@@ -163,6 +173,7 @@ class _ChunkQueue(_Output):
             # enough records to fill the current chunk (at least one)
             stop = min(n, start + max(1, -(-room // size)))
             self._pending.append(make_part(start, stop))
+            self._pending_ids.append(None)
             self._pending_bytes += (stop - start) * size
             start = stop
             if self._pending_bytes >= self.chunk_size:
@@ -236,11 +247,13 @@ class _ChunkQueue(_Output):
             else:
                 parts.append(part)
         self._pending = []
+        self._pending_ids = []
         self._pending_bytes = 0
         if self._executor is None:
             self._executor = ThreadPoolExecutor(
                 max_workers=chunks.COMPRESS_THREADS, thread_name_prefix="mcap-chunk"
             )
+            chunks.fast_switching_on()
         future = self._executor.submit(_build_chunk, parts, self.compression)
         # the index is made here while a worker builds the chunk
         self._in_flight.append(_ChunkJob(future, _chunk_keys(parts)))
@@ -252,44 +265,49 @@ class _ChunkQueue(_Output):
             self._write_chunk(self._in_flight.popleft())
 
     def _write_chunk(self, job: _ChunkJob) -> None:
-        """Write a built chunk, its MessageIndex records, and note its ChunkIndex."""
-        built = job.future.result()
+        """Write a chunk (built on a worker thread, or an input chunk copied verbatim), its
+        MessageIndex records, and note its ChunkIndex."""
         keys = job.keys
-        content = (
-            struct.pack("<QQQI", keys.start_time, keys.end_time, built.uncompressed_size, built.crc)
-            + _string(self.compression)
-            + struct.pack("<Q", len(built.payload))
-        )
         chunk_offset = self._position
-        self._write_now(struct.pack("<BQ", OP_CHUNK, len(content) + len(built.payload)) + content)
-        self._write_now(built.payload)
+        raw = job.raw
+        if raw is None:
+            assert job.future is not None
+            built = job.future.result()
+            compression = self.compression
+            compressed_size, uncompressed_size = len(built.payload), built.uncompressed_size
+            start_time, end_time = keys.start_time, keys.end_time
+            content = (
+                struct.pack("<QQQI", start_time, end_time, uncompressed_size, built.crc)
+                + _string(compression)
+                + struct.pack("<Q", compressed_size)
+            )
+            self._write_now(struct.pack("<BQ", OP_CHUNK, len(content) + compressed_size) + content)
+            self._write_now(built.payload)
+        else:
+            compression = raw.compression
+            compressed_size, uncompressed_size = raw.compressed_size, raw.uncompressed_size
+            start_time, end_time = raw.start_time, raw.end_time  # as the input's record says
+            self._write_now(struct.pack("<BQ", OP_CHUNK, len(raw.content)))
+            self._write_now(raw.content)
         chunk_length = self._position - chunk_offset
         index_start = self._position
         self._write_now(keys.index_records)
-        self._chunk_index.append(
-            _ChunkIndexEntry(
-                keys.start_time,
-                keys.end_time,
-                chunk_offset,
-                chunk_length,
-                {cid: index_start + at for cid, at in keys.index_offsets.items()},
-                len(keys.index_records),
-                self.compression,
-                len(built.payload),
-                built.uncompressed_size,
+        self._chunk_index.append(  # the record (a few hundred bytes) kept, not the entry
+            _chunk_index_record(
+                _ChunkIndexEntry(
+                    start_time,
+                    end_time,
+                    chunk_offset,
+                    chunk_length,
+                    {cid: index_start + at for cid, at in keys.index_offsets.items()},
+                    len(keys.index_records),
+                    compression,
+                    compressed_size,
+                    uncompressed_size,
+                )
             )
         )
         self._count(keys.channel_counts, keys.message_count, keys.start_time, keys.end_time)
-
-    def _write_message_indexes(
-        self, channel_ids: np.ndarray, log_time: np.ndarray, record_offsets: np.ndarray
-    ) -> tuple[dict[int, int], int]:
-        """One MessageIndex record per channel of a chunk just written, entries sorted by
-        log time; returns the position of each channel's record and their total length."""
-        records, offsets, _ = message_index_records(channel_ids, log_time, record_offsets)
-        index_start = self._position
-        self._write_now(records)
-        return {cid: index_start + at for cid, at in offsets.items()}, len(records)
 
     def add_raw_chunk(self, chunk: RawChunk, batch: MessageBatch, records_at: int = 0) -> None:
         """Write an input Chunk record verbatim (no recompression) with its MessageIndex
@@ -298,55 +316,55 @@ class _ChunkQueue(_Output):
         already registered here with the same ids).
 
         Messages queued before of the same channels are written first, so every channel
-        stays in time order in the file.
+        stays in time order in the file. The chunk joins the chunks being built on worker
+        threads, in call order: it is written after them without waiting for them here.
         """
         n = len(batch)
         if n == 0:
             return
-        ids = np.unique(batch.channel_id).tolist()  # (a few ids: set operations in Python)
+        ids = np.flatnonzero(
+            np.bincount(batch.channel_id.astype(np.intp))
+        ).tolist()  # (a few ids: set operations in Python)
         unknown = [cid for cid in ids if cid not in self.channels]
         if unknown:
             raise UsageError(f"messages for unregistered channel id {int(unknown[0])}")
         self._check_log_time(batch.channel_id, batch.log_time)
-        if self._pending:
-            queued = {cid for p in self._pending for cid in np.unique(p.channel_id).tolist()}
-            if not queued.isdisjoint(ids):
-                self._flush_chunk()
+        if self._pending and not self._queued_channels().isdisjoint(ids):
+            self._flush_chunk()
         log_time = np.asarray(batch.log_time, np.int64)
         record_offsets = np.asarray(batch.offset, np.int64) - MESSAGE_HEADER_SIZE - records_at
-        self._drain(0)  # chunks still compressing are written first, in call order
-        chunk_offset = self._position
-        self._write_now(struct.pack("<BQ", OP_CHUNK, len(chunk.content)))
-        self._write_now(chunk.content)
-        chunk_length = self._position - chunk_offset
-        index_offsets, index_length = self._write_message_indexes(
+        records, offsets, channel_counts = message_index_records(
             batch.channel_id, log_time, record_offsets
         )
-        self._chunk_index.append(
-            _ChunkIndexEntry(
-                chunk.start_time,
-                chunk.end_time,
-                chunk_offset,
-                chunk_length,
-                index_offsets,
-                index_length,
-                chunk.compression,
-                chunk.compressed_size,
-                chunk.uncompressed_size,
-            )
+        keys = _ChunkKeys(
+            start_time=int(log_time.min()),
+            end_time=int(log_time.max()),
+            index_records=records,
+            index_offsets=offsets,
+            channel_counts=channel_counts,
+            message_count=n,
         )
-        self._count_messages(batch.channel_id, int(log_time.min()), int(log_time.max()))
+        if not isinstance(chunk.content, bytes):  # held until written: our own copy
+            chunk = replace(chunk, content=bytes(chunk.content))
+        self._in_flight.append(_ChunkJob(None, keys, raw=chunk))
+        self._drain(chunks.MAX_CHUNKS_IN_FLIGHT)
 
-    def _count_messages(self, channel_ids: np.ndarray, start_time: int, end_time: int) -> None:
-        """Statistics: messages per channel and the time range."""
-        counts = np.bincount(channel_ids.astype(np.int64))
-        present = np.flatnonzero(counts)
-        self._count(
-            dict(zip(present.tolist(), counts[present].tolist())),
-            int(channel_ids.shape[0]),
-            start_time,
-            end_time,
-        )
+    def _queued_channels(self) -> set[int]:
+        """The channel ids of the messages queued for the next chunk (each part's ids
+        found once, when first asked for)."""
+        queued: set[int] = set()
+        for k, part in enumerate(self._pending):
+            ids = self._pending_ids[k]
+            if ids is None:
+                channel_id = part.channel_id
+                low, high = int(channel_id.min()), int(channel_id.max())
+                if low == high:
+                    ids = {low}
+                else:
+                    ids = set(np.flatnonzero(np.bincount(channel_id.astype(np.intp))).tolist())
+                self._pending_ids[k] = ids
+            queued |= ids
+        return queued
 
     def _count(
         self, channel_counts: dict[int, int], message_count: int, start_time: int, end_time: int

@@ -11,15 +11,98 @@ from __future__ import annotations
 import io
 import os
 import sys
+import threading
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import IO
 
 from imufdi_cli.errors import OutputError
 from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch, SchemaInfo
-from imufdi_cli.mcapio.writer.index import _ChunkIndexEntry
 from imufdi_cli.mcapio.writer.parts import _ChunkJob, _RecordPart, _SourcePart
+
+#: A file output's bytes go through a thread of their own (:class:`_WriteBehind`) from
+#: the first write of at least this size on (a chunk): small files never start one.
+WRITE_BEHIND_FROM = 64 << 10
+
+
+class _WriteBehind:
+    """Writes a file output's bytes on a thread of its own, in call order, so that the
+    kernel's copy into the page cache (and a stall there) does not hold up the caller's
+    thread; the write releases the GIL, so the copy runs beside the caller's work.
+
+    At most ``limit`` bytes wait (memory stays flat). The first error of a write is kept:
+    nothing after it is written, and the next :meth:`write` and :meth:`finish` raise it.
+
+    Parameters
+    ----------
+    write : callable
+        ``write(data)`` of the output stream (looked up by the caller at each call).
+    limit : int
+        Bytes queued at most before :meth:`write` waits.
+    """
+
+    def __init__(self, write: Callable[[bytes], object], limit: int = 4 << 20) -> None:
+        self._sink = write
+        self._limit = limit
+        self._queue: deque[bytes] = deque()
+        self._queued = 0
+        self._error: BaseException | None = None
+        self._closing = False
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name="mcap-write", daemon=True)
+        self._thread.start()
+
+    def write(self, data: bytes) -> None:
+        """Queue ``data`` (a bytes object: it must not change afterwards)."""
+        with self._cond:
+            while self._queued >= self._limit and self._error is None:
+                self._cond.wait()
+            if self._error is not None:
+                raise self._error
+            self._queue.append(data)
+            self._queued += len(data)
+            self._cond.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._closing:
+                    self._cond.wait()
+                if not self._queue:
+                    return
+                data = self._queue.popleft()
+            try:
+                self._sink(data)
+            except BaseException as err:  # kept for the caller's thread
+                with self._cond:
+                    self._error = err
+                    self._queue.clear()
+                    self._queued = 0
+                    self._cond.notify_all()
+                return
+            with self._cond:
+                self._queued -= len(data)
+                self._cond.notify_all()
+
+    def finish(self) -> None:
+        """Wait until everything queued is written; raise the first write error."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify_all()
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+
+    def cancel(self) -> None:
+        """Drop what is queued, wait for the write under way, ignore errors."""
+        with self._cond:
+            self._queue.clear()
+            self._queued = 0
+            self._closing = True
+            self._cond.notify_all()
+        self._thread.join()
 
 
 class _Output:
@@ -27,6 +110,7 @@ class _Output:
 
     # the output (this class)
     _stream: IO[bytes]
+    _behind: _WriteBehind | None
     _final_path: Path | None
     _temp_path: Path | None
     _owns_stream: bool
@@ -41,8 +125,11 @@ class _Output:
     _channel_schema: dict[int, int]
     _metadata_index: list[tuple[int, int, str]]
     # messages and chunks (_ChunkQueue)
-    _chunk_index: list[_ChunkIndexEntry]
+    #: the ChunkIndex record of every chunk written, in file order
+    _chunk_index: list[bytes]
     _pending: list[MessageBatch | _RecordPart | _SourcePart]
+    #: each queued part's channel ids, found when first needed (add_raw_chunk)
+    _pending_ids: list[set[int] | None]
     _pending_bytes: int
     _in_flight: deque[_ChunkJob]
     _executor: ThreadPoolExecutor | None
@@ -57,6 +144,7 @@ class _Output:
         self._final_path = None
         self._temp_path = None
         self._owns_stream = False
+        self._behind = None
         if isinstance(output, (str, os.PathLike)) and os.fspath(output) == "-":
             self._stream = sys.stdout.buffer
         elif isinstance(output, (str, os.PathLike)):
@@ -76,12 +164,23 @@ class _Output:
         self._position = 0
 
     def _write_now(self, raw: bytes | memoryview) -> None:
+        """Write ``raw`` at the end of the output (a file's through :class:`_WriteBehind`
+        from its first chunk on)."""
         # The data section CRC is optional (0 = not computed, as the mcap package writes).
+        size = len(raw)
         try:
-            self._stream.write(raw)
+            if self._behind is None and self._temp_path is not None and size >= WRITE_BEHIND_FROM:
+                self._behind = _WriteBehind(self._stream_write)
+            if self._behind is not None:
+                self._behind.write(raw if isinstance(raw, bytes) else bytes(raw))
+            else:
+                self._stream.write(raw)
         except OSError as err:
             self._write_failed(err)
-        self._position += len(raw)
+        self._position += size
+
+    def _stream_write(self, data: bytes) -> None:
+        self._stream.write(data)
 
     def _write_failed(self, err: OSError) -> None:
         """A file output that cannot be written (ENOSPC, EFBIG, EIO) is an OutputError
@@ -96,6 +195,16 @@ class _Output:
         """Close (or flush) the stream and rename the temporary file into place."""
         # The last buffered bytes reach the file here: a flush/close error (ENOSPC,
         # EFBIG) must remove the temporary file like any other failure.
+        behind = self._behind
+        if behind is not None:
+            # kept until its thread has ended: an interrupt while waiting for it leaves it
+            # to _discard_output to cancel
+            try:
+                behind.finish()
+            except OSError as err:
+                self._behind = None
+                self._write_failed(err)
+            self._behind = None
         if self._owns_stream:
             try:
                 self._stream.close()
@@ -108,6 +217,9 @@ class _Output:
 
     def _discard_output(self) -> None:
         """Close the stream and remove the temporary file (nothing is left behind)."""
+        if self._behind is not None:
+            behind, self._behind = self._behind, None
+            behind.cancel()
         if self._owns_stream:
             try:
                 self._stream.close()

@@ -10,6 +10,8 @@ from typing import Protocol
 
 import numpy as np
 
+from imufdi_cli.mcapio.records import RawChunk
+
 
 @dataclass
 class _RecordPart:
@@ -133,7 +135,9 @@ class _ChunkKeys:
 
 @dataclass
 class _ChunkJob:
-    """A chunk being built on a worker thread, and its index made by the caller."""
+    """A chunk being built on a worker thread (``future``), or an input chunk copied
+    verbatim (``raw``), and its index made by the caller; written in call order."""
 
-    future: Future[_BuiltChunk]
+    future: Future[_BuiltChunk] | None
     keys: _ChunkKeys
+    raw: RawChunk | None = None
