@@ -9,7 +9,9 @@ the writer and memory lines then still use a generated log.
 
 Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary directory, then
 - times ImuArrayWriter (bulk CDR encoding + zstd chunks) writing it,
-- times ImuArrayReader.blocks() (all messages decoded and aligned) and
+- times ImuArrayReader.blocks() (all messages decoded and aligned; with the reader's
+  default settings (in line unless IMUFDI_READ_AHEAD=1), then also explicitly in line
+  and with read-ahead, each with the CPU of all threads and of the calling thread) and
   mcap_ros2's make_reader(..., decoder_factories=[DecoderFactory()]).iter_decoded_messages()
   on the same file (the latter on a subset of messages if --baseline-fraction < 1, rate
   extrapolated), prints messages/s and the ratio,
@@ -18,7 +20,10 @@ Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary direct
   (issue 20 target: >= 50 %); also the floor with the CRC-32 of every chunk's records,
   which the reader verifies by default, and the reader with CRC checks off (the
   ImuArrayReader(path, validate_crcs=False)),
-- measures peak memory (ru_maxrss of a fresh subprocess) reading the base log and a 10x
+- with --malloc, times the in-line reader and the floor again in fresh processes, without
+  and with glibc told to keep freed memory (MALLOC_MMAP_THRESHOLD_, MALLOC_TRIM_THRESHOLD_:
+  what mallopt in the entry point would give; page faults cost about 4 us each here),
+- measures peak memory (VmHWM of a fresh subprocess) reading the base log and a 10x
   longer log.
 """
 
@@ -66,18 +71,26 @@ def make_log(path: Path, n_imus: int, n_samples: int, block: int = 50_000) -> fl
 
 
 def time_imufdi(
-    path: Path, validate_crcs: bool = True, read_ahead: bool = False
-) -> tuple[float, int, float]:
-    """(wall s, messages, CPU s, all threads) of reading the whole log (decoded and
-    aligned); ``read_ahead`` decompresses on the reader's worker thread."""
+    path: Path, validate_crcs: bool = True, read_ahead: bool | None = None
+) -> tuple[float, int, float, float]:
+    """(wall s, messages, CPU s of all threads, CPU s of the calling thread) of reading
+    the whole log (decoded and aligned); ``read_ahead``: McapSource's (None: its default,
+    in line unless IMUFDI_READ_AHEAD=1; True: a worker thread decompresses and reads the
+    message heads and Imu fields; False: all in line)."""
     t0 = time.perf_counter()
     c0 = time.process_time()
+    m0 = time.thread_time()
     n = 0
     source = McapSource(path, validate_crcs=validate_crcs, read_ahead=read_ahead)
     with ImuArrayReader(source) as reader:
         for block in reader.blocks():
             n += len(block) * block.n_imus
-    return time.perf_counter() - t0, n, time.process_time() - c0
+    return (
+        time.perf_counter() - t0,
+        n,
+        time.process_time() - c0,
+        time.thread_time() - m0,
+    )
 
 
 def time_floor(path: Path, crc: bool = False) -> tuple[float, float]:
@@ -133,19 +146,53 @@ def time_mcap_ros2(path: Path, max_messages: int) -> tuple[float, int]:
 
 
 def peak_rss_reading(path: Path) -> int:
-    """ru_maxrss (kB) of a fresh Python process reading the whole log."""
+    """Peak resident memory (kB) of a fresh Python process reading the whole log: its
+    VmHWM (Linux; ru_maxrss elsewhere). Not ru_maxrss on Linux: the kernel carries it over
+    ``exec`` from the forked parent, so it reported this benchmark's own size (about
+    165-180 MB after writing the 10x log) rather than the reader's."""
     code = (
         "import resource, sys\n"
         "from imufdi_cli.mcapio import ImuArrayReader\n"
         "n = 0\n"
         "with ImuArrayReader(sys.argv[1]) as r:\n"
         "    for b in r.blocks(): n += len(b)\n"
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
+        "try:\n"
+        "    status = open('/proc/self/status').read().split('VmHWM:')[1]\n"
+        "    print(int(status.split()[0]))\n"
+        "except (OSError, IndexError):\n"
+        "    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", code, str(path)], check=True, capture_output=True, text=True
     )
     return int(out.stdout.strip().splitlines()[-1])
+
+
+#: glibc settings under which freed memory is kept (no page faults for re-allocated
+#: buffers): what ``mallopt`` in the entry point would give; see --malloc
+KEEP_MEMORY = {"MALLOC_MMAP_THRESHOLD_": "268435456", "MALLOC_TRIM_THRESHOLD_": "1073741824"}
+
+
+def time_in_process(path: Path, extra_env: dict[str, str]) -> tuple[float, float, float, float]:
+    """(reader wall, reader CPU, floor wall, floor CPU), best of three each, in line,
+    measured in a fresh process with ``extra_env`` added to its environment."""
+    code = (
+        "import sys\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from pathlib import Path\n"
+        "from bench_read import time_imufdi, time_floor\n"
+        "p = Path(sys.argv[1])\n"
+        "time_imufdi(p, read_ahead=False)\n"
+        "w, _, c, _ = min(time_imufdi(p, read_ahead=False) for _ in range(3))\n"
+        "fw, fc = time_floor(p)\n"
+        "print(w, c, fw, fc)\n"
+    )
+    env = dict(os.environ, **extra_env)
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(path)], check=True, capture_output=True, text=True, env=env
+    )
+    wall, cpu, floor_wall, floor_cpu = (float(x) for x in out.stdout.split()[-4:])
+    return wall, cpu, floor_wall, floor_cpu
 
 
 def main() -> None:
@@ -159,6 +206,12 @@ def main() -> None:
         help="messages decoded by mcap-ros2-support (rate extrapolated; it is slow)",
     )
     parser.add_argument("--skip-memory", action="store_true")
+    parser.add_argument(
+        "--malloc",
+        action="store_true",
+        help="also time the in-line reader and the floor in fresh processes with and without"
+        " glibc keeping freed memory (MALLOC_MMAP/TRIM_THRESHOLD_): the page faults' share",
+    )
     parser.add_argument("--log", type=Path, help="MCAP to time the readers on (default: generated)")
     args = parser.parse_args()
     from imufdi_cli.mcapio.compression import CRC32_IMPLEMENTATION
@@ -180,10 +233,16 @@ def main() -> None:
                 n_messages = sum(len(b) * b.n_imus for b in probe.blocks())
         size_mb = base.stat().st_size / 1e6
         print(f"log: {base.name}, {n_messages:,} Imu messages, {size_mb:.1f} MB")
-        ours_s, ours_n, ours_cpu = min(time_imufdi(base) for _ in range(3))
+        with McapSource(base) as probe_source:
+            default_ahead = probe_source.read_ahead
+        ours_s, ours_n, ours_cpu, ours_main = min(time_imufdi(base) for _ in range(3))
         assert ours_n == n_messages, (ours_n, n_messages)
         ours_rate = ours_n / ours_s
-        print(f"imufdi reader        : {ours_s:7.2f} s  {ours_rate:12,.0f} msg/s (decoded+aligned)")
+        print(
+            f"imufdi reader        : {ours_s:7.2f} s  {ours_rate:12,.0f} msg/s (decoded+aligned;"
+            f" default settings: read-ahead {'on' if default_ahead else 'off'}), CPU"
+            f" {ours_cpu:.2f} s, calling thread {ours_main:.2f} s"
+        )
         floor_s, floor_cpu = time_floor(base)
         print(
             f"zstd floor           : {floor_s:7.2f} s  {n_messages / floor_s:12,.0f} msg/s"
@@ -199,19 +258,35 @@ def main() -> None:
             f" (as above, plus the CRC-32 the reader verifies), CPU {crc_cpu:.2f} s"
         )
         print(f"reader / CRC floor   : {crc_s / ours_s:7.1%} wall, {crc_cpu / ours_cpu:.1%} CPU")
-        nocrc_s, nocrc_n, nocrc_cpu = min(time_imufdi(base, validate_crcs=False) for _ in range(3))
+        nocrc_s, nocrc_n, nocrc_cpu, _ = min(
+            time_imufdi(base, validate_crcs=False) for _ in range(3)
+        )
         assert nocrc_n == n_messages, (nocrc_n, n_messages)
         print(
             f"reader, CRCs off     : {nocrc_s:7.2f} s  {n_messages / nocrc_s:12,.0f} msg/s,"
             f" {floor_s / nocrc_s:.1%} of the zstd floor (wall), {floor_cpu / nocrc_cpu:.1%} (CPU)"
         )
-        line_s, line_n, line_cpu = min(time_imufdi(base, read_ahead=True) for _ in range(3))
-        assert line_n == n_messages, (line_n, n_messages)
-        print(
-            f"reader, read-ahead   : {line_s:7.2f} s  {n_messages / line_s:12,.0f} msg/s,"
-            f" {floor_s / line_s:.1%} of the zstd floor (wall), {floor_cpu / line_cpu:.1%} (CPU)"
-            " (read_ahead=True: chunks decompressed and CRC-checked on a worker thread)"
-        )
+        for label, ahead, what in (
+            ("in line", False, "read_ahead=False: one thread"),
+            ("read-ahead", True, "read_ahead=True: a worker thread decompresses, reads heads"),
+        ):
+            line_s, line_n, line_cpu, line_main = min(
+                time_imufdi(base, read_ahead=ahead) for _ in range(3)
+            )
+            assert line_n == n_messages, (line_n, n_messages)
+            print(
+                f"reader, {label:<13}: {line_s:7.2f} s  {n_messages / line_s:12,.0f} msg/s,"
+                f" {floor_s / line_s:.1%} of the zstd floor (wall), {floor_cpu / line_cpu:.1%}"
+                f" (CPU {line_cpu:.2f} s), calling thread {line_main:.2f} s ({what})"
+            )
+        if args.malloc:
+            for label, extra in (("fresh process", {}), ("+ glibc keeps memory", KEEP_MEMORY)):
+                r_wall, r_cpu, f_wall, f_cpu = time_in_process(base, extra)
+                print(
+                    f"in line, {label:<20}: reader {r_wall:.2f} s (CPU {r_cpu:.2f} s), floor"
+                    f" {f_wall:.2f} s (CPU {f_cpu:.2f} s): {f_wall / r_wall:.1%} wall,"
+                    f" {f_cpu / r_cpu:.1%} CPU"
+                )
         ref_s, ref_n = time_mcap_ros2(base, args.baseline_messages)
         ref_rate = ref_n / ref_s
         print(

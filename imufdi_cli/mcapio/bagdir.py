@@ -140,7 +140,7 @@ class BagDirSource(McapSource):
         validate_crcs: bool | None = None,
         limits: ReaderLimits | None = None,
         keep_raw_chunks: bool = False,
-        read_ahead: bool = False,
+        read_ahead: bool | None = None,
     ) -> None:
         # keep_raw_chunks is accepted and ignored: the split files' channels are renumbered
         # into one set, so their chunks are never copied verbatim (raw_chunk gives None).
@@ -148,7 +148,7 @@ class BagDirSource(McapSource):
             raise McapInputError("a rosbag2 directory must be given as a path")
         self.strict = strict
         self.validate_crcs = validate_crcs is not False
-        self.read_ahead = read_ahead
+        self.read_ahead = bool(read_ahead)  # None: each file decides (McapSource)
         self.limits = limits if limits is not None else ReaderLimits.from_env()
         directory = Path(source)
         if directory.name == METADATA_FILE:

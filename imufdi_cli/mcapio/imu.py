@@ -486,6 +486,9 @@ class ImuArrayReader:
                 self._fixed[key] = fixed
             quick = None if fixed is None else fixed.decode(selected, streams)
             if quick is not None:
+                if len(self._groups) == 1 and self.source.payload_fields is None:
+                    # the read-ahead thread (if any) reads these fields from now on
+                    self.source.payload_fields = fixed.payload_fields()  # type: ignore[union-attr]
                 stamps, joint = quick
                 if self.time_source == "header" and stamps is not None:
                     self._aligner.add(streams, stamps, joint)
@@ -521,22 +524,35 @@ class ImuArrayReader:
         m = len(self.imu_topics)
         n = t_ns.shape[0]
 
+        def planes(streams: slice, first: int) -> np.ndarray:
+            """joint[:, streams, first:first + 3] copied to a new (n, q, 3) array, one
+            component at a time: as 1-D strided copies when the streams are all of
+            joint's (no magnetometers), since numpy copies a (n, q) plane of a 3-D array
+            several times slower than the same values as one flat strided run."""
+            assert joint is not None
+            part = joint[:, streams]
+            out = np.empty((n, part.shape[1], 3))
+            if part.shape[1] == joint.shape[1] and joint.flags.c_contiguous:
+                flat_in = joint.reshape(-1, joint.shape[2])
+                flat_out = out.reshape(-1, 3)
+                for axis in range(3):
+                    flat_out[:, axis] = flat_in[:, first + axis]
+            else:
+                for axis in range(3):
+                    out[:, :, axis] = part[:, :, first + axis]
+            return out
+
         def stacked(columns: slice) -> np.ndarray:  # (n, m, 3), one copy
             if not m:
                 return np.zeros((n, 0, 3))
             if joint is not None:
-                out = np.empty((n, m, 3))
-                for axis in range(3):
-                    out[:, :, axis] = joint[:, :m, columns.start + axis]
-                return out
+                return planes(slice(0, m), columns.start)
             return np.stack([v[:, columns] for v in values[:m]], axis=1)
 
         mag = None
         if self.mag_topics and self.array.has("mag"):
             if joint is not None:
-                mag = np.empty((n, len(self.mag_topics), 3))
-                for axis in range(3):
-                    mag[:, :, axis] = joint[:, m:, axis]
+                mag = planes(slice(m, None), 0)
             else:
                 mag = np.stack(values[m:], axis=1)
         return ImuBlock(

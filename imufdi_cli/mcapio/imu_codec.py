@@ -18,6 +18,7 @@ from imufdi_cli.mcapio.records import (
     MessageBatch,
     gather_bytes,
 )
+from imufdi_cli.mcapio.scan import PayloadFields
 
 ARRAY_METADATA = "imufdi.array"
 IMU_TYPE_NAMES = ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")
@@ -463,6 +464,18 @@ class FixedLayoutDecoder:
         words = fields.view(0, "V16").copy().view("<u4").reshape(-1, 4)
         return {rel: words[:, rel // 4] for rel in wanted}
 
+    def payload_fields(self) -> PayloadFields | None:
+        """What the read-ahead thread should read of every payload for :meth:`decode`
+        (the 16-byte head and the vector components), once the layout is known and its
+        keys and stamps lie in the first 16 bytes; else None."""
+        wanted = [*self.keys, *(self.rel[path] for path in self.stamp)]
+        if not self.usable or self.length < 16 or any(r % 4 or r + 4 > 16 for r in wanted):
+            return None
+        offsets = tuple(
+            self.rel[path] + 8 * axis for path in self.vector_paths for axis in range(3)
+        )
+        return PayloadFields(self.length, offsets)
+
     def decode(
         self, batch: MessageBatch, streams: np.ndarray
     ) -> tuple[np.ndarray | None, np.ndarray] | None:
@@ -483,8 +496,17 @@ class FixedLayoutDecoder:
                     if not self._probe(batch.select(slice(first, first + 1)), stream):
                         self.usable = False
                         return None
-        fields = _Fields(batch.data, batch.offset)
-        head = self._head(fields)
+        ahead = getattr(batch, "payload_fields", None)
+        if ahead is not None and ahead[0] != self.payload_fields():
+            ahead = None
+        if ahead is None:
+            fields = _Fields(batch.data, batch.offset)
+            head = self._head(fields)
+        else:  # read by the read-ahead thread (PayloadFields.read): the same bytes
+            words = ahead[1]
+            head = {
+                rel: words[:, rel // 4] for rel in [*self.keys, *(self.rel[p] for p in self.stamp)]
+            }
         table = self.expected
         for j, rel in enumerate(self.keys):
             got = head[rel] if rel in head else fields.view(rel, "<u4").copy()
@@ -503,6 +525,8 @@ class FixedLayoutDecoder:
             t_ns = t_ns.astype(np.int64)
             t_ns *= NS_PER_S
             t_ns += head[nanosec] if nanosec in head else fields.view(nanosec, "<u4")
+        if ahead is not None:
+            return t_ns, ahead[2]
         values = np.empty((n, 3 * len(self.vector_paths)))
         for k, path in enumerate(self.vector_paths):
             rel = self.rel[path]

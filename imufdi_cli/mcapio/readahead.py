@@ -13,8 +13,17 @@ from collections import deque
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
-from imufdi_cli.mcapio.compression import _declared_size, _unpack_chunk, _Unpacked
+import numpy as np
+
+from imufdi_cli.mcapio.compression import _declared_size, _unpack_chunk
 from imufdi_cli.mcapio.records import OP_CHUNK
+from imufdi_cli.mcapio.scan import (
+    _BATCH_BYTES,
+    _BATCH_CAPACITY,
+    Digest,
+    PayloadFields,
+    chunk_digest,
+)
 
 if TYPE_CHECKING:
     from concurrent.futures import Future
@@ -32,9 +41,13 @@ _PREFETCH_CHUNKS = 4
 _PREFETCH_BYTES = 64 << 20
 _PREFETCH_RECORDS = 1024
 
-#: A chunk being unpacked on the worker thread, and the process id that asked for it (a
-#: forked child never gets the answer: it unpacks the chunk itself)
-_Ahead = tuple["Future[_Unpacked]", int]
+#: A chunk being unpacked on the worker thread, the process id that asked for it (a
+#: forked child never gets the answer: it unpacks the chunk itself), and where its records
+#: are decompressed: (batch buffer, offset) or None (then they come as bytes of their own)
+_Ahead = tuple["Future[_Read]", int, "tuple[np.ndarray, int] | None"]
+#: What the worker hands back: the chunk's records or None, why not, and the message heads
+#: of its records when they are whole Message records of the expected length
+_Read = tuple["bytes | memoryview | None", str, "Digest | None"]
 #: A data-section record: (opcode, content length, content or None if skipped, byte offset)
 _Record = tuple[int, int, bytes | None, int]
 
@@ -52,6 +65,7 @@ def read_ahead(
     in_flight = 0  # chunks on the worker
     in_flight_bytes = 0
     exhausted = False
+    places = _Places()
     try:
         while True:
             # read one record when there is none; more only while chunks are being
@@ -77,15 +91,21 @@ def read_ahead(
                 elif item[0] == OP_CHUNK and item[2] is not None:
                     size = _declared_size(item[2])
                     if size >= _THREAD_CHUNK and source.read_ahead:
+                        place = (
+                            places.reserve(size) if size <= source.limits.max_chunk_bytes else None
+                        )
+                        pattern = source._pattern
                         job = source._worker().submit(
-                            _unpack_chunk,
+                            _unpack_ahead,
                             item[2],
                             source.limits.max_chunk_bytes,
                             source.validate_crcs,
-                            None,
+                            None if place is None else _Slot(*place),
                             not source.strict,
+                            -1 if pattern is None else pattern.uniform,
+                            source.payload_fields,
                         )
-                        future = (job, os.getpid())
+                        future = (job, os.getpid(), place)
                         in_flight += 1
                         in_flight_bytes += size
                 queue.append((item, notes, future, size))
@@ -107,3 +127,63 @@ def read_ahead(
         for _, _, future, _ in queue:
             if future is not None:
                 future[0].cancel()
+
+
+class _Places:
+    """Where the worker thread decompresses the chunks it reads ahead: one after another
+    in batch buffers of the size the caller's batches have (a new one once
+    ``_BATCH_BYTES`` are filled, as the caller's batches end), so that the caller can use
+    the records where they are (:meth:`_PendingMessages.adopt
+    <imufdi_cli.mcapio.scan._PendingMessages.adopt>`) instead of copying them. Regions
+    are never handed out twice, and the caller never writes into these buffers."""
+
+    def __init__(self) -> None:
+        self.buffer: np.ndarray | None = None
+        self.fill = 0
+
+    def reserve(self, size: int) -> tuple[np.ndarray, int]:
+        """(buffer, offset) of ``size`` bytes nobody else writes."""
+        if (
+            self.buffer is None
+            or self.fill >= _BATCH_BYTES
+            or self.fill + size > self.buffer.shape[0]
+        ):
+            # pages are touched (faulted in) by the worker thread as it writes them
+            self.buffer = np.empty(max(_BATCH_CAPACITY, size), np.uint8)
+            self.fill = 0
+        place = (self.buffer, self.fill)
+        self.fill += size
+        return place
+
+
+class _Slot:
+    """The ``slot`` of :func:`~imufdi_cli.mcapio.compression._unpack_chunk` for a reserved
+    region: a writable view of exactly the declared size."""
+
+    def __init__(self, buffer: np.ndarray, offset: int) -> None:
+        self.buffer = buffer
+        self.offset = offset
+
+    def __call__(self, n: int) -> memoryview:
+        return memoryview(self.buffer)[self.offset : self.offset + n]  # type: ignore[arg-type]
+
+
+def _unpack_ahead(
+    content: bytes,
+    max_chunk_bytes: int,
+    validate_crcs: bool,
+    slot: _Slot | None,
+    trust_frame_checksum: bool,
+    length: int,
+    fields: PayloadFields | None,
+) -> _Read:
+    """:func:`~imufdi_cli.mcapio.compression._unpack_chunk` on the worker thread, and when
+    the caller's record pattern is one of Message records of one content ``length`` (-1:
+    none) and the chunk holds only such records, their message heads
+    (:func:`~imufdi_cli.mcapio.scan.uniform_message_heads`: the caller then neither checks
+    nor reads them) and the payload ``fields`` the caller asked for."""
+    raw, error = _unpack_chunk(content, max_chunk_bytes, validate_crcs, slot, trust_frame_checksum)
+    digest: Digest | None = None
+    if raw is not None and length >= 0:
+        digest = chunk_digest(np.frombuffer(raw, np.uint8), length, fields)
+    return raw, error, digest

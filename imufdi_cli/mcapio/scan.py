@@ -5,6 +5,7 @@ message records, and their headers read into a :class:`MessageBatch`. Used by :c
 from __future__ import annotations
 
 import struct
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -28,6 +29,9 @@ _SCAN_BLOCK = 4 << 20
 #: about 20 % less reader CPU than 1 MiB batches on 16-IMU logs of 1 MiB chunks.
 _BATCH_MESSAGES = 16384
 _BATCH_BYTES = 4 << 20
+#: Size of a new batch buffer: a batch ends after the chunk that takes it past
+#: _BATCH_BYTES, so most batches fit without growing it.
+_BATCH_CAPACITY = _BATCH_BYTES + (2 << 20)
 
 
 class _Cursor:
@@ -216,6 +220,9 @@ class RecordPattern:
         self.lengths = [int(n) for n in lengths]
         self.period = len(self.lengths)
         self.stride = sum(9 + n for n in self.lengths)
+        #: The one content length of every record of the period, or -1 (then each record
+        #: of the period is checked through a view of its own).
+        self.uniform = self.lengths[0] if len(set(self.lengths)) == 1 else -1
         self._rotations: dict[int, tuple[np.ndarray, np.ndarray, dict[int, int]]] = {}
 
     @classmethod
@@ -265,6 +272,8 @@ class RecordPattern:
         size = buf.shape[0]
         if size < 9 or buf[0] != 0x05:
             return None
+        if self.uniform >= 0:
+            return self._match_uniform(buf, phase)
         first = int(buf[1:9].view("<u8")[0])
         phases = [phase] + [p for p in range(self.period) if p != phase]
         for start in phases:
@@ -292,6 +301,122 @@ class RecordPattern:
             return starts, record_lengths, (start + starts.shape[0]) % self.period
         return None
 
+    def _match_uniform(
+        self, buf: np.ndarray, phase: int
+    ) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """:meth:`match` when every record of the period has the same length: the chunk
+        is then ``size / (9 + length)`` records whatever the phase, and all their heads are
+        checked through two strided views (the general check makes two per record of the
+        period; same answer: a phase fits exactly when the first one does)."""
+        length = self.uniform
+        record = 9 + length
+        n, rest = divmod(buf.shape[0], record)
+        if rest or not _uniform_heads(buf, record, n, length):
+            return None
+        return self.uniform_run(n, phase)
+
+    def uniform_run(self, n: int, phase: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """What :meth:`match` returns for a chunk of ``n`` Message records of this
+        pattern's one length (their heads already checked, e.g. by
+        :func:`uniform_message_heads` on the read-ahead thread)."""
+        record = 9 + self.uniform
+        starts = np.arange(9, n * record, record, dtype=np.int64)
+        return starts, np.full(n, self.uniform, np.int64), (phase + n) % self.period
+
+
+def _uniform_heads(buf: np.ndarray, record: int, count: int, length: int) -> bool:
+    """Whether the ``count`` records of ``record`` bytes from the start of ``buf`` all have
+    a Message record's head (opcode 0x05, content length ``length``): the 8 bytes at each
+    record start (opcode and the length's 7 low bytes) and the length's high byte, through
+    typed strided views copied once (``length`` < 2**56: the high byte is 0)."""
+    low = np.ndarray((count,), "<u8", buf, 0, (record,))
+    high = np.ndarray((count,), np.uint8, buf, 8, (record,))
+    head = 0x05 | (length << 8)
+    return np.count_nonzero(low.copy() != head) == 0 and np.count_nonzero(high.copy()) == 0
+
+
+#: Message header fields of a run of Message records, as :func:`message_batch` reads
+#: them: channel_id (uint16), sequence (uint32), log_time, publish_time (int64).
+Heads = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+@dataclass(frozen=True)
+class PayloadFields:
+    """Payload fields the read-ahead thread reads from every message of a chunk of
+    uniform Message records whose payloads are ``length`` bytes long: the first 16 bytes
+    (as (n, 4) little-endian uint32 words) and float64 values at payload ``offsets``
+    (each (n,), side by side as an (n, len(offsets)) array). Set by the Imu reader on its
+    source once it knows the layout (:class:`~imufdi_cli.mcapio.imu_codec.FixedLayoutDecoder`),
+    which then takes them instead of reading the payloads itself."""
+
+    length: int
+    offsets: tuple[int, ...]
+
+    def read(self, buf: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(words (n, 4) ``<u4``, values (n, k) float64) of the records of ``buf``, whole
+        Message records of content ``length`` (checked by the caller); None when their
+        payloads are not ``self.length`` long."""
+        if length - MESSAGE_FIXED_CONTENT != self.length or self.length < 16:
+            return None
+        record = 9 + length
+        n = buf.shape[0] // record
+        first = 9 + MESSAGE_FIXED_CONTENT
+        words = np.ndarray((n,), "V16", buf, first, (record,)).copy().view("<u4").reshape(-1, 4)
+        values = np.empty((n, len(self.offsets)))
+        for k, offset in enumerate(self.offsets):
+            # copied out first: numpy copies unaligned strided values to a strided column
+            # several times slower than to a contiguous array
+            values[:, k] = np.ndarray((n,), "<f8", buf, first + offset, (record,)).copy()
+        return words, values
+
+
+#: What was read of a chunk right after its decompression: its message heads, and the
+#: payload fields asked for (their spec, words, values) or None
+Digest = tuple[Heads, "tuple[PayloadFields, np.ndarray, np.ndarray] | None"]
+
+
+def chunk_digest(buf: np.ndarray, length: int, fields: PayloadFields | None) -> Digest | None:
+    """The message heads (:func:`uniform_message_heads`) and the payload ``fields`` of a
+    chunk ``buf`` made only of whole Message records of content ``length``, else None. Read
+    right after the chunk is decompressed (on the read-ahead thread, or in line while the
+    chunk is still in the CPU's cache: 4-10 % less reader CPU than reading the same fields
+    per 4 MiB batch)."""
+    heads = uniform_message_heads(buf, length)
+    if heads is None:
+        return None
+    read = None if fields is None else fields.read(buf, length)
+    if fields is None or read is None:
+        return heads, None
+    return heads, (fields, *read)
+
+
+def uniform_message_heads(buf: np.ndarray, length: int) -> Heads | None:
+    """The header fields of the Message records of a chunk ``buf`` (uint8, contiguous)
+    when it holds only whole Message records of content length ``length`` (what
+    :meth:`RecordPattern.match` accepts for a period of records of that one length), else
+    None. The read-ahead thread reads them while the caller decodes earlier chunks; the
+    values are those :func:`message_batch` reads from the same records."""
+    record = 9 + length
+    n, rest = divmod(buf.shape[0], record)
+    if (
+        n == 0
+        or rest
+        or length < MESSAGE_FIXED_CONTENT
+        or not _uniform_heads(buf, record, n, length)
+    ):
+        return None
+
+    def field(name: str, dtype: type) -> np.ndarray:
+        code, at = _MESSAGE_FIELDS.fields[name][:2]  # type: ignore[index]
+        return np.ndarray((n,), code, buf, 9 + at, (record,)).astype(dtype)
+
+    return (
+        field("channel_id", np.uint16),
+        field("sequence", np.uint32),
+        field("log_time", np.int64),
+        field("publish_time", np.int64),
+    )
+
 
 def _heads_are(buf: np.ndarray, first: int, stride: int, count: int, length: int) -> bool:
     """Whether the ``count`` record heads at ``first``, ``first + stride``, ... of ``buf``
@@ -314,11 +439,18 @@ class _PendingMessages:
 
     def __init__(self) -> None:
         self.buffer: np.ndarray | None = None
+        #: The read-ahead buffer that ``buffer`` is a view of (from ``base`` on), or None
+        #: when ``buffer`` is this object's own; nothing is written into such a buffer here.
+        self.owner: np.ndarray | None = None
+        self.base = 0
         self.n_parts = 0
         self.starts: list[np.ndarray] = []
         self.lengths: list[np.ndarray] = []
         self.loose_starts: list[int] = []
         self.loose_lengths: list[int] = []
+        #: What the read-ahead thread read of every part (message heads, payload fields),
+        #: while all parts have it; None once a part has not.
+        self.digests: list[Digest] | None = []
         self.n_bytes = 0
         self.n_messages = 0
         self.first_byte = -1
@@ -341,17 +473,36 @@ class _PendingMessages:
         """Writable room for ``n`` bytes after the pending ones (not counted until
         :meth:`add_chunk`); the buffer grows by copying only when a part does not fit."""
         end = self.n_bytes + n
-        if self.buffer is None or end > self.buffer.shape[0]:
-            capacity = max(end, _BATCH_BYTES + (2 << 20))
-            if self.buffer is not None:
+        if self.buffer is None or end > self.buffer.shape[0] or self.owner is not None:
+            # (a read-ahead buffer is never written here: the worker may be filling the
+            # region after the pending bytes; they are copied to a buffer of our own)
+            capacity = max(end, _BATCH_CAPACITY)
+            if self.buffer is not None and self.owner is None:
                 capacity = max(capacity, 2 * self.buffer.shape[0])
             grown = np.empty(capacity, np.uint8)  # pages are touched only when written
             if self.buffer is not None:
                 grown[: self.n_bytes] = self.buffer[: self.n_bytes]
             self.buffer = grown
+            self.owner = None
         return memoryview(self.buffer)[self.n_bytes : end]  # type: ignore[arg-type]
 
+    def adopt(self, buffer: np.ndarray, offset: int, n: int) -> bool:
+        """Whether ``n`` bytes decompressed by the read-ahead worker at ``offset`` of
+        ``buffer`` already lie right after the pending bytes (nothing pending: the pending
+        buffer becomes a view of ``buffer`` from ``offset`` on), to be counted by
+        :meth:`add_chunk` without a copy; else they must be copied to :meth:`slot`."""
+        if self.n_bytes == 0 and not self.loose_starts:
+            self.buffer = buffer[offset:]
+            self.owner, self.base = buffer, offset
+            return n <= self.buffer.shape[0]
+        return (
+            self.owner is buffer
+            and self.base + self.n_bytes == offset
+            and self.n_bytes + n <= self.buffer.shape[0]  # type: ignore[union-attr]
+        )
+
     def add_loose(self, content: bytes, position: int) -> None:
+        self.digests = None
         self.slot(len(content))[:] = content
         self.loose_starts.append(self.n_bytes)
         self.loose_lengths.append(len(content))
@@ -364,9 +515,15 @@ class _PendingMessages:
         starts: np.ndarray | list[int],
         lengths: np.ndarray | list[int],
         position: int,
+        digest: Digest | None = None,
     ) -> None:
         """Count a chunk's ``size`` record bytes, already written at :meth:`slot`; starts
-        and lengths of its Message records' contents relative to the chunk."""
+        and lengths of its Message records' contents relative to the chunk; ``digest``:
+        what the read-ahead thread read of them."""
+        if digest is None or self.digests is None:
+            self.digests = None
+        else:
+            self.digests.append(digest)
         if isinstance(starts, list):  # a small chunk: kept in lists like loose messages
             shift = self.n_bytes
             self.loose_starts.extend(start + shift for start in starts)
@@ -386,22 +543,58 @@ class _PendingMessages:
             return f"record at byte {self.first_byte}"
         return f"records at bytes {self.first_byte}-{self.last_byte}"
 
-    def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(buffer, content starts, content lengths) of everything pending; empties it."""
+    def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, Digest | None]:
+        """(buffer, content starts, content lengths, what the read-ahead thread read of
+        them when it read every part (payload fields only when all have the same), else
+        None) of everything pending; empties it."""
         self._close_loose()
         buf = np.zeros(0, np.uint8) if self.buffer is None else self.buffer[: self.n_bytes]
         starts = self.starts[0] if len(self.starts) == 1 else np.concatenate(self.starts)
         lengths = self.lengths[0] if len(self.lengths) == 1 else np.concatenate(self.lengths)
+        digest = _join_digests(self.digests) if self.digests else None
         self.__init__()  # type: ignore[misc]
-        return buf, starts, lengths
+        return buf, starts, lengths, digest
+
+
+def _join_digests(parts: list[Digest]) -> Digest:
+    """The digests of consecutive parts as one."""
+    if len(parts) == 1:
+        return parts[0]
+    heads: Heads = tuple(  # type: ignore[assignment]
+        np.concatenate([part[0][k] for part in parts]) for k in range(4)
+    )
+    fields = [part[1] for part in parts]
+    first = fields[0]
+    if first is None or any(f is None or f[0] != first[0] for f in fields):
+        return heads, None
+    return heads, (
+        first[0],
+        np.concatenate([f[1] for f in fields]),  # type: ignore[index]
+        np.concatenate([f[2] for f in fields]),  # type: ignore[index]
+    )
 
 
 def message_batch(
-    buf: np.ndarray, content_starts: np.ndarray, content_lengths: np.ndarray
+    buf: np.ndarray,
+    content_starts: np.ndarray,
+    content_lengths: np.ndarray,
+    heads: Heads | None = None,
 ) -> MessageBatch:
     """The Message records whose contents start at ``content_starts`` (shape (n,), each of
     at least ``MESSAGE_FIXED_CONTENT`` bytes) in ``buf`` (uint8): their header fields read
-    at once (a strided view when evenly spaced, else one gather); payloads stay in ``buf``."""
+    at once (a strided view when evenly spaced, else one gather; or ``heads``, when they
+    were read already); payloads stay in ``buf``."""
+    if heads is not None:
+        channel_id, sequence, log_time, publish_time = heads
+        return MessageBatch(
+            channel_id=channel_id,
+            sequence=sequence,
+            log_time=log_time,
+            publish_time=publish_time,
+            data=buf,
+            offset=content_starts + MESSAGE_FIXED_CONTENT,
+            length=content_lengths - MESSAGE_FIXED_CONTENT,
+        )
     step = _even_step(content_starts)
     if step and int(content_starts[-1]) + MESSAGE_FIXED_CONTENT <= buf.shape[0]:
         # evenly spaced records: each field through a typed strided view, copied once

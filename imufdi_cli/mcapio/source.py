@@ -19,7 +19,7 @@ from __future__ import annotations
 import os
 import sys
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
@@ -48,8 +48,11 @@ from imufdi_cli.mcapio.records import (
 )
 from imufdi_cli.mcapio.recordstream import _RECORD_HEAD, RecordStream
 from imufdi_cli.mcapio.scan import (
+    Digest,
+    PayloadFields,
     RecordPattern,
     _PendingMessages,
+    chunk_digest,
     message_batch,
     parse_channel,
     parse_metadata,
@@ -96,10 +99,16 @@ class McapSource(RecordStream):
 
     With ``read_ahead``, chunks of at least 64 KiB of records are decompressed and
     CRC-checked on one worker thread, up to four chunks ahead of the one being decoded
-    (zstd, lz4 and the CRC release the GIL); results, warnings and errors come in file
-    order as without it. It is off by default: on the shared 2-core build machine it cost
-    5-20 % more CPU and gained no wall time (docs/performance.md); it can only help where a
-    core is free, and moves at most the decompression (~15 % of reading) off the caller.
+    (zstd, lz4 and the CRC release the GIL), straight into the buffers the caller's
+    batches use; when the records of the chunks before were all Message records of one
+    length (an IMU array's), the worker also checks every record head and reads the
+    message heads and the payload fields the Imu reader asked for
+    (:attr:`payload_fields`). Results, warnings and errors come in file order and are the
+    same as without it. It moves about half of the CPU of reading off the calling thread
+    and adds 5-15 % in all, but the two threads share the GIL, and on the 2-core
+    build machine it gained no wall time that could be told from the load's noise
+    (docs/performance.md): the default (``None``) is off, unless the environment variable
+    ``IMUFDI_READ_AHEAD=1`` turns it on for every source.
 
     Chunk records are verified when ``validate_crcs`` is true (the default): by the
     chunk's CRC-32, except that a zstd chunk whose frame carries a content checksum over
@@ -120,6 +129,9 @@ class McapSource(RecordStream):
     _pool_pid = -1
     _pattern: RecordPattern | None = None
     _phase = 0
+    #: Payload fields the read-ahead thread reads from chunks of uniform Message records
+    #: (set by the Imu reader once it knows their layout; None: only the message heads).
+    payload_fields: PayloadFields | None = None
 
     def __new__(cls, source: Any = None, *args: Any, **kwargs: Any) -> McapSource:
         if (
@@ -144,11 +156,12 @@ class McapSource(RecordStream):
         validate_crcs: bool | None = True,
         limits: ReaderLimits | None = None,
         keep_raw_chunks: bool = False,
-        read_ahead: bool = False,
+        read_ahead: bool | None = None,
     ) -> None:
         self.strict = strict
-        #: Decompress and CRC-check chunks of >= readahead._THREAD_CHUNK bytes on a worker thread.
-        self.read_ahead = read_ahead
+        #: Decompress and CRC-check chunks of >= readahead._THREAD_CHUNK bytes on a worker
+        #: thread (None until the file is open: see _auto_read_ahead).
+        self.read_ahead = bool(read_ahead)
         #: Remember the Chunk record of each batch that is exactly one whole chunk, for
         #: :meth:`raw_chunk` (detect copies such chunks without recompressing them).
         self.keep_raw_chunks = keep_raw_chunks
@@ -220,6 +233,8 @@ class McapSource(RecordStream):
                 self.close()
                 raise
             self._stream.seek(len(MAGIC))
+        if read_ahead is None:
+            self.read_ahead = _default_read_ahead()
 
     # --- plumbing ------------------------------------------------------------------------
 
@@ -319,7 +334,7 @@ class McapSource(RecordStream):
                     if self.keep_raw_chunks:
                         raw = _raw_chunk(content) if self._chunk_clean else None
                         runs.append((raw, len(part[1]), pending.n_bytes))
-                    pending.add_chunk(*part, here)
+                    pending.add_chunk(part[0], part[1], part[2], here, part[3])
             elif opcode in (OP_SCHEMA, OP_CHANNEL, OP_METADATA):
                 # Not a message: the pending messages before it stay in the current batch,
                 # so the channels of a file that declares each just before its first message
@@ -355,8 +370,9 @@ class McapSource(RecordStream):
         if not pending.n_parts:
             return MessageBatch.empty()
         where = pending.where()
-        buf, starts, lengths = pending.take()
-        return self._messages_from(buf, starts, lengths, where)
+        buf, starts, lengths, digest = pending.take()
+        batch = self._messages_from(buf, starts, lengths, where, digest)
+        return batch
 
     def _messages_from(
         self,
@@ -364,13 +380,20 @@ class McapSource(RecordStream):
         content_starts: np.ndarray,
         content_lengths: np.ndarray,
         where: str,
+        digest: Digest | None = None,
     ) -> MessageBatch:
         bad = content_lengths < MESSAGE_FIXED_CONTENT
         if bool(bad.any()):
             self._problem(f"{where}: {int(bad.sum())} malformed Message record(s) skipped")
             content_starts = content_starts[~bad]
             content_lengths = content_lengths[~bad]
-        batch = message_batch(buf, content_starts, content_lengths)
+            digest = None
+        batch = message_batch(
+            buf, content_starts, content_lengths, None if digest is None else digest[0]
+        )
+        if digest is not None and digest[1] is not None:
+            # the payload fields read ahead, for the Imu decoder (a selection drops them)
+            batch.payload_fields = digest[1]  # type: ignore[attr-defined]
         known = self._known_lookup()[batch.channel_id]
         if not bool(known.all()):
             missing = sorted(set(np.unique(batch.channel_id[~known]).tolist()))
@@ -395,20 +418,48 @@ class McapSource(RecordStream):
         content: bytes,
         chunk_offset: int,
         future: _Ahead | None = None,
-        slot: Callable[[int], memoryview] | None = None,
-    ) -> bytes | memoryview | None:
-        """The decompressed, CRC-checked records of a Chunk record (None if unusable):
-        large zstd chunks decompressed into ``slot(size)`` (the batch buffer), others as
-        bytes; ``future``: the same, computed ahead on the worker thread."""
+        pending: _PendingMessages | None = None,
+    ) -> tuple[bytes | memoryview | None, Digest | None]:
+        """The decompressed, CRC-checked records of a Chunk record (None if unusable),
+        and what the read-ahead thread read of them (else None):
+        large zstd chunks decompressed into ``pending.slot(size)`` (the batch buffer),
+        others as bytes; ``future``: the same, computed ahead on the worker thread (into a
+        read-ahead buffer, used in place when it follows the pending records, else copied
+        to the slot)."""
+        heads: Digest | None = None
         if future is not None and future[1] == os.getpid():
-            raw, error = future[0].result()
+            raw, error, heads = future[0].result()
+            place = future[2]
+            if raw is not None and place is not None and not isinstance(raw, bytes):
+                buffer, offset = place
+                if pending is None:
+                    raw = bytes(raw)
+                elif not pending.adopt(buffer, offset, len(raw)):
+                    target = pending.slot(len(raw))
+                    target[:] = raw
+                    raw = target
         else:  # in line (also in a forked child: the parent's worker never answers there)
             raw, error = _unpack_chunk(
-                content, self.limits.max_chunk_bytes, self.validate_crcs, slot, not self.strict
+                content,
+                self.limits.max_chunk_bytes,
+                self.validate_crcs,
+                None if pending is None else pending.slot,
+                not self.strict,
             )
+            pattern = self._pattern
+            if (
+                raw is not None
+                and pattern is not None
+                and pattern.uniform >= 0
+                and len(raw) > _SMALL_CHUNK
+            ):
+                # heads and fields read while the chunk is still in the cache
+                heads = chunk_digest(
+                    np.frombuffer(raw, np.uint8), pattern.uniform, self.payload_fields
+                )
         if raw is None:
             self._problem(f"chunk at byte {chunk_offset} skipped: {error}")
-        return raw
+        return raw, heads
 
     def _chunk_part(
         self,
@@ -416,13 +467,14 @@ class McapSource(RecordStream):
         chunk_offset: int,
         future: _Ahead | None,
         pending: _PendingMessages,
-    ) -> tuple[int, np.ndarray | list[int], np.ndarray | list[int]] | None:
+    ) -> tuple[int, np.ndarray | list[int], np.ndarray | list[int], Digest | None] | None:
         """A chunk's records placed after the pending ones (``pending.slot``, to be counted
-        by ``pending.add_chunk``): their size, and the content starts and lengths of its
-        Message records (its Schema and Channel records are registered); None if the
-        chunk is unusable."""
+        by ``pending.add_chunk``): their size, the content starts and lengths of its
+        Message records (its Schema and Channel records are registered), and their
+        message heads when the read-ahead thread read them; None if the chunk is
+        unusable."""
         self._chunk_clean = False
-        raw = self._chunk_records(content, chunk_offset, future, pending.slot)
+        raw, heads = self._chunk_records(content, chunk_offset, future, pending)
         if raw is None:
             return None
         size = len(raw)
@@ -430,13 +482,24 @@ class McapSource(RecordStream):
             pending.slot(size)[:] = raw
         if size <= _SMALL_CHUNK:
             assert isinstance(raw, bytes)
-            return (size, *self._small_chunk_part(raw, chunk_offset))
+            return (size, *self._small_chunk_part(raw, chunk_offset), None)
         buf = np.frombuffer(raw, dtype=np.uint8)
-        found = None if self._pattern is None else self._pattern.match(buf, self._phase)
+        pattern = self._pattern
+        found: tuple[np.ndarray, np.ndarray, int] | None
+        if heads is not None and pattern is not None and pattern.uniform >= 0:
+            # read ahead as whole records of one length: the pattern's if it is the same
+            n = heads[0][0].shape[0]
+            if n * (9 + pattern.uniform) == size:
+                found = pattern.uniform_run(n, self._phase)
+            else:
+                found, heads = pattern.match(buf, self._phase), None
+        else:
+            found = None if pattern is None else pattern.match(buf, self._phase)
+            heads = None
         if found is not None:  # whole Message records only: the chunk is clean
             content_starts, lengths, self._phase = found
             self._chunk_clean = True
-            return size, content_starts, lengths
+            return size, content_starts, lengths, heads
         starts, opcodes, lengths, end = scan_records(buf, _IN_CHUNK)
         pattern = RecordPattern.learn(opcodes, lengths, buf.shape[0]) if end == size else None
         if pattern is not None:
@@ -459,7 +522,7 @@ class McapSource(RecordStream):
                 self._add_record(int(opcodes[index]), body, chunk_offset)
             starts = starts[is_message]
             lengths = lengths[is_message]
-        return size, starts + 9, lengths
+        return size, starts + 9, lengths, None
 
     def _small_chunk_part(self, raw: bytes, chunk_offset: int) -> tuple[list[int], list[int]]:
         """:meth:`_chunk_part` for a chunk of a few records: walked in Python, no numpy."""
@@ -487,6 +550,15 @@ class McapSource(RecordStream):
 
 #: (chunk copied verbatim or None, message count, byte offset of its records in the batch)
 ChunkRun = tuple[RawChunk | None, int, int]
+
+
+def _default_read_ahead() -> bool:
+    """The default of ``read_ahead``: off, unless the environment variable
+    ``IMUFDI_READ_AHEAD`` is ``1`` (then every source reads ahead; e.g. for long logs on a
+    machine with a free core). Off by default because the two threads share the GIL: on
+    the 2-core build machine the read-ahead reader took about as much wall time as the
+    in-line one (docs/performance.md, "Reader, fifth pass")."""
+    return os.environ.get("IMUFDI_READ_AHEAD", "").strip() == "1"
 
 
 def _raw_chunk(content: bytes) -> RawChunk:

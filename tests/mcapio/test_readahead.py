@@ -85,3 +85,106 @@ def test_read_ahead_survives_a_fork(monkeypatch) -> None:
         _, status = os.waitpid(pid, 0)
         assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
         assert first + sum(len(b) for b in batches) == n
+
+
+def _whole_read(data: bytes, read_ahead: bool, strict: bool = False) -> tuple[list, list, str]:
+    """Every raw batch's arrays and every aligned block of an ImuArrayReader, the
+    warnings and the error text ("" if none)."""
+    import numpy as np
+
+    from imufdi_cli.mcapio import ImuArrayReader
+
+    out: list = []
+    source = McapSource(io.BytesIO(data), read_ahead=read_ahead, strict=strict)
+    try:
+        with ImuArrayReader(source) as reader:
+            for batch, block in reader.stream():
+                out.append(
+                    [
+                        np.array(getattr(batch, name))
+                        for name in ("channel_id", "sequence", "log_time", "publish_time")
+                    ]
+                    + [batch.offset, batch.length, np.array(batch.data)]
+                    + [block.t_ns, block.gyro, block.accel]
+                )
+            out.append(repr(reader.stats))
+    except McapInputError as err:
+        return out, list(source.warnings), str(err)
+    return out, list(source.warnings), ""
+
+
+def _same(a: tuple[list, list, str], b: tuple[list, list, str]) -> None:
+    import numpy as np
+
+    assert len(a[0]) == len(b[0])
+    for left, right in zip(a[0], b[0]):
+        if isinstance(left, str):
+            assert left == right
+            continue
+        for x, y in zip(left, right):
+            assert x.dtype == y.dtype and x.shape == y.shape
+            np.testing.assert_array_equal(x, y)
+    assert a[1:] == b[1:]
+
+
+@pytest.mark.parametrize("damage", ["none", "crc", "cut"])
+def test_read_ahead_reads_heads_and_fields_on_the_worker(damage: str, monkeypatch) -> None:
+    """With read-ahead, chunks of uniform Imu records are decompressed into the batch
+    buffers (no copy) and the worker checks their record heads and reads the message
+    heads and the Imu fields the reader asked for (in line, the same is read right after
+    each chunk's decompression): the batches, blocks, statistics and warnings are those
+    of reading in line and of reading every field per batch, also with a bad chunk (the
+    chunks after it are copied, not used in place) and a cut one."""
+    import imufdi_cli.mcapio.readahead as readahead_module
+    import imufdi_cli.mcapio.scan as scan_module
+
+    for module in (scan_module, readahead_module):  # 1 MiB batches: 5 of them here
+        monkeypatch.setattr(module, "_BATCH_BYTES", 1 << 20)
+        monkeypatch.setattr(module, "_BATCH_CAPACITY", 3 << 20)
+    data = imu_file(chunked=True, compression="zstd", n_imus=4, n_samples=4000, chunk_size=150_000)
+    chunks = [(offset, length) for offset, opcode, length in top_records(data) if opcode == 0x06]
+    if damage == "crc":
+        bad = bytearray(data)
+        bad[chunks[6][0] + 9 + 24] ^= 0x01  # the CRC field of the seventh chunk
+        data = bytes(bad)
+    elif damage == "cut":
+        data = data[: chunks[20][0] + 9 + chunks[20][1] // 2]
+    import imufdi_cli.mcapio.source as source_module
+
+    for strict in (False, True):
+        inline = _whole_read(data, False, strict)
+        _same(_whole_read(data, True, strict), inline)
+        with monkeypatch.context() as patch:  # in line, every field read per batch
+            patch.setattr(source_module, "chunk_digest", lambda *args: None)
+            _same(_whole_read(data, False, strict), inline)
+    if damage == "none":
+        from imufdi_cli.mcapio import ImuArrayReader
+
+        for ahead in (True, False):
+            source = McapSource(io.BytesIO(data), read_ahead=ahead)
+            with ImuArrayReader(source) as reader:
+                used = [hasattr(batch, "payload_fields") for batch, _ in reader.stream()]
+            assert source.payload_fields is not None and any(used)
+
+
+def test_read_ahead_default(monkeypatch, tmp_path) -> None:
+    """Off by default; IMUFDI_READ_AHEAD=1 turns it on for every source (also a stream of
+    unknown size), anything else leaves it off; an explicit argument wins."""
+    path = tmp_path / "imu.mcap"
+    data = imu_file(chunked=True, n_imus=2, n_samples=200, chunk_size=4096)
+    path.write_bytes(data)
+    monkeypatch.delenv("IMUFDI_READ_AHEAD", raising=False)
+    with McapSource(path) as source:
+        assert not source.read_ahead
+    monkeypatch.setenv("IMUFDI_READ_AHEAD", "1")
+    with McapSource(path) as source:
+        assert source.read_ahead
+    with McapSource(Unseekable(data)) as source:
+        assert source.read_ahead
+    with McapSource(path, read_ahead=False) as source:
+        assert not source.read_ahead
+    monkeypatch.setenv("IMUFDI_READ_AHEAD", "0")
+    with McapSource(path) as source:
+        assert not source.read_ahead
+    with McapSource(path, read_ahead=True) as source:
+        assert source.read_ahead

@@ -60,6 +60,41 @@ def test_match_refuses_what_does_not_follow_the_pattern() -> None:
     assert pattern.match(np.zeros(0, np.uint8), 0) is None
 
 
+@pytest.mark.parametrize("phase", [0, 5, 15])
+@pytest.mark.parametrize("count", [1, 16, 37])
+def test_uniform_match_equals_scan_records(phase: int, count: int) -> None:
+    """A period of 16 records of one length (an IMU array's Imu messages) is checked
+    through two strided views; starts, lengths and phase are scan_records' answer."""
+    pattern = RecordPattern([40] * 16)
+    assert pattern.uniform == 40
+    buf = np.frombuffer(records([40] * count), np.uint8)
+    found = pattern.match(buf, phase)
+    assert found is not None
+    want = scan_records(buf)
+    np.testing.assert_array_equal(found[0], want[0] + 9)
+    np.testing.assert_array_equal(found[1], want[2])
+    assert found[0].dtype == np.int64 and found[1].dtype == np.int64
+    assert found[2] == (phase + count) % 16
+
+
+@pytest.mark.parametrize(
+    "where",
+    [0, 1, 7, 8],  # the opcode, the length's low byte, its 7th and its high byte
+)
+def test_uniform_match_checks_every_head_byte(where: int) -> None:
+    pattern = RecordPattern([40] * 4)
+    good = records([40] * 30)
+    assert pattern.match(np.frombuffer(good, np.uint8), 0) is not None
+    for record in (0, 13, 29):
+        bad = bytearray(good)
+        bad[49 * record + where] ^= 0x01
+        assert pattern.match(np.frombuffer(bytes(bad), np.uint8), 0) is None
+    assert pattern.match(np.frombuffer(good[:-1], np.uint8), 0) is None
+    assert pattern.match(np.frombuffer(good + b"\x05", np.uint8), 0) is None
+    other = np.frombuffer(records([41] * 30), np.uint8)  # another length
+    assert pattern.match(other, 0) is None
+
+
 def test_learn() -> None:
     lengths = np.array([30, 31, 32] * 5 + [30], np.int64)
     size = int(lengths.sum()) + 9 * lengths.shape[0]
