@@ -40,7 +40,7 @@ The sizes and intervals of the linear models are :func:`_linear_fit`'s (in
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -247,6 +247,40 @@ def _fault_end(
     return end
 
 
+@dataclass(frozen=True)
+class _Window:
+    """An analysis window and its sums at each candidate onset ``tau`` (``taus``, shape
+    (T,)): what every fault model's profile likelihood is built from.
+
+    ``r``, ``o``, ``t``: the residual, the consensus prediction and the times, shape (L,);
+    ``healthy_before`` the sum of ``r**2`` before each tau and ``nll_before`` its Gaussian
+    -log L at ``var0``; ``s_r``, ``s_rr``, ``s_oo``, ``s_or`` the sums of r, r², o², o r
+    from each tau on; ``n_after`` the samples from each tau on (float)."""
+
+    r: np.ndarray
+    o: np.ndarray
+    t: np.ndarray
+    lo: int
+    taus: np.ndarray
+    n_after: np.ndarray
+    ln_n: float
+    sigma_k: float
+    consensus_sigma: float
+    var0: float
+    healthy_before: np.ndarray
+    nll_before: np.ndarray
+    s_r: np.ndarray
+    s_rr: np.ndarray
+    s_oo: np.ndarray
+    s_or: np.ndarray
+
+    def motion_variance(self, coefficient: Any) -> Any:
+        """The variance of ``r - coefficient * o``: o = x + e_c carries the consensus
+        error, so with r = beta x + e_k - e_c, r - beta o = e_k - (1 + beta) e_c has
+        variance sigma_k^2 + (1 + beta)^2 sigma_c^2 (var0 at beta = 0)."""
+        return self.sigma_k**2 + (1 + coefficient) ** 2 * self.consensus_sigma**2
+
+
 def _fit_window(
     r: np.ndarray,
     o: np.ndarray,
@@ -269,11 +303,9 @@ def _fit_window(
     if length < 4 or hi <= lo:
         return []
     var0 = sigma_k**2 + consensus_sigma**2
-    sigma_r = math.sqrt(var0)
     taus = np.arange(lo, hi)
     n_after = (length - taus).astype(np.float64)
-    n_total = float(length)
-    ln_n = math.log(n_total)
+    ln_n = math.log(float(length))
 
     # prefix: healthy samples before tau; suffix sums after tau
     sq = r**2
@@ -281,14 +313,25 @@ def _fit_window(
     nll_before = _gaussian_nll(healthy_before, taus.astype(np.float64), var0)
     s_r, s_rr = _suffix(r)[taus], _suffix(sq)[taus]
     s_t, s_tt, s_tr = _suffix(t)[taus], _suffix(t * t)[taus], _suffix(t * r)[taus]
-    s_oo, s_or = _suffix(o * o)[taus], _suffix(o * r)[taus]
+    w = _Window(
+        r=r,
+        o=o,
+        t=t,
+        lo=lo,
+        taus=taus,
+        n_after=n_after,
+        ln_n=ln_n,
+        sigma_k=sigma_k,
+        consensus_sigma=consensus_sigma,
+        var0=var0,
+        healthy_before=healthy_before,
+        nll_before=nll_before,
+        s_r=s_r,
+        s_rr=s_rr,
+        s_oo=_suffix(o * o)[taus],
+        s_or=_suffix(o * r)[taus],
+    )
     fits: list[FaultFit] = []
-
-    def best(nll_after: np.ndarray, k_params: int) -> tuple[int, float]:
-        total = nll_before + nll_after
-        j = int(np.argmin(total))
-        return j, float(2 * total[j] + (k_params + 1) * ln_n)  # +1: the onset
-
     linear: dict[str, Any] = {
         "var0": var0,
         "offset_var": offset_var or 0.0,
@@ -299,7 +342,9 @@ def _fit_window(
 
     # step: r = a + e
     a = s_r / n_after
-    j, bic = best(_gaussian_nll(s_rr - n_after * a**2, n_after, var0), 1)
+    total = nll_before + _gaussian_nll(s_rr - n_after * a**2, n_after, var0)
+    j = int(np.argmin(total))
+    bic = float(2 * total[j] + 2 * ln_n)  # a, the onset
     onset = lo + j
     fits.append(_linear_fit("step", r[onset:], np.ones((length - onset, 1)), onset, bic, **linear))
 
@@ -314,8 +359,37 @@ def _fit_window(
         X = np.stack([u, np.ones_like(u)], axis=1) if lam is None else (u + lam)[:, None]
         fits.append(_linear_fit("drift", r[onset:], X, onset, bic, **linear))
 
-    # noise: r = gamma o + e over the whole window, e ~ N(0, var_gamma) before the onset and
-    # N(0, v) after it, v >= var_gamma fitted (v = f^2 sigma_k^2 + sigma_c^2 at gamma = 0).
+    fits.append(_noise_model(w, a, white, confidence, calibration_samples))
+    scale = _scale_model(w, linear)
+    if scale is not None:
+        fits.append(scale)
+
+    # none: the residual is the sensor's calibrated noise over the whole window (a false
+    # alarm of chance: no fault model earns its extra parameters)
+    nll_healthy = float(_gaussian_nll(np.sum(sq), float(length), var0))
+    fits.append(FaultFit("none", math.nan, math.nan, math.nan, -1, 2 * nll_healthy))
+
+    spikes = _spikes_model(w, confidence)
+    if spikes is not None:
+        fits.append(spikes)
+    fits.sort(key=lambda f: (f.bic, MODELS.index(f.model)))
+
+    stuck = _stuck_fit(raw, lo, hi, stuck_share)
+    if stuck is not None:
+        fits.insert(0, stuck)
+    return fits
+
+
+def _noise_model(
+    w: _Window,
+    a: np.ndarray,
+    white: WhiteNoise | None,
+    confidence: float,
+    calibration_samples: int | None,
+) -> FaultFit:
+    """The noise model: r = gamma o + e over the whole window, e ~ N(0, var_gamma) before
+    the onset and N(0, v) after it, v >= var_gamma fitted (v = f^2 sigma_k^2 + sigma_c^2 at
+    gamma = 0). ``a``: the step model's mean after each onset, shape (T,)."""
     # gamma o is a nuisance: the motion-dependent error a healthy sensor carries under motion
     # (its calibrated scale and misalignment residue, projected on o), before the fault as
     # after it; without it the noise model charged that error to its variance, and the
@@ -323,9 +397,10 @@ def _fit_window(
     # gamma is the least-squares coefficient over the window (the noise is independent of
     # o, so it is unbiased; the profile likelihood with it is a lower bound of the maximum).
     # No free mean: a noise fault has none, and a free mean would nest the step model.
+    r, o, taus, n_after = w.r, w.o, w.taus, w.n_after
     s_oo_all = float(np.dot(o, o))
     gamma = float(np.dot(o, r)) / s_oo_all if s_oo_all > 0 else 0.0
-    var_gamma = sigma_k**2 + (1 + gamma) ** 2 * consensus_sigma**2
+    var_gamma = w.motion_variance(gamma)
     sq_g = (r - gamma * o) ** 2
     before_g = np.concatenate(([0.0], np.cumsum(sq_g)))[taus]
     after_g = _suffix(sq_g)[taus]
@@ -333,99 +408,88 @@ def _fit_window(
     nll_before_g = _gaussian_nll(before_g, taus.astype(np.float64), var_gamma)
     total_g = nll_before_g + _gaussian_nll(after_g, n_after, var_hat)
     j = int(np.argmin(total_g))
-    bic = float(2 * total_g[j] + 3 * ln_n)  # gamma, v, onset
+    bic = float(2 * total_g[j] + 3 * w.ln_n)  # gamma, v, onset
     # the factor is sized from the successive differences (white path: gamma o varies
     # slowly and drops out of them) or from the spread about the mean: a fault on a sensor
     # of the consensus (another detector's, or one too small to alarm) shifts r, and that
     # shift is not noise
     if white is None:
-        fits.append(
-            _noise_fit(
-                float(max(s_rr[j] - n_after[j] * a[j] ** 2, 0.0)),
-                int(n_after[j]),
-                float(a[j]),
-                sigma_k,
-                consensus_sigma,
-                confidence,
-                lo + j,
-                bic,
-                calibration_samples,
-                ranking_var=float(var_hat[j]),
-            )
+        return _noise_fit(
+            float(max(w.s_rr[j] - n_after[j] * a[j] ** 2, 0.0)),
+            int(n_after[j]),
+            float(a[j]),
+            w.sigma_k,
+            w.consensus_sigma,
+            confidence,
+            w.lo + j,
+            bic,
+            calibration_samples,
+            ranking_var=float(var_hat[j]),
         )
-    else:
-        fits.append(
-            _white_noise_fit(
-                r[lo + j :], float(a[j]), white, confidence, lo + j, bic, var0, float(var_hat[j])
-            )
-        )
+    return _white_noise_fit(
+        r[w.lo + j :], float(a[j]), white, confidence, w.lo + j, bic, w.var0, float(var_hat[j])
+    )
 
-    # scale: r = beta o + e from the onset on. The onset is where the residual turns from
-    # the calibrated noise to beta o + e (profile likelihood, as for step and drift); the
-    # class is decided with the likelihood of r = beta_0 o + e before that onset and beta o
-    # + e after it: beta_0 o is the same nuisance as the noise model's gamma o (the healthy
-    # motion error), so neither model is charged for what the other explains, and both
-    # have three parameters (beta_0, beta and the onset; gamma, v and the onset). (With
-    # the onset fitted on the two-coefficient likelihood too, a coefficient change at a
-    # fault's end would pass for an onset.) Each part's noise: o = x + e_c carries the
-    # consensus error, so with r = beta x + e_k - e_c, r - beta o = e_k - (1 + beta) e_c
-    # has variance sigma_k^2 + (1 + beta)^2 sigma_c^2 (var0 at beta = 0).
+
+def _scale_model(w: _Window, linear: dict[str, Any]) -> FaultFit | None:
+    """The scale model: r = beta o + e from the onset on (None when o is zero there)."""
+    # The onset is where the residual turns from the calibrated noise to beta o + e
+    # (profile likelihood, as for step and drift); the class is decided with the
+    # likelihood of r = beta_0 o + e before that onset and beta o + e after it: beta_0 o is
+    # the same nuisance as the noise model's gamma o (the healthy motion error), so neither
+    # model is charged for what the other explains, and both have three parameters
+    # (beta_0, beta and the onset; gamma, v and the onset). (With the onset fitted on the
+    # two-coefficient likelihood too, a coefficient change at a fault's end would pass for
+    # an onset.) Each part's noise: :meth:`_Window.motion_variance`.
+    r, o, s_oo, s_or = w.r, w.o, w.s_oo, w.s_or
     with np.errstate(divide="ignore", invalid="ignore"):
         beta = np.where(s_oo > 0, s_or / s_oo, 0.0)
-    sse_1 = np.maximum(s_rr - beta * s_or, 0.0)
-    nll_1 = _gaussian_nll(sse_1, n_after, sigma_k**2 + (1 + beta) ** 2 * consensus_sigma**2)
-    j = int(np.argmin(nll_before + nll_1))
-    tau = int(taus[j])
+    sse_1 = np.maximum(w.s_rr - beta * s_or, 0.0)
+    nll_1 = _gaussian_nll(sse_1, w.n_after, w.motion_variance(beta))
+    j = int(np.argmin(w.nll_before + nll_1))
+    tau = int(w.taus[j])
     p_oo, p_or = float(np.dot(o[:tau], o[:tau])), float(np.dot(o[:tau], r[:tau]))
     beta_0 = p_or / p_oo if p_oo > 0 else 0.0
     nll_0 = _gaussian_nll(
-        max(float(healthy_before[j]) - beta_0 * p_or, 0.0),
+        max(float(w.healthy_before[j]) - beta_0 * p_or, 0.0),
         float(tau),
-        sigma_k**2 + (1 + beta_0) ** 2 * consensus_sigma**2,
+        w.motion_variance(beta_0),
     )
     # beta_0, beta, onset; beta_0 only when there are samples before the onset (a window
     # that starts inside the fault has r = beta o + e throughout: then a noise model whose
     # nuisance gamma o takes up beta o and whose variance stays at its bound ties with it,
     # with no evidence of noise growth at all)
-    bic = float(2 * (nll_0 + nll_1[j]) + (2 + (tau > 0)) * ln_n)
-    onset = lo + j
-    if s_oo[j] > 0:
-        fits.append(
-            _linear_fit("scale", r[onset:], o[onset:, None], onset, bic, shift=1.0, **linear)
-        )
+    bic = float(2 * (nll_0 + nll_1[j]) + (2 + (tau > 0)) * w.ln_n)
+    onset = w.lo + j
+    if not s_oo[j] > 0:
+        return None
+    return _linear_fit("scale", r[onset:], o[onset:, None], onset, bic, shift=1.0, **linear)
 
-    # none: the residual is the sensor's calibrated noise over the whole window (a false
-    # alarm of chance: no fault model earns its extra parameters)
-    nll_healthy = float(_gaussian_nll(np.sum(sq), n_total, var0))
-    fits.append(FaultFit("none", math.nan, math.nan, math.nan, -1, 2 * nll_healthy))
 
-    # spikes on r - gamma_s o: the noise model's nuisance (one more parameter), so that a
-    # slow motion error the nuisance explains is not charged to the spike model's quiet
-    # variance while the noise model is let off it. gamma_s is fitted on the samples that
-    # are not spikes (the spike model's own quiet samples): with the spikes in, their sign
-    # imbalance D moves it, and the amplitudes by about -A D^2 / (N m) (m spikes of N).
-    # The amplitude and its interval are still taken from r at the flagged samples (as
-    # before the nuisance: calibrated on the diagnostic seeds; on r - gamma_s o conical6's
-    # intervals covered 92-96 %)
+def _spikes_model(w: _Window, confidence: float) -> FaultFit | None:
+    """The spikes model on r - gamma_s o (None when no spikes are found)."""
+    # gamma_s o: the noise model's nuisance (one more parameter), so that a slow motion
+    # error the nuisance explains is not charged to the spike model's quiet variance while
+    # the noise model is let off it. gamma_s is fitted on the samples that are not spikes
+    # (the spike model's own quiet samples): with the spikes in, their sign imbalance D
+    # moves it, and the amplitudes by about -A D^2 / (N m) (m spikes of N). The amplitude
+    # and its interval are still taken from r at the flagged samples (as before the
+    # nuisance: calibrated on the diagnostic seeds; on r - gamma_s o conical6's intervals
+    # covered 92-96 %)
+    r, o = w.r, w.o
+    sigma_r = math.sqrt(w.var0)
     quiet = np.abs(r - _local_level(r)) <= SPIKE_CUT * sigma_r
     o_q = o[quiet]
     s_oo_q = float(np.dot(o_q, o_q))
     gamma_s = float(np.dot(o_q, r[quiet])) / s_oo_q if s_oo_q > 0 else 0.0
     r_s = r - gamma_s * o
     nll_before_s = _gaussian_nll(
-        np.concatenate(([0.0], np.cumsum(r_s**2)))[taus],
-        taus.astype(np.float64),
-        sigma_k**2 + (1 + gamma_s) ** 2 * consensus_sigma**2,
+        np.concatenate(([0.0], np.cumsum(r_s**2)))[w.taus],
+        w.taus.astype(np.float64),
+        w.motion_variance(gamma_s),
     )
-    spikes = _spike_fit(r_s, t, sigma_r, taus, nll_before_s, ln_n, confidence, sized=r)
-    if spikes is not None:
-        fits.append(replace(spikes, bic=spikes.bic + ln_n))
-    fits.sort(key=lambda f: (f.bic, MODELS.index(f.model)))
-
-    stuck = _stuck_fit(raw, lo, hi, stuck_share)
-    if stuck is not None:
-        fits.insert(0, stuck)
-    return fits
+    spikes = _spike_fit(r_s, w.t, sigma_r, w.taus, nll_before_s, w.ln_n, confidence, sized=r)
+    return None if spikes is None else replace(spikes, bic=spikes.bic + w.ln_n)
 
 
 def _drift_search(
