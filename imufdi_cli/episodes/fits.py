@@ -54,7 +54,7 @@ from imufdi_cli.episodes.model_fits import (
     _stuck_fit,
     _white_noise_fit,
 )
-from imufdi_cli.episodes.numerics import _gaussian_nll, _median, _suffix
+from imufdi_cli.episodes.numerics import _gaussian_nll, _median, _prefix, _suffix
 from imufdi_cli.episodes.reference import Reference, _linear_fit
 
 
@@ -309,7 +309,7 @@ def _fit_window(
 
     # prefix: healthy samples before tau; suffix sums after tau
     sq = r**2
-    healthy_before = np.concatenate(([0.0], np.cumsum(sq)))[taus]
+    healthy_before = _prefix(sq)[taus]
     nll_before = _gaussian_nll(healthy_before, taus.astype(np.float64), var0)
     s_r, s_rr = _suffix(r)[taus], _suffix(sq)[taus]
     s_t, s_tt, s_tr = _suffix(t)[taus], _suffix(t * t)[taus], _suffix(t * r)[taus]
@@ -402,7 +402,7 @@ def _noise_model(
     gamma = float(np.dot(o, r)) / s_oo_all if s_oo_all > 0 else 0.0
     var_gamma = w.motion_variance(gamma)
     sq_g = (r - gamma * o) ** 2
-    before_g = np.concatenate(([0.0], np.cumsum(sq_g)))[taus]
+    before_g = _prefix(sq_g)[taus]
     after_g = _suffix(sq_g)[taus]
     var_hat = np.maximum(after_g / n_after, var_gamma)
     nll_before_g = _gaussian_nll(before_g, taus.astype(np.float64), var_gamma)
@@ -484,7 +484,7 @@ def _spikes_model(w: _Window, confidence: float) -> FaultFit | None:
     gamma_s = float(np.dot(o_q, r[quiet])) / s_oo_q if s_oo_q > 0 else 0.0
     r_s = r - gamma_s * o
     nll_before_s = _gaussian_nll(
-        np.concatenate(([0.0], np.cumsum(r_s**2)))[w.taus],
+        _prefix(r_s**2)[w.taus],
         w.taus.astype(np.float64),
         w.motion_variance(gamma_s),
     )

@@ -65,6 +65,11 @@ def _gaussian_nll(ss: Any, n: Any, var: Any) -> Any:
     return 0.5 * (ss / var + n * np.log(2 * math.pi * var))
 
 
+def _prefix(values: np.ndarray) -> np.ndarray:
+    """P[j] = sum(values[:j]), shape (L + 1,)."""
+    return np.concatenate(([0.0], np.cumsum(values)))
+
+
 def _suffix(values: np.ndarray) -> np.ndarray:
     """S[j] = sum(values[j:]), shape (L + 1,)."""
     out = np.zeros(values.shape[0] + 1)
