@@ -74,6 +74,16 @@ def test_spikes_on_a_slow_error_are_spikes_and_their_amplitude_covers() -> None:
     assert low <= covered / right <= high
 
 
+def _calibrated_white_sigma(rng: np.random.Generator, H: np.ndarray):
+    """A 200-sample white calibration of the array ``H``: the white sigmas (m,) and their
+    covariance (m, m), as the episode builder takes them (with the excess factor)."""
+    from imufdi_cli.episodes import white_sigma, white_sigma_covariance, white_sigma_excess
+
+    calibration = rng.normal(0, SIGMA, (200, H.shape[0]))
+    white = white_sigma(H, calibration)
+    return white, white_sigma_excess(H, calibration) * white_sigma_covariance(H, white, 200)
+
+
 @pytest.mark.slow  # 400 calibrations and fits on 36 channels, 3 s
 def test_noise_factor_interval_covers_with_the_calibrations_degrees_of_freedom() -> None:
     """Twelve co-aligned triads (wearable12's gyros), white noise, 200 calibration
@@ -84,9 +94,6 @@ def test_noise_factor_interval_covers_with_the_calibrations_degrees_of_freedom()
     from imufdi_cli.episodes import (
         _white_noise_fit,
         successive_difference_dof,
-        white_sigma,
-        white_sigma_covariance,
-        white_sigma_excess,
         white_sigma_spread,
     )
 
@@ -94,9 +101,7 @@ def test_noise_factor_interval_covers_with_the_calibrations_degrees_of_freedom()
     H = np.tile(np.eye(3), (12, 1))
     trials, covered = 400, 0
     for _ in range(trials):
-        calibration = rng.normal(0, SIGMA, (200, 36))
-        white = white_sigma(H, calibration)
-        cov = white_sigma_excess(H, calibration) * white_sigma_covariance(H, white, 200)
+        white, cov = _calibrated_white_sigma(rng, H)
         k = int(rng.integers(36))
         gain, _ = _consensus_gain(H, SIGMA, k)
         window = rng.normal(0, SIGMA, (400, 36))
@@ -133,9 +138,6 @@ def test_noise_factor_covers_through_the_onset_and_end_search(fault_samples: int
     detectors (docs/episodes.md)."""
     from imufdi_cli.episodes import (
         successive_difference_dof,
-        white_sigma,
-        white_sigma_covariance,
-        white_sigma_excess,
         white_sigma_spread,
     )
 
@@ -147,9 +149,7 @@ def test_noise_factor_covers_through_the_onset_and_end_search(fault_samples: int
     covered, z = 0, []
     q95 = 1.6448536269514722  # normal 95 % quantile: a 90 % two-sided interval
     for _ in range(trials):
-        calibration = rng.normal(0, SIGMA, (200, 36))
-        white = white_sigma(H, calibration)
-        cov = white_sigma_excess(H, calibration) * white_sigma_covariance(H, white, 200)
+        white, cov = _calibrated_white_sigma(rng, H)
         k = int(rng.integers(36))
         gain, consensus_sigma = _consensus_gain(H, SIGMA, k)
         window = rng.normal(0, SIGMA, (length, 36))
