@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import os
 import sys
+from collections.abc import Generator
 
 import pytest
 
@@ -58,12 +59,36 @@ def _first_use_group(item: pytest.Item) -> int:
     return 1
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+@pytest.hookimpl(wrapper=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> Generator[None, None, None]:
     """Hypothesis tests and figure-drawing tests first, each group otherwise in collection
     order (the same order in every xdist worker, as xdist requires). Work stealing gives
     the first worker the first half of the items and steals from the tail, so these run on
-    one worker and the other never pays their first-use costs (about 2.5 s of CPU)."""
+    one worker and the other never pays their first-use costs.
+
+    Hypothesis's constants scan is deferred to that worker. Hypothesis's pytest plugin
+    (6.155) scans the source of every imported ``imufdi_cli`` module for constants to try
+    in its own ``pytest_collection_modifyitems`` when a Hypothesis test was collected
+    (about 1.4 s of CPU in a fresh clone, HypothesisWorks/hypothesis#4627), so every
+    worker paid it. While the other implementations of this hook run (this one wraps
+    them), the scan returns the constants found so far without scanning; the first
+    Hypothesis test's provider calls the same function and scans every module imported by
+    then (the scan is incremental: modules imported later are scanned on later calls), so
+    the tests draw from the same constants, found once, in the worker that runs them."""
     items[:] = sorted(items, key=_first_use_group)  # sorted() is stable
+    try:
+        from hypothesis.internal.conjecture import providers
+    except ImportError:  # another Hypothesis layout: nothing deferred
+        providers = None
+    scan = getattr(providers, "_get_local_constants", None)
+    if scan is None:
+        yield
+        return
+    providers._get_local_constants = lambda: providers._local_constants  # type: ignore[union-attr]
+    try:
+        yield
+    finally:
+        providers._get_local_constants = scan  # type: ignore[union-attr]
 
 
 @pytest.hookimpl(trylast=True)
