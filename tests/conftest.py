@@ -81,7 +81,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> Generator[None, N
     except ImportError:  # another Hypothesis layout: nothing deferred
         providers = None
     scan = getattr(providers, "_get_local_constants", None)
-    if scan is None:
+    if scan is None or not hasattr(providers, "_local_constants"):
         yield
         return
     providers._get_local_constants = lambda: providers._local_constants  # type: ignore[union-attr]
