@@ -24,7 +24,7 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
-from imufdi_cli.mcapio.cdr import codec_for, decode_cdr_message, decode_json_payloads
+from imufdi_cli.mcapio.cdr import codec_for, decode_json_payloads
 from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch
 from imufdi_cli.mcapio.schemas import (
     FAULT_EVENT_SCHEMA,
@@ -313,10 +313,11 @@ def decode_events(batch: MessageBatch, channel: ChannelInfo) -> list[dict[str, A
         raise McapInputError(f"channel {channel.topic} is not an imufdi event channel")
     codec = codec_for(channel.schema.name, channel.schema.data)
     convert = _fault_event if channel.schema.name == FAULT_EVENT_SCHEMA_NAME else _fdi_event
+    decode = codec.decoder()
     out = []
     for i in range(len(batch)):
         try:
-            out.append(convert(decode_cdr_message(codec.defs, codec.root, batch.payload(i))))
+            out.append(convert(decode(batch.payload(i))))
         except (KeyError, TypeError, ValueError) as err:
             raise McapInputError(f"{channel.topic}: malformed {codec.root} message") from err
     return out

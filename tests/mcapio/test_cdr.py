@@ -104,6 +104,21 @@ def test_bulk_walker_matches_per_message_decoder(messages) -> None:
         assert general["pair"][1]["a"] == pair_a[i] == m[2][1][0]
         assert sizes["values"][i] == len(m[3])
         assert general["values"] == m[3]
+        assert codec.decoder()(payloads[i]) == general  # the cached, compiled decoder
+
+
+def test_message_decoder_refuses_truncated_messages_and_is_compiled_once() -> None:
+    """Every cut of a message is refused with the field that runs past the end (or the
+    encapsulation header), never decoded short; the codec compiles one decoder."""
+    codec = CdrCodec("pkg/msg/Outer", NESTED)
+    payload = _encode_nested("abc", True, [(1, 0.5), (-2, 1.5)], [0.25, 0.5], (3, 2.5), False)
+    decode = codec.decoder()
+    assert codec.decoder() is decode
+    whole = decode(payload)
+    assert whole["values"] == [0.25, 0.5] and whole["name"] == "abc"
+    for cut in range(len(payload)):
+        with pytest.raises(McapInputError, match="CDR"):
+            decode(payload[:cut])
 
 
 def test_schema_errors() -> None:
