@@ -170,12 +170,15 @@ def replay(
 def monitor_rows(
     events: list[tuple[str, int, tuple[Any, ...], dict[str, Any]]], packages: dict[str, Any]
 ) -> tuple[int, int]:
-    """The variance-drop monitor of each package's first builder (made from the first
-    builder's arguments) on every measurement block fed to that builder: (blocks, blocks
+    """The variance-drop monitor of each package (a builder made from the arguments of the
+    first builder detect fed) on every measurement block fed to that builder: (blocks, blocks
     whose status rows differ in any bit). Its rows become episodes only on an alarm, so
     the episodes alone do not show its statistic."""
-    init = next(e for e in events if e[0] == "__init__")
-    blocks = [e[2][0] for e in events if e[0] == "feed" and e[1] == init[1]]
+    fed = next((e[1] for e in events if e[0] == "feed"), None)
+    init = next((e for e in events if e[0] == "__init__" and e[1] == fed), None)
+    if init is None:
+        return 0, 0
+    blocks = [e[2][0] for e in events if e[0] == "feed" and e[1] == fed]
     monitors = {}
     for name, package in packages.items():
         kwargs = {**init[3], "variance_drop": True}
