@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+_gufuncs: Any
 try:  # numpy >= 2: numpy.linalg._umath_linalg; 1.x: numpy.linalg._umath_linalg too
     from numpy.linalg import _umath_linalg as _gufuncs
 except ImportError:  # pragma: no cover - numpy without the private module

@@ -111,7 +111,7 @@ class VarianceDropMonitor:
         joined[:held] = self._tail
         half_sq = joined[held:]
         if fresh:
-            if first:
+            if self._last is None:
                 np.subtract(r[1:], r[:-1], out=half_sq)
             else:
                 np.subtract(r[:1], self._last[None, :], out=half_sq[:1])
