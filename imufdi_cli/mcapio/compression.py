@@ -15,8 +15,10 @@ from imufdi_cli.errors import McapInputError
 #: (start-up time, docs/performance.md).
 _CRC32: Callable[..., int] | None = None
 _CRC32_NAME = ""
-#: Bytes checked by zlib's CRC-32 before zlib-ng is loaded (see crc32).
-_ZLIB_FIRST = 2 << 20
+#: Bytes checked by zlib's CRC-32 before zlib-ng is loaded (see crc32): loading zlib-ng
+#: (and the gzip module it imports) costs as much CPU as zlib's CRC-32 of 4.6-7.1 MiB
+#: (measured, docs/performance.md "Start-up"), so up to that much zlib is the cheaper one.
+_ZLIB_FIRST = 4 << 20
 _ZLIB_LEFT = _ZLIB_FIRST
 
 
@@ -44,7 +46,7 @@ def crc32(data: bytes | bytearray | memoryview, value: int = 0) -> int:
     """CRC-32 (ISO-HDLC, the MCAP checksum: ``zlib.crc32``'s value) of ``data``, continuing
     from ``value``. Computed by zlib-ng when installed (about 15 GB/s on the build machine
     against zlib's 2.5), else by zlib. The first ``_ZLIB_FIRST`` bytes of a process are
-    checked by zlib: loading zlib-ng costs about as much CPU as zlib's CRC of 2 MB, so a
+    checked by zlib: loading zlib-ng costs about as much CPU as zlib's CRC of 5 MiB, so a
     command reading a small log (``imufdi info``) does not load it."""
     global _ZLIB_LEFT
     if _CRC32 is None:

@@ -18,7 +18,7 @@ from imufdi_cli.mcapio.records import (
     MessageBatch,
     gather_bytes,
 )
-from imufdi_cli.mcapio.scan import PayloadFields
+from imufdi_cli.mcapio.scan import PayloadFields, fill_float_columns
 
 ARRAY_METADATA = "imufdi.array"
 IMU_TYPE_NAMES = ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")
@@ -528,10 +528,6 @@ class FixedLayoutDecoder:
         if ahead is not None:
             return t_ns, ahead[2]
         values = np.empty((n, 3 * len(self.vector_paths)))
-        for k, path in enumerate(self.vector_paths):
-            rel = self.rel[path]
-            for axis in range(3):
-                # copied out first: numpy copies unaligned strided values to a strided
-                # column several times slower than to a contiguous array
-                values[:, 3 * k + axis] = fields.view(rel + 8 * axis, "<f8").copy()
+        offsets = [self.rel[path] + 8 * axis for path in self.vector_paths for axis in range(3)]
+        fill_float_columns(values, fields.view, offsets)
         return t_ns, values

@@ -4,7 +4,10 @@ Chunk record's unpacking (fields, limit, CRC) with the reader's warnings about i
 from __future__ import annotations
 
 import io
+import subprocess
+import sys
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -40,6 +43,26 @@ def test_crc32_switches_from_zlib_to_zlib_ng_with_the_same_values(monkeypatch) -
     assert compression.crc32(data[600:], first) == zlib.crc32(data)  # loads the fast one
     assert compression._CRC32 is not None
     assert compression.crc32(data[:10]) == zlib.crc32(data[:10])
+
+
+def test_reading_the_small_sample_log_does_not_load_zlib_ng() -> None:
+    """``imufdi info`` on the sample log CRC-checks 2.7 MiB (its chunks carry no zstd
+    content checksum): less than loading zlib-ng costs in zlib's CRC-32, so zlib does it
+    (start-up time; the 2 MiB of the code before loaded zlib-ng here)."""
+    root = Path(__file__).resolve().parents[2]
+    probe = (
+        "import sys\n"
+        "from imufdi_cli.mcapio.summary import log_info\n"
+        f"log_info({str(root / 'sample_logs' / 'paper-table4.mcap')!r})\n"
+        "from imufdi_cli.mcapio import compression\n"
+        "print(compression._ZLIB_LEFT, 'zlib_ng' in sys.modules)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=root, check=True
+    )
+    left, loaded = done.stdout.split()
+    assert int(left) < compression._ZLIB_FIRST  # it did check CRCs through zlib
+    assert loaded == "False"
 
 
 def _into(raw: bytes, compression: str, size: int) -> bytes:

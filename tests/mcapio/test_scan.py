@@ -8,7 +8,12 @@ import struct
 import numpy as np
 import pytest
 
-from imufdi_cli.mcapio.scan import RecordPattern, message_batch, scan_records
+from imufdi_cli.mcapio.scan import (
+    RecordPattern,
+    fill_float_columns,
+    message_batch,
+    scan_records,
+)
 
 
 def records(lengths: list[int], opcode: int = 0x05) -> bytes:
@@ -140,3 +145,67 @@ def test_message_batch_reads_every_header(lengths: list[int]) -> None:
     assert (batch.length == np.array(lengths) - 22).all()
     for i in range(len(lengths)):
         assert batch.payload(i) == bytes(range(lengths[i] - 22))
+
+
+def _float_bits() -> np.ndarray:
+    """float64 bit patterns a byte copy must keep and a float copy might not: signalling
+    and quiet NaNs with payloads, both zeros, infinities, subnormals, extremes."""
+    special = np.array(
+        [
+            0x7FF0000000000001,  # signalling NaN
+            0x7FF8000000000ABC,  # quiet NaN, payload
+            0xFFF4000000000000,  # negative signalling NaN
+            0x8000000000000000,  # -0.0
+            0x0000000000000000,
+            0x7FF0000000000000,  # +inf
+            0xFFF0000000000000,  # -inf
+            0x0000000000000001,  # smallest subnormal
+            0x800FFFFFFFFFFFFF,  # largest negative subnormal
+            0x7FEFFFFFFFFFFFFF,  # largest finite
+        ],
+        np.uint64,
+    )
+    rng = np.random.default_rng(2)
+    return np.concatenate([special, rng.integers(0, 2**63, 60, dtype=np.uint64)])
+
+
+@pytest.mark.parametrize(
+    "offsets",
+    [
+        (3, 11, 19, 40, 48, 56),  # gyro and accel: two 24-byte copies (unaligned)
+        (8, 16, 24),  # one vector (a magnetometer)
+        (3, 11, 20, 40, 48, 56),  # first vector not consecutive: per column, then a triple
+        (40, 48, 56, 3, 11, 19),  # vectors in the other order
+        (3, 11),  # not a whole vector
+    ],
+)
+@pytest.mark.parametrize("regular", [True, False])
+def test_fill_float_columns_copies_the_bytes(offsets: tuple[int, ...], regular: bool) -> None:
+    """The vector copies give exactly the bytes of one strided float64 copy per column,
+    for strided views and for gathers at uneven payload starts."""
+    bits = _float_bits()
+    n, size = 10, 72
+    step = 75
+    starts = np.arange(n) * step + (0 if regular else np.arange(n) % 3)
+    buf = np.zeros(int(starts[-1]) + size + 8, np.uint8)
+    for i, start in enumerate(starts.tolist()):
+        for k, offset in enumerate(offsets):
+            at = start + offset
+            buf[at : at + 8] = np.frombuffer(
+                bits[(i * len(offsets) + k) % bits.shape[0]].tobytes(), np.uint8
+            )
+
+    def column(offset: int, dtype: str) -> np.ndarray:
+        if regular:  # a strided view
+            return np.ndarray((n,), dtype, buf, offset, (step,))
+        item = np.dtype(dtype).itemsize  # a gather
+        windows = np.ndarray((buf.shape[0] - item + 1,), dtype, buf, 0, (1,))
+        return windows[starts + offset]
+
+    got = np.empty((n, len(offsets)))
+    fill_float_columns(got, column, offsets)
+    expected = np.empty((n, len(offsets)), np.uint64)
+    for i, start in enumerate(starts.tolist()):
+        for k, offset in enumerate(offsets):
+            expected[i, k] = buf[start + offset : start + offset + 8].view("<u8")[0]
+    assert got.view(np.uint64).tolist() == expected.tolist()
