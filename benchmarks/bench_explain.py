@@ -53,6 +53,7 @@ import numpy as np
 
 import imufdi_cli.episodes.builder as builder_module
 import imufdi_cli.episodes.fits as fits_module
+import imufdi_cli.episodes.lapack as lapack_module
 import imufdi_cli.episodes.reference as reference_module
 from imufdi_cli.detect import detect_file
 from imufdi_cli.pipeline import simulate_file
@@ -166,6 +167,37 @@ def replay(
     return spent, episodes, differ
 
 
+def monitor_rows(
+    events: list[tuple[str, int, tuple[Any, ...], dict[str, Any]]], packages: dict[str, Any]
+) -> tuple[int, int]:
+    """The variance-drop monitor of each package (a builder made from the arguments of the
+    first builder detect fed) on every measurement block fed to that builder: (blocks, blocks
+    whose status rows differ in any bit). Its rows become episodes only on an alarm, so
+    the episodes alone do not show its statistic."""
+    fed = next((e[1] for e in events if e[0] == "feed"), None)
+    init = next((e for e in events if e[0] == "__init__" and e[1] == fed), None)
+    if init is None:
+        return 0, 0
+    blocks = [e[2][0] for e in events if e[0] == "feed" and e[1] == fed]
+    monitors = {}
+    for name, package in packages.items():
+        kwargs = {**init[3], "variance_drop": True}
+        drop = package.EpisodeBuilder(*init[2], **kwargs)._drop
+        if drop is None:
+            return 0, 0
+        monitors[name] = drop[0]
+    differ = 0
+    for block in blocks:
+        rows = [monitors[name].update(block.copy()) for name in packages]
+        fields = ("alarm", "isolated", "statistic", "threshold")
+        differ += any(
+            getattr(rows[0], f).tobytes() != getattr(other, f).tobytes()
+            for other in rows[1:]
+            for f in fields
+        )
+    return len(blocks), differ
+
+
 def stacked_identity(designs: list[np.ndarray]) -> tuple[int, int]:
     """(groups, matrices) of the captured motion designs stacked by shape whose stacked
     SVD equals the one-by-one SVD to the bit; raises if one differs."""
@@ -227,20 +259,20 @@ def main() -> int:
         timers.wrap(builder_module, "fit_models", "fit_models")
         timers.wrap(fits_module, "_linear_fit", "linear")
         timers.wrap(reference_module, "_motion_fit", "motion")
-        svd = np.linalg.svd
+        svd = lapack_module.svd_reduced  # the motion fit's SVD (numpy's gufunc, direct)
 
-        def capture(a: Any, *rest: Any, **kwargs: Any) -> Any:
-            if len(timers.designs) < 4000 and kwargs.get("full_matrices") is False:
+        def capture(a: Any) -> Any:
+            if len(timers.designs) < 4000:
                 timers.designs.append(np.array(a))
-            return svd(a, *rest, **kwargs)
+            return svd(a)
 
-        np.linalg.svd = capture  # type: ignore[assignment]
+        lapack_module.svd_reduced = capture  # type: ignore[assignment]
         try:
             begin = time.process_time()
             detect_file(str(log), out, [("glt", {})])
             timed = time.process_time() - begin
         finally:
-            np.linalg.svd = svd  # type: ignore[assignment]
+            lapack_module.svd_reduced = svd  # type: ignore[assignment]
             timers.restore()
         calls = BuilderCalls()
         if args.reference:
@@ -294,6 +326,12 @@ def main() -> int:
             f" this {best['this']:.2f} s CPU, ratio {best['this'] / best['reference']:.3f};"
             f" episodes that differ: {differ}"
         )
+        blocks, rows_differ = monitor_rows(calls.events, packages)
+        print(
+            f"variance-drop monitor on the {blocks:,} measurement blocks fed:"
+            f" status rows that differ (alarm, isolated, statistic, threshold): {rows_differ}"
+        )
+        differ += rows_differ
         if differ:
             print(f"load average after: {load()}")
             return 1

@@ -54,7 +54,7 @@ from imufdi_cli.episodes.model_fits import (
     _stuck_fit,
     _white_noise_fit,
 )
-from imufdi_cli.episodes.numerics import _gaussian_nll, _median, _prefix, _suffix
+from imufdi_cli.episodes.numerics import _gaussian_nll, _median, _prefix, _suffix, _suffixes
 from imufdi_cli.episodes.reference import Reference, _linear_fit
 
 
@@ -307,12 +307,19 @@ def _fit_window(
     n_after = (length - taus).astype(np.float64)
     ln_n = math.log(float(length))
 
-    # prefix: healthy samples before tau; suffix sums after tau
-    sq = r**2
+    # prefix: healthy samples before tau; suffix sums after tau (of r, r², t, t², t r, o²,
+    # o r: one accumulation for the seven)
+    series = np.empty((7, length))
+    series[0] = r
+    sq = np.multiply(r, r, out=series[1])
+    series[2] = t
+    np.multiply(t, t, out=series[3])
+    np.multiply(t, r, out=series[4])
+    np.multiply(o, o, out=series[5])
+    np.multiply(o, r, out=series[6])
+    s_r, s_rr, s_t, s_tt, s_tr, s_oo, s_or = _suffixes(series, lo, hi)
     healthy_before = _prefix(sq)[taus]
     nll_before = _gaussian_nll(healthy_before, taus.astype(np.float64), var0)
-    s_r, s_rr = _suffix(r)[taus], _suffix(sq)[taus]
-    s_t, s_tt, s_tr = _suffix(t)[taus], _suffix(t * t)[taus], _suffix(t * r)[taus]
     w = _Window(
         r=r,
         o=o,
@@ -328,8 +335,8 @@ def _fit_window(
         nll_before=nll_before,
         s_r=s_r,
         s_rr=s_rr,
-        s_oo=_suffix(o * o)[taus],
-        s_or=_suffix(o * r)[taus],
+        s_oo=s_oo,
+        s_or=s_or,
     )
     fits: list[FaultFit] = []
     linear: dict[str, Any] = {

@@ -77,6 +77,14 @@ def _suffix(values: np.ndarray) -> np.ndarray:
     return out
 
 
+def _suffixes(values: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """``_suffix(values[i])[lo:hi]`` for every row i of ``values`` (k, L), shape (k, hi -
+    lo): one accumulation for all rows (sequential, as for one row: the same floats)."""
+    out = np.zeros((values.shape[0], values.shape[1] + 1))
+    out[:, :-1] = np.cumsum(values[:, ::-1], axis=1)[:, ::-1]
+    return out[:, lo:hi]
+
+
 def _median(values: np.ndarray) -> float:
     """``float(np.median(values))`` of a 1-D array, sorted directly (the middle value, or
     the mean of the middle two as numpy takes it: their sum halved); numpy's own for

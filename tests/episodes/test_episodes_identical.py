@@ -16,6 +16,7 @@ into a package, issue 21) must pass unchanged.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import sys
@@ -238,6 +239,88 @@ def test_median_is_numpys_median() -> None:
             expected = float(np.median(v))
             got = _median(v)
             assert got == expected or (math.isnan(got) and math.isnan(expected)), (n, v)
+
+
+def _plain_update(monitor: Any, state: dict[str, Any], measurements: np.ndarray) -> tuple:
+    """VarianceDropMonitor.update as written before it worked in place (commit 58050f2):
+    the formula step by step, each with its own temporary; ``state`` holds its last row
+    and tail."""
+    r = np.asarray(measurements, dtype=np.float64) @ monitor.A
+    n = r.shape[0]
+    last = state.get("last")
+    previous = r[:1] if last is None else last[None, :]
+    half_sq = 0.5 * np.diff(np.concatenate([previous, r]), axis=0) ** 2
+    if last is None and n:
+        half_sq = half_sq[1:]
+    half_sq = np.where(np.isfinite(half_sq), half_sq, monitor.variance)
+    if n:
+        state["last"] = r[-1]
+    tail = state.get("tail", np.zeros((0, monitor.A.shape[1])))
+    held, fresh = tail.shape[0], half_sq.shape[0]
+    joined = np.concatenate([tail, half_sq])
+    cumulative = np.concatenate([np.zeros((1, joined.shape[1])), np.cumsum(joined, axis=0)])
+    stop = np.arange(held + 1, held + fresh + 1)
+    ready = stop >= monitor.window
+    sums = cumulative[stop] - cumulative[np.maximum(stop - monitor.window, 0)]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = sums / monitor.window / monitor.variance * (monitor.quantile / monitor.quantiles)
+    ratio = np.where(np.isfinite(ratio), ratio, np.inf)
+    worst = np.argmin(ratio, axis=1) if ratio.shape[0] else np.zeros(0, np.int64)
+    lowest = ratio[np.arange(ratio.shape[0]), worst]
+    alarm = ready & (lowest < monitor.quantile)
+    statistic = np.where(ready, -np.log(np.maximum(lowest, 1e-300)), -np.inf)
+    state["tail"] = joined[-monitor.window :]
+    pad = n - half_sq.shape[0]
+    return (
+        np.concatenate([np.zeros(pad, bool), alarm]),
+        np.concatenate([np.full(pad, -1), np.where(alarm, worst, -1)]).astype(np.int64),
+        np.concatenate([np.full(pad, -np.inf), statistic]),
+        np.full(n, -math.log(monitor.quantile)),
+    )
+
+
+def test_variance_drop_monitor_is_the_plain_formula_to_the_bit() -> None:
+    """The in-place monitor gives the rows of the formula step by step: blocks of odd sizes
+    (empty, one row, shorter than the window), NaN and inf rows, a frozen sensor (alarms),
+    a sensor without a consensus (infinite variance)."""
+    from imufdi_cli.episodes.variance_drop import VarianceDropMonitor
+
+    rng = np.random.default_rng(31)
+    n = 9
+    A = rng.normal(size=(n, n)) * 0.3 + np.eye(n)
+    A[:, 4] = 0.0
+    variance = np.full(n, 2 * 0.3**2 + 1.0)
+    variance[4] = np.inf
+    m = rng.normal(size=(3000, n)) + np.sin(np.arange(3000) / 50.0)[:, None]
+    m[100:103, 2] = np.nan
+    m[1500] = np.inf
+    m[2000:2400, 6] = m[2000, 6]  # frozen: its residual keeps only the others' noise
+    cuts = [0, 0, 1, 2, 3, 40, 41, 100, 101, 102, 400, 1990, 1991, 2500, 2597, 3000]
+    monitor = VarianceDropMonitor(A, variance, window=100, alpha=1e-3, calibration_dof=130.0)
+    state: dict[str, Any] = {}
+    alarms = 0
+    with np.errstate(invalid="ignore"):
+        for lo, hi in itertools.pairwise(cuts):
+            got = monitor.update(m[lo:hi])
+            expected = _plain_update(monitor, state, m[lo:hi])
+            for field, value in zip(("alarm", "isolated", "statistic", "threshold"), expected):
+                mine = getattr(got, field)
+                assert mine.dtype == value.dtype and mine.tobytes() == value.tobytes(), (lo, field)
+            alarms += int(got.alarm.sum())
+    assert alarms > 0
+
+
+def test_stacked_suffix_sums_are_the_one_row_sums_to_the_bit() -> None:
+    """_fit_window's seven suffix sums in one accumulation equal _suffix row by row."""
+    from imufdi_cli.episodes.numerics import _suffix, _suffixes
+
+    rng = np.random.default_rng(12)
+    for length in (4, 5, 76, 201, 3000):
+        rows = rng.normal(size=(7, length)) * 10.0 ** rng.integers(-6, 6, size=(7, 1))
+        lo, hi = 0, length - 2
+        got = _suffixes(rows, lo, hi)
+        for i in range(7):
+            assert got[i].tobytes() == _suffix(rows[i])[np.arange(lo, hi)].tobytes()
 
 
 if __name__ == "__main__" and sys.argv[1:] == ["--write"]:
