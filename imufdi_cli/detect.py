@@ -42,6 +42,7 @@ from imufdi_cli.mcapio.events import (
     encode_fault_events,
     encode_fdi_event_dicts,
     encode_fdi_events,
+    is_current_fdi_channel,
     is_event_channel,
     register_events_channel,
     register_truth_channel,
@@ -273,7 +274,8 @@ def _keep_events(
     rerun: set[str],
 ) -> None:
     """Copy the input's alarm events of detectors not run again onto ``channel_id``
-    (CDR events as raw bytes; JSON events of an older imufdi re-encoded as FdiEvent)."""
+    (CDR events of this schema as raw bytes; older FdiEvent schemas and the JSON events
+    of an older imufdi re-encoded as FdiEvent)."""
     sub = batch.select(batch.channel_id == channel.id)
     try:
         events = decode_events(sub, channel)
@@ -284,7 +286,7 @@ def _keep_events(
     )
     if not keep.any():
         return
-    if channel.message_encoding == "cdr":
+    if is_current_fdi_channel(channel):  # older FdiEvent schemas lack fields: re-encoded
         kept = sub.select(keep)
         writer.add_batch(replace(kept, channel_id=np.full(len(kept), channel_id, np.uint16)))
     else:

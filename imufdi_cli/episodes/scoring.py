@@ -36,43 +36,100 @@ def match_episodes(
     window; it is ``wrong_sensor`` when it overlaps a fault on another sensor of its type,
     and ``false`` otherwise. Returns one record per episode: ``{"match": "fault" |
     "wrong_sensor" | "false", "fault_id", "true_class", "class_right", "true_size",
-    "covered"}``.
+    "covered"}`` (:meth:`EpisodeMatcher.match`).
     """
-    out = []
-    for episode in episodes:
-        sensors = episode.get("sensors") or []
-        first = sensors[0] if sensors else None
-        kind, hit = "false", None
-        for fault in faults:
-            end = fault.get("end_ns")
-            overlaps = episode["end_ns"] >= fault["start_ns"] and (
-                end is None or episode["start_ns"] < end
+    matcher = EpisodeMatcher(faults)
+    return [matcher.match(*match_fields(episode)) for episode in episodes]
+
+
+def match_fields(
+    episode: dict[str, Any],
+) -> tuple[str, int, int, str | None, str | None, float | None, float | None]:
+    """What matching reads of an explanation (:meth:`Episode.to_dict`): sensor type,
+    first and last alarmed sample (ns), first isolated sensor, and the best fit's model,
+    interval low and high (None when absent) -- the arguments of
+    :meth:`EpisodeMatcher.match`."""
+    sensors = episode.get("sensors") or []
+    fits = episode.get("fits") or []
+    best = fits[0] if fits else {}
+    return (
+        episode["sensor_type"],
+        episode["start_ns"],
+        episode["end_ns"],
+        sensors[0] if sensors else None,
+        best.get("model"),
+        best.get("low"),
+        best.get("high"),
+    )
+
+
+class EpisodeMatcher:
+    """:func:`match_episodes` for one set of injected faults, prepared once (each fault's
+    sensor types, window and true size), matching episodes one at a time from the few
+    fields it needs (:func:`match_fields`, or the typed fields of an ``episode`` event)."""
+
+    def __init__(self, faults: Sequence[dict[str, Any]]) -> None:
+        self.faults = [
+            (
+                fault,
+                fault["start_ns"],
+                fault.get("end_ns"),
+                {_sensor_type(s) for s in fault.get("sensors", [])},
+                truth_size(fault),
             )
-            same_type = any(
-                s.split(".")[1] == episode["sensor_type"] for s in fault.get("sensors", [])
-            )
-            if not overlaps or not same_type:
+            for fault in faults
+        ]
+
+    def match(
+        self,
+        sensor_type: str,
+        start_ns: int,
+        end_ns: int,
+        first: str | None,
+        model: str | None,
+        low: float | None,
+        high: float | None,
+    ) -> dict[str, Any]:
+        """The match record of one episode (:func:`match_episodes`).
+
+        Parameters
+        ----------
+        sensor_type : str
+        start_ns, end_ns : int
+            The episode's first and last alarmed sample, ns (log time).
+        first : str or None
+            Its first isolated sensor.
+        model : str or None
+            The best fit's fault model; ``low``, ``high`` its 90 % interval (SI, None when
+            there is none).
+        """
+        kind, hit, size = "false", None, None
+        for fault, start, end, types, true_size in self.faults:
+            if end_ns < start or (end is not None and start_ns >= end):
+                continue
+            if sensor_type not in types:
                 continue
             if first in fault["sensors"]:
-                kind, hit = "fault", fault
+                kind, hit, size = "fault", fault, true_size
                 break
             kind = "wrong_sensor"
         record: dict[str, Any] = {"match": kind, "fault_id": None if hit is None else hit["id"]}
         if hit is not None:
-            fits = episode.get("fits") or []
-            best = fits[0] if fits else {}
-            size = truth_size(hit)
             record["true_class"] = hit["model"]
-            record["class_right"] = best.get("model") == hit["model"]
+            record["class_right"] = model == hit["model"]
             record["true_size"] = size
-            low, high = best.get("low"), best.get("high")
             record["covered"] = (
                 None
                 if size is None or not record["class_right"] or low is None or high is None
                 else bool(low <= size <= high)
             )
-        out.append(record)
-    return out
+        return record
+
+
+def _sensor_type(sensor_id: str) -> str | None:
+    """``imu3.gyro.x`` -> ``gyro`` (None for an id without a type)."""
+    parts = sensor_id.split(".")
+    return parts[1] if len(parts) > 1 else None
 
 
 class EpisodeTally:

@@ -42,7 +42,7 @@ EVENTS_TOPIC = "/imufdi/events"
 LEGACY_SCHEMA_NAMES = ("imufdi/FaultEvent", "imufdi_msgs/FdiEvent")
 
 
-_FORMATS = {"u1": "B", "i4": "i", "u4": "I", "f8": "d"}
+_FORMATS = {"u1": "B", "i4": "i", "u4": "I", "f8": "d", "i8": "q"}
 #: code -> (size, packer) of each primitive, little-endian
 _PACKERS = {
     code: (struct.calcsize(fmt), struct.Struct("<" + fmt).pack) for code, fmt in _FORMATS.items()
@@ -260,6 +260,18 @@ def is_event_channel(channel: ChannelInfo) -> bool:
     return channel.message_encoding == "json" and channel.topic in (TRUTH_TOPIC, EVENTS_TOPIC)
 
 
+def is_current_fdi_channel(channel: ChannelInfo) -> bool:
+    """A CDR FdiEvent channel with this version's schema: its payloads can be copied as
+    they are onto a channel of :func:`register_events_channel` (those of an older schema,
+    without ``start_ns``/``end_ns``, must be re-encoded: :func:`encode_fdi_event_dicts`)."""
+    return (
+        channel.message_encoding == "cdr"
+        and channel.schema is not None
+        and channel.schema.name == FDI_EVENT_SCHEMA_NAME
+        and channel.schema.data == FDI_EVENT_SCHEMA
+    )
+
+
 def _stamp_ns(header: dict[str, Any]) -> int:
     stamp = header["stamp"]
     return int(stamp["sec"]) * NS_PER_S + int(stamp["nanosec"])
@@ -323,6 +335,210 @@ def decode_events(batch: MessageBatch, channel: ChannelInfo) -> list[dict[str, A
     return out
 
 
+class EpisodeEvent:
+    """An ``episode`` event as ``imufdi report`` reads it: what matching and counting need
+    (detector, sensor type, first and last alarmed sample, first isolated sensor, the best
+    fit's model and interval), with the explanation (:meth:`Episode.to_dict`) parsed from
+    its JSON only when :meth:`explanation` is called.
+
+    Attributes
+    ----------
+    detector, sensor_type : str
+    start_ns, end_ns : int
+        First and last alarmed sample, ns (log time).
+    isolated : str or None
+        First isolated sensor.
+    fault_class : str or None
+        Model of the best fit (None when unexplained).
+    low, high : float or None
+        Its interval (SI; None when none).
+    """
+
+    __slots__ = (
+        "_detail",
+        "_explanation",
+        "detector",
+        "end_ns",
+        "fault_class",
+        "high",
+        "isolated",
+        "low",
+        "sensor_type",
+        "start_ns",
+    )
+
+    def __init__(
+        self,
+        detector: str,
+        sensor_type: str,
+        start_ns: int,
+        end_ns: int,
+        isolated: str | None,
+        fault_class: str | None,
+        low: float | None,
+        high: float | None,
+        detail: bytes | None = None,
+        explanation: dict[str, Any] | None = None,
+    ) -> None:
+        self.detector = detector
+        self.sensor_type = sensor_type
+        self.start_ns = start_ns
+        self.end_ns = end_ns
+        self.isolated = isolated
+        self.fault_class = fault_class
+        self.low = low
+        self.high = high
+        self._detail = detail
+        self._explanation = explanation
+
+    @classmethod
+    def from_explanation(cls, episode: dict[str, Any]) -> EpisodeEvent:
+        """From a decoded explanation (files without the typed ``start_ns``/``end_ns``
+        fields, and the JSON event channels of older versions)."""
+        sensors = episode.get("sensors") or []
+        fits = episode.get("fits") or []
+        best = fits[0] if fits else {}
+        return cls(
+            episode["detector"],
+            episode["sensor_type"],
+            episode["start_ns"],
+            episode["end_ns"],
+            sensors[0] if sensors else None,
+            best.get("model"),
+            best.get("low"),
+            best.get("high"),
+            explanation=episode,
+        )
+
+    def match_fields(
+        self,
+    ) -> tuple[str, int, int, str | None, str | None, float | None, float | None]:
+        """The arguments of :meth:`imufdi_cli.episodes.scoring.EpisodeMatcher.match`."""
+        return (
+            self.sensor_type,
+            self.start_ns,
+            self.end_ns,
+            self.isolated,
+            self.fault_class,
+            self.low,
+            self.high,
+        )
+
+    def explanation(self) -> dict[str, Any]:
+        """The whole explanation (:meth:`imufdi_cli.episodes.Episode.to_dict`), parsed
+        on first use; McapInputError when its JSON is malformed."""
+        if self._explanation is None:
+            text = (self._detail or b"").rstrip(b"\0").decode("utf-8", errors="replace")
+            try:
+                episode = json.loads(text)
+            except ValueError as err:
+                raise McapInputError(f"{EVENTS_TOPIC}: malformed episode detail") from err
+            if not isinstance(episode, dict):
+                raise McapInputError(f"{EVENTS_TOPIC}: malformed episode detail")
+            self._explanation = episode
+            self._detail = None
+        return self._explanation
+
+
+def decode_episode_events(batch: MessageBatch, channel: ChannelInfo) -> list[EpisodeEvent]:
+    """The ``episode`` events among the messages of one event channel, in order.
+
+    Messages of the current FdiEvent schema (typed ``start_ns``/``end_ns``) are walked
+    field by field without decoding the alarm starts and ends or parsing any episode's
+    JSON detail; older schemas and JSON channels are decoded in full
+    (:func:`decode_events`) and give the same fields.
+    """
+    if is_current_fdi_channel(channel):
+        walked = _walk_episode_events(batch, channel.topic)
+        if walked is not None:
+            return walked
+    out = []
+    for event in decode_events(batch, channel):
+        episode = event.get("episode") if isinstance(event, dict) else None
+        if episode is None:
+            continue
+        try:
+            out.append(EpisodeEvent.from_explanation(episode))
+        except (AttributeError, KeyError, TypeError) as err:
+            raise McapInputError(f"{channel.topic}: malformed episode detail") from err
+    return out
+
+
+_U32_AT = struct.Struct("<I").unpack_from
+_F8X2_AT = struct.Struct("<2d").unpack_from
+_I8X2_AT = struct.Struct("<2q").unpack_from
+_EPISODE = b"episode"
+
+
+def _walk_episode_events(batch: MessageBatch, topic: str) -> list[EpisodeEvent] | None:
+    """:func:`decode_episode_events` for messages of the current FdiEvent schema (field
+    order of ``FDI_EVENT_SCHEMA``: header, detector, sensor_type, event, isolated,
+    isolable, amplitude, statistic, fault_class, size_name, size, size_low, size_high,
+    detail, start_ns, end_ns). Strings decode as :class:`~imufdi_cli.mcapio.cdr.
+    MessageDecoder` decodes them. None when a message is big-endian (not written by
+    imufdi): the caller decodes the batch in full."""
+    data = np.ascontiguousarray(batch.data, np.uint8).data  # a memoryview, no copy
+    total = len(data)
+    out: list[EpisodeEvent] = []
+
+    def string(base: int, pos: int, end: int) -> tuple[bytes, int]:
+        pos += (-pos) % 4
+        (size,) = _U32_AT(data, base + pos)
+        pos += 4
+        if base + pos + size > end:
+            raise ValueError("string past the end of the message")
+        return data[base + pos : base + pos + size].tobytes(), pos + size
+
+    def text(raw: bytes) -> str:
+        return raw.rstrip(b"\0").decode("utf-8", errors="replace")
+
+    for start, length in zip(batch.offset.tolist(), batch.length.tolist()):
+        end = start + length
+        try:
+            if length < 4 or end > total or data[start] != 0 or data[start + 1] > 1:
+                raise ValueError("unsupported or missing CDR encapsulation header")
+            if data[start + 1] == 0:
+                return None
+            base = start + 4  # CDR alignment is relative to the end of the header
+            _, pos = string(base, 8, end)  # header: stamp (8 bytes), frame_id
+            detector, pos = string(base, pos, end)
+            sensor_type, pos = string(base, pos, end)
+            event, pos = string(base, pos, end)
+            if event.rstrip(b"\0") != _EPISODE:
+                continue
+            isolated, pos = string(base, pos, end)
+            pos += 1  # isolable
+            pos += (-pos) % 8 + 16  # amplitude, statistic
+            fault_class, pos = string(base, pos, end)
+            _, pos = string(base, pos, end)  # size_name
+            pos += (-pos) % 8 + 8  # size
+            low, high = _F8X2_AT(data, base + pos)
+            detail, pos = string(base, pos + 16, end)
+            pos += (-pos) % 8
+            if base + pos + 16 > end:
+                raise ValueError("start_ns/end_ns past the end of the message")
+            start_ns, end_ns = _I8X2_AT(data, base + pos)
+            if not detail.rstrip(b"\0"):
+                continue  # no explanation: not an episode (as decode_events reads it)
+        except (struct.error, ValueError) as err:
+            raise McapInputError(f"{topic}: malformed {FDI_EVENT_SCHEMA_NAME} message") from err
+        model = text(fault_class)
+        out.append(
+            EpisodeEvent(
+                text(detector),
+                text(sensor_type),
+                start_ns,
+                end_ns,
+                text(isolated) or None,
+                model or None,
+                None if math.isnan(low) else low,
+                None if math.isnan(high) else high,
+                detail=detail,
+            )
+        )
+    return out
+
+
 def read_events(
     source: str | os.PathLike[str] | IO[bytes] | McapSource, topic: str
 ) -> list[tuple[int, dict[str, Any]]]:
@@ -371,6 +587,8 @@ def _episode_fields(cdr: _CdrBuilder, episode: dict[str, Any] | None) -> None:
         value = fit.get(key)
         cdr.prim("f8", math.nan if value is None else float(value))
     cdr.string("" if episode is None else _EPISODE_JSON.encode(episode))
+    for key in ("start_ns", "end_ns"):
+        cdr.prim("i8", 0 if episode is None else int(episode.get(key) or 0))
 
 
 def encode_episode_events(channel_id: int, episodes: Sequence[dict[str, Any]]) -> MessageBatch:

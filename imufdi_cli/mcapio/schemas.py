@@ -145,6 +145,8 @@ float64 size            # SI units of the sensor type; NaN when none
 float64 size_low        # confidence interval of size (level in detail)
 float64 size_high
 string detail           # the whole explanation as JSON: times, sensors, every fit, evidence
+int64 start_ns          # episode: its first and last alarmed sample (log time, ns; as
+int64 end_ns            # start_ns and end_ns in detail); 0 for alarm_start/alarm_end
 """
 
 

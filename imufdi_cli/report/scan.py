@@ -369,8 +369,10 @@ class _EpisodeCollector:
         window: tuple[float, float | None] | None = None,
         origins: dict[tuple[str, str], int] | None = None,
     ) -> None:
+        from imufdi_cli.episodes.scoring import EpisodeMatcher
+
         self.calibration = calibration
-        self.pending: list[tuple[dict[str, Any], dict[str, Any]]] = []
+        self.pending: list[tuple[Any, dict[str, Any]]] = []
         self.window = window  # --start/--end, seconds from each channel's first sample
         self.origins = origins if origins is not None else {}
         self.faults = (
@@ -382,41 +384,46 @@ class _EpisodeCollector:
             ]
         )
         self.has_truth = truth is not None
+        self.matcher = EpisodeMatcher(self.faults)
         self.listed: list[dict[str, Any]] = []
         self.tallies: dict[tuple[str, str], Any] = {}
         self.counts: dict[tuple[str, str], int] = {}
 
     def batch(self, batch: Any, channel: Any) -> None:
-        from imufdi_cli.episodes import match_episodes
-        from imufdi_cli.mcapio.events import EVENTS_TOPIC, decode_events, is_event_channel
+        """Match, count and list the episodes of one batch of ``/imufdi/events``; only
+        the listed ones have their explanation's JSON parsed
+        (:class:`~imufdi_cli.mcapio.events.EpisodeEvent`)."""
+        from imufdi_cli.mcapio.events import EVENTS_TOPIC, decode_episode_events, is_event_channel
 
         if channel.topic != EVENTS_TOPIC or not is_event_channel(channel):
             return
-        found = [e["episode"] for e in decode_events(batch, channel) if "episode" in e]
-        matches = (
-            match_episodes(found, self.faults)
-            if self.has_truth
-            else [{"match": None} for _ in found]
-        )
-        self._take(list(zip(found, matches)))
+        found = decode_episode_events(batch, channel)
+        if self.has_truth:
+            match = self.matcher.match
+            self._take([(e, match(*e.match_fields())) for e in found])
+        else:
+            self._take([(e, {"match": None}) for e in found])
 
-    def _take(self, items: list[tuple[dict[str, Any], dict[str, Any]]]) -> None:
-        """Count and list episodes (with their matches) inside --start/--end; those of a
-        channel whose first status row has not been read yet wait for it."""
+    def _take(self, items: list[tuple[Any, dict[str, Any]]]) -> None:
+        """Count and list episodes (:class:`~imufdi_cli.mcapio.events.EpisodeEvent`,
+        with their matches) inside --start/--end; those of a channel whose first status
+        row has not been read yet wait for it."""
         from imufdi_cli.episodes import EpisodeTally
 
         if self.pending:
             items, self.pending = self.pending + items, []
         for episode, match in items:
-            key = (episode["detector"], episode["sensor_type"])
+            key = (episode.detector, episode.sensor_type)
             if self.window is not None and key not in self.origins:
                 self.pending.append((episode, match))
                 continue
-            if not self._inside(key, episode["start_ns"]):
+            if not self._inside(key, episode.start_ns):
                 continue
-            tally = self.tallies.setdefault(key, EpisodeTally())
-            window = self.calibration.get(episode["detector"])
-            if window is not None and episode["start_ns"] < window[1]:
+            tally = self.tallies.get(key)
+            if tally is None:
+                tally = self.tallies[key] = EpisodeTally()
+            window = self.calibration.get(episode.detector)
+            if window is not None and episode.start_ns < window[1]:
                 # inside the calibration window: in sample, listed but never scored
                 match = {**match, "match": "calibration"}
                 tally.calibration += 1
@@ -426,7 +433,7 @@ class _EpisodeCollector:
                 tally.episodes += 1
             self.counts[key] = self.counts.get(key, 0) + 1
             if self.counts[key] <= EPISODES_LISTED:
-                self.listed.append({**episode, **match})
+                self.listed.append({**episode.explanation(), **match})
 
     def _inside(self, key: tuple[str, str], start_ns: int) -> bool:
         """Whether an episode starting at ``start_ns`` is inside --start/--end."""

@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from imufdi_cli.episodes import match_episodes, score_episodes
+from imufdi_cli.episodes import TRUTH_SIZE_KEYS, match_episodes, score_episodes, truth_size
+from imufdi_cli.episodes.scoring import EpisodeMatcher, match_fields
 
 
 def _episode(start: int, end: int, sensor: str, model: str, low: float, high: float) -> dict:
@@ -66,3 +68,79 @@ def test_episodes_are_matched_to_the_fault_they_explain_and_scored() -> None:
     assert score["coverage"] == pytest.approx(0.5)
     assert score["per_model"]["stuck"]["class_accuracy"] == 0.0
     assert score["per_model"]["step"]["coverage"] == pytest.approx(0.5)
+
+
+def _reference_match(episode: dict, faults: list[dict]) -> dict:
+    """The definition of match_episodes written out plainly (the session-20 code)."""
+    sensors = episode.get("sensors") or []
+    first = sensors[0] if sensors else None
+    kind, hit = "false", None
+    for fault in faults:
+        end = fault.get("end_ns")
+        overlaps = episode["end_ns"] >= fault["start_ns"] and (
+            end is None or episode["start_ns"] < end
+        )
+        same_type = any(s.split(".")[1] == episode["sensor_type"] for s in fault["sensors"])
+        if not overlaps or not same_type:
+            continue
+        if first in fault["sensors"]:
+            kind, hit = "fault", fault
+            break
+        kind = "wrong_sensor"
+    record: dict = {"match": kind, "fault_id": None if hit is None else hit["id"]}
+    if hit is not None:
+        best = (episode.get("fits") or [{}])[0]
+        size = truth_size(hit)
+        record["true_class"] = hit["model"]
+        record["class_right"] = best.get("model") == hit["model"]
+        record["true_size"] = size
+        low, high = best.get("low"), best.get("high")
+        record["covered"] = (
+            None
+            if size is None or not record["class_right"] or low is None or high is None
+            else bool(low <= size <= high)
+        )
+    return record
+
+
+def test_matcher_agrees_with_the_definition_on_random_episodes() -> None:
+    """EpisodeMatcher (faults prepared once; what the report runs on the typed fields of
+    each episode event) gives the records of the definition, key order included."""
+    rng = np.random.default_rng(2)
+    sensors = [f"imu{k}.{t}.{a}" for k in range(3) for t in ("gyro", "accel") for a in "xy"]
+    models = ["step", "drift", "noise", "stuck", "spikes", "scale"]
+    for _ in range(50):
+        faults = []
+        for j in range(int(rng.integers(0, 4))):
+            start = int(rng.integers(0, 1000))
+            model = str(rng.choice(models))
+            faults.append(
+                {
+                    "id": f"f{j}",
+                    "model": model,
+                    "sensors": list(rng.choice(sensors, int(rng.integers(1, 3)), replace=False)),
+                    "params": {} if model == "stuck" else {TRUTH_SIZE_KEYS[model]: 0.5},
+                    "start_ns": start,
+                    "end_ns": None if rng.random() < 0.3 else start + int(rng.integers(0, 500)),
+                }
+            )
+        matcher = EpisodeMatcher(faults)
+        for _ in range(40):
+            start = int(rng.integers(0, 1500))
+            sensor = str(rng.choice(sensors))
+            fit = {
+                "model": str(rng.choice(models)),
+                "low": 0.4,
+                "high": float(rng.choice([0.45, 0.6])),
+            }
+            episode = {
+                "sensor_type": sensor.split(".")[1],
+                "start_ns": start,
+                "end_ns": start + int(rng.integers(0, 300)),
+                "sensors": [] if rng.random() < 0.1 else [sensor],
+                "fits": [] if rng.random() < 0.1 else [fit],
+            }
+            expected = _reference_match(episode, faults)
+            got = matcher.match(*match_fields(episode))
+            assert list(got.items()) == list(expected.items())
+            assert match_episodes([episode], faults) == [expected]

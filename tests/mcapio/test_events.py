@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 
 import numpy as np
 import pytest
@@ -230,3 +231,260 @@ def test_episode_events_round_trip_with_undefined_numbers() -> None:
     (event,) = decode_events(batch, channel)
     assert event["event"] == "episode" and event["t_ns"] == 25
     assert event["episode"] == episode
+
+
+# --- episode events as report reads them (typed fields, JSON parsed on demand) ----------
+
+
+def old_fdi_event_schema() -> bytes:
+    """The FdiEvent schema text imufdi wrote before ``start_ns``/``end_ns`` (session 20)."""
+    from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA, SEPARATOR
+
+    head, rest = FDI_EVENT_SCHEMA.split(b"int64 start_ns", 1)
+    return head + rest[rest.index(b"\n" + SEPARATOR.encode()) :]
+
+
+def old_fdi_payload(payload: bytes, event: dict) -> bytes:
+    """``payload`` (this version's FdiEvent) in the layout before ``start_ns``/``end_ns``:
+    the same bytes up to the end of ``detail``."""
+    detail = (
+        b"" if "episode" not in event else json.dumps(event["episode"], allow_nan=False).encode()
+    ) + b"\0"
+    field = struct.pack("<I", len(detail)) + detail
+    end = payload.rindex(field) + len(field)
+    episode = event.get("episode") or {}
+    tail = struct.pack("<2q", episode.get("start_ns", 0), episode.get("end_ns", 0))
+    assert payload[end:] == b"\0" * ((4 - end) % 8) + tail  # padding, start_ns, end_ns
+    return payload[:end]
+
+
+def sample_episodes() -> list[dict]:
+    """Explanations as detect writes them (Episode.to_dict), with the corner cases: no
+    fit, no sensor, undefined interval, no finite statistic, a non-ASCII detector name."""
+    from imufdi_cli.episodes import Episode, FaultFit
+
+    rng = np.random.default_rng(5)
+    out = []
+    for k in range(40):
+        fits = [
+            FaultFit(
+                str(model),
+                float(rng.normal()),
+                float(rng.normal()) - 3.0,
+                float(rng.normal()) + 3.0 if k % 7 else math.inf,
+                int(rng.integers(0, 50)),
+                float(rng.normal(0, 100)),
+                {"rate_hz": 1.5} if model == "spikes" else {},
+            )
+            for model in rng.choice(["step", "drift", "noise", "spikes", "stuck"], k % 3)
+        ]
+        start = 10**12 + int(rng.integers(0, 10**10))
+        sensors = [] if k % 11 == 5 else [IDS[k % 3], IDS[(k + 1) % 3]][: 1 + k % 2]
+        episode = Episode(
+            detector="glt" if k % 5 else "détecteur",
+            sensor_type="gyro",
+            start_ns=start,
+            end_ns=start + int(rng.integers(0, 10**9)),
+            decided_start_ns=start + 5,
+            decided_end_ns=start + 10**9 + 7,
+            alarms=int(rng.integers(1, 100)),
+            sensors=sensors,
+            peak_ratio=float(rng.exponential(3.0)) if k % 13 else math.nan,
+            runner_up=sensors[1] if len(sensors) > 1 else None,
+            runner_up_share=0.25 if len(sensors) > 1 else None,
+            fits=fits,
+            amplitude=0.01 * k if k % 2 else None,
+        )
+        out.append(episode.to_dict())
+    return out
+
+
+def _fields(event) -> tuple:
+    return (event.detector, *event.match_fields())
+
+
+def _event_channel(schema: bytes):
+    from imufdi_cli.mcapio.records import ChannelInfo, SchemaInfo
+    from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA_NAME
+
+    return ChannelInfo(
+        1, EVENTS_TOPIC, "cdr", {}, SchemaInfo(1, FDI_EVENT_SCHEMA_NAME, "ros2msg", schema)
+    )
+
+
+def _mixed_batch(episodes: list[dict]):
+    """Alarm starts and ends with episode events between them, one batch; and the event
+    dicts they encode."""
+    from imufdi_cli.mcapio.events import encode_episode_events
+    from imufdi_cli.mcapio.records import MessageBatch
+
+    alarms = encode_fdi_events(
+        1,
+        np.arange(len(episodes)) * 10,
+        detector="glt",
+        sensor_type="gyro",
+        sensor_ids=IDS,
+        alarm=np.arange(len(episodes)) % 2 == 0,
+        isolated=np.arange(len(episodes)) % 4 - 2,
+        amplitude=np.linspace(-1, 1, len(episodes)),
+        statistic=np.linspace(0, 9, len(episodes)),
+    )
+    explained = encode_episode_events(1, episodes)
+    payloads, times = [], []
+    for i in range(len(episodes)):
+        payloads += [alarms.payload(i), explained.payload(i)]
+        times += [int(alarms.log_time[i]), int(explained.log_time[i])]
+    return MessageBatch.from_payloads(1, np.array(times), payloads)
+
+
+def test_episode_events_walked_as_decoded_in_full() -> None:
+    """The typed fields the report matches on, walked without decoding the alarms or the
+    JSON, equal those of the full decode; the explanation parses back to the dict."""
+    from imufdi_cli.mcapio.events import EpisodeEvent, decode_episode_events
+    from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA
+
+    episodes = sample_episodes()
+    batch = _mixed_batch(episodes)
+    channel = _event_channel(FDI_EVENT_SCHEMA)
+    walked = decode_episode_events(batch, channel)
+    full = [
+        EpisodeEvent.from_explanation(e["episode"])
+        for e in decode_events(batch, channel)
+        if "episode" in e
+    ]
+    assert [_fields(e) for e in walked] == [_fields(e) for e in full]
+    assert [e.explanation() for e in walked] == episodes
+    assert any(e.low is None for e in walked) and any(e.fault_class is None for e in walked)
+    assert any(e.isolated is None for e in walked) and walked[0].detector == "détecteur"
+    # the typed fields are those of the explanation (what matching reads)
+    firsts = [(e.get("sensors") or [None])[0] for e in episodes]
+    assert [e.isolated for e in walked] == firsts
+    assert [e.start_ns for e in walked] == [e["start_ns"] for e in episodes]
+    assert [e.end_ns for e in walked] == [e["end_ns"] for e in episodes]
+
+
+def test_episode_events_of_the_older_schema_give_the_same_fields() -> None:
+    """Files written before start_ns/end_ns (their own schema text in the file) decode in
+    full and give the same fields and explanations."""
+    from imufdi_cli.mcapio.events import decode_episode_events, is_current_fdi_channel
+    from imufdi_cli.mcapio.records import MessageBatch
+    from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA
+
+    episodes = sample_episodes()
+    batch = _mixed_batch(episodes)
+    new = _event_channel(FDI_EVENT_SCHEMA)
+    events = decode_events(batch, new)
+    old_batch = MessageBatch.from_payloads(
+        1, batch.log_time, [old_fdi_payload(batch.payload(i), e) for i, e in enumerate(events)]
+    )
+    old = _event_channel(old_fdi_event_schema())
+    assert is_current_fdi_channel(new) and not is_current_fdi_channel(old)
+    assert json.dumps(decode_events(old_batch, old)) == json.dumps(events)  # NaN-safe
+    walked, decoded = decode_episode_events(batch, new), decode_episode_events(old_batch, old)
+    assert [_fields(e) for e in decoded] == [_fields(e) for e in walked]
+    assert [e.explanation() for e in decoded] == episodes
+
+
+def _big_endian_fdi_event(episode: dict) -> bytes:
+    """An ``episode`` FdiEvent in big-endian CDR (as another writer may produce it)."""
+    body = bytearray()
+
+    def prim(fmt: str, value) -> None:
+        size = struct.calcsize(fmt)
+        body.extend(b"\0" * ((-len(body)) % size))
+        body.extend(struct.pack(">" + fmt, value))
+
+    def string(text: str) -> None:
+        raw = text.encode() + b"\0"
+        prim("I", len(raw))
+        body.extend(raw)
+
+    fit = (episode.get("fits") or [{}])[0]
+    prim("i", 1)
+    prim("I", 2)
+    for text in ("", episode["detector"], episode["sensor_type"], "episode"):
+        string(text)
+    string((episode.get("sensors") or [""])[0])
+    prim("B", 1)
+    prim("d", math.nan)
+    prim("d", 1.0)
+    string(fit.get("model", ""))
+    string(fit.get("size_name", ""))
+    for key in ("size", "low", "high"):
+        prim("d", math.nan if fit.get(key) is None else fit[key])
+    string(json.dumps(episode))
+    prim("q", episode["start_ns"])
+    prim("q", episode["end_ns"])
+    return b"\x00\x00\x00\x00" + bytes(body)
+
+
+def test_big_endian_episode_events_are_decoded_in_full() -> None:
+    from imufdi_cli.mcapio.events import decode_episode_events
+    from imufdi_cli.mcapio.records import MessageBatch
+    from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA
+
+    episodes = sample_episodes()[:6]
+    batch = MessageBatch.from_payloads(
+        1, np.arange(6), [_big_endian_fdi_event(e) for e in episodes]
+    )
+    decoded = decode_episode_events(batch, _event_channel(FDI_EVENT_SCHEMA))
+    assert [e.explanation() for e in decoded] == episodes
+    assert [e.start_ns for e in decoded] == [e["start_ns"] for e in episodes]
+
+
+def test_malformed_episode_events_are_input_errors() -> None:
+    from imufdi_cli.mcapio.events import decode_episode_events, encode_episode_events
+    from imufdi_cli.mcapio.records import MessageBatch
+    from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA
+
+    channel = _event_channel(FDI_EVENT_SCHEMA)
+    payload = encode_episode_events(1, sample_episodes()[:1]).payload(0)
+    for cut in (3, 20, len(payload) // 2, len(payload) - 8):
+        batch = MessageBatch.from_payloads(1, np.zeros(1), [payload[:cut]])
+        with pytest.raises(McapInputError, match="malformed"):
+            decode_episode_events(batch, channel)
+    # a detail that is not JSON fails when it is needed (the listed episodes)
+    at = payload.index(b'{"detector"')
+    broken = payload[:at] + b"#" + payload[at + 1 :]
+    (event,) = decode_episode_events(MessageBatch.from_payloads(1, np.zeros(1), [broken]), channel)
+    with pytest.raises(McapInputError, match="malformed episode detail"):
+        event.explanation()
+
+
+def test_rerun_reencodes_events_of_the_older_schema(tmp_path) -> None:
+    """``detect`` keeps the input's events of detectors it does not run again: those of
+    the FdiEvent schema before start_ns/end_ns are re-encoded in this one (not copied as
+    raw bytes under a schema they do not follow), and read as before."""
+    from imufdi_cli.mcapio.events import decode_episode_events, encode_episode_events
+    from imufdi_cli.mcapio.records import MessageBatch
+    from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA, FDI_EVENT_SCHEMA_NAME
+
+    path = tmp_path / "old.mcap"
+    block = make_block(50, 4)
+    episodes = [{**e, "detector": "bank"} for e in sample_episodes()[:8]]
+    batch = _mixed_batch(episodes)
+    events = decode_events(batch, _event_channel(FDI_EVENT_SCHEMA))
+    with McapWriter(path) as writer:
+        ImuArrayWriter(writer, ArrayConfig.co_aligned(4, 100.0)).write_block(block)
+        schema = writer.register_schema(FDI_EVENT_SCHEMA_NAME, "ros2msg", old_fdi_event_schema())
+        channel = writer.register_channel(EVENTS_TOPIC, "cdr", schema)
+        payloads = [old_fdi_payload(batch.payload(i), e) for i, e in enumerate(events)]
+        writer.add_batch(MessageBatch.from_payloads(channel, batch.log_time, payloads))
+    before = [(t, e) for t, e in read_events(path, EVENTS_TOPIC) if e["detector"] != "glt"]
+    assert len(before) == len(episodes)
+    out = tmp_path / "new.mcap"
+    result = invoke(["detect", path, "-d", "glt", "-o", out, "--calibrate", "0s:0.2s"])
+    assert result.code == 0, result.stderr
+    after = [(t, e) for t, e in read_events(out, EVENTS_TOPIC) if e["detector"] != "glt"]
+    assert json.dumps(after) == json.dumps(before)
+    with McapSource(out) as src:
+        for _ in src.batches():
+            pass
+        (channel_info,) = [c for c in src.channels.values() if c.topic == EVENTS_TOPIC]
+    assert channel_info.schema is not None and channel_info.schema.data == FDI_EVENT_SCHEMA
+    kept = [e for _, e in read_events(out, EVENTS_TOPIC) if e["event"] == "episode"]
+    assert [e["episode"] for e in kept if e["detector"] == "bank"] == episodes
+    # and the report's walk reads the re-encoded ones
+    reencoded = encode_episode_events(1, episodes)
+    walked = decode_episode_events(reencoded, _event_channel(FDI_EVENT_SCHEMA))
+    assert [e.start_ns for e in walked] == [e["start_ns"] for e in episodes]

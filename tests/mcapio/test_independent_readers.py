@@ -284,6 +284,14 @@ def test_mcap_ros2_support(outputs, name) -> None:
             for m in events
         )
         assert by_time == sorted((t, e["detector"], e["event"], e["t_ns"]) for t, e in ours)
+        # the typed episode fields (start_ns, end_ns) read as the explanation has them
+        for m in events:
+            if m.ros_msg.event == "episode":
+                detail = json.loads(m.ros_msg.detail)
+                assert (m.ros_msg.start_ns, m.ros_msg.end_ns) == (
+                    detail["start_ns"],
+                    detail["end_ns"],
+                )
 
 
 def _mcap_core() -> tuple[str, dict[str, str]] | None:
