@@ -454,7 +454,9 @@ def decode_episode_events(batch: MessageBatch, channel: ChannelInfo) -> list[Epi
             return walked
     out = []
     for event in decode_events(batch, channel):
-        episode = event.get("episode") if isinstance(event, dict) else None
+        if not isinstance(event, dict) or event.get("event") != "episode":
+            continue
+        episode = event.get("episode")
         if episode is None:
             continue
         try:
@@ -464,76 +466,149 @@ def decode_episode_events(batch: MessageBatch, channel: ChannelInfo) -> list[Epi
     return out
 
 
-_U32_AT = struct.Struct("<I").unpack_from
-_F8X2_AT = struct.Struct("<2d").unpack_from
-_I8X2_AT = struct.Struct("<2q").unpack_from
 _EPISODE = b"episode"
+
+
+class _Malformed(ValueError):
+    """A message of the batch is cut short or its strings run past its end."""
+
+
+def _gather(data: np.ndarray, at: np.ndarray, size: int) -> np.ndarray:
+    """(K, size) bytes of ``data`` from each offset ``at`` (bounds checked by callers)."""
+    return data[at[:, None] + np.arange(size)]
+
+
+def _string_field(
+    data: np.ndarray, base: np.ndarray, pos: np.ndarray, end: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The CDR string at ``pos`` of each message (positions relative to ``base``, the end
+    of the encapsulation header, as CDR aligns): (first byte, byte count with the NUL,
+    position after it), all (K,) int64."""
+    pos = pos + (-pos) % 4
+    at = base + pos
+    if (at + 4 > end).any():
+        raise _Malformed("string length past the end of the message")
+    size = _gather(data, at, 4).view("<u4").reshape(-1).astype(np.int64)
+    first = at + 4
+    if (first + size > end).any():
+        raise _Malformed("string past the end of the message")
+    return first, size, pos + 4 + size
+
+
+def _numbers(
+    data: np.ndarray, base: np.ndarray, pos: np.ndarray, end: np.ndarray, dtype: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """Two consecutive 8-byte numbers at ``pos`` (aligned to 8) of each message: (K, 2)
+    values and the position after them."""
+    pos = pos + (-pos) % 8
+    if (base + pos + 16 > end).any():
+        raise _Malformed("numbers past the end of the message")
+    return _gather(data, base + pos, 16).view(dtype), pos + 16
 
 
 def _walk_episode_events(batch: MessageBatch, topic: str) -> list[EpisodeEvent] | None:
     """:func:`decode_episode_events` for messages of the current FdiEvent schema (field
     order of ``FDI_EVENT_SCHEMA``: header, detector, sensor_type, event, isolated,
     isolable, amplitude, statistic, fault_class, size_name, size, size_low, size_high,
-    detail, start_ns, end_ns). Strings decode as :class:`~imufdi_cli.mcapio.cdr.
-    MessageDecoder` decodes them. None when a message is big-endian (not written by
-    imufdi): the caller decodes the batch in full."""
-    data = np.ascontiguousarray(batch.data, np.uint8).data  # a memoryview, no copy
-    total = len(data)
-    out: list[EpisodeEvent] = []
+    detail, start_ns, end_ns), walked for all messages of the batch at once with numpy;
+    only the episodes' fields become Python objects. Strings decode as
+    :class:`~imufdi_cli.mcapio.cdr.MessageDecoder` decodes them. None when a message is
+    big-endian (not written by imufdi): the caller decodes the batch in full."""
+    if len(batch) == 0:
+        return []
+    data = np.ascontiguousarray(batch.data, np.uint8)
+    start = np.asarray(batch.offset, np.int64)
+    end = start + np.asarray(batch.length, np.int64)
+    try:
+        if (end - start < 4).any() or (end > data.size).any():
+            raise _Malformed("message shorter than its CDR header")
+        if (data[start] != 0).any() or (data[start + 1] > 1).any():
+            raise _Malformed("unsupported or missing CDR encapsulation header")
+        if (data[start + 1] == 0).any():
+            return None
+        base = start + 4  # CDR alignment is relative to the end of the header
+        pos = np.full(start.size, 8, np.int64)  # header.stamp: sec, nanosec
+        _, _, pos = _string_field(data, base, pos, end)  # header.frame_id
+        detector, detector_size, pos = _string_field(data, base, pos, end)
+        sensor_type, sensor_type_size, pos = _string_field(data, base, pos, end)
+        event, event_size, pos = _string_field(data, base, pos, end)
+        # "episode" and NULs only (as the decoder strips them); alarm events stop here
+        maybe = np.flatnonzero(event_size >= len(_EPISODE))
+        if maybe.size:
+            head = _gather(data, event[maybe], len(_EPISODE))
+            maybe = maybe[(head == np.frombuffer(_EPISODE, np.uint8)).all(axis=1)]
+        # "episode" + NUL as imufdi writes it, else check that the rest is NULs
+        exact = event_size[maybe] == len(_EPISODE) + 1
+        exact &= data[event[maybe] + len(_EPISODE)] == 0
+        longer = maybe[~exact & (event_size[maybe] > len(_EPISODE))]
+        keep = np.sort(
+            np.concatenate(
+                [
+                    maybe[exact],
+                    [
+                        i
+                        for i in longer.tolist()
+                        if not data[event[i] + len(_EPISODE) : event[i] + event_size[i]].any()
+                    ],
+                    maybe[event_size[maybe] == len(_EPISODE)],
+                ]
+            ).astype(np.int64)
+        )
+        if keep.size == 0:
+            return []
+        base, pos, end = base[keep], pos[keep], end[keep]
+        isolated, isolated_size, pos = _string_field(data, base, pos, end)
+        pos = pos + 1  # isolable
+        _, pos = _numbers(data, base, pos, end, "<f8")  # amplitude, statistic
+        fault_class, fault_class_size, pos = _string_field(data, base, pos, end)
+        _, _, pos = _string_field(data, base, pos, end)  # size_name
+        pos = pos + (-pos) % 8 + 8  # size
+        interval, pos = _numbers(data, base, pos, end, "<f8")  # size_low, size_high
+        detail, detail_size, pos = _string_field(data, base, pos, end)
+        times, pos = _numbers(data, base, pos, end, "<i8")  # start_ns, end_ns
+    except _Malformed as err:
+        raise McapInputError(f"{topic}: malformed {FDI_EVENT_SCHEMA_NAME} message: {err}") from err
 
-    def string(base: int, pos: int, end: int) -> tuple[bytes, int]:
-        pos += (-pos) % 4
-        (size,) = _U32_AT(data, base + pos)
-        pos += 4
-        if base + pos + size > end:
-            raise ValueError("string past the end of the message")
-        return data[base + pos : base + pos + size].tobytes(), pos + size
+    view = data.data  # a memoryview: slicing it is cheaper than slicing the array
+    texts: dict[bytes, str] = {}  # few distinct names per batch
 
-    def text(raw: bytes) -> str:
-        return raw.rstrip(b"\0").decode("utf-8", errors="replace")
+    def text(first: int, size: int) -> str:
+        raw = view[first : first + size].tobytes()
+        found = texts.get(raw)
+        if found is None:
+            found = texts[raw] = raw.rstrip(b"\0").decode("utf-8", errors="replace")
+        return found
 
-    for start, length in zip(batch.offset.tolist(), batch.length.tolist()):
-        end = start + length
-        try:
-            if length < 4 or end > total or data[start] != 0 or data[start + 1] > 1:
-                raise ValueError("unsupported or missing CDR encapsulation header")
-            if data[start + 1] == 0:
-                return None
-            base = start + 4  # CDR alignment is relative to the end of the header
-            _, pos = string(base, 8, end)  # header: stamp (8 bytes), frame_id
-            detector, pos = string(base, pos, end)
-            sensor_type, pos = string(base, pos, end)
-            event, pos = string(base, pos, end)
-            if event.rstrip(b"\0") != _EPISODE:
-                continue
-            isolated, pos = string(base, pos, end)
-            pos += 1  # isolable
-            pos += (-pos) % 8 + 16  # amplitude, statistic
-            fault_class, pos = string(base, pos, end)
-            _, pos = string(base, pos, end)  # size_name
-            pos += (-pos) % 8 + 8  # size
-            low, high = _F8X2_AT(data, base + pos)
-            detail, pos = string(base, pos + 16, end)
-            pos += (-pos) % 8
-            if base + pos + 16 > end:
-                raise ValueError("start_ns/end_ns past the end of the message")
-            start_ns, end_ns = _I8X2_AT(data, base + pos)
-            if not detail.rstrip(b"\0"):
-                continue  # no explanation: not an episode (as decode_events reads it)
-        except (struct.error, ValueError) as err:
-            raise McapInputError(f"{topic}: malformed {FDI_EVENT_SCHEMA_NAME} message") from err
-        model = text(fault_class)
+    out = []
+    bounds = zip(
+        detector[keep].tolist(),
+        detector_size[keep].tolist(),
+        sensor_type[keep].tolist(),
+        sensor_type_size[keep].tolist(),
+        isolated.tolist(),
+        isolated_size.tolist(),
+        fault_class.tolist(),
+        fault_class_size.tolist(),
+        detail.tolist(),
+        detail_size.tolist(),
+        interval.tolist(),
+        times.tolist(),
+    )
+    for d, dn, s, sn, i, i_n, f, fn, j, jn, (low, high), (t0, t1) in bounds:
+        raw = view[j : j + jn].tobytes()
+        if not raw.rstrip(b"\0"):
+            continue  # no explanation: not an episode (as decode_events reads it)
         out.append(
             EpisodeEvent(
-                text(detector),
-                text(sensor_type),
-                start_ns,
-                end_ns,
-                text(isolated) or None,
-                model or None,
+                text(d, dn),
+                text(s, sn),
+                t0,
+                t1,
+                text(i, i_n) or None,
+                text(f, fn) or None,
                 None if math.isnan(low) else low,
                 None if math.isnan(high) else high,
-                detail=detail,
+                detail=raw,
             )
         )
     return out

@@ -248,7 +248,9 @@ def old_fdi_payload(payload: bytes, event: dict) -> bytes:
     """``payload`` (this version's FdiEvent) in the layout before ``start_ns``/``end_ns``:
     the same bytes up to the end of ``detail``."""
     detail = (
-        b"" if "episode" not in event else json.dumps(event["episode"], allow_nan=False).encode()
+        b""
+        if event.get("episode") is None
+        else json.dumps(event["episode"], allow_nan=False).encode()
     ) + b"\0"
     field = struct.pack("<I", len(detail)) + detail
     end = payload.rindex(field) + len(field)
@@ -488,3 +490,34 @@ def test_rerun_reencodes_events_of_the_older_schema(tmp_path) -> None:
     reencoded = encode_episode_events(1, episodes)
     walked = decode_episode_events(reencoded, _event_channel(FDI_EVENT_SCHEMA))
     assert [e.start_ns for e in walked] == [e["start_ns"] for e in episodes]
+
+
+def test_only_episode_events_with_an_explanation_are_episodes() -> None:
+    """The walk and the full decode agree on what an episode event is: event "episode"
+    (trailing NULs stripped, as the decoder does) with a non-empty detail."""
+    from imufdi_cli.mcapio.events import decode_episode_events, encode_fdi_event_dicts
+    from imufdi_cli.mcapio.records import MessageBatch
+    from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA
+
+    episodes = sample_episodes()[:6]
+    names = ["episode", "episode\0", "episodeX", "episod", "alarm_start", "episode"]
+    events = [
+        {
+            "detector": e["detector"],
+            "sensor_type": e["sensor_type"],
+            "event": name,
+            "t_ns": k,
+            "isolated": (e["sensors"] or [None])[0],
+            "episode": e,
+        }
+        for k, (name, e) in enumerate(zip(names, episodes))
+    ]
+    events[-1] = {**events[-1], "episode": None}  # no detail
+    batch = encode_fdi_event_dicts(1, list(range(6)), events)
+    new = decode_episode_events(batch, _event_channel(FDI_EVENT_SCHEMA))
+    assert [e.explanation() for e in new] == episodes[:2]
+    old_batch = MessageBatch.from_payloads(
+        1, batch.log_time, [old_fdi_payload(batch.payload(i), e) for i, e in enumerate(events)]
+    )
+    old = decode_episode_events(old_batch, _event_channel(old_fdi_event_schema()))
+    assert [_fields(e) for e in old] == [_fields(e) for e in new]
