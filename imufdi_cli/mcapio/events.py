@@ -18,7 +18,7 @@ import json
 import math
 import os
 import struct
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import IO, Any
 
 import numpy as np
@@ -506,6 +506,53 @@ def _numbers(
     return _gather(data, base + pos, 16).view(dtype), pos + 16
 
 
+#: episodes in a batch from which their fields are gathered with numpy, not one by one
+_VECTOR_MIN = 24
+_U32_AT = struct.Struct("<I").unpack_from
+_F8X2_AT = struct.Struct("<2d").unpack_from
+_I8X2_AT = struct.Struct("<2q").unpack_from
+
+
+def _episode_tail(view: memoryview, base: int, pos: int, end: int) -> tuple[Any, ...]:
+    """The fields after ``event`` of one episode message (``pos`` relative to ``base``,
+    the end of its encapsulation header): isolated (first byte, size), fault_class
+    (first, size), detail (first, size), (size_low, size_high), (start_ns, end_ns)."""
+
+    def string(pos: int) -> tuple[int, int, int]:
+        pos += (-pos) % 4
+        at = base + pos
+        if at + 4 > end:
+            raise _Malformed("string length past the end of the message")
+        (size,) = _U32_AT(view, at)
+        if at + 4 + size > end:
+            raise _Malformed("string past the end of the message")
+        return at + 4, size, pos + 4 + size
+
+    def numbers(pos: int, unpack: Any) -> tuple[tuple[Any, Any], int]:
+        pos += (-pos) % 8
+        if base + pos + 16 > end:
+            raise _Malformed("numbers past the end of the message")
+        return unpack(view, base + pos), pos + 16
+
+    isolated, isolated_size, pos = string(pos)
+    _, pos = numbers(pos + 1, _F8X2_AT)  # isolable; amplitude, statistic
+    fault_class, fault_class_size, pos = string(pos)
+    _, _, pos = string(pos)  # size_name
+    interval, pos = numbers(pos + (-pos) % 8 + 8, _F8X2_AT)  # size; size_low, size_high
+    detail, detail_size, pos = string(pos)
+    times, _ = numbers(pos, _I8X2_AT)
+    return (
+        isolated,
+        isolated_size,
+        fault_class,
+        fault_class_size,
+        detail,
+        detail_size,
+        interval,
+        times,
+    )
+
+
 def _walk_episode_events(batch: MessageBatch, topic: str) -> list[EpisodeEvent] | None:
     """:func:`decode_episode_events` for messages of the current FdiEvent schema (field
     order of ``FDI_EVENT_SCHEMA``: header, detector, sensor_type, event, isolated,
@@ -556,20 +603,37 @@ def _walk_episode_events(batch: MessageBatch, topic: str) -> list[EpisodeEvent] 
         )
         if keep.size == 0:
             return []
-        base, pos, end = base[keep], pos[keep], end[keep]
-        isolated, isolated_size, pos = _string_field(data, base, pos, end)
-        pos = pos + 1  # isolable
-        _, pos = _numbers(data, base, pos, end, "<f8")  # amplitude, statistic
-        fault_class, fault_class_size, pos = _string_field(data, base, pos, end)
-        _, _, pos = _string_field(data, base, pos, end)  # size_name
-        pos = pos + (-pos) % 8 + 8  # size
-        interval, pos = _numbers(data, base, pos, end, "<f8")  # size_low, size_high
-        detail, detail_size, pos = _string_field(data, base, pos, end)
-        times, pos = _numbers(data, base, pos, end, "<i8")  # start_ns, end_ns
+        view = data.data  # a memoryview: slicing it is cheaper than slicing the array
+        tails: Iterable[tuple[Any, ...]]
+        if keep.size >= _VECTOR_MIN:  # the rest of the fields, for all episodes at once
+            base, pos, end = base[keep], pos[keep], end[keep]
+            isolated, isolated_size, pos = _string_field(data, base, pos, end)
+            pos = pos + 1  # isolable
+            _, pos = _numbers(data, base, pos, end, "<f8")  # amplitude, statistic
+            fault_class, fault_class_size, pos = _string_field(data, base, pos, end)
+            _, _, pos = _string_field(data, base, pos, end)  # size_name
+            pos = pos + (-pos) % 8 + 8  # size
+            interval, pos = _numbers(data, base, pos, end, "<f8")  # size_low, size_high
+            detail, detail_size, pos = _string_field(data, base, pos, end)
+            times, pos = _numbers(data, base, pos, end, "<i8")  # start_ns, end_ns
+            tails = zip(
+                isolated.tolist(),
+                isolated_size.tolist(),
+                fault_class.tolist(),
+                fault_class_size.tolist(),
+                detail.tolist(),
+                detail_size.tolist(),
+                interval.tolist(),
+                times.tolist(),
+            )
+        else:  # a few: one by one (numpy's per-call cost would dominate)
+            tails = [
+                _episode_tail(view, b, p, e)
+                for b, p, e in zip(base[keep].tolist(), pos[keep].tolist(), end[keep].tolist())
+            ]
     except _Malformed as err:
         raise McapInputError(f"{topic}: malformed {FDI_EVENT_SCHEMA_NAME} message: {err}") from err
 
-    view = data.data  # a memoryview: slicing it is cheaper than slicing the array
     texts: dict[bytes, str] = {}  # few distinct names per batch
 
     def text(first: int, size: int) -> str:
@@ -585,16 +649,9 @@ def _walk_episode_events(batch: MessageBatch, topic: str) -> list[EpisodeEvent] 
         detector_size[keep].tolist(),
         sensor_type[keep].tolist(),
         sensor_type_size[keep].tolist(),
-        isolated.tolist(),
-        isolated_size.tolist(),
-        fault_class.tolist(),
-        fault_class_size.tolist(),
-        detail.tolist(),
-        detail_size.tolist(),
-        interval.tolist(),
-        times.tolist(),
+        tails,
     )
-    for d, dn, s, sn, i, i_n, f, fn, j, jn, (low, high), (t0, t1) in bounds:
+    for d, dn, s, sn, (i, i_n, f, fn, j, jn, (low, high), (t0, t1)) in bounds:
         raw = view[j : j + jn].tobytes()
         if not raw.rstrip(b"\0"):
             continue  # no explanation: not an episode (as decode_events reads it)

@@ -339,7 +339,16 @@ def _mixed_batch(episodes: list[dict]):
     return MessageBatch.from_payloads(1, np.array(times), payloads)
 
 
-def test_episode_events_walked_as_decoded_in_full() -> None:
+@pytest.fixture(params=["one by one", "with numpy"])
+def walk(request, monkeypatch):
+    """Both ways the walk reads the episodes' fields (a few per batch, or many)."""
+    from imufdi_cli.mcapio import events
+
+    monkeypatch.setattr(events, "_VECTOR_MIN", 10**9 if request.param == "one by one" else 1)
+    return request.param
+
+
+def test_episode_events_walked_as_decoded_in_full(walk) -> None:
     """The typed fields the report matches on, walked without decoding the alarms or the
     JSON, equal those of the full decode; the explanation parses back to the dict."""
     from imufdi_cli.mcapio.events import EpisodeEvent, decode_episode_events
@@ -365,7 +374,7 @@ def test_episode_events_walked_as_decoded_in_full() -> None:
     assert [e.end_ns for e in walked] == [e["end_ns"] for e in episodes]
 
 
-def test_episode_events_of_the_older_schema_give_the_same_fields() -> None:
+def test_episode_events_of_the_older_schema_give_the_same_fields(walk) -> None:
     """Files written before start_ns/end_ns (their own schema text in the file) decode in
     full and give the same fields and explanations."""
     from imufdi_cli.mcapio.events import decode_episode_events, is_current_fdi_channel
@@ -420,7 +429,7 @@ def _big_endian_fdi_event(episode: dict) -> bytes:
     return b"\x00\x00\x00\x00" + bytes(body)
 
 
-def test_big_endian_episode_events_are_decoded_in_full() -> None:
+def test_big_endian_episode_events_are_decoded_in_full(walk) -> None:
     from imufdi_cli.mcapio.events import decode_episode_events
     from imufdi_cli.mcapio.records import MessageBatch
     from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA
@@ -434,7 +443,7 @@ def test_big_endian_episode_events_are_decoded_in_full() -> None:
     assert [e.start_ns for e in decoded] == [e["start_ns"] for e in episodes]
 
 
-def test_malformed_episode_events_are_input_errors() -> None:
+def test_malformed_episode_events_are_input_errors(walk) -> None:
     from imufdi_cli.mcapio.events import decode_episode_events, encode_episode_events
     from imufdi_cli.mcapio.records import MessageBatch
     from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA
@@ -492,7 +501,7 @@ def test_rerun_reencodes_events_of_the_older_schema(tmp_path) -> None:
     assert [e.start_ns for e in walked] == [e["start_ns"] for e in episodes]
 
 
-def test_only_episode_events_with_an_explanation_are_episodes() -> None:
+def test_only_episode_events_with_an_explanation_are_episodes(walk) -> None:
     """The walk and the full decode agree on what an episode event is: event "episode"
     (trailing NULs stripped, as the decoder does) with a non-empty detail."""
     from imufdi_cli.mcapio.events import decode_episode_events, encode_fdi_event_dicts
