@@ -7,13 +7,22 @@ about a quarter of detect time on alarm-heavy logs. Events are now encoded per b
 times both ways of writing the same events (K alarm changes in blocks of 4096 samples,
 into an in-memory MCAP) and prints the ratio.
 
-    python benchmarks/bench_events.py [--events 20000] [--repeat 3]
+Reading (issue 22, report's cost of the episodes): ``--episodes E`` episode events (an
+explanation with every fault model's fit, about 2 kB of JSON each) are interleaved with
+the alarm events in batches of ``--per-batch`` messages, and read the way ``imufdi
+report`` reads them now (:func:`~imufdi_cli.mcapio.events.decode_episode_events`: the
+typed fields, no JSON) and the way it did before session 21 (every message decoded, every
+explanation's JSON parsed). Prints both per message, and their ratio.
+
+    python benchmarks/bench_events.py [--events 20000] [--episodes 2000] [--repeat 3]
 """
 
 from __future__ import annotations
 
 import argparse
 import io
+import json
+import os
 import time
 
 import numpy as np
@@ -78,11 +87,111 @@ def one_by_one(events: dict[str, np.ndarray]) -> int:
     return len(out.getvalue())
 
 
+def _episode(k: int) -> dict:
+    """An explanation as detect writes it: every model fitted, spikes with its rate."""
+    from imufdi_cli.episodes import MODELS, Episode, FaultFit
+
+    start = 10**12 + k * 10**9
+    fits = [
+        FaultFit(model, 0.01 * j, 0.009 * j, 0.011 * j, 40 + j, -1000.0 + j, {"rate_hz": 2.5})
+        for j, model in enumerate(MODELS)
+    ]
+    return Episode(
+        detector="glt",
+        sensor_type="gyro",
+        start_ns=start,
+        end_ns=start + 123_456_789,
+        decided_start_ns=start + 5_000_000,
+        decided_end_ns=start + 128_456_789,
+        alarms=17,
+        sensors=[IDS[k % 3], IDS[(k + 1) % 3]],
+        peak_ratio=3.25,
+        runner_up=IDS[(k + 1) % 3],
+        runner_up_share=0.125,
+        fits=fits,
+        amplitude=0.0123,
+    ).to_dict()
+
+
+def reading(events: dict[str, np.ndarray], n_episodes: int, per_batch: int, repeat: int) -> None:
+    """Time reading alarm and episode events: the report's walk against a full decode."""
+    from imufdi_cli.mcapio.events import (
+        EVENTS_TOPIC,
+        EpisodeEvent,
+        decode_episode_events,
+        decode_events,
+        encode_episode_events,
+    )
+    from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch, SchemaInfo
+    from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA, FDI_EVENT_SCHEMA_NAME
+
+    schema = SchemaInfo(1, FDI_EVENT_SCHEMA_NAME, "ros2msg", FDI_EVENT_SCHEMA)
+    channel = ChannelInfo(1, EVENTS_TOPIC, "cdr", {}, schema)
+    n = events["t_ns"].shape[0]
+    alarms = encode_fdi_events(
+        1,
+        events["t_ns"],
+        detector="glt",
+        sensor_type="gyro",
+        sensor_ids=IDS,
+        alarm=events["alarm"],
+        isolated=events["isolated"],
+        amplitude=events["amplitude"],
+        statistic=events["statistic"],
+    )
+    explained = encode_episode_events(1, [_episode(k) for k in range(n_episodes)])
+    # episodes spread evenly among the alarms
+    order = np.argsort(
+        np.concatenate([np.arange(n) / n, np.arange(n_episodes) / max(n_episodes, 1)]),
+        kind="stable",
+    )
+    payloads = [alarms.payload(i) for i in range(n)]
+    payloads += [explained.payload(i) for i in range(n_episodes)]
+    joined = MessageBatch.from_payloads(1, np.arange(len(order)), [payloads[i] for i in order])
+    batches = [joined.select(slice(i, i + per_batch)) for i in range(0, len(order), per_batch)]
+
+    def walk() -> int:
+        return sum(len(decode_episode_events(b, channel)) for b in batches)
+
+    def full() -> int:
+        return sum(
+            len(
+                [
+                    EpisodeEvent.from_explanation(e["episode"])
+                    for e in decode_events(b, channel)
+                    if "episode" in e
+                ]
+            )
+            for b in batches
+        )
+
+    times: dict[str, list[float]] = {"walk": [], "full decode": []}
+    for _ in range(repeat):
+        for name, fn in (("walk", walk), ("full decode", full)):
+            start = time.process_time()
+            found = fn()
+            times[name].append(time.process_time() - start)
+            assert found == n_episodes
+    best = {k: min(v) for k, v in times.items()}
+    size = len(json.dumps(_episode(0)))
+    print(
+        f"reading {n} alarm events and {n_episodes} episode events ({size} B of JSON each),"
+        f" {per_batch} per batch, best of {repeat} (CPU):"
+    )
+    for name, seconds in best.items():
+        print(
+            f"  {name:12s} {seconds * 1e3:8.1f} ms  ({seconds / len(order) * 1e6:.2f} us/message)"
+        )
+    print(f"  ratio full decode / walk: {best['full decode'] / best['walk']:.1f}x")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--events", type=int, default=20000)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--per-block", type=int, default=200, help="events per 4096-sample block")
+    parser.add_argument("--episodes", type=int, default=2000, help="episode events to read")
+    parser.add_argument("--per-batch", type=int, default=400, help="messages per batch read")
     args = parser.parse_args()
     events = _events(args.events)
     times = {"bulk": [], "one by one": []}
@@ -102,6 +211,8 @@ def main() -> None:
             f"  {name:10s} {seconds * 1e3:8.1f} ms  ({seconds / args.events * 1e6:.2f} us/event, {sizes[name]} bytes)"
         )
     print(f"  ratio one-by-one / bulk: {best['one by one'] / best['bulk']:.1f}x")
+    reading(events, args.episodes, args.per_batch, args.repeat)
+    print(f"load average {', '.join(f'{x:.1f}' for x in os.getloadavg())}")
 
 
 if __name__ == "__main__":
