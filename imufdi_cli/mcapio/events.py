@@ -10,6 +10,10 @@ channels, which are still read):
   "t_ns", "isolated": sensor id or None, "isolable", "amplitude": float or None,
   "statistic"}``, and for ``episode`` events ``"episode"``: the explanation
   (:meth:`imufdi_cli.episodes.Episode.to_dict`)
+
+``imufdi report`` reads episodes with :func:`decode_episode_events` instead: the typed
+fields of each ``episode`` message (:class:`EpisodeEvent`), its JSON parsed only on
+demand, the alarm starts and ends skipped without being decoded.
 """
 
 from __future__ import annotations
