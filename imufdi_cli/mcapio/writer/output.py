@@ -28,12 +28,17 @@ WRITE_BEHIND_FROM = 64 << 10
 
 
 class _WriteBehind:
-    """Writes a file output's bytes on a thread of its own, in call order, so that the
+    """Writes a file output's bytes on a thread of their own, in call order, so that the
     kernel's copy into the page cache (and a stall there) does not hold up the caller's
     thread; the write releases the GIL, so the copy runs beside the caller's work.
 
-    At most ``limit`` bytes wait (memory stays flat). The first error of a write is kept:
-    nothing after it is written, and the next :meth:`write` and :meth:`finish` raise it.
+    At most ``limit`` bytes wait (memory stays flat). The thread is woken only once
+    ``wake`` bytes wait (or at :meth:`finish`), and then writes everything queued: one
+    wake-up per megabyte or so instead of one per call, so the caller's thread is not
+    asked for the GIL after every chunk, index and header piece it queues (each such
+    hand-off costs the caller up to the switch interval; docs/performance.md, "Write
+    side, session 21"). The first error of a write is kept: nothing after it is written,
+    and the next :meth:`write` and :meth:`finish` raise it.
 
     Parameters
     ----------
@@ -41,15 +46,21 @@ class _WriteBehind:
         ``write(data)`` of the output stream (looked up by the caller at each call).
     limit : int
         Bytes queued at most before :meth:`write` waits.
+    wake : int
+        Bytes queued before the thread is woken (below ``limit``).
     """
 
-    def __init__(self, write: Callable[[bytes], object], limit: int = 4 << 20) -> None:
+    def __init__(
+        self, write: Callable[[bytes], object], limit: int = 4 << 20, wake: int = 1 << 20
+    ) -> None:
         self._sink = write
         self._limit = limit
+        self._wake = min(wake, limit)
         self._queue: deque[bytes] = deque()
         self._queued = 0
         self._error: BaseException | None = None
         self._closing = False
+        self._cancelled = False
         self._cond = threading.Condition()
         self._thread = threading.Thread(target=self._run, name="mcap-write", daemon=True)
         self._thread.start()
@@ -63,28 +74,34 @@ class _WriteBehind:
                 raise self._error
             self._queue.append(data)
             self._queued += len(data)
-            self._cond.notify_all()
+            if self._queued >= self._wake:
+                self._cond.notify_all()
 
     def _run(self) -> None:
         while True:
             with self._cond:
-                while not self._queue and not self._closing:
+                while not self._closing and (self._queued < self._wake or not self._queue):
                     self._cond.wait()
                 if not self._queue:
                     return
-                data = self._queue.popleft()
-            try:
-                self._sink(data)
-            except BaseException as err:  # kept for the caller's thread
+                batch = list(self._queue)  # everything queued, written in order below
+                self._queue.clear()
+            for data in batch:
+                try:
+                    self._sink(data)
+                except BaseException as err:  # kept for the caller's thread
+                    with self._cond:
+                        self._error = err
+                        self._queue.clear()
+                        self._queued = 0
+                        self._cond.notify_all()
+                    return
                 with self._cond:
-                    self._error = err
-                    self._queue.clear()
-                    self._queued = 0
-                    self._cond.notify_all()
-                return
-            with self._cond:
-                self._queued -= len(data)
-                self._cond.notify_all()
+                    if self._cancelled:
+                        return  # the rest of the batch is dropped too
+                    self._queued -= len(data)
+                    if self._queued < self._limit:
+                        self._cond.notify_all()  # a caller waiting for room (or finish)
 
     def finish(self) -> None:
         """Wait until everything queued is written; raise the first write error."""
@@ -101,6 +118,7 @@ class _WriteBehind:
             self._queue.clear()
             self._queued = 0
             self._closing = True
+            self._cancelled = True
             self._cond.notify_all()
         self._thread.join()
 
