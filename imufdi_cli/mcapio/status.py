@@ -134,11 +134,11 @@ def _put(out: np.ndarray, offset: int, values: np.ndarray, dtype: str) -> None:
     Copied as one ``width``-byte item per row (a 1-D strided copy of N items), not as an
     (N, width) byte block (numpy's byte loop per row costs several times more)."""
     raw = np.ascontiguousarray(values, dtype=dtype)
-    width = raw.dtype.itemsize * (raw.shape[1] if raw.ndim == 2 else 1)
+    count = raw.shape[1] if raw.ndim == 2 else 1
+    width = raw.dtype.itemsize * count
     item = np.dtype((np.void, width))
-    out[:, offset : offset + width].view(item)[:, 0] = raw.reshape(out.shape[0], -1).view(item)[
-        :, 0
-    ]
+    rows = raw.reshape(out.shape[0], count).view(item)[:, 0]
+    out[:, offset : offset + width].view(item)[:, 0] = rows
 
 
 #: Byte offsets of the Message record header's fields.
