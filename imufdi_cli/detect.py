@@ -310,7 +310,7 @@ def detect_file(
     time_source: str = "auto",
     explain: bool = True,
     progress: ProgressCallback | None = None,
-    read_ahead: bool = True,
+    read_ahead: bool | None = None,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -337,17 +337,21 @@ def detect_file(
         Write an explained ``episode`` event for every alarm episode (docs/episodes.md).
     progress : callable, optional
         ``progress(seconds done, log seconds or None)`` (:mod:`imufdi_cli.progress`).
-    read_ahead : bool
+    read_ahead : bool or None
         Decompress the input's large chunks on a worker thread ahead of their use
         (:class:`~imufdi_cli.mcapio.McapSource`); the output is the same either way.
+        Default (None): the reader's default, off unless ``IMUFDI_READ_AHEAD=1``. Off,
+        detect takes less CPU and (on two cores) less time: the worker thread and the
+        main thread share the GIL, and the hand-offs cost the main thread about what the
+        decompression it moves off (docs/performance.md, "Write side, session 21").
 
     Returns
     -------
     DetectResult
     """
     instances, notes = make_detectors((name, dict(params)) for name, params in detectors)
-    # the input's large chunks are decompressed on a worker thread ahead of their use
-    # (read_ahead): the caller's thread, which reads, detects and copies, is the slowest
+    # read in line by default: reading ahead on a worker thread costs more CPU and time
+    # than it moves off this thread (GIL hand-offs; docs/performance.md)
     log = McapSource(source, strict=strict, keep_raw_chunks=True, read_ahead=read_ahead)
     try:
         reader = ImuArrayReader(log, topics=topics, strict=strict, time_source=time_source)

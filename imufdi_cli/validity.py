@@ -308,6 +308,21 @@ class Conditioner:
         }
 
 
+def _none_flagged(raw: np.ndarray, sensor_type: str, full_scale: float | None) -> bool:
+    """True when :func:`flag_values` would flag no value of ``raw``: every value finite and
+    below both the clipping level and the absurd magnitude (two reductions instead of the
+    flags' passes; NaN fails the comparisons, so any NaN or inf says False)."""
+    if raw.size == 0:
+        return True
+    limit = ABSURD[sensor_type]
+    low, high = float(np.min(raw)), float(np.max(raw))
+    within = -limit <= low and high <= limit  # NaN: False
+    if full_scale is not None:
+        clip = CLIP_FRACTION * full_scale
+        within = within and -clip < low and high < clip
+    return within and np.isfinite(low) and np.isfinite(high)
+
+
 class ValidityCounter:
     """Rows with clipped or invalid raw values per sensor type (``ingest`` records them
     in ``imufdi.ingest``; ``info`` shows them)."""
@@ -321,9 +336,12 @@ class ValidityCounter:
             data = block.get(s)
             if data is None:
                 continue
-            clipped, invalid = flag_values(data, s, self.array.range.get(s))
+            full_scale = self.array.range.get(s)
             entry = self.counts.setdefault(s, {"rows": 0, "clipped": 0, "invalid": 0})
             entry["rows"] += len(block)
+            if _none_flagged(data, s, full_scale):
+                continue
+            clipped, invalid = flag_values(data, s, full_scale)
             entry["clipped"] += int(np.count_nonzero(clipped.any(axis=(1, 2))))
             entry["invalid"] += int(np.count_nonzero(invalid.any(axis=(1, 2))))
         return block

@@ -203,19 +203,25 @@ def test_no_explain_writes_the_same_status_and_alarms_without_episodes(sim_log, 
 
 
 def test_read_ahead_gives_the_same_output_and_its_thread_ends(sim_log, tmp_path):
-    """detect decompresses the input's large chunks on a worker thread (read_ahead, the
-    default): the same file as without, and the thread is shut down when detect returns,
-    or when it fails."""
+    """detect may decompress the input's large chunks on a worker thread (read_ahead; off
+    by default, as the reader's): the same file as without and as the default, and the
+    thread is shut down when detect returns, or when it fails."""
     import threading
 
     outputs = []
-    for read_ahead in (False, True):
+    for read_ahead in (False, True, None):
         out = tmp_path / f"{read_ahead}.mcap"
         detect_file(str(sim_log), str(out), [("glt", {})], explain=False, read_ahead=read_ahead)
         outputs.append(out.read_bytes())
-    assert outputs[0] == outputs[1]
+    assert outputs[0] == outputs[1] == outputs[2]
     with pytest.raises(CalibrationError):
-        detect_file(str(sim_log), str(tmp_path / "x.mcap"), [("glt", {})], calibrate=(50.0, 60.0))
+        detect_file(
+            str(sim_log),
+            str(tmp_path / "x.mcap"),
+            [("glt", {})],
+            calibrate=(50.0, 60.0),
+            read_ahead=True,
+        )
     for thread in threading.enumerate():
         if thread.name.startswith("imufdi-chunks"):
             thread.join(5)

@@ -11,6 +11,7 @@ from imufdi_cli.validity import (
     CLIP_FRACTION,
     Conditioner,
     Runs,
+    ValidityCounter,
     apply_calibration,
     flag_values,
     select_rows,
@@ -43,6 +44,34 @@ def test_flags():
     clipped, invalid = flag_values(raw, "gyro", None)
     assert not clipped.any()
     assert invalid[1, 0] and not invalid[2, 1]
+
+
+def test_validity_counter_counts_as_the_flags_whether_or_not_anything_is_flagged():
+    # ValidityCounter skips flag_values when min and max show nothing can flag: the counts
+    # must be those of the flags, for clean blocks and for each kind of flagged value
+    array = _array()
+    fs = array.range["gyro"]
+    specials = [None, np.nan, np.inf, -np.inf, 2e3, -1.5 * fs, CLIP_FRACTION * fs, -0.999 * fs]
+    for k, value in enumerate(specials):
+        block = _block(n_rows=50, seed=k)
+        if value is not None:
+            block.gyro[7 + k, k % 4, k % 3] = value  # type: ignore[index]
+        counter = ValidityCounter(array)
+        counter.count(block)
+        for s in ("gyro", "accel"):
+            clipped, invalid = flag_values(block.get(s), s, array.range.get(s))
+            assert counter.counts[s] == {
+                "rows": 50,
+                "clipped": int(clipped.any(axis=(1, 2)).sum()),
+                "invalid": int(invalid.any(axis=(1, 2)).sum()),
+            }, (value, s)
+    # without ranges: only non-finite and absurd values count
+    bare = ValidityCounter(ArrayConfig.co_aligned(4, rate_hz=100.0))
+    block = _block(n_rows=20)
+    block.gyro[3, 0, 0] = 5.0 * fs  # type: ignore[index]  (no range: not flagged)
+    block.gyro[4, 1, 1] = 2e3  # type: ignore[index]  (absurd)
+    bare.count(block)
+    assert bare.counts["gyro"] == {"rows": 20, "clipped": 0, "invalid": 1}
 
 
 def test_flagged_sensor_replaced_by_consensus_and_counted():

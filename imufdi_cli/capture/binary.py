@@ -386,10 +386,11 @@ def _decode_triads(layout: Layout, frames: np.ndarray, n_imus: int) -> dict[str,
             # the triad's integers gathered first, then one cast (byte order included):
             # no float64 copy of the fields no triad uses
             raw = np.take(columns, [item.offset // size for item in triad], axis=2)
-            values = raw.astype(np.float64)
             if triad[0].scale == triad[1].scale == triad[2].scale:
-                values *= triad[0].scale
+                # cast and product in one pass: float64(raw) * scale, as cast-then-scale
+                values = np.multiply(raw, triad[0].scale, dtype=np.float64)
             else:
+                values = raw.astype(np.float64)
                 for axis, item in enumerate(triad):
                     values[..., axis] *= item.scale
             triads[sensor] = values

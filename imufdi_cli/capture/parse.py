@@ -219,10 +219,12 @@ def ingest(
         target = Path(output) if isinstance(output, os.PathLike) else output
         with mcapio.McapWriter(target, **writer_options) as writer:
             imu_writer = mcapio.ImuArrayWriter(writer, array)
-            imu_writer.write_block(anchored(first))
+            # the parser (and the calibration) make new arrays for every block and nothing
+            # here touches them afterwards: handed over to the writer without copies
+            imu_writer.write_block(anchored(first), owned=True)
             size = _capture_size(source) if progress is not None else None
             for block in blocks:
-                imu_writer.write_block(anchored(block))
+                imu_writer.write_block(anchored(block), owned=True)
                 if progress is not None:
                     progress(float(stats.bytes_total), size)
             if progress is not None:

@@ -228,7 +228,9 @@ class _ImuRecords:
     """The Message records of a slice of samples, for every IMU (sample-major: for each
     stamp imu0..imu(m-1)), built on the writer's worker thread
     (:class:`~imufdi_cli.mcapio.writer.RecordSource`). Holds its own copies of the
-    samples, so the caller may reuse its arrays once ``write_block`` returns."""
+    samples, so the caller may reuse its arrays once ``write_block`` returns, unless
+    ``owned``: then the caller has handed the triads over (it never modifies them
+    afterwards) and they are kept as they are when already little-endian float64."""
 
     def __init__(
         self,
@@ -238,6 +240,8 @@ class _ImuRecords:
         first_sequence: int,
         gyro: np.ndarray | None,
         accel: np.ndarray | None,
+        *,
+        owned: bool = False,
     ) -> None:
         self.template = template
         self.m = m
@@ -246,8 +250,9 @@ class _ImuRecords:
         # built here, on the caller's thread (small arrays), so the worker thread's fill is
         # a few large copies; these and the triads are this source's own copies
         self.stamp = template.stamps(t_ns, sequence.astype(np.uint32))
-        self.gyro = None if gyro is None else np.array(gyro, dtype="<f8")
-        self.accel = None if accel is None else np.array(accel, dtype="<f8")
+        keep = np.asarray if owned else np.array  # (asarray: no copy of "<f8" arrays)
+        self.gyro = None if gyro is None else keep(gyro, dtype="<f8")
+        self.accel = None if accel is None else keep(accel, dtype="<f8")
 
     @property
     def record_size(self) -> int:
@@ -347,15 +352,21 @@ class ImuArrayWriter:
         self._written = 0
         self._imu_records = _RecordTemplate(self.frame_ids, self.imu_channels)
 
-    def write_block(self, block: ImuBlock) -> None:
-        """Bulk-encode a block (all IMUs) and queue it, messages in time order."""
+    def write_block(self, block: ImuBlock, *, owned: bool = False) -> None:
+        """Bulk-encode a block (all IMUs) and queue it, messages in time order.
+
+        With ``owned`` the caller hands the block's arrays over: it never modifies them
+        afterwards (e.g. ``ingest``, whose parser makes new arrays for every block), so
+        the writer keeps them until their records are built instead of copying them. The
+        output is the same bytes either way.
+        """
         n = len(block)
         if n == 0:
             return
         if block.n_imus != self.array.n_imus:
             raise UsageError(f"block has {block.n_imus} IMUs but the array has {self.array.n_imus}")
         if self._imu_records.uniform and not (self.mag_channels and block.mag is not None):
-            self._write_imu_records(block)
+            self._write_imu_records(block, owned=owned)
             return
         # (kind, frame id, channel id, vectors) of every channel, in message order per sample
         channels: list[tuple[str, str, int, dict[str, np.ndarray | None]]] = []
@@ -416,7 +427,7 @@ class ImuArrayWriter:
             self.writer.add_batch(batch)
         self._written += n
 
-    def _write_imu_records(self, block: ImuBlock) -> None:
+    def _write_imu_records(self, block: ImuBlock, *, owned: bool = False) -> None:
         """Imu messages only: queue the block's records, in slices of about 4 MB, to be
         built (constant bytes from a template, then one stamp item and two triad items
         per record) straight into the chunk buffers on the writer's worker threads. The
@@ -435,6 +446,7 @@ class ImuArrayWriter:
                 self._written + start,
                 None if block.gyro is None else block.gyro[start:stop],
                 None if block.accel is None else block.accel[start:stop],
+                owned=owned,
             )
             self.writer.add_record_source(
                 source, np.tile(ids, stop - start), np.repeat(block.t_ns[start:stop], m)

@@ -81,6 +81,29 @@ def test_missing_vectors_are_nan_in_both_paths() -> None:
     )
 
 
+@pytest.mark.parametrize("chunk_size", [700, 1 << 20])
+def test_owned_blocks_write_the_same_bytes_without_copies(chunk_size) -> None:
+    # write_block(owned=True) keeps the caller's triads (ingest hands its parser's new
+    # arrays over) instead of copying them: the same file either way
+    whole = make_block(301, 5, seed=4)
+    blocks = [whole.slice(a, b) for a, b in itertools.pairwise([0, 7, 150, 301])]
+
+    def write(owned: bool) -> bytes:
+        out = io.BytesIO()
+        with McapWriter(out, compression="zstd", chunk_size=chunk_size) as writer:
+            imu_writer = ImuArrayWriter(writer, ArrayConfig.co_aligned(5, 100.0))
+            for block in blocks:
+                imu_writer.write_block(block, owned=owned)
+        return out.getvalue()
+
+    assert write(owned=True) == write(owned=False)
+    kept = ImuArrayWriter(McapWriter(io.BytesIO()), ArrayConfig.co_aligned(5, 100.0))
+    kept.write_block(blocks[1], owned=True)
+    source = kept.writer._pending[-1].source
+    assert np.shares_memory(source.gyro, blocks[1].gyro)  # not copied
+    kept.writer.abort()
+
+
 def test_the_block_may_change_once_written(tmp_path) -> None:
     block = make_block(2000, 4, seed=2)
     expected = (block.gyro.copy(), block.accel.copy())  # type: ignore[union-attr]

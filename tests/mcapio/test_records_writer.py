@@ -342,6 +342,36 @@ def test_a_file_written_behind_is_the_bytes_of_a_stream(tmp_path, monkeypatch):
     assert (tmp_path / "a.mcap").read_bytes() == stream.getvalue()
 
 
+def test_short_writev_writes_go_on_where_they_stopped(tmp_path, monkeypatch):
+    """The write-behind thread writes its pieces with ``os.writev``, which may write less
+    than asked: the rest follows, byte for byte."""
+    from imufdi_cli.mcapio.writer import output
+
+    monkeypatch.setattr(output, "WRITE_BEHIND_FROM", 1024)
+    calls = []
+    writev = os.writev
+
+    def short(fd, buffers):  # at most 1000 bytes a call, cut inside a piece
+        calls.append(len(buffers))
+        head, left = [], 1000
+        for buffer in buffers:
+            view = memoryview(buffer)[:left]
+            head.append(view)
+            left -= len(view)
+            if not left:
+                break
+        return writev(fd, head)
+
+    monkeypatch.setattr(os, "writev", short)
+    stream = io.BytesIO()
+    with _write_blobs(stream):
+        pass
+    with _write_blobs(tmp_path / "a.mcap") as writer:
+        assert writer._behind is not None
+    assert calls and max(calls) > 1  # several pieces per call
+    assert (tmp_path / "a.mcap").read_bytes() == stream.getvalue()
+
+
 @pytest.mark.parametrize("on_close", [False, True])
 def test_disk_full_behind_the_caller_leaves_no_temp_and_keeps_the_target(
     tmp_path, monkeypatch, on_close

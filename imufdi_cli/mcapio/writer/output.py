@@ -25,31 +25,48 @@ from imufdi_cli.mcapio.writer.parts import _ChunkJob, _RecordPart, _SourcePart
 #: A file output's bytes go through a thread of their own (:class:`_WriteBehind`) from
 #: the first write of at least this size on (a chunk): small files never start one.
 WRITE_BEHIND_FROM = 64 << 10
+#: Pieces handed to one write of the write-behind thread (one ``writev`` system call).
+_PIECES_PER_WRITE = 64
 
 
 class _WriteBehind:
-    """Writes a file output's bytes on a thread of its own, in call order, so that the
+    """Writes a file output's bytes on a thread of their own, in call order, so that the
     kernel's copy into the page cache (and a stall there) does not hold up the caller's
     thread; the write releases the GIL, so the copy runs beside the caller's work.
 
-    At most ``limit`` bytes wait (memory stays flat). The first error of a write is kept:
-    nothing after it is written, and the next :meth:`write` and :meth:`finish` raise it.
+    At most ``limit`` bytes wait (memory stays flat). The thread is woken only once
+    ``wake`` bytes wait (or at :meth:`finish`), and then writes everything queued: one
+    wake-up per megabyte or so instead of one per call, so the caller's thread is not
+    asked for the GIL after every chunk, index and header piece it queues (each such
+    hand-off costs the caller up to the switch interval; docs/performance.md, "Write
+    side, session 21"). The first error of a write is kept: nothing after it is written,
+    and the next :meth:`write` and :meth:`finish` raise it.
 
     Parameters
     ----------
     write : callable
-        ``write(data)`` of the output stream (looked up by the caller at each call).
+        ``write(pieces)``: writes a list of bytes objects, in order (the output's
+        :meth:`_Output._stream_write_many`).
     limit : int
         Bytes queued at most before :meth:`write` waits.
+    wake : int
+        Bytes queued before the thread is woken (below ``limit``).
     """
 
-    def __init__(self, write: Callable[[bytes], object], limit: int = 4 << 20) -> None:
+    def __init__(
+        self,
+        write: Callable[[list[bytes]], object],
+        limit: int = 4 << 20,
+        wake: int = 1 << 20,
+    ) -> None:
         self._sink = write
         self._limit = limit
+        self._wake = min(wake, limit)
         self._queue: deque[bytes] = deque()
         self._queued = 0
         self._error: BaseException | None = None
         self._closing = False
+        self._cancelled = False
         self._cond = threading.Condition()
         self._thread = threading.Thread(target=self._run, name="mcap-write", daemon=True)
         self._thread.start()
@@ -63,28 +80,37 @@ class _WriteBehind:
                 raise self._error
             self._queue.append(data)
             self._queued += len(data)
-            self._cond.notify_all()
+            if self._queued >= self._wake:
+                self._cond.notify_all()
 
     def _run(self) -> None:
         while True:
             with self._cond:
-                while not self._queue and not self._closing:
+                while not self._closing and (self._queued < self._wake or not self._queue):
                     self._cond.wait()
                 if not self._queue:
                     return
-                data = self._queue.popleft()
-            try:
-                self._sink(data)
-            except BaseException as err:  # kept for the caller's thread
+                batch = list(self._queue)  # everything queued, written in order below
+                self._queue.clear()
+            # a few pieces at a time (each write releases the GIL), so that room is made
+            # for a waiting caller before the whole batch is written
+            for first in range(0, len(batch), _PIECES_PER_WRITE):
+                pieces = batch[first : first + _PIECES_PER_WRITE]
+                try:
+                    self._sink(pieces)
+                except BaseException as err:  # kept for the caller's thread
+                    with self._cond:
+                        self._error = err
+                        self._queue.clear()
+                        self._queued = 0
+                        self._cond.notify_all()
+                    return
                 with self._cond:
-                    self._error = err
-                    self._queue.clear()
-                    self._queued = 0
-                    self._cond.notify_all()
-                return
-            with self._cond:
-                self._queued -= len(data)
-                self._cond.notify_all()
+                    if self._cancelled:
+                        return  # the rest of the batch is dropped too
+                    self._queued -= sum(len(piece) for piece in pieces)
+                    if self._queued < self._limit:
+                        self._cond.notify_all()  # a caller waiting for room (or finish)
 
     def finish(self) -> None:
         """Wait until everything queued is written; raise the first write error."""
@@ -101,6 +127,7 @@ class _WriteBehind:
             self._queue.clear()
             self._queued = 0
             self._closing = True
+            self._cancelled = True
             self._cond.notify_all()
         self._thread.join()
 
@@ -110,6 +137,9 @@ class _Output:
 
     # the output (this class)
     _stream: IO[bytes]
+    #: the file this writer opened (a temporary file) and its descriptor, else None
+    _file: IO[bytes] | None
+    _fd: int | None
     _behind: _WriteBehind | None
     _final_path: Path | None
     _temp_path: Path | None
@@ -145,6 +175,8 @@ class _Output:
         self._temp_path = None
         self._owns_stream = False
         self._behind = None
+        self._file = None
+        self._fd = None
         if isinstance(output, (str, os.PathLike)) and os.fspath(output) == "-":
             self._stream = sys.stdout.buffer
         elif isinstance(output, (str, os.PathLike)):
@@ -158,6 +190,7 @@ class _Output:
                 fd, temp = create_temp(final)  # the one output path (imufdi_cli.fileio)
                 self._temp_path = temp
                 self._stream = io.BufferedWriter(io.FileIO(fd, "wb"), buffer_size=1 << 20)
+                self._file, self._fd = self._stream, fd  # (the write-behind thread's writev)
             self._owns_stream = True
         else:
             self._stream = output
@@ -170,7 +203,7 @@ class _Output:
         size = len(raw)
         try:
             if self._behind is None and self._temp_path is not None and size >= WRITE_BEHIND_FROM:
-                self._behind = _WriteBehind(self._stream_write)
+                self._behind = _WriteBehind(self._stream_write_many)
             if self._behind is not None:
                 self._behind.write(raw if isinstance(raw, bytes) else bytes(raw))
             else:
@@ -179,8 +212,27 @@ class _Output:
             self._write_failed(err)
         self._position += size
 
-    def _stream_write(self, data: bytes) -> None:
-        self._stream.write(data)
+    def _stream_write_many(self, pieces: list[bytes]) -> None:
+        """Write ``pieces`` in order (the write-behind thread). To the file this writer
+        opened: its buffer flushed, then one ``os.writev`` of the pieces (no copy into the
+        buffer, which would hold the GIL for each byte copied, and one system call);
+        to any other stream (``self._stream`` replaced), one ``write`` per piece."""
+        stream = self._stream
+        fd = self._fd
+        if fd is None or stream is not self._file:
+            for piece in pieces:
+                stream.write(piece)
+            return
+        stream.flush()  # (empty once the first pieces have gone this way)
+        views = [memoryview(piece) for piece in pieces if len(piece)]
+        while views:
+            written = os.writev(fd, views)
+            # a short write: drop what went out, write the rest
+            while views and written >= len(views[0]):
+                written -= len(views[0])
+                views.pop(0)
+            if views and written:
+                views[0] = views[0][written:]
 
     def _write_failed(self, err: OSError) -> None:
         """A file output that cannot be written (ENOSPC, EFBIG, EIO) is an OutputError
