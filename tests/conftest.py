@@ -129,16 +129,20 @@ def _bytecode_is_fresh(source: Path, pyc: Path) -> bool:
 def _sources_to_compile(config: pytest.Config) -> list[tuple[Path, bool]]:
     """``(file, rewritten)`` for the test files of this run's paths (``rewritten``: a file
     pytest imports through its assertion rewriter, i.e. a ``conftest.py`` or one matching
-    ``python_files``, when asserts are rewritten) and every module of ``imufdi_cli``."""
+    ``python_files``, when asserts are rewritten) and, when a path is a directory (a run
+    of many test files, which import most of the package), every module of
+    ``imufdi_cli``."""
     from fnmatch import fnmatch
 
     rewrite = config.getoption("assertmode") == "rewrite"
     patterns = [*config.getini("python_files"), "conftest.py"]
     root = Path(config.rootpath)
-    trees = {root / "imufdi_cli"}
+    trees = set()
     for arg in config.args:
         path = Path(arg.split("::", 1)[0])
         trees.add(path if path.is_absolute() else Path(config.invocation_params.dir) / path)
+    if any(tree.is_dir() for tree in trees):
+        trees.add(root / "imufdi_cli")
     files: dict[Path, bool] = {}
     for tree in trees:
         for file in [tree] if tree.is_file() else sorted(tree.rglob("*.py")):
