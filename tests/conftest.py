@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import gc
+import importlib.util
 import os
 import sys
 from collections.abc import Generator
+from pathlib import Path
 
 import pytest
 
@@ -104,12 +106,118 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     gc.enable()
 
 
+def _bytecode_is_fresh(source: Path, pyc: Path) -> bool:
+    """Whether ``pyc`` has the header that Python's import system and pytest's assertion
+    rewriter both check (PEP 552, timestamp-based: magic number, zero flags, the source's
+    mtime and size, little-endian 32-bit), so the import will load it instead of compiling
+    ``source`` again."""
+    try:
+        with open(pyc, "rb") as file:
+            header = file.read(16)
+        stat = source.stat()
+    except OSError:
+        return False
+    return (
+        len(header) == 16
+        and header[:4] == importlib.util.MAGIC_NUMBER
+        and header[4:8] == b"\x00\x00\x00\x00"
+        and int.from_bytes(header[8:12], "little") == int(stat.st_mtime) & 0xFFFFFFFF
+        and int.from_bytes(header[12:16], "little") == stat.st_size & 0xFFFFFFFF
+    )
+
+
+def _sources_to_compile(config: pytest.Config) -> list[tuple[Path, bool]]:
+    """``(file, rewritten)`` for the test files of this run's paths (``rewritten``: a file
+    pytest imports through its assertion rewriter, i.e. a ``conftest.py`` or one matching
+    ``python_files``, when asserts are rewritten) and, when a path is a directory (a run
+    of many test files, which import most of the package), every module of
+    ``imufdi_cli``."""
+    from fnmatch import fnmatch
+
+    rewrite = config.getoption("assertmode") == "rewrite"
+    patterns = [*config.getini("python_files"), "conftest.py"]
+    root = Path(config.rootpath)
+    trees = set()
+    for arg in config.args:
+        path = Path(arg.split("::", 1)[0])
+        trees.add(path if path.is_absolute() else Path(config.invocation_params.dir) / path)
+    if any(tree.is_dir() for tree in trees):
+        trees.add(root / "imufdi_cli")
+    files: dict[Path, bool] = {}
+    for tree in trees:
+        for file in [tree] if tree.is_file() else sorted(tree.rglob("*.py")):
+            in_package = (root / "imufdi_cli") in file.parents
+            files[file] = (
+                rewrite and not in_package and any(fnmatch(file.name, p) for p in patterns)
+            )
+    return sorted(files.items())
+
+
+def _share_cold_bytecode(config: pytest.Config) -> None:
+    """xdist workers share out compiling the package and rewriting the test modules'
+    asserts (about 0.8 + 2.7 s of CPU in a fresh clone, which every worker paid in full
+    for the same files while importing them at collection): before collecting, worker *i*
+    of *n* writes the missing or stale bytecode of every *n*-th file by size (pytest's
+    rewritten ``*.pytest-*.pyc`` for test files, Python's own ``.pyc`` for the package),
+    then checks the others' files and writes any not yet there (two workers may both write
+    one file: each write is atomic, as in pytest's and Python's own imports); the imports
+    then load the bytecode as in a warm run. Nothing is done where bytecode is not written
+    (``PYTHONDONTWRITEBYTECODE``), outside xdist, or with another pytest whose assertion
+    rewriter lacks the functions used here; what any test runs is the same either way."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if sys.dont_write_bytecode or count < 2 or not worker.startswith("gw"):
+        return
+    try:
+        from _pytest.assertion.rewrite import (
+            PYC_TAIL,
+            _rewrite_test,
+            _write_pyc,
+            assertstate_key,
+            get_cache_dir,
+        )
+    except ImportError:
+        return
+    import py_compile
+
+    index = int(worker[2:]) % count
+    files = sorted(_sources_to_compile(config), key=lambda item: -item[0].stat().st_size)
+    mine, others = files[index::count], [f for i, f in enumerate(files) if i % count != index]
+    state = config.stash.get(assertstate_key, None)
+    for source, rewritten in mine + others[::-1]:
+        try:
+            if rewritten:
+                if state is None:
+                    continue
+                cache_dir = get_cache_dir(source)
+                pyc = cache_dir / (source.name[:-3] + PYC_TAIL)
+                if not _bytecode_is_fresh(source, pyc):
+                    cache_dir.mkdir(exist_ok=True)
+                    stat, code = _rewrite_test(source, config)
+                    _write_pyc(state, code, stat, pyc)
+            else:
+                pyc = Path(importlib.util.cache_from_source(str(source)))
+                if not _bytecode_is_fresh(source, pyc):
+                    py_compile.compile(
+                        str(source),
+                        cfile=str(pyc),
+                        doraise=True,
+                        invalidation_mode=py_compile.PycInvalidationMode.TIMESTAMP,
+                    )
+        except (OSError, SyntaxError, ValueError, py_compile.PyCompileError):
+            continue  # the import will compile it (and report a syntax error) as usual
+
+
 @pytest.hookimpl(trylast=True)
 def pytest_sessionstart(session: pytest.Session) -> None:
     """The xdist controller collects nothing (its workers do) and so never reaches
-    :func:`pytest_collection_finish`: it gets its collector back here."""
+    :func:`pytest_collection_finish`: it gets its collector back here. A worker shares out
+    the cold bytecode with the other workers before collecting
+    (:func:`_share_cold_bytecode`)."""
     if session.config.pluginmanager.has_plugin("dsession"):
         gc.enable()
+    else:
+        _share_cold_bytecode(session.config)
 
 
 @pytest.fixture(autouse=True)

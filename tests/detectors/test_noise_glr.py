@@ -340,6 +340,11 @@ def calibration_scales(n_windows: int, count: int, seed: int, outliers: float = 
     return scales
 
 
+# Monte Carlos over 20 000 calibration windows (statistical, rule 1 of docs/testing.md):
+# scale_estimator_dof and calibration_factor keep their default test in
+# test_threshold_is_the_known_variance_quantile_raised_by_the_calibration_factor and the
+# detector's fits.
+@pytest.mark.slow  # 0.5-0.7 s of CPU with the 20 000 windows
 def test_scale_estimator_dof_matches_simulated_calibrations():
     """Var(ln tau_hat) = 2 / nu_cal for the 2 s window (199 differences). The draws are
     the white coverage test's (seed 12; seed 11 before). Over seeds 0-19 the first
@@ -357,6 +362,7 @@ def test_scale_estimator_dof_matches_simulated_calibrations():
     assert abs(measured - earlier) > 3 * sd
 
 
+@pytest.mark.slow  # 0.3-0.5 s of CPU per case
 @pytest.mark.parametrize("outliers", [0.0, 0.001], ids=["white", "paper-table4 outliers"])
 def test_calibration_factor_covers_the_true_scale_with_the_stated_confidence(outliers):
     """P(tau_hat * factor >= tau) = level_confidence over calibrations (binomial, 5 sd)."""

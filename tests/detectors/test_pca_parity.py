@@ -432,6 +432,7 @@ def test_fold_labels_interleave_blocks_and_fill_every_fold():
     assert set(short.tolist()) == set(range(10))
 
 
+@pytest.mark.slow  # 400 replications, statistical (4 sd); 0.4-0.65 s of CPU
 def test_out_of_fold_variance_is_unbiased_where_the_smallest_eigenvalue_is_not():
     """Isotropic white noise (q = 3, N = 500, sigma = 1): the out-of-fold variance of the
     last whole-window direction is unbiased, where its eigenvalue is about 0.9.
