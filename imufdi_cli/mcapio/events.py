@@ -399,20 +399,9 @@ class EpisodeEvent:
     def from_explanation(cls, episode: dict[str, Any]) -> EpisodeEvent:
         """From a decoded explanation (files without the typed ``start_ns``/``end_ns``
         fields, and the JSON event channels of older versions)."""
-        sensors = episode.get("sensors") or []
-        fits = episode.get("fits") or []
-        best = fits[0] if fits else {}
-        return cls(
-            episode["detector"],
-            episode["sensor_type"],
-            episode["start_ns"],
-            episode["end_ns"],
-            sensors[0] if sensors else None,
-            best.get("model"),
-            best.get("low"),
-            best.get("high"),
-            explanation=episode,
-        )
+        from imufdi_cli.episodes.scoring import match_fields  # what matching reads of it
+
+        return cls(episode["detector"], *match_fields(episode), explanation=episode)
 
     def match_fields(
         self,
