@@ -206,6 +206,8 @@ def _share_cold_bytecode(config: pytest.Config) -> None:
                     )
         except (OSError, SyntaxError, ValueError, py_compile.PyCompileError):
             continue  # the import will compile it (and report a syntax error) as usual
+        except (TypeError, AttributeError):  # another pytest's private functions
+            return
 
 
 @pytest.hookimpl(trylast=True)
