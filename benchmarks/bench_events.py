@@ -29,6 +29,7 @@ import numpy as np
 
 from imufdi_cli.mcapio import McapWriter, encode_fdi_events, register_events_channel
 from imufdi_cli.mcapio.events import encode_fdi_event_dicts
+from imufdi_cli.mcapio.records import MessageBatch
 
 IDS = [f"imu{k}.gyro.{a}" for k in range(16) for a in "xyz"]
 
@@ -44,6 +45,21 @@ def _events(n: int, seed: int = 0) -> dict[str, np.ndarray]:
     }
 
 
+def _alarm_batch(channel: int, events: dict[str, np.ndarray]) -> MessageBatch:
+    """glt's gyro alarm starts and ends of ``events`` (:func:`_events`), encoded in bulk."""
+    return encode_fdi_events(
+        channel,
+        events["t_ns"],
+        detector="glt",
+        sensor_type="gyro",
+        sensor_ids=IDS,
+        alarm=events["alarm"],
+        isolated=events["isolated"],
+        amplitude=events["amplitude"],
+        statistic=events["statistic"],
+    )
+
+
 def bulk(events: dict[str, np.ndarray], per_block: int) -> int:
     out = io.BytesIO()
     with McapWriter(out) as writer:
@@ -51,19 +67,7 @@ def bulk(events: dict[str, np.ndarray], per_block: int) -> int:
         n = events["t_ns"].shape[0]
         for start in range(0, n, per_block):
             part = {k: v[start : start + per_block] for k, v in events.items()}
-            writer.add_batch(
-                encode_fdi_events(
-                    channel,
-                    part["t_ns"],
-                    detector="glt",
-                    sensor_type="gyro",
-                    sensor_ids=IDS,
-                    alarm=part["alarm"],
-                    isolated=part["isolated"],
-                    amplitude=part["amplitude"],
-                    statistic=part["statistic"],
-                )
-            )
+            writer.add_batch(_alarm_batch(channel, part))
     return len(out.getvalue())
 
 
@@ -122,23 +126,13 @@ def reading(events: dict[str, np.ndarray], n_episodes: int, per_batch: int, repe
         decode_events,
         encode_episode_events,
     )
-    from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch, SchemaInfo
+    from imufdi_cli.mcapio.records import ChannelInfo, SchemaInfo
     from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA, FDI_EVENT_SCHEMA_NAME
 
     schema = SchemaInfo(1, FDI_EVENT_SCHEMA_NAME, "ros2msg", FDI_EVENT_SCHEMA)
     channel = ChannelInfo(1, EVENTS_TOPIC, "cdr", {}, schema)
     n = events["t_ns"].shape[0]
-    alarms = encode_fdi_events(
-        1,
-        events["t_ns"],
-        detector="glt",
-        sensor_type="gyro",
-        sensor_ids=IDS,
-        alarm=events["alarm"],
-        isolated=events["isolated"],
-        amplitude=events["amplitude"],
-        statistic=events["statistic"],
-    )
+    alarms = _alarm_batch(1, events)
     explained = encode_episode_events(1, [_episode(k) for k in range(n_episodes)])
     # episodes spread evenly among the alarms
     order = np.argsort(
