@@ -43,14 +43,19 @@ def write_log(path, frames, *, n: int = 400, big=lambda i, k: False, extra=lambd
         schema = writer.register_schema(IMU_SCHEMA_NAME, "ros2msg", IMU_SCHEMA)
         m = len(frames(0))
         channels = [writer.register_channel(f"/imu{k}/data_raw", "cdr", schema) for k in range(m)]
+        ids, times, payloads = [], [], []
         for i in range(n):
             t = int(data.t_ns[i])
             for k in order(i) or range(m):
                 if skip(i, k):
                     continue
                 g, a = data.gyro[i, k], data.accel[i, k]  # type: ignore[index]
-                payload = cdr_imu(t, frames(i)[k], g, a, big(i, k), extra(i, k))
-                writer.add_message(channels[k], t, payload)
+                ids.append(channels[k])
+                times.append(t)
+                payloads.append(cdr_imu(t, frames(i)[k], g, a, big(i, k), extra(i, k)))
+        # one batch: the file add_message would write message by message (the writer cuts
+        # chunks at the same messages either way), without its per-call overhead
+        writer.add_batch(MessageBatch.from_payloads(np.array(ids), np.array(times), payloads))
 
 
 def read_everything(path, monkeypatch, fast: bool, **kw):
@@ -151,13 +156,16 @@ def test_malformed_messages_are_left_to_the_general_path(tmp_path, monkeypatch) 
     with McapWriter(path) as writer:
         schema = writer.register_schema(IMU_SCHEMA_NAME, "ros2msg", IMU_SCHEMA)
         channels = [writer.register_channel(f"/imu{k}/data_raw", "cdr", schema) for k in range(2)]
+        payloads = []
         for i in range(300):
             t = int(data.t_ns[i])
             for k in range(2):
                 payload = cdr_imu(t, "f", data.gyro[i, k], data.accel[i, k])  # type: ignore[index]
                 if i == 150 and k == 1:
                     payload = payload[:100]  # cut inside angular_velocity
-                writer.add_message(channels[k], t, payload)
+                payloads.append(payload)
+        ids = np.tile(np.array(channels), 300)
+        writer.add_batch(MessageBatch.from_payloads(ids, np.repeat(data.t_ns, 2), payloads))
     assert_same_read(path, monkeypatch)
     _, _, warnings, _ = read_everything(path, monkeypatch, True)
     # named by its own topic (the decode group's first topic was named before)
