@@ -4,6 +4,7 @@ rosbag2 directory split into several MCAP files."""
 
 from __future__ import annotations
 
+import functools
 import shutil
 from pathlib import Path
 
@@ -43,7 +44,10 @@ def _gyro(i: int, k: int = 0) -> tuple[float, float, float]:
     return (0.001 * i + wiggle, -0.5 - wiggle, 0.25 + 1e-4 * i + 2 * wiggle)
 
 
+@functools.cache
 def _typestore(headerless: bool = False):
+    """The type store of the bags (made once: rosbags compiles a type's serialiser on its
+    first use in a store; the tests only read the store)."""
     store = get_typestore(Stores.ROS2_HUMBLE)
     if headerless:  # a sensor_msgs/msg/Imu whose definition has no header (seen in real bags)
         store = get_typestore(Stores.EMPTY)
