@@ -4,6 +4,7 @@ package, record by record)."""
 
 from __future__ import annotations
 
+import functools
 import io
 import struct
 import zlib
@@ -20,6 +21,7 @@ from imufdi_cli.mcapio.schemas import IMU_SCHEMA, IMU_SCHEMA_NAME
 T0_NS = 1_700_000_000_000_000_000
 
 
+@functools.cache  # bytes: the tests that ask for the same file share one copy
 def imu_file(
     *,
     n_imus: int = 4,
@@ -30,7 +32,8 @@ def imu_file(
     seed: int = 0,
 ) -> bytes:
     """An MCAP of ``n_imus`` Imu topics at 100 Hz, each channel declared just before its
-    first message (as a streaming recorder does), written by the ``mcap`` package."""
+    first message (as a streaming recorder does), written by the ``mcap`` package (once
+    per set of arguments in a process)."""
     rng = np.random.default_rng(seed)
     stream = io.BytesIO()
     kind = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
