@@ -303,12 +303,14 @@ def test_a_switch_interval_set_meanwhile_by_someone_else_is_kept(tmp_path):
 
 
 def _blob_batches(channel: int, seed: int = 0) -> list[MessageBatch]:
+    """Three batches of 600 messages of 40 random bytes: about 127 kB of records, some
+    thirty 4 KiB chunks (the write-behind thread starts at 1 KiB in these tests)."""
     rng = np.random.default_rng(seed)
     return [
         MessageBatch.from_payloads(
             channel,
-            (np.arange(2000, dtype=np.int64) + 2000 * k) * 1000,
-            [rng.bytes(40) for _ in range(2000)],
+            (np.arange(600, dtype=np.int64) + 600 * k) * 1000,
+            [rng.bytes(40) for _ in range(600)],
         )
         for k in range(3)
     ]
