@@ -36,7 +36,8 @@ def _write(blocks, n_imus: int, chunk_size: int, compression: str, *, generic: b
 @pytest.mark.parametrize("chunk_size", [1, 1000, 5 * 355 + 7, 1 << 20])
 def test_record_sources_write_the_bytes_of_the_message_encoder(compression, chunk_size) -> None:
     # uneven blocks; chunk sizes that cut samples (and single records) at every phase
-    n = 41 if chunk_size < 2000 else 301
+    # (a chunk per record at chunk_size 1: 13 samples, 65 chunks)
+    n = 13 if chunk_size == 1 else 41 if chunk_size < 2000 else 301
     whole = make_block(n, 5, seed=3)
     cuts = [0, 1, 2, n // 3, n // 2, n]
     blocks = [whole.slice(a, b) for a, b in itertools.pairwise(cuts)]
