@@ -117,13 +117,21 @@ def run(det: WoaMvmdGltDetector, block: ImuBlock, size: int) -> DetectionBlock:
     return DetectionBlock.concatenate([*parts, det.flush()["gyro"]])
 
 
+# The block-cut and causality tests compare rows computed from the same windows: they hold
+# at any MVMD convergence tolerance, and these two decompose at 1e-3 instead of the default
+# 1e-6 (fewer iterations per window: about 1.4 -> 0.85 s of CPU for the five default cases;
+# all four onsets of the causality test held). The default tolerance keeps its default
+# tests (detection and isolation, the look-ahead stream, split_identical's cases).
+LOOSE = {"K": 2, "mvmd_alpha": 3000.0, "tol": 1e-3}
+
+
 @pytest.mark.parametrize("combine", ["end", "min", "centre"])
 def test_output_does_not_depend_on_block_cuts(combine):
     array = coaligned(6)
     block = synthetic_block(step_at=300)
     outputs = []
     for size in (1, 37, 400):
-        det = make({"K": 2, "mvmd_alpha": 3000.0, "combine": combine, "types": "gyro"})
+        det = make({**LOOSE, "combine": combine, "types": "gyro"})
         det.fit(block.slice(0, 200), array)
         outputs.append(run(det, block, size))
     for other in outputs[1:]:
@@ -152,7 +160,7 @@ def test_causal_rows_before_the_onset_do_not_depend_on_what_follows(onset):
     for amplitude in (0.0, 0.3, 1.5):
         gyro = base.gyro.copy()
         gyro[onset:, 0, 0] += np.deg2rad(amplitude)
-        det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"})
+        det = make({**LOOSE, "types": "gyro"})
         det.fit(base.slice(0, 200), array)
         outputs.append(run(det, ImuBlock(t_ns=base.t_ns, gyro=gyro), 64))
     decided = make({"K": 2, "mvmd_alpha": 3000.0}).decision_index(np.arange(400), 400)
@@ -167,7 +175,7 @@ def test_causal_rows_before_the_onset_do_not_depend_on_what_follows(onset):
     for amplitude in (0.3, 1.5):
         gyro = base.gyro.copy()
         gyro[onset:, 0, 0] += np.deg2rad(amplitude)
-        det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro", "combine": "min"})
+        det = make({**LOOSE, "types": "gyro", "combine": "min"})
         det.fit(base.slice(0, 200), array)
         rows.append(run(det, ImuBlock(t_ns=base.t_ns, gyro=gyro), 64).statistic[:onset])
     assert not np.array_equal(rows[0], rows[1])
