@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
+from scipy.signal import lfilter
 
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
 from imufdi_cli.detectors.cnn_map import (
@@ -94,9 +95,11 @@ def test_autoregression_fit_and_whitening_recover_an_ar2_process():
     rng = np.random.default_rng(1)
     phi = np.array([0.5, -0.3])
     noise = rng.normal(0.0, 0.2, (20_000, 4))
-    series = np.zeros_like(noise)
-    for t in range(2, series.shape[0]):
-        series[t] = phi[0] * series[t - 1] + phi[1] * series[t - 2] + noise[t]
+    # series[t] = phi_1 series[t-1] + phi_2 series[t-2] + noise[t] from series[0:2] = 0
+    # (lfilter instead of a Python loop over the 20 000 samples: 0.1 s less)
+    driving = noise.copy()
+    driving[:2] = 0.0
+    series = lfilter([1.0], [1.0, -phi[0], -phi[1]], driving, axis=0)
     fitted = fit_autoregression(series, 2)
     assert_allclose(fitted, phi, atol=0.015)
     residual = np.repeat(series[:, :, None], 3, axis=2)  # (N, m, 3)
