@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
+from scipy.signal import lfilter
 
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
 from imufdi_cli.detectors.cnn_map import (
@@ -62,11 +63,15 @@ MAPPING_ONLY = {"input_test": "false", "mapping_test": "alarm"}
 
 @pytest.fixture(scope="module")
 def trained(short_log, tmp_path_factory):
-    """One network trained for 15 epochs on short_log's first 6 s (mapping test only) and
+    """One network trained for 8 epochs on short_log's first 6 s (mapping test only) and
     its saved model file, shared by the tests of training, model files and the mapping's
-    statistics."""
+    statistics. (15 epochs until session 22: 1.2 s of CPU against 0.5 s; the claims below
+    do not bear on the fit's quality: the loss still falls to 0.12 of its start, and the
+    axis-gain test's worst relative error over Monte Carlo seeds 0-19 is 0.014-0.062
+    (order 0) and 0.17-0.28 (order 2) with this network against 0.018-0.053 and
+    0.16-0.32 with the 15-epoch one.)"""
     array, block = short_log
-    detector = make({"epochs": "15", "patience": "15", **MAPPING_ONLY})
+    detector = make({"epochs": "8", "patience": "8", **MAPPING_ONLY})
     detector.fit(block.mask(block.t_s() < 6.0), array)
     path = tmp_path_factory.mktemp("cnn") / "model.npz"
     detector.save_model(path)
@@ -90,9 +95,11 @@ def test_autoregression_fit_and_whitening_recover_an_ar2_process():
     rng = np.random.default_rng(1)
     phi = np.array([0.5, -0.3])
     noise = rng.normal(0.0, 0.2, (20_000, 4))
-    series = np.zeros_like(noise)
-    for t in range(2, series.shape[0]):
-        series[t] = phi[0] * series[t - 1] + phi[1] * series[t - 2] + noise[t]
+    # series[t] = phi_1 series[t-1] + phi_2 series[t-2] + noise[t] from series[0:2] = 0
+    # (lfilter instead of a Python loop over the 20 000 samples: 0.1 s less)
+    driving = noise.copy()
+    driving[:2] = 0.0
+    series = lfilter([1.0], [1.0, -phi[0], -phi[1]], driving, axis=0)
     fitted = fit_autoregression(series, 2)
     assert_allclose(fitted, phi, atol=0.015)
     residual = np.repeat(series[:, :, None], 3, axis=2)  # (N, m, 3)
@@ -189,7 +196,7 @@ def test_alarm_episode_isolation_does_not_depend_on_block_size(tmp_path):
 
 
 def test_training_reduces_the_loss(trained):
-    training = trained[0].metadata()["training"]  # 15 epochs on short_log's first 6 s
+    training = trained[0].metadata()["training"]  # 8 epochs on short_log's first 6 s
     assert training["train_loss"][-1] < 0.8 * training["train_loss"][0]
     assert training["train_mae_rad_s"] < training["reference_rms_rad_s"]
 
@@ -301,35 +308,52 @@ def test_noise_growth_on_y_and_z_accelerometers_is_detected_by_the_input_test(se
 def test_mapping_test_modes(short_log, trained):
     """report: the mapping test is computed and counted but never alarms, so the output is
     the input test's alone, the same as with the mapping off (no network); alarm: both
-    tests alarm (the input test at alpha / 2, a higher threshold). The report counts the
-    samples where the mapping statistic is over its threshold at alpha, i.e. exactly the
-    alarms of the mapping test alone at alpha on the same network."""
-    array, block = short_log
+    tests alarm, each at alpha / 2. The report counts the samples where the mapping
+    statistic is over its threshold at alpha, i.e. exactly the alarms of the mapping test
+    alone at alpha on the same network. The detectors are fitted
+    on the first 6 s and process the first 4 s (400 samples, over a block boundary at 333;
+    the whole 8 s until session 22: -0.5 s of CPU), where the mapping test alone alarms at
+    24 samples with the shared network, so the count compared is not zero."""
+    array, whole = short_log
     path = trained[1]
     free = (0.0, 6.0)
+    block = whole.mask(whole.t_s() < 4.0)
+
+    def fit_and_run(detector, calibrate, block_size=250):  # fitted on the whole log
+        t = whole.t_s()
+        detector.fit(whole.mask((t >= calibrate[0]) & (t < calibrate[1])), array)
+        outs = [detector.process(b) for b in iter_blocks(block, block_size)]
+        return DetectionBlock.concatenate([o["accel"] for o in outs])
+
     report = make({"model": path})
-    a = run(report, array, block, free, block_size=333)
+    a = fit_and_run(report, free, block_size=333)
     off = make({"mapping_test": "off"})
-    b = run(off, array, block, free)
+    b = fit_and_run(off, free)
     assert off.network is None and report.network is not None
     assert_array_equal(a.alarm, b.alarm)
     assert_allclose(a.statistic, b.statistic, rtol=1e-12)
     assert_array_equal(a.isolated, b.isolated)
     alone = make({"model": path, "input_test": "false", "mapping_test": "alarm"})
-    c = run(alone, array, block, free)
+    c = fit_and_run(alone, free)
     meta = json.loads(json.dumps(report.metadata()))
     assert meta["mapping_test"] == "report" and not meta["mapping_alarms"]
     assert meta["mapping_alpha"] == report.alpha
     counted = meta["mapping_report"]
     assert counted["samples"] == len(block)
-    assert counted["over_threshold"] == int(c.alarm.sum())
+    assert counted["over_threshold"] == int(c.alarm.sum()) > 0
     assert sum(counted["by_sensor"].values()) == counted["over_threshold"]
-    both = make({"model": path, "mapping_test": "alarm"})
-    d = run(both, array, block, free)
-    assert both.mapping_alpha == both.alpha / 2.0
-    assert both.input_threshold > report.input_threshold
+    # both tests alarming at twice the level: each at alpha / 2, i.e. the input test at the
+    # report's level (the same threshold, from the one simulated null that both fits
+    # share in this process; a second null at alpha / 2 cost 0.4 s of CPU until session
+    # 22) and the mapping test at the level of the mapping test alone, whose alarms it
+    # then keeps
+    both = make({"model": path, "mapping_test": "alarm", "alpha": str(2 * report.alpha)})
+    d = fit_and_run(both, free)
+    assert both.mapping_alpha == both.alpha / 2.0 == report.alpha
+    assert both.input_level == report.input_level
+    assert both.input_threshold == report.input_threshold
     assert json.loads(json.dumps(off.metadata()))["input_test"]["status"] == "on"
-    assert np.all(d.alarm[c.alarm & (c.statistic > 2 * c.threshold)])
+    assert np.all(d.alarm[c.alarm])
     with pytest.raises(DetectorConfigError, match="mapping_test=alarm"):
         make({"input_test": "false"})
     with pytest.raises(DetectorConfigError, match="valid: report, alarm, off"):

@@ -148,9 +148,11 @@ def test_adam_first_step_and_convergence():
 
 
 def test_training_fits_a_linear_filter():
-    """A conv+dense network trained with Adam learns y = x[-1] - x[-2] (a differencer)."""
+    """A conv+dense network trained with Adam learns y = x[-1] - x[-2] (a differencer).
+    128 examples for its 41 parameters (512 until session 22: 0.22 -> 0.11 s of CPU); the
+    final loss was under 1e-15 on each of seeds 0-19 (512 examples: under 1e-6)."""
     rng = np.random.default_rng(7)
-    x = rng.standard_normal((512, 8, 1))
+    x = rng.standard_normal((128, 8, 1))
     y = x[:, -1, :] - x[:, -2, :]
     net = Sequential([Conv1d(1, 4, 3, 1, rng), Dense(4 * 6, 1, rng)])
     optimiser = Adam(net.params, learning_rate=0.01)

@@ -306,17 +306,22 @@ def test_bias_step_or_drift_is_not_a_noise_alarm(specs):
 
 
 def test_level_holds_on_paper_table4_with_its_outliers():
-    """Gyro outliers (p = 0.001, +-1 deg/s) do not count as noise growth (old FAR 13-23 %)."""
+    """Gyro outliers (p = 0.001, +-1 deg/s) do not count as noise growth (old FAR 13-23 %).
+    One run per seed serves both sensor types (until session 22 each type simulated and
+    ran both seeds again: the same rows, twice the CPU)."""
     detector = make()
-    for sensor_type in ("gyro", "accel"):
-        total, alarms = 0, 0
-        for seed in (3, 4):
-            array, block = paper_table4(seed, duration=20.0)
-            out = run(detector, array, block)[sensor_type]
-            after = block.t_s() >= 2.0
-            total += int(after.sum())
-            alarms += int(out.alarm[after].sum())
-        assert alarms <= far_bound(total, 1.5 * detector.alpha, detector.window_samples)
+    total = {"gyro": 0, "accel": 0}
+    alarms = {"gyro": 0, "accel": 0}
+    for seed in (3, 4):
+        array, block = paper_table4(seed, duration=20.0)
+        out = run(detector, array, block)
+        after = block.t_s() >= 2.0
+        for sensor_type in total:
+            total[sensor_type] += int(after.sum())
+            alarms[sensor_type] += int(out[sensor_type].alarm[after].sum())
+    for sensor_type in total:
+        bound = far_bound(total[sensor_type], 1.5 * detector.alpha, detector.window_samples)
+        assert alarms[sensor_type] <= bound, sensor_type
 
 
 # --- issue 16: the level of each log, not only on average over calibrations ----------------
@@ -434,8 +439,9 @@ def test_residual_spread_is_the_weighted_mean_of_the_sensor_spreads():
 
 
 def test_without_the_field_or_with_noise_spread_false_the_detector_is_unchanged():
+    # 14 s, the noise growth from 12 s (25 s until session 22): the claims are equalities
     array, block = wearable12(seed=2)
-    block = block.slice(0, 2500)
+    block = block.slice(0, 1400)
     plain = run(make(), array, block)
     spread_array = array.with_noise_spread(
         [{s: np.full(3, 2.0) for s in ("gyro", "accel")} for _ in range(array.n_imus)]
@@ -447,6 +453,7 @@ def test_without_the_field_or_with_noise_spread_false_the_detector_is_unchanged(
             a, b = getattr(plain[sensor_type], name), getattr(off[sensor_type], name)
             assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
         assert not np.array_equal(plain[sensor_type].statistic, on[sensor_type].statistic)
+    assert plain["accel"].alarm[1250:].any()  # rows with alarms are among those compared
     detector = make()
     detector.fit(block.slice(0, 200), array)
     assert "noise_spread" not in detector.metadata()["types"]["accel"]

@@ -172,7 +172,7 @@ def test_bad_configurations_name_the_problem() -> None:
 
 def test_cli_detect_and_report(tmp_path: Any) -> None:
     clean, faulty, detected = (str(tmp_path / f) for f in ("c.mcap", "f.mcap", "d.mcap"))
-    args = ["simulate", "--preset", "paper-table4", "--seed", "2", "--duration", "8s"]
+    args = ["simulate", "--preset", "paper-table4", "--seed", "2", "--duration", "5s"]
     assert invoke([*args, "-o", clean]).code == 0
     fault = "step:imu3.gyro.x,amp=30deg/s,at=3s"
     assert invoke(["inject", clean, "--fault", fault, "-o", faulty]).code == 0

@@ -117,13 +117,22 @@ def run(det: WoaMvmdGltDetector, block: ImuBlock, size: int) -> DetectionBlock:
     return DetectionBlock.concatenate([*parts, det.flush()["gyro"]])
 
 
+# The block-cut, causality and noise-spread identity tests compare rows computed from the
+# same windows, and the look-ahead test counts rows: they hold at any MVMD convergence
+# tolerance, and they decompose at 1e-3 instead of the default 1e-6 (fewer iterations per
+# window: about 1.9 -> 1.1 s of CPU for the seven default cases; all four onsets of the
+# causality test held). The default tolerance keeps its default tests (detection and
+# isolation, the clip tests, the u_best rules, split_identical's cases).
+LOOSE = {"K": 2, "mvmd_alpha": 3000.0, "tol": 1e-3}
+
+
 @pytest.mark.parametrize("combine", ["end", "min", "centre"])
 def test_output_does_not_depend_on_block_cuts(combine):
     array = coaligned(6)
     block = synthetic_block(step_at=300)
     outputs = []
     for size in (1, 37, 400):
-        det = make({"K": 2, "mvmd_alpha": 3000.0, "combine": combine, "types": "gyro"})
+        det = make({**LOOSE, "combine": combine, "types": "gyro"})
         det.fit(block.slice(0, 200), array)
         outputs.append(run(det, block, size))
     for other in outputs[1:]:
@@ -152,7 +161,7 @@ def test_causal_rows_before_the_onset_do_not_depend_on_what_follows(onset):
     for amplitude in (0.0, 0.3, 1.5):
         gyro = base.gyro.copy()
         gyro[onset:, 0, 0] += np.deg2rad(amplitude)
-        det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"})
+        det = make({**LOOSE, "types": "gyro"})
         det.fit(base.slice(0, 200), array)
         outputs.append(run(det, ImuBlock(t_ns=base.t_ns, gyro=gyro), 64))
     decided = make({"K": 2, "mvmd_alpha": 3000.0}).decision_index(np.arange(400), 400)
@@ -167,7 +176,7 @@ def test_causal_rows_before_the_onset_do_not_depend_on_what_follows(onset):
     for amplitude in (0.3, 1.5):
         gyro = base.gyro.copy()
         gyro[onset:, 0, 0] += np.deg2rad(amplitude)
-        det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro", "combine": "min"})
+        det = make({**LOOSE, "types": "gyro", "combine": "min"})
         det.fit(base.slice(0, 200), array)
         rows.append(run(det, ImuBlock(t_ns=base.t_ns, gyro=gyro), 64).statistic[:onset])
     assert not np.array_equal(rows[0], rows[1])
@@ -185,7 +194,7 @@ def test_lookahead_and_decision_index_follow_the_window_grid():
     # the stream really holds rows back no longer than that
     array = coaligned(6)
     block = synthetic_block()
-    det = make({"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"})
+    det = make({**LOOSE, "types": "gyro"})  # row counts: any tolerance (LOOSE, above)
     det.fit(block.slice(0, 200), array)
     emitted = 0
     for i in range(len(block)):
@@ -439,7 +448,7 @@ def test_noise_spread_folds_kappa_into_sigma_and_is_bit_identical_without_it():
     without the field, with ``noise_spread=false`` or with kappa = 1 the outputs are
     bit-identical to the detector without the step."""
     block = synthetic_block(step_at=300)
-    params = {"K": 2, "mvmd_alpha": 3000.0, "types": "gyro"}
+    params = {**LOOSE, "types": "gyro"}  # bit identities: any tolerance (LOOSE, above)
     kappa = 1.0 + np.arange(18) / 6.0
 
     def fitted(array: ArrayConfig, extra: dict | None = None) -> WoaMvmdGltDetector:

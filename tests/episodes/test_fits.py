@@ -16,8 +16,9 @@ CASES = [
     ("drift", np.deg2rad(10)),
     # Monte Carlos of 200 fits with a band derived from the trials (docs/testing.md rule
     # 1): the noise and spikes fits keep default tests in test_model_fits.py (a noise x2
-    # fault's factor interval; spikes on a slow error, classified and covering in 200
-    # trials, binomial band) and test_fits_motion.py (noise x3 classified under motion).
+    # fault's factor interval; the spike set against outliers), test_fits_motion.py
+    # (noise x3 classified under motion) and test_episodes_identical.py (noise and
+    # spikes episodes explained byte for byte as in the reference).
     pytest.param("noise", 3.0, marks=pytest.mark.slow),  # 0.6-1.1 s of CPU
     ("scale", 1.5),
     pytest.param("spikes", np.deg2rad(3), marks=pytest.mark.slow),  # 1.1-1.5 s of CPU

@@ -57,6 +57,10 @@ def test_noise_factor_from_differences_covers_despite_a_slow_error() -> None:
     assert float(np.median(sizes)) == pytest.approx(3.0, rel=0.05)
 
 
+# A Monte Carlo of 200 fits with a binomial band (docs/testing.md rule 1), about 1 s of CPU;
+# the spikes fit keeps default tests: test_episodes_identical.py (a spikes episode among
+# the reference explanations, byte for byte) and the spike-set test below.
+@pytest.mark.slow
 def test_spikes_on_a_slow_error_are_spikes_and_their_amplitude_covers() -> None:
     """Spikes of 3 deg/s (20 SIGMA) at 5 % of the samples on a residual with a slow error
     of 3 SIGMA: flagged against the running median, with a quiet variance of their own,

@@ -53,6 +53,12 @@ def white_variance_draws() -> tuple[np.ndarray, np.ndarray, int, np.ndarray, np.
     return _white_variance_draws(31)
 
 
+# The two tests reading these 800 draws (about 0.85 s of CPU) are Monte Carlos with bands
+# derived from the draws (docs/testing.md rule 1): under slow since session 22. The
+# functions they check keep default tests in test_variance_drop.py, whose builder
+# computes white_sigma_covariance, white_sigma_spread and white_variance_dof for every
+# sensor and tests each against the quantile of its own calibration dof.
+@pytest.mark.slow
 def test_white_sigma_covariance_matches_the_spread_of_white_sigma(
     white_variance_draws: tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, float],
 ) -> None:
@@ -158,6 +164,7 @@ def test_white_sigma_excess_is_one_for_gaussian_noise_and_grows_with_outliers() 
     assert float(np.mean(predicted * measured / empirical)) <= 1 + 4 * math.sqrt(2 / trials) * 1.5
 
 
+@pytest.mark.slow  # with the covariance test above: 800 calibrations, about 0.85 s
 def test_white_variance_dof_matches_the_spread_of_the_calibrated_residual_variance(
     white_variance_draws: tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, float],
 ) -> None:
