@@ -5,8 +5,9 @@ from __future__ import annotations
 import gc
 import importlib.util
 import os
+import subprocess
 import sys
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from pathlib import Path
 
 import pytest
@@ -234,3 +235,23 @@ def _campaign_figure(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyP
     from imufdi_cli.campaign import driver
 
     monkeypatch.setattr(driver, "plot_curves", lambda summary, out: None)
+
+
+@pytest.fixture(scope="session")
+def fresh_python() -> Callable[[str], subprocess.CompletedProcess[str]]:
+    """``run(code)``: ``python -c code`` in a fresh interpreter (this session's environment,
+    output captured as text), run once per session and per ``code``: tests that look at
+    what one fresh process imported share it instead of each starting its own interpreter
+    (0.25-0.45 s of CPU each). The result is read-only."""
+    import subprocess
+
+    done: dict[str, subprocess.CompletedProcess[str]] = {}
+
+    def run(code: str) -> subprocess.CompletedProcess[str]:
+        if code not in done:
+            done[code] = subprocess.run(
+                [sys.executable, "-c", code], capture_output=True, text=True, check=False
+            )
+        return done[code]
+
+    return run

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,3 +92,35 @@ def detected_log(tmp_path_factory, faulty_log) -> Path:
     result = invoke(["detect", faulty_log, "-d", "glt", "-o", path])
     assert result.code == 0, result.stderr
     return path
+
+
+@dataclass(frozen=True)
+class FreshRun:
+    """``imufdi ARGS`` run in a fresh interpreter with stdout and stderr on pipes:
+    ``modules``, every module it had imported at the end (``sys.modules``)."""
+
+    modules: frozenset[str]
+    stdout: str
+    stderr: str
+
+
+@pytest.fixture(scope="session")
+def fresh_imufdi(fresh_python):
+    """``run(args)``: :class:`FreshRun` of ``python -m imufdi_cli ARGS`` (through runpy, as
+    ``-m`` runs it), once per session and per ``args`` (tests/conftest.py's
+    ``fresh_python``): the start-up tests of several files read one process."""
+
+    def run(args: list[str]) -> FreshRun:
+        probe = (
+            "import json, runpy, sys\n"
+            f"sys.argv = ['imufdi', *{[str(a) for a in args]!r}]\n"
+            "try:\n    runpy.run_module('imufdi_cli', run_name='__main__')\n"
+            "except SystemExit:\n    pass\n"
+            "sys.stderr.write('\\n' + json.dumps(sorted(sys.modules)))\n"
+        )
+        done = fresh_python(probe)
+        assert done.returncode == 0, done.stderr
+        *stderr, modules = done.stderr.splitlines()
+        return FreshRun(frozenset(json.loads(modules)), done.stdout, "\n".join(stderr))
+
+    return run

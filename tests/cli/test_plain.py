@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import io
-import json
 import string
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -109,14 +106,8 @@ def test_info_with_markup_or_unicode_defers_to_rich() -> None:
     assert render_info_plain(summary) is None
 
 
-def test_info_in_a_pipe_does_not_import_rich(table4_log) -> None:
-    probe = (
-        "import runpy, sys\n"
-        f"sys.argv = ['imufdi', 'info', {str(table4_log)!r}]\n"
-        "try:\n    runpy.run_module('imufdi_cli', run_name='__main__')\n"
-        "except SystemExit:\n    pass\n"
-        "sys.stderr.write(json_dumps(sorted(m for m in sys.modules if m.startswith('rich'))))\n"
-    ).replace("json_dumps", "__import__('json').dumps")
-    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
-    assert json.loads(done.stderr.strip().splitlines()[-1]) == []
-    assert "/imu15/data_raw" in done.stdout
+def test_info_in_a_pipe_does_not_import_rich(fresh_imufdi, table4_log) -> None:
+    # a fresh interpreter with stdout on a pipe (tests/cli/conftest.py: shared with test_app.py)
+    run = fresh_imufdi(["info", table4_log])
+    assert sorted(m for m in run.modules if m.startswith("rich")) == []
+    assert "/imu15/data_raw" in run.stdout

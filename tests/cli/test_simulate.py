@@ -78,16 +78,10 @@ def test_preset_and_motion_list_their_choices(cli, tmp_path):
     assert_one_line_error(result, 2, "paper-table4")  # the error lists the valid ones
 
 
-def test_help_does_not_import_the_simulator():
-    """The choices come from the registry only when needed (start-up stays light)."""
-    import subprocess
-    import sys
-
-    code = (
-        "import sys\nfrom imufdi_cli.cli import main\n"
-        "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
-        "print(sorted(m for m in sys.modules if m in"
-        " ('imufdi_cli.simulate', 'imufdi_cli.detect', 'scipy', 'matplotlib')))"
-    )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert done.stdout.strip().splitlines()[-1] == "[]", done.stdout + done.stderr
+def test_help_does_not_import_the_simulator(fresh_imufdi):
+    """The choices come from the registry only when needed (start-up stays light): a fresh
+    ``imufdi --help`` (tests/cli/conftest.py: shared with test_app.py)."""
+    run = fresh_imufdi(["--help"])
+    assert "Commands:" in run.stdout
+    unneeded = ("imufdi_cli.simulate", "imufdi_cli.detect", "scipy", "matplotlib")
+    assert sorted(m for m in run.modules if m in unneeded) == [], run.stderr
