@@ -243,8 +243,6 @@ def fresh_python() -> Callable[[str], subprocess.CompletedProcess[str]]:
     output captured as text), run once per session and per ``code``: tests that look at
     what one fresh process imported share it instead of each starting its own interpreter
     (0.25-0.45 s of CPU each). The result is read-only."""
-    import subprocess
-
     done: dict[str, subprocess.CompletedProcess[str]] = {}
 
     def run(code: str) -> subprocess.CompletedProcess[str]:
@@ -255,3 +253,21 @@ def fresh_python() -> Callable[[str], subprocess.CompletedProcess[str]]:
         return done[code]
 
     return run
+
+
+@pytest.fixture(scope="session")
+def quantiles_scipy_modules(fresh_python) -> list[str]:
+    """The ``scipy.s*`` modules a fresh interpreter has imported after using
+    ``imufdi_cli.quantiles``' chi2 and F quantiles (one process for test_quantiles.py's
+    scipy.stats check and test_special.py's scipy.special check)."""
+    import json
+
+    done = fresh_python(
+        "import json, sys\n"
+        "from imufdi_cli.quantiles import chi2, f\n"
+        "chi2.ppf(0.99, 1); chi2.ppf(0.99, 3); f.ppf(0.99, 1, 50); f.ppf(0.99, 1, 40)\n"
+        "print(json.dumps(sorted(m for m in sys.modules if m.startswith('scipy.s'))))\n"
+    )
+    assert done.returncode == 0, done.stderr
+    modules: list[str] = json.loads(done.stdout)
+    return modules

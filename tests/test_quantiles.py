@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 from scipy import stats
 
@@ -49,15 +47,6 @@ def test_scalars_come_back_as_numpy_scalars() -> None:
     assert np.ndim(value) == 0 and isinstance(float(value), float)
 
 
-def test_importing_and_using_it_does_not_import_scipy_stats(fresh_python) -> None:
-    # one fresh process with test_special.py's scipy.special check (the same probe:
-    # tests/conftest.py's fresh_python runs it once)
-    code = (
-        "import json, sys\n"
-        "from imufdi_cli.quantiles import chi2, f\n"
-        "chi2.ppf(0.99, 1); chi2.ppf(0.99, 3); f.ppf(0.99, 1, 50); f.ppf(0.99, 1, 40)\n"
-        "print(json.dumps(sorted(m for m in sys.modules if m.startswith('scipy.s'))))\n"
-    )
-    done = fresh_python(code)
-    assert done.returncode == 0, done.stderr
-    assert "scipy.stats" not in json.loads(done.stdout)
+def test_importing_and_using_it_does_not_import_scipy_stats(quantiles_scipy_modules) -> None:
+    # one fresh process with test_special.py's scipy.special check (tests/conftest.py)
+    assert "scipy.stats" not in quantiles_scipy_modules

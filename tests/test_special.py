@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import textwrap
@@ -60,18 +59,9 @@ def test_loads_without_the_package_and_gives_its_ufuncs() -> None:
     assert done.stdout.split() == ["False", "False", "True", "True", "True", "True"]
 
 
-def test_quantiles_do_not_import_the_package(fresh_python) -> None:
-    # one fresh process with test_quantiles.py's scipy.stats check (the same probe:
-    # tests/conftest.py's fresh_python runs it once)
-    code = (
-        "import json, sys\n"
-        "from imufdi_cli.quantiles import chi2, f\n"
-        "chi2.ppf(0.99, 1); chi2.ppf(0.99, 3); f.ppf(0.99, 1, 50); f.ppf(0.99, 1, 40)\n"
-        "print(json.dumps(sorted(m for m in sys.modules if m.startswith('scipy.s'))))\n"
-    )
-    done = fresh_python(code)
-    assert done.returncode == 0, done.stderr
-    assert "scipy.special" not in json.loads(done.stdout)
+def test_quantiles_do_not_import_the_package(quantiles_scipy_modules) -> None:
+    # one fresh process with test_quantiles.py's scipy.stats check (tests/conftest.py)
+    assert "scipy.special" not in quantiles_scipy_modules
 
 
 def test_with_the_package_imported_its_own_functions_are_returned() -> None:
