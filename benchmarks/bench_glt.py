@@ -6,7 +6,13 @@ and 48 accelerometers) in streaming blocks, and, as a baseline measured in the s
 a naive per-sample implementation of the same maths (p = V m, (V V^T)^-1 by
 ``np.linalg.solve`` per sample, D_FD and every D_FI,i) on a subset of samples.
 
-Run: ``python benchmarks/bench_glt.py [--block 10000]``. BLAS is pinned to one thread
+Calibration (``fit`` on the 200-sample window, both sensor types), timed ``--fits`` times
+alternating with a baseline in the same run: the same fit with the estimated-sigma
+threshold's derivatives taken by central differences (step 1e-3, 2n + 1 pseudo-inverses,
+the implementation before session 23) instead of the analytic form; prints the CPU per fit,
+the ratio, the thresholds' largest relative difference and the load average.
+
+Run: ``python benchmarks/bench_glt.py [--block 10000] [--fits 20]``. BLAS is pinned to one thread
 unless OPENBLAS_NUM_THREADS is set: the products are thin ((N, n) x (n, 3)) and a
 multi-threaded OpenBLAS on a busy 2-core machine was 10-20x slower on them. Both wall-clock
 and process CPU time are printed (CPU time is less sensitive to other load on the machine).
@@ -22,6 +28,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
+import imufdi_cli.detectors.glt as glt_module
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import parse_params
 from imufdi_cli.detectors.glt import GltDetector
@@ -58,13 +65,85 @@ def naive_glt(values: np.ndarray, V: np.ndarray, sigma: np.ndarray) -> np.ndarra
     return isolated
 
 
+def central_difference_threshold(
+    h_white: np.ndarray, alpha: float, scale_variance: np.ndarray | None, mean_samples: float
+) -> tuple[float, float, float]:
+    """Baseline: ``parity.estimated_sigma_threshold`` before session 23 (derivatives of the
+    traces by central differences, step 1e-3, one pseudo-inverse per evaluation)."""
+    from imufdi_cli.quantiles import chi2
+
+    def traces(delta: np.ndarray) -> np.ndarray:
+        weights = 1.0 / np.sqrt(1.0 + delta)
+        h_est = weights[:, None] * h_white
+        projector = np.eye(h_white.shape[0]) - h_est @ np.linalg.pinv(h_est)
+        form = weights[:, None] * projector * weights[None, :]
+        return np.array([np.trace(form), np.sum(form * form.T)])
+
+    n = h_white.shape[0]
+    base = traces(np.zeros(n))
+    mean, square, spread = base[0], base[1], 0.0
+    if scale_variance is not None:
+        step = 1e-3
+        for j in range(n):
+            delta = np.zeros(n)
+            delta[j] = step
+            up, down = traces(delta), traces(-delta)
+            second = (up + down - 2.0 * base) / step**2
+            first = (up[0] - down[0]) / (2.0 * step)
+            mean += 0.5 * second[0] * scale_variance[j]
+            square += 0.5 * second[1] * scale_variance[j]
+            spread += first**2 * scale_variance[j]
+    inflation = 1.0 + (1.0 / mean_samples if np.isfinite(mean_samples) else 0.0)
+    total_mean = mean * inflation
+    total_variance = (2.0 * square + spread) * inflation**2
+    scale = total_variance / (2.0 * total_mean)
+    dof = 2.0 * total_mean**2 / total_variance
+    return float(scale * chi2.ppf(1.0 - alpha, dof)), float(scale), float(dof)
+
+
+def time_fits(array: ArrayConfig, log: ImuBlock, repeats: int) -> None:
+    """CPU of glt's calibration, analytic threshold against the central-difference baseline."""
+    window = log.slice(0, 200)
+    analytic = glt_module.estimated_sigma_threshold
+    cpu = {"analytic": 0.0, "central differences": 0.0}
+    thresholds: dict[str, list[float]] = {"analytic": [], "central differences": []}
+    for _ in range(repeats):
+        for name, function in (
+            ("analytic", analytic),
+            ("central differences", central_difference_threshold),
+        ):
+            glt_module.estimated_sigma_threshold = function  # type: ignore[assignment]
+            try:
+                detector = GltDetector(**parse_params(GltDetector.PARAMS, {}, "glt"))
+                start = time.process_time()
+                detector.fit(window, array)
+                cpu[name] += time.process_time() - start
+            finally:
+                glt_module.estimated_sigma_threshold = analytic  # type: ignore[assignment]
+            thresholds[name] = [
+                float(state.config.threshold) for state in detector._states.values()
+            ]
+    difference = max(
+        abs(a / b - 1.0) for a, b in zip(thresholds["analytic"], thresholds["central differences"])
+    )
+    per_fit = {name: 1e3 * value / repeats for name, value in cpu.items()}
+    print(
+        f"glt fit (200 samples, gyro + accel), {repeats} fits each, alternating: analytic"
+        f" {per_fit['analytic']:.1f} ms CPU, central differences {per_fit['central differences']:.1f}"
+        f" ms CPU, ratio {per_fit['central differences'] / per_fit['analytic']:.1f}x;"
+        f" thresholds differ by {difference:.1e} relative; load {os.getloadavg()[0]:.2f}"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--block", type=int, default=10_000, help="samples per process() call")
     parser.add_argument("--naive", type=int, default=3_000, help="samples for the baseline")
+    parser.add_argument("--fits", type=int, default=20, help="calibrations timed per variant")
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     array, log = make_log(rng)
+    time_fits(array, log, args.fits)
     detector = GltDetector(**parse_params(GltDetector.PARAMS, {}, "glt"))
     detector.fit(log.slice(0, 200), array)
 

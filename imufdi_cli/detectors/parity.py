@@ -401,20 +401,6 @@ __all__ = [
 ]
 
 
-def _weighted_traces(h_white: np.ndarray, scale_error: np.ndarray) -> np.ndarray:
-    """``(tr A, tr A^2)`` of ``A = D P_D D``, ``D = diag((1 + delta)^-1/2)``.
-
-    A is the quadratic form of the parity statistic in the true-whitened noise when each
-    sensor's variance was estimated as ``sigma^2 (1 + delta)``; P_D projects out the
-    columns of ``D H_w`` (the parity projector in the estimated metric).
-    """
-    weights = 1.0 / np.sqrt(1.0 + scale_error)
-    h_est = weights[:, None] * h_white
-    projector = np.eye(h_white.shape[0]) - h_est @ np.linalg.pinv(h_est)
-    form = weights[:, None] * projector * weights[None, :]
-    return np.array([np.trace(form), np.sum(form * form.T)])
-
-
 def sigma_estimate_variance(H: np.ndarray, sigma: np.ndarray, n_samples: int) -> np.ndarray:
     """Relative variance ``Var(sigma_hat_j^2) / sigma_j^4`` of ``residual_sigma``'s estimate.
 
@@ -443,18 +429,37 @@ def estimated_sigma_threshold(
     With known sigma and bias, ``D ~ chi2(n - 3)``. With per-sensor variances estimated,
     ``sigma_hat_j^2 = sigma_j^2 (1 + delta_j)`` with ``Var delta_j`` from
     ``sigma_estimate_variance``, the statistic is ``z^T A(delta) z`` with z the truly
-    whitened noise (``_weighted_traces``): its mean ``E tr A`` and variance
+    whitened noise, ``A = D P_D D``, ``D = diag((1 + delta)^-1/2)`` and P_D the parity
+    projector in the estimated metric. Its mean ``E tr A`` and variance
     ``2 E tr A^2 + Var tr A`` over the calibration draw follow from the second-order delta
-    method (diagonal Hessian and gradient of the traces by central differences; the
-    ``delta_j`` are independent). The bias (calibration mean of N samples) adds its own
-    error: every residual variance is multiplied by ``1 + 1/N``. The null law is then
-    approximated by matching two moments, ``D ~ g chi2(h)`` (Satterthwaite), the
-    estimation-uncertainty analogue of Hotelling's F for one common variance.
+    method (the ``delta_j`` are independent, so only the gradient and the diagonal of the
+    Hessian enter). The derivatives are analytic: for any orthonormal parity basis V of
+    ``H_w`` (k = n - q rows, ``V^T V = P``), the generalised-least-squares residual identity
+    ``O^-1 - O^-1 H (H^T O^-1 H)^-1 H^T O^-1 = V^T (V O V^T)^-1 V`` with
+    ``O = diag(1 + delta)`` gives::
+
+        A = V^T M^-1 V,  M = I_k + sum_j delta_j v_j v_j^T,
+        tr A = tr M^-1,  tr A^2 = tr M^-2                                     (2)
+
+    (v_j the j-th column of V, ``|v_j|^2 = P_jj``). Along one ``delta_j`` M has the single
+    eigenvalue ``1 + delta_j P_jj`` off 1, so at delta = 0::
+
+        d tr A / d delta_j = -P_jj,   d2 tr A / d delta_j2 = 2 P_jj^2,
+        d2 tr A^2 / d delta_j2 = 6 P_jj^2                                     (3)
+
+    and, with ``s = sum_j P_jj^2 Var delta_j``, ``E tr A = tr P + s``,
+    ``E tr A^2 = tr P^2 + 3 s`` and ``Var tr A = s``. (Central differences of (2) agree
+    with (3) to their O(step^2) truncation error, ``tests/detectors/test_parity.py``.)
+    The bias (calibration mean of N samples) adds its own error: every residual variance
+    is multiplied by ``1 + 1/N``. The null law is then approximated by matching two
+    moments, ``D ~ g chi2(h)`` (Satterthwaite), the estimation-uncertainty analogue of
+    Hotelling's F for one common variance.
 
     Parameters
     ----------
-    h_white : ndarray, shape (n, 3)
-        Whitened measurement matrix of the active sensors.
+    h_white : ndarray, shape (n, q)
+        Whitened measurement matrix of the active sensors (q = 3, or more columns for an
+        augmented model).
     alpha : float
         Level per sample.
     scale_variance : ndarray, shape (n,), or None
@@ -469,21 +474,17 @@ def estimated_sigma_threshold(
     """
     from imufdi_cli.quantiles import chi2
 
-    n = h_white.shape[0]
-    base = _weighted_traces(h_white, np.zeros(n))
-    mean, square, spread = base[0], base[1], 0.0
+    h_white = np.asarray(h_white, dtype=np.float64)
+    projector = np.eye(h_white.shape[0]) - h_white @ np.linalg.pinv(h_white)
+    mean = float(np.trace(projector))
+    square = float(np.sum(projector * projector.T))
+    spread = 0.0
     if scale_variance is not None:
-        step = 1e-3
-        for j in range(n):
-            delta = np.zeros(n)
-            delta[j] = step
-            up = _weighted_traces(h_white, delta)
-            down = _weighted_traces(h_white, -delta)
-            second = (up + down - 2.0 * base) / step**2
-            first = (up[0] - down[0]) / (2.0 * step)
-            mean += 0.5 * second[0] * scale_variance[j]
-            square += 0.5 * second[1] * scale_variance[j]
-            spread += first**2 * scale_variance[j]
+        # s = sum_j P_jj^2 Var delta_j, eqs. (2)-(3)
+        leverage = float(np.diagonal(projector) ** 2 @ np.asarray(scale_variance, dtype=np.float64))
+        mean += leverage
+        square += 3.0 * leverage
+        spread = leverage
     inflation = 1.0 + (1.0 / mean_samples if np.isfinite(mean_samples) else 0.0)
     total_mean = mean * inflation
     total_variance = (2.0 * square + spread) * inflation**2

@@ -223,6 +223,88 @@ def test_known_sigma_threshold_is_the_chi_square_quantile():
     assert_allclose((threshold, scale, dof), (chi2.ppf(0.99, 45), 1.0, 45.0), rtol=1e-9)
 
 
+def _direct_traces(h_white: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """``(tr A, tr A^2)`` of ``A = D P_D D``, ``D = diag((1 + delta)^-1/2)``, by definition."""
+    weights = 1.0 / np.sqrt(1.0 + delta)
+    h_est = weights[:, None] * h_white
+    projector = np.eye(h_white.shape[0]) - h_est @ np.linalg.pinv(h_est)
+    form = weights[:, None] * projector * weights[None, :]
+    return np.array([np.trace(form), np.sum(form * form.T)])
+
+
+def _difference_derivatives(h_white: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Central differences of the traces in every delta_j: (n,) gradient of tr A and
+    (n, 2) diagonal Hessian of (tr A, tr A^2)."""
+    n = h_white.shape[0]
+    base = _direct_traces(h_white, np.zeros(n))
+    first, second = np.zeros(n), np.zeros((n, 2))
+    for j in range(n):
+        delta = np.zeros(n)
+        delta[j] = step
+        up, down = _direct_traces(h_white, delta), _direct_traces(h_white, -delta)
+        first[j] = (up[0] - down[0]) / (2 * step)
+        second[j] = (up + down - 2 * base) / step**2
+    return first, second
+
+
+def _threshold_cases() -> list[tuple[np.ndarray, np.ndarray, int]]:
+    rng = np.random.default_rng(3)
+    co_aligned = ArrayConfig.co_aligned(4, 100.0, sensors=("gyro",)).measurement_matrix("gyro")
+    return [
+        (co_aligned, rng.uniform(0.5, 2.0, 12), 50),
+        (rng.standard_normal((7, 3)), rng.uniform(0.5, 2.0, 7), 100),
+        (rng.standard_normal((20, 9)), rng.uniform(0.5, 2.0, 20), 300),  # augmented model
+    ]
+
+
+@pytest.mark.parametrize("case", range(3))
+def test_trace_derivatives_match_the_analytic_form(case: int) -> None:
+    """Eq. (3) of estimated_sigma_threshold: d trA = -P_jj, d2 trA = 2 P_jj^2,
+    d2 trA^2 = 6 P_jj^2. Central differences carry an O(step^2) truncation error:
+    Richardson's (4 D(h/2) - D(h)) / 3 cancels it, leaving O(h^4) ~ 1e-12 and rounding
+    ~ eps k / h^2 < 1e-8, so it must match to 1e-7 while the raw h = 1e-3 differences
+    are off by about h^2 P_jj^2 (relative)."""
+    H, sigma, _ = _threshold_cases()[case]
+    h_white = whiten(H, sigma)
+    leverage = np.diag(np.eye(H.shape[0]) - h_white @ np.linalg.pinv(h_white))
+    analytic_first = -leverage
+    analytic_second = np.column_stack([2 * leverage**2, 6 * leverage**2])
+    first_h, second_h = _difference_derivatives(h_white, 1e-3)
+    first_half, second_half = _difference_derivatives(h_white, 5e-4)
+    assert_allclose((4 * first_half - first_h) / 3, analytic_first, rtol=0, atol=1e-7)
+    assert_allclose((4 * second_half - second_h) / 3, analytic_second, rtol=0, atol=1e-7)
+    # the raw step-1e-3 differences: right to their truncation error, not better
+    assert_allclose(second_h, analytic_second, rtol=1e-5)
+    assert np.max(np.abs(second_h - analytic_second)) > 1e-8
+
+
+@pytest.mark.parametrize("case", range(3))
+def test_estimated_sigma_threshold_is_the_delta_method_of_the_traces(case: int) -> None:
+    """The two moments, g and h rebuilt from extrapolated differences of the defining
+    traces (second-order delta method, independent delta_j), agree to 1e-9. Steps 4e-3 and
+    2e-3: extrapolated, their O(h^4) error is ~1e-10 and rounding (eps k / h^2) stays below
+    1e-9 (at 1e-3 and 5e-4 rounding alone reaches 2.6e-9 in h)."""
+    from scipy.stats import chi2
+
+    H, sigma, n_samples = _threshold_cases()[case]
+    h_white = whiten(H, sigma)
+    variance = sigma_estimate_variance(H, sigma, n_samples)
+    first_h, second_h = _difference_derivatives(h_white, 4e-3)
+    first_half, second_half = _difference_derivatives(h_white, 2e-3)
+    first = (4 * first_half - first_h) / 3
+    second = (4 * second_half - second_h) / 3
+    base = _direct_traces(h_white, np.zeros(H.shape[0]))
+    inflation = 1 + 1 / n_samples
+    mean = (base[0] + 0.5 * second[:, 0] @ variance) * inflation
+    var = (2 * (base[1] + 0.5 * second[:, 1] @ variance) + first**2 @ variance) * inflation**2
+    scale, dof = var / (2 * mean), 2 * mean**2 / var
+    expected = (scale * chi2.ppf(0.99, dof), scale, dof)
+    got = estimated_sigma_threshold(h_white, 0.01, variance, float(n_samples))
+    assert_allclose(got, expected, rtol=1e-9)
+    # the estimated-sigma correction is material here (g > 1 + 1/N + 1 %, h < n - q)
+    assert scale > 1.01 + 1 / n_samples and dof < H.shape[0] - H.shape[1]
+
+
 @pytest.mark.slow
 def test_parity_test_holds_its_level_with_sigma_estimated_from_200_samples():
     """16 IMUs, sigma per sensor and bias from 200 samples (paper-table4's 2 s window).
