@@ -524,27 +524,30 @@ def _drift_search(
     with np.errstate(divide="ignore", invalid="ignore"):
         b_free = (n * s_ur - s_u * s_r) / det
         lam_free = (s_r - b_free * s_u) / n / b_free
+    # the free offset, then the two bounds lam = 0 and dt stacked (2, T): elementwise the
+    # same operations as one bound at a time, so the same floats
+    sse_free = s_rr - (s_r - b_free * s_u) / n * s_r - b_free * s_ur
+    # a free offset is a sub-sample onset; at the window's first sample it may also
+    # be a ramp already in progress (an episode that starts mid-fault, after an
+    # earlier alarm episode of the same fault)
+    in_progress = (taus == 0) & (det > 0)
+    valid_free = ((det > 0) & (lam_free >= 0) & (lam_free <= dt)) | in_progress
+    bounds = (0.0, dt)
+    offsets = np.array(bounds)[:, None]
+    offsets_twice = np.array([2 * bound for bound in bounds])[:, None]
+    offsets_sq = np.array([bound**2 for bound in bounds])[:, None]
+    s_vv = s_uu + offsets_twice * s_u + n * offsets_sq
+    s_vr = s_ur + offsets * s_r
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b = s_vr / s_vv
+    sse_bounds = s_rr - b * s_vr
+    fit = nll_before + _gaussian_nll(np.vstack((sse_free[None, :], sse_bounds)), n, var0)
+    total = np.where(np.vstack((valid_free[None, :], s_vv > 0)), fit, np.inf)
     best: tuple[float, int, float | None] | None = None
-    for lam in (None, 0.0, dt):
-        if lam is None:
-            b = b_free
-            sse = s_rr - (s_r - b * s_u) / n * s_r - b * s_ur
-            # a free offset is a sub-sample onset; at the window's first sample it may also
-            # be a ramp already in progress (an episode that starts mid-fault, after an
-            # earlier alarm episode of the same fault)
-            in_progress = (taus == 0) & (det > 0)
-            valid = ((det > 0) & (lam_free >= 0) & (lam_free <= dt)) | in_progress
-        else:
-            s_vv = s_uu + 2 * lam * s_u + n * lam**2
-            s_vr = s_ur + lam * s_r
-            with np.errstate(divide="ignore", invalid="ignore"):
-                b = s_vr / s_vv
-            sse = s_rr - b * s_vr
-            valid = s_vv > 0
-        total = np.where(valid, nll_before + _gaussian_nll(sse, n, var0), np.inf)
-        j = int(np.argmin(total))
-        if np.isfinite(total[j]) and (best is None or total[j] < best[0]):
-            best = (float(total[j]), j, lam)
+    for row, candidate in enumerate((None, *bounds)):
+        j = int(np.argmin(total[row]))
+        if np.isfinite(total[row, j]) and (best is None or total[row, j] < best[0]):
+            best = (float(total[row, j]), j, candidate)
     if best is None:
         return None
     total_nll, j, lam = best

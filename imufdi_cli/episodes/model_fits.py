@@ -21,7 +21,7 @@ from imufdi_cli.episodes.numerics import (
     _chi2_quantile,
     _f_quantile,
     _gaussian_nll,
-    _suffix,
+    _suffixes,
     _t_quantile,
 )
 from imufdi_cli.episodes.white_noise import _calibration_dof, successive_difference_dof
@@ -150,15 +150,16 @@ def _running_median(x: np.ndarray, half: int) -> np.ndarray:
     """Median of ``x[i - half : i + half + 1]`` (shape of x; fewer samples at the ends)."""
     n, width = x.shape[0], 2 * half + 1
     out = np.empty(n)
-    if n >= width:
-        out[half : n - half] = np.median(np.lib.stride_tricks.sliding_window_view(x, width), 1)
-    edges = np.flatnonzero((np.arange(n) < half) | (np.arange(n) >= n - half))
-    if edges.size:  # the end windows, NaN-padded (x is finite here)
-        padded = np.concatenate((np.full(half, np.nan), x, np.full(half, np.nan)))
-        windows = np.sort(np.lib.stride_tricks.sliding_window_view(padded, width)[edges], 1)
-        count = np.count_nonzero(~np.isnan(windows), axis=1)  # NaN sorts last
-        rows = np.arange(edges.size)
-        out[edges] = (windows[rows, (count - 1) // 2] + windows[rows, count // 2]) / 2
+    if n >= width:  # an odd count: the median is the middle order statistic (numpy's too)
+        windows = np.lib.stride_tricks.sliding_window_view(x, width)
+        out[half : n - half] = np.partition(windows, half, axis=1)[:, half]
+    # the end windows (fewer samples, x is finite here): at most 2 half of them, sorted as
+    # Python floats; the middle value, or the middle two's sum halved (numpy's median)
+    values = x.tolist()
+    for i in (*range(min(half, n)), *range(max(n - half, half), n)):
+        window = sorted(values[max(i - half, 0) : i + half + 1])
+        count = len(window)
+        out[i] = (window[(count - 1) // 2] + window[count // 2]) / 2
     return out
 
 
@@ -261,16 +262,24 @@ def _spike_fit(
     (with random signs, the motion error at the spikes averages out of the mean of |r|,
     and the interval's spread carries it)."""
     flagged = _spike_set(r, sigma_r)
-    count_after = _suffix(flagged.astype(np.float64))[taus]
-    if count_after.max(initial=0.0) < 1:
+    # no flagged sample from the first candidate onset on: every count after is 0 (sums of
+    # zeros and ones are exact), so no onset has a spike after it
+    if taus.shape[0] == 0 or not flagged[int(taus.min()) :].any():
         return None
-    abs_after = _suffix(np.where(flagged, np.abs(r), 0.0))[taus]
-    sq_quiet_after = _suffix(np.where(flagged, 0.0, r**2))[taus]
+    # the four suffix sums in one accumulation (row by row the same floats as one each)
+    sq = r * r
+    series = np.zeros((4, r.shape[0]))
+    series[0] = flagged
+    np.abs(r, out=series[1], where=flagged)
+    np.copyto(series[2], sq, where=~flagged)
+    np.copyto(series[3], sq, where=flagged)
+    count_after, abs_after, sq_quiet_after, sq_spikes_after = _suffixes(series, 0, r.shape[0])[
+        :, taus
+    ]
     n_after = (r.shape[0] - taus).astype(np.float64)
     n_quiet = np.maximum(n_after - count_after, 1.0)
     p = np.clip(count_after / n_after, 1e-12, 1 - 1e-12)
     amp = np.where(count_after > 0, abs_after / np.maximum(count_after, 1), 0.0)
-    sq_spikes_after = _suffix(np.where(flagged, r**2, 0.0))[taus]
     # spikes about +-amp, quiet samples about 0, each group with its
     # own variance (at least sigma_r^2: two spikes within two samples, or one at the
     # window's edge, move the local level); mixture weights p

@@ -204,11 +204,12 @@ def _linear_fit(
     dof = n - p
     if dof < 1:
         return FaultFit(model, size, -math.inf, math.inf, onset, bic)
-    e = y - X @ coef
+    fitted = X @ coef
+    e = y - fitted
     sw2, sw = float(w @ w), float(np.add.reduce(w))
     quantile = _t_quantile(0.5 + confidence / 2, dof)
     extra: dict[str, float] = {}
-    curve = (X @ coef, var0)
+    curve = (fitted, var0)
     widened = None
     if reference is not None and reference.residuals.shape[1] >= 2:
         # the sensor's own white variance, measured as the healthy sensors' is: successive
