@@ -168,10 +168,13 @@ class _Configuration:
         q = h_active.shape[1]
         removable = np.zeros(active.size, dtype=bool)
         if active.size - 1 >= max(MIN_ACTIVE_SENSORS, q + 1):
-            for i in range(active.size):
-                rest = np.delete(h_active, i, axis=0)
-                singular = np.linalg.svd(rest, compute_uv=False)
-                removable[i] = singular[-1] > 1e-9 * singular[0]
+            # every leave-one-out H stacked (n_a, n_a - 1, q): one batched SVD, the same
+            # LAPACK call on each matrix as one at a time (so the same singular values)
+            n_active = active.size
+            keep = np.arange(n_active - 1)[None, :]
+            rows = keep + (keep >= np.arange(n_active)[:, None])  # row i skips sensor i
+            singular = np.linalg.svd(h_active[rows], compute_uv=False)
+            removable = singular[:, -1] > 1e-9 * singular[:, 0]
         return cls(
             active=active,
             excluded=excluded,
