@@ -353,7 +353,8 @@ def _fit_window(
     j = int(np.argmin(total))
     bic = float(2 * total[j] + 2 * ln_n)  # a, the onset
     onset = lo + j
-    fits.append(_linear_fit("step", r[onset:], np.ones((length - onset, 1)), onset, bic, **linear))
+    ones = np.ones((length - onset, 1))
+    fits.append(_linear_fit("step", r[onset:], ones, onset, bic, constant=True, **linear))
 
     # drift: r = b (t - t_f) + e from an onset t_f between samples tau - 1 and tau, i.e.
     # r = b (u + lam) with u = t - t_tau and lam = t_tau - t_f in [0, dt]: the offset

@@ -167,8 +167,10 @@ def _linear_fit(
     reference: Reference | None,
     window: np.ndarray | None = None,
     shift: float = 0.0,
+    constant: bool = False,
 ) -> FaultFit:
-    """Least squares ``y = X c + e`` after the onset; the size is ``c[0] + shift``.
+    """Least squares ``y = X c + e`` after the onset; the size is ``c[0] + shift``
+    (``constant``: X is one column of ones, n >= 1, whose weights are 1 / n).
 
     The size is a linear estimate ``c0 = w^T y`` (w the first row of ``X^+``), and its
     variance is propagated from everything ``y`` carries:
@@ -194,10 +196,15 @@ def _linear_fit(
     ``c0 +- t_{(1 + confidence)/2} sqrt(var)``.
     """
     n, p = X.shape
-    gram = X.T @ X  # p <= 2 columns: the normal equations are well within precision
-    if not np.isfinite(gram).all() or abs(lapack.det(gram)) <= 1e-300:
-        return FaultFit(model, math.nan, -math.inf, math.inf, onset, bic)
-    weights = lapack.solve(gram, X.T)  # (p, n): coef = weights @ y
+    if constant:
+        # X a column of ones: the normal equation is [n] (a sum of ones, exact), and
+        # LAPACK's solve of it, 1 / n or 1 x (1 / n) for every sample, is the rounded 1 / n
+        weights = np.full((1, n), 1.0 / n)
+    else:
+        gram = X.T @ X  # p <= 2 columns: the normal equations are well within precision
+        if not np.isfinite(gram).all() or abs(lapack.det(gram)) <= 1e-300:
+            return FaultFit(model, math.nan, -math.inf, math.inf, onset, bic)
+        weights = lapack.solve(gram, X.T)  # (p, n): coef = weights @ y
     coef = weights @ y
     w = weights[0]
     size = float(coef[0]) + shift
@@ -404,13 +411,14 @@ def _pinv_from_svd(u: np.ndarray, singular: np.ndarray, vt: np.ndarray) -> np.nd
     ----------
     u : ndarray, shape (L, k)
     singular : ndarray, shape (k,)
+        In descending order, as the SVD returns them (the cut is relative to the first).
     vt : ndarray, shape (k, k)
 
     Returns
     -------
     ndarray, shape (k, L)
     """
-    large = singular > 1e-15 * singular.max()
+    large = singular > 1e-15 * singular[0]  # LAPACK sorts them: singular[0] is the max
     if large.all():  # (nothing cut: the same division, without the masks)
         inverse = np.divide(1, singular)
     else:
