@@ -227,7 +227,12 @@ def _linear_fit(
         ) * (n - 1)
         white_var /= max(pre.shape[0] + n - 2, 1)
         dispersion, widened = _dispersion(
-            w, reference, white_var, offset_var / var0 if var0 > 0 else 0.0, confidence
+            w,
+            reference,
+            white_var,
+            offset_var / var0 if var0 > 0 else 0.0,
+            confidence,
+            sums=(sw2, sw),
         )
         extra["dispersion"] = dispersion
         if window is not None and reference.motion is not None:
@@ -252,7 +257,7 @@ def _linear_fit(
                 )
     # (the noise variance is needed only without the motion fit)
     s2 = float(e @ e) / dof
-    variance = s2 * _autocorrelation_factor(e, w) * sw2 + offset_var * sw**2
+    variance = s2 * _autocorrelation_factor(e, w, sw2) * sw2 + offset_var * sw**2
     if widened is not None and widened[0] > variance:
         variance, quantile = widened
     half = quantile * math.sqrt(max(variance, 0.0))
@@ -265,6 +270,7 @@ def _dispersion(
     white_var: float,
     offset_ratio: float,
     confidence: float,
+    sums: tuple[float, float] | None = None,
 ) -> tuple[float, tuple[float, float] | None]:
     """The healthy sensors' check of the noise model for the linear estimate ``w^T r``
     over the window's last ``len(w)`` samples: their dispersion ``Q / m``, and the widened
@@ -295,9 +301,11 @@ def _dispersion(
         Variance of its calibrated offset over its white variance (1 / n_cal; 0: none).
     confidence : float
         Level of the interval.
+    sums : (float, float), optional
+        ``(w^T w, sum w)`` when the caller has them (the same floats).
     """
     n = w.shape[0]
-    sw2, sw = float(w @ w), float(np.add.reduce(w))
+    sw2, sw = (float(w @ w), float(np.add.reduce(w))) if sums is None else sums
     estimates = w @ reference.residuals[-n:]
     predicted = reference.white_variance * (sw2 + reference.offset_share * sw**2)
     m = estimates.shape[0]
@@ -394,9 +402,9 @@ def _motion_fit(
     # samples of white noise, offset_ratio = 1 / n_cal times the white variance; the
     # healthy sensors' check below predicts their offsets' error the same way
     offset = offset_ratio * white if var0 > 0 else offset_var
-    variance = float(e @ e) / dof * _autocorrelation_factor(e, w) * sw2 + offset * sw**2
+    variance = float(e @ e) / dof * _autocorrelation_factor(e, w, sw2) * sw2 + offset * sw**2
     quantile = _t_quantile(0.5 + confidence / 2, dof)
-    dispersion, widened = _dispersion(w, reference, white, offset_ratio, confidence)
+    dispersion, widened = _dispersion(w, reference, white, offset_ratio, confidence, sums=(sw2, sw))
     if widened is not None and widened[0] > variance:
         variance, quantile = widened
     return float(coef[0]), quantile * math.sqrt(max(variance, 0.0)), dispersion
@@ -427,17 +435,18 @@ def _pinv_from_svd(u: np.ndarray, singular: np.ndarray, vt: np.ndarray) -> np.nd
     return vt.T @ (inverse[:, np.newaxis] * u.T)
 
 
-def _autocorrelation_factor(e: np.ndarray, w: np.ndarray) -> float:
+def _autocorrelation_factor(e: np.ndarray, w: np.ndarray, sw2: float | None = None) -> float:
     """``Var(w^T e) / (s^2 w^T w)`` for a stationary e: ``1 + 2 sum_k kappa_k rho_k
     sum_i w_i w_{i+k} / w^T w`` with the sample autocorrelation rho_k of ``e`` and Bartlett
     weights ``kappa_k = 1 - k / (L + 1)`` up to ``L = floor(4 (n/100)^(2/9))`` (Newey &
     West 1994), which keep it non-negative; 1 for white noise (up to its sampling error,
-    about ``2 sqrt(L / 3 n)``). Floored at 0.1."""
+    about ``2 sqrt(L / 3 n)``). Floored at 0.1. ``sw2``: ``w^T w`` when the caller has it."""
     n = e.shape[0]
     lags = min(n - 2, int(4 * (n / 100) ** (2 / 9)))
     e0 = e - np.add.reduce(e) / n  # e.mean(), without its Python overhead
     c0 = float(e0 @ e0)
-    sw2 = float(w @ w)
+    if sw2 is None:
+        sw2 = float(w @ w)
     if lags < 1 or c0 <= 0 or sw2 <= 0:
         return 1.0
     total = 1.0
