@@ -193,7 +193,9 @@ def _cut(
     # the fault ended before the window did (the detector's alarms outlast it): refit on
     # the samples up to its end; the healthy tail adds the same to every model's -2 log L,
     # and the end is one more parameter of each fault model
-    tail = float(2 * _gaussian_nll(float(np.sum(r[end:] ** 2)), float(r.shape[0] - end), var0))
+    tail = float(
+        2 * _gaussian_nll(float(np.add.reduce(r[end:] ** 2)), float(r.shape[0] - end), var0)
+    )
     ln_n = math.log(r.shape[0])
     reference_cut = (
         None
@@ -374,7 +376,7 @@ def _fit_window(
 
     # none: the residual is the sensor's calibrated noise over the whole window (a false
     # alarm of chance: no fault model earns its extra parameters)
-    nll_healthy = float(_gaussian_nll(np.sum(sq), float(length), var0))
+    nll_healthy = float(_gaussian_nll(np.add.reduce(sq), float(length), var0))
     fits.append(FaultFit("none", math.nan, math.nan, math.nan, -1, 2 * nll_healthy))
 
     spikes = _spikes_model(w, confidence)
@@ -516,7 +518,7 @@ def _drift_search(
     """Onset of a ramp starting between two samples, by profile likelihood: returns the
     onset (index into ``taus``), the sub-sample offset ``lam`` (None: free, fitted as an
     intercept) and the BIC; None when no onset fits."""
-    dt = _median(np.diff(t)) if t.shape[0] > 1 else 0.0
+    dt = _median(t[1:] - t[:-1]) if t.shape[0] > 1 else 0.0  # np.diff(t)
     t0 = t[taus]
     s_u = s_t - n * t0
     s_uu = s_tt - 2 * t0 * s_t + n * t0**2
@@ -542,8 +544,8 @@ def _drift_search(
     with np.errstate(divide="ignore", invalid="ignore"):
         b = s_vr / s_vv
     sse_bounds = s_rr - b * s_vr
-    fit = nll_before + _gaussian_nll(np.vstack((sse_free[None, :], sse_bounds)), n, var0)
-    total = np.where(np.vstack((valid_free[None, :], s_vv > 0)), fit, np.inf)
+    fit = nll_before + _gaussian_nll(np.concatenate((sse_free[None, :], sse_bounds)), n, var0)
+    total = np.where(np.concatenate((valid_free[None, :], s_vv > 0)), fit, np.inf)
     best: tuple[float, int, float | None] | None = None
     for row, candidate in enumerate((None, *bounds)):
         j = int(np.argmin(total[row]))

@@ -100,7 +100,7 @@ def _white_noise_fit(
     def factor(var: float) -> float:
         return math.sqrt(max(var - consensus_sigma**2, 0.0)) / sigma_k
 
-    var_hat = float(np.sum(np.diff(r) ** 2)) / (2 * (n - 1))
+    var_hat = float(np.add.reduce((r[1:] - r[:-1]) ** 2)) / (2 * (n - 1))  # np.diff(r)
     dof = successive_difference_dof(n)
     extra: dict[str, Any] = {"mean": mean}
     if len(white) == 4:
@@ -117,7 +117,7 @@ def _local_level(r: np.ndarray) -> np.ndarray:
     """Running median of five samples (two each side; fewer at the ends): the residual's
     slowly varying level, which single-sample spikes do not move (one or two of five)."""
     n = r.shape[0]
-    if n >= 5 and math.isfinite(float(np.sum(r))):
+    if n >= 5 and math.isfinite(float(np.add.reduce(r))):
         # every value finite (a sum is finite only then, or on overflow, which takes the
         # general path below): the median of five is one of them, chosen by a min/max
         # selection network (exact); the four ends from their three or four values, the
@@ -215,7 +215,7 @@ def _spike_set(r: np.ndarray, sigma_r: float) -> np.ndarray:
     SPIKE_SET_PASSES, and the last set is used.
     """
     spikes = np.abs(r - _local_level(r)) > SPIKE_CUT * sigma_r
-    if not spikes.any() or not math.isfinite(float(np.sum(r))):
+    if not spikes.any() or not math.isfinite(float(np.add.reduce(r))):
         return spikes
     index = np.arange(r.shape[0])
     cut = SPIKE_CUT * sigma_r

@@ -394,7 +394,7 @@ def _motion_fit(
     f_stat = (sse_without - sse) / M.shape[1] / (sse / dof) if sse > 0 else math.inf
     if not force and f_stat <= _f_quantile(DISPERSION_LEVEL, M.shape[1], dof):
         return None
-    sw2, sw = float(w @ w), float(np.sum(w))
+    sw2, sw = float(w @ w), float(np.add.reduce(w))
     white = float(successive_variance(e))
     offset_ratio = offset_var / var0 if var0 > 0 else 0.0
     # the calibrated offset's error: what is left of the calibration window once M (taken
