@@ -67,13 +67,16 @@ def _gaussian_nll(ss: Any, n: Any, var: Any) -> Any:
 
 def _prefix(values: np.ndarray) -> np.ndarray:
     """P[j] = sum(values[:j]), shape (L + 1,)."""
-    return np.concatenate(([0.0], np.cumsum(values)))
+    out = np.empty(values.shape[0] + 1)
+    out[0] = 0.0
+    values.cumsum(out=out[1:])  # np.cumsum's own method, written in place
+    return out
 
 
 def _suffix(values: np.ndarray) -> np.ndarray:
     """S[j] = sum(values[j:]), shape (L + 1,)."""
     out = np.zeros(values.shape[0] + 1)
-    out[:-1] = np.cumsum(values[::-1])[::-1]
+    out[:-1] = values[::-1].cumsum()[::-1]  # np.cumsum's own method
     return out
 
 
@@ -81,7 +84,7 @@ def _suffixes(values: np.ndarray, lo: int, hi: int) -> np.ndarray:
     """``_suffix(values[i])[lo:hi]`` for every row i of ``values`` (k, L), shape (k, hi -
     lo): one accumulation for all rows (sequential, as for one row: the same floats)."""
     out = np.zeros((values.shape[0], values.shape[1] + 1))
-    out[:, :-1] = np.cumsum(values[:, ::-1], axis=1)[:, ::-1]
+    out[:, :-1] = values[:, ::-1].cumsum(axis=1)[:, ::-1]
     return out[:, lo:hi]
 
 
