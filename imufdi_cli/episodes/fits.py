@@ -240,7 +240,7 @@ def _fault_end(
         segment**2 / var0 + math.log(var0)
     )
     cumulative = np.cumsum(llr)
-    j = int(np.argmax(cumulative))
+    j = int(cumulative.argmax())
     end = best.onset_index + j + 1
     # the end is one more parameter: it must earn its BIC penalty (ln n) in -2 log L
     gain = 2 * float(cumulative[j] - cumulative[-1])
@@ -352,7 +352,7 @@ def _fit_window(
     # step: r = a + e
     a = s_r / n_after
     total = nll_before + _gaussian_nll(s_rr - n_after * a**2, n_after, var0)
-    j = int(np.argmin(total))
+    j = int(total.argmin())
     bic = float(2 * total[j] + 2 * ln_n)  # a, the onset
     onset = lo + j
     ones = np.ones((length - onset, 1))
@@ -417,7 +417,7 @@ def _noise_model(
     var_hat = np.maximum(after_g / n_after, var_gamma)
     nll_before_g = _gaussian_nll(before_g, taus.astype(np.float64), var_gamma)
     total_g = nll_before_g + _gaussian_nll(after_g, n_after, var_hat)
-    j = int(np.argmin(total_g))
+    j = int(total_g.argmin())
     bic = float(2 * total_g[j] + 3 * w.ln_n)  # gamma, v, onset
     # the factor is sized from the successive differences (white path: gamma o varies
     # slowly and drops out of them) or from the spread about the mean: a fault on a sensor
@@ -456,7 +456,7 @@ def _scale_model(w: _Window, linear: dict[str, Any]) -> FaultFit | None:
         beta = np.where(s_oo > 0, s_or / s_oo, 0.0)
     sse_1 = np.maximum(w.s_rr - beta * s_or, 0.0)
     nll_1 = _gaussian_nll(sse_1, w.n_after, w.motion_variance(beta))
-    j = int(np.argmin(w.nll_before + nll_1))
+    j = int((w.nll_before + nll_1).argmin())
     tau = int(w.taus[j])
     p_oo, p_or = float(np.dot(o[:tau], o[:tau])), float(np.dot(o[:tau], r[:tau]))
     beta_0 = p_or / p_oo if p_oo > 0 else 0.0
@@ -548,7 +548,7 @@ def _drift_search(
     total = np.where(np.concatenate((valid_free[None, :], s_vv > 0)), fit, np.inf)
     best: tuple[float, int, float | None] | None = None
     for row, candidate in enumerate((None, *bounds)):
-        j = int(np.argmin(total[row]))
+        j = int(total[row].argmin())
         if np.isfinite(total[row, j]) and (best is None or total[row, j] < best[0]):
             best = (float(total[row, j]), j, candidate)
     if best is None:

@@ -278,7 +278,7 @@ def _spike_fit(
     ]
     n_after = (r.shape[0] - taus).astype(np.float64)
     n_quiet = np.maximum(n_after - count_after, 1.0)
-    p = np.clip(count_after / n_after, 1e-12, 1 - 1e-12)
+    p = (count_after / n_after).clip(1e-12, 1 - 1e-12)
     amp = np.where(count_after > 0, abs_after / np.maximum(count_after, 1), 0.0)
     # spikes about +-amp, quiet samples about 0, each group with its
     # own variance (at least sigma_r^2: two spikes within two samples, or one at the
@@ -292,7 +292,7 @@ def _spike_fit(
         - (count_after * np.log(p / 2) + (n_after - count_after) * np.log(1 - p))
     )
     total = nll_before + nll_after
-    j = int(np.argmin(total))
+    j = int(total.argmin())
     bic = float(2 * total[j] + 5 * ln_n)  # amplitude, rate, two variances, onset
     onset = int(taus[j])
     spikes = np.abs((r if sized is None else sized)[onset:][flagged[onset:]])
@@ -326,7 +326,7 @@ def _stuck_fit(raw: np.ndarray, lo: int, hi: int, share: float) -> FaultFit | No
     if not inside.any():
         return None
     lengths = np.where(inside, stops - starts, 0)
-    j = int(np.argmax(lengths))
+    j = int(lengths.argmax())
     onset = int(starts[j])
     if lengths[j] < share * (raw.shape[0] - onset):
         return None
