@@ -27,9 +27,12 @@ without the ``scipy.special`` package), so their results are the same floats, bi
 (``tests/test_quantiles.py`` compares them with scipy.stats over grids including the
 boundaries and invalid arguments). Arguments are float64 (other dtypes are converted).
 
-No module of ``imufdi_cli`` imports ``scipy.stats``; the detectors' thresholds come from
-here (``tests/cli/test_app.py`` checks that ``imufdi detect`` with each detector does not
-import it).
+The library's thresholds come from here: no module of ``imufdi_cli`` imports
+``scipy.stats`` on import, and no command reaches it (``tests/cli/test_app.py`` checks
+``imufdi detect`` with every detector, ``tests/detectors/test_registry.py`` the import of
+every detector class). The one use left is the analysis helper
+``detectors.jitter.minimum_detectable_step`` (the non-central chi-square, for benchmarks),
+which imports it when called.
 """
 
 from __future__ import annotations
