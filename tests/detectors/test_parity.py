@@ -214,8 +214,8 @@ def test_sigma_estimate_variance_matches_the_direct_variance_for_co_aligned_imus
     assert 1.0 < variance[0] / (2 / 200) < 1.3
 
 
-def test_known_sigma_threshold_is_the_chi_square_quantile():
-    from scipy.stats import chi2
+def test_known_sigma_threshold_is_the_chi_square_quantile(scipy_stats):
+    chi2 = scipy_stats.chi2  # (tests/conftest.py: imported at first use, on the first worker)
 
     H = ArrayConfig.co_aligned(16, 100.0, sensors=("gyro",)).measurement_matrix("gyro")
     threshold, scale, dof = estimated_sigma_threshold(H, 0.01, None, float("inf"))
