@@ -71,7 +71,7 @@ def test_detect_with_every_detector_imports_neither_scipy_stats_nor_scipy_signal
 ) -> None:
     """Start-up time: the detectors' quantiles, filters and envelopes come from
     imufdi_cli.quantiles and imufdi_cli.special (scipy.stats and scipy.signal: about 1.5 s
-    of CPU to import). One interpreter runs every detector (woa-mvmd-glt's search reduced
+    of CPU to import, scipy.fft about 0.4 s). One interpreter runs every detector (woa-mvmd-glt's search reduced
     to one iteration of two whales: it still computes the fitness, whose envelope needed
     scipy.signal)."""
     out = tmp_path_factory.mktemp("detect") / "all.mcap"
@@ -84,3 +84,4 @@ def test_detect_with_every_detector_imports_neither_scipy_stats_nor_scipy_signal
     # (scipy.signal's compiled filter, scipy.signal._sigtools, is loaded without the package)
     assert {m for m in run.modules if m.startswith("scipy.stats")} == set()
     assert "scipy.signal" not in run.modules and "scipy.signal._sigtools" in run.modules
+    assert "scipy.fft" not in run.modules  # (woa's envelope: pocketfft loaded alone)
