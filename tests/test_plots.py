@@ -172,3 +172,28 @@ def test_long_report_figure_draws_the_envelope_and_the_same_shading():
         assert np.max(faulty_line.get_ydata()) == 3.0
     finally:
         plots.pyplot().close(fig)
+
+
+@pytest.mark.draws  # run early, on one worker (tests/conftest.py)
+def test_save_figure_writes_the_same_file_as_savefig(tmp_path):
+    pytest.importorskip("matplotlib")
+    plt = plots.pyplot()
+
+    def figure():
+        fig, ax = plt.subplots(figsize=(3, 2), constrained_layout=True)
+        ax.plot([1, 2, 3], [10, 1000, 20], label="a line with a long label")
+        ax.set_title("left\ntwo lines", loc="left")
+        ax.set_ylabel("a\nwrapped label")
+        fig.legend(loc="outside lower center")  # placed by the layout only
+        return fig
+
+    for name, save in (
+        ("savefig", lambda fig, path: fig.savefig(path, dpi=60)),
+        ("once", lambda fig, path: plots.save_figure(fig, path, 60)),
+    ):
+        fig = figure()
+        try:
+            save(fig, tmp_path / f"{name}.png")
+        finally:
+            plt.close(fig)
+    assert (tmp_path / "once.png").read_bytes() == (tmp_path / "savefig.png").read_bytes()
