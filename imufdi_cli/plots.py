@@ -4,7 +4,9 @@
 its threshold with the alarms marked (like Li et al. Figure 15) and the isolation scores
 of the suspect sensors against the spread of all the others; :func:`plot_roc` the
 threshold sweep. Colours are stable per detector (:func:`detector_colour`), so the same
-detector has the same colour in every figure.
+detector has the same colour in every figure. Lines of more samples than twice the
+figure's width in pixels are drawn from their min/max envelope (:func:`envelope`), and
+figures are saved with their layout computed once (:func:`save_figure`).
 """
 
 from __future__ import annotations
@@ -189,7 +191,7 @@ def _band_envelope(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A band (``low`` to ``high`` at times ``t``) reduced to ``columns`` runs of equal
     sample count: each run spans its first to its last time, from the smallest ``low`` to
-    the largest ``high`` in it (NaN-free runs; an all-NaN run stays NaN, a gap). Short
+    the largest ``high`` in it (NaN ignored; an all-NaN run stays NaN: a gap). Short
     bands (at most ``2 * columns`` samples) are returned whole. Shapes (m,) each."""
     n = t.size
     if n <= 2 * columns:
