@@ -66,6 +66,8 @@ def moving_log(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow  # a fresh interpreter running all 8 detectors, 1.6-1.9 s of CPU; the
+# default run keeps tests/detectors/test_registry.py's probe of every detector class's imports
 def test_detect_with_every_detector_imports_neither_scipy_stats_nor_scipy_signal(
     fresh_imufdi, moving_log, tmp_path_factory
 ) -> None:
