@@ -15,6 +15,13 @@ each <= 2x ``python -c "import numpy"``. Also prints which heavy modules (scipy,
 detectors, matplotlib, rich's markdown) ``imufdi --help`` imports: none should be there,
 and whether ``imufdi info`` in a pipe imports rich (it should not).
 
+``--detect``: instead, ``imufdi detect LOG -d NAME`` for every detector on a 3 s
+wearable12 log simulated at run time (start-up, calibration and a few hundred samples:
+what a user waits for on a short log), median CPU per detector, interleaved with the same
+commands of another checkout (``--before``, e.g. an exported copy of main) and with
+``python -c "import numpy"``; the ratio after/before is the claim (session 23: no detector
+imports scipy.stats or scipy.signal any more).
+
 Two bytecode states, each against its own numpy baseline (numpy's bytecode is installed
 with it in both): ``warm`` — the project's ``__pycache__`` written and used, as after
 ``pip install`` or any earlier run; ``source`` — the project's modules compiled from
@@ -99,6 +106,57 @@ def measure(bytecode: str, repeat: int, tree: Path = ROOT) -> dict[str, float]:
     return {name: wall[name] / floor for name in commands}
 
 
+def measure_detect(repeat: int, tree: Path, before: Path | None) -> None:
+    """Median CPU of ``imufdi detect`` per detector for ``tree`` (and ``before``),
+    interleaved, warm bytecode; prints the ratios."""
+    import tempfile
+
+    py = sys.executable
+    trees = {"after": tree} if before is None else {"after": tree, "before": before}
+    envs = {name: _environment("warm", path) for name, path in trees.items()}
+    work = Path(tempfile.mkdtemp(prefix="imufdi-bench-startup-"))
+    log = work / "wearable12.mcap"
+    simulate = ["simulate", "--preset", "wearable12", "--duration", "3s", "-o", str(log)]
+    subprocess.run(
+        [py, "-m", "imufdi_cli", *simulate],
+        check=True,
+        env=envs["after"],
+        cwd=tree,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    names = [
+        "ap-consistency",
+        "bank",
+        "cnn-map",
+        "glt",
+        "noise-glr",
+        "pca-parity",
+        "px4-selector",
+        "woa-mvmd-glt",
+    ]
+    commands = {
+        name: [py, "-m", "imufdi_cli", "detect", str(log), "-d", name, "-o", str(work / "out.mcap")]
+        for name in names
+    }
+    numpy_cmd = [py, "-c", "import numpy"]
+    cpu: dict[tuple[str, str], list[float]] = {}
+    for _ in range(repeat + 1):  # the first round warms the file cache and the bytecode
+        for name, cmd in [("python -c 'import numpy'", numpy_cmd), *commands.items()]:
+            for which, env in envs.items():
+                cpu.setdefault((name, which), []).append(_time(cmd, env)[1])
+    shutil.rmtree(work, ignore_errors=True)
+    median = {key: statistics.median(values[1:]) for key, values in cpu.items()}
+    print(f"imufdi detect, 3 s wearable12 log, median CPU (user + system) of {repeat} runs")
+    for name in ["python -c 'import numpy'", *names]:
+        after = median[(name, "after")]
+        line = f"  {name:26s} after {after * 1000:7.1f} ms"
+        if before is not None:
+            was = median[(name, "before")]
+            line += f"   before {was * 1000:7.1f} ms   after/before {after / was:5.2f}"
+        print(line)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeat", type=int, default=15)
@@ -110,8 +168,26 @@ def main() -> int:
         help="checkout whose imufdi_cli is timed (e.g. an exported copy of main, to compare"
         " before/after in one run); its __pycache__ is removed for --bytecode source",
     )
+    parser.add_argument(
+        "--detect",
+        action="store_true",
+        help="time `imufdi detect -d NAME` for every detector instead (see the docstring)",
+    )
+    parser.add_argument(
+        "--before",
+        type=Path,
+        default=None,
+        help="with --detect: a second checkout timed in the same rounds (e.g. main)",
+    )
     args = parser.parse_args()
     py = sys.executable
+    if args.detect:
+        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        print(f"load average: {load} (2-core target machine; ratios, not seconds, are the claim)")
+        measure_detect(args.repeat, args.tree, args.before)
+        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        print(f"load average at the end: {load}")
+        return 0
     modes = ("source", "warm") if args.bytecode == "both" else (args.bytecode,)
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     print(f"load average: {load} (2-core target machine; ratios, not seconds, are the claim)")

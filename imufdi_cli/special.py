@@ -14,6 +14,11 @@ code, the same floats (``tests/test_special.py`` checks both). If ``scipy.specia
 already imported, or the extension cannot be loaded that way, the package's own ufunc is
 used. A later ``import scipy.special`` runs the package normally and finds the extension
 already loaded (one module object, not two).
+
+:func:`extension` does the same for any compiled module of a scipy subpackage;
+:func:`lfilter` uses it for ``scipy.signal.lfilter``'s compiled filter: ``import
+scipy.signal`` costs about 1.5 s of CPU (it imports ``scipy.stats``), paid by every ``imufdi
+detect -d bank`` for two first-order filters.
 """
 
 from __future__ import annotations
@@ -25,38 +30,61 @@ import types
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 _PACKAGE = "scipy.special"
 _MODULE = "scipy.special._ufuncs"
 _LOCK = threading.Lock()
 
 
-@functools.lru_cache(maxsize=1)
-def _extension() -> Any:
-    """``scipy.special._ufuncs`` loaded without the package (None when that fails)."""
+@functools.cache
+def extension(module: str) -> Any:
+    """The compiled extension module ``module`` of a scipy subpackage (e.g.
+    ``"scipy.special._ufuncs"``, ``"scipy.signal._sigtools"``,
+    ``"scipy.fft._pocketfft.pypocketfft"``) loaded without running the
+    subpackage's ``__init__`` (None when that fails; the module itself when it or its
+    package is already imported: the package is then used as it is).
+
+    Parameters
+    ----------
+    module : str
+        ``scipy.<subpackage>.<extension>``.
+
+    Returns
+    -------
+    module or None
+    """
+    package = module.rpartition(".")[0]
     with _LOCK:
-        loaded = sys.modules.get(_MODULE)
-        if loaded is not None or _PACKAGE in sys.modules:
+        loaded = sys.modules.get(module)
+        if loaded is not None or package in sys.modules:
             return loaded
         try:
             import importlib
 
             import scipy
 
-            stub = types.ModuleType(_PACKAGE)
-            stub.__path__ = [str(Path(scipy.__file__).parent / "special")]
-            stub.__package__ = _PACKAGE
-            sys.modules[_PACKAGE] = stub
+            attribute = package.split(".")[1]
+            stub = types.ModuleType(package)
+            stub.__path__ = [str(Path(scipy.__file__).parent.joinpath(*package.split(".")[1:]))]
+            stub.__package__ = package
+            sys.modules[package] = stub
             try:
-                return importlib.import_module(_MODULE)
+                return importlib.import_module(module)
             finally:
                 # the real package is imported normally if anything asks for it later
-                if sys.modules.get(_PACKAGE) is stub:
-                    del sys.modules[_PACKAGE]
-                if vars(scipy).get("special") is stub:  # (getattr would import it)
-                    delattr(scipy, "special")
-        except Exception:  # any failure: the package's own functions (ufunc below)
+                if sys.modules.get(package) is stub:
+                    del sys.modules[package]
+                if vars(scipy).get(attribute) is stub:  # (getattr would import it)
+                    delattr(scipy, attribute)
+        except Exception:  # any failure: the package's own functions (the callers')
             # (extension modules loaded before the failure stay: the package reuses them)
             return None
+
+
+def _extension() -> Any:
+    """``scipy.special._ufuncs`` loaded without the package (None when that fails)."""
+    return extension(_MODULE)
 
 
 def ufunc(name: str) -> Any:
@@ -81,3 +109,83 @@ def ufunc(name: str) -> Any:
     import scipy.special
 
     return getattr(scipy.special, name)
+
+
+def lfilter(b: Any, a: Any, x: Any, axis: int = -1, zi: Any = None) -> Any:
+    """``scipy.signal.lfilter(b, a, x, axis, zi)`` for a recursive filter (``len(a) > 1``),
+    without importing ``scipy.signal`` (about 1.5 s of CPU: it imports ``scipy.stats``).
+
+    scipy's wrapper (scipy 1.17 ``signal/_signaltools.py``) passes such a filter straight
+    to the compiled direct-form II transposed filter ``_sigtools._linear_filter`` after
+    ``np.atleast_1d`` of the coefficients and ``np.asarray`` of the data; so does this
+    function, so the outputs are the same floats. A moving-average filter (``len(a) ==
+    1``), or a scipy whose extension cannot be loaded alone, goes through
+    ``scipy.signal.lfilter`` itself.
+
+    Parameters
+    ----------
+    b, a : array_like, shapes (M,) and (N,)
+        Numerator and denominator coefficients (``a[0] != 0``).
+    x : array_like
+        Data, filtered along ``axis``.
+    axis : int
+        Axis of ``x`` along which the filter runs.
+    zi : array_like, optional
+        Initial state, ``x``'s shape with ``max(M, N) - 1`` along ``axis``.
+
+    Returns
+    -------
+    ndarray, or (ndarray, ndarray)
+        The filtered data (``x``'s shape), and the final state when ``zi`` is given.
+    """
+    b, a = np.atleast_1d(b), np.atleast_1d(a)
+    sigtools = extension("scipy.signal._sigtools")
+    usable = b.ndim == 1 and b.size > 0 and a.ndim == 1 and a.size > 1
+    if sigtools is None or not usable:
+        from scipy import signal
+
+        return signal.lfilter(b, a, x, axis=axis, zi=zi)
+    x = np.asarray(x)
+    if zi is None:
+        return sigtools._linear_filter(b, a, x, axis)
+    out, zf = sigtools._linear_filter(b, a, x, axis, np.asarray(zi))
+    return out, zf
+
+
+def fft(x: np.ndarray, forward: bool = True) -> np.ndarray:
+    """``scipy.fft.fft(x, axis=-1)`` (``forward``) or ``scipy.fft.ifft(x, axis=-1)``
+    without importing ``scipy.fft`` (about 0.4 s of CPU, most of it scipy's array-API
+    layer).
+
+    For a float64 or complex128 array, aligned and in native byte order, scipy's wrapper
+    (scipy 1.17 ``fft/_pocketfft/basic.py``: ``c2c``) passes it uncopied to the compiled
+    ``pypocketfft.c2c(x, (axis,), forward, norm, None, workers)`` with norm 0 forward and
+    2 backward (1/n) and one worker; so does this function, so the outputs are the same
+    floats. Anything else (or a scipy whose extension cannot be loaded alone) goes through
+    ``scipy.fft`` itself.
+
+    Parameters
+    ----------
+    x : ndarray, shape (..., n)
+        Samples (n >= 1), transformed along the last axis.
+    forward : bool
+        The forward transform (``fft``) or the inverse (``ifft``, scaled by 1/n).
+
+    Returns
+    -------
+    ndarray, complex, shape (..., n)
+    """
+    pocketfft = extension("scipy.fft._pocketfft.pypocketfft")
+    plain = (
+        isinstance(x, np.ndarray)
+        and x.dtype in (np.float64, np.complex128)
+        and x.dtype.isnative
+        and x.flags.aligned
+        and x.ndim >= 1
+        and x.shape[-1] >= 1
+    )
+    if pocketfft is None or not plain:
+        from scipy import fft as scipy_fft
+
+        return scipy_fft.fft(x, axis=-1) if forward else scipy_fft.ifft(x, axis=-1)
+    return pocketfft.c2c(x, (x.ndim - 1,), forward, 0 if forward else 2, None, 1)

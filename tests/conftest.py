@@ -9,6 +9,7 @@ import subprocess
 import sys
 from collections.abc import Callable, Generator
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -51,13 +52,16 @@ def _first_use_group(item: pytest.Item) -> int:
     """0 for a test that pays a cost once per process on first use (a Hypothesis test:
     Hypothesis parses the source of every imported ``imufdi_cli`` module for constants to
     try, about 1.4 s of CPU in a fresh process; a test drawing a matplotlib figure: the
-    import, about 1 s), 1 for the others."""
+    import, about 1 s; a test asking for the ``scipy_stats`` fixture: its import, about
+    1.2 s), 1 for the others."""
     from hypothesis import is_hypothesis_test
 
     function = getattr(item, "obj", None)
     if function is not None and is_hypothesis_test(function):
         return 0
     if item.get_closest_marker("draws") or item.get_closest_marker("campaign_figure"):
+        return 0
+    if "scipy_stats" in getattr(item, "fixturenames", ()):
         return 0
     return 1
 
@@ -256,16 +260,31 @@ def fresh_python() -> Callable[[str], subprocess.CompletedProcess[str]]:
 
 
 @pytest.fixture(scope="session")
+def scipy_stats() -> ModuleType:
+    """``scipy.stats``, the independent oracle of the tests of ``imufdi_cli``'s own
+    distribution functions and of the detectors' statistics, imported at first use (about
+    1.2 s of CPU): no ``imufdi_cli`` module imports it, so only the test processes that run
+    a test asking for it pay the import, and :func:`pytest_collection_modifyitems` moves
+    those tests to the front, onto the first xdist worker."""
+    import scipy.stats
+
+    return scipy.stats
+
+
+@pytest.fixture(scope="session")
 def quantiles_scipy_modules(fresh_python) -> list[str]:
-    """The ``scipy.s*`` modules a fresh interpreter has imported after using
-    ``imufdi_cli.quantiles``' chi2 and F quantiles (one process for test_quantiles.py's
-    scipy.stats check and test_special.py's scipy.special check)."""
+    """The ``scipy.s*`` modules a fresh interpreter has imported after using every
+    function of ``imufdi_cli.quantiles`` (one process for test_quantiles.py's scipy.stats
+    check and test_special.py's scipy.special check)."""
     import json
 
     done = fresh_python(
         "import json, sys\n"
-        "from imufdi_cli.quantiles import chi2, f\n"
+        "from imufdi_cli.quantiles import chi2, f, gamma, norm\n"
         "chi2.ppf(0.99, 1); chi2.ppf(0.99, 3); f.ppf(0.99, 1, 50); f.ppf(0.99, 1, 40)\n"
+        "for d, s in ((norm, ()), (chi2, (2,)), (f, (2, 9)), (gamma, (2,))):\n"
+        "    d.cdf(1.0, *s); d.sf(1.0, *s); d.ppf(0.3, *s, scale=2.0); d.isf(0.3, *s)\n"
+        "norm.pdf(0.5)\n"
         "print(json.dumps(sorted(m for m in sys.modules if m.startswith('scipy.s'))))\n"
     )
     assert done.returncode == 0, done.stderr

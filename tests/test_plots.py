@@ -81,3 +81,121 @@ def test_time_zero_is_the_log_start_detect_recorded():
     assert plots.origin_ns(report, e) == 10**10  # older logs: the first status sample
     report.records["pca-parity"] = {"t0_ns": 0}  # detect --start 10s: status from 10 s
     assert plots.origin_ns(report, e) == 0
+
+
+def test_envelope_keeps_a_one_sample_spike_in_a_million():
+    y = np.zeros(1_000_000)
+    y[123_457] = 5.0
+    y[876_543] = -3.0
+    keep = plots.envelope(y, 1540)
+    assert 123_457 in keep and 876_543 in keep  # both extremes drawn
+    assert keep.size <= 3 * 1540 + 2 and np.all(np.diff(keep) > 0)
+    assert keep[0] == 0 and keep[-1] == y.size - 1  # the line spans the same time
+
+
+def test_envelope_keeps_min_and_max_of_every_column():
+    rng = np.random.default_rng(2)
+    n, columns = 100_003, 700  # not a multiple: a shorter last run
+    y = rng.standard_normal(n)
+    y[rng.random(n) < 0.01] = np.nan
+    keep = plots.envelope(y, columns)
+    per = -(-n // columns)
+    for start in range(0, n, per):
+        run = y[start : start + per]
+        kept = keep[(keep >= start) & (keep < start + per)]
+        assert np.nanmax(run) == np.nanmax(y[kept]) and np.nanmin(run) == np.nanmin(y[kept])
+        assert np.isnan(run).any() == np.isnan(y[kept]).any()  # a gap stays a gap
+
+
+def test_short_line_is_drawn_unchanged():
+    y = np.arange(3000.0)
+    np.testing.assert_array_equal(plots.envelope(y, 1540), np.arange(3000))
+    assert plots.envelope(np.zeros(0), 10).size == 0
+
+
+def test_row_quantiles_are_numpys_row_by_row():
+    rng = np.random.default_rng(3)
+    values = rng.chisquare(1, (200, 47))
+    values[rng.random(values.shape) < 0.2] = np.nan  # rows of many different counts
+    values[7] = np.nan  # no value: NaN
+    low, mid, high = plots._row_quantiles(values)
+    ok = ~np.isnan(values).all(axis=1)
+    for got, want in (
+        (low, np.nanpercentile(values[ok], 10, axis=1)),
+        (mid, np.nanmedian(values[ok], axis=1)),
+        (high, np.nanpercentile(values[ok], 90, axis=1)),
+    ):
+        np.testing.assert_array_equal(got[ok], want)  # the same numbers, bit for bit
+        assert np.isnan(got[7])
+
+
+def test_band_envelope_covers_the_band_of_every_column():
+    rng = np.random.default_rng(4)
+    t = np.arange(50_000) * 0.01
+    low = rng.standard_normal(t.size)
+    high = low + rng.uniform(0, 2, t.size)
+    x, lo, hi = plots._band_envelope(t, low, high, 500)
+    assert x.size == lo.size == hi.size <= 2 * 500
+    assert lo.min() == low.min() and hi.max() == high.max()
+    assert x[0] == t[0] and x[-1] == t[-1]
+    short = plots._band_envelope(t[:900], low[:900], high[:900], 500)  # drawn unchanged
+    for got, want in zip(short, (t[:900], low[:900], high[:900])):
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.draws  # run early, on one worker (tests/conftest.py)
+def test_long_report_figure_draws_the_envelope_and_the_same_shading():
+    pytest.importorskip("matplotlib")
+    n, k = 10_000, 6  # > 2 x 1540 pixel columns: drawn from the envelope
+    rng = np.random.default_rng(5)
+    scores = rng.uniform(1.0, 1.5, size=(n, k))
+    faulty = np.zeros((n, k), bool)
+    faulty[5_000:7_500, 4] = True
+    scores[faulty] = 3.0
+    alarm = faulty.any(axis=1)
+    e = entry(scores, np.where(alarm, 4, -1), alarm, faulty)
+    e.statistic = rng.chisquare(5, n)
+    e.statistic[8_123] = 1e4  # one sample: on the figure
+    report = Report(source="synthetic", has_truth=True, faults=[], entries=[e], notes=[], t0_ns=0)
+    fig = plots.figure_report(report)
+    try:
+        stat_ax, iso_ax = fig.axes
+        line = next(x for x in stat_ax.get_lines() if x.get_label() == "statistic")
+        assert line.get_xdata().size <= 3 * plots.ROW_WIDTH_IN * plots.DPI + 2
+        assert np.max(line.get_ydata()) == 1e4
+        assert stat_ax.get_yscale() == "log"
+        # the shaded fault spans the first to the last faulty sample, as every sample would
+        shade = stat_ax.collections[0].get_paths()[0].vertices[:, 0]
+        t = e.t_ns / 1e9
+        assert shade.min() == t[5_000] and shade.max() == t[7_499]
+        faulty_line = next(x for x in iso_ax.get_lines() if "faulty" in str(x.get_label()))
+        assert np.max(faulty_line.get_ydata()) == 3.0
+    finally:
+        plots.pyplot().close(fig)
+
+
+@pytest.mark.draws  # run early, on one worker (tests/conftest.py)
+def test_save_figure_writes_the_same_file_as_savefig(tmp_path):
+    pytest.importorskip("matplotlib")
+    plt = plots.pyplot()
+
+    def figure():
+        fig, ax = plt.subplots(figsize=(3, 2), constrained_layout=True)
+        ax.plot([1, 2, 3], [10, 1000, 20], label="a line with a long label")
+        ax.set_title("left\ntwo lines", loc="left")
+        ax.set_ylabel("a\nwrapped label")
+        ax.set_xticks([1, 3])  # few tick labels: the layout's cost is per text
+        ax.set_yticks([10, 1000])
+        fig.legend(loc="outside lower center")  # placed by the layout only
+        return fig
+
+    for name, save in (
+        ("savefig", lambda fig, path: fig.savefig(path, dpi=60)),
+        ("once", lambda fig, path: plots.save_figure(fig, path, 60)),
+    ):
+        fig = figure()
+        try:
+            save(fig, tmp_path / f"{name}.png")
+        finally:
+            plt.close(fig)
+    assert (tmp_path / "once.png").read_bytes() == (tmp_path / "savefig.png").read_bytes()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import subprocess
 import sys
 import textwrap
@@ -45,23 +46,89 @@ CHILD = textwrap.dedent(
     print(package.gamma(5.0) == 24.0)
     from imufdi_cli.quantiles import chi2
     print(chi2.ppf(0.99, 1) == 2 * package.gammaincinv(0.5, 0.99))
+    from imufdi_cli.special import lfilter
+    filtered, state = lfilter([0.25], [1.0, -0.75], np.outer(q, df), axis=1, zi=np.ones((200, 1)))
+    import hashlib
+    print(hashlib.sha256(filtered.tobytes() + state.tobytes()).hexdigest())
+    from imufdi_cli.special import fft
+    spectrum = fft(np.outer(q, df))
+    print(hashlib.sha256(spectrum.tobytes() + fft(spectrum, False).tobytes()).hexdigest())
+    print("scipy.signal" in sys.modules, "scipy.stats" in sys.modules, "scipy.fft" in sys.modules)
     """
 )
 
 
-def test_loads_without_the_package_and_gives_its_ufuncs() -> None:
+def test_loads_without_the_package_and_gives_its_ufuncs(scipy_stats) -> None:
     done = subprocess.run(
         [sys.executable, "-c", CHILD.format(names=NAMES)],
         capture_output=True,
         text=True,
         check=True,
     )
-    assert done.stdout.split() == ["False", "False", "True", "True", "True", "True"]
+    *first, digest, fft_digest, signal_loaded, stats_loaded, fft_loaded = done.stdout.split()
+    assert first == ["False", "False", "True", "True", "True", "True"]
+    assert (signal_loaded, stats_loaded, fft_loaded) == ("False", "False", "False")
+    # the same bits as scipy.signal.lfilter (in this process: scipy.signal imports
+    # scipy.stats, hence the fixture, which puts the test on the worker that imports it)
+    from scipy import signal
+
+    rng = np.random.default_rng(17200)
+    q, df = rng.uniform(0.0, 1.0, 200), rng.uniform(0.5, 60.0, 200)
+    want = signal.lfilter([0.25], [1.0, -0.75], np.outer(q, df), axis=1, zi=np.ones((200, 1)))
+    assert digest == hashlib.sha256(want[0].tobytes() + want[1].tobytes()).hexdigest()
+    from scipy import fft
+
+    spectrum = fft.fft(np.outer(q, df), axis=-1)
+    inverse = fft.ifft(spectrum, axis=-1)
+    assert fft_digest == hashlib.sha256(spectrum.tobytes() + inverse.tobytes()).hexdigest()
 
 
 def test_quantiles_do_not_import_the_package(quantiles_scipy_modules) -> None:
     # one fresh process with test_quantiles.py's scipy.stats check (tests/conftest.py)
     assert "scipy.special" not in quantiles_scipy_modules
+
+
+def test_lfilter_is_scipy_signal_lfilter_to_the_bit(scipy_stats) -> None:
+    """Recursive filters of several orders, axes and initial states (the extension's
+    path), a moving-average filter and 1-D data (scipy.signal's own path), bit for bit."""
+    from scipy import signal
+
+    from imufdi_cli.special import lfilter
+
+    rng = np.random.default_rng(17201)
+    x = rng.normal(size=(7, 60, 3))
+    cases = [
+        ([0.1], [1.0, -0.9], 1, np.zeros((7, 1, 3))),
+        ([0.3, 0.2], [1.0, -0.5, 0.1], 0, rng.normal(size=(2, 60, 3))),
+        ([1.0], [2.0, -0.4], -1, None),
+        ([0.5, 0.5], [1.0], 1, None),
+    ]
+    for b, a, axis, zi in cases:
+        got = lfilter(b, a, x, axis=axis, zi=zi)
+        want = signal.lfilter(b, a, x, axis=axis, zi=zi)
+        got, want = (got, want) if zi is not None else ((got,), (want,))
+        assert all(g.tobytes() == w.tobytes() and g.shape == w.shape for g, w in zip(got, want))
+    one = rng.normal(size=50)
+    assert (
+        lfilter([0.2], [1.0, -0.8], one).tobytes()
+        == signal.lfilter([0.2], [1.0, -0.8], one).tobytes()
+    )
+
+
+def test_fft_is_scipy_fft_to_the_bit() -> None:
+    """Real and complex, odd and even lengths, a batch, and what goes through scipy.fft
+    itself (float32, a non-native byte order)."""
+    from scipy import fft as scipy_fft
+
+    from imufdi_cli.special import fft
+
+    rng = np.random.default_rng(17203)
+    arrays = [rng.standard_normal(shape) for shape in [(1,), (6,), (7,), (4, 3, 250)]]
+    arrays += [arrays[-1] + 1j * rng.standard_normal((4, 3, 250))]
+    arrays += [arrays[2].astype(np.float32), arrays[2].astype(">f8")]
+    for x in arrays:
+        assert fft(x).tobytes() == scipy_fft.fft(x, axis=-1).tobytes(), x.shape
+        assert fft(x, False).tobytes() == scipy_fft.ifft(x, axis=-1).tobytes(), x.shape
 
 
 def test_with_the_package_imported_its_own_functions_are_returned() -> None:

@@ -164,9 +164,11 @@ def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
         frameon=False,
     )
     fig.suptitle(f"Campaign {summary.get('name', '')}: detection against fault amplitude")
+    from imufdi_cli.plots import save_figure  # the layout once, not a draw for it
+
     try:
         with atomic_path(out / "detection_probability.png", suffix=".png") as tmp:
-            fig.savefig(tmp, dpi=100)  # matplotlib takes the format from the extension
+            save_figure(fig, tmp, 100)  # matplotlib takes the format from the extension
     finally:
         plt.close(fig)
 

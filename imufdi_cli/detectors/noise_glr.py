@@ -92,8 +92,6 @@ from dataclasses import replace
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.stats import chi2, norm
-from scipy.stats import f as f_distribution
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
@@ -109,6 +107,8 @@ from imufdi_cli.detectors.base import (
 from imufdi_cli.detectors.moving import MovingWindow
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.quantiles import chi2, norm  # scipy.stats' floats without its import
+from imufdi_cli.quantiles import f as f_distribution
 
 #: Sensors whose leverage P_jj exceeds this are not redundant (their leave-one-out
 #: residual is undefined or dominated by the estimate) and are not tested.

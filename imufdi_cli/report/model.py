@@ -17,7 +17,8 @@ class ReportEntry:
     """Metrics of one detector on one sensor type.
 
     The series (``t_ns`` ... ``faulty``) are only kept for ``--plot`` (``keep_series``), at
-    most :data:`PLOT_POINTS` samples per channel (evenly decimated); otherwise empty.
+    most 2 x :data:`PLOT_POINTS` samples per channel (each the peak of the statistic in its
+    bucket of samples, with the bucket's alarms OR-ed; ``scan._Series``); otherwise empty.
     """
 
     detector: str

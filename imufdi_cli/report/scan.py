@@ -20,56 +20,87 @@ PLOT_POINTS = 20_000
 
 
 class _Series:
-    """Evenly decimated copy of a status channel for plots (bounded memory).
+    """Peak-preserving decimated copy of a status channel for plots (bounded memory).
 
-    Every ``stride``-th sample is kept; its ``alarm`` is the OR of the alarms since the
-    previous kept sample, so that no alarm disappears from the plot however long the log.
+    The rows are cut into buckets of ``stride`` consecutive samples (bucket ``b`` holds the
+    samples ``b * stride`` to ``(b + 1) * stride - 1`` of the channel); each bucket keeps
+    one row, the one with the largest ``statistic`` (NaN counts as lowest; the first such
+    row on ties; the first row of the bucket when there is no statistic), with its own
+    time, threshold, isolation and scores, and with ``alarm`` the OR of the bucket's
+    alarms. So however long the log, neither an alarm nor a peak of the statistic
+    disappears from the figure (an evenly strided copy dropped one-sample spikes of the
+    statistic: 8 of 20 on a 10-min log). When more than ``2 * PLOT_POINTS`` rows are kept
+    the stride doubles and each pair of buckets merges the same way.
     """
 
     def __init__(self) -> None:
         self.stride = 1
         self.seen = 0
         self.parts: list[dict[str, np.ndarray]] = []
+        self.buckets: list[np.ndarray] = []  # bucket index of each kept row, per part
         self.kept = 0
-        self.pending_alarm = False  # an alarm after the last kept sample
 
     def add(self, rows: dict[str, np.ndarray]) -> None:
         n = int(rows["t_ns"].size)
-        first = (-self.seen) % self.stride
-        pick = np.arange(first, n, self.stride)
+        if n == 0:
+            return
+        bucket = (self.seen + np.arange(n, dtype=np.int64)) // self.stride
         self.seen += n
-        alarm = np.asarray(rows["alarm"], bool) if "alarm" in rows else None
-        if pick.size:
-            part = {k: v[pick] for k, v in rows.items()}
-            if alarm is not None:
-                count = np.concatenate([[0], np.cumsum(alarm)])  # alarms in rows[:i]
-                ends = pick + 1
-                starts = np.concatenate([[0], ends[:-1]])
-                part["alarm"] = (count[ends] - count[starts]) > 0
-                part["alarm"][0] |= self.pending_alarm
-                self.pending_alarm = bool(alarm[pick[-1] + 1 :].any())
-            self.parts.append(part)
-            self.kept += int(pick.size)
-        elif alarm is not None:
-            self.pending_alarm |= bool(alarm.any())
+        if self.parts and self.buckets[-1][-1] == bucket[0]:
+            # the last kept row's bucket was still open: reduce it with the new rows
+            last = {k: v[-1:] for k, v in self.parts[-1].items()}
+            self.parts[-1] = {k: v[:-1] for k, v in self.parts[-1].items()}
+            self.buckets[-1] = self.buckets[-1][:-1]
+            self.kept -= 1
+            rows = {k: np.concatenate([last[k], np.asarray(rows[k])]) for k in rows}
+            bucket = np.concatenate([bucket[:1], bucket])
+        part, kept_buckets = _bucket_peaks(rows, bucket)
+        self.parts.append(part)
+        self.buckets.append(kept_buckets)
+        self.kept += int(kept_buckets.size)
         if self.kept > 2 * PLOT_POINTS:
             whole = self.arrays()
-            keep = slice(0, None, 2)
-            halved = {k: v[keep] for k, v in whole.items()}
-            if "alarm" in whole:  # kept sample 2j also covers the dropped 2j - 1
-                merged = whole["alarm"][0::2].copy()
-                odd = whole["alarm"][1::2]
-                merged[1 : odd.size + 1] |= odd[: merged.size - 1]
-                if odd.size == merged.size:  # the last sample was dropped
-                    self.pending_alarm |= bool(odd[-1])
-                halved["alarm"] = merged
-            self.parts = [halved]
-            self.kept = int(self.parts[0]["t_ns"].size)
             self.stride *= 2
+            part, kept_buckets = _bucket_peaks(whole, np.concatenate(self.buckets) // 2)
+            self.parts, self.buckets = [part], [kept_buckets]
+            self.kept = int(kept_buckets.size)
 
     def arrays(self) -> dict[str, np.ndarray]:
         keys = self.parts[0].keys() if self.parts else ()
         return {k: np.concatenate([p[k] for p in self.parts]) for k in keys}
+
+
+def _bucket_peaks(
+    rows: dict[str, np.ndarray], bucket: np.ndarray
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """One row per run of equal ``bucket`` values: the row of the largest statistic (NaN
+    lowest, first on ties; the first row without a statistic), ``alarm`` OR-ed over the run.
+
+    Parameters
+    ----------
+    rows : dict of ndarray, each of shape (n, ...)
+        Status rows in time order.
+    bucket : ndarray of int64, shape (n,)
+        Non-decreasing bucket index of each row.
+
+    Returns
+    -------
+    kept rows (dict of ndarray, shape (m, ...)) and their bucket indices (shape (m,))
+    """
+    n = bucket.size
+    starts = np.flatnonzero(np.concatenate([[True], bucket[1:] != bucket[:-1]]))
+    if "statistic" in rows:
+        stat = np.asarray(rows["statistic"], np.float64).reshape(n, -1).max(axis=1)
+        key = np.where(np.isnan(stat), -np.inf, stat)
+        run = np.repeat(np.arange(starts.size), np.diff(np.append(starts, n)))
+        hits = np.flatnonzero(key == np.maximum.reduceat(key, starts)[run])
+        pick = hits[np.concatenate([[True], run[hits[1:]] != run[hits[:-1]]])]
+    else:
+        pick = starts
+    part = {k: np.asarray(v)[pick] for k, v in rows.items()}
+    if "alarm" in rows:
+        part["alarm"] = np.logical_or.reduceat(np.asarray(rows["alarm"], bool), starts)
+    return part, bucket[starts]
 
 
 def _open_seekable(source: str | BinaryIO) -> tuple[Any, bool]:

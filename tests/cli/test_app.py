@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import pytest
+
 from imufdi_cli.cli import cli
 from imufdi_cli.cli.app import COMMAND_MODULES
+from imufdi_cli.detectors import DETECTORS
+from tests.cli.conftest import invoke
 
 
 def test_command_table_matches_the_commands() -> None:
@@ -51,3 +55,38 @@ def test_help_lists_every_command(fresh_imufdi) -> None:
     section = fresh_imufdi(["--help"]).stdout.split("Commands:\n")[1].split("\n\n")[0]
     listed = [line.split()[0] for line in section.splitlines()]
     assert listed == sorted(COMMAND_MODULES)
+
+
+@pytest.fixture(scope="session")
+def moving_log(tmp_path_factory):
+    """A 2.5 s wearable12 log (12 IMUs, moving: cnn-map's calibration needs rotation)."""
+    path = tmp_path_factory.mktemp("logs") / "wearable12.mcap"
+    result = invoke(["simulate", "--preset", "wearable12", "--duration", "2.5s", "-o", path])
+    assert result.code == 0, result.stderr
+    return path
+
+
+@pytest.mark.slow  # a fresh interpreter running all 8 detectors, 1.6-1.9 s of CPU; the
+# default run keeps tests/detectors/test_registry.py's probe of every detector class's imports
+def test_detect_with_every_detector_imports_neither_scipy_stats_nor_scipy_signal(
+    fresh_imufdi, moving_log, tmp_path_factory
+) -> None:
+    """Start-up time: the detectors' quantiles, filters and envelopes come from
+    imufdi_cli.quantiles and imufdi_cli.special (scipy.stats and scipy.signal: about 1.5 s
+    of CPU to import, scipy.fft about 0.4 s). One interpreter runs every detector, the
+    costly ones reduced (woa-mvmd-glt's search to its initial two whales: it still
+    computes their fitness, whose envelope needed scipy.signal; cnn-map's training to one
+    epoch of two filters)."""
+    out = tmp_path_factory.mktemp("detect") / "all.mcap"
+    selected = [arg for name in sorted(DETECTORS) for arg in ("-d", name)]
+    reduced = ["woa-mvmd-glt.population=2", "woa-mvmd-glt.iterations=0"]
+    reduced += ["cnn-map.epochs=1", "cnn-map.filters=2"]
+    params = [arg for param in reduced for arg in ("--param", param)]
+    run = fresh_imufdi(["detect", moving_log, *selected, *params, "--no-explain", "-o", out])
+    assert out.exists(), run.stderr
+    assert all(f"│ {name} " in run.stderr + run.stdout for name in DETECTORS), run.stderr
+    # (scipy.signal's compiled filter, scipy.signal._sigtools, is loaded without the package)
+    assert {m for m in run.modules if m.startswith("scipy.stats")} == set()
+    assert "scipy.signal" not in run.modules and "scipy.signal._sigtools" in run.modules
+    # woa's envelope ran (the fitness of the search), on pocketfft loaded alone
+    assert "scipy.fft" not in run.modules and "scipy.fft._pocketfft.pypocketfft" in run.modules

@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
-from scipy.signal import lfilter
 
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
 from imufdi_cli.detectors.cnn_map import (
@@ -96,9 +95,12 @@ def test_autoregression_fit_and_whitening_recover_an_ar2_process():
     phi = np.array([0.5, -0.3])
     noise = rng.normal(0.0, 0.2, (20_000, 4))
     # series[t] = phi_1 series[t-1] + phi_2 series[t-2] + noise[t] from series[0:2] = 0
-    # (lfilter instead of a Python loop over the 20 000 samples: 0.1 s less)
+    # (lfilter instead of a Python loop over the 20 000 samples: 0.1 s less; scipy.signal's
+    # filter, tests/test_special.py, without importing scipy.signal and scipy.stats)
     driving = noise.copy()
     driving[:2] = 0.0
+    from imufdi_cli.special import lfilter
+
     series = lfilter([1.0], [1.0, -phi[0], -phi[1]], driving, axis=0)
     fitted = fit_autoregression(series, 2)
     assert_allclose(fitted, phi, atol=0.015)

@@ -287,7 +287,7 @@ def test_paper_table4_glt_row() -> None:
     assert 0.006 <= clean[:, 0].mean() <= 0.016
 
 
-def test_sigma_source_auto_uses_the_per_imu_noise_of_the_array() -> None:
+def test_sigma_source_auto_uses_the_per_imu_noise_of_the_array(scipy_stats) -> None:
     array = ArrayConfig.co_aligned(6)
     rng = np.random.default_rng(21)
     block = make_block(array, 200, rng, sigma=0.01)
@@ -304,9 +304,7 @@ def test_sigma_source_auto_uses_the_per_imu_noise_of_the_array() -> None:
     # accelerometers have no per-IMU noise in this config: the calibration window
     assert meta["accel"]["sigma_from"] == "calibration"
     # sigma known: the plain chi2 threshold, no estimation correction
-    from scipy.stats import chi2
-
-    assert_allclose(meta["gyro"]["threshold"], chi2.ppf(0.99, 15) * (1 + 1 / 200))
+    assert_allclose(meta["gyro"]["threshold"], scipy_stats.chi2.ppf(0.99, 15) * (1 + 1 / 200))
     det = make_detector(sigma_source="calibration")
     det.fit(block, noisy)
     assert det.metadata()["types"]["gyro"]["sigma_from"] == "calibration"

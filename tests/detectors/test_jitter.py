@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
-from scipy.stats import binom, chi2, ncx2
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import parse_params
@@ -121,11 +120,11 @@ def test_factor_at_rest_is_near_one_and_invalid_rows_do_not_propagate():
     assert np.all(np.isfinite(factors)) and factors[100] == 1.0 and factors[101] == 1.0
 
 
-def test_minimum_detectable_step_matches_the_noncentral_chi2():
+def test_minimum_detectable_step_matches_the_noncentral_chi2(scipy_stats):
     dof, alpha = 21, 0.01
     step = minimum_detectable_step(0.875, dof, alpha)
-    threshold = chi2.ppf(1 - alpha, dof)
-    assert ncx2.sf(threshold, dof, step**2 * 0.875) == pytest.approx(0.5, abs=1e-6)
+    threshold = scipy_stats.chi2.ppf(1 - alpha, dof)
+    assert scipy_stats.ncx2.sf(threshold, dof, step**2 * 0.875) == pytest.approx(0.5, abs=1e-6)
     # the widening multiplies the step by sqrt(1 + A)
     assert minimum_detectable_step(0.875, dof, alpha, 400.0) == pytest.approx(20 * step)
 
@@ -196,7 +195,7 @@ def test_no_jitter_is_bit_identical_and_jitter_divides_the_statistics():
     assert_array_equal(jittered.alarm, jittered.statistic > jittered.threshold)
 
 
-def test_glt_holds_its_level_in_motion_with_the_jitter_model():
+def test_glt_holds_its_level_in_motion_with_the_jitter_model(scipy_stats):
     """Fast rotation with the model's jitter (sigma_t = 0.5 ms): without the model glt
     alarms on most samples; with the fitted sigma_t (on another stretch) it holds alpha.
     Bound: binomial 99.9 % upper quantile of alpha over the samples, widened for the
@@ -217,7 +216,7 @@ def test_glt_holds_its_level_in_motion_with_the_jitter_model():
     det.fit(calibration, array.with_jitter({"gyro": fitted}))
     rate = det.process(test)["gyro"].alarm[300:].mean()
     n = 9700
-    assert rate <= 1.5 * binom.ppf(0.999, n, 0.01) / n
+    assert rate <= 1.5 * scipy_stats.binom.ppf(0.999, n, 0.01) / n
     assert det.metadata()["types"]["gyro"]["jitter_s"] == pytest.approx(fitted)
 
 

@@ -7,8 +7,6 @@ import functools
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
-from scipy.stats import chi2
-from scipy.stats import f as f_distribution
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import NO_ISOLATION, DetectionBlock, parse_params
@@ -98,7 +96,7 @@ def test_lever_arm_model_explains_noise_free_swinging_accelerometers_exactly():
     assert np.abs(without._residuals("accel", without.models["accel"], block)).max() > 0.05
 
 
-def test_threshold_is_the_known_variance_quantile_raised_by_the_calibration_factor():
+def test_threshold_is_the_known_variance_quantile_raised_by_the_calibration_factor(scipy_stats):
     array, block = wearable12(0, factor=None)
     detector = make({"alpha": 0.01, "window": "0.3s"})
     detector.fit(block.slice(0, 200), array)
@@ -108,14 +106,14 @@ def test_threshold_is_the_known_variance_quantile_raised_by_the_calibration_fact
     moments = clipped_square_moments(3.0)
     nu = equivalent_dof(np.array([30]), moments)[0]
     nu_cal = scale_estimator_dof(199, 3.0)
-    known = chi2.isf(level, nu) / nu
-    factor = nu_cal / chi2.ppf(1 - DEFAULT_LEVEL_CONFIDENCE, nu_cal)
+    known = scipy_stats.chi2.isf(level, nu) / nu
+    factor = nu_cal / scipy_stats.chi2.ppf(1 - DEFAULT_LEVEL_CONFIDENCE, nu_cal)
     assert_allclose(model.critical_ratio[-1], known * factor, rtol=1e-12)
     assert_allclose(model.threshold[-1], nu / 2 * (known * factor - 1 - np.log(known * factor)))
     # level_confidence = 0: the predictive F threshold (level alpha on average only)
     predictive = make({"alpha": 0.01, "window": "0.3s", "level_confidence": 0})
     predictive.fit(block.slice(0, 200), array)
-    critical = f_distribution.ppf(1 - level, nu, nu_cal)
+    critical = scipy_stats.f.ppf(1 - level, nu, nu_cal)
     assert_allclose(predictive.models["accel"].critical_ratio[-1], critical, rtol=1e-12)
     assert critical < known * factor
     # without clipping: nu_k = 2 k^2 / (3 k - 1), the differenced white-noise sum
@@ -459,19 +457,21 @@ def test_without_the_field_or_with_noise_spread_false_the_detector_is_unchanged(
     assert "noise_spread" not in detector.metadata()["types"]["accel"]
 
 
-def predicted_rate(model, ratio: float) -> tuple[float, float]:
+def predicted_rate(stats, model, ratio: float) -> tuple[float, float]:
     """Per-sample alarm probability of a full window (no clipping) when the residual's
     variance is ``ratio`` times the tested scale, for the calibrated scale at the edges of
     its 99.9 % interval (tau_hat / tau ~ chi2(nu_cal) / nu_cal): ``P(u > u_c)`` with
-    ``u ~ ratio (tau / tau_hat) chi2(nu_k) / nu_k``."""
+    ``u ~ ratio (tau / tau_hat) chi2(nu_k) / nu_k`` (``stats``: scipy.stats)."""
     nu, nu_cal = model.dof[-1], model.calibration_dof
-    lo, hi = chi2.ppf([0.0005, 0.9995], nu_cal) / nu_cal  # tau_hat / tau
+    lo, hi = stats.chi2.ppf([0.0005, 0.9995], nu_cal) / nu_cal  # tau_hat / tau
     u_c = model.critical_ratio[-1]
     # a high tau_hat lowers u: the low end of the rate comes from the high end of tau_hat
-    return float(chi2.sf(u_c * hi / ratio * nu, nu)), float(chi2.sf(u_c * lo / ratio * nu, nu))
+    return float(stats.chi2.sf(u_c * hi / ratio * nu, nu)), float(
+        stats.chi2.sf(u_c * lo / ratio * nu, nu)
+    )
 
 
-def test_one_sided_spread_test_holds_its_level_at_the_boundary_and_keeps_power_beyond():
+def test_one_sided_spread_test_holds_its_level_at_the_boundary_and_keeps_power_beyond(scipy_stats):
     """Null boundary: every gyro's sigma grows by sqrt(kappa) after the calibration window
     (variance x kappa = 2.25); with the spread in the array the level is at most alpha
     (99.9 % clumped-binomial bound, ``far_bound``), without it the same log alarms far
@@ -499,7 +499,7 @@ def test_one_sided_spread_test_holds_its_level_at_the_boundary_and_keeps_power_b
     model = det.models["gyro"]
     full = after & (np.arange(len(after)) >= 1000 + det.window_samples)
     rate = out.alarm[full].mean()
-    lo, hi = predicted_rate(model, 7.0 / kappa)
+    lo, hi = predicted_rate(scipy_stats, model, 7.0 / kappa)
     margin = 4 * np.sqrt(det.window_samples * 0.25 / full.sum())
     assert lo - margin <= rate <= hi + margin
     assert (out.isolated[full & out.alarm] == 4).all()

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
-from scipy.stats import ortho_group
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.parity import (
@@ -68,11 +67,11 @@ def test_parity_matrix_is_potter_unique_form() -> None:
     assert_allclose(V[:, :3], upper, atol=1e-12)
 
 
-def test_statistics_invariant_under_orthogonal_rotation_of_V() -> None:
+def test_statistics_invariant_under_orthogonal_rotation_of_V(scipy_stats) -> None:
     rng = np.random.default_rng(1)
     H = ArrayConfig.co_aligned(5).measurement_matrix("gyro")
     V = parity_matrix(H)
-    Q = ortho_group.rvs(V.shape[0], random_state=2)
+    Q = scipy_stats.ortho_group.rvs(V.shape[0], random_state=2)
     V_rot = Q @ V
     m = rng.standard_normal((50, 15)) + rng.standard_normal((50, 3)) @ H.T
     m[:, 4] += 3.0
@@ -215,8 +214,8 @@ def test_sigma_estimate_variance_matches_the_direct_variance_for_co_aligned_imus
     assert 1.0 < variance[0] / (2 / 200) < 1.3
 
 
-def test_known_sigma_threshold_is_the_chi_square_quantile():
-    from scipy.stats import chi2
+def test_known_sigma_threshold_is_the_chi_square_quantile(scipy_stats):
+    chi2 = scipy_stats.chi2  # (tests/conftest.py: imported at first use, on the first worker)
 
     H = ArrayConfig.co_aligned(16, 100.0, sensors=("gyro",)).measurement_matrix("gyro")
     threshold, scale, dof = estimated_sigma_threshold(H, 0.01, None, float("inf"))

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
-from scipy.stats import binom, chi2, t
 
 from imufdi_cli.detectors.base import NO_ISOLATION, NOT_ISOLABLE, DetectionBlock, parse_params
 from imufdi_cli.detectors.glt import GltDetector
@@ -293,7 +292,7 @@ def test_calibration_without_the_motion_is_reported_and_fatal_under_strict(tmp_p
     assert invoke([*wide, "--strict"]).code == 0
 
 
-def test_accelerometers_with_lever_arms_are_tested_on_the_rigid_body_design():
+def test_accelerometers_with_lever_arms_are_tested_on_the_rigid_body_design(scipy_stats):
     """wearable12: IMUs 3 cm apart; the parity space of [H | lever-arm columns]
     (detectors/rigid.py) cancels the rotation, so the accelerometers are tested."""
     array, block = simulate_block(preset("wearable12", seed=0, duration=8.0))
@@ -306,7 +305,7 @@ def test_accelerometers_with_lever_arms_are_tested_on_the_rigid_body_design():
     alarms = int(np.count_nonzero(out["accel"].alarm[-after:]))
     # at most the binomial 99.9 % quantile at 3 alpha (a moving-window test: its alarms
     # come in runs, hence the margin); without the lever-arm model this was ~25 alpha
-    assert alarms <= binom.ppf(0.999, after, 3 * detector.alpha)
+    assert alarms <= scipy_stats.binom.ppf(0.999, after, 3 * detector.alpha)
 
 
 # --- issue 16: calibration of the variances (cross-fitting, F thresholds, rho floor) ------
@@ -359,13 +358,13 @@ def test_windows_shorter_than_the_parity_dimension_still_give_variances():
     assert 15 < min(dof[2:]) <= max(dof[2:]) <= 25
 
 
-def test_plug_in_quantile_is_student_squared_for_one_component():
+def test_plug_in_quantile_is_student_squared_for_one_component(scipy_stats):
     """X = z^2 / s^2 with s^2 on nu degrees of freedom is t(nu)^2 = F(1, nu)."""
     for nu in (5.0, 50.0, 400.0):
-        expected = t.ppf(1.0 - 0.0005 / 2.0, nu) ** 2
+        expected = scipy_stats.t.ppf(1.0 - 0.0005 / 2.0, nu) ** 2
         assert_allclose(plug_in_quantile(0.0005, np.array([1.0]), nu), [expected], rtol=1e-9)
     assert_allclose(
-        plug_in_quantile(0.01, np.array([2.0, 3.0]), np.inf), chi2.ppf(0.99, [2.0, 3.0])
+        plug_in_quantile(0.01, np.array([2.0, 3.0]), np.inf), scipy_stats.chi2.ppf(0.99, [2.0, 3.0])
     )
 
 

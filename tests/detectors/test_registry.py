@@ -41,9 +41,12 @@ def test_cli_help_imports_no_detector_module_and_no_scipy() -> None:
         "heavy = sorted(m for m in sys.modules if m.startswith('scipy')"
         " or (m.startswith('imufdi_cli.detectors.') and m != 'imufdi_cli.detectors.base'))\n"
         "print(heavy)\n"
+        "from imufdi_cli.detectors import DETECTORS, detector_class\n"  # the registry
+        "classes = [detector_class(name) for name in DETECTORS]\n"  # and every detector
+        "print([m for m in sys.modules if m.startswith(('scipy.stats', 'scipy.signal'))])\n"
     )
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
-    assert done.stdout.strip().splitlines()[-1] == "[]"
+    assert done.stdout.strip().splitlines()[-2:] == ["[]", "[]"]
 
 
 @pytest.mark.parametrize("name", sorted(DETECTORS))

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
-from scipy.stats import binom
 
 from imufdi_cli.array import ArrayConfig, ImuSpec
 from imufdi_cli.detectors.glt import GltDetector
@@ -110,7 +109,7 @@ def _rotating_block(array: ArrayConfig, n: int, sigma: float, seed: int) -> ImuB
     return ImuBlock(t_ns=(t * 1e9).astype(np.int64), gyro=gyro, accel=accel)
 
 
-def test_glt_holds_its_level_on_a_rotating_grid():
+def test_glt_holds_its_level_on_a_rotating_grid(scipy_stats):
     array = _grid()
     block = _rotating_block(array, 6000, 0.03, seed=11)
     calibration, rest = block.slice(0, 1000), block.slice(1000, 6000)
@@ -122,7 +121,7 @@ def test_glt_holds_its_level_on_a_rotating_grid():
     assert det.metadata()["params"]["lever_arm"] is False
     # with the model: at most the binomial 99.9 % quantile of alarms at 1.5 alpha (the
     # threshold accounts for the 1000-sample sigma estimate; 1.5 alpha leaves room for it)
-    assert alarms[True] <= binom.ppf(0.999, 5000, 0.015)
+    assert alarms[True] <= scipy_stats.binom.ppf(0.999, 5000, 0.015)
     # without it the lever terms (partly absorbed into the calibrated sigma) alarm on a
     # large share of the rows
     assert alarms[False] > 0.1 * 5000
@@ -145,7 +144,7 @@ def test_glt_reports_lever_arm_columns_and_untested_when_too_few():
 
 
 @pytest.mark.parametrize("name", ["bank", "pca-parity"])
-def test_bank_and_pca_parity_hold_their_level_on_a_rotating_grid(name):
+def test_bank_and_pca_parity_hold_their_level_on_a_rotating_grid(scipy_stats, name):
     """The same rigid-body design in bank (array mode) and pca-parity: accelerometers of a
     rotating 12-IMU grid are tested and alarm at about alpha."""
     from imufdi_cli.detectors.bank import BankDetector
@@ -159,7 +158,7 @@ def test_bank_and_pca_parity_hold_their_level_on_a_rotating_grid(name):
     # binomial 99.9 % quantile at 2 alpha: room for the estimated sigma/bias of a 1000-sample
     # window and (pca-parity) the runs of a moving-window test; without the model the lever
     # terms alarm on most rows
-    assert alarms <= binom.ppf(0.999, 5000, 0.02)
+    assert alarms <= scipy_stats.binom.ppf(0.999, 5000, 0.02)
 
 
 def test_bias_tracker_uses_the_detector_design():

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
-from scipy.stats import chi2, ncx2
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
@@ -69,6 +68,21 @@ def test_cfv_terms_are_normalised():
     assert 0.9 < entropy <= 1.0  # near-constant envelopes of pure tones
     assert 0.0 <= correlation < 0.05  # separated tones are uncorrelated
     assert 0.0 <= compactness < 0.05
+
+
+def test_analytic_signal_is_scipy_signal_hilbert_to_the_bit(scipy_stats):
+    """cfv's envelope without importing scipy.signal (it imports scipy.stats, hence the
+    fixture: the test runs on the worker that imports it): odd and even lengths, one sample,
+    batches of modes."""
+    from scipy.signal import hilbert
+
+    from imufdi_cli.detectors.woa_mvmd_glt.fitness import analytic_signal
+
+    rng = np.random.default_rng(17202)
+    for shape in [(1,), (2,), (7,), (50,), (5, 3, 49), (4, 2, 250)]:
+        x = rng.standard_normal(shape)
+        got, want = analytic_signal(x), hilbert(x, axis=-1)
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes(), shape
 
 
 def test_filter_matrix_reproduces_mode():
@@ -259,15 +273,15 @@ def test_bad_tune_file_raises(tmp_path):
         make({"params": str(path)})
 
 
-def test_validation_miss_fraction_without_smoothing_is_the_per_sample_glt_miss():
+def test_validation_miss_fraction_without_smoothing_is_the_per_sample_glt_miss(scipy_stats):
     val = make_validation(48, 50, 10, 4.0, 1.0, 0.01)
     assert val.dof == 45 and val.projection == pytest.approx(45 / 48)
-    assert val.threshold == pytest.approx(chi2.ppf(0.99, 45))
-    expected = 1.0 - ncx2.sf(val.threshold, 45, 16.0 * 45 / 48)
+    assert val.threshold == pytest.approx(scipy_stats.chi2.ppf(0.99, 45))
+    expected = 1.0 - scipy_stats.ncx2.sf(val.threshold, 45, 16.0 * 45 / 48)
     assert val.miss_fraction(np.eye(50)) == pytest.approx(expected, rel=1e-12)
 
 
-def test_validation_miss_fraction_of_a_moving_average_matches_a_loop():
+def test_validation_miss_fraction_of_a_moving_average_matches_a_loop(scipy_stats):
     L, hop = 20, 5
     val = ValidationFault(
         window=L, hop=hop, step=3.0, dof=5, threshold=15.0, projection=0.6, horizon=30
@@ -278,7 +292,7 @@ def test_validation_miss_fraction_of_a_moving_average_matches_a_loop():
         for k in range(30):
             c = max(t - k, 0)
             fraction = F[t, c:].sum() / np.linalg.norm(F[t])
-            misses.append(1.0 - ncx2.sf(15.0, 5, 9.0 * 0.6 * fraction**2))
+            misses.append(1.0 - scipy_stats.ncx2.sf(15.0, 5, 9.0 * 0.6 * fraction**2))
     assert val.miss_fraction(F) == pytest.approx(np.mean(misses), rel=1e-12)
 
 

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.stats import binom
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors import DETECTORS, Detector, DetectorBase, detector_class, make_detector
@@ -59,7 +58,7 @@ def test_doc_example_is_one_module_plus_one_registry_line(registered: str) -> No
 
 
 def test_doc_example_detects_and_isolates_a_step_at_its_false_alarm_level(
-    registered: str,
+    scipy_stats, registered: str
 ) -> None:
     array = ArrayConfig.co_aligned(6, 100.0, sensors=("gyro",))
     rng = np.random.default_rng(2101)
@@ -70,7 +69,7 @@ def test_doc_example_detects_and_isolates_a_step_at_its_false_alarm_level(
     assert len(out) == n_quiet + n_fault
     # Bonferroni: P(alarm) <= alpha per fault-free sample (a little above with estimated
     # mean/std from 1000 samples); 1e-6 upper binomial tail of 1.5 alpha
-    assert out.alarm[:n_quiet].sum() <= binom.ppf(1 - 1e-6, n_quiet, 1.5 * alpha)
+    assert out.alarm[:n_quiet].sum() <= scipy_stats.binom.ppf(1 - 1e-6, n_quiet, 1.5 * alpha)
     # 0.1 rad/s = 10 sigma; residual (5/6) 10 = 8.3 sigma vs a 3.8-sigma threshold: always
     assert out.alarm[n_quiet:].all()
     sensor = array.sensor_ids("gyro").index("imu2.gyro.x")

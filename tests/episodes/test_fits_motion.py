@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.stats import chi2
 
 from imufdi_cli.episodes import fit_models
 from tests.episodes.helpers import RATE, SIGMA
@@ -74,7 +73,7 @@ def test_noise_growth_with_a_motion_error_is_noise_not_scale() -> None:
     assert classes.count("noise") >= 97, {c: classes.count(c) for c in set(classes)}
 
 
-def test_a_scale_fault_on_a_turning_array_stays_scale() -> None:
+def test_a_scale_fault_on_a_turning_array_stays_scale(scipy_stats) -> None:
     """A genuine scale factor 1.01 on the same array (motion error included). The noise
     model's gamma o, one coefficient over the whole window, cannot follow the coefficient's
     change at the onset: with 150 samples before it and 250 after, gamma is about GAMMA +
@@ -83,7 +82,7 @@ def test_a_scale_fault_on_a_turning_array_stays_scale() -> None:
     scale model fits both coefficients: its -2 log L is lower by roughly 400 * 0.5, against
     equal penalties. Even a one-sided chi2(1) chance of the noise model passing, P(chi2(1)
     > ln 400) / 2 = 0.7 %, allows at most 4 of 100 wrong (binomial tail below 0.001)."""
-    p = chi2.sf(math.log(LENGTH), 1) / 2
+    p = scipy_stats.chi2.sf(math.log(LENGTH), 1) / 2
     assert 0.006 < p < 0.008
     classes = _classes("scale", 1.01, GAMMA, WHITE, trials=100, seed=222)
     assert classes.count("scale") >= 96, {c: classes.count(c) for c in set(classes)}

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 
-def test_fast_quantiles_are_scipy_stats_quantiles() -> None:
-    from scipy import stats
+def test_fast_quantiles_are_scipy_stats_quantiles(scipy_stats) -> None:
+    stats = scipy_stats  # (tests/conftest.py: imported at first use, on the first worker)
 
     from imufdi_cli.episodes import _chi2_quantile, _f_quantile, _t_quantile
 

@@ -11,30 +11,53 @@ import pytest
 from imufdi_cli.report import scan
 
 
-def test_plot_series_keep_every_alarm_when_decimating(monkeypatch):
-    """The kept sample's alarm is the OR of the alarms since the previous kept sample,
-    for any block sizes and after any number of halvings."""
+def test_plot_series_keep_every_alarm_and_peak_when_decimating(monkeypatch):
+    """Each kept row is its bucket's (``stride`` consecutive samples) row of the largest
+    statistic (NaN lowest, first on ties) with the OR of the bucket's alarms, every bucket
+    once, for any block sizes and after any number of halvings: a one-sample spike of the
+    statistic and a one-sample alarm both reach the figure."""
     monkeypatch.setattr(scan, "PLOT_POINTS", 50)
     rng = np.random.default_rng(3)
     for _ in range(100):
         n = int(rng.integers(1, 2000))
         alarm = rng.random(n) < rng.choice([0.001, 0.01, 0.2])
-        t = np.arange(n)
+        stat = rng.standard_normal(n).round(1)  # ties inside buckets
+        stat[rng.random(n) < 0.05] = np.nan
+        spike = int(rng.integers(n))
+        stat[spike] = 1e6
+        scores = rng.random((n, 3))
+        t = np.arange(n) * 10
         series = scan._Series()
         pos = 0
         while pos < n:
             k = int(rng.integers(1, 300))
-            series.add({"t_ns": t[pos : pos + k], "alarm": alarm[pos : pos + k]})
+            rows = {"t_ns": t[pos : pos + k], "statistic": stat[pos : pos + k]}
+            series.add({**rows, "alarm": alarm[pos : pos + k], "scores": scores[pos : pos + k]})
             pos += k
         kept = series.arrays()
-        t_kept = kept["t_ns"]
-        assert t_kept[0] == 0 and np.all(np.diff(t_kept) == series.stride)
-        assert t_kept.size <= 2 * 50 + 300
-        expected = [
-            alarm[(t_kept[i - 1] + 1 if i else 0) : t_kept[i] + 1].any() for i in range(t_kept.size)
-        ]
-        assert kept["alarm"].tolist() == expected
-        assert series.pending_alarm == bool(alarm[t_kept[-1] + 1 :].any())
+        stride = series.stride
+        assert kept["t_ns"].size == -(-n // stride) <= 2 * 50 + 300
+        m = kept["t_ns"].size
+        key = np.full(m * stride, -np.inf)  # buckets as rows, padded with the lowest key
+        key[:n] = np.where(np.isnan(stat), -np.inf, stat)
+        peak = np.arange(m) * stride + np.argmax(key.reshape(m, stride), axis=1)  # first
+        np.testing.assert_array_equal(kept["t_ns"], t[peak])
+        np.testing.assert_array_equal(kept["statistic"], stat[peak])
+        np.testing.assert_array_equal(kept["scores"], scores[peak])
+        padded = np.zeros(m * stride, bool)
+        padded[:n] = alarm
+        np.testing.assert_array_equal(kept["alarm"], padded.reshape(m, stride).any(axis=1))
+        assert 1e6 in kept["statistic"]
+    # without a statistic: the first row of each bucket (here 300 rows in blocks of 7: one
+    # halving, stride 2 after 101 rows)
+    series = scan._Series()
+    for start in range(0, 300, 7):
+        rows = np.arange(start, min(start + 7, 300))
+        series.add({"t_ns": rows, "alarm": rows == 151})
+    assert series.stride == 4
+    kept = series.arrays()
+    assert kept["t_ns"].tolist() == list(range(0, 300, 4))
+    assert np.flatnonzero(kept["alarm"]).tolist() == [151 // 4]
 
 
 # --- episodes: the same report from both encodings of the FdiEvent -----------------------

@@ -9,7 +9,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
-from scipy import stats
 
 from imufdi_cli.errors import UsageError
 from imufdi_cli.log import ImuBlock
@@ -34,7 +33,7 @@ from tests.simulate.conftest import DEG, binomial_interval, sigma_interval
 # --- paper-table4 ---------------------------------------------------------------------------
 
 
-def test_paper_table4_figures() -> None:
+def test_paper_table4_figures(scipy_stats) -> None:
     config = preset("paper-table4", seed=3, duration=20.0)  # longer: tighter intervals
     array, block = simulate_block(config)
     truth = true_block(config)
@@ -44,7 +43,7 @@ def test_paper_table4_figures() -> None:
     gyro_error = block.gyro - truth.gyro
     outlier = np.abs(gyro_error) > 0.6 * DEG  # 4 sigma of the white noise
     n_channels = gyro_error.size
-    low, high = binomial_interval(0.001 + 2 * stats.norm.sf(4), n_channels)
+    low, high = binomial_interval(0.001 + 2 * scipy_stats.norm.sf(4), n_channels)
     assert low <= outlier.mean() <= high
     # outliers have amplitude exactly +-1 deg/s on top of the noise
     residual = np.abs(gyro_error[outlier]) - 1.0 * DEG
@@ -236,7 +235,7 @@ def test_every_preset_runs_and_lists_faults() -> None:
         assert len(block) == 20 and block.n_imus == array.n_imus
 
 
-def test_paper_table4_plain_glt_lands_near_the_paper_row() -> None:
+def test_paper_table4_plain_glt_lands_near_the_paper_row(scipy_stats) -> None:
     """DESIGN §8: a per-sample GLT at alpha = 0.01 with the 0.9 deg/s step on imu0.gyro.x
     gives FAR ~ 5 %, MAR ~ 27 %, FIR ~ 4 % (Li et al. Table 4, GLT row: 4.98, 26.58)."""
     far, mar, fir = [], [], []
@@ -252,7 +251,7 @@ def test_paper_table4_plain_glt_lands_near_the_paper_row() -> None:
         parity_matrix = left[:, 3:].T  # (n-3, n), V H = 0, V V^T = I
         parity = measured @ parity_matrix.T
         statistic = (parity**2).sum(axis=1) / (0.15 * DEG) ** 2
-        alarm = statistic > stats.chi2.ppf(0.99, parity_matrix.shape[0])
+        alarm = statistic > scipy_stats.chi2.ppf(0.99, parity_matrix.shape[0])
         isolation = ((parity @ parity_matrix) ** 2 / (parity_matrix**2).sum(axis=0)).argmax(1)
         far.append(alarm[:onset].mean())
         mar.append((~alarm[onset:]).mean())

@@ -8,7 +8,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import signal
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.attitude import (
@@ -28,6 +27,7 @@ from imufdi_cli.detectors.base import (
 )
 from imufdi_cli.errors import CalibrationError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.special import lfilter  # scipy.signal's, without its import
 
 
 class _GyroTest:
@@ -278,10 +278,10 @@ class _GyroTest:
         if self._filter_state is None or self._variance_state is None:
             self._filter_state = np.zeros((raw.shape[0], 1, raw.shape[2]))
             self._variance_state = np.zeros((raw.shape[0], 1, raw.shape[2]))
-        filtered, self._filter_state = signal.lfilter(
+        filtered, self._filter_state = lfilter(
             [1.0 - a], [1.0, -a], raw, axis=1, zi=self._filter_state
         )
-        smoothed_rate_variance, self._variance_state = signal.lfilter(
+        smoothed_rate_variance, self._variance_state = lfilter(
             [1.0 - a], [1.0, -a], rate_variance, axis=1, zi=self._variance_state
         )
         variances = self._gyro_variance * (

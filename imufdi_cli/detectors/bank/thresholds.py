@@ -7,7 +7,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import stats
 
 from imufdi_cli.detectors.base import (
     DetectionBlock,
@@ -15,6 +14,7 @@ from imufdi_cli.detectors.base import (
 from imufdi_cli.detectors.parity import (
     sigma_estimate_variance,
 )
+from imufdi_cli.quantiles import chi2, f  # scipy.stats' floats without its import
 
 #: Scale from the median absolute deviation to the standard deviation of a Gaussian.
 MAD_TO_STD = 1.4826
@@ -48,13 +48,13 @@ def estimated_threshold(
     parts = P**2 * sigma[None, :] ** 2  # (n, n)
     relative = (parts**2 @ scale_variance) / np.maximum(parts.sum(axis=1) ** 2, 1e-300)
     nu = 2.0 / float(np.mean(relative))
-    quantile = float(stats.f.ppf(1.0 - alpha / n, 1, nu))
+    quantile = float(f.ppf(1.0 - alpha / n, 1, nu))
     return quantile * (1.0 + math.pi / (2.0 * n_samples))
 
 
 def bonferroni_threshold(alpha: float, n_tests: int) -> float:
     """chi-square(1) quantile at ``1 - alpha / n_tests`` for a squared unit-normal residual."""
-    return float(stats.chi2.ppf(1.0 - alpha / n_tests, 1))
+    return float(chi2.ppf(1.0 - alpha / n_tests, 1))
 
 
 def _empty_block(n_sensors: int) -> DetectionBlock:

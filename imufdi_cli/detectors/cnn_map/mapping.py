@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.stats import gamma as gamma_distribution
 
 from imufdi_cli.detectors.base import (
     NO_ISOLATION,
@@ -31,6 +30,7 @@ from imufdi_cli.errors import (
     DetectorConfigError,
 )
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.quantiles import gamma as gamma_distribution  # scipy.stats' floats
 
 
 class _MappingTest(_InputTest):

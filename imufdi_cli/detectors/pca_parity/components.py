@@ -5,10 +5,10 @@ out-of-sample variance estimates of the principal directions."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
-from scipy.stats import f as f_distribution
 
 from imufdi_cli.detectors.pca_parity import choices
+from imufdi_cli.quantiles import chi2  # scipy.stats' floats without its import
+from imufdi_cli.quantiles import f as f_distribution
 
 
 def mean_variance_inflation(rho: np.ndarray, lengths: np.ndarray) -> np.ndarray:

@@ -6,7 +6,6 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.stats import f as f_distribution
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
@@ -33,6 +32,7 @@ from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.quantiles import f as f_distribution  # scipy.stats' floats
 
 
 class PcaParityDetector(DetectorBase):

@@ -10,7 +10,6 @@ from dataclasses import asdict, dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.stats import chi2
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
@@ -60,6 +59,7 @@ from imufdi_cli.errors import (
     InputDataError,
 )
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.quantiles import chi2  # scipy.stats' floats without its import
 
 # --- the detector ----------------------------------------------------------------------
 

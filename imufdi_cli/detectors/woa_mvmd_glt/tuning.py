@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.mvmd import (
@@ -38,6 +37,7 @@ from imufdi_cli.errors import (
     InputDataError,
 )
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.quantiles import chi2  # scipy.stats' floats without its import
 
 # --- tuning (§2.7) ---------------------------------------------------------------------
 
