@@ -278,13 +278,14 @@ def test_trace_derivatives_match_the_analytic_form(case: int) -> None:
 
 
 @pytest.mark.parametrize("case", range(3))
-def test_estimated_sigma_threshold_is_the_delta_method_of_the_traces(case: int) -> None:
+def test_estimated_sigma_threshold_is_the_delta_method_of_the_traces(
+    case: int, scipy_stats
+) -> None:
     """The two moments, g and h rebuilt from extrapolated differences of the defining
     traces (second-order delta method, independent delta_j), agree to 1e-9. Steps 4e-3 and
     2e-3: extrapolated, their O(h^4) error is ~1e-10 and rounding (eps k / h^2) stays below
     1e-9 (at 1e-3 and 5e-4 rounding alone reaches 2.6e-9 in h)."""
-    from scipy.stats import chi2
-
+    chi2 = scipy_stats.chi2  # the oracle's quantile (tests/conftest.py: first worker)
     H, sigma, n_samples = _threshold_cases()[case]
     h_white = whiten(H, sigma)
     variance = sigma_estimate_variance(H, sigma, n_samples)
