@@ -52,8 +52,8 @@ def _first_use_group(item: pytest.Item) -> int:
     """0 for a test that pays a cost once per process on first use (a Hypothesis test:
     Hypothesis parses the source of every imported ``imufdi_cli`` module for constants to
     try, about 1.4 s of CPU in a fresh process; a test drawing a matplotlib figure: the
-    import, about 1 s; a test asking for the ``scipy_stats`` fixture: its import, about
-    1.2 s), 1 for the others."""
+    import, about 1 s; a test asking for the ``scipy_stats`` or ``scipy_optimize`` fixture:
+    the import of that oracle, about 1.2 s and 0.35 s), 1 for the others."""
     from hypothesis import is_hypothesis_test
 
     function = getattr(item, "obj", None)
@@ -61,7 +61,7 @@ def _first_use_group(item: pytest.Item) -> int:
         return 0
     if item.get_closest_marker("draws") or item.get_closest_marker("campaign_figure"):
         return 0
-    if "scipy_stats" in getattr(item, "fixturenames", ()):
+    if {"scipy_stats", "scipy_optimize"} & set(getattr(item, "fixturenames", ())):
         return 0
     return 1
 
@@ -269,6 +269,16 @@ def scipy_stats() -> ModuleType:
     import scipy.stats
 
     return scipy.stats
+
+
+@pytest.fixture(scope="session")
+def scipy_optimize() -> ModuleType:
+    """``scipy.optimize``, the oracle of ``imufdi_cli.nnls`` (tests/test_nnls.py), imported
+    at first use like :func:`scipy_stats` (about 0.35 s of CPU with scipy.sparse,
+    scipy.spatial and scipy.fft, which no other test process then needs)."""
+    import scipy.optimize
+
+    return scipy.optimize
 
 
 @pytest.fixture(scope="session")

@@ -7,7 +7,6 @@ import sys
 
 import numpy as np
 import pytest
-from scipy.optimize import nnls as scipy_nnls
 
 from imufdi_cli import nnls as module
 from imufdi_cli.nnls import nnls
@@ -29,10 +28,10 @@ def _problems() -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 @pytest.mark.parametrize("index", range(len(_problems())))
-def test_same_floats_as_scipy(index: int) -> None:
+def test_same_floats_as_scipy(index: int, scipy_optimize) -> None:
     A, b = _problems()[index]
     x, rnorm = nnls(A, b)
-    x_ref, rnorm_ref = scipy_nnls(A, b)
+    x_ref, rnorm_ref = scipy_optimize.nnls(A, b)
     assert np.array_equal(x, x_ref)
     assert rnorm == rnorm_ref
     assert np.all(x >= 0)
@@ -44,24 +43,26 @@ def test_the_compiled_routine_is_the_one_used() -> None:
     assert module._compiled() is not None
 
 
-def test_column_b_and_bad_arguments_as_scipy() -> None:
+def test_column_b_and_bad_arguments_as_scipy(scipy_optimize) -> None:
     A, b = _problems()[12]  # 16 x 16
-    assert np.array_equal(nnls(A, b[:, None])[0], scipy_nnls(A, b[:, None])[0])
+    assert np.array_equal(nnls(A, b[:, None])[0], scipy_optimize.nnls(A, b[:, None])[0])
     for bad_A, bad_b in [(A, b[:-1]), (A[0], b), (A, np.ones((b.size, 2)))]:
         with pytest.raises(ValueError):
             nnls(bad_A, bad_b)
     with pytest.raises(ValueError):
         nnls(np.where(A > 0, np.nan, A), b)
     with pytest.raises(ValueError):
-        scipy_nnls(np.where(A > 0, np.nan, A), b)
+        scipy_optimize.nnls(np.where(A > 0, np.nan, A), b)
 
 
-def test_fallback_when_the_wrapper_differs(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_fallback_when_the_wrapper_differs(
+    monkeypatch: pytest.MonkeyPatch, scipy_optimize
+) -> None:
     A, b = _problems()[0]
     monkeypatch.setattr(module, "_compiled", lambda: None)
     x, rnorm = nnls(A, b)
-    assert rnorm == scipy_nnls(A, b)[1]
-    assert np.array_equal(x, scipy_nnls(A, b)[0])
+    assert rnorm == scipy_optimize.nnls(A, b)[1]
+    assert np.array_equal(x, scipy_optimize.nnls(A, b)[0])
 
 
 def test_using_it_does_not_import_scipy_optimize() -> None:

@@ -56,11 +56,11 @@ def _number(value: Any) -> str:
 def detector_colour(detector: str, variant: int = 0, variants: int = 1) -> str:
     """The detector's colour; parameter set ``variant`` of ``variants`` in a shade of it
     (the first, usually the defaults, in the colour itself, the others darker)."""
-    import matplotlib.colors as mcolors
-
     base = base_colour(detector)
     if variant == 0 or variants <= 1:
         return base
+    import matplotlib.colors as mcolors  # only for the shades
+
     shade = 1.0 - 0.45 * variant / (variants - 1 if variants > 2 else 1)
     r, g, b = (min(1.0, max(0.0, c * shade)) for c in mcolors.to_rgb(base))
     return str(mcolors.to_hex((r, g, b)))

@@ -87,6 +87,7 @@ def test_detect_with_every_detector_imports_neither_scipy_stats_nor_scipy_signal
     assert all(f"│ {name} " in run.stderr + run.stdout for name in DETECTORS), run.stderr
     # (scipy.signal's compiled filter, scipy.signal._sigtools, is loaded without the package)
     assert {m for m in run.modules if m.startswith("scipy.stats")} == set()
+    assert "scipy.ndimage" not in run.modules  # ap-consistency's running minimum is numpy's
     assert "scipy.signal" not in run.modules and "scipy.signal._sigtools" in run.modules
     # woa's envelope ran (the fitness of the search), on pocketfft loaded alone
     assert "scipy.fft" not in run.modules and "scipy.fft._pocketfft.pypocketfft" in run.modules

@@ -33,13 +33,21 @@ def block(n: int, m: int, rng: np.random.Generator) -> ImuBlock:
 
 
 def test_trailing_minimum_matches_brute_force_across_blocks() -> None:
+    """To the bit, for windows shorter and longer than the blocks, split anywhere; a NaN
+    reaches exactly the windows that hold it."""
     rng = np.random.default_rng(1)
     x = rng.standard_normal((400, 3))
-    for length in (1, 2, 7, 50):
+    for length in (1, 2, 3, 7, 50, 123, 500):
         expected = np.array([x[max(0, t - length + 1) : t + 1].min(axis=0) for t in range(400)])
-        first = trailing_minimum(np.zeros((0, 3)), x[:123], length)
-        second = trailing_minimum(x[:123], x[123:], length)
-        assert_allclose(np.concatenate([first, second]), expected)
+        for split in (0, 1, 123, 399):
+            first = trailing_minimum(np.zeros((0, 3)), x[:split], length)
+            second = trailing_minimum(x[:split], x[split:], length)
+            assert_array_equal(np.concatenate([first, second]), expected)
+    y = x.copy()
+    y[100, 1] = np.nan
+    got = trailing_minimum(np.zeros((0, 3)), y, 7)
+    assert_array_equal(np.flatnonzero(np.isnan(got[:, 1])), np.arange(100, 107))
+    assert not np.isnan(got[:, [0, 2]]).any()
 
 
 def test_alarm_after_more_than_hold_seconds_of_disagreement() -> None:
