@@ -55,9 +55,7 @@ def test_column_b_and_bad_arguments_as_scipy(scipy_optimize) -> None:
         scipy_optimize.nnls(np.where(A > 0, np.nan, A), b)
 
 
-def test_fallback_when_the_wrapper_differs(
-    monkeypatch: pytest.MonkeyPatch, scipy_optimize
-) -> None:
+def test_fallback_when_the_wrapper_differs(monkeypatch: pytest.MonkeyPatch, scipy_optimize) -> None:
     A, b = _problems()[0]
     monkeypatch.setattr(module, "_compiled", lambda: None)
     x, rnorm = nnls(A, b)
