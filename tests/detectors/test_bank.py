@@ -125,6 +125,50 @@ def test_leave_one_out_matrix_co_aligned_is_sensor_minus_mean_of_others() -> Non
     assert_allclose(P_excluded[0, [3, 6, 9, 12]], -0.25)
 
 
+def _leave_one_out_one_by_one(H, sigma, excluded):
+    """The leave-one-out matrix estimator by estimator (the definition: one rank test and
+    one solve per sensor j, as the bank computed it until session 23)."""
+    n = H.shape[0]
+    P = np.full((n, n), np.nan)
+    weights = 1.0 / sigma**2
+    for j in range(n):
+        used = np.array([i for i in range(n) if i != j and i not in excluded], dtype=np.intp)
+        if used.size < H.shape[1]:
+            continue
+        normal = H[used].T @ (weights[used, None] * H[used])
+        tol = 1e-9 * max(np.abs(normal).max(), 1e-300)
+        if np.linalg.matrix_rank(normal, tol=tol) < H.shape[1]:
+            continue
+        row = np.zeros(n)
+        row[j] = 1.0
+        row[used] -= H[j] @ np.linalg.solve(normal, H[used].T * weights[used])
+        P[j] = row
+    return P
+
+
+def test_leave_one_out_matrix_batched_is_the_one_by_one_definition_to_the_bit() -> None:
+    """The batched rank tests and solves give the per-estimator floats (bank's outputs are
+    recorded byte for byte, test_split_identical.py): co-aligned and random layouts,
+    exclusion sets, unobservable estimators (NaN rows) and a rank-deficient one."""
+    rng = np.random.default_rng(0)
+    for n_imus in (2, 3, 6, 16):
+        for H in (
+            ArrayConfig.co_aligned(n_imus, sensors=("gyro",)).measurement_matrix("gyro"),
+            rng.standard_normal((3 * n_imus, 3)),
+        ):
+            n = H.shape[0]
+            for _ in range(4):
+                sigma = rng.uniform(0.5, 2.0, n)
+                size = int(rng.integers(0, min(n, 6)))
+                excluded = frozenset(rng.choice(n, size=size, replace=False).tolist())
+                got = leave_one_out_matrix(H, sigma, excluded)
+                assert got.tobytes() == _leave_one_out_one_by_one(H, sigma, excluded).tobytes()
+    parallel = np.array([[1, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 0, 0]], float)
+    got = leave_one_out_matrix(parallel, np.ones(5))
+    assert np.isnan(got[[2, 3]]).all() and not np.isnan(got[[0, 1, 4]]).any()
+    assert got.tobytes() == _leave_one_out_one_by_one(parallel, np.ones(5), frozenset()).tobytes()
+
+
 def _table4_double_fault(seed: int) -> dict[str, dict[str, float]]:
     config = preset("paper-table4", seed=seed)
     array, clean = simulate_block(config)

@@ -50,23 +50,30 @@ def leave_one_out_matrix(
         ``e = P m``; rows of sensors whose estimator is not observable (fewer than 3
         independent other sensors) are NaN.
     """
-    n = H.shape[0]
+    n, q = H.shape
     P = np.full((n, n), np.nan)
     weights = 1.0 / sigma**2
+    usable: list[tuple[int, np.ndarray]] = []
     for j in range(n):  # n small, once per exclusion set (cached)
         used = np.array([i for i in range(n) if i != j and i not in excluded], dtype=np.intp)
-        if used.size < H.shape[1]:
+        if used.size >= q:
+            usable.append((j, used))
+    # the rank tests and solves of every estimator of one size in one batched LAPACK call
+    # each (the same routine per matrix as one call per matrix: the same floats)
+    for size in sorted({used.size for _, used in usable}):
+        group = [(j, used) for j, used in usable if used.size == size]
+        normals = np.stack([H[used].T @ (weights[used, None] * H[used]) for _, used in group])
+        tol = 1e-9 * np.maximum(np.abs(normals).max(axis=(1, 2)), 1e-300)
+        full = np.linalg.matrix_rank(normals, tol=tol) >= q
+        if not full.any():
             continue
-        H_used = H[used]
-        normal = H_used.T @ (weights[used, None] * H_used)
-        rank = np.linalg.matrix_rank(normal, tol=1e-9 * max(np.abs(normal).max(), 1e-300))
-        if rank < H.shape[1]:
-            continue
-        gain = np.linalg.solve(normal, H_used.T * weights[used])  # (q, |U|)
-        row = np.zeros(n)
-        row[j] = 1.0
-        row[used] -= H[j] @ gain
-        P[j] = row
+        rhs = np.stack([H[used].T * weights[used] for _, used in group])
+        gains = np.linalg.solve(normals[full], rhs[full])  # (k, q, |U|)
+        for (j, used), gain in zip([g for g, ok in zip(group, full) if ok], gains):
+            row = np.zeros(n)
+            row[j] = 1.0
+            row[used] -= H[j] @ gain
+            P[j] = row
     return P
 
 
