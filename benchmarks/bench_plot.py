@@ -26,7 +26,6 @@ the report's own pass grows with the log.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import statistics
@@ -37,13 +36,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_report import T0_NS, write_step_truth_and_detect  # the same truth and detect record
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.mcapio import McapWriter, encode_status, register_status_channel
 
 ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
-T0_NS = 1_700_000_000 * 10**9
 THRESHOLD = 66.2
 
 
@@ -84,19 +83,7 @@ def make_log(path: Path, n_imus: int, n_samples: int, rate_hz: float, block: int
                 )
                 writer.add_batch(encode_status(cid, t_ns, det))
         writer.add_metadata("imufdi.array", {"json": array.to_json()})
-        fault = {
-            "id": "f0",
-            "model": "step",
-            "sensors": ["imu0.gyro.x"],
-            "params": {"amp": 0.0157},
-            "at_s": onset / rate_hz,
-            "until_s": None,
-            "spec": f"step:imu0.gyro.x,at={onset / rate_hz}s,amp=0.9deg/s",
-        }
-        record = {"format": "imufdi.faults/1", "seed": 0, "t0_ns": T0_NS, "faults": [fault]}
-        writer.add_metadata("imufdi.faults", {"json": json.dumps(record)})
-        detect = {"detector": "glt", "calibration_window_ns": [T0_NS, T0_NS + 2 * 10**9]}
-        writer.add_metadata("imufdi.detect.glt", {"json": json.dumps(detect)})
+        write_step_truth_and_detect(writer, onset / rate_hz)
 
 
 def timed(args: list[str], tree: str | None) -> tuple[float, float]:

@@ -76,19 +76,25 @@ def make_log(path: Path, n_imus: int, n_samples: int, with_imu: bool, block: int
                 )
                 writer.add_batch(encode_status(cid, t_ns, det))
         writer.add_metadata("imufdi.array", {"json": array.to_json()})
-        fault = {
-            "id": "f0",
-            "model": "step",
-            "sensors": ["imu0.gyro.x"],
-            "params": {"amp": 0.0157},
-            "at_s": onset / RATE_HZ,
-            "until_s": None,
-            "spec": f"step:imu0.gyro.x,at={onset / RATE_HZ}s,amp=0.9deg/s",
-        }
-        record = {"format": "imufdi.faults/1", "seed": 0, "t0_ns": T0_NS, "faults": [fault]}
-        writer.add_metadata("imufdi.faults", {"json": json.dumps(record)})
-        detect = {"detector": "glt", "calibration_window_ns": [T0_NS, T0_NS + 2 * 10**9]}
-        writer.add_metadata("imufdi.detect.glt", {"json": json.dumps(detect)})
+        write_step_truth_and_detect(writer, onset / RATE_HZ)
+
+
+def write_step_truth_and_detect(writer: McapWriter, onset_s: float) -> None:
+    """The truth of a 0.9 deg/s step on imu0.gyro.x from ``onset_s`` on and glt's detect
+    record (calibration window: the first 2 s), as ``inject`` and ``detect`` write them."""
+    fault = {
+        "id": "f0",
+        "model": "step",
+        "sensors": ["imu0.gyro.x"],
+        "params": {"amp": 0.0157},
+        "at_s": onset_s,
+        "until_s": None,
+        "spec": f"step:imu0.gyro.x,at={onset_s}s,amp=0.9deg/s",
+    }
+    record = {"format": "imufdi.faults/1", "seed": 0, "t0_ns": T0_NS, "faults": [fault]}
+    writer.add_metadata("imufdi.faults", {"json": json.dumps(record)})
+    detect = {"detector": "glt", "calibration_window_ns": [T0_NS, T0_NS + 2 * 10**9]}
+    writer.add_metadata("imufdi.detect.glt", {"json": json.dumps(detect)})
 
 
 def peak_rss_report(path: Path, out: Path) -> tuple[int, float]:

@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
+
+from bench_plot import timed  # CPU and wall of a fresh imufdi process
 
 ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
 
@@ -54,19 +54,7 @@ def imufdi(*args: str, tree: str | None = None) -> None:
 
 def timed_report(path: Path, tree: str | None = None) -> tuple[float, float]:
     """(CPU seconds, wall seconds) of ``imufdi report path -q`` in a fresh process."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    start = time.perf_counter()
-    subprocess.run(
-        [sys.executable, "-m", "imufdi_cli", "report", str(path), "-q"],
-        check=True,
-        env=_env(tree),
-        cwd=tree,
-        stdout=subprocess.DEVNULL,
-    )
-    wall = time.perf_counter() - start
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return cpu, wall
+    return timed(["report", str(path), "-q"], tree)
 
 
 def episode_count(path: Path) -> int:
