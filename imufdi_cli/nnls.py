@@ -18,14 +18,13 @@ wrapper is the one this mirrors (its source calls ``_nnls(A, b, maxiter)`` impor
 from __future__ import annotations
 
 import functools
-import importlib.machinery
-import importlib.util
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from imufdi_cli.special import extension
 
 _MODULE = "scipy.optimize._slsqplib"
 #: the lines of scipy's wrapper that this module mirrors
@@ -35,31 +34,18 @@ _WRAPPER_LINES = ("from ._slsqplib import nnls as _nnls", "x, rnorm, info = _nnl
 @functools.lru_cache(maxsize=1)
 def _compiled() -> Callable[..., Any] | None:
     """The compiled routine, or None when scipy's wrapper is not the one mirrored here."""
-    loaded = sys.modules.get(_MODULE)
     try:
         import scipy
 
-        package = Path(scipy.__file__).parent / "optimize"
-        source = (package / "_nnls.py").read_text(encoding="utf-8")
-        if not all(line in source for line in _WRAPPER_LINES):
-            return None
-        if loaded is None:
-            suffixes = tuple(importlib.machinery.EXTENSION_SUFFIXES)
-            found = [p for p in package.glob("_slsqplib*") if p.name.endswith(suffixes)]
-            if len(found) != 1:
-                return None
-            loader = importlib.machinery.ExtensionFileLoader(_MODULE, str(found[0]))
-            spec = importlib.util.spec_from_file_location(_MODULE, found[0], loader=loader)
-            if spec is None:
-                return None
-            loaded = importlib.util.module_from_spec(spec)
-            loader.exec_module(loaded)
-            # the package, if imported later, finds it (one module object, not two)
-            sys.modules[_MODULE] = loaded
-        routine = getattr(loaded, "nnls", None)
-        return routine if callable(routine) else None
+        source = (Path(scipy.__file__).parent / "optimize" / "_nnls.py").read_text(encoding="utf-8")
     except (ImportError, OSError):
         return None
+    if not all(line in source for line in _WRAPPER_LINES):
+        return None
+    # the extension module alone, as imufdi_cli.special loads scipy.special's (the package,
+    # if imported later, finds it: one module object, not two)
+    routine = getattr(extension(_MODULE), "nnls", None)
+    return routine if callable(routine) else None
 
 
 def nnls(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]:

@@ -82,11 +82,6 @@ def extension(module: str) -> Any:
             return None
 
 
-def _extension() -> Any:
-    """``scipy.special._ufuncs`` loaded without the package (None when that fails)."""
-    return extension(_MODULE)
-
-
 def ufunc(name: str) -> Any:
     """The ufunc ``scipy.special.<name>`` (e.g. ``"gammaincinv"``, ``"fdtri"``,
     ``"chdtri"``, ``"stdtrit"``), loaded without importing ``scipy.special`` when it is
@@ -103,7 +98,7 @@ def ufunc(name: str) -> Any:
         The same object ``scipy.special`` exports under that name.
     """
     if _PACKAGE not in sys.modules:
-        found = getattr(_extension(), name, None)
+        found = getattr(extension(_MODULE), name, None)
         if found is not None:
             return found
     import scipy.special
