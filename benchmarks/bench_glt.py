@@ -70,7 +70,7 @@ def central_difference_threshold(
 ) -> tuple[float, float, float]:
     """Baseline: ``parity.estimated_sigma_threshold`` before session 23 (derivatives of the
     traces by central differences, step 1e-3, one pseudo-inverse per evaluation)."""
-    from imufdi_cli.quantiles import chi2
+    from imufdi_cli.detectors.parity import two_moment_threshold
 
     def traces(delta: np.ndarray) -> np.ndarray:
         weights = 1.0 / np.sqrt(1.0 + delta)
@@ -93,12 +93,7 @@ def central_difference_threshold(
             mean += 0.5 * second[0] * scale_variance[j]
             square += 0.5 * second[1] * scale_variance[j]
             spread += first**2 * scale_variance[j]
-    inflation = 1.0 + (1.0 / mean_samples if np.isfinite(mean_samples) else 0.0)
-    total_mean = mean * inflation
-    total_variance = (2.0 * square + spread) * inflation**2
-    scale = total_variance / (2.0 * total_mean)
-    dof = 2.0 * total_mean**2 / total_variance
-    return float(scale * chi2.ppf(1.0 - alpha, dof)), float(scale), float(dof)
+    return two_moment_threshold(mean, square, spread, alpha, mean_samples)
 
 
 def time_fits(array: ArrayConfig, log: ImuBlock, repeats: int) -> None:

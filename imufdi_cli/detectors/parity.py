@@ -397,6 +397,7 @@ __all__ = [
     "residual_sigma",
     "residuals",
     "sigma_estimate_variance",
+    "two_moment_threshold",
     "whiten",
 ]
 
@@ -472,8 +473,6 @@ def estimated_sigma_threshold(
     threshold, scale, dof : float
         ``g chi2_{1-alpha}(h)``, g and h.
     """
-    from imufdi_cli.quantiles import chi2
-
     h_white = np.asarray(h_white, dtype=np.float64)
     projector = np.eye(h_white.shape[0]) - h_white @ np.linalg.pinv(h_white)
     mean = float(np.trace(projector))
@@ -485,6 +484,25 @@ def estimated_sigma_threshold(
         mean += leverage
         square += 3.0 * leverage
         spread = leverage
+    return two_moment_threshold(mean, square, spread, alpha, mean_samples)
+
+
+def two_moment_threshold(
+    mean: float, square: float, spread: float, alpha: float, mean_samples: float
+) -> tuple[float, float, float]:
+    """``g chi2_{1-alpha}(h)`` of ``D = z^T A z`` from ``E tr A`` (``mean``), ``E tr A^2``
+    (``square``) and ``Var tr A`` (``spread``), each residual variance inflated by
+    ``1 + 1/N`` for a bias from the calibration mean of ``mean_samples`` (``inf``: none):
+    ``E D = m``, ``Var D = 2 E tr A^2 + Var tr A`` (times the inflation and its square),
+    matched by ``g chi2(h)`` (Satterthwaite): ``g = Var D / (2 E D)``, ``h = 2 (E D)^2 /
+    Var D``.
+
+    Returns
+    -------
+    threshold, scale, dof : float
+    """
+    from imufdi_cli.quantiles import chi2
+
     inflation = 1.0 + (1.0 / mean_samples if np.isfinite(mean_samples) else 0.0)
     total_mean = mean * inflation
     total_variance = (2.0 * square + spread) * inflation**2
