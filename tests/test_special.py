@@ -8,6 +8,7 @@ import sys
 import textwrap
 
 import numpy as np
+import pytest
 
 from imufdi_cli.special import ufunc
 
@@ -54,20 +55,26 @@ CHILD = textwrap.dedent(
     spectrum = fft(np.outer(q, df))
     print(hashlib.sha256(spectrum.tobytes() + fft(spectrum, False).tobytes()).hexdigest())
     print("scipy.signal" in sys.modules, "scipy.stats" in sys.modules, "scipy.fft" in sys.modules)
+    from imufdi_cli.special import brentq
+    print(repr(brentq(lambda x: x**3 - 2.0 * x - 5.0, 2.0, 3.0)), "scipy.optimize" in sys.modules)
     """
 )
 
 
-def test_loads_without_the_package_and_gives_its_ufuncs(scipy_stats) -> None:
+def test_loads_without_the_package_and_gives_its_ufuncs(scipy_stats, scipy_optimize) -> None:
     done = subprocess.run(
         [sys.executable, "-c", CHILD.format(names=NAMES)],
         capture_output=True,
         text=True,
         check=True,
     )
-    *first, digest, fft_digest, signal_loaded, stats_loaded, fft_loaded = done.stdout.split()
+    *first, digest, fft_digest, signal_loaded, stats_loaded, fft_loaded, root, optimize_loaded = (
+        done.stdout.split()
+    )
     assert first == ["False", "False", "True", "True", "True", "True"]
-    assert (signal_loaded, stats_loaded, fft_loaded) == ("False", "False", "False")
+    assert (signal_loaded, stats_loaded, fft_loaded, optimize_loaded) == ("False",) * 4
+    # Brent's root without scipy.optimize is the root scipy.optimize.brentq finds
+    assert float(root) == scipy_optimize.brentq(lambda x: x**3 - 2.0 * x - 5.0, 2.0, 3.0)
     # the same bits as scipy.signal.lfilter (in this process: scipy.signal imports
     # scipy.stats, hence the fixture, which puts the test on the worker that imports it)
     from scipy import signal
@@ -129,6 +136,48 @@ def test_fft_is_scipy_fft_to_the_bit() -> None:
     for x in arrays:
         assert fft(x).tobytes() == scipy_fft.fft(x, axis=-1).tobytes(), x.shape
         assert fft(x, False).tobytes() == scipy_fft.ifft(x, axis=-1).tobytes(), x.shape
+
+
+def test_brentq_is_scipy_optimize_brentq_to_the_bit(scipy_optimize) -> None:
+    """Smooth roots, a flat one, a step (the empirical rate the jitter fit solves), the
+    tolerances and iteration limits given, and scipy's errors for the same bad input."""
+    from imufdi_cli.special import brentq
+
+    rng = np.random.default_rng(17860)
+    levels = np.sort(rng.uniform(0.0, 1.0, 500))
+    cases = [
+        (lambda x: x**3 - 2.0 * x - 5.0, 2.0, 3.0, {}),
+        (np.cos, 0.0, 3.0, {"xtol": 1e-3}),
+        (lambda x: (x - 0.3) ** 5, -1.0, 2.0, {}),
+        (lambda x: float(np.mean(levels < x)) - 0.37, 0.0, 1.0, {"xtol": 1e-9}),
+        (lambda x: np.exp(x) - 1e6, 0.0, 100.0, {"rtol": 1e-10, "maxiter": 500}),
+        (lambda x: x - 1.0, 1.0, 5.0, {}),  # a root at the bracket's end
+    ]
+    for f, a, b, options in cases:
+        assert brentq(f, a, b, **options) == scipy_optimize.brentq(f, a, b, **options)
+    bad = [
+        (lambda x: x * x + 1.0, -1.0, 1.0, {}),  # no sign change
+        (lambda x: np.nan, 0.0, 1.0, {}),
+        (np.cos, 0.0, 3.0, {"xtol": 0.0}),
+        (np.cos, 0.0, 3.0, {"rtol": 1e-20}),
+    ]
+    for f, a, b, options in bad:
+        for solver in (brentq, scipy_optimize.brentq):
+            with pytest.raises(ValueError):
+                solver(f, a, b, **options)
+    for solver in (brentq, scipy_optimize.brentq):
+        with pytest.raises(RuntimeError, match="converge"):
+            solver(lambda x: np.exp(x) - 1e6, 0.0, 100.0, maxiter=3)
+
+
+def test_brentq_without_the_extension_is_scipy_optimize_brentq(
+    monkeypatch: pytest.MonkeyPatch, scipy_optimize
+) -> None:
+    from imufdi_cli import special
+
+    monkeypatch.setattr(special, "extension", lambda module: None)
+    f = lambda x: x**3 - 2.0 * x - 5.0  # noqa: E731
+    assert special.brentq(f, 2.0, 3.0, xtol=1e-6) == scipy_optimize.brentq(f, 2.0, 3.0, xtol=1e-6)
 
 
 def test_with_the_package_imported_its_own_functions_are_returned() -> None:

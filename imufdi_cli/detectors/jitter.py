@@ -45,6 +45,7 @@ import numpy as np
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.quantiles import chi2
+from imufdi_cli.special import brentq  # scipy.optimize's compiled solver, not its import
 
 
 def consensus_projector(h_white: np.ndarray) -> np.ndarray:
@@ -202,8 +203,6 @@ def fit_jitter(
     residual = centred - centred @ projector.T
     statistic = np.einsum("ij,ij->i", residual, residual)
     if alpha is not None:
-        from scipy.optimize import brentq  # only calibrate fits (start-up of detect: issue 20)
-
         threshold = float(chi2.ppf(1.0 - alpha, dof))
 
         def excess_rate(jitter_s: float) -> float:
@@ -227,7 +226,6 @@ def minimum_detectable_step(
     """Smallest step (in units of the sensor's sigma) that a per-sample chi2 test of
     ``dof`` degrees of freedom at level ``alpha``, widened by ``factor = 1 + A``, detects
     with probability ``power``: non-centrality ``f^2 P_jj / factor`` (``energy = P_jj``)."""
-    from scipy.optimize import brentq
     from scipy.stats import ncx2  # a benchmark/analysis helper: keep scipy.stats off import
 
     threshold = float(chi2.ppf(1.0 - alpha, dof))
