@@ -48,12 +48,16 @@ def one_blas_thread() -> bool:
 gc.disable()
 
 
+#: fixtures giving a scipy package as a test's independent oracle (imported on first use)
+SCIPY_ORACLES = frozenset({"scipy_stats", "scipy_optimize", "scipy_fft", "scipy_special"})
+
+
 def _first_use_group(item: pytest.Item) -> int:
     """0 for a test that pays a cost once per process on first use (a Hypothesis test:
     Hypothesis parses the source of every imported ``imufdi_cli`` module for constants to
     try, about 1.4 s of CPU in a fresh process; a test drawing a matplotlib figure: the
-    import, about 1 s; a test asking for the ``scipy_stats`` or ``scipy_optimize`` fixture:
-    the import of that oracle, about 1.2 s and 0.35 s), 1 for the others."""
+    import, about 1 s; a test asking for a scipy oracle fixture (:data:`SCIPY_ORACLES`):
+    its import, about 1.2 s for scipy.stats), 1 for the others."""
     from hypothesis import is_hypothesis_test
 
     function = getattr(item, "obj", None)
@@ -61,7 +65,7 @@ def _first_use_group(item: pytest.Item) -> int:
         return 0
     if item.get_closest_marker("draws") or item.get_closest_marker("campaign_figure"):
         return 0
-    if {"scipy_stats", "scipy_optimize"} & set(getattr(item, "fixturenames", ())):
+    if SCIPY_ORACLES & set(getattr(item, "fixturenames", ())):
         return 0
     return 1
 
@@ -279,6 +283,24 @@ def scipy_optimize() -> ModuleType:
     import scipy.optimize
 
     return scipy.optimize
+
+
+@pytest.fixture(scope="session")
+def scipy_fft() -> ModuleType:
+    """``scipy.fft``, the oracle of ``imufdi_cli.special.fft`` (about 0.45 s of CPU to
+    import; nothing once :func:`scipy_stats` or :func:`scipy_optimize` has imported it)."""
+    import scipy.fft
+
+    return scipy.fft
+
+
+@pytest.fixture(scope="session")
+def scipy_special() -> ModuleType:
+    """``scipy.special``, the package whose ufuncs ``imufdi_cli.special`` loads alone (about
+    0.4 s of CPU to import; nothing once :func:`scipy_stats` has imported it)."""
+    import scipy.special
+
+    return scipy.special
 
 
 @pytest.fixture(scope="session")

@@ -122,11 +122,9 @@ def test_lfilter_is_scipy_signal_lfilter_to_the_bit(scipy_stats) -> None:
     )
 
 
-def test_fft_is_scipy_fft_to_the_bit() -> None:
+def test_fft_is_scipy_fft_to_the_bit(scipy_fft) -> None:
     """Real and complex, odd and even lengths, a batch, and what goes through scipy.fft
     itself (float32, a non-native byte order)."""
-    from scipy import fft as scipy_fft
-
     from imufdi_cli.special import fft
 
     rng = np.random.default_rng(17203)
@@ -180,13 +178,11 @@ def test_brentq_without_the_extension_is_scipy_optimize_brentq(
     assert special.brentq(f, 2.0, 3.0, xtol=1e-6) == scipy_optimize.brentq(f, 2.0, 3.0, xtol=1e-6)
 
 
-def test_with_the_package_imported_its_own_functions_are_returned() -> None:
-    import scipy.special
-
+def test_with_the_package_imported_its_own_functions_are_returned(scipy_special) -> None:
     for name in NAMES:
-        assert ufunc(name) is getattr(scipy.special, name)
+        assert ufunc(name) is getattr(scipy_special, name)
     assert np.array_equal(
-        ufunc("fdtri")(1.0, 10.0, [0.5, 0.99]), scipy.special.fdtri(1, 10, [0.5, 0.99])
+        ufunc("fdtri")(1.0, 10.0, [0.5, 0.99]), scipy_special.fdtri(1, 10, [0.5, 0.99])
     )
 
 
