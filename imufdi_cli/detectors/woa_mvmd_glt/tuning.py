@@ -143,7 +143,7 @@ def _validation_misses(
         max_iter=max_iter,
         history=False,
     )
-    _, F = stacked.u_best(raw, validation.window - validation.hop, rule)  # decided rows
+    F = stacked.best_filters(raw, validation.window - validation.hop, rule)  # decided rows
     return validation.miss_fractions(F).reshape(n_windows, len(Ks)).mean(axis=0)
 
 
