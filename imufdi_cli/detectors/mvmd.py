@@ -224,7 +224,7 @@ def mvmd_gains(
     for n_iter in range(1, max_iter + 1):
         criterion = rows.iterate()
         if history:
-            track[n_iter, rows.index] = rows.omega
+            track[n_iter, rows.index] = rows.omega.T
         done = criterion < tol
         if n_iter == max_iter:
             done[:] = True
@@ -238,8 +238,8 @@ def mvmd_gains(
             else:
                 omega_history = np.empty((2, K))
                 omega_history[0] = track[0, b, :K]
-                omega_history[1] = rows.omega[row, :K]
-            out[b] = (rows.gains[row, :K].copy(), omega_history, n_iter, bool(criterion[row] < tol))
+                omega_history[1] = rows.omega[:K, row]
+            out[b] = (rows.gains[:K, row].copy(), omega_history, n_iter, bool(criterion[row] < tol))
         if done.all():
             break
         rows.keep(~done)
@@ -300,14 +300,17 @@ def _initial_omegas(
 
 class _GainRows:
     """The working rows of :func:`mvmd_gains`: gains g_k(f), multipliers l(f) and centre
-    frequencies of the rows still iterating (arrays of B' <= B rows; ``index`` maps a
-    working row to its candidate).
+    frequencies of the rows still iterating (B' <= B rows; ``index`` maps a working row
+    to its candidate).
 
-    Every array an iteration writes is allocated once per set of rows (``_buffers``) and
-    written with ``out=``; the gains alternate between two buffers (the previous sweep's
-    values stay in the other one for the convergence test). Each float operation is the
-    one of the plain formulation (same operands, same order), so the results do not
-    depend on this bookkeeping.
+    Arrays are mode-major, (K_max, B', F): mode k of every row is one contiguous block,
+    so each step of the Gauss-Seidel sweep is one pass over memory. Every array an
+    iteration writes is allocated once per set of rows (:meth:`_buffers`) and written with
+    ``out=``; the gains alternate between two buffers (the previous sweep's values stay in
+    the other one for the convergence test). Each float operation is the one of the plain
+    (B, K, F) formulation (same operands, same order; the sums over f are the same dot
+    products, the sum over modes runs on a (B', K_max) array as before), so the results
+    do not depend on this layout.
     """
 
     def __init__(
@@ -326,33 +329,34 @@ class _GainRows:
         self.freqs = freqs  # (F,)
         self.tau = tau
         self.dc = dc
-        self.omega = omega  # (B, K_max)
-        self.alpha = np.asarray(alphas, dtype=np.float64)[:, None, None]  # (B, 1, 1)
-        self.unused_inf = np.where(used, 0.0, np.inf)[:, :, None]  # (B, K_max, 1)
+        self.omega = np.ascontiguousarray(omega.T)  # (K_max, B)
+        self.alpha = np.asarray(alphas, dtype=np.float64)[None, :, None]  # (1, B, 1)
+        self.unused_inf = np.where(used.T, 0.0, np.inf)[:, :, None]  # (K_max, B, 1)
         self.all_used = bool(used.all())
-        self.moving = np.ones(k_max, dtype=bool)  # centre frequencies updated by (B')
+        self.moving = np.ones((k_max, 1), dtype=bool)  # centre frequencies updated by (B')
         self.moving[0] = not dc
-        self.gains = np.zeros((n_cand, k_max, n_freqs))
+        self.gains = np.zeros((k_max, n_cand, n_freqs))
         self.total = np.zeros((n_cand, n_freqs))
         self.lam = np.zeros((n_cand, n_freqs))
-        # P(f) and f P(f) of each row, (B, 2, F)
-        self.spectra = np.stack(np.broadcast_arrays(power, freqs * power), axis=1)
+        # P(f) and f P(f) of each row, (2, B, F)
+        self.spectra = np.stack(np.broadcast_arrays(power, freqs * power))
         # [sum_f du_k^2 P, sum_f du_k^2 f P], [sum_f g_k^2 P, sum_f g_k^2 f P] of the latest
-        # sweep, (B, 2, 2, K_max); sum_f g_k^2 P starts at 0 (zero gains)
-        self.sums = np.zeros((n_cand, 2, 2, k_max))
+        # sweep, (2, 2, K_max, B); sum_f g_k^2 P starts at 0 (zero gains)
+        self.sums = np.zeros((2, 2, k_max, n_cand))
         self.index = np.arange(n_cand)  # working row -> candidate
         self._buffers()
 
     def _buffers(self) -> None:
-        """Work arrays and views for the current rows."""
-        rows, k_max, n_freqs = self.gains.shape
+        """Work arrays for the current rows."""
+        k_max, rows, n_freqs = self.gains.shape
         self.spare = np.empty_like(self.gains)  # the next sweep's gains
         self.den = np.empty_like(self.gains)
-        self.squares = np.empty((rows, 2, k_max, n_freqs))  # du^2, g^2
+        self.squares = np.empty((2, k_max, rows, n_freqs))  # du^2, g^2
         self.next_sums = np.empty_like(self.sums)
         self.others = np.empty((rows, n_freqs))
         self.base = np.empty((rows, n_freqs) if self.tau else (0,))
-        self.positive = np.empty((rows, k_max), dtype=bool)
+        self.positive = np.empty((k_max, rows), dtype=bool)
+        self.ratio = np.empty((rows, k_max))
         self.criterion = np.empty(rows)
 
     def iterate(self) -> np.ndarray:
@@ -375,29 +379,30 @@ class _GainRows:
             np.add(den, self.unused_inf, out=den)
         np.add(den, 1.0, out=den)
         total, others = self.total, self.others
-        for k in range(gains.shape[1]):  # Gauss-Seidel: mode k sees the new modes < k
-            gain = gains[:, k]
-            np.subtract(total, previous[:, k], out=others)
+        for k in range(gains.shape[0]):  # Gauss-Seidel: mode k sees the new modes < k
+            gain = gains[k]
+            np.subtract(total, previous[k], out=others)
             np.subtract(numerator_base, others, out=gain)
-            np.divide(gain, den[:, k], out=gain)
+            np.divide(gain, den[k], out=gain)
             np.add(others, gain, out=total)
         # (B') for all modes at once: they do not depend on each other within a sweep
         squares = self.squares
-        delta = squares[:, 0]
+        delta = squares[0]
         np.subtract(gains, previous, out=delta)
         np.multiply(delta, delta, out=delta)
-        np.multiply(gains, gains, out=squares[:, 1])
-        sums = np.vecdot(squares[:, :, None], self.spectra[:, None, :, None], out=self.next_sums)
-        diff, energy, weighted = sums[:, 0, 0], sums[:, 1, 0], sums[:, 1, 1]
-        norm = self.sums[:, 1, 0]  # sum_f (g_k^n)^2 P: the energy of the previous sweep
+        np.multiply(gains, gains, out=squares[1])
+        sums = np.vecdot(squares[:, None], self.spectra[None, :, None], out=self.next_sums)
+        diff, energy, weighted = sums[0, 0], sums[1, 0], sums[1, 1]  # (K_max, B')
+        norm = self.sums[1, 0]  # sum_f (g_k^n)^2 P: the energy of the previous sweep
         positive = np.greater(energy, 0.0, out=self.positive)
         if self.dc:
             positive &= self.moving
         np.divide(weighted, energy, out=self.omega, where=positive)
         if self.tau:
             self.lam += self.tau * (total - 1.0)
-        ratio = np.where(diff > 0, np.inf, 0.0)
-        np.divide(diff, norm, out=ratio, where=np.greater(norm, 0.0, out=positive))
+        ratio = self.ratio  # (B', K_max), summed over modes as a C-ordered array
+        ratio[...] = np.where(diff.T > 0, np.inf, 0.0)
+        np.divide(diff.T, norm.T, out=ratio, where=norm.T > 0)
         # swap: the new gains and sums become the current ones
         self.gains, self.spare = gains, previous
         self.sums, self.next_sums = sums, self.sums
@@ -406,14 +411,14 @@ class _GainRows:
     def keep(self, rows: np.ndarray) -> None:
         """Drop the working rows outside ``rows`` (bool, shape (B',))."""
         self.index = self.index[rows]
-        self.gains = self.gains[rows]
+        self.gains = self.gains[:, rows]
         self.total = self.total[rows]
         self.lam = self.lam[rows]
-        self.omega = self.omega[rows]
-        self.alpha = self.alpha[rows]
-        self.unused_inf = self.unused_inf[rows]
-        self.spectra = self.spectra[rows]
-        self.sums = self.sums[rows]
+        self.omega = self.omega[:, rows]
+        self.alpha = self.alpha[:, rows]
+        self.unused_inf = self.unused_inf[:, rows]
+        self.spectra = self.spectra[:, rows]
+        self.sums = self.sums[..., rows]
         self._buffers()
 
 
