@@ -189,7 +189,7 @@ def mvmd_gains(
     shape (F,)) or many signals of equal length, e.g. all the windows of a block (``power``
     of shape (B, F)). Rows are iterated together (arrays of shape (B, K_max, F); modes past
     a row's K are held at zero) and each stops at its own convergence, so a row's result
-    does not depend on the others in the batch (up to floating-point summation order).
+    does not depend on the others in the batch (the same floats: no operation mixes rows).
 
     Parameters
     ----------

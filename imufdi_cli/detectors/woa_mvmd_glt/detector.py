@@ -692,4 +692,5 @@ __all__ = [
     "make_validation",
     "tune",
     "tune_signal",
+    "tune_signals",
 ]
