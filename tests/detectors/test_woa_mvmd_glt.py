@@ -339,7 +339,7 @@ def test_sensor_types_tuned_together_get_the_results_of_one_at_a_time():
     block = synthetic_block(6, 200)
     accel = ImuBlock(t_ns=block.t_ns, accel=9.81 + 0.02 * np.cos(block.gyro * 50.0))
     both = ImuBlock(t_ns=block.t_ns, gyro=block.gyro, accel=accel.accel)
-    raw = {"population": 3, "iterations": 2, "window": 20, "overlap": 15}
+    raw = {"population": 3, "iterations": 2, "window": 20, "overlap": 15, "tol": 1e-4}
     clear_tuning_cache()
     together = make({**raw, "types": "gyro,accel"})
     together.fit(both, array)
@@ -357,11 +357,12 @@ def test_sensor_types_tuned_together_get_the_results_of_one_at_a_time():
 
 def test_tune_signals_equal_tune_signal_one_at_a_time():
     rng = np.random.default_rng(11)
-    signals = [rng.standard_normal((6, 120)).cumsum(axis=1) * 0.01 for _ in range(2)]
-    signals.append(rng.standard_normal((6, 90)))  # another length: its own MVMD batch
-    validations = [make_validation(6, 30, 10, 4.0, 100.0, 0.01), None]
-    validations.append(make_validation(6, 20, 5, 4.0, 50.0, 0.01))
-    settings = {"population": 4, "iterations": 2, "k_bounds": (2, 4), "seed": 3}
+    signals = [rng.standard_normal((5, 60)).cumsum(axis=1) * 0.01 for _ in range(2)]
+    signals.append(rng.standard_normal((5, 40)))  # another length: its own MVMD batch
+    validations = [make_validation(5, 20, 5, 4.0, 100.0, 0.01), None]
+    validations.append(make_validation(5, 12, 4, 4.0, 50.0, 0.01))
+    # a loose MVMD tolerance: the equality holds at any setting (fewer iterations to run)
+    settings = {"population": 3, "iterations": 2, "k_bounds": (2, 3), "seed": 3, "tol": 1e-4}
     joint = tune_signals(signals, validations=validations, **settings)
     for signal, validation, result in zip(signals, validations, joint, strict=True):
         alone = tune_signal(signal, validation=validation, **settings)
