@@ -58,7 +58,8 @@ class TuneResult:
     evaluations : int
         Distinct (K, alpha) candidates decomposed.
     seconds : float
-        Wall time of the search.
+        Wall time of the search (of the joint search when several ran together,
+        :func:`tune_signals`: a detector's sensor types).
     sensor_type : str
     settings : dict
         WOA and MVMD settings used (population, iterations, bounds, weights, samples).
