@@ -401,8 +401,12 @@ class _GainRows:
         if self.tau:
             self.lam += self.tau * (total - 1.0)
         ratio = self.ratio  # (B', K_max), summed over modes as a C-ordered array
-        ratio[...] = np.where(diff.T > 0, np.inf, 0.0)
-        np.divide(diff.T, norm.T, out=ratio, where=norm.T > 0)
+        known = np.greater(norm, 0.0, out=positive)
+        if known.all():  # every mode had energy: the plain ratio
+            np.divide(diff.T, norm.T, out=ratio)
+        else:  # a mode without energy: inf if it moved, else 0
+            ratio[...] = np.where(diff.T > 0, np.inf, 0.0)
+            np.divide(diff.T, norm.T, out=ratio, where=known.T)
         # swap: the new gains and sums become the current ones
         self.gains, self.spare = gains, previous
         self.sums, self.next_sums = sums, self.sums
