@@ -357,6 +357,7 @@ class _GainRows:
         self.base = np.empty((rows, n_freqs) if self.tau else (0,))
         self.positive = np.empty((k_max, rows), dtype=bool)
         self.ratio = np.empty((rows, k_max))
+        self.ratio_modes = np.empty((k_max, rows))
         self.criterion = np.empty(rows)
 
     def iterate(self) -> np.ndarray:
@@ -400,13 +401,16 @@ class _GainRows:
         np.divide(weighted, energy, out=self.omega, where=positive)
         if self.tau:
             self.lam += self.tau * (total - 1.0)
-        ratio = self.ratio  # (B', K_max), summed over modes as a C-ordered array
+        ratio = self.ratio_modes  # (K_max, B')
         known = np.greater(norm, 0.0, out=positive)
         if known.all():  # every mode had energy: the plain ratio
-            np.divide(diff.T, norm.T, out=ratio)
+            np.divide(diff, norm, out=ratio)
         else:  # a mode without energy: inf if it moved, else 0
-            ratio[...] = np.where(diff.T > 0, np.inf, 0.0)
-            np.divide(diff.T, norm.T, out=ratio, where=known.T)
+            np.copyto(ratio, np.where(diff > 0, np.inf, 0.0))
+            np.divide(diff, norm, out=ratio, where=known)
+        # summed over modes on a C-ordered (B', K_max) array, as the plain formulation
+        np.copyto(self.ratio, ratio.T)
+        ratio = self.ratio
         # swap: the new gains and sums become the current ones
         self.gains, self.spare = gains, previous
         self.sums, self.next_sums = sums, self.sums
