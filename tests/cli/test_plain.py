@@ -106,7 +106,8 @@ def assert_renders_as_rich(table: PlainTable) -> str:
 
 def test_report_in_a_pipe_is_what_rich_prints(cli, detected_log, monkeypatch) -> None:
     """``imufdi report LOG | ...``: the figure table and both episode tables (brackets in
-    the size column) as rich renders the same report; the demo's table from it too."""
+    the size column) as rich renders the same report, without making a rich console; the
+    demo's table from the same report too."""
     from imufdi_cli import report as rep
     from imufdi_cli.pipeline import demo_table
 
@@ -115,8 +116,12 @@ def test_report_in_a_pipe_is_what_rich_prints(cli, detected_log, monkeypatch) ->
     monkeypatch.setattr(
         rep, "build_report", lambda *a, **k: built.append(build(*a, **k)) or built[-1]
     )
+    made = []
+    monkeypatch.setattr(ui, "make_console", lambda *a, **k: made.append(a))
     result = cli(["report", detected_log])
     assert result.code == 0, result.stderr
+    assert made == []  # no rich console: rich is not even imported for this in a pipe
+    monkeypatch.undo()
     report = built[0]
     tables = [report_table(report), *episode_tables(report, limit=12)]
     assert len(tables) == 3 and all(t.render() is not None for t in tables)
