@@ -18,21 +18,15 @@ from imufdi_cli.mcapio import read_array, read_status, write_array
 from tests.cli.conftest import assert_one_line_error
 
 SAMPLES = Path(__file__).resolve().parents[2] / "sample_logs"
-LAYOUT = Path(__file__).resolve().parents[2] / "docs" / "layouts" / "mimu4444.toml"
 CUT = SAMPLES / "mimu4444-exp1-cut.bin"
 FRAMES = 18750  # (1,987,504 - 4 prefix bytes) / 106
 
 
-@pytest.fixture(scope="module")
-def real_log(tmp_path_factory):
-    from tests.cli.conftest import invoke
-
-    out = tmp_path_factory.mktemp("real") / "cut.mcap"
-    result = invoke(
-        ["ingest", CUT, "--layout", LAYOUT, "--array", SAMPLES / "mimu4444-array.toml", "-o", out]
-    )
-    assert result.code == 0, result.stderr
-    return out
+@pytest.fixture
+def real_log(mimu4444_cut_log):
+    """The cut ingested by ``imufdi ingest`` with the layout and the uncalibrated array
+    (tests/conftest.py: once per test process, shared with cnn-map's tests)."""
+    return mimu4444_cut_log
 
 
 def test_ingest_every_frame(cli, real_log):
