@@ -16,11 +16,14 @@ from collections.abc import Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.errors import UsageError
 from imufdi_cli.units import parse_quantity
+
+if TYPE_CHECKING:
+    from imufdi_cli.cli.plain import PlainTable
 
 SAMPLE_LOGS = Path(__file__).resolve().parent.parent / "sample_logs"
 
@@ -331,12 +334,27 @@ class DemoResult:
     steps: list[DemoStep] = field(default_factory=list)
 
 
+def demo_table(report: Any) -> PlainTable:
+    """The demo's table: every column of the report's figures (right-justified) per
+    detector and sensor type."""
+    from imufdi_cli import report as rep
+    from imufdi_cli.cli.plain import PlainTable
+
+    table = PlainTable(
+        ("detector", "sensor", *(header for _, header, _, _ in rep.TABLE_COLUMNS)),
+        title="demo: 0.9 deg/s step on imu0.gyro.x at 2.5 s (paper-table4)",
+        justify=("left", "left", *("right" for _ in rep.TABLE_COLUMNS)),
+    )
+    for row in rep.table_rows(report):
+        table.add_row(*row)
+    return table
+
+
 def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
     """ingest (or simulate) -> inject -> detect -> report on the bundled sample, printing
     each step as the equivalent command line."""
-    from rich.table import Table
-
     from imufdi_cli import report as rep
+    from imufdi_cli.cli.ui import print_table
     from imufdi_cli.detect import detect_file
     from imufdi_cli.detectors import DETECTORS
     from imufdi_cli.faults import inject_file
@@ -414,14 +432,7 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
             lambda: rep.build_report(str(detected)),
         )
         write_text(str(md), rep.to_markdown(report))
-        table = Table(title="demo: 0.9 deg/s step on imu0.gyro.x at 2.5 s (paper-table4)")
-        table.add_column("detector")
-        table.add_column("sensor")
-        for _, header, _, _ in rep.TABLE_COLUMNS:
-            table.add_column(header, justify="right")
-        for row in rep.table_rows(report):
-            table.add_row(*row)
-        console.print(table)
+        print_table(console, demo_table(report))
         if keep_dir:
             console.print(f"outputs kept in {workdir}")
     finally:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import gc
 import importlib.util
 import os
+import re
+import shutil
 import subprocess
 import sys
 from collections.abc import Callable, Generator
@@ -231,18 +233,87 @@ def pytest_sessionstart(session: pytest.Session) -> None:
         _share_cold_bytecode(session.config)
 
 
-@pytest.fixture(autouse=True)
-def _campaign_figure(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+#: whether the running test may draw the campaign figure (it is marked ``campaign_figure``)
+_CAMPAIGN_FIGURE = {"draw": False}
+
+
+def _campaign_plot_curves(summary: object, out: object) -> None:
+    """The campaign driver's ``plot_curves`` in a test process: the real figure in tests
+    marked ``campaign_figure``, nothing in the others (:func:`pytest_runtest_setup`)."""
+    if _CAMPAIGN_FIGURE["draw"]:
+        from imufdi_cli.campaign import plots
+
+        plots.plot_curves(summary, out)  # type: ignore[arg-type]
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> None:
     """A campaign draws ``detection_probability.png`` at its end (matplotlib, 0.3-0.9 s of
     CPU per campaign), which only the tests marked ``campaign_figure`` look at; the others
-    (resume, locks, gates, failures, summaries) get a driver that skips the figure. The
+    (resume, locks, gates, failures, summaries) run a driver that skips the figure. The
     figure itself is tested in ``campaign/test_plots.py`` and, drawn by the driver, in the
-    marked test(s). Campaigns run in a subprocess draw it as usual."""
-    if request.node.get_closest_marker("campaign_figure") is not None:
-        return
+    marked test(s). Campaigns run in a subprocess draw it as usual.
+
+    The driver's ``plot_curves`` is replaced once per test process by
+    :func:`_campaign_plot_curves`, and the marker is read here before each test's
+    fixtures (an autouse ``monkeypatch`` fixture did the same per test until session 24:
+    about 0.2 ms of CPU in each of the ~1 250 default tests)."""
+    _CAMPAIGN_FIGURE["draw"] = item.get_closest_marker("campaign_figure") is not None
     from imufdi_cli.campaign import driver
 
-    monkeypatch.setattr(driver, "plot_curves", lambda summary, out: None)
+    if driver.plot_curves is not _campaign_plot_curves:
+        driver.plot_curves = _campaign_plot_curves  # type: ignore[assignment]
+
+
+try:
+    from _pytest.tmpdir import tmppath_result_key
+except ImportError:  # another pytest: its own tmp_path, as it comes
+    tmppath_result_key = None
+
+#: the next number of each ``tmp_path`` directory name in this test process
+_TMP_NUMBERS: dict[str, int] = {}
+
+
+def _numbered_dir(root: Path, prefix: str) -> Path:
+    """``root / f"{prefix}{n}"`` created (mode 0o700) with the lowest ``n`` not yet used
+    by this process for ``prefix`` and not taken on disk: the names pytest's ``tmp_path``
+    gives in a fresh base directory, without its scan of every entry of the base directory
+    for each test (quadratic in the number of tests) and its ``<prefix>current`` symlink."""
+    number = _TMP_NUMBERS.get(prefix, 0)
+    while True:
+        path = root / f"{prefix}{number}"
+        try:
+            path.mkdir(mode=0o700)
+        except FileExistsError:
+            number += 1
+            continue
+        _TMP_NUMBERS[prefix] = number + 1
+        return path
+
+
+if tmppath_result_key is not None:
+
+    @pytest.fixture
+    def tmp_path(
+        request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+    ) -> Generator[Path, None, None]:
+        """pytest's ``tmp_path`` (pytest 9: ``_pytest/tmpdir.py``), a new empty directory
+        per test under the session's base temporary directory, named as pytest names it
+        (the test's name, non-word characters as ``_``, cut at 30 characters, then a
+        number) and kept or removed by the same retention policy, made without pytest's
+        ``make_numbered_dir``: that lists the whole base directory to find the next number
+        and replaces a ``current`` symlink for every test, about 1.2 ms of CPU per test in
+        a worker's run (the suite's 315 default tests that take ``tmp_path``: about 0.4 s).
+        """
+        name = re.sub(r"[\W]", "_", request.node.name)[:30]
+        path = _numbered_dir(tmp_path_factory.getbasetemp(), name)
+        yield path
+        # as pytest: remove the directory if the policy is "failed" and the test passed
+        policy = tmp_path_factory._retention_policy
+        result = request.node.stash[tmppath_result_key]
+        if policy == "failed" and result.get("call", True):
+            shutil.rmtree(path, ignore_errors=True)
+        del request.node.stash[tmppath_result_key]
 
 
 @pytest.fixture(scope="session")
@@ -261,6 +332,26 @@ def fresh_python() -> Callable[[str], subprocess.CompletedProcess[str]]:
         return done[code]
 
     return run
+
+
+@pytest.fixture(scope="session")
+def mimu4444_cut_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The real sample ``sample_logs/mimu4444-exp1-cut.bin`` (300 s of MIMU4444 exp_1: ten
+    static orientations, then hand motion) ingested by ``imufdi ingest`` with its layout and
+    the uncalibrated array, once per test process and read-only: the CLI's calibrate and
+    detect tests and cnn-map's motion check read the same log (0.2-0.45 s of CPU to ingest)."""
+    from tests.cli.conftest import invoke
+
+    root = Path(__file__).resolve().parents[1]
+    samples = root / "sample_logs"
+    out = tmp_path_factory.mktemp("mimu4444") / "cut.mcap"
+    result = invoke(
+        ["ingest", samples / "mimu4444-exp1-cut.bin",
+         "--layout", root / "docs" / "layouts" / "mimu4444.toml",
+         "--array", samples / "mimu4444-array.toml", "-o", out]
+    )  # fmt: skip
+    assert result.code == 0, result.stderr
+    return out
 
 
 @pytest.fixture(scope="session")

@@ -9,6 +9,7 @@ import click
 
 from imufdi_cli.cli.app import cli, stamps_option, time_source, topic_option
 from imufdi_cli.cli.choices import LazyChoice, motions, presets
+from imufdi_cli.cli.plain import PlainTable
 from imufdi_cli.cli.ui import UI, common_options
 
 # --- simulate --------------------------------------------------------------------------
@@ -179,16 +180,18 @@ def ingest(
             start_time=start_time,
             progress=progress,
         )
-    from rich.table import Table
+    ui.print_table(ingest_table(capture, output, stats.as_rows()), summary=True)
+    ui.json({"command": "ingest", "capture": capture, "output": output, **stats.to_dict()})
 
-    table = Table(title=f"ingest: {capture} -> {output}", show_header=True)
-    table.add_column("count")
-    table.add_column("value", justify="right")
-    rows = stats.as_rows()
+
+def ingest_table(capture: str, output: str, rows: Any) -> PlainTable:
+    """``imufdi ingest``'s summary table of ``(count, value)`` rows (frames, losses...)."""
+    table = PlainTable(
+        ("count", "value"), title=f"ingest: {capture} -> {output}", justify=("left", "right")
+    )
     for key, value in rows:
         table.add_row(key, str(value))
-    ui.summary.print(table)
-    ui.json({"command": "ingest", "capture": capture, "output": output, **stats.to_dict()})
+    return table
 
 
 # --- inject ----------------------------------------------------------------------------

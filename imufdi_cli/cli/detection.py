@@ -9,6 +9,7 @@ import click
 
 from imufdi_cli.cli.app import cli, stamps_option, start_end, time_range, time_source, topic_option
 from imufdi_cli.cli.choices import LazyChoice, detectors
+from imufdi_cli.cli.plain import PlainTable
 from imufdi_cli.cli.ui import UI, common_options
 
 # --- detect ----------------------------------------------------------------------------
@@ -111,35 +112,18 @@ def detect(
             explain=explain,
             progress=progress,
         )
-    from rich.table import Table
-
-    shown = None if ui.verbose else 3
-    table = Table(title=f"detect: {result.samples} samples, {result.duration_s:.3g} s -> {output}")
-    columns = ("detector", "sensor", "alarm %", "events", "isolated (alarm samples)", "episodes")
-    for col in columns:
-        table.add_column(col)
+    ui.print_table(detect_table(result, output, shown=None if ui.verbose else 3), summary=True)
     per_detector: dict[str, Any] = {}
     for name, per_type in result.summaries.items():
         for sensor_type, s in per_type.items():
-            ranked = sorted(s.isolated.items(), key=lambda kv: -kv[1])
-            table.add_row(
-                name,
-                sensor_type,
-                f"{100.0 * s.alarms / max(s.samples, 1):.2f}",
-                str(s.events),
-                ", ".join(f"{k} ({v})" for k, v in ranked[:shown]) or "-",
-                ", ".join(f"{k} {v}" for k, v in sorted(s.episodes.items(), key=lambda kv: -kv[1]))
-                or "-",
-            )
             per_detector.setdefault(name, {})[sensor_type] = {
                 "samples": s.samples,
                 "alarms": s.alarms,
                 "alarm_rate": s.alarms / s.samples if s.samples else None,
                 "events": s.events,
-                "isolated": dict(ranked),
+                "isolated": dict(_ranked(s.isolated)),
                 "episodes": dict(s.episodes),
             }
-    ui.summary.print(table)
     for sensor_type, counts in result.validity.items():
         if counts["clipped"] or counts["invalid"]:
             ui.summary.print(
@@ -159,6 +143,31 @@ def detect(
             "warnings": list(result.warnings),
         }
     )
+
+
+def _ranked(counts: dict[str, int]) -> list[tuple[str, int]]:
+    """``counts`` items, largest first (ties in their order)."""
+    return sorted(counts.items(), key=lambda kv: -kv[1])
+
+
+def detect_table(result: Any, output: str, shown: int | None = 3) -> PlainTable:
+    """``imufdi detect``'s summary table: per detector and sensor type, the alarm rate,
+    events, the ``shown`` sensors isolated most often (all with None) and the episodes."""
+    table = PlainTable(
+        ("detector", "sensor", "alarm %", "events", "isolated (alarm samples)", "episodes"),
+        title=f"detect: {result.samples} samples, {result.duration_s:.3g} s -> {output}",
+    )
+    for name, per_type in result.summaries.items():
+        for sensor_type, s in per_type.items():
+            table.add_row(
+                name,
+                sensor_type,
+                f"{100.0 * s.alarms / max(s.samples, 1):.2f}",
+                str(s.events),
+                ", ".join(f"{k} ({v})" for k, v in _ranked(s.isolated)[:shown]) or "-",
+                ", ".join(f"{k} {v}" for k, v in _ranked(s.episodes)) or "-",
+            )
+    return table
 
 
 # --- tune ------------------------------------------------------------------------------
@@ -223,14 +232,7 @@ def tune(
         settings[key.strip()] = value.strip()
     result = tune_file(log, window, sensor_type=sensor_type, seed=seed, settings=settings)
     if ui.verbose:
-        from rich.table import Table
-
-        table = Table(title="WOA convergence (best CFV per iteration)")
-        table.add_column("iteration", justify="right")
-        table.add_column("best fitness", justify="right")
-        for i, value in enumerate(result.curve):
-            table.add_row(str(i + 1), f"{value:.6g}")
-        ui.summary.print(table)
+        ui.print_table(convergence_table(result.curve), summary=True)
     ui.summary.print(
         f"tune: K = {result.K}, alpha = {result.alpha:.6g}, fitness = {result.fitness:.6g}"
         f" after {len(result.curve)} iterations -> {output}"
@@ -249,6 +251,18 @@ def tune(
             "curve": list(result.curve),
         }
     )
+
+
+def convergence_table(curve: Any) -> PlainTable:
+    """``imufdi tune -v``'s table: the best fitness (CFV) after each WOA iteration."""
+    table = PlainTable(
+        ("iteration", "best fitness"),
+        title="WOA convergence (best CFV per iteration)",
+        justify=("right", "right"),
+    )
+    for i, value in enumerate(curve):
+        table.add_row(str(i + 1), f"{value:.6g}")
+    return table
 
 
 # --- calibrate -------------------------------------------------------------------------
@@ -331,22 +345,7 @@ def calibrate(
         f" {result.coverage:.2f}; motion {result.motion_s:.0f} s; {result.clipped_rows}"
         " clipped/invalid rows unused"
     )
-    from rich.markup import escape
-    from rich.table import Table
-
-    table = Table(title=f"calibrate: {escape(source)} -> {escape(output)}")
-    for col in ("imu", "sensor", "scale ppm (x y z)", "misalign. mrad", "bias (x y z)"):
-        table.add_column(col)
-    for f in result.figures:
-        unit, factor = ("deg/s", 57.29577951308232) if f.sensor_type == "gyro" else ("m/s^2", 1.0)
-        table.add_row(
-            f"imu{f.imu}",
-            f.sensor_type,
-            " ".join(f"{v:+.0f}" for v in f.scale_ppm),
-            f"{f.misalignment_mrad:.2f}",
-            " ".join(f"{v * factor:+.4f}" for v in f.bias) + f" {unit}",
-        )
-    console.print(table)
+    ui.print_table(calibrate_table(result, source, output), summary=True)
     for sensor_type, (before, after) in result.residual_rms.items():
         where = "at rest (interval means)" if sensor_type == "accel" else "in motion"
         unit, factor = ("deg/s", 57.29577951308232) if sensor_type == "gyro" else ("m/s^2", 1.0)
@@ -361,3 +360,22 @@ def calibrate(
         )
     console.print(f"runtime {result.runtime_s:.2f} s")
     ui.warn(result.warnings)
+
+
+def calibrate_table(result: Any, source: str, output: str) -> PlainTable:
+    """``imufdi calibrate``'s table: per IMU and sensor type, the scale factors (ppm),
+    misalignment (mrad) and biases (deg/s or m/s^2) of the fitted calibration."""
+    table = PlainTable(
+        ("imu", "sensor", "scale ppm (x y z)", "misalign. mrad", "bias (x y z)"),
+        title=f"calibrate: {source} -> {output}",
+    )
+    for f in result.figures:
+        unit, factor = ("deg/s", 57.29577951308232) if f.sensor_type == "gyro" else ("m/s^2", 1.0)
+        table.add_row(
+            f"imu{f.imu}",
+            f.sensor_type,
+            " ".join(f"{v:+.0f}" for v in f.scale_ppm),
+            f"{f.misalignment_mrad:.2f}",
+            " ".join(f"{v * factor:+.4f}" for v in f.bias) + f" {unit}",
+        )
+    return table

@@ -4,16 +4,14 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import click
 
 from imufdi_cli.cli.app import cli, start_end
+from imufdi_cli.cli.plain import PlainTable
 from imufdi_cli.cli.ui import UI, common_options, error_line
 from imufdi_cli.errors import EXIT_GATE_FAILED
-
-if TYPE_CHECKING:
-    from rich.console import Console
 
 
 @cli.command()
@@ -124,21 +122,12 @@ def report(
             window=start_end(start, end),
             progress=progress,
         )
-    from rich.markup import escape
-    from rich.table import Table
-
     gate_results = rep.evaluate_gates(result, parsed)
-    console = ui.product
-    table = Table(title=f"imufdi report: {escape(result.source)}")
-    table.add_column("detector")
-    table.add_column("sensor")
-    for _, header, _, _ in rep.table_columns(result, console=True):
-        table.add_column(header, justify="right")
-    for row in rep.table_rows(result, console=True):
-        table.add_row(*row)
-    console.print(table)
-    print_episodes(console, result, limit=None if ui.verbose else 12)
-    ui.note(result.notes, console)
+    ui.print_table(report_table(result))
+    for table in episode_tables(result, limit=None if ui.verbose else 12):
+        ui.print_table(table)
+    if result.notes:  # the product console (rich) only when there is something to print
+        ui.note(result.notes, ui.product)
     if episodes_out:
         write_text(episodes_out, rep.to_episodes_csv(result))
     if ui.json_target:
@@ -162,8 +151,10 @@ def report(
                 plots.plot_roc(result, tmp)
     failed = [r for r in gate_results if r.failed]
     for r in gate_results:
+        from rich.markup import escape
+
         style = "red" if r.failed else "green"
-        console.print(f"[{style}]gate {escape(r.message)}[/]")
+        ui.product.print(f"[{style}]gate {escape(r.message)}[/]")
     if failed:
         ui.flush()  # the table before the error line
         error_line(
@@ -174,18 +165,33 @@ def report(
         sys.exit(EXIT_GATE_FAILED)
 
 
-def print_episodes(console: Console, result: Any, limit: int | None = 12) -> None:
-    """The episode figures per detector and type, and the strongest episodes."""
-    from rich.markup import escape
-    from rich.table import Table
+def report_table(result: Any) -> PlainTable:
+    """``imufdi report``'s figure table: detector, sensor and the console's columns
+    (right-justified)."""
+    from imufdi_cli import report as rep
 
+    columns = rep.table_columns(result, console=True)
+    table = PlainTable(
+        ("detector", "sensor", *(header for _, header, _, _ in columns)),
+        title=f"imufdi report: {result.source}",
+        justify=("left", "left", *("right" for _ in columns)),
+    )
+    for row in rep.table_rows(result, console=True):
+        table.add_row(*row)
+    return table
+
+
+def episode_tables(result: Any, limit: int | None = 12) -> list[PlainTable]:
+    """The episode figures per detector and type, and the ``limit`` strongest episodes
+    (none without episode scores)."""
     from imufdi_cli import report as rep
 
     if not result.episode_scores:
-        return
-    table = Table(title="alarm episodes (docs/episodes.md)")
-    for col in ("detector.type", "episodes", "false / h", "class right %", "covered %"):
-        table.add_column(col, justify="right")
+        return []
+    columns = ("detector.type", "episodes", "false / h", "class right %", "covered %")
+    table = PlainTable(
+        columns, title="alarm episodes (docs/episodes.md)", justify=("right",) * len(columns)
+    )
     for key, score in result.episode_scores.items():
         table.add_row(
             key,
@@ -194,21 +200,21 @@ def print_episodes(console: Console, result: Any, limit: int | None = 12) -> Non
             rep.format_value(score.get("class_accuracy"), 100.0, "{:.1f}"),
             rep.format_value(score.get("coverage"), 100.0, "{:.1f}"),
         )
-    console.print(table)
     rows = sorted(rep.episode_rows(result), key=lambda r: -(r["peak_ratio"] or 0.0))[:limit]
-    detail = Table(title=f"strongest {len(rows)} episodes")
-    for col in (
-        "detector",
-        "start s",
-        "dur s",
-        "sensor",
-        "class",
-        "size [90 %]",
-        "runner-up",
-        "peak",
-        "match",
-    ):
-        detail.add_column(col)
+    detail = PlainTable(
+        (
+            "detector",
+            "start s",
+            "dur s",
+            "sensor",
+            "class",
+            "size [90 %]",
+            "runner-up",
+            "peak",
+            "match",
+        ),
+        title=f"strongest {len(rows)} episodes",
+    )
     for r in rows:
         detail.add_row(
             f"{r['detector']}.{r['sensor_type']}",
@@ -216,9 +222,9 @@ def print_episodes(console: Console, result: Any, limit: int | None = 12) -> Non
             rep.format_value(r["duration_s"], 1.0, "{:.2f}"),
             r["sensor"] or "-",
             r["fault_class"] or "-",
-            escape(r["size"]),
+            r["size"],
             r["runner_up_class"] or "-",
             rep.format_value(r["peak_ratio"], 1.0, "{:.3g}"),
             r["match"] or "-",
         )
-    console.print(detail)
+    return [table, detail]

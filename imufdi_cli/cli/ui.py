@@ -29,7 +29,7 @@ from typing import IO, TYPE_CHECKING, Any
 
 import click
 
-from imufdi_cli.cli.plain import PLAIN_WIDTH
+from imufdi_cli.cli.plain import PLAIN_WIDTH, PlainTable
 
 if TYPE_CHECKING:  # rich is imported when a console is made (start-up time)
     from rich.console import Console
@@ -76,6 +76,19 @@ def make_console(stream: IO[Any], file: IO[str] | None = None, *, quiet: bool = 
         emoji=False,
         quiet=quiet,
     )
+
+
+def print_table(console: Console, table: PlainTable) -> None:
+    """Print ``table`` on a console made by :func:`make_console`: when the console is not a
+    terminal and the table renders as plain text (:meth:`PlainTable.render`), that text,
+    which is what rich would print, is written without rich's layout; otherwise rich
+    prints :meth:`PlainTable.to_rich` (a terminal: styles, its width; or a deferral)."""
+    text = None if console.is_terminal else table.render(console.width)
+    if text is None:
+        console.print(table.to_rich())
+    elif not console.quiet:
+        console.file.write(text)
+        console.file.flush()
 
 
 def error_line(message: str) -> None:
@@ -167,6 +180,23 @@ class UI:
             self._summary_buffer.write(text)
         else:
             self._product_buffer.write(text)
+
+    def print_table(self, table: PlainTable, *, summary: bool = False) -> None:
+        """Print ``table`` in the product (or with ``summary``, in the summary), in order
+        with what that console prints: as plain text (:meth:`PlainTable.render`, what rich
+        would print) when the stream is not a terminal and the table renders, without
+        making the console (rich is not imported for it); else through rich, as
+        :func:`print_table`."""
+        if self.quiet:
+            return
+        plain = not is_terminal(sys.stderr) if summary else self.product_is_plain()
+        text = table.render() if plain else None
+        if text is None:
+            (self.summary if summary else self.product).print(table.to_rich())
+        elif summary:
+            self._summary_buffer.write(text)
+        else:
+            self.write_product(text)
 
     def live(self) -> Console:
         """Console writing straight to stderr (commands that show steps as they go)."""

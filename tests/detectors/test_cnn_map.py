@@ -480,22 +480,18 @@ def test_jerky_motion_at_a_low_rate_is_accepted_and_rest_still_refused():
 
 
 @pytest.fixture(scope="module")
-def mimu4444_cut(tmp_path_factory):
+def mimu4444_cut(mimu4444_cut_log):
     """The MIMU4444 sample (300 s of exp_1: static orientations, then hand motion from
-    257 s) ingested, with its chip calibration applied."""
+    257 s) ingested (tests/conftest.py, shared with the CLI's calibrate tests), with its
+    chip calibration applied."""
     from pathlib import Path
 
     from imufdi_cli.array import ArrayConfig
     from imufdi_cli.mcapio import read_array
-    from imufdi_cli.pipeline import ingest_file
     from imufdi_cli.validity import apply_calibration
 
     root = Path(__file__).resolve().parents[2]
-    path = tmp_path_factory.mktemp("mimu") / "cut.mcap"
-    ingest_file(str(root / "sample_logs" / "mimu4444-exp1-cut.bin"), str(path),
-                layout=str(root / "docs" / "layouts" / "mimu4444.toml"),
-                array_path=str(root / "sample_logs" / "mimu4444-array.toml"))  # fmt: skip
-    _, block = read_array(str(path))
+    _, block = read_array(str(mimu4444_cut_log))
     array = ArrayConfig.load(root / "sample_logs" / "mimu4444-calibrated.toml")
     return array, apply_calibration(block, array)
 
