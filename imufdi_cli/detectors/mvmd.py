@@ -189,7 +189,7 @@ def mvmd_gains(
     shape (F,)) or many signals of equal length, e.g. all the windows of a block (``power``
     of shape (B, F)). Rows are iterated together (arrays of shape (B, K_max, F); modes past
     a row's K are held at zero) and each stops at its own convergence, so a row's result
-    does not depend on the others in the batch (up to floating-point summation order).
+    does not depend on the others in the batch (the same floats: no operation mixes rows).
 
     Parameters
     ----------
@@ -212,9 +212,8 @@ def mvmd_gains(
     -----
     Cost: each iteration is a fixed number of numpy operations on (B, F) arrays, whatever
     B is, so batching many windows amortises the Python overhead that dominates one small
-    window (50 samples: F = 51). Rows that converge are saved at once and dropped from the
-    arrays when a quarter of the working rows have finished (they keep iterating until
-    then; their saved result is the state at their own convergence).
+    window (50 samples: F = 51). Rows that converge are saved and dropped from the arrays
+    at once (each row's floats do not depend on the other rows).
     """
     power, freqs = _gains_inputs(power, freqs, Ks, alphas, init, max_iter)
     omega, used = _initial_omegas(Ks, init, freqs.shape[0], dc, rng)
@@ -225,11 +224,10 @@ def mvmd_gains(
     for n_iter in range(1, max_iter + 1):
         criterion = rows.iterate()
         if history:
-            track[n_iter, rows.index] = rows.omega
+            track[n_iter, rows.index] = rows.omega.T
         done = criterion < tol
         if n_iter == max_iter:
             done[:] = True
-        done &= rows.active
         if not done.any():
             continue
         for row in (int(r) for r in np.flatnonzero(done)):
@@ -240,14 +238,11 @@ def mvmd_gains(
             else:
                 omega_history = np.empty((2, K))
                 omega_history[0] = track[0, b, :K]
-                omega_history[1] = rows.omega[row, :K]
-            out[b] = (rows.gains[row, :K].copy(), omega_history, n_iter, bool(criterion[row] < tol))
-        rows.active &= ~done
-        n_active = int(rows.active.sum())
-        if n_active == 0:
+                omega_history[1] = rows.omega[:K, row]
+            out[b] = (rows.gains[:K, row].copy(), omega_history, n_iter, bool(criterion[row] < tol))
+        if done.all():
             break
-        if n_active <= 0.75 * rows.active.size:
-            rows.keep(rows.active)
+        rows.keep(~done)
     return [o for o in out if o is not None]
 
 
@@ -305,8 +300,18 @@ def _initial_omegas(
 
 class _GainRows:
     """The working rows of :func:`mvmd_gains`: gains g_k(f), multipliers l(f) and centre
-    frequencies of the rows still iterating (arrays of B' <= B rows; ``index`` maps a
-    working row to its candidate, ``active`` marks the rows not yet converged)."""
+    frequencies of the rows still iterating (B' <= B rows; ``index`` maps a working row
+    to its candidate).
+
+    Arrays are mode-major, (K_max, B', F): mode k of every row is one contiguous block,
+    so each step of the Gauss-Seidel sweep is one pass over memory. Every array an
+    iteration writes is allocated once per set of rows (:meth:`_buffers`) and written with
+    ``out=``; the gains alternate between two buffers (the previous sweep's values stay in
+    the other one for the convergence test). Each float operation is the one of the plain
+    (B, K, F) formulation (same operands, same order; the sums over f are the same dot
+    products, the sum over modes runs on a (B', K_max) array as before), so the results
+    do not depend on this layout.
+    """
 
     def __init__(
         self,
@@ -321,79 +326,108 @@ class _GainRows:
     ) -> None:
         n_cand, k_max = omega.shape
         n_freqs = freqs.shape[0]
-        self.power = power  # (B, F)
         self.freqs = freqs  # (F,)
         self.tau = tau
-        self.omega = omega  # (B, K_max)
-        self.alpha_col = np.asarray(alphas, dtype=np.float64)[:, None]
-        self.unused_inf = np.where(used, 0.0, np.inf)[:, :, None]  # (B, K_max, 1)
+        self.dc = dc
+        self.omega = np.ascontiguousarray(omega.T)  # (K_max, B)
+        self.alpha = np.asarray(alphas, dtype=np.float64)[None, :, None]  # (1, B, 1)
+        self.unused_inf = np.where(used.T, 0.0, np.inf)[:, :, None]  # (K_max, B, 1)
         self.all_used = bool(used.all())
-        self.moving = np.ones(k_max, dtype=bool)  # centre frequencies updated by (B')
+        self.moving = np.ones((k_max, 1), dtype=bool)  # centre frequencies updated by (B')
         self.moving[0] = not dc
-        self.gains = np.zeros((n_cand, k_max, n_freqs))
+        self.gains = np.zeros((k_max, n_cand, n_freqs))
         self.total = np.zeros((n_cand, n_freqs))
         self.lam = np.zeros((n_cand, n_freqs))
-        self.weighted = freqs * power  # f P(f), (B, F)
-        self.energy_now = np.zeros((n_cand, k_max))  # sum_f g_k^2 P after the latest update
+        # P(f) and f P(f) of each row, (2, B, F)
+        self.spectra = np.stack(np.broadcast_arrays(power, freqs * power))
+        # [sum_f du_k^2 P, sum_f du_k^2 f P], [sum_f g_k^2 P, sum_f g_k^2 f P] of the latest
+        # sweep, (2, 2, K_max, B); sum_f g_k^2 P starts at 0 (zero gains)
+        self.sums = np.zeros((2, 2, k_max, n_cand))
         self.index = np.arange(n_cand)  # working row -> candidate
-        self.active = np.ones(n_cand, dtype=bool)  # working rows not yet converged
+        self._buffers()
+
+    def _buffers(self) -> None:
+        """Work arrays for the current rows."""
+        k_max, rows, n_freqs = self.gains.shape
+        self.spare = np.empty_like(self.gains)  # the next sweep's gains
+        self.den = np.empty_like(self.gains)
+        self.squares = np.empty((2, k_max, rows, n_freqs))  # du^2, g^2
+        self.next_sums = np.empty_like(self.sums)
+        self.others = np.empty((rows, n_freqs))
+        self.base = np.empty((rows, n_freqs) if self.tau else (0,))
+        self.positive = np.empty((k_max, rows), dtype=bool)
+        self.ratio = np.empty((rows, k_max))
+        self.ratio_modes = np.empty((k_max, rows))
+        self.criterion = np.empty(rows)
 
     def iterate(self) -> np.ndarray:
         """One sweep of (A') (Gauss-Seidel over k), (B') and (C') on every working row.
 
         Returns the relative change ``sum_k |du_k|^2 / |u_k|^2`` of each working row,
-        shape (B',) (inf when a mode that was zero moved).
+        shape (B',) (inf when a mode that was zero moved); valid until the next call.
         """
-        gains, omega, power = self.gains, self.omega, self.power
-        numerator_base = 1.0 - 0.5 * self.lam if self.tau else 1.0
-        norm = self.energy_now  # sum_f (g_k^n)^2 P: the energy of the previous update
-        previous = gains.copy()
+        previous, gains, den = self.gains, self.spare, self.den
+        numerator_base: np.ndarray | float = 1.0
+        if self.tau:
+            half = np.multiply(0.5, self.lam, out=self.base)
+            numerator_base = np.subtract(1.0, half, out=half)
         # omega_k changes only after mode k's own update, so every denominator of this
         # sweep is known now: 1 + alpha (f - omega_k)^2, inf for a row's unused modes
-        den = self.freqs[..., None, :] - omega[:, :, None]
-        den *= den
-        den *= self.alpha_col[:, :, None]
+        np.subtract(self.freqs, self.omega[:, :, None], out=den)
+        np.multiply(den, den, out=den)
+        np.multiply(den, self.alpha, out=den)
         if not self.all_used:
-            den += self.unused_inf
-        den += 1.0
-        total = self.total
-        for k in range(gains.shape[1]):  # Gauss-Seidel: mode k sees the new modes < k
-            gain = gains[:, k]
-            others = total - gain
+            np.add(den, self.unused_inf, out=den)
+        np.add(den, 1.0, out=den)
+        total, others = self.total, self.others
+        for k in range(gains.shape[0]):  # Gauss-Seidel: mode k sees the new modes < k
+            gain = gains[k]
+            np.subtract(total, previous[k], out=others)
             np.subtract(numerator_base, others, out=gain)
-            gain /= den[:, k]
-            total = others + gain
-        self.total = total
+            np.divide(gain, den[k], out=gain)
+            np.add(others, gain, out=total)
         # (B') for all modes at once: they do not depend on each other within a sweep
-        delta = gains - previous
-        delta *= delta
-        diff = np.vecdot(delta, power[:, None, :])
-        energy = gains * gains
-        self.energy_now = np.vecdot(energy, power[:, None, :])
-        np.divide(
-            np.vecdot(energy, self.weighted[:, None, :]),
-            self.energy_now,
-            out=omega,
-            where=(self.energy_now > 0) & self.moving,
-        )
+        squares = self.squares
+        delta = squares[0]
+        np.subtract(gains, previous, out=delta)
+        np.multiply(delta, delta, out=delta)
+        np.multiply(gains, gains, out=squares[1])
+        sums = np.vecdot(squares[:, None], self.spectra[None, :, None], out=self.next_sums)
+        diff, energy, weighted = sums[0, 0], sums[1, 0], sums[1, 1]  # (K_max, B')
+        norm = self.sums[1, 0]  # sum_f (g_k^n)^2 P: the energy of the previous sweep
+        positive = np.greater(energy, 0.0, out=self.positive)
+        if self.dc:
+            positive &= self.moving
+        np.divide(weighted, energy, out=self.omega, where=positive)
         if self.tau:
             self.lam += self.tau * (total - 1.0)
-        ratio = np.divide(diff, norm, out=np.where(diff > 0, np.inf, 0.0), where=norm > 0)
-        return np.asarray(ratio.sum(axis=1))
+        ratio = self.ratio_modes  # (K_max, B')
+        known = np.greater(norm, 0.0, out=positive)
+        if known.all():  # every mode had energy: the plain ratio
+            np.divide(diff, norm, out=ratio)
+        else:  # a mode without energy: inf if it moved, else 0
+            np.copyto(ratio, np.where(diff > 0, np.inf, 0.0))
+            np.divide(diff, norm, out=ratio, where=known)
+        # summed over modes on a C-ordered (B', K_max) array, as the plain formulation
+        np.copyto(self.ratio, ratio.T)
+        ratio = self.ratio
+        # swap: the new gains and sums become the current ones
+        self.gains, self.spare = gains, previous
+        self.sums, self.next_sums = sums, self.sums
+        return np.add.reduce(ratio, axis=1, out=self.criterion)
 
     def keep(self, rows: np.ndarray) -> None:
         """Drop the working rows outside ``rows`` (bool, shape (B',))."""
         self.index = self.index[rows]
-        self.gains = self.gains[rows]
+        self.gains = self.gains[:, rows]
         self.total = self.total[rows]
         self.lam = self.lam[rows]
-        self.omega = self.omega[rows]
-        self.alpha_col = self.alpha_col[rows]
-        self.unused_inf = self.unused_inf[rows]
-        self.power = self.power[rows]
-        self.weighted = self.weighted[rows]
-        self.energy_now = self.energy_now[rows]
-        self.active = self.active[rows]
+        self.omega = self.omega[:, rows]
+        self.alpha = self.alpha[:, rows]
+        self.unused_inf = self.unused_inf[:, rows]
+        self.spectra = self.spectra[:, rows]
+        self.sums = self.sums[..., rows]
+        self._buffers()
 
 
 def mvmd_batch(

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from numpy.testing import assert_allclose
+from numpy.testing import assert_allclose, assert_array_equal
 
-from imufdi_cli.detectors.woa import woa
+from imufdi_cli.detectors.woa import WoaSearch, woa
 from imufdi_cli.errors import DetectorConfigError
 
 
@@ -69,3 +69,37 @@ def test_bad_settings_raise(kwargs, match):
 def test_bad_bounds_raise():
     with pytest.raises(DetectorConfigError, match="lower <= upper"):
         woa(sphere, [1, 0], [0, 1], rng=np.random.default_rng(0))
+
+
+def test_ask_tell_gives_the_same_search_as_woa():
+    # WoaSearch driven by hand (as tune_signals drives several at once) draws and caches
+    # exactly as woa(): same history, curve, best and counts
+    def fitness(points: np.ndarray) -> np.ndarray:
+        return (points[:, 0] - 3) ** 2 + (points[:, 1] - 0.4) ** 2
+
+    bounds = ([1, 0.0], [6, 1.0])
+    kwargs = {"integer": [True, False], "population": 6, "iterations": 7}
+    plain = woa(fitness, *bounds, rng=np.random.default_rng(3), **kwargs)
+    search = WoaSearch(*bounds, rng=np.random.default_rng(3), **kwargs)
+    asked = 0
+    while not search.done:
+        candidates = search.ask()
+        asked += candidates.shape[0]
+        search.tell(fitness(candidates))
+    result = search.result()
+    assert_array_equal(result.curve, plain.curve)
+    assert_array_equal(result.best, plain.best)
+    assert (result.n_evaluations, result.n_cache_hits) == (plain.n_evaluations, plain.n_cache_hits)
+    assert asked == plain.n_evaluations
+    for a, b in zip(result.history, plain.history, strict=True):
+        assert_array_equal(a, b)
+    with pytest.raises(DetectorConfigError, match="over"):
+        search.ask()
+
+
+def test_tell_needs_one_value_per_candidate_and_result_waits_for_the_end():
+    search = WoaSearch([0.0], [1.0], population=3, iterations=2, rng=np.random.default_rng(0))
+    with pytest.raises(DetectorConfigError, match="not over"):
+        search.result()
+    with pytest.raises(DetectorConfigError, match="one value per candidate"):
+        search.tell(np.zeros(search.ask().shape[0] + 1))

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from numpy.testing import assert_allclose
+from numpy.testing import assert_allclose, assert_array_equal
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
-from imufdi_cli.detectors.mvmd import mvmd
+from imufdi_cli.detectors.mvmd import mvmd, mvmd_gains
 from imufdi_cli.detectors.parity import parity_matrix, whiten
 from imufdi_cli.detectors.woa_mvmd_glt import (
     TuneResult,
@@ -23,9 +23,12 @@ from imufdi_cli.detectors.woa_mvmd_glt import (
     make_validation,
     tune,
     tune_signal,
+    tune_signals,
 )
+from imufdi_cli.detectors.woa_mvmd_glt.windows import WindowSpectra
 from imufdi_cli.errors import DetectorConfigError
 from imufdi_cli.log import ImuBlock, iter_blocks
+from imufdi_cli.special import ufunc
 
 RATE = 1000.0
 T = np.arange(1000) / RATE
@@ -325,6 +328,91 @@ def test_tuning_is_reused_for_the_same_calibration_segment():
     first.fit(changed, array)
     assert first.metadata()["types"]["gyro"]["tuning"]["reused"] is False
     clear_tuning_cache()
+
+
+def test_sensor_types_tuned_together_get_the_results_of_one_at_a_time():
+    # fit() runs the WOA searches of gyro and accel together (tune_signals, one batched
+    # MVMD per iteration); every search keeps its own draws and cache and a decomposition's
+    # floats do not depend on the rows batched with it, so the choices are those of each
+    # type tuned alone, to the bit
+    array = coaligned(6)
+    block = synthetic_block(6, 200)
+    accel = ImuBlock(t_ns=block.t_ns, accel=9.81 + 0.02 * np.cos(block.gyro * 50.0))
+    both = ImuBlock(t_ns=block.t_ns, gyro=block.gyro, accel=accel.accel)
+    raw = {"population": 3, "iterations": 2, "window": 20, "overlap": 15, "tol": 1e-4}
+    clear_tuning_cache()
+    together = make({**raw, "types": "gyro,accel"})
+    together.fit(both, array)
+    joint = together.metadata()["types"]
+    clear_tuning_cache()
+    for sensor_type, alone_block in (("gyro", block), ("accel", accel)):
+        alone = make({**raw, "types": sensor_type})
+        alone.fit(alone_block, array)
+        single = alone.metadata()["types"][sensor_type]["tuning"]
+        assert joint[sensor_type]["tuning"]["reused"] is False
+        for key in ("K", "alpha", "fitness", "curve", "evaluations", "settings"):
+            assert joint[sensor_type]["tuning"][key] == single[key], (sensor_type, key)
+    clear_tuning_cache()
+
+
+def test_tune_signals_equal_tune_signal_one_at_a_time():
+    rng = np.random.default_rng(11)
+    signals = [rng.standard_normal((5, 60)).cumsum(axis=1) * 0.01 for _ in range(2)]
+    signals.append(rng.standard_normal((5, 40)))  # another length: its own MVMD batch
+    validations = [make_validation(5, 20, 5, 4.0, 100.0, 0.01), None]
+    validations.append(make_validation(5, 12, 4, 4.0, 50.0, 0.01))
+    # a loose MVMD tolerance: the equality holds at any setting (fewer iterations to run)
+    settings = {"population": 3, "iterations": 2, "k_bounds": (2, 3), "seed": 3, "tol": 1e-4}
+    joint = tune_signals(signals, validations=validations, **settings)
+    for signal, validation, result in zip(signals, validations, joint, strict=True):
+        alone = tune_signal(signal, validation=validation, **settings)
+        assert (result.K, result.alpha, result.fitness) == (alone.K, alone.alpha, alone.fitness)
+        assert (result.curve, result.evaluations) == (alone.curve, alone.evaluations)
+        assert result.settings == alone.settings
+    with pytest.raises(DetectorConfigError, match="one validation fault"):
+        tune_signals(signals, validations=validations[:2])
+
+
+def test_miss_fractions_equal_the_plain_evaluation_to_the_bit():
+    # miss_fractions evaluates chndtr once per distinct (row, column) pair; the plain
+    # evaluation below (every (row, offset) pair, the code before that change) must give
+    # the same floats, windows shorter and longer than the horizon included
+    chndtr = ufunc("chndtr")
+    rng = np.random.default_rng(4)
+    for L, hop, horizon in ((50, 10, 0), (50, 10, 20), (20, 1, 7), (30, 5, 100), (8, 3, 8)):
+        val = ValidationFault(
+            window=L, hop=hop, step=4.0, dof=13, threshold=22.4, projection=0.8, horizon=horizon
+        )
+        F = 0.3 * rng.standard_normal((5, L, L)) + np.eye(L)
+        span = horizon or 4 * L
+        rows = np.arange(L - hop, L)
+        kept = F[:, -hop:]
+        tails = np.cumsum(kept[..., ::-1], axis=-1)[..., ::-1]
+        norms = np.sqrt(np.einsum("rij,rij->ri", kept, kept))
+        distinct = min(span, L)
+        weights = np.ones(distinct)
+        weights[-1] += span - distinct
+        columns = np.maximum(rows[:, None] - np.arange(distinct)[None, :], 0)
+        signal = tails[:, np.arange(rows.size)[:, None], columns] / norms[:, :, None]
+        missed = chndtr(val.threshold, val.dof, val.step**2 * val.projection * signal**2)
+        plain = (missed @ weights).sum(axis=1) / (rows.size * span)
+        assert_array_equal(val.miss_fractions(F), plain)
+
+
+def test_u_best_transforms_back_only_the_modes_it_reads():
+    # rule "lowest" inverse-transforms u_best alone; "inner" all the modes (its scores):
+    # u_best and its filter are the same floats either way, and best_filters gives the
+    # filter without any mode
+    rng = np.random.default_rng(8)
+    windows = 0.1 * rng.standard_normal((6, 30, 5)) + np.sin(np.arange(30) / 4.0)[None, :, None]
+    spectra = WindowSpectra.of(windows)
+    raw = mvmd_gains(spectra.power, spectra.freqs, [2, 3] * 3, [300.0, 2000.0] * 3, history=False)
+    for rule in ("inner", "lowest"):
+        u, F = spectra.u_best(raw, 20, rule)
+        assert_array_equal(spectra.best_filters(raw, 20, rule), F)
+        gains, best, _ = spectra._best(raw, rule)
+        every = spectra._modes(gains)[np.arange(6), best]  # all modes, then u_best picked
+        assert_array_equal(u, np.swapaxes(every, 1, 2))
 
 
 def test_clip_moves_only_the_largest_residual_and_keeps_a_large_drift_detected():

@@ -55,7 +55,13 @@ from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
     cfv_components,
     validation_windows,
 )
-from imufdi_cli.detectors.woa_mvmd_glt.tuning import TuneResult, make_validation, tune, tune_signal
+from imufdi_cli.detectors.woa_mvmd_glt.tuning import (
+    TuneResult,
+    make_validation,
+    tune,
+    tune_signal,
+    tune_signals,
+)
 from imufdi_cli.detectors.woa_mvmd_glt.windows import (
     COMBINE_CHOICES,
     MODE_RULES,
@@ -86,5 +92,6 @@ __all__ = [
     "make_validation",
     "tune",
     "tune_signal",
+    "tune_signals",
     "validation_windows",
 ]

@@ -42,7 +42,13 @@ from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
     cfv,
     cfv_components,
 )
-from imufdi_cli.detectors.woa_mvmd_glt.tuning import TuneResult, make_validation, tune, tune_signal
+from imufdi_cli.detectors.woa_mvmd_glt.tuning import (
+    TuneResult,
+    make_validation,
+    tune,
+    tune_signal,
+    tune_signals,
+)
 from imufdi_cli.detectors.woa_mvmd_glt.windows import (
     COMBINE_CHOICES,
     DEFAULT_MODE_RULE,
@@ -56,6 +62,7 @@ from imufdi_cli.errors import (
     ArrayTooSmallError,
     CalibrationError,
     DetectorConfigError,
+    ImufdiError,
     InputDataError,
 )
 from imufdi_cli.log import ImuBlock
@@ -344,12 +351,15 @@ class WoaMvmdGltDetector(DetectorBase):
 
     # -- calibration ----------------------------------------------------------------
 
-    def _choose(self, sensor_type: str, values: np.ndarray) -> tuple[int, float, dict | None]:
+    def _tuning_job(
+        self, values: np.ndarray
+    ) -> tuple[tuple[Any, ...], np.ndarray, ValidationFault | None, dict[str, Any]] | None:
+        """What the WOA search of one sensor type needs: its cache key, the tuning segment
+        (N, n), the validation fault and the search settings (None when (K, alpha) are
+        given or read from a params file)."""
         p = self.params
-        if p["K"] is not None:
-            return int(p["K"]), float(p["mvmd_alpha"]), None
-        if self.tuned_file is not None:
-            return self.tuned_file.K, self.tuned_file.alpha, {"source": "params file"}
+        if p["K"] is not None or self.tuned_file is not None:
+            return None
         segment = values[: int(p["tune_samples"])]
         validation = None
         if p["fitness"] == "cfv+delay":
@@ -379,9 +389,67 @@ class WoaMvmdGltDetector(DetectorBase):
             repr(sorted(settings.items())),
             repr(validation),
         )
+        return key, segment, validation, settings
+
+    def _tune_together(
+        self, calibration: ImuBlock, array: ArrayConfig
+    ) -> dict[tuple[Any, ...], TuneResult]:
+        """The WOA searches of every sensor type :meth:`fit` will tune, run together
+        (:func:`tune_signals`: the same results as one type at a time, in less time).
+
+        Only when at least two types need a search not in the cache and every type passes
+        the checks :meth:`fit` makes before its search; otherwise (or if the joint search
+        raises) nothing is done here and :meth:`fit` tunes one type at a time, raising
+        what it raises in its order."""
+        jobs = {}
+        for sensor_type in self.types:
+            triads = calibration.get(sensor_type)
+            n = array.n_sensors(sensor_type)
+            if triads is None or n == 0:
+                continue
+            if n < 4:
+                return {}
+            values = array.select(triads, sensor_type)
+            if values.shape[0] < max(self.window, 10):
+                return {}
+            try:
+                job = self._tuning_job(values)
+            except ImufdiError:
+                return {}
+            if job is not None and job[0] not in _TUNING_CACHE:
+                jobs[job[0]] = job
+        if len(jobs) < 2 or len({repr(job[3]) for job in jobs.values()}) != 1:
+            return {}
+        settings = next(iter(jobs.values()))[3]
+        try:
+            results = tune_signals(
+                [job[1].T for job in jobs.values()],
+                validations=[job[2] for job in jobs.values()],
+                **settings,
+            )
+        except ImufdiError:
+            return {}
+        return dict(zip(jobs, results))
+
+    def _choose(
+        self,
+        sensor_type: str,
+        values: np.ndarray,
+        fresh: dict[tuple[Any, ...], TuneResult] | None = None,
+    ) -> tuple[int, float, dict | None]:
+        p = self.params
+        if p["K"] is not None:
+            return int(p["K"]), float(p["mvmd_alpha"]), None
+        if self.tuned_file is not None:
+            return self.tuned_file.K, self.tuned_file.alpha, {"source": "params file"}
+        job = self._tuning_job(values)
+        assert job is not None
+        key, segment, validation, settings = job
         cached = _TUNING_CACHE.get(key)
         if cached is None:
-            cached = tune_signal(segment.T, validation=validation, **settings)
+            cached = (fresh or {}).get(key)
+            if cached is None:
+                cached = tune_signal(segment.T, validation=validation, **settings)
             if len(_TUNING_CACHE) >= _TUNING_CACHE_SIZE:
                 _TUNING_CACHE.pop(next(iter(_TUNING_CACHE)))
             _TUNING_CACHE[key] = cached
@@ -417,6 +485,7 @@ class WoaMvmdGltDetector(DetectorBase):
         self._array = array
         self._states = {}
         self._evaluators = {}
+        fresh = self._tune_together(calibration, array)
         for sensor_type in self.types:
             triads = calibration.get(sensor_type)
             n = array.n_sensors(sensor_type)
@@ -432,7 +501,7 @@ class WoaMvmdGltDetector(DetectorBase):
                     f"calibration window has {values.shape[0]} samples; {self.name} needs at"
                     f" least {max(self.window, 10)} (one MVMD window); use --calibrate"
                 )
-            K, alpha, tuned = self._choose(sensor_type, values)
+            K, alpha, tuned = self._choose(sensor_type, values, fresh)
             decompose = self._decompose(K, alpha)
             # sigma and biases of the raw sensors (many degrees of freedom), carried into the
             # u_best domain exactly through each window's filter matrix (filter_matrix)
@@ -623,4 +692,5 @@ __all__ = [
     "make_validation",
     "tune",
     "tune_signal",
+    "tune_signals",
 ]

@@ -164,7 +164,8 @@ class ValidationFault:
         Offsets ``k >= L - 1`` all see the step on every column (c = 0), so the
         probabilities are computed for ``k < L`` only and the last one weighted by the
         offsets it stands for; one vectorised call of the noncentral chi2 distribution
-        function ``1 - P = chndtr(threshold, n - 3, lambda)`` covers the whole stack.
+        function ``1 - P = chndtr(threshold, n - 3, lambda)`` covers the whole stack, once
+        per distinct (row, column) pair (row t reads column 0 for every k >= t).
         """
         chndtr = ufunc("chndtr")  # scipy.special's own ufunc, without the package's import
 
@@ -182,8 +183,16 @@ class ValidationFault:
             weights[-1] += horizon - distinct  # k >= L - 1: columns all 0, as k = L - 1
         columns = np.maximum(rows[:, None] - k[None, :], 0)  # (hop, distinct)
         signal = tails[:, np.arange(rows.size)[:, None], columns] / norms[:, :, None]
-        noncentrality = self.step**2 * self.projection * signal**2
-        missed = chndtr(self.threshold, self.dof, noncentrality)  # (R, hop, distinct)
+        # the offsets k >= t of row t all read column 0: chndtr once per distinct (row,
+        # column) pair, spread back into an array of signal's memory order (that of the
+        # plain elementwise evaluation, in which the product below sums)
+        _, first, inverse = np.unique(
+            np.arange(rows.size)[:, None] * L + columns, return_index=True, return_inverse=True
+        )
+        picked = signal.reshape(signal.shape[0], -1)[:, first]
+        noncentrality = self.step**2 * self.projection * picked**2
+        missed = np.empty_like(signal)  # (R, hop, distinct)
+        missed[...] = chndtr(self.threshold, self.dof, noncentrality)[:, inverse]
         return np.asarray((missed @ weights).sum(axis=1) / (rows.size * horizon))
 
 

@@ -22,7 +22,7 @@ from imufdi_cli.detectors.mvmd import (
     mvmd_results,
     spectrum,
 )
-from imufdi_cli.detectors.woa import woa
+from imufdi_cli.detectors.woa import WoaSearch
 from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
     DEFAULT_WEIGHTS,
     FITNESS_CHOICES,
@@ -58,7 +58,8 @@ class TuneResult:
     evaluations : int
         Distinct (K, alpha) candidates decomposed.
     seconds : float
-        Wall time of the search.
+        Wall time of the search (of the joint search when several ran together,
+        :func:`tune_signals`: a detector's sensor types).
     sensor_type : str
     settings : dict
         WOA and MVMD settings used (population, iterations, bounds, weights, samples).
@@ -119,32 +120,217 @@ def _check_search(
         raise DetectorConfigError("CFV needs three weights (entropy, correlation, compactness)")
 
 
-def _validation_misses(
-    validation: ValidationFault,
-    spectra: WindowSpectra,
-    n_windows: int,
-    Ks: list[int],
-    alphas: list[float],
+@dataclass
+class _Problem:
+    """One signal's WOA search and what its fitness reuses across candidates: the spectrum
+    of the whole signal and those of its validation windows."""
+
+    channels: np.ndarray  # (C, T)
+    spec: np.ndarray  # (C, T + 1) complex, the mirrored signal's rfft
+    freqs: np.ndarray  # (T + 1,)
+    offset: int
+    power: np.ndarray  # (T + 1,)
+    validation: ValidationFault | None
+    spectra: WindowSpectra | None  # the validation windows
+    n_windows: int
+    search: WoaSearch
+
+
+def _gains_together(
+    jobs: list[tuple[np.ndarray, np.ndarray, list[int], list[float]]], tol: float, max_iter: int
+) -> list[list[tuple[np.ndarray, np.ndarray, int, bool]]]:
+    """:func:`mvmd_gains` of several jobs ``(power (B, F), freqs (F,), Ks, alphas)``: the
+    jobs on one frequency grid in one batched call (a row's floats do not depend on the
+    other rows), the outputs split back per job."""
+    out: list[list[tuple[np.ndarray, np.ndarray, int, bool]]] = [[] for _ in jobs]
+    groups: dict[bytes, list[int]] = {}
+    for j, (_, freqs, _, _) in enumerate(jobs):
+        groups.setdefault(freqs.tobytes(), []).append(j)
+    for members in groups.values():
+        raw = mvmd_gains(
+            np.concatenate([jobs[j][0] for j in members]),
+            jobs[members[0]][1],
+            [K for j in members for K in jobs[j][2]],
+            [a for j in members for a in jobs[j][3]],
+            tol=tol,
+            max_iter=max_iter,
+            history=False,
+        )
+        start = 0
+        for j in members:
+            out[j] = raw[start : start + len(jobs[j][2])]
+            start += len(jobs[j][2])
+    return out
+
+
+def _fitness(
+    problems: list[_Problem],
+    requests: list[np.ndarray],
+    weights: Sequence[float],
     tol: float,
     max_iter: int,
+    rule: str,
+) -> list[np.ndarray]:
+    """Fitness (P_i,) of the candidates (P_i, 2) of each problem: CFV of the whole signal,
+    plus the weighted expected missed fraction of the validation fault averaged over its
+    windows (each decomposed with the candidate, its u_best filter taken, u_best chosen by
+    ``rule``). Every decomposition of all the problems on one frequency grid runs in one
+    batched MVMD call."""
+    params = [
+        ([int(k) for k in c[:, 0]], [float(a) for a in c[:, 1]]) if c.shape[0] else ([], [])
+        for c in requests
+    ]
+    jobs: list[tuple[np.ndarray, np.ndarray, list[int], list[float]]] = []
+    whole: list[int | None] = []
+    windows: list[int | None] = []
+    repeated: dict[int, WindowSpectra] = {}  # job -> its validation windows, repeated
+    for problem, (Ks, alphas) in zip(problems, params):
+        if not Ks:
+            whole.append(None)
+            windows.append(None)
+            continue
+        whole.append(len(jobs))
+        jobs.append(
+            (
+                np.broadcast_to(problem.power, (len(Ks), problem.power.shape[0])),
+                problem.freqs,
+                Ks,
+                alphas,
+            )
+        )
+        if problem.validation is None or problem.spectra is None:
+            windows.append(None)
+            continue
+        # every (validation window, candidate) pair, window-major: rows [w * P, (w + 1) * P)
+        # are the P candidates on window w
+        stacked = problem.spectra.repeat(len(Ks))
+        windows.append(len(jobs))
+        repeated[len(jobs)] = stacked
+        jobs.append(
+            (stacked.power, stacked.freqs, Ks * problem.n_windows, alphas * problem.n_windows)
+        )
+    raws = _gains_together(jobs, tol, max_iter)
+    values: list[np.ndarray] = []
+    for problem, (Ks, _), w, v in zip(problems, params, whole, windows):
+        if w is None:
+            values.append(np.empty(0))
+            continue
+        results = mvmd_results(raws[w], problem.spec, problem.offset, problem.channels.shape[1])
+        fitness = np.array([cfv(r, weights) for r in results])
+        if v is not None and problem.validation is not None:
+            validation = problem.validation
+            F = repeated[v].best_filters(
+                raws[v], validation.window - validation.hop, rule
+            )  # decided rows
+            misses = validation.miss_fractions(F).reshape(problem.n_windows, len(Ks)).mean(axis=0)
+            fitness = fitness + validation.weight * misses
+        values.append(fitness)
+    return values
+
+
+def tune_signals(
+    signals: Sequence[np.ndarray],
+    *,
+    population: int = 8,
+    iterations: int = 8,
+    k_bounds: tuple[int, int] = (2, 6),
+    alpha_bounds: tuple[float, float] = (50.0, 5000.0),
+    weights: Sequence[float] = DEFAULT_WEIGHTS,
+    seed: int = 0,
+    tol: float = 1e-6,
+    max_iter: int = 300,
+    validations: Sequence[ValidationFault | None] | None = None,
     rule: str = DEFAULT_MODE_RULE,
-) -> np.ndarray:
-    """(P,) expected missed fraction of the validation fault for each of P candidates,
-    averaged over the ``n_windows`` validation windows of ``spectra``."""
-    # every (validation window, candidate) pair in one batched decomposition,
-    # window-major: rows [w * P, (w + 1) * P) are the P candidates on window w
-    stacked = spectra.repeat(len(Ks))
-    raw = mvmd_gains(
-        stacked.power,
-        stacked.freqs,
-        Ks * n_windows,
-        alphas * n_windows,
-        tol=tol,
-        max_iter=max_iter,
-        history=False,
-    )
-    _, F = stacked.u_best(raw, validation.window - validation.hop, rule)  # decided rows
-    return validation.miss_fractions(F).reshape(n_windows, len(Ks)).mean(axis=0)
+) -> list[TuneResult]:
+    """:func:`tune_signal` of several signals at once (e.g. the sensor types of one
+    calibration window), each with its own validation fault (or None).
+
+    The searches advance together: each WOA iteration's candidates of all the signals are
+    decomposed in one batched MVMD call per frequency grid, which shares the per-iteration
+    cost of the MVMD loop. Each search keeps its own generator (``seed``) and cache, and a
+    decomposition's floats do not depend on the rows batched with it, so every result is
+    the one :func:`tune_signal` gives for that signal alone (``seconds`` is the wall time
+    of the joint search).
+    """
+    _check_search(population, k_bounds, alpha_bounds, weights)
+    checks = [None] * len(signals) if validations is None else list(validations)
+    if len(checks) != len(signals):
+        raise DetectorConfigError("give one validation fault (or None) per signal")
+    start = time.perf_counter()
+    problems = []
+    for signal, validation in zip(signals, checks):
+        signal = np.asarray(signal, dtype=np.float64)
+        starts = validation_windows(signal.shape[-1], validation.window) if validation else []
+        if validation is not None and not starts:
+            raise CalibrationError(
+                f"tuning segment has {signal.shape[-1]} samples; the validation fault needs one"
+                f" window of {validation.window}"
+            )
+        channels = signal if signal.ndim == 2 else signal[None]
+        spec, freqs, offset = spectrum(channels)
+        spectra = None
+        if validation is not None:
+            spectra = WindowSpectra.of(
+                np.stack([channels[:, s : s + validation.window].T for s in starts])
+            )
+        search = WoaSearch(
+            [k_bounds[0], alpha_bounds[0]],
+            [k_bounds[1], alpha_bounds[1]],
+            integer=[True, False],
+            population=population,
+            iterations=iterations,
+            rng=np.random.default_rng(seed),
+        )
+        problems.append(
+            _Problem(
+                channels,
+                spec,
+                freqs,
+                offset,
+                channel_power(spec),
+                validation,
+                spectra,
+                len(starts),
+                search,
+            )
+        )
+    while not all(p.search.done for p in problems):
+        running = [p for p in problems if not p.search.done]
+        requests = [p.search.ask() for p in running]
+        for problem, values in zip(
+            running, _fitness(running, requests, weights, tol, max_iter, rule)
+        ):
+            problem.search.tell(values)
+    seconds = time.perf_counter() - start
+    results = []
+    for signal, problem in zip(signals, problems):
+        found = problem.search.result()
+        shape = np.shape(signal)
+        results.append(
+            TuneResult(
+                K=int(found.best[0]),
+                alpha=float(found.best[1]),
+                fitness=found.best_fitness,
+                curve=[float(v) for v in found.curve],
+                evaluations=found.n_evaluations,
+                seconds=seconds,
+                settings={
+                    "population": population,
+                    "iterations": iterations,
+                    "k_bounds": list(k_bounds),
+                    "alpha_bounds": list(alpha_bounds),
+                    "weights": list(weights),
+                    "seed": seed,
+                    "samples": int(shape[-1]),
+                    "channels": int(shape[0]) if len(shape) == 2 else 1,
+                    "fitness": "cfv" if problem.validation is None else "cfv+delay",
+                    "validation": None
+                    if problem.validation is None
+                    else asdict(problem.validation),
+                },
+            )
+        )
+    return results
 
 
 def tune_signal(
@@ -169,68 +355,19 @@ def tune_signal(
     the signal (each decomposed with the candidate, its u_best filter taken, u_best chosen
     by ``rule``, :data:`~imufdi_cli.detectors.woa_mvmd_glt.windows.MODE_RULES`).
     """
-    _check_search(population, k_bounds, alpha_bounds, weights)
-    signal = np.asarray(signal, dtype=np.float64)
-    start = time.perf_counter()
-
-    starts = validation_windows(signal.shape[-1], validation.window) if validation else []
-    if validation is not None and not starts:
-        raise CalibrationError(
-            f"tuning segment has {signal.shape[-1]} samples; the validation fault needs one"
-            f" window of {validation.window}"
-        )
-
-    channels = signal if signal.ndim == 2 else signal[None]
-    spec, freqs, offset = spectrum(channels)
-    power = channel_power(spec)
-    spectra = None
-    if validation is not None:
-        spectra = WindowSpectra.of(
-            np.stack([channels[:, s : s + validation.window].T for s in starts])
-        )
-
-    def fitness(candidates: np.ndarray) -> np.ndarray:
-        Ks = [int(k) for k in candidates[:, 0]]
-        alphas = [float(a) for a in candidates[:, 1]]
-        raw = mvmd_gains(power, freqs, Ks, alphas, tol=tol, max_iter=max_iter, history=False)
-        results = mvmd_results(raw, spec, offset, channels.shape[1])
-        values = np.array([cfv(r, weights) for r in results])
-        if validation is None or spectra is None:
-            return values
-        misses = _validation_misses(
-            validation, spectra, len(starts), Ks, alphas, tol, max_iter, rule
-        )
-        return values + validation.weight * misses
-
-    found = woa(
-        fitness,
-        [k_bounds[0], alpha_bounds[0]],
-        [k_bounds[1], alpha_bounds[1]],
-        integer=[True, False],
+    return tune_signals(
+        [signal],
         population=population,
         iterations=iterations,
-        rng=np.random.default_rng(seed),
-    )
-    return TuneResult(
-        K=int(found.best[0]),
-        alpha=float(found.best[1]),
-        fitness=found.best_fitness,
-        curve=[float(v) for v in found.curve],
-        evaluations=found.n_evaluations,
-        seconds=time.perf_counter() - start,
-        settings={
-            "population": population,
-            "iterations": iterations,
-            "k_bounds": list(k_bounds),
-            "alpha_bounds": list(alpha_bounds),
-            "weights": list(weights),
-            "seed": seed,
-            "samples": int(signal.shape[-1]),
-            "channels": int(signal.shape[0]) if signal.ndim == 2 else 1,
-            "fitness": "cfv" if validation is None else "cfv+delay",
-            "validation": None if validation is None else asdict(validation),
-        },
-    )
+        k_bounds=k_bounds,
+        alpha_bounds=alpha_bounds,
+        weights=weights,
+        seed=seed,
+        tol=tol,
+        max_iter=max_iter,
+        validations=[validation],
+        rule=rule,
+    )[0]
 
 
 def tune(

@@ -170,7 +170,35 @@ class WindowSpectra:
         """u_best (W, L, n) and rows ``first_row`` .. L - 1 of its filter (W, L - first_row,
         L) from the outputs of :func:`mvmd_gains` (one per window), chosen as
         :func:`best_mode` does (modes sorted by centre frequency; ``rule="lowest"``: the
-        first of them, whatever the window holds), the filter as :func:`filter_matrices`."""
+        first of them, whatever the window holds), the filter as :func:`filter_matrices`.
+
+        Only the modes the rule reads are transformed back: all of them for ``inner``
+        (their scores), u_best alone for ``lowest`` (each mode is its own inverse FFT, so
+        u_best has the same floats either way)."""
+        n_samples = self.x.shape[2]
+        gains, best, modes = self._best(raw, rule)
+        rows = np.arange(gains.shape[0])
+        u = self._modes(gains[:, :1])[:, 0] if modes is None else modes[rows, best]
+        u = np.ascontiguousarray(np.swapaxes(u, 1, 2))
+        return u, filter_matrices(gains[rows, best], n_samples, first_row)
+
+    def best_filters(
+        self,
+        raw: Sequence[tuple[np.ndarray, np.ndarray, int, bool]],
+        first_row: int = 0,
+        rule: str = DEFAULT_MODE_RULE,
+    ) -> np.ndarray:
+        """The filter rows of :meth:`u_best` alone (W, L - first_row, L), the same floats;
+        with ``rule="lowest"`` no mode is transformed back."""
+        gains, best, _ = self._best(raw, rule)
+        return filter_matrices(gains[np.arange(gains.shape[0]), best], self.x.shape[2], first_row)
+
+    def _best(
+        self, raw: Sequence[tuple[np.ndarray, np.ndarray, int, bool]], rule: str
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Gains of every window sorted by centre frequency (W, K_max, L + 1), the index
+        of u_best among them (W,) under ``rule`` and, for ``inner``, the modes it scored
+        (W, K_max, n, L) (None for ``lowest``)."""
         n_windows, _, n_samples = self.x.shape
         k_max = max(g.shape[0] for g, _, _, _ in raw)
         gains = np.zeros((n_windows, k_max, n_samples + 1))
@@ -180,17 +208,21 @@ class WindowSpectra:
             omega[w, : g.shape[0]] = history[-1]
         order = np.argsort(omega, axis=1, kind="stable")
         gains = np.take_along_axis(gains, order[..., None], axis=1)
+        if rule != "inner":
+            return gains, np.zeros(n_windows, dtype=np.intp), None
         unused = ~np.isfinite(np.take_along_axis(omega, order, axis=1))
-        modes = np.fft.irfft(gains[:, :, None, :] * self.spec[:, None], n=2 * n_samples, axis=-1)
-        modes = modes[..., self.offset : self.offset + n_samples]  # (W, K, n, L)
+        modes = self._modes(gains)
         inner = np.einsum("wkct,wct->wk", modes, self.x)
         norms = np.linalg.norm(modes.reshape(n_windows, k_max, -1), axis=2)
         score = inner / np.where(norms > 0, norms, np.inf)
         score[unused] = -np.inf
-        best = np.argmax(score, axis=1) if rule == "inner" else np.zeros(n_windows, dtype=np.intp)
-        rows = np.arange(n_windows)
-        u = np.ascontiguousarray(np.swapaxes(modes[rows, best], 1, 2))
-        return u, filter_matrices(gains[rows, best], n_samples, first_row)
+        return gains, np.argmax(score, axis=1), modes
+
+    def _modes(self, gains: np.ndarray) -> np.ndarray:
+        """Modes (W, K, n, L) of the windows for gains (W, K, L + 1): cropped inverse FFTs."""
+        n_samples = self.x.shape[2]
+        modes = np.fft.irfft(gains[:, :, None, :] * self.spec[:, None], n=2 * n_samples, axis=-1)
+        return modes[..., self.offset : self.offset + n_samples]
 
 
 def decompose_windows(
