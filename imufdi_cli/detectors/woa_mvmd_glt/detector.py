@@ -403,17 +403,9 @@ class WoaMvmdGltDetector(DetectorBase):
         what it raises in its order."""
         jobs = {}
         for sensor_type in self.types:
-            triads = calibration.get(sensor_type)
-            n = array.n_sensors(sensor_type)
-            if triads is None or n == 0:
-                continue
-            if n < 4:
-                return {}
-            values = array.select(triads, sensor_type)
-            if values.shape[0] < max(self.window, 10):
-                return {}
             try:
-                job = self._tuning_job(values)
+                values = self._calibration_values(calibration, array, sensor_type)
+                job = None if values is None else self._tuning_job(values)
             except ImufdiError:
                 return {}
             if job is not None and job[0] not in _TUNING_CACHE:
@@ -481,26 +473,38 @@ class WoaMvmdGltDetector(DetectorBase):
 
         return u_best
 
+    def _calibration_values(
+        self, calibration: ImuBlock, array: ArrayConfig, sensor_type: str
+    ) -> np.ndarray | None:
+        """The calibration samples of ``sensor_type``, shape (N, n sensors), or None when
+        the log or the array has none; raises what :meth:`fit` raises before fitting a
+        type (fewer than 4 sensors, a window shorter than one MVMD window)."""
+        triads = calibration.get(sensor_type)
+        n = array.n_sensors(sensor_type)
+        if triads is None or n == 0:
+            return None
+        if n < 4:
+            raise ArrayTooSmallError(
+                f"{self.name}: {sensor_type} has {n} sensors; the GLT needs at least 4"
+            )
+        values = array.select(triads, sensor_type)
+        if values.shape[0] < max(self.window, 10):
+            raise CalibrationError(
+                f"calibration window has {values.shape[0]} samples; {self.name} needs at"
+                f" least {max(self.window, 10)} (one MVMD window); use --calibrate"
+            )
+        return values
+
     def fit(self, calibration: ImuBlock, array: ArrayConfig) -> None:
         self._array = array
         self._states = {}
         self._evaluators = {}
         fresh = self._tune_together(calibration, array)
         for sensor_type in self.types:
-            triads = calibration.get(sensor_type)
-            n = array.n_sensors(sensor_type)
-            if triads is None or n == 0:
+            values = self._calibration_values(calibration, array, sensor_type)
+            if values is None:
                 continue
-            if n < 4:
-                raise ArrayTooSmallError(
-                    f"{self.name}: {sensor_type} has {n} sensors; the GLT needs at least 4"
-                )
-            values = array.select(triads, sensor_type)
-            if values.shape[0] < max(self.window, 10):
-                raise CalibrationError(
-                    f"calibration window has {values.shape[0]} samples; {self.name} needs at"
-                    f" least {max(self.window, 10)} (one MVMD window); use --calibrate"
-                )
+            n = values.shape[1]
             K, alpha, tuned = self._choose(sensor_type, values, fresh)
             decompose = self._decompose(K, alpha)
             # sigma and biases of the raw sensors (many degrees of freedom), carried into the
