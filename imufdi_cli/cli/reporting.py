@@ -150,9 +150,10 @@ def report(
             with atomic_path(png, suffix=".png") as tmp:
                 plots.plot_roc(result, tmp)
     failed = [r for r in gate_results if r.failed]
-    for r in gate_results:
+    if gate_results:  # rich only when there are gate lines to print
         from rich.markup import escape
 
+    for r in gate_results:
         style = "red" if r.failed else "green"
         ui.product.print(f"[{style}]gate {escape(r.message)}[/]")
     if failed:
