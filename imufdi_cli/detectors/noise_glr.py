@@ -88,6 +88,7 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
 
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 from typing import Any, ClassVar
 
@@ -197,8 +198,13 @@ def _truncated_square_mean(mean: np.ndarray, std: float, clip: float) -> np.ndar
     return square + clip**2 * (1.0 - inside)
 
 
+@functools.lru_cache(maxsize=64)
 def clipped_square_moments(clip: float, rho: float = DIFFERENCE_CORRELATION) -> tuple[float, ...]:
     """Null moments of ``q = min(z^2, c^2)`` for standard normal z.
+
+    A pure function of ``(clip, rho)``, memoised per process (the same tuple of floats):
+    each fit asks for it three times and :func:`samples_for_factor` once per bisection
+    step, and the lag-1 integral over 24 001 grid points costs about 8 ms of CPU.
 
     Parameters
     ----------
