@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 
@@ -259,33 +260,44 @@ def _inject(array: ArrayConfig, clean: ImuBlock, scenario: str) -> ImuBlock:
     return FaultInjector(faults, array, seed=3, t0_ns=int(clean.t_ns[0])).apply_block(clean.copy())
 
 
-def _fitted(array: ArrayConfig, clean: ImuBlock) -> BankDetector:
+@pytest.fixture(scope="module")
+def marg_fit(quadrotor: tuple[ArrayConfig, ImuBlock]) -> BankDetector:
+    """The bank fitted on the quadrotor's first 2 s, once per module and never processed:
+    the tests below process deep copies of it (each fitted its own until session 25,
+    seven fits of about 0.06 s of CPU; the fit is deterministic, so a copy holds what a
+    fresh fit would)."""
+    array, clean = quadrotor
     detector = make_detector()
     detector.fit(clean.slice(0, 200), array)
     assert detector.resolved_mode == "marg"
     return detector
 
 
+def _fitted(marg_fit: BankDetector) -> BankDetector:
+    """A detector in the state the fit left (a deep copy of the shared one)."""
+    return copy.deepcopy(marg_fit)
+
+
 @pytest.fixture(scope="module")
 def bias_drift_run(
-    quadrotor: tuple[ArrayConfig, ImuBlock],
+    quadrotor: tuple[ArrayConfig, ImuBlock], marg_fit: BankDetector
 ) -> tuple[ImuBlock, dict[str, DetectionBlock], BankDetector]:
     """The gyro-bias-drift scenario processed in one block by a detector fitted on the
     first 2 s, read (not modified) by the tracking test and the streaming test (each
     processed it itself until session 22: 0.2 s of CPU)."""
     array, clean = quadrotor
     faulty = _inject(array, clean, "gyro-bias-drift")
-    detector = _fitted(array, clean)
+    detector = _fitted(marg_fit)
     out = detector.process(faulty)
     return faulty, out, detector
 
 
 def test_accel_bias_is_isolated_and_identified_table1(
-    quadrotor: tuple[ArrayConfig, ImuBlock],
+    quadrotor: tuple[ArrayConfig, ImuBlock], marg_fit: BankDetector
 ) -> None:
     array, clean = quadrotor
     faulty = _inject(array, clean, "accel-bias")
-    detector = _fitted(array, clean)
+    detector = _fitted(marg_fit)
     out = detector.process(faulty)
     details = detector.last_details
     assert details is not None and details.estimator_residuals is not None
@@ -308,11 +320,11 @@ def test_accel_bias_is_isolated_and_identified_table1(
 
 
 def test_gyro_bias_shows_only_in_its_residual_table2(
-    quadrotor: tuple[ArrayConfig, ImuBlock],
+    quadrotor: tuple[ArrayConfig, ImuBlock], marg_fit: BankDetector
 ) -> None:
     array, clean = quadrotor
     faulty = _inject(array, clean, "gyro-bias")
-    detector = _fitted(array, clean)
+    detector = _fitted(marg_fit)
     out = detector.process(faulty)
     details = detector.last_details
     assert details is not None and details.gyro_residuals is not None
@@ -351,9 +363,11 @@ def test_gyro_bias_plus_drift_both_isolated_and_tracked(
     assert_allclose(details.gyro_residuals[later, 0], expected_drift, atol=0.02)
 
 
-def test_attitude_manoeuvre_raises_no_alarm(quadrotor: tuple[ArrayConfig, ImuBlock]) -> None:
-    array, clean = quadrotor
-    detector = _fitted(array, clean)
+def test_attitude_manoeuvre_raises_no_alarm(
+    quadrotor: tuple[ArrayConfig, ImuBlock], marg_fit: BankDetector
+) -> None:
+    clean = quadrotor[1]
+    detector = _fitted(marg_fit)
     out = run(detector, clean)
     t = clean.t_s()
     manoeuvre = (t >= 5.0) & (t < 6.5)
@@ -364,15 +378,14 @@ def test_attitude_manoeuvre_raises_no_alarm(quadrotor: tuple[ArrayConfig, ImuBlo
 
 
 def test_streaming_blocks_give_the_same_rows(
-    quadrotor: tuple[ArrayConfig, ImuBlock],
+    marg_fit: BankDetector,
     bias_drift_run: tuple[ImuBlock, dict[str, DetectionBlock], BankDetector],
 ) -> None:
     """Blocks of 37 over the first 7 s (2 s past the faults' onset; the whole 10 s until
     session 22) give the rows of the one-block run."""
-    array, clean = quadrotor
     faulty, whole, _ = bias_drift_run
     head = faulty.slice(0, 700)
-    pieces = run(_fitted(array, clean), head, block_size=37)
+    pieces = run(_fitted(marg_fit), head, block_size=37)
     for sensor_type, expected in whole.items():
         got = pieces[sensor_type]
         assert len(got) == len(head)
@@ -380,15 +393,12 @@ def test_streaming_blocks_give_the_same_rows(
         np.testing.assert_array_equal(got.alarm, expected.alarm[:700])
         np.testing.assert_array_equal(got.isolated, expected.isolated[:700])
     assert whole["gyro"].alarm[550:700].all()  # the faulty rows are among those compared
-    flushed = _fitted(array, clean).flush()
+    flushed = _fitted(marg_fit).flush()
     assert {s: len(b) for s, b in flushed.items()} == {"accel": 0, "mag": 0, "gyro": 0}
 
 
-def test_metadata_reports_the_calibrated_field_angle(
-    quadrotor: tuple[ArrayConfig, ImuBlock],
-) -> None:
-    array, clean = quadrotor
-    meta = _fitted(array, clean).metadata()
+def test_metadata_reports_the_calibrated_field_angle(marg_fit: BankDetector) -> None:
+    meta = _fitted(marg_fit).metadata()
     assert meta["mode"] == "marg"
     assert_allclose(meta["calibration"]["field_angle_deg"], 30.0, atol=0.2)
     assert_allclose(meta["calibration"]["gravity_norm"], STANDARD_GRAVITY, rtol=1e-3)
