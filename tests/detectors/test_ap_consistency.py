@@ -156,7 +156,10 @@ def test_cli_detect(tmp_path: Any) -> None:
     fault = "step:imu5.gyro.y,amp=30deg/s,at=3s"
     assert invoke(["inject", clean, "--fault", fault, "-o", faulty]).code == 0
     params = ["--param", "ap-consistency.hold=1s"]
-    result = invoke(["detect", faulty, "-d", "ap-consistency", *params, "-o", detected])
+    # alarms and isolation only: no episode explanations (--no-explain)
+    result = invoke(
+        ["detect", faulty, "-d", "ap-consistency", *params, "--no-explain", "-o", detected]
+    )
     assert result.code == 0, result.stderr
     status = read_status(detected)[("ap-consistency", "gyro")]
     first = int(np.argmax(status.alarm))
