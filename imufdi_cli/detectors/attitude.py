@@ -152,7 +152,34 @@ def predict_measurements(
     """
     rot = quaternion_to_rotation(q)
     body_refs = np.matmul(references, rot)  # row c: r_c^T C = (C^T r_c)^T
-    return (body_refs * sensor_axes).sum(axis=-1), body_refs
+    # h_c . b_c as (h0 b0 + h1 b1) + h2 b2: the order in which numpy's sum over the last
+    # axis of the (..., c, 3) products adds them, without that array and its slow reduction
+    # over an axis of three (the same floats; about 7x quicker)
+    predicted = body_refs[..., 0] * sensor_axes[:, 0]
+    predicted += body_refs[..., 1] * sensor_axes[:, 1]
+    predicted += body_refs[..., 2] * sensor_axes[:, 2]
+    return predicted, body_refs
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross(a, b)`` of rows ``a`` (c, 3) and ``b`` (..., c, 3), shape (..., c, 3).
+
+    numpy's own formulas and order of operations (``cp0 = a1 b2 - a2 b1`` etc.), so the
+    same floats, without its copies of both inputs (``astype``) and its broadcasting set-up.
+    """
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    np.multiply(a1, b2, out=out[..., 0])
+    tmp = a2 * b1
+    out[..., 0] -= tmp
+    np.multiply(a2, b0, out=out[..., 1])
+    np.multiply(a0, b2, out=tmp)
+    out[..., 1] -= tmp
+    np.multiply(a0, b1, out=out[..., 2])
+    np.multiply(a1, b0, out=tmp)
+    out[..., 2] -= tmp
+    return out
 
 
 def measurement_jacobian(
@@ -169,7 +196,7 @@ def measurement_jacobian(
     jacobian : ndarray, shape (..., c, 3)
     """
     predicted, body_refs = predict_measurements(q, sensor_axes, references)
-    return predicted, np.cross(sensor_axes, body_refs)
+    return predicted, _cross(sensor_axes, body_refs)
 
 
 def gauss_newton_attitude(
@@ -225,7 +252,8 @@ def gauss_newton_attitude(
         increment = np.concatenate([np.ones((*delta.shape[:-1], 1)), 0.5 * delta], axis=-1)
         q = quaternion_multiply(q, increment)
         q /= np.linalg.norm(q, axis=-1, keepdims=True)
-        last_step = np.abs(delta).max(axis=-1)
+        step = np.abs(delta)
+        last_step = np.maximum(np.maximum(step[..., 0], step[..., 1]), step[..., 2])
         if np.all(last_step < tolerance):
             break
     return q, last_step
