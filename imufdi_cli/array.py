@@ -248,6 +248,10 @@ class ArrayConfig:
     noise: Mapping[str, float] = field(default_factory=dict)
     range: Mapping[str, float] = field(default_factory=dict)
     jitter: Mapping[str, float] = field(default_factory=dict)
+    # sensor_index per sensor type, computed at first use (the IMUs are immutable)
+    _sensor_index: dict[str, tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
 
     def __post_init__(self) -> None:
         if len(self.imus) == 0:
@@ -302,7 +306,15 @@ class ArrayConfig:
         return [s for s in SENSOR_TYPES if self.has(s)]
 
     def sensor_index(self, sensor_type: str) -> tuple[np.ndarray, np.ndarray]:
-        """IMU index and axis index (0..2) of each used sensor of a type, shapes (n,), (n,)."""
+        """IMU index and axis index (0..2) of each used sensor of a type, shapes (n,), (n,).
+
+        Built once per array and sensor type and returned read-only (every block's
+        :meth:`select` asks for it: a Python loop over the IMUs' axes each time until
+        session 25).
+        """
+        cached = self._sensor_index.get(sensor_type)
+        if cached is not None:
+            return cached
         _check_type(sensor_type)
         imu_idx: list[int] = []
         axis_idx: list[int] = []
@@ -310,7 +322,11 @@ class ArrayConfig:
             for a in imu.axes_of(sensor_type):
                 imu_idx.append(k)
                 axis_idx.append(AXES.index(a))
-        return np.asarray(imu_idx, dtype=np.intp), np.asarray(axis_idx, dtype=np.intp)
+        index = np.asarray(imu_idx, dtype=np.intp), np.asarray(axis_idx, dtype=np.intp)
+        for part in index:
+            part.flags.writeable = False
+        self._sensor_index[sensor_type] = index
+        return index
 
     def sensor_ids(self, sensor_type: str) -> list[str]:
         """``imu<k>.<type>.<axis>`` for every used sensor of a type, in H row order."""

@@ -144,3 +144,36 @@ def test_per_imu_noise_spread_parsed_round_trip_and_checked(tmp_path):
         _load(tmp_path, text.replace("[1.0, 1.5, 2.25]", "[1.5, 2.25]"))
     with pytest.raises(ArrayConfigError, match=r"spread"):
         array.with_noise_spread([{"gyro": [1.0, 0.5, 1.0]}, {}])
+
+
+def test_sensor_index_is_built_once_per_array_read_only_and_follows_the_axes() -> None:
+    """The index arrays are made once per array and sensor type (every block's ``select``
+    reads them) and cannot be changed through a caller; an unknown type is refused every
+    time; an array derived from another gets its own."""
+    from dataclasses import replace
+
+    from imufdi_cli.array import ImuSpec
+
+    array = ArrayConfig(
+        imus=(
+            ImuSpec(axes={"gyro": ("x", "z"), "accel": ("x", "y", "z"), "mag": ()}),
+            ImuSpec(axes={"gyro": ("y",), "accel": (), "mag": ()}),
+        )
+    )
+    imu_idx, axis_idx = array.sensor_index("gyro")
+    assert imu_idx.tolist() == [0, 0, 1] and axis_idx.tolist() == [0, 2, 1]
+    assert array.sensor_index("gyro")[0] is imu_idx
+    assert array.sensor_ids("gyro") == ["imu0.gyro.x", "imu0.gyro.z", "imu1.gyro.y"]
+    assert array.sensor_index("mag")[0].size == 0
+    with pytest.raises(ValueError, match="read-only"):
+        imu_idx[0] = 1
+    for _ in range(2):
+        with pytest.raises(ArrayConfigError, match="unknown sensor type 'baro'"):
+            array.sensor_index("baro")
+    triads = np.arange(2 * 2 * 3, dtype=float).reshape(2, 2, 3)
+    np.testing.assert_array_equal(array.select(triads, "gyro"), triads[:, [0, 0, 1], [0, 2, 1]])
+    # an array derived by dataclasses.replace builds its own index from its own IMUs
+    swapped = replace(array, imus=array.imus[::-1])
+    assert swapped.sensor_index("gyro")[0].tolist() == [0, 1, 1]
+    assert swapped.sensor_index("gyro")[1].tolist() == [1, 0, 2]
+    assert array.sensor_index("gyro")[1].tolist() == [0, 2, 1]
