@@ -41,14 +41,19 @@ def test_pipeline_stdin_stdout(cli, faulty_log):
 
 
 def test_rerun_replaces_own_channels(cli, tmp_path, detected_log):
+    from imufdi_cli.mcapio.events import EVENTS_TOPIC, read_events
+
     out = tmp_path / "again.mcap"
-    assert cli(["detect", detected_log, "-d", "glt", "-o", out]).code == 0
+    # without explanation: the input's events (with its episodes) must go all the same
+    assert cli(["detect", detected_log, "-d", "glt", "--no-explain", "-o", out]).code == 0
     with McapSource(str(out)) as src:
         for _ in src.batches():
             pass
         topics = [c.topic for c in src.channels.values()]
     assert topics.count("/imufdi/glt/gyro") == 1
     assert topics.count("/imufdi/events") == 1
+    kinds = {event["event"] for _, event in read_events(str(out), EVENTS_TOPIC)}
+    assert "alarm_start" in kinds and "episode" not in kinds
 
 
 @pytest.mark.parametrize(
