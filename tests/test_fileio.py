@@ -137,13 +137,11 @@ def test_create_temp_refuses_missing_directories_and_directory_targets(tmp_path)
 
 
 def test_stale_temps_of_dead_writers_are_removed(tmp_path):
-    dead = subprocess.run(
-        [sys.executable, "-c", "import os; print(os.getpid())"],
-        check=True,
-        capture_output=True,
-        text=True,
-    )
-    dead_pid = int(dead.stdout)
+    # the pid of a process that has exited and been waited for (-S: no site, a quick start)
+    with subprocess.Popen([sys.executable, "-S", "-c", "pass"]) as dead:
+        pass
+    assert dead.returncode == 0
+    dead_pid = dead.pid
     stale = tmp_path / f".x.mcap.{dead_pid}.0123456789ab.tmp"
     live = tmp_path / f".x.mcap.{os.getpid()}.0123456789ab.tmp"
     other = tmp_path / f".y.mcap.{dead_pid}.0123456789ab.tmp"

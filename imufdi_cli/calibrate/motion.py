@@ -3,6 +3,8 @@ sampling-time jitter term ``[jitter]`` of :mod:`imufdi_cli.detectors.jitter`."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
@@ -97,6 +99,8 @@ def jitter_stage(
     static: np.ndarray,
     clipped: np.ndarray,
     method: str = "level",
+    *,
+    values: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, float]:
     """Sampling-time jitter sigma_t (s) per sensor type with a parity space and per-sensor
     noise, fitted on the motion rows (:func:`imufdi_cli.detectors.jitter.fit_jitter`):
@@ -110,6 +114,9 @@ def jitter_stage(
     fields : dict
         Raw triads (N, m, 3) per sensor type (None: absent), clipped rows zeroed.
     t_s : (N,) s; static, clipped : (N,) bool.
+    values : mapping, optional
+        Per sensor type, the calibrated values of ``fields`` in sensor-id order (N, n), when
+        the caller has them (:func:`~imufdi_cli.calibrate.noise.static_noise`).
     """
     motion = motion_rows(array, static, clipped)
     rows = motion & np.roll(motion, 1)
@@ -129,7 +136,10 @@ def jitter_stage(
                 pass
         if design.shape[0] <= design.shape[1]:
             continue
-        white = array.select(array.calibrate_triads(raw, sensor_type), sensor_type) / sigma
+        given = None if values is None else values.get(sensor_type)
+        if given is None:
+            given = array.select(array.calibrate_triads(raw, sensor_type), sensor_type)
+        white = given / sigma
         offset = white[static].mean(axis=0) if static.any() else None
         out[sensor_type] = fit_jitter(design / sigma[:, None], white, t_s, rows, offset, alpha)
     return out

@@ -3,6 +3,8 @@ its healthy spread over the orientations (``<type>_noise``, ``<type>_noise_sprea
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
@@ -17,6 +19,8 @@ def static_noise(
     t_s: np.ndarray,
     static: np.ndarray,
     intervals: list[StaticInterval],
+    *,
+    values: Mapping[str, np.ndarray] | None = None,
 ) -> list[dict[str, np.ndarray]]:
     """Per-IMU, per-type noise sigma (3,) of the calibrated sensors at rest (SI).
 
@@ -37,12 +41,18 @@ def static_noise(
     t_s : ndarray, shape (N,)
     static : ndarray, shape (N,), bool
     intervals : list of StaticInterval
+    values : mapping, optional
+        Per sensor type, the calibrated values of ``accel``/``gyro`` in sensor-id order
+        (N, n), ``array.select(array.calibrate_triads(raw, type), type)``, when the caller
+        has them (:func:`~imufdi_cli.calibrate.calibrate_block` shares them between the
+        noise, spread and jitter stages); else computed here.
     """
     out: list[dict[str, np.ndarray]] = [{} for _ in range(array.n_imus)]
     for sensor_type, raw in (("accel", accel), ("gyro", gyro)):
         if raw is None or array.n_sensors(sensor_type) < 4:
             continue
-        projector, residual = _parity_residuals(array, raw, sensor_type)
+        given = None if values is None else values.get(sensor_type)
+        projector, residual = _parity_residuals(array, raw, sensor_type, given)
         n = projector.shape[0]
         squares = np.zeros(n)
         dof = 0
@@ -63,12 +73,20 @@ def static_noise(
     return out
 
 
+def calibrated_values(array: ArrayConfig, raw: np.ndarray, sensor_type: str) -> np.ndarray:
+    """The calibrated sensors of one type in sensor-id order, (N, n) SI, from raw triads
+    (N, m, 3)."""
+    return array.select(array.calibrate_triads(raw, sensor_type), sensor_type)
+
+
 def _parity_residuals(
-    array: ArrayConfig, raw: np.ndarray, sensor_type: str
+    array: ArrayConfig, raw: np.ndarray, sensor_type: str, values: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(I - H H^+)`` (n, n) and the parity residuals (N, n) of the calibrated sensors of
-    one type: motion and the array's common offsets cancel in them."""
-    values = array.select(array.calibrate_triads(raw, sensor_type), sensor_type)
+    one type (``values``, :func:`calibrated_values` of ``raw`` if not given): motion and
+    the array's common offsets cancel in them."""
+    if values is None:
+        values = calibrated_values(array, raw, sensor_type)
     H = array.measurement_matrix(sensor_type)
     projector = residual_projector(H)
     return projector, values @ projector.T
@@ -114,6 +132,8 @@ def noise_spread(
     t_s: np.ndarray,
     static: np.ndarray,
     intervals: list[StaticInterval],
+    *,
+    values: Mapping[str, np.ndarray] | None = None,
 ) -> tuple[list[dict[str, np.ndarray]], dict[str, np.ndarray]]:
     """Each sensor's healthy white-noise variance spread over the static orientations.
 
@@ -149,6 +169,8 @@ def noise_spread(
     static : ndarray, shape (N,), bool
     intervals : list of StaticInterval
         With their ``orientation`` numbers set.
+    values : mapping, optional
+        Per sensor type, the calibrated values (N, n), as for :func:`static_noise`.
 
     Returns
     -------
@@ -163,7 +185,8 @@ def noise_spread(
     for sensor_type, raw in (("accel", accel), ("gyro", gyro)):
         if raw is None or array.n_sensors(sensor_type) < 4:
             continue
-        projector, residual = _parity_residuals(array, raw, sensor_type)
+        given = None if values is None else values.get(sensor_type)
+        projector, residual = _parity_residuals(array, raw, sensor_type, given)
         n = projector.shape[0]
         sums: dict[int, np.ndarray] = {}
         counts: dict[int, int] = {}

@@ -17,7 +17,7 @@ from imufdi_cli.calibrate.motion import (
     motion_rows,
     time_offsets,
 )
-from imufdi_cli.calibrate.noise import noise_spread, static_noise
+from imufdi_cli.calibrate.noise import calibrated_values, noise_spread, static_noise
 from imufdi_cli.calibrate.static import (
     STANDARD_GRAVITY,
     StaticInterval,
@@ -220,15 +220,24 @@ def calibrate_block(
         for k, gcal in enumerate(gyro_cal):
             cals[k]["gyro"] = gcal
     calibrated = array.with_calibration(cals)
-    noise = static_noise(calibrated, accel, gyro, t_s, static, intervals)
-    spread, _ = noise_spread(calibrated, accel, gyro, t_s, static, intervals)
+    # the calibrated sensors, computed once for the noise, spread and jitter stages (the
+    # same calibration in all three)
+    values = {
+        s: calibrated_values(calibrated, raw, s)
+        for s, raw in (("accel", accel), ("gyro", gyro))
+        if raw is not None and calibrated.n_sensors(s) >= 4
+    }
+    noise = static_noise(calibrated, accel, gyro, t_s, static, intervals, values=values)
+    spread, _ = noise_spread(calibrated, accel, gyro, t_s, static, intervals, values=values)
     figures = [
         _figures(k, s, c)
         for k, per in enumerate(cals)
         for s, c in sorted(per.items(), reverse=True)
     ]
     out = calibrated.with_sensor_noise(noise).with_noise_spread(spread)
-    jitter = jitter_stage(out, {"accel": accel, "gyro": gyro}, t_s, static, clipped, jitter_fit)
+    jitter = jitter_stage(
+        out, {"accel": accel, "gyro": gyro}, t_s, static, clipped, jitter_fit, values=values
+    )
     for sensor_type, value in jitter.items():
         if value >= MAX_JITTER_S:
             warnings.append(

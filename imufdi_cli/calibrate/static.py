@@ -65,10 +65,15 @@ def find_static(
     rate = array.rate_hz
     w = max(3, round(STATIC_WINDOW_S * rate))
     still = usable.copy()
+    consensus_a = np.zeros((len(t_s), 3))
     for name, data in (("accel", accel), ("gyro", gyro)):
         if data is None:
             continue
         consensus = body_consensus(array, np.where(usable[:, None, None], data, 0.0))
+        if name == "accel":
+            # each row of the consensus is its own row's sum: on usable rows (the only ones
+            # read below: intervals lie in ``still``) it is the consensus of ``accel``
+            consensus_a = consensus
         spread = _moving_std(consensus, w)
         floor = float(np.percentile(spread[usable], 10)) if usable.any() else 0.0
         still &= spread < min(STATIC_CAP[name], max(STATIC_FLOOR_FACTOR * floor, 1e-12))
@@ -77,7 +82,6 @@ def find_static(
     mask = np.zeros(len(t_s), dtype=bool)
     intervals: list[StaticInterval] = []
     edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(np.int8), [0]])))
-    consensus_a = body_consensus(array, accel)
     for a, b in zip(edges[::2], edges[1::2]):
         a, b = a + w // 2, b - w // 2
         if b <= a or t_s[b - 1] - t_s[a] < min_static_s:

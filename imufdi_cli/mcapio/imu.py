@@ -202,8 +202,11 @@ class ImuArrayReader:
         )
         self._known_channels = -1  # check for late Imu channels on the first batch
         self._late_topics: set[str] = set()
+        #: (channel id, fields) of the first Imu topic's read-ahead messages, while set up
+        self._setup_fields: tuple[int, list[ImuFields]] | None = None
         self._resolve_time_source()
         self.array = self._array_config()
+        self._setup_fields = None
         if self.array.has("mag") and not self.mag_topics:
             self.warnings.append(
                 "array config has magnetometers but not every IMU topic has a <ns>/mag topic;"
@@ -292,16 +295,7 @@ class ImuArrayReader:
         if requested == "log_time":
             return
         topic = self.imu_topics[0]
-        cid = self._topic_channel[topic]
-        channel = self.source.channels[cid]
-        # malformed messages are left out here and reported when the data are read
-        fields = [
-            _decode(
-                sub, channel, ("gyro", "accel"), self.imu_fields[topic], np.ones(len(sub), bool)
-            )
-            for sub in (b.select(b.channel_id == cid) for b in self._prefetched)
-            if len(sub)
-        ]
+        fields = self._prefetched_fields(self._topic_channel[topic], topic)
         if not fields:
             self.time_source = "header"
             return
@@ -400,23 +394,32 @@ class ImuArrayReader:
         sensors = ["gyro", "accel"] + (["mag"] if self.mag_topics else [])
         return ArrayConfig.co_aligned(m, rate, sensors=sensors)
 
+    def _prefetched_fields(self, cid: int, topic: str) -> list[ImuFields]:
+        """Gyro and accel fields of channel ``cid`` (the Imu topic ``topic``) in each
+        read-ahead batch holding some of its messages, decoded once for the time source
+        and the rate (malformed messages are left out here, reported when the data are
+        read)."""
+        cached = self._setup_fields
+        if cached is not None and cached[0] == cid:
+            return cached[1]
+        channel = self.source.channels[cid]
+        fields = [
+            _decode(
+                sub, channel, ("gyro", "accel"), self.imu_fields[topic], np.ones(len(sub), bool)
+            )
+            for sub in (b.select(b.channel_id == cid) for b in self._prefetched)
+            if len(sub)
+        ]
+        self._setup_fields = (cid, fields)
+        return fields
+
     def _measured_rate(self) -> float:
-        channels = {c.id: c for c in self.source.channels.values()}
         first = self.imu_topics[0]
         cid = next(i for i, k in self._imu_channel.items() if k == 0)
-        stamps = []
-        for batch in self._prefetched:
-            sub = batch.select(batch.channel_id == cid)
-            if len(sub):
-                # malformed messages are left out here and reported when the data are read
-                fields = _decode(
-                    sub,
-                    channels[cid],
-                    ("gyro", "accel"),
-                    self.imu_fields[first],
-                    np.ones(len(sub), bool),
-                )
-                stamps.append(fields.t_ns if self.time_source == "header" else fields.log_time)
+        stamps = [
+            fields.t_ns if self.time_source == "header" else fields.log_time
+            for fields in self._prefetched_fields(cid, first)
+        ]
         t = np.sort(np.concatenate(stamps)) if stamps else np.zeros(0, np.int64)
         steps = np.diff(t)
         steps = steps[steps > 0]

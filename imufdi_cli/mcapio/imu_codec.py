@@ -430,28 +430,31 @@ class FixedLayoutDecoder:
             elif step.kind != "align":  # a sequence or an opaque step: the general path
                 self.usable = False
 
-    def _probe(self, one: MessageBatch, stream: int) -> bool:
-        """Locate the fields of one message of ``stream`` with the general decoder and
-        remember its layout keys; False if its layout cannot be shared."""
-        valid = np.ones(1, bool)
+    def _probe(self, firsts: MessageBatch, streams: list[int]) -> bool:
+        """Locate the fields of the first message of each of ``streams`` (``firsts``, one
+        message per stream, in that order) with the general decoder, in one call, and
+        remember their layout keys, stream by stream; False at the first stream whose
+        layout cannot be shared."""
+        valid = np.ones(len(streams), bool)
         try:
-            little, positions, _ = self.codec.positions(one, self.paths + self.strings, valid)
+            little, positions, _ = self.codec.positions(firsts, self.paths + self.strings, valid)
         except McapInputError:
             return False
-        if not bool(valid[0]) or not bool(little[0]):
-            return False
-        base = int(one.offset[0])
-        rel = {path: int(positions[path][0]) - base for path in self.paths}
-        keys = [0] + [int(positions[path][0]) - 4 - base for path in self.strings]
-        length = int(one.length[0])
-        if self.length < 0:
-            self.rel, self.keys, self.length = rel, keys, length
-            self.expected = np.zeros((self.probed.shape[0], len(keys)), np.uint32)
-        elif rel != self.rel or keys != self.keys or length != self.length:
-            return False
-        payload = one.data[base : base + length]
-        self.expected[stream] = [int(payload[k : k + 4].view("<u4")[0]) for k in keys]
-        self.probed[stream] = True
+        for j, stream in enumerate(streams):
+            if not bool(valid[j]) or not bool(little[j]):
+                return False
+            base = int(firsts.offset[j])
+            rel = {path: int(positions[path][j]) - base for path in self.paths}
+            keys = [0] + [int(positions[path][j]) - 4 - base for path in self.strings]
+            length = int(firsts.length[j])
+            if self.length < 0:
+                self.rel, self.keys, self.length = rel, keys, length
+                self.expected = np.zeros((self.probed.shape[0], len(keys)), np.uint32)
+            elif rel != self.rel or keys != self.keys or length != self.length:
+                return False
+            payload = firsts.data[base : base + length]
+            self.expected[stream] = [int(payload[k : k + 4].view("<u4")[0]) for k in keys]
+            self.probed[stream] = True
         return True
 
     def _head(self, fields: _Fields) -> dict[int, np.ndarray]:
@@ -489,13 +492,13 @@ class FixedLayoutDecoder:
         if np.count_nonzero(batch.length != (self.length if self.length >= 0 else batch.length[0])):
             return None
         if not bool(self.probed[streams[0]]) or not bool(self.probed[streams[-1]]):
-            present = np.flatnonzero(np.bincount(streams, minlength=self.probed.shape[0]))
-            for stream in present.tolist():
-                if not self.probed[stream]:
-                    first = int(np.argmax(streams == stream))
-                    if not self._probe(batch.select(slice(first, first + 1)), stream):
-                        self.usable = False
-                        return None
+            present, first = np.unique(streams, return_index=True)
+            todo = ~self.probed[present]
+            if bool(todo.any()) and not self._probe(
+                batch.select(first[todo]), present[todo].tolist()
+            ):
+                self.usable = False
+                return None
         ahead = getattr(batch, "payload_fields", None)
         if ahead is not None and ahead[0] != self.payload_fields():
             ahead = None

@@ -386,17 +386,65 @@ def build_message_records(batch: MessageBatch) -> tuple[np.ndarray, np.ndarray]:
     out = np.empty(total, dtype=np.uint8)
     if n == 0:
         return out, starts
-    head_index = starts[:, None] + np.arange(MESSAGE_HEADER_SIZE, dtype=np.int64)[None, :]
-    out[head_index] = header_bytes
-    n_payload = int(lengths.sum())
-    if n_payload:
-        # Position of every payload byte in the source and in the output.
-        payload_starts = starts + MESSAGE_HEADER_SIZE
-        delta_dst = np.repeat(payload_starts - np.cumsum(lengths) + lengths, lengths)
-        delta_src = np.repeat(batch.offset - np.cumsum(lengths) + lengths, lengths)
-        running = np.arange(n_payload, dtype=np.int64)
-        out[running + delta_dst] = batch.data[running + delta_src]
+    # Payloads of a few lengths (frame ids, statuses): per length L, one L-byte void element
+    # per message copied from a sliding view of the source into one of the output (one
+    # memcpy per record and part, no per-byte index arrays); the headers likewise.
+    order = np.argsort(lengths, kind="stable")
+    ordered = lengths[order]
+    cuts = np.flatnonzero(ordered[1:] != ordered[:-1]) + 1
+    if cuts.shape[0] + 1 > max(_FEW_LENGTHS, n // 16):
+        return _join_message_records(batch, header, lengths, total), starts
+    _copy_rows(out, starts, header.view(f"V{MESSAGE_HEADER_SIZE}"), MESSAGE_HEADER_SIZE)
+    data = batch.data
+    if not data.flags.c_contiguous or data.dtype != np.uint8:
+        data = np.ascontiguousarray(data, dtype=np.uint8)
+    bounds = [0, *cuts.tolist(), n]
+    for a, b in itertools.pairwise(bounds):
+        length = int(ordered[a])
+        if length == 0:
+            continue
+        index = order[a:b]
+        source = batch.offset[index]
+        if int(source.min()) < 0 or int(source.max()) + length > data.shape[0]:
+            raise IndexError("message payload outside the batch's buffer")
+        rows = np.ndarray(
+            (data.shape[0] - length + 1,), dtype=f"V{length}", buffer=data, strides=(1,)
+        )[source]
+        _copy_rows(out, starts[index] + MESSAGE_HEADER_SIZE, rows, length)
     return out, starts
+
+
+#: Distinct payload lengths up to which a batch's records are copied per length (more, and
+#: more than one per 16 messages: one ``bytearray.join`` of the records' parts).
+_FEW_LENGTHS = 16
+
+
+def _copy_rows(out: np.ndarray, at: np.ndarray, rows: np.ndarray, width: int) -> None:
+    """Write the ``width``-byte void elements ``rows`` (shape (K,)) at byte offsets ``at``
+    (shape (K,), int64) of the uint8 buffer ``out`` (the ranges do not overlap)."""
+    windows = np.ndarray((out.shape[0] - width + 1,), dtype=f"V{width}", buffer=out, strides=(1,))
+    windows[at] = rows
+
+
+def _join_message_records(
+    batch: MessageBatch, header: np.ndarray, lengths: np.ndarray, total: int
+) -> np.ndarray:
+    """Records of a batch of many payload lengths: header and payload of each message
+    joined in order (one ``bytearray.join`` of memoryview slices), shape (total,), uint8."""
+    heads = header.view(np.uint8).data.cast("B")
+    data = np.ascontiguousarray(batch.data, dtype=np.uint8).data.cast("B")
+    size = data.nbytes
+    parts: list[memoryview] = []
+    at = 0
+    for start, length in zip(batch.offset.tolist(), lengths.tolist(), strict=True):
+        if start < 0 or start + length > size:
+            raise IndexError("message payload outside the batch's buffer")
+        parts.append(heads[at : at + MESSAGE_HEADER_SIZE])
+        parts.append(data[start : start + length])
+        at += MESSAGE_HEADER_SIZE
+    joined = bytearray().join(parts)
+    assert len(joined) == total
+    return np.frombuffer(joined, dtype=np.uint8)
 
 
 def __getattr__(name: str) -> object:

@@ -10,7 +10,9 @@ from tests.cli.conftest import assert_one_line_error
 
 def test_detect_writes_status_and_copies_input(cli, tmp_path, faulty_log):
     out = tmp_path / "d.mcap"
-    result = cli(["detect", faulty_log, "-d", "glt", "-d", "pca-parity", "-o", out])
+    # status and the copied input, not episodes: no explanation (tests/test_detect.py)
+    args = ["detect", faulty_log, "-d", "glt", "-d", "pca-parity", "--no-explain"]
+    result = cli([*args, "-o", out])
     assert result.code == 0, result.stderr
     status = read_status(str(out))
     assert {("glt", "gyro"), ("glt", "accel"), ("pca-parity", "gyro")} <= set(status)
@@ -30,7 +32,8 @@ def test_detect_writes_status_and_copies_input(cli, tmp_path, faulty_log):
 
 
 def test_pipeline_stdin_stdout(cli, faulty_log):
-    result = cli(["detect", "-", "-d", "glt", "-o", "-"], stdin=faulty_log.read_bytes())
+    args = ["detect", "-", "-d", "glt", "--no-explain", "-o", "-"]  # the pipe, not episodes
+    result = cli(args, stdin=faulty_log.read_bytes())
     assert result.code == 0, result.stderr
     report = cli(["report", "-", "--json", "-"], stdin=result.stdout)
     assert report.code == 0, report.stderr
@@ -38,14 +41,19 @@ def test_pipeline_stdin_stdout(cli, faulty_log):
 
 
 def test_rerun_replaces_own_channels(cli, tmp_path, detected_log):
+    from imufdi_cli.mcapio.events import EVENTS_TOPIC, read_events
+
     out = tmp_path / "again.mcap"
-    assert cli(["detect", detected_log, "-d", "glt", "-o", out]).code == 0
+    # without explanation: the input's events (with its episodes) must go all the same
+    assert cli(["detect", detected_log, "-d", "glt", "--no-explain", "-o", out]).code == 0
     with McapSource(str(out)) as src:
         for _ in src.batches():
             pass
         topics = [c.topic for c in src.channels.values()]
     assert topics.count("/imufdi/glt/gyro") == 1
     assert topics.count("/imufdi/events") == 1
+    kinds = {event["event"] for _, event in read_events(str(out), EVENTS_TOPIC)}
+    assert "alarm_start" in kinds and "episode" not in kinds
 
 
 @pytest.mark.parametrize(

@@ -144,9 +144,10 @@ def test_reads_mcap_ros2_writer_file_with_gaps(tmp_path) -> None:
 
 def test_reads_rosbags_writer_file(tmp_path) -> None:
     from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
 
-    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    from .mcap_files import ros2_imu_typestore
+
+    typestore = ros2_imu_typestore()
     Imu = typestore.types["sensor_msgs/msg/Imu"]
     Header = typestore.types["std_msgs/msg/Header"]
     Time = typestore.types["builtin_interfaces/msg/Time"]

@@ -19,6 +19,13 @@ from imufdi_cli.mcapio.schemas import IMU_SCHEMA, IMU_SCHEMA_NAME
 
 from .conftest import make_block
 
+# per endianness: the orientation (0, 0, 0, 1) and its covariance (-1: not given), and a
+# zero covariance (the constant parts of every message below, packed once)
+_ORIENTATION = {
+    e: struct.pack(e + "4d", 0, 0, 0, 1) + struct.pack(e + "9d", -1, *[0] * 8) for e in "<>"
+}
+_ZERO_COVARIANCE = {e: struct.pack(e + "9d", *[0] * 9) for e in "<>"}
+
 
 def cdr_imu(t_ns: int, frame: str, gyro, accel, big: bool = False, extra: int = 0) -> bytes:
     """Hand-built CDR Imu message (either endianness; ``extra`` bytes appended)."""
@@ -28,9 +35,9 @@ def cdr_imu(t_ns: int, frame: str, gyro, accel, big: bool = False, extra: int = 
     raw = frame.encode() + b"\0"
     out += struct.pack(e + "I", len(raw)) + raw
     out.extend(b"\0" * ((-(len(out) - 4)) % 8))
-    out += struct.pack(e + "4d", 0, 0, 0, 1) + struct.pack(e + "9d", -1, *[0] * 8)
-    out += struct.pack(e + "3d", *gyro) + struct.pack(e + "9d", *[0] * 9)
-    out += struct.pack(e + "3d", *accel) + struct.pack(e + "9d", *[0] * 9)
+    out += _ORIENTATION[e]
+    out += struct.pack(e + "3d", *gyro) + _ZERO_COVARIANCE[e]
+    out += struct.pack(e + "3d", *accel) + _ZERO_COVARIANCE[e]
     return bytes(out) + b"\0" * extra
 
 

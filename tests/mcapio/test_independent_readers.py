@@ -116,10 +116,16 @@ def _ours(path: Path) -> tuple[Counter[str], dict[str, dict[str, str]], dict[str
     payloads: dict[str, list[bytes]] = {}
     with McapSource(path, strict=True) as src:
         for batch in src.batches():
-            for i in range(len(batch)):
-                topic = src.channels[int(batch.channel_id[i])].topic
-                counts[topic] += 1
-                payloads.setdefault(topic, []).append(batch.payload(i))
+            data = batch.data.tobytes()  # payloads sliced in Python, not one array each
+            for cid, index in batch.channel_indices():
+                topic = src.channels[cid].topic
+                counts[topic] += len(index)
+                payloads.setdefault(topic, []).extend(
+                    data[start : start + length]
+                    for start, length in zip(
+                        batch.offset[index].tolist(), batch.length[index].tolist()
+                    )
+                )
         return counts, dict(src.metadata), payloads
 
 

@@ -123,7 +123,8 @@ def _same(a: tuple[list, list, str], b: tuple[list, list, str]) -> None:
             continue
         for x, y in zip(left, right):
             assert x.dtype == y.dtype and x.shape == y.shape
-            np.testing.assert_array_equal(x, y)
+            if x.tobytes() != y.tobytes():  # equal bytes are equal arrays (the usual case)
+                np.testing.assert_array_equal(x, y)
     assert a[1:] == b[1:]
 
 

@@ -18,6 +18,7 @@ from imufdi_cli.errors import McapInputError
 from imufdi_cli.mcapio import ImuArrayReader, McapSource, read_array, summarize
 from imufdi_cli.mcapio.bagdir import bag_files
 from tests.cli.conftest import assert_one_line_error, invoke
+from tests.mcapio.mcap_files import ros2_imu_typestore
 
 T0 = 1_700_000_000_000_000_000
 PERIOD = 5_000_000  # 200 Hz
@@ -48,7 +49,7 @@ def _gyro(i: int, k: int = 0) -> tuple[float, float, float]:
 def _typestore(headerless: bool = False):
     """The type store of the bags (made once: rosbags compiles a type's serialiser on its
     first use in a store; the tests only read the store)."""
-    store = get_typestore(Stores.ROS2_HUMBLE)
+    store = ros2_imu_typestore()
     if headerless:  # a sensor_msgs/msg/Imu whose definition has no header (seen in real bags)
         store = get_typestore(Stores.EMPTY)
         store.register(

@@ -79,6 +79,47 @@ def test_gather_bytes_irregular_positions() -> None:
     assert strided.tolist() == [data[::2][p : p + 3].tolist() for p in (1, 4, 2)]
 
 
+@pytest.mark.parametrize("n_lengths", [1, 3, 60])
+def test_message_records_are_the_spec_layout(n_lengths: int) -> None:
+    """Every record is opcode 0x05, u64 length, channel u16, sequence u32, log and publish
+    time u64, payload (mcap.dev/spec), packed one after another: for one payload length
+    (rows), a few (copied per length) and many (joined per message), with payloads read
+    out of order from a buffer holding other bytes."""
+    import struct
+
+    from imufdi_cli.mcapio.records import build_message_records
+
+    rng = np.random.default_rng(n_lengths)
+    n = 120
+    lengths = rng.choice(rng.permutation(70)[:n_lengths], n)
+    batch = MessageBatch.from_payloads(
+        rng.integers(0, 3, n),
+        rng.integers(0, 2**62, n),
+        [rng.integers(0, 256, int(k), dtype=np.uint8).tobytes() for k in lengths],
+        publish_time=rng.integers(0, 2**62, n),
+        sequence=rng.integers(0, 2**32, n),
+    )
+    batch = batch.select(rng.permutation(n))
+    batch.data = np.concatenate([np.full(5, 7, np.uint8), batch.data])
+    batch.offset = batch.offset + 5
+    records, starts = build_message_records(batch)
+    expected = [
+        struct.pack(
+            "<BQHIQQ",
+            5,
+            22 + int(batch.length[i]),
+            int(batch.channel_id[i]),
+            int(batch.sequence[i]),
+            int(batch.log_time[i]),
+            int(batch.publish_time[i]),
+        )
+        + batch.payload(i)
+        for i in range(n)
+    ]
+    assert records.dtype == np.uint8 and records.tobytes() == b"".join(expected)
+    assert starts.tolist() == np.cumsum([0] + [len(r) for r in expected[:-1]]).tolist()
+
+
 @pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
 @pytest.mark.parametrize("variable", [False, True])
 def test_mcap_package_reads_our_file(tmp_path, compression: str, variable: bool) -> None:
