@@ -21,12 +21,10 @@ import time
 import numpy as np
 
 from imufdi_cli.mcapio.records import (
-    MESSAGE_FIXED_CONTENT,
-    MESSAGE_HEADER_DTYPE,
     MESSAGE_HEADER_SIZE,
-    OP_MESSAGE,
     MessageBatch,
     build_message_records,
+    message_headers,
 )
 
 
@@ -34,13 +32,7 @@ def per_byte(batch: MessageBatch) -> np.ndarray:
     """The records as the writer built them before session 25 (per-byte index arrays)."""
     n = len(batch)
     lengths = batch.length.astype(np.int64)
-    header = np.empty(n, dtype=MESSAGE_HEADER_DTYPE)
-    header["opcode"] = OP_MESSAGE
-    header["record_length"] = lengths + MESSAGE_FIXED_CONTENT
-    header["channel_id"] = batch.channel_id
-    header["sequence"] = batch.sequence
-    header["log_time"] = batch.log_time.astype(np.uint64)
-    header["publish_time"] = batch.publish_time.astype(np.uint64)
+    header = message_headers(batch)  # unchanged since
     header_bytes = header.view(np.uint8).reshape(n, MESSAGE_HEADER_SIZE)
     sizes = lengths + MESSAGE_HEADER_SIZE
     starts = np.zeros(n, np.int64)

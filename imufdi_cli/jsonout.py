@@ -95,43 +95,11 @@ def _encode(value: Any, digits: int, indent: str, step: str, parts: list[str]) -
         parts.append("null" if rounded is None else float.__repr__(rounded))
     elif isinstance(value, Mapping):
         items = {str(k): v for k, v in value.items()}  # clean's keys (the last value wins)
-        if not items:
-            parts.append("{}")
-            return
-        inner = indent + step
-        separator = "," + inner
-        parts.append("{" + inner)
-        first = True
-        for key, item in items.items():
-            if not first:
-                parts.append(separator)
-            first = False
-            text = _leaf(item, digits)
-            if text is None:
-                parts.append(encode_basestring_ascii(key) + ": ")
-                _encode(item, digits, inner, step, parts)
-            else:
-                parts.append(encode_basestring_ascii(key) + ": " + text)
-        parts.append(indent + "}")
+        entries = [(encode_basestring_ascii(key) + ": ", item) for key, item in items.items()]
+        _encode_container("{", "}", entries, digits, indent, step, parts)
     elif isinstance(value, (list, tuple, set, frozenset)):
         seq = sorted(value) if isinstance(value, (set, frozenset)) else value
-        if not seq:
-            parts.append("[]")
-            return
-        inner = indent + step
-        separator = "," + inner
-        parts.append("[" + inner)
-        first = True
-        for item in seq:
-            if not first:
-                parts.append(separator)
-            first = False
-            text = _leaf(item, digits)
-            if text is None:
-                _encode(item, digits, inner, step, parts)
-            else:
-                parts.append(text)
-        parts.append(indent + "]")
+        _encode_container("[", "]", [("", item) for item in seq], digits, indent, step, parts)
     else:
         tolist = getattr(value, "tolist", None)  # numpy scalars and arrays
         if callable(tolist):
@@ -142,6 +110,36 @@ def _encode(value: Any, digits: int, indent: str, step: str, parts: list[str]) -
             _encode(to_dict(), digits, indent, step, parts)
             return
         raise TypeError(f"cannot write {type(value).__name__} as JSON")
+
+
+def _encode_container(
+    opening: str,
+    closing: str,
+    entries: list[tuple[str, Any]],
+    digits: int,
+    indent: str,
+    step: str,
+    parts: list[str],
+) -> None:
+    """Append an object's or array's JSON text to ``parts``: each entry is the text before
+    its value (``"key": `` in an object, nothing in an array) and the value, one per line
+    at ``indent + step``, as ``json.dumps(..., indent=len(step))`` lays them out."""
+    if not entries:
+        parts.append(opening + closing)
+        return
+    inner = indent + step
+    separator = "," + inner
+    parts.append(opening + inner)
+    for number, (prefix, item) in enumerate(entries):
+        if number:
+            parts.append(separator)
+        text = _leaf(item, digits)
+        if text is None:
+            parts.append(prefix)
+            _encode(item, digits, inner, step, parts)
+        else:
+            parts.append(prefix + text)
+    parts.append(indent + closing)
 
 
 def dumps(value: Any, *, indent: int | None = 2) -> str:

@@ -353,6 +353,19 @@ def channel_record(channel_id: int, schema_id: int, topic: str, encoding: str, m
     )
 
 
+def message_headers(batch: MessageBatch) -> np.ndarray:
+    """The fixed part of each message's record (opcode, record length, channel id,
+    sequence, log and publish times), shape (N,), dtype ``MESSAGE_HEADER_DTYPE``."""
+    header = np.empty(len(batch), dtype=MESSAGE_HEADER_DTYPE)
+    header["opcode"] = OP_MESSAGE
+    header["record_length"] = batch.length.astype(np.int64) + MESSAGE_FIXED_CONTENT
+    header["channel_id"] = batch.channel_id
+    header["sequence"] = batch.sequence
+    header["log_time"] = batch.log_time.astype(np.uint64)
+    header["publish_time"] = batch.publish_time.astype(np.uint64)
+    return header
+
+
 def build_message_records(batch: MessageBatch) -> tuple[np.ndarray, np.ndarray]:
     """Serialise a batch as consecutive Message records.
 
@@ -364,13 +377,7 @@ def build_message_records(batch: MessageBatch) -> tuple[np.ndarray, np.ndarray]:
     """
     n = len(batch)
     lengths = batch.length.astype(np.int64)
-    header = np.empty(n, dtype=MESSAGE_HEADER_DTYPE)
-    header["opcode"] = OP_MESSAGE
-    header["record_length"] = lengths + MESSAGE_FIXED_CONTENT
-    header["channel_id"] = batch.channel_id
-    header["sequence"] = batch.sequence
-    header["log_time"] = batch.log_time.astype(np.uint64)
-    header["publish_time"] = batch.publish_time.astype(np.uint64)
+    header = message_headers(batch)
     header_bytes = header.view(np.uint8).reshape(n, MESSAGE_HEADER_SIZE)
     sizes = lengths + MESSAGE_HEADER_SIZE
     starts = np.zeros(n, np.int64)
