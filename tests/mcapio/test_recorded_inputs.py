@@ -49,7 +49,6 @@ def _gyro(i: int, k: int = 0) -> tuple[float, float, float]:
 def _typestore(headerless: bool = False):
     """The type store of the bags (made once: rosbags compiles a type's serialiser on its
     first use in a store; the tests only read the store)."""
-    store = ros2_imu_typestore()
     if headerless:  # a sensor_msgs/msg/Imu whose definition has no header (seen in real bags)
         store = get_typestore(Stores.EMPTY)
         store.register(
@@ -62,6 +61,7 @@ def _typestore(headerless: bool = False):
         )
         store.register(get_types_from_msg(HEADERLESS_IMU, "sensor_msgs/msg/Imu"))
         return store
+    store = ros2_imu_typestore()
     store.register(get_types_from_msg(VECTORNAV, "custom_interfaces/msg/Vectornav"))
     store.register(get_types_from_msg(TWO_IMUS, "custom_interfaces/msg/StereoImu"))
     store.register(get_types_from_msg("string data\n", "custom_interfaces/msg/Text"))
