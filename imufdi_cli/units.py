@@ -3,8 +3,9 @@
 ``parse_quantity("0.9deg/s", "angular_rate")`` returns ``0.015707963...`` (rad/s).
 Supported grammar: a float, optional white space, then a unit expression made of unit
 symbols joined by ``*`` or ``/`` with optional integer powers (``^2`` or ``2``), e.g.
-``deg/s^2``, ``m/s/s``, ``g/s``, ``rad/s``, ``deg/h``, ``uT``, ``kHz``. A bare number is
-taken as SI for the requested dimension.
+``deg/s^2``, ``m/s/s``, ``g/s``, ``rad/s``, ``deg/h``, ``uT``, ``kHz``, and a count per
+unit of time such as ``1/h`` or ``5/min`` (a frequency). A bare number is taken as SI for
+the requested dimension.
 
 Dimensions are vectors over (m, s, rad, T); radians are kept as a dimension so that an
 angular rate cannot be typed where an acceleration is expected.
@@ -88,6 +89,8 @@ def _parse_unit(expr: str) -> tuple[float, _Dim]:
             continue
         if token == "":
             raise UnitError(f"malformed unit expression {expr!r}")
+        if token == "1" and sign == 1:  # the "1" of "1/h"
+            continue
         match = _FACTOR.match(token)
         if match is None or match.group(1) not in _UNITS:
             name = match.group(1) if match else token
@@ -141,6 +144,8 @@ def parse_quantity(text: str | float | int, dimension: str, *, name: str = "valu
     unit = match.group(2)
     if not unit:
         return value
+    if unit.startswith("/"):  # "1/h", "5/min": a count per unit of time
+        unit = "1" + unit
     factor, dim = _parse_unit(unit)
     if dim != DIMENSIONS[dimension]:
         label = dimension.replace("_", " ")
@@ -151,7 +156,7 @@ def parse_quantity(text: str | float | int, dimension: str, *, name: str = "valu
 
 _EXAMPLES: Final[dict[str, str]] = {
     "time": "2.5s, 500ms",
-    "frequency": "100Hz, 1kHz",
+    "frequency": "100Hz, 1kHz, 1/h, 5/min",
     "angle": "30deg, 0.5rad",
     "angular_rate": "0.9deg/s, 0.01rad/s",
     "angular_acceleration": "10deg/s^2, 3e-3rad/s^2",

@@ -379,6 +379,18 @@ their own ``types`` Param with another default or check, under the same name."""
 ALPHA = Param("float", 0.01, "false-alarm level of the test", low=0.0, high=0.5, low_open=True)
 """The common ``alpha`` parameter (0 < alpha <= 0.5)."""
 
+FALSE_ALARMS = Param(
+    "frequency",
+    0.0,
+    "false-alarm budget: expected false alarm episodes per unit of fault-free time on each"
+    " status channel, e.g. 1/h (0: the per-sample test at alpha)",
+    low=0.0,
+)
+"""The common ``false_alarms`` parameter (``imufdi detect --false-alarms RATE``), in SI
+(episodes per second; ``"1/h"`` is 1/3600). 0 keeps the per-sample test at ``alpha``; a
+positive budget makes the detector decide so that a fault-free log raises at most that many
+false alarm episodes per unit of time on each of its status channels (docs/guide.md)."""
+
 
 def calibration_stats(values: np.ndarray, min_samples: int = 10) -> tuple[np.ndarray, np.ndarray]:
     """Per-sensor mean and standard deviation of a fault-free window.
