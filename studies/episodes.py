@@ -2,9 +2,9 @@
 
 Usage::
 
-    python benchmarks/bench_episodes.py --preset paper-table4 --seeds 9600:9620 \
+    python studies/episodes.py --preset paper-table4 --seeds 9600:9620 \
         --detectors glt,pca-parity,bank,noise-glr [--faults 3] [--models step,drift] [--timing]
-    python benchmarks/bench_episodes.py --preset paper-table4 --seeds 14000:14002 \
+    python studies/episodes.py --preset paper-table4 --seeds 14000:14002 \
         --detectors noise-glr --far-s 1800     # fault-free episodes per hour
 
 For each seed a log of ``10 + 10 K`` s of the preset is simulated, and for each fault model

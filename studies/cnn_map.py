@@ -1,7 +1,7 @@
 """cnn-map on wearable12: speed (training + detection against a 60 s budget and real time)
 and the 20-seed comparison with noise-glr and GLT quoted in docs/algorithms/cnn-map.md.
 
-Run: ``python benchmarks/bench_cnn_map.py [--seeds 20] [--part all|speed|table]``.
+Run: ``python studies/cnn_map.py [--seeds 20] [--part all|speed|table]``.
 Fault ``noise:imu0.accel.x,at=12s,until=18s,factor=3``; calibration 0-10 s (cnn-map needs
 more fault-free data than 2 s to train; noise-glr and GLT are run with 0-2 s and 0-10 s).
 

@@ -4,8 +4,8 @@ bank, cnn-map; glt in the glt-bank part).
 The tables in docs/algorithms/{noise-glr,pca-parity,bank,cnn-map}.md come from campaign
 specs, one command each::
 
-    python benchmarks/bench_levels.py --spec docs/campaigns/levels.toml -o results/levels --jobs 2
-    python benchmarks/bench_levels.py --spec docs/campaigns/levels-cnn-map.toml -o results/levels-cnn-map --jobs 2
+    python studies/levels.py --spec docs/campaigns/levels.toml -o results/levels --jobs 2
+    python studies/levels.py --spec docs/campaigns/levels-cnn-map.toml -o results/levels-cnn-map --jobs 2
 
 ``--spec`` runs the campaign (``--resume``: finished runs are kept) and prints, from its
 ``runs.csv``, the fault-free levels (mean FAR / alpha, worst seed / alpha, the issue's
@@ -323,7 +323,7 @@ def bank_two_faults(seeds: list[int]) -> None:
     Read through the Python API: the filtered residual of every gyro is
     ``BankDetector.last_details.gyro_residuals``, read here where that gyro is in the
     isolated set. (The written status now carries each isolated sensor's amplitude too,
-    FdiStatus ``amplitudes``; ``benchmarks/bank_amplitudes.py`` measures it from the file.)
+    FdiStatus ``amplitudes``; ``studies/bank_amplitudes.py`` measures it from the file.)
     """
     print("\n## bank (marg): two simultaneous gyro faults from 5 s, calibration 0-2 s")
     print(

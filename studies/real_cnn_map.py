@@ -9,11 +9,11 @@ accelerometer noise growths injected at rest (x3 and x10 of a 0.02 m/s^2 nominal
 each in orientations 5 and 13, the default mode only). Clipped samples are not scored.
 
 Needs the ingested recording and the chip calibration of another one, as
-``benchmarks/real_arrays.py`` leaves them::
+``studies/real_arrays.py`` leaves them::
 
-    python benchmarks/real_arrays.py /work/data/mimu4444 --test exp_2 --out DIR --runs 3 \
+    python studies/real_arrays.py /work/data/mimu4444 --test exp_2 --out DIR --runs 3 \
         --detectors glt --rates-only
-    python benchmarks/real_cnn_map.py DIR [--test exp_2] [--train exp_1] [--calibrate 520 560]
+    python studies/real_cnn_map.py DIR [--test exp_2] [--train exp_1] [--calibrate 520 560]
 
 Prints a Markdown table and writes ``cnn-map-<test>.json`` in DIR.
 """

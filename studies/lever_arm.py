@@ -9,7 +9,7 @@ without it (glt ``lever_arm=false``; bank with its accelerometer design swapped 
 for the measurement). Then a 3x noise growth on imu0.accel.x (the preset's fault,
 12-18 s): alarm rate inside it (per-sample tests are not built for noise growth).
 
-    python benchmarks/lever_arm.py --seeds 7100-7119 [--alpha 0.01]
+    python studies/lever_arm.py --seeds 7100-7119 [--alpha 0.01]
 
 Seeds 100-109 were used while developing; report figures from seeds never used before.
 Prints a Markdown table (mean and worst seed) and the load average.
