@@ -127,8 +127,8 @@ def cores_available(processes: int, seconds: float = 5.0) -> float:
 
 
 def pool_start(spec: Path) -> None:
-    """Start and stop a 2-worker pool in this process, forked and spawned (the method
-    before issue 20), after loading the spec as the command does: wall and CPU."""
+    """Start and stop a 2-worker pool in this process, forked and spawned (the former
+    method), after loading the spec as the command does: wall and CPU."""
     from imufdi_cli.campaign import load_spec
     from imufdi_cli.campaign.executors import LocalExecutor
 

@@ -1,5 +1,5 @@
 """Each simultaneous fault's amplitude, through the tool: ``imufdi simulate``, ``inject``,
-``detect -d bank``, then ``imufdi report --json`` (issue 16, bank target: every
+``detect -d bank``, then ``imufdi report --json`` (bank's target: every
 simultaneous fault gets its amplitude within 5 %, measured from the written file).
 
 Two scenarios, per seed:

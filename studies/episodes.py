@@ -56,7 +56,7 @@ FAULTS = {
     "noise": "noise:{s},at={at}s,duration=4s,factor=3",
     "stuck": "stuck:{s},at={at}s,duration=4s",
     "spikes": "spikes:{s},at={at}s,duration=4s,rate=5Hz,amp=3deg/s",
-    # not in the reference set (not run unless --models names it): checks that a
+    # not in the reference set of fault models (not run unless --models names it): checks that a
     # genuine scale-factor fault is still classed as scale
     "scale": "scale:{s},at={at}s,duration=4s,factor=1.01",
 }

@@ -1,4 +1,4 @@
-"""Issue 22's targets per fault model, pooled over presets and detectors, from episode dumps.
+"""The episode targets (docs/episodes.md) per fault model, pooled over presets and detectors, from episode dumps.
 
 Usage::
 
@@ -12,7 +12,7 @@ prints, for each fault model of the reference set:
 - coverage: the share of the sized episodes whose 90 % interval covers the injected size
   (target 85-95 %), with its Clopper-Pearson 95 % interval;
 
-first pooled over every preset and detector (the issue's "per model"), then per preset and
+first pooled over every preset and detector (the targets' "per model"), then per preset and
 per detector, then per (preset, detector, model) cell. For the cells it also prints how
 many lie outside the 85-95 % band and how many a calibrated 90 % interval would leave out
 by chance with the same cell sizes (exact binomial sums, cells taken as independent), so a

@@ -2,7 +2,7 @@
 
 wearable12 (12 co-aligned IMUs on a 4 x 3 grid, 3 cm pitch, swinging 30 cm below a pivot)
 has lever arms of up to 5 cm between accelerometers; without a model for them glt's
-accelerometer test alarms on the swing (issue 16: 21-28 alpha). For every seed: simulate
+accelerometer test alarms on the swing (21-28 alpha). For every seed: simulate
 the preset without fault, calibrate glt on 0-10 s, and count alarms per sensor type after
 the calibration window (out of sample), with the lever-arm model (detectors/rigid.py) and
 without it (glt ``lever_arm=false``; bank with its accelerometer design swapped back to H

@@ -1,7 +1,7 @@
 """Figures of the noise-glr and pca-parity detectors on the reference scenarios, and speed.
 
 Run: ``python studies/noise_glr.py [--seeds 20] [--first-seed 7000] [--part ...]``;
-``--part levels`` gives noise-glr's fault-free levels (issue 16) and its bias-fault rows,
+``--part levels`` gives noise-glr's fault-free levels and its bias-fault rows,
 ``--part noise`` its power against noise growth, ``--part real --train A.mcap --test B.mcap``
 its levels and power on two MIMU4444 recordings (ingested by studies/real_arrays.py),
 with and without the healthy noise spread that ``calibrate`` learns on ``--train``.

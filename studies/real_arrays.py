@@ -1,4 +1,4 @@
-"""Measure issue 17's targets on the MIMU4444 recordings (docs/real-arrays.md).
+"""Measure the real-array targets on the MIMU4444 recordings (docs/real-arrays.md).
 
 Calibrate on one recording (``--train``, default exp_1), apply to another (``--test``,
 default exp_2) with only a 10 s bias calibration at its start, and measure out of sample:

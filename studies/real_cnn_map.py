@@ -1,6 +1,6 @@
 """cnn-map on a real MIMU4444 recording, calibrated on its hand motion (docs/algorithms/cnn-map.md).
 
-The mapping needs a calibration window with motion (issue 16); the MIMU4444 recordings
+The mapping needs a calibration window with motion; the MIMU4444 recordings
 move only after their 20 static orientations. So cnn-map is calibrated on a motion
 window (default 520-560 s of exp_2) and its accelerometer alarm rate is measured out of
 that window: on each static orientation (found by ``calibrate``'s ``find_static``, all

@@ -169,8 +169,8 @@ def test_output_does_not_depend_on_block_cuts(combine):
     ],
 )
 def test_causal_rows_before_the_onset_do_not_depend_on_what_follows(onset):
-    """Rows decided before the onset are bit-identical whatever follows (the issue's
-    0.3 vs 1.5 deg/s case), wherever the onset falls on the hop grid."""
+    """Rows decided before the onset are bit-identical whatever follows (a 0.3
+    against a 1.5 deg/s step), wherever the onset falls on the hop grid."""
     array = coaligned(6)
     base = synthetic_block()
     assert base.gyro is not None
