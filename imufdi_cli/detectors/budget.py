@@ -28,6 +28,7 @@ from imufdi_cli.errors import DetectorConfigError
 from imufdi_cli.maths.sequential import (
     CusumBank,
     CusumDesign,
+    LeakModel,
     average_run_length,
     budget_threshold,
     long_run_factor,
@@ -38,6 +39,11 @@ from imufdi_cli.maths.sequential import (
 REFERENCE_TAU_S = 60.0
 #: Sensors whose parity energy P_ii is below this carry no evidence (not testable).
 MIN_ENERGY = 1e-9
+#: Prior standard deviation of a motion-leak coefficient (z units per regressor unit, the
+#: regressors being the body-frame estimate in units of the sensors' rms sigma): about the
+#: relative scale-factor plus misalignment error of a sensor, 2 %
+#: (:class:`MotionRegressors`).
+LEAK_PRIOR = 0.02
 #: The threshold is set for this share of the budget: the union bound is close to the
 #: rate for white Gaussian evidence (0.9 of it measured), and what the model knows only
 #: approximately -- each log's own sigma errors, outliers, the correlated noise and wander
@@ -50,7 +56,194 @@ def reference_tau(track_bias: float | None) -> float:
     return REFERENCE_TAU_S if track_bias is None else float(track_bias)
 
 
-class ParityBudget:
+class MotionRegressors:
+    """The motion regressors of the leak model: the body-frame estimate ``x = H^+ m`` of a
+    sensor type (first three components: the rate or the specific force at the reference
+    point), centred on the calibration window's mean, in units of the sensors' rms sigma.
+
+    A relative scale or misalignment error s of sensor i leaks ``s h_i^T x`` into its
+    measurement, about ``s |x| / sigma`` standard deviations: in these units a leak
+    coefficient is about s (:data:`LEAK_PRIOR`).
+
+    Parameters
+    ----------
+    design : ndarray, shape (n, q)
+        H (lever-arm columns after the first three).
+    sigma : ndarray, shape (n,)
+        Per-sensor noise sigma, SI.
+    """
+
+    def __init__(self, design: np.ndarray, sigma: np.ndarray) -> None:
+        self.estimator_t = np.linalg.pinv(np.asarray(design, float))[:3].T.copy()  # (n, 3)
+        self.unit = float(np.sqrt(np.mean(np.asarray(sigma, float) ** 2))) or 1.0
+        self.centre = np.zeros(3)
+
+    def fit(self, measurements: np.ndarray) -> np.ndarray:
+        """Centre on the calibration window's rows (N, n); returns their regressors."""
+        motion = np.asarray(measurements, float) @ self.estimator_t
+        self.centre = motion.mean(axis=0)
+        return (motion - self.centre) / self.unit
+
+    def __call__(self, measurements: np.ndarray) -> np.ndarray:
+        """Regressors (N, 3) of rows of measurements (N, n)."""
+        return (np.asarray(measurements, float) @ self.estimator_t - self.centre) / self.unit
+
+
+class EvidenceBudget:
+    """Budgeted sequential decisions over one status channel's standardized evidence.
+
+    What every detector shares under a budget: the detector computes, per sample and
+    sensor, signed evidence z (N(0, 1) without fault, shifted by ``g_i f`` by a step f on
+    sensor i); this class sets the bank's threshold for :data:`BUDGET_SHARE` of the budget
+    from the calibration window's evidence (its long-run variance factor and outlier
+    share), runs the bank, and reports its decisions as a DetectionBlock.
+
+    Parameters
+    ----------
+    sensitivity : ndarray, shape (n,)
+        ``g_i``, z units per SI unit of a step on sensor i (0: sensor not testable).
+    isolable : ndarray, shape (n,), bool
+    rate_hz : float
+    budget_per_s : float
+        False alarm episodes per second of fault-free data allowed on this channel.
+    tau_s : float
+        Time constant of the slow bias reference (0: none).
+    design : CusumDesign, optional
+    scale_variance : float, optional
+        Variance of ``sigma_hat^2 / sigma^2`` of the evidence's scale when it was estimated
+        (None: known); the threshold allows for it
+        (:func:`~imufdi_cli.maths.sequential.false_alarm_rate`).
+    calibration_samples : int, optional
+        Samples the biases were estimated from (None: known biases).
+    hypotheses_sensors : int, optional
+        Sensors counted by the union bound (default n).
+    """
+
+    def __init__(
+        self,
+        sensitivity: np.ndarray,
+        isolable: np.ndarray,
+        rate_hz: float,
+        budget_per_s: float,
+        tau_s: float,
+        design: CusumDesign | None = None,
+        *,
+        scale_variance: float | None = None,
+        calibration_samples: int | None = None,
+        hypotheses_sensors: int | None = None,
+    ) -> None:
+        if not rate_hz > 0:
+            raise DetectorConfigError("a false-alarm budget needs the array's sample rate")
+        per_sample = BUDGET_SHARE * budget_per_s / rate_hz
+        if not 0.0 < per_sample < 0.5:
+            raise DetectorConfigError(
+                f"false-alarm budget {budget_per_s * 3600:g}/h is not below half the sample"
+                f" rate ({rate_hz:g} Hz); give a rate such as 1/h"
+            )
+        self.design = design or CusumDesign(tau_s=tau_s)
+        self.rate_hz = float(rate_hz)
+        self.budget_per_s = float(budget_per_s)
+        self.sensitivity = np.asarray(sensitivity, float)
+        self.isolable = np.asarray(isolable, bool) & (self.sensitivity > 0)
+        self.n = int(self.sensitivity.size)
+        self.hypotheses_sensors = self.n if hypotheses_sensors is None else int(hypotheses_sensors)
+        self.scale_variance = float(scale_variance or 0.0)
+        self.calibration_samples = math.inf if calibration_samples is None else calibration_samples
+        self.per_sample = per_sample
+        self.contamination = 0.0
+        self.threshold = math.nan  # set by fit()
+        self.bank: CusumBank | None = None
+
+    @property
+    def testable(self) -> np.ndarray:
+        """(n,) bool: sensors with evidence."""
+        return self.sensitivity > 0
+
+    def fit(self, z: np.ndarray, regressors: np.ndarray | None = None) -> None:
+        """Start the bank from the calibration window's evidence ``z`` (N, n): its
+        long-run variance factor, outlier share and the threshold. With ``regressors``
+        (N, r) (the window's motion, centred, in the units :meth:`decide` will get), the
+        motion leak is fitted on them under the prior :data:`LEAK_PRIOR` first
+        (:class:`~imufdi_cli.maths.sequential.LeakModel`) and learnt online after."""
+        z = np.asarray(z, float)
+        leak: LeakModel | None = None
+        if regressors is not None:
+            regressors = np.asarray(regressors, float)
+            prior = np.eye(regressors.shape[1]) / LEAK_PRIOR**2
+            leak, z = LeakModel.fit(z, regressors, prior)
+        z = z[:, self.testable]
+        kappa = long_run_factor(z, self.design.block)
+        self.contamination = outlier_share(z / math.sqrt(kappa))
+        self.threshold = budget_threshold(
+            self.design,
+            self.hypotheses_sensors,
+            self.per_sample,
+            self.scale_variance,
+            self.contamination,
+        )
+        self.bank = CusumBank(
+            self.design,
+            self.threshold,
+            self.sensitivity,
+            self.isolable,
+            self.rate_hz,
+            kappa=kappa,
+            calibration_samples=self.calibration_samples,
+            leak=leak,
+        )
+
+    def decide(self, z: np.ndarray, regressors: np.ndarray | None = None) -> DetectionBlock:
+        """Decisions on evidence ``z`` (N, n) (and the rows' regressors with a leak model)."""
+        if self.bank is None:
+            raise DetectorConfigError("call fit() before process()")
+        decisions = self.bank.process(z, regressors)
+        return DetectionBlock(
+            statistic=decisions.statistic,
+            threshold=decisions.threshold,
+            alarm=decisions.alarm,
+            isolated=decisions.isolated,
+            amplitude=decisions.amplitude,
+            scores=decisions.scores,
+        )
+
+    def metadata(self) -> dict[str, Any]:
+        """The budget, the threshold and what sets it; per sensor the sensitivity (z
+        units per SI unit of a step: the reference delays need it)."""
+        bank = self.bank
+        run_lengths = (
+            [average_run_length(mu, self.design.clip, self.threshold) for mu in self.design.shifts]
+            if bank is not None
+            else []
+        )
+        meta: dict[str, Any] = {
+            "false_alarms_per_hour": self.budget_per_s * 3600.0,
+            "threshold": self.threshold,
+            "design_shifts": list(self.design.shifts),
+            "clip": self.design.clip,
+            "scale_variance": self.scale_variance,
+            "outlier_share": self.contamination,
+            "reference_tau_s": self.design.tau_s,
+            "long_run_factor": None if bank is None else bank.kappa,
+            "hypotheses": 2 * self.hypotheses_sensors * len(self.design.shifts),
+            "run_length_samples": run_lengths,
+            "sensitivity": (self.sensitivity if bank is None else bank.sensitivity).tolist(),
+            "episodes": 0 if bank is None else bank.episodes,
+        }
+        if bank is not None and bank.leak is not None:
+            assert bank.slopes is not None and bank.inverse is not None
+            meta["leak"] = {
+                "regressors": bank.leak.regressors,
+                "tau_s": self.design.leak_tau_s,
+                "allowance_scale": bank.allowance_scale,
+                # per regressor unit, in z units: fitted in calibration, then learnt online
+                "calibration_coefficients": bank.leak.coefficients.tolist(),
+                "online_coefficients": (bank.slopes * math.sqrt(bank.kappa)).tolist(),
+                "coefficient_sd": np.sqrt(np.diag(bank.inverse)).tolist(),
+            }
+        return meta
+
+
+class ParityBudget(EvidenceBudget):
     """Budgeted sequential decisions over one sensor type's parity residual.
 
     Parameters
@@ -86,33 +279,23 @@ class ParityBudget:
         scale_variance: float | None = None,
         calibration_samples: int | None = None,
     ) -> None:
-        if not rate_hz > 0:
-            raise DetectorConfigError("a false-alarm budget needs the array's sample rate")
-        per_sample = BUDGET_SHARE * budget_per_s / rate_hz
-        if not 0.0 < per_sample < 0.5:
-            raise DetectorConfigError(
-                f"false-alarm budget {budget_per_s * 3600:g}/h is not below half the sample"
-                f" rate ({rate_hz:g} Hz); give a rate such as 1/h"
-            )
-        self.design = design or CusumDesign(tau_s=tau_s)
-        self.rate_hz = float(rate_hz)
-        self.budget_per_s = float(budget_per_s)
         h_white = np.asarray(h_white, float)
-        self.estimator_t = np.linalg.pinv(h_white).T.copy()  # (n, q): x_hat = m_w @ it
-        self.h_t = h_white.T.copy()
         energy = 1.0 - np.einsum("ij,ji->i", h_white, np.linalg.pinv(h_white))
         testable = energy > MIN_ENERGY
+        super().__init__(
+            np.where(testable, np.sqrt(np.maximum(energy, 0.0)), 0.0) / sigma,
+            np.asarray(isolable, bool) & testable,
+            rate_hz,
+            budget_per_s,
+            tau_s,
+            design,
+            scale_variance=scale_variance,
+            calibration_samples=calibration_samples,
+        )
+        self.estimator_t = np.linalg.pinv(h_white).T.copy()  # (n, q): x_hat = m_w @ it
+        self.h_t = h_white.T.copy()
         self.z_scale = np.where(testable, 1.0 / np.sqrt(np.where(testable, energy, 1.0)), 0.0)
-        self.sensitivity = np.where(testable, np.sqrt(np.maximum(energy, 0.0)), 0.0) / sigma
-        self.isolable = np.asarray(isolable, bool) & testable
         self.residual_sd = np.sqrt(np.maximum(energy, 0.0)) * sigma  # SI, per unit z
-        self.n = int(h_white.shape[0])
-        self.scale_variance = float(scale_variance or 0.0)
-        self.calibration_samples = math.inf if calibration_samples is None else calibration_samples
-        self.per_sample = per_sample
-        self.contamination = 0.0
-        self.threshold = math.nan  # set by fit()
-        self.bank: CusumBank | None = None
 
     def evidence(self, white: np.ndarray, factors: np.ndarray | None = None) -> np.ndarray:
         """z (N, n) of whitened, bias-free measurements ``white`` (N, n); ``factors`` (N,):
@@ -123,63 +306,24 @@ class ParityBudget:
             residual /= np.sqrt(factors)[:, None]
         return residual
 
-    def fit(self, white: np.ndarray) -> None:
+    def fit(self, white: np.ndarray, regressors: np.ndarray | None = None) -> None:  # type: ignore[override]
         """Start the bank, with the long-run variance factor of the calibration window's
         evidence (``white``: its whitened, bias-free measurements, (N, n))."""
-        z = self.evidence(white)[:, self.z_scale > 0]
-        kappa = long_run_factor(z, self.design.block)
-        self.contamination = outlier_share(z / math.sqrt(kappa))
-        self.threshold = budget_threshold(
-            self.design, self.n, self.per_sample, self.scale_variance, self.contamination
-        )
-        self.bank = CusumBank(
-            self.design,
-            self.threshold,
-            self.sensitivity,
-            self.isolable,
-            self.rate_hz,
-            kappa=kappa,
-            calibration_samples=self.calibration_samples,
-        )
+        super().fit(self.evidence(white), regressors)
 
     def process(self, white: np.ndarray, factors: np.ndarray | None = None) -> DetectionBlock:
         """Decisions on whitened, bias-free measurements (N, n)."""
         if self.bank is None:
             raise DetectorConfigError("call fit() before process()")
-        decisions = self.bank.process(self.evidence(white, factors))
-        return DetectionBlock(
-            statistic=decisions.statistic,
-            threshold=decisions.threshold,
-            alarm=decisions.alarm,
-            isolated=decisions.isolated,
-            amplitude=decisions.amplitude,
-            scores=decisions.scores,
-        )
+        return self.decide(self.evidence(white, factors))
 
     def metadata(self) -> dict[str, Any]:
-        """The budget, the threshold and what sets it; per sensor the sensitivity (z
-        units per SI unit of a step: the reference delays need it)."""
+        meta = super().metadata()
         bank = self.bank
-        run_lengths = (
-            [average_run_length(mu, self.design.clip, self.threshold) for mu in self.design.shifts]
-            if bank is not None
-            else []
-        )
-        return {
-            "false_alarms_per_hour": self.budget_per_s * 3600.0,
-            "threshold": self.threshold,
-            "design_shifts": list(self.design.shifts),
-            "clip": self.design.clip,
-            "scale_variance": self.scale_variance,
-            "outlier_share": self.contamination,
-            "reference_tau_s": self.design.tau_s,
-            "long_run_factor": None if bank is None else bank.kappa,
-            "hypotheses": 2 * self.n * len(self.design.shifts),
-            "run_length_samples": run_lengths,
-            "sensitivity": (self.sensitivity if bank is None else bank.sensitivity).tolist(),
-            "episodes": 0 if bank is None else bank.episodes,
-            # the reference's offsets, as residuals in SI (what the bank removed at the end)
-            "reference_residual": []
+        # the reference's offsets, as residuals in SI (what the bank removed at the end)
+        meta["reference_residual"] = (
+            []
             if bank is None
-            else (bank.reference * math.sqrt(bank.kappa) * self.residual_sd).tolist(),
-        }
+            else (bank.reference * math.sqrt(bank.kappa) * self.residual_sd).tolist()
+        )
+        return meta

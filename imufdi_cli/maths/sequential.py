@@ -28,10 +28,14 @@ The clip (in the spirit of Huber's robust tests, 1965) bounds what one outlier c
 (``mu_d c - mu_d^2 / 2``), so that a decision needs several samples of evidence and an
 isolated spike raises no alarm; for Gaussian noise it costs almost nothing (``c = 3.5``
 is 2.5 standard deviations above the largest design's ``mu / 2``). An alarm episode starts at the first sample where any
-``S > h`` (2 n D hypotheses); its isolated sensor is the sensor of the largest ``S``.
+``S > h`` (2 n D hypotheses); its isolated sensor is the one with the largest
+``|sum of z'|`` since the episode's estimated onset (the generalized likelihood ratio of a
+step on that sensor from there: a fault beyond the clip gives every sensor whose evidence
+it moves past c the same increments, so the largest ``S`` would be a tie).
 While it lasts, a second CUSUM tests "the fault has ended" on the sensor and sign that
 raised it, with the increments ``-l_t`` of a design shift equal to the fault's mean
-evidence since the onset; when that reaches ``h`` the episode ends and every statistic
+evidence since the onset (at most the clip c, so that a fault larger than the clip is
+not released while it lasts); when that reaches ``h`` the episode ends and every statistic
 restarts from 0 (a renewal: each false episode costs one average run length).
 
 **The threshold.** ``h`` is set so that the expected number of false alarm episodes per
@@ -49,6 +53,24 @@ before that only ``delay / tau`` of it), and subtracted causally: ``z'_t = z_t -
 A step of size delta is absorbed by ``delta (1 - exp(-t / tau))`` until detected, a
 drift of rate k leaves a lag ``k tau``: a drift slower than the wander it must follow is
 indistinguishable from it.
+
+**Motion leak (optional regressors).** Scale-factor and misalignment errors make the
+evidence follow the motion, ``z_t = ... + B^T x_t`` with x_t the body-frame motion (a
+detector's regressors, r of them, centred on the calibration window's mean), a bias that
+the slow reference cannot follow and that a CUSUM accumulates. With regressors the
+reference is ``b + B^T x_t``: B starts from the calibration fit (:class:`LeakModel`, the
+posterior mean under the prior) and is refined online by
+recursive least squares on the same clipped innovations (the data Gram W forgotten with
+the time constant ``leak_tau``, a prior precision Lambda_0 that is never forgotten, e.g.
+"scale errors below a few percent"), and frozen in alarms like b. Until B is known the
+leak error ``e_t = (B - B_hat)^T x_t`` has standard deviation ``sqrt(x_t^T (Lambda_0 +
+W)^-1 x_t)`` (the regression's prediction variance) and is a persistent bias, not noise:
+each hypothesis' evidence is moved toward "no fault" by the allowance
+``a_t = c sqrt(x_t^T (Lambda_0 + W)^-1 x_t)`` before (1) (``s z'_t - a_t``), with
+``c^2`` the ``1 - level / n`` quantile of chi2(r) (Scheffe: the bound holds for every x
+at once, and for the n sensors by Bonferroni), so that the leak error cannot raise the
+false-alarm rate while the motion is new; a_t falls as 1 / sqrt(motion seen) once the
+motion has been seen, and is about 0 where the regressors stay near the calibration's.
 
 **Correlated noise.** A CUSUM sums its evidence, so what matters is the variance of sums
 (the long-run variance), not of single samples: ``kappa`` = (variance of means of L
@@ -93,6 +115,12 @@ class CusumDesign:
         Clip of the reference's innovations, z units.
     block : int
         L of :func:`long_run_factor`.
+    leak_tau_s : float
+        With regressors (:class:`LeakModel`): time constant of the forgetting of the leak
+        regression's data, seconds (0: never forgotten).
+    allowance_level : float
+        With regressors: the leak allowance holds for all sensors and motions with
+        probability ``1 - allowance_level``.
     """
 
     shifts: tuple[float, ...] = (1.0, 3.0)
@@ -100,6 +128,8 @@ class CusumDesign:
     tau_s: float = 60.0
     gate: float = 3.0
     block: int = 10
+    leak_tau_s: float = 600.0
+    allowance_level: float = 0.01
 
 
 # --- threshold -------------------------------------------------------------------------
@@ -349,6 +379,63 @@ class Decisions:
 
 
 @dataclass
+class LeakModel:
+    """The motion leak of the evidence, as a regression on r regressors (module docstring,
+    "Motion leak").
+
+    Attributes
+    ----------
+    prior : ndarray (r, r)
+        Prior precision Lambda_0 of the leak coefficients, in evidence units (unit-variance
+        z) per regressor unit: never forgotten.
+    gram : ndarray (r, r)
+        Gram matrix W of the calibration window's regressors (sum of x x^T over its rows),
+        the data the coefficients were fitted on.
+    coefficients : ndarray (r, n)
+        B fitted on the calibration window (z units per regressor unit): the bank's
+        reference starts from it (the evidence handed in carries the leak).
+    """
+
+    prior: np.ndarray
+    gram: np.ndarray
+    coefficients: np.ndarray
+
+    @property
+    def regressors(self) -> int:
+        return int(self.prior.shape[0])
+
+    @classmethod
+    def fit(cls, z: np.ndarray, x: np.ndarray, prior: np.ndarray) -> tuple[LeakModel, np.ndarray]:
+        """The posterior-mean fit of a calibration window's evidence ``z`` (N, n) on its
+        regressors ``x`` (N, r) (both centred by the caller) under the prior precision
+        ``prior`` (r, r), and the evidence without it, ``z - x B`` (N, n)."""
+        z = np.asarray(z, float)
+        x = np.asarray(x, float)
+        gram = x.T @ x
+        coefficients = np.linalg.solve(gram + prior, x.T @ z)
+        return cls(np.asarray(prior, float), gram, coefficients), z - x @ coefficients
+
+
+@dataclass
+class _Reference:
+    """The slow reference of every column: offsets b (n,) and, with regressors, leak
+    coefficients B (r, n) with their data Gram W and ``(Lambda_0 + W)^-1``."""
+
+    offset: np.ndarray
+    slopes: np.ndarray | None = None
+    gram: np.ndarray | None = None
+    inverse: np.ndarray | None = None
+
+    def copy(self) -> _Reference:
+        return _Reference(
+            self.offset.copy(),
+            None if self.slopes is None else self.slopes.copy(),
+            None if self.gram is None else self.gram.copy(),
+            None if self.inverse is None else self.inverse.copy(),
+        )
+
+
+@dataclass
 class _Episode:
     shift: int  # design index of the hypothesis that raised it
     sign: float
@@ -386,6 +473,10 @@ class CusumBank:
         falls to ``1 / (tau f_s)``, so that the bias estimate's own error (``1 / sqrt(N)``
         of a standard deviation, which a CUSUM of small design shift would accumulate) is
         learnt away in the first seconds.
+    leak : LeakModel, optional
+        The evidence's motion leak (module docstring): :meth:`process` then takes the
+        regressors of every row and the reference follows ``b + B^T x``; None: no
+        regressors (the reference is b alone).
     """
 
     #: Rows run through the bank at once (an alarm wastes at most this much work).
@@ -401,6 +492,7 @@ class CusumBank:
         kappa: float = 1.0,
         history: int = 512,
         calibration_samples: float = math.inf,
+        leak: LeakModel | None = None,
     ) -> None:
         self.design = design
         self.calibration_samples = float(calibration_samples)
@@ -418,7 +510,40 @@ class CusumBank:
         self.stride = max(1, min(round(rate_hz), round(design.tau_s * rate_hz / 10)))
         self.reference = np.zeros(n)
         self.pending = np.zeros(n)  # clipped innovations of the current sub-block, summed
+        self.leak = leak
+        self.slopes: np.ndarray | None = None  # B (r, n), scaled evidence units
+        self.gram: np.ndarray | None = None  # W (r, r), forgotten with leak_tau
+        self.inverse: np.ndarray | None = None  # (Lambda_0 + W)^-1
+        self.prior = np.zeros((0, 0))  # Lambda_0 in the bank's units
+        self.allowance_scale = 0.0  # c of the allowance
+        self.leak_memory = 1.0  # forgetting of W per sub-block
+        self.pending_cross = np.zeros((0, n))  # sum of x u^T over the current sub-block
+        self.pending_gram = np.zeros((0, 0))  # sum of x x^T over it
+        if leak is not None:
+            r = leak.regressors
+            if leak.coefficients.shape != (r, n) or leak.gram.shape != (r, r):
+                raise ValueError(f"leak model must be ({r}, {n}) coefficients, ({r}, {r}) Gram")
+            # the bank works on z / sqrt(kappa): the coefficients and the prior's standard
+            # deviations scale with it; the error variance of a coefficient fitted on
+            # regressors slower than the noise's correlation is then (Lambda_0 + W)^-1 in
+            # those units (the evidence's long-run variance is 1 there)
+            self.slopes = np.asarray(leak.coefficients, float) * self.inverse_scale
+            self.gram = np.asarray(leak.gram, float).copy()
+            self.prior = np.asarray(leak.prior, float) * self.kappa
+            self.inverse = np.linalg.inv(self.prior + self.gram)
+            from imufdi_cli.quantiles import chi2
+
+            level = design.allowance_level / max(n, 1)
+            self.allowance_scale = math.sqrt(float(chi2.ppf(1.0 - level, r)))
+            self.leak_memory = (
+                1.0
+                if design.leak_tau_s <= 0
+                else math.exp(-self.stride / (design.leak_tau_s * rate_hz))
+            )
+            self.pending_cross = np.zeros((r, n))
+            self.pending_gram = np.zeros((r, r))
         self.history = np.zeros((0, n))
+        self.history_allowance = np.zeros(0)  # the allowance of those rows (regressors)
         self.history_length = int(history)
         self.samples = 0  # rows handled so far
         self.episode: _Episode | None = None
@@ -426,56 +551,115 @@ class CusumBank:
 
     # --- reference ---------------------------------------------------------------------
 
+    def _state(self) -> _Reference:
+        return _Reference(self.reference, self.slopes, self.gram, self.inverse).copy()
+
     def _referenced(
-        self, z: np.ndarray, frozen: bool
-    ) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
-        """``z'_t = z_t - b_t`` for the rows of ``z`` (the next rows of the stream).
+        self, z: np.ndarray, frozen: bool, x: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None, list[tuple[int, _Reference]]]:
+        """``z'_t = z_t - b_t`` (``- B_t^T x_t`` with regressors) for the rows of ``z``
+        (the next rows of the stream), and with regressors the allowance a_t (N,).
 
         ``b`` is constant over sub-blocks of ``stride`` samples (aligned on the sample
         count) and moves at the end of each by a gain times the sum of the sub-block's
         innovations clipped at ``+-gate``: a running mean at first, then an exponential
-        average of time constant tau (one sub-block late); frozen, it stays. Advances ``reference`` and ``pending`` over
+        average of time constant tau (one sub-block late); B moves at the same ends by the
+        recursive least-squares step ``(Lambda_0 + W)^-1 sum x u^T`` of those innovations
+        u, W forgotten with ``leak_tau``. Frozen, both stay. Advances the reference over
         all the rows and returns, for a rewind, the local row from which each reference
         value held, with that value."""
         n_rows = z.shape[0]
-        if frozen or self.step == 0.0:
-            return z - self.reference, [(0, self.reference.copy())]
+        leak = self.slopes is not None and x is not None
+        allowance = np.empty(n_rows) if leak else None
+        if frozen or (self.step == 0.0 and not leak):
+            referenced = z - self.reference
+            if leak:
+                assert self.slopes is not None and allowance is not None and x is not None
+                referenced -= x @ self.slopes
+                allowance[:] = self._allowance(x)
+            return referenced, allowance, [(0, self._state())]
         referenced = np.empty_like(z)
-        marks = [(0, self.reference.copy())]
+        marks = [(0, self._state())]
         row = 0
         gate = self.design.gate
         while row < n_rows:
             phase = (self.samples + row) % self.stride
             stop = min(n_rows, row + self.stride - phase)
             np.subtract(z[row:stop], self.reference, out=referenced[row:stop])
-            self.pending += np.clip(referenced[row:stop], -gate, gate).sum(axis=0)
+            if leak:
+                assert x is not None and self.slopes is not None and allowance is not None
+                rows_x = x[row:stop]
+                referenced[row:stop] -= rows_x @ self.slopes
+                allowance[row:stop] = self._allowance(rows_x)
+                innovations = np.clip(referenced[row:stop], -gate, gate)
+                self.pending += innovations.sum(axis=0)
+                self.pending_cross += rows_x.T @ innovations
+                self.pending_gram += rows_x.T @ rows_x
+            else:
+                self.pending += np.clip(referenced[row:stop], -gate, gate).sum(axis=0)
             if (self.samples + stop) % self.stride == 0:  # the sub-block is complete
-                gain = max(self.step, 1.0 / (self.calibration_samples + self.samples + stop))
-                self.reference = self.reference + gain * self.pending
+                if self.step > 0.0:
+                    gain = max(self.step, 1.0 / (self.calibration_samples + self.samples + stop))
+                    self.reference = self.reference + gain * self.pending
                 self.pending = np.zeros(self.n)
-                marks.append((stop, self.reference.copy()))
+                if leak:
+                    self._learn_leak()
+                marks.append((stop, self._state()))
             row = stop
-        return referenced, marks
+        return referenced, allowance, marks
 
-    def _rewind(self, marks: list[tuple[int, np.ndarray]], row: int) -> None:
+    def _allowance(self, x: np.ndarray) -> np.ndarray:
+        """``c sqrt(x^T (Lambda_0 + W)^-1 x)`` per row of regressors ``x`` (M, r)."""
+        assert self.inverse is not None
+        spread = np.einsum("ij,jk,ik->i", x, self.inverse, x)
+        return self.allowance_scale * np.sqrt(np.maximum(spread, 0.0))
+
+    def _learn_leak(self) -> None:
+        """End of a sub-block: W forgotten by one sub-block and the sub-block's Gram added;
+        B moved by the least-squares step of the sub-block's innovations."""
+        assert self.leak is not None and self.gram is not None and self.slopes is not None
+        self.gram = self.leak_memory * self.gram + self.pending_gram
+        self.inverse = np.linalg.inv(self.prior + self.gram)
+        self.slopes = self.slopes + self.inverse @ self.pending_cross
+        self.pending_cross = np.zeros_like(self.pending_cross)
+        self.pending_gram = np.zeros_like(self.pending_gram)
+
+    def _rewind(self, marks: list[tuple[int, _Reference]], row: int) -> None:
         """Reference as it was on local row ``row`` (an episode opens there: from then on
         it is frozen, and the innovations of the open sub-block are dropped)."""
         value = marks[0][1]
         for start, reference in marks:
             if start <= row:
                 value = reference
-        self.reference = value.copy()
+        value = value.copy()
+        self.reference = value.offset
+        self.slopes, self.gram, self.inverse = value.slopes, value.gram, value.inverse
         self.pending = np.zeros(self.n)
+        self.pending_cross = np.zeros_like(self.pending_cross)
+        self.pending_gram = np.zeros_like(self.pending_gram)
 
     # --- processing --------------------------------------------------------------------
 
-    def process(self, z: np.ndarray) -> Decisions:
-        """Decide on the rows of ``z`` (N, n): standardized signed evidence per sensor.
+    def process(self, z: np.ndarray, regressors: np.ndarray | None = None) -> Decisions:
+        """Decide on the rows of ``z`` (N, n): standardized signed evidence per sensor;
+        ``regressors`` (N, r): the motion of every row, when the bank has a leak model
+        (required then, refused otherwise).
 
-        NaN evidence (a sample without a test) counts as 0."""
+        NaN evidence (a sample without a test) counts as 0; NaN regressors as 0."""
         z = np.asarray(z, float)
         if z.ndim != 2 or z.shape[1] != self.n:
             raise ValueError(f"evidence must be (N, {self.n}), got {z.shape}")
+        x: np.ndarray | None = None
+        if self.leak is not None:
+            r = self.leak.regressors
+            if regressors is None or np.shape(regressors) != (z.shape[0], r):
+                raise ValueError(
+                    f"regressors must be ({z.shape[0]}, {r}), got"
+                    f" {None if regressors is None else np.shape(regressors)}"
+                )
+            x = np.nan_to_num(np.asarray(regressors, float), nan=0.0, posinf=0.0, neginf=0.0)
+        elif regressors is not None:
+            raise ValueError("this bank has no leak model: give no regressors")
         z = np.nan_to_num(z * self.inverse_scale, nan=0.0, posinf=0.0, neginf=0.0)
         n_rows = z.shape[0]
         out = Decisions(
@@ -489,13 +673,24 @@ class CusumBank:
         position = 0
         while position < n_rows:
             rows = z[position : position + self.SPAN]
+            rows_x = None if x is None else x[position : position + self.SPAN]
             if self.episode is None:
-                position += self._watch(rows, position, out)
+                position += self._watch(rows, position, out, rows_x)
             else:
-                position += self._follow(rows, position, out)
+                position += self._follow(rows, position, out, rows_x)
         return out
 
-    def _cusums(self, zr: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    def _signed(self, zr: np.ndarray, allowance: np.ndarray | None, sign: float) -> np.ndarray:
+        """The clipped evidence of the hypotheses of one sign, times the sign:
+        ``clip(s z' - a, -c, c)`` (M, n)."""
+        clip = self.design.clip
+        if allowance is None:
+            return np.clip(sign * zr, -clip, clip)
+        return np.clip(sign * zr - allowance[:, None], -clip, clip)
+
+    def _cusums(
+        self, zr: np.ndarray, allowance: np.ndarray | None = None
+    ) -> tuple[list[np.ndarray], np.ndarray]:
         """Every CUSUM (1)-(2) of the bank over the rows ``zr`` (M, n), from the current
         state: the statistics per (shift, sign), shift-major (list of (M, n)), and per
         sensor their maximum (M, n).
@@ -504,18 +699,26 @@ class CusumBank:
         combination of one cumulative sum, ``C_t = s mu Z_t - t mu^2 / 2`` with
         ``Z_t = sum_{j<=t} clip(z'_j)``, and the walk reflected at 0 from ``S_0`` is
         ``S_t = C_t - min_{j<=t} C'_j`` where ``C'`` is C with its first value lowered to
-        ``min(C_1, -S_0)``.
+        ``min(C_1, -S_0)``. With an allowance each sign has its own sum of
+        ``clip(s z'_j - a_j)``.
         """
         clip = self.design.clip
-        total = np.clip(zr, -clip, clip)
-        np.cumsum(total, axis=0, out=total)
+        if allowance is None:
+            total = np.clip(zr, -clip, clip)
+            np.cumsum(total, axis=0, out=total)
+            totals: tuple[np.ndarray, np.ndarray] = (total, -total)
+        else:
+            totals = (
+                np.cumsum(self._signed(zr, allowance, 1.0), axis=0),
+                np.cumsum(self._signed(zr, allowance, -1.0), axis=0),
+            )
         steps = np.arange(1, zr.shape[0] + 1, dtype=float)[:, None]
         stats: list[np.ndarray] = []
         best = np.zeros_like(zr)
         for d, mu in enumerate(self.shifts):
             drift = steps * (0.5 * mu * mu)
-            for s, sign in enumerate((1.0, -1.0)):
-                cumulative = np.multiply(total, sign * mu)
+            for s, signed_total in enumerate(totals):
+                cumulative = np.multiply(signed_total, mu)
                 cumulative -= drift
                 first = cumulative[0].copy()
                 np.minimum(first, -self.state[d, s], out=cumulative[0])  # seed the minimum
@@ -531,11 +734,13 @@ class CusumBank:
         for k, statistic in enumerate(stats):
             flat[k] = statistic[row]
 
-    def _watch(self, z: np.ndarray, position: int, out: Decisions) -> int:
+    def _watch(
+        self, z: np.ndarray, position: int, out: Decisions, x: np.ndarray | None = None
+    ) -> int:
         """No episode open: run the bank over the rows ``z`` (output rows from
         ``position``) up to the first alarm; returns the number of rows handled."""
-        zr, marks = self._referenced(z, frozen=False)
-        stats, best = self._cusums(zr)
+        zr, allowance, marks = self._referenced(z, frozen=False, x=x)
+        stats, best = self._cusums(zr, allowance)
         top = best.max(axis=1) if self.n else np.zeros(len(zr))
         over = np.flatnonzero(top > self.threshold)
         stop = len(zr) if over.size == 0 else int(over[0]) + 1
@@ -545,13 +750,19 @@ class CusumBank:
         self._keep_state(stats, stop - 1)
         if over.size:
             self._rewind(marks, stop - 1)
-            self._open(zr, stats, stop - 1, position, out)
-        self._remember(zr[:stop])
+            self._open(zr, stats, stop - 1, position, out, allowance)
+        self._remember(zr[:stop], None if allowance is None else allowance[:stop])
         self.samples += stop
         return stop
 
     def _open(
-        self, zr: np.ndarray, stats: list[np.ndarray], row: int, position: int, out: Decisions
+        self,
+        zr: np.ndarray,
+        stats: list[np.ndarray],
+        row: int,
+        position: int,
+        out: Decisions,
+        allowance: np.ndarray | None = None,
     ) -> None:
         """An episode opens at local row ``row`` (output row ``position + row``)."""
         values = np.array([s[row] for s in stats])  # (2 D, n)
@@ -561,9 +772,15 @@ class CusumBank:
         evidence = (
             np.concatenate([self.history, zr[: row + 1]]) if self.history.size else zr[: row + 1]
         )
-        count = self._onset_rows(
-            stats[int(k)][: row + 1, sensor], evidence[:, sensor] * sign, shift
-        )
+        signed = evidence[:, sensor] * sign
+        if allowance is not None:
+            allowances = (
+                np.concatenate([self.history_allowance, allowance[: row + 1]])
+                if self.history.size
+                else allowance[: row + 1]
+            )
+            signed = signed - allowances
+        count = self._onset_rows(stats[int(k)][: row + 1, sensor], signed, shift)
         self.episode = _Episode(
             shift=shift,
             sign=sign,
@@ -594,26 +811,45 @@ class CusumBank:
         episode = self.episode
         assert episode is not None
         out.alarm[row] = True
-        sensor = int(np.argmax(per_sensor))
+        sensor = self._isolate(episode.sums[None, :], per_sensor[None, :])[0]
         out.isolated[row] = sensor if self.isolable[sensor] else NOT_ISOLABLE
         if self.isolable[sensor] and episode.count and self.sensitivity[sensor] > 0:
             out.amplitude[row] = episode.sums[sensor] / episode.count / self.sensitivity[sensor]
 
-    def _follow(self, z: np.ndarray, position: int, out: Decisions) -> int:
+    def _isolate(self, sums: np.ndarray, statistics: np.ndarray) -> np.ndarray:
+        """Isolated sensor (M,) of alarm rows: the largest ``|sum of z'|`` since the
+        episode's onset (``sums`` (M, n)), i.e. the generalized likelihood ratio of a step
+        on each sensor from that onset, ties (e.g. no evidence summed yet) broken by the
+        largest CUSUM (``statistics`` (M, n)). Not the largest CUSUM alone: every sensor
+        whose evidence a large fault pushes beyond the clip has the same increments, and
+        the ties would go to the first of them."""
+        strength = np.abs(sums)
+        top = strength.max(axis=1, keepdims=True)
+        tied = strength >= top * (1.0 - 1e-12)
+        return np.argmax(np.where(tied, statistics, -np.inf), axis=1)  # type: ignore[no-any-return]
+
+    def _follow(
+        self, z: np.ndarray, position: int, out: Decisions, x: np.ndarray | None = None
+    ) -> int:
         """An episode is open: keep the bank running over the rows ``z`` (reference
         frozen) and test whether the fault has ended; close the episode and restart every
         statistic when it has. Returns the number of rows handled."""
         episode = self.episode
         assert episode is not None
-        zr, _ = self._referenced(z, frozen=True)
-        stats, best = self._cusums(zr)
+        zr, allowance, _ = self._referenced(z, frozen=True, x=x)
+        stats, best = self._cusums(zr, allowance)
         # evidence that the fault has ended: the log-likelihood ratio of "no fault" against
         # "the fault as estimated so far" (its mean evidence since the onset, at least the
         # smallest design shift), one design per call, so that a fault between two design
-        # shifts is not released while it lasts
+        # shifts is not released while it lasts; at most the clip: beyond 2 c the clipped
+        # increment mu c - mu^2 / 2 of a fault that lasts would be negative, and a large
+        # fault would be released at once and raised again, over and over
         size = episode.sign * episode.sums[episode.sensor] / max(episode.count, 1)
-        size = max(float(size), float(self.shifts[0]))
-        increment = increments(size, self.design.clip, episode.sign * zr[:, episode.sensor])
+        size = min(max(float(size), float(self.shifts[0])), self.design.clip)
+        signed = episode.sign * zr[:, episode.sensor]
+        if allowance is not None:
+            signed = signed - allowance
+        increment = increments(size, self.design.clip, signed)
         cumulative = np.cumsum(-increment)
         recovery = cumulative - np.minimum(np.minimum.accumulate(cumulative), -episode.recovery)
         ended = np.flatnonzero(recovery > self.threshold)
@@ -626,7 +862,7 @@ class CusumBank:
             sums = np.cumsum(zr[:alarmed], axis=0)
             sums += episode.sums
             counts = episode.count + np.arange(1, alarmed + 1)
-            sensors = np.argmax(best[:alarmed], axis=1)
+            sensors = self._isolate(sums, best[:alarmed])
             isolable = self.isolable[sensors]
             out.alarm[position : position + alarmed] = True
             out.isolated[position : position + alarmed] = np.where(isolable, sensors, NOT_ISOLABLE)
@@ -641,13 +877,21 @@ class CusumBank:
         else:
             self._keep_state(stats, stop - 1)
             episode.recovery = float(recovery[stop - 1])
-        self._remember(zr[:stop])
+        self._remember(zr[:stop], None if allowance is None else allowance[:stop])
         self.samples += stop
         return stop
 
-    def _remember(self, zr: np.ndarray) -> None:
-        """Keep the last ``history`` rows of referenced evidence (for onsets)."""
+    def _remember(self, zr: np.ndarray, allowance: np.ndarray | None = None) -> None:
+        """Keep the last ``history`` rows of referenced evidence (for onsets), and of the
+        allowance with regressors."""
         if self.history_length <= 0 or zr.shape[0] == 0:
             return
         joined = np.concatenate([self.history, zr]) if self.history.size else zr
         self.history = joined[-self.history_length :].copy()
+        if allowance is not None:
+            kept = (
+                np.concatenate([self.history_allowance, allowance])
+                if self.history_allowance.size
+                else allowance
+            )
+            self.history_allowance = kept[-self.history_length :].copy()

@@ -12,6 +12,7 @@ from imufdi_cli.maths.sequential import (
     NOT_ISOLABLE,
     CusumBank,
     CusumDesign,
+    LeakModel,
     average_run_length,
     budget_threshold,
     false_alarm_rate,
@@ -225,3 +226,94 @@ def test_nan_evidence_counts_as_none_and_shapes_are_checked() -> None:
     assert not out.alarm.any() and (out.statistic == 0).all()
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         bank.process(np.zeros((5, 4)))
+
+
+def test_a_fault_beyond_the_clip_stays_one_episode() -> None:
+    # a step of 10 sd: the clipped increments of a "fault has ended" test sized at the
+    # unclipped mean (10) would be negative while the fault lasts, and release it at once
+    rng = np.random.default_rng(13)
+    bank = _bank(8)
+    z = rng.standard_normal((3000, 8))
+    z[1000:2000, 5] += 10.0
+    out = bank.process(z)
+    assert bank.episodes == 1
+    assert out.alarm[1010:2000].all()
+    assert set(out.isolated[out.alarm].tolist()) == {5}
+    assert np.nanmedian(out.amplitude[out.alarm]) == pytest.approx(10.0, rel=0.05)
+
+
+def test_a_large_fault_is_isolated_on_its_sensor_when_others_also_pass_the_clip() -> None:
+    # a fault on sensor 3 moves sensors 1 and 2 by 0.6 of it (correlated evidence, as for
+    # sensors with close fault directions): all three clip, and every CUSUM has the same
+    # increments; the evidence summed since the onset tells them apart
+    rng = np.random.default_rng(14)
+    bank = _bank(6)
+    z = rng.standard_normal((2000, 6))
+    z[1000:, 3] += 12.0
+    z[1000:, 1:3] += 0.6 * 12.0
+    out = bank.process(z)
+    assert out.alarm[1005:].all()
+    assert set(out.isolated[out.alarm].tolist()) == {3}
+
+
+def _leaky(n_rows: int, rng: np.random.Generator, slope: float) -> tuple[np.ndarray, np.ndarray]:
+    """Evidence (N, 4) leaking ``slope`` z units per unit of a slow periodic motion x (N, 2)
+    (tens of units, as rates in sensor sigmas), into sensors 0 and 2."""
+    t = np.arange(n_rows) / RATE_HZ
+    x = np.stack([30.0 * np.sin(2 * np.pi * 0.05 * t), 20.0 * np.cos(2 * np.pi * 0.03 * t)], 1)
+    z = rng.standard_normal((n_rows, 4))
+    z[:, 0] += slope * x[:, 0]
+    z[:, 2] -= slope * x[:, 1]
+    return z, x
+
+
+def _leak_bank(z_cal: np.ndarray, x_cal: np.ndarray) -> CusumBank:
+    cusum = CusumDesign()
+    h = budget_threshold(cusum, 4, 1 / 3600 / RATE_HZ)
+    leak, _ = LeakModel.fit(z_cal, x_cal, np.eye(2) / 0.02**2)
+    return CusumBank(cusum, h, np.ones(4), np.ones(4, bool), RATE_HZ, leak=leak)
+
+
+def test_the_leak_reference_learns_a_motion_leak_and_keeps_the_budget() -> None:
+    # a leak of 0.01 z per motion unit: up to 0.3 sd, a bias no slow reference follows;
+    # calibrated on 2 s that saw a fraction of the motion, the leak is learnt online while
+    # the allowance keeps what is not yet known from raising alarms
+    rng = np.random.default_rng(15)
+    z, x = _leaky(20 * 60 * 100, rng, 0.01)
+    plain = _bank(4)
+    bank = _leak_bank(z[:200], x[:200])
+    for start in range(200, z.shape[0], 4096):
+        plain.process(z[start : start + 4096])
+        bank.process(z[start : start + 4096], x[start : start + 4096])
+    assert plain.episodes > 5  # the leak alone (the budget allows 1/3 in 20 minutes)
+    assert bank.episodes == 0
+    assert bank.slopes is not None
+    np.testing.assert_allclose(bank.slopes[:, [0, 2]], [[0.01, 0.0], [0.0, -0.01]], atol=5e-4)
+    # learnt, the allowance is small again and a fault in motion is found fast
+    assert bank._allowance(x[-1000:]).max() < 0.2
+    fault, x_fault = _leaky(3000, rng, 0.01)
+    fault[1000:, 1] += 1.0
+    out = bank.process(fault, x_fault)
+    first = int(np.flatnonzero(out.alarm)[0])
+    assert 1000 <= first <= 1000 + 2 * lorden_delay_samples(1.0, 3600 * 100, 16)
+    assert set(out.isolated[out.alarm].tolist()) == {1}
+
+
+def test_the_allowance_covers_a_leak_the_calibration_could_not_see() -> None:
+    # calibrated at rest (x = 0), then a motion whose leak is a full sd: the allowance
+    # (prior 2 % of a unit per motion unit) holds the alarms off until the leak is learnt
+    rng = np.random.default_rng(16)
+    z, x = _leaky(10 * 60 * 100, rng, 0.03)
+    bank = _leak_bank(rng.standard_normal((200, 4)), np.zeros((200, 2)))
+    for start in range(0, z.shape[0], 4096):
+        bank.process(z[start : start + 4096], x[start : start + 4096])
+    assert bank.episodes <= 1
+
+
+def test_the_leak_model_checks_its_regressors() -> None:
+    rng = np.random.default_rng(17)
+    bank = _leak_bank(rng.standard_normal((200, 4)), rng.standard_normal((200, 2)))
+    with pytest.raises(ValueError, match=r"regressors must be \(5, 2\)"):
+        bank.process(np.zeros((5, 4)))
+    with pytest.raises(ValueError, match="no leak model"):
+        _bank(4).process(np.zeros((5, 4)), np.zeros((5, 2)))
