@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.errors import DetectorConfigError
 from imufdi_cli.maths.sequential import (
@@ -56,6 +57,25 @@ def reference_tau(track_bias: float | None) -> float:
     return REFERENCE_TAU_S if track_bias is None else float(track_bias)
 
 
+def configured_noise(array: ArrayConfig, sensor_type: str) -> np.ndarray | None:
+    """Per-sensor noise sigma (n_s,) of the array config when every IMU carrying the type
+    has its own ``<type>_noise`` (what ``imufdi calibrate`` measures over many
+    orientations), else None; times ``sqrt(kappa_i)`` when every IMU also carries the
+    healthy noise-variance spread kappa (``<type>_noise_spread``): a chip whose noise grows
+    with the orientation keeps the budget at the top of its healthy range (the budget's
+    evidence would otherwise be wider than N(0, 1) there, and a CUSUM is exponentially
+    sensitive to that)."""
+    configured = array.sensor_noise(sensor_type)
+    imus, _ = array.sensor_index(sensor_type)
+    if configured is None or not all(
+        sensor_type in array.imus[k].noise for k in set(imus.tolist())
+    ):
+        return None
+    sigma = np.asarray(configured, float)
+    spread = array.sensor_noise_spread(sensor_type)
+    return sigma if spread is None else sigma * np.sqrt(np.asarray(spread, float))
+
+
 class MotionRegressors:
     """The motion regressors of the leak model: the body-frame estimate ``x = H^+ m`` of a
     sensor type (first three components: the rate or the specific force at the reference
@@ -63,7 +83,10 @@ class MotionRegressors:
 
     A relative scale or misalignment error s of sensor i leaks ``s h_i^T x`` into its
     measurement, about ``s |x| / sigma`` standard deviations: in these units a leak
-    coefficient is about s (:data:`LEAK_PRIOR`).
+    coefficient is about s (:data:`LEAK_PRIOR`). The estimate is the weighted least
+    squares one (weights ``1 / sigma^2``): its noise is then uncorrelated with the parity
+    residuals of independent sensors, so that the calibration's fit of the leak does not
+    read the noise of a noisy sensor, which the unweighted estimate carries, as a leak.
 
     Parameters
     ----------
@@ -74,8 +97,10 @@ class MotionRegressors:
     """
 
     def __init__(self, design: np.ndarray, sigma: np.ndarray) -> None:
-        self.estimator_t = np.linalg.pinv(np.asarray(design, float))[:3].T.copy()  # (n, 3)
-        self.unit = float(np.sqrt(np.mean(np.asarray(sigma, float) ** 2))) or 1.0
+        sigma = np.asarray(sigma, float)
+        weighted = np.linalg.pinv(np.asarray(design, float) / sigma[:, None]) / sigma[None, :]
+        self.estimator_t = weighted[:3].T.copy()  # (n, 3): x_hat = m @ it
+        self.unit = float(np.sqrt(np.mean(sigma**2))) or 1.0
         self.centre = np.zeros(3)
 
     def fit(self, measurements: np.ndarray) -> np.ndarray:
@@ -159,12 +184,20 @@ class EvidenceBudget:
         """(n,) bool: sensors with evidence."""
         return self.sensitivity > 0
 
-    def fit(self, z: np.ndarray, regressors: np.ndarray | None = None) -> None:
+    def fit(
+        self,
+        z: np.ndarray,
+        regressors: np.ndarray | None = None,
+        long_run: float | None = None,
+    ) -> None:
         """Start the bank from the calibration window's evidence ``z`` (N, n): its
         long-run variance factor, outlier share and the threshold. With ``regressors``
         (N, r) (the window's motion, centred, in the units :meth:`decide` will get), the
         motion leak is fitted on them under the prior :data:`LEAK_PRIOR` first
-        (:class:`~imufdi_cli.maths.sequential.LeakModel`) and learnt online after."""
+        (:class:`~imufdi_cli.maths.sequential.LeakModel`) and learnt online after.
+        ``long_run``: the evidence's long-run variance factor when the detector knows it
+        (None: measured on ``z``, :func:`~imufdi_cli.maths.sequential.long_run_factor`);
+        ``z`` may then have no rows (no outliers counted)."""
         z = np.asarray(z, float)
         leak: LeakModel | None = None
         if regressors is not None:
@@ -172,7 +205,7 @@ class EvidenceBudget:
             prior = np.eye(regressors.shape[1]) / LEAK_PRIOR**2
             leak, z = LeakModel.fit(z, regressors, prior)
         z = z[:, self.testable]
-        kappa = long_run_factor(z, self.design.block)
+        kappa = long_run_factor(z, self.design.block) if long_run is None else float(long_run)
         self.contamination = outlier_share(z / math.sqrt(kappa))
         self.threshold = budget_threshold(
             self.design,
