@@ -105,16 +105,24 @@ class CusumDesign:
 # --- threshold -------------------------------------------------------------------------
 
 
+_ERFC = np.frompyfunc(math.erfc, 1, 1)
+
+
+def _normal_cdf(x: np.ndarray) -> np.ndarray:
+    """Standard normal CDF (the few hundred values a run length needs: math.erfc, which
+    keeps scipy's import, longer than a whole short detect, off this path)."""
+    return 0.5 * np.asarray(_ERFC(-np.asarray(x, float) / math.sqrt(2.0)), dtype=float)
+
+
 def _increment_cdf(
     shift: float, clip: float, x: np.ndarray, scale: float = 1.0, contamination: float = 0.0
 ) -> np.ndarray:
     """CDF of ``l = mu clip(z, -c, c) - mu^2 / 2`` at ``x`` (any shape), for z ~ N(0,
     scale^2) with probability 1 - p and an outlier beyond the clip (either sign, equally
     likely) with probability p = ``contamination``."""
-    from scipy.special import ndtr
-
     level = (np.asarray(x, float) + 0.5 * shift * shift) / shift  # l <= x <=> clip(z) <= level
-    gaussian = np.where(level < -clip, 0.0, np.where(level >= clip, 1.0, ndtr(level / scale)))
+    inside = _normal_cdf(level / scale)
+    gaussian = np.where(level < -clip, 0.0, np.where(level >= clip, 1.0, inside))
     if contamination <= 0:
         return gaussian
     outliers = 0.5 * (level >= -clip) + 0.5 * (level >= clip)
@@ -132,7 +140,7 @@ def average_run_length(
     shift: float,
     clip: float,
     threshold: float,
-    states: int = 160,
+    states: int = 100,
     scale: float = 1.0,
     contamination: float = 0.0,
 ) -> float:
@@ -150,25 +158,24 @@ def average_run_length(
     if threshold <= 0:
         return 1.0
     width = 2.0 * threshold / (2 * states - 1)
-    centres = np.arange(states) * width
-    edges = (np.arange(states + 1) - 0.5) * width  # cell j: [edges[j], edges[j+1])
-    edges[0] = -np.inf  # everything at or below 0 resets to the atom
-    cdf = _increment_cdf(shift, clip, edges[None, :] - centres[:, None], scale, contamination)
+    # cell l's lower edge seen from cell j's centre is (l - j - 1/2) w: a Toeplitz CDF,
+    # evaluated once per offset; l = 0 takes everything at or below 0 (the atom)
+    offsets = np.arange(-states, states + 1)
+    values = _increment_cdf(shift, clip, (offsets - 0.5) * width, scale, contamination)
+    j = np.arange(states)[:, None]
+    l_edges = np.arange(states + 1)[None, :]
+    cdf = values[l_edges - j + states]
+    cdf[:, 0] = 0.0
     transition = np.diff(cdf, axis=1)  # (states, states), rows sum to P(S' < h)
     system = np.eye(states) - transition
     lengths = np.linalg.solve(system, np.ones(states))
     return float(lengths[0])
 
 
-#: Gauss-Hermite nodes and weights (probabilists', 5 points) for the sigma error average.
-_HERMITE_NODES = (-2.856970013872806, -1.355626179974266, 0.0, 1.355626179974266, 2.856970013872806)
-_HERMITE_WEIGHTS = (
-    0.011257411327720689,
-    0.2220759220056126,
-    0.5333333333333333,
-    0.2220759220056126,
-    0.011257411327720689,
-)
+#: Gauss-Hermite nodes and weights (probabilists', 3 points: exact for polynomials of
+#: degree 5) for the average over the sigma error.
+_HERMITE_NODES = (-math.sqrt(3.0), 0.0, math.sqrt(3.0))
+_HERMITE_WEIGHTS = (1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0)
 
 
 def false_alarm_rate(
@@ -233,17 +240,35 @@ def budget_threshold(
         rate = false_alarm_rate(design, sensors, h, scale_variance, contamination)
         return math.log(rate) - target
 
-    low, high = 0.5, max(2.0, math.log(2.0 * sensors * len(design.shifts) / per_sample))
-    g_low, g_high = gap(low), gap(high)
-    while g_high > 0:  # not far enough out: the bound's constant was larger than guessed
-        low, g_low = high, g_high
-        high *= 1.5
-        g_high = gap(high)
+    # log rate(h) is close to linear in h: secant steps from a first guess, each new
+    # point kept as a bracket end, then regula falsi (Illinois) inside the bracket
+    low, g_low = 0.5, gap(0.5)
     if g_low <= 0:  # even a tiny threshold meets the budget
         return low
-    # Illinois (regula falsi with halving of the stale end): log rate is near linear in h
+    h_a = max(1.0, 0.9 * math.log(2.0 * sensors * len(design.shifts) / per_sample))
+    h_b = h_a + 1.0
+    g_a, g_b = gap(h_a), gap(h_b)
+    high, g_high = math.inf, -math.inf
+    for h, g in ((h_a, g_a), (h_b, g_b)):
+        if g > 0:
+            low, g_low = max((low, g_low), (h, g))
+        elif h < high:
+            high, g_high = h, g
+    for _ in range(8):  # secant from the last two points, until bracketed
+        if math.isfinite(high):
+            break
+        step = (h_b - h_a) / (g_a - g_b) * g_b if g_a != g_b else 2.0
+        h_a, g_a = h_b, g_b
+        h_b = h_b + min(max(step, 0.5), 20.0)
+        g_b = gap(h_b)
+        if g_b > 0:
+            low, g_low = h_b, g_b
+        else:
+            high, g_high = h_b, g_b
     side = 0
     for _ in range(100):
+        if high - low < 1e-4:
+            break
         h = high - g_high * (high - low) / (g_high - g_low)
         g = gap(h)
         if g > 0:
@@ -256,7 +281,7 @@ def budget_threshold(
             if side == -1:
                 g_low /= 2.0
             side = -1
-        if high - low < 1e-4 or abs(g) < 1e-7:
+        if abs(g) < 1e-7:
             break
     return math.ceil(high * 1000.0) / 1000.0
 
@@ -417,7 +442,8 @@ class CusumBank:
         #: rows over which the reference stays constant (about 1 s, at most tau / 10)
         self.stride = max(1, min(round(rate_hz), round(design.tau_s * rate_hz / 10)))
         self.reference = np.zeros(n)
-        self.pending = np.zeros(n)  # clipped innovations of the current sub-block, summed
+        self.pending = np.zeros(n)  # innovations of the current sub-block, summed
+        self.pending_count = 0
         self.history = np.zeros((0, n))
         self.history_length = int(history)
         self.samples = 0  # rows handled so far
@@ -433,8 +459,9 @@ class CusumBank:
 
         ``b`` is constant over sub-blocks of ``stride`` samples (aligned on the sample
         count) and moves at the end of each by a gain times the sum of the sub-block's
-        innovations clipped at ``+-gate``: a running mean at first, then an exponential
-        average of time constant tau (one sub-block late); frozen, it stays. Advances ``reference`` and ``pending`` over
+        innovations, clipped at ``+-gate sqrt(count)`` (``gate`` standard deviations of
+        the sum): a running mean at first, then an exponential average of time constant
+        tau (one sub-block late); frozen, it stays. Advances ``reference`` and ``pending`` over
         all the rows and returns, for a rewind, the local row from which each reference
         value held, with that value."""
         n_rows = z.shape[0]
@@ -448,11 +475,14 @@ class CusumBank:
             phase = (self.samples + row) % self.stride
             stop = min(n_rows, row + self.stride - phase)
             np.subtract(z[row:stop], self.reference, out=referenced[row:stop])
-            self.pending += np.clip(referenced[row:stop], -gate, gate).sum(axis=0)
+            self.pending += referenced[row:stop].sum(axis=0)
+            self.pending_count += stop - row
             if (self.samples + stop) % self.stride == 0:  # the sub-block is complete
                 gain = max(self.step, 1.0 / (self.calibration_samples + self.samples + stop))
-                self.reference = self.reference + gain * self.pending
+                limit = gate * math.sqrt(self.pending_count)
+                self.reference = self.reference + gain * np.clip(self.pending, -limit, limit)
                 self.pending = np.zeros(self.n)
+                self.pending_count = 0
                 marks.append((stop, self.reference.copy()))
             row = stop
         return referenced, marks
@@ -466,6 +496,7 @@ class CusumBank:
                 value = reference
         self.reference = value.copy()
         self.pending = np.zeros(self.n)
+        self.pending_count = 0
 
     # --- processing --------------------------------------------------------------------
 
@@ -476,7 +507,10 @@ class CusumBank:
         z = np.asarray(z, float)
         if z.ndim != 2 or z.shape[1] != self.n:
             raise ValueError(f"evidence must be (N, {self.n}), got {z.shape}")
-        z = np.nan_to_num(z * self.inverse_scale, nan=0.0, posinf=0.0, neginf=0.0)
+        if self.inverse_scale != 1.0:
+            z = z * self.inverse_scale
+        if not np.isfinite(z).all():
+            z = np.nan_to_num(z, nan=0.0, posinf=0.0, neginf=0.0)
         n_rows = z.shape[0]
         out = Decisions(
             statistic=np.zeros(n_rows),
@@ -484,7 +518,7 @@ class CusumBank:
             alarm=np.zeros(n_rows, bool),
             isolated=np.full(n_rows, NO_ISOLATION, np.int32),
             amplitude=np.full(n_rows, np.nan),
-            scores=np.zeros((n_rows, self.n)),
+            scores=np.empty((n_rows, self.n)),  # every row is written
         )
         position = 0
         while position < n_rows:
@@ -495,10 +529,12 @@ class CusumBank:
                 position += self._follow(rows, position, out)
         return out
 
-    def _cusums(self, zr: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    def _cusums(
+        self, zr: np.ndarray, best: np.ndarray | None = None
+    ) -> tuple[list[np.ndarray], np.ndarray]:
         """Every CUSUM (1)-(2) of the bank over the rows ``zr`` (M, n), from the current
         state: the statistics per (shift, sign), shift-major (list of (M, n)), and per
-        sensor their maximum (M, n).
+        sensor their maximum (M, n; written into ``best`` when given).
 
         With the one clip of (1), every hypothesis' cumulative log-likelihood ratio is a
         combination of one cumulative sum, ``C_t = s mu Z_t - t mu^2 / 2`` with
@@ -511,7 +547,8 @@ class CusumBank:
         np.cumsum(total, axis=0, out=total)
         steps = np.arange(1, zr.shape[0] + 1, dtype=float)[:, None]
         stats: list[np.ndarray] = []
-        best = np.zeros_like(zr)
+        if best is None:
+            best = np.empty_like(zr)
         for d, mu in enumerate(self.shifts):
             drift = steps * (0.5 * mu * mu)
             for s, sign in enumerate((1.0, -1.0)):
@@ -522,8 +559,11 @@ class CusumBank:
                 statistic = np.minimum.accumulate(cumulative, axis=0)
                 cumulative[0] = first
                 np.subtract(cumulative, statistic, out=statistic)
+                if stats:
+                    np.maximum(best, statistic, out=best)
+                else:
+                    best[...] = statistic
                 stats.append(statistic)
-                np.maximum(best, statistic, out=best)
         return stats, best
 
     def _keep_state(self, stats: list[np.ndarray], row: int) -> None:
@@ -535,13 +575,13 @@ class CusumBank:
         """No episode open: run the bank over the rows ``z`` (output rows from
         ``position``) up to the first alarm; returns the number of rows handled."""
         zr, marks = self._referenced(z, frozen=False)
-        stats, best = self._cusums(zr)
+        # the rows' scores are written in place; those after an alarm are written again
+        stats, best = self._cusums(zr, out.scores[position : position + len(zr)])
         top = best.max(axis=1) if self.n else np.zeros(len(zr))
         over = np.flatnonzero(top > self.threshold)
         stop = len(zr) if over.size == 0 else int(over[0]) + 1
         rows = slice(position, position + stop)
         out.statistic[rows] = top[:stop]
-        out.scores[rows] = best[:stop]
         self._keep_state(stats, stop - 1)
         if over.size:
             self._rewind(marks, stop - 1)
@@ -606,7 +646,7 @@ class CusumBank:
         episode = self.episode
         assert episode is not None
         zr, _ = self._referenced(z, frozen=True)
-        stats, best = self._cusums(zr)
+        stats, best = self._cusums(zr, out.scores[position : position + len(zr)])
         # evidence that the fault has ended: the log-likelihood ratio of "no fault" against
         # "the fault as estimated so far" (its mean evidence since the onset, at least the
         # smallest design shift), one design per call, so that a fault between two design
@@ -620,7 +660,6 @@ class CusumBank:
         stop = len(zr) if ended.size == 0 else int(ended[0]) + 1
         rows = slice(position, position + stop)
         out.statistic[rows] = best[:stop].max(axis=1)
-        out.scores[rows] = best[:stop]
         alarmed = stop if ended.size == 0 else stop - 1  # the row that ends it is quiet
         if alarmed:
             sums = np.cumsum(zr[:alarmed], axis=0)
