@@ -28,9 +28,11 @@ The clip (in the spirit of Huber's robust tests, 1965) bounds what one outlier c
 (``mu_d c - mu_d^2 / 2``), so that a decision needs several samples of evidence and an
 isolated spike raises no alarm; for Gaussian noise it costs almost nothing (``c = 3.5``
 is 2.5 standard deviations above the largest design's ``mu / 2``). An alarm episode starts at the first sample where any
-``S > h`` (2 n D hypotheses); its isolated sensor is the sensor of the largest ``S``.
-While it lasts, a second CUSUM tests "the fault has ended" on the sensor and sign that
-raised it, with the increments ``-l_t`` of a design shift equal to the fault's mean
+``S > h`` (2 n D hypotheses); its isolated sensor is the one whose unclipped evidence
+summed since the estimated onset is largest in magnitude (the generalized likelihood
+ratio of a step on it: the clip saturates a large fault's evidence on every sensor
+correlated with it). While it lasts, a second CUSUM tests "the fault has ended" on that
+sensor and sign, with the increments ``-l_t`` of a design shift equal to the fault's mean
 evidence since the onset; when that reaches ``h`` the episode ends and every statistic
 restarts from 0 (a renewal: each false episode costs one average run length).
 
@@ -804,16 +806,21 @@ class CusumBank:
         count = self._onset_rows(
             stats[int(k)][: row + 1, sensor], evidence[:, sensor] * sign, shift
         )
+        sums = evidence[-count:].sum(axis=0)
+        # isolation by the unclipped evidence since the onset (the step's GLR): the clip
+        # saturates a large fault's evidence on every sensor correlated with it, so the
+        # CUSUMs of two such sensors tie
+        sensor = int(np.argmax(np.abs(sums)))
         self.episode = _Episode(
             shift=shift,
-            sign=sign,
-            sensor=int(sensor),
+            sign=1.0 if sums[sensor] >= 0 else -1.0,
+            sensor=sensor,
             onset=self.samples + row + 1 - count,
-            sums=evidence[-count:].sum(axis=0),
+            sums=sums,
             count=count,
         )
         self.episodes += 1
-        self._mark(out, position + row, values.max(axis=0))
+        self._mark(out, position + row)
 
     def _onset_rows(self, statistic: np.ndarray, signed: np.ndarray, shift: int) -> int:
         """Samples from the estimated onset of a hypothesis to its alarm row: the rows after
@@ -829,12 +836,12 @@ class CusumBank:
         zeros = np.flatnonzero(again <= 0.0)
         return int(signed.size - 1 - zeros[-1]) if zeros.size else int(signed.size)
 
-    def _mark(self, out: Decisions, row: int, per_sensor: np.ndarray) -> None:
+    def _mark(self, out: Decisions, row: int) -> None:
         """The alarm row that opens the episode: isolation and amplitude."""
         episode = self.episode
         assert episode is not None
         out.alarm[row] = True
-        sensor = int(np.argmax(per_sensor))
+        sensor = episode.sensor
         out.isolated[row] = sensor if self.isolable[sensor] else NOT_ISOLABLE
         if self.isolable[sensor] and episode.count and self.sensitivity[sensor] > 0:
             out.amplitude[row] = episode.sums[sensor] / episode.count / self.sensitivity[sensor]
@@ -865,7 +872,7 @@ class CusumBank:
             sums = np.cumsum(zr[:alarmed], axis=0)
             sums += episode.sums
             counts = episode.count + np.arange(1, alarmed + 1)
-            sensors = np.argmax(best[:alarmed], axis=1)
+            sensors = np.argmax(np.abs(sums), axis=1)  # the step's GLR, as at the opening
             isolable = self.isolable[sensors]
             out.alarm[position : position + alarmed] = True
             out.isolated[position : position + alarmed] = np.where(isolable, sensors, NOT_ISOLABLE)
