@@ -198,10 +198,10 @@ def main() -> None:
             "false_alarms": episodes(clean, spans, motion, window[1]),
             "rest_faults": fault_figures(
                 test, rest_specs, cal, detectors, budget, window, args.out, "rest"
-            ),  # fmt: skip
+            ),
             "motion_faults": fault_figures(
                 test, motion_specs, cal, detectors, budget, window, args.out, "motion"
-            ),  # fmt: skip
+            ),
         }
         print(f"\n## {args.train} -> {name} at {args.false_alarms}\n")
         print("| channel | rest: episodes / min (95 % UB /h) | transitions | motion |")
