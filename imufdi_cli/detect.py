@@ -518,6 +518,9 @@ class _DetectRun:
         block = self.conditioner.sanitize(block, flags)
         for track in self.tracks:
             track.feed(block.t_ns)
+            note_flags = getattr(track.detector, "note_flags", None)
+            if note_flags is not None:  # a detector that tests flagged samples itself
+                note_flags(flags)
             for sensor_type, builder in track.episodes.items():
                 triads = block.get(sensor_type)
                 assert triads is not None  # builders exist only for types in the log
@@ -608,6 +611,11 @@ class _DetectRun:
     def _add_episodes(self, track: _Track, episodes: Sequence[Any]) -> None:
         if not episodes:
             return
+        explain = getattr(track.detector, "explain_episode", None)
+        if explain is not None:  # a detector that knows what raised its episodes
+            for episode in episodes:
+                if episode.detector == track.detector.name:
+                    episode.fits = explain(episode)
         self.writer.add_batch(
             encode_episode_events(self.events_channel, [e.to_dict() for e in episodes])
         )
