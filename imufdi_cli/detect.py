@@ -49,6 +49,7 @@ from imufdi_cli.mcapio.events import (
 )
 from imufdi_cli.mcapio.status import status_records
 from imufdi_cli.progress import LogTimeProgress, ProgressCallback
+from imufdi_cli.units import window_from_log_start
 from imufdi_cli.validity import Conditioner
 
 if TYPE_CHECKING:
@@ -486,6 +487,10 @@ class _DetectRun:
         are fitted, then straight through them."""
         if self.t_first is None:
             self.t_first = int(block.t_ns[0])
+            # ISO 8601 / Unix times of --start/--end, now that the log start is known
+            self.test_start_s, self.test_end_s = window_from_log_start(
+                (self.test_start_s, self.test_end_s), self.t_first
+            )
         self.t_last = int(block.t_ns[-1])
         block, flags = self.conditioner.prepare(block)
         rel = (block.t_ns - self.t_first) / NS_PER_S
@@ -643,6 +648,15 @@ class _DetectRun:
                 raise DetectorConfigError(
                     f"detector {track.detector.name} left samples without output"
                 )
+        windowed = self.test_start_s > 0 or self.test_end_s is not None
+        if windowed and self.n_samples == 0 and self.t_first is not None:
+            end = "end" if self.test_end_s is None else f"{self.test_end_s:.6g} s"
+            self.warnings.append(
+                f"--start/--end holds no sample: the window is {self.test_start_s:.6g} s to"
+                f" {end} from the log start, the log spans 0 to"
+                f" {(self.t_last - self.t_first) / NS_PER_S:.6g} s (from"
+                f" {_utc(self.t_first)}); nothing was tested"
+            )
         for track in self.tracks:
             # A detector may judge its calibration window from what it processed (e.g.
             # pca-parity: motion beyond the calibrated range); --strict makes that fatal.
@@ -732,6 +746,13 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, (np.bool_,)):
         return bool(value)
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _utc(t_ns: int) -> str:
+    """``2023-11-14T22:13:20Z`` (ISO 8601 UTC, to the millisecond when not whole)."""
+    from imufdi_cli.units import utc_iso
+
+    return utc_iso(t_ns)
 
 
 def _mask_flags(flags: Flags, keep: np.ndarray) -> Flags:

@@ -471,7 +471,9 @@ class _EpisodeCollector:
         origin = self.origins.get(key)
         if self.window is None or origin is None:
             return True
-        start_s, end_s = self.window
+        from imufdi_cli.units import window_from_log_start
+
+        start_s, end_s = window_from_log_start(self.window, origin)
         rel = (start_ns - origin) * 1e-9
         return rel >= start_s and (end_s is None or rel < end_s)
 
