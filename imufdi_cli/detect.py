@@ -47,7 +47,7 @@ from imufdi_cli.mcapio.events import (
     register_events_channel,
     register_truth_channel,
 )
-from imufdi_cli.mcapio.status import status_records
+from imufdi_cli.mcapio.status import register_scores_channel, scores_records, status_records
 from imufdi_cli.progress import LogTimeProgress, ProgressCallback
 from imufdi_cli.units import window_from_log_start
 from imufdi_cli.validity import Conditioner
@@ -212,6 +212,7 @@ class _Track:
         self.passed = 0  # input samples passed to the detector
         self.emitted = 0  # rows returned by it
         self.channels: dict[str, int] = {}
+        self.score_channels: dict[str, int] = {}  # sensor type -> named-scores channel
         self.alarm_on: dict[str, bool] = {}
         self.summary: dict[str, TypeSummary] = {}
         self.episodes: dict[str, EpisodeBuilder] = {}  # sensor type -> builder
@@ -312,6 +313,7 @@ def detect_file(
     explain: bool = True,
     progress: ProgressCallback | None = None,
     read_ahead: bool | None = None,
+    named_scores: bool = True,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -336,6 +338,10 @@ def detect_file(
         The calibration window is taken from the whole log either way.
     explain : bool
         Write an explained ``episode`` event for every alarm episode (docs/episodes.md).
+    named_scores : bool
+        Also write each status channel's scores under the sensors' names, on
+        ``/imufdi/<detector>/<type>/scores`` (docs/formats.md), for Foxglove and
+        PlotJuggler.
     progress : callable, optional
         ``progress(seconds done, log seconds or None)`` (:mod:`imufdi_cli.progress`).
     read_ahead : bool or None
@@ -368,6 +374,7 @@ def detect_file(
                 calibrate=calibrate,
                 window=window if window is not None else (0.0, None),
                 explain=explain,
+                named_scores=named_scores,
             )
             run.warnings.extend(notes)  # e.g. a renamed detector parameter
             tracker = LogTimeProgress(progress, getattr(reader.source, "summary_time_range", None))
@@ -397,6 +404,7 @@ class _DetectRun:
         calibrate: tuple[float, float | None],
         window: tuple[float, float | None],
         explain: bool,
+        named_scores: bool = True,
     ) -> None:
         self.reader = reader
         self.writer = writer
@@ -405,6 +413,7 @@ class _DetectRun:
         self.cal_start_s, self.cal_end_s = calibrate
         self.test_start_s, self.test_end_s = window
         self.explain = explain
+        self.named_scores = named_scores
         self.tracks = [_Track(det, array) for det in instances]
         self.warnings: list[str] = []
         self.n_samples = 0
@@ -461,9 +470,11 @@ class _DetectRun:
         for c in sorted(new):
             topic = channels[c].topic
             parts = topic.split("/")
-            if topic == EVENTS_TOPIC or (
-                len(parts) == 4 and parts[1] == "imufdi" and parts[2] in self.rerun
-            ):
+            # a detector run again replaces its status channels and their named scores
+            rerun = len(parts) in (4, 5) and parts[1] == "imufdi" and parts[2] in self.rerun
+            if rerun and len(parts) == 5 and parts[4] != "scores":
+                rerun = False
+            if topic == EVENTS_TOPIC or rerun:
                 self.dropped.add(c)
             elif topic == TRUTH_TOPIC and channels[c].message_encoding == "json":
                 self.dropped.add(c)
@@ -589,15 +600,25 @@ class _DetectRun:
     ) -> None:
         writer, array = self.writer, self.array
         if sensor_type not in track.channels:
+            ids = array.sensor_ids(sensor_type)
             track.channels[sensor_type] = register_status_channel(
-                writer, track.detector.name, sensor_type, array.sensor_ids(sensor_type)
+                writer, track.detector.name, sensor_type, ids
             )
+            if ids and self.named_scores:  # the scores under the sensors' names (viewers)
+                track.score_channels[sensor_type] = register_scores_channel(
+                    writer, track.detector.name, sensor_type, ids
+                )
             track.summary[sensor_type] = TypeSummary()
         channel = track.channels[sensor_type]
         # whole records from a template (the bytes encode_status + add_batch make)
         writer.add_records(
             status_records(channel, t_ns, out, decided_ns), np.full(len(t_ns), channel), t_ns
         )
+        named = track.score_channels.get(sensor_type)
+        if named is not None:
+            writer.add_records(
+                scores_records(named, t_ns, out.scores), np.full(len(t_ns), named), t_ns
+            )
         summary = track.summary[sensor_type]
         summary.samples += len(out)
         summary.alarms += int(np.count_nonzero(out.alarm))

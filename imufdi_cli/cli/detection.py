@@ -70,6 +70,13 @@ from imufdi_cli.cli.ui import UI, common_options
     show_default=True,
     help="Write an explained episode event (fault class, size with interval) per alarm episode.",
 )
+@click.option(
+    "--named-scores/--no-named-scores",
+    default=True,
+    show_default=True,
+    help="Also write the per-sensor scores under the sensors' names"
+    " (/imufdi/DETECTOR/TYPE/scores) for Foxglove and PlotJuggler.",
+)
 @common_options(json_help="Summary: alarms, events, isolations and episodes per detector.")
 def detect(
     source: str,
@@ -84,6 +91,7 @@ def detect(
     start: str | None,
     end: str | None,
     explain: bool,
+    named_scores: bool,
     ui: UI,
 ) -> None:
     """Run detectors and write an annotated MCAP (status channels, alarm events).
@@ -126,6 +134,7 @@ def detect(
             time_source=time_source(stamps),
             explain=explain,
             progress=progress,
+            named_scores=named_scores,
         )
     ui.print_table(detect_table(result, output, shown=None if ui.verbose else 3), summary=True)
     per_detector: dict[str, Any] = {}
