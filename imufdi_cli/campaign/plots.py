@@ -192,7 +192,7 @@ def headline_curves(
     panels: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for key, curve in sorted(curves.items()):
         curve["points"].sort(key=lambda p: (p["amplitude_si"] is None, p["amplitude_si"] or 0.0))
-        panels.setdefault(key[:3], []).append(curve)
+        panels.setdefault((key[0], key[1], key[2]), []).append(curve)
     return panels
 
 
