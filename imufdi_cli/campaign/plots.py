@@ -190,9 +190,9 @@ def headline_curves(
             }
         )
     panels: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
-    for key, curve in sorted(curves.items()):
+    for where, curve in sorted(curves.items()):
         curve["points"].sort(key=lambda p: (p["amplitude_si"] is None, p["amplitude_si"] or 0.0))
-        panels.setdefault((key[0], key[1], key[2]), []).append(curve)
+        panels.setdefault((where[0], where[1], where[2]), []).append(curve)
     return panels
 
 
