@@ -159,6 +159,9 @@ _SIZE_UNITS = {
     ("mag", "amp"): (1e6, "uT"),
     ("mag", "rate"): (1e6, "uT/s"),
     ("mag", "value"): (1e6, "uT"),
+    ("gyro", "duration"): (1.0, "s"),
+    ("accel", "duration"): (1.0, "s"),
+    ("mag", "duration"): (1.0, "s"),
 }
 
 
