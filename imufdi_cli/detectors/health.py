@@ -15,11 +15,13 @@ calibration window:
 * **variance drop** and **variance growth**: the first difference
   ``z_t = (x_t - x_{t-1}) / (sqrt(2) sigma_d)`` (slow motion cancels; ``sigma_d^2`` is the
   calibration's mean of ``(x_t - x_{t-1})^2 / 2``) feeds two capped Page CUSUMs on the
-  log-likelihood ratio of a variance change by the design factors ``K_drop = 0.1`` and
-  ``K_grow = 4`` (:mod:`imufdi_cli.detectors.cusum`, Page 1954; Basseville & Nikiforov
-  1993, §2.2, eq. 2.2.9 with ``l_t = 1/2 (1 - 1/K) z_t^2 - 1/2 ln K``). Their thresholds
-  are found by simulating the null (white z with the calibration's estimation error,
-  :func:`~imufdi_cli.detectors.cusum.cusum_threshold`).
+  log-likelihood ratio of a variance change by the design ratios ``K = drop_factor^2``
+  (0.1) and ``K = growth_factor^2`` (9) (:mod:`imufdi_cli.detectors.cusum`, Page 1954;
+  Basseville & Nikiforov 1993, §2.2, with ``l_t = 1/2 (1 - 1/K) z_t^2 - 1/2 ln K``).
+  Their thresholds are found by simulating the null, the larger of two: white Gaussian z
+  (:func:`~imufdi_cli.detectors.cusum.cusum_threshold`) and z drawn from the
+  calibration's own differences (:func:`_bootstrap_h`: a quantised or heavy-tailed
+  output), both with the calibration's estimation error.
 * **spikes**: ``|z_t| > Phi^-1(1 - level / 2)``.
 * **clipping** and **dropouts**: samples the input conditioning flags as clipped (at the
   array's ``range``) or invalid (NaN, impossible values), and **gaps** in the sample times
@@ -73,9 +75,10 @@ from imufdi_cli.log import ImuBlock
 CHECKS: tuple[str, ...] = ("stuck", "drop", "growth", "spikes", "clipping", "dropout")
 #: checks with a null distribution: they share the channel's false-alarm level
 TESTED: tuple[str, ...] = ("stuck", "drop", "growth", "spikes")
-#: CUSUM designs (variance ratio of the alternative) of the drop and growth tests
-DROP_DESIGN = CusumDesign(ratio=0.1, clip=5.0)
-GROWTH_DESIGN = CusumDesign(ratio=4.0, clip=5.0)
+#: default factors of the standard deviation the drop and growth CUSUMs are designed for
+#: (their variance ratios K = factor^2: 0.1 and 9)
+DROP_FACTOR = math.sqrt(0.1)
+GROWTH_FACTOR = 3.0
 #: cap of each CUSUM above its threshold (how soon an alarm ends once the variance is back)
 CUSUM_MARGIN = 5.0
 #: a sample-time step longer than this many nominal periods is a gap
@@ -98,8 +101,9 @@ def _checks_problem(text: Any) -> str | None:
 
 @functools.lru_cache(maxsize=32)
 def _cusum_h(level: float, design: CusumDesign, dof: float, seed: int) -> float:
-    """Threshold of one CUSUM (a function of its arguments alone: refits and campaign runs
-    with the same settings simulate the null once)."""
+    """Threshold of one CUSUM under the Gaussian null (a function of its arguments alone:
+    refits and campaign runs with the same settings simulate it once); 256 chains of
+    17 408 steps, about 0.3-1 s of CPU."""
     return cusum_threshold(
         level,
         design,
@@ -107,6 +111,61 @@ def _cusum_h(level: float, design: CusumDesign, dof: float, seed: int) -> float:
         dof,
         np.random.default_rng([seed, 0x4EA1, int(design.ratio * 1000)]),
     )
+
+
+def _rounded_dof(dof: float) -> float:
+    """Degrees of freedom rounded down to two significant digits: calibrations of nearly
+    the same length share their simulated thresholds (fewer degrees of freedom: a slightly
+    larger estimation error, a slightly higher threshold)."""
+    if dof < 10:
+        return max(float(math.floor(dof)), 1.0)
+    scale = 10.0 ** (math.floor(math.log10(dof)) - 1)
+    return math.floor(dof / scale) * scale
+
+
+def _bootstrap_h(
+    level: float,
+    design: CusumDesign,
+    pool: np.ndarray,
+    dof: float,
+    seed: int,
+    chains: int = 128,
+    steps: int = 8192,
+) -> float:
+    """Threshold of one CUSUM whose null terms are drawn (i.i.d., with replacement) from
+    ``pool``, the calibration's own standardised differences, each chain rescaled by the
+    relative error of the calibrated variance (as :func:`cusum_threshold` does): the null
+    of a quantised or heavy-tailed output, whose differences are not Gaussian (a coarse
+    quantiser's many zero differences look like a variance drop to the Gaussian null).
+    Independent draws leave out the -1/2 lag correlation of differences, which lowers the
+    spread of the CUSUM's sums: the threshold is the larger for it (conservative). A
+    function of its arguments (``pool``'s bytes included) and cached: a refit on the same
+    calibration simulates once. 128 chains of 9216 steps (about 0.05 s of CPU a design):
+    the Gaussian null of the same level, simulated four times longer, is the floor."""
+    key = (level, design, pool.tobytes(), dof, seed, chains, steps)
+    cached = _BOOTSTRAP_CACHE.get(key)
+    if cached is not None:
+        return cached
+    from imufdi_cli.detectors.cusum import _tail_threshold, _TopValues
+
+    rng = np.random.default_rng([seed, 0xB007, int(design.ratio * 1000)])
+    burn = 1024
+    scale = np.sqrt(np.maximum(1.0 + rng.normal(0.0, math.sqrt(2.0 / dof), chains), 0.05))
+    z = rng.choice(pool, size=(steps + burn, chains)) / scale
+    increments = design.increments(z, out=z)
+    path, _ = run_cusum(increments, np.zeros(chains), math.inf)
+    h = _tail_threshold(_TopValues(path[burn:], level), level)
+    cap = h + CUSUM_MARGIN
+    path, _ = run_cusum(increments, np.zeros(chains), cap)
+    h = _tail_threshold(_TopValues(path[burn:], level), level, cap=cap)
+    if len(_BOOTSTRAP_CACHE) >= 32:
+        _BOOTSTRAP_CACHE.pop(next(iter(_BOOTSTRAP_CACHE)))
+    _BOOTSTRAP_CACHE[key] = h
+    return h
+
+
+#: thresholds of :func:`_bootstrap_h` by their arguments (the 32 latest)
+_BOOTSTRAP_CACHE: dict[tuple[Any, ...], float] = {}
 
 
 def _poisson_upper(count: int, exposure: int) -> float:
@@ -172,6 +231,23 @@ class HealthDetector(DetectorBase):
             f"checks to run, comma-separated ({', '.join(CHECKS)})",
             check=_checks_problem,
         ),
+        "drop_factor": Param(
+            "float",
+            DROP_FACTOR,
+            "std factor the variance-drop CUSUM is designed for (it alarms below about"
+            " 1.6x it: 0.51 by default)",
+            low=0.0,
+            high=0.9,
+            low_open=True,
+        ),
+        "growth_factor": Param(
+            "float",
+            GROWTH_FACTOR,
+            "std factor the variance-growth CUSUM is designed for (it alarms above about"
+            " half of it: 1.57 by default)",
+            low=1.1,
+            high=100.0,
+        ),
         "seed": Param("int", 0, "seed of the simulated CUSUM null", low=0),
     }
 
@@ -181,6 +257,8 @@ class HealthDetector(DetectorBase):
         false_alarms: float = 0.0,
         types: str = "gyro,accel",
         checks: str = ",".join(CHECKS),
+        drop_factor: float = DROP_FACTOR,
+        growth_factor: float = GROWTH_FACTOR,
         seed: int = 0,
     ) -> None:
         self.alpha = alpha
@@ -190,6 +268,10 @@ class HealthDetector(DetectorBase):
         if problem:
             raise DetectorConfigError(f"{self.name}.checks: {problem}")
         self.checks = tuple(c for c in CHECKS if c in {x.strip() for x in checks.split(",")})
+        self.drop_factor = drop_factor
+        self.growth_factor = growth_factor
+        self.drop_design = CusumDesign(ratio=drop_factor**2, clip=5.0)
+        self.growth_design = CusumDesign(ratio=growth_factor**2, clip=5.0)
         self.seed = seed
         self.array: ArrayConfig | None = None
         self.rate_hz = 0.0
@@ -251,18 +333,31 @@ class HealthDetector(DetectorBase):
                 p = min(p, 0.999)
                 repeat_p[k] = p
                 repeats[k] = max(2, math.ceil(math.log(level) / math.log(p)))
-            dof = _successive_dof(int(m.min()) + 1)
+            dof = _rounded_dof(_successive_dof(int(m.min()) + 1))
             from imufdi_cli.quantiles import norm
+
+            # the null of the variance tests: Gaussian white differences, and the
+            # calibration's own (quantised, heavy-tailed); the larger threshold of the two
+            pool = (d / (math.sqrt(2.0) * sigma_d))[valid]
+            if pool.size > 65536:
+                pool = np.random.default_rng([self.seed, 0x9001]).choice(pool, 65536)
+            h_drop, h_growth = (
+                max(
+                    _cusum_h(level, design, dof, self.seed),
+                    _bootstrap_h(level, design, pool, dof, self.seed),
+                )
+                if check in tested
+                else 0.0
+                for design, check in ((self.drop_design, "drop"), (self.growth_design, "growth"))
+            )
 
             self.models[sensor_type] = _Model(
                 n=n,
                 sigma_d=sigma_d,
                 repeat_p=repeat_p,
                 repeats=repeats,
-                h_drop=_cusum_h(level, DROP_DESIGN, dof, self.seed) if "drop" in tested else 0.0,
-                h_growth=_cusum_h(level, GROWTH_DESIGN, dof, self.seed)
-                if "growth" in tested
-                else 0.0,
+                h_drop=h_drop,
+                h_growth=h_growth,
                 spike_z=float(norm.isf(level / 2.0)),
                 level=level,
             )
@@ -347,12 +442,14 @@ class HealthDetector(DetectorBase):
         tested = np.where(spike, np.nan, z) if "spikes" in self.checks else z
         if "drop" in self.checks:
             s, state.s_drop = run_cusum(
-                DROP_DESIGN.increments(tested.copy()), state.s_drop, model.h_drop + CUSUM_MARGIN
+                self.drop_design.increments(tested.copy()),
+                state.s_drop,
+                model.h_drop + CUSUM_MARGIN,
             )
             ratios[1] = s / model.h_drop
         if "growth" in self.checks:
             s, state.s_growth = run_cusum(
-                GROWTH_DESIGN.increments(tested.copy()),
+                self.growth_design.increments(tested.copy()),
                 state.s_growth,
                 model.h_growth + CUSUM_MARGIN,
             )
@@ -510,6 +607,8 @@ class HealthDetector(DetectorBase):
                 "false_alarms": self.false_alarms,
                 "types": ",".join(self.types),
                 "checks": ",".join(self.checks),
+                "drop_factor": self.drop_factor,
+                "growth_factor": self.growth_factor,
                 "seed": self.seed,
             },
             "types": {
