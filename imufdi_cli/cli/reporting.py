@@ -136,6 +136,19 @@ def report(
             window=start_end(start, end),
             progress=progress,
         )
+    window = start_end(start, end)
+    if (
+        window is not None
+        and result.entries
+        and all(e.metrics.samples == 0 for e in result.entries)
+    ):
+        ui.warn(
+            [
+                f"--start/--end holds no status sample (--start {start or '0'}, --end"
+                f" {end or 'the end'}; the status starts at {_status_start(result)}):"
+                " nothing was scored"
+            ]
+        )
     gate_results = rep.evaluate_gates(result, parsed)
     ui.print_table(report_table(result))
     for table in episode_tables(result, limit=None if ui.verbose else 12):
@@ -181,6 +194,14 @@ def report(
             + f" (exit 1{where})"
         )
         sys.exit(EXIT_GATE_FAILED)
+
+
+def _status_start(result: Any) -> str:
+    """When the log's status starts: ISO 8601 UTC for calendar stamps, else the raw ns."""
+    from imufdi_cli.units import UNIX_TIME_MIN_S, utc_iso
+
+    t0 = int(result.t0_ns)
+    return utc_iso(t0) if t0 >= UNIX_TIME_MIN_S * 1e9 else f"{t0} ns (not a calendar time)"
 
 
 def _failed_gate(result: Any) -> str:

@@ -273,3 +273,14 @@ def test_a_failed_gate_under_quiet_says_what_failed(cli, tmp_path, simulated):
     assert "above" not in result.stderr
     loud = cli(["report", detected, "--fail-if", "glt.gyro.far > -1"])
     assert "the report above shows every figure" in loud.stderr
+
+
+def test_a_report_window_without_samples_warns(cli, tmp_path, simulated):
+    detected = tmp_path / "d.mcap"
+    assert cli(["detect", simulated, "-d", "glt", "-o", detected, "-q"]).code == 0
+    result = cli(["report", detected, "--start", "2033-01-01T00:00:00Z"])
+    assert result.code == 0
+    assert "warning: --start/--end holds no status sample" in result.stderr
+    assert "the status starts at 2023-11-14T22:13:20Z" in result.stderr
+    inside = cli(["report", detected, "--start", "2023-11-14T22:13:30Z"])
+    assert "holds no status sample" not in inside.stderr
