@@ -24,6 +24,20 @@ from imufdi_cli.cli.ui import UI, common_options
 # --- detect ----------------------------------------------------------------------------
 
 
+def false_alarm_rate(text: str) -> float:
+    """``--false-alarms`` in episodes per second (``1/h``, ``0.1/h``, ``5/min``)."""
+    from imufdi_cli.errors import UnitError, UsageError
+    from imufdi_cli.units import parse_quantity
+
+    try:
+        value = parse_quantity(text, "frequency", name="--false-alarms")
+    except UnitError as err:
+        raise UsageError(str(err)) from None
+    if value < 0:
+        raise UsageError(f"--false-alarms must be >= 0 (e.g. 1/h), got {text!r}")
+    return value
+
+
 @cli.command()
 @click.argument("source", metavar="IN", shell_complete=complete_file)
 @click.option(
@@ -42,6 +56,14 @@ from imufdi_cli.cli.ui import UI, common_options
     help="Detector to run (repeatable).",
 )
 @click.option("--param", "params", multiple=True, help="DETECTOR.KEY=VALUE, e.g. glt.alpha=0.001.")
+@click.option(
+    "--false-alarms",
+    "false_alarms",
+    metavar="RATE",
+    help="False-alarm budget per status channel, e.g. 1/h: every detector decides"
+    " sequentially so that fault-free data raise at most RATE false alarm episodes."
+    " Default: the papers' per-sample tests at each detector's alpha.",
+)
 @click.option(
     "--calibrate",
     default="0s:2s",
@@ -83,6 +105,7 @@ def detect(
     output: str | None,
     detector_names: tuple[str, ...],
     params: tuple[str, ...],
+    false_alarms: str | None,
     calibrate: str,
     topics: tuple[str, ...],
     stamps: str,
@@ -101,6 +124,7 @@ def detect(
 
     \b
         imufdi detect faulty.mcap -d glt -d woa-mvmd-glt --param glt.alpha=0.001 -o out.mcap
+        imufdi detect recorded.mcap -d glt -d pca-parity --false-alarms 1/h -o out.mcap
         imufdi detect - -d glt -o - < faulty.mcap | imufdi report -
         imufdi detect real.mcap -d glt --array array.toml --calibrate 0s:10s --start 10s -o out.mcap
     """
@@ -110,6 +134,7 @@ def detect(
 
     check_input(source)
     grouped = parse_detector_params(detector_names, params)
+    budget = None if false_alarms is None else false_alarm_rate(false_alarms)
     window = time_range(calibrate, "--calibrate")
     tested = start_end(start, end)
     array = ArrayConfig.load(array_path) if array_path else None
@@ -134,6 +159,7 @@ def detect(
             time_source=time_source(stamps),
             explain=explain,
             progress=progress,
+            false_alarms=budget,
             named_scores=named_scores,
         )
     ui.print_table(detect_table(result, output, shown=None if ui.verbose else 3), summary=True)
