@@ -366,7 +366,7 @@ def detect_file(
     progress: ProgressCallback | None = None,
     read_ahead: bool | None = None,
     false_alarms: float | None = None,
-    named_scores: bool = True,
+    named_scores: bool = False,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -462,7 +462,7 @@ class _DetectRun:
         calibrate: tuple[float, float | None],
         window: tuple[float, float | None],
         explain: bool,
-        named_scores: bool = True,
+        named_scores: bool = False,
     ) -> None:
         self.reader = reader
         self.writer = writer

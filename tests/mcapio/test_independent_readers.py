@@ -72,6 +72,7 @@ def outputs(tmp_path_factory) -> dict[str, Path]:
     _run(["inject", sim, *faults, "-o", files["inject"]])
     keep("inject-stdout", _run(["inject", "-", *faults, "-o", "-"], stdin=sim.read_bytes()))
     dets = [a for name in DETECTORS for a in ("-d", name)] + ["--calibrate", "0s:1s"]
+    dets.append("--named-scores")  # the readers judge the companion topics too
     files["detect"] = d / "detect.mcap"
     _run(["detect", files["inject"], *dets, "-o", files["detect"]])
     keep(
@@ -88,6 +89,7 @@ def outputs(tmp_path_factory) -> dict[str, Path]:
             "glt",
             "--calibrate",
             "0s:1s",
+            "--named-scores",
             "-o",
             files["detect-ingest"],
         ]
