@@ -1,3 +1,5 @@
 """imufdi: fault detection and isolation for redundant MEMS IMU arrays, on MCAP logs."""
 
-__version__ = "0.1.0"
+from imufdi_cli._version import __version__
+
+__all__ = ["__version__"]

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
 
-from imufdi_cli import __version__
+from imufdi_cli._version import __version__
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors import DETECTORS, make_detectors
 from imufdi_cli.detectors.base import DetectionBlock, Detector

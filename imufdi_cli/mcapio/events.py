@@ -339,6 +339,28 @@ def decode_events(batch: MessageBatch, channel: ChannelInfo) -> list[dict[str, A
     return out
 
 
+def match_fields(
+    episode: dict[str, Any],
+) -> tuple[str, int, int, str | None, str | None, float | None, float | None]:
+    """What matching reads of an explanation (``Episode.to_dict``): sensor type, first
+    and last alarmed sample (ns), first isolated sensor, and the best fit's model, interval
+    low and high (None when absent) -- the arguments of
+    :meth:`imufdi_cli.episodes.scoring.EpisodeMatcher.match`, and the typed fields of an
+    ``episode`` event."""
+    sensors = episode.get("sensors") or []
+    fits = episode.get("fits") or []
+    best = fits[0] if fits else {}
+    return (
+        episode["sensor_type"],
+        episode["start_ns"],
+        episode["end_ns"],
+        sensors[0] if sensors else None,
+        best.get("model"),
+        best.get("low"),
+        best.get("high"),
+    )
+
+
 class EpisodeEvent:
     """An ``episode`` event as ``imufdi report`` reads it: what matching and counting need
     (detector, sensor type, first and last alarmed sample, first isolated sensor, the best
@@ -399,8 +421,6 @@ class EpisodeEvent:
     def from_explanation(cls, episode: dict[str, Any]) -> EpisodeEvent:
         """From a decoded explanation (files without the typed ``start_ns``/``end_ns``
         fields, and the JSON event channels of older versions)."""
-        from imufdi_cli.episodes.scoring import match_fields  # what matching reads of it
-
         return cls(episode["detector"], *match_fields(episode), explanation=episode)
 
     def match_fields(

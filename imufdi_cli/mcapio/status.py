@@ -35,7 +35,7 @@ import os
 import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import IO, TYPE_CHECKING, Any
+from typing import IO, Any, Protocol
 
 import numpy as np
 
@@ -55,8 +55,30 @@ from imufdi_cli.mcapio.schemas import STATUS_SCHEMA, STATUS_SCHEMA_NAME
 from imufdi_cli.mcapio.source import McapSource, iter_topic
 from imufdi_cli.mcapio.writer import McapWriter
 
-if TYPE_CHECKING:
-    from imufdi_cli.detectors.base import DetectionBlock
+
+class DetectionRows(Protocol):
+    """What a status channel records of a detector's output for N samples: the fields of
+    :class:`imufdi_cli.detectors.base.DetectionBlock` (which satisfies this protocol; the
+    readers and writers below the detectors do not import them)."""
+
+    statistic: np.ndarray  # (N,) float64
+    threshold: np.ndarray  # (N,) float64
+    alarm: np.ndarray  # (N,) bool
+    isolated: np.ndarray  # (N,) int: sensor index, or a negative code
+    amplitude: np.ndarray  # (N,) float64, SI units of the sensor type
+    scores: np.ndarray  # (N, n_s) float64
+    amplitudes: np.ndarray | None  # (N, n_s) float64, or None
+
+    def __len__(self) -> int: ...
+
+    def isolation_set(self) -> np.ndarray:
+        """(N, n_s) bool."""
+        ...
+
+    def amplitude_set(self) -> np.ndarray:
+        """(N, n_s) float64."""
+        ...
+
 
 NS_PER_S = 1_000_000_000
 STATUS_TOPIC_PREFIX = "/imufdi/"
@@ -185,7 +207,7 @@ def _status_template(
 def status_records(
     channel_id: int,
     t_ns: np.ndarray,
-    det: DetectionBlock,
+    det: DetectionRows,
     decided_ns: np.ndarray | None = None,
     *,
     frame_id: str = STATUS_FRAME_ID,
@@ -201,7 +223,7 @@ def status_records(
     channel_id : int
     t_ns : ndarray, shape (N,), int64
         Sample times, ns (``header.stamp``, the log and publish times).
-    det : DetectionBlock
+    det : DetectionRows
         N rows.
     decided_ns : ndarray, shape (N,), int64, optional
         Decision times, ns (default: the sample times, a causal detector).
@@ -256,7 +278,7 @@ def status_records(
 def encode_status(
     channel_id: int,
     t_ns: np.ndarray,
-    det: DetectionBlock,
+    det: DetectionRows,
     decided_ns: np.ndarray | None = None,
     *,
     frame_id: str = STATUS_FRAME_ID,
@@ -270,7 +292,7 @@ def encode_status(
     channel_id : int
     t_ns : ndarray, shape (N,), int64
         Sample times, ns (``header.stamp`` and the message log time).
-    det : DetectionBlock
+    det : DetectionRows
         N rows.
     decided_ns : ndarray, shape (N,), int64, optional
         Decision times, ns (default: the sample times, a causal detector).
