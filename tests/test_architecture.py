@@ -63,3 +63,12 @@ def test_an_import_inside_a_function_breaks_the_contract(tmp_path, monkeypatch, 
     out = capsys.readouterr().out
     assert code != 0
     assert "probe_layers.low is not allowed to import probe_layers.high" in out
+
+
+def test_no_module_is_over_800_lines() -> None:
+    """A module a maintainer can read whole: longer ones are split by concern."""
+    lengths = {
+        str(path.relative_to(ROOT)): len(path.read_text(encoding="utf-8").splitlines())
+        for path in (ROOT / "imufdi_cli").rglob("*.py")
+    }
+    assert {path: n for path, n in lengths.items() if n > 800} == {}

@@ -28,7 +28,8 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
-from imufdi_cli.mcapio.cdr import codec_for, decode_json_payloads
+from imufdi_cli.mcapio.cdr import codec_for
+from imufdi_cli.mcapio.cdr_message import decode_json_payloads
 from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch
 from imufdi_cli.mcapio.schemas import (
     FAULT_EVENT_SCHEMA,
@@ -572,7 +573,7 @@ def _walk_episode_events(batch: MessageBatch, topic: str) -> list[EpisodeEvent] 
     isolable, amplitude, statistic, fault_class, size_name, size, size_low, size_high,
     detail, start_ns, end_ns), walked for all messages of the batch at once with numpy;
     only the episodes' fields become Python objects. Strings decode as
-    :class:`~imufdi_cli.mcapio.cdr.MessageDecoder` decodes them. None when a message is
+    :class:`~imufdi_cli.mcapio.cdr_message.MessageDecoder` decodes them. None when a message is
     big-endian (not written by imufdi): the caller decodes the batch in full."""
     if len(batch) == 0:
         return []

@@ -40,7 +40,8 @@ from typing import IO, Any, Protocol
 import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
-from imufdi_cli.mcapio.cdr import CdrCodec, codec_for, decode_json_payloads
+from imufdi_cli.mcapio.cdr import CdrCodec, codec_for
+from imufdi_cli.mcapio.cdr_message import decode_json_payloads
 from imufdi_cli.mcapio.events import decode_events, is_event_channel
 from imufdi_cli.mcapio.records import (
     MESSAGE_FIXED_CONTENT,
