@@ -1,4 +1,4 @@
-"""``imufdi detect``: run detectors over a log and write the annotated MCAP (DESIGN.md §4).
+"""``imufdi detect``: run detectors over a log and write the annotated MCAP (docs/formats.md).
 
 One streaming pass: every input message is copied to the output as raw bytes (a whole
 input chunk of messages only is written as it is, without recompression: docs/formats.md);
@@ -343,7 +343,7 @@ def detect_file(
         Default (None): the reader's default, off unless ``IMUFDI_READ_AHEAD=1``. Off,
         detect takes less CPU and (on two cores) less time: the worker thread and the
         main thread share the GIL, and the hand-offs cost the main thread about what the
-        decompression it moves off (docs/performance.md, "Write side, session 21").
+        decompression it moves off (docs/performance.md, "Reading").
 
     Returns
     -------

@@ -287,8 +287,8 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 
     The driver's ``plot_curves`` is replaced once per test process by
     :func:`_campaign_plot_curves`, and the marker is read here before each test's
-    fixtures (an autouse ``monkeypatch`` fixture did the same per test until session 24:
-    about 0.2 ms of CPU in each of the ~1 250 default tests)."""
+    fixtures (an autouse ``monkeypatch`` fixture doing the same would cost about 0.2 ms of
+    CPU in each of the ~1 250 default tests)."""
     _CAMPAIGN_FIGURE["draw"] = item.get_closest_marker("campaign_figure") is not None
     from imufdi_cli.campaign import driver
 

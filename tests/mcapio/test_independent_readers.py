@@ -1,4 +1,4 @@
-"""Every command's output, read by independent MCAP/ROS 2 readers (DESIGN.md §4).
+"""Every command's output, read by independent MCAP/ROS 2 readers (docs/testing.md).
 
 The judges: the ``mcap`` package (indexed reader: summary, statistics, chunk, message and
 metadata indexes, CRCs validated; and its streaming reader), rosbags ``AnyReader`` (every
