@@ -27,7 +27,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from imufdi_cli.errors import DetectorConfigError, UsageError
+from imufdi_cli.errors import UsageError
 from imufdi_cli.units import parse_quantity, parse_time_range
 
 if TYPE_CHECKING:
@@ -99,7 +99,7 @@ def _range(value: str | tuple[Time, Time | None], name: str) -> tuple[float, flo
 
 def _detectors(detectors: Detectors) -> list[tuple[str, dict[str, Any]]]:
     """``[(name, params)]`` in the order given, each name known and given once."""
-    from imufdi_cli.detectors import DETECTORS
+    from imufdi_cli.detectors import check_selection
 
     if isinstance(detectors, str):
         detectors = [detectors]
@@ -107,16 +107,7 @@ def _detectors(detectors: Detectors) -> list[tuple[str, dict[str, Any]]]:
         items = [(str(name), dict(params or {})) for name, params in detectors.items()]
     else:
         items = [(str(name), {}) for name in detectors]
-    if not items:
-        raise DetectorConfigError(f"no detector selected (valid: {', '.join(sorted(DETECTORS))})")
-    seen: set[str] = set()
-    for name, _ in items:
-        if name not in DETECTORS:
-            valid = ", ".join(sorted(DETECTORS))
-            raise DetectorConfigError(f"unknown detector {name!r}; valid: {valid}")
-        if name in seen:
-            raise DetectorConfigError(f"detector {name!r} selected twice")
-        seen.add(name)
+    check_selection([name for name, _ in items])
     return items
 
 

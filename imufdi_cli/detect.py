@@ -22,7 +22,7 @@ import numpy as np
 
 from imufdi_cli._version import __version__
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors import DETECTORS, make_detectors
+from imufdi_cli.detectors import make_detectors
 from imufdi_cli.detectors.base import DetectionBlock, Detector
 from imufdi_cli.errors import CalibrationError, DetectorConfigError, McapInputError
 from imufdi_cli.log import ImuBlock
@@ -60,40 +60,56 @@ DEFAULT_CALIBRATION = (0.0, 2.0)
 Flags = dict[str, tuple[np.ndarray, np.ndarray]]
 
 
-def parse_detector_params(
-    detectors: Sequence[str], params: Iterable[str]
-) -> list[tuple[str, dict[str, str]]]:
-    """Group ``--param det.key=value`` strings by detector.
+def with_budget(
+    detectors: Iterable[tuple[str, Mapping[str, Any]]], false_alarms: float | None
+) -> list[tuple[str, dict[str, Any]]]:
+    """Detector specs with the false-alarm budget ``false_alarms`` (episodes per second) set
+    on every detector that does not set its own ``false_alarms`` parameter.
 
-    Raises DetectorConfigError for a malformed item or one naming a detector not selected.
-    """
-    if not detectors:
+    Raises DetectorConfigError for a negative budget or a detector that cannot decide
+    under one."""
+    from imufdi_cli.detectors import detector_class
+
+    specs = [(name, dict(params)) for name, params in detectors]
+    if false_alarms is None:
+        return specs
+    if not (false_alarms >= 0 and np.isfinite(false_alarms)):
         raise DetectorConfigError(
-            f"no detector selected; use -d NAME (valid: {', '.join(sorted(DETECTORS))})"
+            f"--false-alarms must be a rate >= 0 such as 1/h, got {false_alarms!r}"
         )
-    grouped: dict[str, dict[str, str]] = {}
-    for name in detectors:
-        if name not in DETECTORS:
+    for name, params in specs:
+        if "false_alarms" not in detector_class(name).PARAMS:
             raise DetectorConfigError(
-                f"unknown detector {name!r}; valid: {', '.join(sorted(DETECTORS))}"
+                f"detector {name!r} has no false-alarm budget (its parameters:"
+                f" {', '.join(sorted(detector_class(name).PARAMS))})"
             )
-        if name in grouped:
-            raise DetectorConfigError(f"detector {name!r} selected twice")
-        grouped[name] = {}
-    for item in params:
-        if "=" not in item or "." not in item.split("=", 1)[0]:
-            raise DetectorConfigError(
-                f"--param {item!r} is not of the form DETECTOR.KEY=VALUE (e.g. glt.alpha=0.001)"
-            )
-        key, value = item.split("=", 1)
-        detector, name = key.split(".", 1)
-        if detector not in grouped:
-            raise DetectorConfigError(
-                f"--param {item!r} names detector {detector!r}, which is not selected with -d"
-                f" (selected: {', '.join(grouped)})"
-            )
-        grouped[detector][name] = value
-    return list(grouped.items())
+        params.setdefault("false_alarms", false_alarms)
+    return specs
+
+
+#: Above this many expected false alarm episodes an hour on a channel, detect warns.
+NOISY_EPISODES_PER_HOUR = 60.0
+
+
+def level_warning(detector: Any, rate_hz: float) -> str | None:
+    """A one-line warning when a detector's settings should raise more than
+    :data:`NOISY_EPISODES_PER_HOUR` false alarm episodes an hour on each of its channels
+    of a fault-free log at ``rate_hz`` (the per-sample tests at their ``alpha``: about
+    ``alpha^persistence`` of the samples start one), naming ``--false-alarms``; None when
+    it should not, or when the detector's rate cannot be told from its settings."""
+    budget = float(getattr(detector, "false_alarms", 0.0) or 0.0)
+    alpha = getattr(detector, "alpha", None)
+    if budget > 0 or alpha is None or not rate_hz > 0:
+        return None
+    persistence = max(1, int(getattr(detector, "persistence", 1) or 1))
+    per_hour = float(alpha) ** persistence * rate_hz * 3600.0
+    if per_hour <= NOISY_EPISODES_PER_HOUR:
+        return None
+    return (
+        f"{detector.name}: the per-sample test at alpha={float(alpha):g} should raise about"
+        f" {per_hour:,.0f} false alarm episodes an hour on each channel at {rate_hz:g} Hz;"
+        " for recorded data and CI give a budget, e.g. --false-alarms 1/h (docs/guide.md)"
+    )
 
 
 @dataclass
@@ -311,6 +327,7 @@ def detect_file(
     explain: bool = True,
     progress: ProgressCallback | None = None,
     read_ahead: bool | None = None,
+    false_alarms: float | None = None,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -337,6 +354,11 @@ def detect_file(
         Write an explained ``episode`` event for every alarm episode (docs/episodes.md).
     progress : callable, optional
         ``progress(seconds done, log seconds or None)`` (:mod:`imufdi_cli.progress`).
+    false_alarms : float, optional
+        False-alarm budget, episodes per second of fault-free data on each status channel
+        (``--false-alarms 1/h`` is 1/3600): every detector whose parameters do not set
+        ``false_alarms`` themselves decides under it (:func:`with_budget`). None: the
+        detectors' own settings (by default the papers' per-sample tests).
     read_ahead : bool or None
         Decompress the input's large chunks on a worker thread ahead of their use
         (:class:`~imufdi_cli.mcapio.McapSource`); the output is the same either way.
@@ -349,7 +371,7 @@ def detect_file(
     -------
     DetectResult
     """
-    instances, notes = make_detectors((name, dict(params)) for name, params in detectors)
+    instances, notes = make_detectors(with_budget(detectors, false_alarms))
     # read in line by default: reading ahead on a worker thread costs more CPU and time
     # than it moves off this thread (GIL hand-offs; docs/performance.md)
     log = McapSource(source, strict=strict, keep_raw_chunks=True, read_ahead=read_ahead)
@@ -538,6 +560,9 @@ class _DetectRun:
         whole = self.conditioner.sanitize(whole, whole_flags, count=False)
         for track in self.tracks:
             track.detector.fit(whole, self.array)
+            note = level_warning(track.detector, self.array.rate_hz)
+            if note is not None:
+                self.warnings.append(note)
         builders: dict[str, EpisodeBuilder] = {}
         if self.explain:
             # imported when used: --no-explain runs do not load (or compile) it

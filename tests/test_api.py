@@ -69,9 +69,10 @@ def test_the_pages_example_runs_and_prints_what_the_page_shows(tmp_path, monkeyp
 def test_the_pages_error_example_prints_what_the_page_shows(detected, monkeypatch) -> None:
     (lang, code), (_, shown) = _blocks("Errors")[:2]
     assert lang == "python"
+    before = hashlib.sha256((detected / "faulty.mcap").read_bytes()).hexdigest()
     printed = _run(code, detected, monkeypatch, {"imufdi": imufdi})
     assert printed == shown
-    assert not (detected / "out.mcap").exists()
+    assert hashlib.sha256((detected / "faulty.mcap").read_bytes()).hexdigest() == before
 
 
 def test_detector_parameters_pass_through_to_the_detector(detected) -> None:
@@ -87,6 +88,10 @@ def test_detector_parameters_pass_through_to_the_detector(detected) -> None:
     strict, loose = alarms({"alpha": 1e-6}), alarms({"alpha": 0.2})
     assert strict < loose
     assert alarms({"alpha": "0.2"}) == loose
+    budgeted = imufdi.detect(faulty, out, {"glt": {"false_alarms": "1/h"}}, explain=False)
+    assert budgeted.summaries["glt"]["gyro"].events < loose
+    with pytest.raises(DetectorConfigError, match="glt.false_alarms: cannot read 'lots'"):
+        imufdi.detect(faulty, out, {"glt": {"false_alarms": "lots"}})
     with pytest.raises(DetectorConfigError, match=r"unknown parameter glt\.alpah; valid: alpha"):
         imufdi.detect(faulty, out, {"glt": {"alpah": 0.1}})
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import click
@@ -13,6 +14,20 @@ from imufdi_cli.cli.plain import PlainTable
 from imufdi_cli.cli.ui import UI, common_options
 
 # --- detect ----------------------------------------------------------------------------
+
+
+def false_alarm_rate(text: str) -> float:
+    """``--false-alarms`` in episodes per second (``1/h``, ``0.1/h``, ``5/min``)."""
+    from imufdi_cli.errors import UnitError, UsageError
+    from imufdi_cli.units import parse_quantity
+
+    try:
+        value = parse_quantity(text, "frequency", name="--false-alarms")
+    except UnitError as err:
+        raise UsageError(str(err)) from None
+    if value < 0:
+        raise UsageError(f"--false-alarms must be >= 0 (e.g. 1/h), got {text!r}")
+    return value
 
 
 @cli.command()
@@ -28,6 +43,14 @@ from imufdi_cli.cli.ui import UI, common_options
     help="Detector to run (repeatable).",
 )
 @click.option("--param", "params", multiple=True, help="DETECTOR.KEY=VALUE, e.g. glt.alpha=0.001.")
+@click.option(
+    "--false-alarms",
+    "false_alarms",
+    metavar="RATE",
+    help="False-alarm budget per status channel, e.g. 1/h: every detector decides"
+    " sequentially so that fault-free data raise at most RATE false alarm episodes."
+    " Default: the papers' per-sample tests at each detector's alpha.",
+)
 @click.option(
     "--calibrate",
     default="0s:2s",
@@ -61,6 +84,7 @@ def detect(
     output: str | None,
     detector_names: tuple[str, ...],
     params: tuple[str, ...],
+    false_alarms: str | None,
     calibrate: str,
     topics: tuple[str, ...],
     stamps: str,
@@ -78,15 +102,17 @@ def detect(
 
     \b
         imufdi detect faulty.mcap -d glt -d woa-mvmd-glt --param glt.alpha=0.001 -o out.mcap
+        imufdi detect recorded.mcap -d glt -d pca-parity --false-alarms 1/h -o out.mcap
         imufdi detect - -d glt -o - < faulty.mcap | imufdi report -
         imufdi detect real.mcap -d glt --array array.toml --calibrate 0s:10s --start 10s -o out.mcap
     """
     from imufdi_cli.array import ArrayConfig
-    from imufdi_cli.detect import detect_file, parse_detector_params
+    from imufdi_cli.detect import detect_file
     from imufdi_cli.fileio import check_input, check_outputs, default_output
 
     check_input(source)
     grouped = parse_detector_params(detector_names, params)
+    budget = None if false_alarms is None else false_alarm_rate(false_alarms)
     window = time_range(calibrate, "--calibrate")
     tested = start_end(start, end)
     array = ArrayConfig.load(array_path) if array_path else None
@@ -111,6 +137,7 @@ def detect(
             time_source=time_source(stamps),
             explain=explain,
             progress=progress,
+            false_alarms=budget,
         )
     ui.print_table(detect_table(result, output, shown=None if ui.verbose else 3), summary=True)
     per_detector: dict[str, Any] = {}
@@ -379,3 +406,31 @@ def calibrate_table(result: Any, source: str, output: str) -> PlainTable:
             " ".join(f"{v * factor:+.4f}" for v in f.bias) + f" {unit}",
         )
     return table
+
+
+def parse_detector_params(
+    detectors: Sequence[str], params: Iterable[str]
+) -> list[tuple[str, dict[str, str]]]:
+    """Group ``--param det.key=value`` strings by detector.
+
+    Raises DetectorConfigError for a malformed item or one naming a detector not selected.
+    """
+    from imufdi_cli.detectors import check_selection
+    from imufdi_cli.errors import DetectorConfigError
+
+    check_selection(detectors)
+    grouped: dict[str, dict[str, str]] = {name: {} for name in detectors}
+    for item in params:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise DetectorConfigError(
+                f"--param {item!r} is not of the form DETECTOR.KEY=VALUE (e.g. glt.alpha=0.001)"
+            )
+        key, value = item.split("=", 1)
+        detector, name = key.split(".", 1)
+        if detector not in grouped:
+            raise DetectorConfigError(
+                f"--param {item!r} names detector {detector!r}, which is not selected with -d"
+                f" (selected: {', '.join(grouped)})"
+            )
+        grouped[detector][name] = value
+    return list(grouped.items())
