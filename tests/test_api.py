@@ -90,7 +90,7 @@ def test_detector_parameters_pass_through_to_the_detector(detected) -> None:
     assert alarms({"alpha": "0.2"}) == loose
     budgeted = imufdi.detect(faulty, out, {"glt": {"false_alarms": "1/h"}}, explain=False)
     assert budgeted.summaries["glt"]["gyro"].events < loose
-    with pytest.raises(DetectorConfigError, match="glt.false_alarms: cannot read 'lots'"):
+    with pytest.raises(DetectorConfigError, match=r"glt\.false_alarms: cannot read 'lots'"):
         imufdi.detect(faulty, out, {"glt": {"false_alarms": "lots"}})
     with pytest.raises(DetectorConfigError, match=r"unknown parameter glt\.alpah; valid: alpha"):
         imufdi.detect(faulty, out, {"glt": {"alpah": 0.1}})
