@@ -296,6 +296,7 @@ def detect(
     detectors: Detectors,
     *,
     calibrate: str | tuple[Time, Time | None] = (0.0, 2.0),
+    false_alarms: float | str | None = None,
     start: Time | None = None,
     end: Time | None = None,
     array: ArrayConfig | str | Path | None = None,
@@ -318,6 +319,10 @@ def detect(
     calibrate : str or (start, end)
         The fault-free calibration window, ``"0s:2s"`` or ``(0.0, 2.0)`` seconds from the
         log start.
+    false_alarms : float or str, optional
+        A false-alarm budget per status channel (``"1/h"``; a float is per second): every
+        detector that supports one decides under it unless its own ``false_alarms``
+        parameter is given (``imufdi detect --false-alarms``).
     start, end : float or str, optional
         Test only this part of the log.
     array : ArrayConfig or path, optional
@@ -345,6 +350,11 @@ def detect(
     src, out = _path(source, "source"), _path(output, "output")
     selected = _detectors(detectors)
     window = _range(calibrate, "calibrate")
+    budget = None
+    if false_alarms is not None:
+        budget = parse_quantity(false_alarms, "frequency", name="false_alarms")
+        if budget < 0:
+            raise UsageError(f"false_alarms must be >= 0 (e.g. '1/h'), got {false_alarms!r}")
     check_input(src)
     params = [v for _, p in selected for v in p.values() if isinstance(v, str | Path)]
     files = [str(v) for v in params if Path(v).is_file()]  # e.g. woa-mvmd-glt's params file
@@ -361,6 +371,7 @@ def detect(
         window=_window(start, end),
         time_source=_time_source(stamps),
         explain=explain,
+        false_alarms=budget,
     )
 
 

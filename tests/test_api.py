@@ -92,6 +92,11 @@ def test_detector_parameters_pass_through_to_the_detector(detected) -> None:
     assert budgeted.summaries["glt"]["gyro"].events < loose
     with pytest.raises(DetectorConfigError, match=r"glt\.false_alarms: cannot read 'lots'"):
         imufdi.detect(faulty, out, {"glt": {"false_alarms": "lots"}})
+    # the command's --false-alarms: the same budget for every detector that takes one
+    everyone = imufdi.detect(faulty, out, ["glt"], false_alarms="1/h", explain=False)
+    assert everyone.summaries["glt"]["gyro"].events == budgeted.summaries["glt"]["gyro"].events
+    with pytest.raises(UsageError, match="false_alarms must be >= 0"):
+        imufdi.detect(faulty, out, ["glt"], false_alarms=-1.0)
     with pytest.raises(DetectorConfigError, match=r"unknown parameter glt\.alpah; valid: alpha"):
         imufdi.detect(faulty, out, {"glt": {"alpah": 0.1}})
 
