@@ -319,33 +319,6 @@ def isolation_statistics(p: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.n
     return projections * amplitude, amplitude
 
 
-def nonnegative_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``argmin_x ||A x - b||_2`` subject to ``x >= 0``, for a square ``A`` of full rank.
-
-    When the solution of ``A x = b`` is non-negative it is the answer: its residual is
-    zero, the least any ``x`` reaches, and it is feasible. Otherwise the active-set
-    iteration of Lawson & Hanson ("Solving Least Squares Problems", 1995, ch. 23) runs,
-    ``scipy.optimize.nnls``, imported then (about 0.35 s of CPU and 25 MiB over
-    ``scipy.special``: a calibration of healthy sensors does not pay it).
-
-    Parameters
-    ----------
-    A : ndarray, shape (n, n), full rank
-    b : ndarray, shape (n,)
-
-    Returns
-    -------
-    ndarray, shape (n,), >= 0
-    """
-    x = np.linalg.solve(A, b)
-    if np.all(x >= 0):
-        return np.asarray(x)
-    from scipy.optimize import nnls
-
-    x, _ = nnls(A, b)
-    return np.asarray(x)
-
-
 def residual_sigma(
     H: np.ndarray, measurements: np.ndarray, *, outlier_cut: float | None = 4.0
 ) -> np.ndarray:
@@ -397,7 +370,9 @@ def residual_sigma(
     singular = np.linalg.svd(mixing, compute_uv=False)
     common = variances.sum() / n_parity
     if singular[-1] > 1e-8 * singular[0]:
-        sigma2 = nonnegative_solve(mixing, variances)
+        from scipy.optimize import nnls  # imported at the first calibration, not on import
+
+        sigma2, _ = nnls(mixing, variances)
         # A sensor the non-negative fit drives to zero means the residuals are not white
         # per-sensor noise (e.g. unmodelled lever-arm motion): no per-sensor sigma can be
         # identified for it, so it gets the common sigma rather than an infinite weight.
@@ -417,7 +392,6 @@ __all__ = [
     "isolation_statistics",
     "least_squares_estimate",
     "least_squares_matrix",
-    "nonnegative_solve",
     "parity_matrix",
     "parity_vectors",
     "residual_sigma",

@@ -72,9 +72,9 @@ def test_detect_with_every_detector_imports_scipy_only_as_the_detectors_use_it(
     fresh_imufdi, moving_log, tmp_path_factory
 ) -> None:
     """Start-up time: scipy is imported where it is used, through its public API: the
-    quantiles (scipy.special), the bank's and the px4 selector's filters and woa's envelope
-    (scipy.signal, which imports scipy.optimize); nothing imports a private scipy module by
-    itself. One interpreter runs every detector, the costly ones
+    quantiles (scipy.special), the NNLS of the noise calibration and the jitter root
+    (scipy.optimize), the bank's and the px4 selector's filters and woa's envelope
+    (scipy.signal); nothing imports a private scipy module by itself. One interpreter runs every detector, the costly ones
     reduced (woa-mvmd-glt's search to its initial two whales: it still computes their
     fitness, whose envelope is scipy.signal.hilbert's; cnn-map's training to one epoch of
     two filters)."""
@@ -86,4 +86,4 @@ def test_detect_with_every_detector_imports_scipy_only_as_the_detectors_use_it(
     run = fresh_imufdi(["detect", moving_log, *selected, *params, "--no-explain", "-o", out])
     assert out.exists(), run.stderr
     assert all(f"│ {name} " in run.stderr + run.stdout for name in DETECTORS), run.stderr
-    assert {"scipy.special", "scipy.signal"} <= run.modules
+    assert {"scipy.special", "scipy.optimize", "scipy.signal"} <= run.modules

@@ -318,31 +318,3 @@ def test_parity_test_holds_its_level_with_sigma_estimated_from_200_samples():
     standard_error = levels.std(ddof=1) / np.sqrt(levels.size)
     assert abs(levels.mean() - alpha) <= 0.1 * alpha + 4 * standard_error
     assert 4 * standard_error < 0.2 * alpha  # the check can tell 1.41 alpha from alpha
-
-
-def test_nonnegative_solve_is_scipys_nnls() -> None:
-    """The exact solution when it is feasible (then no iteration is needed), scipy's
-    Lawson-Hanson iteration when a constraint binds. Random square systems of the shape
-    residual_sigma solves (the squared residual projector of 6-16 sensors). Tolerance:
-    two backward-stable solutions of one system differ by a small multiple of cond(A) eps
-    relative to the solution (100 cond eps here); a wrong one by far more."""
-    from scipy.optimize import nnls
-
-    from imufdi_cli.maths.parity import nonnegative_solve, residual_projector
-
-    rng = np.random.default_rng(7)
-    feasible = binding = 0
-    for n in (6, 8, 12, 16):
-        for _ in range(10):
-            H = rng.standard_normal((n, 3))
-            mixing = residual_projector(H) ** 2
-            b = mixing @ rng.uniform(0.5, 2.0, n) + rng.normal(0.0, 0.3, n)
-            got, (want, _) = nonnegative_solve(mixing, b), nnls(mixing, b)
-            assert (got >= 0).all()
-            scale = 100 * np.linalg.cond(mixing) * np.finfo(float).eps * np.abs(want).max()
-            assert_allclose(got, want, rtol=0, atol=scale)
-            if (np.linalg.solve(mixing, b) >= 0).all():
-                feasible += 1
-            else:
-                binding += 1
-    assert feasible > 5 and binding > 5  # both paths taken
