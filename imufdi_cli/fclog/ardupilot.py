@@ -119,7 +119,7 @@ class ArduPilotLog:
 
     def scan(self, progress: Any = None) -> LogScan:
         wanted: dict[str, Sequence[str]] = {name: _TIME for name in IMU_MESSAGES}
-        wanted["GPS"] = ("TimeUS", "TimeMS", "T", "Status", "GMS", "GWk", "Week", "I")
+        wanted["GPS"] = ("TimeUS", "TimeMS", "T", "GMS", "GWk", "Week", "I")
         wanted["PARM"] = ("Name", "Value")
         wanted["MSG"] = ("Message",)
         wanted["ISBH"] = (
@@ -234,11 +234,13 @@ class ArduPilotLog:
             return
         if boot_us is None:
             return
-        good = np.flatnonzero((week > 0) & (values["Status"].astype(np.int64) >= 3))
+        # the first GPS message with a week number: the receiver knows GPS time (as
+        # pymavlink's clock does; a time fix can precede a position fix)
+        good = np.flatnonzero((week > 0) & (boot_us > 0))
         if good.size:
             i = int(good[0])
             scan.utc_offset_us = gps_to_unix_us(int(week[i]), int(ms[i])) - int(boot_us[i])
-            scan.utc_source = f"{fields} (first GPS fix in the log; leap seconds applied)"
+            scan.utc_source = f"{fields} (first GPS time in the log; leap seconds of its date)"
 
     @staticmethod
     def _batches(scan: LogScan, values: np.ndarray) -> None:
