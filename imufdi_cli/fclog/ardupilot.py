@@ -29,7 +29,14 @@ from typing import Any, Final
 import numpy as np
 
 from imufdi_cli.fclog.dataflash import DataFlashCounts, DataFlashFile
-from imufdi_cli.fclog.streams import LogScan, Stream, gps_to_unix_us
+from imufdi_cli.fclog.streams import (
+    UTC_RANGE_US,
+    LogScan,
+    Stream,
+    gps_to_unix_us,
+    has_fields,
+    plausible,
+)
 
 FORMAT: Final[str] = "ardupilot-dataflash"
 #: message name -> (source, sensors, instance when the message has no I column)
@@ -101,6 +108,19 @@ def _times(values: np.ndarray, *, sample: bool) -> np.ndarray:
     return values["TimeMS"].astype(np.int64) * 1000
 
 
+def _usable(name: str, values: np.ndarray) -> np.ndarray | None:
+    """The rows of a chunk of an IMU message that are samples (a plausible time), or None
+    when its format lacks a time or a sensor column (a damaged or unknown FMT); the same
+    rule in scan and convert."""
+    source, sensors, _ = IMU_MESSAGES[name]
+    names = _names(values)
+    if not ("TimeUS" in names or "TimeMS" in names):
+        return None
+    if not has_fields(values, [c for s in sensors for c in _COLUMNS[s]]):
+        return None
+    return values[plausible(_times(values, sample=source == "raw"))]
+
+
 def _instances(name: str, values: np.ndarray) -> np.ndarray:
     if "I" in _names(values):
         return values["I"].astype(np.int64)
@@ -118,7 +138,10 @@ class ArduPilotLog:
         self.chunk_size = chunk_size
 
     def scan(self, progress: Any = None) -> LogScan:
-        wanted: dict[str, Sequence[str]] = {name: _TIME for name in IMU_MESSAGES}
+        wanted: dict[str, Sequence[str]] = {
+            name: (*_TIME, *(c for s in sensors for c in _COLUMNS[s]))
+            for name, (_, sensors, _) in IMU_MESSAGES.items()
+        }
         wanted["GPS"] = ("TimeUS", "TimeMS", "T", "GMS", "GWk", "Week", "I")
         wanted["PARM"] = ("Name", "Value")
         wanted["MSG"] = ("Message",)
@@ -143,6 +166,13 @@ class ArduPilotLog:
             for name, values in chunk.data.items():
                 if name in IMU_MESSAGES:
                     source, sensors, _ = IMU_MESSAGES[name]
+                    usable = _usable(name, values)
+                    if usable is None:
+                        note = f"{name} messages lack a time or sensor column: left out"
+                        if note not in scan.notes:
+                            scan.notes.append(note)
+                        continue
+                    values = usable
                     t = _times(values, sample=source == "raw")
                     instance = _instances(name, values)
                     for k in np.unique(instance).tolist():
@@ -221,41 +251,44 @@ class ArduPilotLog:
 
     @staticmethod
     def _utc(scan: LogScan, values: np.ndarray) -> None:
-        names = _names(values)
-        if "GWk" in names:
+        if has_fields(values, ("GWk", "GMS", "TimeUS")):
             week, ms = values["GWk"].astype(np.int64), values["GMS"].astype(np.int64)
-            boot_us = values["TimeUS"].astype(np.int64) if "TimeUS" in names else None
+            boot_us = values["TimeUS"].astype(np.int64)
             fields = "GPS.GWk/GMS against TimeUS"
-        elif "Week" in names and "T" in names:
+        elif has_fields(values, ("Week", "TimeMS", "T")):
             week, ms = values["Week"].astype(np.int64), values["TimeMS"].astype(np.int64)
             boot_us = values["T"].astype(np.int64) * 1000
             fields = "GPS.Week/TimeMS against T"
         else:
             return
-        if boot_us is None:
-            return
         # the first GPS message with a week number: the receiver knows GPS time (as
         # pymavlink's clock does; a time fix can precede a position fix)
         good = np.flatnonzero((week > 0) & (boot_us > 0))
-        if good.size:
-            i = int(good[0])
-            scan.utc_offset_us = gps_to_unix_us(int(week[i]), int(ms[i])) - int(boot_us[i])
+        low, high = UTC_RANGE_US
+        for i in good[:16].tolist():
+            unix_us = gps_to_unix_us(int(week[i]), int(ms[i]))
+            if not (low < unix_us < high and plausible(boot_us[i : i + 1])[0]):
+                continue  # a damaged GPS message
+            scan.utc_offset_us = unix_us - int(boot_us[i])
             scan.utc_source = f"{fields} (first GPS time in the log; leap seconds of its date)"
+            return
 
     @staticmethod
     def _batches(scan: LogScan, values: np.ndarray) -> None:
+        """Count the batch sampler's bursts (ISBH) per IMU and sensor (memory flat)."""
+        if not has_fields(values, ("type", "instance")):
+            return
         names = _names(values)
         for row in values:
-            scan.batches.append(
-                {
-                    "instance": int(row["instance"]) if "instance" in names else None,
-                    "sensor": "accel" if int(row["type"]) == 0 else "gyro",
-                    "multiplier": int(row["mul"]) if "mul" in names else None,
-                    "samples": int(row["smp_cnt"]) if "smp_cnt" in names else None,
-                    "rate_hz": float(row["smp_rate"]) if "smp_rate" in names else None,
-                    "start_us": int(row["SampleUS"]) if "SampleUS" in names else None,
-                }
+            sensor = "accel" if int(row["type"]) == 0 else "gyro"
+            entry = scan.batches.setdefault(
+                f"imu{int(row['instance'])}.{sensor}", {"batches": 0, "samples": 0, "rate_hz": None}
             )
+            entry["batches"] += 1
+            if "smp_cnt" in names:
+                entry["samples"] += int(row["smp_cnt"])
+            if "smp_rate" in names and entry["rate_hz"] is None and np.isfinite(row["smp_rate"]):
+                entry["rate_hz"] = float(row["smp_rate"])
 
     def chunks(
         self, streams: Sequence[Stream], progress: Any = None
@@ -268,14 +301,20 @@ class ArduPilotLog:
                 wanted[name] = (*_TIME, *(c for s in sensors for c in _COLUMNS[s]))
         for chunk in self.log.read(wanted, chunk_size=self.chunk_size, progress=progress):
             out = []
-            for name, values in chunk.data.items():
+            for name, raw in chunk.data.items():
                 source, sensors, _ = IMU_MESSAGES[name]
                 label = "".join(c for c in name if not c.isdigit())
+                values = _usable(name, raw)
+                if values is None:
+                    continue
                 t = _times(values, sample=source == "raw")
                 instance = _instances(name, values)
-                triads = np.column_stack(
-                    [values[c].astype(np.float64) for s in sensors for c in _COLUMNS[s]]
-                )
+                # whatever bits a damaged log holds (signalling NaNs): no warnings; the
+                # validity counts flag them
+                with np.errstate(all="ignore"):
+                    triads = np.column_stack(
+                        [values[c].astype(np.float64) for s in sensors for c in _COLUMNS[s]]
+                    )
                 for k in np.unique(instance).tolist():
                     stream = index.get((label, int(k)))
                     if stream is None:

@@ -132,7 +132,20 @@ class Selection:
 
 
 def _imus_of(source: str, streams: list[Stream]) -> Selection:
-    """The IMUs a source gives: one per combined stream, or gyro and accel paired."""
+    """The IMUs a source gives: one per combined stream, or gyro and accel paired.
+
+    A stream with under 1 % of the samples of the source's largest (at least 2) is left
+    out with a note: a damaged instance number makes such a stream of a few samples."""
+    most = max(s.count for s in streams)
+    sparse = [s for s in streams if s.count < max(2, most // 100) or s.rate_hz is None]
+    if sparse and len(sparse) < len(streams):
+        selection = _imus_of(source, [s for s in streams if s not in sparse])
+        selection.notes[:0] = [
+            f"{s.name} has {s.count} samples, the other {source} streams up to {most}"
+            " (a damaged instance number?): left out"
+            for s in sparse
+        ]
+        return selection
     if all(len(s.sensors) == 2 for s in streams):
         imus = [Imu(combined=s) for s in sorted(streams, key=lambda s: s.instance)]
         return Selection(source, imus, ("gyro", "accel"))
@@ -187,7 +200,7 @@ def select(scan: LogScan, imu_data: str = "auto") -> Selection:
         )
     present = scan.sources()
     if not present:
-        found = ", ".join(f"{b['sensor']} batches of IMU {b['instance']}" for b in scan.batches[:3])
+        found = ", ".join(f"{v['batches']} of {k}" for k, v in list(scan.batches.items())[:4])
         raise FlightLogError(
             f"this {name} holds no per-IMU data ({'/'.join(valid)})"
             + (
@@ -517,12 +530,6 @@ def _record(
 ) -> dict[str, Any]:
     streams = chosen.streams()
     counts = aligner.counts
-    batches: dict[str, dict[str, Any]] = {}
-    for batch in scan.batches:
-        key = f"imu{batch['instance']}.{batch['sensor']}"
-        entry = batches.setdefault(key, {"batches": 0, "samples": 0, "rate_hz": batch["rate_hz"]})
-        entry["batches"] += 1
-        entry["samples"] += batch["samples"] or 0
     return {
         "format": scan.format,
         "layout_name": scan.format,
@@ -560,7 +567,7 @@ def _record(
             "message": rate_message,
             "logging_hint": logging_hint(scan.format),
         },
-        "batch_sampler": batches or None,
+        "batch_sampler": scan.batches or None,
         "parameters": scan.parameters,
         "counts": scan.counts,
         "warnings": warnings,

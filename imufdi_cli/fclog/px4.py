@@ -30,7 +30,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from imufdi_cli.fclog.streams import LogScan, Stream
+from imufdi_cli.fclog.streams import UTC_RANGE_US, LogScan, Stream, has_fields, plausible
 from imufdi_cli.fclog.ulog import ULogCounts, ULogFile
 
 FORMAT: Final[str] = "px4-ulog"
@@ -70,13 +70,54 @@ _IMU_FIELDS: Final[tuple[str, ...]] = (
 
 
 def _stamps(values: np.ndarray) -> np.ndarray:
-    """``timestamp_sample`` where the topic has it (and it is set), else ``timestamp``."""
+    """``timestamp_sample`` where the topic has it (and it is set), else ``timestamp``
+    (µs; a value past int64 reads as negative: implausible, dropped by :func:`_usable`)."""
     t = values["timestamp"].astype(np.int64)
     names = values.dtype.names or ()
     if "timestamp_sample" in names:
         sample = values["timestamp_sample"].astype(np.int64)
         t = np.where(sample > 0, sample, t)
     return t
+
+
+#: the fields each IMU topic needs
+_NEEDS: Final[dict[str, tuple[str, ...]]] = {
+    "sensor_gyro": ("timestamp", "x", "y", "z"),
+    "sensor_accel": ("timestamp", "x", "y", "z"),
+    "vehicle_imu": (
+        "timestamp",
+        "delta_angle",
+        "delta_velocity",
+        "delta_angle_dt",
+        "delta_velocity_dt",
+    ),
+}
+
+
+def _usable(topic: str, values: np.ndarray) -> np.ndarray:
+    """The rows of a chunk of an IMU topic that are samples: a plausible time and, for
+    ``vehicle_imu``, integration intervals above 0 (the same rule in scan and convert)."""
+    keep = plausible(_stamps(values))
+    if topic == "vehicle_imu":
+        keep &= (values["delta_angle_dt"] > 0) & (values["delta_velocity_dt"] > 0)
+    return values[keep]
+
+
+def _triads(topic: str, values: np.ndarray) -> np.ndarray:
+    """(K, 6) gyro and accel of ``vehicle_imu`` rows (deltas over their intervals), or
+    (K, 3) of ``sensor_*`` rows, float64."""
+    # whatever bits a damaged log holds (signalling NaNs, huge values): no warnings; the
+    # validity counts of the ingest flag them
+    with np.errstate(all="ignore"):
+        if topic == "vehicle_imu":
+            gyro = values["delta_angle"].astype(np.float64) / (
+                values["delta_angle_dt"].astype(np.float64)[:, None] * 1e-6
+            )
+            accel = values["delta_velocity"].astype(np.float64) / (
+                values["delta_velocity_dt"].astype(np.float64)[:, None] * 1e-6
+            )
+            return np.concatenate([gyro, accel], axis=1)
+        return np.column_stack([values[a].astype(np.float64) for a in ("x", "y", "z")])
 
 
 def _version(value: Any) -> str | None:
@@ -107,10 +148,16 @@ class PX4Log:
         self.ulog = ULogFile(path)
         self.chunk_size = chunk_size
 
+    @staticmethod
+    def _wanted(topics: Sequence[str]) -> dict[str, Sequence[str]]:
+        return {
+            t: _IMU_FIELDS if t == "vehicle_imu" else (*_TIME_FIELDS, "device_id", "x", "y", "z")
+            for t in topics
+        }
+
     def scan(self, progress: Any = None) -> LogScan:
         ulog = self.ulog
-        wanted: dict[str, Sequence[str]] = {t: (*_TIME_FIELDS, "device_id") for t in SENSOR_TOPICS}
-        wanted["vehicle_imu"] = _IMU_FIELDS
+        wanted = self._wanted([*SENSOR_TOPICS, "vehicle_imu"])
         for topic in GPS_TOPICS:
             wanted[topic] = (*_TIME_FIELDS, "time_utc_usec")
         scan = LogScan(format=FORMAT)
@@ -141,6 +188,11 @@ class PX4Log:
                     if scan.utc_offset_us is None:
                         self._utc(scan, topic, values)
                     continue
+                if not has_fields(values, _NEEDS[topic]):
+                    note = f"{topic} {multi} lacks fields of {', '.join(_NEEDS[topic])}: left out"
+                    if note not in scan.notes:
+                        scan.notes.append(note)
+                    continue
                 stream = streams.get((topic, multi))
                 if stream is None:
                     if topic == "vehicle_imu":
@@ -156,11 +208,7 @@ class PX4Log:
                     field = "device_id" if topic != "vehicle_imu" else "gyro_device_id"
                     if field in (values.dtype.names or ()):
                         stream.device_id = int(values[field][0])
-                if topic == "vehicle_imu":
-                    ok = self._valid_intervals(values)
-                    stream.seen(_stamps(values[ok]))
-                else:
-                    stream.seen(_stamps(values))
+                stream.seen(_stamps(_usable(topic, values)))
         scan.streams = sorted(streams.values(), key=lambda s: (s.source, s.sensors, s.instance))
         scan.parameters = params
         scan.counts = {
@@ -177,56 +225,34 @@ class PX4Log:
 
     @staticmethod
     def _utc(scan: LogScan, topic: str, values: np.ndarray) -> None:
-        utc = (
-            values["time_utc_usec"].astype(np.int64)
-            if "time_utc_usec" in (values.dtype.names or ())
-            else None
-        )
-        if utc is None:
+        """UTC from the first GPS message with a plausible UTC time."""
+        if not has_fields(values, ("timestamp", "time_utc_usec")):
             return
-        good = np.flatnonzero(utc > 0)
+        utc = values["time_utc_usec"].astype(np.int64)
+        low, high = UTC_RANGE_US
+        good = np.flatnonzero((utc > low) & (utc < high) & plausible(_stamps(values)))
         if good.size:
             i = int(good[0])
-            t = int(_stamps(values[i : i + 1])[0])
-            scan.utc_offset_us = int(utc[i]) - t
+            scan.utc_offset_us = int(utc[i]) - int(_stamps(values[i : i + 1])[0])
             scan.utc_source = (
                 f"{topic}.time_utc_usec against its timestamp (first GPS time in the log)"
             )
-
-    @staticmethod
-    def _valid_intervals(values: np.ndarray) -> np.ndarray:
-        return (values["delta_angle_dt"] > 0) & (values["delta_velocity_dt"] > 0)
 
     def chunks(
         self, streams: Sequence[Stream], progress: Any = None
     ) -> Iterator[list[tuple[int, np.ndarray, np.ndarray]]]:
         index: dict[tuple[str, int], int] = {}
-        wanted: dict[str, Sequence[str]] = {}
         for k, stream in enumerate(streams):
             topic, _, multi = stream.name.rpartition(" ")
             index[(topic, int(multi))] = k
-            wanted[topic] = (
-                _IMU_FIELDS if topic == "vehicle_imu" else (*_TIME_FIELDS, "x", "y", "z")
-            )
+        wanted = self._wanted(sorted({key[0] for key in index}))
         for chunk in self.ulog.read(wanted, chunk_size=self.chunk_size, progress=progress):
             out = []
             for key, values in chunk.data.items():
                 found = index.get(key)
                 if found is None:
                     continue
-                if key[0] == "vehicle_imu":
-                    values = values[self._valid_intervals(values)]
-                    gyro = values["delta_angle"].astype(np.float64) / (
-                        values["delta_angle_dt"].astype(np.float64)[:, None] * 1e-6
-                    )
-                    accel = values["delta_velocity"].astype(np.float64) / (
-                        values["delta_velocity_dt"].astype(np.float64)[:, None] * 1e-6
-                    )
-                    triads = np.concatenate([gyro, accel], axis=1)
-                else:
-                    triads = np.column_stack(
-                        [values[a].astype(np.float64) for a in ("x", "y", "z")]
-                    )
-                out.append((found, _stamps(values), triads))
+                values = _usable(key[0], values)
+                out.append((found, _stamps(values), _triads(key[0], values)))
             if out:
                 yield out

@@ -143,8 +143,9 @@ class LogScan:
         The reader's counts (messages, corrupt bytes, dropouts, truncation).
     notes : list of str
         What the scan found worth saying (streams left out and why).
-    batches : list of dict
-        ArduPilot batch-sampler batches (ISBH): instance, sensor, rate, samples, start.
+    batches : dict
+        ArduPilot batch-sampler bursts (ISBH) per ``imu<k>.<sensor>``: ``batches``,
+        ``samples``, ``rate_hz``.
     """
 
     format: str
@@ -155,7 +156,7 @@ class LogScan:
     parameters: dict[str, Any] = field(default_factory=dict)
     counts: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
-    batches: list[dict[str, Any]] = field(default_factory=list)
+    batches: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def sources(self) -> dict[str, list[Stream]]:
         out: dict[str, list[Stream]] = {}
@@ -242,3 +243,22 @@ def rate_problem(metadata: Mapping[str, Mapping[str, str]]) -> str | None:
     if isinstance(rate, dict) and rate.get("testable") is False and rate.get("message"):
         return str(rate["message"])
     return None
+
+
+#: sample times a log can hold, µs of its clock: above 0 and below 2^48 (8.9 years since
+#: boot); anything else is a damaged message (dropped, the same way by scan and convert)
+MAX_LOG_TIME_US: Final[int] = 1 << 48
+#: a GPS time outside these years is damaged (not a UTC anchor)
+UTC_RANGE_US: Final[tuple[int, int]] = (946_684_800_000_000, 4_102_444_800_000_000)
+
+
+def plausible(t_us: np.ndarray) -> np.ndarray:
+    """Which sample times (µs of the log clock) a log can hold (see :data:`MAX_LOG_TIME_US`)."""
+    return (t_us > 0) & (t_us < MAX_LOG_TIME_US)
+
+
+def has_fields(values: np.ndarray, names: Sequence[str]) -> bool:
+    """Whether a structured array has every field of ``names`` (a damaged or unknown
+    format may not)."""
+    present = values.dtype.names or ()
+    return all(name in present for name in names)

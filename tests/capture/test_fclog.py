@@ -8,11 +8,17 @@ exact). The public logs are in test_fclog_real.py.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
+import tempfile
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from numpy.testing import assert_array_equal
 
 from imufdi_cli.errors import FlightLogError, UsageError
@@ -552,3 +558,84 @@ def test_aligner_streaming_equals_one_pass():
     assert one_t.shape[0] > 50
     assert_array_equal(one_t, many_t)
     assert_array_equal(one_v, many_v)
+
+
+@functools.cache
+def _pristine(kind: str) -> bytes:
+    n = 60
+    t = T0_US + np.arange(n, dtype=np.int64) * 5000
+    gyro, accel = _triads(n, 3, 12)
+    if kind == "ulog":
+        gps = [
+            (
+                "vehicle_gps_position",
+                0,
+                {"timestamp": T0_US, "time_utc_usec": 1_700_000_000_000_000},
+            )
+        ]
+        samples = px4_imu_samples(t, gyro, accel, offsets_us=(0, 90, 180)) + gps
+        return ulog_bytes(sorted(samples, key=_ulog_time), sync_every=25)
+    ap = [("GPS", {"TimeUS": T0_US, "GMS": 1000, "GWk": 2200}), *ap_imu_messages(t, gyro, accel)]
+    return dataflash_bytes(ap)
+
+
+@pytest.mark.slow
+@settings(
+    max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    st.sampled_from(["ulog", "dataflash"]),
+    st.lists(
+        st.tuples(
+            st.sampled_from(["set", "cut", "insert", "truncate"]),
+            st.floats(0, 1),
+            st.binary(min_size=1, max_size=40),
+        ),
+        min_size=1,
+        max_size=8,
+    ),
+    st.integers(min_value=64, max_value=4096),
+)
+def test_damaged_logs_give_samples_or_an_imufdi_error(tmp_path, kind, edits, chunk):
+    """Whatever the bytes (flipped, cut, inserted, truncated anywhere, the header and the
+    formats included): an MCAP or a one-line imufdi error (and no output), never another
+    exception, and no numpy warning (signalling NaNs, huge values)."""
+    from imufdi_cli.errors import ImufdiError
+
+    data = bytearray(_pristine(kind))
+    for op, where, payload in edits:
+        at = int(where * (len(data) - 1))
+        if op == "set":
+            data[at : at + len(payload)] = payload
+        elif op == "cut":
+            del data[at : at + len(payload)]
+        elif op == "insert":
+            data[at:at] = payload
+        else:
+            del data[max(at, 8) :]
+    folder = Path(tempfile.mkdtemp(dir=tmp_path))  # one per example
+    path = folder / "damaged.log"
+    path.write_bytes(bytes(data))
+    out = folder / "damaged.mcap"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            result = ingest_flight_log(path, out, chunk_size=chunk)
+        except ImufdiError as err:
+            assert "\n" not in str(err)
+            assert not out.exists()
+            return
+    assert read_array(out)[1].n_imus == result.n_imus
+
+
+def test_a_corrupt_instance_number_is_left_out_not_fatal(tmp_path):
+    """A damaged ``I`` column makes a stream of one sample (IMU 7): it is left out, with a
+    note, and the real IMUs are ingested."""
+    n = 100
+    t = T0_US + np.arange(n, dtype=np.int64) * 5000
+    gyro, accel = _triads(n, 2, 13)
+    messages = ap_imu_messages(t, gyro, accel)
+    messages[51][1]["I"] = 7
+    result = ingest_flight_log(_ap_log(tmp_path, messages), tmp_path / "a.mcap")
+    assert result.n_imus == 2
+    assert any("IMU 7" in w and "left out" in w for w in result.warnings)
