@@ -121,10 +121,20 @@ def _command(doc: str, line: int, text: str, comment: str) -> Command:
 ALL = [c for doc in DOCS for c in _commands(doc) if c.invocations]
 
 
+@functools.cache
+def _group_context() -> click.Context:
+    """The ``imufdi`` group's context, as the console script makes it (its settings, e.g.
+    ``-h``, are inherited: a context without them would make click cache other help
+    options on the commands)."""
+    from imufdi_cli.cli import cli
+
+    return cli.context_class(cli, info_name="imufdi", **cli.context_settings)
+
+
 def _click_command(name: str) -> click.Command:
     from imufdi_cli.cli import cli
 
-    command = cli.get_command(click.Context(cli), name)
+    command = cli.get_command(_group_context(), name)
     assert command is not None, f"no imufdi command {name!r}"
     return command
 
@@ -185,7 +195,7 @@ def test_every_command_parses_and_names_its_inputs(index):
     for args in command.invocations:
         click_command = _click_command(args[0])
         try:
-            click_command.make_context(f"imufdi {args[0]}", list(args[1:]))
+            click_command.make_context(args[0], list(args[1:]), parent=_group_context())
         except click.UsageError as err:
             pytest.fail(f"{command}: {err.format_message()}")
         inputs, _ = _files(args)
