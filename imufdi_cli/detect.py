@@ -155,6 +155,48 @@ def level_warning(detector: Any, rate_hz: float) -> str | None:
     )
 
 
+#: A channel alarming more than this many times its level (alpha, or the budget) warns.
+LEVEL_EXCESS = 10.0
+
+
+def observed_level_warnings(
+    detector: Any, summaries: Mapping[str, Any], rate_hz: float
+) -> list[str]:
+    """One line per status channel whose alarms over the whole tested log exceed
+    :data:`LEVEL_EXCESS` times what the detector's settings allow: under a budget, the
+    alarm episodes per hour (at least 5 of them); per sample, the share of alarmed
+    samples against ``alpha`` (over at least 1,000 samples). Faults in the log raise it
+    legitimately, so the line says both causes; a detector whose noise model does not
+    hold on this log (motion, orientation-dependent noise) never alarms silently. detect
+    asks only for logs without injected faults (``imufdi.faults``)."""
+    budget = float(getattr(detector, "false_alarms", 0.0) or 0.0)
+    alpha = getattr(detector, "alpha", None)
+    notes = []
+    for sensor_type, summary in summaries.items():
+        if not summary.samples or not rate_hz > 0:
+            continue
+        hours = summary.samples / rate_hz / 3600.0
+        if budget > 0:
+            per_hour = summary.events / hours
+            if summary.events >= 5 and per_hour > LEVEL_EXCESS * budget * 3600.0:
+                notes.append(
+                    f"{detector.name}.{sensor_type}: {summary.events} alarm episodes in"
+                    f" {hours * 60:.3g} min ({per_hour:,.0f}/h) against a budget of"
+                    f" {budget * 3600:g}/h: faults in the log, or noise this detector does"
+                    " not model here (motion, orientation); see docs/guide.md"
+                )
+        elif alpha is not None and summary.samples >= 1000:
+            share = summary.alarms / summary.samples
+            if share > LEVEL_EXCESS * float(alpha):
+                notes.append(
+                    f"{detector.name}.{sensor_type}: alarms on {100 * share:.3g} % of the tested"
+                    f" samples, {share / float(alpha):.0f} times its level alpha={float(alpha):g}:"
+                    " faults in the log, or noise this detector does not model here (motion,"
+                    " orientation); see docs/guide.md"
+                )
+    return notes
+
+
 @dataclass
 class TypeSummary:
     """What one detector said about one sensor type over the whole log."""
@@ -748,6 +790,12 @@ class _DetectRun:
                 f" {(self.t_last - self.t_first) / NS_PER_S:.6g} s (from"
                 f" {_utc(self.t_first)}); nothing was tested"
             )
+        # a log with injected faults alarms more by design: report measures its FAR on truth
+        if "imufdi.faults" not in self.reader.source.metadata:
+            for track in self.tracks:
+                self.warnings.extend(
+                    observed_level_warnings(track.detector, track.summary, self.array.rate_hz)
+                )
         for track in self.tracks:
             # A detector may judge its calibration window from what it processed (e.g.
             # pca-parity: motion beyond the calibrated range); --strict makes that fatal.
