@@ -14,7 +14,10 @@ DFReader, measured: the time to read the IMU messages of a log and the peak trac
   object per message) against ``DataFlashFile.read``;
 - the full ``imufdi ingest`` of the same logs (both passes, alignment, MCAP write).
 
-Ratios are against the library measured in the same run. Prints the load average.
+Ratios are against the library measured in the same run. Memory is bounded by the
+readers' 4 MiB chunks: flat in log length once L is a few chunks (the default 60 s logs
+are 18 and 10 MB; with ``--seconds 10`` L is under one chunk and 4 L above it, so the
+ratio is above 1). Prints the load average.
 
 Usage: python benchmarks/bench_fclog.py [--seconds 60] [--rate 1000] [--repeat 3]
 """
