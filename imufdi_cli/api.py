@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from imufdi_cli.capture.stats import IngestStats
     from imufdi_cli.detect import DetectResult
     from imufdi_cli.faults import InjectResult
+    from imufdi_cli.fclog import FlightLogIngest
     from imufdi_cli.pipeline import SimulateResult
     from imufdi_cli.report import Report
 
@@ -184,33 +185,44 @@ def ingest(
     capture: str | Path,
     output: str | Path,
     *,
-    layout: str | Path = "mpu6500-array",
+    layout: str | Path | None = None,
     array: str | Path | None = None,
     rate: float | str | None = None,
     strict: bool = False,
     start_time: str | None = None,
-) -> IngestStats:
-    """Parse a raw capture into an MCAP log (``imufdi ingest``).
+    imu_data: str | None = None,
+) -> IngestStats | FlightLogIngest:
+    """Convert a raw capture or a flight-controller log into an MCAP log (``imufdi
+    ingest``). The format is recognised by content: a PX4 ULog or ArduPilot DataFlash log
+    (docs/flight-controllers.md), else a capture parsed with ``layout``.
 
     Parameters
     ----------
     capture, output : path
-        The raw capture read and the MCAP written.
-    layout : str or path
-        A built-in layout name or a layout TOML file (docs/formats.md).
+        The capture or flight log read and the MCAP written.
+    layout : str or path, optional
+        Captures only: a built-in layout name or a layout TOML file (docs/capture.md);
+        default ``mpu6500-array``.
     array : path, optional
-        The array config TOML to record (else the layout's).
+        The array config TOML to record (else the layout's, or co-aligned IMUs at a flight
+        log's logged positions).
     rate : float or str, optional
-        The nominal sample rate (``"1kHz"``), else the layout's.
+        Captures only: the nominal sample rate (``"1kHz"``), else the layout's.
     strict : bool
         Any corrupt frame is an error instead of a counted drop.
     start_time : str, optional
-        Wall-clock time of the first frame (ISO 8601), else the device's clock.
+        Wall-clock time of the first sample (ISO 8601), else the device's clock (a flight
+        log's GPS time).
+    imu_data : str, optional
+        Flight logs only: which IMU data (``"auto"``, ``"sensor"``, ``"vehicle_imu"``,
+        ``"imu"``, ``"raw"``).
 
     Returns
     -------
-    IngestStats
-        Frame and byte counts: good, bad checksum, truncated, lost, duplicates, wraps.
+    IngestStats or FlightLogIngest
+        What the conversion counted (``as_rows()``, ``to_dict()``): frames good, bad,
+        truncated, lost, duplicates and wraps of a capture; streams, rates and UTC of a
+        flight log.
     """
     from imufdi_cli.fileio import check_input, check_outputs
     from imufdi_cli.pipeline import ingest_file
@@ -219,16 +231,17 @@ def ingest(
     check_input(source)
     array_path = None if array is None else _path(array, "array")
     check_outputs([source, array_path], [("output", out)])
-    stats: IngestStats = ingest_file(
+    result: IngestStats | FlightLogIngest = ingest_file(
         source,
         out,
-        layout=str(layout),
+        layout=None if layout is None else str(layout),
         array_path=array_path,
         rate=None if rate is None else str(rate),
         strict=strict,
         start_time=start_time,
+        imu_data=imu_data,
     )
-    return stats
+    return result
 
 
 def inject(

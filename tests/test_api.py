@@ -207,3 +207,12 @@ def test_the_package_exports_what_it_lists() -> None:
     assert set(imufdi.__all__) <= set(vars(imufdi))
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         imufdi_cli.nope  # noqa: B018
+
+
+def test_ingest_a_capture(tmp_path) -> None:
+    capture = ROOT / "sample_logs" / "paper-table4.cap"
+    stats = imufdi.ingest(capture, tmp_path / "table4.mcap")
+    assert stats.frames_ok > 400  # (the sample has a few corrupt frames on purpose)
+    assert imufdi.info(tmp_path / "table4.mcap")["n_imus"] == 16
+    with pytest.raises(UsageError, match="inputs are never modified"):
+        imufdi.ingest(capture, capture)
