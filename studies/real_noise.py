@@ -713,8 +713,10 @@ RATE_HZ = 62.5
 MERGE_GAP = 6  # samples (0.1 s): alarm runs closer than this are one episode
 H_SCAN = (4.0, 6.0, 8.0, 10.0, 12.0, 14.0)
 REFERENCE_TAU_S = 30.0  # the bias reference of the CUSUM runs (section 1g)
-CAP = 5.0  # S is capped at h + CAP: an alarm ends within CAP / (d^2 / 2) samples of the fault
+CAP = 5.0  # S is capped at h + min(CAP, RECOVERY d^2 / 2): an alarm ends soon after the fault
+RECOVERY = 31  # samples (0.5 s): the recovery bound of small (motion) designs
 ISO_CAP = 100.0  # cap of the unclipped statistics that isolate (above h)
+BLOCK = 16  # samples per update of the bias reference
 MOTION_GATE = 2.0  # the reference is frozen where the motion factor v exceeds this
 #: Grid of the motion-model multiplier lambda (v = 1 + lambda (v_model - 1)).
 LAMBDA_GRID = (0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0, 5.6, 8.0, 11.0, 16.0, 23.0, 32.0)
@@ -736,33 +738,38 @@ class Variant:
     #                        sigma with the variance times sqrt(kappa) (calibrate's spread)
     gate_max_s: float = 10.0  # the reference is frozen at most this long per alarm
     designs: tuple[float, ...] = (1.0, 2.0, 4.0)  # design shifts, sigma
+    physical: bool = False  # designs in rest-sigma units: d_t = d / sqrt(v_t) in motion
 
 
 def run_cusum(res: Residual, rows: np.ndarray, variant: Variant, v: np.ndarray,
-              lrv: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+              lrv: np.ndarray, h: float, isolate: bool = False,
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Two-sided CUSUM per sensor and design over the rows ``rows`` (in order; other rows
     are skipped, the state held).
 
-    ``S+ = min(h + CAP, max(0, S+ + d x - d^2 / 2))`` and the mirror ``S-``, with
+    ``S+ = min(h + min(CAP, RECOVERY d^2 / 2), max(0, S+ + d x - d^2 / 2))`` and the mirror
+    ``S-``, with
     ``x = clip((u - e) / (s sqrt(F v)), +-c)``: u the whitened residual, e the reference
     (the window mean, or the exponential reference gated while the sensor is in alarm,
     S > h, for at most ``gate_max_s``, or while the board moves, v > MOTION_GATE), s the
     sensor's sigma, F the long-run-variance factor (n, designs), v the motion variance
-    factor (N,) or (N, n). No reset: an alarm lasts while S > h.
+    factor (N,) or (N, n). No reset: an alarm lasts while S > h. With ``physical`` the
+    designs are fault sizes in rest sigmas, so in motion the design on x is ``d / sqrt(v)``
+    (the log-likelihood ratio of a fixed fault in N(0, v) noise).
 
     Returns the processed row indices (K,), each sensor's largest statistic over designs
-    and sides (K, n), and the same of the unclipped statistics (capped at h + ISO_CAP),
-    which isolate: a large fault saturates the clip on the faulty sensor and on the
-    sensors correlated with it (|rho| up to 0.58 for the accelerometers), so the clipped
-    statistics tie.
+    and sides (K, n), and (``isolate``; else empty) the same of the unclipped statistics
+    (capped at h + ISO_CAP), which isolate: a large fault saturates the clip on the faulty
+    sensor and on the sensors correlated with it (|rho| up to 0.58 for the
+    accelerometers), so the clipped statistics tie.
+
+    The reference and its gates are updated once per BLOCK samples (0.26 s, with the sum of
+    the block's clipped innovations; tau >= 10 s), the statistics every sample.
     """
     idx = np.flatnonzero(rows)
     u = res.u[idx]
     n = u.shape[1]
-    d = np.asarray(variant.designs)[None, :]
-    half = 0.5 * d**2
-    up, down = np.zeros((n, d.size)), np.zeros((n, d.size))
-    iso_up, iso_down = np.zeros((n, d.size)), np.zeros((n, d.size))
+    designs = np.asarray(variant.designs)
     ref = res.window_mean.copy()
     step = 1.0 / (variant.tau_s * RATE_HZ) if variant.tau_s > 0 else 0.0
     if variant.sigma == "window":
@@ -772,30 +779,44 @@ def run_cusum(res: Residual, rows: np.ndarray, variant: Variant, v: np.ndarray,
     else:
         sigma = res.kappa**0.25
     gate = REF_CLIP * sigma
-    scale = sigma[:, None] * (np.sqrt(np.maximum(lrv, 1.0)) if variant.lrv else 1.0)
-    vv = np.sqrt(v[idx]).reshape(idx.size, -1)  # (K, 1) or (K, n)
+    scale = sigma[:, None] * (np.sqrt(np.maximum(lrv, 1.0)) if variant.lrv else 1.0)  # (n, D)
+    vv = np.broadcast_to(np.sqrt(v[idx]).reshape(idx.size, -1), (idx.size, n))
     moving = vv.max(axis=1) ** 2 > MOTION_GATE
     out = np.empty((idx.size, n))
-    iso = np.empty((idx.size, n))
+    iso = np.empty((idx.size if isolate else 0, n))
+    state = np.zeros((n, designs.size, 2))  # S+ and S- per sensor and design
+    iso_state = np.zeros_like(state)
+    history = np.empty((BLOCK, *state.shape))
     held = np.zeros(n)
     hold = variant.gate_max_s * RATE_HZ
-    top, iso_top = h + CAP, h + ISO_CAP
+    iso_top = h + ISO_CAP
     c = variant.clip
-    for k in range(idx.size):
-        raw = (u[k] - ref)[:, None] / (scale * vv[k][:, None])
-        x = np.clip(raw, -c, c)
-        np.clip(up + d * x - half, 0.0, top, out=up)
-        np.clip(down - d * x - half, 0.0, top, out=down)
-        np.clip(iso_up + d * raw - half, 0.0, iso_top, out=iso_up)
-        np.clip(iso_down - d * raw - half, 0.0, iso_top, out=iso_down)
-        m = np.maximum(up.max(axis=1), down.max(axis=1))
-        out[k] = m
-        iso[k] = np.maximum(iso_up.max(axis=1), iso_down.max(axis=1))
-        alarmed = m > h
-        held = np.where(alarmed, held + 1, 0.0)
-        if step and not moving[k]:
+    sign = np.array([1.0, -1.0])
+    for a in range(0, idx.size, BLOCK):
+        b = min(a + BLOCK, idx.size)
+        raw = (u[a:b] - ref)[:, :, None] / (scale[None] * vv[a:b, :, None])  # (B, n, D)
+        d = designs[None, None, :] / (vv[a:b, :, None] if variant.physical else 1.0)
+        half = 0.5 * d**2
+        inc = d[..., None] * np.clip(raw, -c, c)[..., None] * sign - half[..., None]
+        tops = np.broadcast_to(h + np.minimum(CAP, RECOVERY * half), (b - a, n, designs.size))
+        tops = tops[..., None]  # (B, n, D, 1)
+        for i in range(b - a):
+            np.clip(state + inc[i], 0.0, tops[i], out=state)
+            history[i] = state
+        out[a:b] = history[: b - a].max(axis=(2, 3))
+        if isolate:
+            inc = d[..., None] * raw[..., None] * sign - half[..., None]
+            for i in range(b - a):
+                np.clip(iso_state + inc[i], 0.0, iso_top, out=iso_state)
+                history[i] = iso_state
+            iso[a:b] = history[: b - a].max(axis=(2, 3))
+        alarmed = np.any(out[a:b] > h, axis=0)
+        held = np.where(alarmed, held + (b - a), 0.0)
+        still = ~moving[a:b]
+        if step and still.any():
             free = ~alarmed | (held > hold)
-            ref += step * free * np.clip(u[k] - ref, -gate, gate)
+            innovation = np.clip(u[a:b][still] - ref, -gate, gate).sum(axis=0)
+            ref += step * free * innovation
     return idx, out, iso
 
 
@@ -851,14 +872,22 @@ REST_VARIANTS = [
     Variant("kappa sigma, ref 10 s, LRV, clip 4, d 2/4", 4.0, 10.0, True, sigma="kappa",
             designs=SMALL),
 ]  # fmt: skip
-#: The rest configuration the continuous runs and the faults use, with each motion model.
-BEST = {"clip": 4.0, "tau_s": REFERENCE_TAU_S, "lrv": True, "sigma": "kappa", "designs": SMALL}
+#: The rest configurations the continuous runs and the faults use, with each motion model:
+#: R = designs 2/4 sigma of the standardized residual; P = "physical" designs 2..32 rest
+#: sigmas (in motion d / sqrt(v)).
+BASES = {
+    "R": {"clip": 4.0, "tau_s": REFERENCE_TAU_S, "lrv": True, "sigma": "kappa", "designs": SMALL},
+    "P": {"clip": 4.0, "tau_s": REFERENCE_TAU_S, "lrv": True, "sigma": "kappa",
+          "designs": (2.0, 4.0, 8.0, 16.0, 32.0), "physical": True},
+}  # fmt: skip
+BASE_NAMES = {"R": "kappa sigma, ref, LRV, clip 4, d 2/4",
+              "P": "kappa sigma, ref, LRV, clip 4, physical d 2..32"}  # fmt: skip
 MOTION_NAMES = ("none", "jitter", "jitter x lambda", "poly", "poly per sensor x lambda")
 
 
-def best(motion: str) -> Variant:
-    return Variant(f"kappa sigma, ref, LRV, clip 4, d 2/4, motion {motion}", motion=motion,
-                   **BEST)  # type: ignore[arg-type]  # fmt: skip
+def best(motion: str, base: str = "R") -> Variant:
+    return Variant(f"{BASE_NAMES[base]}, motion {motion}", motion=motion,
+                   **BASES[base])  # type: ignore[arg-type]  # fmt: skip
 
 
 def lrv_of(pairs: dict, recs: dict, cal: str, s: str, designs: Sequence[float]) -> np.ndarray:
@@ -897,16 +926,21 @@ def sensor_factors(res: Residual, rows: np.ndarray, v: np.ndarray) -> np.ndarray
 
 def fit_lambda(res: Residual, rec: Recording, model: ScaledModel, variant: Variant,
                lrv: np.ndarray) -> float:  # fmt: skip
-    """The smallest lambda of LAMBDA_GRID whose CUSUM has no false episode on the moving
-    rows of the calibration recording itself (in sample); the largest if none."""
+    """The smallest lambda of LAMBDA_GRID whose CUSUM, run over every usable row of the
+    calibration recording itself (in sample, so that the reference has followed the biases
+    at rest), has no false episode starting on a moving row where the model's factor
+    exceeds MOTION_GATE (where lambda acts); the largest if none."""
     h = threshold(res.z.shape[1], variant.designs)
-    rows = moving_rows(rec, res)
+    rows = res.valid & (rec.t >= WINDOW_S[1])
+    # episodes lambda can act on: starting where the model itself says the board moves
+    factors = model.base.factors(res)
+    moving = moving_rows(rec, res) & (factors.reshape(len(rec.t), -1).max(axis=1) > MOTION_GATE)
     lo, hi = 0, len(LAMBDA_GRID) - 1
 
     def clean(i: int) -> bool:
         trial = ScaledModel(model.base, model.sensor, LAMBDA_GRID[i])
-        _, stat, _ = run_cusum(res, rows, variant, trial.factors(res), lrv, h)
-        return not np.any(stat.max(axis=1) > h)
+        idx, stat, _ = run_cusum(res, rows, variant, trial.factors(res), lrv, h)
+        return not any(moving[idx[a]] for a, _ in episodes(stat.max(axis=1) > h))
 
     if clean(lo):
         return LAMBDA_GRID[lo]
@@ -921,35 +955,42 @@ def fit_lambda(res: Residual, rec: Recording, model: ScaledModel, variant: Varia
     return LAMBDA_GRID[hi]
 
 
-def motion_models(pairs: dict, recs: dict, models: dict) -> tuple[dict, list]:
-    """The motion models of the CUSUM runs per (calibration recording, type), fitted on
-    the calibration recording: section 2's, calibrate's jitter model times a fitted lambda,
-    and the polynomial model with per-sensor factors times a fitted lambda."""
+def motion_models(pairs: dict, recs: dict, models: dict) -> dict:
+    """The motion models of the CUSUM runs per (calibration recording, type, base), fitted
+    on the calibration recording: section 2's, calibrate's jitter model times a fitted
+    lambda, and the polynomial model with per-sensor factors times a fitted lambda."""
     out: dict = {}
     rows_out = []
     for cal in RECORDINGS:
         for s in TYPES:
             res = pairs[(cal, cal, s)]
             rec = recs[cal]
-            lrv = lrv_of(pairs, recs, cal, s, SMALL)
             base = models[(cal, s)]
-            variant = best("fit")
-            jitter = ScaledModel(base["jitter"])
-            jitter.lam = fit_lambda(res, rec, jitter, variant, lrv)
             rows = moving_rows(rec, res)
-            poly_s = ScaledModel(base["poly"], sensor_factors(res, rows, base["poly"].factors(res)))
-            poly_s.lam = fit_lambda(res, rec, poly_s, variant, lrv)
-            out[(cal, s)] = {"none": ScaledModel(base["none"]), "jitter": ScaledModel(base["jitter"]),
-                             "jitter x lambda": jitter, "poly": ScaledModel(base["poly"]),
-                             "poly per sensor x lambda": poly_s}  # fmt: skip
-            assert poly_s.sensor is not None
-            rows_out.append([s, cal, jitter.lam, poly_s.lam, spread(poly_s.sensor)])
+            c_j = sensor_factors(res, rows, base["poly"].factors(res))
+            for key in BASES:
+                variant = best("fit", key)
+                lrv = lrv_of(pairs, recs, cal, s, variant.designs)
+                jitter = ScaledModel(base["jitter"])
+                jitter.lam = fit_lambda(res, rec, jitter, variant, lrv)
+                poly_s = ScaledModel(base["poly"], c_j)
+                poly_s.lam = fit_lambda(res, rec, poly_s, variant, lrv)
+                out[(cal, s, key)] = {
+                    "none": ScaledModel(base["none"]), "jitter": ScaledModel(base["jitter"]),
+                    "jitter x lambda": jitter, "poly": ScaledModel(base["poly"]),
+                    "poly per sensor x lambda": poly_s}  # fmt: skip
+                extremes = f"{res.ids[int(np.argmin(c_j))]} / {res.ids[int(np.argmax(c_j))]}"
+                rows_out.append([s, cal, BASE_NAMES[key], jitter.lam, poly_s.lam, spread(c_j),
+                                 extremes])  # fmt: skip
     table("3c. Motion models for the CUSUM, fitted on the calibration recording: lambda (the "
-          "smallest of a grid for which the CUSUM has no false episode on that recording's "
-          "moving rows) for calibrate's jitter model and for the polynomial model with per-sensor "
-          "factors c_j (their median [min, max])",
-          ["type", "fitted on", "jitter lambda", "poly lambda", "poly c_j"], rows_out)  # fmt: skip
-    return out, rows_out
+          "smallest of a grid for which the CUSUM, run over the whole recording, has no false "
+          "episode starting on a moving row where the model's factor exceeds 2) for "
+          "calibrate's jitter model and for the "
+          "polynomial model with per-sensor factors c_j (their median [min, max])",
+          ["type", "fitted on", "CUSUM", "jitter lambda", "poly lambda", "poly c_j",
+           "lowest / highest c_j"],
+          rows_out)  # fmt: skip
+    return out
 
 
 def section_cusum(pairs: dict, recs: dict, scaled: dict, rng: np.random.Generator) -> None:
@@ -987,15 +1028,17 @@ def section_cusum(pairs: dict, recs: dict, scaled: dict, rng: np.random.Generato
         rows = res.valid & (rec.t >= WINDOW_S[1])
         classes = {"static": rec.static, "moves": ~rec.static & ~rec.motion,
                    "motion phase": ~rec.static & rec.motion}  # fmt: skip
-        for motion in MOTION_NAMES:
-            variant = best(motion)
+        runs = [("R", m) for m in MOTION_NAMES]
+        runs += [("P", m) for m in ("none", "jitter x lambda", "poly per sensor x lambda")]
+        for key, motion in runs:
+            variant = best(motion, key)
             h = threshold(n, variant.designs)
             lrv = lrv_of(pairs, recs, cal, s, variant.designs)
-            v = scaled[(cal, s)][motion].factors(res)
+            v = scaled[(cal, s, key)][motion].factors(res)
             idx, stat, _ = run_cusum(res, rows, variant, v, lrv, h)
             top = stat.max(axis=1)
             eps = episodes(top > h)
-            row = [s, f"{cal}->{test}", motion]
+            row = [s, f"{cal}->{test}", f"{key}, {motion}"]
             for mask in classes.values():
                 seconds = np.count_nonzero(rows & mask) / RATE_HZ
                 count = sum(1 for a, _ in eps if mask[idx[a]])
@@ -1009,15 +1052,16 @@ def section_cusum(pairs: dict, recs: dict, scaled: dict, rng: np.random.Generato
           "variance x sqrt(kappa); ref = exponential reference, tau 30 s unless said, gated "
           "while in alarm for at most 10 s unless said; LRV = max(1, F_L) per sensor and "
           "design, L = 2h/d^2, from the calibration recording; designs d = 1/2/4 sigma unless "
-          f"said; S capped at h + {CAP:g}",
+          f"said; S capped at h + {CAP:g} (small designs: h + {RECOVERY} d^2/2)",
           ["type", "cal->test", "variant", "h", "min tested", "false episodes", "sensors"],
           rest_table)  # fmt: skip
     table("3b. Episodes per hour at lower thresholds h (rest rows), against the same CUSUM on "
           "i.i.d. Gaussian noise of the same size (seeded; the ideal model)",
           ["type", "data", "variant", *(f"h={hh:g}" for hh in H_SCAN), "h design"],
           scan_table)  # fmt: skip
-    table("3d. Continuous run (every usable row after 10 s; kappa sigma, ref, LRV, clip 4, "
-          "d 2/4) with each motion model (3c; fitted on the calibration recording): tested "
+    table("3d. Continuous run (every usable row after 10 s; R = kappa sigma, ref, LRV, clip 4, "
+          "d 2/4; P = the same with physical designs 2..32) with each motion model (3c; "
+          "fitted on the calibration recording): tested "
           "minutes, false episodes (rate, upper bound) and share of samples in alarm, by where "
           "the episode starts", ["type", "cal->test", "motion model", "static min",
                                  "static episodes", "static in alarm", "moves min",
@@ -1031,11 +1075,16 @@ REST_FAULT_S = 5.0
 MOTION_FAULT_S = 4.0
 
 
-def fault_specs(rec: Recording) -> dict[str, list[tuple[str, str, float, float]]]:
-    """Two sets of faults, each as (spec, sensor id, onset s, end s): 'A' = a 0.9 deg/s gyro
-    step and a 0.05 g accel step (another IMU) in the middle of every static orientation,
-    5 deg/s gyro and 0.2 g accel steps of 4 s every 10 s in the motion phase; 'B' = a
-    0.3 deg/s gyro step (odd orientations) or a 1 deg/s^2 gyro drift (even ones)."""
+Fault = tuple[str, str, float, float, str, float]  # spec, sensor, onset, end, model, size SI
+
+
+def fault_specs(rec: Recording) -> dict[str, list[Fault]]:
+    """Sets of faults (one faulty log each), as (spec, sensor id, onset s, end s, model,
+    size: step amplitude or drift rate, SI): 'A' = a
+    0.9 deg/s gyro step and a 0.05 g accel step (another IMU) in the middle of every static
+    orientation; 'B' = a 0.3 deg/s gyro step (odd orientations) or a 1 deg/s^2 gyro drift
+    (even ones); 'M1', 'M2' = 5 deg/s gyro and 0.2 g accel steps of 4 s in the motion
+    phase, every 10 s, alternating between the two logs."""
     out: dict[str, list] = {"A": [], "B": []}
     for i, item in enumerate(rec.intervals):
         start = max(item.start_s, WINDOW_S[1] + 1.0)
@@ -1046,18 +1095,25 @@ def fault_specs(rec: Recording) -> dict[str, list[tuple[str, str, float, float]]
         g = f"imu{i % 8}.gyro.{'xyz'[i % 3]}"
         a = f"imu{(i + 3) % 8}.accel.{'xyz'[(i + 1) % 3]}"
         window = f"at={at:.3f}s,until={until:.3f}s"
-        out["A"].append((f"step:{g},{window},amp=0.9deg/s", g, at, until))
-        out["A"].append((f"step:{a},{window},amp=0.05g", a, at, until))
-        fault = "amp=0.3deg/s" if i % 2 else "rate=1deg/s^2"
-        out["B"].append((f"{'step' if i % 2 else 'drift'}:{g},{window},{fault}", g, at, until))
+        out["A"].append((f"step:{g},{window},amp=0.9deg/s", g, at, until, "step", 0.9 * DEG))
+        out["A"].append((f"step:{a},{window},amp=0.05g", a, at, until, "step", 0.05 * G))
+        if i % 2:
+            out["B"].append((f"step:{g},{window},amp=0.3deg/s", g, at, until, "step", 0.3 * DEG))
+        else:
+            out["B"].append((f"drift:{g},{window},rate=1deg/s^2", g, at, until, "drift", DEG))
+    # motion: two logs, faults 20 s apart in each (a small design's alarm can take several
+    # seconds to end after a fault), 10 s apart over both
+    out["M1"], out["M2"] = [], []
     t = rec.motion_start + 3.0
     k = 0
     while t + MOTION_FAULT_S < rec.t[-1] - 1.0:
         g = f"imu{(k + 1) % 8}.gyro.{'xyz'[k % 3]}"
         a = f"imu{(k + 5) % 8}.accel.{'xyz'[(k + 2) % 3]}"
         window = f"at={t:.3f}s,until={t + MOTION_FAULT_S:.3f}s"
-        out["A"].append((f"step:{g},{window},amp=5deg/s", g, t, t + MOTION_FAULT_S))
-        out["A"].append((f"step:{a},{window},amp=0.2g", a, t, t + MOTION_FAULT_S))
+        target = out["M1" if k % 2 == 0 else "M2"]
+        end = t + MOTION_FAULT_S
+        target.append((f"step:{g},{window},amp=5deg/s", g, t, end, "step", 5 * DEG))
+        target.append((f"step:{a},{window},amp=0.2g", a, t, end, "step", 0.2 * G))
         t += 10.0
         k += 1
     return out
@@ -1065,12 +1121,49 @@ def fault_specs(rec: Recording) -> dict[str, list[tuple[str, str, float, float]]
 
 FAULT_VARIANTS = [
     Variant("window sigma, fixed offset, clip 5, d 1/2/4, motion none", 5.0),
-    *(best(m) for m in ("none", "jitter", "jitter x lambda", "poly per sensor x lambda")),
-]
+    Variant("kappa sigma, ref 10 s, LRV, clip 4, d 1/2/4, motion jitter", 4.0, 10.0, True,
+            "jitter", "kappa"),
+    *(best(m) for m in ("jitter", "jitter x lambda", "poly per sensor x lambda")),
+    *(best(m, "P") for m in ("jitter x lambda", "poly per sensor x lambda")),
+]  # fmt: skip
+FAULT_BASE = {v.name: ("P" if v.physical else "R") for v in FAULT_VARIANTS}
+
+
+def oracle_delay(res: Residual, t: np.ndarray, idx: np.ndarray, k: np.ndarray, j: int,
+                 fault: Fault, variant: Variant, v: np.ndarray, lrv: np.ndarray,
+                 h: float) -> float | None:  # fmt: skip
+    """Delay (s) of the CUSUM matched to this very fault (its size and shape known) under
+    the variant's noise model: the first processed row of the fault where the summed
+    Kullback-Leibler information ``sum mu_t^2 / 2`` reaches h (Lorden's asymptotic delay
+    h / KL for a step; mu_t = the fault's shift of x_j at row t). None: not within the
+    fault."""
+    _, _, at, _, model, size = fault
+    if variant.sigma == "window":
+        sigma = res.window_std[j]
+    elif variant.sigma == "pooled":
+        sigma = 1.0
+    else:
+        sigma = res.kappa[j] ** 0.25
+    lrv_j = float(np.max(np.maximum(lrv[j], 1.0))) if variant.lrv else 1.0
+    gain = res.window_std[j] / res.scale[j]  # shift of u_j per SI unit of fault
+    rows = idx[k]
+    amplitude = size if model == "step" else size * (t[rows] - at)
+    vj = v[rows] if v.ndim == 1 else v[rows, j]
+    mu = amplitude * gain / (sigma * math.sqrt(lrv_j) * np.sqrt(vj))
+    reached = np.flatnonzero(np.cumsum(0.5 * mu**2) >= h)
+    return None if reached.size == 0 else float(t[rows[reached[0]]] - at)
+
+
+def isolated(stat: np.ndarray, iso: np.ndarray) -> int:
+    """The sensor a detection names: the largest (clipped) statistic; among sensors tied
+    with it (a large fault saturates the clip and the cap on the faulty sensor and on the
+    sensors correlated with it), the largest unclipped statistic."""
+    tied = stat >= stat.max() - 1e-9
+    return int(np.argmax(np.where(tied, iso, -np.inf)))
 
 
 def section_faults(pairs: dict, recs: dict, cals: dict, scaled: dict, work: Path) -> None:
-    rows_out = []
+    results: dict[tuple[str, str, str], list] = {}
     for cal_name, test in (("exp_1", "exp_2"), ("exp_2", "exp_1")):
         rec = recs[test]
         cal = cals[cal_name]
@@ -1084,44 +1177,55 @@ def section_faults(pairs: dict, recs: dict, cals: dict, scaled: dict, work: Path
                 res = residuals(cal_name, cal, frec, s)
                 rows = res.valid & (frec.t >= WINDOW_S[1])
                 mine = [f for f in faults if f".{s}." in f[0]]
+                if not mine:
+                    continue
                 for variant in FAULT_VARIANTS:
                     h = threshold(res.z.shape[1], variant.designs)
                     lrv = lrv_of(pairs, recs, cal_name, s, variant.designs)
-                    v = scaled[(cal_name, s)][variant.motion].factors(res)
-                    idx, stat, iso = run_cusum(res, rows, variant, v, lrv, h)
-                    groups: dict[str, list] = {}
-                    for spec, sensor, at, until in mine:
+                    model = scaled[(cal_name, s, FAULT_BASE[variant.name])][variant.motion]
+                    v = model.factors(res)
+                    idx, stat, iso = run_cusum(res, rows, variant, v, lrv, h, isolate=True)
+                    for fault in mine:
+                        spec, sensor, at, until, _, _ = fault
                         kind = spec.split(",")[-1].split("=")[1]
                         where = "motion" if at > rec.motion_start else "rest"
                         j = res.ids.index(sensor)
                         k = np.flatnonzero((frec.t[idx] >= at) & (frec.t[idx] < until))
-                        g = groups.setdefault(f"{s} {kind} {where}", [])
+                        key = (f"{s} {kind} {where}", f"{cal_name}->{test}", variant.name)
                         before = bool(k.size and k[0] > 0 and np.any(stat[k[0] - 1] > h))
+                        oracle = oracle_delay(res, frec.t, idx, k, j, fault, variant, v, lrv, h)
                         hit = k[np.max(stat[k], axis=1) > h]
                         if hit.size == 0:
-                            g.append((None, False, before))
+                            results.setdefault(key, []).append((None, False, before, oracle))
                             continue
-                        first = hit[0]
-                        delay = float(frec.t[idx[first]] - at)
-                        g.append((delay, int(np.argmax(iso[first])) == j, before))
-                    for key, items in groups.items():
-                        delays = np.array([d for d, _, _ in items if d is not None])
-                        found = delays.size
-                        rows_out.append([key, f"{cal_name}->{test}", variant.name, len(items),
-                                         f"{found}/{len(items)}",
-                                         float(np.mean(delays)) if found else math.nan,
-                                         float(np.max(delays)) if found else math.nan,
-                                         sum(r for d, r, _ in items if d is not None),
-                                         sum(b for _, _, b in items)])  # fmt: skip
+                        delay = float(frec.t[idx[hit[0]]] - at)
+                        right = isolated(stat[hit[0]], iso[hit[0]]) == j
+                        results.setdefault(key, []).append((delay, right, before, oracle))
+    rows_out = []
+    for (fault_name, pair, name), items in results.items():
+        delays = np.array([d for d, _, _, _ in items if d is not None])
+        oracles = np.array([o for _, _, _, o in items if o is not None])
+        found = delays.size
+        rows_out.append([fault_name, pair, name, f"{found}/{len(items)}",
+                         float(np.mean(delays)) if found else math.nan,
+                         float(np.max(delays)) if found else math.nan,
+                         sum(r for d, r, _, _ in items if d is not None),
+                         sum(b for _, _, b, _ in items),
+                         f"{oracles.size}/{len(items)}",
+                         float(np.mean(oracles)) if oracles.size else math.nan])  # fmt: skip
     rows_out.sort(key=lambda r: (str(r[0]), FAULT_ORDER[str(r[2])], str(r[1])))
     table("3e. Injected faults (inject_file, the function of imufdi inject; steps on raw chip "
-          "values; rest faults 5 s mid-orientation, motion faults 4 s): detected within the "
-          "fault, delay from onset to the first sample whose statistic exceeds h (the decision "
-          "time: every term is causal, no look-ahead), isolated to the faulty sensor (largest "
-          "unclipped statistic at that sample), and faults whose channel was already in alarm "
-          "on the sample before the onset",
-          ["fault", "cal->test", "variant", "faults", "detected", "mean delay s",
-           "max delay s", "right sensor", "in alarm at onset"], rows_out)  # fmt: skip
+          "values; rest faults 5 s mid-orientation, motion faults 4 s, 20 s apart in each "
+          "log): detected within the fault, delay from onset to the first sample whose "
+          "statistic exceeds h (the decision time: every term is causal, no look-ahead), "
+          "isolated to the faulty sensor (largest statistic at that sample, ties broken by the "
+          "unclipped statistics), faults "
+          "whose channel was already in alarm on the sample before the onset, and the oracle: "
+          "the CUSUM matched to the fault's exact size under the same noise model (Lorden, "
+          "h / KL), detected within the fault and its mean delay",
+          ["fault", "cal->test", "variant", "detected", "mean delay s", "max delay s",
+           "right sensor", "in alarm at onset", "oracle detected", "oracle delay s"],
+          rows_out)  # fmt: skip
 
 
 FAULT_ORDER = {v.name: i for i, v in enumerate(FAULT_VARIANTS)}
@@ -1173,7 +1277,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         orientation_repeat(pairs, recs)
         section_reference(pairs, recs)
         models = section_motion(pairs, recs)
-        scaled, _ = motion_models(pairs, recs, models)
+        scaled = motion_models(pairs, recs, models)
         section_cusum(pairs, recs, scaled, np.random.default_rng(args.seed))
         section_faults(pairs, recs, cals, scaled, work)
     print(f"\n(run time {time.perf_counter() - started:.0f} s)")
