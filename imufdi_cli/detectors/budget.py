@@ -25,9 +25,10 @@ import numpy as np
 
 from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.errors import DetectorConfigError
-from imufdi_cli.maths.bank import CusumBank, MotionModel
 from imufdi_cli.maths.sequential import (
+    CusumBank,
     CusumDesign,
+    MotionModel,
     budget_threshold,
     long_run_factor,
     outlier_share,

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from imufdi_cli.maths.sequential import NO_ISOLATION, NOT_ISOLABLE, CusumDesign
+from imufdi_cli.maths.sequential.design import NO_ISOLATION, NOT_ISOLABLE, CusumDesign
 
 
 @dataclass
