@@ -295,9 +295,9 @@ def test_a_step_in_motion_is_caught_by_a_design_of_its_physical_size() -> None:
 def test_the_references_learn_at_rest_only_and_resume_after_a_hold() -> None:
     bank = _bank(4, 1.0, tau_s=20.0)
     rng = np.random.default_rng(16)
-    # motion rows (variance factor 9) with an offset of 0.5 rest sd (too small to alarm
+    # motion rows (variance factor 9) with an offset of 0.2 rest sd (too small to alarm
     # there; at rest the running mean would take it whole): the reference does not move
-    moving = bank.process(3.0 * rng.standard_normal((3000, 4)) + 0.5, factors=np.full(3000, 9.0))
+    moving = bank.process(3.0 * rng.standard_normal((3000, 4)) + 0.2, factors=np.full(3000, 9.0))
     assert not moving.alarm.any()
     assert np.all(np.abs(bank.reference) < 0.05)
     # at rest, a bias jump of 2.5 sd on sensor 1 that lasts (as a wander step would):
