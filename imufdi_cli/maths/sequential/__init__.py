@@ -28,9 +28,11 @@ The clip (in the spirit of Huber's robust tests, 1965) bounds what one outlier c
 (``mu_d c - mu_d^2 / 2``), so that a decision needs several samples of evidence and an
 isolated spike raises no alarm; for Gaussian noise it costs almost nothing (``c = 3.5``
 is 2.5 standard deviations above the largest design's ``mu / 2``). An alarm episode starts at the first sample where any
-``S > h`` (2 n D hypotheses); its isolated sensor is the sensor of the largest ``S``.
-While it lasts, a second CUSUM tests "the fault has ended" on the sensor and sign that
-raised it, with the increments ``-l_t`` of a design shift equal to the fault's mean
+``S > h`` (2 n D hypotheses); its isolated sensor is the one whose unclipped evidence
+summed since the estimated onset is largest in magnitude (the generalized likelihood
+ratio of a step on it: the clip saturates a large fault's evidence on every sensor
+correlated with it). While it lasts, a second CUSUM tests "the fault has ended" on that
+sensor and sign, with the increments ``-l_t`` of a design shift equal to the fault's mean
 evidence since the onset; when that reaches ``h`` the episode ends and every statistic
 restarts from 0 (a renewal: each false episode costs one average run length).
 
@@ -72,6 +74,7 @@ from imufdi_cli.maths.sequential.thresholds import (
     OUTLIER_LEVEL,
     average_run_length,
     budget_threshold,
+    effective_shifts,
     false_alarm_rate,
     increments,
     long_run_factor,
@@ -90,6 +93,7 @@ __all__ = [
     "MotionModel",
     "average_run_length",
     "budget_threshold",
+    "effective_shifts",
     "false_alarm_rate",
     "increments",
     "long_run_factor",

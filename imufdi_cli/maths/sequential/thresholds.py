@@ -1,7 +1,5 @@
-"""The bank's run lengths and thresholds: Brook & Evans' Markov chain for the average run
-length of one CUSUM, the union bound that sets ``h`` from the false-alarm budget, Lorden's
-reference delays, and the calibration's outlier share and long-run variance factor
-(:mod:`imufdi_cli.maths.sequential`, equations (1)-(2))."""
+"""Run lengths, thresholds and reference delays of the CUSUM bank
+(:mod:`imufdi_cli.maths.sequential`)."""
 
 from __future__ import annotations
 
@@ -11,6 +9,9 @@ from functools import lru_cache
 import numpy as np
 
 from imufdi_cli.maths.sequential.design import CusumDesign
+
+# --- threshold -------------------------------------------------------------------------
+
 
 _ERFC = np.frompyfunc(math.erfc, 1, 1)
 
@@ -64,6 +65,8 @@ def average_run_length(
     """
     if threshold <= 0:
         return 1.0
+    if shift * clip - 0.5 * shift * shift <= 0.0:
+        return math.inf  # no increment is positive: the statistic never leaves 0
     width = 2.0 * threshold / (2 * states - 1)
     # cell l's lower edge seen from cell j's centre is (l - j - 1/2) w: a Toeplitz CDF,
     # evaluated once per offset; l = 0 takes everything at or below 0 (the atom)
@@ -75,7 +78,10 @@ def average_run_length(
     cdf[:, 0] = 0.0
     transition = np.diff(cdf, axis=1)  # (states, states), rows sum to P(S' < h)
     system = np.eye(states) - transition
-    lengths = np.linalg.solve(system, np.ones(states))
+    try:
+        lengths = np.linalg.solve(system, np.ones(states))
+    except np.linalg.LinAlgError:  # absorption too unlikely to resolve: no false alarm
+        return math.inf
     return float(lengths[0])
 
 
@@ -85,6 +91,19 @@ _HERMITE_NODES = (-math.sqrt(3.0), 0.0, math.sqrt(3.0))
 _HERMITE_WEIGHTS = (1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0)
 
 
+#: Motion scales s over which the union bound is maximised (one octave of the design grid
+#: is enough when the shifts are a geometric grid of ratio 2: the sum is periodic in log s).
+_SCALES = (1.0, 2.0**0.5)
+
+
+def effective_shifts(design: CusumDesign, scale: float) -> list[float]:
+    """The design shifts run at motion scale ``scale`` (effective shift ``mu / scale`` at
+    least ``min_shift`` and below ``2 clip``, where an increment can be positive)."""
+    return [
+        mu / scale for mu in design.shifts if design.min_shift <= mu / scale < 2.0 * design.clip
+    ]
+
+
 def false_alarm_rate(
     design: CusumDesign,
     sensors: int,
@@ -92,7 +111,13 @@ def false_alarm_rate(
     scale_variance: float = 0.0,
     contamination: float = 0.0,
 ) -> float:
-    """Union bound of the bank's false alarm episodes per sample at threshold ``h``.
+    """Union bound of the bank's false alarm episodes per sample at threshold ``h``, at
+    the worst motion scale.
+
+    At a motion scale s every design runs with the effective shift ``mu / s``
+    (:func:`effective_shifts`): the rate is the largest, over s, of the sum over the
+    shifts run there (the grid's octave beyond s = 1 is enough, except for the designs
+    that run out at the top: s up to ``max shift / min_shift`` is checked at octave steps).
 
     ``scale_variance``: the variance of ``sigma_hat^2 / sigma^2`` of each sensor's
     calibrated sigma (e.g. 2 / N from N calibration samples). A sensor whose sigma was
@@ -110,18 +135,25 @@ def false_alarm_rate(
             (round(1.0 / math.sqrt(max(0.2, 1.0 + spread * node)), 6), weight)
             for node, weight in zip(_HERMITE_NODES, _HERMITE_WEIGHTS)
         )
-    return float(
-        sum(
-            weight
-            * 2.0
-            * sensors
-            / average_run_length(
-                mu, design.clip, threshold, scale=scale, contamination=round(contamination, 7)
+    octaves = max(0, math.ceil(math.log2(max(design.shifts) / design.min_shift)))
+    worst = 0.0
+    for octave in range(octaves + 1):
+        for base in _SCALES:
+            scale = base * 2.0**octave
+            total = sum(
+                weight
+                / average_run_length(
+                    round(mu, 9),
+                    design.clip,
+                    threshold,
+                    scale=error,
+                    contamination=round(contamination, 7),
+                )
+                for mu in effective_shifts(design, scale)
+                for error, weight in points
             )
-            for mu in design.shifts
-            for scale, weight in points
-        )
-    )
+            worst = max(worst, total)
+    return float(2.0 * sensors * worst)
 
 
 def budget_threshold(
@@ -152,7 +184,7 @@ def budget_threshold(
     low, g_low = 0.5, gap(0.5)
     if g_low <= 0:  # even a tiny threshold meets the budget
         return low
-    h_a = max(1.0, 0.9 * math.log(2.0 * sensors * len(design.shifts) / per_sample))
+    h_a = max(1.0, 0.9 * math.log(4.0 * sensors / per_sample))
     h_b = h_a + 1.0
     g_a, g_b = gap(h_a), gap(h_b)
     high, g_high = math.inf, -math.inf
