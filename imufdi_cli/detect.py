@@ -15,16 +15,21 @@ from __future__ import annotations
 import json
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
 
-from imufdi_cli import __version__
+from imufdi_cli._version import __version__
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors import DETECTORS, make_detectors
+from imufdi_cli.detectors import make_detectors
 from imufdi_cli.detectors.base import DetectionBlock, Detector
-from imufdi_cli.errors import CalibrationError, DetectorConfigError, McapInputError
+from imufdi_cli.errors import (
+    CalibrationError,
+    DetectorConfigError,
+    FlightLogError,
+)
+from imufdi_cli.fclog.streams import rate_problem
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.mcapio import (
     ChannelInfo,
@@ -40,15 +45,15 @@ from imufdi_cli.mcapio.events import (
     decode_events,
     encode_episode_events,
     encode_fault_events,
-    encode_fdi_event_dicts,
     encode_fdi_events,
-    is_current_fdi_channel,
     is_event_channel,
     register_events_channel,
     register_truth_channel,
 )
-from imufdi_cli.mcapio.status import status_records
+from imufdi_cli.mcapio.passthrough import ChannelCopier, keep_fdi_events
+from imufdi_cli.mcapio.status import register_scores_channel, scores_records, status_records
 from imufdi_cli.progress import LogTimeProgress, ProgressCallback
+from imufdi_cli.units import window_from_log_start
 from imufdi_cli.validity import Conditioner
 
 if TYPE_CHECKING:
@@ -58,42 +63,6 @@ NS_PER_S = 1_000_000_000
 DEFAULT_CALIBRATION = (0.0, 2.0)
 #: Per sensor type, (clipped, invalid) masks of shape (N, m, 3) (imufdi_cli.validity).
 Flags = dict[str, tuple[np.ndarray, np.ndarray]]
-
-
-def parse_detector_params(
-    detectors: Sequence[str], params: Iterable[str]
-) -> list[tuple[str, dict[str, str]]]:
-    """Group ``--param det.key=value`` strings by detector.
-
-    Raises DetectorConfigError for a malformed item or one naming a detector not selected.
-    """
-    if not detectors:
-        raise DetectorConfigError(
-            f"no detector selected; use -d NAME (valid: {', '.join(sorted(DETECTORS))})"
-        )
-    grouped: dict[str, dict[str, str]] = {}
-    for name in detectors:
-        if name not in DETECTORS:
-            raise DetectorConfigError(
-                f"unknown detector {name!r}; valid: {', '.join(sorted(DETECTORS))}"
-            )
-        if name in grouped:
-            raise DetectorConfigError(f"detector {name!r} selected twice")
-        grouped[name] = {}
-    for item in params:
-        if "=" not in item or "." not in item.split("=", 1)[0]:
-            raise DetectorConfigError(
-                f"--param {item!r} is not of the form DETECTOR.KEY=VALUE (e.g. glt.alpha=0.001)"
-            )
-        key, value = item.split("=", 1)
-        detector, name = key.split(".", 1)
-        if detector not in grouped:
-            raise DetectorConfigError(
-                f"--param {item!r} names detector {detector!r}, which is not selected with -d"
-                f" (selected: {', '.join(grouped)})"
-            )
-        grouped[detector][name] = value
-    return list(grouped.items())
 
 
 def with_budget(
@@ -148,6 +117,48 @@ def level_warning(detector: Any, rate_hz: float) -> str | None:
     )
 
 
+#: A channel alarming more than this many times its level (alpha, or the budget) warns.
+LEVEL_EXCESS = 10.0
+
+
+def observed_level_warnings(
+    detector: Any, summaries: Mapping[str, Any], rate_hz: float
+) -> list[str]:
+    """One line per status channel whose alarms over the whole tested log exceed
+    :data:`LEVEL_EXCESS` times what the detector's settings allow: under a budget, the
+    alarm episodes per hour (at least 5 of them); per sample, the share of alarmed
+    samples against ``alpha`` (over at least 1,000 samples). Faults in the log raise it
+    legitimately, so the line says both causes; a detector whose noise model does not
+    hold on this log (motion, orientation-dependent noise) never alarms silently. detect
+    asks only for logs without injected faults (``imufdi.faults``)."""
+    budget = float(getattr(detector, "false_alarms", 0.0) or 0.0)
+    alpha = getattr(detector, "alpha", None)
+    notes = []
+    for sensor_type, summary in summaries.items():
+        if not summary.samples or not rate_hz > 0:
+            continue
+        hours = summary.samples / rate_hz / 3600.0
+        if budget > 0:
+            per_hour = summary.events / hours
+            if summary.events >= 5 and per_hour > LEVEL_EXCESS * budget * 3600.0:
+                notes.append(
+                    f"{detector.name}.{sensor_type}: {summary.events} alarm episodes in"
+                    f" {hours * 60:.3g} min ({per_hour:,.0f}/h) against a budget of"
+                    f" {budget * 3600:g}/h: faults in the log, or noise this detector does"
+                    " not model here (motion, orientation); see docs/guide.md"
+                )
+        elif alpha is not None and summary.samples >= 1000:
+            share = summary.alarms / summary.samples
+            if share > LEVEL_EXCESS * float(alpha):
+                notes.append(
+                    f"{detector.name}.{sensor_type}: alarms on {100 * share:.3g} % of the tested"
+                    f" samples, {share / float(alpha):.0f} times its level alpha={float(alpha):g}:"
+                    " faults in the log, or noise this detector does not model here (motion,"
+                    " orientation); see docs/guide.md"
+                )
+    return notes
+
+
 @dataclass
 class TypeSummary:
     """What one detector said about one sensor type over the whole log."""
@@ -173,54 +184,6 @@ class DetectResult:
     alignment: Any
     warnings: list[str]
     validity: dict[str, Any] = field(default_factory=dict)  # per type: clipped, invalid, ...
-
-
-class ChannelCopier:
-    """Copy input channels into a writer for raw pass-through, keeping their ids where
-    free and renumbering (channel and schema ids) where the writer already uses them."""
-
-    def __init__(self, writer: McapWriter) -> None:
-        self.writer = writer
-        self.mapping: dict[int, int] = {}
-        self._lut: np.ndarray | None = None
-        self._identity: bool | None = None
-
-    @property
-    def known(self) -> set[int]:
-        return set(self.mapping)
-
-    def ensure(self, channels: Mapping[int, ChannelInfo], ids: Iterable[int]) -> None:
-        for cid in sorted(ids):
-            if cid in self.mapping:
-                continue
-            info = channels[cid]
-            schema = info.schema
-            if schema is not None:
-                existing = self.writer.schemas.get(schema.id)
-                if existing is not None and existing != schema:
-                    new_id = self.writer.register_schema(schema.name, schema.encoding, schema.data)
-                    schema = replace(schema, id=new_id)
-            out_id = cid if cid not in self.writer.channels else max(self.writer.channels) + 1
-            self.writer.copy_channels({out_id: replace(info, id=out_id, schema=schema)})
-            self.mapping[cid] = out_id
-            self._lut = None
-            self._identity = None
-
-    @property
-    def identity(self) -> bool:
-        """Every input channel keeps its id (messages can be copied as they are)."""
-        if self._identity is None:
-            self._identity = all(k == v for k, v in self.mapping.items())
-        return self._identity
-
-    def remap(self, batch: MessageBatch) -> MessageBatch:
-        if self.identity:
-            return batch
-        if self._lut is None:
-            self._lut = np.arange(65536, dtype=np.uint16)
-            for k, v in self.mapping.items():
-                self._lut[k] = v
-        return replace(batch, channel_id=self._lut[batch.channel_id])
 
 
 def lookahead_of(detector: Any) -> int | None:
@@ -263,6 +226,7 @@ class _Track:
         self.passed = 0  # input samples passed to the detector
         self.emitted = 0  # rows returned by it
         self.channels: dict[str, int] = {}
+        self.score_channels: dict[str, int] = {}  # sensor type -> named-scores channel
         self.alarm_on: dict[str, bool] = {}
         self.summary: dict[str, TypeSummary] = {}
         self.episodes: dict[str, EpisodeBuilder] = {}  # sensor type -> builder
@@ -318,36 +282,6 @@ def _events(
     return batch, int(np.count_nonzero(alarm[changes]))
 
 
-def _keep_events(
-    writer: McapWriter,
-    channel_id: int,
-    batch: MessageBatch,
-    channel: ChannelInfo,
-    rerun: set[str],
-) -> None:
-    """Copy the input's alarm events of detectors not run again onto ``channel_id``
-    (CDR events of this schema as raw bytes; older FdiEvent schemas and the JSON events
-    of an older imufdi re-encoded as FdiEvent)."""
-    sub = batch.select(batch.channel_id == channel.id)
-    try:
-        events = decode_events(sub, channel)
-    except McapInputError:
-        return  # not readable as events: dropped like the rest of the old channel
-    keep = np.array(
-        [isinstance(e, dict) and e.get("detector") not in rerun for e in events], dtype=bool
-    )
-    if not keep.any():
-        return
-    if is_current_fdi_channel(channel):  # older FdiEvent schemas lack fields: re-encoded
-        kept = sub.select(keep)
-        writer.add_batch(replace(kept, channel_id=np.full(len(kept), channel_id, np.uint16)))
-    else:
-        log_time = sub.log_time[keep].tolist()
-        writer.add_batch(
-            encode_fdi_event_dicts(channel_id, log_time, [e for e, k in zip(events, keep) if k])
-        )
-
-
 def detect_file(
     source: str | BinaryIO,
     output: str | BinaryIO,
@@ -364,6 +298,7 @@ def detect_file(
     progress: ProgressCallback | None = None,
     read_ahead: bool | None = None,
     false_alarms: float | None = None,
+    named_scores: bool = False,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -388,6 +323,10 @@ def detect_file(
         The calibration window is taken from the whole log either way.
     explain : bool
         Write an explained ``episode`` event for every alarm episode (docs/episodes.md).
+    named_scores : bool
+        Also write each status channel's scores under the sensors' names, on
+        ``/imufdi/<detector>/<type>/scores`` (docs/formats.md), for Foxglove and
+        PlotJuggler.
     progress : callable, optional
         ``progress(seconds done, log seconds or None)`` (:mod:`imufdi_cli.progress`).
     false_alarms : float, optional
@@ -413,6 +352,9 @@ def detect_file(
     log = McapSource(source, strict=strict, keep_raw_chunks=True, read_ahead=read_ahead)
     try:
         reader = ImuArrayReader(log, topics=topics, strict=strict, time_source=time_source)
+        too_sparse = rate_problem(log.metadata)
+        if too_sparse is not None:
+            raise FlightLogError(f"{log.name}: {too_sparse}")
         log_array = reader.array
         array = log_array if array is None else array.check_matches(log_array)
         with McapWriter(output, compression=compression) as writer:
@@ -425,6 +367,7 @@ def detect_file(
                 calibrate=calibrate,
                 window=window if window is not None else (0.0, None),
                 explain=explain,
+                named_scores=named_scores,
             )
             run.warnings.extend(notes)  # e.g. a renamed detector parameter
             tracker = LogTimeProgress(progress, getattr(reader.source, "summary_time_range", None))
@@ -454,6 +397,7 @@ class _DetectRun:
         calibrate: tuple[float, float | None],
         window: tuple[float, float | None],
         explain: bool,
+        named_scores: bool = False,
     ) -> None:
         self.reader = reader
         self.writer = writer
@@ -462,6 +406,7 @@ class _DetectRun:
         self.cal_start_s, self.cal_end_s = calibrate
         self.test_start_s, self.test_end_s = window
         self.explain = explain
+        self.named_scores = named_scores
         self.tracks = [_Track(det, array) for det in instances]
         self.warnings: list[str] = []
         self.n_samples = 0
@@ -518,9 +463,11 @@ class _DetectRun:
         for c in sorted(new):
             topic = channels[c].topic
             parts = topic.split("/")
-            if topic == EVENTS_TOPIC or (
-                len(parts) == 4 and parts[1] == "imufdi" and parts[2] in self.rerun
-            ):
+            # a detector run again replaces its status channels and their named scores
+            rerun = len(parts) in (4, 5) and parts[1] == "imufdi" and parts[2] in self.rerun
+            if rerun and len(parts) == 5 and parts[4] != "scores":
+                rerun = False
+            if topic == EVENTS_TOPIC or rerun:
                 self.dropped.add(c)
             elif topic == TRUTH_TOPIC and channels[c].message_encoding == "json":
                 self.dropped.add(c)
@@ -530,7 +477,7 @@ class _DetectRun:
     def _replace_dropped(self, batch: MessageBatch, channel: ChannelInfo) -> None:
         """Events of detectors not run again are kept; JSON truth becomes FaultEvent."""
         if channel.topic == EVENTS_TOPIC and is_event_channel(channel):
-            _keep_events(self.writer, self.events_channel, batch, channel, self.rerun)
+            keep_fdi_events(self.writer, self.events_channel, batch, channel, self.rerun)
         elif channel.id in self.legacy_truth:
             if self.truth_channel is None:
                 self.truth_channel = register_truth_channel(self.writer)
@@ -544,6 +491,10 @@ class _DetectRun:
         are fitted, then straight through them."""
         if self.t_first is None:
             self.t_first = int(block.t_ns[0])
+            # ISO 8601 / Unix times of --start/--end, now that the log start is known
+            self.test_start_s, self.test_end_s = window_from_log_start(
+                (self.test_start_s, self.test_end_s), self.t_first
+            )
         self.t_last = int(block.t_ns[-1])
         block, flags = self.conditioner.prepare(block)
         rel = (block.t_ns - self.t_first) / NS_PER_S
@@ -576,6 +527,9 @@ class _DetectRun:
         block = self.conditioner.sanitize(block, flags)
         for track in self.tracks:
             track.feed(block.t_ns)
+            note_flags = getattr(track.detector, "note_flags", None)
+            if note_flags is not None:  # a detector that tests flagged samples itself
+                note_flags(flags)
             for sensor_type, builder in track.episodes.items():
                 triads = block.get(sensor_type)
                 assert triads is not None  # builders exist only for types in the log
@@ -642,15 +596,25 @@ class _DetectRun:
     ) -> None:
         writer, array = self.writer, self.array
         if sensor_type not in track.channels:
+            ids = array.sensor_ids(sensor_type)
             track.channels[sensor_type] = register_status_channel(
-                writer, track.detector.name, sensor_type, array.sensor_ids(sensor_type)
+                writer, track.detector.name, sensor_type, ids
             )
+            if ids and self.named_scores:  # the scores under the sensors' names (viewers)
+                track.score_channels[sensor_type] = register_scores_channel(
+                    writer, track.detector.name, sensor_type, ids
+                )
             track.summary[sensor_type] = TypeSummary()
         channel = track.channels[sensor_type]
         # whole records from a template (the bytes encode_status + add_batch make)
         writer.add_records(
             status_records(channel, t_ns, out, decided_ns), np.full(len(t_ns), channel), t_ns
         )
+        named = track.score_channels.get(sensor_type)
+        if named is not None:
+            writer.add_records(
+                scores_records(named, t_ns, out.scores), np.full(len(t_ns), named), t_ns
+            )
         summary = track.summary[sensor_type]
         summary.samples += len(out)
         summary.alarms += int(np.count_nonzero(out.alarm))
@@ -669,6 +633,11 @@ class _DetectRun:
     def _add_episodes(self, track: _Track, episodes: Sequence[Any]) -> None:
         if not episodes:
             return
+        explain = getattr(track.detector, "explain_episode", None)
+        if explain is not None:  # a detector that knows what raised its episodes
+            for episode in episodes:
+                if episode.detector == track.detector.name:
+                    episode.fits = explain(episode)
         self.writer.add_batch(
             encode_episode_events(self.events_channel, [e.to_dict() for e in episodes])
         )
@@ -695,6 +664,21 @@ class _DetectRun:
             if track.pending and sum(p.size for p in track.pending):
                 raise DetectorConfigError(
                     f"detector {track.detector.name} left samples without output"
+                )
+        windowed = self.test_start_s > 0 or self.test_end_s is not None
+        if windowed and self.n_samples == 0 and self.t_first is not None:
+            end = "end" if self.test_end_s is None else f"{self.test_end_s:.6g} s"
+            self.warnings.append(
+                f"--start/--end holds no sample: the window is {self.test_start_s:.6g} s to"
+                f" {end} from the log start, the log spans 0 to"
+                f" {(self.t_last - self.t_first) / NS_PER_S:.6g} s (from"
+                f" {_utc(self.t_first)}); nothing was tested"
+            )
+        # a log with injected faults alarms more by design: report measures its FAR on truth
+        if "imufdi.faults" not in self.reader.source.metadata:
+            for track in self.tracks:
+                self.warnings.extend(
+                    observed_level_warnings(track.detector, track.summary, self.array.rate_hz)
                 )
         for track in self.tracks:
             # A detector may judge its calibration window from what it processed (e.g.
@@ -785,6 +769,13 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, (np.bool_,)):
         return bool(value)
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _utc(t_ns: int) -> str:
+    """``2023-11-14T22:13:20Z`` (ISO 8601 UTC, to the millisecond when not whole)."""
+    from imufdi_cli.units import utc_iso
+
+    return utc_iso(t_ns)
 
 
 def _mask_flags(flags: Flags, keep: np.ndarray) -> Flags:

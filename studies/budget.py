@@ -83,7 +83,7 @@ def _level_job(job: tuple[str, str, float, int, float]) -> tuple[str, str, int, 
 
 def poisson_upper(events: int, hours: float, level: float = 0.95) -> float:
     """Garwood's one-sided upper bound of a Poisson rate per hour."""
-    from imufdi_cli.quantiles import chi2
+    from imufdi_cli.maths.quantiles import chi2
 
     return float(chi2.ppf(level, 2 * events + 2)) / 2.0 / hours
 

@@ -54,7 +54,7 @@ def fault_free_episodes(
 def poisson_upper(events: int, hours: float, level: float = 0.95) -> float:
     """One-sided upper confidence bound of a Poisson rate (per hour) from ``events`` in
     ``hours`` (Garwood: ``chi2_level(2 k + 2) / 2``)."""
-    from imufdi_cli.quantiles import chi2
+    from imufdi_cli.maths.quantiles import chi2
 
     return float(chi2.ppf(level, 2 * events + 2)) / 2.0 / hours
 

@@ -25,7 +25,7 @@ isolated, averaged since the set last changed (SI).
 
 With the array config's per-IMU noise (what ``imufdi calibrate`` measures) the residuals
 are weighted by it, as glt's ``sigma_source=auto``, and with its ``[jitter]`` the evidence
-is divided by glt's motion factor ``sqrt(1 + A_t)`` (:mod:`..jitter`).
+is divided by glt's motion factor ``sqrt(1 + A_t)`` (:mod:`imufdi_cli.maths.jitter`).
 
 **Marg mode** (one IMU with accelerometer, magnetometer and gyros): the accelerometer and
 magnetometer evidence is the full attitude estimator's residual linearised at its
@@ -37,6 +37,7 @@ variance is 1 by construction (:mod:`.gyro`).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -49,17 +50,17 @@ from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.detectors.budget import (
     BUDGET_SHARE,
     EvidenceBudget,
-    MotionRegressors,
+    MotionState,
     reference_tau,
 )
-from imufdi_cli.detectors.jitter import MotionInflation
-from imufdi_cli.detectors.parity import (
+from imufdi_cli.maths.jitter import MotionInflation
+from imufdi_cli.maths.parity import (
     isolable_sensors,
     parity_matrix,
     sigma_estimate_variance,
     whiten,
 )
-from imufdi_cli.maths.sequential import CusumBank, CusumDesign, budget_threshold
+from imufdi_cli.maths.sequential import CusumBank, budget_threshold
 
 
 def _runs(alarm: np.ndarray, isolated: np.ndarray) -> list[tuple[int, int, int]]:
@@ -107,7 +108,7 @@ class ArrayBudget:
     inflation: MotionInflation | None = None  # the array config's jitter model, or None
     sigma_known: bool = False  # the test's sigma is the array config's (no estimation error)
     first: EvidenceBudget | None = None
-    motion: MotionRegressors | None = None
+    motion: MotionState | None = None
     stage: _Stage | None = None
     thresholds: dict[int, float] = field(default_factory=dict)
     set_sums: np.ndarray | None = None  # residual sums of the isolated set since it changed
@@ -144,8 +145,8 @@ class ArrayBudget:
             scale_variance=scale_variance,
             calibration_samples=values.shape[0],
         )
-        self.motion = MotionRegressors(test.H, test.sigma)
-        self.first.fit(np.nan_to_num(z), self.motion.fit(values))
+        self.motion = MotionState(test.H, test.sigma)
+        self.first.fit(np.nan_to_num(z), self.motion(values))
         self.stage = None
         self.set_sums = None
         self.set_count = 0
@@ -167,8 +168,8 @@ class ArrayBudget:
 
     def _frozen_reference(self, x: np.ndarray) -> np.ndarray:
         """The first test's reference (frozen in its episode) as sensor offsets (N, n), SI:
-        the least-squares map of its z offsets (and leak, at the rows' regressors ``x``)
-        back through ``z = D P m``."""
+        the least-squares map of its z offsets (and motion model, at the rows' states
+        ``x``) back through ``z = D P m``."""
         first = self.first
         assert first is not None and first.bank is not None
         bank = first.bank
@@ -176,9 +177,11 @@ class ArrayBudget:
         usable = np.all(np.isfinite(P), axis=1)
         rows = np.nan_to_num(P)[usable] / std[usable, None]  # (k, n)
         scale = math.sqrt(bank.kappa)
-        offsets_z = bank.reference[usable] * scale + (
-            0.0 if bank.slopes is None else x @ (bank.slopes[:, usable] * scale)
-        )  # (N, k)
+        offsets_z = np.broadcast_to(bank.reference[usable] * scale, (x.shape[0], rows.shape[0]))
+        model = bank.ref.motion
+        if model is not None:
+            centred = x - bank.ref.state_mean
+            offsets_z = offsets_z + centred @ (model.slopes[:, usable] * scale)
         solution, *_ = np.linalg.lstsq(rows, np.atleast_2d(offsets_z).T, rcond=None)
         return solution.T  # type: ignore[no-any-return]
 
@@ -192,9 +195,8 @@ class ArrayBudget:
             # two of the remaining sensors may be parallel once others are excluded
             V = parity_matrix(whiten(self.test.H[rest], self.test.sigma[rest]))
             isolable[rest] = isolable_sensors(V) & self.test.isolable[rest]
-        design = CusumDesign(
-            shifts=first.design.shifts, clip=first.design.clip, tau_s=0.0, gate=first.design.gate
-        )
+        # the stages run only while an episode is open: no reference of their own
+        design = dataclasses.replace(first.design, tau_s=0.0, scale_tau_s=0.0)
         bank = CusumBank(
             design,
             self._threshold(len(excluded)),
@@ -206,7 +208,13 @@ class ArrayBudget:
         return _Stage(excluded, bank)
 
     def _children(
-        self, stage: _Stage, decided: Any, m: np.ndarray, sets: np.ndarray, continuing: bool
+        self,
+        stage: _Stage,
+        decided: Any,
+        m: np.ndarray,
+        sets: np.ndarray,
+        continuing: bool,
+        factors: np.ndarray | None = None,
     ) -> None:
         """Start or continue the next stage over each run of ``stage``'s alarms isolating
         one isolable sensor (``decided``: its decisions on these rows)."""
@@ -219,7 +227,13 @@ class ArrayBudget:
             if not carried or stage.child is None:
                 stage.child = self._new_stage(stage.excluded | {sensor})
                 stage.child_sensor = sensor
-            self._run_stage(stage.child, m[start:stop], sets[start:stop], carried)
+            self._run_stage(
+                stage.child,
+                m[start:stop],
+                sets[start:stop],
+                carried,
+                None if factors is None else factors[start:stop],
+            )
         last = decided.alarm.size - 1
         if (
             last < 0
@@ -230,14 +244,22 @@ class ArrayBudget:
             stage.child = None
             stage.child_sensor = -1
 
-    def _run_stage(self, stage: _Stage, m: np.ndarray, sets: np.ndarray, continuing: bool) -> None:
-        """Run ``stage`` over the rows of corrected measurements ``m`` (N, n) and mark the
-        sensors it and its children isolate in ``sets`` (N, n)."""
+    def _run_stage(
+        self,
+        stage: _Stage,
+        m: np.ndarray,
+        sets: np.ndarray,
+        continuing: bool,
+        factors: np.ndarray | None = None,
+    ) -> None:
+        """Run ``stage`` over the rows of corrected measurements ``m`` (N, n) (``factors``:
+        their motion variance factors) and mark the sensors it and its children isolate in
+        ``sets`` (N, n)."""
         z, _ = self.evidence(m, stage.excluded)
-        decided = stage.bank.process(z)
+        decided = stage.bank.process(z, None, factors)
         rows = np.flatnonzero(decided.alarm & (decided.isolated >= 0))
         sets[rows, decided.isolated[rows]] = True
-        self._children(stage, decided, m, sets, continuing)
+        self._children(stage, decided, m, sets, continuing, factors)
 
     def process(
         self, values: np.ndarray, t_ns: np.ndarray | None = None
@@ -250,13 +272,11 @@ class ArrayBudget:
         n_rows, n = m.shape
         z, _ = self.evidence(m, frozenset())
         x = motion(values)
+        factors = None
         if self.inflation is not None and t_ns is not None:
-            # sampling-time jitter in motion (detectors/jitter.py): the evidence of every
-            # row over sqrt(1 + A_t), its regressors alike (a weighted leak regression)
-            root = np.sqrt(self.inflation.factors(values, t_ns))[:, None]
-            z = z / root
-            x = x / root
-        out = first.decide(z, x)
+            # sampling-time jitter in motion (maths/jitter.py): the rows' variance factors
+            factors = self.inflation.factors(values, t_ns)
+        out = first.decide(z, x, factors)
         sets = np.zeros((n_rows, n), dtype=bool)
         rows = np.flatnonzero(out.alarm & (out.isolated >= 0))
         sets[rows, out.isolated[rows]] = True
@@ -265,7 +285,7 @@ class ArrayBudget:
         if out.alarm.any() or self.stage.child is not None:
             # the first test's reference is frozen in its episodes: carried into the others
             corrected = m - self._frozen_reference(x) if out.alarm.any() else m
-            self._children(self.stage, out, corrected, sets, True)
+            self._children(self.stage, out, corrected, sets, True, factors)
         return out, sets
 
     def amplitudes(self, values: np.ndarray, sets: np.ndarray) -> np.ndarray:

@@ -32,11 +32,11 @@ is regularised as a spiked model (Johnstone 2001):
   than N(0, 1); the out-of-fold variance sees it, the in-sample one does not).
 
 The motion leak (scale-factor and misalignment errors, ``p = mu + K x``) is the bank's
-regression reference (:class:`~imufdi_cli.maths.sequential.LeakModel`) on the body-frame
-estimate ``x = H^+ m`` centred on the calibration mean and in units of the sensors' rms
-sigma: fitted on the calibration window under a prior of ``LEAK_PRIOR`` (scale and
-misalignment errors of a few percent), learnt online, with the allowance that keeps a
-leak not yet known from raising false alarms.
+motion model (:class:`~imufdi_cli.maths.sequential.MotionModel`) on the weighted
+least-squares body-frame estimate x (:class:`~imufdi_cli.detectors.budget.MotionState`):
+fitted on the calibration window under the prior ``MOTION_ERROR``, learnt online, the
+test widened by what it does not know yet; with the array's jitter model the rows'
+motion variance factors go to the bank (the evidence is standardized at rest).
 """
 
 from __future__ import annotations
@@ -48,14 +48,14 @@ import numpy as np
 
 from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.detectors.budget import (
-    LEAK_PRIOR,
+    MOTION_ERROR,
     EvidenceBudget,
-    MotionRegressors,
+    MotionState,
     reference_tau,
 )
-from imufdi_cli.detectors.parity import sigma_estimate_variance
 from imufdi_cli.detectors.pca_parity.components import fold_labels
 from imufdi_cli.errors import CalibrationError
+from imufdi_cli.maths.parity import sigma_estimate_variance
 
 #: Tracy-Widom scales above the Marchenko-Pastur edge for an eigenvalue to count as
 #: correlated noise (the largest eigenvalue of white noise exceeds mu + 3 sigma with
@@ -95,7 +95,7 @@ def sensor_variances(
     variances : ndarray, shape (n,)
         Residual variances, SI^2.
     """
-    from imufdi_cli.nnls import nnls
+    from scipy.optimize import nnls  # imported at the first calibration, not on import
 
     mixing = (projection.T @ projection) ** 2
     if common is None:
@@ -213,7 +213,7 @@ class PcaBudget:
         self.tau_s = reference_tau(track_bias)
         self.learn_leak = bool(leak)
         self.mean = np.zeros(self.projection.shape[0])
-        self.motion = MotionRegressors(self.design_matrix, np.ones(self.projection.shape[1]))
+        self.motion = MotionState(self.design_matrix, np.ones(self.projection.shape[1]))
         self.weights = np.zeros((self.projection.shape[0], self.projection.shape[1]))
         self.variances = np.zeros(self.projection.shape[1])
         self.spikes = np.zeros(0)
@@ -232,9 +232,9 @@ class PcaBudget:
         coefficients = np.zeros((3, parity.shape[1]))
         if self.learn_leak:
             x = motion - motion.mean(axis=0)
-            # a relative scale error s leaks s sigma (h^T x) into a sensor: the prior sd of
-            # a coefficient in parity units per regressor unit is LEAK_PRIOR sigma
-            prior = np.eye(3) / (LEAK_PRIOR * self.motion.unit) ** 2
+            # a relative scale error e leaks e h^T x into a sensor (x SI): the prior sd of a
+            # coefficient in parity units per unit of the state is MOTION_ERROR
+            prior = np.eye(3) / MOTION_ERROR**2
             coefficients = np.linalg.solve(x.T @ x + prior, x.T @ centred)
             centred = centred - x @ coefficients
         keep = _inliers(centred @ self.projection)
@@ -254,8 +254,8 @@ class PcaBudget:
             if self.known is None
             else self.known
         )
-        self.motion = MotionRegressors(self.design_matrix, np.sqrt(first))
-        motion = self.motion.fit(measurements)
+        self.motion = MotionState(self.design_matrix, np.sqrt(first))
+        motion = self.motion(measurements)
         mean, _, weights, sensitivity, variances, spikes = self._fit_parts(parity, motion)
         self.mean = mean
         self.weights = weights
@@ -312,30 +312,18 @@ class PcaBudget:
             return 1.0
         return max(1.0, math.sqrt(total / count))
 
-    def evidence(
-        self, measurements: np.ndarray, factors: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray | None]:
-        """(1) for rows (N, n) of measurements, divided by the out-of-fold scale and the
-        motion factors ``sqrt(1 + A_t)`` (None: 1), and the rows' regressors."""
+    def evidence(self, measurements: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(1) for rows (N, n) of measurements, over the out-of-fold scale (standardized at
+        rest), and the rows' tested states (N, 3) with the leak model (None without)."""
         z = (measurements @ self.projection.T - self.mean) @ self.weights / self.cv_scale
-        regressors = self.motion(measurements) if self.learn_leak else None
-        if factors is not None:
-            # the motion variance factors weigh the rows (z / sqrt(1 + A_t) is unit-variance
-            # evidence); the regressors are weighed alike, so that the leak's regression is
-            # the weighted least squares of the evidence and a row in fast motion, whose
-            # residual the jitter model only bounds, hardly moves it
-            root = np.sqrt(factors)[:, None]
-            z /= root
-            if regressors is not None:
-                regressors /= root
-        return z, regressors
+        return z, (self.motion(measurements) if self.learn_leak else None)
 
     def process(
         self, measurements: np.ndarray, factors: np.ndarray | None = None
     ) -> DetectionBlock:
         assert self.sequential is not None
-        z, regressors = self.evidence(measurements, factors)
-        return self.sequential.decide(z, regressors)
+        z, state = self.evidence(measurements)
+        return self.sequential.decide(z, state, factors)
 
     def metadata(self) -> dict[str, Any]:
         meta = {} if self.sequential is None else self.sequential.metadata()
@@ -346,7 +334,6 @@ class PcaBudget:
                 "sensor_sigma_from": "calibration" if self.known is None else "array config",
                 "correlated_components": self.spikes.tolist(),
                 "out_of_fold_scale": self.cv_scale,
-                "motion_unit": self.motion.unit,
             }
         )
         return meta

@@ -21,8 +21,6 @@ from imufdi_cli.detectors.base import (
     parse_sensor_types,
 )
 from imufdi_cli.detectors.budget import configured_noise, reference_tau
-from imufdi_cli.detectors.jitter import MotionInflation, array_inflation
-from imufdi_cli.detectors.parity import isolable_sensors, parity_matrix
 from imufdi_cli.detectors.pca_parity import choices
 from imufdi_cli.detectors.pca_parity.budget import PcaBudget
 from imufdi_cli.detectors.pca_parity.components import (
@@ -31,11 +29,13 @@ from imufdi_cli.detectors.pca_parity.components import (
     principal_components,
 )
 from imufdi_cli.detectors.pca_parity.model import _MotionDesign, _TypeModel, lever_arm_spread
-from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.quantiles import f as f_distribution  # scipy.stats' floats
+from imufdi_cli.maths.jitter import MotionInflation, array_inflation
+from imufdi_cli.maths.parity import isolable_sensors, parity_matrix
+from imufdi_cli.maths.quantiles import f as f_distribution
+from imufdi_cli.maths.rigid import accel_design
 
 
 class PcaParityDetector(DetectorBase):
@@ -135,7 +135,7 @@ class PcaParityDetector(DetectorBase):
         self.models: dict[str, _TypeModel] = {}
         self.untested: dict[str, str] = {}
         self.window_samples = 0
-        self.inflations: dict[str, MotionInflation | None] = {}  # jitter model (detectors/jitter)
+        self.inflations: dict[str, MotionInflation | None] = {}  # jitter model (maths/jitter)
 
     # --- training ----------------------------------------------------------------------
 
@@ -373,7 +373,7 @@ class PcaParityDetector(DetectorBase):
                 counts, leverage_q
             )
             statistic = np.maximum(statistic, residual / threshold_q)
-        if factors is not None:  # sampling-time jitter in motion (detectors/jitter.py)
+        if factors is not None:  # sampling-time jitter in motion (maths/jitter.py)
             statistic = statistic / factors
         alarm = statistic > 1.0
         scores = np.full((n_samples, n_sensors), np.nan)

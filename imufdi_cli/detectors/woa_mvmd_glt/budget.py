@@ -34,7 +34,14 @@ variance the motion explains, and the detector says so when it is large
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+from imufdi_cli.detectors.base import DetectionBlock
+
+if TYPE_CHECKING:
+    from imufdi_cli.detectors.budget import EvidenceBudget
 
 #: Share of the evidence's variance explained by the motion above which the per-sample
 #: test warns that it does not hold its level in motion (a leak of this share raises the
@@ -115,3 +122,53 @@ class LeakMonitor:
             return 0.0
         coefficients = np.linalg.solve(gram + 1e-9 * scale * np.eye(3), cross)
         return max(0.0, float(np.sum(coefficients * cross)) / variance)
+
+
+def decide_rows(
+    budget: EvidenceBudget, n: int, parts: list[dict[str, np.ndarray] | int]
+) -> DetectionBlock:
+    """The stream's rows (``parts``: dicts of window rows, or counts of rows no window
+    decides, which carry no evidence) decided by the budget's bank: evidence standardized
+    at rest, the rows' states and motion factors; amplitude: eq. 7 of the row on the
+    isolated sensor."""
+    evidence, states, factors, amplitudes = [], [], [], []
+    for part in parts:
+        if isinstance(part, int):  # (states: 0 is the calibration's centre)
+            evidence.append(np.full((part, n), np.nan))
+            states.append(np.zeros((part, 3)))
+            factors.append(np.ones(part))
+            amplitudes.append(np.full((part, n), np.nan))
+        else:
+            evidence.append(part["evidence"])
+            states.append(part["regressors"])
+            factors.append(part["factor"])
+            amplitudes.append(part["amplitude"])
+    if not evidence:
+        return DetectionBlock.empty(0, n)
+    decided = budget.decide(
+        np.concatenate(evidence), np.concatenate(states), np.concatenate(factors)
+    )
+    amplitude = np.concatenate(amplitudes)
+    rows = np.flatnonzero(decided.isolated >= 0)
+    decided.amplitude = np.full(len(decided), np.nan)
+    decided.amplitude[rows] = amplitude[rows, decided.isolated[rows]]
+    return decided
+
+
+def motion_warning(
+    detector: str, sensor_type: str, monitor: LeakMonitor | None, alpha: float
+) -> str | None:
+    """The per-sample test's one-line warning when its evidence followed the motion on
+    the processed rows (None: not, too few rows, or no monitor: under a budget)."""
+    if monitor is None or monitor.rows < LEAK_MIN_ROWS:
+        return None
+    share = monitor.explained_share()
+    if share <= LEAK_WARNING_SHARE:
+        return None
+    return (
+        f"{detector}: {sensor_type}: the parity residual follows the motion ({share:.0%}"
+        " of its variance in the u_best domain: scale-factor or misalignment errors),"
+        " which the per-sample test does not model: it alarmed on"
+        f" {monitor.alarms / monitor.rows:.1%} of the samples at alpha={alpha:g}; decide"
+        " under a budget (--false-alarms 1/h learns the leak) or use glt or pca-parity"
+    )

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from typing import Any, ClassVar
 
 import numpy as np
@@ -23,27 +23,16 @@ from imufdi_cli.detectors.base import (
     Param,
     parse_sensor_types,
 )
-from imufdi_cli.detectors.budget import REFERENCE_TAU_S, EvidenceBudget, MotionRegressors
-from imufdi_cli.detectors.jitter import MotionInflation, array_inflation
+from imufdi_cli.detectors.budget import REFERENCE_TAU_S, EvidenceBudget, MotionState
 from imufdi_cli.detectors.mvmd import (
     MIN_SAMPLES,
     check_mvmd_params,
 )
-from imufdi_cli.detectors.parity import (
-    isolable_sensors,
-    isolation_statistics,
-    parity_matrix,
-    residual_sigma,
-    residuals,
-    sigma_estimate_variance,
-    whiten,
-)
-from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.detectors.woa_mvmd_glt.budget import (
-    LEAK_MIN_ROWS,
-    LEAK_WARNING_SHARE,
     LeakMonitor,
+    decide_rows,
     long_run,
+    motion_warning,
 )
 from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
     DEFAULT_WEIGHTS,
@@ -53,6 +42,7 @@ from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
     cfv,
     cfv_components,
 )
+from imufdi_cli.detectors.woa_mvmd_glt.state import _row_scales, _TypeState
 from imufdi_cli.detectors.woa_mvmd_glt.tuning import (
     TuneResult,
     make_validation,
@@ -78,7 +68,18 @@ from imufdi_cli.errors import (
     InputDataError,
 )
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.quantiles import chi2  # scipy.stats' floats without its import
+from imufdi_cli.maths.jitter import MotionInflation, array_inflation
+from imufdi_cli.maths.parity import (
+    isolable_sensors,
+    isolation_statistics,
+    parity_matrix,
+    residual_sigma,
+    residuals,
+    sigma_estimate_variance,
+    whiten,
+)
+from imufdi_cli.maths.quantiles import chi2
+from imufdi_cli.maths.rigid import accel_design
 
 # --- the detector ----------------------------------------------------------------------
 
@@ -102,106 +103,6 @@ def _weights_check(value: Any) -> str | None:
     if len(parts) != 3 or any(not np.isfinite(p) or p < 0 for p in parts):
         return "weights must be three comma-separated non-negative numbers, e.g. 1,1,1"
     return None
-
-
-@dataclass
-class _TypeState:
-    sensor_type: str
-    n: int
-    K: int
-    alpha: float
-    tuned: dict[str, Any] | None
-    sigma: np.ndarray
-    bias: np.ndarray
-    V: np.ndarray  # whitened parity matrix (n-3, n)
-    isolable: np.ndarray
-    threshold: float
-    stream: _WindowStream
-    n_calibration: int = 0  # samples the biases were averaged over
-    outlier_variance: float = (
-        0.0  # variance added for outliers (variance: SI^2; clip: sigma^2 units)
-    )
-    outlier_cut: float | None = None  # outliers=clip: level of the standardised residual
-    clipped: int = 0  # residual entries clipped so far
-    spread: np.ndarray | None = None  # kappa_i folded into sigma (noise_spread), or None
-    lever_arm_columns: int = 0  # columns of the rigid-body design beyond H
-    motion: MotionRegressors | None = None  # the body-frame estimate (leak regressors)
-    budget: EvidenceBudget | None = None  # sequential decisions under a false-alarm budget
-    monitor: LeakMonitor | None = None  # per-sample test: does the evidence follow motion?
-    inflation: MotionInflation | None = None  # the array config's jitter model, or None
-
-    @staticmethod
-    def clip_probe(
-        values: np.ndarray, bias: np.ndarray, sigma: np.ndarray, V: np.ndarray, cut: float
-    ) -> np.ndarray:
-        """(N, n) bool: the residuals :meth:`clip` cuts."""
-        return _TypeState._clip_shift(values, bias, sigma, V, cut)[1]
-
-    @staticmethod
-    def _clip_shift(
-        values: np.ndarray, bias: np.ndarray, sigma: np.ndarray, V: np.ndarray, cut: float
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The move of each sensor by :meth:`clip`, (N, n) in the units of ``values``, and
-        which entries were cut, (N, n) bool."""
-        projector = V.T @ V
-        scale = np.sqrt(np.diag(projector))
-        current = np.array(values, dtype=np.float64)
-        shift = np.zeros_like(current)
-        cut_mask = np.zeros(current.shape, dtype=bool)
-        active = np.arange(current.shape[0])
-        for _ in range(current.shape[1]):  # one sensor per sample and round
-            z = (((current[active] - bias) / sigma) @ projector) / scale
-            largest = np.argmax(np.abs(z), axis=1)
-            top = z[np.arange(active.size), largest]
-            over = np.abs(top) > cut
-            if not over.any():
-                break
-            rows, cols, top = active[over], largest[over], top[over]
-            delta = np.sign(top) * (np.abs(top) - cut) * sigma[cols] / scale[cols]
-            current[rows, cols] -= delta
-            shift[rows, cols] += delta
-            cut_mask[rows, cols] = True
-            active = rows
-        return shift, cut_mask
-
-    def clip(self, values: np.ndarray) -> np.ndarray:
-        """Clip each sample's standardised parity residuals at ``outlier_cut``, (N, n).
-
-        Whitened residual ``r = P x_w`` (``P = V^T V``, ``x_w = (x - bias) / sigma``),
-        standardised ``z_i = r_i / sqrt(P_ii)`` (``z_i^2`` is the GLT isolation statistic
-        of sensor i, eq. 6, since V V^T = I). Per sample, the sensor with the largest
-        ``|z_i|``, when it exceeds c, is moved by ``(|z_i| - c) sigma_i / sqrt(P_ii)``
-        toward the others, so that ``|z_i| = c``; the residuals are computed again and the
-        next largest is cut if still beyond c, until none is (two spikes in one sample are
-        both cut). A one-sample spike on one sensor is cut to c; a step larger than c sigma
-        is cut too, sample by sample, but stays far above the threshold once u_best
-        averages it (the amplitude is estimated on the unclipped signal). Gaussian noise is
-        left alone but with probability about 2 n Phi(-c) per sample (3e-3 at c = 4, n = 48).
-
-        One at a time: a fault of hundreds of sigma on one sensor also pushes every other
-        sensor's residual past c (by about 1/n of it); cutting them all at once moved the
-        healthy sensors toward the faulty one and erased the fault (a 10 deg/s^2 drift went
-        undetected from about 1.5 s after its onset). Once the faulty sensor is cut, the
-        others' residuals are back under c.
-        """
-        if self.outlier_cut is None:
-            return values
-        shift, cut_mask = self._clip_shift(values, self.bias, self.sigma, self.V, self.outlier_cut)
-        self.clipped += int(np.count_nonzero(cut_mask))
-        return np.asarray(values - shift)
-
-
-def _row_scales(F: np.ndarray, n_calibration: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Noise gain ``||F[t]||``, DC gain ``sum F[t]`` and row scale of u_best's filter rows
-    F (W, R, L): the noise sigma of a row is ``sigma * row_scale``."""
-    noise_gain = np.sqrt(np.einsum("wij,wij->wi", F, F))  # sigma_u = sigma * gain
-    dc_gain = F.sum(axis=-1)  # (W, L): bias_u = bias * dc_gain
-    # the calibration bias (mean of n_cal samples) is off by N(0, sigma^2 / n_cal),
-    # carried as dc_gain * error: its variance against the filtered noise is
-    # dc_gain^2 / (gain^2 n_cal) (the filter's effective length over n_cal), not
-    # negligible once u_best has averaged the noise down
-    inflation = 1.0 + (dc_gain / noise_gain) ** 2 / max(n_calibration, 1)
-    return noise_gain, dc_gain, noise_gain * np.sqrt(inflation)
 
 
 class WoaMvmdGltDetector(DetectorBase):
@@ -627,10 +528,10 @@ class WoaMvmdGltDetector(DetectorBase):
                 outlier_cut=outlier_cut,
                 spread=kappa,
                 lever_arm_columns=int(H.shape[1] - 3),
-                motion=MotionRegressors(H, sigma),
+                motion=MotionState(H, sigma),
                 inflation=array_inflation(array, sensor_type, H) if self.params["jitter"] else None,
             )
-            state.motion.fit(values)  # type: ignore[union-attr]
+            state.motion_centre = state.motion(values).mean(axis=0)  # type: ignore[misc]
             self._states[sensor_type] = state
             self._evaluators[sensor_type] = self._evaluator(state, decompose)
             if self.false_alarms > 0:
@@ -690,10 +591,12 @@ class WoaMvmdGltDetector(DetectorBase):
         _, dc_gain, row_scale = _row_scales(F, state.n_calibration)
         kappa = long_run(F, row_scale, first_row, self.hop)
         evidence = rows["evidence"].reshape(-1, n)
-        regressors = rows["regressors"].reshape(-1, 3)
         energy = np.einsum("ki,ki->i", state.V, state.V)  # P_ii, whitened
         # z per SI unit of a step on sensor i: the filter passes it with its DC gain
         gain = float(np.mean(dc_gain / row_scale))
+        # the state in the unit where a relative scale error e leaks e g |x| into z_i
+        state.state_gain = gain
+        regressors = rows["regressors"].reshape(-1, 3) / gain
         sensitivity = np.where(energy > 1e-12, np.sqrt(np.maximum(energy, 0.0)), 0.0)
         state.budget = EvidenceBudget(
             sensitivity * gain / state.sigma,
@@ -715,7 +618,7 @@ class WoaMvmdGltDetector(DetectorBase):
             noise_gain, dc_gain, row_scale = _row_scales(F, state.n_calibration)
             motion_factor = None
             if state.inflation is not None:
-                # sampling-time jitter in motion (detectors/jitter.py): a row's noise
+                # sampling-time jitter in motion (maths/jitter.py): a row's noise
                 # variance grows by the filter's weighted mean of the samples' factors
                 factors = windows[..., 2 * state.n]  # (W, L)
                 motion_factor = np.einsum("wrl,wl->wr", F**2, factors) / noise_gain**2
@@ -725,6 +628,8 @@ class WoaMvmdGltDetector(DetectorBase):
             p = whitened @ state.V.T
             statistic = np.einsum("...j,...j->...", p, p)  # eq. 5, V V^T = I
             d_fi, signed = isolation_statistics(p, state.V)  # eq. 6
+            # eq. 6 with its sign, standardized at rest: the budget's evidence
+            evidence = np.sign(signed) * np.sqrt(d_fi)
             if motion_factor is not None:
                 statistic = statistic / motion_factor
                 d_fi = d_fi / motion_factor[..., None]
@@ -741,16 +646,14 @@ class WoaMvmdGltDetector(DetectorBase):
                 * (row_scale / np.where(dc_gain != 0, dc_gain, np.nan))[..., None]
             )
             out = {"statistic": statistic, "scores": d_fi, "amplitude": amplitude * scale}
-            # eq. 6 with its sign: the standardized parity residual of each sensor
-            out["evidence"] = np.sign(signed) * np.sqrt(d_fi)
+            out["evidence"] = evidence
+            out["factor"] = np.ones(statistic.shape) if motion_factor is None else motion_factor
             # the u_best of the body-frame estimate, centred, in the evidence's row scale
             motion = state.motion
             assert motion is not None
-            out["regressors"] = (u @ motion.estimator_t - dc_gain[..., None] * motion.centre) / (
-                motion.unit * row_scale[..., None]
-            )
-            if motion_factor is not None:
-                out["regressors"] = out["regressors"] / np.sqrt(motion_factor)[..., None]
+            out["regressors"] = (
+                u @ motion.estimator_t - dc_gain[..., None] * state.motion_centre
+            ) / (row_scale[..., None] * state.state_gain)
             return out
 
         return evaluate
@@ -776,7 +679,8 @@ class WoaMvmdGltDetector(DetectorBase):
             ).astype(np.int32)
             amplitude = np.where(isolated >= 0, part["amplitude"][np.arange(count), best], np.nan)
             if state.monitor is not None:
-                state.monitor.add(part["evidence"], part["regressors"], alarm)
+                root = np.sqrt(part["factor"])[:, None]  # the test's own standardization
+                state.monitor.add(part["evidence"] / root, part["regressors"] / root, alarm)
             blocks.append(
                 DetectionBlock(
                     statistic=statistic,
@@ -794,50 +698,21 @@ class WoaMvmdGltDetector(DetectorBase):
     def _budget_rows(
         self, state: _TypeState, parts: list[dict[str, np.ndarray] | int]
     ) -> DetectionBlock:
-        """The rows of ``parts`` decided by the budget's bank (rows no window decides carry
-        no evidence); amplitude: eq. 7 of the row on the isolated sensor."""
+        """The rows of ``parts`` decided by the budget's bank (:func:`.budget.decide_rows`)."""
         assert state.budget is not None
-        evidence, regressors, amplitudes = [], [], []
-        for part in parts:
-            if isinstance(part, int):
-                evidence.append(np.full((part, state.n), np.nan))
-                regressors.append(np.zeros((part, 3)))
-                amplitudes.append(np.full((part, state.n), np.nan))
-            else:
-                evidence.append(part["evidence"])
-                regressors.append(part["regressors"])
-                amplitudes.append(part["amplitude"])
-        if not evidence:
-            return DetectionBlock.empty(0, state.n)
-        decided = state.budget.decide(np.concatenate(evidence), np.concatenate(regressors))
-        amplitude = np.concatenate(amplitudes)
-        rows = np.flatnonzero(decided.isolated >= 0)
-        decided.amplitude = np.full(len(decided), np.nan)
-        decided.amplitude[rows] = amplitude[rows, decided.isolated[rows]]
-        return decided
+        return decide_rows(state.budget, state.n, parts)
 
     def calibration_warnings(self) -> list[str]:
         """The per-sample test in motion: one warning per sensor type whose evidence
         followed the motion on the rows processed (a scale-factor or misalignment leak
         that test does not model, :mod:`.budget`), with the share of its variance the
         motion explains and the alarm rate; none under a budget (the bank learns it)."""
-        messages = []
-        for sensor_type, state in self._states.items():
-            monitor = state.monitor
-            if monitor is None or monitor.rows < LEAK_MIN_ROWS:
-                continue
-            share = monitor.explained_share()
-            if share <= LEAK_WARNING_SHARE:
-                continue
-            messages.append(
-                f"{self.name}: {sensor_type}: the parity residual follows the motion ({share:.0%}"
-                " of its variance in the u_best domain: scale-factor or misalignment errors),"
-                " which the per-sample test does not model: it alarmed on"
-                f" {monitor.alarms / monitor.rows:.1%} of the samples at alpha"
-                f"={float(self.params['alpha']):g}; decide under a budget (--false-alarms"
-                " 1/h learns the leak) or use glt or pca-parity"
-            )
-        return messages
+        alpha = float(self.params["alpha"])
+        messages = (
+            motion_warning(self.name, sensor_type, state.monitor, alpha)
+            for sensor_type, state in self._states.items()
+        )
+        return [m for m in messages if m is not None]
 
     def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
         if not self._states or self._array is None:
