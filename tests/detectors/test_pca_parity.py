@@ -629,7 +629,7 @@ def test_budget_whitens_a_common_mode_that_glt_takes_for_independent_noise() -> 
 def test_budget_learns_the_motion_leak_on_conical6_and_finds_a_fault_in_motion() -> None:
     # calibrated on 0-2 s (1 s of it in motion): scale and misalignment errors leak the
     # motion into the parity vector, a bias the calibration's fit leaves by up to 0.5 sd;
-    # the leak is learnt online, the allowance keeps the alarms off meanwhile
+    # the leak is learnt online by the bank's motion model, which widens the test meanwhile
     spec = "step:imu5.gyro.z,at=300s,amp=0.15deg/s"
     _, out, detector = faulted_run("pca-parity", BUDGET, "conical6", (spec,), 35021, 310.0)
     gyro = out["gyro"]

@@ -7,7 +7,7 @@ its predicted standard deviation), is N(0, 1) without fault and shifted by ``f /
 a step f on sensor j; it is the parity evidence of glt (the deleted residual of j
 standardized is ``r_j / sqrt(P_jj)`` in whitened units). A bank of CUSUM tests
 (:mod:`imufdi_cli.maths.sequential`) decides on it, its threshold set from the budget, with
-the slow bias reference and the motion-leak regression of :class:`EvidenceBudget`.
+the slow references and the motion model of the shared bank (:class:`EvidenceBudget`).
 
 What makes the bank itself is several simultaneous faults, found by exclusion. Under a
 budget the exclusion is sequential too: while the episode of the test over all sensors

@@ -23,12 +23,12 @@ neighbours had its filter), averaged over the calibration windows (:func:`long_r
 vector (``s h_i^T x`` on sensor i); u_best passes the motion (it is low-pass) and
 averages the noise down, so a leak of a fraction of a sigma in the raw signal is several
 sigmas of the u_best domain: on conical6 the per-sample test alarmed on 88 % of the
-fault-free samples (80 alpha). Under a budget the evidence's leak is the bank's regression
-reference (:class:`~imufdi_cli.maths.sequential.LeakModel`) on the u_best of the
-body-frame estimate ``H^+ u`` (the same filter), in the evidence's own row scale: learnt
-online, with the allowance while it is not known. The per-sample test does not model it:
-:class:`LeakMonitor` measures, over the processed rows, the share of the evidence's
-variance the motion explains, and the detector says so when it is large
+fault-free samples (80 alpha). Under a budget the bank's motion model
+(:class:`~imufdi_cli.maths.sequential.MotionModel`) learns it, on the u_best of the
+weighted least-squares body-frame estimate (the same filter) in the evidence's own row
+scale. The per-sample test does not model it: :class:`LeakMonitor` measures, over the
+processed rows, the share of the evidence's variance the motion explains, and the detector
+says so when it is large
 (``calibration_warnings``).
 """
 
