@@ -177,13 +177,14 @@ def _delay_job(job: tuple[str, str, str, int, float]) -> dict[str, Any]:
 def _reference(label: str, budget: float) -> float:
     """Lorden's reference delay, s, of a fault of the study on paper-table4 at the budget:
     glt's whitened parity evidence (sensitivity sqrt(P_ii) / sigma, sigma 0.15 deg/s,
-    P_ii = 45/48), 2 n D hypotheses, average run length ``f_s / rate`` samples."""
+    P_ii = 45/48), the 2 n sensor-and-sign hypotheses, average run length ``f_s / rate``
+    samples."""
     from imufdi_cli.maths.sequential import lorden_delay_samples, lorden_drift_samples
 
-    rate_hz, n, designs = 100.0, 48, 2
+    rate_hz, n = 100.0, 48
     sensitivity = math.sqrt(45.0 / 48.0) / math.radians(0.15)  # z per rad/s
     run_length = rate_hz * 3600.0 / budget
-    hypotheses = 2 * n * designs
+    hypotheses = 2 * n
     if label.startswith("drift"):
         slope = sensitivity * math.radians(1.0) / rate_hz  # z per sample per sample
         return lorden_drift_samples(slope, run_length, hypotheses) / rate_hz
