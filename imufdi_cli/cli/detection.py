@@ -89,15 +89,15 @@ def detect(
     grouped = parse_detector_params(detector_names, params)
     window = time_range(calibrate, "--calibrate")
     tested = start_end(start, end)
-    array = ArrayConfig.load(array_path) if array_path else None
-    output = output or default_output(source, "detect")
+    output = default_output(source, "detect") if output is None else output
     ui.data_to_stdout(output)
     # parameter files (e.g. woa-mvmd-glt.params=tuned.json) are inputs too
     param_files = [p.split("=", 1)[1] for p in params if "=" in p]
     check_outputs(
-        [source, *(f for f in param_files if os.path.isfile(f))],
+        [source, array_path, *(f for f in param_files if os.path.isfile(f))],
         [("-o", output), ("--json", ui.json_target)],
     )
+    array = ArrayConfig.load(array_path) if array_path else None
     with ui.progress(f"detect {source}") as progress:
         result = detect_file(
             source,
