@@ -233,7 +233,7 @@ def test_check_outputs_compares_stdin_and_stdout_with_the_files(source, tmp_path
         monkeypatch.setattr(sys, "stdout", stdout)
         with pytest.raises(UsageError, match="stdout is open on the input file"):
             check_outputs([source], [])
-        with pytest.raises(UsageError, match="--json .* is the file stdout is open on"):
+        with pytest.raises(UsageError, match=r"--json .* is the file stdout is open on"):
             check_outputs([], [("--json", source)])
         check_outputs([other], [("-o", "-")])
 
