@@ -336,9 +336,7 @@ def check_outputs(
     given = [(label, p) for label, p in outputs if p is not None]
     for label, p in given:
         if str(p) == "":
-            raise UsageError(
-                f"{label} '' is an empty file name; give a file name, or - for stdout"
-            )
+            raise UsageError(f"{label} '' is an empty file name; give a file name, or - for stdout")
     to_stdout = [label for label, p in given if str(p) == "-"]
     if len(to_stdout) > 1:
         raise UsageError(

@@ -16,7 +16,6 @@ bytes; sequences are ``u32 count`` and elements (aligned only when count > 0).
 
 from __future__ import annotations
 
-import json
 import re
 import struct
 from collections.abc import Sequence
@@ -812,10 +811,8 @@ class MessageDecoder:
 
 def decode_json_payloads(batch: MessageBatch) -> list[Any]:
     """JSON-decode every payload (general path)."""
-    out = []
-    for i in range(len(batch)):
-        try:
-            out.append(json.loads(batch.payload(i)))
-        except (ValueError, UnicodeDecodeError) as err:
-            raise McapInputError(f"malformed JSON message: {err}") from err
-    return out
+    from imufdi_cli.jsonin import loads
+
+    return [
+        loads(batch.payload(i), "malformed JSON message", McapInputError) for i in range(len(batch))
+    ]

@@ -382,7 +382,10 @@ class ImuArrayReader:
             try:
                 array = ArrayConfig.from_json(meta["json"])
             except ArrayConfigError as err:
-                self.warnings.append(f"ignoring the imufdi.array metadata: {err}")
+                self.warnings.append(
+                    f"{err}; ignored: the array is inferred from the topics (co-aligned IMUs,"
+                    " measured rate)"
+                )
             else:
                 if array.n_imus == m:
                     return array

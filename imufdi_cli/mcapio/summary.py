@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -65,6 +64,9 @@ class LogSummary:
     ingest : dict or None
         The counts of ``imufdi ingest`` (bad checksums, lost frames, dropped bytes, ...)
         from the ``imufdi.ingest`` metadata.
+    ingest_record : dict or None
+        The whole ``imufdi.ingest`` record, checked against its schema (None when absent
+        or malformed: then a warning says so).
     array : ArrayConfig or None
         From ``imufdi.array`` metadata or inferred.
     array_from_metadata : bool
@@ -88,6 +90,7 @@ class LogSummary:
     time_source: str | None = None
     imu_fields: dict[str, str] = field(default_factory=dict)
     ingest: dict[str, Any] | None = None
+    ingest_record: dict[str, Any] | None = None
     array: ArrayConfig | None = None
     array_from_metadata: bool = False
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
@@ -198,8 +201,11 @@ def summarize(
                     f" {summary.duration_s:.6g} s, from the {stamps}"
                 )
         summary.metadata = dict(src.metadata)
-        summary.ingest = _ingest_counts(summary.metadata)
         summary.warnings = list(src.warnings)
+        from imufdi_cli.metadata import ingest_record
+
+        summary.ingest_record = ingest_record(summary.metadata, summary.warnings)
+        summary.ingest = _ingest_counts(summary.ingest_record)
     return summary
 
 
@@ -295,33 +301,26 @@ def log_info(
             f"the array config gives {nominal:g} Hz but the stamps give {measured:.6g} Hz"
         )
     metadata = summary.metadata
+    from imufdi_cli.metadata import detect_records  # records checked against their schemas
+
     if "imufdi.faults" in metadata:
         from imufdi_cli.report import truth_windows
 
         truth = truth_windows(metadata)
         data["faults"] = truth.descriptions if truth else []
     detectors = {}
-    for name, record in metadata.items():
-        if name.startswith("imufdi.detect."):
-            try:
-                content = json.loads(record.get("json", "{}"))
-            except ValueError:
-                content = {}
-            meta = content.get("detector_metadata", {})
-            detectors[name.removeprefix("imufdi.detect.")] = {
-                "params": meta.get("params", meta),
-                "calibration_s": content.get("calibration_s"),
-                **_validity_counts(content.get("validity")),
-            }
+    for name, content in detect_records(metadata).items():
+        meta = content.get("detector_metadata", {})
+        detectors[name] = {
+            "params": meta.get("params", meta),
+            "calibration_s": content.get("calibration_s"),
+            **_validity_counts(content.get("validity")),
+        }
     if detectors:
         data["detectors"] = detectors
-    if "imufdi.ingest" in metadata:
-        try:
-            ingest_record = json.loads(metadata["imufdi.ingest"].get("json", "{}"))
-        except ValueError:
-            ingest_record = {}
-        if isinstance(ingest_record, dict) and isinstance(ingest_record.get("validity"), dict):
-            data["validity"] = ingest_record["validity"]
+    ingest_record = summary.ingest_record
+    if ingest_record is not None and isinstance(ingest_record.get("validity"), dict):
+        data["validity"] = ingest_record["validity"]
     return data
 
 
@@ -338,15 +337,9 @@ def _validity_counts(record: Any) -> dict[str, Any]:
     }
 
 
-def _ingest_counts(metadata: dict[str, dict[str, str]]) -> dict[str, Any] | None:
-    """The ``stats`` of the ``imufdi.ingest`` record (None when absent or unreadable)."""
-    record = metadata.get("imufdi.ingest")
-    if record is None:
-        return None
-    try:
-        stats = json.loads(record.get("json", "{}")).get("stats")
-    except (ValueError, AttributeError):
-        return None
+def _ingest_counts(record: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The ``stats`` of the checked ``imufdi.ingest`` record (None when absent)."""
+    stats = None if record is None else record.get("stats")
     return dict(stats) if isinstance(stats, dict) else None
 
 

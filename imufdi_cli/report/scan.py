@@ -4,7 +4,6 @@ length, and returns a :class:`~imufdi_cli.report.model.Report`."""
 
 from __future__ import annotations
 
-import json
 from typing import Any, BinaryIO
 
 import numpy as np
@@ -377,12 +376,11 @@ class _StatusScan:
 
 
 def _detect_record(metadata: dict[str, dict[str, str]], detector: str) -> dict[str, Any] | None:
-    """The decoded ``imufdi.detect.<detector>`` record, or None."""
-    try:
-        record = json.loads(metadata[f"imufdi.detect.{detector}"]["json"])
-    except (KeyError, TypeError, ValueError):
-        return None
-    return record if isinstance(record, dict) else None
+    """The ``imufdi.detect.<detector>`` record checked against its schema, or None when
+    the log has none (McapInputError when it is malformed: :mod:`imufdi_cli.metadata`)."""
+    from imufdi_cli.metadata import detect_record
+
+    return detect_record(metadata, detector)
 
 
 #: episodes listed per detector and sensor type (all are counted)

@@ -56,7 +56,10 @@ COMMANDS = {
     "ingest --layout": ("layout.toml", ["ingest", "cap.bin", "--layout", "IN", "-o", "OUT"]),
     "ingest --array": ("array.toml", ["ingest", "cap.bin", "--array", "IN", "-o", "OUT"]),
     "inject --faults": ("faults.toml", ["inject", "log.mcap", "--faults", "IN", "-o", "OUT"]),
-    "detect --array": ("array.toml", ["detect", "log.mcap", "-d", "glt", "--array", "IN", "-o", "OUT"]),
+    "detect --array": (
+        "array.toml",
+        ["detect", "log.mcap", "-d", "glt", "--array", "IN", "-o", "OUT"],
+    ),
     "calibrate --array": ("array.toml", ["calibrate", "log.mcap", "--array", "IN", "-o", "OUT"]),
 }
 
