@@ -396,6 +396,18 @@ def test_a_log_time_beyond_int64_is_bad_data_not_a_bug(cli, huge_log, tmp_path, 
     assert huge_log.read_bytes() == before
 
 
+def test_info_warns_of_a_log_time_beyond_int64(cli, huge_log):
+    """info describes the log, and says which message detect and inject will refuse."""
+    result = cli(["info", huge_log])
+    assert result.code == 0, result.stderr
+    warnings = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert any(
+        "log time beyond 2^63 ns (/imu" in w and "9223372036854775813" in w for w in warnings
+    )
+    strict = cli(["info", huge_log, "--strict"])
+    assert_one_line_error(strict, 3, "log time beyond 2^63 ns")
+
+
 @pytest.mark.slow
 def test_an_ignored_signal_stays_ignored(tmp_path):
     """nohup (SIGHUP ignored) must keep working: the handler is not installed over SIG_IGN."""
@@ -545,3 +557,73 @@ def test_streams_on_other_files_are_fine(workdir, tmp_path):
 
     with McapSource(out) as src:
         assert "imufdi.faults" in src.metadata
+
+
+# --- zero-filled files ----------------------------------------------------------------
+
+ZERO_COMMANDS = {
+    "info": ["info", "IN"],
+    "detect": ["detect", "IN", "-d", "glt", "-o", "OUT.mcap"],
+    "inject": ["inject", "IN", "--fault", "step:imu0.gyro.x,amp=1deg/s", "-o", "OUT.mcap"],
+    "report": ["report", "IN"],
+    "calibrate": ["calibrate", "IN", "-o", "OUT.toml"],
+}
+
+
+def _zero_filled(path: Path, head: bytes = b"\x89MCAP0\r\n", zeros: int = 64 << 20) -> Path:
+    with open(path, "wb") as out:
+        out.write(head)
+        out.truncate(len(head) + zeros)  # a sparse file: no 64 MB written to the disk
+    return path
+
+
+@pytest.mark.parametrize("command", sorted(ZERO_COMMANDS))
+def test_a_zero_filled_file_is_one_problem_not_millions(cli, tmp_path, command):
+    """MCAP magic and 64 MB of zeros read as 7.4 million empty records of opcode 0: the
+    region is stepped over at once and named in one line (exit 3)."""
+    log = _zero_filled(tmp_path / "z.mcap")
+    started = time.perf_counter()
+    argv = [
+        str(log) if a == "IN" else a.replace("OUT", str(tmp_path / "out"))
+        for a in ZERO_COMMANDS[command]
+    ]
+    result = cli(argv)
+    assert_one_line_error(result, 3, "67108864 zero bytes at byte 8 skipped")
+    assert time.perf_counter() - started < 10
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["z.mcap"]
+
+
+def test_a_cut_log_followed_by_zeros_reads_up_to_the_cut(cli, table4_log, tmp_path):
+    data = table4_log.read_bytes()  # several chunks: the first ones are whole
+    log = _zero_filled(tmp_path / "cut.mcap", data[: len(data) // 2])
+    result = cli(["info", log, "--json", tmp_path / "i.json"])
+    assert result.code == 0, result.stderr
+    import json
+
+    info = json.loads((tmp_path / "i.json").read_text())
+    assert info["n_samples"] > 0
+    zero_lines = [w for w in info["warnings"] if "zero bytes" in w]
+    assert len(zero_lines) == 1, info["warnings"]
+
+
+@pytest.mark.slow
+def test_a_zero_filled_file_takes_under_10_s_and_300_mb(tmp_path):
+    """The target: every reading command on MCAP magic + 64 MB of zeros exits 3 within
+    10 s with a peak RSS under 300 MB (each in a fresh process)."""
+    log = _zero_filled(tmp_path / "z.mcap")
+    for command, argv in sorted(ZERO_COMMANDS.items()):
+        args = [str(log) if a == "IN" else a.replace("OUT", str(tmp_path / "out")) for a in argv]
+        started = time.monotonic()
+        process = subprocess.Popen(
+            [sys.executable, "-m", "imufdi_cli", *args],
+            env=dict(os.environ, PYTHONPATH=str(REPO)),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        _, status, usage = os.wait4(process.pid, 0)
+        elapsed = time.monotonic() - started
+        process.returncode = os.waitstatus_to_exitcode(status)
+        stderr = process.stderr.read().decode() if process.stderr else ""
+        assert process.returncode == 3, (command, stderr)
+        assert elapsed < 10, (command, elapsed)
+        assert usage.ru_maxrss < 300 * 1024, (command, usage.ru_maxrss)
