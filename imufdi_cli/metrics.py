@@ -15,6 +15,10 @@ All figures are per sample and per sensor type, with the definitions of Li et al
 - isolation delay = decision time of the first alarm inside the fault isolated to one of
   the fault's sensors - onset
 - decision latency = mean over samples of (decision time - sample time)
+- false alarm events per hour = alarm events starting on fault-free samples outside the
+  calibration window / the *tested, fault-free time* (:func:`fault_free_tested_hours`:
+  those samples times the sample period, so a gap in the log, where nothing was tested,
+  adds no time)
 - recovery delay = decision time of the first sample r at or after the fault end from
   which the alarms stop for good - fault end: at least ``persist`` quiet samples from r,
   and no alarm within ``merge_gap_s`` (0.1 s) of r — an alarm that comes back that soon
@@ -145,7 +149,7 @@ class Metrics:
     alarm_rate: float | None  # alarms / samples, truth or not
     alarm_events: int
     false_alarm_events_per_hour: float | None
-    duration_s: float
+    duration_s: float  # first to last row plus one mean interval (gaps included)
     faults: list[FaultFigures] = field(default_factory=list)
     calibration_samples: int = 0
     far_calibration: float | None = None
@@ -157,6 +161,10 @@ class Metrics:
     detection_delay_at_far_s: float | None = None
     threshold_scale_at_far: float | None = None
     target_far: float | None = None
+    #: the tested, fault-free time of the per-hour figures (:func:`fault_free_tested_hours`)
+    fault_free_hours: float = 0.0
+    #: the sample period it counts per row: the median interval between rows, s
+    sample_period_s: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -247,6 +255,68 @@ def persistent(alarm: np.ndarray, persist: int) -> np.ndarray:
     # counts[i + persist - 1] = number of alarms in alarm[i : i + persist]
     window = counts[persist - 1 : persist - 1 + alarm.size]
     return window == persist
+
+
+def fault_free_tested_hours(fault_free_samples: int, sample_period_s: float | None) -> float:
+    """The tested, fault-free time, in hours: the denominator of every per-hour false
+    alarm figure (``false_alarm_events_per_hour``, the episodes' ``false_episodes_per_hour``).
+
+    Parameters
+    ----------
+    fault_free_samples : int
+        Status rows that were tested and scored without an active fault, outside the
+        calibration window (:attr:`Metrics.fault_free_samples`; rows ``detect`` excluded
+        as clipped, invalid or held are not among them, rows tested with an IMU missing
+        are).
+    sample_period_s : float or None
+        The time one row stands for, s (:attr:`Metrics.sample_period_s`, the median
+        interval between rows: :class:`SamplePeriod`). None or <= 0: no time.
+
+    Returns
+    -------
+    float
+        ``fault_free_samples * sample_period_s / 3600``. A gap in the log (no rows: nothing
+        was tested) adds nothing, so a 3-hour gap in a 20 s log changes no rate; the
+        first-to-last span would count it as 3 hours of testing without an alarm.
+    """
+    if not sample_period_s or sample_period_s <= 0 or fault_free_samples <= 0:
+        return 0.0
+    return fault_free_samples * float(sample_period_s) / 3600.0
+
+
+class SamplePeriod:
+    """The sample period of a stream of row times: the median of the first
+    :attr:`INTERVALS` positive intervals between consecutive rows (streamed; a gap, a
+    dropped row or a few irregular stamps do not move a median)."""
+
+    INTERVALS = 1024
+
+    def __init__(self) -> None:
+        self._last: int | None = None
+        self._steps: list[np.ndarray] = []
+        self._count = 0
+
+    def add(self, t_ns: np.ndarray) -> None:
+        """Feed the next rows' times (ns, increasing)."""
+        if self._count >= self.INTERVALS or t_ns.size == 0:
+            if t_ns.size:
+                self._last = int(t_ns[-1])
+            return
+        t = np.asarray(t_ns, dtype=np.int64)
+        if self._last is not None:
+            t = np.concatenate([[self._last], t])
+        steps = np.diff(t)
+        steps = steps[steps > 0][: self.INTERVALS - self._count]
+        self._steps.append(steps)
+        self._count += int(steps.size)
+        self._last = int(t[-1])
+
+    @property
+    def seconds(self) -> float | None:
+        """The period, s (None before two rows with different times)."""
+        if self._count == 0:
+            return None
+        return float(np.median(np.concatenate(self._steps))) / NS_PER_S
 
 
 class _FaultState:
@@ -385,6 +455,7 @@ class MetricsAccumulator:
         self.false_events = 0
         self.latency_sum = 0.0
         self.t_first: int | None = None
+        self.period = SamplePeriod()
         self.t_last = 0
         self.previous_alarm = False
 
@@ -445,6 +516,7 @@ class MetricsAccumulator:
         if self.t_first is None:
             self.t_first = int(t_ns[0])
         self.t_last = int(t_ns[-1])
+        self.period.add(t_ns)
         self.n += k
         self.n_cal += int(np.count_nonzero(in_cal))
         self.n_eval += int(np.count_nonzero(evaluated))
@@ -591,7 +663,8 @@ class MetricsAccumulator:
         if n > 1 and self.t_first is not None:
             span = float(self.t_last - self.t_first) / NS_PER_S
             duration_s = span * n / (n - 1)  # count the last sample's period too
-        free_hours = self.n_free * (duration_s / n) / 3600.0 if n and duration_s > 0 else 0.0
+        period_s = self.period.seconds
+        free_hours = fault_free_tested_hours(self.n_free, period_s)
         figures: list[FaultFigures] = []
         delays: list[float] = []
         isolations: list[float] = []
@@ -654,6 +727,8 @@ class MetricsAccumulator:
             isolation_delay_s=float(np.mean(isolations)) if isolations else None,
             decision_latency_s=(self.latency_sum / self.n_eval) if self.n_eval else None,
             rate_after_first_detection=_ratio(alarmed_after_first, after_first),
+            fault_free_hours=free_hours,
+            sample_period_s=period_s,
         )
 
     def _amplitude_figures(self, st: _FaultState) -> list[AmplitudeFigure]:

@@ -130,6 +130,11 @@ def detect(
                 f"{sensor_type}: {counts['clipped']} clipped and {counts['invalid']} invalid"
                 f" samples excluded from the tests ({counts['held']} without consensus)"
             )
+        if counts.get("missing"):
+            ui.summary.print(
+                f"{sensor_type}: {counts['missing']} samples tested with an IMU missing (its"
+                " sensors replaced by the others' consensus)"
+            )
     ui.warn(result.warnings)
     ui.json(
         {
