@@ -740,8 +740,8 @@ def _complete_rows(
     zero noise for it, and they would alarm once it is back. Fewer than
     :data:`MIN_COMPLETE_CALIBRATION` of the window complete: CalibrationError (exit 3)."""
     assert whole.missing is not None
-    complete = ~whole.missing.any(axis=1)
-    absent = [topics[k] for k in np.flatnonzero(whole.missing.any(axis=0)) if k < len(topics)]
+    complete = np.asarray(~whole.missing.any(axis=1))
+    absent = [topics[int(k)] for k in np.flatnonzero(whole.missing.any(axis=0)) if k < len(topics)]
     shown = ", ".join(absent[:3]) + (f" and {len(absent) - 3} more" if len(absent) > 3 else "")
     n_complete, n = int(np.count_nonzero(complete)), len(whole)
     if n_complete < MIN_COMPLETE_CALIBRATION * n:

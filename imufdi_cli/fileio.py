@@ -343,13 +343,13 @@ def check_outputs(
             f"{' - and '.join(to_stdout)} -: only one output can go to stdout;"
             " give the others a file"
         )
-    inputs = list(inputs)
+    sources = [str(p) for p in inputs if p is not None]
     files: list[str] = []
-    for p in inputs:
-        if p is None or str(p) == "-":
+    for source in sources:
+        if source == "-":
             continue
-        files.append(str(p))
-        files += _bag_files(Path(p))
+        files.append(source)
+        files += _bag_files(Path(source))
     named = [(label, str(p)) for label, p in given if str(p) != "-"]
     for label, out in named:
         for source in files:
@@ -358,7 +358,7 @@ def check_outputs(
                     f"{label} {out} is the input file {source}; inputs are never modified"
                 )
     if streams:
-        _check_streams(files, named, reads_stdin=any(str(p) == "-" for p in inputs))
+        _check_streams(files, named, reads_stdin="-" in sources)
     regular = [
         (label, out) for label, out in named if not is_special(out)
     ]  # /dev/null twice is fine

@@ -258,8 +258,8 @@ class Conditioner:
                 c.invalid_values += int(np.count_nonzero(invalid))
                 c.clipped_runs.add(block.t_ns, np.asarray(clipped.any(axis=1)))
                 c.invalid_runs.add(block.t_ns, np.asarray(invalid.any(axis=1)))
-                c.held_runs.add(block.t_ns, held)
-                c.missing_runs.add(block.t_ns, missing_rows)
+                c.held_runs.add(block.t_ns, np.asarray(held))
+                c.missing_runs.add(block.t_ns, np.asarray(missing_rows))
         return ImuBlock(t_ns=block.t_ns, missing=block.missing, **fields)
 
     def _absent(self, block: ImuBlock, s: str) -> np.ndarray:
