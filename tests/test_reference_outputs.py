@@ -1,7 +1,7 @@
 """Simulation and fault injection outputs are those recorded before the package split.
 
 ``imufdi_cli.simulate`` and ``imufdi_cli.faults`` were split into packages by concern
-(issue 21) with behaviour unchanged. The fingerprints below were recorded with the
+with behaviour unchanged. The fingerprints below were recorded with the
 single-module code (commit e7e928c): every preset with its own seed, every fault model,
 streaming injection in uneven blocks, and ``inject_file`` on a simulated MCAP read back. A
 fingerprint is the NaN count and (sum, sum of squares, sum weighted by sin(0.37 k + 1)) of

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Mutation fuzz of imufdi's inputs through the CLI.
+"""Mutation fuzz of imufdi's inputs through the CLI (docs/testing.md, "Fuzzing").
 
 Builds a few small logs (chunked zstd, chunked lz4 with small chunks, un-chunked, a
 detector output, a static log for calibrate) and makes mutated inputs of five families,

@@ -613,6 +613,7 @@ def calibrate_file(
         array = array.with_range(log_array.range)
         seen: list[str] = []
         origin: list[int] = []
+        bounds: list[tuple[float, float | None]] = []  # the window, seconds from the start
 
         def blocks() -> Iterator[ImuBlock]:
             if not isinstance(stream, str):
@@ -621,6 +622,10 @@ def calibrate_file(
                 for block in reader.blocks():
                     if not origin:
                         origin.append(int(block.t_ns[0]))
+                        if window is not None:  # absolute times resolved on the log start
+                            from imufdi_cli.units import window_from_log_start
+
+                            bounds.append(window_from_log_start(window, origin[0]))
                     fields: dict[str, np.ndarray | None] = {}
                     for s in ("gyro", "accel", "mag"):
                         data = block.get(s)
@@ -628,23 +633,29 @@ def calibrate_file(
                             None if data is None else log_array.calibrate_triads(data, s, undo=True)
                         )
                     raw = ImuBlock(t_ns=block.t_ns, **fields)
-                    if window is not None:
+                    if bounds:
+                        start_s, end_s = bounds[0]
                         rel = (raw.t_ns - origin[0]).astype(np.float64) * 1e-9
-                        keep = rel >= window[0]
-                        if window[1] is not None:
-                            keep &= rel < window[1]
+                        keep = rel >= start_s
+                        if end_s is not None:
+                            keep &= rel < end_s
                         raw = raw.mask(keep)
                     yield raw
                 if not seen:
                     seen.extend(reader.warnings)
 
-        result = calibrate_blocks(
-            array.with_calibration(None),
-            blocks,
-            gravity=gravity,
-            min_static_s=min_static_s,
-            jitter_fit=jitter_fit,
-        )
+        try:
+            result = calibrate_blocks(
+                array.with_calibration(None),
+                blocks,
+                gravity=gravity,
+                min_static_s=min_static_s,
+                jitter_fit=jitter_fit,
+            )
+        except CalibrationError:
+            if not origin:  # not one sample in the log, whatever the window
+                raise CalibrationError(f"{source}: no aligned IMU samples") from None
+            raise
     finally:
         if close:
             stream.close()  # type: ignore[union-attr]

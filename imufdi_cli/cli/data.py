@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from imufdi_cli.cli.app import cli, stamps_option, time_source, topic_option
+from imufdi_cli.cli.app import cli, complete_file, stamps_option, time_source, topic_option
 from imufdi_cli.cli.choices import LazyChoice, motions, presets
 from imufdi_cli.cli.plain import PlainTable
 from imufdi_cli.cli.ui import UI, common_options
@@ -31,8 +31,19 @@ from imufdi_cli.cli.ui import UI, common_options
 @click.option("--outliers/--no-outliers", default=None, help="Gyro outliers on or off.")
 @click.option("--chip-bias", help="Constant chip-to-chip gyro bias sigma, e.g. 0.5deg/s.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
-@click.option("-o", "--output", required=True, help="Output MCAP, or - for stdout.")
-@click.option("--capture", "capture", help="Also write a raw serial capture (mpu6500-array).")
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    help="Output MCAP, or - for stdout.",
+    shell_complete=complete_file,
+)
+@click.option(
+    "--capture",
+    "capture",
+    help="Also write a raw serial capture (mpu6500-array).",
+    shell_complete=complete_file,
+)
 @click.option(
     "--corrupt/--no-corrupt",
     default=False,
@@ -114,15 +125,32 @@ def simulate(
 
 
 @cli.command()
-@click.argument("capture")
-@click.option("-o", "--output", help="Output MCAP (default: CAPTURE with .mcap), - for stdout.")
+@click.argument("capture", shell_complete=complete_file)
+@click.option(
+    "-o",
+    "--output",
+    help="Output MCAP (default: CAPTURE with .mcap), - for stdout.",
+    shell_complete=complete_file,
+)
 @click.option(
     "--layout",
-    default="mpu6500-array",
-    show_default=True,
-    help="mpu6500-array, csv, or a TOML layout file.",
+    help="Frame layout of a raw capture: mpu6500-array (default), csv, or a TOML layout file."
+    " PX4 ULog and ArduPilot DataFlash logs are recognised by content and need none.",
+    shell_complete=complete_file,
 )
-@click.option("--array", "array_path", help="ArrayConfig TOML (rotations, positions, axes).")
+@click.option(
+    "--imu-data",
+    type=click.Choice(["auto", "sensor", "vehicle_imu", "imu", "raw"]),
+    help="Flight-controller logs: which IMU data (PX4: sensor, vehicle_imu; ArduPilot: imu,"
+    " raw). Default auto: the most IMUs, then sensor types, then the highest rate"
+    " (docs/flight-controllers.md).",
+)
+@click.option(
+    "--array",
+    "array_path",
+    help="ArrayConfig TOML (rotations, positions, axes).",
+    shell_complete=complete_file,
+)
 @click.option("--rate", help="Nominal sample rate when frames carry no timestamp, e.g. 100Hz.")
 @click.option("--gyro-fs", help="Built-in layout gyro full scale: 250, 500, 1000, 2000 (deg/s).")
 @click.option("--accel-fs", help="Built-in layout accel full scale: 2, 4, 8, 16 (g).")
@@ -137,7 +165,8 @@ def simulate(
 def ingest(
     capture: str,
     output: str | None,
-    layout: str,
+    layout: str | None,
+    imu_data: str | None,
     array_path: str | None,
     rate: str | None,
     gyro_fs: str | None,
@@ -146,16 +175,20 @@ def ingest(
     start_time: str | None,
     ui: UI,
 ) -> None:
-    """Convert a raw serial capture (or CSV) into an IMU array MCAP.
+    """Convert a raw serial capture (or CSV), or a PX4 ULog / ArduPilot DataFlash flight
+    log, into an IMU array MCAP.
 
-    Resynchronises after garbage, drops frames with bad checksums, unwraps counters and
-    timestamps, counts every dropped byte, frame and gap.
+    Captures: resynchronises after garbage, drops frames with bad checksums, unwraps
+    counters and timestamps, counts every dropped byte, frame and gap. Flight logs
+    (recognised by content, whatever the extension): one Imu channel per IMU instance,
+    aligned without resampling, stamped in UTC from the log's GPS time.
 
     Example:
 
 
     \b
         imufdi ingest board.bin --layout my_board.toml --array array.toml -o board.mcap
+        imufdi ingest flight.ulg -o flight.mcap
         cat capture.bin | imufdi ingest - -o - | imufdi info -
     """
     from imufdi_cli.fileio import check_input, check_outputs
@@ -165,7 +198,7 @@ def ingest(
     if output is None:
         output = "-" if capture == "-" else os.path.splitext(capture)[0] + ".mcap"
     ui.data_to_stdout(output)
-    layout_file = layout if layout.lower().endswith(".toml") else None
+    layout_file = layout if layout is not None and layout.lower().endswith(".toml") else None
     check_outputs([capture, layout_file, array_path], [("-o", output), ("--json", ui.json_target)])
     with ui.progress(f"ingest {capture}", unit="B") as progress:
         stats = ingest_file(
@@ -178,9 +211,11 @@ def ingest(
             accel_fs=accel_fs,
             strict=strict,
             start_time=start_time,
+            imu_data=imu_data,
             progress=progress,
         )
     ui.print_table(ingest_table(capture, output, stats.as_rows()), summary=True)
+    ui.warn(getattr(stats, "warnings", []))
     ui.json({"command": "ingest", "capture": capture, "output": output, **stats.to_dict()})
 
 
@@ -198,15 +233,26 @@ def ingest_table(capture: str, output: str, rows: Any) -> PlainTable:
 
 
 @cli.command()
-@click.argument("source", metavar="IN")
-@click.option("-o", "--output", help="Output MCAP (default: IN-faults.mcap), - for stdout.")
+@click.argument("source", metavar="IN", shell_complete=complete_file)
+@click.option(
+    "-o",
+    "--output",
+    help="Output MCAP (default: IN-faults.mcap), - for stdout.",
+    shell_complete=complete_file,
+)
 @click.option(
     "--fault",
     "faults",
     multiple=True,
     help="Fault spec, e.g. step:imu0.gyro.x,at=2.5s,amp=0.9deg/s.",
 )
-@click.option("--faults", "fault_files", multiple=True, help="TOML file of [[fault]] tables.")
+@click.option(
+    "--faults",
+    "fault_files",
+    multiple=True,
+    help="TOML file of [[fault]] tables.",
+    shell_complete=complete_file,
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed for random faults.")
 @topic_option
 @stamps_option

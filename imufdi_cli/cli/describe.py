@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from imufdi_cli.cli.app import cli, stamps_option, time_source, topic_option
+from imufdi_cli.cli.app import cli, complete_file, stamps_option, time_source, topic_option
 from imufdi_cli.cli.plain import PLAIN_WIDTH, PlainTable, plain_safe
 from imufdi_cli.cli.ui import UI, common_options
 
@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
 
 @cli.command()
-@click.argument("log")
+@click.argument("log", shell_complete=complete_file)
 @topic_option
 @stamps_option
 @click.option("--strict", is_flag=True, help="A truncated or corrupt input is an error (exit 3).")
@@ -89,6 +89,9 @@ def info_parts(s: dict[str, Any]) -> list[Part]:
                 + (f", range {json.dumps(array['range'])}" if array.get("range") else ""),
             )
         )
+    fc = s.get("flight_log")
+    if fc:
+        parts.append(("text", _flight_log_line(fc)))
     for sensor_type, counts in s.get("validity", {}).items():
         parts.append(
             (
@@ -113,6 +116,28 @@ def info_parts(s: dict[str, Any]) -> list[Part]:
     return parts
 
 
+def _flight_log_line(fc: dict[str, Any]) -> str:
+    """``flight log: PX4 ULog (PX4, CUBEORANGE, v1.11.2), vehicle_imu: 3 IMUs at 2, 2, 2 Hz``."""
+    names = {"px4-ulog": "PX4 ULog", "ardupilot-dataflash": "ArduPilot DataFlash"}
+    system = fc.get("system") or {}
+    words = [
+        system[k] for k in ("sys_name", "ver_hw", "version", "firmware", "board") if system.get(k)
+    ]
+    rates = ", ".join(f"{r:.4g}" for r in fc.get("imu_rates_hz") or [])
+    text = (
+        f"flight log: {names.get(str(fc.get('format')), fc.get('format'))}"
+        + (f" ({', '.join(words)})" if words else "")
+        + f", {fc.get('imu_data')}: {fc.get('n_imus')} IMUs at {rates} Hz"
+        + ("" if fc.get("testable", True) else " (too low to test)")
+        + (
+            f"; UTC from GPS, start {fc['utc_start']}"
+            if fc.get("utc_start")
+            else "; no UTC (no GPS time)"
+        )
+    )
+    return text
+
+
 def _head_table(s: dict[str, Any]) -> PlainTable:
     """The key/value table at the top of ``imufdi info``."""
     head = PlainTable(("key", "value"), boxed=False, bold_first=True)
@@ -120,6 +145,16 @@ def _head_table(s: dict[str, Any]) -> PlainTable:
         if key in s:
             value = s[key]
             head.add_row(key, f"{value:.6g}" if isinstance(value, float) else str(value))
+    if s.get("start_ns") is not None:
+        if s.get("start_utc"):
+            head.add_row("start (UTC)", s["start_utc"])
+            head.add_row("end (UTC)", s.get("end_utc") or "")
+        else:  # stamps from boot (a flight controller, a capture card)
+            head.add_row(
+                "start (UTC)",
+                "not a calendar time (stamps count from boot or an epoch of the"
+                " device's own); --start/--end take seconds from the log start",
+            )
     if s.get("rate_hz") is not None:
         head.add_row("rate_hz", f"{s['rate_hz']:.6g}  ({s.get('rate_method', '')})")
     if s.get("time_source"):

@@ -112,6 +112,8 @@ class LogSummary:
             "rate_method": self.rate_method,
             "start_ns": self.start_ns,
             "end_ns": self.end_ns,
+            "start_utc": _utc_or_none(self.start_ns),
+            "end_utc": _utc_or_none(self.end_ns),
             "duration_s": self.duration_s,
             "time_source": self.time_source,
             "imu_fields": dict(self.imu_fields),
@@ -123,6 +125,16 @@ class LogSummary:
             "metadata_names": self.metadata_names,
             "warnings": list(self.warnings),
         }
+
+
+def _utc_or_none(t_ns: int | None) -> str | None:
+    """ISO 8601 UTC of a stamp, or None when it is not a calendar time (stamps counted from
+    boot: before 2001-09-09, :data:`~imufdi_cli.units.UNIX_TIME_MIN_S`)."""
+    from imufdi_cli.units import UNIX_TIME_MIN_S, utc_iso
+
+    if t_ns is None or t_ns < UNIX_TIME_MIN_S * 1e9:
+        return None
+    return utc_iso(t_ns)
 
 
 def summarize(
@@ -318,10 +330,33 @@ def log_info(
         }
     if detectors:
         data["detectors"] = detectors
-    ingest_record = summary.ingest_record
+    ingest_record = summary.ingest_record  # checked against its schema (a warning if not)
     if ingest_record is not None and isinstance(ingest_record.get("validity"), dict):
         data["validity"] = ingest_record["validity"]
+    if ingest_record is not None:
+        _flight_log(ingest_record, data)
     return data
+
+
+def _flight_log(record: dict[str, Any], data: dict[str, Any]) -> None:
+    """A flight-controller log's ingest (``imufdi ingest log.ulg``): its source, per-IMU
+    rates and UTC anchor as ``flight_log``, and its "too low to test" message as a warning."""
+    if record.get("format") not in ("px4-ulog", "ardupilot-dataflash"):
+        return
+    rate: dict[str, Any] = record["rate"] if isinstance(record.get("rate"), dict) else {}
+    utc: dict[str, Any] = record["utc"] if isinstance(record.get("utc"), dict) else {}
+    data["flight_log"] = {
+        "format": record.get("format"),
+        "system": record.get("system", {}),
+        "imu_data": record.get("imu_data"),
+        "n_imus": record.get("n_imus"),
+        "imu_rates_hz": record.get("imu_rates_hz"),
+        "testable": rate.get("testable"),
+        "utc_start": utc.get("start"),
+        "streams": record.get("streams", []),
+    }
+    if rate.get("testable") is False and rate.get("message"):
+        data["warnings"].append(str(rate["message"]))
 
 
 def _validity_counts(record: Any) -> dict[str, Any]:

@@ -103,7 +103,7 @@ def test_calibration_error_raises_the_threshold():
     assert estimated > exact
 
 
-#: Thresholds computed by the implementation on main before the session-17 speed-up
+#: Thresholds computed by the implementation before its speed-up
 #: (commit df86f2b: index arrays, a Python step per sample, a full sort, two full runs):
 #: level, ratio, clip, margin, dof, seed, chains, steps, W, h. The first is cnn-map's input
 #: test on a wearable12 log (seed 0, alpha 0.01); the fifth drifts upwards (the cap acts).

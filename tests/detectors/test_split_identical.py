@@ -1,22 +1,22 @@
 """bank, cnn-map, pca-parity and woa-mvmd-glt give the outputs recorded before their package split.
 
-The two pca-parity cases were recorded on main de59088 (single module, session 18) before
+The two pca-parity cases were recorded on main de59088 (single module) before
 ``detectors/pca_parity.py`` became a package.
 
 ``detectors/bank.py``, ``detectors/cnn_map.py`` and ``detectors/woa_mvmd_glt.py`` were split
-into packages by concern (issue 21) with behaviour unchanged. The records in
+into packages by concern with behaviour unchanged. The records in
 ``data/split_identical.json`` were made with the single-module code (first on commit
 1804bff; last on main dae5119, still single-module, after main's noise-glr change moved
 cnn-map's input test and with one BLAS thread per case, which moved woa-mvmd-glt's
 fixed-clip case; the package split matched every record made on the same code; the two
-woa-mvmd-glt metadata hashes were re-recorded on s17-woareal when the detector gained the
+woa-mvmd-glt metadata hashes were re-recorded when the detector gained the
 ``noise_spread`` and ``u_best`` settings, which its metadata lists, with every output array
 unchanged): each
 detector runs on a fixed seeded simulated log with injected faults, streamed in uneven
 blocks, and every array of every :class:`DetectionBlock` (statistic, threshold, alarm,
 isolated, amplitude, scores, isolated_set, amplitudes) is hashed (SHA-256 of its bytes) and
 fingerprinted, as is the metadata JSON. The cnn-map case's metadata hash was re-recorded
-once since (session 17, cnnreal): ``calibration_motion_ratio`` changed on purpose (the
+once since: ``calibration_motion_ratio`` changed on purpose (the
 motion check's noise level), its outputs and every other metadata field kept their bytes.
 The two woa-mvmd-glt metadata hashes were re-recorded once more when ``u_best=lowest``
 became the default (the metadata names the rule); every output array kept its bytes.
