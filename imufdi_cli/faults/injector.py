@@ -73,6 +73,8 @@ class FaultInjector:
         self.t0_ns = int(t0_ns)
         self.previous_runs: list[dict[str, Any]] = []
         if previous_metadata is not None:
+            if previous_metadata and "json" not in previous_metadata:
+                raise TruthError("imufdi.faults metadata has no 'json' entry")
             record = _load_record(previous_metadata["json"]) if previous_metadata else None
             if record is not None:
                 self.previous_runs = [*record.pop("previous", []), record]

@@ -37,9 +37,9 @@ def sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def with_record(source: Path, target: Path, name: str, text: str) -> Path:
+def with_record(source: Path, target: Path, name: str, text: str | None) -> Path:
     """A copy of ``source`` (through the mcap package) whose metadata record ``name``
-    holds ``{"json": text}``."""
+    holds ``{"json": text}`` (None: ``{"other": "x"}``, no ``json`` entry)."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
@@ -64,7 +64,7 @@ def with_record(source: Path, target: Path, name: str, text: str) -> Path:
         for record in reader.iter_metadata():
             if record.name != name:
                 writer.add_metadata(record.name, record.metadata)
-        writer.add_metadata(name, {"json": text})
+        writer.add_metadata(name, {"json": text} if text is not None else {"other": "x"})
         writer.finish()
     return target
 
@@ -129,6 +129,16 @@ def test_a_malformed_ingest_record_is_a_warning_in_info(cli, detected_log, tmp_p
     result = cli(["info", log])
     assert result.code == 0, result.stderr
     assert "warning: imufdi.ingest metadata: " in result.stderr
+
+
+@pytest.mark.parametrize("command", ["info", "report", "inject"])
+def test_a_faults_record_without_json_is_bad_input(cli, detected_log, tmp_path, command):
+    log = with_record(detected_log, tmp_path / "m.mcap", "imufdi.faults", None)
+    out = tmp_path / "out"
+    out.mkdir()
+    result = cli(_argv(command, log, out))
+    assert_one_line_error(result, 3, "imufdi.faults metadata has no 'json' entry")
+    assert list(out.iterdir()) == []
 
 
 def test_a_bad_fault_in_a_record_is_named(cli, detected_log, tmp_path):
