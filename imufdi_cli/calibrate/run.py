@@ -45,11 +45,11 @@ from imufdi_cli.calibrate.triads import (
     consensus_rms,
     gyro_calibration,
 )
-from imufdi_cli.detectors.jitter import MAX_JITTER_S, fit_jitter_rows, jitter_dof, jitter_rows
-from imufdi_cli.detectors.parity import residual_projector
-from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.errors import ArrayConfigError, CalibrationError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.jitter import MAX_JITTER_S, fit_jitter_rows, jitter_dof, jitter_rows
+from imufdi_cli.maths.parity import residual_projector
+from imufdi_cli.maths.rigid import accel_design
 
 
 @dataclass
