@@ -54,7 +54,7 @@ from imufdi_cli.mcapio.passthrough import ChannelCopier, keep_fdi_events
 from imufdi_cli.mcapio.status import register_scores_channel, scores_records, status_records
 from imufdi_cli.progress import LogTimeProgress, ProgressCallback
 from imufdi_cli.units import window_from_log_start
-from imufdi_cli.validity import Conditioner
+from imufdi_cli.validity import Conditioner, complete_rows
 
 if TYPE_CHECKING:
     from imufdi_cli.episodes import EpisodeBuilder
@@ -540,7 +540,11 @@ class _DetectRun:
         whole = ImuBlock.concatenate(b for b, _ in self.calibration)
         whole_flags = _concat_flags([f for _, f in self.calibration])
         if whole.missing is not None:  # an IMU without samples in the window
-            whole, whole_flags = _complete_rows(whole, whole_flags, self, self.reader.imu_topics)
+            cal = (self.cal_start_s, self.cal_end_s)
+            whole, whole_flags, kept = complete_rows(
+                whole, whole_flags, self.reader.imu_topics, cal
+            )
+            self.warnings.append(kept)
         self.cal_samples = len(whole)
         if self.cal_samples == 0:
             end = "" if self.cal_end_s is None else f"{self.cal_end_s:g}s"
@@ -778,36 +782,6 @@ def _utc(t_ns: int) -> str:
     from imufdi_cli.units import utc_iso
 
     return utc_iso(t_ns)
-
-
-#: The calibration window must keep at least this share of its samples with every IMU.
-MIN_COMPLETE_CALIBRATION = 0.5
-
-
-def _complete_rows(
-    whole: ImuBlock, flags: Flags, run: _DetectRun, topics: Sequence[str]
-) -> tuple[ImuBlock, Flags]:
-    """The calibration window's samples where every IMU has one. Calibrating on a missing
-    IMU's stand-in (the consensus of the others, noise-free) would teach the detectors a
-    zero noise for it, and they would alarm once it is back. Fewer than
-    :data:`MIN_COMPLETE_CALIBRATION` of the window complete: CalibrationError (exit 3)."""
-    assert whole.missing is not None
-    complete = np.asarray(~whole.missing.any(axis=1))
-    absent = [topics[int(k)] for k in np.flatnonzero(whole.missing.any(axis=0)) if k < len(topics)]
-    shown = ", ".join(absent[:3]) + (f" and {len(absent) - 3} more" if len(absent) > 3 else "")
-    n_complete, n = int(np.count_nonzero(complete)), len(whole)
-    if n_complete < MIN_COMPLETE_CALIBRATION * n:
-        end = "" if run.cal_end_s is None else f"{run.cal_end_s:g}s"
-        raise CalibrationError(
-            f"calibration window {run.cal_start_s:g}s:{end} has an IMU missing in"
-            f" {n - n_complete} of its {n} samples ({shown}); choose a window where every"
-            " IMU publishes with --calibrate START:END"
-        )
-    run.warnings.append(
-        f"calibration window: {n - n_complete} of its {n} samples have an IMU missing"
-        f" ({shown}); the detectors are calibrated on the {n_complete} complete ones"
-    )
-    return whole.mask(complete), _mask_flags(flags, complete)
 
 
 def _mask_flags(flags: Flags, keep: np.ndarray) -> Flags:

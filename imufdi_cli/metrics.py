@@ -15,10 +15,8 @@ All figures are per sample and per sensor type, with the definitions of Li et al
 - isolation delay = decision time of the first alarm inside the fault isolated to one of
   the fault's sensors - onset
 - decision latency = mean over samples of (decision time - sample time)
-- false alarm events per hour = alarm events starting on fault-free samples outside the
-  calibration window / the *tested, fault-free time* (:func:`fault_free_tested_hours`:
-  those samples times the sample period, so a gap in the log, where nothing was tested,
-  adds no time)
+- false alarm events per hour = those events / the tested, fault-free time (gaps excluded:
+  :mod:`imufdi_cli.tested_time`)
 - recovery delay = decision time of the first sample r at or after the fault end from
   which the alarms stop for good - fault end: at least ``persist`` quiet samples from r,
   and no alarm within ``merge_gap_s`` (0.1 s) of r — an alarm that comes back that soon
@@ -39,6 +37,8 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
+
+from imufdi_cli.tested_time import SamplePeriod, fault_free_tested_hours  # per-hour denominator
 
 NS_PER_S = 1_000_000_000
 
@@ -255,68 +255,6 @@ def persistent(alarm: np.ndarray, persist: int) -> np.ndarray:
     # counts[i + persist - 1] = number of alarms in alarm[i : i + persist]
     window = counts[persist - 1 : persist - 1 + alarm.size]
     return window == persist
-
-
-def fault_free_tested_hours(fault_free_samples: int, sample_period_s: float | None) -> float:
-    """The tested, fault-free time, in hours: the denominator of every per-hour false
-    alarm figure (``false_alarm_events_per_hour``, the episodes' ``false_episodes_per_hour``).
-
-    Parameters
-    ----------
-    fault_free_samples : int
-        Status rows that were tested and scored without an active fault, outside the
-        calibration window (:attr:`Metrics.fault_free_samples`; rows ``detect`` excluded
-        as clipped, invalid or held are not among them, rows tested with an IMU missing
-        are).
-    sample_period_s : float or None
-        The time one row stands for, s (:attr:`Metrics.sample_period_s`, the median
-        interval between rows: :class:`SamplePeriod`). None or <= 0: no time.
-
-    Returns
-    -------
-    float
-        ``fault_free_samples * sample_period_s / 3600``. A gap in the log (no rows: nothing
-        was tested) adds nothing, so a 3-hour gap in a 20 s log changes no rate; the
-        first-to-last span would count it as 3 hours of testing without an alarm.
-    """
-    if not sample_period_s or sample_period_s <= 0 or fault_free_samples <= 0:
-        return 0.0
-    return fault_free_samples * float(sample_period_s) / 3600.0
-
-
-class SamplePeriod:
-    """The sample period of a stream of row times: the median of the first
-    :attr:`INTERVALS` positive intervals between consecutive rows (streamed; a gap, a
-    dropped row or a few irregular stamps do not move a median)."""
-
-    INTERVALS = 1024
-
-    def __init__(self) -> None:
-        self._last: int | None = None
-        self._steps: list[np.ndarray] = []
-        self._count = 0
-
-    def add(self, t_ns: np.ndarray) -> None:
-        """Feed the next rows' times (ns, increasing)."""
-        if self._count >= self.INTERVALS or t_ns.size == 0:
-            if t_ns.size:
-                self._last = int(t_ns[-1])
-            return
-        t = np.asarray(t_ns, dtype=np.int64)
-        if self._last is not None:
-            t = np.concatenate([[self._last], t])
-        steps = np.diff(t)
-        steps = steps[steps > 0][: self.INTERVALS - self._count]
-        self._steps.append(steps)
-        self._count += int(steps.size)
-        self._last = int(t[-1])
-
-    @property
-    def seconds(self) -> float | None:
-        """The period, s (None before two rows with different times)."""
-        if self._count == 0:
-            return None
-        return float(np.median(np.concatenate(self._steps))) / NS_PER_S
 
 
 class _FaultState:

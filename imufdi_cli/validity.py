@@ -50,7 +50,7 @@ continuous and consistent signal, and no detector internals change.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -387,6 +387,49 @@ def apply_calibration(block: ImuBlock, array: ArrayConfig) -> ImuBlock:
 
 def _same(a: Any, b: Any) -> bool:
     return bool(np.array_equal(a.matrix, b.matrix) and np.array_equal(a.bias, b.bias))
+
+
+#: The calibration window must keep at least this share of its samples with every IMU.
+MIN_COMPLETE_CALIBRATION = 0.5
+
+
+def complete_rows(
+    block: ImuBlock,
+    flags: Mapping[str, tuple[np.ndarray, np.ndarray]],
+    topics: Sequence[str],
+    window: tuple[float, float | None],
+) -> tuple[ImuBlock, dict[str, tuple[np.ndarray, np.ndarray]], str]:
+    """The samples of a calibration window (``block``, its ``flags``) where every IMU has
+    one, and a warning saying how many were left out. Calibrating on a missing IMU's
+    stand-in (the consensus of the others, noise-free) would teach the detectors a noise
+    of zero for it, and they would alarm once it is back.
+
+    Raises
+    ------
+    CalibrationError
+        Fewer than :data:`MIN_COMPLETE_CALIBRATION` of the window's samples complete
+        (``window``: its start and end, s, for the message), exit 3.
+    """
+    from imufdi_cli.errors import CalibrationError
+
+    assert block.missing is not None
+    complete = np.asarray(~block.missing.any(axis=1))
+    absent = [topics[int(k)] for k in np.flatnonzero(block.missing.any(axis=0)) if k < len(topics)]
+    shown = ", ".join(absent[:3]) + (f" and {len(absent) - 3} more" if len(absent) > 3 else "")
+    n_complete, n = int(np.count_nonzero(complete)), len(block)
+    if n_complete < MIN_COMPLETE_CALIBRATION * n:
+        end = "" if window[1] is None else f"{window[1]:g}s"
+        raise CalibrationError(
+            f"calibration window {window[0]:g}s:{end} has an IMU missing in {n - n_complete} of its {n}"
+            f" samples ({shown}); choose a window where every IMU publishes with"
+            " --calibrate START:END"
+        )
+    note = (
+        f"calibration window: {n - n_complete} of its {n} samples have an IMU missing"
+        f" ({shown}); the detectors are calibrated on the {n_complete} complete ones"
+    )
+    kept = {s: (c[complete], i[complete]) for s, (c, i) in flags.items()}
+    return block.mask(complete), kept, note
 
 
 # --- report side -----------------------------------------------------------------------

@@ -27,9 +27,10 @@ from typing import IO, Any
 import numpy as np
 
 #: Rows read from a spool at a time.
-SPOOL_CHUNK = 1 << 18
-#: Values collected in memory by :func:`order_statistics` once a radix level holds no more.
-SELECT_LIMIT = 1 << 20
+SPOOL_CHUNK = 1 << 16
+#: Values collected in memory by :func:`order_statistics` once a radix level holds no more
+#: (a 16-bit radix level of a spool of N values holds about N / 65536 of them).
+SELECT_LIMIT = 1 << 16
 
 
 class Spool:
@@ -63,8 +64,10 @@ class Spool:
         raw = self._file.read((stop - start) * self.row_bytes)
         return np.frombuffer(raw, self.dtype).reshape(-1, *self.shape)
 
-    def chunks(self, size: int = SPOOL_CHUNK) -> Iterator[tuple[int, np.ndarray]]:
-        """``(first row, rows)`` in order, ``size`` rows at a time."""
+    def chunks(self, size: int | None = None) -> Iterator[tuple[int, np.ndarray]]:
+        """``(first row, rows)`` in order, ``size`` rows at a time (default
+        :data:`SPOOL_CHUNK`)."""
+        size = size or SPOOL_CHUNK
         for start in range(0, self.rows, size):
             yield start, self.read(start, start + size)
 
@@ -73,9 +76,11 @@ class Spool:
 
 
 def spool_chunks(
-    spools: tuple[Spool, ...], size: int = SPOOL_CHUNK
+    spools: tuple[Spool, ...], size: int | None = None
 ) -> Iterator[tuple[np.ndarray, ...]]:
-    """The same rows of several spools of one length, chunk by chunk."""
+    """The same rows of several spools of one length, chunk by chunk (default
+    :data:`SPOOL_CHUNK` rows)."""
+    size = size or SPOOL_CHUNK
     rows = len(spools[0])
     for start in range(0, rows, size):
         yield tuple(s.read(start, start + size) for s in spools)
