@@ -644,7 +644,10 @@ def recut(blocks: Iterable[ImuBlock], block_size: int) -> Iterator[ImuBlock]:
 
 
 def read_array(source: str | Path | IO[bytes], **kw: Any) -> tuple[ArrayConfig, ImuBlock]:
-    """Read a whole log into memory: (array config, all aligned samples)."""
+    """Read a whole log into memory: (array config, all aligned samples). Only the samples
+    every IMU has, unless ``partial=True`` (then also those with some IMUs missing, their
+    values NaN and flagged in the block's ``missing``, as ``detect`` reads them)."""
+    kw.setdefault("partial", False)
     with ImuArrayReader(source, **kw) as reader:
         blocks = [b for _, b in reader.stream() if len(b)]
         if not blocks:
