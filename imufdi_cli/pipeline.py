@@ -8,6 +8,7 @@ console passed in by the CLI).
 from __future__ import annotations
 
 import json
+import shlex
 import shutil
 import sys
 import tempfile
@@ -25,7 +26,8 @@ from imufdi_cli.units import parse_quantity
 if TYPE_CHECKING:
     from imufdi_cli.cli.plain import PlainTable
 
-SAMPLE_LOGS = Path(__file__).resolve().parent.parent / "sample_logs"
+#: the bundled sample logs (package data: installed with the package, wheel or editable)
+SAMPLE_LOGS = Path(__file__).resolve().parent / "sample_logs"
 
 
 # --- simulate --------------------------------------------------------------------------
@@ -391,7 +393,8 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
         if capture.exists():
             stats = step(
                 "ingest",
-                f"imufdi ingest {capture.relative_to(SAMPLE_LOGS.parent)} -o {base}",
+                # the bundled capture by its full path: the command works from any directory
+                f"imufdi ingest {shlex.quote(str(capture))} -o {base}",
                 base,
                 lambda: ingest_file(str(capture), str(base)),
             )

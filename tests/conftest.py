@@ -367,14 +367,15 @@ def fresh_python() -> Callable[[str], subprocess.CompletedProcess[str]]:
 
 @pytest.fixture(scope="session")
 def mimu4444_cut_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The real sample ``sample_logs/mimu4444-exp1-cut.bin`` (300 s of MIMU4444 exp_1: ten
-    static orientations, then hand motion) ingested by ``imufdi ingest`` with its layout and
-    the uncalibrated array, once per test process and read-only: the CLI's calibrate and
-    detect tests and cnn-map's motion check read the same log (0.2-0.45 s of CPU to ingest)."""
+    """The real sample ``imufdi_cli/sample_logs/mimu4444-exp1-cut.bin`` (300 s of MIMU4444
+    exp_1: ten static orientations, then hand motion) ingested by ``imufdi ingest`` with its
+    layout and the uncalibrated array, once per test process and read-only: the CLI's
+    calibrate and detect tests and cnn-map's motion check read the same log (0.2-0.45 s of
+    CPU to ingest)."""
     from tests.cli.conftest import invoke
 
     root = Path(__file__).resolve().parents[1]
-    samples = root / "sample_logs"
+    samples = root / "imufdi_cli" / "sample_logs"
     out = tmp_path_factory.mktemp("mimu4444") / "cut.mcap"
     result = invoke(
         ["ingest", samples / "mimu4444-exp1-cut.bin",

@@ -1,13 +1,12 @@
 """imufdi calibrate / detect --array / --start --end / validity, on the real MIMU4444 sample.
 
-sample_logs/mimu4444-exp1-cut.bin is 300 s of exp_1 (10 static orientations, then hand
-motion with gyro clipping) of the MIT-licensed MIMU4444 recordings (sample_logs/README.md).
+imufdi_cli/sample_logs/mimu4444-exp1-cut.bin is 300 s of exp_1 (10 static orientations, then hand
+motion with gyro clipping) of the MIT-licensed MIMU4444 recordings (imufdi_cli/sample_logs/README.md).
 """
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,9 +14,10 @@ import pytest
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.calibrate import find_static
 from imufdi_cli.mcapio import read_array, read_status, write_array
+from imufdi_cli.pipeline import SAMPLE_LOGS
 from tests.cli.conftest import assert_one_line_error
 
-SAMPLES = Path(__file__).resolve().parents[2] / "sample_logs"
+SAMPLES = SAMPLE_LOGS
 CUT = SAMPLES / "mimu4444-exp1-cut.bin"
 FRAMES = 18750  # (1,987,504 - 4 prefix bytes) / 106
 
