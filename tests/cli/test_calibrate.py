@@ -60,7 +60,12 @@ def test_calibrate_improves_triad_agreement(cli, real_log, tmp_path):
     assert figures["clipped_rows"] > 0  # the motion phase saturates the gyros
     cal = ArrayConfig.load(out)
     assert cal.calibrated and cal.range
-    # the committed calibration is what calibrate writes for the sample (to rounding)
+    # the committed calibration is what calibrate writes for the sample, to rounding: M and
+    # b are least-squares fits over 18,750 samples (~1e-15 of their unit scale apart between
+    # numpy's AVX-512, AVX2 and SSE4.2 loops, OpenBLAS kernels and numpy 2.0 / 2.4:
+    # measured at most 3.6e-15), the noise levels and jitter ratios of sums; 1e-9 bounds that
+    # with room, while a change of the estimators (a divisor n - 1 for n, a sample more or
+    # less in an interval) moves them by more than 1e-5
     committed = ArrayConfig.load(SAMPLES / "mimu4444-calibrated.toml")
     for new, old in zip(cal.imus, committed.imus):
         for s in ("gyro", "accel"):
