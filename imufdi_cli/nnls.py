@@ -75,6 +75,9 @@ def nnls(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]:
     if routine is None:
         from scipy.optimize import nnls as scipy_nnls
 
+        column = np.asarray(b)
+        if column.ndim == 2 and column.shape[1] == 1:  # scipy < 1.17 takes only a 1-D b
+            b = column[:, 0]
         x, rnorm = scipy_nnls(A, b)
         return x, float(rnorm)
     # scipy 1.17 optimize/_nnls.py, checks and defaults as there
