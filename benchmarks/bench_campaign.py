@@ -12,7 +12,7 @@ summary files. Figures:
 
 - **wall**: seconds of each command, and ``wall(--jobs 1) / wall(--jobs 2)``;
 - **cores available**: before the passes, what one and two busy-looping processes of
-  this session get (the machine's bound on any speed-up at that moment);
+  this process's (setsid) session get (the machine's bound on any speed-up at that moment);
 - **pool start**: starting and stopping a 2-worker pool in this process, forked (now)
   and spawned (before), in wall and CPU seconds;
 - **CPU**: user + system seconds of the command and its workers; ``CPU / wall`` is how
@@ -115,7 +115,7 @@ def steady_rate(finished: dict[str, float], weight: dict[str, float]) -> float:
 
 
 def cores_available(processes: int, seconds: float = 5.0) -> float:
-    """Cores that ``processes`` busy-looping processes of this session got together over
+    """Cores that ``processes`` busy-looping processes of this (setsid) session got together over
     ``seconds`` (CPU seconds / wall seconds): with 2 idle cores, 1.0 for one and 2.0 for
     two; on a machine saturated by other sessions, the session's share either way."""
     cpu = cpu_of_children()
@@ -127,8 +127,8 @@ def cores_available(processes: int, seconds: float = 5.0) -> float:
 
 
 def pool_start(spec: Path) -> None:
-    """Start and stop a 2-worker pool in this process, forked and spawned (the method
-    before issue 20), after loading the spec as the command does: wall and CPU."""
+    """Start and stop a 2-worker pool in this process, forked and spawned (the former
+    method), after loading the spec as the command does: wall and CPU."""
     from imufdi_cli.campaign import load_spec
     from imufdi_cli.campaign.executors import LocalExecutor
 

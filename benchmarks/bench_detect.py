@@ -1,7 +1,7 @@
 """Benchmark: ``imufdi detect -d glt`` end to end against ``imufdi info`` on the same log.
 
-Issue targets (16-IMU, 100 Hz, 1-hour log):
-- issue 20: detect (read, detect, write) at most 1.3x the time of ``imufdi info`` (which
+Targets (16-IMU, 100 Hz, 1-hour log; docs/performance.md):
+- detect (read, detect, write) at most 1.3x the time of ``imufdi info`` (which
   streams the whole log through the same reader), on a clean log and on a faulty one,
   measured with the default episode explanations and with ``--no-explain``;
 - the whole command at least 0.5x the speed of just copying the log with the mcap package

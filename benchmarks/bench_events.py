@@ -1,17 +1,17 @@
 """Alarm events: bulk FdiEvent encoding against one message at a time, in the same run.
 
 ``detect`` used to queue each alarm start/end as its own message (one ``add_json`` ->
-``add_batch`` per event, each with its own channel check), which issue 20 measured at
+``add_batch`` per event, each with its own channel check), which was measured at
 about a quarter of detect time on alarm-heavy logs. Events are now encoded per block with
 :func:`imufdi_cli.mcapio.encode_fdi_events` and queued with one ``add_batch``. This script
 times both ways of writing the same events (K alarm changes in blocks of 4096 samples,
 into an in-memory MCAP) and prints the ratio.
 
-Reading (issue 22, report's cost of the episodes): ``--episodes E`` episode events (an
+Reading (report's cost of the episodes): ``--episodes E`` episode events (an
 explanation with every fault model's fit, about 2 kB of JSON each) are interleaved with
 the alarm events in batches of ``--per-batch`` messages, and read the way ``imufdi
 report`` reads them now (:func:`~imufdi_cli.mcapio.events.decode_episode_events`: the
-typed fields, no JSON) and the way it did before session 21 (every message decoded, every
+typed fields, no JSON) and the way it used to (every message decoded, every
 explanation's JSON parsed). Prints both per message, and their ratio.
 
     python benchmarks/bench_events.py [--events 20000] [--episodes 2000] [--repeat 3]

@@ -1,8 +1,8 @@
 """Benchmark: where the episode explanations of ``imufdi detect -d glt`` spend their CPU.
 
-Issue 20 (detect end to end <= 1.3x ``imufdi info``): on a clean 16-IMU turntable log glt
+The target of detect end to end <= 1.3x ``imufdi info`` (docs/performance.md): on a clean 16-IMU turntable log glt
 at alpha = 1 % raises thousands of false alarm episodes an hour, and each is explained by
-the fault-model fits (issue 22). This runs ``detect -d glt`` on a simulated log (tuning seed
+the fault-model fits (docs/episodes.md). This runs ``detect -d glt`` on a simulated log (tuning seed
 ``--seed``) with and without explanations, and with timers around the explanation's parts:
 
 - the builder's own work per closed episode (windows, consensus residuals, the episode

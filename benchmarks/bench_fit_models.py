@@ -2,8 +2,8 @@
 reference copy of the ``episodes`` package (or of the ``episodes.py`` it was split from) on
 calls captured from real detect runs.
 
-Performance work on the fitting functions must not change a float (issue 20; the episodes
-owner's classification is not the detect helper's to change). This captures every
+Performance work on the fitting functions must not change a float (a change of
+classification is a change of method, made on purpose). This captures every
 ``fit_models`` call (arguments and result) of ``imufdi detect`` runs on simulated logs,
 replays each through the worktree's ``fit_models`` and through the reference module (for
 example the file as it is on main), compares the fits bit for bit (JSON of every field,

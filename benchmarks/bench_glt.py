@@ -9,7 +9,7 @@ a naive per-sample implementation of the same maths (p = V m, (V V^T)^-1 by
 Calibration (``fit`` on the 200-sample window, both sensor types), timed ``--fits`` times
 alternating with a baseline in the same run: the same fit with the estimated-sigma
 threshold's derivatives taken by central differences (step 1e-3, 2n + 1 pseudo-inverses,
-the implementation before session 23) instead of the analytic form; prints the CPU per fit,
+the former implementation) instead of the analytic form; prints the CPU per fit,
 the ratio, the thresholds' largest relative difference and the load average.
 
 Run: ``python benchmarks/bench_glt.py [--block 10000] [--fits 20]``. BLAS is pinned to one thread
@@ -68,7 +68,7 @@ def naive_glt(values: np.ndarray, V: np.ndarray, sigma: np.ndarray) -> np.ndarra
 def central_difference_threshold(
     h_white: np.ndarray, alpha: float, scale_variance: np.ndarray | None, mean_samples: float
 ) -> tuple[float, float, float]:
-    """Baseline: ``parity.estimated_sigma_threshold`` before session 23 (derivatives of the
+    """Baseline: the former ``parity.estimated_sigma_threshold`` (derivatives of the
     traces by central differences, step 1e-3, one pseudo-inverse per evaluation)."""
     from imufdi_cli.detectors.parity import two_moment_threshold
 

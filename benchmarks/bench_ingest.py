@@ -5,7 +5,7 @@ built-in ``mpu6500-array`` layout at 500 dps / 4 g, a few corrupted stretches pe
 garbage, flipped bits, a cut frame), the same path as ``imufdi simulate --capture``. Then
 
 - parse only (MB/s of capture; CPU of the calling thread),
-- parse + MCAP write through ``imufdi_cli.capture.ingest`` (MB/s of capture; issue 20
+- parse + MCAP write through ``imufdi_cli.capture.ingest`` (MB/s of capture;
   target >= 40), with the process CPU time and the calling thread's CPU time, so a loaded
   machine can be told from a slow ingest,
 - the baseline, measured in the same run on the same records: the chunk compression

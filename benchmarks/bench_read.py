@@ -17,7 +17,7 @@ Makes a log of imus x samples sensor_msgs/msg/Imu messages in a temporary direct
   extrapolated), prints messages/s and the ratio,
 - times the floor on the same file: zstd decompression of every chunk plus one copy of its
   records (what any reader must at least do), and prints the reader's rate as a share of it
-  (issue 20 target: >= 50 %); also the floor with the CRC-32 of every chunk's records,
+  (target: >= 50 %); also the floor with the CRC-32 of every chunk's records,
   which the reader verifies by default, and the reader with CRC checks off (the
   ImuArrayReader(path, validate_crcs=False)),
 - with --malloc, times the in-line reader and the floor again in fresh processes, without

@@ -2,10 +2,10 @@
 index arrays, in the same run.
 
 :func:`imufdi_cli.mcapio.records.build_message_records` lays out a batch as consecutive
-Message records (31-byte head, payload). Payloads of one length are copied as rows; until
-session 25, payloads of varying lengths (alarm and episode events, status or Imu messages
-whose frame ids differ in length) went through index arrays of every record and payload
-byte (about 4 int64 arrays per byte). They are now copied per length, one void element per
+Message records (31-byte head, payload). Payloads of one length are copied as rows; payloads
+of varying lengths (alarm and episode events, status or Imu messages
+whose frame ids differ in length) used to go through index arrays of every record and
+payload byte (about 4 int64 arrays per byte). They are now copied per length, one void element per
 record (a few lengths), or joined per message (many lengths). This script times both on
 the same batches, checks they give the same bytes, and prints the ratio.
 
@@ -29,7 +29,7 @@ from imufdi_cli.mcapio.records import (
 
 
 def per_byte(batch: MessageBatch) -> np.ndarray:
-    """The records as the writer built them before session 25 (per-byte index arrays)."""
+    """The records as the writer used to build them (per-byte index arrays)."""
     n = len(batch)
     lengths = batch.length.astype(np.int64)
     header = message_headers(batch)  # unchanged since

@@ -1,4 +1,4 @@
-"""What the explained episodes add to ``imufdi report``'s time (issue 22: at most 10 %).
+"""What the explained episodes add to ``imufdi report``'s time (target: at most 10 %).
 
 Usage::
 

@@ -5,8 +5,8 @@ Usage: python benchmarks/bench_small_chunks.py [--imus 16] [--samples 500] [--re
 Writes one log (imus x samples sensor_msgs/msg/Imu messages, the paper-table4 size by
 default) twice, with the writer's 1 MiB chunks and with 100-byte chunks (one message per
 chunk), and times ``summarize`` (what ``imufdi info`` does: read, decode, align) on both,
-best of ``--repeat``. Prints the ratio small/large (issue 19 measured 36x before the reader
-joined small chunks into 1 MiB batches), and the ratio of ``summarize`` with chunk CRCs
+best of ``--repeat``. Prints the ratio small/large (36x before the reader joined small
+chunks into 1 MiB batches), and the ratio of ``summarize`` with chunk CRCs
 checked to without (``summarize(path, validate_crcs=False)``), on the large-chunk log
 written uncompressed (so the ratio is the CRC's share of reading, not the decompression's).
 """

@@ -10,7 +10,7 @@ median CPU time (user + system, less sensitive to a loaded machine; compare it b
 checkouts, not to numpy: ``python -c "import numpy"`` spends CPU in OpenBLAS's threads,
 while imufdi sets one BLAS thread before numpy loads) are reported.
 
-Target (issue "Fast where users wait"): ``imufdi --help`` and ``imufdi info small.mcap``
+Target (docs/performance.md): ``imufdi --help`` and ``imufdi info small.mcap``
 each <= 2x ``python -c "import numpy"``. Also prints which heavy modules (scipy, the
 detectors, matplotlib, rich's markdown) ``imufdi --help`` imports: none should be there,
 and whether ``imufdi info`` in a pipe imports rich (it should not).
@@ -19,8 +19,8 @@ and whether ``imufdi info`` in a pipe imports rich (it should not).
 wearable12 log simulated at run time (start-up, calibration and a few hundred samples:
 what a user waits for on a short log), median CPU per detector, interleaved with the same
 commands of another checkout (``--before``, e.g. an exported copy of main) and with
-``python -c "import numpy"``; the ratio after/before is the claim (session 23: no detector
-imports scipy.stats or scipy.signal any more).
+``python -c "import numpy"``; the ratio after/before is the claim (no detector
+imports scipy.stats or scipy.signal).
 
 Two bytecode states, each against its own numpy baseline (numpy's bytecode is installed
 with it in both): ``warm`` — the project's ``__pycache__`` written and used, as after

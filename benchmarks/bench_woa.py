@@ -12,7 +12,7 @@ paid once per fit; the tuning cache is cleared before every run), with (K, alpha
 tuning alone, and GLT as the peer measured in the same run. The load average is printed
 before and after.
 
-Target (issue "Fast where users wait"): woa-mvmd-glt >= 50x real time on paper-table4 with
+Target (docs/performance.md): woa-mvmd-glt >= 50x real time on paper-table4 with
 unchanged detection figures.
 """
 

@@ -9,7 +9,7 @@ quantity on that axis::
 
 so the measurement matrix ``H_s`` (n_s x 3) stacks the rows ``R_k[:, a]^T`` for every used
 axis, IMU by IMU, axes in x, y, z order. Sensor ids are ``imu<k>.<type>.<axis>`` in the
-same order (DESIGN.md §3). Co-aligned arrays, skewed single-axis arrays (e.g. six gyros on
+same order (docs/formats.md, "ArrayConfig"). Co-aligned arrays, skewed single-axis arrays (e.g. six gyros on
 a cone) and boards with rotated chips are all the same code.
 
 The config is stored as TOML by users and as JSON in the ``imufdi.array`` metadata record
@@ -309,8 +309,7 @@ class ArrayConfig:
         """IMU index and axis index (0..2) of each used sensor of a type, shapes (n,), (n,).
 
         Built once per array and sensor type and returned read-only (every block's
-        :meth:`select` asks for it: a Python loop over the IMUs' axes each time until
-        session 25).
+        :meth:`select` asks for it; building it is a Python loop over the IMUs' axes).
         """
         cached = self._sensor_index.get(sensor_type)
         if cached is not None:

@@ -1,4 +1,4 @@
-"""``imufdi detect``: run detectors over a log and write the annotated MCAP (DESIGN.md §4).
+"""``imufdi detect``: run detectors over a log and write the annotated MCAP (docs/formats.md).
 
 One streaming pass: every input message is copied to the output as raw bytes (a whole
 input chunk of messages only is written as it is, without recompression: docs/formats.md);
@@ -47,8 +47,9 @@ from imufdi_cli.mcapio.events import (
     register_events_channel,
     register_truth_channel,
 )
-from imufdi_cli.mcapio.status import status_records
+from imufdi_cli.mcapio.status import register_scores_channel, scores_records, status_records
 from imufdi_cli.progress import LogTimeProgress, ProgressCallback
+from imufdi_cli.units import window_from_log_start
 from imufdi_cli.validity import Conditioner
 
 if TYPE_CHECKING:
@@ -94,6 +95,100 @@ def parse_detector_params(
             )
         grouped[detector][name] = value
     return list(grouped.items())
+
+
+def with_budget(
+    detectors: Iterable[tuple[str, Mapping[str, Any]]], false_alarms: float | None
+) -> list[tuple[str, dict[str, Any]]]:
+    """Detector specs with the false-alarm budget ``false_alarms`` (episodes per second) set
+    on every detector that does not set its own ``false_alarms`` parameter.
+
+    Raises DetectorConfigError for a negative budget or a detector that cannot decide
+    under one."""
+    from imufdi_cli.detectors import detector_class
+
+    specs = [(name, dict(params)) for name, params in detectors]
+    if false_alarms is None:
+        return specs
+    if not (false_alarms >= 0 and np.isfinite(false_alarms)):
+        raise DetectorConfigError(
+            f"--false-alarms must be a rate >= 0 such as 1/h, got {false_alarms!r}"
+        )
+    for name, params in specs:
+        if "false_alarms" not in detector_class(name).PARAMS:
+            raise DetectorConfigError(
+                f"detector {name!r} has no false-alarm budget (its parameters:"
+                f" {', '.join(sorted(detector_class(name).PARAMS))})"
+            )
+        params.setdefault("false_alarms", false_alarms)
+    return specs
+
+
+#: Above this many expected false alarm episodes an hour on a channel, detect warns.
+NOISY_EPISODES_PER_HOUR = 60.0
+
+
+def level_warning(detector: Any, rate_hz: float) -> str | None:
+    """A one-line warning when a detector's settings should raise more than
+    :data:`NOISY_EPISODES_PER_HOUR` false alarm episodes an hour on each of its channels
+    of a fault-free log at ``rate_hz`` (the per-sample tests at their ``alpha``: about
+    ``alpha^persistence`` of the samples start one), naming ``--false-alarms``; None when
+    it should not, or when the detector's rate cannot be told from its settings."""
+    budget = float(getattr(detector, "false_alarms", 0.0) or 0.0)
+    alpha = getattr(detector, "alpha", None)
+    if budget > 0 or alpha is None or not rate_hz > 0:
+        return None
+    persistence = max(1, int(getattr(detector, "persistence", 1) or 1))
+    per_hour = float(alpha) ** persistence * rate_hz * 3600.0
+    if per_hour <= NOISY_EPISODES_PER_HOUR:
+        return None
+    return (
+        f"{detector.name}: the per-sample test at alpha={float(alpha):g} should raise about"
+        f" {per_hour:,.0f} false alarm episodes an hour on each channel at {rate_hz:g} Hz;"
+        " for recorded data and CI give a budget, e.g. --false-alarms 1/h (docs/guide.md)"
+    )
+
+
+#: A channel alarming more than this many times its level (alpha, or the budget) warns.
+LEVEL_EXCESS = 10.0
+
+
+def observed_level_warnings(
+    detector: Any, summaries: Mapping[str, Any], rate_hz: float
+) -> list[str]:
+    """One line per status channel whose alarms over the whole tested log exceed
+    :data:`LEVEL_EXCESS` times what the detector's settings allow: under a budget, the
+    alarm episodes per hour (at least 5 of them); per sample, the share of alarmed
+    samples against ``alpha`` (over at least 1,000 samples). Faults in the log raise it
+    legitimately, so the line says both causes; a detector whose noise model does not
+    hold on this log (motion, orientation-dependent noise) never alarms silently. detect
+    asks only for logs without injected faults (``imufdi.faults``)."""
+    budget = float(getattr(detector, "false_alarms", 0.0) or 0.0)
+    alpha = getattr(detector, "alpha", None)
+    notes = []
+    for sensor_type, summary in summaries.items():
+        if not summary.samples or not rate_hz > 0:
+            continue
+        hours = summary.samples / rate_hz / 3600.0
+        if budget > 0:
+            per_hour = summary.events / hours
+            if summary.events >= 5 and per_hour > LEVEL_EXCESS * budget * 3600.0:
+                notes.append(
+                    f"{detector.name}.{sensor_type}: {summary.events} alarm episodes in"
+                    f" {hours * 60:.3g} min ({per_hour:,.0f}/h) against a budget of"
+                    f" {budget * 3600:g}/h: faults in the log, or noise this detector does"
+                    " not model here (motion, orientation); see docs/guide.md"
+                )
+        elif alpha is not None and summary.samples >= 1000:
+            share = summary.alarms / summary.samples
+            if share > LEVEL_EXCESS * float(alpha):
+                notes.append(
+                    f"{detector.name}.{sensor_type}: alarms on {100 * share:.3g} % of the tested"
+                    f" samples, {share / float(alpha):.0f} times its level alpha={float(alpha):g}:"
+                    " faults in the log, or noise this detector does not model here (motion,"
+                    " orientation); see docs/guide.md"
+                )
+    return notes
 
 
 @dataclass
@@ -211,6 +306,7 @@ class _Track:
         self.passed = 0  # input samples passed to the detector
         self.emitted = 0  # rows returned by it
         self.channels: dict[str, int] = {}
+        self.score_channels: dict[str, int] = {}  # sensor type -> named-scores channel
         self.alarm_on: dict[str, bool] = {}
         self.summary: dict[str, TypeSummary] = {}
         self.episodes: dict[str, EpisodeBuilder] = {}  # sensor type -> builder
@@ -311,6 +407,8 @@ def detect_file(
     explain: bool = True,
     progress: ProgressCallback | None = None,
     read_ahead: bool | None = None,
+    false_alarms: float | None = None,
+    named_scores: bool = False,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -335,21 +433,30 @@ def detect_file(
         The calibration window is taken from the whole log either way.
     explain : bool
         Write an explained ``episode`` event for every alarm episode (docs/episodes.md).
+    named_scores : bool
+        Also write each status channel's scores under the sensors' names, on
+        ``/imufdi/<detector>/<type>/scores`` (docs/formats.md), for Foxglove and
+        PlotJuggler.
     progress : callable, optional
         ``progress(seconds done, log seconds or None)`` (:mod:`imufdi_cli.progress`).
+    false_alarms : float, optional
+        False-alarm budget, episodes per second of fault-free data on each status channel
+        (``--false-alarms 1/h`` is 1/3600): every detector whose parameters do not set
+        ``false_alarms`` themselves decides under it (:func:`with_budget`). None: the
+        detectors' own settings (by default the papers' per-sample tests).
     read_ahead : bool or None
         Decompress the input's large chunks on a worker thread ahead of their use
         (:class:`~imufdi_cli.mcapio.McapSource`); the output is the same either way.
         Default (None): the reader's default, off unless ``IMUFDI_READ_AHEAD=1``. Off,
         detect takes less CPU and (on two cores) less time: the worker thread and the
         main thread share the GIL, and the hand-offs cost the main thread about what the
-        decompression it moves off (docs/performance.md, "Write side, session 21").
+        decompression it moves off (docs/performance.md, "Reading").
 
     Returns
     -------
     DetectResult
     """
-    instances, notes = make_detectors((name, dict(params)) for name, params in detectors)
+    instances, notes = make_detectors(with_budget(detectors, false_alarms))
     # read in line by default: reading ahead on a worker thread costs more CPU and time
     # than it moves off this thread (GIL hand-offs; docs/performance.md)
     log = McapSource(source, strict=strict, keep_raw_chunks=True, read_ahead=read_ahead)
@@ -367,6 +474,7 @@ def detect_file(
                 calibrate=calibrate,
                 window=window if window is not None else (0.0, None),
                 explain=explain,
+                named_scores=named_scores,
             )
             run.warnings.extend(notes)  # e.g. a renamed detector parameter
             tracker = LogTimeProgress(progress, getattr(reader.source, "summary_time_range", None))
@@ -396,6 +504,7 @@ class _DetectRun:
         calibrate: tuple[float, float | None],
         window: tuple[float, float | None],
         explain: bool,
+        named_scores: bool = False,
     ) -> None:
         self.reader = reader
         self.writer = writer
@@ -404,6 +513,7 @@ class _DetectRun:
         self.cal_start_s, self.cal_end_s = calibrate
         self.test_start_s, self.test_end_s = window
         self.explain = explain
+        self.named_scores = named_scores
         self.tracks = [_Track(det, array) for det in instances]
         self.warnings: list[str] = []
         self.n_samples = 0
@@ -460,9 +570,11 @@ class _DetectRun:
         for c in sorted(new):
             topic = channels[c].topic
             parts = topic.split("/")
-            if topic == EVENTS_TOPIC or (
-                len(parts) == 4 and parts[1] == "imufdi" and parts[2] in self.rerun
-            ):
+            # a detector run again replaces its status channels and their named scores
+            rerun = len(parts) in (4, 5) and parts[1] == "imufdi" and parts[2] in self.rerun
+            if rerun and len(parts) == 5 and parts[4] != "scores":
+                rerun = False
+            if topic == EVENTS_TOPIC or rerun:
                 self.dropped.add(c)
             elif topic == TRUTH_TOPIC and channels[c].message_encoding == "json":
                 self.dropped.add(c)
@@ -486,6 +598,10 @@ class _DetectRun:
         are fitted, then straight through them."""
         if self.t_first is None:
             self.t_first = int(block.t_ns[0])
+            # ISO 8601 / Unix times of --start/--end, now that the log start is known
+            self.test_start_s, self.test_end_s = window_from_log_start(
+                (self.test_start_s, self.test_end_s), self.t_first
+            )
         self.t_last = int(block.t_ns[-1])
         block, flags = self.conditioner.prepare(block)
         rel = (block.t_ns - self.t_first) / NS_PER_S
@@ -518,6 +634,9 @@ class _DetectRun:
         block = self.conditioner.sanitize(block, flags)
         for track in self.tracks:
             track.feed(block.t_ns)
+            note_flags = getattr(track.detector, "note_flags", None)
+            if note_flags is not None:  # a detector that tests flagged samples itself
+                note_flags(flags)
             for sensor_type, builder in track.episodes.items():
                 triads = block.get(sensor_type)
                 assert triads is not None  # builders exist only for types in the log
@@ -538,6 +657,9 @@ class _DetectRun:
         whole = self.conditioner.sanitize(whole, whole_flags, count=False)
         for track in self.tracks:
             track.detector.fit(whole, self.array)
+            note = level_warning(track.detector, self.array.rate_hz)
+            if note is not None:
+                self.warnings.append(note)
         builders: dict[str, EpisodeBuilder] = {}
         if self.explain:
             # imported when used: --no-explain runs do not load (or compile) it
@@ -581,15 +703,25 @@ class _DetectRun:
     ) -> None:
         writer, array = self.writer, self.array
         if sensor_type not in track.channels:
+            ids = array.sensor_ids(sensor_type)
             track.channels[sensor_type] = register_status_channel(
-                writer, track.detector.name, sensor_type, array.sensor_ids(sensor_type)
+                writer, track.detector.name, sensor_type, ids
             )
+            if ids and self.named_scores:  # the scores under the sensors' names (viewers)
+                track.score_channels[sensor_type] = register_scores_channel(
+                    writer, track.detector.name, sensor_type, ids
+                )
             track.summary[sensor_type] = TypeSummary()
         channel = track.channels[sensor_type]
         # whole records from a template (the bytes encode_status + add_batch make)
         writer.add_records(
             status_records(channel, t_ns, out, decided_ns), np.full(len(t_ns), channel), t_ns
         )
+        named = track.score_channels.get(sensor_type)
+        if named is not None:
+            writer.add_records(
+                scores_records(named, t_ns, out.scores), np.full(len(t_ns), named), t_ns
+            )
         summary = track.summary[sensor_type]
         summary.samples += len(out)
         summary.alarms += int(np.count_nonzero(out.alarm))
@@ -608,6 +740,11 @@ class _DetectRun:
     def _add_episodes(self, track: _Track, episodes: Sequence[Any]) -> None:
         if not episodes:
             return
+        explain = getattr(track.detector, "explain_episode", None)
+        if explain is not None:  # a detector that knows what raised its episodes
+            for episode in episodes:
+                if episode.detector == track.detector.name:
+                    episode.fits = explain(episode)
         self.writer.add_batch(
             encode_episode_events(self.events_channel, [e.to_dict() for e in episodes])
         )
@@ -634,6 +771,21 @@ class _DetectRun:
             if track.pending and sum(p.size for p in track.pending):
                 raise DetectorConfigError(
                     f"detector {track.detector.name} left samples without output"
+                )
+        windowed = self.test_start_s > 0 or self.test_end_s is not None
+        if windowed and self.n_samples == 0 and self.t_first is not None:
+            end = "end" if self.test_end_s is None else f"{self.test_end_s:.6g} s"
+            self.warnings.append(
+                f"--start/--end holds no sample: the window is {self.test_start_s:.6g} s to"
+                f" {end} from the log start, the log spans 0 to"
+                f" {(self.t_last - self.t_first) / NS_PER_S:.6g} s (from"
+                f" {_utc(self.t_first)}); nothing was tested"
+            )
+        # a log with injected faults alarms more by design: report measures its FAR on truth
+        if "imufdi.faults" not in self.reader.source.metadata:
+            for track in self.tracks:
+                self.warnings.extend(
+                    observed_level_warnings(track.detector, track.summary, self.array.rate_hz)
                 )
         for track in self.tracks:
             # A detector may judge its calibration window from what it processed (e.g.
@@ -724,6 +876,13 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, (np.bool_,)):
         return bool(value)
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _utc(t_ns: int) -> str:
+    """``2023-11-14T22:13:20Z`` (ISO 8601 UTC, to the millisecond when not whole)."""
+    from imufdi_cli.units import utc_iso
+
+    return utc_iso(t_ns)
 
 
 def _mask_flags(flags: Flags, keep: np.ndarray) -> Flags:

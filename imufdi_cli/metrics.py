@@ -1,4 +1,4 @@
-"""Detection and isolation metrics from ground truth and alarms (DESIGN.md §7).
+"""Detection and isolation metrics from ground truth and alarms (docs/metrics.md).
 
 All figures are per sample and per sensor type, with the definitions of Li et al.
 (Micromachines 17(3):374, 2026), Table 4, measured out of sample (docs/metrics.md):

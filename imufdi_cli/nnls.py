@@ -3,7 +3,7 @@
 ``scipy.optimize`` costs about 0.3 s of CPU to import on the build machine, more than
 :func:`~imufdi_cli.detectors.parity.residual_sigma` (every calibration of glt, bank and the
 episode builders) spends on its one small NNLS, and more than a quarter of what ``imufdi
-info`` spends reading a 10-minute log (issue 20). Its ``nnls`` is a thin Python wrapper
+info`` spends reading a 10-minute log. Its ``nnls`` is a thin Python wrapper
 (scipy 1.17 ``optimize/_nnls.py``) around the compiled Lawson-Hanson routine of the
 extension module ``scipy.optimize._slsqplib``, which needs nothing else of the package.
 

@@ -1,7 +1,6 @@
 """Normal, chi-square, F and gamma distribution functions without importing ``scipy.stats``.
 
-``scipy.stats`` costs 1.0-1.4 s of CPU to import on the build machine (issues 20 and 21:
-every ``imufdi detect -d bank|noise-glr|pca-parity|cnn-map|woa-mvmd-glt``, ``calibrate``
+``scipy.stats`` costs 1.0-1.4 s of CPU to import on the build machine (every ``imufdi detect -d bank|noise-glr|pca-parity|cnn-map|woa-mvmd-glt``, ``calibrate``
 and ``tune`` paid it for a handful of thresholds, and so did every test process that
 imported a detector). Its distributions evaluate compiled functions of ``scipy.special``
 (scipy 1.17 ``stats/_continuous_distns.py``)::
@@ -30,7 +29,7 @@ boundaries and invalid arguments). Arguments are float64 (other dtypes are conve
 The library's thresholds come from here: no module of ``imufdi_cli`` imports
 ``scipy.stats`` on import, and no command reaches it (``tests/cli/test_app.py`` checks
 ``imufdi detect`` with every detector, ``tests/detectors/test_registry.py`` the import of
-every detector class). The one use left is the analysis helper
+every detector class). The one use left is the analysis function
 ``detectors.jitter.minimum_detectable_step`` (the non-central chi-square, for benchmarks),
 which imports it when called.
 """

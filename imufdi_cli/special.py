@@ -1,6 +1,6 @@
 """scipy.special's inverse distribution functions without importing ``scipy.special``.
 
-``import scipy.special`` costs about 0.3 s of CPU on the build machine (issue 20), most of
+``import scipy.special`` costs about 0.3 s of CPU on the build machine, most of
 it ``scipy._lib.array_api_compat`` cloning numpy, which imports ``numpy.f2py`` and
 ``numpy.testing``: more than a tenth of what ``imufdi info`` spends reading a 1-hour log,
 paid by every ``imufdi detect -d glt`` for a few quantiles (glt's thresholds, the episode

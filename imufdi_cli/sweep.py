@@ -1,4 +1,4 @@
-"""Matched-FAR threshold sweep, streaming (DESIGN.md §7, docs/metrics.md).
+"""Matched-FAR threshold sweep, streaming (docs/metrics.md).
 
 Every status row carries the detector's statistic and threshold; their ratio
 ``r = statistic / threshold`` is what a threshold scale ``s`` compares against: the raw test

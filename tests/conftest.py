@@ -266,7 +266,7 @@ def _campaign_plot_curves(summary: object, out: object) -> None:
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item: pytest.Item) -> None:
-    """A campaign draws ``detection_probability.png`` at its end (matplotlib, 0.3-0.9 s of
+    """A campaign draws ``detection.png`` at its end (matplotlib, 0.3-0.9 s of
     CPU per campaign), which only the tests marked ``campaign_figure`` look at; the others
     (resume, locks, gates, failures, summaries) run a driver that skips the figure. The
     figure itself is tested in ``campaign/test_plots.py`` and, drawn by the driver, in the
@@ -274,8 +274,8 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 
     The driver's ``plot_curves`` is replaced once per test process by
     :func:`_campaign_plot_curves`, and the marker is read here before each test's
-    fixtures (an autouse ``monkeypatch`` fixture did the same per test until session 24:
-    about 0.2 ms of CPU in each of the ~1 250 default tests)."""
+    fixtures (an autouse ``monkeypatch`` fixture doing the same would cost about 0.2 ms of
+    CPU in each of the ~1 250 default tests)."""
     _CAMPAIGN_FIGURE["draw"] = item.get_closest_marker("campaign_figure") is not None
     from imufdi_cli.campaign import driver
 

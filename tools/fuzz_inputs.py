@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Mutation fuzz of imufdi's MCAP inputs through the CLI (issue 19's robustness check).
+"""Mutation fuzz of imufdi's MCAP inputs through the CLI (docs/testing.md, "Fuzzing").
 
 Builds a few small logs (chunked zstd, chunked lz4 with small chunks, un-chunked, and a
 detector output), mutates them (bit flips, random bytes, cuts, huge or zero u64 fields,

@@ -8,7 +8,7 @@ Per sensor type: the fault-free FAR (runs whose fault is on the other type: this
 fault-free for the whole log; FAR after the calibration window, mean and worst seed, and
 how many seeds exceed 4 alpha), and from the runs with a fault on this type the FAR before
 the onset, MAR, FIR, detection delay at decision time (mean and worst) and the mean decision
-latency. Targets of the issue "every detector holds its nominal false-alarm level":
+latency. Targets (every detector holds its nominal false-alarm level):
 fault-free FAR <= 1.5 alpha (no seed above 4 alpha) and, for the gyro step, MAR <= 1.5 %.
 """
 

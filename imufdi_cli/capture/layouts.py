@@ -52,7 +52,7 @@ def mpu6500_array(
     max_imus: int = 64,
     rate_hz: float | None = None,
 ) -> Layout:
-    """The built-in ``mpu6500-array`` layout (DESIGN.md §5, byte map in docs/capture.md).
+    """The built-in ``mpu6500-array`` layout (byte map in docs/capture.md).
 
     ``AA 55 | u8 version | u8 m | u16 LE counter | u32 LE timestamp (us) |
     m x (accel xyz, temperature, gyro xyz as big-endian int16) | CRC-16/CCITT-FALSE (LE)``

@@ -7,7 +7,16 @@ from typing import Any
 
 import click
 
-from imufdi_cli.cli.app import cli, stamps_option, start_end, time_range, time_source, topic_option
+from imufdi_cli.cli.app import (
+    TIME_POINT_HELP,
+    cli,
+    complete_file,
+    stamps_option,
+    start_end,
+    time_range,
+    time_source,
+    topic_option,
+)
 from imufdi_cli.cli.choices import LazyChoice, detectors
 from imufdi_cli.cli.plain import PlainTable
 from imufdi_cli.cli.ui import UI, common_options
@@ -15,9 +24,28 @@ from imufdi_cli.cli.ui import UI, common_options
 # --- detect ----------------------------------------------------------------------------
 
 
+def false_alarm_rate(text: str) -> float:
+    """``--false-alarms`` in episodes per second (``1/h``, ``0.1/h``, ``5/min``)."""
+    from imufdi_cli.errors import UnitError, UsageError
+    from imufdi_cli.units import parse_quantity
+
+    try:
+        value = parse_quantity(text, "frequency", name="--false-alarms")
+    except UnitError as err:
+        raise UsageError(str(err)) from None
+    if value < 0:
+        raise UsageError(f"--false-alarms must be >= 0 (e.g. 1/h), got {text!r}")
+    return value
+
+
 @cli.command()
-@click.argument("source", metavar="IN")
-@click.option("-o", "--output", help="Annotated MCAP (default: IN-detect.mcap), - for stdout.")
+@click.argument("source", metavar="IN", shell_complete=complete_file)
+@click.option(
+    "-o",
+    "--output",
+    help="Annotated MCAP (default: IN-detect.mcap), - for stdout.",
+    shell_complete=complete_file,
+)
 @click.option(
     "-d",
     "--detector",
@@ -28,6 +56,14 @@ from imufdi_cli.cli.ui import UI, common_options
     help="Detector to run (repeatable).",
 )
 @click.option("--param", "params", multiple=True, help="DETECTOR.KEY=VALUE, e.g. glt.alpha=0.001.")
+@click.option(
+    "--false-alarms",
+    "false_alarms",
+    metavar="RATE",
+    help="False-alarm budget per status channel, e.g. 1/h: every detector decides"
+    " sequentially so that fault-free data raise at most RATE false alarm episodes."
+    " Default: the papers' per-sample tests at each detector's alpha.",
+)
 @click.option(
     "--calibrate",
     default="0s:2s",
@@ -46,14 +82,23 @@ from imufdi_cli.cli.ui import UI, common_options
     "--array",
     "array_path",
     help="ArrayConfig TOML (geometry, per-IMU calibration, range) replacing the log's.",
+    shell_complete=complete_file,
 )
-@click.option("--start", help="Test samples from this time, seconds from the log start (e.g. 30s).")
-@click.option("--end", help="Test samples before this time, seconds from the log start.")
+@click.option("--start", help=f"Test samples from this time: {TIME_POINT_HELP}.")
+@click.option("--end", help="Test samples before this time (the same forms as --start).")
 @click.option(
     "--explain/--no-explain",
     default=True,
     show_default=True,
     help="Write an explained episode event (fault class, size with interval) per alarm episode.",
+)
+@click.option(
+    "--named-scores/--no-named-scores",
+    default=False,
+    show_default=True,
+    help="Also write the per-sensor scores under the sensors' names"
+    " (/imufdi/DETECTOR/TYPE/scores) for Foxglove and PlotJuggler (about 40 % larger"
+    " files for a 16-IMU array).",
 )
 @common_options(json_help="Summary: alarms, events, isolations and episodes per detector.")
 def detect(
@@ -61,6 +106,7 @@ def detect(
     output: str | None,
     detector_names: tuple[str, ...],
     params: tuple[str, ...],
+    false_alarms: str | None,
     calibrate: str,
     topics: tuple[str, ...],
     stamps: str,
@@ -69,6 +115,7 @@ def detect(
     start: str | None,
     end: str | None,
     explain: bool,
+    named_scores: bool,
     ui: UI,
 ) -> None:
     """Run detectors and write an annotated MCAP (status channels, alarm events).
@@ -78,6 +125,7 @@ def detect(
 
     \b
         imufdi detect faulty.mcap -d glt -d woa-mvmd-glt --param glt.alpha=0.001 -o out.mcap
+        imufdi detect recorded.mcap -d glt -d pca-parity --false-alarms 1/h -o out.mcap
         imufdi detect - -d glt -o - < faulty.mcap | imufdi report -
         imufdi detect real.mcap -d glt --array array.toml --calibrate 0s:10s --start 10s -o out.mcap
     """
@@ -87,6 +135,7 @@ def detect(
 
     check_input(source)
     grouped = parse_detector_params(detector_names, params)
+    budget = None if false_alarms is None else false_alarm_rate(false_alarms)
     window = time_range(calibrate, "--calibrate")
     tested = start_end(start, end)
     array = ArrayConfig.load(array_path) if array_path else None
@@ -111,6 +160,8 @@ def detect(
             time_source=time_source(stamps),
             explain=explain,
             progress=progress,
+            false_alarms=budget,
+            named_scores=named_scores,
         )
     ui.print_table(detect_table(result, output, shown=None if ui.verbose else 3), summary=True)
     per_detector: dict[str, Any] = {}
@@ -174,7 +225,7 @@ def detect_table(result: Any, output: str, shown: int | None = 3) -> PlainTable:
 
 
 @cli.command()
-@click.argument("log")
+@click.argument("log", shell_complete=complete_file)
 @click.option(
     "--segment", default="0s:2.5s", show_default=True, help="Fault-free segment START:END."
 )
@@ -186,7 +237,14 @@ def detect_table(result: Any, output: str, shown: int | None = 3) -> PlainTable:
     type=click.Choice(["gyro", "accel"]),
     help="Sensor type whose MVMD parameters are tuned.",
 )
-@click.option("-o", "--output", default="-", show_default=True, help="Tuned parameters JSON.")
+@click.option(
+    "-o",
+    "--output",
+    default="-",
+    show_default=True,
+    help="Tuned parameters JSON.",
+    shell_complete=complete_file,
+)
 @click.option(
     "--param", "params", multiple=True, help="WOA setting KEY=VALUE (population, iterations, ...)."
 )
@@ -269,11 +327,22 @@ def convergence_table(curve: Any) -> PlainTable:
 
 
 @cli.command()
-@click.argument("source", metavar="IN")
-@click.option("-o", "--output", required=True, help="ArrayConfig TOML to write, - for stdout.")
-@click.option("--start", help="Use samples from this time, seconds from the log start.")
-@click.option("--end", help="Use samples before this time, seconds from the log start.")
-@click.option("--array", "array_path", help="Base ArrayConfig TOML (geometry); default: the log's.")
+@click.argument("source", metavar="IN", shell_complete=complete_file)
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    help="ArrayConfig TOML to write, - for stdout.",
+    shell_complete=complete_file,
+)
+@click.option("--start", help=f"Use samples from this time: {TIME_POINT_HELP}.")
+@click.option("--end", help="Use samples before this time (the same forms as --start).")
+@click.option(
+    "--array",
+    "array_path",
+    help="Base ArrayConfig TOML (geometry); default: the log's.",
+    shell_complete=complete_file,
+)
 @click.option(
     "--gravity", default="9.80665m/s^2", show_default=True, help="|f| at rest (local gravity)."
 )

@@ -64,9 +64,8 @@ def trailing_minimum(history: np.ndarray, values: np.ndarray, length: int) -> np
     block and the start of the next, so its minimum is that of the first block's suffix
     minimum and the second's prefix minimum (two ``np.minimum.accumulate`` passes, about 3
     comparisons per value whatever ``length``). Minima are exact, so the result is the
-    brute-force one to the bit; it needs no ``scipy.ndimage`` (``minimum_filter1d``, until
-    session 23: about 0.5 s of CPU to import for every ``imufdi detect -d
-    ap-consistency``). A NaN propagates to every window that holds it (``imufdi detect``
+    brute-force one to the bit; it needs no ``scipy.ndimage`` (``minimum_filter1d``: about
+    0.5 s of CPU to import for every ``imufdi detect -d ap-consistency``). A NaN propagates to every window that holds it (``imufdi detect``
     replaces invalid samples before any detector sees them).
 
     Parameters

@@ -62,12 +62,14 @@ import numpy as np
 from imufdi_cli.array import SENSOR_TYPES, ArrayConfig
 from imufdi_cli.detectors.base import (
     ALPHA,
+    FALSE_ALARMS,
     NO_ISOLATION,
     NOT_ISOLABLE,
     DetectionBlock,
     DetectorBase,
     Param,
 )
+from imufdi_cli.detectors.budget import ParityBudget, reference_tau
 from imufdi_cli.detectors.jitter import MotionInflation
 from imufdi_cli.detectors.parity import (
     estimated_sigma_threshold,
@@ -216,6 +218,7 @@ class _TypeState:
     config: _Configuration
     history: np.ndarray  # (<= w-1, n) last whitened samples, for the moving average
     inflation: MotionInflation | None = None  # motion (jitter) variance factor, None: off
+    budget: ParityBudget | None = None  # sequential decisions under a false-alarm budget
     exceed_run: int = 0
     candidate: int = NO_ISOLATION
     candidate_run: int = 0
@@ -288,6 +291,7 @@ class GltDetector(DetectorBase):
         ),
         "bias": Param("bool", True, "remove per-sensor biases found in the calibration window"),
         "track_bias": TRACK_BIAS,
+        "false_alarms": FALSE_ALARMS,
         "lever_arm": Param(
             "bool",
             True,
@@ -313,10 +317,25 @@ class GltDetector(DetectorBase):
         sigma_source: str = "auto",
         bias: bool = True,
         types: str = "auto",
-        track_bias: float = 0.0,
+        track_bias: float | None = None,
+        false_alarms: float = 0.0,
         lever_arm: bool = True,
         jitter: bool = True,
     ) -> None:
+        self.false_alarms = float(false_alarms)
+        if self.false_alarms > 0:
+            fixed = {
+                "persistence": persistence != 1,
+                "confirm": confirm != 1,
+                "reconfigure": reconfigure,
+                "window": window != 1,
+            }
+            given = [name for name, changed in fixed.items() if changed]
+            if given:
+                raise DetectorConfigError(
+                    f"glt.{given[0]} applies to the per-sample test; with a false-alarm budget"
+                    " glt decides sequentially (docs/algorithms/sequential.md): leave it out"
+                )
         self.alpha = float(alpha)
         self.persistence = int(persistence)
         self.confirm = int(confirm)
@@ -327,7 +346,11 @@ class GltDetector(DetectorBase):
         self.types = types
         self.lever_arm = bool(lever_arm)
         self.jitter = bool(jitter)
-        self.tracker = BiasTracker(track_bias)
+        # under a budget the bank's own reference follows the biases (frozen in alarms)
+        self.reference_tau_s = reference_tau(track_bias)
+        self.tracker = BiasTracker(
+            0.0 if self.false_alarms > 0 or track_bias is None else track_bias
+        )
         self.threshold_excluded = float(chi2.ppf(1.0 - self.alpha, 1))
         self._states: dict[str, _TypeState] = {}
         self._untested: dict[str, str] = {}
@@ -451,6 +474,19 @@ class GltDetector(DetectorBase):
             if jitter_s > 0
             else None
         )
+        budget = None
+        if self.false_alarms > 0:
+            budget = ParityBudget(
+                h_white,
+                sigma,
+                config.isolable,
+                array.rate_hz,
+                self.false_alarms,
+                self.reference_tau_s,
+                scale_variance=None if scale_variance is None else float(np.mean(scale_variance)),
+                calibration_samples=values.shape[0],
+            )
+            budget.fit(values / sigma - bias / sigma)
         return _TypeState(
             sensor_type=sensor_type,
             sensor_ids=array.sensor_ids(sensor_type),
@@ -469,6 +505,7 @@ class GltDetector(DetectorBase):
             config=config,
             history=np.zeros((0, n)),
             inflation=inflation,
+            budget=budget,
         )
 
     # --- streaming ------------------------------------------------------------------
@@ -532,6 +569,10 @@ class GltDetector(DetectorBase):
     ) -> DetectionBlock:
         n_samples, n = values.shape
         factors = self._motion_factors(state, values, t_ns)
+        if state.budget is not None:
+            white = values * state.inverse_sigma
+            white -= state.bias_white
+            return state.budget.process(white, factors)
         averaged, counts = self._whitened_average(state, values)
         pieces: list[DetectionBlock] = []
         start = 0
@@ -694,6 +735,9 @@ class GltDetector(DetectorBase):
                 "jitter_s": 0.0 if state.inflation is None else state.inflation.jitter_s,
                 "reconfigurations": list(state.events),
             }
+            if state.budget is not None:
+                types[sensor_type]["threshold"] = state.budget.threshold
+                types[sensor_type]["budget"] = state.budget.metadata()
         return {
             "detector": self.name,
             "params": {
@@ -705,7 +749,8 @@ class GltDetector(DetectorBase):
                 "sigma_source": self.sigma_source,
                 "bias": self.remove_bias,
                 "types": self.types,
-                "track_bias": self.tracker.tau_s,
+                "track_bias": self.reference_tau_s if self.false_alarms > 0 else self.tracker.tau_s,
+                "false_alarms_per_hour": self.false_alarms * 3600.0,
                 "lever_arm": self.lever_arm,
                 "jitter": self.jitter,
             },

@@ -226,7 +226,7 @@ def minimum_detectable_step(
     """Smallest step (in units of the sensor's sigma) that a per-sample chi2 test of
     ``dof`` degrees of freedom at level ``alpha``, widened by ``factor = 1 + A``, detects
     with probability ``power``: non-centrality ``f^2 P_jj / factor`` (``energy = P_jj``)."""
-    from scipy.stats import ncx2  # a benchmark/analysis helper: keep scipy.stats off import
+    from scipy.stats import ncx2  # an analysis function: keep scipy.stats off import
 
     threshold = float(chi2.ppf(1.0 - alpha, dof))
 

@@ -18,7 +18,7 @@ absorbed (at most ``gate sigma dt / tau`` per sample).
 ``k`` leaves a steady residual of only ``k tau`` (the tracker's lag) instead of growing
 without bound, so drifts with ``k tau`` below the detection level are never seen; a step
 of amplitude ``A`` decays as ``A exp(-t / tau)`` (by 15 % after 10 s at ``tau = 60 s``).
-``track_bias = 0`` (the default) turns it off. Measured on the MIMU4444 recordings in
+``track_bias = 0`` (the default of the per-sample tests) turns it off. Measured on the MIMU4444 recordings in
 docs/real-arrays.md.
 """
 
@@ -34,8 +34,9 @@ from imufdi_cli.log import ImuBlock
 #: The detector parameter (seconds; 0 = off).
 TRACK_BIAS = Param(
     "time",
-    0.0,
-    "slow bias tracking time constant, e.g. 60s (0 = off; docs/real-arrays.md)",
+    None,
+    "slow bias tracking time constant, e.g. 60s (default: 60 s under a false-alarm budget,"
+    " off for the per-sample test; 0 = off; docs/real-arrays.md)",
     low=0.0,
 )
 #: Innovation clip, in per-sensor sigmas.
@@ -51,8 +52,8 @@ class BiasTracker:
         Time constant, seconds; 0 disables tracking (``apply`` returns its input).
     """
 
-    def __init__(self, tau_s: float = 0.0) -> None:
-        self.tau_s = float(tau_s)
+    def __init__(self, tau_s: float | None = 0.0) -> None:
+        self.tau_s = float(tau_s or 0.0)
         self.array: ArrayConfig | None = None
         self._state: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
 

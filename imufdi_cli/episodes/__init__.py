@@ -26,7 +26,7 @@ module             concern
 
 Every name is importable from ``imufdi_cli.episodes`` (the private helpers too, for the
 tests that pin them). Coverage and false episodes are measured in ``tests/episodes/``,
-``benchmarks/bench_episodes.py`` and docs/episodes.md.
+``studies/episodes.py`` and docs/episodes.md.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Fast MCAP I/O for IMU arrays (DESIGN.md §4).
+"""Fast MCAP I/O for IMU arrays (docs/formats.md, docs/performance.md).
 
 Low level: :class:`McapSource` (streaming reader, :class:`MessageBatch` of whole chunks, about 4 MiB each) and
 :class:`McapWriter` (bulk writer, atomic rename). IMU arrays: :class:`ImuArrayReader`,

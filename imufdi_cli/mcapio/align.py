@@ -1,4 +1,4 @@
-"""Time alignment of the IMU topics of an array log into array samples (DESIGN.md §4)."""
+"""Time alignment of the IMU topics of an array log into array samples (docs/formats.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""IMU arrays in MCAP: the streaming, time-aligning array reader (DESIGN.md §4).
+"""IMU arrays in MCAP: the streaming, time-aligning array reader (docs/formats.md).
 
 The per-channel codecs live in :mod:`~imufdi_cli.mcapio.imu_codec`, the writer in
 :mod:`~imufdi_cli.mcapio.imu_writer` and the time alignment in

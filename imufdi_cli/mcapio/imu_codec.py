@@ -1,5 +1,5 @@
 """``sensor_msgs/msg/Imu`` and ``MagneticField`` in MCAP: which channels hold them, and
-bulk decoding and in-place patching of their CDR (or JSON) messages (DESIGN.md §4)."""
+bulk decoding and in-place patching of their CDR (or JSON) messages (docs/formats.md)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Writing IMU arrays to MCAP: bulk CDR encoding of ``sensor_msgs/msg/Imu`` /
-``MagneticField`` messages and whole Message records from templates (DESIGN.md §4)."""
+``MagneticField`` messages and whole Message records from templates (docs/formats.md, docs/performance.md "Writing")."""
 
 from __future__ import annotations
 
@@ -308,7 +308,7 @@ class _ImuRecords:
 
 class ImuArrayWriter:
     """Writes an IMU array's samples as one Imu channel per IMU (and MagneticField channels
-    when the array has magnetometers), DESIGN.md §4.
+    when the array has magnetometers), docs/formats.md.
 
     Parameters
     ----------

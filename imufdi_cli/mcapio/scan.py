@@ -385,8 +385,8 @@ def fill_float_columns(
     (a strided view, or a gather); ``values`` is a C-contiguous (N, len(offsets)) float64
     array. Three columns k, k+1, k+2 (k a multiple of 3) read from consecutive offsets (a
     vector's x, y, z) are copied as one 24-byte element per message: the same bytes, about
-    2.7x faster than three 8-byte strided copies (docs/performance.md, "Reader, sixth
-    pass"). Other columns are copied to a contiguous array first: numpy copies unaligned
+    2.7x faster than three 8-byte strided copies (docs/performance.md,
+    "Reading"). Other columns are copied to a contiguous array first: numpy copies unaligned
     strided values to a strided column several times slower than to a contiguous one."""
     k = 0
     triples = values.view("V24") if _LITTLE_ENDIAN_HOST and values.shape[1] % 3 == 0 else None

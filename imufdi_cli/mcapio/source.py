@@ -557,7 +557,7 @@ def _default_read_ahead() -> bool:
     ``IMUFDI_READ_AHEAD`` is ``1`` (then every source reads ahead; e.g. for long logs on a
     machine with a free core). Off by default because the two threads share the GIL: on
     the 2-core build machine the read-ahead reader took about as much wall time as the
-    in-line one (docs/performance.md, "Reader, fifth pass")."""
+    in-line one and more CPU (docs/performance.md, "Reading")."""
     return os.environ.get("IMUFDI_READ_AHEAD", "").strip() == "1"
 
 

@@ -1,7 +1,7 @@
 """``imufdi report``: metrics of an annotated log, renderers and CI gates.
 
 :func:`build_report` reads the detector status channels and the ground truth of an
-annotated MCAP and computes the metrics of DESIGN.md §7 per detector and sensor type.
+annotated MCAP and computes the metrics of docs/metrics.md per detector and sensor type.
 Renderers turn a :class:`Report` into JSON, Markdown (the layout of Li et al. Table 4), CSV
 and JUnit XML; :func:`parse_gate` / :func:`evaluate_gates` implement ``--fail-if``.
 

@@ -18,7 +18,7 @@ generator keyed by ``(seed, chunk index, sensor type, error component)`` through
 caller streams it with, and turning one error off does not change the others.
 
 Public entry points: :func:`simulate` (streaming), :func:`simulate_block` (in memory),
-:func:`preset` and :data:`PRESETS` (the reference scenarios of DESIGN.md §8), and
+:func:`preset` and :data:`PRESETS` (the reference scenarios of docs/simulate.md), and
 :func:`config_from_options` (validated construction for the CLI).
 
 Modules: :mod:`~imufdi_cli.simulate.motions` (rotations, motion profiles),

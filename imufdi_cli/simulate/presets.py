@@ -1,4 +1,4 @@
-"""Reference scenarios (DESIGN.md §8), their overrides, and validated construction from CLI
+"""Reference scenarios (docs/simulate.md), their overrides, and validated construction from CLI
 options (part of :mod:`imufdi_cli.simulate`).
 """
 
@@ -27,7 +27,7 @@ _DEG = math.pi / 180.0
 
 
 # ==========================================================================================
-# Presets (DESIGN.md §8)
+# Presets (docs/simulate.md, "Reference presets")
 # ==========================================================================================
 
 
@@ -347,7 +347,7 @@ def _with_nominal_noise(config: SimConfig) -> SimConfig:
 
 
 def preset(name: str, *, seed: int = 0, **overrides: Any) -> SimConfig:
-    """The SimConfig of a reference scenario (DESIGN.md §8), optionally modified.
+    """The SimConfig of a reference scenario (docs/simulate.md), optionally modified.
 
     Parameters
     ----------

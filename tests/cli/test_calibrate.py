@@ -161,7 +161,7 @@ def test_detect_holds_its_level_on_the_real_sample(cli, real_log, real_block, tm
         rel = (arrays.t_ns - block.t_ns[0]) / 1e9
         rows = np.interp(rel, t, static.astype(float)) > 0.5
         rate = arrays.alarm[rows].mean()
-        # the per-orientation target is 5 %: the sample's static rows must hold it
+        # the per-orientation target is 5 % (docs/real-arrays.md): the sample's static rows must hold it
         assert rate <= 0.05, (detector, sensor_type, rate)
         # motion after the last static interval (clipped rows not scored): the jitter was
         # fitted on this very motion (in-sample; out of sample: docs/real-arrays.md)

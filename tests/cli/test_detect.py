@@ -83,6 +83,7 @@ def test_a_single_imu_log_is_bad_data_for_every_detector(cli, tmp_path, detector
     result = cli(["detect", log, "-d", detector, "-o", out])
     assert_one_line_error(result, 3, "`imufdi info LOG` shows its IMUs")
     assert "bank mode=marg" in result.stderr
+    assert "health checks each IMU alone" in result.stderr  # the detector that applies
     assert not out.exists()
 
 
@@ -100,3 +101,36 @@ def test_too_small_log_for_noise_glr_and_pca_parity_names_detector_and_hint(
     assert "`imufdi info LOG` shows its IMUs" in result.stderr
     assert "bank mode=marg" in result.stderr
     assert not out.exists()
+
+
+def test_false_alarms_budget_detects_without_the_per_sample_noise(cli, tmp_path, faulty_log):
+    import json
+
+    per_sample = cli(["detect", faulty_log, "-d", "glt", "--no-explain", "-o", tmp_path / "a.mcap"])
+    assert per_sample.code == 0
+    # the papers' per-sample test: a warning naming the way out
+    assert "--false-alarms 1/h" in per_sample.stderr and "3,600" in per_sample.stderr
+    out = tmp_path / "b.mcap"
+    budget = cli(
+        ["detect", faulty_log, "-d", "glt", "--false-alarms", "1/h", "-o", out, "--json", "-"]
+    )
+    assert budget.code == 0, budget.stderr
+    assert "--false-alarms" not in budget.stderr
+    gyro = json.loads(budget.stdout)["detectors"]["glt"]["gyro"]
+    assert gyro["events"] == 1  # the 0.9 deg/s step, nothing else
+    status = read_status(str(out), "glt")[("glt", "gyro")]
+    first = int(status.alarm.argmax())
+    assert status.alarm.any() and 2.5 <= (status.t_ns[first] - status.t_ns[0]) / 1e9 <= 2.55
+    assert status.isolated[first] == 0  # imu0.gyro.x
+
+
+@pytest.mark.parametrize(
+    ("rate", "fragment"),
+    [("1/m", "is not a frequency"), ("-1/h", "must be >= 0"), ("fast", "cannot read")],
+)
+def test_false_alarms_bad_rate_is_a_usage_error(cli, tmp_path, faulty_log, rate, fragment):
+    result = cli(
+        ["detect", faulty_log, "-d", "glt", "--false-alarms", rate, "-o", tmp_path / "x.mcap"]
+    )
+    assert_one_line_error(result, 2, fragment)
+    assert not (tmp_path / "x.mcap").exists()

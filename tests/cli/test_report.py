@@ -259,7 +259,7 @@ def test_plot_without_matplotlib_fails_before_any_work(cli, tmp_path, detected_l
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [5, 6])
 def test_each_of_two_simultaneous_faults_gets_its_amplitude_in_the_files(cli, tmp_path, seed):
-    """Issue 16 (bank): two simultaneous gyro faults, each with its own amplitude in the
+    """bank: two simultaneous gyro faults, each with its own amplitude in the
     written status (FdiStatus ``amplitudes``), read back by ``imufdi report``: the per-fault
     estimate (a step's median amplitude, a drift's slope) within 5 % of the injected size,
     and the episode of the strongest fault carries the detector's amplitude."""

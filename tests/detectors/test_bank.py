@@ -128,7 +128,7 @@ def test_leave_one_out_matrix_co_aligned_is_sensor_minus_mean_of_others() -> Non
 
 def _leave_one_out_one_by_one(H, sigma, excluded):
     """The leave-one-out matrix estimator by estimator (the definition: one rank test and
-    one solve per sensor j, as the bank computed it until session 23)."""
+    one solve per sensor j)."""
     n = H.shape[0]
     P = np.full((n, n), np.nan)
     weights = 1.0 / sigma**2
@@ -263,9 +263,8 @@ def _inject(array: ArrayConfig, clean: ImuBlock, scenario: str) -> ImuBlock:
 @pytest.fixture(scope="module")
 def marg_fit(quadrotor: tuple[ArrayConfig, ImuBlock]) -> BankDetector:
     """The bank fitted on the quadrotor's first 2 s, once per module and never processed:
-    the tests below process deep copies of it (each fitted its own until session 25,
-    seven fits of about 0.06 s of CPU; the fit is deterministic, so a copy holds what a
-    fresh fit would)."""
+    the tests below process deep copies of it (seven fits of about 0.06 s of CPU saved; the
+    fit is deterministic, so a copy holds what a fresh fit would)."""
     array, clean = quadrotor
     detector = make_detector()
     detector.fit(clean.slice(0, 200), array)
@@ -283,8 +282,8 @@ def bias_drift_run(
     quadrotor: tuple[ArrayConfig, ImuBlock], marg_fit: BankDetector
 ) -> tuple[ImuBlock, dict[str, DetectionBlock], BankDetector]:
     """The gyro-bias-drift scenario processed in one block by a detector fitted on the
-    first 2 s, read (not modified) by the tracking test and the streaming test (each
-    processed it itself until session 22: 0.2 s of CPU)."""
+    first 2 s, read (not modified) by the tracking test and the streaming test (0.2 s of CPU
+    saved)."""
     array, clean = quadrotor
     faulty = _inject(array, clean, "gyro-bias-drift")
     detector = _fitted(marg_fit)
@@ -381,8 +380,8 @@ def test_streaming_blocks_give_the_same_rows(
     marg_fit: BankDetector,
     bias_drift_run: tuple[ImuBlock, dict[str, DetectionBlock], BankDetector],
 ) -> None:
-    """Blocks of 37 over the first 7 s (2 s past the faults' onset; the whole 10 s until
-    session 22) give the rows of the one-block run."""
+    """Blocks of 37 over the first 7 s (2 s past the faults' onset) give the rows of the
+    one-block run."""
     faulty, whole, _ = bias_drift_run
     head = faulty.slice(0, 700)
     pieces = run(_fitted(marg_fit), head, block_size=37)
@@ -442,7 +441,7 @@ def test_marg_mode_on_an_array_and_degenerate_calibrations() -> None:
         make_detector().fit(degenerate, marg)
 
 
-# --- issue 16: every accel axis, level on fault-free logs -------------------------------
+# --- every accel axis, level on fault-free logs -------------------------------
 
 
 @pytest.mark.slow
@@ -463,7 +462,7 @@ def test_accel_step_on_any_axis_is_detected_and_isolated(axis: int) -> None:
         out = run(detector, block)
         accel = out["accel"]
         after = block.t_s() >= 5.0
-        # healthy gyros at their level: the issue's per-seed bound 4 alpha (on a_y they
+        # healthy gyros at their level: the per-seed bound 4 alpha (on a_y they
         # alarmed on 9.6 % of the samples before the gyro test took the clean candidate
         # series and restarted series after long gaps)
         assert out["gyro"].alarm[after].mean() <= 4 * 0.01
@@ -475,7 +474,7 @@ def test_accel_step_on_any_axis_is_detected_and_isolated(axis: int) -> None:
             0.3 * STANDARD_GRAVITY,
             rtol=0.05,
         )
-    assert missed / faulty <= 0.05  # issue target: MAR <= 5 % (measured 0-1.2 %)
+    assert missed / faulty <= 0.05  # target: MAR <= 5 % (measured 0-1.2 %)
     assert isolated / (faulty - missed) >= 0.95
 
 

@@ -64,7 +64,7 @@ MAPPING_ONLY = {"input_test": "false", "mapping_test": "alarm"}
 def trained(short_log, tmp_path_factory):
     """One network trained for 8 epochs on short_log's first 6 s (mapping test only) and
     its saved model file, shared by the tests of training, model files and the mapping's
-    statistics. (15 epochs until session 22: 1.2 s of CPU against 0.5 s; the claims below
+    statistics. (15 epochs would cost 1.2 s of CPU against 0.5 s; the claims below
     do not bear on the fit's quality: the loss still falls to 0.12 of its start, and the
     axis-gain test's worst relative error over Monte Carlo seeds 0-19 is 0.014-0.062
     (order 0) and 0.17-0.28 (order 2) with this network against 0.018-0.053 and
@@ -277,7 +277,7 @@ def test_wearable12_noise_growth_is_detected_and_isolated():
 @pytest.mark.slow
 @pytest.mark.parametrize(("seed", "sensor"), [(3, "imu5.accel.y"), (4, "imu9.accel.z")])
 def test_noise_growth_on_y_and_z_accelerometers_is_detected_by_the_input_test(seed, sensor):
-    """Issue 16: noise x3 on any accel axis: 1 - MAR >= 98 % (mean over seeds, measured by
+    """Noise x3 on any accel axis: 1 - MAR >= 98 % (mean over seeds, measured by
     docs/campaigns/levels-cnn-map.toml), delay <= 0.4 s, recovery <= 0.5 s. The mapping
     barely passes y/z noise through (its gain is 9-16x lower than for x), the input test
     sees every axis; it does not depend on the mapping's quality, so the network is
@@ -304,7 +304,7 @@ def test_noise_growth_on_y_and_z_accelerometers_is_detected_by_the_input_test(se
     assert detector.metadata()["input_test"]["status"] == "on"
 
 
-# --- issue 16: the mapping test reports by default; the input test's level -----------------
+# --- the mapping test reports by default; the input test's level -----------------
 
 
 def test_mapping_test_modes(short_log, trained):
@@ -314,7 +314,7 @@ def test_mapping_test_modes(short_log, trained):
     statistic is over its threshold at alpha, i.e. exactly the alarms of the mapping test
     alone at alpha on the same network. The detectors are fitted
     on the first 6 s and process the first 4 s (400 samples, over a block boundary at 333;
-    the whole 8 s until session 22: -0.5 s of CPU), where the mapping test alone alarms at
+    0.5 s of CPU less than the whole 8 s), where the mapping test alone alarms at
     24 samples with the shared network, so the count compared is not zero."""
     array, whole = short_log
     path = trained[1]
@@ -346,8 +346,7 @@ def test_mapping_test_modes(short_log, trained):
     assert sum(counted["by_sensor"].values()) == counted["over_threshold"]
     # both tests alarming at twice the level: each at alpha / 2, i.e. the input test at the
     # report's level (the same threshold, from the one simulated null that both fits
-    # share in this process; a second null at alpha / 2 cost 0.4 s of CPU until session
-    # 22) and the mapping test at the level of the mapping test alone, whose alarms it
+    # share in this process; a second null at alpha / 2 would cost 0.4 s of CPU) and the mapping test at the level of the mapping test alone, whose alarms it
     # then keeps
     both = make({"model": path, "mapping_test": "alarm", "alpha": str(2 * report.alpha)})
     d = fit_and_run(both, free)
@@ -385,7 +384,7 @@ def test_input_test_holds_its_level_on_fault_free_logs():
     assert far >= alpha * 0.2  # the threshold is not grossly conservative either
 
 
-# --- issue 16: calibration motion, GLT gyro screen re-admission ------------------------------
+# --- calibration motion, GLT gyro screen re-admission ------------------------------
 
 
 def test_check_motion_refuses_noise_and_names_what_is_missing():
@@ -455,7 +454,7 @@ def test_noise_across_sensors_is_the_white_noise_level_whatever_the_motion():
 
 
 def test_jerky_motion_at_a_low_rate_is_accepted_and_rest_still_refused():
-    """Issue 16 on real data: hand motion sampled at 62.5 Hz is not smooth, second
+    """On real data: hand motion sampled at 62.5 Hz is not smooth, second
     differences take it for noise (MIMU4444 exp_2: 'no rotation, 7.5x its noise').
     Simulated: rate and acceleration as white sequences of 600 deg/s and 15 m/s^2 (motion
     at every frequency up to Nyquist). The second-difference noise alone refuses the

@@ -308,3 +308,55 @@ def test_sigma_source_auto_uses_the_per_imu_noise_of_the_array(scipy_stats) -> N
     det = make_detector(sigma_source="calibration")
     det.fit(block, noisy)
     assert det.metadata()["types"]["gyro"]["sigma_from"] == "calibration"
+
+
+# --- under a false-alarm budget ------------------------------------------------------------
+
+
+def table4_budget_run(seed: int, spec: str | None) -> tuple[DetectionBlock, int, Any]:
+    """glt at a budget of 1/h on a 60 s paper-table4 log (fault at 30 s, if any)."""
+    from imufdi_cli.faults import FaultInjector, parse_fault_spec
+    from imufdi_cli.simulate import preset, simulate_block
+
+    array, block = simulate_block(preset("paper-table4", seed=seed, duration=60.0))
+    if spec is not None:
+        fault = parse_fault_spec(spec, array)
+        block = FaultInjector([fault], array, seed=seed, t0_ns=int(block.t_ns[0])).apply_block(
+            block
+        )
+    det = make_detector(false_alarms="1/h")
+    det.fit(block.slice(0, 200), array)
+    return run_all(det, block.slice(200, len(block)), chunk=1000)["gyro"], 200, det
+
+
+@pytest.mark.parametrize(
+    ("spec", "within_s"),
+    [("step:imu3.gyro.y,at=30s,amp=0.9deg/s", 0.05), ("step:imu3.gyro.y,at=30s,amp=0.3deg/s", 0.3)],
+)
+def test_a_budget_detects_and_isolates_a_step_fast(spec: str, within_s: float) -> None:
+    # the optimal (Lorden) delays at 1/h are ~1 and ~9 samples; the bank's clip makes a
+    # decision take at least 3 samples
+    out, skipped, _ = table4_budget_run(2, spec)
+    onset = int(30.0 * RATE) - skipped
+    first = int(np.flatnonzero(out.alarm)[0])
+    assert onset <= first <= onset + within_s * RATE
+    assert not out.alarm[:onset].any()
+    alarmed = out.isolated[out.alarm]
+    assert (alarmed == 3 * 3 + 1).mean() > 0.99  # imu3.gyro.y
+    assert (out.threshold == out.threshold[0]).all() and out.threshold[0] > 10
+
+
+def test_a_budget_holds_on_a_fault_free_minute_with_outliers() -> None:
+    out, _, det = table4_budget_run(3, None)
+    assert not out.alarm.any()
+    budget = det.metadata()["types"]["gyro"]["budget"]
+    assert budget["false_alarms_per_hour"] == pytest.approx(1.0)
+    assert budget["outlier_share"] > 0  # paper-table4's gyro outliers, seen in calibration
+    assert len(budget["sensitivity"]) == 48 and budget["hypotheses"] == 2 * 48 * 2
+    json.dumps(det.metadata())
+
+
+def test_a_budget_refuses_the_per_sample_options() -> None:
+    for raw in ({"persistence": "3"}, {"confirm": "2"}, {"reconfigure": "true"}, {"window": "5"}):
+        with pytest.raises(DetectorConfigError, match="per-sample test"):
+            make_detector(false_alarms="1/h", **raw)

@@ -191,7 +191,7 @@ def test_short_calibration_raises_and_metadata_is_json_ready():
 
 @pytest.mark.slow
 def test_default_parameters_meet_the_wearable12_noise_growth_targets():
-    """Issue targets, defaults, 3 seeds, as `imufdi detect`/`report` measure them."""
+    """The targets of docs/algorithms/noise-glr.md, defaults, 3 seeds, as `imufdi detect`/`report` measure them."""
     from imufdi_cli.metrics import FaultWindow, compute_metrics
 
     rows = []
@@ -228,7 +228,7 @@ def test_end_of_fault_release_shortens_the_alarm_tail():
     assert not np.any(with_release.alarm & ~without.alarm)
 
 
-# --- issue 16: variance, not mean; robust to outliers; level out of sample -------------------
+# --- variance, not mean; robust to outliers; level out of sample -------------------
 
 
 def paper_table4(seed: int, specs: tuple[str, ...] = (), **overrides):
@@ -305,8 +305,8 @@ def test_bias_step_or_drift_is_not_a_noise_alarm(specs):
 
 def test_level_holds_on_paper_table4_with_its_outliers():
     """Gyro outliers (p = 0.001, +-1 deg/s) do not count as noise growth (old FAR 13-23 %).
-    One run per seed serves both sensor types (until session 22 each type simulated and
-    ran both seeds again: the same rows, twice the CPU)."""
+    One run per seed serves both sensor types (simulating and running both seeds again per
+    type would give the same rows at twice the CPU)."""
     detector = make()
     total = {"gyro": 0, "accel": 0}
     alarms = {"gyro": 0, "accel": 0}
@@ -322,7 +322,7 @@ def test_level_holds_on_paper_table4_with_its_outliers():
         assert alarms[sensor_type] <= bound, sensor_type
 
 
-# --- issue 16: the level of each log, not only on average over calibrations ----------------
+# --- the level of each log, not only on average over calibrations ----------------
 
 
 @functools.lru_cache(maxsize=4)
@@ -437,7 +437,7 @@ def test_residual_spread_is_the_weighted_mean_of_the_sensor_spreads():
 
 
 def test_without_the_field_or_with_noise_spread_false_the_detector_is_unchanged():
-    # 14 s, the noise growth from 12 s (25 s until session 22): the claims are equalities
+    # 14 s, the noise growth from 12 s: the claims are equalities, so a short log suffices
     array, block = wearable12(seed=2)
     block = block.slice(0, 1400)
     plain = run(make(), array, block)

@@ -184,7 +184,7 @@ def test_residual_sigma_ignores_sparse_outliers() -> None:
         residual_sigma(H, m[:1])
 
 
-# --- issue 16: the level with sigma and bias estimated from a calibration window ---------
+# --- the level with sigma and bias estimated from a calibration window ---------
 
 
 def _levels_with_estimated_sigma(alpha: float, reps: int, seed: int) -> tuple[np.ndarray, float]:

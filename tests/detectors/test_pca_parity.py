@@ -217,7 +217,7 @@ def test_metadata_is_json_ready():
     assert meta["variances"].startswith("mixed")
 
 
-# --- issue 16: level out of sample, calibration coverage ------------------------------------
+# --- level out of sample, calibration coverage ------------------------------------
 
 
 def far_bound(n_samples: int, level: float, window: int, z: float = 3.1) -> float:
@@ -310,7 +310,7 @@ def test_accelerometers_with_lever_arms_are_tested_on_the_rigid_body_design(scip
     assert alarms <= scipy_stats.binom.ppf(0.999, after, 3 * detector.alpha)
 
 
-# --- issue 16: calibration of the variances (cross-fitting, F thresholds, rho floor) ------
+# --- calibration of the variances (cross-fitting, F thresholds, rho floor) ------
 
 
 def test_cross_fitted_variance_is_unbiased_where_the_smallest_eigenvalue_is_not():
@@ -422,7 +422,7 @@ def test_conical6_level_holds_on_long_logs_after_the_documented_calibration():
     assert alarms <= far_bound(total, 1.5 * detector.alpha, detector.window_samples)
 
 
-# --- out-of-fold variances: the level of the halves at full length (issue 16, power) ----
+# --- out-of-fold variances: the level of the halves at full length (power) ------------
 
 
 def test_fold_labels_interleave_blocks_and_fill_every_fold():
@@ -499,11 +499,12 @@ def matched_far_mar(statistic, t, onset, calibration_end=2.0, far=0.01):
 def test_small_step_power_at_matched_far_is_not_lost_to_the_kept_components():
     """paper-table4, 0.3 deg/s step on imu0.gyro.x, tuning seeds 0-9, MAR at matched FAR 1 %.
 
-    The issue-16 halves left the kept components' variances 2-3 sd low on some seeds; the
-    T test then alarmed on the fault-free part, the matched threshold rose and the Q test,
-    which carries the fault, lost it (compare seeds 1000/1017: 53 % and 66 %; here seed 8:
-    75 %, mean over seeds 0-9: 12.8 %). Bound: the issue-15 figure, mean 2.8 % over 20
-    seeds, plus 3 standard errors of a mean of 10 seeds with a seed-to-seed sd of 5 %
+    The halves (``cross_fitted_components``) left the kept components' variances 2-3 sd
+    low on some seeds; the T test then alarmed on the fault-free part, the matched
+    threshold rose and the Q test, which carries the fault, lost it (compare seeds
+    1000/1017: 53 % and 66 %; here seed 8: 75 %, mean over seeds 0-9: 12.8 %). Bound: the
+    figure of the detector before its calibration changes (sample eigenvalues), mean 2.8 %
+    over 20 seeds, plus 3 standard errors of a mean of 10 seeds with a seed-to-seed sd of 5 %
     (heavier than the 1.9 % measured, to allow a seed like tuning seed 13 at 17 %): 7.5 %.
     """
     detector = make({"types": "gyro"})

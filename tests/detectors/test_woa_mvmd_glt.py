@@ -174,8 +174,8 @@ def test_output_does_not_depend_on_block_cuts(combine):
     ],
 )
 def test_causal_rows_before_the_onset_do_not_depend_on_what_follows(onset):
-    """Rows decided before the onset are bit-identical whatever follows (the issue's
-    0.3 vs 1.5 deg/s case), wherever the onset falls on the hop grid."""
+    """Rows decided before the onset are bit-identical whatever follows (a 0.3
+    against a 1.5 deg/s step), wherever the onset falls on the hop grid."""
     array = coaligned(6)
     base = synthetic_block()
     assert base.gyro is not None
@@ -495,7 +495,7 @@ def test_clip_cuts_a_spike_and_keeps_the_step_amplitude():
 
 
 @pytest.mark.slow
-def test_far_and_step_mar_hold_the_issue_16_level_on_seeds_never_tuned_on():
+def test_far_and_step_mar_hold_the_target_level_on_seeds_never_tuned_on():
     """FAR <= 1.5 alpha and MAR <= 1.5 % at the paper's 0.9 deg/s step (paper-table4, gyro,
     alpha = 1 %, defaults with WOA tuning on 0-2 s), on seeds 7100-7103 (the detector's
     settings were chosen on 100-109).

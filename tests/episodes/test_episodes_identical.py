@@ -218,8 +218,8 @@ def _windowed_median(r: np.ndarray) -> np.ndarray:
     """numpy's median (nanmedian with a NaN) of each window ``r[max(0, i - 2) : i + 3]``.
 
     Without NaN the full windows of five are one ``np.median`` along an axis of their
-    sliding view (the same partition and middle value per row as one call per window, a
-    Python call per window until session 25: 0.2 s of CPU); the ends, and every window of
+    sliding view (the same partition and middle value per row as one call per window, which
+    costs 0.2 s of CPU); the ends, and every window of
     a series with a NaN (``nanmedian`` along an axis takes another route), one at a time.
     """
     n = r.size

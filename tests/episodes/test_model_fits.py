@@ -267,7 +267,7 @@ def test_spike_amplitude_covers_with_outliers_in_every_window() -> None:
     band (3.5 sigma). With the running median's cut alone k's outlier was in the set
     whenever it lay away from the spikes: the amplitude came out low by about a
     standard deviation of its estimate on average (z mean -1.07 over 2000 such windows
-    of 400 samples, session 20)."""
+    of 400 samples)."""
     from imufdi_cli.episodes.model_fits import _spike_fit
 
     rng = np.random.default_rng(2020)

@@ -71,7 +71,7 @@ def test_episodes_are_matched_to_the_fault_they_explain_and_scored() -> None:
 
 
 def _reference_match(episode: dict, faults: list[dict]) -> dict:
-    """The definition of match_episodes written out plainly (the session-20 code)."""
+    """The definition of match_episodes written out plainly (as first written)."""
     sensors = episode.get("sensors") or []
     first = sensors[0] if sensors else None
     kind, hit = "false", None

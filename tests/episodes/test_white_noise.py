@@ -54,7 +54,7 @@ def white_variance_draws() -> tuple[np.ndarray, np.ndarray, int, np.ndarray, np.
 
 
 # The two tests reading these 800 draws (about 0.85 s of CPU) are Monte Carlos with bands
-# derived from the draws (docs/testing.md rule 1): under slow since session 22. The
+# derived from the draws (docs/testing.md rule 1): under slow. The
 # functions they check keep default tests in test_variance_drop.py, whose builder
 # computes white_sigma_covariance, white_sigma_spread and white_variance_dof for every
 # sensor and tests each against the quantile of its own calibration dof.

@@ -237,7 +237,7 @@ def test_episode_events_round_trip_with_undefined_numbers() -> None:
 
 
 def old_fdi_event_schema() -> bytes:
-    """The FdiEvent schema text imufdi wrote before ``start_ns``/``end_ns`` (session 20)."""
+    """The FdiEvent schema text imufdi wrote before ``start_ns``/``end_ns`` were added."""
     from imufdi_cli.mcapio.schemas import FDI_EVENT_SCHEMA, SEPARATOR
 
     head, rest = FDI_EVENT_SCHEMA.split(b"int64 start_ns", 1)

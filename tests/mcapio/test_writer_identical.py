@@ -1,7 +1,7 @@
 """McapWriter writes the bytes recorded before ``mcapio/writer.py`` became a package.
 
 ``imufdi_cli/mcapio/writer.py`` was split into the package ``imufdi_cli/mcapio/writer/``
-by concern (issue 21) with behaviour unchanged. ``data/writer_identical.json`` was recorded
+by concern with behaviour unchanged. ``data/writer_identical.json`` was recorded
 with the single-module writer (main 34d2aba): one file per compression exercising every
 way in: Schema, Channel (with metadata) and Metadata records, a JSON channel, batches of
 variable-size messages (:meth:`~McapWriter.add_batch`), ready fixed-size records

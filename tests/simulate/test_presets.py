@@ -236,7 +236,7 @@ def test_every_preset_runs_and_lists_faults() -> None:
 
 
 def test_paper_table4_plain_glt_lands_near_the_paper_row(scipy_stats) -> None:
-    """DESIGN §8: a per-sample GLT at alpha = 0.01 with the 0.9 deg/s step on imu0.gyro.x
+    """docs/simulate.md: a per-sample GLT at alpha = 0.01 with the 0.9 deg/s step on imu0.gyro.x
     gives FAR ~ 5 %, MAR ~ 27 %, FIR ~ 4 % (Li et al. Table 4, GLT row: 4.98, 26.58)."""
     far, mar, fir = [], [], []
     for seed in range(20):

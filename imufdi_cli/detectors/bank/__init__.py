@@ -1,7 +1,7 @@
 """Bank-of-estimators detector: structured residuals, isolation and identification.
 
 Berbra, Gentil, Lesecq, "Identification of multiple faults in an Inertial Measurement Unit"
-(DESIGN.md §6 "bank"). Each estimator of the bank is blind to one measurement, so a fault
+(docs/algorithms/bank.md). Each estimator of the bank is blind to one measurement, so a fault
 on measurement j leaves estimator j intact while it corrupts every other one (the paper's
 fault signature tables: Table 1 for accelerometers/magnetometers, Table 2 for gyros). The
 residual of the blind measurement against the intact estimator is the fault amplitude
@@ -43,7 +43,7 @@ Modules, by concern: :mod:`.thresholds` (robust scale, estimated and Bonferroni
 thresholds), :mod:`.array_mode` (leave-one-out estimators of an array), :mod:`.marg` (the
 bank of attitude estimators of one MARG IMU), :mod:`.gyro` (the gyro test of marg mode),
 :mod:`.detector` (parameters, fit, the accelerometer/magnetometer test, metadata). Every
-public name is importable from this package, as before the split (issue 21).
+public name is importable from this package, as before the split into modules.
 """
 
 from __future__ import annotations

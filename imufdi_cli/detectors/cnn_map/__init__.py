@@ -103,7 +103,7 @@ check), :mod:`.network` (the mapping network and its file format), :mod:`.refere
 GLT-screened reference rate), :mod:`.input_test` (the CUSUM input test), :mod:`.mapping`
 (training and the mapping test), :mod:`.detector` (parameters, fit, the per-block decision,
 metadata); :mod:`.settings` declares the attributes they share. Every public name is
-importable from this package, as before the split (issue 21).
+importable from this package, as before the split into modules.
 """
 
 from __future__ import annotations

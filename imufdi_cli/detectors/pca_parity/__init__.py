@@ -50,7 +50,7 @@ Beyond the paper:
   multiplied by e, the number of excited directions (``SCHEFFE_LEAK``): for one
   calibration the leak error at the worst motion is chi2(e) times its average-case
   variance (Scheffe), and e is that ratio's mean.
-- Calibration of the variances (issue 16): the principal directions come from the whole
+- Calibration of the variances (docs/algorithms/pca-parity.md): the principal directions come from the whole
   window; the kept components keep their sample eigenvalues and the discarded ones get
   out-of-fold variances (``principal_components``, ``cross_validated_components``: the
   smallest eigenvalues of a sample covariance are biased low, Lawley 1956; taking the

@@ -20,7 +20,7 @@ LEAK_SIGNIFICANCE = 1e-3
 #: How the variance of each principal direction is estimated from the calibration window:
 #: ``"folds"`` (directions from the whole window, variances out of fold,
 #: ``cross_validated_components``), ``"halves"`` (directions from one half, variances from
-#: the other, ``cross_fitted_components``; the issue-16 choice, which cost power) or
+#: the other, ``cross_fitted_components``; held the level but cost power) or
 #: ``"sample"`` (the eigenvalues of one eigendecomposition, the paper's).
 VARIANCE_ESTIMATE = "mixed"
 #: Number of interleaved folds of ``cross_validated_components``.

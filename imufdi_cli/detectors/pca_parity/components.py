@@ -205,7 +205,7 @@ def principal_components(
     out-of-fold variances (``cross_validated_components``; the smallest sample eigenvalues
     are biased low, which made the Q test liberal), counted with N/2 degrees of freedom
     (the spread measured for isotropic noise, tests/detectors/test_pca_parity.py).
-    ``"folds"``: out-of-fold variances for every direction. ``"halves"``: the issue-16
+    ``"folds"``: out-of-fold variances for every direction. ``"halves"``:
     ``cross_fitted_components``. ``"sample"``: the eigenvalues (the paper's).
 
     Parameters

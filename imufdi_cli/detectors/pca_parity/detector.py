@@ -91,7 +91,7 @@ class PcaParityDetector(DetectorBase):
         residual_test: bool = True,
         leak: str = "regress",
         types: str = "gyro,accel",
-        track_bias: float = 0.0,
+        track_bias: float | None = None,
     ) -> None:
         self.alpha = float(alpha)
         self.components = int(components)

@@ -40,7 +40,7 @@ composite fitness CFV (§2.6, :func:`cfv_components` for the exact definitions).
 Modules, by concern: :mod:`.fitness` (CFV, the validation fault), :mod:`.tuning` (the WOA
 search and its JSON result), :mod:`.windows` (per-window u_best filters and the stream of
 overlapping windows), :mod:`.detector` (parameters, construction and the GLT decision).
-Every public name is importable from this package, as before the split (issue 21).
+Every public name is importable from this package, as before the split into modules.
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ def fast_switching_on() -> None:
     thread is busy in Python (parsing a capture, running a detector) the worker waits for
     the switch interval before the caller is made to let go: 5 ms by default, longer than
     the 5 ms of CPU a 4 MiB chunk costs, so the workers run at a fraction of a core
-    (docs/performance.md, "GIL hand-offs"). At 0.2 ms they wait little; the caller's
+    (docs/performance.md, "Writing": GIL hand-offs). At 0.2 ms they wait little; the caller's
     thread is asked to let go only when a worker is waiting. The interval is process-wide:
     it is set when the first writer starts its workers and restored (unless someone else
     changed it meanwhile) when the last one shuts them down. Pair every call with

@@ -38,8 +38,7 @@ class _WriteBehind:
     ``wake`` bytes wait (or at :meth:`finish`), and then writes everything queued: one
     wake-up per megabyte or so instead of one per call, so the caller's thread is not
     asked for the GIL after every chunk, index and header piece it queues (each such
-    hand-off costs the caller up to the switch interval; docs/performance.md, "Write
-    side, session 21"). The first error of a write is kept: nothing after it is written,
+    hand-off costs the caller up to the switch interval; docs/performance.md, "Writing"). The first error of a write is kept: nothing after it is written,
     and the next :meth:`write` and :meth:`finish` raise it.
 
     Parameters

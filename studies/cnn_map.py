@@ -1,7 +1,7 @@
 """cnn-map on wearable12: speed (training + detection against a 60 s budget and real time)
 and the 20-seed comparison with noise-glr and GLT quoted in docs/algorithms/cnn-map.md.
 
-Run: ``python benchmarks/bench_cnn_map.py [--seeds 20] [--part all|speed|table]``.
+Run: ``python studies/cnn_map.py [--seeds 20] [--part all|speed|table]``.
 Fault ``noise:imu0.accel.x,at=12s,until=18s,factor=3``; calibration 0-10 s (cnn-map needs
 more fault-free data than 2 s to train; noise-glr and GLT are run with 0-2 s and 0-10 s).
 
@@ -16,7 +16,7 @@ residual with its 8-sample local mean (``mapping_test=off``: the default's alarm
 training a network).
 
 ``--part library``: CPU of the two library costs of a cnn-map fit against their former
-implementations (kept here as the baseline, measured in the same run; issues 20, 21):
+implementations (kept here as the baseline, measured in the same run):
 ``cusum.cusum_threshold`` at the input test's wearable12 setting (W = 8, alpha = 0.001 over
 36 channels) and ``Sequential.input_gradients`` on the default network (8 filters, kernel 5,
 a batch of 2048 windows of 24 samples), with the results checked equal, bit for bit.
@@ -198,7 +198,7 @@ def input_step_part(first_seed: int, seeds: int) -> None:
 
 
 def _former_threshold(level, design, margin, dof, rng, chains=256, steps=16384, window=1):
-    """cusum_threshold as it was before session 17: index arrays, a new array per sample of
+    """cusum_threshold as it was first written: index arrays, a new array per sample of
     the recursion, two full runs, full sorts."""
 
     def residual(series):
@@ -242,7 +242,7 @@ def _former_threshold(level, design, margin, dof, rng, chains=256, steps=16384, 
 
 
 def _former_input_gradients(network, x):
-    """Sequential.input_gradients before session 17: a forward pass and a full backward pass
+    """Sequential.input_gradients as first written: a forward pass and a full backward pass
     (parameter gradients included) per output."""
     outputs = network.forward(x)
     jacobian = np.empty((x.shape[0], outputs.shape[1], *x.shape[1:]))

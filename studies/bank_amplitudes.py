@@ -1,5 +1,5 @@
 """Each simultaneous fault's amplitude, through the tool: ``imufdi simulate``, ``inject``,
-``detect -d bank``, then ``imufdi report --json`` (issue 16, bank target: every
+``detect -d bank``, then ``imufdi report --json`` (bank's target: every
 simultaneous fault gets its amplitude within 5 %, measured from the written file).
 
 Two scenarios, per seed:
@@ -13,7 +13,7 @@ Calibration 0-2 s. The figure is the report's per-fault ``amplitudes[].ratio``: 
 size / injected size (a step's median amplitude where its sensor is isolated, a drift's
 slope). Prints one row per seed, then mean, worst and the count within 5 %, and the load.
 
-Usage: python benchmarks/bank_amplitudes.py [--seeds 13000:13020] [--scenario marg,array]
+Usage: python studies/bank_amplitudes.py [--seeds 13000:13020] [--scenario marg,array]
 """
 
 from __future__ import annotations

@@ -2,9 +2,9 @@
 
 Usage::
 
-    python benchmarks/bench_episodes.py --preset paper-table4 --seeds 9600:9620 \
+    python studies/episodes.py --preset paper-table4 --seeds 9600:9620 \
         --detectors glt,pca-parity,bank,noise-glr [--faults 3] [--models step,drift] [--timing]
-    python benchmarks/bench_episodes.py --preset paper-table4 --seeds 14000:14002 \
+    python studies/episodes.py --preset paper-table4 --seeds 14000:14002 \
         --detectors noise-glr --far-s 1800     # fault-free episodes per hour
 
 For each seed a log of ``10 + 10 K`` s of the preset is simulated, and for each fault model
@@ -56,7 +56,7 @@ FAULTS = {
     "noise": "noise:{s},at={at}s,duration=4s,factor=3",
     "stuck": "stuck:{s},at={at}s,duration=4s",
     "spikes": "spikes:{s},at={at}s,duration=4s,rate=5Hz,amp=3deg/s",
-    # not in the reference set (not run unless --models names it): checks that a
+    # not in the reference set of fault models (not run unless --models names it): checks that a
     # genuine scale-factor fault is still classed as scale
     "scale": "scale:{s},at={at}s,duration=4s,factor=1.01",
 }

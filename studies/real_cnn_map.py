@@ -1,6 +1,6 @@
 """cnn-map on a real MIMU4444 recording, calibrated on its hand motion (docs/algorithms/cnn-map.md).
 
-The mapping needs a calibration window with motion (issue 16); the MIMU4444 recordings
+The mapping needs a calibration window with motion; the MIMU4444 recordings
 move only after their 20 static orientations. So cnn-map is calibrated on a motion
 window (default 520-560 s of exp_2) and its accelerometer alarm rate is measured out of
 that window: on each static orientation (found by ``calibrate``'s ``find_static``, all
@@ -9,11 +9,11 @@ accelerometer noise growths injected at rest (x3 and x10 of a 0.02 m/s^2 nominal
 each in orientations 5 and 13, the default mode only). Clipped samples are not scored.
 
 Needs the ingested recording and the chip calibration of another one, as
-``benchmarks/real_arrays.py`` leaves them::
+``studies/real_arrays.py`` leaves them::
 
-    python benchmarks/real_arrays.py /work/data/mimu4444 --test exp_2 --out DIR --runs 3 \
+    python studies/real_arrays.py /work/data/mimu4444 --test exp_2 --out DIR --runs 3 \
         --detectors glt --rates-only
-    python benchmarks/real_cnn_map.py DIR [--test exp_2] [--train exp_1] [--calibrate 520 560]
+    python studies/real_cnn_map.py DIR [--test exp_2] [--train exp_1] [--calibrate 520 560]
 
 Prints a Markdown table and writes ``cnn-map-<test>.json`` in DIR.
 """

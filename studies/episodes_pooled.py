@@ -1,10 +1,10 @@
-"""Issue 22's targets per fault model, pooled over presets and detectors, from episode dumps.
+"""The episode targets (docs/episodes.md) per fault model, pooled over presets and detectors, from episode dumps.
 
 Usage::
 
-    python benchmarks/episodes_pooled.py c6a.json c6b.json p4a.json p4b.json w12a.json ...
+    python studies/episodes_pooled.py c6a.json c6b.json p4a.json p4b.json w12a.json ...
 
-Reads ``bench_episodes.py --dump`` files (any presets, disjoint seeds per preset) and
+Reads ``episodes.py --dump`` files (any presets, disjoint seeds per preset) and
 prints, for each fault model of the reference set:
 
 - class right: the share of the matched episodes whose class is the true model
@@ -12,7 +12,7 @@ prints, for each fault model of the reference set:
 - coverage: the share of the sized episodes whose 90 % interval covers the injected size
   (target 85-95 %), with its Clopper-Pearson 95 % interval;
 
-first pooled over every preset and detector (the issue's "per model"), then per preset and
+first pooled over every preset and detector (the targets' "per model"), then per preset and
 per detector, then per (preset, detector, model) cell. For the cells it also prints how
 many lie outside the 85-95 % band and how many a calibrated 90 % interval would leave out
 by chance with the same cell sizes (exact binomial sums, cells taken as independent), so a
@@ -28,7 +28,7 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from bench_episodes import clopper_pearson
+from episodes import clopper_pearson
 from scipy.stats import binom
 
 BAND = (0.85, 0.95)
@@ -63,7 +63,7 @@ def _p_out_of_band(n: int, p: float = 0.9) -> float:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("dumps", nargs="+", help="bench_episodes.py --dump files")
+    parser.add_argument("dumps", nargs="+", help="episodes.py --dump files")
     args = parser.parse_args()
     # (preset, detector, model) -> matched episode records
     cells: dict[tuple[str, str, str], list[dict[str, Any]]] = defaultdict(list)

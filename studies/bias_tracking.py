@@ -7,7 +7,7 @@ with the MIMU4444 noise (gyro 0.19 deg/s, accel 0.044 m/s^2, 62.5 Hz, 300 s), a 
 from 60 s to the end on imu2.gyro.y, ``--calibrate 0s:10s``. Evaluation seeds 1..N (nothing
 was tuned on them; the real-data FAR side of the trade-off is in real_arrays.py)::
 
-    python benchmarks/bias_tracking.py --out /tmp/tracking [--seeds 3]
+    python studies/bias_tracking.py --out /tmp/tracking [--seeds 3]
 """
 
 from __future__ import annotations

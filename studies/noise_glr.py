@@ -1,9 +1,9 @@
 """Figures of the noise-glr and pca-parity detectors on the reference scenarios, and speed.
 
-Run: ``python benchmarks/bench_noise_glr.py [--seeds 20] [--first-seed 7000] [--part ...]``;
-``--part levels`` gives noise-glr's fault-free levels (issue 16) and its bias-fault rows,
+Run: ``python studies/noise_glr.py [--seeds 20] [--first-seed 7000] [--part ...]``;
+``--part levels`` gives noise-glr's fault-free levels and its bias-fault rows,
 ``--part noise`` its power against noise growth, ``--part real --train A.mcap --test B.mcap``
-its levels and power on two MIMU4444 recordings (ingested by benchmarks/real_arrays.py),
+its levels and power on two MIMU4444 recordings (ingested by studies/real_arrays.py),
 with and without the healthy noise spread that ``calibrate`` learns on ``--train``.
 Prints the tables quoted in docs/algorithms/noise-glr.md and docs/algorithms/pca-parity.md.
 Means over seeds; "worst" is the worst seed.

@@ -1,4 +1,4 @@
-"""Measure issue 17's targets on the MIMU4444 recordings (docs/real-arrays.md).
+"""Measure the real-array targets on the MIMU4444 recordings (docs/real-arrays.md).
 
 Calibrate on one recording (``--train``, default exp_1), apply to another (``--test``,
 default exp_2) with only a 10 s bias calibration at its start, and measure out of sample:
@@ -20,7 +20,7 @@ default exp_2) with only a 10 s bias calibration at its start, and measure out o
 The recordings are not in the repository (github hcarlsso/Self-Calibration-Inertial-
 Sensor-Arrays-BCD.jl, ``experimental_data/calibration/exp_N/data.bin``, MIT licence)::
 
-    python benchmarks/real_arrays.py /path/to/calibration --out results/ [--train exp_1] [--test exp_2]
+    python studies/real_arrays.py /path/to/calibration --out results/ [--train exp_1] [--test exp_2]
 
 Prints Markdown tables and writes ``figures.json`` in ``--out``.
 """

@@ -1,14 +1,14 @@
-"""Out-of-sample false-alarm levels and target faults of issue 16 (noise-glr, pca-parity,
-bank, cnn-map; glt in the glt-bank part).
+"""Out-of-sample false-alarm levels and target faults (noise-glr, pca-parity, bank,
+cnn-map; glt in the glt-bank part).
 
 The tables in docs/algorithms/{noise-glr,pca-parity,bank,cnn-map}.md come from campaign
 specs, one command each::
 
-    python benchmarks/bench_levels.py --spec docs/campaigns/levels.toml -o results/levels --jobs 2
-    python benchmarks/bench_levels.py --spec docs/campaigns/levels-cnn-map.toml -o results/levels-cnn-map --jobs 2
+    python studies/levels.py --spec docs/campaigns/levels.toml -o results/levels --jobs 2
+    python studies/levels.py --spec docs/campaigns/levels-cnn-map.toml -o results/levels-cnn-map --jobs 2
 
 ``--spec`` runs the campaign (``--resume``: finished runs are kept) and prints, from its
-``runs.csv``, the fault-free levels (mean FAR / alpha, worst seed / alpha, the issue's
+``runs.csv``, the fault-free levels (mean FAR / alpha, worst seed / alpha, the
 target: mean <= 1.5 alpha, no seed above 4 alpha) and the fault figures, including the
 FAR of the sensor types without a fault (e.g. bank's healthy gyros during an accel fault).
 Fault-free runs are the specs' identity faults (``scale`` with ``factor=1``).
@@ -323,7 +323,7 @@ def bank_two_faults(seeds: list[int]) -> None:
     Read through the Python API: the filtered residual of every gyro is
     ``BankDetector.last_details.gyro_residuals``, read here where that gyro is in the
     isolated set. (The written status now carries each isolated sensor's amplitude too,
-    FdiStatus ``amplitudes``; ``benchmarks/bank_amplitudes.py`` measures it from the file.)
+    FdiStatus ``amplitudes``; ``studies/bank_amplitudes.py`` measures it from the file.)
     """
     print("\n## bank (marg): two simultaneous gyro faults from 5 s, calibration 0-2 s")
     print(
@@ -390,10 +390,10 @@ def cnn_input_level(seeds: list[int]) -> None:
 
 
 #: The calibration choices of pca-parity (module constants of detectors/pca_parity/choices.py),
-#: added one at a time from the issue-15 detector to the current one.
+#: added one at a time from the first detector (sample eigenvalues) to the current one.
 PCA_VARIANTS: list[tuple[str, dict[str, Any]]] = [
     (
-        "issue-15 detector",
+        "first detector (sample eigenvalues)",
         {
             "VARIANCE_ESTIMATE": "sample",
             "SCHEFFE_LEAK": False,
@@ -405,7 +405,7 @@ PCA_VARIANTS: list[tuple[str, dict[str, Any]]] = [
     ("+ autocorrelation floor 0", {"RHO_FLOOR": 0.0}),
     ("+ cross-fitted variances (halves)", {"VARIANCE_ESTIMATE": "halves"}),
     ("+ F thresholds", {"USE_F_THRESHOLD": True}),
-    ("+ every leak kept once one is significant (issue 16)", {"KEEP_LEAKS_IF_ANY": True}),
+    ("+ every leak kept once one is significant", {"KEEP_LEAKS_IF_ANY": True}),
     ("every variance out of fold instead of halves", {"VARIANCE_ESTIMATE": "folds"}),
     ("kept: sample eigenvalues; discarded: out of fold", {"VARIANCE_ESTIMATE": "mixed"}),
     ("+ Scheffé allowance on the leak error (current)", {"SCHEFFE_LEAK": True}),
@@ -645,7 +645,7 @@ def oracle_worst_seed(
 
 
 def pca_oracle_spread(seeds: list[int]) -> None:
-    """What the issue's "no seed above 4 alpha" asks of a perfect detector (pca-parity's
+    """What the target "no seed above 4 alpha" asks of a perfect detector (pca-parity's
     conical6 cases: q = 3, k = 2, 0.2 s window at 100 Hz; the seeds only seed the draws)."""
     rng = np.random.default_rng(seeds[0])
     print("\n## An oracle pca-parity (exact level), 20 logs: worst log / α")

@@ -1,0 +1,1 @@
+"""Shared maths below the detectors: projections, noise models, sequential tests."""

@@ -1,0 +1,265 @@
+"""maths.sequential: the robust CUSUM bank, its run lengths, thresholds and decisions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from imufdi_cli.maths.sequential import (
+    NO_ISOLATION,
+    NOT_ISOLABLE,
+    CusumBank,
+    CusumDesign,
+    average_run_length,
+    budget_threshold,
+    false_alarm_rate,
+    increments,
+    long_run_factor,
+    lorden_delay_samples,
+    lorden_drift_samples,
+    outlier_share,
+)
+
+RATE_HZ = 100.0
+
+
+def test_run_length_matches_the_published_cusum_tables() -> None:
+    # A huge clip and shift 1 make (1)-(2) the classic CUSUM of reference value k = 0.5: the
+    # one-sided ARL at h = 4 and 5 is twice the two-sided 168 and 465 of Montgomery's Table
+    # 9.3 (Brook & Evans' Markov chain with enough states converges to 335.4 and 930.9;
+    # the tables round to 3 figures: 0.5 %).
+    assert average_run_length(1.0, 50.0, 4.0) == pytest.approx(2 * 168, rel=5e-3)
+    assert average_run_length(1.0, 50.0, 5.0) == pytest.approx(2 * 465, rel=5e-3)
+
+
+def test_run_length_of_the_clipped_increments_matches_a_simulation() -> None:
+    # 4000 CUSUMs side by side for 3000 steps: ~2,300 alarms at ARL ~5,000, so the simulated
+    # ARL has a relative standard error of ~2 %; 4 standard errors
+    rng = np.random.default_rng(20251201)
+    shift, clip, h = 3.0, 3.5, 9.0
+    columns, steps = 4000, 3000
+    statistic = np.zeros(columns)
+    alarms = 0
+    for _ in range(steps):
+        statistic = np.maximum(
+            0.0, statistic + increments(shift, clip, rng.standard_normal(columns))
+        )
+        hit = statistic >= h
+        alarms += int(np.count_nonzero(hit))
+        statistic[hit] = 0.0
+    simulated = columns * steps / alarms
+    assert average_run_length(shift, clip, h) == pytest.approx(simulated, rel=4 / math.sqrt(alarms))
+
+
+def test_outliers_and_sigma_errors_shorten_the_run_length() -> None:
+    clean = average_run_length(1.0, 3.5, 12.0)
+    assert average_run_length(1.0, 3.5, 12.0, contamination=1e-3) < clean
+    assert (
+        average_run_length(1.0, 3.5, 12.0, scale=1.05)
+        < clean
+        < average_run_length(1.0, 3.5, 12.0, scale=0.95)
+    )
+    design = CusumDesign()
+    base = false_alarm_rate(design, 48, 14.0)
+    assert false_alarm_rate(design, 48, 14.0, scale_variance=0.01) > base
+    assert false_alarm_rate(design, 48, 14.0, contamination=1e-3) > base
+
+
+@pytest.mark.parametrize("budget_per_hour", [0.1, 1.0, 3600.0])
+def test_budget_threshold_meets_the_rate_asked(budget_per_hour: float) -> None:
+    design = CusumDesign()
+    per_sample = budget_per_hour / 3600.0 / RATE_HZ
+    h = budget_threshold(design, 48, per_sample)
+    # at h the bound is at or just below the budget (h is rounded up to 1e-3), and 0.01
+    # lower it is above
+    assert false_alarm_rate(design, 48, h) <= per_sample
+    assert false_alarm_rate(design, 48, h) > 0.98 * per_sample
+    assert false_alarm_rate(design, 48, h - 0.01) > per_sample
+
+
+def test_budget_threshold_refuses_an_impossible_rate() -> None:
+    with pytest.raises(ValueError, match="per-sample rate"):
+        budget_threshold(CusumDesign(), 8, 1.0)
+
+
+def test_lorden_references() -> None:
+    # 2 ln(gamma K) / delta^2 for a step; the ramp's m from slope^2 m^3 / 3 = 2 ln(gamma K)
+    assert lorden_delay_samples(4.0, 1e6, 10) == pytest.approx(2 * math.log(1e7) / 4.0)
+    m = lorden_drift_samples(0.1, 1e6, 10)
+    assert 0.01 * m**3 / 3 == pytest.approx(2 * math.log(1e7))
+    assert lorden_delay_samples(0.0, 1e6, 10) == math.inf
+
+
+def test_long_run_factor_of_white_and_correlated_noise() -> None:
+    rng = np.random.default_rng(7)
+    white = rng.standard_normal((20000, 8))
+    assert long_run_factor(white, 20) == pytest.approx(1.0, abs=0.06)
+    # AR(1) with phi = 0.5: the long-run variance factor (1 + phi) / (1 - phi) = 3, less
+    # the finite-block bias 2 phi (1 - phi^L) / (L (1 - phi)^2) = 0.2 at L = 20
+    ar = np.zeros_like(white)
+    for t in range(1, white.shape[0]):
+        ar[t] = 0.5 * ar[t - 1] + white[t]
+    assert long_run_factor(ar / ar.std(axis=0), 20) == pytest.approx(2.8, rel=0.08)
+
+
+def test_outlier_share_counts_what_a_gaussian_does_not_explain() -> None:
+    rng = np.random.default_rng(8)
+    z = rng.standard_normal((50000, 4))
+    assert outlier_share(z) < 1e-4
+    z[rng.random(z.shape) < 0.002] = 7.0
+    assert outlier_share(z) == pytest.approx(0.002, rel=0.15)
+
+
+def _bank(n: int = 8, budget_per_hour: float = 1.0, **design: float) -> CusumBank:
+    cusum = CusumDesign(**design)  # type: ignore[arg-type]
+    h = budget_threshold(cusum, n, budget_per_hour / 3600.0 / RATE_HZ)
+    return CusumBank(cusum, h, np.ones(n), np.ones(n, bool), RATE_HZ)
+
+
+def test_white_noise_keeps_the_bank_within_its_budget() -> None:
+    # 2 hours of 16 white channels at a budget of 360/h: the union bound allows 720
+    # episodes; the bank raises about 0.9 of that (Poisson sd ~25)
+    bank = _bank(16, 360.0)
+    rng = np.random.default_rng(9)
+    for _ in range(2 * 3600 * 100 // 4000):
+        bank.process(rng.standard_normal((4000, 16)))
+    assert 0.6 * 720 < bank.episodes <= 720
+
+
+def test_a_step_is_detected_isolated_and_sized_then_released() -> None:
+    rng = np.random.default_rng(10)
+    bank = _bank(8)
+    z = rng.standard_normal((3000, 8))
+    z[1000:2000, 5] += 2.0  # a step of 2 standard deviations on sensor 5, for 10 s
+    out = bank.process(z)
+    alarms = np.flatnonzero(out.alarm)
+    assert bank.episodes == 1
+    # optimal (Lorden) ~ 2 ln(gamma K) / 4 = 10 samples; the bank within 2x of it
+    assert 1000 <= alarms[0] <= 1000 + 2 * lorden_delay_samples(4.0, 3600 * 100, 32)
+    assert set(out.isolated[alarms].tolist()) == {5}
+    assert np.nanmedian(out.amplitude[alarms]) == pytest.approx(2.0, rel=0.05)
+    # released within a few tens of samples of the end, and quiet afterwards
+    assert 2000 <= alarms[-1] < 2000 + 60
+    assert not out.alarm[alarms[-1] + 1 :].any()
+    assert (out.isolated[~out.alarm] == NO_ISOLATION).all()
+
+
+def test_a_lone_outlier_raises_no_alarm() -> None:
+    bank = _bank(8)
+    z = np.zeros((200, 8))
+    z[100, 3] = 50.0  # one absurd sample: clipped to 3.5
+    assert not bank.process(z).alarm.any()
+
+
+def test_not_isolable_sensors_are_reported_as_such() -> None:
+    cusum = CusumDesign()
+    h = budget_threshold(cusum, 4, 1 / 3600 / RATE_HZ)
+    isolable = np.array([True, True, False, False])
+    bank = CusumBank(cusum, h, np.ones(4), isolable, RATE_HZ)
+    z = np.zeros((300, 4))
+    z[100:, 2] = 3.0
+    out = bank.process(z)
+    assert out.alarm.any()
+    assert set(out.isolated[out.alarm].tolist()) == {NOT_ISOLABLE}
+    assert np.isnan(out.amplitude[out.alarm]).all()
+
+
+def test_the_outputs_do_not_depend_on_how_the_rows_are_split() -> None:
+    rng = np.random.default_rng(11)
+    z = rng.standard_normal((9000, 6)) * 1.1
+    z[3000:4000, 2] -= 1.5
+    z[6000:6050, 4] += 4.0
+    whole = _bank(6, 50.0).process(z)
+    pieces = _bank(6, 50.0)
+    parts = [pieces.process(z[a:b]) for a, b in [(0, 1), (1, 777), (777, 3001), (3001, 9000)]]
+    for name in ("alarm", "isolated"):
+        assert np.array_equal(
+            getattr(whole, name), np.concatenate([getattr(p, name) for p in parts])
+        )
+    for name in ("statistic", "amplitude"):
+        # the cumulative sums restart at each call: rounding of sums of ~1e4 terms of O(1)
+        joined = np.concatenate([getattr(p, name) for p in parts])
+        np.testing.assert_allclose(getattr(whole, name), joined, rtol=1e-9, atol=1e-9)
+
+
+def test_the_reference_follows_slow_wander_but_not_a_detected_fault() -> None:
+    rng = np.random.default_rng(12)
+    minutes = 20
+    n_rows = minutes * 60 * 100
+    # 0.6 sd of wander over 20 minutes: at tau = 20 s the reference lags it by at most
+    # 0.6 x 2 pi / 1200 s x 20 s = 0.06 sd (a CUSUM of shift mu is exponentially sensitive
+    # to an offset e: its run length scales like exp(-2 e h / mu))
+    wander = 0.6 * np.sin(np.linspace(0, 2 * np.pi, n_rows))[:, None]
+    z = rng.standard_normal((n_rows, 4)) + wander * np.array([1.0, -1.0, 0.5, 0.0])
+    tracked = _bank(4, 1.0, tau_s=20.0)
+    untracked = _bank(4, 1.0, tau_s=0.0)
+    for start in range(0, n_rows, 4096):
+        tracked.process(z[start : start + 4096])
+        untracked.process(z[start : start + 4096])
+    # tracked: what white noise alone gives at 1/h over 20 min of 4 sensors (0-3 in 24
+    # seeds); untracked: the wander alone (about 160 episodes)
+    assert tracked.episodes <= 2 and untracked.episodes > 100
+    # a fault after the wander: detected, and the reference frozen while it lasts
+    fault = rng.standard_normal((3000, 4))
+    fault[500:, 1] += 3.0
+    before = tracked.reference.copy()
+    out = tracked.process(fault)
+    assert out.alarm[600:].all()
+    np.testing.assert_array_equal(tracked.reference, _frozen_value(tracked, before))
+
+
+def _frozen_value(bank: CusumBank, before: np.ndarray) -> np.ndarray:
+    """The reference once an episode is open: what it was at the alarm (it may have moved
+    over the ~5 s before it, never by more than 5 s / 20 s of the gate's +-3)."""
+    assert bank.episode is not None
+    assert np.all(np.abs(bank.reference - before) <= 3.0 * 5.0 / 20.0 + 1e-12)
+    return bank.reference
+
+
+def test_nan_evidence_counts_as_none_and_shapes_are_checked() -> None:
+    bank = _bank(3)
+    z = np.full((50, 3), np.nan)
+    out = bank.process(z)
+    assert not out.alarm.any() and (out.statistic == 0).all()
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        bank.process(np.zeros((5, 4)))
+
+
+def test_the_motion_model_learns_a_residual_proportional_to_the_state() -> None:
+    # a residual scale error: column 2's evidence carries 0.8 sd per unit of a swinging
+    # state (a rate), which a CUSUM of shift 1 would alarm on in every half swing
+    from imufdi_cli.maths.sequential import MotionModel
+
+    rng = np.random.default_rng(13)
+    n_rows = 60 * 100 * 5
+    t = np.arange(n_rows) / RATE_HZ
+    state = np.stack([np.sin(2 * np.pi * 0.3 * t), np.cos(2 * np.pi * 0.2 * t), 0.0 * t], axis=1)
+    z = rng.standard_normal((n_rows, 4))
+    z[:, 2] += 0.8 * state[:, 0]
+    cusum = CusumDesign()
+    h = budget_threshold(cusum, 4, 1 / 3600 / RATE_HZ)
+
+    def run(motion: MotionModel | None) -> int:
+        bank = CusumBank(cusum, h, np.ones(4), np.ones(4, bool), RATE_HZ, motion=motion)
+        for start in range(0, n_rows, 4096):
+            bank.process(z[start : start + 4096], state[start : start + 4096])
+        return bank.episodes
+
+    calibration = slice(0, 200)  # 2 s: a sixth of a swing
+    model = MotionModel.from_calibration(state[calibration], z[calibration], 1.0, 600 * RATE_HZ)
+    # learning: one episode in the first seconds at most, then none (seed-checked: 2 vs 38)
+    assert run(model) <= 2 and run(None) > 20
+
+
+def test_a_tracked_variance_corrects_a_sigma_calibrated_too_small() -> None:
+    rng = np.random.default_rng(14)
+    z = rng.standard_normal((30 * 60 * 100, 8)) * 1.15  # sigma 15 % too small
+    fixed, tracked = _bank(8, 10.0, scale_tau_s=0.0), _bank(8, 10.0)
+    for start in range(0, z.shape[0], 4096):
+        fixed.process(z[start : start + 4096])
+        tracked.process(z[start : start + 4096])
+    # at 10/h for 30 min: ~5 allowed; 1.15 sd multiplies the rate by ~exp(h (1 - 1/1.15^2))
+    assert tracked.episodes <= 8 < fixed.episodes
+    np.testing.assert_allclose(tracked.ref.variance, 1.15**2, rtol=0.05)
