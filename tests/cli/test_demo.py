@@ -48,6 +48,6 @@ def test_the_sample_logs_are_package_data_and_the_commands_name_them(cli, tmp_pa
     result = cli(["demo", "--json", tmp_path / "demo.json", "-q"])
     assert result.code == 0, result.stderr
     ingest = json.loads((tmp_path / "demo.json").read_text())["steps"][0]
-    words = shlex.split(ingest["command"])
+    words = shlex.split(ingest["command_line"])
     assert ingest["name"] == "ingest" and words[:2] == ["imufdi", "ingest"]
     assert Path(words[2]).is_file() and Path(words[2]).samefile(SAMPLE_LOGS / "paper-table4.cap")
