@@ -24,7 +24,13 @@ from imufdi_cli import __version__
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors import DETECTORS, make_detectors
 from imufdi_cli.detectors.base import DetectionBlock, Detector
-from imufdi_cli.errors import CalibrationError, DetectorConfigError, McapInputError
+from imufdi_cli.errors import (
+    CalibrationError,
+    DetectorConfigError,
+    FlightLogError,
+    McapInputError,
+)
+from imufdi_cli.fclog.streams import rate_problem
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.mcapio import (
     ChannelInfo,
@@ -462,6 +468,9 @@ def detect_file(
     log = McapSource(source, strict=strict, keep_raw_chunks=True, read_ahead=read_ahead)
     try:
         reader = ImuArrayReader(log, topics=topics, strict=strict, time_source=time_source)
+        too_sparse = rate_problem(log.metadata)
+        if too_sparse is not None:
+            raise FlightLogError(f"{log.name}: {too_sparse}")
         log_array = reader.array
         array = log_array if array is None else array.check_matches(log_array)
         with McapWriter(output, compression=compression) as writer:

@@ -17,7 +17,7 @@ from collections.abc import Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, BinaryIO, cast
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.errors import UsageError
@@ -137,44 +137,138 @@ def _write_output(handle: Any, data: bytes, name: str | None) -> int:
 # --- ingest ----------------------------------------------------------------------------
 
 
+class _Prefixed:
+    """A binary stream whose first bytes were read already (to recognise its format)."""
+
+    def __init__(self, head: bytes, stream: Any, name: str) -> None:
+        self._head = head
+        self._stream = stream
+        self.name = name
+
+    def read(self, size: int = -1) -> bytes:
+        if self._head:
+            if size is None or size < 0:
+                data, self._head = self._head + self._stream.read(), b""
+                return data
+            data, self._head = self._head[:size], self._head[size:]
+            if len(data) < size:
+                data += self._stream.read(size - len(data))
+            return data
+        return bytes(self._stream.read(size))
+
+
+def _read_head(capture: str, size: int) -> bytes:
+    """The first ``size`` bytes of a capture file or of stdin (``-``; consumed)."""
+    from imufdi_cli.errors import CaptureError
+
+    try:
+        if capture == "-":
+            head = b""
+            while len(head) < size:
+                more = sys.stdin.buffer.read(size - len(head))
+                if not more:
+                    break
+                head += more
+            return head
+        with open(capture, "rb") as handle:
+            return handle.read(size)
+    except OSError as err:
+        raise CaptureError(f"cannot read capture {capture}: {err.strerror or err}") from err
+
+
 def ingest_file(
     capture: str,
     output: str,
     *,
-    layout: str = "mpu6500-array",
+    layout: str | None = None,
     array_path: str | None = None,
     rate: str | None = None,
     gyro_fs: str | None = None,
     accel_fs: str | None = None,
     strict: bool = False,
     start_time: str | None = None,
+    imu_data: str | None = None,
     progress: Any = None,
 ) -> Any:
-    """Parse a raw capture with a layout and write the MCAP; returns the ingest stats.
+    """Convert a raw capture or a flight-controller log into an MCAP; returns what the
+    conversion counted (``as_rows()``, ``to_dict()``).
 
-    ``start_time``: wall-clock time of the first frame (see :func:`parse_start_time`);
-    default: the device's own time. ``progress(bytes read, capture bytes or None)``:
-    see :mod:`imufdi_cli.progress`."""
+    The format is recognised by content: a PX4 ULog or an ArduPilot DataFlash log goes to
+    :func:`imufdi_cli.fclog.ingest_flight_log` (``imu_data``: which IMU data; ``layout``,
+    ``rate``, ``gyro_fs`` and ``accel_fs`` do not apply); anything else is a capture parsed
+    with ``layout`` (default ``mpu6500-array``). ``start_time``: wall-clock time of the
+    first sample (see :func:`parse_start_time`); default: the GPS time of a flight log,
+    the device's own time of a capture. ``progress(bytes read, bytes or None)``: see
+    :mod:`imufdi_cli.progress`."""
+    from imufdi_cli.fclog import FORMAT_NAMES, SNIFF_BYTES, ingest_flight_log, sniff_format
+
+    head = _read_head(capture, SNIFF_BYTES)
+    fmt = sniff_format(head)
+    array = ArrayConfig.load(array_path) if array_path else None
+    start_time_ns = None if start_time is None else parse_start_time(start_time)
+    stdin = capture == "-"
+    if fmt is not None:
+        given = [
+            option
+            for option, value in (
+                ("--layout", layout),
+                ("--rate", rate),
+                ("--gyro-fs", gyro_fs),
+                ("--accel-fs", accel_fs),
+            )
+            if value is not None
+        ]
+        if given:
+            article = "an" if FORMAT_NAMES[fmt][0] in "AEIOU" else "a"
+            raise UsageError(
+                f"{capture} is {article} {FORMAT_NAMES[fmt]} (recognised by its content):"
+                f" {', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to raw"
+                f" captures only; leave {'it' if len(given) == 1 else 'them'} out"
+            )
+        return ingest_flight_log(
+            "-" if stdin else capture,
+            output,
+            fmt=fmt,
+            head=head if stdin else b"",
+            imu_data=imu_data or "auto",
+            array=array,
+            strict=strict,
+            start_time_ns=start_time_ns,
+            progress=progress,
+        )
+    if imu_data is not None:
+        raise UsageError(
+            f"--imu-data applies to flight-controller logs only; {capture} is neither a PX4 ULog"
+            " nor an ArduPilot DataFlash log (they are recognised by their first bytes)"
+        )
     from imufdi_cli.capture import ingest, load_layout
+    from imufdi_cli.errors import CaptureError
 
     builtin: dict[str, Any] = {}
     if gyro_fs is not None:
         builtin["gyro_fs"] = gyro_fs
     if accel_fs is not None:
         builtin["accel_fs"] = accel_fs
-    layout_obj = load_layout(layout, **builtin)
-    array = ArrayConfig.load(array_path) if array_path else None
+    layout_obj = load_layout(layout or "mpu6500-array", **builtin)
     rate_hz = parse_quantity(rate, "frequency", name="--rate") if rate else None
-    return ingest(
-        capture,
-        output,
-        layout=layout_obj,
-        array=array,
-        rate_hz=rate_hz,
-        strict=strict,
-        start_time_ns=None if start_time is None else parse_start_time(start_time),
-        progress=progress,
-    )
+    try:
+        return ingest(
+            cast(BinaryIO, _Prefixed(head, sys.stdin.buffer, "stdin")) if stdin else capture,
+            output,
+            layout=layout_obj,
+            array=array,
+            rate_hz=rate_hz,
+            strict=strict,
+            start_time_ns=start_time_ns,
+            progress=progress,
+        )
+    except CaptureError as err:
+        if layout is None and str(err).startswith("no frames"):
+            raise CaptureError(
+                f"{err}; nor is {capture} a PX4 ULog or an ArduPilot DataFlash log (recognised"
+                " by their first bytes): give --layout for another frame layout"
+            ) from err
+        raise
 
 
 def parse_start_time(text: str) -> int:

@@ -334,7 +334,30 @@ def log_info(
             ingest_record = {}
         if isinstance(ingest_record, dict) and isinstance(ingest_record.get("validity"), dict):
             data["validity"] = ingest_record["validity"]
+        if isinstance(ingest_record, dict):
+            _flight_log(ingest_record, data)
     return data
+
+
+def _flight_log(record: dict[str, Any], data: dict[str, Any]) -> None:
+    """A flight-controller log's ingest (``imufdi ingest log.ulg``): its source, per-IMU
+    rates and UTC anchor as ``flight_log``, and its "too low to test" message as a warning."""
+    if record.get("format") not in ("px4-ulog", "ardupilot-dataflash"):
+        return
+    rate: dict[str, Any] = record["rate"] if isinstance(record.get("rate"), dict) else {}
+    utc: dict[str, Any] = record["utc"] if isinstance(record.get("utc"), dict) else {}
+    data["flight_log"] = {
+        "format": record.get("format"),
+        "system": record.get("system", {}),
+        "imu_data": record.get("imu_data"),
+        "n_imus": record.get("n_imus"),
+        "imu_rates_hz": record.get("imu_rates_hz"),
+        "testable": rate.get("testable"),
+        "utc_start": utc.get("start"),
+        "streams": record.get("streams", []),
+    }
+    if rate.get("testable") is False and rate.get("message"):
+        data["warnings"].append(str(rate["message"]))
 
 
 def _validity_counts(record: Any) -> dict[str, Any]:
