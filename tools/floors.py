@@ -2,7 +2,7 @@
 
 Every requirement with a ``>=`` floor in ``[project] dependencies`` and in the optional
 extras becomes ``name==floor`` (extras and markers dropped: a constraint only pins what is
-installed), except the linters (ruff, mypy), which CI runs at their newest. ``.ci/run``
+installed), except the linters (ruff, mypy, import-linter), which CI runs at their newest. ``.ci/run``
 installs the built wheel and the test requirements under these constraints in a fresh
 virtual environment on the oldest Python admitted, and runs the test suite there::
 
@@ -25,7 +25,7 @@ else:  # pragma: no cover
 
 ROOT = Path(__file__).resolve().parents[1]
 #: not pinned: CI lints with the newest releases (their floors say what the config needs)
-UNPINNED = frozenset({"ruff", "mypy"})
+UNPINNED = frozenset({"ruff", "mypy", "import-linter"})
 _REQUIREMENT = re.compile(r"^\s*([A-Za-z0-9][A-Za-z0-9._-]*)\s*(\[[^\]]*\])?\s*([^;]*)")
 
 
