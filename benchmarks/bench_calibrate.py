@@ -4,7 +4,7 @@ Target: peak memory on the 10x longer log at most 1.3x the base log's (calibrate
 the log in passes: static intervals, interval means and gyro sums, noise and time
 offsets, jitter; its per-row values go to temporary files, not to memory).
 
-The base log is the bundled real cut (``sample_logs/mimu4444-exp1-cut.bin``: 300 s of an
+The base log is the bundled real cut (``imufdi_cli/sample_logs/mimu4444-exp1-cut.bin``: 300 s of an
 8-IMU board at 62.5 Hz, 10 static orientations and 45 s of hand motion) ingested with its
 layout and array; the long one repeats its samples ``--factor`` times end to end (10
 times the orientations, the motion and the clipped rows), written at run time. Each run is
@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-SAMPLES = REPO / "sample_logs"
+SAMPLES = REPO / "imufdi_cli" / "sample_logs"
 
 
 def _imufdi(*args: object) -> None:
