@@ -54,7 +54,7 @@ from imufdi_cli.mcapio.passthrough import ChannelCopier, keep_fdi_events
 from imufdi_cli.mcapio.status import register_scores_channel, scores_records, status_records
 from imufdi_cli.progress import LogTimeProgress, ProgressCallback
 from imufdi_cli.units import window_from_log_start
-from imufdi_cli.validity import Conditioner
+from imufdi_cli.validity import Conditioner, complete_rows
 
 if TYPE_CHECKING:
     from imufdi_cli.episodes import EpisodeBuilder
@@ -539,6 +539,12 @@ class _DetectRun:
     def _fit(self) -> None:
         whole = ImuBlock.concatenate(b for b, _ in self.calibration)
         whole_flags = _concat_flags([f for _, f in self.calibration])
+        if whole.missing is not None:  # an IMU without samples in the window
+            cal = (self.cal_start_s, self.cal_end_s)
+            whole, whole_flags, kept = complete_rows(
+                whole, whole_flags, self.reader.imu_topics, cal
+            )
+            self.warnings.append(kept)
         self.cal_samples = len(whole)
         if self.cal_samples == 0:
             end = "" if self.cal_end_s is None else f"{self.cal_end_s:g}s"

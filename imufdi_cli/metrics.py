@@ -15,6 +15,8 @@ All figures are per sample and per sensor type, with the definitions of Li et al
 - isolation delay = decision time of the first alarm inside the fault isolated to one of
   the fault's sensors - onset
 - decision latency = mean over samples of (decision time - sample time)
+- false alarm events per hour = those events / the tested, fault-free time (gaps excluded:
+  :mod:`imufdi_cli.tested_time`)
 - recovery delay = decision time of the first sample r at or after the fault end from
   which the alarms stop for good - fault end: at least ``persist`` quiet samples from r,
   and no alarm within ``merge_gap_s`` (0.1 s) of r — an alarm that comes back that soon
@@ -35,6 +37,8 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
+
+from imufdi_cli.tested_time import SamplePeriod, fault_free_tested_hours  # per-hour denominator
 
 NS_PER_S = 1_000_000_000
 
@@ -145,7 +149,7 @@ class Metrics:
     alarm_rate: float | None  # alarms / samples, truth or not
     alarm_events: int
     false_alarm_events_per_hour: float | None
-    duration_s: float
+    duration_s: float  # first to last row plus one mean interval (gaps included)
     faults: list[FaultFigures] = field(default_factory=list)
     calibration_samples: int = 0
     far_calibration: float | None = None
@@ -157,6 +161,10 @@ class Metrics:
     detection_delay_at_far_s: float | None = None
     threshold_scale_at_far: float | None = None
     target_far: float | None = None
+    #: the tested, fault-free time of the per-hour figures (:func:`fault_free_tested_hours`)
+    fault_free_hours: float = 0.0
+    #: the sample period it counts per row: the median interval between rows, s
+    sample_period_s: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -385,6 +393,7 @@ class MetricsAccumulator:
         self.false_events = 0
         self.latency_sum = 0.0
         self.t_first: int | None = None
+        self.period = SamplePeriod()
         self.t_last = 0
         self.previous_alarm = False
 
@@ -445,6 +454,7 @@ class MetricsAccumulator:
         if self.t_first is None:
             self.t_first = int(t_ns[0])
         self.t_last = int(t_ns[-1])
+        self.period.add(t_ns)
         self.n += k
         self.n_cal += int(np.count_nonzero(in_cal))
         self.n_eval += int(np.count_nonzero(evaluated))
@@ -591,7 +601,8 @@ class MetricsAccumulator:
         if n > 1 and self.t_first is not None:
             span = float(self.t_last - self.t_first) / NS_PER_S
             duration_s = span * n / (n - 1)  # count the last sample's period too
-        free_hours = self.n_free * (duration_s / n) / 3600.0 if n and duration_s > 0 else 0.0
+        period_s = self.period.seconds
+        free_hours = fault_free_tested_hours(self.n_free, period_s)
         figures: list[FaultFigures] = []
         delays: list[float] = []
         isolations: list[float] = []
@@ -654,6 +665,8 @@ class MetricsAccumulator:
             isolation_delay_s=float(np.mean(isolations)) if isolations else None,
             decision_latency_s=(self.latency_sum / self.n_eval) if self.n_eval else None,
             rate_after_first_detection=_ratio(alarmed_after_first, after_first),
+            fault_free_hours=free_hours,
+            sample_period_s=period_s,
         )
 
     def _amplitude_figures(self, st: _FaultState) -> list[AmplitudeFigure]:
