@@ -288,7 +288,11 @@ def _assert_same_calibration(a, b):
     for s in a.array.jitter:
         assert abs(a.array.jitter[s] - b.array.jitter[s]) <= 2e-9
     for s in a.residual_rms:
-        assert_allclose(a.residual_rms[s], b.residual_rms[s], rtol=1e-9)
+        # An RMS from sums of squares accumulated in a different order: its rounding is
+        # relative to the largest residual of the sensor (cancellation), not to each one
+        # (1.8e-12 rad/s measured on a 5.7e-4 rad/s residual beside a 0.19 one).
+        scale = float(np.max(np.abs(a.residual_rms[s])))
+        assert_allclose(a.residual_rms[s], b.residual_rms[s], rtol=1e-9, atol=1e-9 * scale)
     assert_allclose(a.time_offsets_s, b.time_offsets_s, rtol=1e-9, atol=1e-15)
 
 
