@@ -15,6 +15,11 @@ All figures are per sample and per sensor type, with the definitions of Li et al
 - isolation delay = decision time of the first alarm inside the fault isolated to one of
   the fault's sensors - onset
 - decision latency = mean over samples of (decision time - sample time)
+- false alarm episodes per hour = episodes (the joining rule of the episode builder:
+  :class:`~imufdi_cli.sweep.AlarmEpisodes`) that start on a fault-free, scored sample
+  outside the calibration window / the fault-free tested time
+  (:func:`fault_free_tested_hours`), with its exact Poisson 95 % upper bound; the mean
+  time between false alarms is its inverse
 - recovery delay = decision time of the first sample r at or after the fault end from
   which the alarms stop for good - fault end: at least ``persist`` quiet samples from r,
   and no alarm within ``merge_gap_s`` (0.1 s) of r — an alarm that comes back that soon
@@ -82,6 +87,10 @@ class FaultFigures:
     rate_after_first_detection: float | None  # alarmed / faulty samples from the first alarm on
     #: per faulty sensor the detector gave an amplitude for (:class:`AmplitudeFigure`)
     amplitudes: list[AmplitudeFigure] = field(default_factory=list)
+    #: under a budget: the optimal sequential test's delay for this fault (Lorden), s
+    reference_delay_s: float | None = None
+    #: detection delay / reference delay
+    delay_ratio: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -157,6 +166,23 @@ class Metrics:
     detection_delay_at_far_s: float | None = None
     threshold_scale_at_far: float | None = None
     target_far: float | None = None
+    #: the tested, fault-free time of the per-hour figures (:func:`fault_free_tested_hours`)
+    fault_free_hours: float = 0.0
+    #: the time one row stands for: the median interval between rows, s
+    sample_period_s: float | None = None
+    false_episodes: int | None = None  # None: no sample rate for the joining rule
+    false_episodes_per_hour: float | None = None
+    false_episodes_per_hour_upper95: float | None = None
+    mtbfa_h: float | None = None  # mean time between false alarm episodes, hours
+    mtbfa_h_lower95: float | None = None
+    target_budget_per_hour: float | None = None
+    threshold_scale_at_budget: float | None = None
+    mar_at_budget: float | None = None
+    fir_at_budget: float | None = None
+    detection_delay_s_at_budget: float | None = None
+    isolation_delay_s_at_budget: float | None = None
+    reference_delay_s: float | None = None  # mean over the faults with a reference
+    delay_ratio: float | None = None  # mean over the detected faults with a reference
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -202,6 +228,23 @@ METRIC_NAMES: dict[str, str] = {
     "fir_at_far": "FIR at the matched FAR",
     "detection_delay_at_far_s": "mean detection delay at the matched FAR, s",
     "threshold_scale_at_far": "threshold scale giving the matched FAR",
+    "false_episodes": "false alarm episodes (the episodes' joining rule) starting on a"
+    " fault-free sample outside the calibration window",
+    "false_episodes_per_hour": "false alarm episodes per hour of fault-free tested time",
+    "false_episodes_per_hour_upper95": "exact Poisson 95 % upper bound of false_episodes_per_hour",
+    "mtbfa_h": "mean time between false alarm episodes, hours (1 / false_episodes_per_hour)",
+    "mtbfa_h_lower95": "95 % lower bound of mtbfa_h (1 / the upper bound of the rate)",
+    "fault_free_hours": "fault-free tested hours the per-hour figures rest on",
+    "target_budget_per_hour": "target of the matched budget, false episodes per hour",
+    "threshold_scale_at_budget": "threshold scale giving the matched budget",
+    "mar_at_budget": "MAR with the threshold scaled to the matched budget (--match-budget)",
+    "fir_at_budget": "FIR at the matched budget",
+    "detection_delay_s_at_budget": "mean detection delay at the matched budget, s",
+    "isolation_delay_s_at_budget": "mean isolation delay at the matched budget, s",
+    "reference_delay_s": "under a budget: mean delay the optimal sequential test (Lorden)"
+    " needs for the faults, s",
+    "delay_ratio": "under a budget: mean detection delay / reference delay over the"
+    " detected faults",
     "samples": "number of samples",
     "faulty_samples": "number of samples with an active fault",
 }
@@ -247,6 +290,88 @@ def persistent(alarm: np.ndarray, persist: int) -> np.ndarray:
     # counts[i + persist - 1] = number of alarms in alarm[i : i + persist]
     window = counts[persist - 1 : persist - 1 + alarm.size]
     return window == persist
+
+
+def fault_free_tested_hours(fault_free_samples: int, sample_period_s: float | None) -> float:
+    """The tested, fault-free time, in hours: the denominator of the per-hour false alarm
+    figures (``false_alarm_events_per_hour``, ``false_episodes_per_hour``).
+
+    Parameters
+    ----------
+    fault_free_samples : int
+        Status rows tested and scored without an active fault, outside the calibration
+        window (rows excluded as clipped or invalid are not among them).
+    sample_period_s : float or None
+        The time one row stands for, s (the median interval between rows). None or <= 0:
+        no time.
+
+    Returns
+    -------
+    float
+        ``fault_free_samples * sample_period_s / 3600``: a gap in the log (no rows,
+        nothing tested) adds no time.
+    """
+    if not sample_period_s or sample_period_s <= 0 or fault_free_samples <= 0:
+        return 0.0
+    return fault_free_samples * float(sample_period_s) / 3600.0
+
+
+#: Intervals between rows the sample period is the median of.
+PERIOD_INTERVALS = 1024
+
+
+class _Period:
+    """The median of the first :data:`PERIOD_INTERVALS` positive intervals between
+    consecutive rows (streamed; a gap or a few irregular stamps do not move it)."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.steps: list[np.ndarray] = []
+        self.count = 0
+
+    def add(self, t_ns: np.ndarray) -> None:
+        if t_ns.size == 0:
+            return
+        if self.count < PERIOD_INTERVALS:
+            t = t_ns if self.last is None else np.concatenate([[self.last], t_ns])
+            steps = np.diff(t)
+            steps = steps[steps > 0][: PERIOD_INTERVALS - self.count]
+            self.steps.append(steps)
+            self.count += int(steps.size)
+        self.last = int(t_ns[-1])
+
+    @property
+    def seconds(self) -> float | None:
+        if self.count == 0:
+            return None
+        return float(np.median(np.concatenate(self.steps))) / NS_PER_S
+
+
+def judged_isolation(
+    isolated: np.ndarray, scores: np.ndarray | None, n_sensors: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The sensor each row is judged isolated to at any threshold (the sweeps): its
+    isolated sensor, or for a row the detector left unisolated (not ``-2``, not
+    isolable) the sensor of its largest finite score.
+
+    Returns
+    -------
+    judged : ndarray, shape (k,), bool
+    column : ndarray, shape (k,), int64
+        The sensor where judged (0 elsewhere).
+    """
+    k = int(isolated.size)
+    has_iso = isolated >= 0
+    column = np.clip(np.where(has_iso, isolated, 0), 0, max(n_sensors - 1, 0))
+    judged = has_iso.copy()
+    if scores is not None and n_sensors:
+        sc = np.asarray(scores, dtype=np.float64).reshape(k, n_sensors)
+        finite = np.isfinite(sc).any(axis=1)
+        best = np.argmax(np.where(np.isfinite(sc), sc, -np.inf), axis=1)
+        use = ~has_iso & (isolated != -2) & finite
+        column = np.where(use, best, column)
+        judged |= use
+    return judged, column
 
 
 class _FaultState:
@@ -340,6 +465,10 @@ class MetricsAccumulator:
         sample belongs to the same alarm episode (flicker), s.
     sensor_ids : sequence of str, optional
         Names of the sensors in the per-fault amplitude figures (default: their indices).
+    episode_gaps : (merge_gap, join_gap), optional
+        The episodes' joining rule in rows (:func:`~imufdi_cli.sweep.episode_gap_rows`):
+        with it, the false alarm episodes are counted (and, with ``sweep``, at every
+        level of the matched budget); without (no sample rate known), they are undefined.
     """
 
     def __init__(
@@ -352,8 +481,9 @@ class MetricsAccumulator:
         sweep: bool = True,
         merge_gap_s: float = 0.1,
         sensor_ids: Sequence[str] | None = None,
+        episode_gaps: tuple[int, int] | None = None,
     ) -> None:
-        from imufdi_cli.sweep import SweepAccumulator
+        from imufdi_cli.sweep import BUDGET_LEVELS, AlarmEpisodes, SweepAccumulator
 
         self.sensor_ids = None if sensor_ids is None else list(sensor_ids)
 
@@ -368,6 +498,13 @@ class MetricsAccumulator:
             later = [s for s in onsets if w.end_ns is not None and s >= w.end_ns]
             self.states.append(_FaultState(w, min(later) if later else None))
         self.sweep = SweepAccumulator([w.start_ns for w in self.windows]) if sweep else None
+        self.episodes = None if episode_gaps is None else AlarmEpisodes(1, n_sensors, *episode_gaps)
+        self.budget = (
+            AlarmEpisodes(BUDGET_LEVELS.size, n_sensors, *episode_gaps)
+            if episode_gaps is not None and sweep
+            else None
+        )
+        self.period = _Period()
         self.n = 0
         self.n_cal = 0
         self.n_eval = 0
@@ -401,6 +538,7 @@ class MetricsAccumulator:
         scores: np.ndarray | None = None,
         faulty: np.ndarray | None = None,
         amplitudes: np.ndarray | None = None,
+        scored: np.ndarray | None = None,
     ) -> None:
         """Add k consecutive rows.
 
@@ -411,14 +549,18 @@ class MetricsAccumulator:
         isolated : (k,) int, isolated sensor (negative: none / not isolable)
         decided_ns : (k,) int64, decision times (default: the sample times)
         isolated_set : (k, n) bool, every sensor isolated (default: one-hot of ``isolated``)
-        statistic, threshold : (k,) float64, for the matched-FAR sweep
-        scores : (k, n) float64, isolation scores; the sweep judges the isolation of rows the
-            detector left unisolated by their largest score
+        statistic, threshold : (k,) float64, for the matched-FAR and matched-budget sweeps
+        scores : (k, n) float64, isolation scores; the sweeps judge the isolation of rows
+            the detector left unisolated by their largest score
         faulty : (k, n) bool, optional
             Ground truth per row and sensor; default: from the fault windows
         amplitudes : (k, n) float64, optional
             Estimated amplitude of every sensor, SI, NaN where none (the status'
             ``amplitudes``), for the per-fault :class:`AmplitudeFigure`
+        scored : (k,) bool, optional
+            The rows scored (default: all). The others (samples ``detect`` excluded as
+            clipped or invalid, rows outside ``report --start/--end``) count in no figure,
+            but are part of the alarm episodes: an episode is counted where it starts.
         """
         t_ns = np.asarray(t_ns, dtype=np.int64)
         k = int(t_ns.size)
@@ -432,11 +574,37 @@ class MetricsAccumulator:
             faulty = faulty_matrix(t_ns, self.windows, n_s)
         else:
             faulty = np.asarray(faulty, dtype=bool).reshape(k, n_s)
-        any_fault = faulty.any(axis=1)
+        any_fault = np.asarray(faulty.any(axis=1), dtype=bool)
         if self.calibration_ns is not None:
             in_cal = (t_ns >= self.calibration_ns[0]) & (t_ns < self.calibration_ns[1])
         else:
             in_cal = np.zeros(k, dtype=bool)
+        keep = np.ones(k, bool) if scored is None else np.asarray(scored, bool)
+        sweeping = self.sweep is not None and statistic is not None and threshold is not None
+        bins = judged = column = None
+        if sweeping:
+            from imufdi_cli.sweep import ratio_bins
+
+            bins = ratio_bins(statistic, threshold)  # type: ignore[arg-type]
+            judged, column = judged_isolation(isolated, scores, n_s)
+        eligible = keep & ~any_fault & ~in_cal
+        if self.episodes is not None:
+            self.episodes.update(alarm, isolated, eligible)
+        if self.budget is not None and bins is not None:
+            self._budget_levels(bins, np.where(judged, column, -1), eligible)  # type: ignore[arg-type]
+        if not keep.all():
+            rows = np.flatnonzero(keep)
+            k = int(rows.size)
+            if k == 0:
+                return
+            t_ns, alarm, isolated, decided = t_ns[rows], alarm[rows], isolated[rows], decided[rows]
+            faulty, any_fault, in_cal = faulty[rows], any_fault[rows], in_cal[rows]
+            if isolated_set is not None:
+                isolated_set = np.asarray(isolated_set, dtype=bool).reshape(-1, n_s)[rows]
+            if amplitudes is not None:
+                amplitudes = np.asarray(amplitudes, dtype=np.float64).reshape(-1, n_s)[rows]
+            if bins is not None:
+                bins, judged, column = bins[rows], judged[rows], column[rows]  # type: ignore[index]
         evaluated = ~in_cal
         free = ~any_fault & evaluated
         free_cal = ~any_fault & in_cal
@@ -445,6 +613,7 @@ class MetricsAccumulator:
         if self.t_first is None:
             self.t_first = int(t_ns[0])
         self.t_last = int(t_ns[-1])
+        self.period.add(t_ns)
         self.n += k
         self.n_cal += int(np.count_nonzero(in_cal))
         self.n_eval += int(np.count_nonzero(evaluated))
@@ -460,9 +629,9 @@ class MetricsAccumulator:
         self.latency_sum += float(np.sum(decided[evaluated] - t_ns[evaluated])) / NS_PER_S
 
         has_iso = isolated >= 0
-        column = np.clip(np.where(has_iso, isolated, 0), 0, max(n_s - 1, 0))
+        iso_column = np.clip(np.where(has_iso, isolated, 0), 0, max(n_s - 1, 0))
         rows = np.arange(k)
-        correct = has_iso & faulty[rows, column] if n_s else np.zeros(k, dtype=bool)
+        correct = has_iso & faulty[rows, iso_column] if n_s else np.zeros(k, dtype=bool)
         self.false_iso += int(np.count_nonzero(detected & has_iso & ~correct))
         self.unisolated += int(np.count_nonzero(detected & ~has_iso))
 
@@ -486,23 +655,29 @@ class MetricsAccumulator:
                     t_s = (t_ns[use] - st.window.start_ns).astype(np.float64) * 1e-9
                     track.add(t_s, values[use, sensor])
 
-        if self.sweep is not None and statistic is not None and threshold is not None:
-            from imufdi_cli.sweep import ratio_bins
-
-            judged = has_iso
-            if scores is not None and n_s:
-                sc = np.asarray(scores, dtype=np.float64).reshape(k, n_s)
-                finite = np.isfinite(sc).any(axis=1)
-                best = np.argmax(np.where(np.isfinite(sc), sc, -np.inf), axis=1)
-                use = ~has_iso & (isolated != -2) & finite
-                column = np.where(use, best, column)
-                judged = has_iso | use
+        if sweeping and self.sweep is not None:
+            assert bins is not None and judged is not None and column is not None
             right = judged & faulty[rows, column] if n_s else np.zeros(k, dtype=bool)
             iso_class = np.zeros(k, dtype=np.int8)
             iso_class[faulty_eval & right] = 1
             iso_class[faulty_eval & judged & ~right] = 2
             iso_class[faulty_eval & ~judged] = 3
-            self.sweep.update(ratio_bins(statistic, threshold), decided, free, iso_class, in_faults)
+            isolated_to = [
+                inside & judged & np.isin(column, st.window.sensors)
+                for st, inside in zip(self.states, in_faults)
+            ]
+            self.sweep.update(bins, decided, free, iso_class, in_faults, isolated_to)
+
+    def _budget_levels(self, bins: np.ndarray, isolated: np.ndarray, eligible: np.ndarray) -> None:
+        """The alarm episodes of these rows at every level of the matched budget: only the
+        rows above the lowest level take part (the others alarm at none)."""
+        from imufdi_cli.sweep import BUDGET_LEVELS
+
+        assert self.budget is not None
+        rows = np.flatnonzero(bins > BUDGET_LEVELS[0])
+        level, column = np.nonzero(bins[rows][None, :] > BUDGET_LEVELS[:, None])
+        # columns index the candidate rows: map them back to rows of the block
+        self.budget.update_sparse(level, rows[column], isolated, eligible, int(bins.size))
 
     def _update_fault(
         self,
@@ -591,7 +766,8 @@ class MetricsAccumulator:
         if n > 1 and self.t_first is not None:
             span = float(self.t_last - self.t_first) / NS_PER_S
             duration_s = span * n / (n - 1)  # count the last sample's period too
-        free_hours = self.n_free * (duration_s / n) / 3600.0 if n and duration_s > 0 else 0.0
+        period_s = self.period.seconds
+        free_hours = fault_free_tested_hours(self.n_free, period_s)
         figures: list[FaultFigures] = []
         delays: list[float] = []
         isolations: list[float] = []
@@ -654,7 +830,44 @@ class MetricsAccumulator:
             isolation_delay_s=float(np.mean(isolations)) if isolations else None,
             decision_latency_s=(self.latency_sum / self.n_eval) if self.n_eval else None,
             rate_after_first_detection=_ratio(alarmed_after_first, after_first),
+            fault_free_hours=free_hours,
+            sample_period_s=period_s,
+            **self._episode_figures(free_hours),
         )
+
+    def _episode_figures(self, hours: float) -> dict[str, Any]:
+        """False alarm episodes, their rate per hour of ``hours`` with its exact Poisson
+        95 % upper bound, and the mean time between them with its lower bound."""
+        if self.episodes is None:
+            return {}
+        count = int(self.episodes.finished().false_episodes[0])
+        return {"false_episodes": count, **episode_rate(count, hours)}
+
+    def budget_curve(self) -> Any:
+        """The :class:`~imufdi_cli.sweep.BudgetCurve` of the rows fed so far (None without
+        the sweep or the joining rule's gaps)."""
+        from imufdi_cli.sweep import BUDGET_FIGURES, BUDGET_LEVELS, BudgetCurve
+
+        if self.budget is None or self.sweep is None or not self.sweep.sweepable:
+            return None
+        curve = self.sweep.curve()
+        hours = fault_free_tested_hours(self.n_free, self.period.seconds)
+        figures = {name: np.asarray(curve[name])[BUDGET_LEVELS] for name in BUDGET_FIGURES}
+        return BudgetCurve(hours, self.budget.finished().false_episodes, figures)
+
+    def matched_budget(self, metrics: Metrics, target_per_hour: float) -> str | None:
+        """Fill the ``*_at_budget`` figures of ``metrics`` at ``target_per_hour`` false
+        episodes per hour; returns a note (why they are undefined, or where the match
+        sits) or None."""
+        from imufdi_cli.sweep import match_budget
+
+        metrics.target_budget_per_hour = target_per_hour
+        curve = self.budget_curve()
+        if curve is None:
+            return "matched budget: no sweepable statistic or no sample rate"
+        match = match_budget(curve.false_episodes, curve.hours, target_per_hour)
+        apply_budget_match(metrics, curve, match)
+        return match.note
 
     def _amplitude_figures(self, st: _FaultState) -> list[AmplitudeFigure]:
         """One :class:`AmplitudeFigure` per faulty sensor with estimated amplitudes."""
@@ -695,6 +908,52 @@ class MetricsAccumulator:
         return match.note
 
 
+def budget_figures(curve: Any, match: Any) -> dict[str, float | None]:
+    """The ``*_at_budget`` figures of a budget curve (one log's, or a campaign run's) read
+    where ``match`` (perhaps pooled over runs) sits, by name."""
+    from imufdi_cli.sweep import read_budget
+
+    values = read_budget(curve, match)
+    return {
+        "target_budget_per_hour": match.target_per_hour,
+        "threshold_scale_at_budget": match.scale,
+        "mar_at_budget": values["mar"],
+        "fir_at_budget": values["fir"],
+        "detection_delay_s_at_budget": values["detection_delay_s"],
+        "isolation_delay_s_at_budget": values["isolation_delay_s"],
+    }
+
+
+def apply_budget_match(metrics: Metrics, curve: Any, match: Any) -> None:
+    """Set the ``*_at_budget`` figures of ``metrics`` (:func:`budget_figures`)."""
+    for name, value in budget_figures(curve, match).items():
+        setattr(metrics, name, value)
+
+
+def episode_rate(count: int, hours: float) -> dict[str, float | None]:
+    """False episodes per hour of ``hours`` fault-free tested time, with the exact Poisson
+    95 % upper bound, and the mean time between them (hours) with its lower bound; all
+    None without tested time (``mtbfa_h`` also without an episode)."""
+    if not hours > 0:
+        return dict.fromkeys(
+            (
+                "false_episodes_per_hour",
+                "false_episodes_per_hour_upper95",
+                "mtbfa_h",
+                "mtbfa_h_lower95",
+            )
+        )
+    from imufdi_cli.sweep import poisson_upper
+
+    upper = poisson_upper(count) / hours
+    return {
+        "false_episodes_per_hour": count / hours,
+        "false_episodes_per_hour_upper95": upper,
+        "mtbfa_h": hours / count if count else None,
+        "mtbfa_h_lower95": 1.0 / upper,
+    }
+
+
 def compute_metrics(
     t_ns: np.ndarray,
     alarm: np.ndarray,
@@ -712,6 +971,8 @@ def compute_metrics(
     match_far: float | None = None,
     n_sensors: int | None = None,
     amplitudes: np.ndarray | None = None,
+    episode_gaps: tuple[int, int] | None = None,
+    match_budget: float | None = None,
 ) -> Metrics:
     """Per-sample metrics of one detector on one sensor type, in one call.
 
@@ -742,6 +1003,11 @@ def compute_metrics(
         Target FAR for the ``*_at_far`` figures.
     amplitudes : ndarray, shape (N, n_s), float64, optional
         Estimated amplitude of every sensor (per-fault :class:`AmplitudeFigure`).
+    episode_gaps : (merge_gap, join_gap), optional
+        The episodes' joining rule in rows, for the false alarm episodes.
+    match_budget : float, optional
+        Target false episodes per hour for the ``*_at_budget`` figures (needs
+        ``episode_gaps``, ``statistic`` and ``threshold``).
 
     Returns
     -------
@@ -752,7 +1018,12 @@ def compute_metrics(
             raise ValueError("give faulty or n_sensors")
         n_sensors = int(np.asarray(faulty).reshape(len(t_ns), -1).shape[1])
     acc = MetricsAccumulator(
-        n_sensors, faults, calibration_ns=calibration_ns, persist=persist, sweep=True
+        n_sensors,
+        faults,
+        calibration_ns=calibration_ns,
+        persist=persist,
+        sweep=True,
+        episode_gaps=episode_gaps,
     )
     acc.update(
         t_ns,
@@ -769,6 +1040,8 @@ def compute_metrics(
     metrics = acc.result()
     if match_far is not None:
         acc.matched(metrics, match_far)
+    if match_budget is not None:
+        acc.matched_budget(metrics, match_budget)
     return metrics
 
 
