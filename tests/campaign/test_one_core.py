@@ -90,8 +90,19 @@ def test_a_campaign_run_scores_what_inject_detect_report_score(
         steps = [
             ["inject", mimu4444_cut_log, "--seed", run["seed"], "-o", injected]
             + [arg for spec in applied for arg in ("--fault", spec)],
-            ["detect", injected, "-d", "glt", "--calibrate", "0s:20s", "-o", detected]
-            + ["--no-explain", *budget],  # explanations change no figure compared here
+            # explanations change no figure compared here
+            [
+                "detect",
+                injected,
+                "-d",
+                "glt",
+                "--calibrate",
+                "0s:20s",
+                "-o",
+                detected,
+                "--no-explain",
+                *budget,
+            ],
             ["report", detected, "--json", report, "--match-far", "1%", "-q"],
         ]
         for args in steps:

@@ -10,8 +10,8 @@ import xml.etree.ElementTree as ET
 import pytest
 
 from imufdi_cli.report.formats import (
-    table_columns,
     format_value,
+    table_columns,
     table_rows,
     to_csv,
     to_json,
