@@ -59,7 +59,7 @@ from imufdi_cli.mcapio.events import (
     register_events_channel,
     register_truth_channel,
 )
-from imufdi_cli.mcapio.status import status_records
+from imufdi_cli.mcapio.status import register_scores_channel, scores_records, status_records
 from imufdi_cli.progress import LogTimeProgress, ProgressCallback
 from imufdi_cli.validity import Conditioner
 
@@ -142,6 +142,48 @@ class DetectResult:
     alignment: Any
     warnings: list[str]
     validity: dict[str, Any] = field(default_factory=dict)  # per type: clipped, invalid, ...
+
+
+#: A channel alarming more than this many times its level (alpha, or the budget) warns.
+LEVEL_EXCESS = 10.0
+
+
+def observed_level_warnings(
+    detector: Any, summaries: Mapping[str, Any], rate_hz: float
+) -> list[str]:
+    """One line per status channel whose alarms over the whole tested log exceed
+    :data:`LEVEL_EXCESS` times what the detector's settings allow: under a budget, the
+    alarm episodes per hour (at least 5 of them); per sample, the share of alarmed
+    samples against ``alpha`` (over at least 1,000 samples). Faults in the log raise it
+    legitimately, so the line says both causes; a detector whose noise model does not
+    hold on this log (motion, orientation-dependent noise) never alarms silently. detect
+    asks only for logs without injected faults (``imufdi.faults``)."""
+    budget = float(getattr(detector, "false_alarms", 0.0) or 0.0)
+    alpha = getattr(detector, "alpha", None)
+    notes = []
+    for sensor_type, summary in summaries.items():
+        if not summary.samples or not rate_hz > 0:
+            continue
+        hours = summary.samples / rate_hz / 3600.0
+        if budget > 0:
+            per_hour = summary.events / hours
+            if summary.events >= 5 and per_hour > LEVEL_EXCESS * budget * 3600.0:
+                notes.append(
+                    f"{detector.name}.{sensor_type}: {summary.events} alarm episodes in"
+                    f" {hours * 60:.3g} min ({per_hour:,.0f}/h) against a budget of"
+                    f" {budget * 3600:g}/h: faults in the log, or noise this detector does"
+                    " not model here (motion, orientation); see docs/guide.md"
+                )
+        elif alpha is not None and summary.samples >= 1000:
+            share = summary.alarms / summary.samples
+            if share > LEVEL_EXCESS * float(alpha):
+                notes.append(
+                    f"{detector.name}.{sensor_type}: alarms on {100 * share:.3g} % of the tested"
+                    f" samples, {share / float(alpha):.0f} times its level alpha={float(alpha):g}:"
+                    " faults in the log, or noise this detector does not model here (motion,"
+                    " orientation); see docs/guide.md"
+                )
+    return notes
 
 
 class ChannelCopier:
@@ -270,6 +312,7 @@ def detect_file(
     progress: ProgressCallback | None = None,
     read_ahead: bool | None = None,
     false_alarms: float | None = None,
+    named_scores: bool = False,
 ) -> DetectResult:
     """Run detectors over a log and write the annotated MCAP.
 
@@ -294,6 +337,10 @@ def detect_file(
         The calibration window is taken from the whole log either way.
     explain : bool
         Write an explained ``episode`` event for every alarm episode (docs/episodes.md).
+    named_scores : bool
+        Also write each status channel's scores under the sensors' names, on
+        ``/imufdi/<detector>/<type>/scores`` (docs/formats.md), for Foxglove and
+        PlotJuggler.
     progress : callable, optional
         ``progress(seconds done, log seconds or None)`` (:mod:`imufdi_cli.progress`).
     false_alarms : float, optional
@@ -331,6 +378,7 @@ def detect_file(
                 calibrate=calibrate,
                 window=window if window is not None else (0.0, None),
                 explain=explain,
+                named_scores=named_scores,
             )
             run.warnings.extend(notes)  # e.g. a renamed detector parameter
             tracker = LogTimeProgress(progress, getattr(reader.source, "summary_time_range", None))
@@ -361,6 +409,7 @@ class _DetectRun:
         calibrate: tuple[float, float | None],
         window: tuple[float, float | None],
         explain: bool,
+        named_scores: bool = False,
     ) -> None:
         self.reader = reader
         self.writer = writer
@@ -376,8 +425,11 @@ class _DetectRun:
             explain=explain,
         )
         self.warnings: list[str] = []
+        self.named_scores = named_scores
         # per detector: status channel, alarm state and summary of each sensor type
         self.channels: dict[str, dict[str, int]] = {det.name: {} for det in instances}
+        #: per detector: the named-scores channel of each sensor type
+        self.score_channels: dict[str, dict[str, int]] = {det.name: {} for det in instances}
         self.alarm_on: dict[str, dict[str, bool]] = {det.name: {} for det in instances}
         self.summary: dict[str, dict[str, TypeSummary]] = {det.name: {} for det in instances}
         self.rerun = {det.name for det in instances}
@@ -427,9 +479,11 @@ class _DetectRun:
         for c in sorted(new):
             topic = channels[c].topic
             parts = topic.split("/")
-            if topic == EVENTS_TOPIC or (
-                len(parts) == 4 and parts[1] == "imufdi" and parts[2] in self.rerun
-            ):
+            # a detector run again replaces its status channels and their named scores
+            rerun = len(parts) in (4, 5) and parts[1] == "imufdi" and parts[2] in self.rerun
+            if rerun and len(parts) == 5 and parts[4] != "scores":
+                rerun = False
+            if topic == EVENTS_TOPIC or rerun:
                 self.dropped.add(c)
             elif topic == TRUTH_TOPIC and channels[c].message_encoding == "json":
                 self.dropped.add(c)
@@ -466,15 +520,23 @@ class _DetectRun:
         writer, array, name = self.writer, self.array, track.name
         channels = self.channels[name]
         if sensor_type not in channels:
-            channels[sensor_type] = register_status_channel(
-                writer, name, sensor_type, array.sensor_ids(sensor_type)
-            )
+            ids = array.sensor_ids(sensor_type)
+            channels[sensor_type] = register_status_channel(writer, name, sensor_type, ids)
+            if ids and self.named_scores:  # the scores under the sensors' names (viewers)
+                self.score_channels[name][sensor_type] = register_scores_channel(
+                    writer, name, sensor_type, ids
+                )
             self.summary[name][sensor_type] = TypeSummary()
         channel = channels[sensor_type]
         # whole records from a template (the bytes encode_status + add_batch make)
         writer.add_records(
             status_records(channel, t_ns, out, decided_ns), np.full(len(t_ns), channel), t_ns
         )
+        named = self.score_channels[name].get(sensor_type)
+        if named is not None:
+            writer.add_records(
+                scores_records(named, t_ns, out.scores), np.full(len(t_ns), named), t_ns
+            )
         summary = self.summary[name][sensor_type]
         summary.samples += len(out)
         summary.alarms += int(np.count_nonzero(out.alarm))
@@ -500,8 +562,27 @@ class _DetectRun:
             counts[label] = counts.get(label, 0) + 1
 
     def finish(self, strict: bool) -> None:
-        """Finish the pass (:meth:`Engine.finish`) and write the metadata records."""
-        self.engine.finish(strict)
+        """Finish the pass (:meth:`Engine.finish`), say what the alarms say about the
+        detectors' levels, and write the metadata records."""
+        engine = self.engine
+        engine.finish(strict)
+        windowed = engine.test_start_s > 0 or engine.test_end_s is not None
+        if windowed and engine.n_samples == 0 and engine.t_first is not None:
+            end = "end" if engine.test_end_s is None else f"{engine.test_end_s:.6g} s"
+            engine.warnings.append(
+                f"--start/--end holds no sample: the window is {engine.test_start_s:.6g} s to"
+                f" {end} from the log start, the log spans 0 to"
+                f" {(engine.t_last - engine.t_first) / NS_PER_S:.6g} s (from"
+                f" {_utc(engine.t_first)}); nothing was tested"
+            )
+        # a log with injected faults alarms more by design: report measures its FAR on truth
+        if "imufdi.faults" not in self.reader.source.metadata:
+            for track in engine.tracks:
+                engine.warnings.extend(
+                    observed_level_warnings(
+                        track.detector, self.summary[track.name], self.array.rate_hz
+                    )
+                )
         self._write_metadata()
 
     def _write_metadata(self) -> None:
@@ -568,3 +649,10 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, (np.bool_,)):
         return bool(value)
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _utc(t_ns: int) -> str:
+    """``2023-11-14T22:13:20Z`` (ISO 8601 UTC, to the millisecond when not whole)."""
+    from imufdi_cli.units import utc_iso
+
+    return utc_iso(t_ns)

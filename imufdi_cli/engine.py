@@ -255,7 +255,13 @@ class Engine:
         """An aligned block: into the calibration window and backlog until the detectors
         are fitted, then straight through them."""
         if self.t_first is None:
+            from imufdi_cli.units import window_from_log_start
+
             self.t_first = int(block.t_ns[0])
+            # ISO 8601 / Unix times of --start/--end, now that the log start is known
+            self.test_start_s, self.test_end_s = window_from_log_start(
+                (self.test_start_s, self.test_end_s), self.t_first
+            )
         self.t_last = int(block.t_ns[-1])
         block, flags = self.conditioner.prepare(block)
         rel = (block.t_ns - self.t_first) / NS_PER_S
@@ -286,6 +292,9 @@ class Engine:
         block = self.conditioner.sanitize(block, flags)
         for track in self.tracks:
             track.feed(block.t_ns)
+            note_flags = getattr(track.detector, "note_flags", None)
+            if note_flags is not None:  # a detector that tests flagged samples itself
+                note_flags(flags)
             for sensor_type, builder in track.episodes.items():
                 triads = block.get(sensor_type)
                 assert triads is not None  # builders exist only for types in the log
@@ -344,8 +353,14 @@ class Engine:
             del track.episodes[sensor_type]  # a type this detector does not test
 
     def _episodes(self, track: Track, episodes: Sequence[Any]) -> None:
-        if episodes:
-            self.sink.episodes(track, episodes)
+        if not episodes:
+            return
+        explain = getattr(track.detector, "explain_episode", None)
+        if explain is not None:  # a detector that knows what raised its episodes
+            for episode in episodes:
+                if episode.detector == track.detector.name:
+                    episode.fits = explain(episode)
+        self.sink.episodes(track, episodes)
 
     def finish(self, strict: bool = False) -> None:
         """Fit if the log ended inside the calibration window, flush the detectors and the

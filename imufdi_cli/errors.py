@@ -116,8 +116,9 @@ class ArrayTooSmallError(CalibrationError):
 ARRAY_TOO_SMALL_HINT = (
     "redundancy checks compare sensors, so they need more of them than this log has:"
     " `imufdi info LOG` shows its IMUs; use a log of the whole array, choose --topic"
-    " so that enough IMUs are read, or a detector for this case (bank mode=marg checks"
-    " a single IMU that has a magnetometer)"
+    " so that enough IMUs are read, or a detector for this case: health checks each IMU"
+    " alone (stuck output, variance drop or growth, spikes, clipping, dropouts and gaps),"
+    " bank mode=marg a single IMU that has a magnetometer"
 )
 
 

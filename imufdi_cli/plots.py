@@ -1,17 +1,25 @@
 """Figures of ``imufdi report --plot`` (needs the ``plot`` extra: matplotlib).
 
 :func:`plot_report` draws, per detector and sensor type, the detection statistic against
-its threshold with the alarms marked (like Li et al. Figure 15) and the isolation scores
-of the suspect sensors against the spread of all the others; :func:`plot_roc` the
-threshold sweep. Colours are stable per detector (:func:`detector_colour`), so the same
-detector has the same colour in every figure. Lines of more samples than twice the
-figure's width in pixels are drawn from their min/max envelope (:func:`envelope`), and
-figures are saved with their layout computed once (:func:`save_figure`).
+its threshold with the alarms marked as runs (like Li et al. Figure 15) and the isolation
+scores of the suspect sensors against the spread of all the others; :func:`plot_roc` the
+threshold sweep. As the papers draw them: the calibration window is shaded (hatched: in
+sample, never scored), the injected faults are shaded, the explained episodes are bars in
+a lane of their own with labels placed so that none overlaps another or leaves the panel
+(:func:`place_labels`; the ones that do not fit are counted, not overprinted). Colours are
+stable per detector (:func:`detector_colour`), so the same detector has the same colour in
+every figure. Lines of more samples than twice the figure's width in pixels are drawn
+from their min/max envelope (:func:`envelope`: every spike stays), with the median of
+each pixel bin on top; the suspect sensors' scores as the median of each bin of
+:data:`ISOLATION_BINS` with its 10–90 % band, so that a long log is not a solid band.
+Figures are saved with their layout computed once (:func:`save_figure`).
 """
 
 from __future__ import annotations
 
 import textwrap
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -31,8 +39,19 @@ LOG_SPREAD = 100.0
 LOG_OVER_THRESHOLD = 10.0
 #: suspect sensors drawn one by one in the isolation panel (the rest as a band)
 SUSPECTS = 3
-#: episodes labelled per panel (the longest)
-PLOT_EPISODE_LABELS = 3
+#: rows of episode labels per panel (labels that fit in none are counted, not drawn)
+EPISODE_LABEL_ROWS = 2
+#: the alarm lane of a statistic panel, in axes fraction (bottom, top); the episode
+#: lane (bars, :data:`EPISODE_LANE_HEIGHT` high) and its label rows go above the data,
+#: under the legend (placed once the panel is laid out, :func:`_mark_episodes`)
+ALARM_LANE = (0.0, 0.03)
+EPISODE_LANE_HEIGHT = 0.035
+#: share of the data span added on top of a statistic panel for the lanes and the legend
+#: (raised when the legend and labels need more)
+STATISTIC_HEADROOM = 0.9
+#: bins (median and 10-90 % band) of the suspect sensors' scores in the isolation panel
+ISOLATION_BINS = 300
+CALIBRATION_COLOUR = "0.55"
 #: resolution of the report figure, dots per inch
 DPI = 110
 #: width of one row of the report figure, inches (two panels side by side)
@@ -258,34 +277,228 @@ def _shade_faults(ax: Any, t: np.ndarray, entry: ReportEntry, label: bool) -> No
             color=FAULT_COLOUR,
             alpha=0.10,
             lw=0,
-            label="fault active (truth)" if label else None,
+            label="fault (truth)" if label else None,
             step="post",
         )
 
 
-def _mark_episodes(ax: Any, report: Report, entry: ReportEntry, t0_ns: int) -> None:
-    """Label the longest explained episodes of this detector and type with their class
-    and size (docs/episodes.md) at their start."""
+def _shade_calibration(
+    ax: Any, report: Report, entry: ReportEntry, t0_ns: int, label: bool
+) -> None:
+    """Hatch the detector's calibration window (``calibration_window_ns`` of its
+    ``imufdi.detect.<name>`` record): the samples it learnt from, in sample, never scored."""
+    record = report.records.get(entry.detector) or {}
+    window = record.get("calibration_window_ns")
+    if not (isinstance(window, (list, tuple)) and len(window) == 2):
+        return
+    try:
+        start, end = ((int(v) - t0_ns) / 1e9 for v in window)
+    except (TypeError, ValueError):
+        return
+    ax.axvspan(
+        start,
+        end,
+        facecolor="none",
+        edgecolor=CALIBRATION_COLOUR,
+        hatch="///",
+        lw=0,
+        alpha=0.6,
+        zorder=0.5,
+        label="calibration (in sample)" if label else None,
+    )
+
+
+def _alarm_runs(ax: Any, t: np.ndarray, alarm: np.ndarray) -> int:
+    """Alarms as runs (first to last sample of each) in the bottom lane; returns how many."""
+    from imufdi_cli.episodes import find_episodes
+
+    runs = find_episodes(np.asarray(alarm, bool))
+    if not runs:
+        return 0
+    period = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    spans = [(t[a], max(t[b - 1] - t[a], 0.0) + period) for a, b in runs]
+    low, high = ALARM_LANE
+    ax.broken_barh(
+        spans,
+        (low, high - low),
+        transform=ax.get_xaxis_transform(),
+        color=ALARM_COLOUR,
+        lw=0,
+    )
+    return len(runs)
+
+
+def episode_label(episode: dict[str, Any]) -> str:
+    """``imu3.gyro.x: step 0.9 °/s [0.85, 0.95]``: the sensor, class and size."""
+    sensor = (episode.get("sensors") or ["?"])[0]
+    size = format_size(episode)
+    text = f"{sensor}: {episode.get('fault_class') or 'unexplained'}"
+    return text if size == "-" else f"{text} {size}"
+
+
+def place_labels(
+    starts: Sequence[float], widths: Sequence[float], rows: int, gap: float = 0.006
+) -> list[tuple[float, int] | None]:
+    """Where labels go so that none overlaps another, no leader line crosses one, and none
+    leaves the panel.
+
+    Label i belongs at ``starts[i]`` (axes fraction; its leader line drops from there to
+    the lane below row 0) and is ``widths[i]`` wide; it starts there, moved left when it
+    would pass the right edge, in the lowest of ``rows`` rows where it overlaps no label
+    already placed (with ``gap`` between), no label of a lower row covers its leader, and
+    it covers no leader of a label of a higher row. Labels are placed in the order given
+    (most important first); one that fits in no row gets None.
+
+    Returns
+    -------
+    list of (x, row) or None
+        The left edge (axes fraction, in [0, 1 - width]) and row of each label.
+    """
+    placed: list[tuple[float, float, float, int]] = []  # (left, right, anchor, row)
+    out: list[tuple[float, int] | None] = []
+    for start, width in zip(starts, widths):
+        if width > 1.0:
+            out.append(None)
+            continue
+        anchor = min(max(float(start), 0.0), 1.0)
+        x = min(max(float(start), 0.0), 1.0 - width)
+        spot = None
+        for row in range(rows):
+            clear = all(
+                (r != row or x + width + gap <= a or b + gap <= x)
+                and (r >= row or not a - gap <= anchor <= b + gap)  # its leader
+                and (r <= row or not x - gap <= c <= x + width + gap)  # their leaders
+                for a, b, c, r in placed
+            )
+            if clear:
+                spot = (x, row)
+                placed.append((x, x + width, anchor, row))
+                break
+        out.append(spot)
+    return out
+
+
+@dataclass
+class EpisodeMarks:
+    """What :func:`_mark_episodes` drew on a panel."""
+
+    drawn: int = 0  # episode bars
+    labelled: int = 0
+    lane: tuple[float, float] = (0.0, 0.0)  # the bars' lane, axes fraction
+    labels: list[Any] = field(default_factory=list)  # the label artists
+
+
+def _mark_episodes(
+    ax: Any, report: Report, entry: ReportEntry, t0_ns: int, renderer: Any
+) -> EpisodeMarks:
+    """Draw this detector's episodes as bars in a lane under the legend, label as many of
+    the explained ones as fit (longest first: sensor, class and size, :func:`place_labels`)
+    in rows between the lane and the legend, and raise the panel's top so that the data
+    stay below the lane. Needs the panel laid out (sizes in pixels)."""
     mine = [
         ep
         for ep in report.episodes
         if ep["detector"] == entry.detector and ep["sensor_type"] == entry.sensor_type
     ]
-    longest = sorted(mine, key=lambda ep: -(ep["end_ns"] - ep["start_ns"]))
-    for ep in longest[:PLOT_EPISODE_LABELS]:
-        start = (ep["start_ns"] - t0_ns) / 1e9
-        sensor = (ep.get("sensors") or ["?"])[0]
-        ax.annotate(
-            f"{sensor}: {ep.get('fault_class') or '?'} {format_size(ep)}",
-            xy=(start, 0.97),
-            xycoords=("data", "axes fraction"),
-            fontsize=7,
-            rotation=90,
-            va="top",
-            ha="right",
-            color="#5a3d00",
-            bbox={"boxstyle": "square,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.7},
+    # every episode's bar (the report lists the first EPISODES_LISTED with their
+    # explanation; older Report objects have only those)
+    spans = report.episode_spans.get((entry.detector, entry.sensor_type)) or [
+        (ep["start_ns"], ep["end_ns"]) for ep in mine
+    ]
+    marks = EpisodeMarks()
+    if not spans:
+        return marks
+    to_axes = ax.transAxes.inverted()
+    legend = ax.get_legend()
+    ceiling = 0.99
+    if legend is not None:
+        ceiling = float(legend.get_window_extent(renderer).transformed(to_axes).y0) - 0.01
+    order = sorted(range(len(mine)), key=lambda i: -(mine[i]["end_ns"] - mine[i]["start_ns"]))
+    texts = [episode_label(mine[i]) for i in order]
+    widths, height = [], 0.0
+    for text in texts:
+        probe = ax.text(0, 0, text, fontsize=7, transform=ax.transAxes)
+        box = probe.get_window_extent(renderer).transformed(to_axes)
+        widths.append(float(box.width))
+        height = max(height, float(box.height))
+        probe.remove()
+    rows = EPISODE_LABEL_ROWS if texts else 0
+    row_step = height + 0.012
+    high = ceiling - rows * row_step - 0.01
+    low = high - EPISODE_LANE_HEIGHT
+    marks.lane = (low, high)
+    _keep_data_below(ax, low - 0.03)
+    x0, x1 = ax.get_xlim()
+    span = (x1 - x0) or 1.0
+    minimum = span / 400.0  # a one-sample episode stays visible
+    ax.broken_barh(
+        [((a - t0_ns) / 1e9, max((b - a) / 1e9, minimum)) for a, b in spans],
+        (low, high - low),
+        transform=ax.get_xaxis_transform(),
+        color="#8c6d1f",
+        lw=0,
+        alpha=0.8,
+    )
+    marks.drawn = len(spans)
+    starts = [((mine[i]["start_ns"] - t0_ns) / 1e9 - x0) / span for i in order]
+    for start, text, spot in zip(starts, texts, place_labels(starts, widths, rows)):
+        if spot is None:
+            continue
+        x, row = spot
+        marks.labels.append(
+            ax.annotate(
+                text,
+                xy=(min(max(start, 0.0), 1.0), high),
+                xycoords="axes fraction",
+                xytext=(x, high + 0.01 + row * row_step),
+                textcoords="axes fraction",
+                fontsize=7,
+                va="bottom",
+                ha="left",
+                color="#5a3d00",
+                arrowprops={
+                    "arrowstyle": "-",
+                    "color": "#8c6d1f",
+                    "lw": 0.6,
+                    "shrinkA": 0,
+                    "shrinkB": 0,
+                    "relpos": (0.0, 0.0),  # from the label's lower left corner
+                },
+                annotation_clip=False,
+            )
         )
+    marks.labelled = len(marks.labels)
+    if marks.drawn > marks.labelled:
+        ax.text(
+            0.995,
+            low - 0.01,
+            f"{marks.drawn - marks.labelled} of {marks.drawn} episodes not labelled"
+            " (imufdi report -v lists them)",
+            transform=ax.transAxes,
+            fontsize=6.5,
+            ha="right",
+            va="top",
+            color="#5a3d00",
+        )
+        _keep_data_below(ax, low - 0.03 - height)
+    return marks
+
+
+def _keep_data_below(ax: Any, fraction: float) -> None:
+    """Raise the panel's top so that its current data range ends at ``fraction`` of its
+    height (linear or log axis); nothing when it already does."""
+    bottom, top = ax.get_ylim()
+    data_top = ax.dataLim.y1
+    if not np.isfinite(data_top) or fraction <= 0.05:
+        return
+    if ax.get_yscale() == "log" and bottom > 0 and data_top > 0:
+        now = (np.log(data_top) - np.log(bottom)) / (np.log(top) - np.log(bottom))
+        if now > fraction:
+            ax.set_ylim(bottom, bottom * (data_top / bottom) ** (1.0 / fraction))
+    else:
+        now = (data_top - bottom) / ((top - bottom) or 1.0)
+        if now > fraction:
+            ax.set_ylim(bottom, bottom + (data_top - bottom) / fraction)
 
 
 def use_log_scale(statistic: np.ndarray, threshold: np.ndarray) -> bool:
@@ -322,22 +535,32 @@ def _statistic_panel(
         floor = max(positive.min(), positive.max() * 1e-6)
         ax.set_yscale("log")
         stat = np.where(np.isfinite(stat), np.maximum(stat, floor), np.nan)
-    _line(ax, t, stat, columns, lw=0.8, color=colour, label="statistic")
+    _shade_calibration(ax, report, entry, origin_ns(report, entry), label=True)
+    dense = t.size > 2 * columns
+    _line(
+        ax,
+        t,
+        stat,
+        columns,
+        lw=0.8,
+        color=colour,
+        alpha=0.45 if dense else 1.0,
+        label="statistic (min-max per px)" if dense else "statistic",
+    )
+    if dense:  # the envelope of a long log is a band: its median per pixel on top
+        bt, mid = _binned_median(t, stat, columns // 2)
+        ax.plot(bt, mid, lw=0.9, color=colour, label="median per px")
     thr = np.where(np.isfinite(thr), thr, np.nan)
     _line(ax, t, thr, columns, color="k", ls="--", lw=1.0, label="threshold")
-    alarms = np.flatnonzero(entry.alarm) if entry.alarm.size else np.zeros(0, int)
-    if alarms.size:
-        ax.plot(
-            t[alarms],
-            np.full(alarms.size, 0.015),
-            "|",
-            transform=ax.get_xaxis_transform(),
-            color=ALARM_COLOUR,
-            ms=9,
-            mew=1.0,
-            label=f"alarm ({100.0 * alarms.size / max(entry.alarm.size, 1):.1f} % of samples)",
-        )
-    _mark_episodes(ax, report, entry, origin_ns(report, entry))
+    runs = _alarm_runs(ax, t, entry.alarm) if entry.alarm.size else 0
+    if runs:
+        share = 100.0 * np.count_nonzero(entry.alarm) / max(entry.alarm.size, 1)
+        ax.plot([], [], lw=5, color=ALARM_COLOUR, label=f"alarm ({share:.1f} % of samples)")
+    if any(
+        ep["detector"] == entry.detector and ep["sensor_type"] == entry.sensor_type
+        for ep in report.episodes
+    ):
+        ax.plot([], [], lw=5, color="#8c6d1f", alpha=0.8, label="episode")
     unit = "log scale" if log else "linear"
     ax.set_ylabel(f"statistic, dimensionless\n({unit})", fontsize=8)
     described = _described(report, entry, "statistic")
@@ -345,8 +568,42 @@ def _statistic_panel(
     ax.set_title(title, fontsize=10, color=colour, loc="left")
     if described:
         ax.set_title(_wrap(described, 60), fontsize=7, loc="right", color="0.35")
-    _headroom(ax)
-    ax.legend(loc="upper left", fontsize=7, framealpha=0.85, ncol=2)
+    _headroom(ax, STATISTIC_HEADROOM)
+    ax.legend(loc="upper left", fontsize=7, framealpha=0.85, ncol=4)
+
+
+def _binned_median(t: np.ndarray, y: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """The median of ``y`` (NaN ignored) in ``bins`` runs of equal sample count, at each
+    run's middle time; NaN for a run without a value. Shapes (m,), m <= bins."""
+    n = y.size
+    per = max(1, -(-n // max(bins, 1)))
+    runs = -(-n // per)
+    padded = np.full(runs * per, np.nan)
+    padded[:n] = y
+    rows = padded.reshape(runs, per)
+    starts = np.arange(runs) * per
+    middle = t[np.minimum(starts + per // 2, n - 1)]
+    ok = np.isfinite(rows).any(axis=1)
+    out = np.full(runs, np.nan)
+    if ok.any():
+        mid = _row_quantiles(rows[ok])[1]
+        out[ok] = mid
+    return middle, out
+
+
+def _binned_quantiles(
+    t: np.ndarray, y: np.ndarray, bins: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """10th percentile, median and 90th percentile of ``y`` in ``bins`` runs of equal
+    sample count, at each run's middle time (NaN where a run has no value)."""
+    n = y.size
+    per = max(1, -(-n // max(bins, 1)))
+    runs = -(-n // per)
+    padded = np.full(runs * per, np.nan)
+    padded[:n] = y
+    low, mid, high = _row_quantiles(padded.reshape(runs, per))
+    middle = t[np.minimum(np.arange(runs) * per + per // 2, n - 1)]
+    return middle, low, mid, high
 
 
 def _isolation_panel(
@@ -354,6 +611,7 @@ def _isolation_panel(
 ) -> None:
     scores = np.asarray(entry.scores, float)
     _shade_faults(ax, t, entry, label=False)
+    _shade_calibration(ax, report, entry, origin_ns(report, entry), label=False)
     ax.set_title(
         f"{entry.detector} · {entry.sensor_type}: isolation scores", fontsize=10, loc="left"
     )
@@ -368,8 +626,9 @@ def _isolation_panel(
         positive = scores[np.isfinite(scores) & (scores > 0)]
         scores = np.where(
             np.isfinite(scores),
-            # noise dips below the 1st percentile carry no information on a log axis
-            np.maximum(scores, float(np.percentile(positive, 1.0))),
+            # dips below the 10th percentile (a score crossing zero) carry no information
+            # on a log axis and would fill the panel down to them
+            np.maximum(scores, float(np.percentile(positive, 10.0))),
             np.nan,
         )
     others = [j for j in range(scores.shape[1]) if j not in chosen]
@@ -396,17 +655,32 @@ def _isolation_panel(
         else:
             colour = palette[(k - n_truth) % len(palette)]
             style, width = styles[((k - n_truth) % 3) + 1], 0.9
-        _line(
-            ax,
-            t,
-            scores[:, j],
-            columns,
-            lw=width,
-            ls=style,
-            color=colour,
-            label=f"{entry.sensor_ids[j]}" + (" (faulty, truth)" if faulty else " (isolated)"),
-            zorder=3 if faulty else 2,
-        )
+        name = f"{entry.sensor_ids[j]}" + (" (faulty, truth)" if faulty else " (isolated)")
+        if t.size > 2 * ISOLATION_BINS:  # a bin's median and 10-90 % band: readable
+            bt, _, mid, _ = _binned_quantiles(t, scores[:, j], ISOLATION_BINS)
+            name += f", median of {-(-t.size // ISOLATION_BINS)}"
+            ax.plot(
+                bt,
+                mid,
+                lw=width + 0.3,
+                ls=style,
+                color=colour,
+                label=name,
+                zorder=3 if faulty else 2,
+                drawstyle="steps-mid",
+            )
+        else:
+            _line(
+                ax,
+                t,
+                scores[:, j],
+                columns,
+                lw=width,
+                ls=style,
+                color=colour,
+                label=name,
+                zorder=3 if faulty else 2,
+            )
     described = _described(report, entry, "scores")
     label = described or "isolation score"
     if flip:
@@ -442,6 +716,13 @@ def figure_report(report: Report) -> Any:
             ax.tick_params(labelsize=8)
             ax.grid(True, which="major", alpha=0.25)
     fig.suptitle(f"imufdi report: {report.source}", fontsize=11)
+    # the episode labels are placed on the laid-out panels (their width in pixels)
+    engine = fig.get_layout_engine()
+    if engine is not None:
+        engine.execute(fig)
+    renderer = fig.canvas.get_renderer()
+    for row, entry in enumerate(entries):
+        _mark_episodes(axes[row][0], report, entry, origin_ns(report, entry), renderer)
     return fig
 
 

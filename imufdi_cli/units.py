@@ -4,8 +4,11 @@
 Supported grammar: a float, optional white space, then a unit expression made of unit
 symbols joined by ``*`` or ``/`` with optional integer powers (``^2`` or ``2``), e.g.
 ``deg/s^2``, ``m/s/s``, ``g/s``, ``rad/s``, ``deg/h``, ``uT``, ``kHz``, and a count per
-unit of time such as ``1/h`` or ``5/min`` (a frequency). A bare number is taken as SI for
-the requested dimension.
+unit of time such as ``1/h`` or ``5/min`` (a frequency). Units as people type them are
+read too: ``°/s``, ``m/s²``, ``µT`` (micro sign or Greek mu), ``%`` (0.01) and ``·``. A
+bare number is taken as SI for the requested dimension. ``g`` is standard gravity and
+``G`` gauss (as magnetometer datasheets write it); ``16G`` where an acceleration is
+expected is refused with that hint.
 
 Dimensions are vectors over (m, s, rad, T); radians are kept as a dimension so that an
 angular rate cannot be typed where an acceleration is expected.
@@ -66,9 +69,28 @@ _UNITS: Final[dict[str, tuple[float, _Dim]]] = {
     "mT": (1e-3, (0, 0, 0, 1)),
     "uT": (1e-6, (0, 0, 0, 1)),
     "nT": (1e-9, (0, 0, 0, 1)),
-    "G": (1e-4, (0, 0, 0, 1)),  # gauss
+    "G": (1e-4, (0, 0, 0, 1)),  # gauss (magnetometer datasheets); g is standard gravity
     "mG": (1e-7, (0, 0, 0, 1)),
+    "percent": (0.01, (0, 0, 0, 0)),
 }
+
+#: how people type units -> the ASCII symbols above (``°/s``, ``m/s²``, ``µT``, ``%``)
+_TYPED: Final[tuple[tuple[str, str], ...]] = (
+    ("°", "deg"),
+    ("µ", "u"),  # micro sign
+    ("μ", "u"),  # Greek mu
+    ("²", "^2"),
+    ("³", "^3"),
+    ("·", "*"),
+    ("%", "percent"),
+)
+
+
+def _ascii_unit(unit: str) -> str:
+    for typed, symbol in _TYPED:
+        unit = unit.replace(typed, symbol)
+    return unit
+
 
 _NUMBER = re.compile(r"^\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*(.*?)\s*$")
 _FACTOR = re.compile(r"^([A-Za-z]+)(?:\^?([+-]?\d+))?$")
@@ -141,7 +163,7 @@ def parse_quantity(text: str | float | int, dimension: str, *, name: str = "valu
             f"{name}: cannot read {text!r} as a number with a unit (e.g. {example(dimension)})"
         )
     value = float(match.group(1))
-    unit = match.group(2)
+    unit = _ascii_unit(match.group(2))
     if not unit:
         return value
     if unit.startswith("/"):  # "1/h", "5/min": a count per unit of time
@@ -150,7 +172,15 @@ def parse_quantity(text: str | float | int, dimension: str, *, name: str = "valu
     if dim != DIMENSIONS[dimension]:
         label = dimension.replace("_", " ")
         article = "an" if label[0] in "aeiou" else "a"
-        raise UnitError(f"{name}: {text!r} is not {article} {label} (e.g. {example(dimension)})")
+        hint = ""
+        if re.search(r"(^|[^A-Za-z])m?G([^A-Za-z]|$)", unit) and dimension in (
+            "acceleration",
+            "jerk",
+        ):
+            hint = "; G is gauss (a magnetic field): write g for standard gravity (16g)"
+        raise UnitError(
+            f"{name}: {text!r} is not {article} {label} (e.g. {example(dimension)}){hint}"
+        )
     return value * factor
 
 
@@ -158,14 +188,14 @@ _EXAMPLES: Final[dict[str, str]] = {
     "time": "2.5s, 500ms",
     "frequency": "100Hz, 1kHz, 1/h, 5/min",
     "angle": "30deg, 0.5rad",
-    "angular_rate": "0.9deg/s, 0.01rad/s",
+    "angular_rate": "0.9deg/s, 0.9°/s, 0.01rad/s",
     "angular_acceleration": "10deg/s^2, 3e-3rad/s^2",
-    "acceleration": "0.1g, 0.5m/s^2",
+    "acceleration": "0.1g, 0.5m/s^2, 0.5m/s²",
     "jerk": "0.01g/s, 0.1m/s^3",
-    "magnetic_field": "50uT, 0.5G",
+    "magnetic_field": "50uT, 50µT, 0.5G",
     "magnetic_rate": "1uT/s",
     "length": "0.05m, 30mm",
-    "dimensionless": "1.5",
+    "dimensionless": "1.5, 150%",
 }
 
 
@@ -203,3 +233,91 @@ def parse_time_range(text: str, *, name: str = "window") -> tuple[float, float |
     if start < 0 or (end is not None and end <= start):
         raise UnitError(f"{name}: {text!r} must satisfy 0 <= START < END")
     return start, end
+
+
+class UnixTime(float):
+    """An absolute time, seconds since 1970-01-01 UTC, among times that are otherwise
+    seconds from the log start (``--start 2023-11-14T22:13:30Z``, ``--start 1700000010``).
+    A float, so a window holding one is still ``(start_s, end_s)``; resolve it against the
+    log's first sample with :func:`from_log_start`."""
+
+    __slots__ = ()
+
+
+#: a bare number at least this large is a Unix time (2001-09-09), not seconds from the
+#: log start: no log lasts 31 years, and a viewer's times are Unix times
+UNIX_TIME_MIN_S: Final[float] = 1e9
+
+_ISO = re.compile(
+    r"^\d{4}-\d{2}-\d{2}[T ]\d{2}:\d{2}(:\d{2}(\.\d+)?)?(Z|[+-]\d{2}(:?\d{2})?)?$", re.IGNORECASE
+)
+
+
+def parse_time_point(text: str, *, name: str = "time") -> float:
+    """A point in a log: seconds from its start (``30``, ``30s``, ``2min``), an ISO 8601
+    UTC time (``2023-11-14T22:13:30Z``, ``+01:00`` offsets too) or a Unix time (a bare
+    number >= 1e9, e.g. ``1700000010.5``); the last two as :class:`UnixTime`.
+
+    Raises
+    ------
+    UnitError
+        Not one of these forms, or an ISO time without a time zone.
+    """
+    stripped = str(text).strip()
+    if _ISO.match(stripped):
+        from datetime import datetime
+
+        if not re.search(r"(Z|[+-]\d{2}(:?\d{2})?)$", stripped, re.IGNORECASE):
+            raise UnitError(
+                f"{name}: {text!r} has no time zone; add Z for UTC (e.g."
+                f" {stripped}Z) or an offset such as +01:00"
+            )
+        try:
+            moment = datetime.fromisoformat(stripped.replace("z", "Z"))
+        except ValueError as err:
+            raise UnitError(f"{name}: {text!r} is not a valid ISO 8601 time ({err})") from None
+        return UnixTime(moment.timestamp())
+    try:
+        bare = float(stripped)
+    except ValueError:
+        bare = None
+    if bare is not None and math.isfinite(bare) and bare >= UNIX_TIME_MIN_S:
+        return UnixTime(bare)
+    try:
+        return parse_quantity(stripped, "time", name=name)
+    except UnitError:
+        raise UnitError(
+            f"{name}: cannot read {text!r} as a time; give seconds from the log start (30s,"
+            " 2min), an ISO 8601 UTC time (2023-11-14T22:13:30Z) or a Unix time"
+            " (1700000010)"
+        ) from None
+
+
+def from_log_start(value: float, origin_ns: int) -> float:
+    """Seconds from the log start of a time point: ``value`` itself, or a
+    :class:`UnixTime` minus the log's first sample ``origin_ns`` (ns since the epoch)."""
+    if isinstance(value, UnixTime):
+        return float(value) - origin_ns * 1e-9
+    return float(value)
+
+
+def window_from_log_start(
+    window: tuple[float, float | None], origin_ns: int
+) -> tuple[float, float | None]:
+    """``(start_s, end_s)`` with every :class:`UnixTime` resolved (:func:`from_log_start`)."""
+    start, end = window
+    return from_log_start(start, origin_ns), (
+        None if end is None else from_log_start(end, origin_ns)
+    )
+
+
+def utc_iso(t_ns: int) -> str:
+    """A time in ns since the epoch as ISO 8601 UTC: ``2023-11-14T22:13:20Z``, with
+    milliseconds when it is not a whole second (``...:20.125Z``)."""
+    from datetime import datetime, timezone
+
+    seconds, rest = divmod(int(t_ns), 1_000_000_000)
+    text = datetime.fromtimestamp(seconds, tz=timezone.utc).strftime("%Y-%m-%dT%H:%M:%S")
+    if rest:
+        text += f".{rest // 1_000_000:03d}"
+    return text + "Z"

@@ -404,10 +404,13 @@ def select_rows(
             origin = int(origin_ns)
         else:
             origin = int(t_ns[0]) if t_ns.size else 0
+        from imufdi_cli.units import window_from_log_start
+
+        start_s, end_s = window_from_log_start(window, origin)
         rel = (t_ns - origin) / 1e9
-        keep &= rel >= window[0]
-        if window[1] is not None:
-            keep &= rel < window[1]
+        keep &= rel >= start_s
+        if end_s is not None:
+            keep &= rel < end_s
     validity = record.get("validity")
     counts = validity.get("types", {}).get(sensor_type) if isinstance(validity, Mapping) else None
     if not isinstance(counts, Mapping):

@@ -279,7 +279,7 @@ def _campaign_plot_curves(summary: object, out: object) -> None:
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item: pytest.Item) -> None:
-    """A campaign draws ``detection_probability.png`` at its end (matplotlib, 0.3-0.9 s of
+    """A campaign draws ``detection.png`` at its end (matplotlib, 0.3-0.9 s of
     CPU per campaign), which only the tests marked ``campaign_figure`` look at; the others
     (resume, locks, gates, failures, summaries) run a driver that skips the figure. The
     figure itself is tested in ``campaign/test_plots.py`` and, drawn by the driver, in the

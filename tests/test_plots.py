@@ -160,7 +160,7 @@ def test_long_report_figure_draws_the_envelope_and_the_same_shading():
     fig = plots.figure_report(report)
     try:
         stat_ax, iso_ax = fig.axes
-        line = next(x for x in stat_ax.get_lines() if x.get_label() == "statistic")
+        line = next(x for x in stat_ax.get_lines() if x.get_label().startswith("statistic"))
         assert line.get_xdata().size <= 3 * plots.ROW_WIDTH_IN * plots.DPI + 2
         assert np.max(line.get_ydata()) == 1e4
         assert stat_ax.get_yscale() == "log"
@@ -199,3 +199,94 @@ def test_save_figure_writes_the_same_file_as_savefig(tmp_path):
         finally:
             plt.close(fig)
     assert (tmp_path / "once.png").read_bytes() == (tmp_path / "savefig.png").read_bytes()
+
+
+def test_place_labels_never_overlap_nor_leave_the_panel():
+    rng = np.random.default_rng(8)
+    starts = rng.uniform(-0.1, 1.1, 60)
+    widths = rng.uniform(0.05, 0.4, 60)
+    spots = plots.place_labels(starts, widths, rows=2, gap=0.01)
+    placed = [(x, row, w) for spot, w in zip(spots, widths) if spot for x, row in [spot]]
+    assert placed and any(s is None for s in spots)  # 60 labels do not fit in 2 rows
+    for x, _, w in placed:
+        assert 0.0 <= x and x + w <= 1.0 + 1e-12
+    anchors = {
+        (x, row): min(max(a, 0.0), 1.0)
+        for spot, a in zip(spots, starts)
+        if spot
+        for x, row in [spot]
+    }
+    for i, (x, row, w) in enumerate(placed):
+        for y, other_row, v in placed[i + 1 :]:
+            assert row != other_row or x + w + 0.01 <= y + 1e-12 or y + v + 0.01 <= x + 1e-12
+        # no leader line (from a higher row down to the lane) crosses this label
+        for (_, other_row), anchor in anchors.items():
+            assert other_row <= row or not x <= anchor <= x + w
+    # the first (most important) label always gets the first row, at its start when it fits
+    assert spots[0] == (min(max(starts[0], 0.0), 1.0 - widths[0]), 0)
+    assert plots.place_labels([0.2], [1.5], rows=2) == [None]  # wider than the panel
+
+
+@pytest.mark.draws  # run early, on one worker (tests/conftest.py)
+def test_report_figure_shades_calibration_and_labels_episodes_without_overprinting():
+    pytest.importorskip("matplotlib")
+    n, k = 4000, 6
+    rng = np.random.default_rng(9)
+    scores = rng.uniform(1.0, 1.5, size=(n, k))
+    alarm = np.zeros(n, bool)
+    episodes, spans = [], []
+    for i, start in enumerate(range(300, 3900, 120)):  # 30 episodes, one every 1.2 s
+        alarm[start : start + 40] = True
+        ep = {
+            "detector": "pca-parity",
+            "sensor_type": "gyro",
+            "start_ns": start * 10_000_000,
+            "end_ns": (start + 39) * 10_000_000,
+            "sensors": [f"imu{i % k}.gyro.x"],
+            "fault_class": "step",
+            "fits": [{"model": "step", "size": 0.01, "low": 0.009, "high": 0.011,
+                      "size_name": "amp"}],
+        }  # fmt: skip
+        episodes.append(ep)
+        spans.append((ep["start_ns"], ep["end_ns"]))
+    e = entry(scores, np.where(alarm, 1, -1), alarm, np.zeros((n, k), bool))
+    report = Report(
+        source="synthetic", has_truth=False, faults=[], entries=[e], notes=[], t0_ns=0,
+        episodes=episodes, episode_spans={("pca-parity", "gyro"): spans},
+        records={"pca-parity": {"calibration_window_ns": [0, 2_000_000_000], "t0_ns": 0}},
+    )  # fmt: skip
+    fig = plots.figure_report(report)
+    try:
+        renderer = fig.canvas.get_renderer()
+        fig.draw(renderer)
+        stat_ax, iso_ax = fig.axes
+        panel = stat_ax.get_window_extent(renderer)
+        labels = [t for t in stat_ax.texts if ": step " in t.get_text()]
+        assert 3 <= len(labels) < 30  # as many as fit, not all 30
+        from matplotlib.text import Text
+
+        boxes = [Text.get_window_extent(t, renderer) for t in labels]  # the text, not its leader
+        for i, a in enumerate(boxes):
+            assert panel.x0 <= a.x0 and a.x1 <= panel.x1 and panel.y0 <= a.y0 and a.y1 <= panel.y1
+            for b in boxes[i + 1 :]:
+                assert not a.overlaps(b), (a, b)
+        legend = stat_ax.get_legend().get_window_extent(renderer)
+        assert all(not legend.overlaps(b) for b in boxes)
+        note = [t for t in stat_ax.texts if "episodes not labelled" in t.get_text()]
+        assert note and note[0].get_text().startswith(f"{30 - len(labels)} of 30")
+        # the data stay below the episode lane
+        lane_px = min(b.y0 for b in boxes)
+        line = next(x for x in stat_ax.get_lines() if x.get_label().startswith("statistic"))
+        top = stat_ax.transData.transform((0, np.nanmax(line.get_ydata())))[1]
+        assert top < lane_px
+        # the calibration window, hatched on both panels
+        for ax in (stat_ax, iso_ax):
+            hatched = [p for p in ax.patches if p.get_hatch() == "///"]
+            assert len(hatched) == 1
+            assert hatched[0].get_x() == 0.0 and hatched[0].get_width() == 2.0
+        assert any("calibration" in str(h.get_label()) for h in stat_ax.get_legend().legend_handles)
+        # alarms as runs: 30 bars, not 1200 markers
+        runs = [c for c in stat_ax.collections if len(c.get_paths()) == 30]
+        assert runs
+    finally:
+        plots.pyplot().close(fig)

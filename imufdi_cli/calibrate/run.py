@@ -296,10 +296,13 @@ def calibrate_file(
         fields[s] = None if data is None else log_array.calibrate_triads(data, s, undo=True)
     raw = ImuBlock(t_ns=block.t_ns, **fields)
     if window is not None:
+        from imufdi_cli.units import window_from_log_start
+
+        start_s, end_s = window_from_log_start(window, int(raw.t_ns[0]) if len(raw) else 0)
         rel = raw.t_s()
-        keep = rel >= window[0]
-        if window[1] is not None:
-            keep &= rel < window[1]
+        keep = rel >= start_s
+        if end_s is not None:
+            keep &= rel < end_s
         raw = raw.mask(keep)
     result = calibrate_block(
         array.with_calibration(None),

@@ -42,7 +42,7 @@ class CampaignResult:
 
 
 #: Files a campaign writes in its results directory (besides runs/<key>.json).
-RESULT_FILES = ("runs.csv", "summary.json", "summary.md", "detection_probability.png")
+RESULT_FILES = ("runs.csv", "summary.json", "summary.md", "detection.png")
 
 
 #: Lock file in the results directory: one campaign at a time per directory.

@@ -1,22 +1,28 @@
-"""The campaign figure: detection probability against fault amplitude.
+"""The campaign figure: missed-alarm rate and detection delay at a matched false-alarm
+level, against fault amplitude.
 
-``detection_probability.png`` has one panel per base x fault (spec without its amplitude)
-x scored sensor type. Each detector configuration is one colour in every panel (the
-detector's colour, :data:`imufdi_cli.colours.DETECTOR_COLOURS`, in shades for its parameter sets) and one
-marker; its per-event detection probability is a solid line, the per-sample detection
-rate 1 - MAR a dashed one. Curves that coincide (several detectors at 100 %) stay visible:
-each configuration is shifted sideways by a small fixed step and drawn with its own
-marker, larger markers behind smaller ones. Amplitudes are on the spec's units (``deg/s``
-is drawn as °/s), detection figures in %. One legend for the whole figure, with the
-parameters as ``pca-parity α=0.001`` (no JSON).
+``detection.png`` has one row per base x fault (spec without its amplitude) x scored
+sensor type, and two panels in it: **MAR** (the per-sample missed-alarm rate; detection
+rate = 1 - MAR, the papers' definition) and the mean **detection delay** at decision time,
+both with every detector at the same false-alarm level, so that a detector cannot look
+better by alarming more. The level is the false-alarm budget (``mar_at_budget``,
+``detection_delay_s_at_budget`` at ``target_budget_per_hour``) when the summary has it, else
+the matched FAR (``mar_at_far``, ``detection_delay_at_far_s`` at ``target_far``):
+:func:`headline_metrics` chooses. Each detector configuration is one colour in every panel
+(the detector's colour, :data:`imufdi_cli.colours.DETECTOR_COLOURS`, in shades for its
+parameter sets) and one marker; configurations that coincide stay visible (shifted
+sideways by a small fixed step, larger markers behind smaller ones). Amplitudes are on the
+spec's units (``deg/s`` is drawn as °/s). One legend for the whole figure, below the
+panels and inside the canvas (as many columns as fit its width), with the parameters as
+``pca-parity α=0.001`` (no JSON).
 """
 
 from __future__ import annotations
 
 import json
-import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -112,14 +118,111 @@ def _x_label(model: str, unit: str) -> str:
     return f"{name}, {pretty_unit(unit)}"
 
 
+#: file name of the campaign figure in the results directory
+FIGURE = "detection.png"
+
+
+@dataclass(frozen=True)
+class Headline:
+    """What the campaign figure plots: the MAR and delay metrics and their level."""
+
+    mar: str
+    delay: str
+    level: str  # e.g. "matched FAR 1 %", "a budget of 1 false episode/h"
+
+
+def headline_metrics(summary: Mapping[str, Any]) -> Headline:
+    """The budget metrics (``mar_at_budget``, ``detection_delay_s_at_budget``) when the
+    summary's groups have them defined (a matched budget), else the matched-FAR ones (``mar_at_far``,
+    ``detection_delay_at_far_s``)."""
+    groups = summary.get("groups") or []
+    matched = (g.get("mar_at_budget") for g in groups)
+    if any(isinstance(m, Mapping) and m.get("mean") is not None for m in matched):
+        budgets = sorted(
+            {float(g["target_budget_per_hour"]) for g in groups if g.get("target_budget_per_hour")}
+        )
+        level = (
+            f"a budget of {budgets[0]:g} false episodes/h" if budgets else "the false-alarm budget"
+        )
+        return Headline("mar_at_budget", "detection_delay_s_at_budget", level)
+    targets = sorted({float(g["target_far"]) for g in groups if g.get("target_far") is not None})
+    level = f"matched FAR {100 * targets[0]:g} %" if targets else "matched FAR"
+    return Headline("mar_at_far", "detection_delay_at_far_s", level)
+
+
+def headline_curves(
+    summary: Mapping[str, Any], metric: str
+) -> dict[tuple[str, str, str], list[dict[str, Any]]]:
+    """Curves of one metric against amplitude, per panel (base, fault, sensor type): one
+    curve per detector configuration, points in SI amplitude order with the spec's own
+    amplitude value and unit (as :func:`~imufdi_cli.campaign.summary.detection_curves`)."""
+    from imufdi_cli.campaign.summary import _amplitude_number, _amplitude_si
+
+    curves: dict[tuple[str, ...], dict[str, Any]] = {}
+    for g in summary.get("groups") or []:
+        stat = g.get(metric)
+        if not isinstance(stat, Mapping):
+            continue
+        fault = g.get("fault", g["model"])
+        params = json.dumps(g["params"], sort_keys=True)
+        key = (g["base"], fault, g["sensor_type"], g["detector"], params)
+        curve = curves.setdefault(
+            key,
+            {
+                "base": g["base"],
+                "fault": fault,
+                "model": g["model"],
+                "sensor_type": g["sensor_type"],
+                "detector": g["detector"],
+                "params": g["params"],
+                "points": [],
+            },
+        )
+        value, unit = _amplitude_number(g["amplitude"])
+        curve["points"].append(
+            {
+                "amplitude": g["amplitude"],
+                "amplitude_si": _amplitude_si(g["amplitude"], g["sensor_type"]),
+                "amplitude_value": value,
+                "amplitude_unit": unit,
+                "mean": stat.get("mean"),
+                "std": stat.get("std"),
+                "n": stat.get("n"),
+            }
+        )
+    panels: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
+    for where, curve in sorted(curves.items()):
+        curve["points"].sort(key=lambda p: (p["amplitude_si"] is None, p["amplitude_si"] or 0.0))
+        panels.setdefault((where[0], where[1], where[2]), []).append(curve)
+    return panels
+
+
 def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
-    """Write ``detection_probability.png`` in ``out`` (needs matplotlib: the plot extra).
+    """Write :data:`FIGURE` in ``out`` (needs matplotlib: the plot extra); nothing when the
+    summary has neither headline metric (a campaign without ``mar_at_far``).
 
     Raises
     ------
     UsageError
         matplotlib is not installed.
     """
+    fig = figure_curves(summary)
+    if fig is None:
+        return
+    import matplotlib.pyplot as plt
+
+    from imufdi_cli.plots import save_figure  # the layout once, not a draw for it
+
+    try:
+        with atomic_path(out / FIGURE, suffix=".png") as tmp:
+            save_figure(fig, tmp, 100)  # matplotlib takes the format from the extension
+    finally:
+        plt.close(fig)
+
+
+def figure_curves(summary: Mapping[str, Any]) -> Any:
+    """The campaign figure (a matplotlib Figure, laid out, not saved), or None when there
+    is nothing to draw."""
     try:
         import matplotlib
 
@@ -128,61 +231,65 @@ def plot_curves(summary: Mapping[str, Any], out: Path) -> None:
         from matplotlib.lines import Line2D
     except ImportError as err:
         raise UsageError("plots need matplotlib") from err
-    rates = _detection_rates(summary)
-    panels: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
-    for c in summary.get("curves", []):
-        panels.setdefault((c["base"], c.get("fault", c["model"]), c["sensor_type"]), []).append(c)
-    if not panels:
-        return
-    styles = _styles(summary.get("curves", []))
-    columns = min(2, len(panels))
-    rows = math.ceil(len(panels) / columns)
+    headline = headline_metrics(summary)
+    mar = headline_curves(summary, headline.mar)
+    if not mar:
+        return None
+    delay = headline_curves(summary, headline.delay)
+    styles = _styles([c for curves in mar.values() for c in curves])
+    rows = len(mar)
     fig, axes = plt.subplots(
-        rows,
-        columns,
-        figsize=(6.2 * columns, 3.9 * rows + 0.9),
-        squeeze=False,
-        constrained_layout=True,
+        rows, 2, figsize=(12.4, 3.6 * rows + 1.3), squeeze=False, constrained_layout=True
     )
-    for ax, ((base, fault, sensor_type), curves) in zip(axes.flat, sorted(panels.items())):
-        _panel(ax, base, fault, sensor_type, curves, styles, rates)
-    for ax in list(axes.flat)[len(panels) :]:
-        ax.set_visible(False)
+    for (ax_mar, ax_delay), (key, curves) in zip(axes, sorted(mar.items())):
+        base, fault, sensor_type = key
+        _panel(ax_mar, curves, styles, percent=True)
+        ax_mar.set_ylabel("MAR, % of faulty samples")
+        ax_mar.set_ylim(-3, 104)
+        ax_mar.set_title(f"{base}\n{fault} · scored on {sensor_type}: MAR", fontsize=9)
+        if key in delay:
+            _panel(ax_delay, delay[key], styles, percent=False)
+            ax_delay.set_ylabel("detection delay, s (decision time)")
+            ax_delay.set_title(
+                f"{base}\n{fault} · scored on {sensor_type}: detection delay", fontsize=9
+            )
+        else:
+            ax_delay.text(
+                0.5,
+                0.5,
+                f"no {headline.delay} in this campaign's metrics",
+                ha="center",
+                va="center",
+                transform=ax_delay.transAxes,
+                fontsize=9,
+            )
+            ax_delay.set_xticks([])
+            ax_delay.set_yticks([])
     handles = [
         Line2D([], [], color=s["color"], marker=s["marker"], markersize=s["size"], label=label)
         for label, s in styles.items()
     ]
-    handles += [
-        Line2D([], [], color="0.3", linestyle="-", label="detection probability (per fault)"),
-        Line2D([], [], color="0.3", linestyle="--", label="1 − MAR (per sample)"),
-    ]
-    fig.legend(
-        handles=handles,
-        loc="outside lower center",
-        ncols=min(4, len(handles)),
-        fontsize=9,
-        frameon=False,
+    fig.suptitle(
+        f"Campaign {summary.get('name', '')}: missed alarms and detection delay at"
+        f" {headline.level}, against fault amplitude"
     )
-    fig.suptitle(f"Campaign {summary.get('name', '')}: detection against fault amplitude")
-    from imufdi_cli.plots import save_figure  # the layout once, not a draw for it
-
-    try:
-        with atomic_path(out / "detection_probability.png", suffix=".png") as tmp:
-            save_figure(fig, tmp, 100)  # matplotlib takes the format from the extension
-    finally:
-        plt.close(fig)
+    _legend_inside(fig, handles)
+    return fig
 
 
-def _detection_rates(summary: Mapping[str, Any]) -> dict[tuple[str, ...], float]:
-    """1 - mean MAR per base, detector, params, fault and amplitude (when aggregated)."""
-    rates: dict[tuple[str, ...], float] = {}
-    for g in summary["groups"]:
-        mar = g.get("mar")
-        if mar is not None and mar["mean"] is not None:
-            params = json.dumps(g["params"], sort_keys=True)
-            key = (g["base"], g["detector"], params, g.get("fault", g["model"]), g["amplitude"])
-            rates[key] = 1.0 - mar["mean"]
-    return rates
+def _legend_inside(fig: Any, handles: list[Any]) -> Any:
+    """One legend below the panels with as many columns as fit the figure's width (the
+    text measured by the renderer), so that it is never cut off at the sides."""
+    renderer = fig.canvas.get_renderer()
+    width = fig.get_window_extent(renderer).width
+    for ncols in range(min(5, len(handles)), 0, -1):
+        legend = fig.legend(
+            handles=handles, loc="outside lower center", ncols=ncols, fontsize=9, frameon=False
+        )
+        if legend.get_window_extent(renderer).width <= 0.96 * width or ncols == 1:
+            return legend
+        legend.remove()
+    return None
 
 
 def _styles(curves: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -211,50 +318,41 @@ def _styles(curves: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
 
 def _panel(
     ax: Any,
-    base: str,
-    fault: str,
-    sensor_type: str,
     curves: Sequence[Mapping[str, Any]],
     styles: Mapping[str, Mapping[str, Any]],
-    rates: Mapping[tuple[str, ...], float],
+    *,
+    percent: bool,
 ) -> None:
+    """One metric of every configuration against amplitude, on the spec's units."""
     unit, xs = panel_axis(curves)
     known = [x for values in xs.values() for x in values if x is not None]
     span = (max(known) - min(known)) if len(known) > 1 else 1.0
     span = span or 1.0
+    drawn: list[float] = []
     for index, c in enumerate(curves):
         style = styles[detector_label(c["detector"], c["params"])]
         shift = DODGE * span * (style["rank"] - (style["of"] - 1) / 2.0)
-        params = json.dumps(c["params"], sort_keys=True)
         points = [(x, p) for x, p in zip(xs[index], c["points"]) if x is not None]
         x = np.array([v + shift for v, _ in points], dtype=float)
-        probability = [np.nan if p["mean"] is None else 100.0 * p["mean"] for _, p in points]
-        rate = [
-            100.0 * rates.get((base, c["detector"], params, fault, p["amplitude"]), np.nan)
-            for _, p in points
-        ]
-        common = {
-            "color": style["color"],
-            "marker": style["marker"],
-            "markersize": style["size"],
-            "zorder": 3 + style["rank"],  # later (smaller) markers on top
-        }
-        ax.plot(x, probability, linestyle="-", linewidth=1.6, **common)
+        scale = 100.0 if percent else 1.0
+        y = np.array([np.nan if p["mean"] is None else scale * float(p["mean"]) for _, p in points])
+        drawn.extend(y[np.isfinite(y)].tolist())
         ax.plot(
             x,
-            rate,
-            linestyle="--",
-            linewidth=1.2,
-            markerfacecolor="white",
-            alpha=0.85,
-            **common,
+            y,
+            linestyle="-",
+            linewidth=1.5,
+            color=style["color"],
+            marker=style["marker"],
+            markersize=style["size"],
+            zorder=3 + style["rank"],  # later (smaller) markers on top
         )
     ticks = sorted(set(round(v, 12) for v in known))
     if 0 < len(ticks) <= 8:
         ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
-    model = curves[0].get("model", fault.split(":", 1)[0])
+    model = curves[0].get("model", str(curves[0].get("fault", "")).split(":", 1)[0])
     ax.set_xlabel(_x_label(model, unit))
-    ax.set_ylabel("detected, %")
-    ax.set_ylim(-3, 104)
-    ax.set_title(f"{base}\n{fault} · scored on {sensor_type}", fontsize=9)
-    ax.grid(alpha=0.3)
+    positive = [v for v in drawn if v > 0]
+    if not percent and positive and max(positive) / min(positive) > 30:
+        ax.set_yscale("log")  # delays from milliseconds to seconds
+    ax.grid(alpha=0.3, which="both")

@@ -30,6 +30,7 @@ DEFAULT_METRICS = [
     "isolation_delay_s",
     "detection_probability",
     "mar_at_far",
+    "detection_delay_at_far_s",
 ]
 
 

@@ -33,16 +33,21 @@ def load_all_commands() -> None:
 
 
 def start_end(start: str | None, end: str | None) -> tuple[float, float | None] | None:
-    """``--start``/``--end`` as a window (seconds from the first sample), or None."""
+    """``--start``/``--end`` as a window, or None: seconds from the first sample, or
+    :class:`~imufdi_cli.units.UnixTime` for ISO 8601 and Unix times (resolved against the
+    log's first sample where it is read)."""
     from imufdi_cli.errors import UsageError
-    from imufdi_cli.units import parse_quantity
+    from imufdi_cli.units import UnixTime, parse_time_point
 
     if start is None and end is None:
         return None
-    start_s = parse_quantity(start, "time", name="--start") if start is not None else 0.0
-    end_s = parse_quantity(end, "time", name="--end") if end is not None else None
-    if start_s < 0 or (end_s is not None and end_s <= start_s):
-        raise UsageError(f"--start {start!r} / --end {end!r}: need 0 <= START < END")
+    start_s = parse_time_point(start, name="--start") if start is not None else 0.0
+    end_s = parse_time_point(end, name="--end") if end is not None else None
+    if not isinstance(start_s, UnixTime) and start_s < 0:
+        raise UsageError(f"--start {start!r}: need a time >= 0 s from the log start")
+    comparable = end_s is not None and isinstance(start_s, UnixTime) == isinstance(end_s, UnixTime)
+    if comparable and end_s is not None and end_s <= start_s:
+        raise UsageError(f"--start {start!r} / --end {end!r}: need START < END")
     return start_s, end_s
 
 
@@ -57,6 +62,27 @@ def time_range(text: str, name: str) -> tuple[float, float | None]:
 
     return parse_time_range(text, name=name)
 
+
+def complete_file(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[object]:
+    """Shell completion of a file (or directory) argument: the shell lists the names
+    (``imufdi info s<TAB>``); a rosbag2 directory is an input too."""
+    from click.shell_completion import CompletionItem
+
+    return [CompletionItem(incomplete, type="file")]
+
+
+def complete_dir(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[object]:
+    """Shell completion of a directory argument (campaign results, demo --keep)."""
+    from click.shell_completion import CompletionItem
+
+    return [CompletionItem(incomplete, type="dir")]
+
+
+#: what --start and --end accept (help text)
+TIME_POINT_HELP = (
+    "seconds from the log start (30s, 2min), an ISO 8601 UTC time"
+    " (2023-11-14T22:13:30Z) or a Unix time (1700000010)"
+)
 
 #: options shared by every command that reads Imu topics (info, inject, detect)
 topic_option = click.option(
@@ -81,8 +107,23 @@ EXIT_CODES_TEXT = (
 )
 
 
+class StdoutClosed(Exception):
+    """The reader of our stdout went away (``imufdi simulate -o - | head -c1``).
+
+    Raised in place of the BrokenPipeError a write to stdout gives, so that click's own
+    handling of that error (exit 1, the "gate failed" code) does not apply: the console
+    script ends quietly with exit 0 (docs/guide.md, "Output conventions").
+    """
+
+
 class Group(click.Group):
     """The ``imufdi`` group: commands from :data:`COMMAND_MODULES`, imported on demand."""
+
+    def invoke(self, ctx: click.Context) -> object:
+        try:
+            return super().invoke(ctx)
+        except BrokenPipeError:
+            raise StdoutClosed from None
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(set(self.commands) | set(COMMAND_MODULES))

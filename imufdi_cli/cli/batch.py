@@ -8,13 +8,20 @@ from pathlib import Path
 
 import click
 
-from imufdi_cli.cli.app import cli
+from imufdi_cli.cli.app import cli, complete_dir, complete_file
 from imufdi_cli.cli.ui import UI, common_options, make_console
 
 
 @cli.command()
-@click.argument("spec")
-@click.option("-o", "--output", "results_dir", required=True, help="Results directory.")
+@click.argument("spec", shell_complete=complete_file)
+@click.option(
+    "-o",
+    "--output",
+    "results_dir",
+    required=True,
+    help="Results directory.",
+    shell_complete=complete_dir,
+)
 @click.option(
     "--jobs",
     type=click.IntRange(min=1),
@@ -70,7 +77,9 @@ def campaign(
 
 
 @cli.command()
-@click.option("--keep", "keep_dir", help="Keep the outputs in this directory.")
+@click.option(
+    "--keep", "keep_dir", help="Keep the outputs in this directory.", shell_complete=complete_dir
+)
 @common_options(json_help="Summary: the steps with their commands, times and outputs.")
 def demo(keep_dir: str | None, ui: UI) -> None:
     """Run the whole pipeline on the bundled sample log and print what it did.
@@ -103,7 +112,7 @@ def demo(keep_dir: str | None, ui: UI) -> None:
             "steps": [
                 {
                     "name": step.name,
-                    "command": step.command,
+                    "command_line": step.command,
                     "seconds": step.seconds,
                     "output": step.output,
                 }

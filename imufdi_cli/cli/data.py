@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from imufdi_cli.cli.app import cli, stamps_option, time_source, topic_option
+from imufdi_cli.cli.app import cli, complete_file, stamps_option, time_source, topic_option
 from imufdi_cli.cli.choices import LazyChoice, motions, presets
 from imufdi_cli.cli.plain import PlainTable
 from imufdi_cli.cli.ui import UI, common_options
@@ -31,8 +31,19 @@ from imufdi_cli.cli.ui import UI, common_options
 @click.option("--outliers/--no-outliers", default=None, help="Gyro outliers on or off.")
 @click.option("--chip-bias", help="Constant chip-to-chip gyro bias sigma, e.g. 0.5deg/s.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
-@click.option("-o", "--output", required=True, help="Output MCAP, or - for stdout.")
-@click.option("--capture", "capture", help="Also write a raw serial capture (mpu6500-array).")
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    help="Output MCAP, or - for stdout.",
+    shell_complete=complete_file,
+)
+@click.option(
+    "--capture",
+    "capture",
+    help="Also write a raw serial capture (mpu6500-array).",
+    shell_complete=complete_file,
+)
 @click.option(
     "--corrupt/--no-corrupt",
     default=False,
@@ -114,15 +125,26 @@ def simulate(
 
 
 @cli.command()
-@click.argument("capture")
-@click.option("-o", "--output", help="Output MCAP (default: CAPTURE with .mcap), - for stdout.")
+@click.argument("capture", shell_complete=complete_file)
+@click.option(
+    "-o",
+    "--output",
+    help="Output MCAP (default: CAPTURE with .mcap), - for stdout.",
+    shell_complete=complete_file,
+)
 @click.option(
     "--layout",
     default="mpu6500-array",
     show_default=True,
     help="mpu6500-array, csv, or a TOML layout file.",
+    shell_complete=complete_file,
 )
-@click.option("--array", "array_path", help="ArrayConfig TOML (rotations, positions, axes).")
+@click.option(
+    "--array",
+    "array_path",
+    help="ArrayConfig TOML (rotations, positions, axes).",
+    shell_complete=complete_file,
+)
 @click.option("--rate", help="Nominal sample rate when frames carry no timestamp, e.g. 100Hz.")
 @click.option("--gyro-fs", help="Built-in layout gyro full scale: 250, 500, 1000, 2000 (deg/s).")
 @click.option("--accel-fs", help="Built-in layout accel full scale: 2, 4, 8, 16 (g).")
@@ -198,15 +220,26 @@ def ingest_table(capture: str, output: str, rows: Any) -> PlainTable:
 
 
 @cli.command()
-@click.argument("source", metavar="IN")
-@click.option("-o", "--output", help="Output MCAP (default: IN-faults.mcap), - for stdout.")
+@click.argument("source", metavar="IN", shell_complete=complete_file)
+@click.option(
+    "-o",
+    "--output",
+    help="Output MCAP (default: IN-faults.mcap), - for stdout.",
+    shell_complete=complete_file,
+)
 @click.option(
     "--fault",
     "faults",
     multiple=True,
     help="Fault spec, e.g. step:imu0.gyro.x,at=2.5s,amp=0.9deg/s.",
 )
-@click.option("--faults", "fault_files", multiple=True, help="TOML file of [[fault]] tables.")
+@click.option(
+    "--faults",
+    "fault_files",
+    multiple=True,
+    help="TOML file of [[fault]] tables.",
+    shell_complete=complete_file,
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed for random faults.")
 @topic_option
 @stamps_option

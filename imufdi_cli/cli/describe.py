@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from imufdi_cli.cli.app import cli, stamps_option, time_source, topic_option
+from imufdi_cli.cli.app import cli, complete_file, stamps_option, time_source, topic_option
 from imufdi_cli.cli.plain import PLAIN_WIDTH, PlainTable, plain_safe
 from imufdi_cli.cli.ui import UI, common_options
 
@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
 
 @cli.command()
-@click.argument("log")
+@click.argument("log", shell_complete=complete_file)
 @topic_option
 @stamps_option
 @click.option("--strict", is_flag=True, help="A truncated or corrupt input is an error (exit 3).")
@@ -120,6 +120,16 @@ def _head_table(s: dict[str, Any]) -> PlainTable:
         if key in s:
             value = s[key]
             head.add_row(key, f"{value:.6g}" if isinstance(value, float) else str(value))
+    if s.get("start_ns") is not None:
+        if s.get("start_utc"):
+            head.add_row("start (UTC)", s["start_utc"])
+            head.add_row("end (UTC)", s.get("end_utc") or "")
+        else:  # stamps from boot (a flight controller, a capture card)
+            head.add_row(
+                "start (UTC)",
+                "not a calendar time (stamps count from boot or an epoch of the"
+                " device's own); --start/--end take seconds from the log start",
+            )
     if s.get("rate_hz") is not None:
         head.add_row("rate_hz", f"{s['rate_hz']:.6g}  ({s.get('rate_method', '')})")
     if s.get("time_source"):

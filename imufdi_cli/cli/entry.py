@@ -13,7 +13,7 @@ from typing import Any
 
 import click
 
-from imufdi_cli.cli.app import cli
+from imufdi_cli.cli.app import StdoutClosed, cli
 from imufdi_cli.cli.ui import error_line as _err
 from imufdi_cli.errors import EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_USAGE, ImufdiError
 
@@ -104,6 +104,17 @@ def _json_took_the_argument(args: Sequence[str]) -> str:
     return ""
 
 
+def _stdout_to_devnull() -> None:
+    """Point file descriptor 1 (and ``sys.stdout``) at /dev/null."""
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+        os.close(null)
+    except (OSError, ValueError, AttributeError):  # no real stdout (tests): nothing buffered
+        pass
+    sys.stdout = open(os.devnull, "w")  # lives until exit
+
+
 def _debug() -> bool:
     return os.environ.get("IMUFDI_DEBUG", "") not in ("", "0")
 
@@ -146,12 +157,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     except KeyboardInterrupt:
         _err("interrupted")
         sys.exit(130)
-    except BrokenPipeError:
-        # the reader of our stdout went away (e.g. `| head`): not an error of ours
-        try:
-            sys.stdout = open(os.devnull, "w")
-        finally:
-            sys.exit(0)
+    except (BrokenPipeError, StdoutClosed):
+        # the reader of our stdout went away (e.g. `| head`): not an error of ours. What
+        # is still buffered for it must not be flushed at exit (that would print
+        # "Exception ignored ... BrokenPipeError" and exit 120): stdout becomes /dev/null.
+        _stdout_to_devnull()
+        sys.exit(0)
     except (MemoryError, OSError) as err:
         _print_traceback_if_debug()
         _err(describe_exception(err))

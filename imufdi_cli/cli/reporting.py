@@ -8,21 +8,34 @@ from typing import Any
 
 import click
 
-from imufdi_cli.cli.app import cli, start_end
+from imufdi_cli.cli.app import TIME_POINT_HELP, cli, complete_file, start_end
 from imufdi_cli.cli.plain import PlainTable
 from imufdi_cli.cli.ui import UI, common_options, error_line
 from imufdi_cli.errors import EXIT_GATE_FAILED
 
 
 @cli.command()
-@click.argument("log")
-@click.option("--markdown", "md_out", help="Write a Markdown table here (- for stdout).")
-@click.option("--csv", "csv_out", help="Write a CSV table here (- for stdout).")
-@click.option("--junit", "junit_out", help="Write JUnit XML (one test case per gate).")
+@click.argument("log", shell_complete=complete_file)
+@click.option(
+    "--markdown",
+    "md_out",
+    help="Write a Markdown table here (- for stdout).",
+    shell_complete=complete_file,
+)
+@click.option(
+    "--csv", "csv_out", help="Write a CSV table here (- for stdout).", shell_complete=complete_file
+)
+@click.option(
+    "--junit",
+    "junit_out",
+    help="Write JUnit XML (one test case per gate).",
+    shell_complete=complete_file,
+)
 @click.option(
     "--plot",
     "plot_out",
     help="Write a PNG of statistics (alarms marked) and isolation scores (needs matplotlib).",
+    shell_complete=complete_file,
 )
 @click.option(
     "--episodes-csv",
@@ -58,9 +71,10 @@ from imufdi_cli.errors import EXIT_GATE_FAILED
     metavar="FILE",
     help="Write the threshold sweep (FAR, MAR, FIR, delay per scale) as CSV; with --plot"
     " also FILE's name with .png.",
+    shell_complete=complete_file,
 )
-@click.option("--start", help="Score samples from this time, seconds from the log start.")
-@click.option("--end", help="Score samples before this time, seconds from the log start.")
+@click.option("--start", help=f"Score samples from this time: {TIME_POINT_HELP}.")
+@click.option("--end", help="Score samples before this time (the same forms as --start).")
 @common_options(json_help="The whole report (metrics, gates, notes, episodes).")
 def report(
     log: str,
@@ -135,6 +149,19 @@ def report(
             window=start_end(start, end),
             progress=progress,
         )
+    window = start_end(start, end)
+    if (
+        window is not None
+        and result.entries
+        and all(e.metrics.samples == 0 for e in result.entries)
+    ):
+        ui.warn(
+            [
+                f"--start/--end holds no status sample (--start {start or '0'}, --end"
+                f" {end or 'the end'}; the status starts at {_status_start(result)}):"
+                " nothing was scored"
+            ]
+        )
     gate_results = rep.evaluate_gates(result, parsed)
     ui.print_table(report_table(result))
     for table in episode_tables(result, limit=None if ui.verbose else 12):
@@ -144,7 +171,7 @@ def report(
     if episodes_out:
         write_text(episodes_out, rep.to_episodes_csv(result))
     if ui.json_target:
-        write_text(ui.json_target, rep.to_json(result, gate_results))
+        write_text(ui.json_target, rep.to_json(result, gate_results, head=ui.json_object({})))
     if md_out:
         write_text(md_out, rep.to_markdown(result, gate_results))
     if csv_out:
@@ -171,12 +198,30 @@ def report(
         ui.product.print(f"[{style}]gate {escape(r.message)}[/]")
     if failed:
         ui.flush()  # the table before the error line
+        # the line names each failed gate with its figure, so that it makes sense alone
+        # (under -q nothing else was printed)
+        where = "" if ui.quiet else "; the report above shows every figure"
         error_line(
             f"{len(failed)} of {len(gate_results)} gate(s) failed: "
-            + "; ".join(r.target for r in failed)
-            + " (exit 1; the report above shows the figures)"
+            + "; ".join(_failed_gate(r) for r in failed)
+            + f" (exit 1{where})"
         )
         sys.exit(EXIT_GATE_FAILED)
+
+
+def _status_start(result: Any) -> str:
+    """When the log's status starts: ISO 8601 UTC for calendar stamps, else the raw ns."""
+    from imufdi_cli.units import UNIX_TIME_MIN_S, utc_iso
+
+    t0 = int(result.t0_ns)
+    return utc_iso(t0) if t0 >= UNIX_TIME_MIN_S * 1e9 else f"{t0} ns (not a calendar time)"
+
+
+def _failed_gate(result: Any) -> str:
+    """``glt.gyro.far > 0.08 (actual 0.12)``: a failed gate and the figure that failed it."""
+    actual = result.actual
+    figure = "undefined" if actual is None else f"{actual:.6g}"
+    return f"{result.gate.text} (actual {figure})"
 
 
 def report_table(result: Any) -> PlainTable:

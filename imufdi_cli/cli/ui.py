@@ -34,6 +34,10 @@ from imufdi_cli.cli.plain import PLAIN_WIDTH, PlainTable
 if TYPE_CHECKING:  # rich is imported when a console is made (start-up time)
     from rich.console import Console
 
+#: version of the ``--json`` objects: raised when a key is renamed or removed or changes
+#: meaning (adding keys keeps it); every object carries it as ``format_version``
+JSON_FORMAT_VERSION = 1
+
 #: seconds of work before the progress bar appears (short commands never show one)
 PROGRESS_DELAY_S = 2.0
 
@@ -114,9 +118,18 @@ class UI:
         Extra detail (0 none).
     json_target : str or None
         ``--json`` value: a path, ``-`` for stdout, or None.
+    command : str or None
+        The command's name, written as ``command`` in its ``--json`` object.
     """
 
-    def __init__(self, quiet: bool = False, verbose: int = 0, json_target: str | None = None):
+    def __init__(
+        self,
+        quiet: bool = False,
+        verbose: int = 0,
+        json_target: str | None = None,
+        command: str | None = None,
+    ):
+        self.command = command
         self.quiet = quiet
         self.verbose = 0 if quiet else verbose
         self.json_target = json_target
@@ -217,7 +230,14 @@ class UI:
         from imufdi_cli.fileio import write_text
         from imufdi_cli.jsonout import dumps
 
-        write_text(self.json_target, dumps(data))
+        write_text(self.json_target, dumps(self.json_object(data)))
+
+    def json_object(self, data: dict[str, Any]) -> dict[str, Any]:
+        """``data`` headed by ``format_version`` (:data:`JSON_FORMAT_VERSION`) and
+        ``command`` (this command's name), the two keys every ``--json`` object starts
+        with."""
+        rest = {k: v for k, v in data.items() if k not in ("format_version", "command")}
+        return {"format_version": JSON_FORMAT_VERSION, "command": self.command, **rest}
 
     def flush(self) -> None:
         """Write the product (stdout) and the summary (stderr), each in one piece."""
@@ -332,7 +352,12 @@ def common_options(*, json_help: str | None = None) -> Callable[[Callable[..., A
         @functools.wraps(fn)
         def wrapper(*args: Any, quiet: bool, verbose: int, **kwargs: Any) -> Any:
             json_target = kwargs.pop("json_target", None)
-            ui = UI(quiet=quiet, verbose=verbose, json_target=json_target)
+            ui = UI(
+                quiet=quiet,
+                verbose=verbose,
+                json_target=json_target,
+                command=click.get_current_context().info_name,
+            )
             try:
                 return fn(*args, ui=ui, **kwargs)
             finally:

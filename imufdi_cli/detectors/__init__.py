@@ -40,6 +40,7 @@ DETECTORS: dict[str, str] = {
     "cnn-map": "imufdi_cli.detectors.cnn_map:CnnMapDetector",
     "px4-selector": "imufdi_cli.detectors.px4_selector:Px4SelectorDetector",
     "ap-consistency": "imufdi_cli.detectors.ap_consistency:ApConsistencyDetector",
+    "health": "imufdi_cli.detectors.health:HealthDetector",
 }
 
 

@@ -28,6 +28,7 @@ from imufdi_cli.errors import DetectorConfigError
 from imufdi_cli.maths.sequential import (
     CusumBank,
     CusumDesign,
+    MotionModel,
     average_run_length,
     budget_threshold,
     long_run_factor,
@@ -38,6 +39,11 @@ from imufdi_cli.maths.sequential import (
 REFERENCE_TAU_S = 60.0
 #: Sensors whose parity energy P_ii is below this carry no evidence (not testable).
 MIN_ENERGY = 1e-9
+#: Default relative scale and misalignment error of each sensor left by calibration: the
+#: prior of the motion model (a residual proportional to the rate or specific force).
+MOTION_ERROR = 1e-3
+#: Time constant of the motion model's forgetting, seconds (chip scale errors are stable).
+SLOPE_TAU_S = 600.0
 #: The threshold is set for this share of the budget: the union bound is close to the
 #: rate for white Gaussian evidence (0.9 of it measured), and what the model knows only
 #: approximately -- each log's own sigma errors, outliers, the correlated noise and wander
@@ -71,6 +77,11 @@ class ParityBudget:
         the threshold allows for it (:func:`~imufdi_cli.maths.sequential.false_alarm_rate`).
     calibration_samples : int, optional
         Samples the biases were estimated from (None: known biases).
+    motion_error : float
+        Relative scale and misalignment error of each sensor (dimensionless): the prior of
+        the motion model, which learns and removes the part of each sensor's evidence that
+        is proportional to the tested state (rate for gyros, specific force for
+        accelerometers) and widens the test by what it does not know yet; 0: no model.
     """
 
     def __init__(
@@ -85,6 +96,7 @@ class ParityBudget:
         *,
         scale_variance: float | None = None,
         calibration_samples: int | None = None,
+        motion_error: float = MOTION_ERROR,
     ) -> None:
         if not rate_hz > 0:
             raise DetectorConfigError("a false-alarm budget needs the array's sample rate")
@@ -106,6 +118,10 @@ class ParityBudget:
         self.sensitivity = np.where(testable, np.sqrt(np.maximum(energy, 0.0)), 0.0) / sigma
         self.isolable = np.asarray(isolable, bool) & testable
         self.residual_sd = np.sqrt(np.maximum(energy, 0.0)) * sigma  # SI, per unit z
+        self.motion_error = float(motion_error)
+        # a relative error e on sensor i's axis puts e |x| / sigma_i into its whitened
+        # measurement, sqrt(P_ii) of it into z_i: the prior sd per unit of the state
+        self.motion_prior = float(np.median(np.sqrt(np.maximum(energy, 0.0)) / sigma))
         self.n = int(h_white.shape[0])
         self.scale_variance = float(scale_variance or 0.0)
         self.calibration_samples = math.inf if calibration_samples is None else calibration_samples
@@ -114,24 +130,38 @@ class ParityBudget:
         self.threshold = math.nan  # set by fit()
         self.bank: CusumBank | None = None
 
-    def evidence(self, white: np.ndarray, factors: np.ndarray | None = None) -> np.ndarray:
-        """z (N, n) of whitened, bias-free measurements ``white`` (N, n); ``factors`` (N,):
-        the motion variance factors ``1 + A_t`` (None: 1)."""
-        residual = white - (white @ self.estimator_t) @ self.h_t
+    def evidence(
+        self, white: np.ndarray, factors: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """z (N, n) of whitened, bias-free measurements ``white`` (N, n), and the tested
+        state (N, 3): the least-squares rate or specific force; ``factors`` (N,): the
+        motion variance factors ``1 + A_t`` (None: 1)."""
+        state = white @ self.estimator_t
+        residual = white - state @ self.h_t
         residual *= self.z_scale
         if factors is not None:
             residual /= np.sqrt(factors)[:, None]
-        return residual
+        return residual, state[:, :3]
 
     def fit(self, white: np.ndarray) -> None:
         """Start the bank, with the long-run variance factor of the calibration window's
         evidence (``white``: its whitened, bias-free measurements, (N, n))."""
-        z = self.evidence(white)[:, self.z_scale > 0]
+        evidence, state = self.evidence(white)
+        z = evidence[:, self.z_scale > 0]
         kappa = long_run_factor(z, self.design.block)
         self.contamination = outlier_share(z / math.sqrt(kappa))
         self.threshold = budget_threshold(
             self.design, self.n, self.per_sample, self.scale_variance, self.contamination
         )
+        motion = None
+        if self.motion_error > 0:
+            scale = 1.0 / math.sqrt(kappa)  # the bank's own units
+            motion = MotionModel.from_calibration(
+                state,
+                evidence * scale,
+                self.motion_error * self.motion_prior * scale,
+                SLOPE_TAU_S * self.rate_hz,
+            )
         self.bank = CusumBank(
             self.design,
             self.threshold,
@@ -140,13 +170,15 @@ class ParityBudget:
             self.rate_hz,
             kappa=kappa,
             calibration_samples=self.calibration_samples,
+            motion=motion,
         )
 
     def process(self, white: np.ndarray, factors: np.ndarray | None = None) -> DetectionBlock:
         """Decisions on whitened, bias-free measurements (N, n)."""
         if self.bank is None:
             raise DetectorConfigError("call fit() before process()")
-        decisions = self.bank.process(self.evidence(white, factors))
+        evidence, state = self.evidence(white, factors)
+        decisions = self.bank.process(evidence, state)
         return DetectionBlock(
             statistic=decisions.statistic,
             threshold=decisions.threshold,
@@ -171,6 +203,7 @@ class ParityBudget:
             "design_shifts": list(self.design.shifts),
             "clip": self.design.clip,
             "scale_variance": self.scale_variance,
+            "motion_error": self.motion_error,
             "outlier_share": self.contamination,
             "reference_tau_s": self.design.tau_s,
             "long_run_factor": None if bank is None else bank.kappa,

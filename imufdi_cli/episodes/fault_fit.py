@@ -15,8 +15,9 @@ from imufdi_cli.episodes.numerics import _finite
 #: (:func:`fit_models`, :func:`white_sigma_spread`)
 WhiteNoise = tuple[float, float, float] | tuple[float, float, float, tuple[float, float, float]]
 
-#: fault models an episode is explained by, in tie-break order
-MODELS = ("none", "step", "drift", "noise", "scale", "spikes", "stuck")
+#: fault models an episode is explained by, in tie-break order (``clipping`` and
+#: ``dropout`` are faults of the data that only the health detector's checks name)
+MODELS = ("none", "step", "drift", "noise", "scale", "spikes", "stuck", "clipping", "dropout")
 #: what the size of each model is
 SIZE_NAMES = {
     "none": "",
@@ -26,6 +27,8 @@ SIZE_NAMES = {
     "scale": "factor",
     "spikes": "amp",
     "stuck": "value",
+    "clipping": "value",
+    "dropout": "duration",
 }
 
 

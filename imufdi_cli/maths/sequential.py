@@ -93,6 +93,13 @@ class CusumDesign:
         Clip of the reference's innovations, z units.
     block : int
         L of :func:`long_run_factor`.
+    scale_tau_s : float
+        Time constant of each column's tracked variance, seconds (0: the calibrated
+        sigma is kept): a running mean of the squared evidence (winsorized at 4 standard
+        deviations) from the calibration window on, then an exponential average; the
+        sigma estimated from a short window is off by a few percent per sensor, and a
+        sensor whose sigma was underestimated by 10 % raises about three times the false
+        alarms of the others at h ~ 17.
     """
 
     shifts: tuple[float, ...] = (1.0, 3.0)
@@ -100,6 +107,7 @@ class CusumDesign:
     tau_s: float = 60.0
     gate: float = 3.0
     block: int = 10
+    scale_tau_s: float = 300.0
 
 
 # --- threshold -------------------------------------------------------------------------
@@ -384,6 +392,210 @@ class _Episode:
     count: int = 0
 
 
+class _Reference:
+    """The slow reference of every column of evidence: an offset ``b`` and, with
+    regressors x (the tested state: rate, specific force), a linear model ``D`` of the
+    evidence on the state's deviation from its running mean ``x_bar`` (which moves with
+    the offset's gains, from the calibration window's mean)::
+
+        z'_t = (z_t - b - D^T (x_t - x_bar)) / sqrt(1 + k (x_t - x_bar)^T Sigma (x_t - x_bar))
+
+    ``D`` is the ridge (Gaussian prior ``N(0, prior_sd^2 I)``) regression of ``z - b`` on
+    ``x - x_bar`` over the calibration window and the samples since, forgotten with time
+    constant ``slope_tau``; ``Sigma`` its posterior covariance per unit noise variance,
+    and k (``inflation``) widens the test by ``sqrt(k)`` standard deviations of what the
+    model does not know yet. Both move once per sub-block of ``stride`` samples (aligned
+    on the sample count), from that sub-block's sums, and stay frozen while an episode is
+    open."""
+
+    def __init__(
+        self,
+        n: int,
+        step: float,
+        stride: int,
+        gate: float,
+        calibration_samples: float,
+        motion: MotionModel | None = None,
+        scale_step: float = 0.0,
+    ) -> None:
+        self.n, self.step, self.stride, self.gate = n, step, stride, gate
+        self.calibration_samples = calibration_samples
+        self.scale_step = scale_step
+        self.offset = np.zeros(n)
+        self.variance = np.ones(n)
+        self.pending = np.zeros(n)
+        self.pending_squares = np.zeros(n)
+        self.count = 0
+        self.motion = motion
+        p = 0 if motion is None else motion.centre.size
+        # the state's own running mean (the same gains as the offset): the slopes are
+        # regressed on the state's deviation from it, so that a mean of the state the
+        # offset has absorbed is not taken for a slope
+        self.state_mean = np.zeros(p) if motion is None else motion.centre.copy()
+        self.pending_x = np.zeros(p)
+        self.pending_xx = np.zeros((p, p))
+        self.pending_xz = np.zeros((p, n))
+
+    @property
+    def active(self) -> bool:
+        return self.step > 0.0 or self.scale_step > 0.0 or self.motion is not None
+
+    def snapshot(self) -> tuple[np.ndarray, ...]:
+        motion = self.motion
+        if motion is None:
+            return (self.offset.copy(), self.variance.copy())
+        return (
+            self.offset.copy(),
+            self.variance.copy(),
+            self.state_mean.copy(),
+            motion.sxx.copy(),
+            motion.sxz.copy(),
+        )
+
+    def restore(self, snap: tuple[np.ndarray, ...]) -> None:
+        """Back to a snapshot; the open sub-block's sums are dropped."""
+        self.offset, self.variance = snap[0].copy(), snap[1].copy()
+        if self.motion is not None:
+            self.state_mean = snap[2].copy()
+            self.motion.sxx, self.motion.sxz = snap[3].copy(), snap[4].copy()
+            self.motion.solve()
+        self._drop()
+
+    def _drop(self) -> None:
+        self.pending = np.zeros(self.n)
+        self.pending_squares = np.zeros(self.n)
+        self.count = 0
+        self.pending_x = np.zeros_like(self.pending_x)
+        self.pending_xx = np.zeros_like(self.pending_xx)
+        self.pending_xz = np.zeros_like(self.pending_xz)
+
+    def apply(
+        self, z: np.ndarray, x: np.ndarray | None, frozen: bool, samples: int
+    ) -> tuple[np.ndarray, list[tuple[int, tuple[np.ndarray, ...]]]]:
+        """``z'`` for the rows of ``z`` (the rows after ``samples`` of the stream), moving
+        the reference at every completed sub-block unless ``frozen``; also, for a rewind,
+        the local rows from which each state held, with a snapshot of it."""
+        motion = self.motion
+        n_rows = z.shape[0]
+        out = np.empty_like(z)
+        marks = [(0, self.snapshot())]
+        row = 0
+        while row < n_rows:
+            phase = (samples + row) % self.stride
+            stop = min(n_rows, row + self.stride - phase)
+            rows = slice(row, stop)
+            np.subtract(z[rows], self.offset, out=out[rows])
+            centred = None
+            if motion is not None and x is not None:
+                centred = x[rows] - self.state_mean
+                if not frozen:  # the regression sees the offset-free evidence
+                    self.pending_x += x[rows].sum(axis=0)
+                    self.pending_xx += centred.T @ centred
+                    self.pending_xz += centred.T @ out[rows]
+                out[rows] -= centred @ motion.slopes
+            if not frozen:
+                self.pending += out[rows].sum(axis=0)
+                self.count += stop - row
+            if centred is not None and motion is not None:
+                spread = np.einsum("ij,jk,ik->i", centred, motion.covariance, centred)
+                out[rows] /= np.sqrt(1.0 + motion.inflation * spread)[:, None]
+            if not frozen and self.scale_step > 0.0:
+                self.pending_squares += np.minimum(np.square(out[rows]), 16.0 * self.variance).sum(
+                    axis=0
+                )
+            if self.scale_step > 0.0:
+                out[rows] /= np.sqrt(self.variance)
+            if not frozen and (samples + stop) % self.stride == 0:  # sub-block complete
+                self._complete(samples + stop)
+                marks.append((stop, self.snapshot()))
+            row = stop
+        return out, marks
+
+    def _complete(self, position: int) -> None:
+        start = 1.0 / (self.calibration_samples + position)  # a running mean at first
+        if self.step > 0.0 and self.count:
+            gain = max(self.step, start)
+            limit = self.gate * np.sqrt(self.count * self.variance)
+            self.offset = self.offset + gain * np.clip(self.pending, -limit, limit)
+        if self.scale_step > 0.0 and self.count:
+            gain = max(self.scale_step, start)
+            self.variance = self.variance + gain * (
+                self.pending_squares - self.count * self.variance
+            )
+            np.maximum(self.variance, 0.25, out=self.variance)
+        if self.motion is not None and self.count:
+            gain = max(self.step, start) if self.step > 0.0 else start
+            self.state_mean = self.state_mean + gain * (
+                self.pending_x - self.count * self.state_mean
+            )
+            self.motion.update(self.pending_xx, self.pending_xz, self.count)
+        self._drop()
+
+
+@dataclass
+class MotionModel:
+    """The linear model of the evidence on the tested state (see :class:`_Reference`).
+
+    Attributes
+    ----------
+    centre : ndarray (p,)
+        The state's calibration mean.
+    prior_sd : float
+        Prior standard deviation of every slope (z units per unit of the state).
+    forget : float
+        Per-sample forgetting rate of the sufficient statistics (1 / (slope_tau f_s)).
+    inflation : float
+        k: squared standard deviations of the model's uncertainty added to the variance.
+    sxx, sxz : ndarray (p, p), (p, n)
+        Sufficient statistics (calibration window first).
+    """
+
+    centre: np.ndarray
+    prior_sd: float
+    forget: float
+    inflation: float
+    sxx: np.ndarray
+    sxz: np.ndarray
+    slopes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+
+    def __post_init__(self) -> None:
+        self.solve()
+
+    @classmethod
+    def from_calibration(
+        cls,
+        x: np.ndarray,
+        z: np.ndarray,
+        prior_sd: float,
+        slope_tau_samples: float,
+        inflation: float = 16.0,
+    ) -> MotionModel:
+        """The model fitted on calibration states ``x`` (N, p) and evidence ``z`` (N, n)."""
+        centre = x.mean(axis=0)
+        centred = x - centre
+        return cls(
+            centre=centre,
+            prior_sd=float(prior_sd),
+            forget=0.0 if slope_tau_samples <= 0 else 1.0 / slope_tau_samples,
+            inflation=float(inflation),
+            sxx=centred.T @ centred,
+            sxz=centred.T @ (z - z.mean(axis=0)),
+        )
+
+    def solve(self) -> None:
+        p = self.centre.size
+        precision = self.sxx + np.eye(p) / self.prior_sd**2
+        self.covariance = np.linalg.inv(precision)
+        self.slopes = self.covariance @ self.sxz
+
+    def update(self, xx: np.ndarray, xz: np.ndarray, samples: int) -> None:
+        keep = math.exp(-self.forget * samples)
+        self.sxx = keep * self.sxx + xx
+        self.sxz = keep * self.sxz + xz
+        self.solve()
+
+
 class CusumBank:
     """Streaming bank of robust CUSUM tests over one sensor type (module docstring).
 
@@ -411,6 +623,9 @@ class CusumBank:
         falls to ``1 / (tau f_s)``, so that the bias estimate's own error (``1 / sqrt(N)``
         of a standard deviation, which a CUSUM of small design shift would accumulate) is
         learnt away in the first seconds.
+    motion : MotionModel, optional
+        The linear model of the evidence on the tested state (residual scale and
+        misalignment errors): ``process`` then takes the state's rows too.
     """
 
     #: Rows run through the bank at once (an alarm wastes at most this much work).
@@ -426,6 +641,7 @@ class CusumBank:
         kappa: float = 1.0,
         history: int = 512,
         calibration_samples: float = math.inf,
+        motion: MotionModel | None = None,
     ) -> None:
         self.design = design
         self.calibration_samples = float(calibration_samples)
@@ -439,69 +655,52 @@ class CusumBank:
         self.shifts = np.asarray(design.shifts, float)
         self.state = np.zeros((self.shifts.size, 2, n))  # S per shift, sign, sensor
         self.step = 0.0 if design.tau_s <= 0 else 1.0 / (design.tau_s * rate_hz)
-        #: rows over which the reference stays constant (about 1 s, at most tau / 10)
-        self.stride = max(1, min(round(rate_hz), round(design.tau_s * rate_hz / 10)))
-        self.reference = np.zeros(n)
-        self.pending = np.zeros(n)  # innovations of the current sub-block, summed
-        self.pending_count = 0
+        #: rows over which the reference stays constant (1 s, at most tau / 10)
+        self.stride = max(1, round(rate_hz))
+        if design.tau_s > 0:
+            self.stride = max(1, min(self.stride, round(design.tau_s * rate_hz / 10)))
+        self.ref = _Reference(
+            n,
+            self.step,
+            self.stride,
+            design.gate,
+            self.calibration_samples,
+            motion,
+            0.0 if design.scale_tau_s <= 0 else 1.0 / (design.scale_tau_s * rate_hz),
+        )
         self.history = np.zeros((0, n))
         self.history_length = int(history)
         self.samples = 0  # rows handled so far
         self.episode: _Episode | None = None
         self.episodes = 0
 
-    # --- reference ---------------------------------------------------------------------
+    @property
+    def reference(self) -> np.ndarray:
+        """Each column's tracked offset (z units after the long-run factor)."""
+        return self.ref.offset
 
     def _referenced(
-        self, z: np.ndarray, frozen: bool
-    ) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
-        """``z'_t = z_t - b_t`` for the rows of ``z`` (the next rows of the stream).
+        self, z: np.ndarray, x: np.ndarray | None, frozen: bool
+    ) -> tuple[np.ndarray, list[tuple[int, tuple[np.ndarray, ...]]]]:
+        """``z'`` for the next rows of the stream (:class:`_Reference`)."""
+        if not self.ref.active:
+            return z, [(0, self.ref.snapshot())]
+        return self.ref.apply(z, x, frozen, self.samples)
 
-        ``b`` is constant over sub-blocks of ``stride`` samples (aligned on the sample
-        count) and moves at the end of each by a gain times the sum of the sub-block's
-        innovations, clipped at ``+-gate sqrt(count)`` (``gate`` standard deviations of
-        the sum): a running mean at first, then an exponential average of time constant
-        tau (one sub-block late); frozen, it stays. Advances ``reference`` and ``pending`` over
-        all the rows and returns, for a rewind, the local row from which each reference
-        value held, with that value."""
-        n_rows = z.shape[0]
-        if frozen or self.step == 0.0:
-            return z - self.reference, [(0, self.reference.copy())]
-        referenced = np.empty_like(z)
-        marks = [(0, self.reference.copy())]
-        row = 0
-        gate = self.design.gate
-        while row < n_rows:
-            phase = (self.samples + row) % self.stride
-            stop = min(n_rows, row + self.stride - phase)
-            np.subtract(z[row:stop], self.reference, out=referenced[row:stop])
-            self.pending += referenced[row:stop].sum(axis=0)
-            self.pending_count += stop - row
-            if (self.samples + stop) % self.stride == 0:  # the sub-block is complete
-                gain = max(self.step, 1.0 / (self.calibration_samples + self.samples + stop))
-                limit = gate * math.sqrt(self.pending_count)
-                self.reference = self.reference + gain * np.clip(self.pending, -limit, limit)
-                self.pending = np.zeros(self.n)
-                self.pending_count = 0
-                marks.append((stop, self.reference.copy()))
-            row = stop
-        return referenced, marks
-
-    def _rewind(self, marks: list[tuple[int, np.ndarray]], row: int) -> None:
-        """Reference as it was on local row ``row`` (an episode opens there: from then on
-        it is frozen, and the innovations of the open sub-block are dropped)."""
+    def _rewind(self, marks: list[tuple[int, tuple[np.ndarray, ...]]], row: int) -> None:
+        """The reference as it was on local row ``row`` (an episode opens there: from then
+        on it is frozen, and the sums of the open sub-block are dropped)."""
         value = marks[0][1]
-        for start, reference in marks:
+        for start, snap in marks:
             if start <= row:
-                value = reference
-        self.reference = value.copy()
-        self.pending = np.zeros(self.n)
-        self.pending_count = 0
+                value = snap
+        self.ref.restore(value)
 
     # --- processing --------------------------------------------------------------------
 
-    def process(self, z: np.ndarray) -> Decisions:
-        """Decide on the rows of ``z`` (N, n): standardized signed evidence per sensor.
+    def process(self, z: np.ndarray, x: np.ndarray | None = None) -> Decisions:
+        """Decide on the rows of ``z`` (N, n): standardized signed evidence per sensor;
+        ``x`` (N, p): the tested state of each row, for the motion model (if any).
 
         NaN evidence (a sample without a test) counts as 0."""
         z = np.asarray(z, float)
@@ -523,10 +722,11 @@ class CusumBank:
         position = 0
         while position < n_rows:
             rows = z[position : position + self.SPAN]
+            states = None if x is None else x[position : position + self.SPAN]
             if self.episode is None:
-                position += self._watch(rows, position, out)
+                position += self._watch(rows, states, position, out)
             else:
-                position += self._follow(rows, position, out)
+                position += self._follow(rows, states, position, out)
         return out
 
     def _cusums(
@@ -571,10 +771,10 @@ class CusumBank:
         for k, statistic in enumerate(stats):
             flat[k] = statistic[row]
 
-    def _watch(self, z: np.ndarray, position: int, out: Decisions) -> int:
+    def _watch(self, z: np.ndarray, x: np.ndarray | None, position: int, out: Decisions) -> int:
         """No episode open: run the bank over the rows ``z`` (output rows from
         ``position``) up to the first alarm; returns the number of rows handled."""
-        zr, marks = self._referenced(z, frozen=False)
+        zr, marks = self._referenced(z, x, frozen=False)
         # the rows' scores are written in place; those after an alarm are written again
         stats, best = self._cusums(zr, out.scores[position : position + len(zr)])
         top = best.max(axis=1) if self.n else np.zeros(len(zr))
@@ -639,13 +839,13 @@ class CusumBank:
         if self.isolable[sensor] and episode.count and self.sensitivity[sensor] > 0:
             out.amplitude[row] = episode.sums[sensor] / episode.count / self.sensitivity[sensor]
 
-    def _follow(self, z: np.ndarray, position: int, out: Decisions) -> int:
+    def _follow(self, z: np.ndarray, x: np.ndarray | None, position: int, out: Decisions) -> int:
         """An episode is open: keep the bank running over the rows ``z`` (reference
         frozen) and test whether the fault has ended; close the episode and restart every
         statistic when it has. Returns the number of rows handled."""
         episode = self.episode
         assert episode is not None
-        zr, _ = self._referenced(z, frozen=True)
+        zr, _ = self._referenced(z, x, frozen=True)
         stats, best = self._cusums(zr, out.scores[position : position + len(zr)])
         # evidence that the fault has ended: the log-likelihood ratio of "no fault" against
         # "the fault as estimated so far" (its mean evidence since the onset, at least the

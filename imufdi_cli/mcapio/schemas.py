@@ -139,8 +139,9 @@ float64 statistic       # detection statistic at that sample
 
 # An explained alarm episode (event "episode"; header.stamp = decision time of its last
 # alarm); empty strings and NaN for alarm_start/alarm_end. docs/episodes.md.
-string fault_class      # step, drift, noise, scale, spikes, stuck or none; "" when unexplained
-string size_name        # amp, rate (per second), factor or value
+string fault_class      # step, drift, noise, scale, spikes, stuck, clipping, dropout or none;
+                        # "" when unexplained
+string size_name        # amp, rate (per second), factor, value or duration (s)
 float64 size            # SI units of the sensor type; NaN when none
 float64 size_low        # confidence interval of size (level in detail)
 float64 size_high
@@ -181,3 +182,25 @@ FAULT_EVENT_SCHEMA = _concat(
 FDI_EVENT_SCHEMA = _concat(
     _FDI_EVENT, [("std_msgs/Header", _HEADER), ("builtin_interfaces/Time", _TIME)]
 )
+
+
+#: package and name prefix of the per-channel named-scores types (``SensorScores`` and 8
+#: hex digits of the CRC-32 of the sensor ids: one type per set of sensors)
+SCORES_SCHEMA_PREFIX = "imufdi_msgs/msg/SensorScores"
+
+
+def scores_schema(fields: list[str]) -> tuple[str, bytes]:
+    """Name and ros2msg text of the named-scores message of one status channel: the
+    header, then one ``float64`` per sensor, named after it (``imu0_gyro_x``), so that
+    Foxglove and PlotJuggler show every sensor's score under its name."""
+    import zlib
+
+    digest = zlib.crc32("\n".join(fields).encode("utf-8"))
+    main = (
+        "# Per-sensor isolation scores of an imufdi status channel (the same values as its\n"
+        "# scores[], in sensor_ids order), one field per sensor, named after it.\n"
+        "std_msgs/Header header  # stamp = the sample's time; frame_id = the array body frame\n"
+        + "".join(f"float64 {name}\n" for name in fields)
+    )
+    text = _concat(main, [("std_msgs/Header", _HEADER), ("builtin_interfaces/Time", _TIME)])
+    return f"{SCORES_SCHEMA_PREFIX}{digest:08X}", text

@@ -51,7 +51,7 @@ from imufdi_cli.mcapio.records import (
     MessageBatch,
     gather_bytes,
 )
-from imufdi_cli.mcapio.schemas import STATUS_SCHEMA, STATUS_SCHEMA_NAME
+from imufdi_cli.mcapio.schemas import STATUS_SCHEMA, STATUS_SCHEMA_NAME, scores_schema
 from imufdi_cli.mcapio.source import McapSource, iter_topic
 from imufdi_cli.mcapio.writer import McapWriter
 
@@ -122,6 +122,108 @@ def register_status_channel(
         schema_id,
         {"sensor_ids": json.dumps(list(sensor_ids))},
     )
+
+
+#: the named-scores companion of a status topic: ``/imufdi/<detector>/<type>/scores``
+SCORES_TOPIC_SUFFIX = "/scores"
+
+
+def scores_topic(detector: str, sensor_type: str) -> str:
+    """The named-scores companion topic of a status channel."""
+    return status_topic(detector, sensor_type) + SCORES_TOPIC_SUFFIX
+
+
+def scores_fields(sensor_ids: list[str]) -> list[str]:
+    """ROS field names of the sensors: ``imu0.gyro.x`` -> ``imu0_gyro_x`` (lower case,
+    anything but letters, digits and ``_`` replaced, a leading ``s_`` if the id does not
+    start with a letter).
+
+    Raises
+    ------
+    UsageError
+        Two ids give the same field name.
+    """
+    import re
+
+    fields = []
+    for sid in sensor_ids:
+        name = re.sub(r"[^a-z0-9_]", "_", sid.lower())
+        fields.append(name if name[:1].isalpha() else f"s_{name}")
+    if len(set(fields)) != len(fields):
+        raise UsageError(f"sensor ids {sensor_ids} do not give distinct field names")
+    return fields
+
+
+def register_scores_channel(
+    writer: McapWriter, detector: str, sensor_type: str, sensor_ids: list[str]
+) -> int:
+    """Register the named-scores companion of a status channel (``scores_topic``; its
+    schema has one ``float64`` per sensor, named by :func:`scores_fields`); returns its
+    channel id."""
+    name, text = scores_schema(scores_fields(list(sensor_ids)))
+    schema_id = writer.register_schema(name, "ros2msg", text)
+    return writer.register_channel(
+        scores_topic(detector, sensor_type),
+        "cdr",
+        schema_id,
+        {
+            "sensor_ids": json.dumps(list(sensor_ids)),
+            "status_topic": status_topic(detector, sensor_type),
+        },
+    )
+
+
+@functools.lru_cache(maxsize=64)
+def _scores_template(channel_id: int, frame: bytes, n_scores: int) -> tuple[bytes, int]:
+    """The constant bytes of a named-scores Message record and the payload offset of its
+    first score (CDR: header, then n float64 aligned to 8 from the origin at offset 4)."""
+    scores_at = 4 + _up(12 + len(frame), 8)
+    length = scores_at + 8 * n_scores
+    payload = bytearray(length)
+    payload[0:4] = b"\x00\x01\x00\x00"
+    payload[12:16] = struct.pack("<I", len(frame))
+    payload[16 : 16 + len(frame)] = frame
+    header = np.zeros(1, MESSAGE_HEADER_DTYPE)
+    header["opcode"] = OP_MESSAGE
+    header["record_length"] = MESSAGE_FIXED_CONTENT + length
+    header["channel_id"] = channel_id
+    return header.tobytes() + bytes(payload), scores_at
+
+
+def scores_records(
+    channel_id: int, t_ns: np.ndarray, scores: np.ndarray, *, frame_id: str = STATUS_FRAME_ID
+) -> np.ndarray:
+    """Whole Message records of the named-scores companion, one per sample (the status
+    rows' ``scores``; sequence 0..N-1, log and publish time = ``t_ns``).
+
+    Parameters
+    ----------
+    channel_id : int
+    t_ns : ndarray, shape (N,), int64
+    scores : ndarray, shape (N, n), float64
+
+    Returns
+    -------
+    ndarray, shape (N, 31 + L), uint8
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    n = t_ns.shape[0]
+    values = np.asarray(scores, dtype=np.float64).reshape(n, -1)
+    template, at = _scores_template(
+        int(channel_id), frame_id.encode("utf-8") + b"\0", values.shape[1]
+    )
+    h = MESSAGE_HEADER_SIZE
+    records = np.empty((n, len(template)), np.uint8)
+    records[:] = np.frombuffer(template, np.uint8)
+    _put(records, _HEADER_AT["sequence"], np.arange(n, dtype=np.uint32), "<u4")
+    _put(records, _HEADER_AT["log_time"], t_ns, "<u8")
+    _put(records, _HEADER_AT["publish_time"], t_ns, "<u8")
+    sec = np.floor_divide(t_ns, NS_PER_S)
+    _put(records, h + 4, sec, "<i4")
+    _put(records, h + 8, t_ns - sec * NS_PER_S, "<u4")
+    if values.shape[1]:
+        _put(records, h + at, values, "<f8")
+    return records
 
 
 def _up(value: int, align: int) -> int:

@@ -109,6 +109,8 @@ class LogSummary:
             "rate_method": self.rate_method,
             "start_ns": self.start_ns,
             "end_ns": self.end_ns,
+            "start_utc": _utc_or_none(self.start_ns),
+            "end_utc": _utc_or_none(self.end_ns),
             "duration_s": self.duration_s,
             "time_source": self.time_source,
             "imu_fields": dict(self.imu_fields),
@@ -120,6 +122,16 @@ class LogSummary:
             "metadata_names": self.metadata_names,
             "warnings": list(self.warnings),
         }
+
+
+def _utc_or_none(t_ns: int | None) -> str | None:
+    """ISO 8601 UTC of a stamp, or None when it is not a calendar time (stamps counted from
+    boot: before 2001-09-09, :data:`~imufdi_cli.units.UNIX_TIME_MIN_S`)."""
+    from imufdi_cli.units import UNIX_TIME_MIN_S, utc_iso
+
+    if t_ns is None or t_ns < UNIX_TIME_MIN_S * 1e9:
+        return None
+    return utc_iso(t_ns)
 
 
 def summarize(

@@ -129,8 +129,14 @@ def table_rows(report: Report, *, console: bool = False) -> list[list[str]]:
     ]
 
 
-def to_json(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
+def to_json(
+    report: Report,
+    gate_results: Sequence[GateResult] = (),
+    head: dict[str, Any] | None = None,
+) -> str:
+    """The report as JSON text; ``head`` (``format_version``, ``command``) comes first."""
     data = {
+        **(head or {}),
         "source": report.source,
         "has_truth": report.has_truth,
         "match_far": report.match_far,
@@ -220,6 +226,9 @@ _SIZE_UNITS = {
     ("mag", "amp"): (1e6, "uT"),
     ("mag", "rate"): (1e6, "uT/s"),
     ("mag", "value"): (1e6, "uT"),
+    ("gyro", "duration"): (1.0, "s"),
+    ("accel", "duration"): (1.0, "s"),
+    ("mag", "duration"): (1.0, "s"),
 }
 
 

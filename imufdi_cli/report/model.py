@@ -55,6 +55,9 @@ class Report:
     episodes: list[dict[str, Any]] = field(default_factory=list)
     #: per ``detector.type``: EpisodeTally figures, plus ``listed`` and ``omitted``
     episode_scores: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: per (detector, type): (start_ns, end_ns) of every episode counted (listed or not),
+    #: for the figures (16 bytes an episode)
+    episode_spans: dict[tuple[str, str], list[tuple[int, int]]] = field(default_factory=dict)
     #: per detector: its ``imufdi.detect.<name>`` record (parameters, what its statistic
     #: and scores are), when the log has one
     records: dict[str, dict[str, Any]] = field(default_factory=dict)

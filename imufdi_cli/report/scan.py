@@ -227,6 +227,7 @@ def build_report(
         match_budget=match_budget,
         episode_scores=episode_scores,
         episodes=episodes.listed,
+        episode_spans=episodes.spans,
         records={d: r for d, r in scan.records.items() if r is not None},
     )
 
@@ -415,6 +416,7 @@ class _EpisodeCollector:
         self.listed: list[dict[str, Any]] = []
         self.tallies: dict[tuple[str, str], Any] = {}
         self.counts: dict[tuple[str, str], int] = {}
+        self.spans: dict[tuple[str, str], list[tuple[int, int]]] = {}
 
     def batch(self, batch: Any, channel: Any) -> None:
         """Match, count and list the episodes of one batch of ``/imufdi/events``; only
@@ -459,6 +461,7 @@ class _EpisodeCollector:
             else:
                 tally.episodes += 1
             self.counts[key] = self.counts.get(key, 0) + 1
+            self.spans.setdefault(key, []).append((int(episode.start_ns), int(episode.end_ns)))
             if self.counts[key] <= EPISODES_LISTED:
                 self.listed.append({**episode.explanation(), **match})
 
@@ -467,7 +470,9 @@ class _EpisodeCollector:
         origin = self.origins.get(key)
         if self.window is None or origin is None:
             return True
-        start_s, end_s = self.window
+        from imufdi_cli.units import window_from_log_start
+
+        start_s, end_s = window_from_log_start(self.window, origin)
         rel = (start_ns - origin) * 1e-9
         return rel >= start_s and (end_s is None or rel < end_s)
 

@@ -327,7 +327,7 @@ def test_resume_skips_done_runs_and_refuses_to_mix_without_it(tmp_path, monkeypa
     first = run_campaign(spec, tmp_path / "out", jobs=1)
     assert (first.executed, first.skipped) == (4, 0)
     if importlib.util.find_spec("matplotlib") is not None:
-        png = (tmp_path / "out" / "detection_probability.png").read_bytes()
+        png = (tmp_path / "out" / "detection.png").read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n"
     # the resumed campaign's figure is the same call on the same summary (compared below)
     # and nothing reads it: not drawn again (about 0.15 s of CPU)

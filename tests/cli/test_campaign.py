@@ -86,7 +86,9 @@ def test_campaign_writes_results_and_gates(cli, tmp_path):
     # --json: the summary (through the one JSON writer), also when a gate fails
     from imufdi_cli.jsonout import clean
 
-    assert json.loads(failing.out) == clean(json.loads((out / "summary.json").read_text()))
+    head = {"format_version": 1, "command": "campaign"}  # every --json object's first keys
+    expected = {**head, **clean(json.loads((out / "summary.json").read_text()))}
+    assert json.loads(failing.out) == expected
 
 
 def test_campaign_on_base_log_files(cli, tmp_path):

@@ -83,6 +83,7 @@ def test_a_single_imu_log_is_bad_data_for_every_detector(cli, tmp_path, detector
     result = cli(["detect", log, "-d", detector, "-o", out])
     assert_one_line_error(result, 3, "`imufdi info LOG` shows its IMUs")
     assert "bank mode=marg" in result.stderr
+    assert "health checks each IMU alone" in result.stderr  # the detector that applies
     assert not out.exists()
 
 

@@ -225,3 +225,41 @@ def test_nan_evidence_counts_as_none_and_shapes_are_checked() -> None:
     assert not out.alarm.any() and (out.statistic == 0).all()
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         bank.process(np.zeros((5, 4)))
+
+
+def test_the_motion_model_learns_a_residual_proportional_to_the_state() -> None:
+    # a residual scale error: column 2's evidence carries 0.8 sd per unit of a swinging
+    # state (a rate), which a CUSUM of shift 1 would alarm on in every half swing
+    from imufdi_cli.maths.sequential import MotionModel
+
+    rng = np.random.default_rng(13)
+    n_rows = 60 * 100 * 5
+    t = np.arange(n_rows) / RATE_HZ
+    state = np.stack([np.sin(2 * np.pi * 0.3 * t), np.cos(2 * np.pi * 0.2 * t), 0.0 * t], axis=1)
+    z = rng.standard_normal((n_rows, 4))
+    z[:, 2] += 0.8 * state[:, 0]
+    cusum = CusumDesign()
+    h = budget_threshold(cusum, 4, 1 / 3600 / RATE_HZ)
+
+    def run(motion: MotionModel | None) -> int:
+        bank = CusumBank(cusum, h, np.ones(4), np.ones(4, bool), RATE_HZ, motion=motion)
+        for start in range(0, n_rows, 4096):
+            bank.process(z[start : start + 4096], state[start : start + 4096])
+        return bank.episodes
+
+    calibration = slice(0, 200)  # 2 s: a sixth of a swing
+    model = MotionModel.from_calibration(state[calibration], z[calibration], 1.0, 600 * RATE_HZ)
+    # learning: one episode in the first seconds at most, then none (seed-checked: 2 vs 38)
+    assert run(model) <= 2 and run(None) > 20
+
+
+def test_a_tracked_variance_corrects_a_sigma_calibrated_too_small() -> None:
+    rng = np.random.default_rng(14)
+    z = rng.standard_normal((30 * 60 * 100, 8)) * 1.15  # sigma 15 % too small
+    fixed, tracked = _bank(8, 10.0, scale_tau_s=0.0), _bank(8, 10.0)
+    for start in range(0, z.shape[0], 4096):
+        fixed.process(z[start : start + 4096])
+        tracked.process(z[start : start + 4096])
+    # at 10/h for 30 min: ~5 allowed; 1.15 sd multiplies the rate by ~exp(h (1 - 1/1.15^2))
+    assert tracked.episodes <= 8 < fixed.episodes
+    np.testing.assert_allclose(tracked.ref.variance, 1.15**2, rtol=0.05)

@@ -72,6 +72,7 @@ def outputs(tmp_path_factory) -> dict[str, Path]:
     _run(["inject", sim, *faults, "-o", files["inject"]])
     keep("inject-stdout", _run(["inject", "-", *faults, "-o", "-"], stdin=sim.read_bytes()))
     dets = [a for name in DETECTORS for a in ("-d", name)] + ["--calibrate", "0s:1s"]
+    dets.append("--named-scores")  # the readers judge the companion topics too
     files["detect"] = d / "detect.mcap"
     _run(["detect", files["inject"], *dets, "-o", files["detect"]])
     keep(
@@ -88,6 +89,7 @@ def outputs(tmp_path_factory) -> dict[str, Path]:
             "glt",
             "--calibrate",
             "0s:1s",
+            "--named-scores",
             "-o",
             files["detect-ingest"],
         ]
@@ -165,6 +167,7 @@ def _expected_counts(name: str, path: Path) -> Counter[str]:
         transitions = 0
         for (detector, sensor_type), arrays in status.items():
             counts[f"/imufdi/{detector}/{sensor_type}"] = n
+            counts[f"/imufdi/{detector}/{sensor_type}/scores"] = n  # the named scores
             alarm = arrays.alarm.astype(np.int8)
             transitions += int(np.count_nonzero(np.diff(np.concatenate([[0], alarm]))))
             # plus one explained "episode" event per alarm episode
@@ -254,6 +257,7 @@ def test_rosbags_any_reader(outputs, name) -> None:
     gyro: dict[str, list[tuple[float, float, float]]] = {}
     seen: Counter[str] = Counter()
     truth = []
+    named: dict[str, list] = {}
     with AnyReader([path]) as reader:
         assert reader.message_count == sum(counts.values())
         for connection, _, rawdata in reader.messages():
@@ -264,7 +268,19 @@ def test_rosbags_any_reader(outputs, name) -> None:
                 gyro.setdefault(connection.topic, []).append((v.x, v.y, v.z))
             elif connection.topic == "/imufdi/truth":
                 truth.append(msg)
+            elif connection.topic.endswith("/scores"):
+                named.setdefault(connection.topic, []).append(msg)
     assert seen == counts
+    # the named scores: one field per sensor, the status channel's scores in id order
+    status = read_status(path) if named else {}
+    for topic, messages in named.items():
+        detector, sensor_type = topic.split("/")[2:4]
+        arrays = status[(detector, sensor_type)]
+        fields = [sid.replace(".", "_") for sid in arrays.sensor_ids]
+        values = np.array([[getattr(m, f) for f in fields] for m in messages])
+        np.testing.assert_array_equal(values, arrays.scores)
+        stamps = [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in messages]
+        np.testing.assert_array_equal(stamps, arrays.t_ns)
     with McapSource(path) as src:
         channels = {c.topic: c for c in src.channels.values()}
         for batch in src.batches():
