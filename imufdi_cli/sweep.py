@@ -147,6 +147,7 @@ class SweepAccumulator:
         self._level_isolated = [0 for _ in self.starts]
         self.undefined_rows = 0
         self.rows = 0
+        self._curve: dict[str, np.ndarray] | None = None  # curve() of the rows so far
 
     def update(
         self,
@@ -170,6 +171,7 @@ class SweepAccumulator:
         isolated_to : per fault, (k,) bool rows inside it isolated (or, unisolated, judged
             by their largest score) to one of its sensors (isolation delays)
         """
+        self._curve = None
         self.rows += int(bins.size)
         self.undefined_rows += int(np.count_nonzero(bins == 0))
         size = N_BINS + 2
@@ -193,8 +195,14 @@ class SweepAccumulator:
     def curve(self) -> dict[str, np.ndarray]:
         """FAR, MAR, FIR and mean detection delay at every edge (arrays of N_BINS + 1).
 
-        Undefined values are NaN.
+        Undefined values are NaN. (Computed once per state of the histograms: do not
+        modify the arrays.)
         """
+        if self._curve is None:
+            self._curve = self._compute_curve()
+        return self._curve
+
+    def _compute_curve(self) -> dict[str, np.ndarray]:
         n_free = int(self.free.sum())
         faulty = self.correct + self.wrong + self.none
         n_faulty = int(faulty.sum())

@@ -154,6 +154,11 @@ class Conditioner:
             for a, b in zip(log_array.imus, self.array.imus)
             for s in SENSOR_TYPES
         )
+        #: per sensor type: whether the log's values are the raw chip values (no calibration)
+        self._raw = {
+            s: all(imu.calibration_of(s).is_identity for imu in log_array.imus)
+            for s in SENSOR_TYPES
+        }
         self.offsets: dict[str, np.ndarray] = {}
         self.last_rate: dict[str, np.ndarray] = {}
         self._designs: dict[str, np.ndarray] = {}
@@ -176,7 +181,8 @@ class Conditioner:
             fields[s] = triads
             if triads is None:
                 continue
-            raw = self.log_array.calibrate_triads(triads, s, undo=True)
+            # the log's values are the raw chip values when it records no chip calibration
+            raw = triads if self._raw[s] else self.log_array.calibrate_triads(triads, s, undo=True)
             flags[s] = flag_values(raw, s, self.ranges.get(s))
             if self.recalibrate:
                 fields[s] = self.array.calibrate_triads(raw, s)

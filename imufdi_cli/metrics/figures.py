@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -153,7 +153,8 @@ class Metrics:
     delay_ratio: float | None = None  # mean over the detected faults with a reference
 
     def to_dict(self) -> dict[str, Any]:
-        data = asdict(self)
+        # field by field: dataclasses.asdict deep-copies every value, 10x slower
+        data = {f.name: getattr(self, f.name) for f in fields(self)}
         data["faults"] = [f.to_dict() for f in self.faults]
         data["detection_rate"] = self.value("detection_rate")
         return data
