@@ -24,6 +24,7 @@ figures describe the per-sample test, which the notes of the report say.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -391,39 +392,59 @@ class AlarmEpisodes:
         seg_eligible = eligible[col[heads]]
         tails = np.append(heads[1:], m) - 1
         seg_last = pos[tails]
-        valid = (isolated[col] >= 0) & (isolated[col] < self.n)
-        counts = np.bincount(
-            segment[valid] * self.n + isolated[col][valid], minlength=n_seg * self.n
-        ).reshape(n_seg, self.n)
+        # the last segment of each level stays open unless merge_gap quiet rows follow it
+        last_of_level = np.append(seg_level[1:] != seg_level[:-1], True)
+        stays = last_of_level & (end - seg_last <= self.merge_gap)
+        # each segment's sensor: a one-row segment's own; the others' (and those carried
+        # on from, or left open for, the next block) from their counts per sensor, taken
+        # only for them (most segments of the low levels are single rows)
+        iso = isolated[col]
+        valid = (iso >= 0) & (iso < self.n)
+        sensor = np.where(valid[heads], iso[heads], -1)
+        counted = (tails > heads) | continued | stays
+        dense = np.flatnonzero(counted)
+        counts = np.zeros((dense.size, self.n), np.int64)
+        if dense.size:
+            compact = np.full(n_seg, -1, np.int64)
+            compact[dense] = np.arange(dense.size)
+            where = compact[segment]
+            use = valid & (where >= 0)
+            counts = np.bincount(
+                where[use] * self.n + iso[use], minlength=dense.size * self.n
+            ).reshape(dense.size, self.n)
+            carried_rows = continued[dense]
+            if carried_rows.any():
+                carried = seg_level[dense[carried_rows]]
+                counts[carried_rows] += self.open_counts[carried]
+            sensor[dense] = np.where(counts.any(axis=1), np.argmax(counts, axis=1), -1)
         if continued.any():
             carried = seg_level[continued]
             seg_start[continued] = self.open_start[carried]
             seg_eligible[continued] = self.open_eligible[carried]
-            counts[continued] += self.open_counts[carried]
-        # the last segment of each level stays open unless merge_gap quiet rows follow it
-        last_of_level = np.append(seg_level[1:] != seg_level[:-1], True)
-        stays = last_of_level & (end - seg_last <= self.merge_gap)
         self.open[present] = False
-        self.open[seg_level[stays]] = True
-        self.open_start[seg_level[stays]] = seg_start[stays]
-        self.open_last[seg_level[stays]] = seg_last[stays]
-        self.open_eligible[seg_level[stays]] = seg_eligible[stays]
-        self.open_counts[seg_level[stays]] = counts[stays]
+        staying = seg_level[stays]
+        self.open[staying] = True
+        self.open_start[staying] = seg_start[stays]
+        self.open_last[staying] = seg_last[stays]
+        self.open_eligible[staying] = seg_eligible[stays]
+        self.open_counts[staying] = counts[stays[dense]] if dense.size else 0
         done = ~stays
         self._close(
-            seg_level[done], seg_start[done], seg_last[done], seg_eligible[done], counts[done]
+            seg_level[done], seg_start[done], seg_last[done], seg_eligible[done], sensor[done]
         )
 
     def _close_carried(self, which: np.ndarray) -> None:
         """End the open runs of the levels ``which`` (L,) bool."""
         levels = np.flatnonzero(which)
         if levels.size:
+            counts = self.open_counts[levels]
+            sensor = np.where(counts.any(axis=1), np.argmax(counts, axis=1), -1)
             self._close(
                 levels,
                 self.open_start[levels],
                 self.open_last[levels],
                 self.open_eligible[levels],
-                self.open_counts[levels],
+                sensor,
             )
             self.open[levels] = False
 
@@ -433,14 +454,13 @@ class AlarmEpisodes:
         start: np.ndarray,
         last: np.ndarray,
         eligible: np.ndarray,
-        counts: np.ndarray,
+        sensor: np.ndarray,
     ) -> None:
-        """Ended runs (in time order within each level): joined to their sensor's previous
-        run or counted as new episodes."""
+        """Ended runs (in time order within each level) with their sensor (-1: none):
+        joined to their sensor's previous run or counted as new episodes."""
         if level.size == 0:
             return
-        has = counts.any(axis=1)
-        sensor = np.where(has, np.argmax(counts, axis=1), -1)
+        has = sensor >= 0
         joined = np.zeros(level.size, bool)
         mine = np.flatnonzero(has)
         if mine.size:
@@ -638,8 +658,70 @@ def format_rate(per_hour: float) -> str:
 
 def poisson_upper(count: int, confidence: float = 0.95) -> float:
     """The exact one-sided upper confidence bound of a Poisson mean after ``count``
-    events: ``chi2_confidence(2 count + 2) / 2`` (Garwood 1936), e.g. 2.996 for 0 events
-    at 95 %."""
-    from scipy.special import gammaincinv
+    events: the mean m with ``P(N <= count; m) = 1 - confidence``, i.e. the
+    ``confidence`` quantile of Gamma(count + 1), ``chi2_confidence(2 count + 2) / 2``
+    (Garwood 1936): 2.996 for 0 events at 95 %.
 
-    return float(gammaincinv(count + 1.0, confidence))
+    Solved by Newton's method on the regularized incomplete gamma function (series and
+    continued fraction, Numerical Recipes §6.2) from the Wilson-Hilferty start, to a
+    relative 1e-13, without scipy (so that ``imufdi report`` does not import it).
+    """
+    a = count + 1.0
+    if count == 0:
+        return -math.log(1.0 - confidence)
+    z = _normal_quantile(confidence)
+    mean = a * (1.0 - 1.0 / (9.0 * a) + z / (3.0 * math.sqrt(a))) ** 3  # Wilson-Hilferty
+    log_norm = math.lgamma(a)
+    for _ in range(50):
+        gap = _lower_gamma(a, mean) - confidence
+        density = math.exp((a - 1.0) * math.log(mean) - mean - log_norm)
+        step = gap / density
+        mean = max(mean - step, 0.5 * mean)
+        if abs(step) <= 1e-14 * mean:
+            break
+    return mean
+
+
+def _lower_gamma(a: float, x: float) -> float:
+    """The regularized lower incomplete gamma function P(a, x), a > 0, x >= 0."""
+    if x <= 0.0:
+        return 0.0
+    log_front = a * math.log(x) - x - math.lgamma(a)
+    if x < a + 1.0:  # the series
+        term = total = 1.0 / a
+        n = a
+        while abs(term) > abs(total) * 1e-16:
+            n += 1.0
+            term *= x / n
+            total += term
+        return total * math.exp(log_front)
+    # the continued fraction of Q(a, x) (modified Lentz)
+    tiny = 1e-300
+    b = x + 1.0 - a
+    c, d = 1.0 / tiny, 1.0 / b
+    h = d
+    for i in range(1, 100_000):
+        an = -i * (i - a)
+        b += 2.0
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        delta = d * c
+        h *= delta
+        if abs(delta - 1.0) < 1e-16:
+            break
+    return 1.0 - math.exp(log_front) * h
+
+
+def _normal_quantile(p: float) -> float:
+    """The standard normal quantile (bisection on erfc: only a starting point)."""
+    low, high = -10.0, 10.0
+    for _ in range(80):
+        mid = 0.5 * (low + high)
+        if 0.5 * math.erfc(-mid / math.sqrt(2.0)) < p:
+            low = mid
+        else:
+            high = mid
+    return 0.5 * (low + high)

@@ -243,7 +243,8 @@ def test_finished_counts_leave_the_stream_open():
 def test_poisson_upper_bound_is_the_chi_square_quantile(scipy_stats):
     for count in (0, 1, 5, 40, 1000):
         want = scipy_stats.chi2.ppf(0.95, 2 * count + 2) / 2
-        assert poisson_upper(count) == pytest.approx(want, rel=1e-12)  # the same maths
+        # Newton on the incomplete gamma to 1e-13 against scipy's own root finding
+        assert poisson_upper(count) == pytest.approx(want, rel=1e-10)
     assert poisson_upper(0) == pytest.approx(-np.log(0.05), rel=1e-12)
 
 

@@ -120,8 +120,12 @@ class MetricsAccumulator:
         Names of the sensors in the per-fault amplitude figures (default: their indices).
     episode_gaps : (merge_gap, join_gap), optional
         The episodes' joining rule in rows (:func:`~imufdi_cli.sweep.episode_gap_rows`):
-        with it, the false alarm episodes are counted (and, with ``sweep``, at every
-        level of the matched budget); without (no sample rate known), they are undefined.
+        with it, the false alarm episodes are counted (and, with ``sweep`` and
+        ``budget_levels``, at every level of the matched budget); without (no sample rate
+        known), they are undefined.
+    budget_levels : bool
+        Count the episodes at the matched budget's levels (:meth:`budget_curve`): the
+        joining rule on every row above 0.32 x the threshold, at 71 levels.
     """
 
     def __init__(
@@ -135,6 +139,7 @@ class MetricsAccumulator:
         merge_gap_s: float = 0.1,
         sensor_ids: Sequence[str] | None = None,
         episode_gaps: tuple[int, int] | None = None,
+        budget_levels: bool = True,
     ) -> None:
         from imufdi_cli.sweep import BUDGET_LEVELS, AlarmEpisodes, SweepAccumulator
 
@@ -154,7 +159,7 @@ class MetricsAccumulator:
         self.episodes = None if episode_gaps is None else AlarmEpisodes(1, n_sensors, *episode_gaps)
         self.budget = (
             AlarmEpisodes(BUDGET_LEVELS.size, n_sensors, *episode_gaps)
-            if episode_gaps is not None and sweep
+            if episode_gaps is not None and sweep and budget_levels
             else None
         )
         self.period = _Period()

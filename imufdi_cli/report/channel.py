@@ -83,6 +83,10 @@ class ChannelScore:
         reference delays need it (None: those figures are undefined).
     keep_series : bool
         Keep the kept rows' series for ``--plot`` (:class:`~imufdi_cli.report.scan._Series`).
+    budget_levels : bool
+        Count the false episodes at every level of the matched budget (what
+        ``match_budget`` and the budget curve need; a report without ``--match-budget``
+        leaves them out).
     """
 
     def __init__(
@@ -98,6 +102,7 @@ class ChannelScore:
         persist: int = 1,
         rate_hz: float | None = None,
         keep_series: bool = False,
+        budget_levels: bool = True,
     ) -> None:
         from imufdi_cli.sweep import episode_gap_rows
 
@@ -120,6 +125,7 @@ class ChannelScore:
             persist=persist,
             sensor_ids=ids,
             episode_gaps=gaps,
+            budget_levels=budget_levels,
         )
         self.validity = {"clipped": 0, "invalid": 0, "excluded": 0}
         self.origin_ns: int | None = None  # the first status row's time

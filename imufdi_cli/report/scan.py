@@ -178,7 +178,7 @@ def build_report(
     try:
         with McapSource(stream) as src:
             metadata = dict(src.metadata)  # seekable: read from the summary up front
-            scan = _StatusScan(metadata, window, persist, keep_series)
+            scan = _StatusScan(metadata, window, persist, keep_series, match_budget is not None)
             episodes = _EpisodeCollector(scan.truth, scan.windows_cal, window, scan.first_ns)
             tracker = LogTimeProgress(progress, getattr(src, "summary_time_range", None))
             for detector, sensor_type, ids, rows in iter_status(src, others=episodes.batch):
@@ -246,8 +246,10 @@ class _StatusScan:
         window: tuple[float, float | None] | None,
         persist: int,
         keep_series: bool,
+        budget_levels: bool = False,
     ) -> None:
         self.truth = truth_windows(metadata)
+        self.budget_levels = budget_levels
         self.windows_cal = calibration_windows(metadata)
         self.metadata = metadata
         self.window = window
@@ -280,6 +282,7 @@ class _StatusScan:
                 persist=self.persist,
                 rate_hz=_rate_hz(self.metadata, record),
                 keep_series=self.keep_series,
+                budget_levels=self.budget_levels,
             )
         score.add(rows)
         if key not in self.first_ns and score.origin_ns is not None:
