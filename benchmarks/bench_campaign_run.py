@@ -20,7 +20,7 @@ It prints the CPU seconds of both, per detector and in total, their ratio core/b
 (the cost of one engine: what the conditioner and the budget figures add to a run), and
 the load average. Run::
 
-    python benchmarks/bench_campaign_run.py [--seeds 1] [--rounds 3] [--skip cnn-map]
+    python benchmarks/bench_campaign_run.py [--seeds 1] [--rounds 3] [--skip cnn-map | --all]
 """
 
 from __future__ import annotations
@@ -123,8 +123,9 @@ def main() -> None:
         default=None,
         help="leave a detector out (default: cnn-map and woa-mvmd-glt)",
     )
+    parser.add_argument("--all", action="store_true", help="every detector of the spec")
     args = parser.parse_args()
-    skip = ["cnn-map", "woa-mvmd-glt"] if args.skip is None else args.skip
+    skip = [] if args.all else ["cnn-map", "woa-mvmd-glt"] if args.skip is None else args.skip
     from imufdi_cli.campaign import execute_run, load_spec
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -507,11 +507,12 @@ def episode_gap_rows(rate_hz: float, merge_gap_s: float, join_gap_s: float) -> t
 
 # --- the matched false-alarm budget -----------------------------------------------------
 
-#: Threshold scales of the matched budget: 10**-0.5 (0.32) to 10**3 of the detector's own
+#: Threshold scales of the matched budget: 10**-0.2 (0.63) to 10**3 of the detector's own
 #: threshold, every fifth edge of the grid (0.05 decade, 12 % apart). Each level costs the
 #: joining rule on every row above it, so the range is what a match can need: a per-sample
-#: test is matched to 1/h above its own threshold, a sequential one near it.
-BUDGET_LOG_LOW = -0.5
+#: test is matched to 1/h above its own threshold (at alpha = 1 %, 2 to 3 x), a sequential
+#: one near it (0.8 to 1.5 x between budgets 10 x apart).
+BUDGET_LOG_LOW = -0.2
 BUDGET_LOG_HIGH = 3.0
 BUDGET_STRIDE = 5
 BUDGET_LEVELS = np.arange(

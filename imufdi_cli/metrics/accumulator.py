@@ -125,7 +125,7 @@ class MetricsAccumulator:
         known), they are undefined.
     budget_levels : bool
         Count the episodes at the matched budget's levels (:meth:`budget_curve`): the
-        joining rule on every row above 0.32 x the threshold, at 71 levels.
+        joining rule on every row above 0.63 x the threshold, at 65 levels.
     """
 
     def __init__(
