@@ -149,7 +149,9 @@ def main() -> None:
                     baseline_run(desc)
                 spent[desc["detector"] + " " + json.dumps(desc["params"])][way] += cpu() - start
     print(
-        f"compare.toml, first {args.seeds} seed(s), without {', '.join(skip) or 'none'}:"
+        f"compare.toml, first {args.seeds} seed(s), "
+        + (f"without {', '.join(skip)}" if skip else "every detector")
+        + ":"
         f" {len(runs)} runs x {args.rounds} rounds; load average before {load_before}"
     )
     total = {"baseline": 0.0, "core": 0.0}

@@ -218,6 +218,10 @@ class Engine:
         Samples tested, seconds from the first sample (the others get no row).
     explain : bool
         Build and explain episodes (:mod:`imufdi_cli.episodes`).
+    copy : bool
+        Copy the blocks held back until the calibration window ends (a reader may reuse
+        its buffers); False when the caller's blocks are never modified (a campaign run's
+        log in memory).
     """
 
     def __init__(
@@ -230,8 +234,10 @@ class Engine:
         calibrate: tuple[float, float | None] = DEFAULT_CALIBRATION,
         window: tuple[float, float | None] = (0.0, None),
         explain: bool = False,
+        copy: bool = True,
     ) -> None:
         self.array = array
+        self.copy = copy
         self.conditioner = conditioner
         self.sink = sink
         self.cal_start_s, self.cal_end_s = calibrate
@@ -281,10 +287,10 @@ class Engine:
         inside = block.t_ns >= cal_window[0]
         if self.cal_end_s is not None:
             inside &= block.t_ns < cal_window[1]
-        if inside.any():
-            self.calibration.append((block.mask(inside).copy(), _mask_flags(flags, inside)))
+        if inside.any():  # (a boolean mask makes new arrays: nothing to copy)
+            self.calibration.append((block.mask(inside), _mask_flags(flags, inside)))
         if len(test_block):
-            self.backlog.append((test_block.copy(), test_flags))
+            self.backlog.append((test_block.copy() if self.copy else test_block, test_flags))
         if self.cal_end_s is not None and block.t_ns[-1] >= cal_window[1]:
             self._fit()
 

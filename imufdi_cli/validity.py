@@ -181,7 +181,11 @@ class Conditioner:
                 continue
             # the log's values are the raw chip values when it records no chip calibration
             raw = triads if self._raw[s] else self.log_array.calibrate_triads(triads, s, undo=True)
-            flags[s] = flag_values(raw, s, self.ranges.get(s))
+            if _none_flagged(raw, s, self.ranges.get(s)):  # two reductions, no masks to build
+                quiet = np.zeros(raw.shape, dtype=bool)
+                flags[s] = (quiet, quiet)
+            else:
+                flags[s] = flag_values(raw, s, self.ranges.get(s))
             if self.recalibrate:
                 fields[s] = self.array.calibrate_triads(raw, s)
         return ImuBlock(t_ns=block.t_ns, **fields), flags

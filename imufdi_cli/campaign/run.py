@@ -147,7 +147,10 @@ def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
     conditioner = Conditioner(array)
     sink = ScoringSink(array, truth, conditioner)
     calibrate = desc["calibrate"]
-    engine = Engine([detector], array, conditioner, sink, calibrate=(calibrate[0], calibrate[1]))
+    # the run's log is in memory and never modified: the engine holds views of it
+    engine = Engine(
+        [detector], array, conditioner, sink, calibrate=(calibrate[0], calibrate[1]), copy=False
+    )
     sink.engine = engine
     for part in iter_blocks(faulty, BLOCK_SAMPLES):
         engine.add_block(part)
