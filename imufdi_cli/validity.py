@@ -22,7 +22,7 @@ and the detectors of ``imufdi detect``:
    consensus in the calibration window. It then carries no parity residual: the tests see
    only the valid sensors (the statistic of the n-1 others against the n-sensor threshold,
    slightly conservative). For accelerometers of IMUs at different positions H is the
-   rigid-body design ``[H | lever-arm columns]`` (:mod:`imufdi_cli.detectors.rigid`), so
+   rigid-body design ``[H | lever-arm columns]`` (:mod:`imufdi_cli.maths.rigid`), so
    the replacement includes the lever-arm terms. When the valid sensors do not span the
    model (every gyro of an axis clipped at once), the whole sample of that type is *held*:
    every sensor gets the last consensus, so nothing alarms on a sample that cannot be
@@ -250,7 +250,7 @@ class Conditioner:
 
     def _design(self, s: str) -> np.ndarray:
         """Consensus model of a type: H, or for accelerometers of IMUs at different
-        positions the rigid-body design [H | lever-arm columns] (detectors/rigid.py), so a
+        positions the rigid-body design [H | lever-arm columns] (maths/rigid.py), so a
         replaced sample carries no lever-arm residual either."""
         if s not in self._designs:
             self._designs[s] = _designs(self.array)[s][0]
@@ -321,8 +321,8 @@ _UNCALIBRATED: WeakKeyDictionary[ArrayConfig, dict[str, bool]] = WeakKeyDictiona
 
 def _designs(array: ArrayConfig) -> _LazyDesigns:
     """Per sensor type of ``array`` asked for so far: the consensus model H (for
-    accelerometers of IMUs at different positions the rigid-body design,
-    detectors/rigid.py), its pseudo-inverse and whether it has full column rank, computed
+    accelerometers of IMUs at different positions the rigid-body design, maths/rigid.py),
+    its pseudo-inverse and whether it has full column rank, computed
     once per array."""
     found = _DESIGNS.get(array)
     if found is None:
@@ -338,7 +338,7 @@ class _LazyDesigns(dict[str, tuple[np.ndarray, np.ndarray, bool]]):
         self.array = array
 
     def __missing__(self, s: str) -> tuple[np.ndarray, np.ndarray, bool]:
-        from imufdi_cli.detectors.rigid import accel_design
+        from imufdi_cli.maths.rigid import accel_design
 
         h = accel_design(self.array) if s == "accel" else self.array.measurement_matrix(s)
         self[s] = (h, np.linalg.pinv(h), bool(np.linalg.matrix_rank(h) == h.shape[1]))
