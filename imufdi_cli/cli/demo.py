@@ -4,6 +4,7 @@ are the library's)."""
 
 from __future__ import annotations
 
+import shlex
 import shutil
 import tempfile
 import time
@@ -88,7 +89,8 @@ def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
         if capture.exists():
             stats = step(
                 "ingest",
-                f"imufdi ingest {capture.relative_to(SAMPLE_LOGS.parent)} -o {base}",
+                # the bundled capture by its full path: the command works from any directory
+                f"imufdi ingest {shlex.quote(str(capture))} -o {base}",
                 base,
                 lambda: ingest_file(str(capture), str(base)),
             )
