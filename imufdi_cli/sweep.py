@@ -498,6 +498,45 @@ class AlarmEpisodes:
         return done
 
 
+class FaultRuns:
+    """Which alarmed rows belong to a run of the detector's own alarms (the merge rule of
+    :class:`AlarmEpisodes`) that began on a faulty row, streaming.
+
+    At a scaled threshold such a row's alarm belongs to that fault: a sequential statistic
+    that grew inside the fault crosses a higher threshold later, after the fault's end,
+    while the detector's own episode of it is still open; it is never a false episode.
+
+    Parameters
+    ----------
+    merge_gap : int
+        Rows.
+    """
+
+    def __init__(self, merge_gap: int) -> None:
+        self.merge_gap = int(merge_gap)
+        self.rows = 0
+        self.last = _NEVER  # the last alarmed row so far
+        self.faulty = False  # whether the run it belongs to began on a faulty row
+
+    def update(self, alarm: np.ndarray, faulty: np.ndarray) -> np.ndarray:
+        """The next k rows' own alarms and whether each is faulty; returns (k,) bool: the
+        alarmed rows of runs that began on a faulty row."""
+        alarm = np.asarray(alarm, bool)
+        out = np.zeros(alarm.size, bool)
+        at = np.flatnonzero(alarm)
+        if at.size:
+            rows = self.rows + at
+            previous = np.concatenate([[self.last], rows[:-1]])
+            new = rows - previous - 1 > self.merge_gap
+            run = np.cumsum(new)  # 0: the run carried on from the previous rows
+            began_faulty = np.concatenate([[self.faulty], np.asarray(faulty, bool)[at[new]]])
+            out[at] = began_faulty[run]
+            self.last = int(rows[-1])
+            self.faulty = bool(began_faulty[-1])
+        self.rows += int(alarm.size)
+        return out
+
+
 def episode_gap_rows(rate_hz: float, merge_gap_s: float, join_gap_s: float) -> tuple[int, int]:
     """The joining rule's gaps in rows at ``rate_hz``, as the episode builder rounds them:
     ``(merge_gap, join_gap)`` with ``join_gap >= merge_gap``."""

@@ -462,3 +462,27 @@ def test_matched_budget_scales_the_threshold_until_false_episodes_fall_to_the_ta
     assert 0.5 <= np.count_nonzero(ratio[:n_free] >= scale) <= 6
     assert m.mar_at_budget == 0.0 and m.detection_delay_s_at_budget == 0.0
     assert m.target_budget_per_hour == 1.0
+
+
+def test_a_statistic_that_grew_in_a_fault_is_not_a_false_episode_at_a_higher_threshold():
+    # a sequential test's statistic grows through a fault (rows 1000-1099) and on after
+    # it, while the detector's own episode stays open (to row 1199): at 10 x its threshold
+    # the statistic first crosses after the fault's end, yet it is the fault's episode. A
+    # later excursion to 20 x on fault-free rows is a false episode up to 20 x.
+    from imufdi_cli.metrics import MetricsAccumulator
+    from imufdi_cli.sweep import BUDGET_LOG_SCALES
+
+    n = 5000
+    t = np.arange(n, dtype=np.int64) * 100_000_000  # 10 Hz
+    ratio = np.full(n, 0.1)
+    ratio[1000:1200] = np.geomspace(1.0, 50.0, 200)
+    ratio[3000:3010] = 20.0
+    alarm = ratio >= 1.0
+    fault = FaultWindow("f", (0,), int(t[1000]), int(t[1100]))
+    acc = MetricsAccumulator(2, [fault], episode_gaps=(1, 10))
+    acc.update(t, alarm, np.where(alarm, 0, -1), statistic=ratio, threshold=np.ones(n))
+    counts = acc.budget_curve().false_episodes
+    scale = 10**BUDGET_LOG_SCALES
+    assert counts[(scale > 1.5) & (scale < 19)].tolist() == [1] * int(np.sum((scale > 1.5) & (scale < 19)))  # fmt: skip
+    assert counts[scale > 21].sum() == 0
+    assert acc.result().false_episodes == 1  # the detector's own: the excursion at 3000

@@ -141,7 +141,7 @@ class MetricsAccumulator:
         episode_gaps: tuple[int, int] | None = None,
         budget_levels: bool = True,
     ) -> None:
-        from imufdi_cli.sweep import BUDGET_LEVELS, AlarmEpisodes, SweepAccumulator
+        from imufdi_cli.sweep import BUDGET_LEVELS, AlarmEpisodes, FaultRuns, SweepAccumulator
 
         self.sensor_ids = None if sensor_ids is None else list(sensor_ids)
 
@@ -161,6 +161,10 @@ class MetricsAccumulator:
             AlarmEpisodes(BUDGET_LEVELS.size, n_sensors, *episode_gaps)
             if episode_gaps is not None and sweep and budget_levels
             else None
+        )
+        #: the detector's own runs that began in a fault (their rows: the fault's, at any scale)
+        self.fault_runs = (
+            None if self.budget is None or episode_gaps is None else FaultRuns(episode_gaps[0])
         )
         self.period = _Period()
         self.n = 0
@@ -249,7 +253,9 @@ class MetricsAccumulator:
         if self.episodes is not None:
             self.episodes.update(alarm, isolated, eligible)
         if self.budget is not None and bins is not None:
-            self._budget_levels(bins, np.where(judged, column, -1), eligible)  # type: ignore[arg-type]
+            assert self.fault_runs is not None
+            in_fault_run = self.fault_runs.update(alarm, any_fault)
+            self._budget_levels(bins, np.where(judged, column, -1), eligible & ~in_fault_run)  # type: ignore[arg-type]
         if not keep.all():
             rows = np.flatnonzero(keep)
             k = int(rows.size)
