@@ -310,6 +310,7 @@ class _DetectRun:
             calibrate=calibrate,
             window=window,
             explain=explain,
+            imu_topics=reader.imu_topics,
         )
         self.warnings: list[str] = []
         self.named_scores = named_scores

@@ -222,6 +222,8 @@ class Engine:
         Copy the blocks held back until the calibration window ends (a reader may reuse
         its buffers); False when the caller's blocks are never modified (a campaign run's
         log in memory).
+    imu_topics : sequence of str, optional
+        The IMUs' topics, to name an IMU missing from the calibration window.
     """
 
     def __init__(
@@ -235,9 +237,11 @@ class Engine:
         window: tuple[float, float | None] = (0.0, None),
         explain: bool = False,
         copy: bool = True,
+        imu_topics: Sequence[str] | None = None,
     ) -> None:
         self.array = array
         self.copy = copy
+        self.imu_topics = list(imu_topics or [])
         self.conditioner = conditioner
         self.sink = sink
         self.cal_start_s, self.cal_end_s = calibrate
@@ -310,6 +314,13 @@ class Engine:
     def _fit(self) -> None:
         whole = ImuBlock.concatenate(b for b, _ in self.calibration)
         whole_flags = _concat_flags([f for _, f in self.calibration])
+        if whole.missing is not None:  # an IMU without samples in the window
+            from imufdi_cli.validity import complete_rows
+
+            cal = (self.cal_start_s, self.cal_end_s)
+            names = self.imu_topics or [f"imu{k}" for k in range(whole.n_imus)]
+            whole, whole_flags, kept = complete_rows(whole, whole_flags, names, cal)
+            self.warnings.append(kept)
         self.cal_samples = len(whole)
         if self.cal_samples == 0:
             end = "" if self.cal_end_s is None else f"{self.cal_end_s:g}s"

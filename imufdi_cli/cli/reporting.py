@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 from typing import Any
 
@@ -112,11 +111,19 @@ def report(
     from imufdi_cli import report as rep
     from imufdi_cli.detectors import DETECTORS
     from imufdi_cli.errors import UsageError
-    from imufdi_cli.fileio import atomic_path, check_input, check_outputs, write_text
+    from imufdi_cli.fileio import (
+        atomic_path,
+        check_input,
+        check_outputs,
+        derived_output,
+        write_text,
+    )
 
     target = None if match_far is None else rep.parse_far(match_far)
     budget = None if match_budget is None else rep.parse_budget(match_budget)
     check_input(log)
+    # with --plot, --roc FILE also writes FILE's name with .png: an output like the others
+    roc_png = derived_output(roc_out, ".png") if plot_out and roc_out and roc_out != "-" else None
     outputs = [
         ("--json", ui.json_target),
         ("--markdown", md_out),
@@ -125,10 +132,8 @@ def report(
         ("--plot", plot_out),
         ("--roc", roc_out),
         ("--episodes-csv", episodes_out),
+        ("--roc (its .png figure with --plot)", roc_png),
     ]
-    to_stdout = [label for label, path in outputs if path == "-"]
-    if len(to_stdout) > 1:
-        raise UsageError(f"{' and '.join(to_stdout)} would all write to stdout; give files")
     if plot_out == "-":
         raise UsageError("--plot writes a PNG file; give it a file name")
     ui.data_to_stdout(md_out, csv_out, junit_out, roc_out, episodes_out)
@@ -185,9 +190,8 @@ def report(
 
         with atomic_path(plot_out, suffix=".png") as tmp:  # matplotlib wants the extension
             plots.plot_report(result, tmp)
-        if roc_out and roc_out != "-":
-            png = os.path.splitext(roc_out)[0] + ".png"
-            with atomic_path(png, suffix=".png") as tmp:
+        if roc_png is not None:
+            with atomic_path(roc_png, suffix=".png") as tmp:
                 plots.plot_roc(result, tmp)
     failed = [r for r in gate_results if r.failed]
     if gate_results:  # rich only when there are gate lines to print

@@ -15,10 +15,13 @@ All figures are per sample and per sensor type, with the definitions of Li et al
 - isolation delay = decision time of the first alarm inside the fault isolated to one of
   the fault's sensors - onset
 - decision latency = mean over samples of (decision time - sample time)
+- false alarm events per hour = those events / the tested, fault-free time (gaps excluded:
+  :mod:`imufdi_cli.tested_time`)
 - false alarm episodes per hour = episodes (the joining rule of the episode builder:
   :class:`~imufdi_cli.sweep.AlarmEpisodes`) that start on a fault-free, scored sample
   outside the calibration window / the fault-free tested time
-  (:func:`fault_free_tested_hours`), with its exact Poisson 95 % upper bound; the mean
+  (:func:`~imufdi_cli.tested_time.fault_free_tested_hours`), with its exact Poisson 95 %
+  upper bound; the mean
   time between false alarms is its inverse
 - recovery delay = decision time of the first sample r at or after the fault end from
   which the alarms stop for good - fault end: at least ``persist`` quiet samples from r,
@@ -47,27 +50,26 @@ from imufdi_cli.metrics.figures import (
 )
 from imufdi_cli.metrics.rows import (
     NS_PER_S,
-    PERIOD_INTERVALS,
     apply_budget_match,
     budget_figures,
     episode_rate,
-    fault_free_tested_hours,
     faulty_matrix,
     judged_isolation,
     persistent,
     rising_edges,
 )
+from imufdi_cli.tested_time import SamplePeriod, fault_free_tested_hours
 
 __all__ = [
     "AMPLITUDE_POINTS",
     "METRIC_NAMES",
     "NS_PER_S",
-    "PERIOD_INTERVALS",
     "AmplitudeFigure",
     "FaultFigures",
     "FaultWindow",
     "Metrics",
     "MetricsAccumulator",
+    "SamplePeriod",
     "apply_budget_match",
     "budget_figures",
     "compute_metrics",

@@ -16,13 +16,12 @@ from imufdi_cli.metrics.figures import (
     _ratio,
 )
 from imufdi_cli.metrics.rows import (
-    _Period,
     apply_budget_match,
     episode_rate,
-    fault_free_tested_hours,
     faulty_matrix,
     judged_isolation,
 )
+from imufdi_cli.tested_time import SamplePeriod, fault_free_tested_hours  # per-hour denominator
 
 NS_PER_S = 1_000_000_000
 
@@ -166,7 +165,7 @@ class MetricsAccumulator:
         self.fault_runs = (
             None if self.budget is None or episode_gaps is None else FaultRuns(episode_gaps[0])
         )
-        self.period = _Period()
+        self.period = SamplePeriod()
         self.n = 0
         self.n_cal = 0
         self.n_eval = 0

@@ -122,7 +122,7 @@ class Metrics:
     alarm_rate: float | None  # alarms / samples, truth or not
     alarm_events: int
     false_alarm_events_per_hour: float | None
-    duration_s: float
+    duration_s: float  # first to last row plus one mean interval (gaps included)
     faults: list[FaultFigures] = field(default_factory=list)
     calibration_samples: int = 0
     far_calibration: float | None = None

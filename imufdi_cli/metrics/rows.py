@@ -52,61 +52,6 @@ def persistent(alarm: np.ndarray, persist: int) -> np.ndarray:
     return window == persist
 
 
-def fault_free_tested_hours(fault_free_samples: int, sample_period_s: float | None) -> float:
-    """The tested, fault-free time, in hours: the denominator of the per-hour false alarm
-    figures (``false_alarm_events_per_hour``, ``false_episodes_per_hour``).
-
-    Parameters
-    ----------
-    fault_free_samples : int
-        Status rows tested and scored without an active fault, outside the calibration
-        window (rows excluded as clipped or invalid are not among them).
-    sample_period_s : float or None
-        The time one row stands for, s (the median interval between rows). None or <= 0:
-        no time.
-
-    Returns
-    -------
-    float
-        ``fault_free_samples * sample_period_s / 3600``: a gap in the log (no rows,
-        nothing tested) adds no time.
-    """
-    if not sample_period_s or sample_period_s <= 0 or fault_free_samples <= 0:
-        return 0.0
-    return fault_free_samples * float(sample_period_s) / 3600.0
-
-
-#: Intervals between rows the sample period is the median of.
-PERIOD_INTERVALS = 1024
-
-
-class _Period:
-    """The median of the first :data:`PERIOD_INTERVALS` positive intervals between
-    consecutive rows (streamed; a gap or a few irregular stamps do not move it)."""
-
-    def __init__(self) -> None:
-        self.last: int | None = None
-        self.steps: list[np.ndarray] = []
-        self.count = 0
-
-    def add(self, t_ns: np.ndarray) -> None:
-        if t_ns.size == 0:
-            return
-        if self.count < PERIOD_INTERVALS:
-            t = t_ns if self.last is None else np.concatenate([[self.last], t_ns])
-            steps = np.diff(t)
-            steps = steps[steps > 0][: PERIOD_INTERVALS - self.count]
-            self.steps.append(steps)
-            self.count += int(steps.size)
-        self.last = int(t_ns[-1])
-
-    @property
-    def seconds(self) -> float | None:
-        if self.count == 0:
-            return None
-        return float(np.median(np.concatenate(self.steps))) / NS_PER_S
-
-
 def judged_isolation(
     isolated: np.ndarray, scores: np.ndarray | None, n_sensors: int
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -127,7 +127,7 @@ class ChannelScore:
             episode_gaps=gaps,
             budget_levels=budget_levels,
         )
-        self.validity = {"clipped": 0, "invalid": 0, "excluded": 0}
+        self.validity = {"clipped": 0, "invalid": 0, "excluded": 0, "missing": 0}
         self.origin_ns: int | None = None  # the first status row's time
         self.last_ns: int | None = None  # the last scored row's time
         self.all_decided = True
@@ -137,20 +137,23 @@ class ChannelScore:
 
             self.series = _Series()
 
-    def add(self, rows: Mapping[str, np.ndarray]) -> None:
+    def add(self, rows: Mapping[str, np.ndarray], origin_ns: int | None = None) -> None:
         """Score the next status rows (the fields of
-        :func:`~imufdi_cli.mcapio.status.iter_status`)."""
+        :func:`~imufdi_cli.mcapio.status.iter_status`); ``origin_ns``: time zero of the
+        window when the record has no ``t0_ns`` (default: the channel's first row)."""
         from imufdi_cli.validity import select_rows
 
         t_ns = rows["t_ns"]
         if self.origin_ns is None and t_ns.size:
             self.origin_ns = int(t_ns[0])
+        origin = origin_ns if origin_ns is not None else self.origin_ns
         selection = select_rows(
-            t_ns, self.record, self.sensor_type, self.window, origin_ns=self.origin_ns or 0
+            t_ns, self.record, self.sensor_type, self.window, origin_ns=origin or 0
         )
         self.validity["clipped"] += selection.clipped
         self.validity["invalid"] += selection.invalid
         self.validity["excluded"] += selection.excluded
+        self.validity["missing"] += selection.missing
         self.all_decided &= "decided_ns" in rows
         keep = selection.keep
         kept = np.flatnonzero(keep)

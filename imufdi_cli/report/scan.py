@@ -5,6 +5,7 @@ length, and returns a :class:`~imufdi_cli.report.model.Report`."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from typing import Any, BinaryIO
 
 import numpy as np
@@ -15,6 +16,10 @@ from imufdi_cli.progress import LogTimeProgress, ProgressCallback
 from imufdi_cli.report.channel import ChannelScore
 from imufdi_cli.report.model import Report, ReportEntry
 from imufdi_cli.report.truth import Truth, calibration_windows, truth_windows
+
+#: the detector name of variance-drop episodes (imufdi_cli.episodes.variance_drop, not
+#: imported here: the episodes package is loaded only when episodes are read)
+VARIANCE_DROP = "variance-drop"
 
 #: Samples per channel kept for ``--plot``.
 PLOT_POINTS = 20_000
@@ -179,7 +184,7 @@ def build_report(
         with McapSource(stream) as src:
             metadata = dict(src.metadata)  # seekable: read from the summary up front
             scan = _StatusScan(metadata, window, persist, keep_series, match_budget is not None)
-            episodes = _EpisodeCollector(scan.truth, scan.windows_cal, window, scan.first_ns)
+            episodes = _EpisodeCollector(scan.truth, scan.windows_cal, window, scan.origin_ns)
             tracker = LogTimeProgress(progress, getattr(src, "summary_time_range", None))
             for detector, sensor_type, ids, rows in iter_status(src, others=episodes.batch):
                 if rows["t_ns"].size:
@@ -213,9 +218,7 @@ def build_report(
             " hour fall to the target; a sequential test's restarts stay those of its own"
             " threshold (docs/metrics.md)"
         )
-    episode_scores = episodes.scores(  # takes pending ones
-        {(e.detector, e.sensor_type): e.metrics.fault_free_hours for e in entries}
-    )
+    episode_scores = episodes.scores(scan.fault_free_hours(entries))  # takes pending ones
     return Report(
         source=name,
         has_truth=scan.truth is not None,
@@ -284,9 +287,9 @@ class _StatusScan:
                 keep_series=self.keep_series,
                 budget_levels=self.budget_levels,
             )
-        score.add(rows)
-        if key not in self.first_ns and score.origin_ns is not None:
-            self.first_ns[key] = score.origin_ns
+        if key not in self.first_ns and rows["t_ns"].size:
+            self.first_ns[key] = int(rows["t_ns"][0])
+        score.add(rows, origin_ns=self.origin_ns(detector, sensor_type))
 
     def notes(self, problems: list[str]) -> list[str]:
         """What the reader must know about the whole log: input damage, missing truth,
@@ -317,6 +320,11 @@ class _StatusScan:
                 notes.append(
                     f"{detector}.{sensor_type}: {counts['excluded']} samples not scored"
                     f" ({counts['clipped']} clipped, {counts['invalid']} invalid in the range)"
+                )
+            if counts.get("missing"):
+                notes.append(
+                    f"{detector}.{sensor_type}: {counts['missing']} samples tested with an IMU"
+                    " missing (its sensors replaced by the others' consensus) and scored"
                 )
         return notes
 
@@ -358,6 +366,45 @@ class _StatusScan:
             validity=dict(score.validity),
         )
 
+    def fault_free_hours(self, entries: list[ReportEntry]) -> dict[tuple[str, str], float]:
+        """The tested, fault-free hours of each channel, the denominator of its episode
+        rates: the same as its alarm events' (:func:`imufdi_cli.metrics.fault_free_tested_hours`:
+        scored fault-free rows outside the calibration window times the sample period,
+        gaps excluded). Episodes of a type that no status channel carries (variance-drop,
+        run by ``detect`` beside the detectors) take the largest of that type."""
+        hours: dict[tuple[str, str], float] = {}
+        for entry in entries:
+            hours[(entry.detector, entry.sensor_type)] = entry.metrics.fault_free_hours
+        for entry in entries:
+            key = (VARIANCE_DROP, entry.sensor_type)
+            hours[key] = max(hours.get(key, 0.0), entry.metrics.fault_free_hours)
+        return hours
+
+    def origin_ns(self, detector: str, sensor_type: str) -> int | None:
+        """Time zero of ``--start/--end`` for one channel: the log's first sample as
+        ``detect`` recorded it (``t0_ns``), else the channel's first status row. Episodes
+        of a channel without status rows (variance-drop, run beside the detectors; a type
+        a detector does not test) take the first that exists of: the detector's record,
+        any detector's record (one detect run: one log start), the detector's earliest
+        status row, the earliest status row of all. None while nothing is known. The one
+        origin of the rows (:func:`imufdi_cli.validity.select_rows`) and of the episodes.
+        """
+        record = self.records.get(detector)
+        if record is None and detector in self.windows_cal:
+            record = self.records[detector] = _detect_record(self.metadata, detector)
+        if record is not None and isinstance(record.get("t0_ns"), int):
+            return int(record["t0_ns"])
+        if (detector, sensor_type) in self.first_ns:
+            return self.first_ns[(detector, sensor_type)]
+        recorded = [r.get("t0_ns") for r in self.records.values() if r is not None]
+        known = [int(t) for t in recorded if isinstance(t, int)]
+        if known:
+            return min(known)
+        mine = [t for (d, _), t in self.first_ns.items() if d == detector]
+        if mine or self.first_ns:
+            return min(mine or self.first_ns.values())
+        return None
+
 
 def _rate_hz(metadata: dict[str, dict[str, str]], record: dict[str, Any] | None) -> float | None:
     """The sample rate of the array the detector tested with: ``detect --array``'s (in its
@@ -377,12 +424,11 @@ def _rate_hz(metadata: dict[str, dict[str, str]], record: dict[str, Any] | None)
 
 
 def _detect_record(metadata: dict[str, dict[str, str]], detector: str) -> dict[str, Any] | None:
-    """The decoded ``imufdi.detect.<detector>`` record, or None."""
-    try:
-        record = json.loads(metadata[f"imufdi.detect.{detector}"]["json"])
-    except (KeyError, TypeError, ValueError):
-        return None
-    return record if isinstance(record, dict) else None
+    """The ``imufdi.detect.<detector>`` record checked against its schema, or None when
+    the log has none (McapInputError when it is malformed: :mod:`imufdi_cli.metadata`)."""
+    from imufdi_cli.metadata import detect_record
+
+    return detect_record(metadata, detector)
 
 
 #: episodes listed per detector and sensor type (all are counted)
@@ -398,14 +444,18 @@ class _EpisodeCollector:
         truth: Truth | None,
         calibration: dict[str, tuple[int, int] | None],
         window: tuple[float, float | None] | None = None,
-        origins: dict[tuple[str, str], int] | None = None,
+        origin: Callable[[str, str], int | None] | None = None,
     ) -> None:
         from imufdi_cli.episodes.scoring import EpisodeMatcher
 
         self.calibration = calibration
+        # variance-drop episodes come from the detect run of the detectors: its window
+        shared = [w for _, w in sorted(calibration.items()) if w is not None]
+        if shared and VARIANCE_DROP not in calibration:
+            self.calibration = {**calibration, VARIANCE_DROP: shared[0]}
         self.pending: list[tuple[Any, dict[str, Any]]] = []
-        self.window = window  # --start/--end, seconds from each channel's first sample
-        self.origins = origins if origins is not None else {}
+        self.window = window  # --start/--end, seconds from the time origin of each channel
+        self.origin = origin if origin is not None else (lambda detector, sensor_type: None)
         self.faults = (
             []
             if truth is None
@@ -446,10 +496,11 @@ class _EpisodeCollector:
             items, self.pending = self.pending + items, []
         for episode, match in items:
             key = (episode.detector, episode.sensor_type)
-            if self.window is not None and key not in self.origins:
+            origin = None if self.window is None else self.origin(*key)
+            if self.window is not None and origin is None:
                 self.pending.append((episode, match))
                 continue
-            if not self._inside(key, episode.start_ns):
+            if origin is not None and not self._inside(origin, episode.start_ns):
                 continue
             tally = self.tallies.get(key)
             if tally is None:
@@ -468,10 +519,10 @@ class _EpisodeCollector:
             if self.counts[key] <= EPISODES_LISTED:
                 self.listed.append({**episode.explanation(), **match})
 
-    def _inside(self, key: tuple[str, str], start_ns: int) -> bool:
-        """Whether an episode starting at ``start_ns`` is inside --start/--end."""
-        origin = self.origins.get(key)
-        if self.window is None or origin is None:
+    def _inside(self, origin: int, start_ns: int) -> bool:
+        """Whether an episode starting at ``start_ns`` is inside --start/--end (seconds
+        from ``origin``)."""
+        if self.window is None:
             return True
         from imufdi_cli.units import window_from_log_start
 
@@ -483,9 +534,8 @@ class _EpisodeCollector:
         if self.pending:  # read before their channel's first status row: windowed now
             pending, self.pending = self.pending, []
             self._take(pending)
-        if self.pending:  # channels without status rows: no origin, nothing to window
-            self.window, pending, self.pending = None, self.pending, []
-            self._take(pending)
+        if self.pending:  # no time origin at all (no status rows, no record): not scored
+            self.pending = []
         out = {}
         for key, tally in sorted(self.tallies.items()):
             result = tally.result(hours.get(key) if self.has_truth else None)
