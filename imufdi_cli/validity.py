@@ -53,6 +53,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+from weakref import WeakKeyDictionary
 
 import numpy as np
 
@@ -170,6 +171,8 @@ class Conditioner:
             for a, b in zip(log_array.imus, self.array.imus)
             for s in SENSOR_TYPES
         )
+        #: per sensor type: whether the log's values are the raw chip values (no calibration)
+        self._raw = _uncalibrated(log_array)
         self.offsets: dict[str, np.ndarray] = {}
         self.last_rate: dict[str, np.ndarray] = {}
         self._designs: dict[str, np.ndarray] = {}
@@ -192,8 +195,13 @@ class Conditioner:
             fields[s] = triads
             if triads is None:
                 continue
-            raw = self.log_array.calibrate_triads(triads, s, undo=True)
-            flags[s] = flag_values(raw, s, self.ranges.get(s))
+            # the log's values are the raw chip values when it records no chip calibration
+            raw = triads if self._raw[s] else self.log_array.calibrate_triads(triads, s, undo=True)
+            if _none_flagged(raw, s, self.ranges.get(s)):  # two reductions, no masks to build
+                quiet = np.zeros(raw.shape, dtype=bool)
+                flags[s] = (quiet, quiet)
+            else:
+                flags[s] = flag_values(raw, s, self.ranges.get(s))
             if self.recalibrate:
                 fields[s] = self.array.calibrate_triads(raw, s)
         return ImuBlock(t_ns=block.t_ns, missing=block.missing, **fields), flags
@@ -211,9 +219,9 @@ class Conditioner:
             good = ~bad.any(axis=1)
             h = self._design(s)
             offsets = np.zeros(h.shape[0])
-            if good.any() and np.linalg.matrix_rank(h) == h.shape[1]:
+            if good.any() and _full_rank(self.array, s):
                 yg = y[good]
-                residual = yg - yg @ np.linalg.pinv(h).T @ h.T
+                residual = yg - yg @ _designs(self.array)[s][1].T @ h.T
                 offsets = residual.mean(axis=0)
             self.offsets[s] = offsets
 
@@ -274,10 +282,7 @@ class Conditioner:
         positions the rigid-body design [H | lever-arm columns] (maths/rigid.py), so a
         replaced sample carries no lever-arm residual either."""
         if s not in self._designs:
-            from imufdi_cli.maths.rigid import accel_design
-
-            h = accel_design(self.array) if s == "accel" else self.array.measurement_matrix(s)
-            self._designs[s] = h
+            self._designs[s] = _designs(self.array)[s][0]
         return self._designs[s]
 
     def _bad(self, flags: Mapping[str, tuple[np.ndarray, np.ndarray]], s: str) -> np.ndarray:
@@ -324,7 +329,7 @@ class Conditioner:
             h = self._design(s)
             beta = self.offsets.get(s, np.zeros(h.shape[0]))
             y = self.array.select(triads[good[-1:]], s)[0]
-            self.last_rate[s] = np.linalg.pinv(h) @ (y - beta)
+            self.last_rate[s] = _designs(self.array)[s][1] @ (y - beta)
 
     def metadata(self) -> dict[str, Any]:
         """JSON-ready record: limits and counts per sensor type."""
@@ -335,6 +340,59 @@ class Conditioner:
             "range": dict(self.ranges),
             "types": {s: c.to_dict() for s, c in self.counts.items()},
         }
+
+
+#: per array (the same object for every run of a campaign base): its consensus designs and
+#: their pseudo-inverses, and which types carry no chip calibration
+_DESIGNS: WeakKeyDictionary[ArrayConfig, _LazyDesigns] = WeakKeyDictionary()
+_UNCALIBRATED: WeakKeyDictionary[ArrayConfig, dict[str, bool]] = WeakKeyDictionary()
+
+
+def _designs(array: ArrayConfig) -> _LazyDesigns:
+    """Per sensor type of ``array`` asked for so far: the consensus model H (for
+    accelerometers of IMUs at different positions the rigid-body design, maths/rigid.py),
+    its pseudo-inverse and whether it has full column rank, computed
+    once per array."""
+    found = _DESIGNS.get(array)
+    if found is None:
+        found = _DESIGNS[array] = _LazyDesigns(array)
+    return found
+
+
+class _LazyDesigns(dict[str, tuple[np.ndarray, np.ndarray, bool]]):
+    """The designs of one array, each made when first asked for."""
+
+    def __init__(self, array: ArrayConfig) -> None:
+        super().__init__()
+        self.array = array
+
+    def __missing__(self, s: str) -> tuple[np.ndarray, np.ndarray, bool]:
+        from imufdi_cli.maths.rigid import accel_design
+
+        h = accel_design(self.array) if s == "accel" else self.array.measurement_matrix(s)
+        self[s] = (h, np.linalg.pinv(h), bool(np.linalg.matrix_rank(h) == h.shape[1]))
+        return self[s]
+
+
+def _full_rank(array: ArrayConfig, s: str) -> bool:
+    """Whether the consensus model of type ``s`` has full column rank."""
+    return _designs(array)[s][2]
+
+
+def _uncalibrated(array: ArrayConfig) -> dict[str, bool]:
+    """Per sensor type: whether no IMU of ``array`` has a chip calibration other than the
+    identity (its values are then the raw chip values)."""
+    found = _UNCALIBRATED.get(array)
+    if found is None:
+        found = {
+            s: all(
+                imu.calibration.get(s) is None or imu.calibration_of(s).is_identity
+                for imu in array.imus
+            )
+            for s in SENSOR_TYPES
+        }
+        _UNCALIBRATED[array] = found
+    return found
 
 
 def _none_flagged(raw: np.ndarray, sensor_type: str, full_scale: float | None) -> bool:

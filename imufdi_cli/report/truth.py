@@ -32,37 +32,46 @@ def truth_windows(metadata: dict[str, dict[str, str]]) -> Truth | None:
     Each injection run records its log start ``t0_ns``; fault times are relative to it.
     """
     from imufdi_cli.errors import TruthError
-    from imufdi_cli.faults import METADATA_NAME, Fault
+    from imufdi_cli.faults import METADATA_NAME
     from imufdi_cli.metadata import faults_record
 
     record = faults_record(metadata)  # checked against its schema
     if record is None:
         return None
     try:
-        runs = [*record.get("previous", []), record]
-        windows = []
-        descriptions = []
-        for run in runs:
-            t0 = int(run["t0_ns"])
-            for item in run.get("faults", []):
-                fault = Fault.from_dict(item)
-                end = None if fault.until_ns is None else t0 + fault.until_ns
-                size = fault.params.get({"step": "amp", "drift": "rate"}.get(fault.model, ""))
-                windows.append(
-                    TruthWindow(
-                        fault.id,
-                        tuple(fault.sensors),
-                        t0 + fault.at_ns,
-                        end,
-                        fault.model,
-                        None if size is None else float(size),
-                    )
-                )
-                descriptions.append(fault.to_dict())
+        return truth_of_runs([*record.get("previous", []), record])
     except TruthError as err:  # a fault the schema let through but Fault refuses
         raise TruthError(f"{METADATA_NAME} metadata: {err}") from err
-    except (KeyError, TypeError, ValueError) as err:
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise TruthError(f"{METADATA_NAME} metadata is malformed ({err})") from err
+
+
+def truth_of_runs(runs: list[dict[str, Any]]) -> Truth:
+    """Ground truth from injection runs, each ``{"t0_ns": log start, "faults": [Fault
+    dicts]}`` (what ``imufdi inject`` records, and what a campaign run applied in memory).
+
+    Raises KeyError, TypeError or ValueError on a malformed run."""
+    from imufdi_cli.faults import Fault
+
+    windows = []
+    descriptions = []
+    for run in runs:
+        t0 = int(run["t0_ns"])
+        for item in run.get("faults", []):
+            fault = Fault.from_dict(item)
+            end = None if fault.until_ns is None else t0 + fault.until_ns
+            size = fault.params.get({"step": "amp", "drift": "rate"}.get(fault.model, ""))
+            windows.append(
+                TruthWindow(
+                    fault.id,
+                    tuple(fault.sensors),
+                    t0 + fault.at_ns,
+                    end,
+                    fault.model,
+                    None if size is None else float(size),
+                )
+            )
+            descriptions.append(fault.to_dict())
     return Truth(windows=windows, descriptions=descriptions)
 
 
