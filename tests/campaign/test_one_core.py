@@ -112,7 +112,7 @@ def test_a_campaign_run_scores_what_inject_detect_report_score(
         assert {e["sensor_type"] for e in entries} == set(result["metrics"])
         for entry in entries:
             figures = result["metrics"][entry["sensor_type"]]
-            validity = {k: entry.pop(k) for k in ("clipped", "invalid", "excluded")}
+            validity = {k: entry.pop(k) for k in ("clipped", "invalid", "excluded", "missing")}
             _same(validity, figures["validity"], f"{entry['sensor_type']}.validity")
             del entry["detector"], entry["sensor_type"]
             _same(entry, figures, f"{run.get('false_alarms')}.{figures['validity']}")
