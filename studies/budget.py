@@ -1,5 +1,5 @@
 """Detectors under a false-alarm budget: fault-free episodes per hour on long simulated
-logs, and the delays of the issue's faults against Lorden's references.
+logs, and the delays of three reference faults against Lorden's references.
 
 Parts (``--part``):
 
@@ -17,8 +17,10 @@ Parts (``--part``):
 
 Example (the figures of docs/algorithms/{pca-parity,bank,woa-mvmd-glt}.md)::
 
-    PYTHONPATH=. python studies/budget.py --part levels --seeds 33011:33015 --hours 3 \\
-        --detectors pca-parity,bank --jobs 2
+    PYTHONPATH=. python studies/budget.py --part levels --seeds 33011:33015 --hours 1 \\
+        --detectors glt,pca-parity,bank
+    PYTHONPATH=. python studies/budget.py --part levels --seeds 33011:33013 --hours 1 \\
+        --detectors woa-mvmd-glt
     PYTHONPATH=. python studies/budget.py --part delays --seeds 33030:33050
 """
 
