@@ -441,16 +441,12 @@ class _Reference:
         return self.step > 0.0 or self.scale_step > 0.0 or self.motion is not None
 
     def snapshot(self) -> tuple[np.ndarray, ...]:
+        """The state, by reference: every array of it is replaced when the state moves,
+        never changed in place (:meth:`restore` copies)."""
         motion = self.motion
         if motion is None:
-            return (self.offset.copy(), self.variance.copy())
-        return (
-            self.offset.copy(),
-            self.variance.copy(),
-            self.state_mean.copy(),
-            motion.sxx.copy(),
-            motion.sxz.copy(),
-        )
+            return (self.offset, self.variance)
+        return (self.offset, self.variance, self.state_mean, motion.sxx, motion.sxz)
 
     def restore(self, snap: tuple[np.ndarray, ...]) -> None:
         """Back to a snapshot; the open sub-block's sums are dropped."""
@@ -475,37 +471,39 @@ class _Reference:
         """``z'`` for the rows of ``z`` (the rows after ``samples`` of the stream), moving
         the reference at every completed sub-block unless ``frozen``; also, for a rewind,
         the local rows from which each state held, with a snapshot of it."""
-        motion = self.motion
+        motion = self.motion if x is not None else None
         n_rows = z.shape[0]
         out = np.empty_like(z)
         marks = [(0, self.snapshot())]
+        stride, scaled = self.stride, self.scale_step > 0.0
         row = 0
         while row < n_rows:
-            phase = (samples + row) % self.stride
-            stop = min(n_rows, row + self.stride - phase)
-            rows = slice(row, stop)
-            np.subtract(z[rows], self.offset, out=out[rows])
-            centred = None
-            if motion is not None and x is not None:
-                centred = x[rows] - self.state_mean
+            stop = min(n_rows, row + stride - (samples + row) % stride)
+            rows = out[row:stop]
+            np.subtract(z[row:stop], self.offset, out=rows)
+            if motion is not None:
+                assert x is not None
+                states = x[row:stop]
+                centred = states - self.state_mean
                 if not frozen:  # the regression sees the offset-free evidence
-                    self.pending_x += x[rows].sum(axis=0)
-                    self.pending_xx += centred.T @ centred
-                    self.pending_xz += centred.T @ out[rows]
-                out[rows] -= centred @ motion.slopes
+                    self.pending_x += states.sum(axis=0)
+                    transposed = centred.T
+                    self.pending_xx += transposed @ centred
+                    self.pending_xz += transposed @ rows
+                rows -= centred @ motion.slopes
             if not frozen:
-                self.pending += out[rows].sum(axis=0)
+                self.pending += rows.sum(axis=0)
                 self.count += stop - row
-            if centred is not None and motion is not None:
+            if motion is not None:
                 spread = np.einsum("ij,jk,ik->i", centred, motion.covariance, centred)
-                out[rows] /= np.sqrt(1.0 + motion.inflation * spread)[:, None]
-            if not frozen and self.scale_step > 0.0:
-                self.pending_squares += np.minimum(np.square(out[rows]), 16.0 * self.variance).sum(
-                    axis=0
-                )
-            if self.scale_step > 0.0:
-                out[rows] /= np.sqrt(self.variance)
-            if not frozen and (samples + stop) % self.stride == 0:  # sub-block complete
+                rows /= np.sqrt(1.0 + motion.inflation * spread)[:, None]
+            if scaled:
+                if not frozen:
+                    squares = np.square(rows)
+                    np.minimum(squares, 16.0 * self.variance, out=squares)
+                    self.pending_squares += squares.sum(axis=0)
+                rows /= np.sqrt(self.variance)
+            if not frozen and (samples + stop) % stride == 0:  # sub-block complete
                 self._complete(samples + stop)
                 marks.append((stop, self.snapshot()))
             row = stop
@@ -558,6 +556,8 @@ class MotionModel:
     sxz: np.ndarray
     slopes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    #: ``I / prior_sd^2`` (set by :meth:`solve`)
+    prior_precision: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.solve()
@@ -584,8 +584,9 @@ class MotionModel:
         )
 
     def solve(self) -> None:
-        p = self.centre.size
-        precision = self.sxx + np.eye(p) / self.prior_sd**2
+        if self.prior_precision is None:  # (the same floats every time: computed once)
+            self.prior_precision = np.eye(self.centre.size) / self.prior_sd**2
+        precision = self.sxx + self.prior_precision
         self.covariance = np.linalg.inv(precision)
         self.slopes = self.covariance @ self.sxz
 
@@ -729,26 +730,86 @@ class CusumBank:
                 position += self._follow(rows, states, position, out)
         return out
 
+    #: Rows of a sub-chunk in :meth:`_cusums`: its working arrays, a few of (rows, n),
+    #: stay in the CPU's cache, which a whole span's do not (about 1.7x faster at 48
+    #: sensors).
+    SUB_ROWS = 512
+
     def _cusums(
         self, zr: np.ndarray, best: np.ndarray | None = None
-    ) -> tuple[list[np.ndarray], np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Every CUSUM (1)-(2) of the bank over the rows ``zr`` (M, n), from the current
-        state: the statistics per (shift, sign), shift-major (list of (M, n)), and per
-        sensor their maximum (M, n; written into ``best`` when given).
+        state: per sensor the largest statistic over the hypotheses (M, n; written into
+        ``best`` when given), and every hypothesis' statistic on the last row (2 D, n),
+        shift-major then sign (the next state).
 
         With the one clip of (1), every hypothesis' cumulative log-likelihood ratio is a
         combination of one cumulative sum, ``C_t = s mu Z_t - t mu^2 / 2`` with
         ``Z_t = sum_{j<=t} clip(z'_j)``, and the walk reflected at 0 from ``S_0`` is
         ``S_t = C_t - min_{j<=t} C'_j`` where ``C'`` is C with its first value lowered to
-        ``min(C_1, -S_0)``.
+        ``min(C_1, -S_0)``. The rows go through in sub-chunks of :attr:`SUB_ROWS` with
+        the cumulative sum and the minima carried across them: the same floats as one
+        pass over all the rows (:meth:`_statistics`), with a fraction of the memory
+        traffic.
         """
+        clip = self.design.clip
+        n_rows, n = zr.shape
+        if best is None:
+            best = np.empty_like(zr)
+        hypotheses = 2 * self.shifts.size
+        final = np.zeros((hypotheses, n))
+        if n_rows == 0:
+            return best, final
+        sub = min(self.SUB_ROWS, n_rows)
+        total, walk, low = np.empty((sub, n)), np.empty((sub, n)), np.empty((sub, n))
+        minima = list(-self.state.reshape(hypotheses, n))  # -S_0 seeds each minimum
+        running = np.zeros(n)  # the cumulative sum of the clipped evidence so far
+        # fmin skips NaN checks: the same floats as minimum here, since a NaN in the
+        # evidence stays in the cumulative sum (every statistic after it is NaN either
+        # way); only a NaN state would differ
+        finite = bool(np.isfinite(self.state).all())
+        accumulate = np.fmin.accumulate if finite else np.minimum.accumulate
+        for lo in range(0, n_rows, sub):
+            hi = min(n_rows, lo + sub)
+            rows = hi - lo
+            t_sum, t_walk, t_low = total[:rows], walk[:rows], low[:rows]
+            np.clip(zr[lo:hi], -clip, clip, out=t_sum)
+            if lo:
+                t_sum[0] += running
+            np.cumsum(t_sum, axis=0, out=t_sum)
+            running = t_sum[-1].copy()
+            steps = np.arange(lo + 1, hi + 1, dtype=float)[:, None]
+            out = best[lo:hi]
+            for d, mu in enumerate(self.shifts):
+                drift = steps * (0.5 * mu * mu)
+                for s, sign in enumerate((1.0, -1.0)):
+                    k = 2 * d + s
+                    np.multiply(t_sum, sign * mu, out=t_walk)
+                    t_walk -= drift  # C
+                    first = t_walk[0].copy()
+                    np.minimum(first, minima[k], out=t_walk[0])
+                    accumulate(t_walk, axis=0, out=t_low)
+                    t_walk[0] = first
+                    minima[k] = t_low[-1].copy()
+                    np.subtract(t_walk, t_low, out=t_low)  # S
+                    if k == 0:
+                        out[...] = t_low
+                    else:
+                        np.maximum(out, t_low, out=out)
+                    if hi == n_rows:
+                        final[k] = t_low[-1]
+        return best, final
+
+    def _statistics(self, zr: np.ndarray) -> list[np.ndarray]:
+        """Every hypothesis' statistic (list of 2 D arrays (M, n), shift-major) over the
+        rows ``zr`` from the current state, in one pass: the same floats as
+        :meth:`_cusums` (which keeps only their maximum); an episode's onset needs them on
+        the rows up to its alarm."""
         clip = self.design.clip
         total = np.clip(zr, -clip, clip)
         np.cumsum(total, axis=0, out=total)
         steps = np.arange(1, zr.shape[0] + 1, dtype=float)[:, None]
         stats: list[np.ndarray] = []
-        if best is None:
-            best = np.empty_like(zr)
         for d, mu in enumerate(self.shifts):
             drift = steps * (0.5 * mu * mu)
             for s, sign in enumerate((1.0, -1.0)):
@@ -759,33 +820,33 @@ class CusumBank:
                 statistic = np.minimum.accumulate(cumulative, axis=0)
                 cumulative[0] = first
                 np.subtract(cumulative, statistic, out=statistic)
-                if stats:
-                    np.maximum(best, statistic, out=best)
-                else:
-                    best[...] = statistic
                 stats.append(statistic)
-        return stats, best
+        return stats
 
-    def _keep_state(self, stats: list[np.ndarray], row: int) -> None:
-        flat = self.state.reshape(-1, self.n)
-        for k, statistic in enumerate(stats):
-            flat[k] = statistic[row]
+    def _keep_state(self, values: np.ndarray) -> None:
+        """The statistics (2 D, n: shift-major, then sign) as the next rows' start."""
+        self.state.reshape(-1, self.n)[...] = values
 
     def _watch(self, z: np.ndarray, x: np.ndarray | None, position: int, out: Decisions) -> int:
         """No episode open: run the bank over the rows ``z`` (output rows from
         ``position``) up to the first alarm; returns the number of rows handled."""
         zr, marks = self._referenced(z, x, frozen=False)
         # the rows' scores are written in place; those after an alarm are written again
-        stats, best = self._cusums(zr, out.scores[position : position + len(zr)])
+        best, final = self._cusums(zr, out.scores[position : position + len(zr)])
         top = best.max(axis=1) if self.n else np.zeros(len(zr))
         over = np.flatnonzero(top > self.threshold)
         stop = len(zr) if over.size == 0 else int(over[0]) + 1
         rows = slice(position, position + stop)
         out.statistic[rows] = top[:stop]
-        self._keep_state(stats, stop - 1)
         if over.size:
+            # every hypothesis up to the alarm row (the onset needs them), from the state
+            # this call started from
+            stats = self._statistics(zr[:stop])
+            self._keep_state(np.array([statistic[-1] for statistic in stats]))
             self._rewind(marks, stop - 1)
             self._open(zr, stats, stop - 1, position, out)
+        else:
+            self._keep_state(final)
         self._remember(zr[:stop])
         self.samples += stop
         return stop
@@ -846,7 +907,7 @@ class CusumBank:
         episode = self.episode
         assert episode is not None
         zr, _ = self._referenced(z, x, frozen=True)
-        stats, best = self._cusums(zr, out.scores[position : position + len(zr)])
+        best, final = self._cusums(zr, out.scores[position : position + len(zr)])
         # evidence that the fault has ended: the log-likelihood ratio of "no fault" against
         # "the fault as estimated so far" (its mean evidence since the onset, at least the
         # smallest design shift), one design per call, so that a fault between two design
@@ -878,7 +939,7 @@ class CusumBank:
             self.state[:] = 0.0
             self.episode = None
         else:
-            self._keep_state(stats, stop - 1)
+            self._keep_state(final)  # (stop is the last row)
             episode.recovery = float(recovery[stop - 1])
         self._remember(zr[:stop])
         self.samples += stop
@@ -887,6 +948,9 @@ class CusumBank:
     def _remember(self, zr: np.ndarray) -> None:
         """Keep the last ``history`` rows of referenced evidence (for onsets)."""
         if self.history_length <= 0 or zr.shape[0] == 0:
+            return
+        if zr.shape[0] >= self.history_length:
+            self.history = zr[-self.history_length :].copy()
             return
         joined = np.concatenate([self.history, zr]) if self.history.size else zr
         self.history = joined[-self.history_length :].copy()

@@ -263,3 +263,29 @@ def test_a_tracked_variance_corrects_a_sigma_calibrated_too_small() -> None:
     # at 10/h for 30 min: ~5 allowed; 1.15 sd multiplies the rate by ~exp(h (1 - 1/1.15^2))
     assert tracked.episodes <= 8 < fixed.episodes
     np.testing.assert_allclose(tracked.ref.variance, 1.15**2, rtol=0.05)
+
+
+@pytest.mark.parametrize("sub_rows", [1, 7, 64, 100_000])
+def test_the_sub_chunked_cusums_are_the_one_pass_floats(sub_rows: int) -> None:
+    # the bank runs its hypotheses over sub-chunks of rows with the sums and minima
+    # carried across them: every float equals the one pass over all the rows, from any
+    # state, finite or not (NaN evidence inside the bank propagates as before)
+    rng = np.random.default_rng(13)
+    bank = _bank(5)
+    bank.SUB_ROWS = sub_rows
+    z = rng.standard_normal((301, 5))
+    z[40:80, 1] += 2.5
+    for state in (np.zeros_like(bank.state), rng.uniform(0.0, 6.0, bank.state.shape)):
+        bank.state[...] = state
+        best, final = bank._cusums(z)
+        stats = bank._statistics(z)
+        np.testing.assert_array_equal(best, np.max(stats, axis=0))
+        np.testing.assert_array_equal(final, np.array([s[-1] for s in stats]))
+    z[150, 3] = np.nan
+    for state in (np.zeros_like(bank.state), np.full_like(bank.state, np.nan)):
+        bank.state[...] = state
+        best, final = bank._cusums(z)
+        stats = bank._statistics(z)
+        np.testing.assert_array_equal(best, np.max(stats, axis=0))
+        np.testing.assert_array_equal(final, np.array([s[-1] for s in stats]))
+    assert np.isnan(best[150:, 3]).all()
