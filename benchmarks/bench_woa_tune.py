@@ -136,10 +136,11 @@ def _demo(tree: Path) -> tuple[float, float]:
 
 
 def _make_input(directory: Path) -> Path:
-    """The demo's faulty log (``imufdi_cli.pipeline.run_demo``'s inject step)."""
+    """The demo's faulty log (``imufdi_cli.cli.demo.run_demo``'s inject step)."""
     sys.path.insert(0, str(ROOT))
+    from imufdi_cli.cli.demo import DEMO_FAULT
     from imufdi_cli.faults.inject import inject_file
-    from imufdi_cli.pipeline import DEMO_FAULT, SAMPLE_LOGS
+    from imufdi_cli.pipeline import SAMPLE_LOGS
 
     faulty = directory / "faulty.mcap"
     inject_file(str(SAMPLE_LOGS / "paper-table4.mcap"), str(faulty), [DEMO_FAULT], [], seed=1)

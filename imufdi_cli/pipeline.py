@@ -8,22 +8,16 @@ console passed in by the CLI).
 from __future__ import annotations
 
 import json
-import shutil
 import sys
-import tempfile
-import time
 from collections.abc import Mapping, Sequence
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO, cast
+from typing import Any, BinaryIO, cast
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.errors import UsageError
 from imufdi_cli.units import parse_quantity
-
-if TYPE_CHECKING:
-    from imufdi_cli.cli.plain import PlainTable
 
 SAMPLE_LOGS = Path(__file__).resolve().parent.parent / "sample_logs"
 
@@ -309,9 +303,9 @@ def log_info(
     time_source: str = "auto",
     strict: bool = False,
 ) -> dict[str, Any]:
-    """:func:`imufdi_cli.mcapio.summary.log_info` (moved there: ``imufdi info`` does not
-    import this module; start-up time, docs/performance.md)."""
-    from imufdi_cli.mcapio.summary import log_info as _log_info
+    """:func:`imufdi_cli.info.log_info` (there: ``imufdi info`` does not import this
+    module; start-up time, docs/performance.md)."""
+    from imufdi_cli.info import log_info as _log_info
 
     return _log_info(source, topics=topics, time_source=time_source, strict=strict)
 
@@ -407,129 +401,3 @@ def _woa_settings(settings: Mapping[str, str] | None) -> dict[str, Any]:
     if "alpha_min" in typed or "alpha_max" in typed:
         out["alpha_bounds"] = (typed.get("alpha_min", 50.0), typed.get("alpha_max", 5000.0))
     return out
-
-
-# --- demo ------------------------------------------------------------------------------
-
-DEMO_FAULT = "step:imu0.gyro.x,at=2.5s,amp=0.9deg/s"
-
-
-@dataclass
-class DemoStep:
-    name: str
-    command: str
-    seconds: float
-    output: str
-
-
-@dataclass
-class DemoResult:
-    directory: str
-    steps: list[DemoStep] = field(default_factory=list)
-
-
-def demo_table(report: Any) -> PlainTable:
-    """The demo's table: every column of the report's figures (right-justified) per
-    detector and sensor type."""
-    from imufdi_cli import report as rep
-    from imufdi_cli.cli.plain import PlainTable
-
-    table = PlainTable(
-        ("detector", "sensor", *(header for _, header, _, _ in rep.TABLE_COLUMNS)),
-        title="demo: 0.9 deg/s step on imu0.gyro.x at 2.5 s (paper-table4)",
-        justify=("left", "left", *("right" for _ in rep.TABLE_COLUMNS)),
-    )
-    for row in rep.table_rows(report):
-        table.add_row(*row)
-    return table
-
-
-def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
-    """ingest (or simulate) -> inject -> detect -> report on the bundled sample, printing
-    each step as the equivalent command line."""
-    from imufdi_cli import report as rep
-    from imufdi_cli.cli.ui import print_table
-    from imufdi_cli.detect import detect_file
-    from imufdi_cli.detectors import DETECTORS
-    from imufdi_cli.faults import inject_file
-    from imufdi_cli.fileio import atomic_path, check_outputs, write_text
-
-    if keep_dir:
-        workdir = Path(keep_dir)
-        workdir.mkdir(parents=True, exist_ok=True)
-        cleanup = False
-    else:
-        workdir = Path(tempfile.mkdtemp(prefix="imufdi-demo-"))
-        cleanup = True
-    result = DemoResult(directory=str(workdir))
-    check_outputs(
-        [p for p in SAMPLE_LOGS.iterdir() if p.is_file()] if SAMPLE_LOGS.is_dir() else [],
-        [
-            (f"--keep {keep_dir}", workdir / name)
-            for name in ("table4.mcap", "faulty.mcap", "detected.mcap", "report.md")
-        ],
-    )
-
-    def step(name: str, command: str, output: Path, fn: Any) -> Any:
-        console.print(f"[bold cyan]$ {command}[/]", markup=True)
-        start = time.perf_counter()
-        value = fn()
-        seconds = time.perf_counter() - start
-        result.steps.append(DemoStep(name, command, seconds, str(output)))
-        console.print(f"  [dim]{seconds:.2f} s -> {output}[/]", markup=True)
-        return value
-
-    try:
-        capture = SAMPLE_LOGS / "paper-table4.cap"
-        base = workdir / "table4.mcap"
-        if capture.exists():
-            stats = step(
-                "ingest",
-                f"imufdi ingest {capture.relative_to(SAMPLE_LOGS.parent)} -o {base}",
-                base,
-                lambda: ingest_file(str(capture), str(base)),
-            )
-            rows = dict(stats.as_rows())
-            console.print(
-                "  "
-                + ", ".join(
-                    f"{k}: {v}" for k, v in rows.items() if isinstance(v, (int, float)) and v
-                )
-            )
-        else:
-            sample = SAMPLE_LOGS / "paper-table4.mcap"
-            with atomic_path(base) as tmp:
-                shutil.copyfile(sample, tmp)
-        faulty = workdir / "faulty.mcap"
-        step(
-            "inject",
-            f"imufdi inject {base} --fault {DEMO_FAULT} --seed 1 -o {faulty}",
-            faulty,
-            lambda: inject_file(str(base), str(faulty), [DEMO_FAULT], [], seed=1),
-        )
-        detected = workdir / "detected.mcap"
-        names = [
-            n for n in ("glt", "woa-mvmd-glt", "pca-parity", "bank", "noise-glr") if n in DETECTORS
-        ]
-        flags = " ".join(f"-d {n}" for n in names)
-        step(
-            "detect",
-            f"imufdi detect {faulty} {flags} -o {detected}",
-            detected,
-            lambda: detect_file(str(faulty), str(detected), [(n, {}) for n in names]),
-        )
-        md = workdir / "report.md"
-        report = step(
-            "report",
-            f"imufdi report {detected} --markdown {md}",
-            md,
-            lambda: rep.build_report(str(detected)),
-        )
-        write_text(str(md), rep.to_markdown(report))
-        print_table(console, demo_table(report))
-        if keep_dir:
-            console.print(f"outputs kept in {workdir}")
-    finally:
-        if cleanup:
-            shutil.rmtree(workdir, ignore_errors=True)
-    return result

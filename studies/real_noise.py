@@ -55,10 +55,10 @@ sys.path.insert(0, str(ROOT))
 
 from imufdi_cli.array import ArrayConfig  # noqa: E402
 from imufdi_cli.calibrate import calibrate_file, find_static  # noqa: E402
-from imufdi_cli.detectors.jitter import MotionInflation  # noqa: E402
-from imufdi_cli.detectors.parity import residual_projector  # noqa: E402
-from imufdi_cli.detectors.rigid import accel_design  # noqa: E402
 from imufdi_cli.faults import inject_file  # noqa: E402
+from imufdi_cli.maths.jitter import MotionInflation  # noqa: E402
+from imufdi_cli.maths.parity import residual_projector  # noqa: E402
+from imufdi_cli.maths.rigid import accel_design  # noqa: E402
 from imufdi_cli.mcapio import read_array  # noqa: E402
 from imufdi_cli.pipeline import ingest_file  # noqa: E402
 from imufdi_cli.validity import flag_values  # noqa: E402

@@ -51,7 +51,7 @@ gc.disable()
 
 
 #: fixtures giving a scipy package as a test's independent oracle (imported on first use)
-SCIPY_ORACLES = frozenset({"scipy_stats", "scipy_optimize", "scipy_fft", "scipy_special"})
+SCIPY_ORACLES = frozenset({"scipy_stats"})
 
 
 def _first_use_group(item: pytest.Item) -> int:
@@ -395,52 +395,3 @@ def scipy_stats() -> ModuleType:
     import scipy.stats
 
     return scipy.stats
-
-
-@pytest.fixture(scope="session")
-def scipy_optimize() -> ModuleType:
-    """``scipy.optimize``, the oracle of ``imufdi_cli.nnls`` (tests/test_nnls.py), imported
-    at first use like :func:`scipy_stats` (about 0.35 s of CPU with scipy.sparse,
-    scipy.spatial and scipy.fft, which no other test process then needs)."""
-    import scipy.optimize
-
-    return scipy.optimize
-
-
-@pytest.fixture(scope="session")
-def scipy_fft() -> ModuleType:
-    """``scipy.fft``, the oracle of ``imufdi_cli.special.fft`` (about 0.45 s of CPU to
-    import; nothing once :func:`scipy_stats` or :func:`scipy_optimize` has imported it)."""
-    import scipy.fft
-
-    return scipy.fft
-
-
-@pytest.fixture(scope="session")
-def scipy_special() -> ModuleType:
-    """``scipy.special``, the package whose ufuncs ``imufdi_cli.special`` loads alone (about
-    0.4 s of CPU to import; nothing once :func:`scipy_stats` has imported it)."""
-    import scipy.special
-
-    return scipy.special
-
-
-@pytest.fixture(scope="session")
-def quantiles_scipy_modules(fresh_python) -> list[str]:
-    """The ``scipy.s*`` modules a fresh interpreter has imported after using every
-    function of ``imufdi_cli.quantiles`` (one process for test_quantiles.py's scipy.stats
-    check and test_special.py's scipy.special check)."""
-    import json
-
-    done = fresh_python(
-        "import json, sys\n"
-        "from imufdi_cli.quantiles import chi2, f, gamma, norm\n"
-        "chi2.ppf(0.99, 1); chi2.ppf(0.99, 3); f.ppf(0.99, 1, 50); f.ppf(0.99, 1, 40)\n"
-        "for d, s in ((norm, ()), (chi2, (2,)), (f, (2, 9)), (gamma, (2,))):\n"
-        "    d.cdf(1.0, *s); d.sf(1.0, *s); d.ppf(0.3, *s, scale=2.0); d.isf(0.3, *s)\n"
-        "norm.pdf(0.5)\n"
-        "print(json.dumps(sorted(m for m in sys.modules if m.startswith('scipy.s'))))\n"
-    )
-    assert done.returncode == 0, done.stderr
-    modules: list[str] = json.loads(done.stdout)
-    return modules

@@ -53,7 +53,7 @@ def info(log: str, topics: tuple[str, ...], stamps: str, strict: bool, ui: UI) -
 def log_info_summary(
     log: str, topics: tuple[str, ...], stamps: str, strict: bool
 ) -> dict[str, Any]:
-    from imufdi_cli.mcapio.summary import log_info
+    from imufdi_cli.info import log_info
 
     return log_info(
         log, topics=list(topics) or None, time_source=time_source(stamps), strict=strict

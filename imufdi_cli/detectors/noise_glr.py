@@ -108,8 +108,8 @@ from imufdi_cli.detectors.base import (
 from imufdi_cli.detectors.moving import MovingWindow
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.quantiles import chi2, norm  # scipy.stats' floats without its import
-from imufdi_cli.quantiles import f as f_distribution
+from imufdi_cli.maths.quantiles import chi2, norm
+from imufdi_cli.maths.quantiles import f as f_distribution
 
 #: Sensors whose leverage P_jj exceeds this are not redundant (their leave-one-out
 #: residual is undefined or dominated by the estimate) and are not tested.

@@ -95,11 +95,10 @@ def test_autoregression_fit_and_whitening_recover_an_ar2_process():
     phi = np.array([0.5, -0.3])
     noise = rng.normal(0.0, 0.2, (20_000, 4))
     # series[t] = phi_1 series[t-1] + phi_2 series[t-2] + noise[t] from series[0:2] = 0
-    # (lfilter instead of a Python loop over the 20 000 samples: 0.1 s less; scipy.signal's
-    # filter, tests/test_special.py, without importing scipy.signal and scipy.stats)
+    # (lfilter instead of a Python loop over the 20 000 samples: 0.1 s less)
     driving = noise.copy()
     driving[:2] = 0.0
-    from imufdi_cli.special import lfilter
+    from scipy.signal import lfilter
 
     series = lfilter([1.0], [1.0, -phi[0], -phi[1]], driving, axis=0)
     fitted = fit_autoregression(series, 2)
@@ -554,7 +553,7 @@ class _ScriptedScreen:
 @pytest.mark.parametrize("block_size", [1000, 37])
 def test_gyro_screen_readmits_a_gyro_after_its_alarms_stop(short_log, block_size):
     from imufdi_cli.detectors.cnn_map import READMIT_S
-    from imufdi_cli.detectors.parity import least_squares_matrix
+    from imufdi_cli.maths.parity import least_squares_matrix
 
     array, block = short_log
     detector = make(FAST)

@@ -145,7 +145,7 @@ def test_real_step_and_noise_growth_are_explained(tmp_path: Path) -> None:
     alarm runs joined) whose interval holds the true factor sqrt(s^2 + 0.3^2) / s, s the
     sensor's sigma as calibrated on 0-10 s."""
     from imufdi_cli.array import ArrayConfig
-    from imufdi_cli.detectors.parity import residual_sigma
+    from imufdi_cli.maths.parity import residual_sigma
     from imufdi_cli.mcapio import read_array, read_events
     from tests.cli.conftest import invoke
 

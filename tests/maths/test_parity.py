@@ -7,7 +7,8 @@ import pytest
 from numpy.testing import assert_allclose
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.parity import (
+from imufdi_cli.errors import ArrayConfigError, CalibrationError
+from imufdi_cli.maths.parity import (
     detection_statistic,
     estimated_sigma_threshold,
     fault_directions,
@@ -21,7 +22,6 @@ from imufdi_cli.detectors.parity import (
     sigma_estimate_variance,
     whiten,
 )
-from imufdi_cli.errors import ArrayConfigError, CalibrationError
 
 
 def conical_H(n: int = 6, half_angle_deg: float = 54.7356) -> np.ndarray:

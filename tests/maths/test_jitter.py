@@ -11,7 +11,10 @@ from numpy.testing import assert_allclose, assert_array_equal
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import parse_params
 from imufdi_cli.detectors.glt import GltDetector
-from imufdi_cli.detectors.jitter import (
+from imufdi_cli.detectors.pca_parity import PcaParityDetector
+from imufdi_cli.errors import ArrayConfigError
+from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.jitter import (
     MAX_JITTER_S,
     MotionInflation,
     array_inflation,
@@ -19,9 +22,6 @@ from imufdi_cli.detectors.jitter import (
     fit_jitter,
     minimum_detectable_step,
 )
-from imufdi_cli.detectors.pca_parity import PcaParityDetector
-from imufdi_cli.errors import ArrayConfigError
-from imufdi_cli.log import ImuBlock
 
 RATE = 100.0
 DT_NS = 10_000_000
