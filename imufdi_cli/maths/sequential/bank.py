@@ -305,7 +305,7 @@ class CusumBank:
         misalignment errors): ``process`` then takes the state's rows too.
     """
 
-    #: Rows run through the bank at once (an alarm wastes at most this much work).
+    #: Longest run of the cumulative sums (a span; see the span walker below).
     SPAN = 2048
 
     def __init__(
