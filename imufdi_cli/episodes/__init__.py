@@ -37,6 +37,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from imufdi_cli.episodes.builder import EpisodeBuilder, episode_builders
     from imufdi_cli.episodes.episode import (
+        FITS_EXPLANATION,
+        SAMPLE_EXPLANATION,
         Episode,
         find_episodes,
         isolation_summary,
@@ -90,6 +92,8 @@ if TYPE_CHECKING:
 _WHERE: dict[str, str] = {
     "DISPERSION_LEVEL": "imufdi_cli.episodes.reference",
     "Episode": "imufdi_cli.episodes.episode",
+    "FITS_EXPLANATION": "imufdi_cli.episodes.episode",
+    "SAMPLE_EXPLANATION": "imufdi_cli.episodes.episode",
     "EpisodeBuilder": "imufdi_cli.episodes.builder",
     "EpisodeTally": "imufdi_cli.episodes.scoring",
     "FaultFit": "imufdi_cli.episodes.fault_fit",
@@ -153,7 +157,9 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "DISPERSION_LEVEL",
+    "FITS_EXPLANATION",
     "MODELS",
+    "SAMPLE_EXPLANATION",
     "SIZE_NAMES",
     "SPIKE_CUT",
     "TRUTH_SIZE_KEYS",

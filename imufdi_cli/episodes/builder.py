@@ -24,9 +24,16 @@ from typing import Any
 
 import numpy as np
 
-from imufdi_cli.episodes.episode import Episode, _sensor_amplitude
-from imufdi_cli.episodes.fault_fit import WhiteNoise
+from imufdi_cli.episodes.episode import (
+    FITS_EXPLANATION,
+    SAMPLE_EXPLANATION,
+    Episode,
+    _sensor_amplitude,
+)
+from imufdi_cli.episodes.fault_fit import FaultFit, WhiteNoise
 from imufdi_cli.episodes.fits import fit_models
+from imufdi_cli.episodes.model_fits import SPIKE_CUT
+from imufdi_cli.episodes.numerics import _t_quantile
 from imufdi_cli.episodes.reference import (
     Reference,
     correlation_sq,
@@ -98,6 +105,11 @@ class EpisodeBuilder:
     variance_drop_window_s, variance_drop_alpha : float
         The monitor's window and the probability that one healthy sensor's window falls
         below its threshold.
+    sample_explanations : bool
+        Explain an episode of one alarmed sample by that sample alone
+        (:meth:`_explain_samples`: ``spikes`` or ``none``) instead of the fits: what
+        ``detect`` does for a per-sample test, whose chance alarms are most of its episodes
+        and carry nothing a fit over a margin could tell apart from chance.
     """
 
     def __init__(
@@ -122,6 +134,7 @@ class EpisodeBuilder:
         variance_drop: bool = False,
         variance_drop_window_s: float = 1.0,
         variance_drop_alpha: float = 1e-7,
+        sample_explanations: bool = False,
     ) -> None:
         self.detector = detector
         self.sensor_type = sensor_type
@@ -134,6 +147,10 @@ class EpisodeBuilder:
         self.max_window = max(4, round(max_window_s * rate_hz))
         self.confidence = confidence
         self.explain = explain
+        #: one-sample episodes explained by their sample alone (:meth:`_explain_samples`)
+        self.sample_explanations = sample_explanations
+        #: episodes closed and waiting to be explained (at the end of rows/finish, together)
+        self._jobs: list[tuple[Episode, np.ndarray, np.ndarray, int, bool]] = []
         self.calibration_samples = calibration_samples
         self.calibration_mean = (
             None if calibration_mean is None else np.asarray(calibration_mean, np.float64)
@@ -153,6 +170,7 @@ class EpisodeBuilder:
             "white_excess": white_excess,
             "variance_drop_window_s": variance_drop_window_s,
             "variance_drop_alpha": variance_drop_alpha,
+            "sample_explanations": sample_explanations,
         }
         self.white_sigma = (
             None
@@ -160,6 +178,8 @@ class EpisodeBuilder:
             else np.broadcast_to(np.asarray(white_sigma, np.float64), (self.H.shape[0],))
         )
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
+        #: (residual matrix (n, n), calibrated bias (n,), sigma_r (n,)) of every sensor
+        self._sample_matrix: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
         self.white_excess = float(white_excess)
         self._white_cov: np.ndarray | None = None  # white_sigma_covariance, once
@@ -181,7 +201,11 @@ class EpisodeBuilder:
             window = max(2, round(variance_drop_window_s * rate_hz))
             self._drop = (
                 self._variance_monitor(window, variance_drop_alpha),
-                EpisodeBuilder(VARIANCE_DROP, *self._arguments, **self._options),
+                EpisodeBuilder(
+                    VARIANCE_DROP,
+                    *self._arguments,
+                    **{**self._options, "sample_explanations": False},
+                ),
             )
 
     # measurements arrive with the input blocks, rows when the detector emits them
@@ -245,6 +269,7 @@ class EpisodeBuilder:
         tail = max(0, n - self.margin)
         self._history = np.concatenate([self._history, m[tail:]])[-self.margin :]
         self._history_t = np.concatenate([self._history_t, t_ns[tail:]])[-self.margin :]
+        self._explain_jobs()
         if self._drop is not None:
             monitor, builder = self._drop
             builder._gains, builder._references = self._gains, self._references
@@ -428,6 +453,7 @@ class EpisodeBuilder:
         for waiting in self._waiting.values():
             closed.append(self._close(waiting))
         self._waiting.clear()
+        self._explain_jobs()
         if self._drop is not None:
             closed.extend(self._drop[1].finish())
         closed.sort(key=lambda e: e.decided_end_ns)
@@ -463,8 +489,97 @@ class EpisodeBuilder:
             amplitude=_sensor_amplitude(state["amplitudes"], self.sensor_ids, names),
         )
         if self.explain and window.shape[0] >= 4:
-            self._explain(episode, window, window_t, state["alarm_index"])
+            single = state["alarms"] == 1 and state["fragments"] == 1
+            self._jobs.append(
+                (
+                    episode,
+                    window,
+                    window_t,
+                    state["alarm_index"],
+                    single and self.sample_explanations,
+                )
+            )
         return episode
+
+    def _explain_jobs(self) -> None:
+        """Explain the episodes closed since the last call: one-sample episodes (of a
+        per-sample test) by their sample together (:meth:`_explain_samples`), the others
+        by the fits (:meth:`_explain`)."""
+        jobs, self._jobs = self._jobs, []
+        samples = [job for job in jobs if job[4]]
+        if samples:
+            self._explain_samples(samples)
+        for episode, window, window_t, alarm_index, single in jobs:
+            if not single:
+                self._explain(episode, window, window_t, alarm_index)
+
+    def _explain_samples(
+        self, jobs: list[tuple[Episode, np.ndarray, np.ndarray, int, bool]]
+    ) -> None:
+        """One-sample episodes, explained by their alarmed sample alone: the isolated
+        sensor's residual against the consensus of the others at that sample (its
+        calibrated bias taken out), ``z = r / sigma_r`` with ``sigma_r^2 = sigma_k^2 +
+        sigma_c^2``. Beyond the spike model's cut (``|z| > SPIKE_CUT``) it is a spike of
+        amplitude ``|r|`` (interval ``|r| +- t sigma_r``, t on the calibration's degrees of
+        freedom), else no fault model is needed (``none``: a false alarm of chance). A
+        single sample cannot tell a step, a drift or noise growth from chance (no
+        profile-likelihood fit over a margin would): those need alarms that last.
+        ``fits`` holds the class with ``z`` in ``extra``; ``explained_by`` is
+        ``sample``. Without a consensus the episode stays unexplained, as with the fits."""
+        rows = np.stack([window[alarm_index] for _, window, _, alarm_index, _ in jobs])
+        residuals, sigma_r = self._sample_residuals(rows)  # (E, n), (n,)
+        dof = (
+            successive_difference_dof(self.calibration_samples)
+            if self.calibration_samples
+            else None
+        )
+        for (episode, _, _, alarm_index, _), r in zip(jobs, residuals):
+            names = episode.sensors
+            if names:
+                k = self.sensor_ids.index(names[0])
+            else:  # no isolation: the sensor of the largest normalised residual
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    scaled = np.where(np.isfinite(sigma_r), np.abs(r) / sigma_r, -np.inf)
+                if not np.isfinite(scaled).any():
+                    continue
+                k = int(np.nanargmax(scaled))
+                episode.sensors = [self.sensor_ids[k]]
+                episode.isolated_by = "residual"
+            if not np.isfinite(sigma_r[k]) or not math.isfinite(float(r[k])):
+                continue  # no consensus for it
+            z = float(r[k] / sigma_r[k])
+            if abs(z) > SPIKE_CUT:
+                size = abs(float(r[k]))
+                half = _t_quantile(0.5 + self.confidence / 2, dof) if dof else math.inf
+                half *= float(sigma_r[k])
+                fit = FaultFit(
+                    "spikes", size, size - half, size + half, alarm_index, math.nan, {"z": z}
+                )
+            else:
+                fit = FaultFit("none", math.nan, math.nan, math.nan, -1, math.nan, {"z": z})
+            episode.fits = [fit]
+            episode.explained_by = SAMPLE_EXPLANATION
+
+    def _sample_residuals(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every sensor's residual against the consensus of the others, calibrated bias
+        taken out, of the samples ``rows`` (E, n), and its sigma_r (n,; inf where no
+        consensus exists), from the residual matrix computed once."""
+        if self._sample_matrix is None:
+            n = self.H.shape[0]
+            A = np.zeros((n, n))
+            sigma_r = np.full(n, np.inf)
+            for k in range(n):
+                try:
+                    gain, consensus_sigma = self._gain(k)
+                except ValueError:
+                    continue
+                A[:, k] = -gain
+                A[k, k] += 1.0
+                sigma_r[k] = math.sqrt(float(self.sigma[k]) ** 2 + consensus_sigma**2)
+            bias = np.zeros(n) if self.calibration_mean is None else self.calibration_mean @ A
+            self._sample_matrix = (A, bias, sigma_r)
+        A, bias, sigma_r = self._sample_matrix
+        return rows @ A - bias, sigma_r
 
     def _isolation_summary(
         self, state: dict[str, Any]
@@ -530,6 +645,8 @@ class EpisodeBuilder:
             reference=self._reference(k, window),
             white=self._white_of(k, gain),
         )
+        if episode.fits:
+            episode.explained_by = FITS_EXPLANATION
 
     def _white_of(self, k: int, gain: np.ndarray) -> WhiteNoise | None:
         """:meth:`_white` of sensor k (``gain`` its :meth:`_gain`), computed once."""
@@ -600,13 +717,21 @@ class EpisodeBuilder:
             found = self._gains[k] = downdated_gain(self.H, self.sigma, k)
         return found
 
-    def for_detector(self, detector: str) -> EpisodeBuilder:
+    def for_detector(
+        self, detector: str, *, sample_explanations: bool | None = None
+    ) -> EpisodeBuilder:
         """A fresh builder with the same calibration, for another detector (it shares the
-        consensus gains, which depend only on the calibration)."""
+        consensus gains, which depend only on the calibration); ``sample_explanations``:
+        whether its one-sample episodes are explained by their sample alone (a per-sample
+        test's chance alarms) or by the fits like the others (a detector under a
+        false-alarm budget, whose episodes are rare; default: this builder's choice)."""
         # the variance-drop monitor is a detection of its own: one builder runs it
         monitor = not self._monitor_issued
         self._monitor_issued = True
-        builder = EpisodeBuilder(detector, *self._arguments, **self._options, variance_drop=monitor)
+        options = dict(self._options)
+        if sample_explanations is not None:
+            options["sample_explanations"] = sample_explanations
+        builder = EpisodeBuilder(detector, *self._arguments, **options, variance_drop=monitor)
         builder._gains = self._gains
         builder._references = self._references
         return builder
