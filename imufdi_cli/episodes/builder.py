@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from imufdi_cli.episodes.batch import FitProblem, fit_models_batch
 from imufdi_cli.episodes.episode import (
     FITS_EXPLANATION,
     SAMPLE_EXPLANATION,
@@ -31,7 +32,6 @@ from imufdi_cli.episodes.episode import (
     _sensor_amplitude,
 )
 from imufdi_cli.episodes.fault_fit import FaultFit, WhiteNoise
-from imufdi_cli.episodes.fits import fit_models
 from imufdi_cli.episodes.model_fits import SPIKE_CUT
 from imufdi_cli.episodes.numerics import _t_quantile
 from imufdi_cli.episodes.reference import (
@@ -51,6 +51,11 @@ from imufdi_cli.episodes.white_noise import (
     white_variance_dof,
 )
 from imufdi_cli.maths.parity import check_measurement_matrix
+
+#: Fitted windows explained together (:func:`fit_models_batch`), at most: what waits.
+FIT_BATCH = 64
+#: Episodes waiting to be explained, at most (one-sample ones keep only their sample).
+SAMPLE_BATCH = 512
 
 
 class EpisodeBuilder:
@@ -149,8 +154,11 @@ class EpisodeBuilder:
         self.explain = explain
         #: one-sample episodes explained by their sample alone (:meth:`_explain_samples`)
         self.sample_explanations = sample_explanations
-        #: episodes closed and waiting to be explained (at the end of rows/finish, together)
-        self._jobs: list[tuple[Episode, np.ndarray, np.ndarray, int, bool]] = []
+        #: episodes closed and waiting to be explained, in order; of them, the one-sample
+        #: episodes explained by their sample (its row) and those fitted (their problems)
+        self._waiting_episodes: list[Episode] = []
+        self._samples: list[tuple[Episode, np.ndarray, int]] = []
+        self._fits: list[tuple[Episode, FitProblem]] = []
         self.calibration_samples = calibration_samples
         self.calibration_mean = (
             None if calibration_mean is None else np.asarray(calibration_mean, np.float64)
@@ -228,7 +236,9 @@ class EpisodeBuilder:
 
     def rows(self, t_ns: np.ndarray, decided_ns: np.ndarray, out: Any) -> list[Episode]:
         """Status rows (a DetectionBlock ``out`` with sample and decision times, in order);
-        returns the episodes that closed within them (ordered by their decision time)."""
+        returns episodes closed within them or before, explained (a batch of them at a
+        time, :meth:`_explain_jobs`; the rest by :meth:`finish`), ordered by their decision
+        time."""
         n = len(t_ns)
         t_ns = np.asarray(t_ns, dtype=np.int64)
         m = self._take(n)
@@ -269,14 +279,14 @@ class EpisodeBuilder:
         tail = max(0, n - self.margin)
         self._history = np.concatenate([self._history, m[tail:]])[-self.margin :]
         self._history_t = np.concatenate([self._history_t, t_ns[tail:]])[-self.margin :]
-        self._explain_jobs()
+        done = self._explain_jobs()
         if self._drop is not None:
             monitor, builder = self._drop
             builder._gains, builder._references = self._gains, self._references
             builder.feed(m)
-            closed.extend(builder.rows(t_ns, t_ns, monitor.update(m)))
-        closed.sort(key=lambda e: e.decided_end_ns)
-        return closed
+            done.extend(builder.rows(t_ns, t_ns, monitor.update(m)))
+        done.sort(key=lambda e: e.decided_end_ns)
+        return done
 
     def _end_quiet_run(self, closed: list[Episode]) -> None:
         """Close the open alarm run once more than ``merge_gap`` quiet rows follow it."""
@@ -453,11 +463,11 @@ class EpisodeBuilder:
         for waiting in self._waiting.values():
             closed.append(self._close(waiting))
         self._waiting.clear()
-        self._explain_jobs()
+        done = self._explain_jobs(flush=True)
         if self._drop is not None:
-            closed.extend(self._drop[1].finish())
-        closed.sort(key=lambda e: e.decided_end_ns)
-        return closed
+            done.extend(self._drop[1].finish())
+        done.sort(key=lambda e: e.decided_end_ns)
+        return done
 
     def _close(self, state: dict[str, Any]) -> Episode:
         window_t = np.concatenate(state["window_t"])
@@ -488,34 +498,40 @@ class EpisodeBuilder:
             fragments=state["fragments"],
             amplitude=_sensor_amplitude(state["amplitudes"], self.sensor_ids, names),
         )
+        self._waiting_episodes.append(episode)
         if self.explain and window.shape[0] >= 4:
             single = state["alarms"] == 1 and state["fragments"] == 1
-            self._jobs.append(
-                (
-                    episode,
-                    window,
-                    window_t,
-                    state["alarm_index"],
-                    single and self.sample_explanations,
-                )
-            )
+            alarm_index = state["alarm_index"]
+            if single and self.sample_explanations:  # (only its alarmed sample is kept)
+                self._samples.append((episode, window[alarm_index].copy(), alarm_index))
+            else:
+                problem = self._fit_problem(episode, window, window_t, alarm_index)
+                if problem is not None:
+                    self._fits.append((episode, problem))
         return episode
 
-    def _explain_jobs(self) -> None:
-        """Explain the episodes closed since the last call: one-sample episodes (of a
-        per-sample test) by their sample together (:meth:`_explain_samples`), the others
-        by the fits (:meth:`_explain`)."""
-        jobs, self._jobs = self._jobs, []
-        samples = [job for job in jobs if job[4]]
-        if samples:
-            self._explain_samples(samples)
-        for episode, window, window_t, alarm_index, single in jobs:
-            if not single:
-                self._explain(episode, window, window_t, alarm_index)
+    def _explain_jobs(self, flush: bool = False) -> list[Episode]:
+        """The episodes closed so far, explained, once enough wait (or with ``flush``):
+        their fits are found together, up to :data:`FIT_BATCH` windows at a time
+        (:func:`~imufdi_cli.episodes.batch.fit_models_batch`), the one-sample episodes of
+        a per-sample test by their sample (:meth:`_explain_samples`). At most
+        :data:`FIT_BATCH` windows wait, whatever the log length."""
+        waiting = len(self._waiting_episodes)
+        if not flush and len(self._fits) < FIT_BATCH and waiting < SAMPLE_BATCH:
+            return []
+        if self._samples:
+            self._explain_samples(self._samples)
+        if self._fits:
+            fitted = fit_models_batch([problem for _, problem in self._fits])
+            for (episode, _), fits in zip(self._fits, fitted, strict=True):
+                episode.fits = fits
+                if fits:
+                    episode.explained_by = FITS_EXPLANATION
+        done, self._waiting_episodes = self._waiting_episodes, []
+        self._samples, self._fits = [], []
+        return done
 
-    def _explain_samples(
-        self, jobs: list[tuple[Episode, np.ndarray, np.ndarray, int, bool]]
-    ) -> None:
+    def _explain_samples(self, jobs: list[tuple[Episode, np.ndarray, int]]) -> None:
         """One-sample episodes, explained by their alarmed sample alone: the isolated
         sensor's residual against the consensus of the others at that sample (its
         calibrated bias taken out), ``z = r / sigma_r`` with ``sigma_r^2 = sigma_k^2 +
@@ -526,14 +542,14 @@ class EpisodeBuilder:
         profile-likelihood fit over a margin would): those need alarms that last.
         ``fits`` holds the class with ``z`` in ``extra``; ``explained_by`` is
         ``sample``. Without a consensus the episode stays unexplained, as with the fits."""
-        rows = np.stack([window[alarm_index] for _, window, _, alarm_index, _ in jobs])
+        rows = np.stack([row for _, row, _ in jobs])
         residuals, sigma_r = self._sample_residuals(rows)  # (E, n), (n,)
         dof = (
             successive_difference_dof(self.calibration_samples)
             if self.calibration_samples
             else None
         )
-        for (episode, _, _, alarm_index, _), r in zip(jobs, residuals):
+        for (episode, _, alarm_index), r in zip(jobs, residuals, strict=True):
             names = episode.sensors
             if names:
                 k = self.sensor_ids.index(names[0])
@@ -599,13 +615,13 @@ class EpisodeBuilder:
             return names, None, 0.0
         return names, names[1], float(counts[order[1]] / total)
 
-    def _explain(
+    def _fit_problem(
         self, episode: Episode, window: np.ndarray, window_t: np.ndarray, alarm_index: int
-    ) -> None:
-        """Fit the fault models (:func:`~imufdi_cli.episodes.fits.fit_models`) on the
-        episode's isolated sensor (or, when none was isolated, the loudest) over ``window``
-        (L, n) with times ``window_t`` (L,) ns, its first alarm at ``alarm_index``; sets
-        ``episode.fits`` (left empty when the other sensors give no consensus)."""
+    ) -> FitProblem | None:
+        """The arguments of :func:`~imufdi_cli.episodes.fits.fit_models` on the episode's
+        isolated sensor (or, when none was isolated, the loudest, named in the episode)
+        over ``window`` (L, n) with times ``window_t`` (L,) ns, its first alarm at
+        ``alarm_index``; None when the other sensors give no consensus."""
         names = episode.sensors
         k = self.sensor_ids.index(names[0]) if names else self._loudest(window)
         if not names:
@@ -614,7 +630,7 @@ class EpisodeBuilder:
         try:
             gain, consensus_sigma = self._gain(k)
         except ValueError:
-            return
+            return None
         prediction = window @ gain
         residual = window[:, k] - prediction
         offset_var = None
@@ -629,24 +645,19 @@ class EpisodeBuilder:
                 offset_var = (self.sigma[k] ** 2 + consensus_sigma**2) / self.calibration_samples
         t_s = (window_t - window_t[0]).astype(np.float64) * 1e-9
         alarm_index = min(alarm_index, max(len(window_t) - 2, 0))
-        episode.fits = fit_models(
-            residual,
-            prediction,
-            t_s,
-            float(self.sigma[k]),
-            consensus_sigma,
+        args = (residual, prediction, t_s, float(self.sigma[k]), consensus_sigma)
+        kwargs = {
             # the onset may precede the first alarm (a drift is detected late) or follow
             # it (a chance alarm just before the fault merges into its episode)
-            onset_range=(0, alarm_index + 1 + (len(window_t) - alarm_index) // 2),
-            confidence=self.confidence,
-            raw=window[:, k],
-            calibration_samples=self.calibration_samples,
-            offset_var=offset_var,
-            reference=self._reference(k, window),
-            white=self._white_of(k, gain),
-        )
-        if episode.fits:
-            episode.explained_by = FITS_EXPLANATION
+            "onset_range": (0, alarm_index + 1 + (len(window_t) - alarm_index) // 2),
+            "confidence": self.confidence,
+            "raw": window[:, k].copy(),
+            "calibration_samples": self.calibration_samples,
+            "offset_var": offset_var,
+            "reference": self._reference(k, window),
+            "white": self._white_of(k, gain),
+        }
+        return args, kwargs
 
     def _white_of(self, k: int, gain: np.ndarray) -> WhiteNoise | None:
         """:meth:`_white` of sensor k (``gain`` its :meth:`_gain`), computed once."""
