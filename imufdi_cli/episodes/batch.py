@@ -199,7 +199,9 @@ def fit_windows(windows: Sequence[Window]) -> list[list[FaultFit]]:
     for members in groups.values():
         # windows of similar lengths together (each is padded to the longest of its batch)
         members.sort(key=lambda i: windows[i].r.shape[0])
-        for chunk in _similar(members, [windows[i].r.shape[0] for i in members]):
+        reference = windows[members[0]].reference
+        width = 1 if reference is None else reference.residuals.shape[1]
+        for chunk in _similar(members, [windows[i].r.shape[0] for i in members], width):
             fitted = _Windows([windows[i] for i in chunk]).fits()
             for i, fits in zip(chunk, fitted, strict=True):
                 results[i] = fits
@@ -210,13 +212,24 @@ def fit_windows(windows: Sequence[Window]) -> list[list[FaultFit]]:
 SPREAD = 1.25
 
 
-def _similar(members: list[int], lengths: list[int]) -> list[list[int]]:
+#: Values of a batch's healthy-sensor residuals (E, L, m) at most (16 MB: memory linear in
+#: the sensor count whatever the batch).
+BATCH_VALUES = 2_000_000
+
+
+def _similar(members: list[int], lengths: list[int], width: int = 1) -> list[list[int]]:
     """``members`` (sorted by ``lengths``) cut into batches of at most BATCH windows whose
-    longest is at most SPREAD times the shortest."""
+    longest is at most SPREAD times the shortest, and at most BATCH_VALUES values of
+    ``width`` columns each."""
     batches: list[list[int]] = []
     start = 0
     for i in range(1, len(members) + 1):
-        if i == len(members) or i - start >= BATCH or lengths[i] > SPREAD * lengths[start]:
+        if (
+            i == len(members)
+            or i - start >= BATCH
+            or lengths[i] > SPREAD * lengths[start]
+            or (i + 1 - start) * lengths[i] * width > BATCH_VALUES
+        ):
             batches.append(members[start:i])
             start = i
     return batches

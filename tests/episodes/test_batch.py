@@ -108,3 +108,19 @@ def test_windows_the_batch_cannot_take_are_fitted_alone(problems) -> None:
     unchecked = [(a, {**k, "reference": None}) for a, k in problems]
     for (a, k), many in zip(unchecked, fit_models_batch(unchecked), strict=True):
         _agree(fit_models(*a, **k), many)
+
+
+def test_batches_are_cut_by_spread_count_and_values() -> None:
+    from imufdi_cli.episodes import batch
+
+    lengths = [100, 110, 120, 200, 210]
+    members = list(range(len(lengths)))
+    # spread: 200 > 1.25 * 100 starts a new batch
+    assert batch._similar(members, lengths) == [[0, 1, 2], [3, 4]]
+    # values: windows of 100+ rows of 10_000 columns, at most BATCH_VALUES a batch
+    wide = batch.BATCH_VALUES // (2 * 120 * 1)
+    cut = batch._similar(members, lengths, width=wide)
+    assert [i for chunk in cut for i in chunk] == members
+    for chunk in cut:
+        assert len(chunk) * max(lengths[i] for i in chunk) * wide <= batch.BATCH_VALUES
+    assert len(cut) > 2
