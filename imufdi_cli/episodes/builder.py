@@ -19,6 +19,7 @@ type from the calibration window.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Sequence
 from typing import Any
 
@@ -33,7 +34,7 @@ from imufdi_cli.episodes.episode import (
 )
 from imufdi_cli.episodes.fault_fit import FaultFit, WhiteNoise
 from imufdi_cli.episodes.model_fits import SPIKE_CUT
-from imufdi_cli.episodes.numerics import _t_quantile
+from imufdi_cli.episodes.numerics import _f_quantile, _t_quantile
 from imufdi_cli.episodes.reference import (
     Reference,
     correlation_sq,
@@ -56,6 +57,47 @@ from imufdi_cli.maths.parity import check_measurement_matrix
 FIT_BATCH = 64
 #: Episodes waiting to be explained, at most (one-sample ones keep only their sample).
 SAMPLE_BATCH = 512
+#: ... and the bytes their windows hold (memory linear in the sensor count: a fit's window
+#: holds the healthy sensors' residuals).
+FIT_BYTES = 8 << 20
+#: Bytes of leave-two-out consensus matrices kept (an (n, n - 1) matrix per sensor).
+REFERENCE_CACHE_BYTES = 8 << 20
+#: A one-sample episode is explained by its sample when its residual there is at least
+#: this many standard deviations (a per-sample test's chance alarms: 2.3 and up for glt at
+#: alpha = 1 % on 16 IMUs), ...
+SAMPLE_Z = 2.0
+#: ... its window's mean within this many standard errors of 0 ...
+SCREEN_Z = 4.0
+#: ... and its white variance below this upper quantile of its calibrated value.
+SCREEN_LEVEL = 1e-4
+
+
+class _Cache:
+    """Values computed from a key on demand, the least recently used dropped once the
+    arrays they hold pass ``limit`` bytes (shared by the builders of one calibration)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.values: OrderedDict[int, Any] = OrderedDict()
+        self.size = 0
+
+    def get(self, key: int, make: Any) -> Any:
+        if key in self.values:
+            self.values.move_to_end(key)
+            return self.values[key]
+        value = make(key)
+        self.values[key] = value
+        self.size += _nbytes(value)
+        while self.size > self.limit and len(self.values) > 1:
+            _, dropped = self.values.popitem(last=False)
+            self.size -= _nbytes(dropped)
+        return value
+
+
+def _nbytes(value: Any) -> int:
+    if value is None:
+        return 0
+    return sum(int(getattr(item, "nbytes", 0)) for item in value)
 
 
 class EpisodeBuilder:
@@ -159,6 +201,7 @@ class EpisodeBuilder:
         self._waiting_episodes: list[Episode] = []
         self._samples: list[tuple[Episode, np.ndarray, int]] = []
         self._fits: list[tuple[Episode, FitProblem]] = []
+        self._fit_bytes = 0  # what the waiting fits hold
         self.calibration_samples = calibration_samples
         self.calibration_mean = (
             None if calibration_mean is None else np.asarray(calibration_mean, np.float64)
@@ -188,7 +231,9 @@ class EpisodeBuilder:
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
         #: (residual matrix (n, n), calibrated bias (n,), sigma_r (n,)) of every sensor
         self._sample_matrix: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
+        # k -> _reference_matrix(k): (n, n - 1) each, so a bounded cache (memory linear
+        # in the sensor count, not cubic)
+        self._references: _Cache = _Cache(REFERENCE_CACHE_BYTES)
         self.white_excess = float(white_excess)
         self._white_cov: np.ndarray | None = None  # white_sigma_covariance, once
         self._estimators: dict[int, np.ndarray] = {}  # k -> _estimator(k)
@@ -302,7 +347,7 @@ class EpisodeBuilder:
         ``decided_ns``), with the last ``margin`` rows before it."""
         # only the last `margin` rows before the alarm are kept: copy no more
         if first >= self.margin:  # all inside the block: one copy (C order, as joined)
-            history = np.ascontiguousarray(m[first - self.margin : first])
+            history = m[first - self.margin : first].copy()
             history_t = t_ns[first - self.margin : first].copy()
         else:
             history = np.concatenate([self._history, m[:first]])[-self.margin :]
@@ -450,8 +495,10 @@ class EpisodeBuilder:
     ) -> None:
         hi = min(hi, lo + max(0, self.max_window - state["kept"]))
         if hi > lo:
-            state["window"].append(m[lo:hi])
-            state["window_t"].append(t_ns[lo:hi])
+            # copies: a view would keep the whole block alive while the episode waits
+            # (6 MB a block at 64 IMUs, per builder)
+            state["window"].append(m[lo:hi].copy())
+            state["window_t"].append(t_ns[lo:hi].copy())
             state["kept"] += hi - lo
 
     def finish(self) -> list[Episode]:
@@ -502,12 +549,17 @@ class EpisodeBuilder:
         if self.explain and window.shape[0] >= 4:
             single = state["alarms"] == 1 and state["fragments"] == 1
             alarm_index = state["alarm_index"]
-            if single and self.sample_explanations:  # (only its alarmed sample is kept)
+            if single and self.sample_explanations and self._sample_explains(episode, window):
+                # (only its alarmed sample is kept)
                 self._samples.append((episode, window[alarm_index].copy(), alarm_index))
             else:
                 problem = self._fit_problem(episode, window, window_t, alarm_index)
                 if problem is not None:
                     self._fits.append((episode, problem))
+                    reference = problem[1]["reference"]
+                    self._fit_bytes += window.nbytes + (
+                        0 if reference is None else reference.residuals.nbytes
+                    )
         return episode
 
     def _explain_jobs(self, flush: bool = False) -> list[Episode]:
@@ -517,7 +569,13 @@ class EpisodeBuilder:
         a per-sample test by their sample (:meth:`_explain_samples`). At most
         :data:`FIT_BATCH` windows wait, whatever the log length."""
         waiting = len(self._waiting_episodes)
-        if not flush and len(self._fits) < FIT_BATCH and waiting < SAMPLE_BATCH:
+        held = self._fit_bytes
+        if (
+            not flush
+            and len(self._fits) < FIT_BATCH
+            and waiting < SAMPLE_BATCH
+            and held < FIT_BYTES
+        ):
             return []
         if self._samples:
             self._explain_samples(self._samples)
@@ -528,7 +586,7 @@ class EpisodeBuilder:
                 if fits:
                     episode.explained_by = FITS_EXPLANATION
         done, self._waiting_episodes = self._waiting_episodes, []
-        self._samples, self._fits = [], []
+        self._samples, self._fits, self._fit_bytes = [], [], 0
         return done
 
     def _explain_samples(self, jobs: list[tuple[Episode, np.ndarray, int]]) -> None:
@@ -575,6 +633,52 @@ class EpisodeBuilder:
                 fit = FaultFit("none", math.nan, math.nan, math.nan, -1, math.nan, {"z": z})
             episode.fits = [fit]
             episode.explained_by = SAMPLE_EXPLANATION
+
+    def _sample_explains(self, episode: Episode, window: np.ndarray) -> bool:
+        """Whether a one-sample episode is its alarmed sample's alone (the last row of
+        ``window``): the isolated sensor's residual there is at least :data:`SAMPLE_Z`
+        standard deviations (the sample carries the alarm: not so for a windowed
+        statistic that one sample tipped over), and its window shows nothing but the
+        calibrated noise before it: no exactly repeated raw output (a frozen output), no
+        mean beyond :data:`SCREEN_Z` standard errors (a step or a drift under way) and no
+        white variance above the :data:`SCREEN_LEVEL` upper quantile of its calibrated
+        value (noise growth: its F(nu, nu_cal) law, successive differences). Otherwise, and
+        without an isolated sensor or a consensus, the fits decide, with the margin that
+        shows the fault (a lone alarm inside a longer fault)."""
+        names = episode.sensors
+        if not names or window.shape[0] < 5:
+            return False
+        k = self.sensor_ids.index(names[0])
+        try:
+            gain, consensus_sigma = self._gain(k)
+        except ValueError:
+            return False
+        margin = window[:-1]
+        raw = margin[:, k]
+        if bool(np.any(raw[1:] == raw[:-1])):
+            return False
+        r = raw - margin @ gain
+        sample = float(window[-1, k] - window[-1] @ gain)
+        if self.calibration_mean is not None:
+            bias = self._biases.get(k)
+            if bias is None:
+                bias = self._biases[k] = self.calibration_mean[k] - self.calibration_mean @ gain
+            r = r - bias
+            sample -= float(bias)
+        n = r.shape[0]
+        sigma_r = math.sqrt(float(self.sigma[k]) ** 2 + consensus_sigma**2)
+        if not abs(sample) >= SAMPLE_Z * sigma_r:
+            return False
+        if abs(float(np.add.reduce(r))) / n > SCREEN_Z * sigma_r / math.sqrt(n):
+            return False
+        white = self._white_of(k, gain)
+        if white is None:
+            white_var, dof_cal = sigma_r**2, float(self.calibration_samples or n)
+        else:
+            white_var, dof_cal = white[0] ** 2 + white[1] ** 2, float(white[2])
+        d = r[1:] - r[:-1]
+        ratio = float(d @ d) / (2 * (n - 1)) / white_var
+        return ratio <= _f_quantile(1.0 - SCREEN_LEVEL, successive_difference_dof(n), dof_cal)
 
     def _sample_residuals(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every sensor's residual against the consensus of the others, calibrated bias
@@ -682,9 +786,7 @@ class EpisodeBuilder:
     def _reference(self, k: int, window: np.ndarray) -> Reference | None:
         """The other sensors' residuals over ``window`` (:class:`Reference`), each against
         the consensus of the sensors other than itself and ``k``."""
-        if k not in self._references:
-            self._references[k] = self._reference_matrix(k)
-        cached = self._references[k]
+        cached = self._references.get(k, self._reference_matrix)
         if cached is None:
             return None
         A, offset, variance, offset_var = cached

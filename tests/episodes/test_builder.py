@@ -205,6 +205,7 @@ def test_one_sample_episodes_are_explained_by_their_sample() -> None:
     n_sensors, length = 12, 2000
     H = np.tile(np.eye(3), (4, 1))
     m = rng.normal(0, SIGMA, (length, n_sensors))
+    m[300, 2] += 3.5 * SIGMA  # a chance alarm's sample: z about 3
     m[700, 4] += 8 * SIGMA  # an outlier: z about 7 against the consensus (sigma_r^2 = 4/3)
     m[1200:1500, 7] += np.deg2rad(0.9)  # a step that lasts
     alarm = np.zeros(length, bool)
@@ -230,8 +231,10 @@ def test_one_sample_episodes_are_explained_by_their_sample() -> None:
         results.append([e.to_dict() for e in episodes])
     assert results[0] == results[1]
     chance, outlier, step, blind = results[0]
-    assert [e["explained_by"] for e in results[0]] == ["sample", "sample", "fits", "sample"]
-    assert chance["fault_class"] == "none" and abs(chance["fits"][0]["extra"]["z"]) < 4
+    # (the one without isolation, like every window that shows more than noise before its
+    # alarm, is fitted)
+    assert [e["explained_by"] for e in results[0]] == ["sample", "sample", "fits", "fits"]
+    assert chance["fault_class"] == "none" and 2 < abs(chance["fits"][0]["extra"]["z"]) < 4
     assert outlier["fault_class"] == "spikes" and outlier["fits"][0]["extra"]["z"] > 4
     spike = outlier["fits"][0]
     assert spike["low"] <= 8 * SIGMA <= spike["high"]
@@ -240,7 +243,39 @@ def test_one_sample_episodes_are_explained_by_their_sample() -> None:
         2 * 1.657 * SIGMA * math.sqrt(4 / 3), rel=1e-3
     )
     assert step["fault_class"] == "step" and step["alarms"] == 295
-    assert blind["isolated_by"] == "residual" and blind["fault_class"] == "none"
+    assert blind["isolated_by"] == "residual"
+    # a lone alarm inside noise growth: its margin shows it, so it is fitted (noise)
+    noisy = rng.normal(0, SIGMA, (600, n_sensors))
+    noisy[:, 3] *= 3.0
+    builder = EpisodeBuilder(
+        "glt", "gyro", H, [f"s{i}" for i in range(12)], SIGMA, RATE,
+        calibration_samples=200, sample_explanations=True,
+    )  # fmt: skip
+    builder.feed(noisy)
+    lone = np.zeros(600, bool)
+    lone[450] = True
+    (inside,) = (
+        builder.rows(
+            t_ns[:600], t_ns[:600], status_rows(lone, np.where(lone, 3, -1).astype(np.int32))
+        )
+        + builder.finish()
+    )
+    assert inside.explained_by == "fits" and inside.fault_class == "noise"
+    # a lone alarm whose sample is ordinary (a windowed statistic tipped over): fitted
+    builder = EpisodeBuilder(
+        "glt", "gyro", H, [f"s{i}" for i in range(12)], SIGMA, RATE,
+        calibration_samples=200, sample_explanations=True,
+    )  # fmt: skip
+    quiet = rng.normal(0, SIGMA, (600, n_sensors))
+    quiet[450, 3] = 0.0
+    builder.feed(quiet)
+    (ordinary,) = (
+        builder.rows(
+            t_ns[:600], t_ns[:600], status_rows(lone, np.where(lone, 3, -1).astype(np.int32))
+        )
+        + builder.finish()
+    )
+    assert ordinary.explained_by == "fits"
     # the same builder without sample explanations fits the one-sample episodes too
     builder = EpisodeBuilder("glt", "gyro", H, [f"s{i}" for i in range(12)], SIGMA, RATE)
     builder.feed(m[:1000])
@@ -248,3 +283,19 @@ def test_one_sample_episodes_are_explained_by_their_sample() -> None:
     fitted += builder.finish()
     assert [e.explained_by for e in fitted] == ["fits", "fits"]
     assert len(fitted[1].fits) > 1
+
+
+def test_reference_cache_drops_the_least_recently_used_past_its_bytes() -> None:
+    from imufdi_cli.episodes.builder import _Cache
+
+    made: list[int] = []
+
+    def make(key: int) -> tuple[np.ndarray]:
+        made.append(key)
+        return (np.zeros(100),)  # 800 bytes
+
+    cache = _Cache(2000)
+    for key in (0, 1, 0, 2, 1):  # 2 drops 1 (0 was used after it), then 1 is made again
+        cache.get(key, make)
+    assert made == [0, 1, 2, 1]
+    assert cache.size <= 2000 and list(cache.values) == [2, 1]
