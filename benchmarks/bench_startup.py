@@ -46,7 +46,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-SMALL = ROOT / "sample_logs" / "paper-table4.mcap"
+SMALL = ROOT / "imufdi_cli" / "sample_logs" / "paper-table4.mcap"
 
 
 def _time(cmd: list[str], env: dict[str, str]) -> tuple[float, float]:

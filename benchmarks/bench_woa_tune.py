@@ -4,7 +4,7 @@ Usage: python benchmarks/bench_woa_tune.py --before TREE [--repeat 5] [--demo]
 
 ``imufdi demo`` (the README's first command) spends most of its time in woa-mvmd-glt's fit:
 the WOA search of (K, alpha) for gyro and accel on the 2 s calibration window. The input is
-made at run time as the demo makes it (the bundled ``sample_logs/paper-table4.mcap`` with
+made at run time as the demo makes it (the bundled ``imufdi_cli/sample_logs/paper-table4.mcap`` with
 the demo's step fault injected, seed 1); the calibration window is its first 2 s (200 samples; `imufdi detect`'s conditioning keeps
 199 of them, a cost difference of 0.5 %).
 

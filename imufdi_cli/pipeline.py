@@ -19,7 +19,8 @@ from imufdi_cli.array import ArrayConfig
 from imufdi_cli.errors import UsageError
 from imufdi_cli.units import parse_quantity
 
-SAMPLE_LOGS = Path(__file__).resolve().parent.parent / "sample_logs"
+#: the bundled sample logs (package data: installed with the package, wheel or editable)
+SAMPLE_LOGS = Path(__file__).resolve().parent / "sample_logs"
 
 
 # --- simulate --------------------------------------------------------------------------

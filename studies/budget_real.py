@@ -47,7 +47,7 @@ from imufdi_cli.pipeline import ingest_file  # noqa: E402
 from imufdi_cli.report import build_report  # noqa: E402
 
 LAYOUT = ROOT / "docs" / "layouts" / "mimu4444.toml"
-BASE = ROOT / "sample_logs" / "mimu4444-array.toml"
+BASE = ROOT / "imufdi_cli" / "sample_logs" / "mimu4444-array.toml"
 HELD_OUT = {f"exp_{k}" for k in range(5, 11)}
 MARGIN_S = 0.5
 FAULT_S = 10.0

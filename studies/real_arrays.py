@@ -52,7 +52,7 @@ from imufdi_cli.report import build_report  # noqa: E402
 from imufdi_cli.validity import apply_calibration  # noqa: E402
 
 LAYOUT = ROOT / "docs" / "layouts" / "mimu4444.toml"
-BASE = ROOT / "sample_logs" / "mimu4444-array.toml"
+BASE = ROOT / "imufdi_cli" / "sample_logs" / "mimu4444-array.toml"
 DETECTORS = ("glt", "pca-parity")
 CALIBRATION = (0.0, 10.0)
 FAULT_S = 10.0

@@ -64,7 +64,7 @@ from imufdi_cli.pipeline import ingest_file  # noqa: E402
 from imufdi_cli.validity import flag_values  # noqa: E402
 
 LAYOUT = ROOT / "docs" / "layouts" / "mimu4444.toml"
-BASE = ROOT / "sample_logs" / "mimu4444-array.toml"
+BASE = ROOT / "imufdi_cli" / "sample_logs" / "mimu4444-array.toml"
 RECORDINGS = ("exp_1", "exp_2")
 TYPES = ("gyro", "accel")
 WINDOW_S = (2.0, 10.0)  # the detector's calibration window (test recording)

@@ -21,24 +21,11 @@ import pytest
 # other worker (tests/detectors 41-46 -> 32-35 s of CPU, pca-parity's 45-dimension
 # eigenvalue test 3-4 -> 0.3 s). Set here, when pytest loads this file and before any test
 # module imports numpy; xdist workers inherit it from the controller. A value set by the
-# user is kept. The outputs are those of the command (and of the split-identical records,
-# made with one thread).
+# user is kept (no test depends on it: stored float references are compared to tolerances
+# that cover the summation order of any thread count, tests/references.py).
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 for _var in THREAD_VARS:
     os.environ.setdefault(_var, "1")
-#: numpy (and so its BLAS) not loaded yet and every cap at one thread: this process's BLAS
-#: runs one thread, as the command's does
-_ONE_BLAS_THREAD = "numpy" not in sys.modules and all(os.environ[v] == "1" for v in THREAD_VARS)
-
-
-@pytest.fixture(scope="session")
-def one_blas_thread() -> bool:
-    """Whether numpy's and scipy's BLAS run one thread in this test process (pinned above
-    before numpy was imported; False when a user's value or an earlier import of numpy
-    stood in the way). With one thread, products have the bits of the ``imufdi`` command,
-    so a test comparing bits with records made that way may run in-process instead of in
-    a fresh interpreter."""
-    return _ONE_BLAS_THREAD
 
 
 # No cyclic garbage collection while the test modules are imported and collected: the
@@ -367,14 +354,15 @@ def fresh_python() -> Callable[[str], subprocess.CompletedProcess[str]]:
 
 @pytest.fixture(scope="session")
 def mimu4444_cut_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The real sample ``sample_logs/mimu4444-exp1-cut.bin`` (300 s of MIMU4444 exp_1: ten
-    static orientations, then hand motion) ingested by ``imufdi ingest`` with its layout and
-    the uncalibrated array, once per test process and read-only: the CLI's calibrate and
-    detect tests and cnn-map's motion check read the same log (0.2-0.45 s of CPU to ingest)."""
+    """The real sample ``imufdi_cli/sample_logs/mimu4444-exp1-cut.bin`` (300 s of MIMU4444
+    exp_1: ten static orientations, then hand motion) ingested by ``imufdi ingest`` with its
+    layout and the uncalibrated array, once per test process and read-only: the CLI's
+    calibrate and detect tests and cnn-map's motion check read the same log (0.2-0.45 s of
+    CPU to ingest)."""
     from tests.cli.conftest import invoke
 
     root = Path(__file__).resolve().parents[1]
-    samples = root / "sample_logs"
+    samples = root / "imufdi_cli" / "sample_logs"
     out = tmp_path_factory.mktemp("mimu4444") / "cut.mcap"
     result = invoke(
         ["ingest", samples / "mimu4444-exp1-cut.bin",

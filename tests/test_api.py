@@ -210,7 +210,7 @@ def test_the_package_exports_what_it_lists() -> None:
 
 
 def test_ingest_a_capture(tmp_path) -> None:
-    capture = ROOT / "sample_logs" / "paper-table4.cap"
+    capture = ROOT / "imufdi_cli" / "sample_logs" / "paper-table4.cap"
     stats = imufdi.ingest(capture, tmp_path / "table4.mcap")
     assert stats.frames_ok > 400  # (the sample has a few corrupt frames on purpose)
     assert imufdi.info(tmp_path / "table4.mcap")["n_imus"] == 16

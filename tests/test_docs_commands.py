@@ -11,7 +11,7 @@ and ``|`` lines joined, ``&&`` and ``|`` split), and each ``imufdi`` invocation 
 - a campaign (long) says its run time in its comment.
 
 The slow run then executes, in a temporary directory holding links to the repository's
-``sample_logs``, ``docs`` and ``tests``, every command whose inputs are shipped or made by
+``imufdi_cli`` (its ``sample_logs``), ``docs`` and ``tests``, every command whose inputs are shipped or made by
 the commands before it, in the documents' order: each must exit 0 (or 1, a failed
 ``--fail-if`` gate, for a command with gates). Commands needing the reader's own files,
 campaigns (their run time is given) and ``pip``/``pytest`` set-up lines are not run.
@@ -254,7 +254,7 @@ def test_the_runnable_commands_are_most_of_them():
 def test_runnable_commands_run_as_written(doc, tmp_path):
     """A document's runnable commands, in its order (a command may read what the ones
     before it wrote), in a directory holding links to the shipped files."""
-    for name in ("sample_logs", "docs", "tests"):
+    for name in ("imufdi_cli", "docs", "tests"):  # imufdi_cli/sample_logs: the shipped logs
         (tmp_path / name).symlink_to(REPO / name)
     env = {**os.environ, "PYTHONPATH": str(REPO), "MPLBACKEND": "Agg", "NO_COLOR": "1"}
     failures = []

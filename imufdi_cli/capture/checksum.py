@@ -342,6 +342,9 @@ def _crc_columns(engine: _Engine, data: np.ndarray) -> np.ndarray:
             low16 = dtype(0xFFFF)
             mask = dtype((1 << bits) - 1) if bits < 64 else dtype(2**64 - 1)
             looked = np.empty_like(crc)
+            # take's indices as int64 (values < 2^16, the same bits): numpy 2.0 refuses to
+            # cast uint64 indices, later releases do it
+            take_index = index.view(np.int64) if index.dtype == np.uint64 else index
             for column in words:
                 if refin:
                     np.bitwise_xor(crc, column, out=index)
@@ -353,7 +356,7 @@ def _crc_columns(engine: _Engine, data: np.ndarray) -> np.ndarray:
                     if bits < 64:
                         np.bitwise_and(crc, mask, out=crc)
                 np.bitwise_and(index, low16, out=index)
-                table2.take(index, out=looked)
+                table2.take(take_index, out=looked)
                 np.bitwise_xor(crc, looked, out=crc)
         done = 2 * pairs
     if done == length:

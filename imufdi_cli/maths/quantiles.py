@@ -144,11 +144,15 @@ class _F(_Law):
     def _sf(self, x: Any, *shapes: Any) -> Any:
         return _special().fdtrc(shapes[0], shapes[1], np.maximum(x, 0.0))
 
+    # the quantile at probability 0 is the support's end, 0, for valid degrees of freedom
+    # (scipy 1.13's fdtri returns NaN there)
     def _ppf(self, q: Any, *shapes: Any) -> Any:
-        return _special().fdtri(shapes[0], shapes[1], q)
+        at_zero = (np.asarray(q) == 0.0) & (np.asarray(shapes[0]) > 0) & (np.asarray(shapes[1]) > 0)
+        return np.where(at_zero, 0.0, _special().fdtri(shapes[0], shapes[1], q))
 
     def _isf(self, q: Any, *shapes: Any) -> Any:
-        return _special().fdtri(shapes[0], shapes[1], 1.0 - q)
+        at_one = (np.asarray(q) == 1.0) & (np.asarray(shapes[0]) > 0) & (np.asarray(shapes[1]) > 0)
+        return np.where(at_one, 0.0, _special().fdtri(shapes[0], shapes[1], 1.0 - q))
 
 
 class _Gamma(_Law):

@@ -482,15 +482,13 @@ def mimu4444_cut(mimu4444_cut_log):
     """The MIMU4444 sample (300 s of exp_1: static orientations, then hand motion from
     257 s) ingested (tests/conftest.py, shared with the CLI's calibrate tests), with its
     chip calibration applied."""
-    from pathlib import Path
-
     from imufdi_cli.array import ArrayConfig
     from imufdi_cli.mcapio import read_array
+    from imufdi_cli.pipeline import SAMPLE_LOGS
     from imufdi_cli.validity import apply_calibration
 
-    root = Path(__file__).resolve().parents[2]
     _, block = read_array(str(mimu4444_cut_log))
-    array = ArrayConfig.load(root / "sample_logs" / "mimu4444-calibrated.toml")
+    array = ArrayConfig.load(SAMPLE_LOGS / "mimu4444-calibrated.toml")
     return array, apply_calibration(block, array)
 
 

@@ -12,6 +12,7 @@ from numpy.testing import assert_allclose
 
 from imufdi_cli.episodes import EpisodeBuilder
 from imufdi_cli.episodes.reference import _consensus_gain
+from imufdi_cli.pipeline import SAMPLE_LOGS
 from tests.episodes.helpers import RATE, SIGMA, status_rows
 
 
@@ -131,7 +132,7 @@ def test_leave_two_out_reference_matches_the_direct_least_squares() -> None:
     assert_allclose(offset, mean @ A)
 
 
-SAMPLES = Path(__file__).resolve().parents[2] / "sample_logs"
+SAMPLES = SAMPLE_LOGS
 
 
 LAYOUT = Path(__file__).resolve().parents[2] / "docs" / "layouts" / "mimu4444.toml"
