@@ -104,6 +104,9 @@ class Runner:
         process = subprocess.Popen(
             [sys.executable, "-m", "imufdi_cli", *args],
             env=self.env,
+            # ``-m`` puts the working directory first on sys.path: run in the tree, so that
+            # each tree imports its own package
+            cwd=self.tree,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
         )
@@ -149,7 +152,7 @@ def main() -> int:
     parser.add_argument("--only", help="comma-separated command names to run (and info)")
     parser.add_argument("--dir", type=Path, help="where to put the logs (default: temporary)")
     args = parser.parse_args()
-    workdir = Path(args.dir or tempfile.mkdtemp(prefix="imufdi-bench-targets-"))
+    workdir = Path(args.dir or tempfile.mkdtemp(prefix="imufdi-bench-targets-")).resolve()
     workdir.mkdir(parents=True, exist_ok=True)
     trees = {"this": TREE}
     if args.baseline is not None:
