@@ -89,6 +89,7 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import replace
 from typing import Any, ClassVar
 
@@ -97,6 +98,7 @@ import numpy as np
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
     ALPHA,
+    FALSE_ALARMS,
     NO_ISOLATION,
     TYPES,
     DetectionBlock,
@@ -106,8 +108,18 @@ from imufdi_cli.detectors.base import (
     parse_sensor_types,
 )
 from imufdi_cli.detectors.moving import MovingWindow
-from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
+from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.sequential import outlier_share
+from imufdi_cli.maths.variance import (
+    HelmertContrasts,
+    VarianceCusumBank,
+    VarianceDesign,
+    Winsorizer,
+    lorden_variance_terms,
+    threshold_schedule,
+    variance_run_length,
+)
 from imufdi_cli.quantiles import chi2, norm  # scipy.stats' floats without its import
 from imufdi_cli.quantiles import f as f_distribution
 
@@ -366,6 +378,213 @@ def residual_spread(
     return np.where(total > 0, spread, 1.0)
 
 
+#: Helmert block of the budgeted test, samples: a bias step inside a block leaves at most
+#: two large terms, and 3/4 of the samples' variance information is kept.
+BUDGET_BLOCK = 4
+#: The budgeted test's threshold is set for this share of the budget: the union bound is
+#: 0.7-0.9 of the realised rate on white noise, and a margin covers what the model knows
+#: only approximately (as the parity detectors' :data:`~imufdi_cli.detectors.budget.BUDGET_SHARE`).
+BUDGET_SHARE = 0.5
+#: Design of the budgeted test: variance ratios 3 and 9 (noise x1.7 and x3), clip 4 sigma.
+BUDGET_DESIGN = VarianceDesign()
+#: Each residual sample is bounded at this many sigma from its running level before the
+#: contrasts (:class:`~imufdi_cli.maths.variance.Winsorizer`): an outlier or a bias step
+#: then adds about one term at the clip, as the threshold's outlier model assumes.
+BUDGET_WINSOR = 4.0
+#: Time constant of that running level, seconds.
+BUDGET_LEVEL_TAU_S = 0.1
+#: Residuals whose correlation exceeds this in magnitude cannot be told apart.
+PARALLEL = 1.0 - 1e-9
+
+
+def independent_scale_dof(count: int, clip: float) -> float:
+    """Equivalent degrees of freedom of :func:`robust_scale` on ``count`` independent
+    N(0, tau) terms clipped at ``clip`` sigma: ``nu_N (s / mu)^2`` with ``nu_N`` of
+    :func:`equivalent_dof` (no lag correlation) and s the clipped square's derivative
+    (:func:`scale_estimator_dof` for differences)."""
+    moments = clipped_square_moments(clip, 0.0)
+    mean = moments[0]
+    inner = mean - clip**2 * 2.0 * norm.sf(clip) if np.isfinite(clip) else 1.0
+    dof = float(equivalent_dof(np.array([max(count, 1)]), (mean, moments[1], 0.0))[0])
+    return dof * (inner / mean) ** 2
+
+
+def residual_isolable(operator: np.ndarray, testable: np.ndarray) -> np.ndarray:
+    """Whether each leave-one-out residual can be told from every other (equal sensor
+    noise): False where two residuals are perfectly correlated (e.g. 4 sensors with one
+    parity direction)."""
+    covariance = operator @ operator.T
+    sd = np.sqrt(np.maximum(np.diag(covariance), 1e-300))
+    correlation = covariance / sd[:, None] / sd[None, :]
+    np.fill_diagonal(correlation, 0.0)
+    parallel = (np.abs(correlation) > PARALLEL) & testable[None, :]
+    return testable & ~parallel.any(axis=1)
+
+
+class NoiseBudget:
+    """Budgeted sequential decisions on a noise growth of one sensor type's leave-one-out
+    residuals (the variance CUSUM bank of :mod:`imufdi_cli.maths.variance`).
+
+    Each residual stream is cut into Helmert contrasts in blocks of :data:`BUDGET_BLOCK`
+    samples (independent N(0, tau_j) terms, blind to the residual's mean), standardized by
+    their calibrated variance tau_j (Huber's proposal 2 at the design clip, times the
+    healthy spread kappa_eff_j when the array carries one).
+
+    Parameters
+    ----------
+    operator : ndarray, shape (n, n)
+        The leave-one-out operator R.
+    testable : ndarray, shape (n,), bool
+    rate_hz : float
+    budget_per_s : float
+        False alarm episodes per second of fault-free data allowed on this channel.
+    spread : ndarray, shape (n,), optional
+        kappa_eff of the residuals (None: 1).
+    design : VarianceDesign
+    """
+
+    def __init__(
+        self,
+        operator: np.ndarray,
+        testable: np.ndarray,
+        rate_hz: float,
+        budget_per_s: float,
+        spread: np.ndarray | None = None,
+        design: VarianceDesign = BUDGET_DESIGN,
+    ) -> None:
+        if not rate_hz > 0:
+            raise DetectorConfigError("a false-alarm budget needs the array's sample rate")
+        self.design = design
+        self.rate_hz = float(rate_hz)
+        self.budget_per_s = float(budget_per_s)
+        self.terms_per_s = self.rate_hz * (BUDGET_BLOCK - 1) / BUDGET_BLOCK
+        self.per_term = BUDGET_SHARE * self.budget_per_s / self.terms_per_s
+        if not 0.0 < self.per_term < 0.5:
+            raise DetectorConfigError(
+                f"false-alarm budget {budget_per_s * 3600:g}/h is not below a third of the"
+                f" sample rate ({rate_hz:g} Hz); give a rate such as 1/h"
+            )
+        self.testable = np.asarray(testable, bool)
+        self.isolable = residual_isolable(operator, self.testable)
+        self.spread = spread
+        n = self.testable.size
+        self.scale = np.ones(n)
+        self.calibration_terms = 0
+        self.calibration_dof = 0.0
+        self.contamination = 0.0
+        self.threshold = math.nan
+        self.schedule = (np.zeros(1), np.full(1, math.nan))
+        self.bank: VarianceCusumBank | None = None
+        self.contrasts = HelmertContrasts(n, BUDGET_BLOCK)
+        self.level = np.zeros(n)
+        self.bounded = self._winsorizer(self.level)
+
+    def _winsorizer(self, level: np.ndarray) -> Winsorizer:
+        return Winsorizer(
+            np.sqrt(self.scale), BUDGET_WINSOR, BUDGET_LEVEL_TAU_S * self.rate_hz, level
+        )
+
+    def fit(self, residuals: np.ndarray) -> None:
+        """Calibrate the contrasts' variances on the calibration window's residuals (N, n)
+        and set the threshold; start the bank."""
+        clip = self.design.clip
+        mean = clipped_square_moments(clip, 0.0)[0]
+        n = residuals.shape[1]
+
+        def scale_of(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            terms = HelmertContrasts(n, BUDGET_BLOCK).push(values)
+            terms = terms[~np.isnan(terms[:, 0])]
+            scale = robust_scale(terms, clip, mean)
+            if self.spread is not None:
+                scale = scale * self.spread
+            return np.where(self.testable & (scale > 0), scale, 1.0), terms
+
+        self.scale, _ = scale_of(residuals)  # the raw residuals' contrasts: sigma
+        self.level = residuals.mean(axis=0)
+        bounded = self._winsorizer(self.level)
+        self.scale, terms = scale_of(bounded.push(residuals))
+        z = terms[:, self.testable] / np.sqrt(self.scale[self.testable])
+        # outliers: samples far from their level beyond what a Gaussian puts there, each
+        # one term at the clip, or terms beyond the outlier level, whichever is more
+        per_term = bounded.outlier_share(self.testable) * BUDGET_BLOCK / (BUDGET_BLOCK - 1)
+        self.contamination = max(outlier_share(z), per_term)
+        self.calibration_terms = int(terms.shape[0])
+        self.calibration_dof = independent_scale_dof(self.calibration_terms, clip)
+        self.schedule = threshold_schedule(
+            self.design,
+            int(self.testable.sum()),
+            self.per_term,
+            self.calibration_dof,
+            self.contamination,
+        )
+        self.threshold = float(self.schedule[1][-1])  # once the variance is learnt
+        self.bank = VarianceCusumBank(
+            self.design,
+            self.schedule,
+            self.isolable,
+            self.rate_hz,
+            calibration_terms=self.calibration_dof,
+        )
+        self.bounded = self._winsorizer(self.level)
+        self.contrasts = HelmertContrasts(n, BUDGET_BLOCK)
+
+    def process(self, residuals: np.ndarray) -> DetectionBlock:
+        """Decisions on leave-one-out residuals (N, n), SI."""
+        if self.bank is None:
+            raise CalibrationError("noise-glr: call fit() before process()")
+        z = self.contrasts.push(self.bounded.push(residuals)) / np.sqrt(self.scale)
+        z[:, ~self.testable] = np.nan
+        decisions = self.bank.process(z)
+        amplitude = decisions.amplitude
+        if self.spread is not None:  # back to the calibration window's variance
+            picked = np.where(decisions.isolated >= 0, decisions.isolated, 0)
+            amplitude = amplitude * np.sqrt(self.spread[picked])
+        scores = decisions.scores
+        scores[:, ~self.testable] = np.nan
+        return DetectionBlock(
+            statistic=decisions.statistic,
+            threshold=decisions.threshold,
+            alarm=decisions.alarm,
+            isolated=decisions.isolated,
+            amplitude=amplitude,
+            scores=scores,
+        )
+
+    def metadata(self) -> dict[str, Any]:
+        """The budget, the threshold and what sets it (JSON-ready)."""
+        bank = self.bank
+        run_lengths = [
+            variance_run_length(ratio, self.design.clip, self.threshold) / self.terms_per_s
+            for ratio in self.design.ratios
+        ]
+        hypotheses = int(self.testable.sum()) * len(self.design.ratios)
+        gamma = self.terms_per_s * 3600.0 / max(self.budget_per_s * 3600.0, 1e-300)
+        return {
+            "false_alarms_per_hour": self.budget_per_s * 3600.0,
+            "threshold": self.threshold,
+            "design_variance_ratios": list(self.design.ratios),
+            "clip": self.design.clip,
+            "helmert_block": BUDGET_BLOCK,
+            "terms_per_s": self.terms_per_s,
+            "calibration_terms": self.calibration_terms,
+            "calibration_dof": self.calibration_dof,
+            "outlier_share": self.contamination,
+            "scale_tau_s": self.design.scale_tau_s,
+            # the threshold while the tracked variance learns: h from that many terms on
+            "threshold_schedule": {
+                "terms": self.schedule[0].tolist(),
+                "threshold": self.schedule[1].tolist(),
+            },
+            "hypotheses": hypotheses,
+            "run_length_s": run_lengths,
+            "isolable": self.isolable.tolist(),
+            # the optimal test's delay of a x3 noise growth on a residual's own variance
+            "lorden_delay_x3_s": lorden_variance_terms(9.0, gamma, hypotheses) / self.terms_per_s,
+            "episodes": 0 if bank is None else bank.episodes,
+            "tracked_variance": [] if bank is None else bank.variance.tolist(),
+        }
+
+
 class _TypeModel:
     def __init__(
         self,
@@ -388,6 +607,7 @@ class _TypeModel:
         self.bias = bias
         self.scale = scale  # tau_j = Var(d_j), (n,), times kappa_j when given
         self.spread: np.ndarray | None = None  # kappa_j of the scale, (n,), or None
+        self.budget: NoiseBudget | None = None  # sequential decisions under a budget
         self.n_train = n_train
         self.clip = clip
         self.moments = clipped_square_moments(clip)
@@ -514,6 +734,7 @@ class NoiseGlrDetector(DetectorBase):
             "test growth beyond the array's healthy noise-variance spread (ArrayConfig"
             " <type>_noise_spread from calibrate) when it carries one",
         ),
+        "false_alarms": FALSE_ALARMS,
         "types": TYPES,
     }
 
@@ -527,8 +748,25 @@ class NoiseGlrDetector(DetectorBase):
         lever_arm: bool = True,
         level_confidence: float = DEFAULT_LEVEL_CONFIDENCE,
         noise_spread: bool = True,
+        false_alarms: float = 0.0,
         types: str = "gyro,accel",
     ) -> None:
+        self.false_alarms = float(false_alarms)
+        if self.false_alarms > 0:
+            fixed = {
+                "window": window != 0.4,
+                "release": release != 0.01,
+                "release_window": release_window != 0.1,
+                "clip": clip != 3.0,
+                "level_confidence": level_confidence != DEFAULT_LEVEL_CONFIDENCE,
+            }
+            given = [name for name, changed in fixed.items() if changed]
+            if given:
+                raise DetectorConfigError(
+                    f"noise-glr.{given[0]} applies to the per-sample test; with a false-alarm"
+                    " budget noise-glr decides sequentially (docs/algorithms/noise-glr.md):"
+                    " leave it out"
+                )
         self.alpha = float(alpha)
         self.noise_spread = bool(noise_spread)
         self.level_confidence = float(level_confidence)
@@ -644,6 +882,11 @@ class NoiseGlrDetector(DetectorBase):
                 spread = np.where(testable, spread, 1.0)
                 model.spread = spread
                 model.scale = model.scale * spread
+            if self.false_alarms > 0:
+                model.budget = NoiseBudget(
+                    operator, testable, array.rate_hz, self.false_alarms, spread=model.spread
+                )
+                model.budget.fit(residuals)
             self.models[sensor_type] = model
         if not self.models:
             raise ArrayTooSmallError(
@@ -668,6 +911,8 @@ class NoiseGlrDetector(DetectorBase):
 
     @staticmethod
     def _process_type(model: _TypeModel, residuals: np.ndarray) -> DetectionBlock:
+        if model.budget is not None:
+            return model.budget.process(residuals)
         n_samples = residuals.shape[0]
         z = model.differences(residuals)  # (N, n)
         mean_q = model.moments[0]
@@ -731,6 +976,8 @@ class NoiseGlrDetector(DetectorBase):
             return []
         messages = []
         for sensor_type, model in self.models.items():
+            if model.budget is not None:
+                continue
             if model.calibration_factor <= WARN_CALIBRATION_FACTOR:
                 continue
             needed = samples_for_factor(
@@ -772,6 +1019,9 @@ class NoiseGlrDetector(DetectorBase):
                 "threshold": float(model.threshold[-1]),
                 **({"noise_spread": model.spread.tolist()} if model.spread is not None else {}),
             }
+            if model.budget is not None:
+                types[sensor_type]["threshold"] = model.budget.threshold
+                types[sensor_type]["budget"] = model.budget.metadata()
         return {
             "detector": self.name,
             "params": {
@@ -784,11 +1034,15 @@ class NoiseGlrDetector(DetectorBase):
                 "lever_arm": self.lever_arm,
                 "level_confidence": self.level_confidence,
                 "noise_spread": self.noise_spread,
+                "false_alarms_per_hour": self.false_alarms * 3600.0,
                 "types": ",".join(self.sensor_types),
             },
             "statistic": (
-                "max_j nu/2 (u_j - 1 - ln u_j), u_j = mean(min(z^2, c^2))/E0, z = standardized"
-                " residual differences"
+                "largest variance-growth CUSUM of the residuals' Helmert contrasts (a"
+                " false-alarm budget)"
+                if self.false_alarms > 0
+                else "max_j nu/2 (u_j - 1 - ln u_j), u_j = mean(min(z^2, c^2))/E0, z ="
+                " standardized residual differences"
             ),
             "amplitude": "noise standard-deviation ratio sqrt(u) of the isolated sensor",
             "types": types,
