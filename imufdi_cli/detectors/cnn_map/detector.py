@@ -13,6 +13,7 @@ import numpy as np
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
     ALPHA,
+    FALSE_ALARMS,
     NO_ISOLATION,
     DetectionBlock,
     DetectorBase,
@@ -116,6 +117,7 @@ class CnnMapDetector(_MappingTest, DetectorBase):
             " input test), off (no network trained)",
             choices=MAPPING_MODES,
         ),
+        "false_alarms": FALSE_ALARMS,
     }
 
     def __init__(
@@ -136,7 +138,16 @@ class CnnMapDetector(_MappingTest, DetectorBase):
         whiten: int = 8,
         input_test: bool = True,
         mapping_test: str = "report",
+        false_alarms: float = 0.0,
     ) -> None:
+        self.false_alarms = float(false_alarms)
+        if self.false_alarms > 0 and (mapping_test == "alarm" or not input_test):
+            raise DetectorConfigError(
+                "cnn-map: the mapping test cannot decide under a false-alarm budget (its"
+                " threshold is fitted on the calibration window and does not hold its level"
+                " out of sample, docs/algorithms/cnn-map.md); with --false-alarms use"
+                " mapping_test=off or report and input_test=true"
+            )
         self.alpha = float(alpha)
         self.window_s = float(window)
         self.input_length_s = float(input_length)
@@ -266,6 +277,11 @@ class CnnMapDetector(_MappingTest, DetectorBase):
         if self._input is None:  # the mapping test alone (it alarms, see fit)
             assert mapped is not None
             return {"accel": mapped}
+        if self.false_alarms > 0:  # the input test decides under the budget
+            decisions = self._budget_statistics(block)
+            if mapped is not None:
+                self.mapping_report.add(mapped.statistic / mapped.threshold, mapped.isolated)
+            return {"accel": decisions}
         # Step 9: the input test, with the mapping test alarming or only reporting
         rows = np.arange(n_samples)
         cusum, energy, added = self._input_statistics(block)
@@ -317,6 +333,7 @@ class CnnMapDetector(_MappingTest, DetectorBase):
             "whiten": self.whiten,
             "input_test": self.input_test,
             "mapping_test": self.mapping_test,
+            "false_alarms_per_hour": self.false_alarms * 3600.0,
         }
         out: dict[str, Any] = {"detector": self.name, "params": params}
         if self.array is None:
@@ -332,6 +349,12 @@ class CnnMapDetector(_MappingTest, DetectorBase):
         )
         if self._input is None:
             out["statistic"] = "mapping: max_k R_k against its threshold"
+        elif self.false_alarms > 0:
+            out["statistic"] = (
+                "input: largest variance-growth CUSUM of the leave-one-out residuals' Helmert"
+                " contrasts (a false-alarm budget; noise-glr's test); the mapping test only"
+                " reports"
+            )
         elif self.mapping_alarms:
             out["statistic"] = "max(mapping: max_k R_k / T_map, input: max_j S_j / h); threshold 1"
         else:
