@@ -43,7 +43,15 @@ from typing import Any, ClassVar
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import DetectionBlock, Param
+from imufdi_cli.detectors.base import FALSE_ALARMS, DetectionBlock, Param
+from imufdi_cli.detectors.firmware_budget import (
+    BUDGET_SHARE,
+    DISAGREEMENT_WARNING,
+    Disagreement,
+    difference_noise,
+    imu_noise,
+    px4_scale,
+)
 from imufdi_cli.detectors.vectors import (
     CausalImuCheck,
     TriadLayout,
@@ -52,7 +60,7 @@ from imufdi_cli.detectors.vectors import (
     imu_isolation,
     parse_vector_types,
 )
-from imufdi_cli.errors import DetectorConfigError
+from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 
 
@@ -115,6 +123,9 @@ class _TypeState:
     accumulated: np.ndarray  # (m,) E_i
     last_ns: int | None = None
     first_alarm_sample: int | None = None
+    scale: float = 1.0  # factor on the firmware thresholds (a false-alarm budget)
+    budget: dict[str, Any] | None = None  # what set it
+    disagreement: Disagreement | None = None  # the budget's model, checked on the data
 
 
 class Px4SelectorDetector(CausalImuCheck):
@@ -166,6 +177,10 @@ class Px4SelectorDetector(CausalImuCheck):
             low_open=True,
         ),
         "bias": Param("bool", True, "remove per-IMU offsets found in the calibration window"),
+        "false_alarms": FALSE_ALARMS,
+        "seed": Param(
+            "int", 0, "seed of the simulated null that scales the thresholds to a budget", low=0
+        ),
         "types": Param("str", "gyro,accel", "sensor types tested: gyro, accel or both"),
     }
 
@@ -178,8 +193,12 @@ class Px4SelectorDetector(CausalImuCheck):
         smoothing: float = 0.05,
         max_step: float = 0.02,
         bias: bool = True,
+        false_alarms: float = 0.0,
+        seed: int = 0,
         types: str = "gyro,accel",
     ) -> None:
+        self.false_alarms = float(false_alarms)
+        self.seed = int(seed)
         self.rate_threshold = float(rate_threshold)
         self.angle_threshold = float(angle_threshold)
         self.accel_threshold = float(accel_threshold)
@@ -211,7 +230,7 @@ class Px4SelectorDetector(CausalImuCheck):
             else:
                 offsets = np.zeros((layout.n_imus, 3))
             gyro = sensor_type == "gyro"
-            self._states[sensor_type] = _TypeState(
+            state = _TypeState(
                 layout=layout,
                 rate_threshold=self.rate_threshold if gyro else self.accel_threshold,
                 accumulated_threshold=self.angle_threshold if gyro else self.velocity_threshold,
@@ -219,6 +238,50 @@ class Px4SelectorDetector(CausalImuCheck):
                 smoothed=np.zeros((layout.n_imus, 3)),
                 accumulated=np.zeros(layout.n_imus),
             )
+            if self.false_alarms > 0:
+                self._fit_budget(state, calibration, array.rate_hz)
+            self._states[sensor_type] = state
+
+    def _fit_budget(self, state: _TypeState, calibration: ImuBlock, rate_hz: float) -> None:
+        """Scale the type's two thresholds by one factor so that white noise of the
+        calibrated per-IMU sigma raises the budget's share of false episodes
+        (:func:`~imufdi_cli.detectors.firmware_budget.px4_scale`)."""
+        per_sample = BUDGET_SHARE * self.false_alarms / rate_hz
+        if not 0.0 < per_sample < 0.5:
+            raise DetectorConfigError(
+                f"{self.name}: false-alarm budget {self.false_alarms * 3600:g}/h is not"
+                f" below half the sample rate ({rate_hz:g} Hz); give a rate such as 1/h"
+            )
+        if not (state.rate_threshold > 0 and state.accumulated_threshold > 0):
+            raise DetectorConfigError(
+                f"{self.name}: a false-alarm budget scales the firmware thresholds; the"
+                f" {state.layout.sensor_type} rate threshold must be > 0"
+            )
+        vectors = state.layout.body(calibration, self.name) - state.offsets[None, :, :]
+        deviation = vectors - vectors.mean(axis=1, keepdims=True)
+        # the plain variance: outliers pass the filter as impulses, their power counts
+        variances, dof = difference_noise(deviation, robust=False)
+        if not np.all(variances > 0):
+            raise CalibrationError(
+                f"{self.name}: a {state.layout.sensor_type} deviation does not change in the"
+                " calibration window (a stuck or constant output); choose a fault-free window"
+                " with --calibrate START:END"
+            )
+        noise = imu_noise(variances)
+        step = min(1.0 / rate_hz, self.max_step)
+        r0, a0 = state.rate_threshold, state.accumulated_threshold
+        samples = float(vectors.shape[0]) if self.remove_bias else math.inf
+        scale = px4_scale(noise, self.smoothing, step, r0, a0, per_sample, dof, samples, self.seed)
+        state.scale = scale
+        state.rate_threshold = r0 * scale
+        state.accumulated_threshold = a0 * scale
+        state.disagreement = Disagreement(variances.sum(axis=1))
+        state.budget = {
+            "false_alarms_per_hour": self.false_alarms * 3600.0,
+            "threshold_scale": scale,
+            "noise_sigma": np.sqrt(noise).tolist(),
+            "calibration_dof": dof,
+        }
 
     def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
         """One row per input sample for every tested sensor type."""
@@ -235,6 +298,8 @@ class Px4SelectorDetector(CausalImuCheck):
         if n_samples == 0:
             return DetectionBlock.empty(0, layout.n_sensors)
         deviation = vectors - vectors.mean(axis=1, keepdims=True)
+        if state.disagreement is not None:
+            state.disagreement.add(deviation)
         smoothed = smooth_deviation(deviation, state.smoothed, self.smoothing)
         inconsistency = np.linalg.norm(smoothed, axis=2)  # (N, m)
         steps = np.minimum(
@@ -277,6 +342,8 @@ class Px4SelectorDetector(CausalImuCheck):
                 "smoothing": self.smoothing,
                 "max_step": self.max_step,
                 "bias": self.remove_bias,
+                "false_alarms_per_hour": self.false_alarms * 3600.0,
+                "seed": self.seed,
                 "types": ",".join(self.types),
             },
             "lookahead_samples": self.lookahead_samples,
@@ -286,11 +353,39 @@ class Px4SelectorDetector(CausalImuCheck):
                     "isolable": bool(s.layout.n_imus >= 3),
                     "offsets": s.offsets.tolist(),
                     "threshold": s.accumulated_threshold,
+                    "rate_threshold": s.rate_threshold,
                     "first_alarm_sample": s.first_alarm_sample,
+                    **(
+                        {}
+                        if s.budget is None or s.disagreement is None
+                        else {
+                            "budget": {
+                                **s.budget,
+                                "disagreement_ratio": s.disagreement.ratio(),
+                            }
+                        }
+                    ),
                 }
                 for t, s in self._states.items()
             },
         }
+
+    def calibration_warnings(self) -> list[str]:
+        """Under a budget, one warning per sensor type whose IMUs disagreed on the processed
+        log clearly more than the calibrated white noise the thresholds were scaled for."""
+        messages = []
+        for sensor_type, state in self._states.items():
+            if state.disagreement is None:
+                continue
+            ratio = state.disagreement.ratio()
+            if ratio > DISAGREEMENT_WARNING:
+                messages.append(
+                    f"{self.name}: {sensor_type}: the IMUs disagreed {ratio:.3g}x more (in"
+                    " variance, median IMU) than the calibrated noise its budget thresholds"
+                    " assume (lever arms, motion or sensor errors the firmware rule does not"
+                    " model): the false-alarm budget does not hold on this log"
+                )
+        return messages
 
 
 __all__ = ["Px4SelectorDetector", "accumulate_excess", "smooth_deviation"]
