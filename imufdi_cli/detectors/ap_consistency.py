@@ -45,7 +45,6 @@ from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import FALSE_ALARMS, DetectionBlock, Param
 from imufdi_cli.detectors.firmware_budget import (
     BUDGET_SHARE,
-    DISAGREEMENT_WARNING,
     Disagreement,
     ap_episode_rate,
     ap_limit_scale,
@@ -287,7 +286,7 @@ class ApConsistencyDetector(CausalImuCheck):
         )
         state.scale = scale
         state.limits = state.limits * scale
-        state.disagreement = Disagreement(variances.sum(axis=1))
+        state.disagreement = Disagreement(variances.sum(axis=1), round(rate_hz))
         state.budget = {
             "false_alarms_per_hour": self.false_alarms * 3600.0,
             "limit_scale": scale,
@@ -379,23 +378,19 @@ class ApConsistencyDetector(CausalImuCheck):
     @staticmethod
     def _budget_metadata(state: _TypeState) -> dict[str, Any]:
         assert state.budget is not None and state.disagreement is not None
-        return {**state.budget, "disagreement_ratio": state.disagreement.ratio()}
+        return {**state.budget, **state.disagreement.metadata()}
 
     def calibration_warnings(self) -> list[str]:
-        """Under a budget, one warning per sensor type whose IMUs disagreed on the processed
-        log clearly more than the calibrated white noise the limits were scaled for."""
+        """Under a budget, one warning per sensor type whose IMUs disagreed, over part of
+        the processed log, clearly more than the calibrated white noise the limits were
+        scaled for."""
         messages = []
         for sensor_type, state in self._states.items():
             if state.disagreement is None:
                 continue
-            ratio = state.disagreement.ratio()
-            if ratio > DISAGREEMENT_WARNING:
-                messages.append(
-                    f"{self.name}: {sensor_type}: the IMUs disagreed {ratio:.3g}x more (in"
-                    " variance, median IMU) than the calibrated noise its budget limits"
-                    " assume (lever arms, motion or sensor errors the firmware rule does not"
-                    " model): the false-alarm budget does not hold on this log"
-                )
+            note = state.disagreement.warning(self.name, sensor_type, "limits")
+            if note is not None:
+                messages.append(note)
         return messages
 
 

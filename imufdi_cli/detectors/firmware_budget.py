@@ -49,9 +49,11 @@ SCALE_CLIP = 3.0
 #: offset error alone keeps its smoothed deviation above the scaled rate threshold (an
 #: alarm for the whole log).
 PERMANENT_SHARE = 0.01
-#: Detect warns when the IMUs disagree more than this many times the calibrated noise
-#: variance (median over IMUs, over the processed log).
+#: Detect warns when, over seconds of the log, the median IMU disagreed more than this many
+#: times the calibrated noise variance ...
 DISAGREEMENT_WARNING = 2.0
+#: ... on at least this share of the log's seconds (and 2 of them).
+WARNING_SHARE = 0.005
 
 
 def outlier_fraction(values: np.ndarray, variance: np.ndarray) -> float:
@@ -446,27 +448,42 @@ def px4_scale(
 
 
 class Disagreement:
-    """How much more the IMUs disagree than the calibrated noise says, over a log.
+    """Whether the IMUs still disagree by the calibrated noise only, second by second.
 
-    Per compared IMU, the mean over the processed samples of ``|x_i - ref_i|^2`` (after the
-    calibration offsets) against its expectation from the calibrated noise; the median over
-    the IMUs (a single faulty IMU does not move it) is the ratio ``ratio()``: about 1 when
-    the IMUs disagree by white noise only, as the budget's model assumes.
+    Each compared IMU's ``|x_i - ref_i|^2`` (after the calibration offsets) relative to its
+    expectation from the calibrated noise feeds a :class:`~imufdi_cli.maths.variance.ModelCheck`
+    over windows of ``window`` samples: a window is flagged when the median IMU disagrees
+    more than :data:`DISAGREEMENT_WARNING` times as much (one faulty IMU does not move it).
     """
 
-    def __init__(self, expected: np.ndarray) -> None:
+    def __init__(self, expected: np.ndarray, window: int) -> None:
+        from imufdi_cli.maths.variance import ModelCheck
+
         self.expected = np.maximum(np.asarray(expected, float), 1e-300)  # (m,)
-        self.sums = np.zeros(self.expected.size)
-        self.samples = 0
+        self.check = ModelCheck(self.expected.size, window, DISAGREEMENT_WARNING)
 
     def add(self, deviation: np.ndarray) -> None:
         """Deviations (N, m, 3) of the next samples."""
-        if deviation.shape[0] == 0:
-            return
-        self.sums += np.einsum("nka,nka->k", deviation, deviation)
-        self.samples += deviation.shape[0]
+        self.check.push(np.einsum("nka,nka->nk", deviation, deviation) / self.expected)
 
-    def ratio(self) -> float:
-        if self.samples == 0:
-            return 1.0
-        return float(np.median(self.sums / self.samples / self.expected))
+    def warning(self, detector: str, sensor_type: str, what: str) -> str | None:
+        """One line when the flagged time is not negligible (:data:`WARNING_SHARE` of the
+        windows, and 2 of them), else None."""
+        check = self.check
+        if check.flagged < max(2, WARNING_SHARE * check.windows):
+            return None
+        return (
+            f"{detector}: {sensor_type}: on {check.flagged} s of this log"
+            f" ({100 * check.share():.2g} %) the IMUs disagreed more than"
+            f" {DISAGREEMENT_WARNING:g}x (up to {check.worst:.3g}x, in variance, median IMU)"
+            f" the calibrated noise its budget {what} assume: lever arms, motion or sensor"
+            " errors the firmware rule does not model; the false-alarm budget does not hold"
+            " there"
+        )
+
+    def metadata(self) -> dict[str, float]:
+        return {
+            "seconds_beyond_the_noise_model": float(self.check.flagged),
+            "seconds_checked": float(self.check.windows),
+            "worst_disagreement_ratio": self.check.worst,
+        }

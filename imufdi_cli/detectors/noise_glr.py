@@ -107,12 +107,14 @@ from imufdi_cli.detectors.base import (
     calibration_stats,
     parse_sensor_types,
 )
+from imufdi_cli.detectors.jitter import MotionInflation, array_inflation
 from imufdi_cli.detectors.moving import MovingWindow
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.maths.sequential import outlier_share
 from imufdi_cli.maths.variance import (
     HelmertContrasts,
+    ModelCheck,
     VarianceCusumBank,
     VarianceDesign,
     Winsorizer,
@@ -393,6 +395,12 @@ BUDGET_DESIGN = VarianceDesign()
 BUDGET_WINSOR = 4.0
 #: Time constant of that running level, seconds.
 BUDGET_LEVEL_TAU_S = 0.1
+#: Under a budget detect warns when, over seconds of the log, the median sensor's residual
+#: variance exceeded the calibrated one by this factor (motion or errors the residual model
+#: does not remove: the level is not held there) ...
+VARIANCE_WARNING = 2.0
+#: ... on at least this share of the log's seconds (and 2 of them).
+WARNING_SHARE = 0.005
 #: Residuals whose correlation exceeds this in magnitude cannot be told apart.
 PARALLEL = 1.0 - 1e-9
 
@@ -478,6 +486,8 @@ class NoiseBudget:
         self.contrasts = HelmertContrasts(n, BUDGET_BLOCK)
         self.level = np.zeros(n)
         self.bounded = self._winsorizer(self.level)
+        # the calibrated noise, checked second by second on the data
+        self.check = ModelCheck(int(self.testable.sum()), round(self.rate_hz), VARIANCE_WARNING)
 
     def _winsorizer(self, level: np.ndarray) -> Winsorizer:
         return Winsorizer(
@@ -518,22 +528,29 @@ class NoiseBudget:
             self.contamination,
         )
         self.threshold = float(self.schedule[1][-1])  # once the variance is learnt
+        # with a healthy spread the scale is the top of the range: never learnt lower
+        floor = None if self.spread is None else np.where(self.spread > 1.0, 1.0, 0.25)
         self.bank = VarianceCusumBank(
             self.design,
             self.schedule,
             self.isolable,
             self.rate_hz,
             calibration_terms=self.calibration_dof,
+            floor=floor,
         )
         self.bounded = self._winsorizer(self.level)
         self.contrasts = HelmertContrasts(n, BUDGET_BLOCK)
 
-    def process(self, residuals: np.ndarray) -> DetectionBlock:
-        """Decisions on leave-one-out residuals (N, n), SI."""
+    def process(self, residuals: np.ndarray, factors: np.ndarray | None = None) -> DetectionBlock:
+        """Decisions on leave-one-out residuals (N, n), SI; ``factors`` (N,): the motion
+        variance factors ``1 + A_t`` of the jitter model (None: 1)."""
         if self.bank is None:
             raise CalibrationError("noise-glr: call fit() before process()")
         z = self.contrasts.push(self.bounded.push(residuals)) / np.sqrt(self.scale)
+        if factors is not None:
+            z /= np.sqrt(factors)[:, None]
         z[:, ~self.testable] = np.nan
+        self.check.push(np.square(z[:, self.testable]))
         decisions = self.bank.process(z)
         amplitude = decisions.amplitude
         if self.spread is not None:  # back to the calibration window's variance
@@ -582,7 +599,25 @@ class NoiseBudget:
             "lorden_delay_x3_s": lorden_variance_terms(9.0, gamma, hypotheses) / self.terms_per_s,
             "episodes": 0 if bank is None else bank.episodes,
             "tracked_variance": [] if bank is None else bank.variance.tolist(),
+            "seconds_beyond_the_noise_model": self.check.flagged,
+            "seconds_checked": self.check.windows,
         }
+
+
+def budget_warning(detector: str, sensor_type: str, budget: NoiseBudget) -> str | None:
+    """One line when, over a share of the processed log's seconds, most leave-one-out
+    residuals were clearly more variable than calibrated (:data:`VARIANCE_WARNING`,
+    :data:`WARNING_SHARE`), else None."""
+    check = budget.check
+    if check.flagged < max(2, WARNING_SHARE * check.windows):
+        return None
+    return (
+        f"{detector}: {sensor_type}: on {check.flagged} s of this log"
+        f" ({100 * check.share():.2g} %) most leave-one-out residuals were more than"
+        f" {VARIANCE_WARNING:g}x as variable as calibrated (up to {check.worst:.3g}x): motion"
+        " or sensor errors the residual model does not remove (e.g. scale factors and"
+        " sampling jitter in motion); the false-alarm budget does not hold there"
+    )
 
 
 class _TypeModel:
@@ -608,6 +643,7 @@ class _TypeModel:
         self.scale = scale  # tau_j = Var(d_j), (n,), times kappa_j when given
         self.spread: np.ndarray | None = None  # kappa_j of the scale, (n,), or None
         self.budget: NoiseBudget | None = None  # sequential decisions under a budget
+        self.inflation: MotionInflation | None = None  # the jitter model, under a budget
         self.n_train = n_train
         self.clip = clip
         self.moments = clipped_square_moments(clip)
@@ -735,6 +771,12 @@ class NoiseGlrDetector(DetectorBase):
             " <type>_noise_spread from calibrate) when it carries one",
         ),
         "false_alarms": FALSE_ALARMS,
+        "jitter": Param(
+            "bool",
+            True,
+            "under a false-alarm budget, widen the test in motion by the array config's"
+            " sampling-time jitter (if any)",
+        ),
         "types": TYPES,
     }
 
@@ -749,9 +791,11 @@ class NoiseGlrDetector(DetectorBase):
         level_confidence: float = DEFAULT_LEVEL_CONFIDENCE,
         noise_spread: bool = True,
         false_alarms: float = 0.0,
+        jitter: bool = True,
         types: str = "gyro,accel",
     ) -> None:
         self.false_alarms = float(false_alarms)
+        self.jitter = bool(jitter)
         if self.false_alarms > 0:
             fixed = {
                 "window": window != 0.4,
@@ -887,6 +931,9 @@ class NoiseGlrDetector(DetectorBase):
                     operator, testable, array.rate_hz, self.false_alarms, spread=model.spread
                 )
                 model.budget.fit(residuals)
+                if self.jitter:
+                    design = self._model_matrix(sensor_type, array, lever_arm)
+                    model.inflation = array_inflation(array, sensor_type, design)
             self.models[sensor_type] = model
         if not self.models:
             raise ArrayTooSmallError(
@@ -906,8 +953,19 @@ class NoiseGlrDetector(DetectorBase):
             if block.get(sensor_type) is None:
                 out[sensor_type] = DetectionBlock.empty(len(block), n_sensors)
                 continue
-            out[sensor_type] = self._process_type(model, self._residuals(sensor_type, model, block))
+            out[sensor_type] = self._decide(sensor_type, model, block)
         return out
+
+    def _decide(self, sensor_type: str, model: _TypeModel, block: ImuBlock) -> DetectionBlock:
+        """One sensor type's rows of a block (per sample, or under the budget)."""
+        residuals = self._residuals(sensor_type, model, block)
+        if model.budget is None or model.inflation is None:
+            return self._process_type(model, residuals)
+        assert self.array is not None
+        triads = block.get(sensor_type)
+        assert triads is not None
+        values = self.array.select(triads, sensor_type)
+        return model.budget.process(residuals, model.inflation.factors(values, block.t_ns))
 
     @staticmethod
     def _process_type(model: _TypeModel, residuals: np.ndarray) -> DetectionBlock:
@@ -977,6 +1035,9 @@ class NoiseGlrDetector(DetectorBase):
         messages = []
         for sensor_type, model in self.models.items():
             if model.budget is not None:
+                note = budget_warning(self.name, sensor_type, model.budget)
+                if note is not None:
+                    messages.append(note)
                 continue
             if model.calibration_factor <= WARN_CALIBRATION_FACTOR:
                 continue
@@ -1021,7 +1082,10 @@ class NoiseGlrDetector(DetectorBase):
             }
             if model.budget is not None:
                 types[sensor_type]["threshold"] = model.budget.threshold
-                types[sensor_type]["budget"] = model.budget.metadata()
+                types[sensor_type]["budget"] = {
+                    **model.budget.metadata(),
+                    "jitter_s": 0.0 if model.inflation is None else model.inflation.jitter_s,
+                }
         return {
             "detector": self.name,
             "params": {
@@ -1035,6 +1099,7 @@ class NoiseGlrDetector(DetectorBase):
                 "level_confidence": self.level_confidence,
                 "noise_spread": self.noise_spread,
                 "false_alarms_per_hour": self.false_alarms * 3600.0,
+                "jitter": self.jitter,
                 "types": ",".join(self.sensor_types),
             },
             "statistic": (

@@ -46,7 +46,6 @@ from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import FALSE_ALARMS, DetectionBlock, Param
 from imufdi_cli.detectors.firmware_budget import (
     BUDGET_SHARE,
-    DISAGREEMENT_WARNING,
     Disagreement,
     difference_noise,
     imu_noise,
@@ -275,7 +274,7 @@ class Px4SelectorDetector(CausalImuCheck):
         state.scale = scale
         state.rate_threshold = r0 * scale
         state.accumulated_threshold = a0 * scale
-        state.disagreement = Disagreement(variances.sum(axis=1))
+        state.disagreement = Disagreement(variances.sum(axis=1), round(rate_hz))
         state.budget = {
             "false_alarms_per_hour": self.false_alarms * 3600.0,
             "threshold_scale": scale,
@@ -361,7 +360,7 @@ class Px4SelectorDetector(CausalImuCheck):
                         else {
                             "budget": {
                                 **s.budget,
-                                "disagreement_ratio": s.disagreement.ratio(),
+                                **s.disagreement.metadata(),
                             }
                         }
                     ),
@@ -371,20 +370,16 @@ class Px4SelectorDetector(CausalImuCheck):
         }
 
     def calibration_warnings(self) -> list[str]:
-        """Under a budget, one warning per sensor type whose IMUs disagreed on the processed
-        log clearly more than the calibrated white noise the thresholds were scaled for."""
+        """Under a budget, one warning per sensor type whose IMUs disagreed, over part of
+        the processed log, clearly more than the calibrated white noise the thresholds were
+        scaled for."""
         messages = []
         for sensor_type, state in self._states.items():
             if state.disagreement is None:
                 continue
-            ratio = state.disagreement.ratio()
-            if ratio > DISAGREEMENT_WARNING:
-                messages.append(
-                    f"{self.name}: {sensor_type}: the IMUs disagreed {ratio:.3g}x more (in"
-                    " variance, median IMU) than the calibrated noise its budget thresholds"
-                    " assume (lever arms, motion or sensor errors the firmware rule does not"
-                    " model): the false-alarm budget does not hold on this log"
-                )
+            note = state.disagreement.warning(self.name, sensor_type, "thresholds")
+            if note is not None:
+                messages.append(note)
         return messages
 
 

@@ -19,7 +19,8 @@ The clip c bounds what one outlier (or the transient of a bias step) adds:
 ``1/2 (1 - 1/K) c^2 - 1/2 ln K``. An episode starts at the first term where any
 ``S > h`` (n D hypotheses); its isolated sensor is that of the largest S. While it lasts,
 the bank tests "the noise is back to nominal" on that sensor: a CUSUM of ``-l_t`` for the
-variance ratio estimated since the onset (at least the smallest design); when that reaches
+variance ratio estimated since the onset (at least the smallest design; unclipped, so that
+a lasting fault is ended by mistake with probability ~exp(-h) only); when that reaches
 h the episode ends and every statistic restarts from 0 (a renewal: each false episode
 costs one average run length).
 
@@ -378,12 +379,13 @@ class Winsorizer:
         self.level = np.asarray(after[-1], float).copy()
         deviation = r - level
         bounded = np.clip(deviation, -self.bound, self.bound)
-        self.clipped += np.count_nonzero(bounded != deviation, axis=0)
+        cut = bounded != deviation
+        self.clipped += np.count_nonzero(cut, axis=0)
         self.outliers += np.count_nonzero(
             np.abs(deviation) > OUTLIER_LEVEL * self.deviation_sd, axis=0
         )
         self.samples += r.shape[0]
-        return level + bounded
+        return np.where(cut, level + bounded, r)  # samples within the bound unchanged
 
     def outlier_share(self, columns: np.ndarray | None = None) -> float:
         """Share of the samples seen (of ``columns``, a bool mask) beyond
@@ -488,6 +490,11 @@ class VarianceCusumBank:
         to that of ``scale_tau``.
     history : int
         Rows of evidence kept to estimate an episode's onset.
+    floor : ndarray, shape (n,), optional
+        Lowest tracked variance of each column (default 0.25): 1 where the evidence is
+        standardized by the top of a healthy range (a noise that changes with the
+        orientation), so that learning a quiet stretch does not make the range's top a
+        growth.
     """
 
     #: Rows run through the bank at once at most.
@@ -501,6 +508,7 @@ class VarianceCusumBank:
         rate_hz: float,
         calibration_terms: float = math.inf,
         history: int = 512,
+        floor: np.ndarray | None = None,
     ) -> None:
         self.design = design
         if isinstance(threshold, tuple):
@@ -518,6 +526,7 @@ class VarianceCusumBank:
         self.offsets = 0.5 * np.log(self.ratios)
         self.state = np.zeros((self.ratios.size, n))
         self.variance = np.ones(n)  # tracked, relative to the calibrated one
+        self.floor = np.full(n, 0.25) if floor is None else np.asarray(floor, float)
         self.stride = max(1, round(rate_hz))
         self.scale_step = 0.0 if design.scale_tau_s <= 0 else 1.0 / (design.scale_tau_s * rate_hz)
         self.calibration_terms = float(calibration_terms)
@@ -611,7 +620,7 @@ class VarianceCusumBank:
             start = 1.0 / (self.calibration_terms + self.terms_seen + self.pending_terms)
             gain = np.maximum(self.scale_step, start) if self.scale_step > 0 else start
             updated = self.variance + gain * (self.pending - self.pending_terms * self.variance)
-            self.variance = np.where(counted, np.maximum(updated, 0.25), self.variance)
+            self.variance = np.where(counted, np.maximum(updated, self.floor), self.variance)
             self.terms_seen += self.pending_terms
         self.pending = np.zeros(self.n)
         self.pending_terms = np.zeros(self.n)
@@ -700,14 +709,18 @@ class VarianceCusumBank:
         episode = self.episode
         assert episode is not None
         zr = self._referenced(z)
-        stats, squares = self._cusums(zr)
+        stats, _ = self._cusums(zr)
         best = stats.max(axis=0)
         sensor = episode.sensor
         size = episode.sums[sensor] / max(episode.counts[sensor], 1.0)
         size = max(float(size), float(self.ratios.min()))
         gain, offset = 0.5 * (1.0 - 1.0 / size), 0.5 * math.log(size)
-        valid = ~np.isnan(zr[:, sensor])
-        back = np.where(valid, offset - gain * squares[:, sensor], 0.0)
+        # unclipped: a large term is evidence that the fault lasts (the clip guards the
+        # other direction), and the exact log-likelihood ratio ends a lasting fault by
+        # mistake with probability ~exp(-h) only (Wald)
+        own = zr[:, sensor]
+        valid = ~np.isnan(own)
+        back = np.where(valid, offset - gain * np.square(np.nan_to_num(own)), 0.0)
         cumulative = np.cumsum(back)
         recovery = cumulative - np.minimum(np.minimum.accumulate(cumulative), -episode.recovery)
         ended = np.flatnonzero(recovery > self.threshold)
@@ -749,3 +762,56 @@ class VarianceCusumBank:
             return
         joined = np.concatenate([self.history, zr]) if self.history.size else zr
         self.history = joined[-self.history_length :].copy()
+
+
+class ModelCheck:
+    """Whether the calibrated noise still describes the data, one window at a time.
+
+    The rows pushed are squared evidence relative to what the calibrated noise predicts
+    (1 in expectation without a fault), one column per sensor. Over every window of
+    ``window`` rows (aligned on the row count) the mean of each column is taken and the
+    window is *flagged* when the median column exceeds ``ratio``: most sensors disagree with
+    the noise model at once, which one faulty sensor cannot cause (motion the model does
+    not cover, chip errors, a noise that changes with orientation). ``flagged`` and
+    ``windows`` count them; a detector under a budget warns when the flagged time is not
+    negligible (its level then does not hold there).
+    """
+
+    def __init__(self, columns: int, window: int, ratio: float = 2.0) -> None:
+        self.window = max(1, int(window))
+        self.ratio = float(ratio)
+        self.sums = np.zeros(columns)
+        self.counts = np.zeros(columns)
+        self.rows = 0
+        self.windows = 0
+        self.flagged = 0
+        self.worst = 0.0  # largest median ratio of a window
+
+    def push(self, squares: np.ndarray) -> None:
+        """Rows (N, columns) of relative squares (NaN: no term)."""
+        squares = np.asarray(squares, float)
+        position = 0
+        while position < squares.shape[0]:
+            room = self.window - self.rows % self.window
+            part = squares[position : position + room]
+            present = ~np.isnan(part)
+            self.sums += np.where(present, part, 0.0).sum(axis=0)
+            self.counts += present.sum(axis=0)
+            self.rows += part.shape[0]
+            position += part.shape[0]
+            if self.rows % self.window == 0:
+                self._close()
+
+    def _close(self) -> None:
+        counted = self.counts > 0
+        if counted.any():
+            median = float(np.median(self.sums[counted] / self.counts[counted]))
+            self.windows += 1
+            self.flagged += median > self.ratio
+            self.worst = max(self.worst, median)
+        self.sums[:] = 0.0
+        self.counts[:] = 0.0
+
+    def share(self) -> float:
+        """Share of the complete windows that were flagged."""
+        return self.flagged / self.windows if self.windows else 0.0

@@ -31,6 +31,7 @@ from imufdi_cli.detectors.cnn_map.signals import (
 )
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.nn import ACTIVATIONS
+from imufdi_cli.detectors.noise_glr import budget_warning
 from imufdi_cli.errors import (
     CalibrationError,
     DetectorConfigError,
@@ -313,6 +314,16 @@ class CnnMapDetector(_MappingTest, DetectorBase):
     def flush(self) -> dict[str, DetectionBlock]:
         """Causal detector: nothing is held back."""
         return {"accel": DetectionBlock.empty(0, self.n_accel if self.array else 0)}
+
+    def calibration_warnings(self) -> list[str]:
+        """Under a budget, one line when the accelerometers' residual variance over the
+        processed log was clearly above the calibrated one on most sensors (the input
+        test's level does not hold there; :func:`~imufdi_cli.detectors.noise_glr.budget_warning`)."""
+        if self._input is None or self.false_alarms <= 0:
+            return []
+        budget = self._input.models["accel"].budget
+        note = None if budget is None else budget_warning(self.name, "accel", budget)
+        return [] if note is None else [note]
 
     def metadata(self) -> dict[str, Any]:
         """Parameters, training figures, weights (base64 npz), residual calibration."""

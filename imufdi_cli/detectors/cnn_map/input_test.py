@@ -123,8 +123,7 @@ class _InputTest(_ReferenceRate):
         """The input test under a false-alarm budget: noise-glr's sequential test of the
         accelerometers (:class:`~imufdi_cli.detectors.noise_glr.NoiseBudget`)."""
         assert self._input is not None
-        model = self._input.models["accel"]
-        return self._input._process_type(model, self._input._residuals("accel", model, block))
+        return self._input._decide("accel", self._input.models["accel"], block)
 
     def _input_statistics(self, block: ImuBlock) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Step 8 on one block: CUSUM (N, n_accel) (NaN for untested channels), windowed
