@@ -540,6 +540,7 @@ class NoiseBudget:
         )
         self.bounded = self._winsorizer(self.level)
         self.contrasts = HelmertContrasts(n, BUDGET_BLOCK)
+        self.check = ModelCheck(int(self.testable.sum()), round(self.rate_hz), VARIANCE_WARNING)
 
     def process(self, residuals: np.ndarray, factors: np.ndarray | None = None) -> DetectionBlock:
         """Decisions on leave-one-out residuals (N, n), SI; ``factors`` (N,): the motion
