@@ -474,6 +474,13 @@ class NoiseBudget:
             )
         self.testable = np.asarray(testable, bool)
         self.isolable = residual_isolable(operator, self.testable)
+        # share of residual j's variance that sensor j's own noise makes (equal noise):
+        # a growth of sensor j's variance by K grows its residual's by 1 + (K - 1) w_j
+        weights = np.asarray(operator, float) ** 2
+        totals = weights.sum(axis=1)
+        self.own_share = np.where(
+            totals > 0, np.diag(weights) / np.where(totals > 0, totals, 1.0), 0.0
+        )
         self.spread = spread
         n = self.testable.size
         self.scale = np.ones(n)
@@ -568,6 +575,16 @@ class NoiseBudget:
             scores=scores,
         )
 
+    def lorden_delay_s(self, sensor: int, factor: float) -> float:
+        """Seconds an optimal test needs, asymptotically, to detect sensor ``sensor``'s
+        noise standard deviation growing by ``factor`` (its residual's variance by
+        ``1 + (factor^2 - 1) w``) at this budget (Lorden 1971,
+        :func:`~imufdi_cli.maths.variance.lorden_variance_terms`)."""
+        ratio = 1.0 + (factor**2 - 1.0) * float(self.own_share[sensor])
+        hypotheses = int(self.testable.sum()) * len(self.design.ratios)
+        gamma = self.terms_per_s / max(self.budget_per_s, 1e-300)
+        return lorden_variance_terms(ratio, gamma, hypotheses) / self.terms_per_s
+
     def metadata(self) -> dict[str, Any]:
         """The budget, the threshold and what sets it (JSON-ready)."""
         bank = self.bank
@@ -576,7 +593,6 @@ class NoiseBudget:
             for ratio in self.design.ratios
         ]
         hypotheses = int(self.testable.sum()) * len(self.design.ratios)
-        gamma = self.terms_per_s * 3600.0 / max(self.budget_per_s * 3600.0, 1e-300)
         return {
             "false_alarms_per_hour": self.budget_per_s * 3600.0,
             "threshold": self.threshold,
@@ -596,8 +612,12 @@ class NoiseBudget:
             "hypotheses": hypotheses,
             "run_length_s": run_lengths,
             "isolable": self.isolable.tolist(),
-            # the optimal test's delay of a x3 noise growth on a residual's own variance
-            "lorden_delay_x3_s": lorden_variance_terms(9.0, gamma, hypotheses) / self.terms_per_s,
+            # the optimal test's delay of a x3 noise growth on each sensor
+            "lorden_delay_x3_s": [
+                self.lorden_delay_s(j, 3.0) if self.testable[j] else None
+                for j in range(self.testable.size)
+            ],
+            "own_variance_share": self.own_share.tolist(),
             "episodes": 0 if bank is None else bank.episodes,
             "tracked_variance": [] if bank is None else bank.variance.tolist(),
             "seconds_beyond_the_noise_model": self.check.flagged,

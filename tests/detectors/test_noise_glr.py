@@ -549,7 +549,7 @@ def test_a_budget_detects_and_isolates_a_noise_growth_fast():
     assert meta["false_alarms_per_hour"] == pytest.approx(1.0)
     assert meta["hypotheses"] == 36 * 2
     assert out.threshold[-1] == pytest.approx(meta["threshold_schedule"]["threshold"][-1], abs=1.5)
-    assert meta["lorden_delay_x3_s"] < 0.2
+    assert 0.05 < meta["lorden_delay_x3_s"][0] < 0.2
 
 
 def test_a_budget_holds_on_a_fault_free_minute_with_outliers_and_ignores_a_bias_step():
