@@ -31,6 +31,13 @@ largest s; with ``reference=others``, the failing IMU with the largest s. The re
 is the isolated IMU's axis with the largest deviation from the mean of the other IMUs (in
 its own frame), which is also the amplitude. ``bias=true`` removes each IMU's offset from
 the array mean on the calibration window (the firmware's sensors are calibrated). Causal.
+
+Under a false-alarm budget (``false_alarms`` > 0) the rule and the hold are unchanged and
+every limit of a type is multiplied by one factor, chosen at fit time so that the IMUs'
+calibrated white noise raises at most half the budget
+(:func:`~imufdi_cli.detectors.firmware_budget.ap_limit_scale`: the exact run model of
+independent differences); ``calibration_warnings`` says when the IMUs disagreed beyond that
+noise on the processed log.
 """
 
 from __future__ import annotations

@@ -12,18 +12,20 @@ calibrated noise raise the budget's share of false alarm episodes on that channe
   the IMUs that can fail (a union bound). ``p_i`` is the tail of a weighted sum of three
   squared Gaussians (:func:`weighted_chi2_sf`). The rate is averaged over the error of the
   calibrated variances; for the firmware's 10 s hold it is extremely sensitive to them
-  (``p^h`` with h = 1001: a variance 6 % low raises the rate about 10 times).
+  (``p^h`` with h = 1001: a variance 6 % too low triples the rate).
 * **px4-selector** (:func:`px4_scale`): the accumulated error ``E_i`` of an IMU whose
   smoothed deviation ``|d_i|`` exceeds ``s r`` must exceed ``s A``. ``|d_i|`` is an
   exponentially smoothed (time constant ``dt / c``) norm, strongly correlated in time, and
-  at a budget of 1/h ``s r`` sits only ~1.2x above its mean: an episode is a long
-  excursion of the smoothed disagreement, far in the tail of its time averages. ``|d|``
+  at a budget ``s r`` sits not far above its mean: an episode is a long excursion of the
+  smoothed disagreement, far in the tail of its time averages. ``|d|``
   is a Markov chain (the filter of isotropic white noise), so E is a reflected
   Markov-modulated random walk, whose upcrossings of a level u fall as
   ``C exp(-theta* u)`` with theta* the root of the log Perron root of the tilted
   transition kernel (Lundberg's exponent); theta* is computed from the kernel, C from a
-  short simulation of the recursion at low levels (:func:`px4_null_rate`), and s solves
-  ``rate(s) = budget`` by the secant method on ``log rate``.
+  short simulation of the recursion at low levels (:func:`px4_null_rate`); s is the
+  smallest factor whose rate, the calibrated offsets' error included, meets the budget
+  and leaves at most :data:`PERMANENT_SHARE` of calibrations with an IMU whose offset
+  error alone keeps it in alarm (:func:`px4_scale`).
 
 Both assume what the firmware assumes: the IMUs disagree only by their white noise. On an
 array whose IMUs disagree more (accelerometer lever arms in rotation, scale and

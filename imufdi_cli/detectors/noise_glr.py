@@ -84,6 +84,22 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
    the estimated noise-standard-deviation ratio sigma1/sigma0 (dimensionless, the one
    exception to SI amplitudes; relative to the calibration window's tau, not
    kappa_eff tau).
+8. Under a false-alarm budget (``false_alarms`` > 0, ``imufdi detect --false-alarms``) steps
+   4-5 are replaced by a sequential test (:class:`NoiseBudget`): each residual is bounded at
+   4 sigma from its running level (:class:`~imufdi_cli.maths.variance.Winsorizer`: an
+   outlier or a bias step adds about one term), cut into Helmert contrasts in blocks of 4
+   samples (independent N(0, tau_j) terms, blind to the residual's mean; 3/4 of the
+   samples' variance information, against 2/3 for differences), standardized by tau_j
+   (Huber's proposal 2 on the calibration's contrasts, times kappa_eff_j with a healthy
+   spread) and by the jitter model's ``sqrt(1 + A_t)`` in motion when the array has one
+   (:mod:`.jitter`), and fed to a bank of variance-growth CUSUMs
+   (:class:`~imufdi_cli.maths.variance.VarianceCusumBank`, design ratios 3 and 9, clip 4)
+   whose threshold holds the budget's half by the Brook-Evans run lengths of the exact
+   clipped chi-square increments and the union bound, with the error of the tracked
+   variance (a running mean from the calibration on) as it learns. The per-sample options
+   (window, release, release_window, clip, level_confidence) are refused with a budget.
+   ``amplitude`` is the isolated residual's standard deviation ratio since the episode's
+   onset.
 """
 
 from __future__ import annotations

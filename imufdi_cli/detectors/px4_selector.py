@@ -32,6 +32,13 @@ offset from the array mean on the calibration window, standing in for that calib
 The smoothing constant c acts per sample, as in the firmware per update: at the log's rate
 its time constant is ``dt / c`` (0.2 s at 100 Hz). Causal: one row per input sample, no
 look-ahead. Lever-arm effects on accelerometers are not compensated (nor are they in PX4).
+
+Under a false-alarm budget (``false_alarms`` > 0) the rule is unchanged and both
+thresholds of a type are multiplied by one factor, chosen at fit time so that the IMUs'
+calibrated white noise raises at most half the budget
+(:func:`~imufdi_cli.detectors.firmware_budget.px4_scale`: the Lundberg exponent of the
+smoothed norm's Markov kernel, the calibrated offsets' error bounded);
+``calibration_warnings`` says when the IMUs disagreed beyond that noise on the processed log.
 """
 
 from __future__ import annotations
