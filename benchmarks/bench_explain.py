@@ -53,7 +53,6 @@ import numpy as np
 
 import imufdi_cli.episodes.builder as builder_module
 import imufdi_cli.episodes.fits as fits_module
-import imufdi_cli.episodes.lapack as lapack_module
 import imufdi_cli.episodes.reference as reference_module
 from imufdi_cli.detect import detect_file
 from imufdi_cli.pipeline import simulate_file
@@ -259,20 +258,20 @@ def main() -> int:
         timers.wrap(builder_module, "fit_models", "fit_models")
         timers.wrap(fits_module, "_linear_fit", "linear")
         timers.wrap(reference_module, "_motion_fit", "motion")
-        svd = lapack_module.svd_reduced  # the motion fit's SVD (numpy's gufunc, direct)
+        svd = np.linalg.svd  # the motion fit's SVD (the reduced one, with vectors)
 
-        def capture(a: Any) -> Any:
-            if len(timers.designs) < 4000:
+        def capture(a: Any, *args: Any, **kwargs: Any) -> Any:
+            if kwargs.get("full_matrices") is False and len(timers.designs) < 4000:
                 timers.designs.append(np.array(a))
-            return svd(a)
+            return svd(a, *args, **kwargs)
 
-        lapack_module.svd_reduced = capture  # type: ignore[assignment]
+        np.linalg.svd = capture  # type: ignore[assignment]
         try:
             begin = time.process_time()
             detect_file(str(log), out, [("glt", {})])
             timed = time.process_time() - begin
         finally:
-            lapack_module.svd_reduced = svd  # type: ignore[assignment]
+            np.linalg.svd = svd  # type: ignore[assignment]
             timers.restore()
         calls = BuilderCalls()
         if args.reference:

@@ -32,8 +32,8 @@ import imufdi_cli.detectors.glt as glt_module
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import parse_params
 from imufdi_cli.detectors.glt import GltDetector
-from imufdi_cli.detectors.parity import parity_matrix, whiten
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.parity import parity_matrix, whiten
 
 N_IMUS = 16
 RATE_HZ = 100.0
@@ -70,7 +70,7 @@ def central_difference_threshold(
 ) -> tuple[float, float, float]:
     """Baseline: the former ``parity.estimated_sigma_threshold`` (derivatives of the
     traces by central differences, step 1e-3, one pseudo-inverse per evaluation)."""
-    from imufdi_cli.detectors.parity import two_moment_threshold
+    from imufdi_cli.maths.parity import two_moment_threshold
 
     def traces(delta: np.ndarray) -> np.ndarray:
         weights = 1.0 / np.sqrt(1.0 + delta)

@@ -23,10 +23,10 @@ from mvmd_reference import mvmd_reference
 
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
 from imufdi_cli.detectors.mvmd import channel_power, mvmd, mvmd_gains, spectrum
-from imufdi_cli.detectors.parity import parity_matrix, residual_sigma, residuals, whiten
 from imufdi_cli.detectors.woa_mvmd_glt import WoaMvmdGltDetector
 from imufdi_cli.faults import FaultInjector, active_mask, parse_fault_spec
 from imufdi_cli.log import iter_blocks
+from imufdi_cli.maths.parity import parity_matrix, residual_sigma, residuals, whiten
 from imufdi_cli.simulate import PRESETS, preset, simulate_block
 
 

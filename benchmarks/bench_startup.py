@@ -22,6 +22,10 @@ commands of another checkout (``--before``, e.g. an exported copy of main) and w
 ``python -c "import numpy"``; the ratio after/before is the claim (no detector
 imports scipy.stats or scipy.signal).
 
+``--scipy``: instead, what importing scipy's subpackages costs over ``python -c "import
+numpy"`` (interleaved, median CPU and peak RSS): the price each one puts on a command that
+uses it (docs/architecture.md lists which code imports which, always where it is used).
+
 Two bytecode states, each against its own numpy baseline (numpy's bytecode is installed
 with it in both): ``warm`` — the project's ``__pycache__`` written and used, as after
 ``pip install`` or any earlier run; ``source`` — the project's modules compiled from
@@ -42,7 +46,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-SMALL = ROOT / "sample_logs" / "paper-table4.mcap"
+SMALL = ROOT / "imufdi_cli" / "sample_logs" / "paper-table4.mcap"
 
 
 def _time(cmd: list[str], env: dict[str, str]) -> tuple[float, float]:
@@ -157,6 +161,40 @@ def measure_detect(repeat: int, tree: Path, before: Path | None) -> None:
         print(line)
 
 
+def measure_scipy(repeat: int) -> None:
+    """Median CPU and peak RSS of importing numpy then one scipy subpackage, interleaved
+    with ``import numpy`` alone; prints the excess over it."""
+    py = sys.executable
+    modules = ["numpy", "scipy.special", "scipy.optimize", "scipy.signal", "scipy.stats"]
+    env = _environment("warm")
+    samples: dict[str, list[tuple[float, int]]] = {m: [] for m in modules}
+    for round_ in range(repeat + 1):  # the first round warms the file cache
+        for module in modules:
+            code = "import numpy" if module == "numpy" else f"import numpy, {module}"
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            done = subprocess.run(
+                [py, "-c", code + "; import resource; "
+                 "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"],
+                check=True, capture_output=True, text=True, env=env, cwd=env["IMUFDI_BENCH_TREE"],
+            )  # fmt: skip
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+            if round_:
+                samples[module].append((cpu, int(done.stdout.split()[-1])))
+    cpu = {m: statistics.median(c for c, _ in v) for m, v in samples.items()}
+    rss = {m: statistics.median(r for _, r in v) for m, v in samples.items()}
+    print(f"import numpy, then scipy's subpackage: median of {repeat} runs, over numpy alone")
+    print(
+        f"  {'numpy':16s} CPU {cpu['numpy'] * 1000:6.1f} ms   peak RSS {rss['numpy'] / 1024:6.1f} MiB"
+    )
+    for module in modules[1:]:
+        extra_cpu, extra_rss = cpu[module] - cpu["numpy"], (rss[module] - rss["numpy"]) / 1024
+        print(
+            f"  {module:16s} CPU +{extra_cpu * 1000:6.1f} ms ({cpu[module] / cpu['numpy']:4.2f}x)"
+            f"   peak RSS +{extra_rss:6.1f} MiB"
+        )
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeat", type=int, default=15)
@@ -179,8 +217,18 @@ def main() -> int:
         default=None,
         help="with --detect: a second checkout timed in the same rounds (e.g. main)",
     )
+    parser.add_argument(
+        "--scipy",
+        action="store_true",
+        help="time the import of scipy's subpackages over numpy's instead (see the docstring)",
+    )
     args = parser.parse_args()
     py = sys.executable
+    if args.scipy:
+        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        print(f"load average: {load} (2-core target machine; ratios, not seconds, are the claim)")
+        measure_scipy(args.repeat)
+        return 0
     if args.detect:
         load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
         print(f"load average: {load} (2-core target machine; ratios, not seconds, are the claim)")

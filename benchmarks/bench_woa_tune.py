@@ -4,7 +4,7 @@ Usage: python benchmarks/bench_woa_tune.py --before TREE [--repeat 5] [--demo]
 
 ``imufdi demo`` (the README's first command) spends most of its time in woa-mvmd-glt's fit:
 the WOA search of (K, alpha) for gyro and accel on the 2 s calibration window. The input is
-made at run time as the demo makes it (the bundled ``sample_logs/paper-table4.mcap`` with
+made at run time as the demo makes it (the bundled ``imufdi_cli/sample_logs/paper-table4.mcap`` with
 the demo's step fault injected, seed 1); the calibration window is its first 2 s (200 samples; `imufdi detect`'s conditioning keeps
 199 of them, a cost difference of 0.5 %).
 
@@ -136,10 +136,11 @@ def _demo(tree: Path) -> tuple[float, float]:
 
 
 def _make_input(directory: Path) -> Path:
-    """The demo's faulty log (``imufdi_cli.pipeline.run_demo``'s inject step)."""
+    """The demo's faulty log (``imufdi_cli.cli.demo.run_demo``'s inject step)."""
     sys.path.insert(0, str(ROOT))
+    from imufdi_cli.cli.demo import DEMO_FAULT
     from imufdi_cli.faults.inject import inject_file
-    from imufdi_cli.pipeline import DEMO_FAULT, SAMPLE_LOGS
+    from imufdi_cli.pipeline import SAMPLE_LOGS
 
     faulty = directory / "faulty.mcap"
     inject_file(str(SAMPLE_LOGS / "paper-table4.mcap"), str(faulty), [DEMO_FAULT], [], seed=1)

@@ -238,7 +238,7 @@ class ArrayConfig:
         flagged as clipped (:mod:`imufdi_cli.validity`). Optional.
     jitter : dict
         Sampling-time jitter sigma_t per sensor type, seconds (``imufdi calibrate`` fits
-        it from the motion of a log; :mod:`imufdi_cli.detectors.jitter`): in motion each
+        it from the motion of a log; :mod:`imufdi_cli.maths.jitter`): in motion each
         sensor's noise variance grows by about ``sigma_t^2 |dm/dt|^2``, and glt and
         pca-parity widen their tests by that much. Optional; absent or 0: no motion term.
     """

@@ -95,6 +95,11 @@ class CaptureError(InputDataError):
     """A raw serial capture could not be parsed (or, with --strict, had dropped bytes)."""
 
 
+class FlightLogError(InputDataError):
+    """A flight-controller log (PX4 ULog, ArduPilot DataFlash) is not readable, holds no
+    IMU data, or (with --strict) is corrupt."""
+
+
 class TruthError(InputDataError):
     """Ground-truth records in a log are missing or inconsistent with what was asked."""
 

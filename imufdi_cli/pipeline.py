@@ -8,24 +8,19 @@ console passed in by the CLI).
 from __future__ import annotations
 
 import json
-import shutil
 import sys
-import tempfile
-import time
 from collections.abc import Mapping, Sequence
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, BinaryIO, cast
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.errors import UsageError
 from imufdi_cli.units import parse_quantity
 
-if TYPE_CHECKING:
-    from imufdi_cli.cli.plain import PlainTable
-
-SAMPLE_LOGS = Path(__file__).resolve().parent.parent / "sample_logs"
+#: the bundled sample logs (package data: installed with the package, wheel or editable)
+SAMPLE_LOGS = Path(__file__).resolve().parent / "sample_logs"
 
 
 # --- simulate --------------------------------------------------------------------------
@@ -135,44 +130,138 @@ def _write_output(handle: Any, data: bytes, name: str | None) -> int:
 # --- ingest ----------------------------------------------------------------------------
 
 
+class _Prefixed:
+    """A binary stream whose first bytes were read already (to recognise its format)."""
+
+    def __init__(self, head: bytes, stream: Any, name: str) -> None:
+        self._head = head
+        self._stream = stream
+        self.name = name
+
+    def read(self, size: int = -1) -> bytes:
+        if self._head:
+            if size is None or size < 0:
+                data, self._head = self._head + self._stream.read(), b""
+                return data
+            data, self._head = self._head[:size], self._head[size:]
+            if len(data) < size:
+                data += self._stream.read(size - len(data))
+            return data
+        return bytes(self._stream.read(size))
+
+
+def _read_head(capture: str, size: int) -> bytes:
+    """The first ``size`` bytes of a capture file or of stdin (``-``; consumed)."""
+    from imufdi_cli.errors import CaptureError
+
+    try:
+        if capture == "-":
+            head = b""
+            while len(head) < size:
+                more = sys.stdin.buffer.read(size - len(head))
+                if not more:
+                    break
+                head += more
+            return head
+        with open(capture, "rb") as handle:
+            return handle.read(size)
+    except OSError as err:
+        raise CaptureError(f"cannot read capture {capture}: {err.strerror or err}") from err
+
+
 def ingest_file(
     capture: str,
     output: str,
     *,
-    layout: str = "mpu6500-array",
+    layout: str | None = None,
     array_path: str | None = None,
     rate: str | None = None,
     gyro_fs: str | None = None,
     accel_fs: str | None = None,
     strict: bool = False,
     start_time: str | None = None,
+    imu_data: str | None = None,
     progress: Any = None,
 ) -> Any:
-    """Parse a raw capture with a layout and write the MCAP; returns the ingest stats.
+    """Convert a raw capture or a flight-controller log into an MCAP; returns what the
+    conversion counted (``as_rows()``, ``to_dict()``).
 
-    ``start_time``: wall-clock time of the first frame (see :func:`parse_start_time`);
-    default: the device's own time. ``progress(bytes read, capture bytes or None)``:
-    see :mod:`imufdi_cli.progress`."""
+    The format is recognised by content: a PX4 ULog or an ArduPilot DataFlash log goes to
+    :func:`imufdi_cli.fclog.ingest_flight_log` (``imu_data``: which IMU data; ``layout``,
+    ``rate``, ``gyro_fs`` and ``accel_fs`` do not apply); anything else is a capture parsed
+    with ``layout`` (default ``mpu6500-array``). ``start_time``: wall-clock time of the
+    first sample (see :func:`parse_start_time`); default: the GPS time of a flight log,
+    the device's own time of a capture. ``progress(bytes read, bytes or None)``: see
+    :mod:`imufdi_cli.progress`."""
+    from imufdi_cli.fclog import FORMAT_NAMES, SNIFF_BYTES, ingest_flight_log, sniff_format
+
+    head = _read_head(capture, SNIFF_BYTES)
+    fmt = sniff_format(head)
+    array = ArrayConfig.load(array_path) if array_path else None
+    start_time_ns = None if start_time is None else parse_start_time(start_time)
+    stdin = capture == "-"
+    if fmt is not None:
+        given = [
+            option
+            for option, value in (
+                ("--layout", layout),
+                ("--rate", rate),
+                ("--gyro-fs", gyro_fs),
+                ("--accel-fs", accel_fs),
+            )
+            if value is not None
+        ]
+        if given:
+            article = "an" if FORMAT_NAMES[fmt][0] in "AEIOU" else "a"
+            raise UsageError(
+                f"{capture} is {article} {FORMAT_NAMES[fmt]} (recognised by its content):"
+                f" {', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to raw"
+                f" captures only; leave {'it' if len(given) == 1 else 'them'} out"
+            )
+        return ingest_flight_log(
+            "-" if stdin else capture,
+            output,
+            fmt=fmt,
+            head=head if stdin else b"",
+            imu_data=imu_data or "auto",
+            array=array,
+            strict=strict,
+            start_time_ns=start_time_ns,
+            progress=progress,
+        )
+    if imu_data is not None:
+        raise UsageError(
+            f"--imu-data applies to flight-controller logs only; {capture} is neither a PX4 ULog"
+            " nor an ArduPilot DataFlash log (they are recognised by their first bytes)"
+        )
     from imufdi_cli.capture import ingest, load_layout
+    from imufdi_cli.errors import CaptureError
 
     builtin: dict[str, Any] = {}
     if gyro_fs is not None:
         builtin["gyro_fs"] = gyro_fs
     if accel_fs is not None:
         builtin["accel_fs"] = accel_fs
-    layout_obj = load_layout(layout, **builtin)
-    array = ArrayConfig.load(array_path) if array_path else None
+    layout_obj = load_layout(layout or "mpu6500-array", **builtin)
     rate_hz = parse_quantity(rate, "frequency", name="--rate") if rate else None
-    return ingest(
-        capture,
-        output,
-        layout=layout_obj,
-        array=array,
-        rate_hz=rate_hz,
-        strict=strict,
-        start_time_ns=None if start_time is None else parse_start_time(start_time),
-        progress=progress,
-    )
+    try:
+        return ingest(
+            cast(BinaryIO, _Prefixed(head, sys.stdin.buffer, "stdin")) if stdin else capture,
+            output,
+            layout=layout_obj,
+            array=array,
+            rate_hz=rate_hz,
+            strict=strict,
+            start_time_ns=start_time_ns,
+            progress=progress,
+        )
+    except CaptureError as err:
+        if layout is None and str(err).startswith("no frames"):
+            raise CaptureError(
+                f"{err}; nor is {capture} a PX4 ULog or an ArduPilot DataFlash log (recognised"
+                " by their first bytes): give --layout for another frame layout"
+            ) from err
+        raise
 
 
 def parse_start_time(text: str) -> int:
@@ -215,9 +304,9 @@ def log_info(
     time_source: str = "auto",
     strict: bool = False,
 ) -> dict[str, Any]:
-    """:func:`imufdi_cli.mcapio.summary.log_info` (moved there: ``imufdi info`` does not
-    import this module; start-up time, docs/performance.md)."""
-    from imufdi_cli.mcapio.summary import log_info as _log_info
+    """:func:`imufdi_cli.info.log_info` (there: ``imufdi info`` does not import this
+    module; start-up time, docs/performance.md)."""
+    from imufdi_cli.info import log_info as _log_info
 
     return _log_info(source, topics=topics, time_source=time_source, strict=strict)
 
@@ -313,129 +402,3 @@ def _woa_settings(settings: Mapping[str, str] | None) -> dict[str, Any]:
     if "alpha_min" in typed or "alpha_max" in typed:
         out["alpha_bounds"] = (typed.get("alpha_min", 50.0), typed.get("alpha_max", 5000.0))
     return out
-
-
-# --- demo ------------------------------------------------------------------------------
-
-DEMO_FAULT = "step:imu0.gyro.x,at=2.5s,amp=0.9deg/s"
-
-
-@dataclass
-class DemoStep:
-    name: str
-    command: str
-    seconds: float
-    output: str
-
-
-@dataclass
-class DemoResult:
-    directory: str
-    steps: list[DemoStep] = field(default_factory=list)
-
-
-def demo_table(report: Any) -> PlainTable:
-    """The demo's table: every column of the report's figures (right-justified) per
-    detector and sensor type."""
-    from imufdi_cli import report as rep
-    from imufdi_cli.cli.plain import PlainTable
-
-    table = PlainTable(
-        ("detector", "sensor", *(header for _, header, _, _ in rep.TABLE_COLUMNS)),
-        title="demo: 0.9 deg/s step on imu0.gyro.x at 2.5 s (paper-table4)",
-        justify=("left", "left", *("right" for _ in rep.TABLE_COLUMNS)),
-    )
-    for row in rep.table_rows(report):
-        table.add_row(*row)
-    return table
-
-
-def run_demo(keep_dir: str | None, *, console: Any) -> DemoResult:
-    """ingest (or simulate) -> inject -> detect -> report on the bundled sample, printing
-    each step as the equivalent command line."""
-    from imufdi_cli import report as rep
-    from imufdi_cli.cli.ui import print_table
-    from imufdi_cli.detect import detect_file
-    from imufdi_cli.detectors import DETECTORS
-    from imufdi_cli.faults import inject_file
-    from imufdi_cli.fileio import atomic_path, check_outputs, write_text
-
-    if keep_dir:
-        workdir = Path(keep_dir)
-        workdir.mkdir(parents=True, exist_ok=True)
-        cleanup = False
-    else:
-        workdir = Path(tempfile.mkdtemp(prefix="imufdi-demo-"))
-        cleanup = True
-    result = DemoResult(directory=str(workdir))
-    check_outputs(
-        [p for p in SAMPLE_LOGS.iterdir() if p.is_file()] if SAMPLE_LOGS.is_dir() else [],
-        [
-            (f"--keep {keep_dir}", workdir / name)
-            for name in ("table4.mcap", "faulty.mcap", "detected.mcap", "report.md")
-        ],
-    )
-
-    def step(name: str, command: str, output: Path, fn: Any) -> Any:
-        console.print(f"[bold cyan]$ {command}[/]", markup=True)
-        start = time.perf_counter()
-        value = fn()
-        seconds = time.perf_counter() - start
-        result.steps.append(DemoStep(name, command, seconds, str(output)))
-        console.print(f"  [dim]{seconds:.2f} s -> {output}[/]", markup=True)
-        return value
-
-    try:
-        capture = SAMPLE_LOGS / "paper-table4.cap"
-        base = workdir / "table4.mcap"
-        if capture.exists():
-            stats = step(
-                "ingest",
-                f"imufdi ingest {capture.relative_to(SAMPLE_LOGS.parent)} -o {base}",
-                base,
-                lambda: ingest_file(str(capture), str(base)),
-            )
-            rows = dict(stats.as_rows())
-            console.print(
-                "  "
-                + ", ".join(
-                    f"{k}: {v}" for k, v in rows.items() if isinstance(v, (int, float)) and v
-                )
-            )
-        else:
-            sample = SAMPLE_LOGS / "paper-table4.mcap"
-            with atomic_path(base) as tmp:
-                shutil.copyfile(sample, tmp)
-        faulty = workdir / "faulty.mcap"
-        step(
-            "inject",
-            f"imufdi inject {base} --fault {DEMO_FAULT} --seed 1 -o {faulty}",
-            faulty,
-            lambda: inject_file(str(base), str(faulty), [DEMO_FAULT], [], seed=1),
-        )
-        detected = workdir / "detected.mcap"
-        names = [
-            n for n in ("glt", "woa-mvmd-glt", "pca-parity", "bank", "noise-glr") if n in DETECTORS
-        ]
-        flags = " ".join(f"-d {n}" for n in names)
-        step(
-            "detect",
-            f"imufdi detect {faulty} {flags} -o {detected}",
-            detected,
-            lambda: detect_file(str(faulty), str(detected), [(n, {}) for n in names]),
-        )
-        md = workdir / "report.md"
-        report = step(
-            "report",
-            f"imufdi report {detected} --markdown {md}",
-            md,
-            lambda: rep.build_report(str(detected)),
-        )
-        write_text(str(md), rep.to_markdown(report))
-        print_table(console, demo_table(report))
-        if keep_dir:
-            console.print(f"outputs kept in {workdir}")
-    finally:
-        if cleanup:
-            shutil.rmtree(workdir, ignore_errors=True)
-    return result

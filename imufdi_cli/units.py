@@ -272,8 +272,8 @@ def parse_time_point(text: str, *, name: str = "time") -> float:
                 f"{name}: {text!r} has no time zone; add Z for UTC (e.g."
                 f" {stripped}Z) or an offset such as +01:00"
             )
-        try:
-            moment = datetime.fromisoformat(stripped.replace("z", "Z"))
+        try:  # a trailing Z as +00:00: Python 3.10's fromisoformat reads no Z
+            moment = datetime.fromisoformat(re.sub(r"[Zz]$", "+00:00", stripped))
         except ValueError as err:
             raise UnitError(f"{name}: {text!r} is not a valid ISO 8601 time ({err})") from None
         return UnixTime(moment.timestamp())

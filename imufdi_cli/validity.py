@@ -22,7 +22,7 @@ and the detectors of ``imufdi detect``:
    consensus in the calibration window. It then carries no parity residual: the tests see
    only the valid sensors (the statistic of the n-1 others against the n-sensor threshold,
    slightly conservative). For accelerometers of IMUs at different positions H is the
-   rigid-body design ``[H | lever-arm columns]`` (:mod:`imufdi_cli.detectors.rigid`), so
+   rigid-body design ``[H | lever-arm columns]`` (:mod:`imufdi_cli.maths.rigid`), so
    the replacement includes the lever-arm terms. When the valid sensors do not span the
    model (every gyro of an axis clipped at once), the whole sample of that type is *held*:
    every sensor gets the last consensus, so nothing alarms on a sample that cannot be
@@ -242,10 +242,10 @@ class Conditioner:
 
     def _design(self, s: str) -> np.ndarray:
         """Consensus model of a type: H, or for accelerometers of IMUs at different
-        positions the rigid-body design [H | lever-arm columns] (detectors/rigid.py), so a
+        positions the rigid-body design [H | lever-arm columns] (maths/rigid.py), so a
         replaced sample carries no lever-arm residual either."""
         if s not in self._designs:
-            from imufdi_cli.detectors.rigid import accel_design
+            from imufdi_cli.maths.rigid import accel_design
 
             h = accel_design(self.array) if s == "accel" else self.array.measurement_matrix(s)
             self._designs[s] = h

@@ -34,7 +34,7 @@ import numpy as np
 from imufdi_cli.detectors import make_detector
 from imufdi_cli.faults import FaultInjector, parse_fault_spec
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.quantiles import gamma
+from imufdi_cli.maths.quantiles import gamma
 from imufdi_cli.simulate import config_from_options, simulate
 
 DETECTORS = ("noise-glr", "cnn-map", "px4-selector", "ap-consistency")

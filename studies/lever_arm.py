@@ -4,7 +4,7 @@ wearable12 (12 co-aligned IMUs on a 4 x 3 grid, 3 cm pitch, swinging 30 cm below
 has lever arms of up to 5 cm between accelerometers; without a model for them glt's
 accelerometer test alarms on the swing (21-28 alpha). For every seed: simulate
 the preset without fault, calibrate glt on 0-10 s, and count alarms per sensor type after
-the calibration window (out of sample), with the lever-arm model (detectors/rigid.py) and
+the calibration window (out of sample), with the lever-arm model (maths/rigid.py) and
 without it (glt ``lever_arm=false``; bank with its accelerometer design swapped back to H
 for the measurement). Then a 3x noise growth on imu0.accel.x (the preset's fault,
 12-18 s): alarm rate inside it (per-sample tests are not built for noise growth).

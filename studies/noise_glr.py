@@ -313,7 +313,9 @@ def real_part(train: str, test: str, seed: int, factor: float) -> None:
     from imufdi_cli.mcapio import read_array
     from imufdi_cli.validity import apply_calibration, flag_values
 
-    base = ArrayConfig.load(Path(__file__).resolve().parents[1] / "sample_logs/mimu4444-array.toml")
+    base = ArrayConfig.load(
+        Path(__file__).resolve().parents[1] / "imufdi_cli/sample_logs/mimu4444-array.toml"
+    )
     result = calibrate_file(train, base=base)
     cal = result.array
     log_array, raw = read_array(test)

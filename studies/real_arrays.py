@@ -12,7 +12,7 @@ default exp_2) with only a 10 s bias calibration at its start, and measure out o
    glt over the static phase;
 4. ``calibrate`` runtime on the training recording;
 5. the price of the sampling-time jitter model (ArrayConfig ``[jitter]``,
-   imufdi_cli/detectors/jitter.py): glt's smallest detectable step (50 % per-sample
+   imufdi_cli/maths/jitter.py): glt's smallest detectable step (50 % per-sample
    detection at alpha = 1 %) at rest and in the motion phase (median and 90th percentile
    of the widening), and steps of that median size injected in the motion phase (their
    glt MAR should be near 50 %).
@@ -43,16 +43,16 @@ sys.path.insert(0, str(ROOT))
 from imufdi_cli.array import ArrayConfig  # noqa: E402
 from imufdi_cli.calibrate import calibrate_file, find_static  # noqa: E402
 from imufdi_cli.detect import detect_file  # noqa: E402
-from imufdi_cli.detectors.jitter import array_inflation, minimum_detectable_step  # noqa: E402
-from imufdi_cli.detectors.rigid import accel_design  # noqa: E402
 from imufdi_cli.faults import inject_file  # noqa: E402
+from imufdi_cli.maths.jitter import array_inflation, minimum_detectable_step  # noqa: E402
+from imufdi_cli.maths.rigid import accel_design  # noqa: E402
 from imufdi_cli.mcapio import read_array  # noqa: E402
 from imufdi_cli.pipeline import ingest_file  # noqa: E402
 from imufdi_cli.report import build_report  # noqa: E402
 from imufdi_cli.validity import apply_calibration  # noqa: E402
 
 LAYOUT = ROOT / "docs" / "layouts" / "mimu4444.toml"
-BASE = ROOT / "sample_logs" / "mimu4444-array.toml"
+BASE = ROOT / "imufdi_cli" / "sample_logs" / "mimu4444-array.toml"
 DETECTORS = ("glt", "pca-parity")
 CALIBRATION = (0.0, 10.0)
 FAULT_S = 10.0

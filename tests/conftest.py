@@ -21,24 +21,11 @@ import pytest
 # other worker (tests/detectors 41-46 -> 32-35 s of CPU, pca-parity's 45-dimension
 # eigenvalue test 3-4 -> 0.3 s). Set here, when pytest loads this file and before any test
 # module imports numpy; xdist workers inherit it from the controller. A value set by the
-# user is kept. The outputs are those of the command (and of the split-identical records,
-# made with one thread).
+# user is kept (no test depends on it: stored float references are compared to tolerances
+# that cover the summation order of any thread count, tests/references.py).
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 for _var in THREAD_VARS:
     os.environ.setdefault(_var, "1")
-#: numpy (and so its BLAS) not loaded yet and every cap at one thread: this process's BLAS
-#: runs one thread, as the command's does
-_ONE_BLAS_THREAD = "numpy" not in sys.modules and all(os.environ[v] == "1" for v in THREAD_VARS)
-
-
-@pytest.fixture(scope="session")
-def one_blas_thread() -> bool:
-    """Whether numpy's and scipy's BLAS run one thread in this test process (pinned above
-    before numpy was imported; False when a user's value or an earlier import of numpy
-    stood in the way). With one thread, products have the bits of the ``imufdi`` command,
-    so a test comparing bits with records made that way may run in-process instead of in
-    a fresh interpreter."""
-    return _ONE_BLAS_THREAD
 
 
 # No cyclic garbage collection while the test modules are imported and collected: the
@@ -51,7 +38,7 @@ gc.disable()
 
 
 #: fixtures giving a scipy package as a test's independent oracle (imported on first use)
-SCIPY_ORACLES = frozenset({"scipy_stats", "scipy_optimize", "scipy_fft", "scipy_special"})
+SCIPY_ORACLES = frozenset({"scipy_stats"})
 
 
 def _first_use_group(item: pytest.Item) -> int:
@@ -367,14 +354,15 @@ def fresh_python() -> Callable[[str], subprocess.CompletedProcess[str]]:
 
 @pytest.fixture(scope="session")
 def mimu4444_cut_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The real sample ``sample_logs/mimu4444-exp1-cut.bin`` (300 s of MIMU4444 exp_1: ten
-    static orientations, then hand motion) ingested by ``imufdi ingest`` with its layout and
-    the uncalibrated array, once per test process and read-only: the CLI's calibrate and
-    detect tests and cnn-map's motion check read the same log (0.2-0.45 s of CPU to ingest)."""
+    """The real sample ``imufdi_cli/sample_logs/mimu4444-exp1-cut.bin`` (300 s of MIMU4444
+    exp_1: ten static orientations, then hand motion) ingested by ``imufdi ingest`` with its
+    layout and the uncalibrated array, once per test process and read-only: the CLI's
+    calibrate and detect tests and cnn-map's motion check read the same log (0.2-0.45 s of
+    CPU to ingest)."""
     from tests.cli.conftest import invoke
 
     root = Path(__file__).resolve().parents[1]
-    samples = root / "sample_logs"
+    samples = root / "imufdi_cli" / "sample_logs"
     out = tmp_path_factory.mktemp("mimu4444") / "cut.mcap"
     result = invoke(
         ["ingest", samples / "mimu4444-exp1-cut.bin",
@@ -395,52 +383,3 @@ def scipy_stats() -> ModuleType:
     import scipy.stats
 
     return scipy.stats
-
-
-@pytest.fixture(scope="session")
-def scipy_optimize() -> ModuleType:
-    """``scipy.optimize``, the oracle of ``imufdi_cli.nnls`` (tests/test_nnls.py), imported
-    at first use like :func:`scipy_stats` (about 0.35 s of CPU with scipy.sparse,
-    scipy.spatial and scipy.fft, which no other test process then needs)."""
-    import scipy.optimize
-
-    return scipy.optimize
-
-
-@pytest.fixture(scope="session")
-def scipy_fft() -> ModuleType:
-    """``scipy.fft``, the oracle of ``imufdi_cli.special.fft`` (about 0.45 s of CPU to
-    import; nothing once :func:`scipy_stats` or :func:`scipy_optimize` has imported it)."""
-    import scipy.fft
-
-    return scipy.fft
-
-
-@pytest.fixture(scope="session")
-def scipy_special() -> ModuleType:
-    """``scipy.special``, the package whose ufuncs ``imufdi_cli.special`` loads alone (about
-    0.4 s of CPU to import; nothing once :func:`scipy_stats` has imported it)."""
-    import scipy.special
-
-    return scipy.special
-
-
-@pytest.fixture(scope="session")
-def quantiles_scipy_modules(fresh_python) -> list[str]:
-    """The ``scipy.s*`` modules a fresh interpreter has imported after using every
-    function of ``imufdi_cli.quantiles`` (one process for test_quantiles.py's scipy.stats
-    check and test_special.py's scipy.special check)."""
-    import json
-
-    done = fresh_python(
-        "import json, sys\n"
-        "from imufdi_cli.quantiles import chi2, f, gamma, norm\n"
-        "chi2.ppf(0.99, 1); chi2.ppf(0.99, 3); f.ppf(0.99, 1, 50); f.ppf(0.99, 1, 40)\n"
-        "for d, s in ((norm, ()), (chi2, (2,)), (f, (2, 9)), (gamma, (2,))):\n"
-        "    d.cdf(1.0, *s); d.sf(1.0, *s); d.ppf(0.3, *s, scale=2.0); d.isf(0.3, *s)\n"
-        "norm.pdf(0.5)\n"
-        "print(json.dumps(sorted(m for m in sys.modules if m.startswith('scipy.s'))))\n"
-    )
-    assert done.returncode == 0, done.stderr
-    modules: list[str] = json.loads(done.stdout)
-    return modules

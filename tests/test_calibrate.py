@@ -14,8 +14,9 @@ from imufdi_cli.calibrate import (
     expected_normal_range,
     noise_spread,
 )
-from imufdi_cli.errors import CalibrationError
+from imufdi_cli.errors import CalibrationError, ImufdiError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.tomlfile import parse_toml
 
 RATE = 100.0
 FLIP = np.array([[0.0, -1, 0], [-1, 0, 0], [0, 0, -1]])  # the MIMU4444 bottom face
@@ -245,7 +246,7 @@ def test_calibrate_writes_the_noise_spread_and_toml_keeps_it():
         se = np.sqrt(2.0 / (2 * count**2 / (3 * count - 1)))
         assert np.all(kappa >= 1.0) and np.all(kappa <= np.exp(6 * se))
     again = ArrayConfig.from_dict(
-        __import__("tomllib").loads(result.array.to_toml()), source="round trip"
+        parse_toml(result.array.to_toml(), "round trip", ImufdiError), source="round trip"
     )
     assert_allclose(again.sensor_noise_spread("gyro"), result.array.sensor_noise_spread("gyro"))
     assert ArrayConfig.from_json(result.array.to_json()) == result.array

@@ -176,7 +176,7 @@ def test_recompressed_when_the_compression_differs(tmp_path):
 
 def test_no_explain_writes_the_same_status_and_alarms_without_episodes(sim_log, tmp_path):
     """--no-explain: the same status channels and alarm events, no episode events, and the
-    episodes package (with its scipy.special quantiles) is not even imported."""
+    episodes package is not even imported."""
     import subprocess
     import sys
 
@@ -188,7 +188,7 @@ def test_no_explain_writes_the_same_status_and_alarms_without_episodes(sim_log, 
         "import sys\n"
         "from imufdi_cli.detect import detect_file\n"
         f"detect_file({str(sim_log)!r}, {str(plain)!r}, [('glt', {{}})], explain=False)\n"
-        "print(sorted(m for m in ('imufdi_cli.episodes', 'scipy.special') if m in sys.modules))\n"
+        "print(sorted(m for m in ('imufdi_cli.episodes',) if m in sys.modules))\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert done.stdout.strip() == "[]"
@@ -232,3 +232,34 @@ def test_read_ahead_gives_the_same_output_and_its_thread_ends(sim_log, tmp_path)
             thread.join(5)
     assert not [t for t in threading.enumerate() if t.name.startswith("imufdi-chunks")]
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_a_channel_far_above_its_level_says_so() -> None:
+    from types import SimpleNamespace
+
+    from imufdi_cli.detect import TypeSummary, level_warning, observed_level_warnings
+
+    per_sample = SimpleNamespace(name="glt", alpha=0.01, false_alarms=0.0, persistence=1)
+    # 57 alpha in motion (glt window=10 on conical6) and a quiet channel
+    noisy = {"gyro": TypeSummary(samples=10000, alarms=5700), "accel": TypeSummary(10000, 90)}
+    notes = observed_level_warnings(per_sample, noisy, 100.0)
+    assert len(notes) == 1 and "glt.gyro" in notes[0] and "57 times its level" in notes[0]
+    assert "3,600 false alarm episodes an hour" in (level_warning(per_sample, 100.0) or "")
+    budgeted = SimpleNamespace(name="glt", alpha=0.01, false_alarms=1 / 3600, persistence=1)
+    assert level_warning(budgeted, 100.0) is None
+    # 6 episodes in 10 min at 1/h is 36/h: over 10 x the budget; 4 episodes are too few to say
+    six = {"gyro": TypeSummary(samples=60000, events=6)}
+    assert "6 alarm episodes" in observed_level_warnings(budgeted, six, 100.0)[0]
+    assert not observed_level_warnings(budgeted, {"gyro": TypeSummary(60000, events=4)}, 100.0)
+
+
+def test_detect_warns_when_a_test_loses_its_level_in_motion(tmp_path) -> None:
+    from imufdi_cli.detect import detect_file
+    from imufdi_cli.pipeline import simulate_file
+
+    log = tmp_path / "c6.mcap"
+    simulate_file("conical6", str(log), seed=5, options={"duration": "30s"})
+    moving = detect_file(str(log), str(tmp_path / "a.mcap"), [("glt", {"window": "10"})])
+    assert any("times its level" in w and "glt.gyro" in w for w in moving.warnings)
+    budget = detect_file(str(log), str(tmp_path / "b.mcap"), [("glt", {})], false_alarms=1 / 3600)
+    assert not any("times its level" in w or "against a budget" in w for w in budget.warnings)

@@ -283,7 +283,10 @@ def test_report_figure_shades_calibration_and_labels_episodes_without_overprinti
         for ax in (stat_ax, iso_ax):
             hatched = [p for p in ax.patches if p.get_hatch() == "///"]
             assert len(hatched) == 1
-            assert hatched[0].get_x() == 0.0 and hatched[0].get_width() == 2.0
+            # x extent in data units (axvspan draws a Rectangle from matplotlib 3.9, a Polygon
+            # before: its path through its own transform is the span either way)
+            span = hatched[0].get_path().transformed(hatched[0].get_patch_transform())
+            assert (span.vertices[:, 0].min(), span.vertices[:, 0].max()) == (0.0, 2.0)
         assert any("calibration" in str(h.get_label()) for h in stat_ax.get_legend().legend_handles)
         # alarms as runs: 30 bars, not 1200 markers
         runs = [c for c in stat_ax.collections if len(c.get_paths()) == 30]

@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from imufdi_cli.pipeline import SAMPLE_LOGS
 from imufdi_cli.progress import LogTimeProgress
 
-SAMPLE = Path(__file__).resolve().parent.parent / "sample_logs" / "paper-table4.mcap"
+SAMPLE = SAMPLE_LOGS / "paper-table4.mcap"
 
 
 class Recorder:

@@ -163,9 +163,9 @@ def test_select_rows_window_and_exclusions():
 
 def test_clipped_accelerometer_of_a_rotating_board_replaced_with_its_lever_arm_terms():
     """12 IMUs on a grid in fast rotation: a clipped accelerometer sample is replaced by
-    the rigid-body consensus (detectors/rigid.py), i.e. its true value to the noise, not
+    the rigid-body consensus (maths/rigid.py), i.e. its true value to the noise, not
     the specific force at the centre."""
-    from imufdi_cli.detectors.rigid import accel_design, rigid_specific_force
+    from imufdi_cli.maths.rigid import accel_design, rigid_specific_force
 
     x, y = np.meshgrid(np.arange(4) * 0.05, np.arange(3) * 0.05)
     positions = np.stack([x.ravel(), y.ravel(), np.zeros(12)], axis=1)

@@ -45,7 +45,7 @@ Stored per IMU as ``<type>_noise``; glt uses it (``sigma_source=auto``).
 
 **Sampling-time jitter** — the residual between triads grows from the noise at rest to
 ~45x it in hand motion. Each type's ``sigma_t`` of the model of
-:mod:`imufdi_cli.detectors.jitter` (noise variance ``1 + sigma_t^2 |ydot_w|^2 / n`` in
+:mod:`imufdi_cli.maths.jitter` (noise variance ``1 + sigma_t^2 |ydot_w|^2 / n`` in
 whitened units) is fitted by moments on the motion rows (not near a static interval, not
 clipped, predecessor usable) with the calibrated noise levels and the lever-arm design
 for accelerometers; stored as ArrayConfig ``[jitter]``, used by glt and pca-parity.

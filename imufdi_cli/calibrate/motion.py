@@ -1,5 +1,5 @@
 """What calibrate learns from the motion: chip time offsets (a diagnostic) and the
-sampling-time jitter term ``[jitter]`` of :mod:`imufdi_cli.detectors.jitter`."""
+sampling-time jitter term ``[jitter]`` of :mod:`imufdi_cli.maths.jitter`."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import numpy as np
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.calibrate.static import STATIC_WINDOW_S
-from imufdi_cli.detectors.jitter import fit_jitter
-from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.errors import ArrayConfigError
+from imufdi_cli.maths.jitter import fit_jitter
+from imufdi_cli.maths.rigid import accel_design
 from imufdi_cli.validity import flag_values
 
 #: Warn when a chip time offset explains more than this share of its motion residual.
@@ -103,7 +103,7 @@ def jitter_stage(
     values: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, float]:
     """Sampling-time jitter sigma_t (s) per sensor type with a parity space and per-sensor
-    noise, fitted on the motion rows (:func:`imufdi_cli.detectors.jitter.fit_jitter`):
+    noise, fitted on the motion rows (:func:`imufdi_cli.maths.jitter.fit_jitter`):
     ``method`` ``level`` (the per-sample test at alpha = 1 % holds its level on those rows),
     ``moments`` or ``off`` (nothing fitted).
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.calibrate.static import StaticInterval
-from imufdi_cli.detectors.parity import residual_projector
+from imufdi_cli.maths.parity import residual_projector
 
 
 def static_noise(
@@ -28,7 +28,7 @@ def static_noise(
     ``r = (I - H H^+) m`` of each static interval (motion and common offsets cancel) about
     their interval mean give pooled residual variances ``v`` (weighted by the intervals'
     sample counts); per-sensor variances solve ``((I - S) o (I - S)) sigma^2 = v`` as in
-    :func:`~imufdi_cli.detectors.parity.residual_sigma` (plain least squares: the pooled
+    :func:`~imufdi_cli.maths.parity.residual_sigma` (plain least squares: the pooled
     system is well determined; a non-positive solution falls back to the common
     ``sum v / (n - 3)``). Axes a type lacks keep no entry.
 
@@ -113,7 +113,7 @@ def expected_normal_range(count: int) -> float:
     """
     if count < 2:
         return 0.0
-    from imufdi_cli.quantiles import norm  # scipy.stats.norm's floats, without its import
+    from imufdi_cli.maths.quantiles import norm
 
     grid = np.linspace(-10.0, 10.0, 20001)
     cdf = norm.cdf(grid)

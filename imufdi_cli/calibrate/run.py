@@ -37,9 +37,9 @@ from imufdi_cli.calibrate.triads import (
     calibrate_accel,
     calibrate_gyro,
 )
-from imufdi_cli.detectors.jitter import MAX_JITTER_S
 from imufdi_cli.errors import CalibrationError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.jitter import MAX_JITTER_S
 
 
 @dataclass

@@ -52,7 +52,6 @@ from imufdi_cli.campaign.driver import (
     check_all_failed,
     results_lock,
     run_campaign,
-    run_campaign_cli,
 )
 from imufdi_cli.campaign.executors import (
     WORKER_THREAD_ENV,
@@ -97,7 +96,6 @@ __all__ = [
     "plot_curves",
     "results_lock",
     "run_campaign",
-    "run_campaign_cli",
     "run_key",
     "summarize",
     "summary_markdown",

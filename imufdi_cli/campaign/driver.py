@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,11 +14,10 @@ from typing import Any
 from imufdi_cli.campaign.executors import DaskExecutor, LocalExecutor, _Executor
 from imufdi_cli.campaign.plots import plot_curves
 from imufdi_cli.campaign.run import run_order, write_json_atomic
-from imufdi_cli.campaign.spec import CampaignSpec, load_spec, run_key
+from imufdi_cli.campaign.spec import CampaignSpec, run_key
 from imufdi_cli.campaign.summary import (
     _rows,
     _rows_csv,
-    evaluate_summary_gates,
     summarize,
     summary_markdown,
 )
@@ -240,75 +238,3 @@ def _is_internal(result: Mapping[str, Any]) -> bool:
     if result.get("ok"):
         return False
     return bool(result.get("internal", bool(result.get("traceback"))))
-
-
-def run_campaign_cli(
-    spec_path: str,
-    results_dir: str,
-    *,
-    jobs: int | None,
-    scheduler: str | None,
-    resume: bool,
-    gates: Sequence[str],
-    console: Any,
-    progress: bool | None = None,
-) -> int:
-    """What ``imufdi campaign`` does; returns the exit code (0, or 1 when a gate fails).
-
-    The closing line and the gates go to ``console``; the progress bar always goes to
-    stderr: with ``progress=None`` only when stderr is a terminal and ``console`` is not
-    quiet (rich's ``Console(quiet=True)``), ``False`` never (``--quiet``), ``True`` always.
-    The bar is redrawn when runs finish, without a refresh thread (pool workers fork from
-    a single-threaded process: :func:`~imufdi_cli.campaign.executors.start_method`).
-
-    Raises CampaignFailedError (exit 3, or 4 on internal errors) when every run failed.
-    """
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeRemainingColumn,
-    )
-
-    from imufdi_cli.detectors import DETECTORS
-    from imufdi_cli.report import parse_gate
-
-    spec = load_spec(spec_path)
-    for gate in gates:
-        parse_gate(gate, DETECTORS)  # bad gates fail before any run
-    if progress is None:
-        progress = sys.stderr.isatty() and not getattr(console, "quiet", False)
-    with Progress(
-        TextColumn("[bold]campaign[/] {task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("failed {task.fields[failed]}"),
-        TimeRemainingColumn(),
-        console=Console(stderr=True),
-        transient=False,
-        auto_refresh=False,
-        disable=not progress,
-    ) as bar:
-        task = bar.add_task(spec.name, total=len({run_key(r) for r in spec.runs}), failed=0)
-        failed = 0
-
-        def advance(done: int, total: int, result: dict[str, Any] | None) -> None:
-            nonlocal failed
-            if result is not None and not result["ok"]:
-                failed += 1
-            bar.update(task, completed=done, failed=failed, refresh=True)
-
-        result = run_campaign(
-            spec, results_dir, jobs=jobs, scheduler=scheduler, resume=resume, progress=advance
-        )
-    console.print(
-        f"{result.total} runs ({result.executed} executed, {result.skipped} resumed, "
-        f"{result.failed} failed) in {result.seconds:.1f} s -> {result.directory}"
-    )
-    check_all_failed(result)
-    outcomes = evaluate_summary_gates(result.summary, gates)
-    for _, failed_gate, message in outcomes:
-        console.print(f"[{'red' if failed_gate else 'green'}]gate {message}[/]", markup=True)
-    return 1 if any(f for _, f, _ in outcomes) else 0

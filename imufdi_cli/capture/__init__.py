@@ -6,7 +6,14 @@
 """
 
 from imufdi_cli.capture.binary import BinaryFrameParser, find_sync
-from imufdi_cli.capture.checksum import CHECKSUM_KINDS, compute_checksums
+from imufdi_cli.capture.checksum import (
+    CHECKSUM_KINDS,
+    CRC_CATALOGUE,
+    CrcModel,
+    compute_checksums,
+    crc,
+    find_crc,
+)
 from imufdi_cli.capture.encode import (
     CaptureEncoder,
     Corruption,
@@ -34,12 +41,14 @@ from imufdi_cli.capture.stats import IngestStats
 __all__ = [
     "BUILTIN_LAYOUTS",
     "CHECKSUM_KINDS",
+    "CRC_CATALOGUE",
     "DEFAULT_CHUNK_SIZE",
     "DEFAULT_MCAP_CHUNK_SIZE",
     "BinaryFrameParser",
     "CaptureEncoder",
     "ChecksumSpec",
     "Corruption",
+    "CrcModel",
     "CsvMapping",
     "EncodedCapture",
     "HeaderField",
@@ -47,8 +56,10 @@ __all__ = [
     "Layout",
     "RecordField",
     "compute_checksums",
+    "crc",
     "encode_capture",
     "encode_frames",
+    "find_crc",
     "find_sync",
     "ingest",
     "layout_from_dict",

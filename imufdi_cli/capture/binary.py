@@ -55,11 +55,14 @@ def find_sync(data: np.ndarray, sync: bytes) -> np.ndarray:
 
 
 def _stored_checksum(frames: np.ndarray, at: int, size: int, endian: str) -> np.ndarray:
-    raw = frames[:, at : at + size].astype(np.uint32)
+    """The stored checksums (F,), uint32 (uint64 for more than 4 bytes: CRC-64)."""
+    dtype = np.dtype(np.uint32 if size <= 4 else np.uint64)
+    raw = frames[:, at : at + size].astype(dtype)
     order = range(size) if endian == "big" else range(size - 1, -1, -1)
-    value = np.zeros(frames.shape[0], dtype=np.uint32)
+    value = np.zeros(frames.shape[0], dtype=dtype)
+    eight = np.array(8, dtype=dtype)
     for k in order:
-        value = (value << np.uint32(8)) | raw[:, k]
+        value = np.left_shift(value, eight) | raw[:, k]
     return value
 
 
@@ -69,7 +72,7 @@ def checksums_ok(layout: Layout, frames: np.ndarray) -> np.ndarray:
     if spec.kind == "none":
         return np.ones(frames.shape[0], dtype=bool)
     start, end, at = spec.resolve(frames.shape[1])
-    computed = compute_checksums(spec.kind, frames[:, start:end])
+    computed = compute_checksums(spec.kind, frames[:, start:end], spec.model)
     return computed == _stored_checksum(frames, at, spec.size, spec.endian)
 
 

@@ -178,10 +178,10 @@ def encode_frames(
     spec = layout.checksum
     if spec.kind != "none" and n_samples:
         cs_start, cs_end, at = spec.resolve(size)
-        values = compute_checksums(spec.kind, frames[:, cs_start:cs_end]).astype(np.int64)
-        order = "<" if spec.endian == "little" else ">"
-        dtype = np.dtype(order + {1: "u1", 2: "u2", 4: "u4"}[spec.size])
-        _write(frames, at, values, dtype)
+        values = compute_checksums(spec.kind, frames[:, cs_start:cs_end], spec.model)
+        shifts = np.arange(spec.size, dtype=np.uint64) * np.uint64(8)  # any size: CRC-24
+        stored = ((values.astype(np.uint64)[:, None] >> shifts) & np.uint64(0xFF)).astype(np.uint8)
+        frames[:, at : at + spec.size] = stored if spec.endian == "little" else stored[:, ::-1]
     return frames
 
 

@@ -25,7 +25,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from imufdi_cli.capture.checksum import CHECKSUM_SIZES
+from imufdi_cli.capture.checksum import CrcModel, checksum_size
 from imufdi_cli.errors import LayoutError, UnitError
 from imufdi_cli.units import STANDARD_GRAVITY, parse_quantity
 
@@ -161,7 +161,8 @@ class ChecksumSpec:
     ``start``/``end`` follow Python slice rules on the frame bytes (negative counts from
     the end of the frame; ``end=None`` is up to the stored checksum). ``at`` is the offset
     where the checksum is stored (negative from the end); ``None`` means appended as the
-    last bytes of the frame.
+    last bytes of the frame. ``model``: the CRC, for a catalogue CRC (``kind`` its
+    catalogue name) or one given by its parameters (``kind`` ``crc``).
     """
 
     kind: str = "none"
@@ -169,10 +170,11 @@ class ChecksumSpec:
     end: int | None = None
     at: int | None = None
     endian: str = "little"
+    model: CrcModel | None = None
 
     @property
     def size(self) -> int:
-        return CHECKSUM_SIZES[self.kind]
+        return checksum_size(self.kind, self.model)
 
     def resolve(self, frame_size: int) -> tuple[int, int, int]:
         """(start, end, at) as absolute offsets in a frame of ``frame_size`` bytes."""

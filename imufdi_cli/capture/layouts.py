@@ -12,7 +12,13 @@ from typing import Any, Final
 
 import numpy as np
 
-from imufdi_cli.capture.checksum import CHECKSUM_KINDS
+from imufdi_cli.capture.checksum import (
+    CHECKSUM_KINDS,
+    CrcModel,
+    ambiguous,
+    catalogue_names,
+    find_crc,
+)
 from imufdi_cli.capture.csvcap import default_csv_layout, parse_csv_mapping
 from imufdi_cli.capture.layout import (
     _DIMENSION_OF,
@@ -131,7 +137,8 @@ _HEADER_KEYS: Final[set[str]] = {
     "wrap_bits",
 }
 _RECORD_KEYS: Final[set[str]] = {"name", "type", "size", "endian", "scale", "unit", "offset"}
-_CHECKSUM_KEYS: Final[set[str]] = {"kind", "start", "end", "at", "endian"}
+_CRC_KEYS: Final[tuple[str, ...]] = ("width", "poly", "init", "refin", "refout", "xorout")
+_CHECKSUM_KEYS: Final[set[str]] = {"kind", "start", "end", "at", "endian", *_CRC_KEYS}
 
 
 def _field_type(item: Mapping[str, Any], where: str) -> tuple[str, int]:
@@ -195,15 +202,87 @@ def _record_scale(
     return known, 0.0
 
 
+def _crc_integer(value: Any, key: str, width: int) -> int:
+    """A CRC parameter: an integer (TOML ``0x1021``) or a string of one (``"0x1021"``)."""
+    where = f"checksum.{key}"
+    if isinstance(value, str):
+        try:
+            value = int(value, 0)
+        except ValueError:
+            raise LayoutError(f"{where}: {value!r} is not an integer (e.g. 0x1021)") from None
+    number = _int(value, where, minimum=0)
+    if number >= 1 << width:
+        raise LayoutError(f"{where}: 0x{number:X} does not fit in width = {width} bits")
+    return number
+
+
+def _crc_flag(value: Any, key: str) -> bool:
+    if not isinstance(value, bool):
+        raise LayoutError(f"checksum.{key}: expected true or false, got {value!r}")
+    return value
+
+
+def _crc_model(raw: Mapping[str, Any]) -> CrcModel:
+    """A CRC given by its parameters (``kind = "crc"``)."""
+    missing = [k for k in ("width", "poly") if k not in raw]
+    if missing:
+        raise LayoutError(
+            f"checksum: kind = 'crc' needs {' and '.join(missing)} (and optionally init,"
+            " refin, refout, xorout)"
+        )
+    width = _int(raw["width"], "checksum.width", minimum=1, maximum=64)
+    poly = _crc_integer(raw["poly"], "poly", width)
+    if poly == 0:
+        raise LayoutError("checksum.poly: must not be 0")
+    refin = _crc_flag(raw.get("refin", False), "refin")
+    return CrcModel(
+        name="crc",
+        width=width,
+        poly=poly,
+        init=_crc_integer(raw.get("init", 0), "init", width),
+        refin=refin,
+        refout=_crc_flag(raw.get("refout", refin), "refout"),
+        xorout=_crc_integer(raw.get("xorout", 0), "xorout", width),
+    )
+
+
+def _checksum_kind(raw: Mapping[str, Any]) -> tuple[str, CrcModel | None]:
+    """(kind, CRC model) of a ``[checksum]`` table: a kind of :data:`CHECKSUM_KINDS`, a
+    catalogue CRC by name or alias (case and punctuation ignored), or ``crc`` with its
+    parameters."""
+    text = str(raw.get("kind", "none"))
+    kind = text.lower()
+    given = [k for k in _CRC_KEYS if k in raw]
+    if kind == "crc":
+        return "crc", _crc_model(raw)
+    if given:
+        raise LayoutError(
+            f"checksum.{given[0]}: CRC parameters go with kind = 'crc' (kind {text!r} has its own)"
+        )
+    if kind in CHECKSUM_KINDS:
+        return kind, None
+    meanings = ambiguous(text)
+    if meanings:
+        raise LayoutError(
+            f"checksum.kind: {text!r} names several CRCs ({', '.join(meanings)}): give the"
+            " catalogue name, or kind = 'crc' with width, poly, init, refin, refout, xorout"
+        )
+    model = find_crc(text)
+    if model is None:
+        raise LayoutError(
+            f"checksum.kind: {text!r} unknown; valid: {_choices(CHECKSUM_KINDS)} (with width,"
+            f" poly, init, refin, refout, xorout) or a catalogue CRC: {_choices(catalogue_names())}"
+        )
+    return model.name, model
+
+
 def _parse_checksum(raw: Any, default_endian: str, sync_len: int) -> ChecksumSpec:
     if raw is None:
         return ChecksumSpec()
     if not isinstance(raw, Mapping):
         raise LayoutError("checksum: expected a table with kind, start, end, at")
     _check_keys(raw, _CHECKSUM_KEYS, "checksum")
-    kind = str(raw.get("kind", "none")).lower()
-    if kind not in CHECKSUM_KINDS:
-        raise LayoutError(f"checksum.kind: {kind!r} unknown; valid: {_choices(CHECKSUM_KINDS)}")
+    kind, model = _checksum_kind(raw)
     end = raw.get("end")
     at = raw.get("at")
     return ChecksumSpec(
@@ -212,6 +291,7 @@ def _parse_checksum(raw: Any, default_endian: str, sync_len: int) -> ChecksumSpe
         end=None if end is None else _int(end, "checksum.end"),
         at=None if at is None else _int(at, "checksum.at"),
         endian=_endian(raw.get("endian", default_endian), "checksum.endian"),
+        model=model,
     )
 
 

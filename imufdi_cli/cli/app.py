@@ -6,7 +6,7 @@ from importlib import import_module
 
 import click
 
-from imufdi_cli import __version__
+from imufdi_cli._version import __version__
 
 #: command name -> the module whose ``@cli.command()`` defines it. A command's module is
 #: imported when that command is run or listed (``--help``, completion), so that

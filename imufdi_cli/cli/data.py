@@ -134,10 +134,16 @@ def simulate(
 )
 @click.option(
     "--layout",
-    default="mpu6500-array",
-    show_default=True,
-    help="mpu6500-array, csv, or a TOML layout file.",
+    help="Frame layout of a raw capture: mpu6500-array (default), csv, or a TOML layout file."
+    " PX4 ULog and ArduPilot DataFlash logs are recognised by content and need none.",
     shell_complete=complete_file,
+)
+@click.option(
+    "--imu-data",
+    type=click.Choice(["auto", "sensor", "vehicle_imu", "imu", "raw"]),
+    help="Flight-controller logs: which IMU data (PX4: sensor, vehicle_imu; ArduPilot: imu,"
+    " raw). Default auto: the most IMUs, then sensor types, then the highest rate"
+    " (docs/flight-controllers.md).",
 )
 @click.option(
     "--array",
@@ -159,7 +165,8 @@ def simulate(
 def ingest(
     capture: str,
     output: str | None,
-    layout: str,
+    layout: str | None,
+    imu_data: str | None,
     array_path: str | None,
     rate: str | None,
     gyro_fs: str | None,
@@ -168,16 +175,20 @@ def ingest(
     start_time: str | None,
     ui: UI,
 ) -> None:
-    """Convert a raw serial capture (or CSV) into an IMU array MCAP.
+    """Convert a raw serial capture (or CSV), or a PX4 ULog / ArduPilot DataFlash flight
+    log, into an IMU array MCAP.
 
-    Resynchronises after garbage, drops frames with bad checksums, unwraps counters and
-    timestamps, counts every dropped byte, frame and gap.
+    Captures: resynchronises after garbage, drops frames with bad checksums, unwraps
+    counters and timestamps, counts every dropped byte, frame and gap. Flight logs
+    (recognised by content, whatever the extension): one Imu channel per IMU instance,
+    aligned without resampling, stamped in UTC from the log's GPS time.
 
     Example:
 
 
     \b
         imufdi ingest board.bin --layout my_board.toml --array array.toml -o board.mcap
+        imufdi ingest flight.ulg -o flight.mcap
         cat capture.bin | imufdi ingest - -o - | imufdi info -
     """
     from imufdi_cli.fileio import check_input, check_outputs
@@ -187,7 +198,7 @@ def ingest(
     if output is None:
         output = "-" if capture == "-" else os.path.splitext(capture)[0] + ".mcap"
     ui.data_to_stdout(output)
-    layout_file = layout if layout.lower().endswith(".toml") else None
+    layout_file = layout if layout is not None and layout.lower().endswith(".toml") else None
     check_outputs([capture, layout_file, array_path], [("-o", output), ("--json", ui.json_target)])
     with ui.progress(f"ingest {capture}", unit="B") as progress:
         stats = ingest_file(
@@ -200,9 +211,11 @@ def ingest(
             accel_fs=accel_fs,
             strict=strict,
             start_time=start_time,
+            imu_data=imu_data,
             progress=progress,
         )
     ui.print_table(ingest_table(capture, output, stats.as_rows()), summary=True)
+    ui.warn(getattr(stats, "warnings", []))
     ui.json({"command": "ingest", "capture": capture, "output": output, **stats.to_dict()})
 
 

@@ -53,7 +53,7 @@ def info(log: str, topics: tuple[str, ...], stamps: str, strict: bool, ui: UI) -
 def log_info_summary(
     log: str, topics: tuple[str, ...], stamps: str, strict: bool
 ) -> dict[str, Any]:
-    from imufdi_cli.mcapio.summary import log_info
+    from imufdi_cli.info import log_info
 
     return log_info(
         log, topics=list(topics) or None, time_source=time_source(stamps), strict=strict
@@ -89,6 +89,9 @@ def info_parts(s: dict[str, Any]) -> list[Part]:
                 + (f", range {json.dumps(array['range'])}" if array.get("range") else ""),
             )
         )
+    fc = s.get("flight_log")
+    if fc:
+        parts.append(("text", _flight_log_line(fc)))
     for sensor_type, counts in s.get("validity", {}).items():
         parts.append(
             (
@@ -111,6 +114,28 @@ def info_parts(s: dict[str, Any]) -> list[Part]:
                 )
             )
     return parts
+
+
+def _flight_log_line(fc: dict[str, Any]) -> str:
+    """``flight log: PX4 ULog (PX4, CUBEORANGE, v1.11.2), vehicle_imu: 3 IMUs at 2, 2, 2 Hz``."""
+    names = {"px4-ulog": "PX4 ULog", "ardupilot-dataflash": "ArduPilot DataFlash"}
+    system = fc.get("system") or {}
+    words = [
+        system[k] for k in ("sys_name", "ver_hw", "version", "firmware", "board") if system.get(k)
+    ]
+    rates = ", ".join(f"{r:.4g}" for r in fc.get("imu_rates_hz") or [])
+    text = (
+        f"flight log: {names.get(str(fc.get('format')), fc.get('format'))}"
+        + (f" ({', '.join(words)})" if words else "")
+        + f", {fc.get('imu_data')}: {fc.get('n_imus')} IMUs at {rates} Hz"
+        + ("" if fc.get("testable", True) else " (too low to test)")
+        + (
+            f"; UTC from GPS, start {fc['utc_start']}"
+            if fc.get("utc_start")
+            else "; no UTC (no GPS time)"
+        )
+    )
+    return text
 
 
 def _head_table(s: dict[str, Any]) -> PlainTable:

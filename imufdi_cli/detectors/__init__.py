@@ -17,7 +17,7 @@ Adding a detector is one module (or subpackage) in this package plus one line he
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from importlib import import_module
 from typing import Any
 
@@ -55,6 +55,21 @@ def detector_class(name: str) -> type[DetectorBase]:
     module_name, _, class_name = location.partition(":")
     cls: type[DetectorBase] = getattr(import_module(module_name), class_name)
     return cls
+
+
+def check_selection(names: Sequence[str]) -> None:
+    """Raise DetectorConfigError unless ``names`` selects at least one registered detector,
+    each once (the message names the valid ones)."""
+    valid = ", ".join(sorted(DETECTORS))
+    if not names:
+        raise DetectorConfigError(f"no detector selected; use -d NAME (valid: {valid})")
+    seen: set[str] = set()
+    for name in names:
+        if name not in DETECTORS:
+            raise DetectorConfigError(f"unknown detector {name!r}; valid: {valid}")
+        if name in seen:
+            raise DetectorConfigError(f"detector {name!r} selected twice")
+        seen.add(name)
 
 
 def make_detector(name: str, raw_params: Mapping[str, Any] | None = None) -> Detector:
@@ -100,6 +115,7 @@ __all__ = [
     "DetectorBase",
     "Param",
     "ParameterRenamedWarning",
+    "check_selection",
     "detector_class",
     "make_detector",
     "make_detectors",

@@ -29,7 +29,6 @@ from imufdi_cli.maths.sequential import (
     CusumBank,
     CusumDesign,
     MotionModel,
-    average_run_length,
     budget_threshold,
     long_run_factor,
     outlier_share,
@@ -130,17 +129,12 @@ class ParityBudget:
         self.threshold = math.nan  # set by fit()
         self.bank: CusumBank | None = None
 
-    def evidence(
-        self, white: np.ndarray, factors: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """z (N, n) of whitened, bias-free measurements ``white`` (N, n), and the tested
-        state (N, 3): the least-squares rate or specific force; ``factors`` (N,): the
-        motion variance factors ``1 + A_t`` (None: 1)."""
+    def evidence(self, white: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """z (N, n) of whitened, bias-free measurements ``white`` (N, n), standardized at
+        rest, and the tested state (N, 3): the least-squares rate or specific force."""
         state = white @ self.estimator_t
         residual = white - state @ self.h_t
         residual *= self.z_scale
-        if factors is not None:
-            residual /= np.sqrt(factors)[:, None]
         return residual, state[:, :3]
 
     def fit(self, white: np.ndarray) -> None:
@@ -177,8 +171,8 @@ class ParityBudget:
         """Decisions on whitened, bias-free measurements (N, n)."""
         if self.bank is None:
             raise DetectorConfigError("call fit() before process()")
-        evidence, state = self.evidence(white, factors)
-        decisions = self.bank.process(evidence, state)
+        evidence, state = self.evidence(white)
+        decisions = self.bank.process(evidence, state, factors)
         return DetectionBlock(
             statistic=decisions.statistic,
             threshold=decisions.threshold,
@@ -189,14 +183,11 @@ class ParityBudget:
         )
 
     def metadata(self) -> dict[str, Any]:
-        """The budget, the threshold and what sets it; per sensor the sensitivity (z
-        units per SI unit of a step: the reference delays need it)."""
+        """The budget, the threshold and what sets it; what the optimal test's reference
+        delay needs (Lorden: ``2 ln(gamma K) / delta^2`` samples, with ``gamma`` the
+        samples between false alarms at the budget, K the sensor-and-sign hypotheses and
+        ``delta`` a step's size times the sensor's ``sensitivity``, z units per SI unit)."""
         bank = self.bank
-        run_lengths = (
-            [average_run_length(mu, self.design.clip, self.threshold) for mu in self.design.shifts]
-            if bank is not None
-            else []
-        )
         return {
             "false_alarms_per_hour": self.budget_per_s * 3600.0,
             "threshold": self.threshold,
@@ -207,8 +198,8 @@ class ParityBudget:
             "outlier_share": self.contamination,
             "reference_tau_s": self.design.tau_s,
             "long_run_factor": None if bank is None else bank.kappa,
-            "hypotheses": 2 * self.n * len(self.design.shifts),
-            "run_length_samples": run_lengths,
+            "hypotheses": 2 * self.n,
+            "run_length_samples": self.rate_hz / self.budget_per_s,
             "sensitivity": (self.sensitivity if bank is None else bank.sensitivity).tolist(),
             "episodes": 0 if bank is None else bank.episodes,
             # the reference's offsets, as residuals in SI (what the bank removed at the end)

@@ -240,7 +240,7 @@ def _norm_kernel(smoothing: float, top: float, cells: int) -> tuple[np.ndarray, 
     centres (the mass beyond ``top`` in the last cell): ``|d'| / c`` given ``|d|`` is a
     noncentral chi with 3 degrees of freedom and noncentrality ``(1 - c) |d| / c``, whose
     CDF is ``Phi(R - m) + Phi(R + m) - 1 + (phi(R + m) - phi(R - m)) / m``."""
-    from imufdi_cli.quantiles import norm
+    from imufdi_cli.maths.quantiles import norm
 
     c = smoothing
     edges = np.linspace(0.0, top, cells + 1)
@@ -266,7 +266,7 @@ def lundberg_exponent(rho: float, smoothing: float) -> float:
     ``|d| - rho`` (Asmussen, *Applied Probability and Queues*, 2003, XIII.8). Brent's
     method on 80 and 160 cells, extrapolated (Richardson, the error falls as the square
     of the cell width: 0.2 % left, tested)."""
-    from imufdi_cli.special import brentq
+    from scipy.optimize import brentq  # imported when a budget is fitted
 
     unit = math.sqrt(smoothing / (2.0 - smoothing))
     found = []
@@ -291,8 +291,9 @@ def _log_prefactor(
     simulation of the recursion (chains of ``length`` samples from the filter's stationary
     law): the median of ``log count(u) + theta u`` over the upper half of the levels that
     at least 50 upcrossings reach; and the samples simulated."""
+    from scipy.signal import lfilter  # imported when a budget is fitted
+
     from imufdi_cli.detectors.px4_selector import accumulate_excess
-    from imufdi_cli.special import lfilter
 
     c = smoothing
     rng = np.random.default_rng([seed, 0x9F4, round(rho * 1e9)])
@@ -399,7 +400,7 @@ def px4_scale(
     seed : int
         Seed of the null simulation.
     """
-    from imufdi_cli.quantiles import chi2
+    from imufdi_cli.maths.quantiles import chi2
 
     variance = np.asarray(noise_variance, float)
     imus = variance.shape[0]

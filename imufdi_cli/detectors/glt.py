@@ -70,17 +70,6 @@ from imufdi_cli.detectors.base import (
     Param,
 )
 from imufdi_cli.detectors.budget import ParityBudget, reference_tau
-from imufdi_cli.detectors.jitter import MotionInflation
-from imufdi_cli.detectors.parity import (
-    estimated_sigma_threshold,
-    isolable_sensors,
-    parity_matrix,
-    residual_sigma,
-    residuals,
-    sigma_estimate_variance,
-    whiten,
-)
-from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
 from imufdi_cli.errors import (
     ArrayConfigError,
@@ -90,8 +79,19 @@ from imufdi_cli.errors import (
     InputDataError,
 )
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.quantiles import chi2
-from imufdi_cli.quantiles import f as f_distribution
+from imufdi_cli.maths.jitter import MotionInflation
+from imufdi_cli.maths.parity import (
+    estimated_sigma_threshold,
+    isolable_sensors,
+    parity_matrix,
+    residual_sigma,
+    residuals,
+    sigma_estimate_variance,
+    whiten,
+)
+from imufdi_cli.maths.quantiles import chi2
+from imufdi_cli.maths.quantiles import f as f_distribution
+from imufdi_cli.maths.rigid import accel_design
 
 #: Minimum number of calibration samples.
 MIN_CALIBRATION_SAMPLES = 10

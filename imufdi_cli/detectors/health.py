@@ -170,7 +170,7 @@ _BOOTSTRAP_CACHE: dict[tuple[Any, ...], float] = {}
 
 def _poisson_upper(count: int, exposure: int) -> float:
     """One-sided 95 % upper bound of a rate from ``count`` events in ``exposure`` trials."""
-    from imufdi_cli.quantiles import gamma
+    from imufdi_cli.maths.quantiles import gamma
 
     return float(gamma.ppf(0.95, count + 1)) / max(exposure, 1)
 
@@ -334,7 +334,7 @@ class HealthDetector(DetectorBase):
                 repeat_p[k] = p
                 repeats[k] = max(2, math.ceil(math.log(level) / math.log(p)))
             dof = _rounded_dof(_successive_dof(int(m.min()) + 1))
-            from imufdi_cli.quantiles import norm
+            from imufdi_cli.maths.quantiles import norm
 
             # the null of the variance tests: Gaussian white differences, and the
             # calibration's own (quantised, heavy-tailed); the larger threshold of the two
@@ -545,7 +545,7 @@ class HealthDetector(DetectorBase):
     def _own_fits(self, episode: Any) -> list[Any]:
         """Fits from the checks that raised ``episode`` (empty when none is remembered)."""
         from imufdi_cli.episodes.fault_fit import FaultFit
-        from imufdi_cli.quantiles import chi2
+        from imufdi_cli.maths.quantiles import chi2
 
         state = self.states.get(episode.sensor_type)
         if state is None or self.array is None:

@@ -92,7 +92,7 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
    samples' variance information, against 2/3 for differences), standardized by tau_j
    (Huber's proposal 2 on the calibration's contrasts, times kappa_eff_j with a healthy
    spread) and by the jitter model's ``sqrt(1 + A_t)`` in motion when the array has one
-   (:mod:`.jitter`), and fed to a bank of variance-growth CUSUMs
+   (:mod:`imufdi_cli.maths.jitter`), and fed to a bank of variance-growth CUSUMs
    (:class:`~imufdi_cli.maths.variance.VarianceCusumBank`, design ratios 3 and 9, clip 4)
    whose threshold holds the budget's half by the Brook-Evans run lengths of the exact
    clipped chi-square increments and the union bound, with the error of the tracked
@@ -123,10 +123,12 @@ from imufdi_cli.detectors.base import (
     calibration_stats,
     parse_sensor_types,
 )
-from imufdi_cli.detectors.jitter import MotionInflation, array_inflation
 from imufdi_cli.detectors.moving import MovingWindow
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.jitter import MotionInflation, array_inflation
+from imufdi_cli.maths.quantiles import chi2, norm
+from imufdi_cli.maths.quantiles import f as f_distribution
 from imufdi_cli.maths.sequential import outlier_share
 from imufdi_cli.maths.variance import (
     HelmertContrasts,
@@ -138,8 +140,6 @@ from imufdi_cli.maths.variance import (
     threshold_schedule,
     variance_run_length,
 )
-from imufdi_cli.quantiles import chi2, norm  # scipy.stats' floats without its import
-from imufdi_cli.quantiles import f as f_distribution
 
 #: Sensors whose leverage P_jj exceeds this are not redundant (their leave-one-out
 #: residual is undefined or dominated by the estimate) and are not tested.

@@ -108,7 +108,7 @@ def smooth_deviation(deviation: np.ndarray, start: np.ndarray, gain: float) -> n
     -------
     ndarray, shape (N, ...)
     """
-    from imufdi_cli.special import lfilter  # scipy.signal's, without importing it
+    from scipy.signal import lfilter  # imported when the selector runs, not on import
 
     if deviation.shape[0] == 0:
         return np.zeros_like(deviation)

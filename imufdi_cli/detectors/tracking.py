@@ -28,8 +28,8 @@ import numpy as np
 
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import Param
-from imufdi_cli.detectors.parity import residual_projector
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.parity import residual_projector
 
 #: The detector parameter (seconds; 0 = off).
 TRACK_BIAS = Param(

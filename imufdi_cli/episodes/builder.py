@@ -24,7 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from imufdi_cli.detectors.parity import check_measurement_matrix
 from imufdi_cli.episodes.episode import Episode, _sensor_amplitude
 from imufdi_cli.episodes.fault_fit import WhiteNoise
 from imufdi_cli.episodes.fits import fit_models
@@ -44,6 +43,7 @@ from imufdi_cli.episodes.white_noise import (
     white_sigma_spread,
     white_variance_dof,
 )
+from imufdi_cli.maths.parity import check_measurement_matrix
 
 
 class EpisodeBuilder:
@@ -63,7 +63,7 @@ class EpisodeBuilder:
     sensor_ids : sequence of str, length n
     sigma : ndarray, shape (n,)
         Calibrated per-sensor white-noise standard deviation (SI), e.g. from
-        :func:`imufdi_cli.detectors.parity.residual_sigma` on the calibration window.
+        :func:`imufdi_cli.maths.parity.residual_sigma` on the calibration window.
     rate_hz : float
         Nominal sample rate.
     merge_gap_s, join_gap_s, margin_s, max_window_s : float
@@ -629,11 +629,11 @@ class EpisodeBuilder:
 def episode_builders(calibration: Any, array: Any, **options: Any) -> dict[str, EpisodeBuilder]:
     """One builder per sensor type of ``array`` present in the calibration block (an
     :class:`~imufdi_cli.log.ImuBlock`), with per-sensor sigma from its parity residuals
-    (:func:`~imufdi_cli.detectors.parity.residual_sigma`). Types with fewer than 4 sensors
+    (:func:`~imufdi_cli.maths.parity.residual_sigma`). Types with fewer than 4 sensors
     (no leave-one-out consensus) get episodes without explanation. Use
     :meth:`EpisodeBuilder.for_detector` to get each detector its own builder."""
-    from imufdi_cli.detectors.parity import residual_sigma
     from imufdi_cli.errors import ArrayConfigError, CalibrationError
+    from imufdi_cli.maths.parity import residual_sigma
 
     builders = {}
     for sensor_type in array.sensor_types():

@@ -9,8 +9,6 @@ from typing import Any
 
 import numpy as np
 
-from imufdi_cli.special import ufunc
-
 
 def _finite(value: Any) -> Any:
     """``value`` with every non-finite float replaced by None, recursively."""
@@ -31,15 +29,15 @@ def _finite(value: Any) -> Any:
 
 
 # Quantiles through scipy.special's inverse distribution functions (ufuncs: microseconds a
-# call, where scipy.stats' ppf checks its arguments for milliseconds, and every episode
-# length is a new degree of freedom); cached for the lengths that repeat. The ufuncs are
-# loaded without the 0.3 s import of the package (imufdi_cli.special: the same objects).
+# call, where scipy.stats' ppf checks its arguments for tens of microseconds, and every
+# episode length is a new degree of freedom); cached for the lengths that repeat.
+# scipy.special is imported at the first quantile, not on import.
 
 
 @functools.lru_cache(maxsize=4096)
 def _chi2_quantile(p: float, dof: float) -> float:
     """Chi-square quantile: ``chdtri`` inverts the upper tail."""
-    chdtri = ufunc("chdtri")  # scipy.special's own ufunc, without importing the package
+    from scipy.special import chdtri
 
     return float(chdtri(dof, 1.0 - p))
 
@@ -47,7 +45,7 @@ def _chi2_quantile(p: float, dof: float) -> float:
 @functools.lru_cache(maxsize=4096)
 def _f_quantile(p: float, dof1: float, dof2: float) -> float:
     """F(dof1, dof2) quantile."""
-    fdtri = ufunc("fdtri")  # scipy.special's own ufunc, without importing the package
+    from scipy.special import fdtri
 
     return float(fdtri(dof1, dof2, p))
 
@@ -55,7 +53,7 @@ def _f_quantile(p: float, dof1: float, dof2: float) -> float:
 @functools.lru_cache(maxsize=4096)
 def _t_quantile(p: float, dof: float) -> float:
     """Student t quantile."""
-    stdtrit = ufunc("stdtrit")  # scipy.special's own ufunc, without importing the package
+    from scipy.special import stdtrit
 
     return float(stdtrit(dof, p))
 

@@ -28,10 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from imufdi_cli.detectors.parity import check_measurement_matrix, least_squares_matrix
-from imufdi_cli.episodes import lapack
 from imufdi_cli.episodes.fault_fit import FaultFit
 from imufdi_cli.episodes.numerics import _chi2_quantile, _f_quantile, _t_quantile
+from imufdi_cli.maths.parity import check_measurement_matrix, least_squares_matrix
 
 
 def leave_one_out(
@@ -202,9 +201,9 @@ def _linear_fit(
         weights = np.full((1, n), 1.0 / n)
     else:
         gram = X.T @ X  # p <= 2 columns: the normal equations are well within precision
-        if not np.isfinite(gram).all() or abs(lapack.det(gram)) <= 1e-300:
+        if not np.isfinite(gram).all() or abs(float(np.linalg.det(gram))) <= 1e-300:
             return FaultFit(model, math.nan, -math.inf, math.inf, onset, bic)
-        weights = lapack.solve(gram, X.T)  # (p, n): coef = weights @ y
+        weights = np.linalg.solve(gram, X.T)  # (p, n): coef = weights @ y
     coef = weights @ y
     w = weights[0]
     size = float(coef[0]) + shift
@@ -375,7 +374,7 @@ def _motion_fit(
     if not np.isfinite(design).all() or (scale <= 0).any():
         return None
     normalised = design / scale
-    u, singular, vt = lapack.svd_reduced(normalised)  # pinv's own
+    u, singular, vt = np.linalg.svd(normalised, full_matrices=False)  # pinv's own
     if abs(singular[-1] - 1e-6 * singular[0]) <= 1e-10 * singular[0]:
         # at the cut itself, decide on the singular values computed alone (with the
         # vectors their last bits may differ; both are within about 1e-15 of singular[0])

@@ -38,35 +38,16 @@ def match_episodes(
     "wrong_sensor" | "false", "fault_id", "true_class", "class_right", "true_size",
     "covered"}`` (:meth:`EpisodeMatcher.match`).
     """
+    from imufdi_cli.mcapio.events import match_fields  # the explanation's fields (its format)
+
     matcher = EpisodeMatcher(faults)
     return [matcher.match(*match_fields(episode)) for episode in episodes]
-
-
-def match_fields(
-    episode: dict[str, Any],
-) -> tuple[str, int, int, str | None, str | None, float | None, float | None]:
-    """What matching reads of an explanation (:meth:`Episode.to_dict`): sensor type,
-    first and last alarmed sample (ns), first isolated sensor, and the best fit's model,
-    interval low and high (None when absent) -- the arguments of
-    :meth:`EpisodeMatcher.match`."""
-    sensors = episode.get("sensors") or []
-    fits = episode.get("fits") or []
-    best = fits[0] if fits else {}
-    return (
-        episode["sensor_type"],
-        episode["start_ns"],
-        episode["end_ns"],
-        sensors[0] if sensors else None,
-        best.get("model"),
-        best.get("low"),
-        best.get("high"),
-    )
 
 
 class EpisodeMatcher:
     """:func:`match_episodes` for one set of injected faults, prepared once (each fault's
     sensor types, window and true size), matching episodes one at a time from the few
-    fields it needs (:func:`match_fields`, or the typed fields of an ``episode`` event)."""
+    fields it needs (:func:`imufdi_cli.mcapio.events.match_fields`, or the typed fields of an ``episode`` event)."""
 
     def __init__(self, faults: Sequence[dict[str, Any]]) -> None:
         self.faults = [

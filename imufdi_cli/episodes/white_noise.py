@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from imufdi_cli.detectors.parity import residual_projector
+from imufdi_cli.maths.parity import residual_projector
 
 
 def successive_difference_dof(n: int) -> float:
@@ -68,7 +68,7 @@ def _calibration_dof(
 def white_sigma(H: np.ndarray, measurements: np.ndarray) -> np.ndarray:
     """Per-sensor white-noise sigma from successive differences of a fault-free window.
 
-    :func:`~imufdi_cli.detectors.parity.residual_sigma` of the differenced measurements,
+    :func:`~imufdi_cli.maths.parity.residual_sigma` of the differenced measurements,
     divided by sqrt(2): differencing white noise doubles its variance, and what varies
     slowly (motion-dependent scale and misalignment errors, bias wander) nearly vanishes,
     where the parity residuals of the measurements themselves carry it (on conical6, whose
@@ -83,7 +83,7 @@ def white_sigma(H: np.ndarray, measurements: np.ndarray) -> np.ndarray:
     -------
     ndarray, shape (n,), SI
     """
-    from imufdi_cli.detectors.parity import residual_sigma
+    from imufdi_cli.maths.parity import residual_sigma
 
     m = np.asarray(measurements, dtype=np.float64)
     return residual_sigma(H, np.diff(m, axis=0)) / math.sqrt(2.0)
@@ -92,13 +92,13 @@ def white_sigma(H: np.ndarray, measurements: np.ndarray) -> np.ndarray:
 def white_sigma_covariance(H: np.ndarray, sigma: np.ndarray, n_samples: int) -> np.ndarray:
     """Covariance of the white variances :func:`white_sigma` estimates, SI^4.
 
-    :func:`~imufdi_cli.detectors.parity.residual_sigma` solves ``M s = v`` for the
+    :func:`~imufdi_cli.maths.parity.residual_sigma` solves ``M s = v`` for the
     variances s, ``M = (I - S)∘(I - S)``, v the variances of the parity residuals (here of
     the differenced samples, halved). For Gaussian white noise ``Cov(v) = 2/nu (C∘C)``
     with ``C = (I - S) diag(sigma^2) (I - S)^T`` (Isserlis) and nu the
     successive-difference degrees of freedom of n_samples (:func:`successive_difference_dof`),
     so ``Cov(s) = M^-1 Cov(v) M^-T`` (the same propagation as
-    :func:`~imufdi_cli.detectors.parity.sigma_estimate_variance`, with nu for N - 1, and
+    :func:`~imufdi_cli.maths.parity.sigma_estimate_variance`, with nu for N - 1, and
     kept whole: the off-diagonal terms are what the consensus variance shares with
     sigma_k^2).
 
@@ -153,7 +153,7 @@ def white_sigma_excess(
     larger. The factor is the measured over the Gaussian value, averaged over the sensors
     (one window then estimates it to a few per cent), times ``N_diff / N'`` for the rows
     the cut left out (the same cut as
-    :func:`~imufdi_cli.detectors.parity.residual_sigma`); floored at 1, the Gaussian value.
+    :func:`~imufdi_cli.maths.parity.residual_sigma`); floored at 1, the Gaussian value.
 
     Parameters
     ----------
@@ -166,7 +166,7 @@ def white_sigma_excess(
         1 for Gaussian white noise (up to its sampling error), more with outliers; 1 when
         the per-sensor variances are not identifiable (singular M) or too few samples.
     """
-    from imufdi_cli.detectors.parity import residuals
+    from imufdi_cli.maths.parity import residuals
 
     H = np.asarray(H, dtype=np.float64)
     m = np.asarray(measurements, dtype=np.float64)

@@ -91,10 +91,10 @@ def variance_increments(ratio: float, clip: float, z: np.ndarray) -> np.ndarray:
 
 
 def _erf(x: np.ndarray) -> np.ndarray:
-    """scipy's compiled erf (without importing scipy.special: :mod:`imufdi_cli.special`)."""
-    from imufdi_cli.special import ufunc
+    """scipy's erf (imported when a threshold is computed, not on import)."""
+    from scipy.special import erf
 
-    return np.asarray(ufunc("erf")(x), dtype=float)
+    return np.asarray(erf(x), dtype=float)
 
 
 def _increment_cdf(
@@ -367,7 +367,7 @@ class Winsorizer:
 
     def push(self, r: np.ndarray) -> np.ndarray:
         """The bounded residuals (N, n) of the next rows ``r`` (N, n)."""
-        from imufdi_cli.special import lfilter
+        from scipy.signal import lfilter  # imported when the bank runs, not on import
 
         r = np.asarray(r, float)
         if r.shape[0] == 0:

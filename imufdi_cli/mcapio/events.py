@@ -28,7 +28,8 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
-from imufdi_cli.mcapio.cdr import codec_for, decode_json_payloads
+from imufdi_cli.mcapio.cdr import codec_for
+from imufdi_cli.mcapio.cdr_message import decode_json_payloads
 from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch
 from imufdi_cli.mcapio.schemas import (
     FAULT_EVENT_SCHEMA,
@@ -339,6 +340,28 @@ def decode_events(batch: MessageBatch, channel: ChannelInfo) -> list[dict[str, A
     return out
 
 
+def match_fields(
+    episode: dict[str, Any],
+) -> tuple[str, int, int, str | None, str | None, float | None, float | None]:
+    """What matching reads of an explanation (``Episode.to_dict``): sensor type, first
+    and last alarmed sample (ns), first isolated sensor, and the best fit's model, interval
+    low and high (None when absent) -- the arguments of
+    :meth:`imufdi_cli.episodes.scoring.EpisodeMatcher.match`, and the typed fields of an
+    ``episode`` event."""
+    sensors = episode.get("sensors") or []
+    fits = episode.get("fits") or []
+    best = fits[0] if fits else {}
+    return (
+        episode["sensor_type"],
+        episode["start_ns"],
+        episode["end_ns"],
+        sensors[0] if sensors else None,
+        best.get("model"),
+        best.get("low"),
+        best.get("high"),
+    )
+
+
 class EpisodeEvent:
     """An ``episode`` event as ``imufdi report`` reads it: what matching and counting need
     (detector, sensor type, first and last alarmed sample, first isolated sensor, the best
@@ -399,8 +422,6 @@ class EpisodeEvent:
     def from_explanation(cls, episode: dict[str, Any]) -> EpisodeEvent:
         """From a decoded explanation (files without the typed ``start_ns``/``end_ns``
         fields, and the JSON event channels of older versions)."""
-        from imufdi_cli.episodes.scoring import match_fields  # what matching reads of it
-
         return cls(episode["detector"], *match_fields(episode), explanation=episode)
 
     def match_fields(
@@ -552,7 +573,7 @@ def _walk_episode_events(batch: MessageBatch, topic: str) -> list[EpisodeEvent] 
     isolable, amplitude, statistic, fault_class, size_name, size, size_low, size_high,
     detail, start_ns, end_ns), walked for all messages of the batch at once with numpy;
     only the episodes' fields become Python objects. Strings decode as
-    :class:`~imufdi_cli.mcapio.cdr.MessageDecoder` decodes them. None when a message is
+    :class:`~imufdi_cli.mcapio.cdr_message.MessageDecoder` decodes them. None when a message is
     big-endian (not written by imufdi): the caller decodes the batch in full."""
     if len(batch) == 0:
         return []

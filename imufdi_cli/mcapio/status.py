@@ -35,12 +35,13 @@ import os
 import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import IO, TYPE_CHECKING, Any
+from typing import IO, Any, Protocol
 
 import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
-from imufdi_cli.mcapio.cdr import CdrCodec, codec_for, decode_json_payloads
+from imufdi_cli.mcapio.cdr import CdrCodec, codec_for
+from imufdi_cli.mcapio.cdr_message import decode_json_payloads
 from imufdi_cli.mcapio.events import decode_events, is_event_channel
 from imufdi_cli.mcapio.records import (
     MESSAGE_FIXED_CONTENT,
@@ -55,8 +56,30 @@ from imufdi_cli.mcapio.schemas import STATUS_SCHEMA, STATUS_SCHEMA_NAME, scores_
 from imufdi_cli.mcapio.source import McapSource, iter_topic
 from imufdi_cli.mcapio.writer import McapWriter
 
-if TYPE_CHECKING:
-    from imufdi_cli.detectors.base import DetectionBlock
+
+class DetectionRows(Protocol):
+    """What a status channel records of a detector's output for N samples: the fields of
+    :class:`imufdi_cli.detectors.base.DetectionBlock` (which satisfies this protocol; the
+    readers and writers below the detectors do not import them)."""
+
+    statistic: np.ndarray  # (N,) float64
+    threshold: np.ndarray  # (N,) float64
+    alarm: np.ndarray  # (N,) bool
+    isolated: np.ndarray  # (N,) int: sensor index, or a negative code
+    amplitude: np.ndarray  # (N,) float64, SI units of the sensor type
+    scores: np.ndarray  # (N, n_s) float64
+    amplitudes: np.ndarray | None  # (N, n_s) float64, or None
+
+    def __len__(self) -> int: ...
+
+    def isolation_set(self) -> np.ndarray:
+        """(N, n_s) bool."""
+        ...
+
+    def amplitude_set(self) -> np.ndarray:
+        """(N, n_s) float64."""
+        ...
+
 
 NS_PER_S = 1_000_000_000
 STATUS_TOPIC_PREFIX = "/imufdi/"
@@ -287,7 +310,7 @@ def _status_template(
 def status_records(
     channel_id: int,
     t_ns: np.ndarray,
-    det: DetectionBlock,
+    det: DetectionRows,
     decided_ns: np.ndarray | None = None,
     *,
     frame_id: str = STATUS_FRAME_ID,
@@ -303,7 +326,7 @@ def status_records(
     channel_id : int
     t_ns : ndarray, shape (N,), int64
         Sample times, ns (``header.stamp``, the log and publish times).
-    det : DetectionBlock
+    det : DetectionRows
         N rows.
     decided_ns : ndarray, shape (N,), int64, optional
         Decision times, ns (default: the sample times, a causal detector).
@@ -358,7 +381,7 @@ def status_records(
 def encode_status(
     channel_id: int,
     t_ns: np.ndarray,
-    det: DetectionBlock,
+    det: DetectionRows,
     decided_ns: np.ndarray | None = None,
     *,
     frame_id: str = STATUS_FRAME_ID,
@@ -372,7 +395,7 @@ def encode_status(
     channel_id : int
     t_ns : ndarray, shape (N,), int64
         Sample times, ns (``header.stamp`` and the message log time).
-    det : DetectionBlock
+    det : DetectionRows
         N rows.
     decided_ns : ndarray, shape (N,), int64, optional
         Decision times, ns (default: the sample times, a causal detector).

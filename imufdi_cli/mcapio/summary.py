@@ -11,7 +11,6 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.errors import McapInputError
 from imufdi_cli.mcapio.imu import (
     AlignmentStats,
     ImuArrayReader,
@@ -273,81 +272,6 @@ class _GapCounter:
             "longest_s": self.longest_ns * 1e-9,
             "period_s": None if self.period_ns is None else self.period_ns * 1e-9,
         }
-
-
-def log_info(
-    source: str,
-    *,
-    topics: Sequence[str] | None = None,
-    time_source: str = "auto",
-    strict: bool = False,
-) -> dict[str, Any]:
-    """Everything ``imufdi info`` shows, as a JSON-ready dict (``strict``: a truncated or
-    corrupt log raises McapInputError instead of adding a warning).
-
-    :func:`summarize`'s :meth:`LogSummary.to_dict` plus ``source``, the fault windows
-    (``faults``), the detectors that wrote the log (``detectors``) and the ingest's
-    validity counts (``validity``). Here rather than in :mod:`imufdi_cli.pipeline` so that
-    ``imufdi info`` does not compile the pipeline (start-up time, docs/performance.md).
-    """
-    summary = summarize(source, topics=topics, time_source=time_source, strict=strict)
-    data: dict[str, Any] = summary.to_dict()
-    if not data.get("imu_topics"):
-        found = ", ".join(f"{t['topic']} ({t.get('schema')})" for t in data.get("topics", []))
-        problems = data.get("warnings") or []
-        raise McapInputError(
-            f"{source}: no sensor_msgs/msg/Imu channel (channels: {found or 'none'})"
-            + (f"; {problems[0]}" if problems else "")
-        )
-    data["source"] = source
-    nominal = summary.array.rate_hz if summary.array is not None else None
-    measured = summary.rate_hz
-    if summary.array_from_metadata and nominal and measured and abs(measured / nominal - 1) > 0.01:
-        data["warnings"].append(
-            f"the array config gives {nominal:g} Hz but the stamps give {measured:.6g} Hz"
-        )
-    metadata = summary.metadata
-    if "imufdi.faults" in metadata:
-        from imufdi_cli.report import truth_windows
-
-        truth = truth_windows(metadata)
-        data["faults"] = truth.descriptions if truth else []
-    detectors = {}
-    for name, record in metadata.items():
-        if name.startswith("imufdi.detect."):
-            try:
-                content = json.loads(record.get("json", "{}"))
-            except ValueError:
-                content = {}
-            meta = content.get("detector_metadata", {})
-            detectors[name.removeprefix("imufdi.detect.")] = {
-                "params": meta.get("params", meta),
-                "calibration_s": content.get("calibration_s"),
-                **_validity_counts(content.get("validity")),
-            }
-    if detectors:
-        data["detectors"] = detectors
-    if "imufdi.ingest" in metadata:
-        try:
-            ingest_record = json.loads(metadata["imufdi.ingest"].get("json", "{}"))
-        except ValueError:
-            ingest_record = {}
-        if isinstance(ingest_record, dict) and isinstance(ingest_record.get("validity"), dict):
-            data["validity"] = ingest_record["validity"]
-    return data
-
-
-def _validity_counts(record: Any) -> dict[str, Any]:
-    """Clipped/invalid/held row counts per sensor type of a detect record's validity."""
-    if not isinstance(record, dict) or not isinstance(record.get("types"), dict):
-        return {}
-    return {
-        "validity": {
-            s: {k: v for k, v in c.items() if k in ("rows", "clipped", "invalid", "held")}
-            for s, c in record["types"].items()
-            if isinstance(c, dict)
-        }
-    }
 
 
 def _ingest_counts(metadata: dict[str, dict[str, str]]) -> dict[str, Any] | None:

@@ -8,7 +8,8 @@ import textwrap
 import pytest
 from rich.console import Console
 
-from imufdi_cli.campaign.driver import default_jobs, run_campaign_cli
+from imufdi_cli.campaign.driver import default_jobs
+from imufdi_cli.cli.batch import run_campaign_cli
 
 SPEC = """
 [campaign]

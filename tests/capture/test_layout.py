@@ -71,7 +71,19 @@ BASE = {
         ({"record": [{"name": "gyro_x", "type": "u12"}]}, "unknown field type 'u12'; valid: u8"),
         ({"record": [{"name": "gyro_q", "type": "i16"}]}, "valid: accel_x"),
         ({"record": [{"name": "gyro_x", "type": "i16"}]}, "needs all of gyro_x"),
-        ({"checksum": {"kind": "crc8"}}, "valid: none, sum8"),
+        ({"checksum": {"kind": "crc9-foo"}}, "valid: none, sum8"),
+        ({"checksum": {"kind": "crc9-foo"}}, "catalogue CRC: CRC-8/SMBUS"),
+        ({"checksum": {"kind": "crc16-ccitt"}}, "names several CRCs .CRC-16/IBM-3740"),
+        ({"checksum": {"kind": "crc"}}, "kind = 'crc' needs width and poly"),
+        ({"checksum": {"kind": "crc", "width": 65, "poly": 7}}, "checksum.width: must be <= 64"),
+        (
+            {"checksum": {"kind": "crc", "width": 8, "poly": 0x107}},
+            "0x107 does not fit in width = 8",
+        ),
+        ({"checksum": {"kind": "crc", "width": 8, "poly": "x7"}}, "'x7' is not an integer"),
+        ({"checksum": {"kind": "crc", "width": 8, "poly": 7, "refin": 1}}, "refin: expected true"),
+        ({"checksum": {"kind": "crc", "width": 8, "poly": 0}}, "poly: must not be 0"),
+        ({"checksum": {"kind": "CRC-16/MODBUS", "poly": 7}}, "CRC parameters go with kind = 'crc'"),
         ({"checksum": {"kind": "sum8", "end": 40}}, "checksum.end = 40 is past the frame"),
         ({"checksum": {"kind": "sum8", "at": -30}}, "checksum.at = -30 is past the frame"),
         ({"checksum": {"kind": "sum8", "start": 0, "end": 3, "at": 1}}, "inside the bytes"),
@@ -140,3 +152,22 @@ def test_deeply_nested_toml_is_a_layout_error(tmp_path):
     with pytest.raises(LayoutError, match="nested too deeply") as info:
         load_layout(deep)
     assert "\n" not in str(info.value)
+
+
+def test_checksum_kinds_catalogue_names_and_parameters():
+    from imufdi_cli.capture.checksum import find_crc
+
+    def spec(checksum):
+        return layout_from_dict({**BASE, "checksum": checksum}).checksum
+
+    modbus = spec({"kind": "crc-16/modbus"})
+    assert modbus.kind == "CRC-16/MODBUS" and modbus.model == find_crc("CRC-16/MODBUS")
+    assert modbus.size == 2
+    given = spec({"kind": "crc", "width": 16, "poly": 0x8005, "init": "0xFFFF", "refin": True})
+    assert (given.model.refout, given.model.xorout, given.size) == (True, 0, 2)
+    assert spec({"kind": "CRC-24/OPENPGP"}).size == 3
+    assert spec({"kind": "crc-64/xz"}).size == 8
+    assert (spec({"kind": "fletcher16"}).size, spec({"kind": "ubx"}).size) == (2, 2)
+    # the kinds of earlier layouts keep their meaning
+    assert spec({"kind": "crc16-ccitt-false"}).model is None
+    assert spec({"kind": "crc32"}).size == 4

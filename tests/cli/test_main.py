@@ -49,7 +49,10 @@ def test_unknown_command_is_usage_error(cli):
 
 
 def test_unknown_option_is_usage_error(cli):
-    assert_one_line_error(cli(["report", "x.mcap", "--bogus"]), 2, "No such option '--bogus'")
+    result = cli(["report", "x.mcap", "--bogus"])
+    # click's words: "No such option '--bogus'" from 8.4, "No such option: --bogus" before
+    assert_one_line_error(result, 2, "No such option")
+    assert "--bogus" in result.stderr
 
 
 def test_cli_docs_match_help():

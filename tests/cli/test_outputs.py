@@ -150,12 +150,12 @@ def test_output_into_a_missing_directory_is_a_usage_error(cli, workdir, tmp_path
 
 
 def test_an_empty_memory_error_still_gives_one_informative_line(cli, workdir, monkeypatch):
-    import imufdi_cli.mcapio.summary
+    import imufdi_cli.info
 
     def boom(*args, **kwargs):
         raise MemoryError()
 
-    monkeypatch.setattr(imufdi_cli.mcapio.summary, "log_info", boom)
+    monkeypatch.setattr(imufdi_cli.info, "log_info", boom)
     result = cli(["info", workdir / "log.mcap"])
     assert_one_line_error(result, 3, "out of memory")
     monkeypatch.setenv("IMUFDI_DEBUG", "1")
@@ -166,12 +166,12 @@ def test_an_empty_memory_error_still_gives_one_informative_line(cli, workdir, mo
 
 
 def test_a_bug_is_exit_4_with_its_class(cli, workdir, monkeypatch):
-    import imufdi_cli.mcapio.summary
+    import imufdi_cli.info
 
     def boom(*args, **kwargs):
         raise KeyError()
 
-    monkeypatch.setattr(imufdi_cli.mcapio.summary, "log_info", boom)
+    monkeypatch.setattr(imufdi_cli.info, "log_info", boom)
     result = cli(["info", workdir / "log.mcap"])
     assert_one_line_error(result, 4, "internal error (KeyError (no message))")
 

@@ -109,7 +109,7 @@ def test_report_in_a_pipe_is_what_rich_prints(cli, detected_log, monkeypatch) ->
     the size column) as rich renders the same report, without making a rich console; the
     demo's table from the same report too."""
     from imufdi_cli import report as rep
-    from imufdi_cli.pipeline import demo_table
+    from imufdi_cli.cli.demo import demo_table
 
     built = []
     build = rep.build_report

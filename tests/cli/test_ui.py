@@ -16,10 +16,11 @@ import pytest
 
 from imufdi_cli.cli import cli as group
 from imufdi_cli.cli import main, ui
+from imufdi_cli.pipeline import SAMPLE_LOGS
 from tests.cli.conftest import assert_one_line_error
 
 ROOT = Path(__file__).resolve().parents[2]
-SAMPLE = ROOT / "sample_logs" / "paper-table4.mcap"
+SAMPLE = SAMPLE_LOGS / "paper-table4.mcap"
 ANSI = "\x1b["
 
 

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.signal import lfilter
 
 from imufdi_cli.detectors.firmware_budget import (
     _MEAN_NORM,
@@ -18,7 +19,6 @@ from imufdi_cli.detectors.firmware_budget import (
     weighted_chi2_sf,
 )
 from imufdi_cli.detectors.px4_selector import accumulate_excess
-from imufdi_cli.special import lfilter
 
 
 def test_the_weighted_chi_square_tail_is_exact_and_keeps_its_precision(scipy_stats) -> None:

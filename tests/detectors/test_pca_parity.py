@@ -8,7 +8,6 @@ from numpy.testing import assert_allclose
 
 from imufdi_cli.detectors.base import NO_ISOLATION, NOT_ISOLABLE, DetectionBlock, parse_params
 from imufdi_cli.detectors.glt import GltDetector
-from imufdi_cli.detectors.parity import parity_matrix
 from imufdi_cli.detectors.pca_parity import (
     PcaParityDetector,
     _lag_one_autocorrelation,
@@ -23,6 +22,7 @@ from imufdi_cli.detectors.pca_parity import (
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.faults import FaultInjector, parse_fault_spec
 from imufdi_cli.log import ImuBlock, iter_blocks
+from imufdi_cli.maths.parity import parity_matrix
 from imufdi_cli.simulate import preset, simulate_block
 
 DEG = np.pi / 180.0
@@ -296,7 +296,7 @@ def test_calibration_without_the_motion_is_reported_and_fatal_under_strict(tmp_p
 
 def test_accelerometers_with_lever_arms_are_tested_on_the_rigid_body_design(scipy_stats):
     """wearable12: IMUs 3 cm apart; the parity space of [H | lever-arm columns]
-    (detectors/rigid.py) cancels the rotation, so the accelerometers are tested."""
+    (maths/rigid.py) cancels the rotation, so the accelerometers are tested."""
     array, block = simulate_block(preset("wearable12", seed=0, duration=8.0))
     detector = make()
     out = run(detector, array, block)

@@ -9,7 +9,6 @@ from numpy.testing import assert_allclose, assert_array_equal
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import DetectionBlock, parse_params
 from imufdi_cli.detectors.mvmd import mvmd, mvmd_gains
-from imufdi_cli.detectors.parity import parity_matrix, whiten
 from imufdi_cli.detectors.woa_mvmd_glt import (
     TuneResult,
     ValidationFault,
@@ -28,7 +27,7 @@ from imufdi_cli.detectors.woa_mvmd_glt import (
 from imufdi_cli.detectors.woa_mvmd_glt.windows import WindowSpectra
 from imufdi_cli.errors import DetectorConfigError
 from imufdi_cli.log import ImuBlock, iter_blocks
-from imufdi_cli.special import ufunc
+from imufdi_cli.maths.parity import parity_matrix, whiten
 
 RATE = 1000.0
 T = np.arange(1000) / RATE
@@ -71,21 +70,6 @@ def test_cfv_terms_are_normalised():
     assert 0.9 < entropy <= 1.0  # near-constant envelopes of pure tones
     assert 0.0 <= correlation < 0.05  # separated tones are uncorrelated
     assert 0.0 <= compactness < 0.05
-
-
-def test_analytic_signal_is_scipy_signal_hilbert_to_the_bit(scipy_stats):
-    """cfv's envelope without importing scipy.signal (it imports scipy.stats, hence the
-    fixture: the test runs on the worker that imports it): odd and even lengths, one sample,
-    batches of modes."""
-    from scipy.signal import hilbert
-
-    from imufdi_cli.detectors.woa_mvmd_glt.fitness import analytic_signal
-
-    rng = np.random.default_rng(17202)
-    for shape in [(1,), (2,), (7,), (50,), (5, 3, 49), (4, 2, 250)]:
-        x = rng.standard_normal(shape)
-        got, want = analytic_signal(x), hilbert(x, axis=-1)
-        assert got.dtype == want.dtype and got.tobytes() == want.tobytes(), shape
 
 
 def test_filter_matrix_reproduces_mode():
@@ -377,7 +361,8 @@ def test_miss_fractions_equal_the_plain_evaluation_to_the_bit():
     # miss_fractions evaluates chndtr once per distinct (row, column) pair; the plain
     # evaluation below (every (row, offset) pair, the code before that change) must give
     # the same floats, windows shorter and longer than the horizon included
-    chndtr = ufunc("chndtr")
+    from scipy.special import chndtr
+
     rng = np.random.default_rng(4)
     for L, hop, horizon in ((50, 10, 0), (50, 10, 20), (20, 1, 7), (30, 5, 100), (8, 3, 8)):
         val = ValidationFault(

@@ -12,6 +12,7 @@ from numpy.testing import assert_allclose
 
 from imufdi_cli.episodes import EpisodeBuilder
 from imufdi_cli.episodes.reference import _consensus_gain
+from imufdi_cli.pipeline import SAMPLE_LOGS
 from tests.episodes.helpers import RATE, SIGMA, status_rows
 
 
@@ -131,7 +132,7 @@ def test_leave_two_out_reference_matches_the_direct_least_squares() -> None:
     assert_allclose(offset, mean @ A)
 
 
-SAMPLES = Path(__file__).resolve().parents[2] / "sample_logs"
+SAMPLES = SAMPLE_LOGS
 
 
 LAYOUT = Path(__file__).resolve().parents[2] / "docs" / "layouts" / "mimu4444.toml"
@@ -145,7 +146,7 @@ def test_real_step_and_noise_growth_are_explained(tmp_path: Path) -> None:
     alarm runs joined) whose interval holds the true factor sqrt(s^2 + 0.3^2) / s, s the
     sensor's sigma as calibrated on 0-10 s."""
     from imufdi_cli.array import ArrayConfig
-    from imufdi_cli.detectors.parity import residual_sigma
+    from imufdi_cli.maths.parity import residual_sigma
     from imufdi_cli.mcapio import read_array, read_events
     from tests.cli.conftest import invoke
 

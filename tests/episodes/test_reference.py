@@ -202,9 +202,9 @@ def test_the_healthy_sensors_test_holds_its_level_with_outliers_and_calibrated_s
     windows (its level): 1500 windows, Binomial(1500, 0.05), 3.5 sd allowed. Against the
     calibrated sigmas and chi-square(47) it widened 9-10 % (diagnostic episodes of seeds
     100-159: 9.5 %)."""
-    from imufdi_cli.detectors.parity import residual_sigma
     from imufdi_cli.episodes import EpisodeBuilder
     from imufdi_cli.episodes.reference import _dispersion
+    from imufdi_cli.maths.parity import residual_sigma
 
     rng = np.random.default_rng(31)
     H = np.tile(np.eye(3), (16, 1))

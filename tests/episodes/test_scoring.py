@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from imufdi_cli.episodes import TRUTH_SIZE_KEYS, match_episodes, score_episodes, truth_size
-from imufdi_cli.episodes.scoring import EpisodeMatcher, match_fields
+from imufdi_cli.episodes.scoring import EpisodeMatcher
+from imufdi_cli.mcapio.events import match_fields
 
 
 def _episode(start: int, end: int, sensor: str, model: str, low: float, high: float) -> dict:

@@ -18,8 +18,8 @@ def test_white_sigma_leaves_out_slow_errors_the_level_sigma_carries() -> None:
     on average; the successive-difference sigma is not. Its relative error is about
     sqrt(3 / (4 N (n - 3) / n)) = 1.6 % for N = 4000 (per sensor); 5 of those allowed,
     plus the 0.3 % the slow error still adds to the differences."""
-    from imufdi_cli.detectors.parity import residual_sigma
     from imufdi_cli.episodes import white_sigma
+    from imufdi_cli.maths.parity import residual_sigma
 
     rng = np.random.default_rng(21)
     H = np.tile(np.eye(3), (4, 1))

@@ -11,7 +11,9 @@ from hypothesis import strategies as st
 
 from imufdi_cli.errors import McapInputError
 from imufdi_cli.mcapio import MessageBatch
-from imufdi_cli.mcapio.cdr import CdrCodec, decode_cdr_message, parse_ros2msg
+from imufdi_cli.mcapio.cdr import CdrCodec
+from imufdi_cli.mcapio.cdr_message import decode_cdr_message
+from imufdi_cli.mcapio.msgdef import parse_ros2msg
 from imufdi_cli.mcapio.schemas import IMU_SCHEMA, STATUS_SCHEMA
 
 NESTED = """# comment line

@@ -52,8 +52,8 @@ def test_reading_the_small_sample_log_does_not_load_zlib_ng() -> None:
     root = Path(__file__).resolve().parents[2]
     probe = (
         "import sys\n"
-        "from imufdi_cli.mcapio.summary import log_info\n"
-        f"log_info({str(root / 'sample_logs' / 'paper-table4.mcap')!r})\n"
+        "from imufdi_cli.info import log_info\n"
+        f"log_info({str(root / 'imufdi_cli' / 'sample_logs' / 'paper-table4.mcap')!r})\n"
         "from imufdi_cli.mcapio import compression\n"
         "print(compression._ZLIB_LEFT, 'zlib_ng' in sys.modules)\n"
     )

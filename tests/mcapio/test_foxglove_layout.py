@@ -49,7 +49,7 @@ def detected(tmp_path_factory) -> Path:
     assert invoke(["simulate", "--imus", "4", "--duration", "6s", "-o", log]).code == 0
     fault = "step:imu0.gyro.x,at=3s,amp=2deg/s"
     assert invoke(["inject", log, "--fault", fault, "-o", faulty]).code == 0
-    assert invoke(["detect", faulty, "-d", "glt", "-o", out]).code == 0
+    assert invoke(["detect", faulty, "-d", "glt", "--named-scores", "-o", out]).code == 0
     return out
 
 
@@ -98,9 +98,9 @@ def test_every_path_of_the_layout_exists_in_a_detected_log(detected):
         _follow(messages[0], rest, path)
 
 
-def test_named_scores_can_be_left_out(tmp_path, detected):
+def test_named_scores_are_written_only_when_asked(tmp_path, detected):
     out = tmp_path / "plain.mcap"
-    assert invoke(["detect", detected, "-d", "glt", "--no-named-scores", "-o", out]).code == 0
+    assert invoke(["detect", detected, "-d", "glt", "-o", out]).code == 0
     topics = {m.channel.topic for m in read_ros2_messages(str(out))}
     assert "/imufdi/glt/gyro" in topics
     assert not any(t.endswith("/scores") for t in topics)

@@ -72,6 +72,7 @@ def outputs(tmp_path_factory) -> dict[str, Path]:
     _run(["inject", sim, *faults, "-o", files["inject"]])
     keep("inject-stdout", _run(["inject", "-", *faults, "-o", "-"], stdin=sim.read_bytes()))
     dets = [a for name in DETECTORS for a in ("-d", name)] + ["--calibrate", "0s:1s"]
+    dets.append("--named-scores")  # the readers judge the companion topics too
     files["detect"] = d / "detect.mcap"
     _run(["detect", files["inject"], *dets, "-o", files["detect"]])
     keep(
@@ -88,10 +89,40 @@ def outputs(tmp_path_factory) -> dict[str, Path]:
             "glt",
             "--calibrate",
             "0s:1s",
+            "--named-scores",
             "-o",
             files["detect-ingest"],
         ]
     )
+    # flight-controller logs: a PX4 ULog (3 IMUs, separate accel and gyro topics, GPS
+    # time) and an ArduPilot DataFlash log (2 IMUs)
+    from tests.capture.fclog_files import (
+        ap_imu_messages,
+        dataflash_bytes,
+        px4_imu_samples,
+        ulog_bytes,
+    )
+
+    rng = np.random.default_rng(2)
+    t_us = 5_000_000 + np.arange(N_SAMPLES, dtype=np.int64) * 5000
+    gyro, accel = rng.normal(0, 0.01, (N_SAMPLES, 3, 3)), rng.normal(0, 0.1, (N_SAMPLES, 3, 3))
+    gps = [
+        (
+            "vehicle_gps_position",
+            0,
+            {"timestamp": 5_000_000, "time_utc_usec": 1_700_000_000_000_000},
+        )
+    ]
+    samples = px4_imu_samples(t_us, gyro, accel, offsets_us=(0, 120, 450)) + gps
+    ulog = d / "flight.ulg"
+    ulog.write_bytes(
+        ulog_bytes(sorted(samples, key=lambda s: s[2].get("timestamp_sample", s[2]["timestamp"])))
+    )
+    files["ingest-ulog"] = d / "ingest-ulog.mcap"
+    _run(["ingest", ulog, "-o", files["ingest-ulog"]])
+    dataflash = d / "flight.bin"
+    dataflash.write_bytes(dataflash_bytes(ap_imu_messages(t_us, gyro[:, :2], accel[:, :2])))
+    keep("ingest-dataflash-stdout", _run(["ingest", "-", "-o", "-"], stdin=dataflash.read_bytes()))
     return files
 
 
@@ -105,6 +136,8 @@ ALL = [
     "detect",
     "detect-stdout",
     "detect-ingest",
+    "ingest-ulog",
+    "ingest-dataflash-stdout",
 ]
 
 
@@ -152,6 +185,12 @@ def _episode_count(alarm: np.ndarray, isolated: np.ndarray) -> int:
 def _expected_counts(name: str, path: Path) -> Counter[str]:
     """What the command was asked to write, from its inputs (not from the file's index)."""
     imu = {f"/imu{k}/data_raw": N_SAMPLES for k in range(N_IMUS)}
+    if name.startswith(("ingest-ulog", "ingest-dataflash")):
+        with McapSource(path) as src:
+            record = json.loads(src.metadata["imufdi.ingest"]["json"])
+        n = record["alignment"]["samples"]
+        assert n == N_SAMPLES  # every sample of every IMU became an array sample
+        return Counter({f"/imu{k}/data_raw": n for k in range(record["n_imus"])})
     if name.startswith(("ingest", "detect-ingest")):
         with McapSource(path) as src:
             frames = json.loads(src.metadata["imufdi.ingest"]["json"])["stats"]["frames_ok"]
@@ -187,6 +226,8 @@ EXPECTED_METADATA = {
         "imufdi.detect.pca-parity",
     },
     "detect-ingest": {"imufdi.array", "imufdi.ingest", "imufdi.detect.glt"},
+    "ingest-ulog": {"imufdi.array", "imufdi.ingest"},
+    "ingest-dataflash": {"imufdi.array", "imufdi.ingest"},
 }
 
 

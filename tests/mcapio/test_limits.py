@@ -17,8 +17,10 @@ import pytest
 
 from imufdi_cli.errors import McapInputError, UsageError
 from imufdi_cli.mcapio import McapSource
-from imufdi_cli.mcapio.cdr import CdrCodec, decode_cdr_message, parse_ros2msg
+from imufdi_cli.mcapio.cdr import CdrCodec
+from imufdi_cli.mcapio.cdr_message import decode_cdr_message
 from imufdi_cli.mcapio.limits import ReaderLimits
+from imufdi_cli.mcapio.msgdef import parse_ros2msg
 from imufdi_cli.mcapio.schemas import IMU_SCHEMA
 from tests.mcapio.mcap_files import imu_file, imu_file_with_schema, wrap, zero_chunk
 

@@ -16,13 +16,13 @@ from imufdi_cli.detectors.base import (
     DetectionBlock,
     calibration_stats,
 )
-from imufdi_cli.detectors.parity import (
+from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
+from imufdi_cli.maths.parity import (
     isolable_sensors,
     parity_matrix,
     residual_sigma,
     whiten,
 )
-from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
 
 # --- array mode ------------------------------------------------------------------------
 

@@ -25,9 +25,9 @@ from imufdi_cli.detectors.base import (
     Param,
     calibration_stats,
 )
-from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.rigid import accel_design
 
 
 class BankDetector(_GyroTest, DetectorBase):
@@ -137,7 +137,7 @@ class BankDetector(_GyroTest, DetectorBase):
             values = array.select(data, sensor_type)
             self.tests[sensor_type] = _fit_array_test(
                 values,
-                # accelerometers at different points: rigid-body lever arms (detectors/rigid.py)
+                # accelerometers at different points: rigid-body lever arms (maths/rigid.py)
                 accel_design(array)
                 if sensor_type == "accel"
                 else array.measurement_matrix(sensor_type),

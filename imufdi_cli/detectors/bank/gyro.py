@@ -27,7 +27,6 @@ from imufdi_cli.detectors.base import (
 )
 from imufdi_cli.errors import CalibrationError
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.special import lfilter  # scipy.signal's, without its import
 
 
 class _GyroTest:
@@ -278,6 +277,8 @@ class _GyroTest:
         if self._filter_state is None or self._variance_state is None:
             self._filter_state = np.zeros((raw.shape[0], 1, raw.shape[2]))
             self._variance_state = np.zeros((raw.shape[0], 1, raw.shape[2]))
+        from scipy.signal import lfilter  # imported when the gyro test runs, not on import
+
         filtered, self._filter_state = lfilter(
             [1.0 - a], [1.0, -a], raw, axis=1, zi=self._filter_state
         )

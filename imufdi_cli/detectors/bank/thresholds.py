@@ -11,10 +11,10 @@ import numpy as np
 from imufdi_cli.detectors.base import (
     DetectionBlock,
 )
-from imufdi_cli.detectors.parity import (
+from imufdi_cli.maths.parity import (
     sigma_estimate_variance,
 )
-from imufdi_cli.quantiles import chi2, f  # scipy.stats' floats without its import
+from imufdi_cli.maths.quantiles import chi2, f
 
 #: Scale from the median absolute deviation to the standard deviation of a Gaussian.
 MAD_TO_STD = 1.4826
@@ -37,7 +37,7 @@ def estimated_threshold(
 
     ``z_j = e_j / s_j`` with the predicted std ``s_j^2 = sum_k P_jk^2 sigma_k^2`` made of
     estimated variances ``sigma_hat_k^2 = sigma_k^2 (1 + delta_k)``
-    (:func:`imufdi_cli.detectors.parity.sigma_estimate_variance`): ``s_hat_j^2 / s_j^2 - 1`` has variance
+    (:func:`imufdi_cli.maths.parity.sigma_estimate_variance`): ``s_hat_j^2 / s_j^2 - 1`` has variance
     ``sum_k (P_jk^2 sigma_k^2)^2 Var delta_k / s_j^4``, so z_j^2 is ``F(1, nu_j)`` with
     ``nu_j = 2 / that`` rather than chi2(1) (the mean nu over sensors is used). The bias is
     a median of N residuals: its error multiplies the residual variance by

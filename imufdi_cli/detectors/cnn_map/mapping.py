@@ -30,7 +30,7 @@ from imufdi_cli.errors import (
     DetectorConfigError,
 )
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.quantiles import gamma as gamma_distribution  # scipy.stats' floats
+from imufdi_cli.maths.quantiles import gamma as gamma_distribution
 
 
 class _MappingTest(_InputTest):

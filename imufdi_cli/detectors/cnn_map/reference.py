@@ -12,12 +12,12 @@ import numpy as np
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.cnn_map.settings import _Settings
 from imufdi_cli.detectors.cnn_map.signals import READMIT_S
-from imufdi_cli.detectors.parity import least_squares_matrix
 from imufdi_cli.errors import (
     ArrayTooSmallError,
     DetectorConfigError,
 )
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.parity import least_squares_matrix
 
 
 class _ReferenceRate(_Settings):

@@ -10,10 +10,10 @@ from numpy.lib.stride_tricks import sliding_window_view
 from imufdi_cli.detectors.cusum import (
     CusumDesign,
 )
-from imufdi_cli.detectors.parity import residual_projector
 from imufdi_cli.errors import (
     CalibrationError,
 )
+from imufdi_cli.maths.parity import residual_projector
 
 #: Format tag of saved model files.
 MODEL_FORMAT = "imufdi-cnn-map-1"

@@ -2,7 +2,7 @@
 
 Hao & Wang, "PCA with parity vectors for redundant IMU fault detection in vehicle
 navigation" (§2-4). For one sensor type with measurement matrix H (n, 3) and parity matrix
-V ((n-3), n), V H = 0 (:mod:`imufdi_cli.detectors.parity`):
+V ((n-3), n), V H = 0 (:mod:`imufdi_cli.maths.parity`):
 
 1. Training on a fault-free window (§3): parity vectors ``p = V m`` (the motion cancels),
    their mean ``mu`` (the per-sensor biases of a real array end up here, so they raise no

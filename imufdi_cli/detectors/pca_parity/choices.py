@@ -12,7 +12,7 @@ COVERAGE_LEVERAGE = 20.0
 #: warns that its calibration window lacked the motion the leak model needs.
 COVERAGE_WARNING = 0.05
 #: Accelerometers of IMUs further apart than this (m) are tested on the rigid-body design
-#: with lever-arm columns (detectors/rigid.py) instead of H alone.
+#: with lever-arm columns (maths/rigid.py) instead of H alone.
 MAX_LEVER_ARM = 1e-3
 #: Significance level (Bonferroni over the parity components) of the F test that keeps a
 #: parity component's fitted leak.

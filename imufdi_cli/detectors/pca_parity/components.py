@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from imufdi_cli.detectors.pca_parity import choices
-from imufdi_cli.quantiles import chi2  # scipy.stats' floats without its import
-from imufdi_cli.quantiles import f as f_distribution
+from imufdi_cli.maths.quantiles import chi2
+from imufdi_cli.maths.quantiles import f as f_distribution
 
 
 def mean_variance_inflation(rho: np.ndarray, lengths: np.ndarray) -> np.ndarray:

@@ -19,8 +19,6 @@ from imufdi_cli.detectors.base import (
     calibration_stats,
     parse_sensor_types,
 )
-from imufdi_cli.detectors.jitter import MotionInflation, array_inflation
-from imufdi_cli.detectors.parity import isolable_sensors, parity_matrix
 from imufdi_cli.detectors.pca_parity import choices
 from imufdi_cli.detectors.pca_parity.components import (
     _lag_one_autocorrelation,
@@ -28,11 +26,13 @@ from imufdi_cli.detectors.pca_parity.components import (
     principal_components,
 )
 from imufdi_cli.detectors.pca_parity.model import _MotionDesign, _TypeModel, lever_arm_spread
-from imufdi_cli.detectors.rigid import accel_design
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.quantiles import f as f_distribution  # scipy.stats' floats
+from imufdi_cli.maths.jitter import MotionInflation, array_inflation
+from imufdi_cli.maths.parity import isolable_sensors, parity_matrix
+from imufdi_cli.maths.quantiles import f as f_distribution
+from imufdi_cli.maths.rigid import accel_design
 
 
 class PcaParityDetector(DetectorBase):
@@ -105,7 +105,7 @@ class PcaParityDetector(DetectorBase):
         self.models: dict[str, _TypeModel] = {}
         self.untested: dict[str, str] = {}
         self.window_samples = 0
-        self.inflations: dict[str, MotionInflation | None] = {}  # jitter model (detectors/jitter)
+        self.inflations: dict[str, MotionInflation | None] = {}  # jitter model (maths/jitter)
 
     # --- training ----------------------------------------------------------------------
 
@@ -315,7 +315,7 @@ class PcaParityDetector(DetectorBase):
                 counts, leverage_q
             )
             statistic = np.maximum(statistic, residual / threshold_q)
-        if factors is not None:  # sampling-time jitter in motion (detectors/jitter.py)
+        if factors is not None:  # sampling-time jitter in motion (maths/jitter.py)
             statistic = statistic / factors
         alarm = statistic > 1.0
         scores = np.full((n_samples, n_sensors), np.nan)

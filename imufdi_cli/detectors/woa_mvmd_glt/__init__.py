@@ -16,7 +16,7 @@ For one sensor type (n sensors, measurement matrix H, measurements m (N, n)):
    ``u_best=lowest`` takes the mode of lowest centre frequency instead: on input without
    biases (a calibrated array) the paper's rule follows the noise of each window
    (docs/algorithms/woa-mvmd-glt.md, "On the MIMU4444 recordings").
-3. GLT (§2.1, eqs. 5-7, :mod:`imufdi_cli.detectors.parity`) on u_best, whitened with the
+3. GLT (§2.1, eqs. 5-7, :mod:`imufdi_cli.maths.parity`) on u_best, whitened with the
    per-sensor sigma and with the per-sensor biases estimated on u_best of the calibration
    window (sigma re-estimated in the u_best domain: the filter removes most of the noise,
    which is why the step fault is detected with a small MAR). Threshold chi2_{1-alpha}(n-3).

@@ -26,14 +26,6 @@ from imufdi_cli.detectors.mvmd import (
     MIN_SAMPLES,
     check_mvmd_params,
 )
-from imufdi_cli.detectors.parity import (
-    isolable_sensors,
-    isolation_statistics,
-    parity_matrix,
-    residual_sigma,
-    residuals,
-    whiten,
-)
 from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
     DEFAULT_WEIGHTS,
     FITNESS_CHOICES,
@@ -66,7 +58,15 @@ from imufdi_cli.errors import (
     InputDataError,
 )
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.quantiles import chi2  # scipy.stats' floats without its import
+from imufdi_cli.maths.parity import (
+    isolable_sensors,
+    isolation_statistics,
+    parity_matrix,
+    residual_sigma,
+    residuals,
+    whiten,
+)
+from imufdi_cli.maths.quantiles import chi2
 
 # --- the detector ----------------------------------------------------------------------
 

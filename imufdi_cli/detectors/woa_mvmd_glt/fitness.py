@@ -12,44 +12,11 @@ import numpy as np
 from imufdi_cli.detectors.mvmd import (
     MvmdResult,
 )
-from imufdi_cli.special import fft, ufunc  # scipy's compiled functions, without imports
 
 DEFAULT_WEIGHTS: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
 
 # --- fitness (§2.6) --------------------------------------------------------------------
-
-
-def analytic_signal(x: np.ndarray) -> np.ndarray:
-    """The analytic signal of ``x`` along its last axis: ``scipy.signal.hilbert(x)``, the
-    same floats, without importing ``scipy.signal`` (about 1.5 s of CPU: it imports
-    ``scipy.stats``) or ``scipy.fft`` (about 0.4 s).
-
-    The steps of scipy 1.17's ``hilbert`` (``signal/_signaltools.py``) with the same
-    transforms as ``scipy.fft`` (:func:`imufdi_cli.special.fft`): the FFT ``X`` of the N
-    samples, ``X[1:ceil(N/2)]`` doubled and the negative frequencies zeroed (``X[N/2]``
-    kept for even N), the inverse FFT.
-
-    Parameters
-    ----------
-    x : ndarray, shape (..., N)
-        Real samples (N >= 1).
-
-    Returns
-    -------
-    ndarray, complex, shape (..., N)
-        ``x + i H[x]``; ``|.|`` is the envelope.
-    """
-    x = np.asarray(x)
-    n = x.shape[-1]
-    spectrum = fft(x)
-    if n % 2 == 0:
-        spectrum[..., 1 : n // 2] *= 2.0
-        spectrum[..., n // 2 + 1 : n] = 0.0
-    else:
-        spectrum[..., 1 : (n + 1) // 2] *= 2.0
-        spectrum[..., (n + 1) // 2 : n] = 0.0
-    return fft(spectrum, forward=False)
 
 
 def cfv_components(result: MvmdResult) -> tuple[float, float, float]:
@@ -71,7 +38,9 @@ def cfv_components(result: MvmdResult) -> tuple[float, float, float]:
     """
     modes = result.modes
     n_modes, _, n_samples = modes.shape
-    envelope = np.abs(analytic_signal(modes))
+    from scipy.signal import hilbert  # imported when a fitness is computed, not on import
+
+    envelope = np.abs(hilbert(modes, axis=-1))
     total = envelope.sum(axis=-1, keepdims=True)
     prob = envelope / np.where(total > 0, total, 1.0)
     logp = np.log(np.where(prob > 0, prob, 1.0))
@@ -167,7 +136,7 @@ class ValidationFault:
         function ``1 - P = chndtr(threshold, n - 3, lambda)`` covers the whole stack, once
         per distinct (row, column) pair (row t reads column 0 for every k >= t).
         """
-        chndtr = ufunc("chndtr")  # scipy.special's own ufunc, without the package's import
+        from scipy.special import chndtr
 
         F = np.asarray(F, dtype=np.float64)
         L = F.shape[-1]

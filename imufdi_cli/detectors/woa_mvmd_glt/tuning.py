@@ -37,7 +37,7 @@ from imufdi_cli.errors import (
     InputDataError,
 )
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.quantiles import chi2  # scipy.stats' floats without its import
+from imufdi_cli.maths.quantiles import chi2
 
 # --- tuning (§2.7) ---------------------------------------------------------------------
 

@@ -11,7 +11,10 @@ from numpy.testing import assert_allclose, assert_array_equal
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import parse_params
 from imufdi_cli.detectors.glt import GltDetector
-from imufdi_cli.detectors.jitter import (
+from imufdi_cli.detectors.pca_parity import PcaParityDetector
+from imufdi_cli.errors import ArrayConfigError, ImufdiError
+from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.jitter import (
     MAX_JITTER_S,
     MotionInflation,
     array_inflation,
@@ -19,9 +22,7 @@ from imufdi_cli.detectors.jitter import (
     fit_jitter,
     minimum_detectable_step,
 )
-from imufdi_cli.detectors.pca_parity import PcaParityDetector
-from imufdi_cli.errors import ArrayConfigError
-from imufdi_cli.log import ImuBlock
+from imufdi_cli.tomlfile import parse_toml
 
 RATE = 100.0
 DT_NS = 10_000_000
@@ -257,7 +258,7 @@ def test_jitter_in_toml_round_trips_with_units_and_bad_values_are_refused():
     base = skewed_array().to_dict()
     array = ArrayConfig.from_dict({**base, "jitter": {"gyro": "0.3ms", "accel": 0.001}})
     assert array.jitter == {"gyro": pytest.approx(3e-4), "accel": 0.001}
-    again = ArrayConfig.from_dict(__import__("tomllib").loads(array.to_toml()))
+    again = ArrayConfig.from_dict(parse_toml(array.to_toml(), "round trip", ImufdiError))
     assert again.jitter == array.jitter and again == array
     assert ArrayConfig.from_json(array.to_json()).jitter == array.jitter
     for bad, message in (

@@ -9,15 +9,15 @@ from numpy.testing import assert_allclose
 
 from imufdi_cli.array import ArrayConfig, ImuSpec
 from imufdi_cli.detectors.glt import GltDetector
-from imufdi_cli.detectors.parity import parity_matrix
-from imufdi_cli.detectors.rigid import (
+from imufdi_cli.errors import ArrayTooSmallError
+from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.parity import parity_matrix
+from imufdi_cli.maths.rigid import (
     accel_design,
     lever_arm_columns,
     observable_lever_arm,
     rigid_specific_force,
 )
-from imufdi_cli.errors import ArrayTooSmallError
-from imufdi_cli.log import ImuBlock
 
 FLIP = np.array([[0.0, -1, 0], [-1, 0, 0], [0, 0, -1]])  # the MIMU4444 bottom face
 MIMU4444 = np.array(  # IMU_positions.csv, metres

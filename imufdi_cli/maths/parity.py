@@ -348,8 +348,6 @@ def residual_sigma(
     -------
     sigma : ndarray, shape (n,), SI units of the sensor type.
     """
-    from imufdi_cli.nnls import nnls  # scipy.optimize.nnls without importing scipy.optimize
-
     H = check_measurement_matrix(H)
     measurements = np.asarray(measurements, dtype=np.float64)
     if measurements.shape[0] < 2:
@@ -372,6 +370,8 @@ def residual_sigma(
     singular = np.linalg.svd(mixing, compute_uv=False)
     common = variances.sum() / n_parity
     if singular[-1] > 1e-8 * singular[0]:
+        from scipy.optimize import nnls  # imported at the first calibration, not on import
+
         sigma2, _ = nnls(mixing, variances)
         # A sensor the non-negative fit drives to zero means the residuals are not white
         # per-sensor noise (e.g. unmodelled lever-arm motion): no per-sensor sigma can be
@@ -450,7 +450,7 @@ def estimated_sigma_threshold(
 
     and, with ``s = sum_j P_jj^2 Var delta_j``, ``E tr A = tr P + s``,
     ``E tr A^2 = tr P^2 + 3 s`` and ``Var tr A = s``. (Central differences of (2) agree
-    with (3) to their O(step^2) truncation error, ``tests/detectors/test_parity.py``.)
+    with (3) to their O(step^2) truncation error, ``tests/maths/test_parity.py``.)
     The bias (calibration mean of N samples) adds its own error: every residual variance
     is multiplied by ``1 + 1/N``. The null law is then approximated by matching two
     moments, ``D ~ g chi2(h)`` (Satterthwaite), the estimation-uncertainty analogue of
@@ -501,7 +501,7 @@ def two_moment_threshold(
     -------
     threshold, scale, dof : float
     """
-    from imufdi_cli.quantiles import chi2
+    from imufdi_cli.maths.quantiles import chi2
 
     inflation = 1.0 + (1.0 / mean_samples if np.isfinite(mean_samples) else 0.0)
     total_mean = mean * inflation

@@ -1,0 +1,583 @@
+"""The streaming bank of robust CUSUM tests (:mod:`imufdi_cli.maths.sequential`).
+
+Per sensor type, the bank takes per sample t and sensor i the evidence ``z_t,i``,
+standardized *at rest* (N(0, 1) without fault), the state of the array (rate or specific
+force, for the motion model) and the motion variance factor ``v_t >= 1`` of the detector's
+noise model (1 at rest). It keeps, per column, a slow reference (offset, slopes on the
+state, variance) and per sensor, sign and design shift the CUSUM
+
+    u_t = clip(z'_t / s_t, -c, c) / s_t,          s_t^2 = v_t (1 + k q_t)
+    l_t = mu s u_t - mu^2 / (2 s_t^2)                                         (1)
+    S_t = max(0, S_{t-1} + l_t)                                               (2)
+
+(z' the evidence less its reference; ``q_t`` the motion model's uncertainty). (1) is the
+log-likelihood ratio of a step of ``mu`` rest standard deviations when the noise standard
+deviation is ``s_t``: at rest the designs 2 and 4 run, in motion the larger designs'
+effective shift ``mu / s_t`` comes into range. With ``W1 = cumsum(u)`` and
+``W2 = cumsum(1 / s^2)`` every hypothesis' cumulative sum is ``s mu W1 - mu^2 W2 / 2``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from imufdi_cli.maths.sequential.design import NO_ISOLATION, NOT_ISOLABLE, CusumDesign
+
+
+@dataclass
+class Decisions:
+    """Rows of one sensor type's sequential test (N samples, n sensors).
+
+    Attributes
+    ----------
+    statistic : ndarray (N,)
+        Largest CUSUM statistic of the bank (log-likelihood ratio units).
+    threshold : ndarray (N,)
+        h.
+    alarm : ndarray (N,) bool
+    isolated : ndarray (N,) int32
+        On alarm rows the sensor whose evidence since the onset is largest (the step's
+        GLR); NOT_ISOLABLE where that sensor cannot be told from another; NO_ISOLATION
+        elsewhere.
+    amplitude : ndarray (N,)
+        On alarm rows, the isolated sensor's mean evidence since the episode's estimated
+        onset (weighted by the inverse noise variance), in SI units; NaN elsewhere.
+    scores : ndarray (N, n)
+        Per sensor, its largest statistic over signs and design shifts.
+    """
+
+    statistic: np.ndarray
+    threshold: np.ndarray
+    alarm: np.ndarray
+    isolated: np.ndarray
+    amplitude: np.ndarray
+    scores: np.ndarray
+
+
+@dataclass
+class MotionModel:
+    """The linear model of the evidence on the tested state (see :class:`_Reference`).
+
+    Attributes
+    ----------
+    centre : ndarray (p,)
+        The state's calibration mean.
+    prior_sd : float
+        Prior standard deviation of every slope (z units per unit of the state).
+    forget : float
+        Per-sample forgetting rate of the sufficient statistics (1 / (slope_tau f_s)).
+    inflation : float
+        k: squared standard deviations of the model's uncertainty added to the variance.
+    sxx, sxz : ndarray (p, p), (p, n)
+        Sufficient statistics (calibration window first).
+    """
+
+    centre: np.ndarray
+    prior_sd: float
+    forget: float
+    inflation: float
+    sxx: np.ndarray
+    sxz: np.ndarray
+    slopes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+
+    def __post_init__(self) -> None:
+        self.solve()
+
+    @classmethod
+    def from_calibration(
+        cls,
+        x: np.ndarray,
+        z: np.ndarray,
+        prior_sd: float,
+        slope_tau_samples: float,
+        inflation: float = 16.0,
+    ) -> MotionModel:
+        """The model fitted on calibration states ``x`` (N, p) and evidence ``z`` (N, n)."""
+        centre = x.mean(axis=0)
+        centred = x - centre
+        return cls(
+            centre=centre,
+            prior_sd=float(prior_sd),
+            forget=0.0 if slope_tau_samples <= 0 else 1.0 / slope_tau_samples,
+            inflation=float(inflation),
+            sxx=centred.T @ centred,
+            sxz=centred.T @ (z - z.mean(axis=0)),
+        )
+
+    def solve(self) -> None:
+        p = self.centre.size
+        precision = self.sxx + np.eye(p) / self.prior_sd**2
+        self.covariance = np.linalg.inv(precision)
+        self.slopes = self.covariance @ self.sxz
+
+    def update(self, xx: np.ndarray, xz: np.ndarray, samples: int) -> None:
+        keep = math.exp(-self.forget * samples)
+        self.sxx = keep * self.sxx + xx
+        self.sxz = keep * self.sxz + xz
+        self.solve()
+
+
+class _Reference:
+    """The slow reference of every column of evidence::
+
+        z'_t = (z_t - b - D^T (x_t - x_bar)) / sqrt(w)
+
+    ``b`` an offset, ``w`` a variance (both learnt at rest only: a running mean from the
+    calibration window on, then exponential averages of time constants ``tau`` and
+    ``scale_tau``; innovations clipped), ``D`` the ridge regression (prior ``N(0,
+    prior_sd^2)``) of ``z - b`` on the state's deviation from its running mean
+    ``x_bar``, weighted by the inverse motion variance and forgotten with time constant
+    ``slope_tau``, whose posterior covariance ``Sigma`` widens the test by
+    ``1 + k (x - x_bar)^T Sigma (x - x_bar)``. Everything moves once per sub-block of
+    ``stride`` samples (aligned on the sample count) and stays frozen while an episode is
+    open, for at most ``hold`` samples of it."""
+
+    def __init__(
+        self,
+        n: int,
+        design: CusumDesign,
+        rate_hz: float,
+        calibration_samples: float,
+        motion: MotionModel | None,
+    ) -> None:
+        self.n = n
+        self.step = 0.0 if design.tau_s <= 0 else 1.0 / (design.tau_s * rate_hz)
+        self.scale_step = 0.0 if design.scale_tau_s <= 0 else 1.0 / (design.scale_tau_s * rate_hz)
+        self.stride = max(1, round(rate_hz))
+        if design.tau_s > 0:
+            self.stride = max(1, min(self.stride, round(design.tau_s * rate_hz / 10)))
+        self.gate = design.gate
+        self.rest_factor = design.rest_factor
+        self.calibration_samples = calibration_samples
+        self.offset = np.zeros(n)
+        self.variance = np.ones(n)
+        self.motion = motion
+        p = 0 if motion is None else motion.centre.size
+        self.state_mean = np.zeros(p) if motion is None else motion.centre.copy()
+        self.rest_samples = 0  # rows at rest that taught the references so far
+        self._drop()
+
+    def _drop(self) -> None:
+        p = self.state_mean.size
+        self.pending = np.zeros(self.n)
+        self.pending_squares = np.zeros(self.n)
+        self.count = 0  # rest rows in the open sub-block
+        self.pending_x = np.zeros(p)
+        self.motion_count = 0.0  # weighted rows in the open sub-block (slopes)
+        self.pending_xx = np.zeros((p, p))
+        self.pending_xz = np.zeros((p, self.n))
+
+    def snapshot(self) -> tuple[np.ndarray, ...]:
+        items = [self.offset.copy(), self.variance.copy(), np.array([self.rest_samples])]
+        if self.motion is not None:
+            items += [self.state_mean.copy(), self.motion.sxx.copy(), self.motion.sxz.copy()]
+        return tuple(items)
+
+    def restore(self, snap: tuple[np.ndarray, ...]) -> None:
+        """Back to a snapshot; the open sub-block's sums are dropped."""
+        self.offset, self.variance = snap[0].copy(), snap[1].copy()
+        self.rest_samples = int(snap[2][0])
+        if self.motion is not None:
+            self.state_mean = snap[3].copy()
+            self.motion.sxx, self.motion.sxz = snap[4].copy(), snap[5].copy()
+            self.motion.solve()
+        self._drop()
+
+    def apply(
+        self,
+        z: np.ndarray,
+        x: np.ndarray | None,
+        factors: np.ndarray,
+        frozen: bool,
+        samples: int,
+    ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, tuple[np.ndarray, ...]]]]:
+        """``z'`` and the rows' noise variance factors ``s^2`` for the next rows of the
+        stream (after ``samples`` rows), learning at every completed sub-block unless
+        ``frozen``; also, for a rewind, the local rows from which each state held, with a
+        snapshot of it."""
+        motion = self.motion
+        n_rows = z.shape[0]
+        out = np.empty_like(z)
+        variance = factors.copy()
+        marks = [(0, self.snapshot())]
+        learn = not frozen
+        row = 0
+        while row < n_rows:
+            phase = (samples + row) % self.stride
+            stop = min(n_rows, row + self.stride - phase)
+            rows = slice(row, stop)
+            part = np.subtract(z[rows], self.offset, out=out[rows])
+            rest = factors[rows] <= self.rest_factor
+            if motion is not None and x is not None:
+                centred = x[rows] - self.state_mean
+                if learn:
+                    weight = 1.0 / factors[rows]
+                    self.pending_x += (weight[:, None] * x[rows]).sum(axis=0)
+                    self.motion_count += float(weight.sum())
+                    weighted = centred * weight[:, None]
+                    self.pending_xx += weighted.T @ centred
+                    self.pending_xz += weighted.T @ part
+                part -= centred @ motion.slopes
+                spread = np.einsum("ij,jk,ik->i", centred, motion.covariance, centred)
+                variance[rows] *= 1.0 + motion.inflation * spread
+            if learn:
+                at_rest = part[rest]
+                self.pending += at_rest.sum(axis=0)
+                self.pending_squares += np.minimum(np.square(at_rest), 16.0 * self.variance).sum(
+                    axis=0
+                )
+                self.count += int(np.count_nonzero(rest))
+            part /= np.sqrt(self.variance)
+            if learn and (samples + stop) % self.stride == 0:  # the sub-block is complete
+                self._complete()
+                marks.append((stop, self.snapshot()))
+            row = stop
+        return out, variance, marks
+
+    def _complete(self) -> None:
+        if self.count:
+            start = 1.0 / (self.calibration_samples + self.rest_samples + self.count)
+            if self.step > 0.0:
+                gain = max(self.step, start)
+                limit = self.gate * np.sqrt(self.count * self.variance)
+                self.offset = self.offset + gain * np.clip(self.pending, -limit, limit)
+            if self.scale_step > 0.0:
+                gain = max(self.scale_step, start)
+                change = self.pending_squares - self.count * self.variance
+                self.variance = np.maximum(self.variance + gain * change, 0.25)
+            self.rest_samples += self.count
+        if self.motion is not None and self.motion_count > 0:
+            gain = max(self.step, 1.0 / (self.calibration_samples + self.rest_samples))
+            mean = self.pending_x / self.motion_count
+            self.state_mean = self.state_mean + min(1.0, gain * self.motion_count) * (
+                mean - self.state_mean
+            )
+            self.motion.update(self.pending_xx, self.pending_xz, self.stride)
+        self._drop()
+
+
+@dataclass
+class _Episode:
+    shift: float  # the fault's estimated size (rest standard deviations) for its end test
+    sign: float
+    sensor: int
+    onset: int = 0  # estimated onset, absolute sample index
+    sums: np.ndarray = field(default_factory=lambda: np.zeros(0))  # sum of z'/s^2 since it
+    weight: float = 0.0  # sum of 1/s^2 since the onset
+    recovery: float = 0.0  # the "fault has ended" CUSUM
+    started: int = 0  # absolute sample index of the alarm
+
+
+class CusumBank:
+    """Streaming bank of robust CUSUM tests over one sensor type (module docstring).
+
+    The outputs do not depend on how the rows are split into calls (the references move
+    on sub-blocks aligned on the sample count), up to the rounding of cumulative sums.
+
+    Parameters
+    ----------
+    design : CusumDesign
+    threshold : float
+        h (:func:`~imufdi_cli.maths.sequential.budget_threshold`).
+    sensitivity : ndarray, shape (n,)
+        ``g_i``: z units (at rest) per SI unit of a step on sensor i (before kappa).
+    isolable : ndarray, shape (n,), bool
+        Whether sensor i's fault can be told from every other sensor's.
+    rate_hz : float
+        Nominal sample rate (the references' time constants).
+    kappa : float
+        Long-run variance factor (:func:`~imufdi_cli.maths.sequential.long_run_factor`).
+    history : int
+        Samples of evidence kept to estimate an episode's onset.
+    calibration_samples : float
+        Samples the biases were estimated from: the references start as running means of
+        the evidence from there (gain ``1 / (N + k)`` after k samples at rest) until that
+        gain falls to ``1 / (tau f_s)``: the calibration's own errors (``1 / sqrt(N)`` of
+        a standard deviation in the offset, ``sqrt(2 / N)`` in the variance) are learnt
+        away in the first seconds.
+    motion : MotionModel, optional
+        The linear model of the evidence on the tested state (residual scale and
+        misalignment errors): ``process`` then takes the state's rows too.
+    """
+
+    #: Rows run through the bank at once (an alarm wastes at most this much work).
+    SPAN = 2048
+
+    def __init__(
+        self,
+        design: CusumDesign,
+        threshold: float,
+        sensitivity: np.ndarray,
+        isolable: np.ndarray,
+        rate_hz: float,
+        kappa: float = 1.0,
+        history: int = 512,
+        calibration_samples: float = math.inf,
+        motion: MotionModel | None = None,
+    ) -> None:
+        self.design = design
+        self.threshold = float(threshold)
+        self.kappa = float(kappa)
+        self.inverse_scale = 1.0 / math.sqrt(self.kappa)
+        self.sensitivity = np.asarray(sensitivity, float) * self.inverse_scale
+        self.isolable = np.asarray(isolable, bool)
+        n = self.sensitivity.size
+        self.n = n
+        self.shifts = np.asarray(design.shifts, float)
+        self.state = np.zeros((self.shifts.size, 2, n))  # S per shift, sign, sensor
+        self.hold = max(0, round(design.hold_s * rate_hz))
+        self.ref = _Reference(n, design, rate_hz, float(calibration_samples), motion)
+        self.history_length = int(history)
+        self.history_u = np.zeros((0, n))  # clipped, scaled evidence u of (1)
+        self.history_q = np.zeros((0, n))  # z' / s^2
+        self.history_w = np.zeros(0)  # 1 / s^2
+        self.samples = 0  # rows handled so far
+        self.episode: _Episode | None = None
+        self.episodes = 0
+
+    @property
+    def reference(self) -> np.ndarray:
+        """Each column's tracked offset (z units at rest, after the long-run factor)."""
+        return self.ref.offset
+
+    # --- processing --------------------------------------------------------------------
+
+    def process(
+        self, z: np.ndarray, x: np.ndarray | None = None, factors: np.ndarray | None = None
+    ) -> Decisions:
+        """Decide on the rows of ``z`` (N, n): evidence per sensor standardized at rest;
+        ``x`` (N, p): the tested state of each row, for the motion model (if any);
+        ``factors`` (N,): the detector's motion variance factors ``v_t >= 1`` (None: 1).
+
+        NaN evidence (a sample without a test) counts as 0."""
+        z = np.asarray(z, float)
+        if z.ndim != 2 or z.shape[1] != self.n:
+            raise ValueError(f"evidence must be (N, {self.n}), got {z.shape}")
+        if self.inverse_scale != 1.0:
+            z = z * self.inverse_scale
+        if not np.isfinite(z).all():
+            z = np.nan_to_num(z, nan=0.0, posinf=0.0, neginf=0.0)
+        n_rows = z.shape[0]
+        v = np.ones(n_rows) if factors is None else np.maximum(np.asarray(factors, float), 1.0)
+        out = Decisions(
+            statistic=np.zeros(n_rows),
+            threshold=np.full(n_rows, self.threshold),
+            alarm=np.zeros(n_rows, bool),
+            isolated=np.full(n_rows, NO_ISOLATION, np.int32),
+            amplitude=np.full(n_rows, np.nan),
+            scores=np.empty((n_rows, self.n)),  # every row is written
+        )
+        position = 0
+        while position < n_rows:
+            span = slice(position, position + self.SPAN)
+            states = None if x is None else x[span]
+            if self.episode is None:
+                position += self._watch(z[span], states, v[span], position, out)
+            else:
+                position += self._follow(z[span], states, v[span], position, out)
+        return out
+
+    def _frozen(self) -> bool:
+        episode = self.episode
+        return episode is not None and self.samples - episode.started < self.hold
+
+    def _terms(self, zr: np.ndarray, variance: np.ndarray) -> tuple[np.ndarray, ...]:
+        """u of (1), z'/s^2 and 1/s^2 of the rows."""
+        scale = np.sqrt(variance)[:, None]
+        clip = self.design.clip
+        u = np.clip(zr / scale, -clip, clip)
+        u /= scale
+        inverse = 1.0 / variance
+        return u, zr * inverse[:, None], inverse
+
+    def _cusums(
+        self, u: np.ndarray, inverse: np.ndarray, variance: np.ndarray, best: np.ndarray
+    ) -> tuple[dict[int, np.ndarray], np.ndarray]:
+        """Every running CUSUM (1)-(2) over the rows, from the current state: the
+        statistics per (shift, sign) index ``2 d + s`` (designs out of range on every row
+        and at rest in their state are skipped: they stay 0), and per sensor their maximum
+        (written into ``best``)."""
+        total = np.cumsum(u, axis=0)
+        drift = np.cumsum(inverse)[:, None]
+        largest, smallest = float(np.sqrt(variance.max())), float(np.sqrt(variance.min()))
+        clip, least = self.design.clip, self.design.min_shift
+        stats: dict[int, np.ndarray] = {}
+        best[...] = 0.0
+        for d, mu in enumerate(self.shifts):
+            # run where some row's effective shift mu / s is in [min_shift, 2 c)
+            in_range = largest > mu / (2.0 * clip) and smallest <= mu / least
+            if not in_range and not self.state[d].any():
+                continue
+            half = drift * (0.5 * mu * mu)
+            for s, sign in enumerate((1.0, -1.0)):
+                cumulative = np.multiply(total, sign * mu)
+                cumulative -= half
+                first = cumulative[0].copy()
+                np.minimum(first, -self.state[d, s], out=cumulative[0])  # seed the minimum
+                statistic = np.minimum.accumulate(cumulative, axis=0)
+                cumulative[0] = first
+                np.subtract(cumulative, statistic, out=statistic)
+                np.maximum(best, statistic, out=best)
+                stats[2 * d + s] = statistic
+        return stats, best
+
+    def _keep_state(self, stats: dict[int, np.ndarray], row: int) -> None:
+        flat = self.state.reshape(-1, self.n)
+        flat[:] = 0.0
+        for k, statistic in stats.items():
+            flat[k] = statistic[row]
+
+    def _watch(
+        self, z: np.ndarray, x: np.ndarray | None, factors: np.ndarray, position: int,
+        out: Decisions,
+    ) -> int:  # fmt: skip
+        """No episode open: run the bank over the rows up to the first alarm; returns the
+        number of rows handled."""
+        zr, variance, marks = self.ref.apply(z, x, factors, False, self.samples)
+        u, q, inverse = self._terms(zr, variance)
+        # the rows' scores are written in place; those after an alarm are written again
+        stats, best = self._cusums(u, inverse, variance, out.scores[position : position + len(zr)])
+        top = best.max(axis=1) if self.n else np.zeros(len(zr))
+        over = np.flatnonzero(top > self.threshold)
+        stop = len(zr) if over.size == 0 else int(over[0]) + 1
+        out.statistic[position : position + stop] = top[:stop]
+        self._keep_state(stats, stop - 1)
+        if over.size:
+            value = marks[0][1]
+            for start, snap in marks:
+                if start <= stop - 1:
+                    value = snap
+            self.ref.restore(value)
+            self._open(u, q, inverse, stats, stop - 1, position, out)
+        self._remember(u[:stop], q[:stop], inverse[:stop])
+        self.samples += stop
+        return stop
+
+    def _open(
+        self,
+        u: np.ndarray,
+        q: np.ndarray,
+        inverse: np.ndarray,
+        stats: dict[int, np.ndarray],
+        row: int,
+        position: int,
+        out: Decisions,
+    ) -> None:
+        """An episode opens at local row ``row`` (output row ``position + row``)."""
+        keys = sorted(stats)
+        values = np.array([stats[k][row] for k in keys])  # (hypotheses, n)
+        index, sensor = np.unravel_index(int(np.argmax(values)), values.shape)
+        shift, sign_index = divmod(keys[int(index)], 2)
+        sign = 1.0 if sign_index == 0 else -1.0
+        hist_u = np.concatenate([self.history_u, u[: row + 1]])
+        hist_q = np.concatenate([self.history_q, q[: row + 1]])
+        hist_w = np.concatenate([self.history_w, inverse[: row + 1]])
+        count = self._onset_rows(
+            stats[keys[int(index)]][: row + 1, sensor],
+            hist_u[:, sensor] * sign,
+            hist_w,
+            float(self.shifts[shift]),
+        )
+        sums = hist_q[-count:].sum(axis=0)
+        weight = float(hist_w[-count:].sum())
+        # isolation by the unclipped evidence since the onset (the step's GLR): the clip
+        # saturates a large fault's evidence on every sensor correlated with it, so the
+        # CUSUMs of two such sensors tie
+        chosen = int(np.argmax(np.abs(sums)))
+        size = abs(float(sums[chosen])) / weight if weight > 0 else float(self.shifts[0])
+        self.episode = _Episode(
+            shift=max(size, float(self.shifts[0]) / 2.0),
+            sign=1.0 if sums[chosen] >= 0 else -1.0,
+            sensor=chosen,
+            onset=self.samples + row + 1 - count,
+            sums=sums,
+            weight=weight,
+            started=self.samples + row,
+        )
+        self.episodes += 1
+        row_out = position + row
+        out.alarm[row_out] = True
+        out.isolated[row_out] = chosen if self.isolable[chosen] else NOT_ISOLABLE
+        if self.isolable[chosen] and weight > 0 and self.sensitivity[chosen] > 0:
+            out.amplitude[row_out] = sums[chosen] / weight / self.sensitivity[chosen]
+
+    def _onset_rows(
+        self, statistic: np.ndarray, signed_u: np.ndarray, inverse: np.ndarray, mu: float
+    ) -> int:
+        """Samples from the estimated onset of a hypothesis to its alarm row: the rows after
+        the last one where its statistic was 0 (Page's change-point estimate). When it was
+        positive since the start of these rows, the hypothesis' CUSUM is run again over the
+        kept history (``signed_u``: its u times its sign, history included, ending at the
+        alarm row; ``inverse`` the matching 1/s^2) from 0 at the history's start."""
+        zeros = np.flatnonzero(statistic <= 0.0)
+        if zeros.size:
+            return int(statistic.size - 1 - zeros[-1])
+        cumulative = np.cumsum(mu * signed_u - 0.5 * mu * mu * inverse)
+        again = cumulative - np.minimum(np.minimum.accumulate(cumulative), 0.0)
+        zeros = np.flatnonzero(again <= 0.0)
+        return int(signed_u.size - 1 - zeros[-1]) if zeros.size else int(signed_u.size)
+
+    def _follow(
+        self, z: np.ndarray, x: np.ndarray | None, factors: np.ndarray, position: int,
+        out: Decisions,
+    ) -> int:  # fmt: skip
+        """An episode is open: keep the bank running over the rows (references frozen for
+        the first ``hold_s`` of it) and test whether the fault has ended; close the episode
+        and restart every statistic when it has. Returns the number of rows handled."""
+        episode = self.episode
+        assert episode is not None
+        frozen = self._frozen()
+        if frozen:  # at most up to the end of the hold
+            z = z[: max(1, episode.started + self.hold - self.samples)]
+            factors = factors[: z.shape[0]]
+            x = None if x is None else x[: z.shape[0]]
+        zr, variance, _ = self.ref.apply(z, x, factors, frozen, self.samples)
+        u, q, inverse = self._terms(zr, variance)
+        stats, best = self._cusums(u, inverse, variance, out.scores[position : position + len(zr)])
+        # evidence that the fault has ended: the log-likelihood ratio of "no fault" against
+        # "the fault as estimated" (its size since the onset), on its sensor and sign
+        mu = episode.shift
+        column = episode.sign * u[:, episode.sensor]
+        cumulative = np.cumsum(-(mu * column - 0.5 * mu * mu * inverse))
+        recovery = cumulative - np.minimum(np.minimum.accumulate(cumulative), -episode.recovery)
+        ended = np.flatnonzero(recovery > self.threshold)
+        stop = len(zr) if ended.size == 0 else int(ended[0]) + 1
+        out.statistic[position : position + stop] = best[:stop].max(axis=1)
+        alarmed = stop if ended.size == 0 else stop - 1  # the row that ends it is quiet
+        if alarmed:
+            sums = np.cumsum(q[:alarmed], axis=0)
+            sums += episode.sums
+            weights = episode.weight + np.cumsum(inverse[:alarmed])
+            sensors = np.argmax(np.abs(sums), axis=1)  # the step's GLR, as at the opening
+            isolable = self.isolable[sensors]
+            rows = slice(position, position + alarmed)
+            out.alarm[rows] = True
+            out.isolated[rows] = np.where(isolable, sensors, NOT_ISOLABLE)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                picked = sums[np.arange(alarmed), sensors] / weights
+                amplitude = picked / self.sensitivity[sensors]
+            out.amplitude[rows] = np.where(isolable, amplitude, np.nan)
+            episode.sums = sums[-1]
+            episode.weight = float(weights[-1])
+        if ended.size:
+            self.state[:] = 0.0
+            self.episode = None
+        else:
+            self._keep_state(stats, stop - 1)
+            episode.recovery = float(recovery[stop - 1])
+        self._remember(u[:stop], q[:stop], inverse[:stop])
+        self.samples += stop
+        return stop
+
+    def _remember(self, u: np.ndarray, q: np.ndarray, inverse: np.ndarray) -> None:
+        """Keep the last ``history`` rows (for onsets)."""
+        if self.history_length <= 0 or u.shape[0] == 0:
+            return
+        keep = self.history_length
+        self.history_u = np.concatenate([self.history_u, u])[-keep:]
+        self.history_q = np.concatenate([self.history_q, q])[-keep:]
+        self.history_w = np.concatenate([self.history_w, inverse])[-keep:]
