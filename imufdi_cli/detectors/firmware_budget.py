@@ -41,7 +41,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from imufdi_cli.detectors.noise_glr import clipped_square_moments, robust_scale, scale_estimator_dof
+from imufdi_cli.maths.robust import clipped_square_moments, robust_scale, scale_estimator_dof
 
 #: The thresholds are set for this share of the budget (the parity detectors' margin).
 BUDGET_SHARE = 0.5
@@ -96,6 +96,29 @@ def imu_noise(deviation_variance: np.ndarray) -> np.ndarray:
     total = v.sum(axis=0) / (1.0 - 1.0 / m)  # S per axis
     sigma2 = (v - total / m**2) / (1.0 - 2.0 / m)
     return np.maximum(sigma2, 0.05 * v)
+
+
+def accumulate_excess(excess: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """``E_t = max(0, E_{t-1} + x_t)`` for every column, vectorised (Lindley's recursion).
+
+    With ``C_t = x_1 + ... + x_t``: ``E_t = C_t - min(-E_0, min_{s<=t} C_s)``.
+
+    Parameters
+    ----------
+    excess : ndarray, shape (N, m)
+        Increments x_t.
+    start : ndarray, shape (m,)
+        E_0 (>= 0).
+
+    Returns
+    -------
+    ndarray, shape (N, m)
+    """
+    if excess.shape[0] == 0:
+        return np.zeros_like(excess)
+    cumulative = np.cumsum(excess, axis=0)
+    floor = np.minimum(np.minimum.accumulate(cumulative, axis=0), -start[None, :])
+    return np.maximum(cumulative - floor, 0.0)
 
 
 # --- ap-consistency --------------------------------------------------------------------
@@ -293,8 +316,6 @@ def _log_prefactor(
     at least 50 upcrossings reach; and the samples simulated."""
     from scipy.signal import lfilter  # imported when a budget is fitted
 
-    from imufdi_cli.detectors.px4_selector import accumulate_excess
-
     c = smoothing
     rng = np.random.default_rng([seed, 0x9F4, round(rho * 1e9)])
     unit = math.sqrt(c / (2.0 - c))
@@ -454,13 +475,13 @@ class Disagreement:
     """Whether the IMUs still disagree by the calibrated noise only, second by second.
 
     Each compared IMU's ``|x_i - ref_i|^2`` (after the calibration offsets) relative to its
-    expectation from the calibrated noise feeds a :class:`~imufdi_cli.maths.variance.ModelCheck`
+    expectation from the calibrated noise feeds a :class:`~imufdi_cli.maths.contrasts.ModelCheck`
     over windows of ``window`` samples: a window is flagged when the median IMU disagrees
     more than :data:`DISAGREEMENT_WARNING` times as much (one faulty IMU does not move it).
     """
 
     def __init__(self, expected: np.ndarray, window: int) -> None:
-        from imufdi_cli.maths.variance import ModelCheck
+        from imufdi_cli.maths.contrasts import ModelCheck
 
         self.expected = np.maximum(np.asarray(expected, float), 1e-300)  # (m,)
         self.check = ModelCheck(self.expected.size, window, DISAGREEMENT_WARNING)

@@ -86,7 +86,7 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
    kappa_eff tau).
 8. Under a false-alarm budget (``false_alarms`` > 0, ``imufdi detect --false-alarms``) steps
    4-5 are replaced by a sequential test (:class:`NoiseBudget`): each residual is bounded at
-   4 sigma from its running level (:class:`~imufdi_cli.maths.variance.Winsorizer`: an
+   4 sigma from its running level (:class:`~imufdi_cli.maths.contrasts.Winsorizer`: an
    outlier or a bias step adds about one term), cut into Helmert contrasts in blocks of 4
    samples (independent N(0, tau_j) terms, blind to the residual's mean; 3/4 of the
    samples' variance information, against 2/3 for differences), standardized by tau_j
@@ -104,8 +104,6 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
 
 from __future__ import annotations
 
-import functools
-import math
 from dataclasses import replace
 from typing import Any, ClassVar
 
@@ -124,21 +122,17 @@ from imufdi_cli.detectors.base import (
     parse_sensor_types,
 )
 from imufdi_cli.detectors.moving import MovingWindow
+from imufdi_cli.detectors.noise_budget import NoiseBudget, budget_warning
 from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.maths.jitter import MotionInflation, array_inflation
-from imufdi_cli.maths.quantiles import chi2, norm
+from imufdi_cli.maths.quantiles import chi2
 from imufdi_cli.maths.quantiles import f as f_distribution
-from imufdi_cli.maths.sequential import outlier_share
-from imufdi_cli.maths.variance import (
-    HelmertContrasts,
-    ModelCheck,
-    VarianceCusumBank,
-    VarianceDesign,
-    Winsorizer,
-    lorden_variance_terms,
-    threshold_schedule,
-    variance_run_length,
+from imufdi_cli.maths.robust import (
+    clipped_square_moments,
+    equivalent_dof,
+    robust_scale,
+    scale_estimator_dof,
 )
 
 #: Sensors whose leverage P_jj exceeds this are not redundant (their leave-one-out
@@ -210,100 +204,6 @@ WARN_CALIBRATION_FACTOR = 1.25
 #: The factor a calibration window long enough for this detector gives (named in the warning).
 GOOD_CALIBRATION_FACTOR = 1.1
 
-#: Lag-1 correlation of the differences of a white sequence.
-DIFFERENCE_CORRELATION = -0.5
-
-
-def _truncated_square_mean(mean: np.ndarray, std: float, clip: float) -> np.ndarray:
-    """``E[min(Y^2, c^2)]`` for Y ~ N(mean, std^2) (elementwise in ``mean``)."""
-    lo, hi = (-clip - mean) / std, (clip - mean) / std
-    inside = norm.cdf(hi) - norm.cdf(lo)
-    pdf_lo, pdf_hi = norm.pdf(lo), norm.pdf(hi)
-    # E[(m + s Z)^2 ; lo < Z < hi]
-    square = (
-        mean**2 * inside
-        + 2.0 * mean * std * (pdf_lo - pdf_hi)
-        + std**2 * (inside + lo * pdf_lo - hi * pdf_hi)
-    )
-    return square + clip**2 * (1.0 - inside)
-
-
-@functools.lru_cache(maxsize=64)
-def clipped_square_moments(clip: float, rho: float = DIFFERENCE_CORRELATION) -> tuple[float, ...]:
-    """Null moments of ``q = min(z^2, c^2)`` for standard normal z.
-
-    A pure function of ``(clip, rho)``, memoised per process (the same tuple of floats):
-    each fit asks for it three times and :func:`samples_for_factor` once per bisection
-    step, and the lag-1 integral over 24 001 grid points costs about 8 ms of CPU.
-
-    Parameters
-    ----------
-    clip : float
-        c, in standard deviations; ``inf`` for plain squares.
-    rho : float
-        Correlation of consecutive z (differences of white noise: -1/2).
-
-    Returns
-    -------
-    mean, variance, lag1_covariance : float
-        ``E q``, ``Var q`` (truncated normal moments, closed form) and
-        ``Cov(q_t, q_{t+1})`` (one integral over z_t of ``E[q_{t+1} | z_t]``, with
-        ``z_{t+1} | z_t ~ N(rho z_t, 1 - rho^2)``; for c = inf it is ``2 rho^2``).
-    """
-    if not np.isfinite(clip):
-        return 1.0, 2.0, 2.0 * rho**2
-    tail = 2.0 * norm.sf(clip)
-    inside = 1.0 - tail
-    pdf = norm.pdf(clip)
-    second = inside - 2.0 * clip * pdf  # E[z^2 ; |z| < c]
-    fourth = 3.0 * inside - 2.0 * pdf * (clip**3 + 3.0 * clip)  # E[z^4 ; |z| < c]
-    mean = second + clip**2 * tail
-    variance = fourth + clip**4 * tail - mean**2
-    grid = np.linspace(-12.0, 12.0, 24001)
-    weight = norm.pdf(grid) * np.minimum(grid**2, clip**2)
-    conditional = _truncated_square_mean(rho * grid, float(np.sqrt(1.0 - rho**2)), clip)
-    joint = float(np.sum(weight * conditional) * (grid[1] - grid[0]))
-    return float(mean), float(variance), joint - float(mean) ** 2
-
-
-def equivalent_dof(counts: np.ndarray, moments: tuple[float, ...]) -> np.ndarray:
-    """Satterthwaite degrees of freedom of a sum of k consecutive q (lag-1 dependent).
-
-    ``nu_k = 2 (k mu)^2 / (k v + 2 (k - 1) c1)``, so that ``sum(q)/(k mu)`` has the mean and
-    variance of ``chi2(nu_k)/nu_k``.
-    """
-    mean, variance, lag1 = moments
-    k = np.asarray(counts, dtype=np.float64)
-    return 2.0 * (k * mean) ** 2 / (k * variance + 2.0 * np.maximum(k - 1.0, 0.0) * lag1)
-
-
-def scale_estimator_dof(count: int, clip: float) -> float:
-    """Equivalent degrees of freedom of the calibrated scale tau (``robust_scale``).
-
-    Parameters
-    ----------
-    count : int
-        N, the number of calibration differences (lag-1 correlated, rho = -1/2).
-    clip : float
-        c, in standard deviations (``inf``: the plain mean square).
-
-    Returns
-    -------
-    float
-        ``nu_cal = 2 / Var(ln tau_hat)``, so that ``tau_hat / tau ~ chi2(nu_cal)/nu_cal``
-        to two moments. Linearizing the estimating equation ``mean(min(d^2/tau, c^2)) = mu``
-        gives ``Var(ln tau_hat) = Var(mean q) / s^2`` with ``s = E[z^2 ; |z| < c]`` (the
-        derivative of the clipped square; Huber, *Robust Statistics*, 1981, §5.3) and
-        ``Var(mean q) = (N v + 2 (N - 1) c1) / N^2`` (lag-1 dependent q). Hence
-        ``nu_cal = nu_N (s / mu)^2`` with ``nu_N`` of :func:`equivalent_dof`: clipping at
-        c = 3 costs 5 % of the calibration's degrees of freedom (``s/mu = 0.976``).
-    """
-    moments = clipped_square_moments(clip)
-    mean = moments[0]
-    inner = mean - clip**2 * 2.0 * norm.sf(clip) if np.isfinite(clip) else 1.0
-    dof = float(equivalent_dof(np.array([max(count, 1)]), moments)[0])
-    return dof * (inner / mean) ** 2
-
 
 def calibration_factor(calibration_dof: float, confidence: float) -> float:
     """Factor on a variance threshold that covers the calibrated scale's error.
@@ -317,34 +217,6 @@ def calibration_factor(calibration_dof: float, confidence: float) -> float:
     *Scand. J. Statist.* 40(4), 2013). ``confidence = 0.5`` is about 1 + 2/(3 nu).
     """
     return float(calibration_dof / chi2.ppf(1.0 - confidence, calibration_dof))
-
-
-def robust_scale(differences: np.ndarray, clip: float, mean: float) -> np.ndarray:
-    """Per-column tau with ``mean(min(d^2/tau, c^2)) = E q`` (Huber's proposal 2).
-
-    Parameters
-    ----------
-    differences : ndarray, shape (N, n)
-    clip, mean : float
-        c and the null mean of q for that c.
-
-    Returns
-    -------
-    tau : ndarray, shape (n,)
-        Variance of d (for Gaussian d, an estimate of Var d).
-    """
-    squares = differences**2
-    tau = np.mean(squares, axis=0)
-    if not np.isfinite(clip):
-        return tau
-    tau = np.maximum(np.median(squares, axis=0) / 0.4549364231195724, 1e-300)
-    for _ in range(200):  # fixed point, monotone convergence
-        updated = tau * np.mean(np.minimum(squares / tau, clip**2), axis=0) / mean
-        done = np.all(np.abs(updated - tau) <= 1e-12 * np.abs(tau))
-        tau = np.maximum(updated, 1e-300)
-        if done:
-            break
-    return tau
 
 
 def samples_for_factor(factor: float, clip: float, confidence: float) -> int:
@@ -394,267 +266,6 @@ def residual_spread(
     with np.errstate(invalid="ignore", divide="ignore"):
         spread = (weights @ np.asarray(kappa, float)) / total
     return np.where(total > 0, spread, 1.0)
-
-
-#: Helmert block of the budgeted test, samples: a bias step inside a block leaves at most
-#: two large terms, and 3/4 of the samples' variance information is kept.
-BUDGET_BLOCK = 4
-#: The budgeted test's threshold is set for this share of the budget: the union bound is
-#: 0.7-0.9 of the realised rate on white noise, and a margin covers what the model knows
-#: only approximately (as the parity detectors' :data:`~imufdi_cli.detectors.budget.BUDGET_SHARE`).
-BUDGET_SHARE = 0.5
-#: Design of the budgeted test: variance ratios 3 and 9 (noise x1.7 and x3), clip 4 sigma.
-BUDGET_DESIGN = VarianceDesign()
-#: Each residual sample is bounded at this many sigma from its running level before the
-#: contrasts (:class:`~imufdi_cli.maths.variance.Winsorizer`): an outlier or a bias step
-#: then adds about one term at the clip, as the threshold's outlier model assumes.
-BUDGET_WINSOR = 4.0
-#: Time constant of that running level, seconds.
-BUDGET_LEVEL_TAU_S = 0.1
-#: Under a budget detect warns when, over seconds of the log, the median sensor's residual
-#: variance exceeded the calibrated one by this factor (motion or errors the residual model
-#: does not remove: the level is not held there) ...
-VARIANCE_WARNING = 2.0
-#: ... on at least this share of the log's seconds (and 2 of them).
-WARNING_SHARE = 0.005
-#: Residuals whose correlation exceeds this in magnitude cannot be told apart.
-PARALLEL = 1.0 - 1e-9
-
-
-def independent_scale_dof(count: int, clip: float) -> float:
-    """Equivalent degrees of freedom of :func:`robust_scale` on ``count`` independent
-    N(0, tau) terms clipped at ``clip`` sigma: ``nu_N (s / mu)^2`` with ``nu_N`` of
-    :func:`equivalent_dof` (no lag correlation) and s the clipped square's derivative
-    (:func:`scale_estimator_dof` for differences)."""
-    moments = clipped_square_moments(clip, 0.0)
-    mean = moments[0]
-    inner = mean - clip**2 * 2.0 * norm.sf(clip) if np.isfinite(clip) else 1.0
-    dof = float(equivalent_dof(np.array([max(count, 1)]), (mean, moments[1], 0.0))[0])
-    return dof * (inner / mean) ** 2
-
-
-def residual_isolable(operator: np.ndarray, testable: np.ndarray) -> np.ndarray:
-    """Whether each leave-one-out residual can be told from every other (equal sensor
-    noise): False where two residuals are perfectly correlated (e.g. 4 sensors with one
-    parity direction)."""
-    covariance = operator @ operator.T
-    sd = np.sqrt(np.maximum(np.diag(covariance), 1e-300))
-    correlation = covariance / sd[:, None] / sd[None, :]
-    np.fill_diagonal(correlation, 0.0)
-    parallel = (np.abs(correlation) > PARALLEL) & testable[None, :]
-    return testable & ~parallel.any(axis=1)
-
-
-class NoiseBudget:
-    """Budgeted sequential decisions on a noise growth of one sensor type's leave-one-out
-    residuals (the variance CUSUM bank of :mod:`imufdi_cli.maths.variance`).
-
-    Each residual stream is cut into Helmert contrasts in blocks of :data:`BUDGET_BLOCK`
-    samples (independent N(0, tau_j) terms, blind to the residual's mean), standardized by
-    their calibrated variance tau_j (Huber's proposal 2 at the design clip, times the
-    healthy spread kappa_eff_j when the array carries one).
-
-    Parameters
-    ----------
-    operator : ndarray, shape (n, n)
-        The leave-one-out operator R.
-    testable : ndarray, shape (n,), bool
-    rate_hz : float
-    budget_per_s : float
-        False alarm episodes per second of fault-free data allowed on this channel.
-    spread : ndarray, shape (n,), optional
-        kappa_eff of the residuals (None: 1).
-    design : VarianceDesign
-    """
-
-    def __init__(
-        self,
-        operator: np.ndarray,
-        testable: np.ndarray,
-        rate_hz: float,
-        budget_per_s: float,
-        spread: np.ndarray | None = None,
-        design: VarianceDesign = BUDGET_DESIGN,
-    ) -> None:
-        if not rate_hz > 0:
-            raise DetectorConfigError("a false-alarm budget needs the array's sample rate")
-        self.design = design
-        self.rate_hz = float(rate_hz)
-        self.budget_per_s = float(budget_per_s)
-        self.terms_per_s = self.rate_hz * (BUDGET_BLOCK - 1) / BUDGET_BLOCK
-        self.per_term = BUDGET_SHARE * self.budget_per_s / self.terms_per_s
-        if not 0.0 < self.per_term < 0.5:
-            raise DetectorConfigError(
-                f"false-alarm budget {budget_per_s * 3600:g}/h is not below a third of the"
-                f" sample rate ({rate_hz:g} Hz); give a rate such as 1/h"
-            )
-        self.testable = np.asarray(testable, bool)
-        self.isolable = residual_isolable(operator, self.testable)
-        # share of residual j's variance that sensor j's own noise makes (equal noise):
-        # a growth of sensor j's variance by K grows its residual's by 1 + (K - 1) w_j
-        weights = np.asarray(operator, float) ** 2
-        totals = weights.sum(axis=1)
-        self.own_share = np.where(
-            totals > 0, np.diag(weights) / np.where(totals > 0, totals, 1.0), 0.0
-        )
-        self.spread = spread
-        n = self.testable.size
-        self.scale = np.ones(n)
-        self.calibration_terms = 0
-        self.calibration_dof = 0.0
-        self.contamination = 0.0
-        self.threshold = math.nan
-        self.schedule = (np.zeros(1), np.full(1, math.nan))
-        self.bank: VarianceCusumBank | None = None
-        self.contrasts = HelmertContrasts(n, BUDGET_BLOCK)
-        self.level = np.zeros(n)
-        self.bounded = self._winsorizer(self.level)
-        # the calibrated noise, checked second by second on the data
-        self.check = ModelCheck(int(self.testable.sum()), round(self.rate_hz), VARIANCE_WARNING)
-
-    def _winsorizer(self, level: np.ndarray) -> Winsorizer:
-        return Winsorizer(
-            np.sqrt(self.scale), BUDGET_WINSOR, BUDGET_LEVEL_TAU_S * self.rate_hz, level
-        )
-
-    def fit(self, residuals: np.ndarray) -> None:
-        """Calibrate the contrasts' variances on the calibration window's residuals (N, n)
-        and set the threshold; start the bank."""
-        clip = self.design.clip
-        mean = clipped_square_moments(clip, 0.0)[0]
-        n = residuals.shape[1]
-
-        def scale_of(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            terms = HelmertContrasts(n, BUDGET_BLOCK).push(values)
-            terms = terms[~np.isnan(terms[:, 0])]
-            scale = robust_scale(terms, clip, mean)
-            if self.spread is not None:
-                scale = scale * self.spread
-            return np.where(self.testable & (scale > 0), scale, 1.0), terms
-
-        self.scale, _ = scale_of(residuals)  # the raw residuals' contrasts: sigma
-        self.level = residuals.mean(axis=0)
-        bounded = self._winsorizer(self.level)
-        self.scale, terms = scale_of(bounded.push(residuals))
-        z = terms[:, self.testable] / np.sqrt(self.scale[self.testable])
-        # outliers: samples far from their level beyond what a Gaussian puts there, each
-        # one term at the clip, or terms beyond the outlier level, whichever is more
-        per_term = bounded.outlier_share(self.testable) * BUDGET_BLOCK / (BUDGET_BLOCK - 1)
-        self.contamination = max(outlier_share(z), per_term)
-        self.calibration_terms = int(terms.shape[0])
-        self.calibration_dof = independent_scale_dof(self.calibration_terms, clip)
-        self.schedule = threshold_schedule(
-            self.design,
-            int(self.testable.sum()),
-            self.per_term,
-            self.calibration_dof,
-            self.contamination,
-        )
-        self.threshold = float(self.schedule[1][-1])  # once the variance is learnt
-        # with a healthy spread the scale is the top of the range: never learnt lower
-        floor = None if self.spread is None else np.where(self.spread > 1.0, 1.0, 0.25)
-        self.bank = VarianceCusumBank(
-            self.design,
-            self.schedule,
-            self.isolable,
-            self.rate_hz,
-            calibration_terms=self.calibration_dof,
-            floor=floor,
-        )
-        self.bounded = self._winsorizer(self.level)
-        self.contrasts = HelmertContrasts(n, BUDGET_BLOCK)
-        self.check = ModelCheck(int(self.testable.sum()), round(self.rate_hz), VARIANCE_WARNING)
-
-    def process(self, residuals: np.ndarray, factors: np.ndarray | None = None) -> DetectionBlock:
-        """Decisions on leave-one-out residuals (N, n), SI; ``factors`` (N,): the motion
-        variance factors ``1 + A_t`` of the jitter model (None: 1)."""
-        if self.bank is None:
-            raise CalibrationError("noise-glr: call fit() before process()")
-        z = self.contrasts.push(self.bounded.push(residuals)) / np.sqrt(self.scale)
-        if factors is not None:
-            z /= np.sqrt(factors)[:, None]
-        z[:, ~self.testable] = np.nan
-        self.check.push(np.square(z[:, self.testable]))
-        decisions = self.bank.process(z)
-        amplitude = decisions.amplitude
-        if self.spread is not None:  # back to the calibration window's variance
-            picked = np.where(decisions.isolated >= 0, decisions.isolated, 0)
-            amplitude = amplitude * np.sqrt(self.spread[picked])
-        scores = decisions.scores
-        scores[:, ~self.testable] = np.nan
-        return DetectionBlock(
-            statistic=decisions.statistic,
-            threshold=decisions.threshold,
-            alarm=decisions.alarm,
-            isolated=decisions.isolated,
-            amplitude=amplitude,
-            scores=scores,
-        )
-
-    def lorden_delay_s(self, sensor: int, factor: float) -> float:
-        """Seconds an optimal test needs, asymptotically, to detect sensor ``sensor``'s
-        noise standard deviation growing by ``factor`` (its residual's variance by
-        ``1 + (factor^2 - 1) w``) at this budget (Lorden 1971,
-        :func:`~imufdi_cli.maths.variance.lorden_variance_terms`)."""
-        ratio = 1.0 + (factor**2 - 1.0) * float(self.own_share[sensor])
-        hypotheses = int(self.testable.sum()) * len(self.design.ratios)
-        gamma = self.terms_per_s / max(self.budget_per_s, 1e-300)
-        return lorden_variance_terms(ratio, gamma, hypotheses) / self.terms_per_s
-
-    def metadata(self) -> dict[str, Any]:
-        """The budget, the threshold and what sets it (JSON-ready)."""
-        bank = self.bank
-        run_lengths = [
-            variance_run_length(ratio, self.design.clip, self.threshold) / self.terms_per_s
-            for ratio in self.design.ratios
-        ]
-        hypotheses = int(self.testable.sum()) * len(self.design.ratios)
-        return {
-            "false_alarms_per_hour": self.budget_per_s * 3600.0,
-            "threshold": self.threshold,
-            "design_variance_ratios": list(self.design.ratios),
-            "clip": self.design.clip,
-            "helmert_block": BUDGET_BLOCK,
-            "terms_per_s": self.terms_per_s,
-            "calibration_terms": self.calibration_terms,
-            "calibration_dof": self.calibration_dof,
-            "outlier_share": self.contamination,
-            "scale_tau_s": self.design.scale_tau_s,
-            # the threshold while the tracked variance learns: h from that many terms on
-            "threshold_schedule": {
-                "terms": self.schedule[0].tolist(),
-                "threshold": self.schedule[1].tolist(),
-            },
-            "hypotheses": hypotheses,
-            "run_length_s": run_lengths,
-            "isolable": self.isolable.tolist(),
-            # the optimal test's delay of a x3 noise growth on each sensor
-            "lorden_delay_x3_s": [
-                self.lorden_delay_s(j, 3.0) if self.testable[j] else None
-                for j in range(self.testable.size)
-            ],
-            "own_variance_share": self.own_share.tolist(),
-            "episodes": 0 if bank is None else bank.episodes,
-            "tracked_variance": [] if bank is None else bank.variance.tolist(),
-            "seconds_beyond_the_noise_model": self.check.flagged,
-            "seconds_checked": self.check.windows,
-        }
-
-
-def budget_warning(detector: str, sensor_type: str, budget: NoiseBudget) -> str | None:
-    """One line when, over a share of the processed log's seconds, most leave-one-out
-    residuals were clearly more variable than calibrated (:data:`VARIANCE_WARNING`,
-    :data:`WARNING_SHARE`), else None."""
-    check = budget.check
-    if check.flagged < max(2, WARNING_SHARE * check.windows):
-        return None
-    return (
-        f"{detector}: {sensor_type}: on {check.flagged} s of this log"
-        f" ({100 * check.share():.2g} %) most leave-one-out residuals were more than"
-        f" {VARIANCE_WARNING:g}x as variable as calibrated (up to {check.worst:.3g}x): motion"
-        " or sensor errors the residual model does not remove (e.g. scale factors and"
-        " sampling jitter in motion); the false-alarm budget does not hold there"
-    )
 
 
 class _TypeModel:

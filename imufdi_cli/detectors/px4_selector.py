@@ -54,6 +54,7 @@ from imufdi_cli.detectors.base import FALSE_ALARMS, DetectionBlock, Param
 from imufdi_cli.detectors.firmware_budget import (
     BUDGET_SHARE,
     Disagreement,
+    accumulate_excess,
     difference_noise,
     imu_noise,
     px4_scale,
@@ -68,29 +69,6 @@ from imufdi_cli.detectors.vectors import (
 )
 from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
-
-
-def accumulate_excess(excess: np.ndarray, start: np.ndarray) -> np.ndarray:
-    """``E_t = max(0, E_{t-1} + x_t)`` for every column, vectorised (Lindley's recursion).
-
-    With ``C_t = x_1 + ... + x_t``: ``E_t = C_t - min(-E_0, min_{s<=t} C_s)``.
-
-    Parameters
-    ----------
-    excess : ndarray, shape (N, m)
-        Increments x_t.
-    start : ndarray, shape (m,)
-        E_0 (>= 0).
-
-    Returns
-    -------
-    ndarray, shape (N, m)
-    """
-    if excess.shape[0] == 0:
-        return np.zeros_like(excess)
-    cumulative = np.cumsum(excess, axis=0)
-    floor = np.minimum(np.minimum.accumulate(cumulative, axis=0), -start[None, :])
-    return np.maximum(cumulative - floor, 0.0)
 
 
 def smooth_deviation(deviation: np.ndarray, start: np.ndarray, gain: float) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""maths.variance: run lengths, thresholds, Helmert contrasts, the winsorizer and the bank."""
+"""maths.variance and maths.contrasts: run lengths, thresholds, Helmert contrasts, the
+winsorizer and the bank."""
 
 from __future__ import annotations
 
@@ -8,12 +9,11 @@ import math
 import numpy as np
 import pytest
 
+from imufdi_cli.maths.contrasts import HelmertContrasts, Winsorizer
 from imufdi_cli.maths.sequential import NO_ISOLATION, NOT_ISOLABLE
 from imufdi_cli.maths.variance import (
-    HelmertContrasts,
     VarianceCusumBank,
     VarianceDesign,
-    Winsorizer,
     lorden_variance_terms,
     threshold_schedule,
     variance_false_alarm_rate,
