@@ -120,8 +120,8 @@ class NoiseBudget:
         self.per_term = BUDGET_SHARE * self.budget_per_s / self.terms_per_s
         if not 0.0 < self.per_term < 0.5:
             raise DetectorConfigError(
-                f"false-alarm budget {budget_per_s * 3600:g}/h is not below a third of the"
-                f" sample rate ({rate_hz:g} Hz); give a rate such as 1/h"
+                f"noise-glr: false-alarm budget {budget_per_s * 3600:g}/h is not below 3/4 of"
+                f" the sample rate ({rate_hz:g} Hz); give a rate such as 1/h"
             )
         self.testable = np.asarray(testable, bool)
         self.isolable = residual_isolable(operator, self.testable)

@@ -647,3 +647,10 @@ def test_a_budget_of_one_an_hour_holds_for_an_hour_on_each_preset(name):
             last[sensor_type] = bool(alarm[-1]) if alarm.size else last.get(sensor_type, False)
     assert counts and all(count <= 3 for count in counts.values()), counts
     assert det.calibration_warnings() == []
+
+
+def test_a_budget_beyond_the_sample_rate_is_refused_at_fit():
+    array, block = wearable12(104, factor=None, duration=3.0)
+    det = make({"false_alarms": "100/s"})
+    with pytest.raises(DetectorConfigError, match="not below 3/4 of the sample rate"):
+        run(det, array, block)
