@@ -109,6 +109,7 @@ STAGES = textwrap.dedent(
 
         fdtri(1.0, 50.0, 0.99)
         import imufdi_cli.detect as dt
+        import imufdi_cli.engine as en
         import imufdi_cli.episodes.builder as ep  # where EpisodeBuilder finds fit_models
         from imufdi_cli.detectors.glt import GltDetector
         acc = collections.Counter({"imports (numpy, imufdi, scipy.special)":
@@ -132,15 +133,15 @@ STAGES = textwrap.dedent(
             setattr(owner, name, timed)
 
         wrap(dt._DetectRun, "copy_batch", "copying the input (verbatim chunks, indexes)")
-        wrap(dt._DetectRun, "add_block", "conditioner (validity masks, sanitising)")
-        wrap(dt._DetectRun, "_fit", "calibration fits (conditioner, glt, builders)")
+        wrap(en.Engine, "add_block", "conditioner (validity masks, sanitising)")
+        wrap(en.Engine, "_fit", "calibration fits (conditioner, glt, builders)")
         wrap(GltDetector, "process", "glt process")
         wrap(dt, "status_records", "status and events: encode, queue, compress")
         wrap(dt, "_events", "status and events: encode, queue, compress")
         wrap(dt.McapWriter, "add_batch", "status and events: encode, queue, compress")
         wrap(ep, "fit_models", "episodes: fit_models")
         wrap(ep.EpisodeBuilder, "rows", "episodes: bookkeeping, residuals, reference")
-        wrap(dt._DetectRun, "_add_episodes", "episodes: to_dict and JSON event")
+        wrap(dt._DetectRun, "episodes", "episodes: to_dict and JSON event")
         wrap(dt._DetectRun, "finish", "finish (flush, metadata)")
         begin = time.process_time()
         result = dt.detect_file(src, dst, [("glt", {})])

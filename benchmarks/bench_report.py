@@ -1,6 +1,7 @@
 """Peak memory of ``imufdi report`` on a log and on a 10x longer one, same run.
 
 Usage: python benchmarks/bench_report.py [--minutes 10] [--imus 16] [--factor 10] [--no-imu]
+[--match-budget 1/h]
 
 Writes two annotated logs shaped like ``imufdi detect -d glt`` output on a 16-IMU, 100 Hz
 array (the IMU channels, per-sample FdiStatus channels for gyro and accel with 48 isolation
@@ -97,7 +98,7 @@ def write_step_truth_and_detect(writer: McapWriter, onset_s: float) -> None:
     writer.add_metadata("imufdi.detect.glt", {"json": json.dumps(detect)})
 
 
-def peak_rss_report(path: Path, out: Path) -> tuple[int, float]:
+def peak_rss_report(path: Path, out: Path, extra: list[str] | None = None) -> tuple[int, float]:
     """Peak RSS (kB) and wall time of a fresh process running the report.
 
     The peak is VmHWM from /proc/self/status where there is one: ru_maxrss survives
@@ -107,7 +108,8 @@ def peak_rss_report(path: Path, out: Path) -> tuple[int, float]:
         "import resource, sys\n"
         "from imufdi_cli.cli import main\n"
         "try:\n"
-        "    main(['report', sys.argv[1], '--match-far', '1%', '--json', sys.argv[2]])\n"
+        "    main(['report', sys.argv[1], '--match-far', '1%', '--json', sys.argv[2],"
+        " *sys.argv[3:]])\n"
         "except SystemExit as exc:\n"
         "    assert not exc.code, exc.code\n"
         "peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
@@ -120,7 +122,7 @@ def peak_rss_report(path: Path, out: Path) -> tuple[int, float]:
     )
     t0 = time.perf_counter()
     done = subprocess.run(
-        [sys.executable, "-c", code, str(path), str(out)],
+        [sys.executable, "-c", code, str(path), str(out), *(extra or [])],
         check=True,
         capture_output=True,
         text=True,
@@ -134,7 +136,13 @@ def main() -> None:
     parser.add_argument("--imus", type=int, default=16)
     parser.add_argument("--factor", type=int, default=10, help="long log = factor x short")
     parser.add_argument("--no-imu", action="store_true", help="status channels only")
+    parser.add_argument(
+        "--match-budget",
+        metavar="RATE",
+        help="also report --match-budget RATE (the false episodes at every budget level)",
+    )
     args = parser.parse_args()
+    extra = ["--match-budget", args.match_budget] if args.match_budget else []
     n_short = int(args.minutes * 60 * RATE_HZ)
     with tempfile.TemporaryDirectory() as tmp:
         rss = {}
@@ -143,7 +151,7 @@ def main() -> None:
             t0 = time.perf_counter()
             make_log(path, args.imus, n, not args.no_imu)
             made = time.perf_counter() - t0
-            peak, wall = peak_rss_report(path, Path(tmp) / f"{label}.json")
+            peak, wall = peak_rss_report(path, Path(tmp) / f"{label}.json", extra)
             rss[label] = peak
             size = path.stat().st_size / 1e6
             print(

@@ -31,6 +31,7 @@ QUICK: dict[str, list[str]] = {
     "report": ["--minutes", "1"],
     "events": ["--events", "5000"],
     "woa": ["--duration", "10"],
+    "calibrate": ["--factor", "3", "--repeat", "1"],
     "mcap_package": ["--seconds", "10", "--long-minutes", "2"],
     "fclog": ["--seconds", "10", "--repeat", "1"],
     "checksum": ["--frames", "2000", "--repeat", "2"],

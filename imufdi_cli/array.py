@@ -55,7 +55,9 @@ def _check_rotation(matrix: np.ndarray, where: str) -> np.ndarray:
     matrix = np.asarray(matrix, dtype=float)
     if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)):
         raise ArrayConfigError(f"{where}: rotation must be a finite 3x3 matrix")
-    if not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-6) or np.linalg.det(matrix) < 0:
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e308 entries: not a rotation
+        proper = np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-6)
+    if not proper or np.linalg.det(matrix) < 0:
         raise ArrayConfigError(
             f"{where}: rotation is not a proper rotation matrix (R R^T = I, det R = +1)"
         )
@@ -124,7 +126,7 @@ def _check_calibration(matrix: Any, bias: Any, where: str, unit: str) -> TriadCa
             else bias,
             dtype=float,
         )
-    except (TypeError, ValueError, UnitError) as err:
+    except (TypeError, ValueError, OverflowError, UnitError) as err:
         raise ArrayConfigError(f"{where}: calibration must be numbers ({err})") from err
     if m.shape != (3, 3):
         raise ArrayConfigError(f"{where}: matrix must be 3x3, got shape {m.shape}")
@@ -155,7 +157,7 @@ def _check_noise(value: Any, where: str, sensor_type: str) -> np.ndarray:
             ],
             dtype=float,
         )
-    except (TypeError, ValueError, UnitError) as err:
+    except (TypeError, ValueError, OverflowError, UnitError) as err:
         raise ArrayConfigError(f"{where}: noise must be numbers ({err})") from err
     if not (np.all(np.isfinite(out)) and np.all(out > 0)):
         raise ArrayConfigError(f"{where}: noise sigmas must be positive and finite")
@@ -166,7 +168,7 @@ def _check_spread(value: Any, where: str) -> np.ndarray:
     """A per-axis noise-variance spread ``[x, y, z]``, each >= 1 and finite."""
     try:
         out = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError, OverflowError) as err:
         raise ArrayConfigError(f"{where}: must be [x, y, z] numbers ({err})") from err
     if out.shape != (3,):
         raise ArrayConfigError(f"{where}: must be [x, y, z] variance factors")
@@ -531,7 +533,7 @@ class ArrayConfig:
             if "rate" in data:
                 rate = parse_quantity(data["rate"], "frequency", name=f"{source}: rate")
             else:
-                rate = float(data.get("rate_hz", 100.0))
+                rate = _number(data.get("rate_hz", 100.0), f"{source}: rate_hz", "100")
             noise = _per_type_quantities(data, "noise", "{gyro = '0.1deg/s'}", source)
             ranges = _per_type_quantities(
                 data, "range", "{gyro = '2000deg/s', accel = '16g'}", source
@@ -578,7 +580,7 @@ class ArrayConfig:
                 else:
                     rotation = np.asarray(item.get("rotation", np.eye(3)), dtype=float)
                 position = np.asarray(item.get("position", [0.0, 0.0, 0.0]), dtype=float)
-            except (TypeError, ValueError) as err:
+            except (TypeError, ValueError, OverflowError) as err:
                 raise ArrayConfigError(f"{where}: rotation/position must be numbers") from err
             if position.shape != (3,) or not np.all(np.isfinite(position)):
                 raise ArrayConfigError(f"{where}: position must be [x, y, z] in metres")
@@ -622,11 +624,9 @@ class ArrayConfig:
 
     @classmethod
     def from_json(cls, text: str | bytes, *, source: str = "imufdi.array metadata") -> ArrayConfig:
-        try:
-            data = json.loads(text)
-        except (ValueError, TypeError) as err:
-            raise ArrayConfigError(f"{source}: not valid JSON ({err})") from err
-        return cls.from_dict(data, source=source)
+        from imufdi_cli.jsonin import loads
+
+        return cls.from_dict(loads(text, source, ArrayConfigError), source=source)
 
     def to_toml(self) -> str:
         """The TOML form users edit (SI numbers)."""
@@ -708,11 +708,25 @@ class ArrayConfig:
         )
 
 
+def _number(value: Any, where: str, example: str) -> float:
+    """A plain number from a TOML/JSON value (ArrayConfigError naming it otherwise)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ArrayConfigError(
+            f"{where} must be a number (e.g. {example}), got {value!r}"
+            if not isinstance(value, (list, dict))
+            else f"{where} must be a number (e.g. {example}), got a {type(value).__name__}"
+        )
+    try:
+        return float(value)
+    except OverflowError as err:
+        raise ArrayConfigError(f"{where} is too large") from err
+
+
 def _check_jitter(value: Any, where: str) -> float:
     """A sampling-time jitter sigma in seconds: finite and >= 0."""
     try:
         out = float(value)
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError, OverflowError) as err:
         raise ArrayConfigError(f"{where}: must be a time in seconds") from err
     if not (math.isfinite(out) and out >= 0):
         raise ArrayConfigError(f"{where}: must be finite and >= 0 seconds, got {value!r}")

@@ -2,9 +2,12 @@
 
 Every file the CLI writes goes through this module:
 
-- :func:`check_outputs` refuses an output that is one of the command's inputs (the same
-  file, compared by device and inode, so symlinks and hard links are caught too) and two
-  outputs of one command that are the same file;
+- :func:`check_outputs` decides whether a command may write its outputs: it refuses an
+  output that is one of the command's inputs (the same file, compared by device and
+  inode, so symlinks and hard links are caught too; derived outputs such as the figure
+  ``report --roc FILE --plot`` writes beside FILE included), an output or stdout open on
+  the file stdin reads, stdout open on an input, two outputs of one command that are the
+  same file, and an empty output name;
 - :func:`atomic_path` / :func:`open_atomic` / :func:`create_temp` write a temporary file
   ``.NAME.PID.RANDOM.tmp`` beside the target and rename it into place only when the whole
   output, including its final flush and close, succeeded. On any failure (an exception,
@@ -255,39 +258,107 @@ def _bag_files(path: Path) -> list[str]:
         return []
 
 
+def derived_output(path: str | Path, suffix: str) -> str:
+    """The output a command derives from another output ``path``: its name with the
+    extension replaced by ``suffix`` (``report --roc roc.csv --plot`` also writes
+    ``roc.png``). Commands pass it to :func:`check_outputs` like any named output."""
+    return os.path.splitext(str(path))[0] + suffix
+
+
+def _fd_name(fd: int) -> str:
+    """The path of the file open on ``fd`` (Linux /proc), else ``fd N``."""
+    try:
+        return os.readlink(f"/proc/self/fd/{fd}")
+    except OSError:
+        return f"fd {fd}"
+
+
+def stream_file(stream: object) -> tuple[tuple[int, int], str] | None:
+    """``((st_dev, st_ino), path)`` of the regular file a standard stream is open on
+    (``< file``, ``> file``, ``>> file``, ``1<> file``); None for a pipe, a terminal, a
+    device such as /dev/null, or a stream without a file descriptor (a test's buffer)."""
+    try:
+        fd = stream.fileno()  # type: ignore[attr-defined]
+        info = os.fstat(fd)
+    except (AttributeError, OSError, ValueError):
+        return None
+    if not stat.S_ISREG(info.st_mode):
+        return None
+    return (info.st_dev, info.st_ino), _fd_name(fd)
+
+
+def _identity(path: str | Path) -> tuple[int, int] | None:
+    try:
+        info = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return info.st_dev, info.st_ino
+
+
 def check_outputs(
     inputs: Iterable[str | Path | None],
     outputs: Sequence[tuple[str, str | Path | None]],
+    *,
+    streams: bool = True,
 ) -> None:
-    """Refuse outputs that would modify an input or overwrite another output.
+    """Decide whether a command may write its outputs: the one check every command makes
+    before it reads or writes anything.
+
+    Refused (UsageError, exit 2, naming the option, the output and the input):
+
+    - an output that is one of the inputs, by path, symlink or hard link (device and
+      inode), including the outputs a command derives from others
+      (:func:`derived_output`);
+    - with ``streams``: an output, or stdout, that is the file an input read from stdin
+      (``-``) is open on (``imufdi inject - -o a.mcap < a.mcap``); stdout open on an input
+      (``1<> a.mcap``, ``>> a.mcap``), whether or not the command would write to it; an
+      output that is the file stdout is open on;
+    - two outputs that are the same file (``/dev/null`` twice is fine), or more than one
+      output on stdout (``-``);
+    - an empty output name (``-o ''``).
 
     Parameters
     ----------
     inputs : iterable of path or None
-        Every file the command reads (``-`` and None are skipped); a rosbag2 directory (or
-        its ``metadata.yaml``) stands for every file in it.
+        Every file the command reads (None is skipped; ``-`` is stdin); a rosbag2
+        directory (or its ``metadata.yaml``) stands for every file in it.
     outputs : sequence of (label, path or None)
         Every file the command writes with the option that names it, e.g.
-        ``("--json", "report.json")`` (``-`` and None are skipped).
+        ``("--json", "report.json")`` (None is skipped; ``-`` is stdout).
+    streams : bool
+        Also compare the files stdin and stdout are open on (default).
 
     Raises
     ------
     UsageError
         Naming the option, the output and the input (or the other output).
     """
+    given = [(label, p) for label, p in outputs if p is not None]
+    for label, p in given:
+        if str(p) == "":
+            raise UsageError(f"{label} '' is an empty file name; give a file name, or - for stdout")
+    to_stdout = [label for label, p in given if str(p) == "-"]
+    if len(to_stdout) > 1:
+        raise UsageError(
+            f"{' - and '.join(to_stdout)} -: only one output can go to stdout;"
+            " give the others a file"
+        )
+    sources = [str(p) for p in inputs if p is not None]
     files: list[str] = []
-    for p in inputs:
-        if p is None or str(p) == "-":
+    for source in sources:
+        if source == "-":
             continue
-        files.append(str(p))
-        files += _bag_files(Path(p))
-    named = [(label, str(p)) for label, p in outputs if p is not None and str(p) != "-"]
+        files.append(source)
+        files += _bag_files(Path(source))
+    named = [(label, str(p)) for label, p in given if str(p) != "-"]
     for label, out in named:
         for source in files:
             if same_file(out, source):
                 raise UsageError(
                     f"{label} {out} is the input file {source}; inputs are never modified"
                 )
+    if streams:
+        _check_streams(files, named, reads_stdin="-" in sources)
     regular = [
         (label, out) for label, out in named if not is_special(out)
     ]  # /dev/null twice is fine
@@ -298,6 +369,38 @@ def check_outputs(
                     f"{label} {out} and {other_label} {other} are the same file;"
                     " give each output its own path"
                 )
+
+
+def _check_streams(files: list[str], named: list[tuple[str, str]], *, reads_stdin: bool) -> None:
+    """:func:`check_outputs`' part on the files stdin and stdout are open on."""
+    stdin = stream_file(sys.stdin) if reads_stdin else None
+    stdout = stream_file(sys.stdout)
+    if stdin is not None:
+        for label, out in named:
+            if _identity(out) == stdin[0]:
+                raise UsageError(
+                    f"{label} {out} is the file stdin reads ({stdin[1]}), an input;"
+                    " inputs are never modified"
+                )
+    if stdout is None:
+        return
+    if stdin is not None and stdin[0] == stdout[0]:
+        raise UsageError(
+            f"stdout is open on {stdout[1]}, the file stdin reads (an input); inputs are"
+            " never modified: send stdout to another file"
+        )
+    for source in files:
+        if _identity(source) == stdout[0]:
+            raise UsageError(
+                f"stdout is open on the input file {source}; inputs are never modified:"
+                " send stdout to another file"
+            )
+    for label, out in named:
+        if _identity(out) == stdout[0]:
+            raise UsageError(
+                f"{label} {out} is the file stdout is open on; give {label} another file,"
+                " or - to write it to stdout"
+            )
 
 
 def check_output(source: str | None, output: str, *, label: str = "output") -> None:

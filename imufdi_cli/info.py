@@ -9,7 +9,6 @@ info`` compiles neither the pipeline nor the detectors (start-up time).
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from typing import Any
 
@@ -48,35 +47,28 @@ def log_info(
             f"the array config gives {nominal:g} Hz but the stamps give {measured:.6g} Hz"
         )
     metadata = summary.metadata
+    from imufdi_cli.metadata import detect_records  # records checked against their schemas
+
     if "imufdi.faults" in metadata:
         from imufdi_cli.report.truth import truth_windows
 
         truth = truth_windows(metadata)
         data["faults"] = truth.descriptions if truth else []
     detectors = {}
-    for name, record in metadata.items():
-        if name.startswith("imufdi.detect."):
-            try:
-                content = json.loads(record.get("json", "{}"))
-            except ValueError:
-                content = {}
-            meta = content.get("detector_metadata", {})
-            detectors[name.removeprefix("imufdi.detect.")] = {
-                "params": meta.get("params", meta),
-                "calibration_s": content.get("calibration_s"),
-                **_validity_counts(content.get("validity")),
-            }
+    for name, content in detect_records(metadata).items():
+        meta = content.get("detector_metadata", {})
+        detectors[name] = {
+            "params": meta.get("params", meta),
+            "calibration_s": content.get("calibration_s"),
+            **_validity_counts(content.get("validity")),
+        }
     if detectors:
         data["detectors"] = detectors
-    if "imufdi.ingest" in metadata:
-        try:
-            ingest_record = json.loads(metadata["imufdi.ingest"].get("json", "{}"))
-        except ValueError:
-            ingest_record = {}
-        if isinstance(ingest_record, dict) and isinstance(ingest_record.get("validity"), dict):
-            data["validity"] = ingest_record["validity"]
-        if isinstance(ingest_record, dict):
-            _flight_log(ingest_record, data)
+    ingest_record = summary.ingest_record  # checked against its schema (a warning if not)
+    if ingest_record is not None and isinstance(ingest_record.get("validity"), dict):
+        data["validity"] = ingest_record["validity"]
+    if ingest_record is not None:
+        _flight_log(ingest_record, data)
     return data
 
 

@@ -29,12 +29,17 @@ class ImuBlock:
         Specific force, m/s^2, IMU frames.
     mag : ndarray, shape (N, m, 3), float64, or None
         Magnetic field, tesla, IMU frames.
+    missing : ndarray, shape (N, m), bool, or None
+        IMU k had no sample at row i (a topic that stopped or slowed while the others
+        went on): its gyro and accel values there are NaN. None: every IMU has every
+        sample.
     """
 
     t_ns: np.ndarray
     gyro: np.ndarray | None = None
     accel: np.ndarray | None = None
     mag: np.ndarray | None = None
+    missing: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.t_ns = np.asarray(self.t_ns, dtype=np.int64)
@@ -48,6 +53,14 @@ class ImuBlock:
                         f"ImuBlock.{name} must have shape (N, m, 3), got {value.shape}"
                     )
                 setattr(self, name, value)
+        if self.missing is not None:
+            self.missing = np.asarray(self.missing, dtype=bool)
+            if self.missing.ndim != 2 or self.missing.shape[0] != n:
+                raise ValueError(
+                    f"ImuBlock.missing must have shape (N, m), got {self.missing.shape}"
+                )
+            if not self.missing.any():
+                self.missing = None
 
     def __len__(self) -> int:
         return int(self.t_ns.shape[0])
@@ -78,6 +91,7 @@ class ImuBlock:
             gyro=None if self.gyro is None else self.gyro[start:stop],
             accel=None if self.accel is None else self.accel[start:stop],
             mag=None if self.mag is None else self.mag[start:stop],
+            missing=None if self.missing is None else self.missing[start:stop],
         )
 
     def mask(self, keep: np.ndarray) -> ImuBlock:
@@ -87,6 +101,7 @@ class ImuBlock:
             gyro=None if self.gyro is None else self.gyro[keep],
             accel=None if self.accel is None else self.accel[keep],
             mag=None if self.mag is None else self.mag[keep],
+            missing=None if self.missing is None else self.missing[keep],
         )
 
     def copy(self) -> ImuBlock:
@@ -96,6 +111,7 @@ class ImuBlock:
             gyro=None if self.gyro is None else self.gyro.copy(),
             accel=None if self.accel is None else self.accel.copy(),
             mag=None if self.mag is None else self.mag.copy(),
+            missing=None if self.missing is None else self.missing.copy(),
         )
 
     @classmethod
@@ -113,7 +129,13 @@ class ImuBlock:
                 raise ValueError(f"cannot concatenate blocks with and without {name}")
             else:
                 fields[name] = np.concatenate(values, axis=0)  # type: ignore[arg-type]
-        return cls(t_ns=np.concatenate([b.t_ns for b in blocks]), **fields)
+        missing = None
+        if any(b.missing is not None for b in blocks):
+            m = next(b.missing.shape[1] for b in blocks if b.missing is not None)
+            missing = np.concatenate(
+                [np.zeros((len(b), m), bool) if b.missing is None else b.missing for b in blocks]
+            )
+        return cls(t_ns=np.concatenate([b.t_ns for b in blocks]), missing=missing, **fields)
 
 
 def iter_blocks(block: ImuBlock, block_size: int) -> Iterator[ImuBlock]:

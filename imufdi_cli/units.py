@@ -153,7 +153,10 @@ def parse_quantity(text: str | float | int, dimension: str, *, name: str = "valu
     if dimension not in DIMENSIONS:
         raise ValueError(f"unknown dimension {dimension!r}")
     if isinstance(text, (int, float)) and not isinstance(text, bool):
-        value = float(text)
+        try:
+            value = float(text)
+        except OverflowError as err:  # an integer beyond any float (TOML and JSON allow them)
+            raise UnitError(f"{name}: {str(text)[:20]}... is not a finite number") from err
         if not math.isfinite(value):
             raise UnitError(f"{name}: {text!r} is not a finite number")
         return value
@@ -165,6 +168,8 @@ def parse_quantity(text: str | float | int, dimension: str, *, name: str = "valu
     value = float(match.group(1))
     unit = _ascii_unit(match.group(2))
     if not unit:
+        if not math.isfinite(value):
+            raise UnitError(f"{name}: {text!r} is not a finite number")
         return value
     if unit.startswith("/"):  # "1/h", "5/min": a count per unit of time
         unit = "1" + unit
@@ -181,6 +186,8 @@ def parse_quantity(text: str | float | int, dimension: str, *, name: str = "valu
         raise UnitError(
             f"{name}: {text!r} is not {article} {label} (e.g. {example(dimension)}){hint}"
         )
+    if not math.isfinite(value * factor):  # "1e400deg/s"
+        raise UnitError(f"{name}: {text!r} is not a finite number")
     return value * factor
 
 

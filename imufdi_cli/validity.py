@@ -28,10 +28,20 @@ and the detectors of ``imufdi detect``:
    every sensor gets the last consensus, so nothing alarms on a sample that cannot be
    tested.
 
-Every row with a flagged sensor is counted (``clipped``, ``invalid``, ``held`` rows) and
-listed in time intervals (``clipped_ns``, ``invalid_ns``) in the detector's
-``imufdi.detect.<name>`` metadata;
-``imufdi report`` leaves those rows out of every metric and shows the counts.
+4. **Missing IMUs.** A sample where some IMUs have no message (a topic that stopped or
+   slowed while the others went on; the reader's ``missing`` mask, values NaN) is
+   treated like a flagged one: the missing sensors are replaced by the consensus of the
+   others, so every detector goes on testing the remaining IMUs with the reduced
+   redundancy (the n-1 residuals against the n-sensor threshold: no extra alarms), and a
+   fault on the remaining IMUs is still seen. These rows are *tested*, so they are
+   counted apart (``missing`` rows, ``missing_ns`` runs), not as invalid.
+
+Every row with a flagged sensor is counted (``clipped``, ``invalid``, ``held``,
+``missing`` rows) and listed in time intervals (``clipped_ns``, ``invalid_ns``,
+``held_ns``, ``missing_ns``) in the detector's ``imufdi.detect.<name>`` metadata;
+``imufdi report`` leaves the clipped, invalid and held rows out of every metric (the
+rows with a missing IMU were tested on the others: they are scored) and shows the
+counts.
 
 Why replacement rather than a mask passed to detectors: every detector (parity, PCA,
 bank, MVMD, CNN) works unchanged, streaming state (moving means, filters) sees a
@@ -40,9 +50,10 @@ continuous and consistent signal, and no detector internals change.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+from weakref import WeakKeyDictionary
 
 import numpy as np
 
@@ -115,10 +126,13 @@ class TypeValidity:
     clipped_rows: int = 0  # rows with at least one clipped sensor
     invalid_rows: int = 0  # rows with at least one invalid sensor
     held_rows: int = 0  # rows without 3 valid dimensions: every sensor held
+    missing_rows: int = 0  # rows where some IMU had no sample (tested on the others)
     clipped_values: int = 0
     invalid_values: int = 0
     clipped_runs: Runs = field(default_factory=Runs)
     invalid_runs: Runs = field(default_factory=Runs)
+    held_runs: Runs = field(default_factory=Runs)
+    missing_runs: Runs = field(default_factory=Runs)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -126,10 +140,13 @@ class TypeValidity:
             "clipped": self.clipped_rows,
             "invalid": self.invalid_rows,
             "held": self.held_rows,
+            "missing": self.missing_rows,
             "clipped_values": self.clipped_values,
             "invalid_values": self.invalid_values,
             "clipped_ns": self.clipped_runs.intervals,
             "invalid_ns": self.invalid_runs.intervals,
+            "held_ns": self.held_runs.intervals,
+            "missing_ns": self.missing_runs.intervals,
         }
 
 
@@ -154,6 +171,8 @@ class Conditioner:
             for a, b in zip(log_array.imus, self.array.imus)
             for s in SENSOR_TYPES
         )
+        #: per sensor type: whether the log's values are the raw chip values (no calibration)
+        self._raw = _uncalibrated(log_array)
         self.offsets: dict[str, np.ndarray] = {}
         self.last_rate: dict[str, np.ndarray] = {}
         self._designs: dict[str, np.ndarray] = {}
@@ -176,11 +195,16 @@ class Conditioner:
             fields[s] = triads
             if triads is None:
                 continue
-            raw = self.log_array.calibrate_triads(triads, s, undo=True)
-            flags[s] = flag_values(raw, s, self.ranges.get(s))
+            # the log's values are the raw chip values when it records no chip calibration
+            raw = triads if self._raw[s] else self.log_array.calibrate_triads(triads, s, undo=True)
+            if _none_flagged(raw, s, self.ranges.get(s)):  # two reductions, no masks to build
+                quiet = np.zeros(raw.shape, dtype=bool)
+                flags[s] = (quiet, quiet)
+            else:
+                flags[s] = flag_values(raw, s, self.ranges.get(s))
             if self.recalibrate:
                 fields[s] = self.array.calibrate_triads(raw, s)
-        return ImuBlock(t_ns=block.t_ns, **fields), flags
+        return ImuBlock(t_ns=block.t_ns, missing=block.missing, **fields), flags
 
     # --- 3: exclusion -----------------------------------------------------------------
 
@@ -195,9 +219,9 @@ class Conditioner:
             good = ~bad.any(axis=1)
             h = self._design(s)
             offsets = np.zeros(h.shape[0])
-            if good.any() and np.linalg.matrix_rank(h) == h.shape[1]:
+            if good.any() and _full_rank(self.array, s):
                 yg = y[good]
-                residual = yg - yg @ np.linalg.pinv(h).T @ h.T
+                residual = yg - yg @ _designs(self.array)[s][1].T @ h.T
                 offsets = residual.mean(axis=0)
             self.offsets[s] = offsets
 
@@ -216,6 +240,7 @@ class Conditioner:
                 continue
             clipped, invalid = (self.array.select(f, s) for f in flags[s])
             bad = clipped | invalid
+            absent = self._absent(block, s)  # (N, n_s): a missing IMU's sensors
             held = np.zeros(len(block), dtype=bool)
             rows = np.flatnonzero(bad.any(axis=1))
             if rows.size or np.any(flags[s][1]):
@@ -230,25 +255,34 @@ class Conditioner:
             self._track_consensus(s, fields[s], bad)
             if count:
                 c = self.counts[s]
+                invalid = invalid & ~absent  # a missing sample is not an invalid one
+                missing_rows = absent.any(axis=1)
                 c.rows += len(block)
                 c.clipped_rows += int(np.count_nonzero(clipped.any(axis=1)))
                 c.invalid_rows += int(np.count_nonzero(invalid.any(axis=1)))
                 c.held_rows += int(np.count_nonzero(held))
+                c.missing_rows += int(np.count_nonzero(missing_rows))
                 c.clipped_values += int(np.count_nonzero(clipped))
                 c.invalid_values += int(np.count_nonzero(invalid))
                 c.clipped_runs.add(block.t_ns, np.asarray(clipped.any(axis=1)))
                 c.invalid_runs.add(block.t_ns, np.asarray(invalid.any(axis=1)))
-        return ImuBlock(t_ns=block.t_ns, **fields)
+                c.held_runs.add(block.t_ns, np.asarray(held))
+                c.missing_runs.add(block.t_ns, np.asarray(missing_rows))
+        return ImuBlock(t_ns=block.t_ns, missing=block.missing, **fields)
+
+    def _absent(self, block: ImuBlock, s: str) -> np.ndarray:
+        """(N, n_s) bool: the sensors of type ``s`` whose IMU has no sample at the row."""
+        imu_idx, _ = self.array.sensor_index(s)
+        if block.missing is None or s == "mag":  # a missing magnetometer reads as invalid
+            return np.zeros((len(block), imu_idx.size), dtype=bool)
+        return block.missing[:, imu_idx]
 
     def _design(self, s: str) -> np.ndarray:
         """Consensus model of a type: H, or for accelerometers of IMUs at different
         positions the rigid-body design [H | lever-arm columns] (maths/rigid.py), so a
         replaced sample carries no lever-arm residual either."""
         if s not in self._designs:
-            from imufdi_cli.maths.rigid import accel_design
-
-            h = accel_design(self.array) if s == "accel" else self.array.measurement_matrix(s)
-            self._designs[s] = h
+            self._designs[s] = _designs(self.array)[s][0]
         return self._designs[s]
 
     def _bad(self, flags: Mapping[str, tuple[np.ndarray, np.ndarray]], s: str) -> np.ndarray:
@@ -295,7 +329,7 @@ class Conditioner:
             h = self._design(s)
             beta = self.offsets.get(s, np.zeros(h.shape[0]))
             y = self.array.select(triads[good[-1:]], s)[0]
-            self.last_rate[s] = np.linalg.pinv(h) @ (y - beta)
+            self.last_rate[s] = _designs(self.array)[s][1] @ (y - beta)
 
     def metadata(self) -> dict[str, Any]:
         """JSON-ready record: limits and counts per sensor type."""
@@ -306,6 +340,59 @@ class Conditioner:
             "range": dict(self.ranges),
             "types": {s: c.to_dict() for s, c in self.counts.items()},
         }
+
+
+#: per array (the same object for every run of a campaign base): its consensus designs and
+#: their pseudo-inverses, and which types carry no chip calibration
+_DESIGNS: WeakKeyDictionary[ArrayConfig, _LazyDesigns] = WeakKeyDictionary()
+_UNCALIBRATED: WeakKeyDictionary[ArrayConfig, dict[str, bool]] = WeakKeyDictionary()
+
+
+def _designs(array: ArrayConfig) -> _LazyDesigns:
+    """Per sensor type of ``array`` asked for so far: the consensus model H (for
+    accelerometers of IMUs at different positions the rigid-body design, maths/rigid.py),
+    its pseudo-inverse and whether it has full column rank, computed
+    once per array."""
+    found = _DESIGNS.get(array)
+    if found is None:
+        found = _DESIGNS[array] = _LazyDesigns(array)
+    return found
+
+
+class _LazyDesigns(dict[str, tuple[np.ndarray, np.ndarray, bool]]):
+    """The designs of one array, each made when first asked for."""
+
+    def __init__(self, array: ArrayConfig) -> None:
+        super().__init__()
+        self.array = array
+
+    def __missing__(self, s: str) -> tuple[np.ndarray, np.ndarray, bool]:
+        from imufdi_cli.maths.rigid import accel_design
+
+        h = accel_design(self.array) if s == "accel" else self.array.measurement_matrix(s)
+        self[s] = (h, np.linalg.pinv(h), bool(np.linalg.matrix_rank(h) == h.shape[1]))
+        return self[s]
+
+
+def _full_rank(array: ArrayConfig, s: str) -> bool:
+    """Whether the consensus model of type ``s`` has full column rank."""
+    return _designs(array)[s][2]
+
+
+def _uncalibrated(array: ArrayConfig) -> dict[str, bool]:
+    """Per sensor type: whether no IMU of ``array`` has a chip calibration other than the
+    identity (its values are then the raw chip values)."""
+    found = _UNCALIBRATED.get(array)
+    if found is None:
+        found = {
+            s: all(
+                imu.calibration.get(s) is None or imu.calibration_of(s).is_identity
+                for imu in array.imus
+            )
+            for s in SENSOR_TYPES
+        }
+        _UNCALIBRATED[array] = found
+    return found
 
 
 def _none_flagged(raw: np.ndarray, sensor_type: str, full_scale: float | None) -> bool:
@@ -360,6 +447,49 @@ def _same(a: Any, b: Any) -> bool:
     return bool(np.array_equal(a.matrix, b.matrix) and np.array_equal(a.bias, b.bias))
 
 
+#: The calibration window must keep at least this share of its samples with every IMU.
+MIN_COMPLETE_CALIBRATION = 0.5
+
+
+def complete_rows(
+    block: ImuBlock,
+    flags: Mapping[str, tuple[np.ndarray, np.ndarray]],
+    topics: Sequence[str],
+    window: tuple[float, float | None],
+) -> tuple[ImuBlock, dict[str, tuple[np.ndarray, np.ndarray]], str]:
+    """The samples of a calibration window (``block``, its ``flags``) where every IMU has
+    one, and a warning saying how many were left out. Calibrating on a missing IMU's
+    stand-in (the consensus of the others, noise-free) would teach the detectors a noise
+    of zero for it, and they would alarm once it is back.
+
+    Raises
+    ------
+    CalibrationError
+        Fewer than :data:`MIN_COMPLETE_CALIBRATION` of the window's samples complete
+        (``window``: its start and end, s, for the message), exit 3.
+    """
+    from imufdi_cli.errors import CalibrationError
+
+    assert block.missing is not None
+    complete = np.asarray(~block.missing.any(axis=1))
+    absent = [topics[int(k)] for k in np.flatnonzero(block.missing.any(axis=0)) if k < len(topics)]
+    shown = ", ".join(absent[:3]) + (f" and {len(absent) - 3} more" if len(absent) > 3 else "")
+    n_complete, n = int(np.count_nonzero(complete)), len(block)
+    if n_complete < MIN_COMPLETE_CALIBRATION * n:
+        end = "" if window[1] is None else f"{window[1]:g}s"
+        raise CalibrationError(
+            f"calibration window {window[0]:g}s:{end} has an IMU missing in {n - n_complete} of its {n}"
+            f" samples ({shown}); choose a window where every IMU publishes with"
+            " --calibrate START:END"
+        )
+    note = (
+        f"calibration window: {n - n_complete} of its {n} samples have an IMU missing"
+        f" ({shown}); the detectors are calibrated on the {n_complete} complete ones"
+    )
+    kept = {s: (c[complete], i[complete]) for s, (c, i) in flags.items()}
+    return block.mask(complete), kept, note
+
+
 # --- report side -----------------------------------------------------------------------
 
 
@@ -371,6 +501,7 @@ class Selection:
     clipped: int = 0  # rows with a clipped sensor, in the window
     invalid: int = 0  # rows with an invalid sensor, in the window
     excluded: int = 0  # rows not scored for validity (inside the time window)
+    missing: int = 0  # rows tested with some IMU missing (scored), in the window
 
 
 def select_rows(
@@ -417,12 +548,15 @@ def select_rows(
         return Selection(keep=keep)
     clipped = _in_runs(t_ns, counts.get("clipped_ns", []))
     invalid = _in_runs(t_ns, counts.get("invalid_ns", []))
-    flagged = clipped | invalid
+    held = _in_runs(t_ns, counts.get("held_ns", []))  # not tested: no consensus
+    missing = _in_runs(t_ns, counts.get("missing_ns", [])) & ~held
+    flagged = clipped | invalid | held
     return Selection(
         keep=keep & ~flagged,
         clipped=int(np.count_nonzero(clipped & keep)),
         invalid=int(np.count_nonzero(invalid & keep)),
         excluded=int(np.count_nonzero(flagged & keep)),
+        missing=int(np.count_nonzero(missing & keep & ~flagged)),
     )
 
 

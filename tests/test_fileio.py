@@ -200,3 +200,51 @@ def test_the_files_of_a_bag_directory_are_inputs(tmp_path, given):
         with pytest.raises(UsageError, match="is the input file"):
             check_outputs([source], [("-o", bag / existing)])
     check_outputs([source], [("-o", bag / "new.mcap"), ("--json", tmp_path / "r.json")])
+
+
+def test_stream_file_is_the_regular_file_a_stream_is_open_on(source, tmp_path):
+    with open(source, "rb") as handle:
+        found = fileio.stream_file(handle)
+    assert found is not None and found[0] == (source.stat().st_dev, source.stat().st_ino)
+    read_end, write_end = os.pipe()
+    try:
+        with open(read_end, "rb", closefd=False) as pipe:
+            assert fileio.stream_file(pipe) is None  # a pipe cannot be an input file
+    finally:
+        os.close(read_end)
+        os.close(write_end)
+    with open(os.devnull, "wb") as null:
+        assert fileio.stream_file(null) is None
+    import io
+
+    assert fileio.stream_file(io.BytesIO()) is None  # no descriptor at all
+
+
+def test_check_outputs_compares_stdin_and_stdout_with_the_files(source, tmp_path, monkeypatch):
+    other = tmp_path / "other.mcap"
+    with open(source, "rb") as stdin:
+        monkeypatch.setattr(sys, "stdin", stdin)
+        with pytest.raises(UsageError, match="is the file stdin reads"):
+            check_outputs(["-"], [("-o", source)])
+        check_outputs([source], [("-o", other)])  # stdin is not read: no matter
+        check_outputs(["-"], [("-o", other)])
+        check_outputs(["-"], [("-o", source)], streams=False)
+    with open(source, "ab") as stdout:
+        monkeypatch.setattr(sys, "stdout", stdout)
+        with pytest.raises(UsageError, match="stdout is open on the input file"):
+            check_outputs([source], [])
+        with pytest.raises(UsageError, match=r"--json .* is the file stdout is open on"):
+            check_outputs([], [("--json", source)])
+        check_outputs([other], [("-o", "-")])
+
+
+def test_check_outputs_refuses_empty_names_and_two_on_stdout(tmp_path):
+    with pytest.raises(UsageError, match="-o '' is an empty file name"):
+        check_outputs([], [("-o", "")])
+    with pytest.raises(UsageError, match="only one output can go to stdout"):
+        check_outputs([], [("--csv", "-"), ("--markdown", "-")])
+
+
+def test_a_derived_output_is_the_name_with_another_extension():
+    assert fileio.derived_output("out/roc.csv", ".png") == "out/roc.png"
+    assert fileio.derived_output("roc", ".png") == "roc.png"

@@ -369,3 +369,120 @@ def test_per_fault_amplitude_median_in_bounded_memory():
     assert figure.samples == n
     # the decimated median's std is about 1.25 sigma / sqrt(kept) = 0.001; 5 of them
     assert figure.estimate == pytest.approx(float(np.median(values)), abs=0.005)
+
+
+# --- false alarm episodes per hour and the matched budget --------------------------------
+
+
+def test_false_episodes_per_hour_of_fault_free_tested_time():
+    # 1 h at 100 Hz minus a 20-minute hole (nothing tested): 40 min of rows. Three false
+    # runs, the second two 0.5 s apart on the same sensor (one episode), a fault from
+    # 30 min whose alarms end 0.2 s after it (the same episode: not a false one), and a
+    # false run inside the calibration window (not counted)
+    t = _t(360_000)
+    t = np.concatenate([t[:120_000], t[240_000:]])  # rows 120,000-240,000 missing
+    alarm = np.zeros(t.size, bool)
+    isolated = np.full(t.size, -1)
+    for start, length, sensor in [(50, 3, 1), (30_000, 5, 2), (30_055, 4, 2), (100_000, 2, 0)]:
+        alarm[start : start + length] = True
+        isolated[start : start + length] = sensor
+    fault_from = 180_000 - 120_000  # row of 30 min
+    alarm[fault_from + 30 : fault_from + 500 + 20] = True
+    isolated[fault_from + 30 : fault_from + 500 + 20] = 3
+    fault = FaultWindow("f", (3,), int(t[fault_from]), int(t[fault_from + 500]))
+    m = compute_metrics(
+        t,
+        alarm,
+        isolated,
+        n_sensors=4,
+        faults=[fault],
+        calibration_ns=(0, 10 * MS10 * 100),
+        episode_gaps=(10, 100),
+    )
+    assert m.false_episodes == 2  # the joined pair and the run at row 100,000
+    hours = (t.size - 1000 - 500) * 0.01 / 3600  # rows outside the calibration and fault
+    assert m.fault_free_hours == pytest.approx(hours, rel=1e-12)
+    assert m.false_episodes_per_hour == pytest.approx(2 / hours, rel=1e-12)
+    assert m.false_episodes_per_hour_upper95 == pytest.approx(6.2957936 / hours, rel=1e-6)
+    assert m.mtbfa_h == pytest.approx(hours / 2, rel=1e-12)
+    assert m.mtbfa_h_lower95 == pytest.approx(1 / m.false_episodes_per_hour_upper95)
+    assert m.value("false_episodes_per_hour_upper95") == m.false_episodes_per_hour_upper95
+
+
+def test_episodes_need_the_joining_rule_and_a_quiet_log_has_no_mean_time_between():
+    t = _t(1000)
+    quiet = compute_metrics(t, np.zeros(1000, bool), np.full(1000, -1), n_sensors=3, episode_gaps=(10, 100))  # fmt: skip
+    assert quiet.false_episodes == 0 and quiet.false_episodes_per_hour == 0.0
+    assert quiet.mtbfa_h is None and quiet.mtbfa_h_lower95 == pytest.approx(10 / 3600 / 2.9957, rel=1e-4)  # fmt: skip
+    unknown = compute_metrics(t, np.zeros(1000, bool), np.full(1000, -1), n_sensors=3)
+    assert unknown.false_episodes is None and unknown.false_episodes_per_hour is None
+
+
+def test_rows_not_scored_take_part_in_episodes_but_not_in_figures():
+    from imufdi_cli.metrics import MetricsAccumulator
+
+    t = _t(400)
+    alarm = np.zeros(400, bool)
+    alarm[[100, 101, 105, 300]] = True  # one run from 100 (105 within the merge gap), one at 300
+    isolated = np.where(alarm, 0, -1)
+    scored = np.ones(400, bool)
+    scored[98:103] = False  # the first run starts on an excluded (clipped) row
+    acc = MetricsAccumulator(2, episode_gaps=(10, 30))
+    acc.update(t, alarm, isolated, scored=scored)
+    m = acc.result()
+    assert m.samples == 395 and m.false_alarms == 2  # rows 105 and 300
+    assert m.false_episodes == 1  # 105 is not an episode of its own; 300 is (200 rows on)
+
+
+def test_matched_budget_scales_the_threshold_until_false_episodes_fall_to_the_target():
+    # 2 h at 10 Hz of fault-free rows with ratios drawn so that the episodes thin out with
+    # the threshold, then a fault whose ratio rises to 8 x the threshold
+    rng = np.random.default_rng(3)
+    n_free, n_fault = 72_000, 200
+    ratio = np.concatenate([rng.exponential(0.12, n_free), np.full(n_fault, 8.0)])
+    t = np.arange(ratio.size, dtype=np.int64) * 100_000_000
+    fault = FaultWindow("f", (0,), int(t[n_free]))
+    isolated = np.zeros(ratio.size, int)
+    m = compute_metrics(
+        t,
+        ratio >= 1,
+        np.where(ratio >= 1, isolated, -1),
+        n_sensors=2,
+        faults=[fault],
+        statistic=ratio,
+        threshold=np.ones(ratio.size),
+        episode_gaps=(1, 10),
+        match_budget=1.0,
+    )
+    own = m.false_episodes_per_hour
+    assert own is not None and own > 1.0  # the detector's own threshold raises more
+    scale = m.threshold_scale_at_budget
+    assert scale is not None and scale > 1.0
+    # at the matched scale the exceedances of the fault-free ratios are about 2 in 2 h
+    assert 0.5 <= np.count_nonzero(ratio[:n_free] >= scale) <= 6
+    assert m.mar_at_budget == 0.0 and m.detection_delay_s_at_budget == 0.0
+    assert m.target_budget_per_hour == 1.0
+
+
+def test_a_statistic_that_grew_in_a_fault_is_not_a_false_episode_at_a_higher_threshold():
+    # a sequential test's statistic grows through a fault (rows 1000-1099) and on after
+    # it, while the detector's own episode stays open (to row 1199): at 10 x its threshold
+    # the statistic first crosses after the fault's end, yet it is the fault's episode. A
+    # later excursion to 20 x on fault-free rows is a false episode up to 20 x.
+    from imufdi_cli.metrics import MetricsAccumulator
+    from imufdi_cli.sweep import BUDGET_LOG_SCALES
+
+    n = 5000
+    t = np.arange(n, dtype=np.int64) * 100_000_000  # 10 Hz
+    ratio = np.full(n, 0.1)
+    ratio[1000:1200] = np.geomspace(1.0, 50.0, 200)
+    ratio[3000:3010] = 20.0
+    alarm = ratio >= 1.0
+    fault = FaultWindow("f", (0,), int(t[1000]), int(t[1100]))
+    acc = MetricsAccumulator(2, [fault], episode_gaps=(1, 10))
+    acc.update(t, alarm, np.where(alarm, 0, -1), statistic=ratio, threshold=np.ones(n))
+    counts = acc.budget_curve().false_episodes
+    scale = 10**BUDGET_LOG_SCALES
+    assert counts[(scale > 1.5) & (scale < 19)].tolist() == [1] * int(np.sum((scale > 1.5) & (scale < 19)))  # fmt: skip
+    assert counts[scale > 21].sum() == 0
+    assert acc.result().false_episodes == 1  # the detector's own: the excursion at 3000

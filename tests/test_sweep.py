@@ -6,7 +6,23 @@ import numpy as np
 import pytest
 
 from imufdi_cli.metrics import FaultWindow, compute_metrics
-from imufdi_cli.sweep import EDGES, LOG_LOW, N_BINS, STEP, SweepAccumulator, ratio_bins
+from imufdi_cli.sweep import (
+    BUDGET_FIGURES,
+    BUDGET_LEVELS,
+    BUDGET_LOG_SCALES,
+    EDGES,
+    LOG_LOW,
+    N_BINS,
+    STEP,
+    AlarmEpisodes,
+    BudgetCurve,
+    SweepAccumulator,
+    episode_gap_rows,
+    match_budget,
+    poisson_upper,
+    ratio_bins,
+    read_budget,
+)
 
 MS10 = 10_000_000
 
@@ -126,3 +142,138 @@ def test_unsweepable_and_unreachable_targets_say_why():
     acc.update(bins, t, free, np.where(free, 0, 1).astype(np.int8), [~free])
     match = acc.match(0.01)
     assert match.mar is None and "stays above" in (match.note or "")
+
+
+# --- alarm episodes and the matched budget -----------------------------------------------
+
+
+def _builder_episode_starts(alarm, isolated, blocks, n):
+    """Episode start rows of :class:`EpisodeBuilder` (explanations off) on the rows."""
+    from imufdi_cli.detectors.base import DetectionBlock
+    from imufdi_cli.episodes.builder import EpisodeBuilder
+
+    H = np.random.default_rng(0).standard_normal((n, 3))
+    builder = EpisodeBuilder("d", "gyro", H, [f"s{i}" for i in range(n)], np.ones(n), 100.0, explain=False)  # fmt: skip
+    t = np.arange(alarm.size, dtype=np.int64) * MS10
+    episodes, at = [], 0
+    for k in blocks:
+        rows = slice(at, at + k)
+        at += k
+        out = DetectionBlock(
+            statistic=np.ones(k),
+            threshold=np.ones(k),
+            alarm=alarm[rows],
+            isolated=isolated[rows],
+            amplitude=np.full(k, np.nan),
+            scores=np.zeros((k, n)),
+        )
+        builder.feed(np.zeros((k, n)))
+        episodes += builder.rows(t[rows], t[rows], out)
+    episodes += builder.finish()
+    return sorted(int(e.start_ns // MS10) for e in episodes)
+
+
+def _blocks(rng, total, largest):
+    sizes = []
+    while total > 0:
+        sizes.append(int(min(total, rng.integers(1, largest))))
+        total -= sizes[-1]
+    return sizes
+
+
+def test_alarm_episodes_are_the_episodes_the_builder_makes():
+    # random alarm sequences (sparse, dense, bursts; rows isolating no sensor or one not
+    # isolable), cut into different blocks on the two sides
+    rng = np.random.default_rng(1)
+    merge, join = episode_gap_rows(100.0, 0.1, 1.0)
+    for _ in range(60):
+        size, n = int(rng.integers(1, 2500)), int(rng.integers(3, 7))
+        alarm = rng.random(size) < rng.choice([0.002, 0.02, 0.1, 0.5])
+        for _ in range(int(rng.integers(0, 4))):
+            start = int(rng.integers(0, size))
+            alarm[start : start + int(rng.integers(1, 300))] = True
+        isolated = np.where(rng.random(size) < 0.8, rng.integers(0, n, size), rng.choice([-1, -2], size))  # fmt: skip
+        eligible = rng.random(size) < 0.7
+        starts = _builder_episode_starts(alarm, isolated, _blocks(rng, size, 700), n)
+        counter = AlarmEpisodes(1, n, merge, join)
+        at = 0
+        for k in _blocks(rng, size, 400):
+            counter.update(alarm[at : at + k], isolated[at : at + k], eligible[at : at + k])
+            at += k
+        counter.finish()
+        assert counter.episodes[0] == len(starts)
+        assert counter.false_episodes[0] == sum(bool(eligible[s]) for s in starts)
+
+
+def test_alarm_episodes_at_many_levels_are_each_level_alone():
+    rng = np.random.default_rng(2)
+    for _ in range(40):
+        size, n, levels = int(rng.integers(1, 3000)), int(rng.integers(1, 6)), int(rng.integers(1, 10))  # fmt: skip
+        bins = rng.exponential(3.0, size).astype(np.int64)
+        edges = np.sort(rng.choice(20, levels, replace=False))
+        isolated = rng.integers(-2, n, size)
+        eligible = rng.random(size) < 0.6
+        merge = int(rng.integers(0, 12))
+        join = merge + int(rng.integers(0, 50))
+        together = AlarmEpisodes(levels, n, merge, join)
+        alone = [AlarmEpisodes(1, n, merge, join) for _ in range(levels)]
+        at = 0
+        for k in _blocks(rng, size, 600):
+            alarm = bins[None, at : at + k] > edges[:, None]
+            level, column = np.nonzero(alarm)
+            together.update_sparse(level, column, isolated[at : at + k], eligible[at : at + k], k)
+            for j, one in enumerate(alone):
+                one.update(alarm[j], isolated[at : at + k], eligible[at : at + k])
+            at += k
+        for counter in (together, *alone):
+            counter.finish()
+        assert together.episodes.tolist() == [one.episodes[0] for one in alone]
+        assert together.false_episodes.tolist() == [one.false_episodes[0] for one in alone]
+
+
+def test_finished_counts_leave_the_stream_open():
+    counter = AlarmEpisodes(1, 2, 2, 5)
+    counter.update(np.array([True, True, False]), np.array([0, 0, -1]), np.ones(3, bool))
+    assert counter.finished().episodes[0] == 1 and counter.episodes[0] == 0  # still open
+    counter.update(np.array([True]), np.array([0]), np.ones(1, bool))  # the same run goes on
+    counter.finish()
+    assert counter.episodes[0] == 1
+
+
+def test_poisson_upper_bound_is_the_chi_square_quantile(scipy_stats):
+    for count in (0, 1, 5, 40, 1000):
+        want = scipy_stats.chi2.ppf(0.95, 2 * count + 2) / 2
+        # Newton on the incomplete gamma to 1e-13 against scipy's own root finding
+        assert poisson_upper(count) == pytest.approx(want, rel=1e-10)
+    assert poisson_upper(0) == pytest.approx(-np.log(0.05), rel=1e-12)
+
+
+def test_budget_match_interpolates_in_the_rate_above_the_last_crossing():
+    counts = np.zeros(BUDGET_LEVELS.size, np.int64)
+    counts[:10] = 50  # low scales merge everything into few episodes: below the target
+    counts[10:20] = 500
+    counts[20] = 30
+    counts[21:] = 0
+    # 10 h: 3/h at level 20, 0 at 21; the target 1.5/h sits halfway in the rate
+    match = match_budget(counts, 10.0, 1.5)
+    assert match.index == 21 and match.weight == pytest.approx(0.5)
+    log_scale = BUDGET_LOG_SCALES[20] + 0.5 * (BUDGET_LOG_SCALES[21] - BUDGET_LOG_SCALES[20])
+    assert match.scale == pytest.approx(10**log_scale) and match.note is None
+    curve = BudgetCurve(10.0, counts, {name: np.arange(counts.size, dtype=float) for name in BUDGET_FIGURES})  # fmt: skip
+    read = read_budget(curve, match)
+    assert read["mar"] == pytest.approx(20.5) and read["fir"] == pytest.approx(20.5)
+    assert read["detection_delay_s"] == 21.0  # delays at the upper (less sensitive) level
+    assert BudgetCurve.from_dict(curve.to_dict()).to_dict() == curve.to_dict()
+
+
+def test_budget_match_says_when_it_cannot():
+    counts = np.zeros(BUDGET_LEVELS.size, np.int64)
+    short = match_budget(counts, 0.5, 1.0)
+    assert short.scale is None and "too short" in (short.note or "") and "1 h" in short.note
+    assert "no fault-free" in (match_budget(counts, 0.0, 1.0).note or "")
+    bottom = match_budget(counts, 2.0, 1.0)
+    assert bottom.index == 0 and "bottom of the range" in (bottom.note or "")
+    counts[:] = 100
+    top = match_budget(counts, 2.0, 1.0)
+    assert top.scale is None and "stay above 1/h" in (top.note or "")
+    assert read_budget(BudgetCurve.from_dict({"hours": 2.0}), top)["mar"] is None

@@ -30,7 +30,7 @@ def render() -> str:
         "",
         "Every command takes `-q/--quiet`, `-v/--verbose` and `--json [FILE]` (its",
         "machine-readable summary; `-` or no FILE: stdout), prints summaries on stderr and no",
-        "escape codes off a terminal or with `NO_COLOR`: docs/guide.md, \"Output conventions\".",
+        'escape codes off a terminal or with `NO_COLOR`: docs/guide.md, "Output conventions".',
         "",
     ]
     ctx = click.Context(

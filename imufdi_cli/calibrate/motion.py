@@ -25,7 +25,8 @@ def time_offsets(
 
     Each chip's body-frame rate minus the array consensus ``w`` is regressed on the
     consensus angular acceleration ``w_dot`` (central differences):
-    ``R_k w_k - w ~ w_dot dt_k``, least squares over the motion rows and three axes.
+    ``R_k w_k - w ~ w_dot dt_k``, least squares over the motion rows and three axes
+    (:class:`TimeOffsetSums`, which ``calibrate`` streams).
 
     Parameters
     ----------
@@ -49,18 +50,42 @@ def time_offsets(
     body = np.einsum("kij,nkj->nki", array.rotations(), gyro)
     consensus = body.mean(axis=1)
     rate_dot = np.gradient(consensus, t_s, axis=0)  # (N, 3)
-    x = rate_dot[motion].ravel()
-    energy = float(x @ x)
-    offsets, explained = np.zeros(m), np.zeros(m)
-    if energy <= 0:
+    sums = TimeOffsetSums(m)
+    sums.add(body[motion], consensus[motion], rate_dot[motion])
+    return sums.result()
+
+
+class TimeOffsetSums:
+    """The sums :func:`time_offsets` regresses with, over rows added in blocks: ``sum x^2``
+    of the consensus angular acceleration, and per chip ``sum x y_k`` and ``sum y_k^2`` of
+    its body-frame rate minus the consensus."""
+
+    def __init__(self, m: int) -> None:
+        self.xx = 0.0
+        self.xy = np.zeros(m)
+        self.yy = np.zeros(m)
+        self.rows = 0
+
+    def add(self, body: np.ndarray, consensus: np.ndarray, rate_dot: np.ndarray) -> None:
+        """Rows: body-frame rates (k, m, 3), their consensus (k, 3) and its derivative (k, 3)."""
+        if body.shape[0] == 0:
+            return
+        y = body - consensus[:, None, :]
+        self.xx += float(np.sum(rate_dot * rate_dot))
+        self.xy += np.einsum("nka,na->k", y, rate_dot)
+        self.yy += np.sum(y * y, axis=(0, 2))
+        self.rows += int(body.shape[0])
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        m = self.xy.shape[0]
+        offsets, explained = np.zeros(m), np.zeros(m)
+        if self.xx <= 0:
+            return offsets, explained
+        offsets = self.xy / self.xx
+        left = self.yy - 2.0 * offsets * self.xy + offsets**2 * self.xx  # sum (y - dt x)^2
+        positive = self.yy > 0
+        explained[positive] = 1.0 - left[positive] / self.yy[positive]
         return offsets, explained
-    for k in range(m):
-        y = (body[motion, k] - consensus[motion]).ravel()
-        offsets[k] = float(x @ y) / energy
-        total = float(y @ y)
-        if total > 0:
-            explained[k] = 1.0 - float(np.sum((y - offsets[k] * x) ** 2)) / total
-    return offsets, explained
 
 
 def _zero_clipped_rows(

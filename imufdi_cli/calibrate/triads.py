@@ -130,40 +130,114 @@ def _gauss_newton(
     return mats, biases, steps
 
 
+class TriadMoments:
+    """Sums over rows of the triads of an array flattened to ``x`` (3m,): the row count,
+    ``sum x`` (3m,) and ``sum x x^T`` (3m, 3m). What the gyro fit and the residual RMS
+    need of the rows, in memory independent of their number (rows are added in blocks)."""
+
+    def __init__(self, m: int) -> None:
+        self.m = m
+        self.count = 0
+        self.total = np.zeros(3 * m)
+        self.outer = np.zeros((3 * m, 3 * m))
+
+    def add(self, triads: np.ndarray) -> None:
+        """Rows (k, m, 3)."""
+        if triads.shape[0] == 0:
+            return
+        flat = triads.reshape(triads.shape[0], -1)
+        self.count += int(flat.shape[0])
+        self.total += flat.sum(axis=0)
+        self.outer += flat.T @ flat
+
+    def affine(self, scale: np.ndarray, offset: np.ndarray) -> np.ndarray:
+        """``sum y y^T`` of ``y = scale x + offset`` (scale (3m, 3m), offset (3m,))."""
+        cross = np.outer(scale @ self.total, offset)
+        return (
+            scale @ self.outer @ scale.T + cross + cross.T + self.count * np.outer(offset, offset)
+        )
+
+
+def _block_diagonal(blocks: list[np.ndarray] | np.ndarray) -> np.ndarray:
+    m = len(blocks)
+    out = np.zeros((3 * m, 3 * m))
+    for k, block in enumerate(blocks):
+        out[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = block
+    return out
+
+
 def calibrate_gyro(
     array: ArrayConfig, gyro: np.ndarray, static: np.ndarray, motion: np.ndarray, full: bool
 ) -> list[TriadCalibration]:
-    """Gyro biases from static rows, matrices from motion rows relative to the consensus."""
-    m = gyro.shape[1]
+    """Gyro biases from static rows, matrices from motion rows relative to the consensus
+    (in memory: :func:`gyro_calibration` of the rows' sums)."""
+    moments = TriadMoments(gyro.shape[1])
+    moments.add(gyro[motion])
+    return gyro_calibration(array, gyro[static].mean(axis=0), moments, full)
+
+
+def gyro_calibration(
+    array: ArrayConfig, biases: np.ndarray, motion: TriadMoments, full: bool
+) -> list[TriadCalibration]:
+    """Gyro ``M, b``: biases (m, 3) from the static rows; with ``full``, the matrices by
+    alternating least squares against the array consensus on the motion rows, from their
+    sums: with ``x`` the bias-free rates, the consensus ``c = mean_k R_k M_k x_k`` and
+    each triad's least squares ``x_k M_k^T = c R_k`` need only ``S_kj = sum x_k x_j^T``
+    (the normal equations ``S_kk M_k^T = mean_j S_kj M_j^T R_j^T R_k``); each iteration
+    ends with the gauge ``mean_k R_k M_k R_k^T = I``."""
+    m = biases.shape[0]
     rot = array.rotations()
-    biases = gyro[static].mean(axis=0)  # (m, 3)
     mats = [np.eye(3) for _ in range(m)]
     if full:
-        x = gyro[motion] - biases  # (n, m, 3)
+        flat = biases.reshape(-1)
+        centred = motion.affine(np.eye(3 * m), -flat)  # sum (x - b)(x - b)^T
+        blocks = [
+            [centred[3 * k : 3 * k + 3, 3 * j : 3 * j + 3] for j in range(m)] for k in range(m)
+        ]
         for _ in range(ALS_ITERATIONS):
-            consensus = np.stack([x[:, k] @ mats[k].T @ rot[k].T for k in range(m)], 1).mean(1)
+            weights = [mats[j].T @ rot[j].T for j in range(m)]  # the consensus, per triad
+            new = []
             for k in range(m):
-                sol, *_ = np.linalg.lstsq(x[:, k], consensus @ rot[k], rcond=None)
-                mats[k] = sol.T
-            mats = _rotation_gauge(array, mats, scale=True)
+                target = sum(blocks[k][j] @ weights[j] for j in range(m)) / m @ rot[k]
+                new.append(np.linalg.solve(blocks[k][k], target).T)
+            mats = _rotation_gauge(array, new, scale=True)
     return [TriadCalibration(matrix=mt, bias=b) for mt, b in zip(mats, biases)]
 
 
+def consensus_rms(array: ArrayConfig, moments: TriadMoments, biases: np.ndarray) -> np.ndarray:
+    """RMS per body axis (3,) of the array consensus ``mean_k R_k (x_k - b_k)`` over the
+    rows of ``moments``."""
+    m = moments.m
+    mean_rotation = np.concatenate(list(array.rotations()), axis=1) / m  # (3, 3m)
+    centred = moments.affine(np.eye(3 * m), -biases.reshape(-1))
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(
+            np.maximum(np.diag(mean_rotation @ centred @ mean_rotation.T), 0.0) / moments.count
+        )
+
+
 def _residual_rms(
-    array: ArrayConfig, triads: np.ndarray, cals: list[TriadCalibration] | None
+    array: ArrayConfig, triads: np.ndarray | TriadMoments, cals: list[TriadCalibration] | None
 ) -> float:
-    """RMS over rows, IMUs and axes of each triad's body-frame value minus the array mean."""
-    if triads.shape[0] == 0:
+    """RMS over rows, IMUs and axes of each triad's body-frame value minus the array mean,
+    from the rows (N, m, 3) or their sums (:class:`TriadMoments`)."""
+    if isinstance(triads, np.ndarray):
+        moments = TriadMoments(triads.shape[1])
+        moments.add(triads)
+    else:
+        moments = triads
+    if moments.count == 0:
         return float("nan")
-    rot = array.rotations()
-    body = np.stack(
-        [
-            (triads[:, k] if cals is None else cals[k].apply(triads[:, k])) @ rot[k].T
-            for k in range(triads.shape[1])
-        ],
-        axis=1,
-    )
-    return float(np.sqrt(np.mean((body - body.mean(axis=1, keepdims=True)) ** 2)))
+    m = moments.m
+    if cals is None:
+        scale, offset = np.eye(3 * m), np.zeros(3 * m)
+    else:
+        scale = _block_diagonal([c.matrix for c in cals])
+        offset = -scale @ np.concatenate([c.bias for c in cals])
+    spread = np.eye(3 * m) - np.kron(np.ones((m, m)) / m, np.eye(3))  # minus the mean
+    project = spread @ _block_diagonal(list(array.rotations()))
+    energy = float(np.trace(project @ moments.affine(scale, offset) @ project.T))
+    return float(np.sqrt(max(energy, 0.0) / (moments.count * m * 3)))
 
 
 def _figures(k: int, sensor_type: str, cal: TriadCalibration) -> TriadFigures:

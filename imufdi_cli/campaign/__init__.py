@@ -62,6 +62,7 @@ from imufdi_cli.campaign.executors import (
 from imufdi_cli.campaign.plots import plot_curves
 from imufdi_cli.campaign.run import BLOCK_SAMPLES, NS_PER_S, execute_run, jittered_specs
 from imufdi_cli.campaign.spec import (
+    DEFAULT_MATCH_BUDGET,
     DEFAULT_MATCH_FAR,
     DEFAULT_METRICS,
     CampaignSpec,
@@ -77,6 +78,7 @@ from imufdi_cli.campaign.summary import (
 
 __all__ = [
     "BLOCK_SAMPLES",
+    "DEFAULT_MATCH_BUDGET",
     "DEFAULT_MATCH_FAR",
     "DEFAULT_METRICS",
     "LOCK_NAME",

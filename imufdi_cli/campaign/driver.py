@@ -18,6 +18,7 @@ from imufdi_cli.campaign.spec import CampaignSpec, run_key
 from imufdi_cli.campaign.summary import (
     _rows,
     _rows_csv,
+    pooled_budgets,
     summarize,
     summary_markdown,
 )
@@ -192,7 +193,7 @@ def _run_locked(
         path = runs_dir / f"{key}.json"
         if path.exists():
             results.append(json.loads(path.read_text(encoding="utf-8")))
-    rows = _rows(results)
+    rows = _rows(pooled_budgets(results, spec.match_budget)[0])
     summary = summarize(spec, results)
     write_text(str(out / "runs.csv"), _rows_csv(rows))
     write_json_atomic(out / "summary.json", summary)

@@ -133,10 +133,11 @@ class Headline:
 
 def headline_metrics(summary: Mapping[str, Any]) -> Headline:
     """The budget metrics (``mar_at_budget``, ``detection_delay_s_at_budget``) when the
-    summary's groups have them, else the matched-FAR ones (``mar_at_far``,
+    summary's groups have them defined (a matched budget), else the matched-FAR ones (``mar_at_far``,
     ``detection_delay_at_far_s``)."""
     groups = summary.get("groups") or []
-    if any(g.get("mar_at_budget") is not None for g in groups):
+    matched = (g.get("mar_at_budget") for g in groups)
+    if any(isinstance(m, Mapping) and m.get("mean") is not None for m in matched):
         budgets = sorted(
             {float(g["target_budget_per_hour"]) for g in groups if g.get("target_budget_per_hour")}
         )

@@ -15,10 +15,7 @@ import numpy as np
 from imufdi_cli.campaign.spec import DEFAULT_MATCH_FAR, read_base, run_key
 from imufdi_cli.errors import ImufdiError
 from imufdi_cli.fileio import write_text
-from imufdi_cli.metrics import (
-    METRIC_NAMES,
-    FaultWindow,
-)
+from imufdi_cli.metrics import METRIC_NAMES
 
 #: Samples per block streamed through a detector (as `imufdi detect` reads a log).
 BLOCK_SAMPLES = 4096
@@ -124,42 +121,100 @@ def run_and_store(descs: Sequence[Mapping[str, Any]], runs_dir: str) -> list[dic
 
 
 def _execute(desc: Mapping[str, Any]) -> dict[str, Any]:
-    """The figures of one run per sensor type: metrics (out-of-sample FAR, delays at
-    decision time, MAR at the matched FAR), per-fault events, onsets and faults applied."""
-    from imufdi_cli.detect import calibration_window_ns
+    """The figures of one run per sensor type, as ``inject | detect | report`` computes
+    them: the run's faults applied in memory, the detection core
+    (:class:`~imufdi_cli.engine.Engine`: conditioning, calibration window, decision times)
+    and the report's scoring (:class:`~imufdi_cli.report.channel.ChannelScore`); plus
+    per-fault events, onsets, the faults applied and each type's budget curve (the matched
+    budget is pooled over runs by the summary)."""
     from imufdi_cli.detectors import make_detector
+    from imufdi_cli.engine import Engine, with_budget
     from imufdi_cli.faults import FaultInjector, parse_fault_spec
     from imufdi_cli.log import iter_blocks
+    from imufdi_cli.report.truth import truth_of_runs
+    from imufdi_cli.validity import Conditioner
 
     seed = int(desc["seed"])
     array, block = _base_log(desc["base"], seed)
     specs, onsets = jittered_specs(desc["faults"], desc.get("at_jitter"), seed, array)
     faults = [parse_fault_spec(spec, array) for spec in specs]
     t0 = int(block.t_ns[0])
-    faulty = FaultInjector(faults, array, seed=seed, t0_ns=t0).apply_block(block)
-    detector = make_detector(desc["detector"], desc["params"])
-    window = calibration_window_ns(t0, int(faulty.t_ns[-1]), *desc["calibrate"])
-    assert window is not None
-    keep = (faulty.t_ns >= window[0]) & (faulty.t_ns < window[1])
-    detector.fit(faulty.mask(keep), array)
-    scorer = _Scorer(array, faults, faulty.t_ns, window, detector)
+    injector = FaultInjector(faults, array, seed=seed, t0_ns=t0)
+    faulty = injector.apply_block(block)
+    ((name, params),) = with_budget([(desc["detector"], desc["params"])], desc.get("false_alarms"))
+    detector = make_detector(name, params)
+    truth = truth_of_runs([{"t0_ns": t0, "faults": [f.to_dict() for f in injector.faults]}])
+    conditioner = Conditioner(array)
+    sink = ScoringSink(array, truth, conditioner)
+    calibrate = desc["calibrate"]
+    # the run's log is in memory and never modified: the engine holds views of it
+    engine = Engine(
+        [detector], array, conditioner, sink, calibrate=(calibrate[0], calibrate[1]), copy=False
+    )
+    sink.engine = engine
     for part in iter_blocks(faulty, BLOCK_SAMPLES):
-        scorer.passed += len(part)
-        scorer.score(detector.process(part))
-    scorer.score(detector.flush())
+        engine.add_block(part)
+    engine.finish()
     target = float(desc.get("match_far", DEFAULT_MATCH_FAR))
     figures: dict[str, Any] = {}
-    for sensor_type, acc in scorer.accumulators.items():
-        metrics = acc.result()
-        note = acc.matched(metrics, target)
-        figures[sensor_type] = {name: metrics.value(name) for name in METRIC_NAMES} | {
-            "faults": [f.to_dict() for f in metrics.faults],
+    # the reference delays read the budget from the detector's metadata (none without one)
+    under_budget = float(getattr(detector, "false_alarms", 0.0) or 0.0) > 0
+    record_metadata = detector.metadata() if under_budget else {}
+    for sensor_type, score in sink.scores.items():
+        assert score.record is not None
+        score.record["detector_metadata"] = record_metadata
+        metrics, notes = score.metrics(match_far=target)
+        curve = score.accumulator.budget_curve()
+        figures[sensor_type] = (
+            metrics.to_dict() | {name: metrics.value(name) for name in METRIC_NAMES}
+        ) | {
+            "validity": dict(score.validity),
             "onsets_s": onsets,
             "applied_faults": specs,
             "target_far": target,
-            "notes": [note] if note else [],
+            "notes": notes,
+            "budget_curve": None if curve is None else curve.to_dict(),
         }
     return figures
+
+
+class ScoringSink:
+    """The detection core's sink of a campaign run: each sensor type's rows scored in
+    memory by the report's :class:`~imufdi_cli.report.channel.ChannelScore` (rows
+    excluded as clipped or invalid by the conditioner's record of them so far, as the
+    report excludes them from the record ``detect`` writes)."""
+
+    def __init__(self, array: Any, truth: Any, conditioner: Any) -> None:
+        self.array = array
+        self.truth = truth
+        self.conditioner = conditioner
+        self.engine: Any = None  # set once the engine exists
+        self.scores: dict[str, Any] = {}
+
+    def rows(
+        self, track: Any, sensor_type: str, t_ns: np.ndarray, decided_ns: np.ndarray, out: Any
+    ) -> None:
+        from imufdi_cli.report.channel import ChannelScore, rows_of_block
+
+        score = self.scores.get(sensor_type)
+        if score is None:
+            window = self.engine.calibration_window()
+            score = self.scores[sensor_type] = ChannelScore(
+                track.name,
+                sensor_type,
+                self.array.sensor_ids(sensor_type),
+                truth=self.truth,
+                calibration_ns=None if window is None else (window[0], window[1]),
+                record={"t0_ns": self.engine.t_first},
+                rate_hz=self.array.rate_hz,
+            )
+        record = score.record
+        assert record is not None
+        record["validity"] = self.conditioner.metadata()
+        score.add(rows_of_block(t_ns, decided_ns, out))
+
+    def episodes(self, track: Any, episodes: Any) -> None:
+        """Campaign runs explain no episodes."""
 
 
 def _base_log(base: Mapping[str, Any], seed: int) -> tuple[Any, Any]:
@@ -168,61 +223,3 @@ def _base_log(base: Mapping[str, Any], seed: int) -> tuple[Any, Any]:
     if "preset" in base:
         return _simulated(base["preset"], json.dumps(base.get("options", {}), sort_keys=True), seed)
     return read_base(base["file"])
-
-
-class _Scorer:
-    """Feeds a detector's outputs to one MetricsAccumulator per sensor type, each row
-    stamped with its decision time (as :mod:`imufdi_cli.detect` writes it)."""
-
-    def __init__(
-        self, array: Any, faults: Sequence[Any], t_ns: np.ndarray, window: Any, detector: Any
-    ) -> None:
-        from imufdi_cli.detect import lookahead_of
-
-        self.array = array
-        self.faults = faults
-        self.t_ns = t_ns
-        self.t0 = int(t_ns[0])
-        self.window = (window[0], window[1])
-        self.lookahead = lookahead_of(detector)
-        self.accumulators: dict[str, Any] = {}
-        self.emitted: dict[str, int] = {}
-        self.passed = 0  # samples given to the detector so far
-
-    def _accumulator(self, sensor_type: str) -> Any:
-        from imufdi_cli.metrics import MetricsAccumulator
-
-        if sensor_type not in self.accumulators:
-            ids = self.array.sensor_ids(sensor_type)
-            windows = []
-            for fault in self.faults:
-                if fault.sensor_type != sensor_type:
-                    continue
-                columns = [ids.index(s) for s in fault.sensors if s in ids]
-                end = None if fault.until_ns is None else self.t0 + fault.until_ns
-                windows.append(FaultWindow(fault.id, tuple(columns), self.t0 + fault.at_ns, end))
-            self.accumulators[sensor_type] = MetricsAccumulator(
-                len(ids), windows, calibration_ns=self.window
-            )
-            self.emitted[sensor_type] = 0
-        return self.accumulators[sensor_type]
-
-    def score(self, outputs: Mapping[str, Any]) -> None:
-        from imufdi_cli.detect import decision_positions
-
-        for sensor_type, out in outputs.items():
-            accumulator = self._accumulator(sensor_type)
-            rows = len(out)
-            first = self.emitted[sensor_type]
-            positions = decision_positions(first, rows, self.passed, self.lookahead)
-            accumulator.update(
-                self.t_ns[first : first + rows],
-                out.alarm,
-                out.isolated,
-                decided_ns=self.t_ns[positions],
-                isolated_set=out.isolated_set,
-                statistic=out.statistic,
-                threshold=out.threshold,
-                scores=out.scores,
-            )
-            self.emitted[sensor_type] = first + rows

@@ -36,6 +36,9 @@ DEFAULT_METRICS = [
 
 #: Target FAR of the ``*_at_far`` figures unless ``campaign.match_far`` says otherwise.
 DEFAULT_MATCH_FAR = 0.01
+#: Target of the ``*_at_budget`` figures, false alarm episodes per hour, unless
+#: ``campaign.match_budget`` says otherwise.
+DEFAULT_MATCH_BUDGET = 1.0
 
 
 @dataclass
@@ -46,6 +49,8 @@ class CampaignSpec:
     runs: list[dict[str, Any]]
     metrics: list[str]
     source: str
+    #: the matched budget's target, false episodes per hour (pooled over each detector's runs)
+    match_budget: float = DEFAULT_MATCH_BUDGET
 
 
 def _as_list(value: Any) -> list[Any]:
@@ -125,7 +130,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
     head = _parse_head(data.get("campaign", {}), path)
     bases = _parse_bases(data.get("base", []), path)
     fault_sets = _parse_faults(data.get("fault", []), path, bases)
-    detectors = _parse_detectors(data.get("detector", []), path, bases)
+    detectors = _parse_detectors(data.get("detector", []), path, bases, head.false_alarms)
     _check_faults_fit_bases(path, bases, fault_sets)
     runs = _expand_runs(head, bases, fault_sets, detectors)
     used = {index for index, _ in runs}
@@ -135,14 +140,18 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 f"{path}: base {base.name!r} pairs with no [[fault]] and [[detector]]; check their bases"
             )
     return CampaignSpec(
-        name=head.name, runs=[desc for _, desc in runs], metrics=head.metrics, source=str(path)
+        name=head.name,
+        runs=[desc for _, desc in runs],
+        metrics=head.metrics,
+        source=str(path),
+        match_budget=head.match_budget,
     )
 
 
 _TABLES = {"campaign", "base", "fault", "detector"}
-_HEAD_KEYS = {"name", "seeds", "calibrate", "metrics", "match_far"}
+_HEAD_KEYS = {"name", "seeds", "calibrate", "metrics", "match_far", "match_budget", "false_alarms"}
 _BASE_KEYS = {"preset", "options", "files", "calibrate", "name"}
-_DETECTOR_KEYS = {"name", "params", "calibrate", "bases"}
+_DETECTOR_KEYS = {"name", "params", "calibrate", "bases", "false_alarms"}
 
 #: A calibration window ``[start_s, end_s or None]`` from the log start.
 Window = list[float | None]
@@ -157,6 +166,8 @@ class _Head:
     calibrate: Window
     match_far: float
     metrics: list[str]
+    match_budget: float = DEFAULT_MATCH_BUDGET
+    false_alarms: float | None = None  # episodes per second, every detector's budget
 
 
 @dataclass
@@ -186,6 +197,7 @@ class _Detector:
     params: dict[str, Any]
     calibrate: Window | None
     bases: set[int]
+    false_alarms: float | None = None  # episodes per second (None: the campaign's)
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
@@ -229,7 +241,40 @@ def _parse_head(head: Any, path: Path) -> _Head:
             raise CampaignSpecError(
                 f"{path}: campaign.metrics: unknown metric {metric!r}; valid: {', '.join(METRIC_NAMES)}"
             )
-    return _Head(str(head.get("name", path.stem)), [int(s) for s in seeds], cal, match_far, metrics)
+    match_budget = DEFAULT_MATCH_BUDGET
+    if "match_budget" in head:
+        match_budget = episode_rate(head["match_budget"], f"{path}: campaign.match_budget") * 3600
+        if not match_budget > 0:
+            raise CampaignSpecError(
+                f"{path}: campaign.match_budget: must be a rate > 0 such as 1/h,"
+                f" got {head['match_budget']!r}"
+            )
+    false_alarms = None
+    if "false_alarms" in head:
+        false_alarms = episode_rate(head["false_alarms"], f"{path}: campaign.false_alarms")
+    return _Head(
+        str(head.get("name", path.stem)),
+        [int(s) for s in seeds],
+        cal,
+        match_far,
+        metrics,
+        match_budget,
+        false_alarms,
+    )
+
+
+def episode_rate(value: Any, where: str) -> float:
+    """A rate of episodes such as ``"1/h"``, ``"0.1/h"`` or ``"5/min"`` (a bare number is
+    per second) -> episodes per second, >= 0."""
+    from imufdi_cli.units import parse_quantity
+
+    try:
+        rate = parse_quantity(str(value), "frequency", name=where)
+    except ImufdiError as err:
+        raise CampaignSpecError(f"{where}: {err}") from err
+    if not rate >= 0 or not np.isfinite(rate):
+        raise CampaignSpecError(f"{where}: must be a rate >= 0 such as 1/h, got {value!r}")
+    return float(rate)
 
 
 def _parse_bases(tables: Any, path: Path) -> list[_Base]:
@@ -354,10 +399,15 @@ def _parse_faults(tables: Any, path: Path, bases: list[_Base]) -> list[_FaultSet
     return fault_sets
 
 
-def _parse_detectors(tables: Any, path: Path, bases: list[_Base]) -> list[_Detector]:
+def _parse_detectors(
+    tables: Any, path: Path, bases: list[_Base], false_alarms: float | None = None
+) -> list[_Detector]:
     """Every ``[[detector]]`` expanded over its parameter grid, each point constructed once
-    (unknown names and bad parameters fail here)."""
+    with its false-alarm budget (its own ``false_alarms``, else the campaign's), as
+    ``detect --false-alarms`` sets it (unknown names, bad parameters and detectors without
+    a budget fail here)."""
     from imufdi_cli.detectors import DETECTORS, make_detector
+    from imufdi_cli.engine import with_budget
 
     detectors: list[_Detector] = []
     for i, table in enumerate(_as_list(tables)):
@@ -367,7 +417,8 @@ def _parse_detectors(tables: Any, path: Path, bases: list[_Base]) -> list[_Detec
         unknown = set(table) - _DETECTOR_KEYS
         if unknown:
             raise CampaignSpecError(
-                f"{where}: unknown key {sorted(unknown)[0]!r}; valid: bases, calibrate, name, params"
+                f"{where}: unknown key {sorted(unknown)[0]!r};"
+                " valid: bases, calibrate, false_alarms, name, params"
             )
         det_bases = _scope(table, where, bases)
         name = str(table["name"])
@@ -380,15 +431,18 @@ def _parse_detectors(tables: Any, path: Path, bases: list[_Base]) -> list[_Detec
             if "calibrate" in table
             else None
         )
+        budget = false_alarms
+        if "false_alarms" in table:
+            budget = episode_rate(table["false_alarms"], f"{where}.false_alarms")
         params_table = table.get("params", {})
         if not isinstance(params_table, Mapping):
             raise CampaignSpecError(f"{where}.params: expected a table of name = value or list")
         for params in _grid(dict(params_table)):
             try:
-                make_detector(name, params)
+                make_detector(name, with_budget([(name, params)], budget)[0][1])
             except ImufdiError as err:
                 raise CampaignSpecError(f"{where}: {err}") from err
-            detectors.append(_Detector(name, params, cal, det_bases))
+            detectors.append(_Detector(name, params, cal, det_bases, budget))
     if not detectors:
         raise CampaignSpecError(f"{path}: needs at least one [[detector]]")
     return detectors
@@ -439,6 +493,8 @@ def _expand_runs(
             desc["at_jitter"] = fault_set.jitters
         if head.match_far != DEFAULT_MATCH_FAR:
             desc["match_far"] = head.match_far
+        if det.false_alarms is not None:
+            desc["false_alarms"] = det.false_alarms
         runs.append((index, desc))
     return runs
 

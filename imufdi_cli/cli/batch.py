@@ -60,7 +60,7 @@ def campaign(
     """
     from imufdi_cli.fileio import check_outputs
 
-    check_outputs([spec], [("--json", ui.json_target)])
+    check_outputs([spec], [("-o", results_dir), ("--json", ui.json_target)])
     code = run_campaign_cli(
         spec,
         results_dir,

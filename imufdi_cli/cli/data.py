@@ -286,7 +286,7 @@ def inject(
     check_input(source)
     if not faults and not fault_files:
         raise FaultSpecError("no fault given; use --fault SPEC or --faults FILE.toml")
-    output = output or default_output(source, "faults")
+    output = default_output(source, "faults") if output is None else output
     ui.data_to_stdout(output)
     check_outputs([source, *fault_files], [("-o", output), ("--json", ui.json_target)])
     with ui.progress(f"inject {source} (2 passes)") as progress:

@@ -34,16 +34,17 @@ class DemoResult:
 
 
 def demo_table(report: Any) -> PlainTable:
-    """The demo's table: every column of the report's figures (right-justified) per
-    detector and sensor type."""
+    """The demo's table: the report's terminal columns (right-justified) per detector and
+    sensor type."""
     from imufdi_cli import report as rep
 
+    columns = rep.table_columns(report, console=True)
     table = PlainTable(
-        ("detector", "sensor", *(header for _, header, _, _ in rep.TABLE_COLUMNS)),
+        ("detector", "sensor", *(header for _, header, _, _ in columns)),
         title="demo: 0.9 deg/s step on imu0.gyro.x at 2.5 s (paper-table4)",
-        justify=("left", "left", *("right" for _ in rep.TABLE_COLUMNS)),
+        justify=("left", "left", *("right" for _ in columns)),
     )
-    for row in rep.table_rows(report):
+    for row in rep.table_rows(report, console=True):
         table.add_row(*row)
     return table
 

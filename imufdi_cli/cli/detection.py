@@ -139,15 +139,15 @@ def detect(
     budget = None if false_alarms is None else false_alarm_rate(false_alarms)
     window = time_range(calibrate, "--calibrate")
     tested = start_end(start, end)
-    array = ArrayConfig.load(array_path) if array_path else None
-    output = output or default_output(source, "detect")
+    output = default_output(source, "detect") if output is None else output
     ui.data_to_stdout(output)
     # parameter files (e.g. woa-mvmd-glt.params=tuned.json) are inputs too
     param_files = [p.split("=", 1)[1] for p in params if "=" in p]
     check_outputs(
-        [source, *(f for f in param_files if os.path.isfile(f))],
+        [source, array_path, *(f for f in param_files if os.path.isfile(f))],
         [("-o", output), ("--json", ui.json_target)],
     )
+    array = ArrayConfig.load(array_path) if array_path else None
     with ui.progress(f"detect {source}") as progress:
         result = detect_file(
             source,
@@ -181,6 +181,11 @@ def detect(
             ui.summary.print(
                 f"{sensor_type}: {counts['clipped']} clipped and {counts['invalid']} invalid"
                 f" samples excluded from the tests ({counts['held']} without consensus)"
+            )
+        if counts.get("missing"):
+            ui.summary.print(
+                f"{sensor_type}: {counts['missing']} samples tested with an IMU missing (its"
+                " sensors replaced by the others' consensus)"
             )
     ui.warn(result.warnings)
     ui.json(

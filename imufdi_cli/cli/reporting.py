@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 from typing import Any
 
@@ -59,6 +58,13 @@ from imufdi_cli.errors import EXIT_GATE_FAILED
     " out-of-sample FAR (e.g. 1% or 0.01).",
 )
 @click.option(
+    "--match-budget",
+    "match_budget",
+    metavar="RATE",
+    help="Also report MAR, FIR and delays with each detector's threshold scaled so that"
+    " the fault-free tested time raises this many false alarm episodes (e.g. 1/h).",
+)
+@click.option(
     "--roc",
     "roc_out",
     metavar="FILE",
@@ -79,6 +85,7 @@ def report(
     gates: tuple[str, ...],
     persist: int,
     match_far: str | None,
+    match_budget: str | None,
     roc_out: str | None,
     start: str | None,
     end: str | None,
@@ -86,8 +93,10 @@ def report(
 ) -> None:
     """Metrics per detector and sensor type: FAR, MAR, accuracy, FIR, delays.
 
-    FAR counts samples outside the calibration window; delays are at decision time.
-    --match-far compares detectors at one false-alarm rate (docs/metrics.md).
+    FAR counts samples outside the calibration window; delays are at decision time;
+    false alarm episodes are counted per hour of fault-free tested time, with their 95 %
+    upper bound. --match-far compares detectors at one per-sample false-alarm rate,
+    --match-budget at one rate of false episodes per hour (docs/metrics.md).
     --fail-if gates exit with code 1 when any fails (CI regression on recorded data).
     The table goes to stdout (to stderr when an output is -).
 
@@ -97,14 +106,24 @@ def report(
     \b
         imufdi report out.mcap --markdown table.md --fail-if 'glt.gyro.far > 0.08' --fail-if 'glt.gyro.mar > 0.35'
         imufdi report out.mcap --match-far 1% --roc roc.csv --plot figures.png
+        imufdi report recorded.mcap --fail-if 'glt.gyro.false_episodes_per_hour_upper95 > 2'
     """
     from imufdi_cli import report as rep
     from imufdi_cli.detectors import DETECTORS
     from imufdi_cli.errors import UsageError
-    from imufdi_cli.fileio import atomic_path, check_input, check_outputs, write_text
+    from imufdi_cli.fileio import (
+        atomic_path,
+        check_input,
+        check_outputs,
+        derived_output,
+        write_text,
+    )
 
     target = None if match_far is None else rep.parse_far(match_far)
+    budget = None if match_budget is None else rep.parse_budget(match_budget)
     check_input(log)
+    # with --plot, --roc FILE also writes FILE's name with .png: an output like the others
+    roc_png = derived_output(roc_out, ".png") if plot_out and roc_out and roc_out != "-" else None
     outputs = [
         ("--json", ui.json_target),
         ("--markdown", md_out),
@@ -113,10 +132,8 @@ def report(
         ("--plot", plot_out),
         ("--roc", roc_out),
         ("--episodes-csv", episodes_out),
+        ("--roc (its .png figure with --plot)", roc_png),
     ]
-    to_stdout = [label for label, path in outputs if path == "-"]
-    if len(to_stdout) > 1:
-        raise UsageError(f"{' and '.join(to_stdout)} would all write to stdout; give files")
     if plot_out == "-":
         raise UsageError("--plot writes a PNG file; give it a file name")
     ui.data_to_stdout(md_out, csv_out, junit_out, roc_out, episodes_out)
@@ -131,6 +148,7 @@ def report(
             log,
             persist=persist,
             match_far=target,
+            match_budget=budget,
             keep_series=plot_out is not None,
             keep_roc=roc_out is not None,
             window=start_end(start, end),
@@ -172,9 +190,8 @@ def report(
 
         with atomic_path(plot_out, suffix=".png") as tmp:  # matplotlib wants the extension
             plots.plot_report(result, tmp)
-        if roc_out and roc_out != "-":
-            png = os.path.splitext(roc_out)[0] + ".png"
-            with atomic_path(png, suffix=".png") as tmp:
+        if roc_png is not None:
+            with atomic_path(roc_png, suffix=".png") as tmp:
                 plots.plot_roc(result, tmp)
     failed = [r for r in gate_results if r.failed]
     if gate_results:  # rich only when there are gate lines to print

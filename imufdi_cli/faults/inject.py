@@ -372,7 +372,8 @@ def _copy_with_faults(
             )
             result.messages_patched += count
             writer.add_batch(patched)
-        result.warnings = list(reader.warnings)
+        # the layout pass's warnings (array, stamps) and this pass's, each once
+        result.warnings = list(dict.fromkeys([*layout.warnings, *reader.warnings]))
 
 
 def _write_events(writer: Any, scan: _Scan, injector: FaultInjector) -> int:

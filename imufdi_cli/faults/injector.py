@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.array import SENSOR_TYPES, ArrayConfig
-from imufdi_cli.errors import FaultSpecError
+from imufdi_cli.errors import FaultSpecError, TruthError
 from imufdi_cli.faults.models import METADATA_FORMAT, Fault
 from imufdi_cli.faults.spec import validate_faults
 from imufdi_cli.faults.truth import _load_record, faults_from_metadata
@@ -73,12 +73,17 @@ class FaultInjector:
         self.t0_ns = int(t0_ns)
         self.previous_runs: list[dict[str, Any]] = []
         if previous_metadata is not None:
+            if previous_metadata and "json" not in previous_metadata:
+                raise TruthError("imufdi.faults metadata has no 'json' entry")
             record = _load_record(previous_metadata["json"]) if previous_metadata else None
             if record is not None:
                 self.previous_runs = [*record.pop("previous", []), record]
-        previous_faults = [
-            Fault.from_dict(item) for run in self.previous_runs for item in run["faults"]
-        ]
+        try:
+            previous_faults = [
+                Fault.from_dict(item) for run in self.previous_runs for item in run["faults"]
+            ]
+        except TruthError as err:  # a fault the schema let through but Fault refuses
+            raise TruthError(f"imufdi.faults metadata: {err}") from err
         taken = {f.id for f in previous_faults if f.id}
         validate_faults(faults, array, log_duration_s=log_duration_s, taken_ids=taken)
         taken |= {f.id for f in faults if f.id}

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Final
@@ -31,6 +32,10 @@ MODEL_KEYS: Final[dict[str, frozenset[str]]] = {
     "spikes": frozenset({"rate", "amp", "width"}),
 }
 MODELS: Final[tuple[str, ...]] = tuple(sorted(MODEL_KEYS))
+
+
+#: a full sensor id, as fault records list them
+_SENSOR_ID = re.compile(r"imu\d{1,6}\.(gyro|accel|mag)\.[xyz]")
 
 
 def _seconds_to_ns(seconds: float) -> int:
@@ -127,8 +132,11 @@ class Fault:
             if model not in MODEL_KEYS:
                 raise TruthError(f"fault record: unknown model {model!r}; valid: {MODELS}")
             sensors = [str(s) for s in data["sensors"]]
-            if not sensors or any(len(s.split(".")) != 3 for s in sensors):
-                raise TruthError(f"fault record: bad sensors {data['sensors']!r}")
+            if not sensors or not all(_SENSOR_ID.fullmatch(s) for s in sensors):
+                raise TruthError(
+                    f"fault record: bad sensors {data['sensors']!r}; each must be"
+                    " imu<k>.<gyro|accel|mag>.<x|y|z>"
+                )
             until = data.get("until_s")
             return cls(
                 model=model,

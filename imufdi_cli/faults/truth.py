@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -12,6 +11,7 @@ import numpy as np
 
 from imufdi_cli.errors import TruthError
 from imufdi_cli.faults.models import METADATA_NAME, Fault
+from imufdi_cli.jsonin import check, loads
 
 # --- ground truth -----------------------------------------------------------------------
 
@@ -53,18 +53,19 @@ def faults_from_metadata(meta: Mapping[str, str]) -> list[Fault]:
         raise TruthError(f"{METADATA_NAME} metadata has no 'json' entry")
     record = _load_record(meta["json"])
     faults: list[Fault] = []
-    for run in [*record.get("previous", []), record]:
-        faults += [Fault.from_dict(item) for item in run.get("faults", [])]
+    try:
+        for run in [*record.get("previous", []), record]:
+            faults += [Fault.from_dict(item) for item in run.get("faults", [])]
+    except TruthError as err:  # a fault the schema let through but Fault refuses
+        raise TruthError(f"{METADATA_NAME} metadata: {err}") from err
     return faults
 
 
 def _load_record(text: str) -> dict[str, Any]:
-    try:
-        record = json.loads(text)
-    except (TypeError, ValueError) as err:
-        raise TruthError(f"{METADATA_NAME} metadata is not valid JSON ({err})") from err
-    if not isinstance(record, dict) or not isinstance(record.get("faults"), list):
-        raise TruthError(f"{METADATA_NAME} metadata lacks a 'faults' list")
-    if not isinstance(record.get("previous", []), list):
-        raise TruthError(f"{METADATA_NAME} metadata: 'previous' must be a list")
-    return record
+    """The ``imufdi.faults`` JSON checked against its schema (TruthError, exit 3, naming
+    the bad value; :mod:`imufdi_cli.metadata`)."""
+    from imufdi_cli.metadata import FAULTS_SCHEMA
+
+    where = f"{METADATA_NAME} metadata"
+    record = check(loads(text, where, TruthError), FAULTS_SCHEMA, where, TruthError)
+    return record  # type: ignore[no-any-return]

@@ -3,7 +3,6 @@ the logging settings that decide their rates (shared by the PX4 and ArduPilot re
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
@@ -235,9 +234,12 @@ def rate_problem(metadata: Mapping[str, Mapping[str, str]]) -> str | None:
     record = metadata.get("imufdi.ingest")
     if record is None:
         return None
-    try:
-        content = json.loads(record.get("json", "{}"))
-    except ValueError:
+    from imufdi_cli.errors import InputDataError
+    from imufdi_cli.jsonin import loads
+
+    try:  # nesting bounded (a malformed record is info's warning, not this one's)
+        content = loads(record.get("json", "{}"), "imufdi.ingest metadata")
+    except (InputDataError, AttributeError):
         return None
     rate = content.get("rate") if isinstance(content, dict) else None
     if isinstance(rate, dict) and rate.get("testable") is False and rate.get("message"):

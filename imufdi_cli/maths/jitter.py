@@ -41,6 +41,8 @@ The price is sensitivity in motion: a step f on sensor j has non-centrality
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
+
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
@@ -173,6 +175,9 @@ def fit_jitter(
       rows (0 when the plain test already holds the level; :data:`MAX_JITTER_S` when no
       value does): a quantile fit, for the tail the test uses.
 
+    In memory: :func:`jitter_rows` of the rows, then :func:`fit_jitter_rows` (``imufdi
+    calibrate`` streams the rows through the same two).
+
     Parameters
     ----------
     h_white : ndarray, shape (n, q_cols)
@@ -185,27 +190,60 @@ def fit_jitter(
     offset : ndarray, shape (n,), optional
         Whitened per-sensor offsets to remove (e.g. the residual mean at rest).
     """
-    n = h_white.shape[0]
-    projector = consensus_projector(h_white)
-    dof = n - int(np.linalg.matrix_rank(h_white))
     use = np.asarray(rows, bool).copy()
     use[0] = False
     index = np.flatnonzero(use)
+    dof = jitter_dof(h_white)
     if index.size == 0 or dof <= 0:
         return 0.0
-    current = values_white[index]
-    dt = t_s[index] - t_s[index - 1]
-    rate = ((current - values_white[index - 1]) @ projector.T) / dt[:, None]
+    statistic, energy = jitter_rows(
+        h_white, values_white[index], values_white[index - 1], t_s[index] - t_s[index - 1], offset
+    )
+    return fit_jitter_rows(lambda: iter([(statistic, energy)]), dof, alpha)
+
+
+def jitter_dof(h_white: np.ndarray) -> int:
+    """Parity dimensions ``n - rank H`` of a whitened design."""
+    return int(h_white.shape[0] - int(np.linalg.matrix_rank(h_white)))
+
+
+def jitter_rows(
+    h_white: np.ndarray,
+    current: np.ndarray,
+    previous: np.ndarray,
+    dt: np.ndarray,
+    offset: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The statistic ``D_t`` (k,) and motion energy ``e_t`` (k,) of :func:`fit_jitter` for
+    rows of whitened measurements ``current`` (k, n), each with its predecessor
+    ``previous`` (k, n), ``dt`` (k,) s apart."""
+    n = h_white.shape[0]
+    projector = consensus_projector(h_white)
+    rate = ((current - previous) @ projector.T) / dt[:, None]
     noise_rank = float(round(float(np.trace(projector))))
     energy = np.maximum(np.einsum("ij,ij->i", rate, rate) - 2.0 * noise_rank / dt**2, 0.0) / n
     centred = current if offset is None else current - offset
     residual = centred - centred @ projector.T
-    statistic = np.einsum("ij,ij->i", residual, residual)
+    return np.einsum("ij,ij->i", residual, residual), energy
+
+
+def fit_jitter_rows(
+    chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]],
+    dof: int,
+    alpha: float | None = None,
+) -> float:
+    """:func:`fit_jitter` from its rows' ``(D_t, e_t)``, given as a function returning
+    them in chunks (called once per evaluation of the level fit: the rows may be read
+    from a file each time)."""
     if alpha is not None:
         threshold = float(chi2.ppf(1.0 - alpha, dof))
 
         def excess_rate(jitter_s: float) -> float:
-            return float(np.mean(statistic / (1.0 + jitter_s**2 * energy) > threshold)) - alpha
+            over, total = 0, 0
+            for statistic, energy in chunks():
+                over += int(np.count_nonzero(statistic / (1.0 + jitter_s**2 * energy) > threshold))
+                total += int(statistic.size)
+            return over / total - alpha
 
         if excess_rate(0.0) <= 0:
             return 0.0
@@ -214,8 +252,10 @@ def fit_jitter(
         from scipy.optimize import brentq  # imported when a root is needed (0.35 s of CPU)
 
         return float(brentq(excess_rate, 0.0, MAX_JITTER_S, xtol=1e-9))
-    excess = float(np.sum(statistic - dof))
-    drive = float(np.sum(energy))
+    excess = drive = 0.0
+    for statistic, energy in chunks():
+        excess += float(np.sum(statistic - dof))
+        drive += float(np.sum(energy))
     if drive <= 0 or excess <= 0:
         return 0.0
     return float(np.sqrt(excess / (dof * drive)))

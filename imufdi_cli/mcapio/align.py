@@ -24,7 +24,11 @@ class AlignmentStats:
     misaligned : int
         Aligned samples whose stamps matched only within the tolerance (not exactly).
     dropped : int
-        Time slots not produced because at least one topic had no sample.
+        Time slots not produced: too few topics had a sample (all of them must, unless
+        the reader accepts partial samples: then fewer than half the IMUs).
+    partial : int
+        Samples produced with some topics missing (their values NaN; see
+        :class:`_Aligner`'s ``quorum``).
     late : dict
         Per topic: samples that arrived after their time slot was already produced
         (out of order by more than the other topics' lead); dropped.
@@ -41,10 +45,26 @@ class AlignmentStats:
     duplicates: dict[str, int] = field(default_factory=dict)
     misaligned: int = 0
     dropped: int = 0
+    partial: int = 0
     late: dict[str, int] = field(default_factory=dict)
     messages: dict[str, int] = field(default_factory=dict)
     max_skew_ns: int = 0
     tolerance_ns: int = 0
+
+
+#: A stream missing at least this many samples is reported (:meth:`_Aligner.missing_report`).
+MISSING_REPORTED = 10
+
+
+@dataclass
+class _MissingRuns:
+    """Where one stream had no sample, over the slots where some IMU had one."""
+
+    count: int = 0
+    first_ns: int | None = None
+    last_ns: int | None = None
+    run: int = 0  # the current run of consecutive missing slots
+    longest: int = 0
 
 
 class _Aligner:
@@ -52,12 +72,33 @@ class _Aligner:
 
     Pending samples of all streams are kept together (stamps, stream index, values padded
     to a common width), so adding a chunk and resolving a block are a few numpy calls.
+
+    ``quorum``: a slot is produced when at least this many of the first ``n_imus``
+    streams (the IMUs; the others are magnetometers) have a sample in it; the values of
+    the streams without one are NaN and :attr:`last_present` says which. None (the
+    default): every stream must have a sample. Where each stream missed samples is
+    tracked for :meth:`missing_report`.
     """
 
     def __init__(
-        self, names: list[str], widths: list[int], tolerance: int, max_pending: int
+        self,
+        names: list[str],
+        widths: list[int],
+        tolerance: int,
+        max_pending: int,
+        *,
+        quorum: int | None = None,
+        n_imus: int | None = None,
     ) -> None:
         self.names = names
+        self.quorum = quorum
+        self.n_imus = len(names) if n_imus is None else n_imus
+        #: After :meth:`resolve`: (K, S) bool, which streams had a sample in each slot it
+        #: returned, when some did not (else None: all did).
+        self.last_present: np.ndarray | None = None
+        self.missing = [_MissingRuns() for _ in names]
+        self.slots_seen = 0  # slots where some IMU had a sample
+        self.first_slot_ns: int | None = None
         self.widths = widths
         self.width = max(widths)
         self.tolerance = int(tolerance)
@@ -110,6 +151,7 @@ class _Aligner:
     def resolve(self, final: bool) -> tuple[np.ndarray, list[np.ndarray]]:
         """Stamps (K,) and per-stream values (K, width) of the time slots now complete."""
         self.last_joint = None
+        self.last_present = None
         if not self.pending:
             return self.empty()
         n_streams = len(self.names)
@@ -155,25 +197,47 @@ class _Aligner:
         self.boundary = boundary if self.boundary is None else max(self.boundary, boundary)
         key = slot * n_streams + s_done
         counts = np.bincount(key, minlength=n_done * n_streams).reshape(n_done, n_streams)
-        complete = np.all(counts >= 1, axis=1)
-        missing = counts == 0
+        present = counts >= 1
+        complete = np.all(present, axis=1)
+        missing = ~present
         for s, name in enumerate(self.names):
             self.stats.gaps[name] += int(missing[:, s].sum())
             self.stats.duplicates[name] += int(np.maximum(counts[:, s] - 1, 0).sum())
-        self.stats.dropped += int((~complete).sum())
+        imus_present = np.count_nonzero(present[:, : self.n_imus], axis=1)
+        emit = complete if self.quorum is None else imus_present >= max(self.quorum, 1)
+        self._note_missing(t_sorted[slot_start[:n_done]], missing, imus_present > 0)
+        self.stats.dropped += int((~emit).sum())
         unique_keys, first = np.unique(key, return_index=True)
         first_slot = unique_keys // n_streams
         first_stream = unique_keys % n_streams
-        keep = complete[first_slot]
+        keep = emit[first_slot]
         first, first_slot, first_stream = first[keep], first_slot[keep], first_stream[keep]
-        rank = np.cumsum(complete) - 1
-        k = int(complete.sum())
-        row = np.zeros((k, n_streams), np.int64)
+        rank = np.cumsum(emit) - 1
+        k = int(emit.sum())
+        partial = not bool(complete[emit].all())
+        row = np.full((k, n_streams), -1 if partial else 0, np.int64)
         row[rank[first_slot], first_stream] = rows[first]
-        stamps = all_t[row]
-        values = [all_v[row[:, s], : self.widths[s]] for s in range(n_streams)]
-        if k:
+        if partial:
+            have = row >= 0
+            self.stats.partial += int(np.count_nonzero(~have.all(axis=1)))
+            self.last_present = have
+            row = np.maximum(row, 0)
+            stamps = np.where(have, all_t[row], np.iinfo(np.int64).max)
+            # a slot's stamp: the first IMU's (as for a complete slot), else its earliest
+            slot_t = np.where(have[:, 0], stamps[:, 0], stamps.min(axis=1))
+            latest = np.where(have, stamps, np.iinfo(np.int64).min).max(axis=1)
+            skew = latest - stamps.min(axis=1)
+            values = []
+            for s in range(n_streams):
+                part = all_v[row[:, s], : self.widths[s]]
+                part[~have[:, s]] = np.nan
+                values.append(part)
+        else:
+            stamps = all_t[row]
+            slot_t = stamps[:, 0]
             skew = stamps.max(axis=1) - stamps.min(axis=1)
+            values = [all_v[row[:, s], : self.widths[s]] for s in range(n_streams)]
+        if k:
             self.stats.misaligned += int(np.count_nonzero(skew))
             self.stats.max_skew_ns = max(self.stats.max_skew_ns, int(skew.max()))
         self.stats.n_aligned += k
@@ -185,7 +249,72 @@ class _Aligner:
         else:
             self.pending = []
             self.counts = np.zeros(n_streams, np.int64)
-        return stamps[:, 0].copy(), values
+        return slot_t.copy(), values
+
+    def _note_missing(self, slot_ns: np.ndarray, missing: np.ndarray, real: np.ndarray) -> None:
+        """Track each stream's missing samples over the slots ``real`` (some IMU had a
+        sample there): ``slot_ns`` (K,) stamps, ``missing`` (K, S)."""
+        if not bool(real.any()):
+            return
+        slot_ns, missing = slot_ns[real], missing[real]
+        if self.first_slot_ns is None:
+            self.first_slot_ns = int(slot_ns[0])
+        self.slots_seen += int(slot_ns.size)
+        for s, track in enumerate(self.missing):
+            gone = missing[:, s]
+            if not bool(gone.any()):
+                track.run = 0
+                continue
+            idx = np.flatnonzero(gone)
+            track.count += int(idx.size)
+            if track.first_ns is None:
+                track.first_ns = int(slot_ns[idx[0]])
+            track.last_ns = int(slot_ns[idx[-1]])
+            # runs of consecutive missing slots; the first continues the carried run
+            breaks = np.flatnonzero(np.diff(idx) > 1)
+            starts = np.r_[idx[0], idx[breaks + 1]]
+            ends = np.r_[idx[breaks], idx[-1]]
+            lengths = ends - starts + 1
+            if starts[0] == 0:
+                lengths[0] += track.run
+            track.longest = max(track.longest, int(lengths.max()))
+            track.run = int(lengths[-1]) if ends[-1] == gone.size - 1 else 0
+
+    def _note_complete(self, slot_ns: np.ndarray) -> None:
+        """:meth:`_note_missing` for slots where every stream had a sample."""
+        if slot_ns.size == 0:
+            return
+        if self.first_slot_ns is None:
+            self.first_slot_ns = int(slot_ns[0])
+        self.slots_seen += int(slot_ns.size)
+        for track in self.missing:
+            track.run = 0
+
+    def missing_report(self, period_ns: float, *, produced: bool) -> list[str]:
+        """One line per stream that missed at least :data:`MISSING_REPORTED` samples where
+        some IMU had one: how many of those slots, between which times (s from the first
+        slot), the longest run; ``produced``: the slots with it missing were produced
+        (partial samples) rather than dropped. Fewer are incidental (a damaged chunk cuts
+        a slot at each end) and only counted (:class:`AlignmentStats`)."""
+        lines = []
+        origin = self.first_slot_ns or 0
+        for name, track in zip(self.names, self.missing):
+            if track.count < MISSING_REPORTED or track.first_ns is None or track.last_ns is None:
+                continue
+            share = track.count / max(self.slots_seen, 1)
+            lines.append(
+                f"{name} has no sample in {track.count} of {self.slots_seen} array samples"
+                f" ({share:.0%}) between {(track.first_ns - origin) * 1e-9:.6g} s and"
+                f" {(track.last_ns - origin) * 1e-9:.6g} s from the log start (longest run"
+                f" {track.longest * period_ns * 1e-9:.3g} s): the topic stopped or slowed; "
+                + (
+                    "the other IMUs are tested there (its values missing: detect replaces"
+                    " them by the others' consensus)"
+                    if produced
+                    else "those array samples are dropped"
+                )
+            )
+        return lines
 
     def _resolve_regular(
         self, all_t: np.ndarray, all_s: np.ndarray, all_v: np.ndarray, final: bool
@@ -215,6 +344,7 @@ class _Aligner:
         boundary = int(stamps[k - 1])
         self.boundary = boundary if self.boundary is None else max(self.boundary, boundary)
         self.stats.n_aligned += k
+        self._note_complete(stamps[:k])
         by_slot = all_v.reshape(k_all, n_streams, all_v.shape[1])
         values = [by_slot[:k, s, : self.widths[s]] for s in range(n_streams)]
         self.last_joint = by_slot[:k]

@@ -15,8 +15,10 @@ or flow sequences of plain or quoted scalars), so no YAML library is needed.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
+import stat
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -111,9 +113,29 @@ def bag_files(path: str | os.PathLike[str]) -> list[Path]:
         if not file.is_file() and (directory / Path(item).name).is_file():
             file = directory / Path(item).name  # older rosbag2 lists "<bag dir>/<file>"
         if not file.is_file():
-            raise McapInputError(f"{directory}: {item}, listed in {METADATA_FILE}, is missing")
+            raise McapInputError(
+                f"{directory}: {item}, listed in {METADATA_FILE}, {_not_a_file(file)}"
+            )
         files.append(file)
     return files
+
+
+def _not_a_file(path: Path) -> str:
+    """Why ``path`` cannot be read as a split file, in words (``is missing``, ``is a
+    directory``, ``is a symlink loop``...)."""
+    try:
+        info = path.stat()
+    except OSError as err:
+        if not os.path.lexists(path):
+            return "is missing"
+        if err.errno == errno.ELOOP:
+            return "is a symlink loop (Too many levels of symbolic links)"
+        if err.errno == errno.ENOENT:  # a dangling symlink
+            return f"is a symlink to {os.readlink(path)}, which is missing"
+        return f"cannot be read ({err.strerror})"
+    if stat.S_ISDIR(info.st_mode):
+        return "is a directory, not an MCAP file"
+    return "is not a regular file (a device, FIFO or socket)"
 
 
 def _channel_key(channel: ChannelInfo) -> tuple[Any, ...]:

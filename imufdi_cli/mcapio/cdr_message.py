@@ -8,7 +8,6 @@ info --strict``) are decoded one at a time here, with the same definitions
 
 from __future__ import annotations
 
-import json
 import struct
 from typing import Any
 
@@ -220,10 +219,8 @@ class MessageDecoder:
 
 def decode_json_payloads(batch: MessageBatch) -> list[Any]:
     """JSON-decode every payload (general path)."""
-    out = []
-    for i in range(len(batch)):
-        try:
-            out.append(json.loads(batch.payload(i)))
-        except (ValueError, UnicodeDecodeError) as err:
-            raise McapInputError(f"malformed JSON message: {err}") from err
-    return out
+    from imufdi_cli.jsonin import loads  # nesting bounded: never a RecursionError
+
+    return [
+        loads(batch.payload(i), "malformed JSON message", McapInputError) for i in range(len(batch))
+    ]

@@ -28,6 +28,7 @@ from typing import IO, Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
+from imufdi_cli.jsonin import loads
 from imufdi_cli.mcapio.cdr import codec_for
 from imufdi_cli.mcapio.cdr_message import decode_json_payloads
 from imufdi_cli.mcapio.records import ChannelInfo, MessageBatch
@@ -316,8 +317,8 @@ def _fdi_event(msg: dict[str, Any]) -> dict[str, Any]:
     detail = msg.get("detail")
     if detail:
         try:
-            event["episode"] = json.loads(detail)
-        except ValueError as err:
+            event["episode"] = loads(detail, "episode detail", McapInputError)
+        except McapInputError as err:
             raise ValueError("malformed episode detail") from err
     return event
 
@@ -444,8 +445,8 @@ class EpisodeEvent:
         if self._explanation is None:
             text = (self._detail or b"").rstrip(b"\0").decode("utf-8", errors="replace")
             try:
-                episode = json.loads(text)
-            except ValueError as err:
+                episode = loads(text, "episode detail", McapInputError)
+            except McapInputError as err:
                 raise McapInputError(f"{EVENTS_TOPIC}: malformed episode detail") from err
             if not isinstance(episode, dict):
                 raise McapInputError(f"{EVENTS_TOPIC}: malformed episode detail")

@@ -130,6 +130,11 @@ class ImuArrayReader:
         (benchmarks, or logs known to be intact); the zstd/lz4 frame checksums are still
         verified. Applies when the reader opens ``source`` itself; an open McapSource
         keeps its own setting.
+    partial : bool
+        Also produce the array samples where some IMUs have no sample, as long as at least
+        half of them have one (default): the missing IMUs' values are NaN and the block's
+        ``missing`` mask says which (a topic that stopped or slowed; ``detect`` tests the
+        others). False: only samples where every topic has one.
 
     Attributes
     ----------
@@ -155,6 +160,7 @@ class ImuArrayReader:
         tolerance_ns: int | None = None,
         keep_raw_chunks: bool = False,
         validate_crcs: bool = True,
+        partial: bool = True,
     ) -> None:
         if time_source not in ("auto", "header", "log_time"):
             raise UsageError(f"unknown time source {time_source!r}; valid: auto, header, log_time")
@@ -216,7 +222,16 @@ class ImuArrayReader:
         tolerance = int(0.3 * period_ns) if tolerance_ns is None else int(tolerance_ns)
         names = list(self.imu_topics) + list(self.mag_topics)
         widths = [6] * len(self.imu_topics) + [3] * len(self.mag_topics)
-        self._aligner = _Aligner(names, widths, tolerance, max_pending=max(8 * block_size, 65536))
+        self._period_ns = period_ns
+        self._partial = partial
+        self._aligner = _Aligner(
+            names,
+            widths,
+            tolerance,
+            max_pending=max(8 * block_size, 65536),
+            quorum=(len(self.imu_topics) + 1) // 2 if partial else None,
+            n_imus=len(self.imu_topics),
+        )
         self.stats = self._aligner.stats
         self._groups: list[tuple[np.ndarray, ChannelInfo, tuple[str, ...], str]] | None = None
         self._stream_of = np.zeros(0, np.int64)
@@ -382,7 +397,10 @@ class ImuArrayReader:
             try:
                 array = ArrayConfig.from_json(meta["json"])
             except ArrayConfigError as err:
-                self.warnings.append(f"ignoring the imufdi.array metadata: {err}")
+                self.warnings.append(
+                    f"{err}; ignored: the array is inferred from the topics (co-aligned IMUs,"
+                    " measured rate)"
+                )
             else:
                 if array.n_imus == m:
                     return array
@@ -558,11 +576,13 @@ class ImuArrayReader:
                 mag = planes(slice(m, None), 0)
             else:
                 mag = np.stack(values[m:], axis=1)
+        present = self._aligner.last_present
         return ImuBlock(
             t_ns=t_ns,
             gyro=stacked(slice(0, 3)) if self.array.has("gyro") else None,
             accel=stacked(slice(3, 6)) if self.array.has("accel") else None,
             mag=mag,
+            missing=None if present is None or present.shape[0] != n else ~present[:, :m],
         )
 
     def stream(self) -> Iterator[tuple[MessageBatch, ImuBlock]]:
@@ -577,6 +597,7 @@ class ImuArrayReader:
             else:
                 yield batch, self._block(*self._aligner.empty())
         t_ns, values = self._aligner.resolve(final=True)
+        self.warnings.extend(self._aligner.missing_report(self._period_ns, produced=self._partial))
         if t_ns.shape[0]:
             yield MessageBatch.empty(), self._block(t_ns, values, self._aligner.last_joint)
 
@@ -623,7 +644,10 @@ def recut(blocks: Iterable[ImuBlock], block_size: int) -> Iterator[ImuBlock]:
 
 
 def read_array(source: str | Path | IO[bytes], **kw: Any) -> tuple[ArrayConfig, ImuBlock]:
-    """Read a whole log into memory: (array config, all aligned samples)."""
+    """Read a whole log into memory: (array config, all aligned samples). Only the samples
+    every IMU has, unless ``partial=True`` (then also those with some IMUs missing, their
+    values NaN and flagged in the block's ``missing``, as ``detect`` reads them)."""
+    kw.setdefault("partial", False)
     with ImuArrayReader(source, **kw) as reader:
         blocks = [b for _, b in reader.stream() if len(b)]
         if not blocks:

@@ -3,7 +3,6 @@ bulk decoding and in-place patching of their CDR (or JSON) messages (docs/format
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -12,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
+from imufdi_cli.jsonin import loads
 from imufdi_cli.mcapio.cdr import CdrCodec, codec_for
 from imufdi_cli.mcapio.records import (
     ChannelInfo,
@@ -217,7 +217,7 @@ def _decode_json(
     vectors = {kind: np.zeros((n, 3)) for kind in kinds}
     for i in range(n):
         try:
-            obj = json.loads(batch.payload(i))
+            obj = loads(batch.payload(i), f"{channel.topic}: JSON message", McapInputError)
             for part in field.split(".") if field else []:
                 obj = obj[part]
             if i == 0:
@@ -229,7 +229,14 @@ def _decode_json(
             for kind in kinds:
                 vec = obj[_VECTORS[kind]]
                 vectors[kind][i] = (float(vec["x"]), float(vec["y"]), float(vec["z"]))
-        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as err:
+        except (
+            KeyError,
+            TypeError,
+            ValueError,
+            AttributeError,
+            OverflowError,
+            McapInputError,
+        ) as err:
             if valid is not None:
                 valid[i] = False
                 continue

@@ -76,6 +76,13 @@ _IGNORED = frozenset((0x01, 0x07, 0x08, 0x09, 0x0A, 0x0B, 0x0D, 0x0E))
 #: Reads from the stream are done in pieces of at most this many bytes, so a record
 #: length that no file could satisfy never becomes one huge allocation.
 _READ_PIECE = 16 << 20
+#: Problems listed per source; beyond them one line says more were met (a damaged file
+#: can hold millions of bad records: their messages alone would fill the memory).
+MAX_PROBLEMS = 100
+#: Bytes read at a time while a zero-filled region is stepped over on the stream.
+_ZERO_PIECE = 4 << 20
+#: The "opcode" :meth:`RecordStream._next_record` gives a zero-filled region (reported).
+_ZERO_RUN = -1
 
 
 def _record_name(opcode: int) -> str:
@@ -154,7 +161,45 @@ class RecordStream:
             return
         if self.strict:
             raise McapInputError(f"{self.name}: {message}")
-        self.warnings.append(message)
+        problems = self._problems = getattr(self, "_problems", 0) + 1
+        if problems < MAX_PROBLEMS:
+            self.warnings.append(message)
+        elif problems == MAX_PROBLEMS:
+            self.warnings.append(
+                f"{message}; further problems of this file are not listed (more than"
+                f" {MAX_PROBLEMS}: a badly damaged file, see --strict)"
+            )
+
+    def _zero_run(self, take: bool) -> int:
+        """Skip the zero bytes from the current position: through the data section's
+        read-ahead buffer (``take``) or on the stream; returns how many were skipped.
+
+        A zero-filled region (a file preallocated and not fully written, a disk image)
+        reads as 9-byte records of opcode 0x00 and length 0: millions of them in a few
+        MB. No MCAP record has opcode 0x00, so the whole run is stepped over at once."""
+        skipped = 0
+        while True:
+            if take:
+                if self._ahead_pos >= len(self._ahead):
+                    self._ahead, self._ahead_pos = self._read_exact(_READ_AHEAD), 0
+                buffer, start = self._ahead, self._ahead_pos
+            else:
+                buffer, start = self._read_exact(_ZERO_PIECE), 0
+            if len(buffer) <= start:
+                return skipped
+            rest = np.frombuffer(buffer, np.uint8, offset=start)
+            if not rest.any():
+                skipped += len(buffer) - start
+                if take:
+                    self._ahead_pos = len(buffer)
+                continue
+            end = start + int(np.argmax(rest != 0))  # the first byte that is not zero
+            skipped += end - start
+            if take:
+                self._ahead_pos = end
+            else:
+                self._stream.seek(end - len(buffer), io.SEEK_CUR)
+            return skipped
 
     # --- records met ---------------------------------------------------------------------
 
@@ -233,6 +278,9 @@ class RecordStream:
                 break
             opcode = head[0]
             length = int(struct.unpack("<Q", head[1:9])[0])
+            if opcode == 0 and length == 0:  # a zero-filled region: stepped over at once
+                position += 9 + self._zero_run(take=False)
+                continue
             if length > file_size - position - 9 or opcode in (OP_DATA_END, OP_FOOTER):
                 break
             if opcode == OP_METADATA and length <= self.limits.max_record_bytes:
@@ -374,6 +422,13 @@ class RecordStream:
                 self._problem(f"truncated MCAP: file ends at byte {position} without a footer")
             return None
         opcode, length = _RECORD_HEAD.unpack(head)
+        if opcode == 0 and length == 0:
+            zeros = 9 + self._zero_run(take=True)
+            self._problem(
+                f"{zeros} zero bytes at byte {position} skipped (a zero-filled region: a file"
+                " not completely written?)"
+            )
+            return _ZERO_RUN, zeros - 9, None
         if self._file_size is not None and length > self._file_size - position - 9:
             remaining = max(self._file_size - position - 9, 0)
             self._problem(
@@ -441,6 +496,9 @@ class RecordStream:
                 position = resume
                 continue
             opcode, length, content = record
+            if opcode == _ZERO_RUN:
+                position += 9 + length
+                continue
             if content is not None or opcode not in _IGNORED:
                 yield opcode, length, content, position
             position += 9 + length

@@ -129,6 +129,8 @@ class McapSource(RecordStream):
     _pool_pid = -1
     _pattern: RecordPattern | None = None
     _phase = 0
+    #: a message log time beyond int64 was reported (once per source)
+    _time_warned = False
     #: Payload fields the read-ahead thread reads from chunks of uniform Message records
     #: (set by the Imu reader once it knows their layout; None: only the message heads).
     payload_fields: PayloadFields | None = None
@@ -403,6 +405,16 @@ class McapSource(RecordStream):
                 " skipped"
             )
             batch = batch.select(known)
+        if not self._time_warned and len(batch) and int(batch.log_time.min()) < 0:
+            self._time_warned = True  # once: the first such message names the problem
+            first = int(np.flatnonzero(batch.log_time < 0)[0])
+            channel = self.channels.get(int(batch.channel_id[first]))
+            topic = channel.topic if channel is not None else "an unknown channel"
+            self._problem(
+                f"{where}: a message log time beyond 2^63 ns ({topic}:"
+                f" {int(batch.log_time[first]) + (1 << 64)} ns); imufdi's time base is int64"
+                " nanoseconds: detect and inject refuse this log (exit 3)"
+            )
         return batch
 
     def _known_lookup(self) -> np.ndarray:

@@ -513,10 +513,11 @@ def _amplitudes(
 
 
 def _channel_ids(channel: ChannelInfo) -> list[str]:
-    try:
-        return list(json.loads(channel.metadata.get("sensor_ids", "[]")))
-    except ValueError as err:
-        raise McapInputError(f"{channel.topic}: sensor_ids metadata is not JSON") from err
+    from imufdi_cli.jsonin import ListOf, Str, check, loads
+
+    where = f"{channel.topic}: sensor_ids metadata"
+    ids = loads(channel.metadata.get("sensor_ids", "[]"), where, McapInputError)
+    return list(check(ids, ListOf(Str()), where, McapInputError))
 
 
 def iter_status(

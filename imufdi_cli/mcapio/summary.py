@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -64,6 +63,9 @@ class LogSummary:
     ingest : dict or None
         The counts of ``imufdi ingest`` (bad checksums, lost frames, dropped bytes, ...)
         from the ``imufdi.ingest`` metadata.
+    ingest_record : dict or None
+        The whole ``imufdi.ingest`` record, checked against its schema (None when absent
+        or malformed: then a warning says so).
     array : ArrayConfig or None
         From ``imufdi.array`` metadata or inferred.
     array_from_metadata : bool
@@ -87,6 +89,7 @@ class LogSummary:
     time_source: str | None = None
     imu_fields: dict[str, str] = field(default_factory=dict)
     ingest: dict[str, Any] | None = None
+    ingest_record: dict[str, Any] | None = None
     array: ArrayConfig | None = None
     array_from_metadata: bool = False
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
@@ -209,8 +212,11 @@ def summarize(
                     f" {summary.duration_s:.6g} s, from the {stamps}"
                 )
         summary.metadata = dict(src.metadata)
-        summary.ingest = _ingest_counts(summary.metadata)
         summary.warnings = list(src.warnings)
+        from imufdi_cli.metadata import ingest_record
+
+        summary.ingest_record = ingest_record(summary.metadata, summary.warnings)
+        summary.ingest = _ingest_counts(summary.ingest_record)
     return summary
 
 
@@ -274,15 +280,9 @@ class _GapCounter:
         }
 
 
-def _ingest_counts(metadata: dict[str, dict[str, str]]) -> dict[str, Any] | None:
-    """The ``stats`` of the ``imufdi.ingest`` record (None when absent or unreadable)."""
-    record = metadata.get("imufdi.ingest")
-    if record is None:
-        return None
-    try:
-        stats = json.loads(record.get("json", "{}")).get("stats")
-    except (ValueError, AttributeError):
-        return None
+def _ingest_counts(record: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The ``stats`` of the checked ``imufdi.ingest`` record (None when absent)."""
+    stats = None if record is None else record.get("stats")
     return dict(stats) if isinstance(stats, dict) else None
 
 

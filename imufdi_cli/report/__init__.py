@@ -18,13 +18,17 @@ scan -> truth, model), never in a circle.
 from __future__ import annotations
 
 from imufdi_cli.report.formats import (
+    BUDGET_COLUMNS,
     CONSOLE_OMITS,
     CSV_FIELDS,
     EPISODE_COLUMNS,
+    FAULT_FREE_COLUMNS,
     MATCHED_COLUMNS,
+    REFERENCE_COLUMNS,
     ROC_FIELDS,
     TABLE_COLUMNS,
     episode_rows,
+    fault_free,
     format_amplitudes,
     format_size,
     format_value,
@@ -42,6 +46,7 @@ from imufdi_cli.report.gates import (
     Gate,
     GateResult,
     evaluate_gates,
+    parse_budget,
     parse_far,
     parse_gate,
 )
@@ -50,13 +55,16 @@ from imufdi_cli.report.scan import EPISODES_LISTED, PLOT_POINTS, build_report
 from imufdi_cli.report.truth import Truth, TruthWindow, calibration_windows, truth_windows
 
 __all__ = [
+    "BUDGET_COLUMNS",
     "CONSOLE_OMITS",
     "CSV_FIELDS",
     "EPISODES_LISTED",
     "EPISODE_COLUMNS",
+    "FAULT_FREE_COLUMNS",
     "MATCHED_COLUMNS",
     "OPERATORS",
     "PLOT_POINTS",
+    "REFERENCE_COLUMNS",
     "ROC_FIELDS",
     "TABLE_COLUMNS",
     "Gate",
@@ -69,9 +77,11 @@ __all__ = [
     "calibration_windows",
     "episode_rows",
     "evaluate_gates",
+    "fault_free",
     "format_amplitudes",
     "format_size",
     "format_value",
+    "parse_budget",
     "parse_far",
     "parse_gate",
     "table_columns",

@@ -31,6 +31,35 @@ TABLE_COLUMNS: list[tuple[str, str, float, str]] = [
     ("far_calibration", "FAR cal %", 100.0, "{:.2f}"),
     ("alarm_rate", "Alarm %", 100.0, "{:.2f}"),
     ("alarm_events", "Events", 1.0, "{:.0f}"),
+    ("false_episodes_per_hour", "False ep/h", 1.0, "{:.3g}"),
+    ("false_episodes_per_hour_upper95", "upper 95 %", 1.0, "{:.3g}"),
+    ("fault_free_hours", "Tested h", 1.0, "{:.3g}"),
+]
+#: The columns of a log without faults (no faulty sample on any channel): what the alarms
+#: cost, instead of a row of undefined truth-based figures.
+FAULT_FREE_COLUMNS: list[tuple[str, str, float, str]] = [
+    ("alarm_rate", "Alarm %", 100.0, "{:.2f}"),
+    ("alarm_events", "Events", 1.0, "{:.0f}"),
+    ("false_episodes", "Episodes", 1.0, "{:.0f}"),
+    ("false_episodes_per_hour", "Episodes/h", 1.0, "{:.3g}"),
+    ("false_episodes_per_hour_upper95", "upper 95 %", 1.0, "{:.3g}"),
+    ("mtbfa_h", "MTBFA h", 1.0, "{:.3g}"),
+    ("mtbfa_h_lower95", "lower 95 %", 1.0, "{:.3g}"),
+    ("fault_free_hours", "Tested h", 1.0, "{:.3g}"),
+    ("decision_latency_s", "Latency s", 1.0, "{:.3f}"),
+]
+#: Columns of runs under a false-alarm budget: the optimal test's delay and the ratio.
+REFERENCE_COLUMNS: list[tuple[str, str, float, str]] = [
+    ("reference_delay_s", "Ref delay s", 1.0, "{:.3f}"),
+    ("delay_ratio", "Delay/ref", 1.0, "{:.2f}"),
+]
+#: Extra columns with --match-budget.
+BUDGET_COLUMNS: list[tuple[str, str, float, str]] = [
+    ("mar_at_budget", "MAR@budget %", 100.0, "{:.2f}"),
+    ("fir_at_budget", "FIR@budget %", 100.0, "{:.2f}"),
+    ("detection_delay_s_at_budget", "Delay@budget s", 1.0, "{:.3f}"),
+    ("isolation_delay_s_at_budget", "Iso delay@budget s", 1.0, "{:.3f}"),
+    ("threshold_scale_at_budget", "Scale@budget", 1.0, "{:.3g}"),
 ]
 #: Extra columns with --match-far.
 MATCHED_COLUMNS: list[tuple[str, str, float, str]] = [
@@ -45,11 +74,44 @@ MATCHED_COLUMNS: list[tuple[str, str, float, str]] = [
 CONSOLE_OMITS = {"far_calibration", "alarm_rate"}
 
 
+def fault_free(report: Report) -> bool:
+    """Whether no channel of the report has a faulty sample (no truth, or faults on none
+    of the tested sensors, or none outside the calibration window)."""
+    return all(e.metrics.faulty_samples == 0 for e in report.entries)
+
+
 def table_columns(report: Report, *, console: bool = False) -> list[tuple[str, str, float, str]]:
-    """The columns of this report's tables (matched-FAR columns with ``--match-far``;
-    ``console``: the narrower terminal table)."""
-    columns = TABLE_COLUMNS + (MATCHED_COLUMNS if report.match_far is not None else [])
-    return [c for c in columns if not (console and c[0] in CONSOLE_OMITS)]
+    """The columns of this report's tables: the papers' figures with the false alarm
+    episodes, or on a log without faults (:func:`fault_free`) the alarm rate and episodes
+    per hour with their bounds; the reference delays of runs under a budget; matched-FAR
+    columns with ``--match-far``, matched-budget ones with ``--match-budget``
+    (``console``: the narrower terminal table)."""
+    quiet = fault_free(report)
+    columns = list(FAULT_FREE_COLUMNS if quiet else TABLE_COLUMNS)
+    if console and not quiet:  # the rate and its bound in one cell: "64.3 [135]"
+        columns = [c for c in columns if c[0] not in CONSOLE_OMITS and c[0] != BOUND]
+        columns = [CONSOLE_RATE if c[0] == CONSOLE_RATE[0] else c for c in columns]
+    if not quiet and any(e.metrics.reference_delay_s is not None for e in report.entries):
+        columns += REFERENCE_COLUMNS
+    if report.match_far is not None and not quiet:
+        columns += MATCHED_COLUMNS
+    if report.match_budget is not None:
+        budget = [c for c in BUDGET_COLUMNS if not (console and c[0] == "fir_at_budget")]
+        columns += budget[-1:] if quiet else budget
+    return columns
+
+
+#: The upper bound's column, and the console's one cell for the rate with its bound.
+BOUND = "false_episodes_per_hour_upper95"
+CONSOLE_RATE = ("false_episodes_per_hour", "False ep/h [95 %]", 1.0, "{:.3g}")
+
+
+def _cell(metrics: Any, column: tuple[str, str, float, str]) -> str:
+    name, _, scale, fmt = column
+    text = format_value(metrics.value(name), scale, fmt)
+    if column is CONSOLE_RATE and metrics.value(BOUND) is not None:
+        text += f" [{format_value(metrics.value(BOUND), 1.0, fmt)}]"
+    return text
 
 
 def format_value(value: float | None, scale: float = 1.0, fmt: str = "{:.4g}") -> str:
@@ -63,9 +125,7 @@ def table_rows(report: Report, *, console: bool = False) -> list[list[str]]:
     """Rows (detector, type, columns of :func:`table_columns`) as strings."""
     columns = table_columns(report, console=console)
     return [
-        [e.detector, e.sensor_type]
-        + [format_value(e.metrics.value(m), s, f) for m, _, s, f in columns]
-        for e in report.entries
+        [e.detector, e.sensor_type] + [_cell(e.metrics, c) for c in columns] for e in report.entries
     ]
 
 
@@ -80,6 +140,7 @@ def to_json(
         "source": report.source,
         "has_truth": report.has_truth,
         "match_far": report.match_far,
+        "match_budget": report.match_budget,
         "faults": report.faults,
         "results": [
             {
@@ -125,8 +186,8 @@ def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
             "## Per fault",
             "",
             "| Fault | Detector | Sensor | Detected | Delay s | Iso delay s | Recovery s"
-            " | Isolated to it % | Estimated size (/ true) |",
-            "|---|---|---|---|---|---|---|---|---|",
+            " | Isolated to it % | Estimated size (/ true) | Reference delay s | Delay / reference |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         lines += [
             f"| {f.fault_id} | {e.detector} | {e.sensor_type} | {'yes' if f.detected else 'no'} | "
@@ -134,7 +195,8 @@ def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
             f"{format_value(f.isolation_delay_s, 1.0, '{:.3f}')} | "
             f"{format_value(f.recovery_delay_s, 1.0, '{:.3f}')} | "
             f"{format_value(f.isolated_correctly, 100.0, '{:.1f}')} | "
-            f"{format_amplitudes(f.amplitudes, e.sensor_type)} |"
+            f"{format_amplitudes(f.amplitudes, e.sensor_type)} | "
+            f"{_reference(f.reference_delay_s, '{:.3f}')} | {_reference(f.delay_ratio, '{:.2f}')} |"
             for e, f in per_fault
         ]
     lines += _episodes_markdown(report)
@@ -144,6 +206,11 @@ def to_markdown(report: Report, gate_results: Sequence[GateResult] = ()) -> str:
     if report.notes:
         lines += [""] + [f"> {note}" for note in report.notes]
     return "\n".join(lines) + "\n"
+
+
+def _reference(value: float | None, fmt: str) -> str:
+    """A reference delay cell: ``-`` when there is none (no budget, another fault model)."""
+    return "-" if value is None else fmt.format(value)
 
 
 # --- episodes ---------------------------------------------------------------------------
@@ -319,11 +386,25 @@ CSV_FIELDS = [
     "alarm_rate",
     "alarm_events",
     "false_alarm_events_per_hour",
+    "false_episodes",
+    "false_episodes_per_hour",
+    "false_episodes_per_hour_upper95",
+    "mtbfa_h",
+    "mtbfa_h_lower95",
+    "fault_free_hours",
+    "reference_delay_s",
+    "delay_ratio",
     "target_far",
     "mar_at_far",
     "fir_at_far",
     "detection_delay_at_far_s",
     "threshold_scale_at_far",
+    "target_budget_per_hour",
+    "mar_at_budget",
+    "fir_at_budget",
+    "detection_delay_s_at_budget",
+    "isolation_delay_s_at_budget",
+    "threshold_scale_at_budget",
 ]
 
 

@@ -25,6 +25,21 @@ def parse_far(text: str) -> float:
     return value
 
 
+def parse_budget(text: str) -> float:
+    """``"1/h"``, ``"0.5/h"``, ``"2/day"`` -> false episodes per hour; UsageError (exit 2)
+    when malformed or not > 0."""
+    from imufdi_cli.errors import UnitError
+    from imufdi_cli.units import parse_quantity
+
+    try:
+        per_second = parse_quantity(text, "frequency", name="--match-budget")
+    except UnitError as err:
+        raise UsageError(f"--match-budget {text!r}: {err} (e.g. 1/h)") from None
+    if not (per_second > 0 and math.isfinite(per_second)):
+        raise UsageError(f"--match-budget {text!r} must be a rate > 0 (e.g. 1/h)")
+    return per_second * 3600.0
+
+
 OPERATORS: dict[str, Callable[[float, float], bool]] = {
     ">": operator.gt,
     ">=": operator.ge,
@@ -34,7 +49,7 @@ OPERATORS: dict[str, Callable[[float, float], bool]] = {
     "!=": operator.ne,
 }
 _GATE = re.compile(
-    r"^\s*([A-Za-z0-9_*-]+)\.([A-Za-z*]+)\.([A-Za-z_]+)\s*(>=|<=|==|!=|>|<)\s*"
+    r"^\s*([A-Za-z0-9_*-]+)\.([A-Za-z*]+)\.([A-Za-z_][A-Za-z0-9_]*)\s*(>=|<=|==|!=|>|<)\s*"
     r"([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*(%?)\s*$"
 )
 

@@ -48,6 +48,8 @@ class Report:
     notes: list[str]
     t0_ns: int
     match_far: float | None = None
+    #: target of the matched-budget figures, false episodes per hour (``--match-budget``)
+    match_budget: float | None = None
     #: explained alarm episodes (the first EPISODES_LISTED of each detector and type, each
     #: with its ``match`` to the truth), docs/episodes.md
     episodes: list[dict[str, Any]] = field(default_factory=list)

@@ -5,15 +5,21 @@ length, and returns a :class:`~imufdi_cli.report.model.Report`."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from typing import Any, BinaryIO
 
 import numpy as np
 
 from imufdi_cli.errors import McapInputError, UsageError
-from imufdi_cli.metrics import FaultWindow, MetricsAccumulator, faulty_matrix
+from imufdi_cli.metrics import faulty_matrix
 from imufdi_cli.progress import LogTimeProgress, ProgressCallback
+from imufdi_cli.report.channel import ChannelScore
 from imufdi_cli.report.model import Report, ReportEntry
 from imufdi_cli.report.truth import Truth, calibration_windows, truth_windows
+
+#: the detector name of variance-drop episodes (imufdi_cli.episodes.variance_drop, not
+#: imported here: the episodes package is loaded only when episodes are read)
+VARIANCE_DROP = "variance-drop"
 
 #: Samples per channel kept for ``--plot``.
 PLOT_POINTS = 20_000
@@ -131,6 +137,7 @@ def build_report(
     *,
     persist: int = 1,
     match_far: float | None = None,
+    match_budget: float | None = None,
     keep_series: bool = False,
     keep_roc: bool = False,
     window: tuple[float, float | None] | None = None,
@@ -147,6 +154,9 @@ def build_report(
         quiet samples after the last alarm (docs/metrics.md).
     match_far : float, optional
         Target FAR in (0, 1) for the matched-FAR figures (``mar_at_far``, ...).
+    match_budget : float, optional
+        Target false alarm episodes per hour (> 0) for the matched-budget figures
+        (``mar_at_budget``, ...).
     keep_series : bool
         Keep (decimated) status series for :func:`imufdi_cli.plots.plot_report`.
     keep_roc : bool
@@ -165,14 +175,16 @@ def build_report(
 
     if match_far is not None and not 0.0 < match_far < 1.0:
         raise UsageError(f"--match-far must be in (0, 1), got {match_far:g}")
+    if match_budget is not None and not (0.0 < match_budget < float("inf")):
+        raise UsageError(f"--match-budget must be a rate > 0 such as 1/h, got {match_budget!r}")
     name = source if isinstance(source, str) else "<stream>"
     name = "<stdin>" if name == "-" else name
     stream, close = _open_seekable(source)
     try:
         with McapSource(stream) as src:
             metadata = dict(src.metadata)  # seekable: read from the summary up front
-            scan = _StatusScan(metadata, window, persist, keep_series)
-            episodes = _EpisodeCollector(scan.truth, scan.windows_cal, window, scan.first_ns)
+            scan = _StatusScan(metadata, window, persist, keep_series, match_budget is not None)
+            episodes = _EpisodeCollector(scan.truth, scan.windows_cal, window, scan.origin_ns)
             tracker = LogTimeProgress(progress, getattr(src, "summary_time_range", None))
             for detector, sensor_type, ids, rows in iter_status(src, others=episodes.batch):
                 if rows["t_ns"].size:
@@ -182,18 +194,29 @@ def build_report(
     finally:
         if close:
             stream.close()
-    if not scan.accumulators:
+    if not scan.scores:
         raise McapInputError(
             f"{name}: no detector status channels (/imufdi/<detector>/<type>); "
             "run `imufdi detect` on the log first" + (f"; {problems[0]}" if problems else "")
         )
     notes = scan.notes(problems)
-    entries = [scan.entry(key, match_far, keep_roc, notes) for key in sorted(scan.accumulators)]
+    entries = [
+        scan.entry(key, match_far, match_budget, keep_roc, notes) for key in sorted(scan.scores)
+    ]
     if match_far is not None and scan.truth is not None:
         notes.append(
             f"matched FAR {match_far:g}: the threshold of each detector's raw statistic is"
             " scaled (alarm when statistic >= scale x threshold, per sample); confirmation"
             " and persistence rules are not re-run (docs/metrics.md)"
+        )
+    if match_budget is not None:
+        from imufdi_cli.sweep import format_rate
+
+        notes.append(
+            f"matched budget {format_rate(match_budget)}: the threshold of each detector's"
+            " raw statistic is scaled until the false alarm episodes per fault-free tested"
+            " hour fall to the target; a sequential test's restarts stay those of its own"
+            " threshold (docs/metrics.md)"
         )
     episode_scores = episodes.scores(scan.fault_free_hours(entries))  # takes pending ones
     return Report(
@@ -204,6 +227,7 @@ def build_report(
         notes=notes,
         t0_ns=min(scan.first_ns.values()) if scan.first_ns else 0,
         match_far=match_far,
+        match_budget=match_budget,
         episode_scores=episode_scores,
         episodes=episodes.listed,
         episode_spans=episodes.spans,
@@ -212,13 +236,12 @@ def build_report(
 
 
 #: the status fields kept for plots (``keep_series``)
-_SERIES_FIELDS = ("t_ns", "statistic", "threshold", "alarm", "isolated", "scores")
+SERIES_FIELDS = ("t_ns", "statistic", "threshold", "alarm", "isolated", "scores")
 
 
 class _StatusScan:
-    """What :func:`build_report`'s pass over the status channels gathers per
-    ``(detector, sensor type)``: metric accumulators, sensor ids, first and last sample
-    times, whether every row had a decision time, validity counts and plot series."""
+    """What :func:`build_report`'s pass over the status channels gathers: one
+    :class:`~imufdi_cli.report.channel.ChannelScore` per ``(detector, sensor type)``."""
 
     def __init__(
         self,
@@ -226,71 +249,47 @@ class _StatusScan:
         window: tuple[float, float | None] | None,
         persist: int,
         keep_series: bool,
+        budget_levels: bool = False,
     ) -> None:
         self.truth = truth_windows(metadata)
+        self.budget_levels = budget_levels
         self.windows_cal = calibration_windows(metadata)
         self.metadata = metadata
         self.window = window
         self.persist = persist
         self.keep_series = keep_series
         self.records = {d: _detect_record(metadata, d) for d in self.windows_cal}
-        self.accumulators: dict[tuple[str, str], MetricsAccumulator] = {}
-        self.ids_of: dict[tuple[str, str], list[str]] = {}
-        self.series: dict[tuple[str, str], _Series] = {}
+        self.scores: dict[tuple[str, str], ChannelScore] = {}
         #: shared with the episode collector, which reads the origins as they appear
         self.first_ns: dict[tuple[str, str], int] = {}
-        self.all_decided: dict[tuple[str, str], bool] = {}
-        self.last_ns: dict[tuple[str, str], int] = {}
-        self.validity: dict[tuple[str, str], dict[str, int]] = {}
 
     def add(
         self, detector: str, sensor_type: str, ids: list[str], rows: dict[str, np.ndarray]
     ) -> None:
         """Score one batch of status rows of a channel (those ``detect`` marked clipped or
         invalid, and those outside the window, are counted and left out)."""
-        from imufdi_cli.validity import select_rows
-
         key = (detector, sensor_type)
-        if key not in self.first_ns and rows["t_ns"].size:
-            origin = int(rows["t_ns"][0])
-        else:
-            origin = self.first_ns.get(key, 0)
         if detector not in self.records:
             self.records[detector] = _detect_record(self.metadata, detector)
-        selection = select_rows(
-            rows["t_ns"], self.records[detector], sensor_type, self.window, origin_ns=origin
-        )
-        counts = self.validity.setdefault(key, {"clipped": 0, "invalid": 0, "excluded": 0})
-        counts["clipped"] += selection.clipped
-        counts["invalid"] += selection.invalid
-        counts["excluded"] += selection.excluded
-        if not selection.keep.all():
-            rows = {k: v[selection.keep] for k, v in rows.items()}
-        acc = self.accumulators.get(key)
-        if acc is None:
-            acc = _accumulator(self.truth, ids, self.windows_cal.get(detector), self.persist)
-            self.accumulators[key] = acc
-            self.ids_of[key] = ids
-            self.first_ns[key] = origin
-            self.all_decided[key] = True
-            if self.keep_series:
-                self.series[key] = _Series()
-        self.all_decided[key] &= "decided_ns" in rows
-        if rows["t_ns"].size:
-            self.last_ns[key] = int(rows["t_ns"][-1])
-        acc.update(
-            rows["t_ns"],
-            rows["alarm"],
-            rows["isolated"],
-            decided_ns=rows.get("decided_ns"),
-            isolated_set=rows["isolated_set"],
-            statistic=rows["statistic"],
-            threshold=rows["threshold"],
-            scores=rows["scores"],
-            amplitudes=rows["amplitudes"],
-        )
-        if self.keep_series:
-            self.series[key].add({k: rows[k] for k in _SERIES_FIELDS})
+        score = self.scores.get(key)
+        if score is None:
+            record = self.records[detector]
+            score = self.scores[key] = ChannelScore(
+                detector,
+                sensor_type,
+                ids,
+                truth=self.truth,
+                calibration_ns=self.windows_cal.get(detector),
+                record=record,
+                window=self.window,
+                persist=self.persist,
+                rate_hz=_rate_hz(self.metadata, record),
+                keep_series=self.keep_series,
+                budget_levels=self.budget_levels,
+            )
+        if key not in self.first_ns and rows["t_ns"].size:
+            self.first_ns[key] = int(rows["t_ns"][0])
+        score.add(rows, origin_ns=self.origin_ns(detector, sensor_type))
 
     def notes(self, problems: list[str]) -> list[str]:
         """What the reader must know about the whole log: input damage, missing truth,
@@ -300,25 +299,32 @@ class _StatusScan:
         if self.truth is None:
             notes.append(
                 "no ground truth in this log (inject faults with `imufdi inject`): "
-                "FAR, MAR, FIR and delays need truth; alarm statistics only"
+                "FAR, MAR, FIR and delays need truth; alarm statistics only, and every"
+                " alarm episode counts as false (the log taken as fault-free)"
             )
-        old = sorted({d for d, _ in self.accumulators if d not in self.windows_cal})
+        old = sorted({d for d, _ in self.scores if d not in self.windows_cal})
         if old:
             notes.append(
                 f"{', '.join(old)}: no calibration window recorded (log from an older imufdi):"
                 " FAR and alarm rate count every sample, including the in-sample calibration"
             )
-        undecided = sorted({d for (d, _), ok in self.all_decided.items() if not ok})
+        undecided = sorted({d for (d, _), sc in self.scores.items() if not sc.all_decided})
         if undecided:
             notes.append(
                 f"{', '.join(undecided)}: status without decision times (older imufdi): delays"
                 " are at sample time"
             )
-        for (detector, sensor_type), counts in sorted(self.validity.items()):
+        for (detector, sensor_type), score in sorted(self.scores.items()):
+            counts = score.validity
             if counts["excluded"]:
                 notes.append(
                     f"{detector}.{sensor_type}: {counts['excluded']} samples not scored"
                     f" ({counts['clipped']} clipped, {counts['invalid']} invalid in the range)"
+                )
+            if counts.get("missing"):
+                notes.append(
+                    f"{detector}.{sensor_type}: {counts['missing']} samples tested with an IMU"
+                    " missing (its sensors replaced by the others' consensus) and scored"
                 )
         return notes
 
@@ -326,33 +332,28 @@ class _StatusScan:
         self,
         key: tuple[str, str],
         match_far: float | None,
+        match_budget: float | None,
         keep_roc: bool,
         notes: list[str],
     ) -> ReportEntry:
-        """The finished :class:`ReportEntry` of one channel (a matched-FAR problem is
-        appended to ``notes``); without truth the truth-based metrics are None."""
+        """The finished :class:`ReportEntry` of one channel (a matched-FAR or budget
+        problem is appended to ``notes``); without truth the truth-based metrics are None."""
         detector, sensor_type = key
-        has_truth = self.truth is not None
-        acc = self.accumulators[key]
-        metrics = acc.result()
+        score = self.scores[key]
+        acc = score.accumulator
+        metrics, problems = score.metrics(match_far, match_budget)
+        notes.extend(problems)
         roc = None
-        if match_far is not None and has_truth:
-            note = acc.matched(metrics, match_far)
-            if note:
-                notes.append(f"{detector}.{sensor_type} at FAR {match_far:g}: {note}")
+        has_truth = self.truth is not None
         if keep_roc and has_truth and acc.sweep is not None and acc.sweep.sweepable:
             roc = acc.sweep.curve()
-        if not has_truth:
-            metrics.far = metrics.mar = metrics.accuracy = None
-            metrics.fir = metrics.isolation_accuracy = None
-            metrics.false_alarm_events_per_hour = metrics.far_calibration = None
-        arrays = self.series[key].arrays() if key in self.series else {}
-        n_s = len(self.ids_of[key])
+        arrays = score.series.arrays() if score.series is not None else {}
+        n_s = len(score.ids)
         t_ns = arrays.get("t_ns", np.zeros(0, np.int64))
         return ReportEntry(
             detector=detector,
             sensor_type=sensor_type,
-            sensor_ids=self.ids_of[key],
+            sensor_ids=score.ids,
             metrics=metrics,
             t_ns=t_ns,
             statistic=arrays.get("statistic", np.zeros(0)),
@@ -362,28 +363,72 @@ class _StatusScan:
             faulty=faulty_matrix(t_ns, acc.windows, n_s),
             isolated=arrays.get("isolated", np.zeros(0, np.int64)),
             roc=roc,
-            validity=self.validity.get(key, {}),
+            validity=dict(score.validity),
         )
 
     def fault_free_hours(self, entries: list[ReportEntry]) -> dict[tuple[str, str], float]:
-        """Hours of each channel's log span, times its fault-free share when there is
-        truth (the denominator of the episode rates)."""
-        hours = {}
+        """The tested, fault-free hours of each channel, the denominator of its episode
+        rates: the same as its alarm events' (:func:`imufdi_cli.metrics.fault_free_tested_hours`:
+        scored fault-free rows outside the calibration window times the sample period,
+        gaps excluded). Episodes of a type that no status channel carries (variance-drop,
+        run by ``detect`` beside the detectors) take the largest of that type."""
+        hours: dict[tuple[str, str], float] = {}
         for entry in entries:
-            key, metrics = (entry.detector, entry.sensor_type), entry.metrics
-            span_h = (self.last_ns.get(key, 0) - self.first_ns[key]) * 1e-9 / 3600
-            share = metrics.fault_free_samples / metrics.samples if metrics.samples else 0.0
-            hours[key] = span_h * (share if self.truth is not None else 1.0)
+            hours[(entry.detector, entry.sensor_type)] = entry.metrics.fault_free_hours
+        for entry in entries:
+            key = (VARIANCE_DROP, entry.sensor_type)
+            hours[key] = max(hours.get(key, 0.0), entry.metrics.fault_free_hours)
         return hours
+
+    def origin_ns(self, detector: str, sensor_type: str) -> int | None:
+        """Time zero of ``--start/--end`` for one channel: the log's first sample as
+        ``detect`` recorded it (``t0_ns``), else the channel's first status row. Episodes
+        of a channel without status rows (variance-drop, run beside the detectors; a type
+        a detector does not test) take the first that exists of: the detector's record,
+        any detector's record (one detect run: one log start), the detector's earliest
+        status row, the earliest status row of all. None while nothing is known. The one
+        origin of the rows (:func:`imufdi_cli.validity.select_rows`) and of the episodes.
+        """
+        record = self.records.get(detector)
+        if record is None and detector in self.windows_cal:
+            record = self.records[detector] = _detect_record(self.metadata, detector)
+        if record is not None and isinstance(record.get("t0_ns"), int):
+            return int(record["t0_ns"])
+        if (detector, sensor_type) in self.first_ns:
+            return self.first_ns[(detector, sensor_type)]
+        recorded = [r.get("t0_ns") for r in self.records.values() if r is not None]
+        known = [int(t) for t in recorded if isinstance(t, int)]
+        if known:
+            return min(known)
+        mine = [t for (d, _), t in self.first_ns.items() if d == detector]
+        if mine or self.first_ns:
+            return min(mine or self.first_ns.values())
+        return None
+
+
+def _rate_hz(metadata: dict[str, dict[str, str]], record: dict[str, Any] | None) -> float | None:
+    """The sample rate of the array the detector tested with: ``detect --array``'s (in its
+    record), else the log's ``imufdi.array``; None when neither says."""
+    array = (record or {}).get("array")
+    if not isinstance(array, dict):
+        try:
+            array = json.loads(metadata["imufdi.array"]["json"])
+        except (KeyError, TypeError, ValueError):
+            return None
+    rate = array.get("rate_hz") if isinstance(array, dict) else None
+    try:
+        value = float(rate)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+    return value if value > 0 else None
 
 
 def _detect_record(metadata: dict[str, dict[str, str]], detector: str) -> dict[str, Any] | None:
-    """The decoded ``imufdi.detect.<detector>`` record, or None."""
-    try:
-        record = json.loads(metadata[f"imufdi.detect.{detector}"]["json"])
-    except (KeyError, TypeError, ValueError):
-        return None
-    return record if isinstance(record, dict) else None
+    """The ``imufdi.detect.<detector>`` record checked against its schema, or None when
+    the log has none (McapInputError when it is malformed: :mod:`imufdi_cli.metadata`)."""
+    from imufdi_cli.metadata import detect_record
+
+    return detect_record(metadata, detector)
 
 
 #: episodes listed per detector and sensor type (all are counted)
@@ -399,14 +444,18 @@ class _EpisodeCollector:
         truth: Truth | None,
         calibration: dict[str, tuple[int, int] | None],
         window: tuple[float, float | None] | None = None,
-        origins: dict[tuple[str, str], int] | None = None,
+        origin: Callable[[str, str], int | None] | None = None,
     ) -> None:
         from imufdi_cli.episodes.scoring import EpisodeMatcher
 
         self.calibration = calibration
+        # variance-drop episodes come from the detect run of the detectors: its window
+        shared = [w for _, w in sorted(calibration.items()) if w is not None]
+        if shared and VARIANCE_DROP not in calibration:
+            self.calibration = {**calibration, VARIANCE_DROP: shared[0]}
         self.pending: list[tuple[Any, dict[str, Any]]] = []
-        self.window = window  # --start/--end, seconds from each channel's first sample
-        self.origins = origins if origins is not None else {}
+        self.window = window  # --start/--end, seconds from the time origin of each channel
+        self.origin = origin if origin is not None else (lambda detector, sensor_type: None)
         self.faults = (
             []
             if truth is None
@@ -447,10 +496,11 @@ class _EpisodeCollector:
             items, self.pending = self.pending + items, []
         for episode, match in items:
             key = (episode.detector, episode.sensor_type)
-            if self.window is not None and key not in self.origins:
+            origin = None if self.window is None else self.origin(*key)
+            if self.window is not None and origin is None:
                 self.pending.append((episode, match))
                 continue
-            if not self._inside(key, episode.start_ns):
+            if origin is not None and not self._inside(origin, episode.start_ns):
                 continue
             tally = self.tallies.get(key)
             if tally is None:
@@ -469,10 +519,10 @@ class _EpisodeCollector:
             if self.counts[key] <= EPISODES_LISTED:
                 self.listed.append({**episode.explanation(), **match})
 
-    def _inside(self, key: tuple[str, str], start_ns: int) -> bool:
-        """Whether an episode starting at ``start_ns`` is inside --start/--end."""
-        origin = self.origins.get(key)
-        if self.window is None or origin is None:
+    def _inside(self, origin: int, start_ns: int) -> bool:
+        """Whether an episode starting at ``start_ns`` is inside --start/--end (seconds
+        from ``origin``)."""
+        if self.window is None:
             return True
         from imufdi_cli.units import window_from_log_start
 
@@ -484,9 +534,8 @@ class _EpisodeCollector:
         if self.pending:  # read before their channel's first status row: windowed now
             pending, self.pending = self.pending, []
             self._take(pending)
-        if self.pending:  # channels without status rows: no origin, nothing to window
-            self.window, pending, self.pending = None, self.pending, []
-            self._take(pending)
+        if self.pending:  # no time origin at all (no status rows, no record): not scored
+            self.pending = []
         out = {}
         for key, tally in sorted(self.tallies.items()):
             result = tally.result(hours.get(key) if self.has_truth else None)
@@ -500,28 +549,3 @@ class _EpisodeCollector:
             result["omitted"] = max(0, self.counts[key] - EPISODES_LISTED)
             out[f"{key[0]}.{key[1]}"] = result
         return out
-
-
-def _accumulator(
-    truth: Truth | None,
-    ids: list[str],
-    calibration: tuple[int, int] | None,
-    persist: int,
-) -> MetricsAccumulator:
-    windows: list[FaultWindow] = []
-    if truth is not None:
-        windows = [
-            FaultWindow(
-                w.fault_id,
-                tuple(ids.index(s) for s in w.sensors),
-                w.start_ns,
-                w.end_ns,
-                w.model,
-                w.size,
-            )
-            for w in truth.windows
-            if all(s in ids for s in w.sensors)
-        ]
-    return MetricsAccumulator(
-        len(ids), windows, calibration_ns=calibration, persist=persist, sensor_ids=ids
-    )

@@ -544,3 +544,109 @@ def test_bad_at_jitter(tmp_path, line, fragment):
 def test_bad_match_far_in_spec(tmp_path):
     with pytest.raises(CampaignSpecError, match="match_far"):
         load_spec(write_spec(tmp_path, JITTER.replace('"2%"', '"200%"')))
+
+
+# --- the false-alarm budget ----------------------------------------------------------------
+
+BUDGET = """
+[campaign]
+seeds = [0, 1, 2, 3]
+calibrate = "0s:1s"
+false_alarms = "1/h"
+match_budget = "20/s"
+
+[[base]]
+preset = "paper-table4"
+options = { duration = "3s" }
+
+[[fault]]
+model = "step"
+sensor = "imu0.gyro.x"
+at = "2.5s"
+amp = "0.9deg/s"
+
+[[detector]]
+name = "glt"
+
+[[detector]]
+name = "glt"
+false_alarms = "0/h"
+"""
+
+
+def test_false_alarms_is_set_as_detect_sets_it_campaign_wide_or_per_detector(tmp_path):
+    spec = load_spec(write_spec(tmp_path, BUDGET))
+    budgets = sorted({run["false_alarms"] for run in spec.runs})
+    assert budgets == [0.0, pytest.approx(1 / 3600)]
+    assert all(run["params"] == {} for run in spec.runs)  # the parameters as written
+    under = execute_run(next(r for r in spec.runs if r["false_alarms"] > 0))
+    plain = execute_run(next(r for r in spec.runs if r["false_alarms"] == 0))
+    assert under["ok"] and plain["ok"], (under.get("error"), plain.get("error"))
+    # the sequential test's reference delays exist only for the run under the budget
+    assert under["metrics"]["gyro"]["faults"][0]["reference_delay_s"] > 0
+    assert plain["metrics"]["gyro"]["faults"][0]["reference_delay_s"] is None
+
+
+def test_a_budget_on_a_detector_without_one_is_refused_before_any_run(tmp_path):
+    from imufdi_cli.detectors import DETECTORS, detector_class
+
+    without = sorted(n for n in DETECTORS if "false_alarms" not in detector_class(n).PARAMS)
+    if not without:
+        pytest.skip("every detector honours the budget")
+    text = SMALL.replace('name = "glt"', f'name = "{without[0]}"\nfalse_alarms = "1/h"')
+    with pytest.raises(CampaignSpecError, match="has no false-alarm budget"):
+        load_spec(write_spec(tmp_path, text))
+
+
+@pytest.mark.parametrize(
+    ("line", "fragment"),
+    [
+        ('false_alarms = "often"', "campaign.false_alarms"),
+        ('false_alarms = "-1/h"', "campaign.false_alarms: must be a rate >= 0"),
+        ('match_budget = "0/h"', "campaign.match_budget: must be a rate > 0"),
+        ('match_budget = "1/parsec"', "campaign.match_budget"),
+    ],
+)
+def test_bad_budget_keys(tmp_path, line, fragment):
+    with pytest.raises(CampaignSpecError, match=fragment):
+        load_spec(write_spec(tmp_path, SMALL.replace("[campaign]", f"[campaign]\n{line}")))
+
+
+def test_false_episodes_and_the_matched_budget_are_pooled_over_runs(tmp_path):
+    spec = load_spec(write_spec(tmp_path, BUDGET))
+    result = run_campaign(spec, tmp_path / "out", jobs=1)
+    summary = result.summary
+    assert spec.match_budget == pytest.approx(20 * 3600)
+    pools = {(p["params"].get("false_alarms"), p["sensor_type"]): p for p in summary["budgets"]}
+    assert set(pools) == {(rate, t) for rate in ("1/h", "0/h") for t in ("gyro", "accel")}
+    for (rate, sensor_type), pool in pools.items():
+        runs = [
+            r["metrics"][sensor_type]
+            for r in result.results
+            if f"{r['run']['false_alarms'] * 3600:g}/h" == rate
+        ]
+        assert pool["runs"] == 4
+        assert pool["false_episodes"] == sum(r["false_episodes"] for r in runs)
+        assert pool["fault_free_hours"] == pytest.approx(sum(r["fault_free_hours"] for r in runs))
+        assert pool["false_episodes_per_hour"] == pytest.approx(
+            pool["false_episodes"] / pool["fault_free_hours"]
+        )
+    # every group (here the gyro step, per budget) pools its own runs the same way
+    for group in summary["groups"]:
+        rate = group["false_episodes_per_hour"]
+        assert rate["pooled"] and rate["n"] == 4
+        assert group["false_episodes_per_hour_upper95"]["mean"] > rate["mean"]
+    plain = next(g for g in summary["groups"] if g["params"] == {"false_alarms": "0/h"})
+    # 4 x 1.5 s of fault-free gyro time hold 30 false episodes at 20/s: a match exists
+    assert pools[("0/h", "gyro")]["threshold_scale_at_budget"] is not None
+    assert plain["mar_at_budget"]["n"] == 4 and plain["mar_at_budget"]["mean"] is not None
+    assert plain["target_budget_per_hour"] == pytest.approx(72000)
+    text = (tmp_path / "out" / "summary.md").read_text()
+    assert "## False alarm budget" in text and "false_alarms=1/h" in text
+    csv_text = (tmp_path / "out" / "runs.csv").read_text()
+    assert "false_episodes_per_hour_upper95" in csv_text.splitlines()[0]
+    outcomes = evaluate_summary_gates(
+        summary,
+        ["glt.gyro.false_episodes_per_hour_upper95 > 1e12", "glt.gyro.mar_at_budget > 2"],
+    )
+    assert not any(failed for _, failed, _ in outcomes[:4])  # no group past 1e12/h

@@ -96,6 +96,18 @@ def test_calibrate_improves_triad_agreement(cli, real_log, tmp_path):
     assert max(figures["time_offset_explained"]) < 0.05
 
 
+def test_calibrate_reads_stdin_in_passes(cli, real_log, tmp_path):
+    """calibrate reads its log once per pass: stdin is spooled to a temporary file."""
+    piped = cli(
+        ["calibrate", "-", "--jitter-fit", "off", "-o", tmp_path / "p.toml"],
+        stdin=real_log.read_bytes(),
+    )
+    assert piped.code == 0, piped.stderr
+    direct = cli(["calibrate", real_log, "--jitter-fit", "off", "-o", tmp_path / "d.toml"])
+    assert direct.code == 0, direct.stderr
+    assert (tmp_path / "p.toml").read_text() == (tmp_path / "d.toml").read_text()
+
+
 def test_calibrate_start_end_and_missing_static(cli, real_log, tmp_path):
     # the last 40 s are hand motion only: no static interval -> exit 3 naming it
     result = cli(["calibrate", real_log, "--start", "260s", "-o", tmp_path / "c.toml"])

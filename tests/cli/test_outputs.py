@@ -56,6 +56,11 @@ COMMANDS = {
     "ingest --layout": ("layout.toml", ["ingest", "cap.bin", "--layout", "IN", "-o", "OUT"]),
     "ingest --array": ("array.toml", ["ingest", "cap.bin", "--array", "IN", "-o", "OUT"]),
     "inject --faults": ("faults.toml", ["inject", "log.mcap", "--faults", "IN", "-o", "OUT"]),
+    "detect --array": (
+        "array.toml",
+        ["detect", "log.mcap", "-d", "glt", "--array", "IN", "-o", "OUT"],
+    ),
+    "calibrate --array": ("array.toml", ["calibrate", "log.mcap", "--array", "IN", "-o", "OUT"]),
 }
 
 
@@ -117,6 +122,48 @@ def test_simulate_refuses_one_file_for_mcap_and_capture(cli, tmp_path, kind):
     assert leftovers(tmp_path) == []
     both_stdout = cli(["simulate", "--preset", "paper-table4", "-o", "-", "--capture", "-"])
     assert_one_line_error(both_stdout, 2, "only one output can go to stdout")
+
+
+def test_report_refuses_a_roc_figure_over_its_input(cli, workdir, tmp_path):
+    """--roc FILE with --plot also writes FILE's name with .png: never over the input."""
+    log = tmp_path / "r.png"
+    shutil.copyfile(workdir / "det.mcap", log)
+    before = sha(log)
+    result = cli(["report", log, "--roc", tmp_path / "r.csv", "--plot", tmp_path / "p.png"])
+    assert_one_line_error(result, 2, "is the input file")
+    assert sha(log) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.png"]
+
+
+def test_report_refuses_a_roc_figure_over_its_plot(cli, workdir, tmp_path):
+    result = cli(
+        ["report", workdir / "det.mcap", "--roc", tmp_path / "x.csv", "--plot", tmp_path / "x.png"]
+    )
+    assert_one_line_error(result, 2, "are the same file")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["detect", "log.mcap", "-d", "glt", "-o", ""],
+        ["inject", "log.mcap", "--fault", "step:imu0.gyro.x,amp=1deg/s", "-o", ""],
+        ["report", "det.mcap", "--markdown", ""],
+        ["report", "det.mcap", "--json", ""],
+        ["simulate", "--preset", "paper-table4", "-o", "x.mcap", "--capture", ""],
+        ["ingest", "cap.bin", "-o", ""],
+        ["calibrate", "log.mcap", "-o", ""],
+        ["campaign", "spec.toml", "-o", ""],
+    ],
+    ids=lambda argv: " ".join(a or "''" for a in argv[:1] + argv[-2:]),
+)
+def test_an_empty_output_name_is_a_usage_error(cli, workdir, argv, monkeypatch):
+    """`-o ''` is not `-o` left out: no default output is written in its place."""
+    monkeypatch.chdir(workdir)
+    before = sorted(p.name for p in workdir.iterdir())
+    result = cli(argv)
+    assert_one_line_error(result, 2, "'' is an empty file name")
+    assert sorted(p.name for p in workdir.iterdir()) == before
 
 
 def test_report_refuses_two_outputs_in_one_file(cli, workdir, tmp_path):
@@ -349,6 +396,18 @@ def test_a_log_time_beyond_int64_is_bad_data_not_a_bug(cli, huge_log, tmp_path, 
     assert huge_log.read_bytes() == before
 
 
+def test_info_warns_of_a_log_time_beyond_int64(cli, huge_log):
+    """info describes the log, and says which message detect and inject will refuse."""
+    result = cli(["info", huge_log])
+    assert result.code == 0, result.stderr
+    warnings = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert any(
+        "log time beyond 2^63 ns (/imu" in w and "9223372036854775813" in w for w in warnings
+    )
+    strict = cli(["info", huge_log, "--strict"])
+    assert_one_line_error(strict, 3, "log time beyond 2^63 ns")
+
+
 @pytest.mark.slow
 def test_an_ignored_signal_stays_ignored(tmp_path):
     """nohup (SIGHUP ignored) must keep working: the handler is not installed over SIG_IGN."""
@@ -381,3 +440,190 @@ def test_an_ignored_signal_stays_ignored(tmp_path):
     _, stderr = process.communicate(timeout=300)
     assert process.returncode == 0, stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.mcap"]
+
+
+# --- stdin and stdout open on an input ----------------------------------------------
+
+
+def invoke_on_files(args: list, stdin: Path | None = None, stdout: Path | None = None, mode="ab"):
+    """``imufdi ARGS < stdin 1<> stdout`` (``mode`` "r+b") or ``>> stdout`` ("ab"), in this
+    process: sys.stdin/sys.stdout are text wrappers over those files, as in a shell."""
+    import io
+
+    from imufdi_cli.cli import main
+    from tests.cli.conftest import CliResult
+
+    err = io.BytesIO()
+    saved = sys.stdin, sys.stdout, sys.stderr
+    opened = []
+    if stdin is not None:
+        opened.append(open(stdin, "rb"))
+        sys.stdin = io.TextIOWrapper(opened[-1])
+    if stdout is not None:
+        opened.append(open(stdout, mode))
+        sys.stdout = io.TextIOWrapper(opened[-1], write_through=True)
+    err_wrapper = sys.stderr = io.TextIOWrapper(err, write_through=True)
+    code = 0
+    try:
+        main([str(a) for a in args])
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    finally:
+        sys.stderr.flush()
+        wrappers = [w for w in (sys.stdin, sys.stdout) if w not in saved[:2]]
+        sys.stdin, sys.stdout, sys.stderr = saved
+        for wrapper in wrappers:
+            try:
+                wrapper.flush()
+            except ValueError:
+                pass
+        for handle in opened:
+            handle.close()
+        err_wrapper.detach()  # keep the buffer open past the wrapper
+    return CliResult(code, b"", err.getvalue().decode())
+
+
+FAULT_SPEC = "step:imu0.gyro.x,at=0.5s,amp=1deg/s"
+
+
+@pytest.mark.parametrize(
+    ("name", "argv"),
+    [
+        ("log.mcap", ["inject", "-", "--fault", FAULT_SPEC, "-o", "IN"]),
+        ("log.mcap", ["detect", "-", "-d", "glt", "-o", "IN"]),
+        ("log.mcap", ["info", "-", "--json", "IN"]),
+        ("cap.bin", ["ingest", "-", "-o", "IN"]),
+        ("det.mcap", ["report", "-", "--markdown", "IN"]),
+    ],
+    ids=lambda v: v if isinstance(v, str) else " ".join(v[:1]),
+)
+def test_an_output_over_the_file_stdin_reads_is_refused(workdir, tmp_path, name, argv):
+    source = tmp_path / name
+    shutil.copyfile(workdir / name, source)
+    before = sha(source)
+    result = invoke_on_files([str(source) if a == "IN" else a for a in argv], stdin=source)
+    assert_one_line_error(result, 2, "the file stdin reads")
+    assert sha(source) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+@pytest.mark.parametrize("mode", ["r+b", "ab"], ids=["1<>", ">>"])
+@pytest.mark.parametrize(
+    ("name", "argv"),
+    [
+        ("log.mcap", ["inject", "IN", "--fault", FAULT_SPEC, "-o", "-"]),
+        ("log.mcap", ["detect", "IN", "-d", "glt", "-o", "-"]),
+        ("log.mcap", ["info", "IN", "--json"]),
+        ("log.mcap", ["info", "IN"]),
+        ("det.mcap", ["report", "IN", "--markdown", "-"]),
+        ("det.mcap", ["report", "IN", "-q"]),
+        ("log.mcap", ["inject", "-", "--fault", FAULT_SPEC, "-o", "-"]),
+    ],
+    ids=lambda v: v if isinstance(v, str) else " ".join(v),
+)
+def test_stdout_open_on_an_input_is_refused(workdir, tmp_path, name, argv, mode):
+    source = tmp_path / name
+    shutil.copyfile(workdir / name, source)
+    before = sha(source)
+    args = [str(source) if a == "IN" else a for a in argv]
+    stdin = source if "-" == args[1] else None
+    result = invoke_on_files(args, stdin=stdin, stdout=source, mode=mode)
+    assert_one_line_error(result, 2, "inputs are never modified")
+    assert sha(source) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+def test_an_output_over_the_file_stdout_is_open_on_is_refused(workdir, tmp_path):
+    """`-o x.mcap --json - > x.mcap`: the renamed output would orphan what stdout holds."""
+    out = tmp_path / "x.mcap"
+    out.write_bytes(b"")
+    result = invoke_on_files(
+        ["detect", workdir / "log.mcap", "-d", "glt", "-o", out, "--json", "-"], stdout=out
+    )
+    assert_one_line_error(result, 2, "is the file stdout is open on")
+
+
+def test_streams_on_other_files_are_fine(workdir, tmp_path):
+    """The ordinary redirections still work: the input on stdin, the output on stdout."""
+    out = tmp_path / "out.mcap"
+    result = invoke_on_files(
+        ["inject", "-", "--fault", FAULT_SPEC, "-o", "-"],
+        stdin=workdir / "log.mcap",
+        stdout=out,
+        mode="wb",
+    )
+    assert result.code == 0, result.stderr
+    from imufdi_cli.mcapio import McapSource
+
+    with McapSource(out) as src:
+        assert "imufdi.faults" in src.metadata
+
+
+# --- zero-filled files ----------------------------------------------------------------
+
+ZERO_COMMANDS = {
+    "info": ["info", "IN"],
+    "detect": ["detect", "IN", "-d", "glt", "-o", "OUT.mcap"],
+    "inject": ["inject", "IN", "--fault", "step:imu0.gyro.x,amp=1deg/s", "-o", "OUT.mcap"],
+    "report": ["report", "IN"],
+    "calibrate": ["calibrate", "IN", "-o", "OUT.toml"],
+}
+
+
+def _zero_filled(path: Path, head: bytes = b"\x89MCAP0\r\n", zeros: int = 64 << 20) -> Path:
+    with open(path, "wb") as out:
+        out.write(head)
+        out.truncate(len(head) + zeros)  # a sparse file: no 64 MB written to the disk
+    return path
+
+
+@pytest.mark.parametrize("command", sorted(ZERO_COMMANDS))
+def test_a_zero_filled_file_is_one_problem_not_millions(cli, tmp_path, command):
+    """MCAP magic and 64 MB of zeros read as 7.4 million empty records of opcode 0: the
+    region is stepped over at once and named in one line (exit 3)."""
+    log = _zero_filled(tmp_path / "z.mcap")
+    started = time.perf_counter()
+    argv = [
+        str(log) if a == "IN" else a.replace("OUT", str(tmp_path / "out"))
+        for a in ZERO_COMMANDS[command]
+    ]
+    result = cli(argv)
+    assert_one_line_error(result, 3, "67108864 zero bytes at byte 8 skipped")
+    assert time.perf_counter() - started < 10
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["z.mcap"]
+
+
+def test_a_cut_log_followed_by_zeros_reads_up_to_the_cut(cli, table4_log, tmp_path):
+    data = table4_log.read_bytes()  # several chunks: the first ones are whole
+    log = _zero_filled(tmp_path / "cut.mcap", data[: len(data) // 2])
+    result = cli(["info", log, "--json", tmp_path / "i.json"])
+    assert result.code == 0, result.stderr
+    import json
+
+    info = json.loads((tmp_path / "i.json").read_text())
+    assert info["n_samples"] > 0
+    zero_lines = [w for w in info["warnings"] if "zero bytes" in w]
+    assert len(zero_lines) == 1, info["warnings"]
+
+
+@pytest.mark.slow
+def test_a_zero_filled_file_takes_under_10_s_and_300_mb(tmp_path):
+    """The target: every reading command on MCAP magic + 64 MB of zeros exits 3 within
+    10 s with a peak RSS under 300 MB (each in a fresh process)."""
+    log = _zero_filled(tmp_path / "z.mcap")
+    for command, argv in sorted(ZERO_COMMANDS.items()):
+        args = [str(log) if a == "IN" else a.replace("OUT", str(tmp_path / "out")) for a in argv]
+        started = time.monotonic()
+        process = subprocess.Popen(
+            [sys.executable, "-m", "imufdi_cli", *args],
+            env=dict(os.environ, PYTHONPATH=str(REPO)),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        _, status, usage = os.wait4(process.pid, 0)
+        elapsed = time.monotonic() - started
+        process.returncode = os.waitstatus_to_exitcode(status)
+        stderr = process.stderr.read().decode() if process.stderr else ""
+        assert process.returncode == 3, (command, stderr)
+        assert elapsed < 10, (command, elapsed)
+        assert usage.ru_maxrss < 300 * 1024, (command, usage.ru_maxrss)

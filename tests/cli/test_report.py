@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import xml.etree.ElementTree as ET
 
+import numpy as np
 import pytest
 
 from tests.cli.conftest import assert_one_line_error
@@ -296,3 +297,71 @@ def test_each_of_two_simultaneous_faults_gets_its_amplitude_in_the_files(cli, tm
     )
     assert episode["sensors"][0] == "imu0.gyro.z"
     assert episode["amplitude"] == pytest.approx(0.5, rel=0.05)
+
+
+def test_a_fault_free_log_shows_what_its_alarms_cost_and_gates_on_the_bound(cli, tmp_path, table4_log):  # fmt: skip
+    out = tmp_path / "d.mcap"
+    assert cli(["detect", table4_log, "-d", "glt", "--no-explain", "-o", out]).code == 0
+    result = cli(["report", out, "--json", tmp_path / "r.json"])
+    assert result.code == 0, result.stderr
+    for header in ("Alarm %", "Episodes/h", "upper 95 %", "MTBFA h", "Tested h"):
+        assert header in result.out, header
+    assert "undefined" not in next(line for line in result.out.splitlines() if "gyro" in line)
+    gyro = next(r for r in json.loads((tmp_path / "r.json").read_text())["results"] if r["sensor_type"] == "gyro")  # fmt: skip
+    # 3 s after the 2 s calibration window of a 5 s log, at 100 Hz
+    assert gyro["fault_free_hours"] == pytest.approx(3.0 / 3600, rel=0.01)
+    assert gyro["false_episodes"] >= 1
+    assert gyro["false_episodes_per_hour"] == pytest.approx(gyro["false_episodes"] / gyro["fault_free_hours"])  # fmt: skip
+    assert gyro["false_episodes_per_hour_upper95"] > gyro["false_episodes_per_hour"]
+    gate = "glt.gyro.false_episodes_per_hour_upper95 > 2"
+    failed = cli(["report", out, "--fail-if", gate])
+    assert failed.code == 1 and "false_episodes_per_hour_upper95" in failed.stderr
+    assert cli(["report", out, "--fail-if", "glt.gyro.false_episodes_per_hour_upper95 > 1e9"]).code == 0  # fmt: skip
+
+
+def test_match_budget_reads_the_figures_at_the_matched_threshold(cli, tmp_path, detected_log):
+    out, md, csv = tmp_path / "r.json", tmp_path / "r.md", tmp_path / "r.csv"
+    # 10/s: the 0.5 s of fault-free gyro time tested (2 s to the 2.5 s onset) hold 5
+    # false episodes at that rate
+    result = cli(["report", detected_log, "--match-budget", "10/s", "--json", out, "--markdown", md, "--csv", csv])  # fmt: skip
+    assert result.code == 0, result.stderr
+    data = json.loads(out.read_text())
+    assert data["match_budget"] == pytest.approx(36000.0)
+    gyro = next(r for r in data["results"] if r["sensor_type"] == "gyro")
+    assert gyro["target_budget_per_hour"] == pytest.approx(36000.0)
+    assert gyro["threshold_scale_at_budget"] > 0
+    assert 0.0 <= gyro["mar_at_budget"] <= 1.0 and gyro["detection_delay_s_at_budget"] is not None
+    assert "MAR@budget %" in md.read_text() and "mar_at_budget" in csv.read_text().splitlines()[0]
+    short = cli(["report", detected_log, "--match-budget", "1/h", "--json", out])
+    assert short.code == 0 and "too short to match 1/h" in short.out  # notes with the table
+    assert json.loads(out.read_text())["results"][0]["mar_at_budget"] is None
+
+
+def test_match_budget_usage_errors(cli, detected_log, tmp_path):
+    for bad in ("0/h", "-1/h", "abc", "1/x", "inf"):
+        assert_one_line_error(cli(["report", detected_log, "--match-budget", bad]), 2, "--match-budget")  # fmt: skip
+
+
+def test_runs_under_a_budget_get_the_optimal_tests_reference_delay(cli, tmp_path, faulty_log):
+    detected, out, md = tmp_path / "d.mcap", tmp_path / "r.json", tmp_path / "r.md"
+    args = ["detect", faulty_log, "-d", "glt", "--false-alarms", "1/h", "--no-explain", "-o", detected]  # fmt: skip
+    assert cli(args).code == 0
+    assert cli(["report", detected, "--json", out, "--markdown", md]).code == 0
+    gyro = next(r for r in json.loads(out.read_text())["results"] if r["sensor_type"] == "gyro")
+    fault = gyro["faults"][0]
+    # Lorden: 2 ln(gamma K) / delta^2 samples for the 0.9 deg/s step on imu0.gyro.x, delta
+    # its sensitivity (z units per rad/s, in the detector's record) times the step, gamma
+    # the samples between false alarms at 1/h, K the bank's hypotheses
+    from imufdi_cli.maths.sequential import lorden_delay_samples
+    from imufdi_cli.mcapio import McapSource
+
+    with McapSource(str(detected)) as source:
+        record = json.loads(source.metadata["imufdi.detect.glt"]["json"])
+    budget = record["detector_metadata"]["types"]["gyro"]["budget"]
+    delta = budget["sensitivity"][0] * np.deg2rad(0.9)
+    want = lorden_delay_samples(delta**2, 100.0 * 3600, budget["hypotheses"]) / 100.0
+    assert fault["reference_delay_s"] == pytest.approx(want, rel=1e-12)
+    assert fault["delay_ratio"] == pytest.approx(fault["detection_delay_s"] / want, rel=1e-12)
+    assert gyro["reference_delay_s"] == fault["reference_delay_s"]
+    assert gyro["delay_ratio"] == fault["delay_ratio"]
+    assert "Reference delay s" in md.read_text()

@@ -123,23 +123,38 @@ def test_reads_mcap_ros2_writer_file_with_gaps(tmp_path) -> None:
                 writer.write_message(topic, schema, msg, log_time=t + 1000, publish_time=t)
         writer.finish()
     order = [0, 1, 2]
-    with ImuArrayReader(path, topics=topics) as reader:
+    keep = np.array([i not in missing[1] for i in range(200)])
+    # only the samples every topic has (partial=False)
+    with ImuArrayReader(path, topics=topics, partial=False) as reader:
         block = ImuBlock.concatenate(list(reader.blocks()))
         stats = reader.stats
         assert reader.array.n_imus == 3
         assert reader.array.rate_hz == pytest.approx(100.0)
-    keep = np.array([i not in missing[1] for i in range(200)])
     assert_array_equal(block.t_ns, data.t_ns[keep])
     assert_array_equal(block.gyro, data.gyro[keep][:, order])  # type: ignore[index]
     assert_array_equal(block.accel, data.accel[keep][:, order])  # type: ignore[index]
+    assert block.missing is None
     assert stats.gaps == {"/left/imu": 0, "/right/imu": 3, "/center/imu": 0}
     assert stats.dropped == 3 and stats.n_aligned == 197 and stats.misaligned == 0
+    # default: every sample, the missing IMU's values NaN and flagged
+    with ImuArrayReader(path, topics=topics) as reader:
+        block = ImuBlock.concatenate(list(reader.blocks()))
+        stats = reader.stats
+    assert_array_equal(block.t_ns, data.t_ns)
+    assert block.missing is not None
+    assert_array_equal(block.missing[:, 1], ~keep)
+    assert not block.missing[:, [0, 2]].any()
+    assert np.isnan(block.gyro[~keep, 1]).all() and np.isnan(block.accel[~keep, 1]).all()  # type: ignore[index]
+    assert_array_equal(block.gyro[keep], data.gyro[keep][:, order])  # type: ignore[index]
+    assert_array_equal(block.gyro[:, [0, 2]], data.gyro[:, [0, 2]])  # type: ignore[index]
+    assert stats.gaps == {"/left/imu": 0, "/right/imu": 3, "/center/imu": 0}
+    assert stats.dropped == 0 and stats.partial == 3 and stats.n_aligned == 200
     # default order is natural sort of the topics
     with ImuArrayReader(path) as reader:
         assert reader.imu_topics == ["/center/imu", "/left/imu", "/right/imu"]
     # log time instead of header stamps
     with ImuArrayReader(path, topics=topics, time_source="log_time") as reader:
-        assert_array_equal(ImuBlock.concatenate(list(reader.blocks())).t_ns, data.t_ns[keep] + 1000)
+        assert_array_equal(ImuBlock.concatenate(list(reader.blocks())).t_ns, data.t_ns + 1000)
 
 
 def test_reads_rosbags_writer_file(tmp_path) -> None:
@@ -179,7 +194,7 @@ def test_reads_rosbags_writer_file(tmp_path) -> None:
                 )
                 writer.write(conns[k], t, typestore.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
     (path,) = list(bag.glob("*.mcap"))
-    _, block = read_array(path)
+    _, block = read_array(path, partial=False)
     keep = np.array([all((k, i) not in skipped for k in range(2)) for i in range(120)])
     assert_array_equal(block.gyro, data.gyro[keep])  # type: ignore[index]
     assert_array_equal(block.accel, data.accel[keep])  # type: ignore[index]

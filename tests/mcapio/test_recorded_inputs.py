@@ -317,6 +317,17 @@ def test_metadata_yaml_forms_and_refusals(tmp_path) -> None:
     meta.write_text(text.replace("  - one.mcap\n", "  - one.mcap\n  - two.mcap\n"))
     result = invoke(["info", bag])
     assert_one_line_error(result, 3, "two.mcap, listed in metadata.yaml, is missing")
+    # a listed file that exists but is no file: said so, not "missing"
+    two = bag / "two.mcap"
+    for make, said in (
+        (lambda: two.mkdir(), "is a directory, not an MCAP file"),
+        (lambda: two.symlink_to(two), "is a symlink loop"),
+        (lambda: two.symlink_to(bag / "gone.mcap"), "is a symlink to"),
+    ):
+        make()
+        result = invoke(["info", bag])
+        assert_one_line_error(result, 3, f"two.mcap, listed in metadata.yaml, {said}")
+        two.rmdir() if two.is_dir() and not two.is_symlink() else two.unlink()
     (tmp_path / "plain").mkdir()
     assert_one_line_error(invoke(["info", tmp_path / "plain"]), 3, "not a regular file")
 

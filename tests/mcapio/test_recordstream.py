@@ -55,7 +55,9 @@ def test_unchunked_without_summary_reads_every_imu(seekable: bool) -> None:
         with ImuArrayReader(stream) as reader:
             assert reader.imu_topics == [f"/imu{k}/data_raw" for k in range(4)]
             n = sum(len(block) for block in reader.blocks())
-        complete = sum(1 for m in messages if m < cut) // 4
+        read = sum(1 for m in messages if m < cut)
+        # a sample cut short is kept when at least half the IMUs (2 of 4) have it
+        complete = read // 4 + (read % 4 >= 2)
         assert n == (40 if cut >= data_end else complete)
 
 

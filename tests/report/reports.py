@@ -26,7 +26,7 @@ def hand_made_report(with_truth: bool = True) -> Report:
     isolated = np.where(alarm, 0, -1)
     isolated[60] = 2  # one false isolation of 45 detected faulty samples
     windows = [FaultWindow("f0", (0,), 50 * 10_000_000)] if with_truth else []
-    metrics = compute_metrics(t, alarm, isolated, faulty, windows)
+    metrics = compute_metrics(t, alarm, isolated, faulty, windows, episode_gaps=(10, 100))
     entry = ReportEntry(
         detector="glt",
         sensor_type="gyro",

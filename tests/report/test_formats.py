@@ -11,6 +11,7 @@ import pytest
 
 from imufdi_cli.report.formats import (
     format_value,
+    table_columns,
     table_rows,
     to_csv,
     to_json,
@@ -38,8 +39,23 @@ def test_renderers():
 
 
 def test_undefined_rendering():
-    report = hand_made_report(with_truth=False)
+    report = hand_made_report()
+    report.entries[0].metrics.fir = None
     row = table_rows(report)[0]
-    assert row[3] == "undefined"  # MAR without faulty samples
-    assert json.loads(to_json(report))["results"][0]["mar"] is None
+    assert row[2 + [c[0] for c in table_columns(report)].index("fir")] == "undefined"
     assert format_value(None) == "undefined"
+
+
+def test_a_fault_free_report_shows_what_the_alarms_cost_not_undefined_figures():
+    report = hand_made_report(with_truth=False)
+    assert json.loads(to_json(report))["results"][0]["mar"] is None
+    names = [c[0] for c in table_columns(report)]
+    assert "mar" not in names and "far" not in names
+    assert names[:4] == ["alarm_rate", "alarm_events", "false_episodes", "false_episodes_per_hour"]
+    row = dict(zip(names, table_rows(report)[0][2:]))
+    # 47 alarms of 100 rows in 2 events, one episode (both runs isolate sensor 0, 50 rows
+    # apart: joined); 1 s of rows at 100 Hz
+    assert row["alarm_rate"] == "47.00" and row["alarm_events"] == "2"
+    assert row["false_episodes"] == "1" and row["fault_free_hours"] == f"{1 / 3600:.3g}"
+    assert row["false_episodes_per_hour"] == "3.6e+03"
+    assert "undefined" not in row.values()

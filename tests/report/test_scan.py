@@ -216,7 +216,12 @@ def test_report_is_the_same_from_both_encodings_of_the_episodes(tmp_path, truth)
         assert 0 < len(data["episodes"]) <= 200 + 20
         if not options:
             assert scores["listed"] == 200 and scores["omitted"] > 0
+        if options:  # --start/--end confine every episode, of every channel
+            starts = [(e["start_ns"] - T0) * 1e-9 for e in data["episodes"]]
+            assert starts and all(2.5 <= s < 8 for s in starts)
         if truth:
             kinds = {e["match"] for e in data["episodes"]}
-            assert {"fault", "false", "calibration"} <= kinds, kinds
+            # the calibration window (0-1 s) is outside --start 2.5
+            assert {"fault", "false"} | ({"calibration"} if not options else set()) <= kinds
+            assert "calibration" not in kinds or not options, kinds
             assert scores["matched"] > 0 and scores["false"] > 0

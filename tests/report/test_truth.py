@@ -64,7 +64,7 @@ def test_windows_are_absolute_and_carry_the_size_of_steps_and_drifts():
     ["not json", json.dumps({"faults": []}), json.dumps({"t0_ns": "x", "faults": []})],
 )
 def test_a_malformed_faults_record_is_bad_input(record):
-    with pytest.raises(TruthError, match=r"imufdi\.faults metadata is malformed") as info:
+    with pytest.raises(TruthError, match=r"imufdi\.faults metadata: ") as info:
         truth_windows({"imufdi.faults": {"json": record}})
     assert info.value.exit_code == 3
 
@@ -74,13 +74,25 @@ def test_calibration_windows_per_detector():
         "imufdi.detect.glt": {"json": json.dumps({"calibration_window_ns": [10, 20]})},
         "imufdi.detect.bank": {"json": json.dumps({"calibration_window_ns": None})},
         "imufdi.detect.old": {"json": json.dumps({"alpha": 0.01})},  # recorded none
-        "imufdi.detect.broken": {"json": "{"},  # unreadable: treated as none recorded
         "imufdi.faults": {"json": json.dumps({"calibration_window_ns": [1, 2]})},
     }
     assert calibration_windows(metadata) == {"glt": (10, 20), "bank": None}
 
 
-def test_a_malformed_calibration_window_is_bad_input():
-    metadata = {"imufdi.detect.glt": {"json": json.dumps({"calibration_window_ns": [5]})}}
-    with pytest.raises(McapInputError, match=r"imufdi\.detect\.glt: calibration_window_ns"):
+@pytest.mark.parametrize(
+    ("record", "fragment"),
+    [
+        ({"calibration_window_ns": [5]}, "calibration_window_ns: expected a list of 2"),
+        ({"calibration_window_ns": ["a", 2]}, r"calibration_window_ns\[0\]: expected a 64-bit"),
+        ("{", "not valid JSON"),  # unreadable: the window would silently count as tested
+        (None, "expected an object, got null"),
+        ([], "expected an object, got a list"),
+        ({"t0_ns": 1e400}, "t0_ns: expected a 64-bit integer or null, got the number inf"),
+        ("[" * 100_000 + "]" * 100_000, "JSON nested 100000 levels deep; at most 64"),
+    ],
+)
+def test_a_malformed_detect_record_is_bad_input(record, fragment):
+    text = record if isinstance(record, str) else json.dumps(record)
+    metadata = {"imufdi.detect.glt": {"json": text}}
+    with pytest.raises(McapInputError, match=r"imufdi\.detect\.glt metadata: " + fragment):
         calibration_windows(metadata)

@@ -139,8 +139,10 @@ class MappingNetwork:
     def from_npz_bytes(cls, data: bytes, where: str) -> MappingNetwork:
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-                header = json.loads(str(npz["header"]))
-                if header.get("format") != MODEL_FORMAT:
+                from imufdi_cli.jsonin import loads
+
+                header = loads(str(npz["header"]), f"{where}: header", DetectorConfigError)
+                if not isinstance(header, dict) or header.get("format") != MODEL_FORMAT:
                     raise DetectorConfigError(
                         f"{where}: not a cnn-map model (format {header.get('format')!r},"
                         f" expected {MODEL_FORMAT})"

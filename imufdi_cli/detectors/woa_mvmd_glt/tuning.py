@@ -79,8 +79,12 @@ class TuneResult:
 
     @classmethod
     def from_json(cls, text: str | bytes, *, source: str = "tune result") -> TuneResult:
+        from imufdi_cli.jsonin import loads
+
+        data = loads(text, source, DetectorConfigError)
         try:
-            data = json.loads(text)
+            if not isinstance(data, dict):
+                raise TypeError("not an object")
             data.pop("format", None)
             result = cls(**data)
             result.K = int(result.K)

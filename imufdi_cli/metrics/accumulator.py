@@ -1,252 +1,29 @@
-"""Detection and isolation metrics from ground truth and alarms (docs/metrics.md).
-
-All figures are per sample and per sensor type, with the definitions of Li et al.
-(Micromachines 17(3):374, 2026), Table 4, measured out of sample (docs/metrics.md):
-
-- FAR = alarms on fault-free samples / fault-free samples, outside the calibration window
-  (``far_calibration``: the same inside it, where the detector was fitted)
-- MAR = faulty samples without alarm / faulty samples (outside the calibration window)
-- detection rate = 1 - MAR; detection accuracy = 1 - FAR - MAR (Table 4: 100 - 4.98 -
-  26.58 = 68.44 %)
-- FIR = detected faulty samples isolated to a sensor that is not faulty / detected faulty
-  samples; isolation accuracy = 1 - FIR
-- detection delay = decision time of the sample completing the first run of ``persist``
-  consecutive alarms inside the fault - onset
-- isolation delay = decision time of the first alarm inside the fault isolated to one of
-  the fault's sensors - onset
-- decision latency = mean over samples of (decision time - sample time)
-- recovery delay = decision time of the first sample r at or after the fault end from
-  which the alarms stop for good - fault end: at least ``persist`` quiet samples from r,
-  and no alarm within ``merge_gap_s`` (0.1 s) of r — an alarm that comes back that soon
-  is the same alarm episode flickering; one that comes back later is a new episode (and
-  a false alarm). Only rows before the next onset on the same sensor type count.
-
-:class:`MetricsAccumulator` computes them in one streaming pass (memory independent of the
-log length); :func:`compute_metrics` is the one-call form. A figure whose denominator is
-empty (no faulty samples, no detections, a fault never detected) is ``None`` —
-"undefined" — never 0.
-"""
+"""The streaming accumulator of the metrics (:class:`MetricsAccumulator`) and its one-call
+form (:func:`compute_metrics`)."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
+from imufdi_cli.metrics.figures import (
+    AmplitudeFigure,
+    FaultFigures,
+    FaultWindow,
+    Metrics,
+    _ratio,
+)
+from imufdi_cli.metrics.rows import (
+    apply_budget_match,
+    episode_rate,
+    faulty_matrix,
+    judged_isolation,
+)
+from imufdi_cli.tested_time import SamplePeriod, fault_free_tested_hours  # per-hour denominator
+
 NS_PER_S = 1_000_000_000
-
-
-@dataclass(frozen=True)
-class FaultWindow:
-    """One injected fault, as seen by one sensor type's test.
-
-    Attributes
-    ----------
-    fault_id : str
-        Identifier of the fault (from the truth record).
-    sensors : tuple of int
-        Indices of the faulty sensors in ``ArrayConfig.sensor_ids(type)``.
-    start_ns : int
-        Onset, ns.
-    end_ns : int or None
-        End of the fault, ns; None when it lasts to the end of the log.
-    model : str
-        Fault model (``step``, ``drift``, ...; empty when unknown).
-    size : float or None
-        True size the detector's amplitude estimates are compared to, SI: a step's ``amp``,
-        a drift's ``rate`` (per second); None for the other models.
-    """
-
-    fault_id: str
-    sensors: tuple[int, ...]
-    start_ns: int
-    end_ns: int | None = None
-    model: str = ""
-    size: float | None = None
-
-
-@dataclass
-class FaultFigures:
-    """Per-fault event figures (delays in seconds, at decision time)."""
-
-    fault_id: str
-    detected: bool
-    detection_delay_s: float | None
-    isolation_delay_s: float | None
-    recovery_delay_s: float | None
-    isolated_correctly: float | None  # fraction of the fault's detected samples isolated to it
-    faulty_samples: int
-    rate_after_first_detection: float | None  # alarmed / faulty samples from the first alarm on
-    #: per faulty sensor the detector gave an amplitude for (:class:`AmplitudeFigure`)
-    amplitudes: list[AmplitudeFigure] = field(default_factory=list)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-@dataclass
-class AmplitudeFigure:
-    """A detector's estimate of one faulty sensor's fault size, from its status rows.
-
-    Over the fault's detected samples on which the sensor is isolated and has an estimated
-    amplitude (``amplitudes`` of the status): for a drift the least-squares slope of the
-    amplitude against time (``size_name`` ``rate``, SI per second: a filter's lag shifts the
-    line but not its slope), otherwise the median amplitude (``amp``, SI).
-
-    Attributes
-    ----------
-    sensor : str
-        Sensor id (or its index when the ids are unknown).
-    size_name : str
-        ``amp`` or ``rate``.
-    estimate : float
-    true : float or None
-        The injected size (step ``amp``, drift ``rate``); None for other models.
-    ratio : float or None
-        ``estimate / true``.
-    samples : int
-        Samples the estimate is made of.
-    """
-
-    sensor: str
-    size_name: str
-    estimate: float
-    true: float | None
-    ratio: float | None
-    samples: int
-
-
-@dataclass
-class Metrics:
-    """Per-sample figures for one detector and sensor type.
-
-    Ratios are fractions (0..1); ``None`` where undefined. Sample counts other than
-    ``samples`` and ``calibration_samples`` are outside the calibration window.
-    """
-
-    samples: int
-    fault_free_samples: int
-    faulty_samples: int
-    false_alarms: int
-    missed: int
-    detected_faulty: int
-    false_isolations: int
-    unisolated: int
-    far: float | None
-    mar: float | None
-    accuracy: float | None
-    fir: float | None
-    isolation_accuracy: float | None
-    detection_delay_s: float | None  # mean over detected faults
-    recovery_delay_s: float | None  # mean over faults that ended and recovered
-    alarm_rate: float | None  # alarms / samples, truth or not
-    alarm_events: int
-    false_alarm_events_per_hour: float | None
-    duration_s: float
-    faults: list[FaultFigures] = field(default_factory=list)
-    calibration_samples: int = 0
-    far_calibration: float | None = None
-    isolation_delay_s: float | None = None  # mean over faults isolated to a faulty sensor
-    decision_latency_s: float | None = None
-    rate_after_first_detection: float | None = None
-    mar_at_far: float | None = None
-    fir_at_far: float | None = None
-    detection_delay_at_far_s: float | None = None
-    threshold_scale_at_far: float | None = None
-    target_far: float | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        data = asdict(self)
-        data["faults"] = [f.to_dict() for f in self.faults]
-        data["detection_rate"] = self.value("detection_rate")
-        return data
-
-    def value(self, name: str) -> float | None:
-        """A scalar figure by name (for gates): see :data:`METRIC_NAMES`."""
-        if name not in METRIC_NAMES:
-            raise KeyError(name)
-        if name == "detection_rate":
-            return None if self.mar is None else 1.0 - self.mar
-        if name == "detection_probability":
-            if not self.faults:
-                return None
-            return sum(f.detected for f in self.faults) / len(self.faults)
-        value = getattr(self, name)
-        return None if value is None else float(value)
-
-
-#: Scalar figures that gates and tables may name.
-METRIC_NAMES: dict[str, str] = {
-    "far": "false alarm rate outside the calibration window (alarms on fault-free samples"
-    " / fault-free samples)",
-    "far_calibration": "false alarm rate inside the calibration window (in-sample)",
-    "mar": "missed alarm rate (faulty samples without alarm / faulty samples)",
-    "accuracy": "detection accuracy, 1 - FAR - MAR",
-    "fir": "false isolation rate (detected faulty samples isolated to a healthy sensor)",
-    "isolation_accuracy": "1 - FIR",
-    "detection_rate": "1 - MAR",
-    "rate_after_first_detection": "alarmed / faulty samples from each fault's first alarm"
-    " on (secondary; the detection rate is 1 - MAR)",
-    "detection_delay_s": "mean detection delay over detected faults, at decision time, s",
-    "isolation_delay_s": "mean delay to the first alarm isolated to a faulty sensor, s",
-    "decision_latency_s": "mean decision time - sample time, s",
-    "recovery_delay_s": "mean recovery delay over faults that ended, s",
-    "detection_probability": "fraction of injected faults that were detected",
-    "alarm_rate": "alarms / samples (outside the calibration window)",
-    "alarm_events": "number of alarm events (rising edges) outside the calibration window",
-    "false_alarm_events_per_hour": "alarm events that start on fault-free samples, per hour",
-    "mar_at_far": "MAR with the threshold scaled to the matched FAR (--match-far)",
-    "fir_at_far": "FIR at the matched FAR",
-    "detection_delay_at_far_s": "mean detection delay at the matched FAR, s",
-    "threshold_scale_at_far": "threshold scale giving the matched FAR",
-    "samples": "number of samples",
-    "faulty_samples": "number of samples with an active fault",
-}
-
-
-def _ratio(numerator: int, denominator: int) -> float | None:
-    return None if denominator == 0 else numerator / denominator
-
-
-def faulty_matrix(t_ns: np.ndarray, windows: Sequence[FaultWindow], n_sensors: int) -> np.ndarray:
-    """Ground truth per sample and sensor from fault windows.
-
-    Returns
-    -------
-    ndarray, shape (N, n_sensors), bool
-        ``[i, j]`` true when a window acting on sensor j holds ``start <= t_i < end``.
-    """
-    t_ns = np.asarray(t_ns, dtype=np.int64)
-    faulty = np.zeros((t_ns.size, n_sensors), dtype=bool)
-    for window in windows:
-        active = t_ns >= window.start_ns
-        if window.end_ns is not None:
-            active &= t_ns < window.end_ns
-        faulty[np.ix_(active, np.asarray(window.sensors, dtype=np.intp))] = True
-    return faulty
-
-
-def rising_edges(alarm: np.ndarray) -> np.ndarray:
-    """Indices where ``alarm`` (N,) bool goes from False to True (index 0 if it starts True)."""
-    alarm = np.asarray(alarm, dtype=bool)
-    if alarm.size == 0:
-        return np.zeros(0, dtype=np.intp)
-    previous = np.concatenate([[False], alarm[:-1]])
-    return np.flatnonzero(alarm & ~previous)
-
-
-def persistent(alarm: np.ndarray, persist: int) -> np.ndarray:
-    """True where the alarm is on for at least ``persist`` consecutive samples starting here."""
-    alarm = np.asarray(alarm, dtype=bool)
-    if persist <= 1 or alarm.size == 0:
-        return alarm.copy()
-    counts = np.convolve(alarm.astype(np.int64), np.ones(persist, dtype=np.int64), "full")
-    # counts[i + persist - 1] = number of alarms in alarm[i : i + persist]
-    window = counts[persist - 1 : persist - 1 + alarm.size]
-    return window == persist
 
 
 class _FaultState:
@@ -340,6 +117,14 @@ class MetricsAccumulator:
         sample belongs to the same alarm episode (flicker), s.
     sensor_ids : sequence of str, optional
         Names of the sensors in the per-fault amplitude figures (default: their indices).
+    episode_gaps : (merge_gap, join_gap), optional
+        The episodes' joining rule in rows (:func:`~imufdi_cli.sweep.episode_gap_rows`):
+        with it, the false alarm episodes are counted (and, with ``sweep`` and
+        ``budget_levels``, at every level of the matched budget); without (no sample rate
+        known), they are undefined.
+    budget_levels : bool
+        Count the episodes at the matched budget's levels (:meth:`budget_curve`): the
+        joining rule on every row above 0.63 x the threshold, at 65 levels.
     """
 
     def __init__(
@@ -352,8 +137,10 @@ class MetricsAccumulator:
         sweep: bool = True,
         merge_gap_s: float = 0.1,
         sensor_ids: Sequence[str] | None = None,
+        episode_gaps: tuple[int, int] | None = None,
+        budget_levels: bool = True,
     ) -> None:
-        from imufdi_cli.sweep import SweepAccumulator
+        from imufdi_cli.sweep import BUDGET_LEVELS, AlarmEpisodes, FaultRuns, SweepAccumulator
 
         self.sensor_ids = None if sensor_ids is None else list(sensor_ids)
 
@@ -368,6 +155,17 @@ class MetricsAccumulator:
             later = [s for s in onsets if w.end_ns is not None and s >= w.end_ns]
             self.states.append(_FaultState(w, min(later) if later else None))
         self.sweep = SweepAccumulator([w.start_ns for w in self.windows]) if sweep else None
+        self.episodes = None if episode_gaps is None else AlarmEpisodes(1, n_sensors, *episode_gaps)
+        self.budget = (
+            AlarmEpisodes(BUDGET_LEVELS.size, n_sensors, *episode_gaps)
+            if episode_gaps is not None and sweep and budget_levels
+            else None
+        )
+        #: the detector's own runs that began in a fault (their rows: the fault's, at any scale)
+        self.fault_runs = (
+            None if self.budget is None or episode_gaps is None else FaultRuns(episode_gaps[0])
+        )
+        self.period = SamplePeriod()
         self.n = 0
         self.n_cal = 0
         self.n_eval = 0
@@ -401,6 +199,7 @@ class MetricsAccumulator:
         scores: np.ndarray | None = None,
         faulty: np.ndarray | None = None,
         amplitudes: np.ndarray | None = None,
+        scored: np.ndarray | None = None,
     ) -> None:
         """Add k consecutive rows.
 
@@ -411,14 +210,18 @@ class MetricsAccumulator:
         isolated : (k,) int, isolated sensor (negative: none / not isolable)
         decided_ns : (k,) int64, decision times (default: the sample times)
         isolated_set : (k, n) bool, every sensor isolated (default: one-hot of ``isolated``)
-        statistic, threshold : (k,) float64, for the matched-FAR sweep
-        scores : (k, n) float64, isolation scores; the sweep judges the isolation of rows the
-            detector left unisolated by their largest score
+        statistic, threshold : (k,) float64, for the matched-FAR and matched-budget sweeps
+        scores : (k, n) float64, isolation scores; the sweeps judge the isolation of rows
+            the detector left unisolated by their largest score
         faulty : (k, n) bool, optional
             Ground truth per row and sensor; default: from the fault windows
         amplitudes : (k, n) float64, optional
             Estimated amplitude of every sensor, SI, NaN where none (the status'
             ``amplitudes``), for the per-fault :class:`AmplitudeFigure`
+        scored : (k,) bool, optional
+            The rows scored (default: all). The others (samples ``detect`` excluded as
+            clipped or invalid, rows outside ``report --start/--end``) count in no figure,
+            but are part of the alarm episodes: an episode is counted where it starts.
         """
         t_ns = np.asarray(t_ns, dtype=np.int64)
         k = int(t_ns.size)
@@ -432,11 +235,39 @@ class MetricsAccumulator:
             faulty = faulty_matrix(t_ns, self.windows, n_s)
         else:
             faulty = np.asarray(faulty, dtype=bool).reshape(k, n_s)
-        any_fault = faulty.any(axis=1)
+        any_fault = np.asarray(faulty.any(axis=1), dtype=bool)
         if self.calibration_ns is not None:
             in_cal = (t_ns >= self.calibration_ns[0]) & (t_ns < self.calibration_ns[1])
         else:
             in_cal = np.zeros(k, dtype=bool)
+        keep = np.ones(k, bool) if scored is None else np.asarray(scored, bool)
+        sweeping = self.sweep is not None and statistic is not None and threshold is not None
+        bins = judged = column = None
+        if sweeping:
+            from imufdi_cli.sweep import ratio_bins
+
+            bins = ratio_bins(statistic, threshold)  # type: ignore[arg-type]
+            judged, column = judged_isolation(isolated, scores, n_s)
+        eligible = keep & ~any_fault & ~in_cal
+        if self.episodes is not None:
+            self.episodes.update(alarm, isolated, eligible)
+        if self.budget is not None and bins is not None:
+            assert self.fault_runs is not None
+            in_fault_run = self.fault_runs.update(alarm, any_fault)
+            self._budget_levels(bins, np.where(judged, column, -1), eligible & ~in_fault_run)  # type: ignore[arg-type]
+        if not keep.all():
+            rows = np.flatnonzero(keep)
+            k = int(rows.size)
+            if k == 0:
+                return
+            t_ns, alarm, isolated, decided = t_ns[rows], alarm[rows], isolated[rows], decided[rows]
+            faulty, any_fault, in_cal = faulty[rows], any_fault[rows], in_cal[rows]
+            if isolated_set is not None:
+                isolated_set = np.asarray(isolated_set, dtype=bool).reshape(-1, n_s)[rows]
+            if amplitudes is not None:
+                amplitudes = np.asarray(amplitudes, dtype=np.float64).reshape(-1, n_s)[rows]
+            if bins is not None:
+                bins, judged, column = bins[rows], judged[rows], column[rows]  # type: ignore[index]
         evaluated = ~in_cal
         free = ~any_fault & evaluated
         free_cal = ~any_fault & in_cal
@@ -445,6 +276,7 @@ class MetricsAccumulator:
         if self.t_first is None:
             self.t_first = int(t_ns[0])
         self.t_last = int(t_ns[-1])
+        self.period.add(t_ns)
         self.n += k
         self.n_cal += int(np.count_nonzero(in_cal))
         self.n_eval += int(np.count_nonzero(evaluated))
@@ -460,9 +292,9 @@ class MetricsAccumulator:
         self.latency_sum += float(np.sum(decided[evaluated] - t_ns[evaluated])) / NS_PER_S
 
         has_iso = isolated >= 0
-        column = np.clip(np.where(has_iso, isolated, 0), 0, max(n_s - 1, 0))
+        iso_column = np.clip(np.where(has_iso, isolated, 0), 0, max(n_s - 1, 0))
         rows = np.arange(k)
-        correct = has_iso & faulty[rows, column] if n_s else np.zeros(k, dtype=bool)
+        correct = has_iso & faulty[rows, iso_column] if n_s else np.zeros(k, dtype=bool)
         self.false_iso += int(np.count_nonzero(detected & has_iso & ~correct))
         self.unisolated += int(np.count_nonzero(detected & ~has_iso))
 
@@ -486,23 +318,29 @@ class MetricsAccumulator:
                     t_s = (t_ns[use] - st.window.start_ns).astype(np.float64) * 1e-9
                     track.add(t_s, values[use, sensor])
 
-        if self.sweep is not None and statistic is not None and threshold is not None:
-            from imufdi_cli.sweep import ratio_bins
-
-            judged = has_iso
-            if scores is not None and n_s:
-                sc = np.asarray(scores, dtype=np.float64).reshape(k, n_s)
-                finite = np.isfinite(sc).any(axis=1)
-                best = np.argmax(np.where(np.isfinite(sc), sc, -np.inf), axis=1)
-                use = ~has_iso & (isolated != -2) & finite
-                column = np.where(use, best, column)
-                judged = has_iso | use
+        if sweeping and self.sweep is not None:
+            assert bins is not None and judged is not None and column is not None
             right = judged & faulty[rows, column] if n_s else np.zeros(k, dtype=bool)
             iso_class = np.zeros(k, dtype=np.int8)
             iso_class[faulty_eval & right] = 1
             iso_class[faulty_eval & judged & ~right] = 2
             iso_class[faulty_eval & ~judged] = 3
-            self.sweep.update(ratio_bins(statistic, threshold), decided, free, iso_class, in_faults)
+            isolated_to = [
+                inside & judged & np.isin(column, st.window.sensors)
+                for st, inside in zip(self.states, in_faults)
+            ]
+            self.sweep.update(bins, decided, free, iso_class, in_faults, isolated_to)
+
+    def _budget_levels(self, bins: np.ndarray, isolated: np.ndarray, eligible: np.ndarray) -> None:
+        """The alarm episodes of these rows at every level of the matched budget: only the
+        rows above the lowest level take part (the others alarm at none)."""
+        from imufdi_cli.sweep import BUDGET_LEVELS
+
+        assert self.budget is not None
+        rows = np.flatnonzero(bins > BUDGET_LEVELS[0])
+        level, column = np.nonzero(bins[rows][None, :] > BUDGET_LEVELS[:, None])
+        # columns index the candidate rows: map them back to rows of the block
+        self.budget.update_sparse(level, rows[column], isolated, eligible, int(bins.size))
 
     def _update_fault(
         self,
@@ -591,7 +429,8 @@ class MetricsAccumulator:
         if n > 1 and self.t_first is not None:
             span = float(self.t_last - self.t_first) / NS_PER_S
             duration_s = span * n / (n - 1)  # count the last sample's period too
-        free_hours = self.n_free * (duration_s / n) / 3600.0 if n and duration_s > 0 else 0.0
+        period_s = self.period.seconds
+        free_hours = fault_free_tested_hours(self.n_free, period_s)
         figures: list[FaultFigures] = []
         delays: list[float] = []
         isolations: list[float] = []
@@ -654,7 +493,44 @@ class MetricsAccumulator:
             isolation_delay_s=float(np.mean(isolations)) if isolations else None,
             decision_latency_s=(self.latency_sum / self.n_eval) if self.n_eval else None,
             rate_after_first_detection=_ratio(alarmed_after_first, after_first),
+            fault_free_hours=free_hours,
+            sample_period_s=period_s,
+            **self._episode_figures(free_hours),
         )
+
+    def _episode_figures(self, hours: float) -> dict[str, Any]:
+        """False alarm episodes, their rate per hour of ``hours`` with its exact Poisson
+        95 % upper bound, and the mean time between them with its lower bound."""
+        if self.episodes is None:
+            return {}
+        count = int(self.episodes.finished().false_episodes[0])
+        return {"false_episodes": count, **episode_rate(count, hours)}
+
+    def budget_curve(self) -> Any:
+        """The :class:`~imufdi_cli.sweep.BudgetCurve` of the rows fed so far (None without
+        the sweep or the joining rule's gaps)."""
+        from imufdi_cli.sweep import BUDGET_FIGURES, BUDGET_LEVELS, BudgetCurve
+
+        if self.budget is None or self.sweep is None or not self.sweep.sweepable:
+            return None
+        curve = self.sweep.curve()
+        hours = fault_free_tested_hours(self.n_free, self.period.seconds)
+        figures = {name: np.asarray(curve[name])[BUDGET_LEVELS] for name in BUDGET_FIGURES}
+        return BudgetCurve(hours, self.budget.finished().false_episodes, figures)
+
+    def matched_budget(self, metrics: Metrics, target_per_hour: float) -> str | None:
+        """Fill the ``*_at_budget`` figures of ``metrics`` at ``target_per_hour`` false
+        episodes per hour; returns a note (why they are undefined, or where the match
+        sits) or None."""
+        from imufdi_cli.sweep import match_budget
+
+        metrics.target_budget_per_hour = target_per_hour
+        curve = self.budget_curve()
+        if curve is None:
+            return "matched budget: no sweepable statistic or no sample rate"
+        match = match_budget(curve.false_episodes, curve.hours, target_per_hour)
+        apply_budget_match(metrics, curve, match)
+        return match.note
 
     def _amplitude_figures(self, st: _FaultState) -> list[AmplitudeFigure]:
         """One :class:`AmplitudeFigure` per faulty sensor with estimated amplitudes."""
@@ -712,6 +588,8 @@ def compute_metrics(
     match_far: float | None = None,
     n_sensors: int | None = None,
     amplitudes: np.ndarray | None = None,
+    episode_gaps: tuple[int, int] | None = None,
+    match_budget: float | None = None,
 ) -> Metrics:
     """Per-sample metrics of one detector on one sensor type, in one call.
 
@@ -742,6 +620,11 @@ def compute_metrics(
         Target FAR for the ``*_at_far`` figures.
     amplitudes : ndarray, shape (N, n_s), float64, optional
         Estimated amplitude of every sensor (per-fault :class:`AmplitudeFigure`).
+    episode_gaps : (merge_gap, join_gap), optional
+        The episodes' joining rule in rows, for the false alarm episodes.
+    match_budget : float, optional
+        Target false episodes per hour for the ``*_at_budget`` figures (needs
+        ``episode_gaps``, ``statistic`` and ``threshold``).
 
     Returns
     -------
@@ -752,7 +635,12 @@ def compute_metrics(
             raise ValueError("give faulty or n_sensors")
         n_sensors = int(np.asarray(faulty).reshape(len(t_ns), -1).shape[1])
     acc = MetricsAccumulator(
-        n_sensors, faults, calibration_ns=calibration_ns, persist=persist, sweep=True
+        n_sensors,
+        faults,
+        calibration_ns=calibration_ns,
+        persist=persist,
+        sweep=True,
+        episode_gaps=episode_gaps,
     )
     acc.update(
         t_ns,
@@ -769,18 +657,6 @@ def compute_metrics(
     metrics = acc.result()
     if match_far is not None:
         acc.matched(metrics, match_far)
+    if match_budget is not None:
+        acc.matched_budget(metrics, match_budget)
     return metrics
-
-
-def mean_metrics(values: Sequence[float | None]) -> tuple[float | None, float | None, int]:
-    """Mean and sample standard deviation over runs, ignoring undefined values.
-
-    Returns ``(mean, std, count)``; mean is None when every value is undefined, std is None
-    with fewer than two defined values.
-    """
-    defined = [float(v) for v in values if v is not None and not math.isnan(float(v))]
-    if not defined:
-        return None, None, 0
-    mean = float(np.mean(defined))
-    std = float(np.std(defined, ddof=1)) if len(defined) > 1 else None
-    return mean, std, len(defined)
