@@ -221,16 +221,48 @@ def test_a_budget_warns_where_the_imus_disagree_beyond_their_noise() -> None:
 
 @pytest.mark.slow
 def test_a_budget_of_one_an_hour_holds_for_an_hour_of_paper_table4() -> None:
-    """An hour of paper-table4 (development seed 37) at 1/h: no episode on either channel
-    (the model, union bound over 15 IMUs, allows 0.5; measured 0 in 2 h on tuning seeds)."""
+    """An hour of paper-table4 (development seed 37, calibrated on 0-2 s) at 1/h: at most
+    the budget's one episode on either channel, and the rate the scaled limits give this
+    log below the budget.
+
+    The limits are set for half the budget in expectation over calibrations (0.5/h); the
+    rate of one log depends on its calibration's variance error (p^h with h = 1001), so
+    an hour's count is Poisson with a mean near 0.5 and no bound on it below 1 is a
+    property of the method (this log: one accelerometer episode; development seeds 31-39,
+    9 h: 4 accelerometer and 1 gyro episodes). The rate is also checked directly, with far
+    less spread than a count: from the firmware rule recomputed on the published limits
+    and offsets, each IMU's share q_i of passing samples over the hour gives the rate of
+    runs of h failures, sum_i q_i (1 - q_i)^h per sample (exact for white differences;
+    its relative error from an hour of samples about 0.15). This log's calibration is one
+    of the least favourable of seeds 31-39: 0.68/h (accelerometers), 0.09/h (gyros)."""
+    from imufdi_cli.detectors.vectors import compared_layouts
     from imufdi_cli.simulate import config_from_options, simulate
 
     array, blocks = simulate(config_from_options("paper-table4", seed=37, duration="3600s"))
     det = make(false_alarms="1/h")
     first = next(blocks)
     det.fit(first.slice(0, 200), array)
-    alarms = {"gyro": 0, "accel": 0}
+    meta = det.metadata()
+    h = meta["hold_samples"]
+    layouts = compared_layouts(array, ("gyro", "accel"), "ap-consistency")
+    weights = {"gyro": np.ones(3), "accel": np.array([1.0, 1.0, 0.5])}
+    episodes = {"gyro": 0, "accel": 0}
+    passes = {t: np.zeros(layouts[t].n_imus) for t in episodes}
+    was = dict.fromkeys(episodes, False)
+    samples = 0
     for b in [first.slice(200, len(first)), *blocks]:
-        for sensor_type, out in det.process(b).items():
-            alarms[sensor_type] += int(out.alarm.sum())
-    assert alarms == {"gyro": 0, "accel": 0}
+        outputs = det.process(b)
+        samples += len(b)
+        for sensor_type, out in outputs.items():
+            starts = out.alarm & ~np.concatenate([[was[sensor_type]], out.alarm[:-1]])
+            episodes[sensor_type] += int(starts.sum())
+            was[sensor_type] = bool(out.alarm[-1])
+            kind = meta["types"][sensor_type]
+            x = layouts[sensor_type].body(b, "ap-consistency") - np.asarray(kind["offsets"])
+            deviation = np.linalg.norm((x - x[:, :1]) * weights[sensor_type], axis=2)
+            passes[sensor_type] += np.count_nonzero(deviation <= kind["limits"], axis=0)
+    assert episodes["gyro"] <= 1 and episodes["accel"] <= 1, episodes
+    for sensor_type, count in passes.items():
+        q = count[1:] / samples  # every IMU but the primary, its own reference
+        per_hour = float(np.sum(q * (1.0 - q) ** h)) * array.rate_hz * 3600.0
+        assert 0.0 < per_hour < 1.0, (sensor_type, per_hour)
