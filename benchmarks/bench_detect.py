@@ -110,7 +110,7 @@ STAGES = textwrap.dedent(
         fdtri(1.0, 50.0, 0.99)
         import imufdi_cli.detect as dt
         import imufdi_cli.engine as en
-        import imufdi_cli.episodes.builder as ep  # where EpisodeBuilder finds fit_models
+        import imufdi_cli.episodes.builder as ep  # where EpisodeBuilder finds fit_models_batch
         from imufdi_cli.detectors.glt import GltDetector
         acc = collections.Counter({"imports (numpy, imufdi, scipy.special)":
                                    time.process_time() - cpu0})
@@ -139,7 +139,7 @@ STAGES = textwrap.dedent(
         wrap(dt, "status_records", "status and events: encode, queue, compress")
         wrap(dt, "_events", "status and events: encode, queue, compress")
         wrap(dt.McapWriter, "add_batch", "status and events: encode, queue, compress")
-        wrap(ep, "fit_models", "episodes: fit_models")
+        wrap(ep, "fit_models_batch", "episodes: fit_models")
         wrap(ep.EpisodeBuilder, "rows", "episodes: bookkeeping, residuals, reference")
         wrap(dt._DetectRun, "episodes", "episodes: to_dict and JSON event")
         wrap(dt._DetectRun, "finish", "finish (flush, metadata)")

@@ -55,11 +55,11 @@ FAULTS = [
 def capture(workdir: Path, minutes: float, seed: int) -> list[tuple[Any, ...]]:
     """Every fit_models call (args, kwargs) of the detect runs."""
     calls: list[tuple[Any, ...]] = []
-    inner = builder_module.fit_models  # the name EpisodeBuilder calls
+    inner = builder_module.fit_models_batch  # what EpisodeBuilder calls, per batch
 
-    def spy(*args: Any, **kwargs: Any) -> Any:
-        calls.append((args, kwargs))
-        return inner(*args, **kwargs)
+    def spy(problems: Any) -> Any:
+        calls.extend(problems)
+        return inner(problems)
 
     turntable, table4, faulty = (workdir / n for n in ("t.mcap", "p.mcap", "pf.mcap"))
     out = workdir / "out.mcap"
@@ -77,13 +77,13 @@ def capture(workdir: Path, minutes: float, seed: int) -> list[tuple[Any, ...]]:
     simulate_file("paper-table4", str(table4), seed=seed, options={"duration": 70.0})
     specs = [f.format(i=j % 4, at=8 + 10 * j + 0.37) for j, f in enumerate(FAULTS)]
     inject_file(str(table4), str(faulty), specs, [], seed=seed)
-    builder_module.fit_models = spy  # type: ignore[assignment]
+    builder_module.fit_models_batch = spy  # type: ignore[assignment]
     try:
         detect_file(str(turntable), str(out), [("glt", {})])
         for name in ("glt", "pca-parity", "noise-glr", "bank"):
             detect_file(str(faulty), str(out), [(name, {})])
     finally:
-        builder_module.fit_models = inner  # type: ignore[assignment]
+        builder_module.fit_models_batch = inner  # type: ignore[assignment]
     return calls
 
 
@@ -116,6 +116,46 @@ def fingerprint(fits: list[Any]) -> list[tuple[str, Any]]:
         curve = None if fit.curve is None else (fit.curve[0].tobytes(), float(fit.curve[1]).hex())
         out.append((json.dumps(fit.to_dict(), sort_keys=True), curve))
     return out
+
+
+def compare_batches(calls: list[Any], repeat: int) -> None:
+    """The same windows through ``fit_models_batch`` (as the builder fits them, in batches
+    of ``builder.FIT_BATCH``) against ``fit_models`` one at a time, alternated: CPU and
+    ratio, and how the fits agree (the model ranking and every onset and end exactly; sizes,
+    bounds and BICs to a relative 1e-9: the batched sums are taken in another order)."""
+    from imufdi_cli.episodes.batch import fit_models_batch
+
+    size = builder_module.FIT_BATCH
+    best = {"serial": float("inf"), "batched": float("inf")}
+    serial: list[Any] = []
+    batched: list[Any] = []
+    for _ in range(repeat):
+        begin = time.process_time()
+        serial = [episodes.fit_models(*a, **k) for a, k in calls]
+        middle = time.process_time()
+        batched = []
+        for start in range(0, len(calls), size):
+            batched += fit_models_batch(calls[start : start + size])
+        best["serial"] = min(best["serial"], middle - begin)
+        best["batched"] = min(best["batched"], time.process_time() - middle)
+    ranking = values = 0
+    for one, many in zip(serial, batched, strict=True):
+        if [(f.model, f.onset_index, f.end_index) for f in one] != [
+            (f.model, f.onset_index, f.end_index) for f in many
+        ]:
+            ranking += 1
+            continue
+        for f, g in zip(one, many, strict=True):
+            for x, y in ((f.size, g.size), (f.low, g.low), (f.high, g.high), (f.bic, g.bic)):
+                if x == y or (x != x and y != y):  # (infinities and NaNs alike)
+                    continue
+                if not abs(x - y) <= 1e-9 * max(abs(x), abs(y), 1e-300):
+                    values += 1
+    print(
+        f"batched ({size} windows a call): CPU serial {best['serial']:.2f} s, batched"
+        f" {best['batched']:.2f} s, ratio {best['batched'] / best['serial']:.3f};"
+        f" windows ranked differently {ranking}, values beyond 1e-9 {values}, of {len(calls)}"
+    )
 
 
 def main() -> int:
@@ -162,6 +202,7 @@ def main() -> int:
         f" ({best['this'] / max(len(calls), 1) * 1e3:.2f} ms a call),"
         f" ratio {best['this'] / best['reference']:.3f}"
     )
+    compare_batches(calls, args.repeat)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return 1 if differ else 0
 

@@ -342,7 +342,13 @@ class Engine:
 
             builders = episode_builders(whole, self.array)
         for track in self.tracks:
-            track.episodes = {t: b.for_detector(track.detector.name) for t, b in builders.items()}
+            # a per-sample test's one-sample episodes (chance alarms, most of them) may be
+            # explained by their sample alone; under a false-alarm budget all are fitted
+            budgeted = float(getattr(track.detector, "false_alarms", 0.0) or 0.0) > 0
+            track.episodes = {
+                t: b.for_detector(track.detector.name, sample_explanations=not budgeted)
+                for t, b in builders.items()
+            }
         self.fitted = True
         self.calibration.clear()
         for pending, pending_flags in self.backlog:

@@ -263,3 +263,38 @@ def test_detect_warns_when_a_test_loses_its_level_in_motion(tmp_path) -> None:
     assert any("times its level" in w and "glt.gyro" in w for w in moving.warnings)
     budget = detect_file(str(log), str(tmp_path / "b.mcap"), [("glt", {})], false_alarms=1 / 3600)
     assert not any("times its level" in w or "against a budget" in w for w in budget.warnings)
+
+
+def test_one_sample_episodes_of_a_per_sample_test_are_explained_by_their_sample(
+    sim_log, tmp_path, monkeypatch
+):
+    """Per sample (glt at alpha), an episode of one alarm is explained by its sample alone
+    (``explained_by: sample``: ``none``, or ``spikes`` for paper-table4's gyro outliers);
+    longer ones by the fits; under a false-alarm budget every episode is fitted."""
+    from imufdi_cli.mcapio.events import EVENTS_TOPIC, read_events
+
+    out = tmp_path / "e.mcap"
+    detect_file(str(sim_log), str(out), [("glt", {"alpha": 0.05})])
+    episodes = [
+        e["episode"] for _, e in read_events(str(out), EVENTS_TOPIC) if e["event"] == "episode"
+    ]
+    paths = {(e["alarms"] == 1 and e["fragments"] == 1, e["explained_by"]) for e in episodes}
+    assert (True, "sample") in paths and (False, "fits") in paths
+    assert paths <= {(True, "sample"), (False, "fits")}
+    assert {e["fault_class"] for e in episodes if e["explained_by"] == "sample"} <= {
+        "none",
+        "spikes",
+    }
+    from imufdi_cli.episodes import EpisodeBuilder
+
+    chosen = []
+    real = EpisodeBuilder.for_detector
+
+    def spy(self, detector, **options):
+        chosen.append(options.get("sample_explanations"))
+        return real(self, detector, **options)
+
+    monkeypatch.setattr(EpisodeBuilder, "for_detector", spy)
+    detect_file(str(sim_log), str(tmp_path / "b.mcap"), [("glt", {})], false_alarms=1 / 3600)
+    detect_file(str(sim_log), str(tmp_path / "p.mcap"), [("glt", {})])
+    assert chosen == [False, False, True, True]  # (gyro and accel builders of each run)

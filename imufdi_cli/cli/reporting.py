@@ -109,7 +109,6 @@ def report(
         imufdi report recorded.mcap --fail-if 'glt.gyro.false_episodes_per_hour_upper95 > 2'
     """
     from imufdi_cli import report as rep
-    from imufdi_cli.detectors import DETECTORS
     from imufdi_cli.errors import UsageError
     from imufdi_cli.fileio import (
         atomic_path,
@@ -138,7 +137,11 @@ def report(
         raise UsageError("--plot writes a PNG file; give it a file name")
     ui.data_to_stdout(md_out, csv_out, junit_out, roc_out, episodes_out)
     check_outputs([log], outputs)
-    parsed = [rep.parse_gate(g, DETECTORS) for g in gates]  # bad gates fail before reading
+    parsed = []
+    if gates:  # (the detector registry only for gates)
+        from imufdi_cli.detectors import DETECTORS
+
+        parsed = [rep.parse_gate(g, DETECTORS) for g in gates]  # bad gates fail before reading
     if plot_out:
         from imufdi_cli.plots import pyplot
 
@@ -171,8 +174,8 @@ def report(
     ui.print_table(report_table(result))
     for table in episode_tables(result, limit=None if ui.verbose else 12):
         ui.print_table(table)
-    if result.notes:  # the product console (rich) only when there is something to print
-        ui.note(result.notes, ui.product)
+    if result.notes:  # in the product, after the tables
+        ui.note(result.notes, product=True)
     if episodes_out:
         write_text(episodes_out, rep.to_episodes_csv(result))
     if ui.json_target:

@@ -29,7 +29,7 @@ from typing import IO, TYPE_CHECKING, Any
 
 import click
 
-from imufdi_cli.cli.plain import PLAIN_WIDTH, PlainTable
+from imufdi_cli.cli.plain import PLAIN_WIDTH, PlainTable, plain_safe
 
 if TYPE_CHECKING:  # rich is imported when a console is made (start-up time)
     from rich.console import Console
@@ -217,11 +217,33 @@ class UI:
 
     def warn(self, warnings: Sequence[str], console: Console | None = None) -> None:
         for warning in warnings:
-            (console or self.summary).print(f"[yellow]warning:[/] {_escape(warning)}")
+            if console is not None or not self._plain_line("warning", warning):
+                (console or self.summary).print(f"[yellow]warning:[/] {_escape(warning)}")
 
-    def note(self, notes: Sequence[str], console: Console | None = None) -> None:
+    def note(
+        self, notes: Sequence[str], console: Console | None = None, *, product: bool = False
+    ) -> None:
+        """Notes on the summary (stderr), on ``console``, or with ``product`` in the
+        product (after what it holds)."""
         for text in notes:
-            (console or self.summary).print(f"[yellow]note:[/] {_escape(text)}")
+            if console is None and self._plain_line("note", text, product):
+                continue
+            target = console or (self.product if product else self.summary)
+            target.print(f"[yellow]note:[/] {_escape(text)}")
+
+    def _plain_line(self, label: str, text: str, product: bool = False) -> bool:
+        """Write ``label: text`` to the summary (or the product) as plain text, which is
+        what its console prints when its stream is not a terminal, without importing rich
+        (about 40 ms: a report without ground truth has a note); False when rich must
+        print it (a terminal, or text rich would not print as it is: :func:`plain_safe`)."""
+        plain = self.product_is_plain() if product else not is_terminal(sys.stderr)
+        if not plain or not plain_safe(str(text)):
+            return False
+        if product:
+            self.write_product(f"{label}: {text}\n")
+        elif not self.quiet:
+            self._summary_buffer.write(f"{label}: {text}\n")
+        return True
 
     def json(self, data: Any) -> None:
         """Write the machine-readable summary to ``--json``'s target (if given)."""

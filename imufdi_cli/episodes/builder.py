@@ -19,14 +19,19 @@ type from the calibration window.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from imufdi_cli.episodes.episode import Episode, _sensor_amplitude
+from imufdi_cli.episodes.batch import FitProblem, fit_models_batch
+from imufdi_cli.episodes.episode import (
+    FITS_EXPLANATION,
+    Episode,
+    _sensor_amplitude,
+)
 from imufdi_cli.episodes.fault_fit import WhiteNoise
-from imufdi_cli.episodes.fits import fit_models
 from imufdi_cli.episodes.reference import (
     Reference,
     correlation_sq,
@@ -34,6 +39,7 @@ from imufdi_cli.episodes.reference import (
     estimator_without,
     leave_two_out,
 )
+from imufdi_cli.episodes.sample_explanation import SampleExplanations
 from imufdi_cli.episodes.variance_drop import VARIANCE_DROP, VarianceDropMonitor
 from imufdi_cli.episodes.white_noise import (
     successive_difference_dof,
@@ -45,8 +51,46 @@ from imufdi_cli.episodes.white_noise import (
 )
 from imufdi_cli.maths.parity import check_measurement_matrix
 
+#: Fitted windows explained together (:func:`fit_models_batch`), at most: what waits.
+FIT_BATCH = 64
+#: Episodes waiting to be explained, at most (one-sample ones keep only their sample).
+SAMPLE_BATCH = 512
+#: ... and the bytes their windows hold (memory linear in the sensor count: a fit's window
+#: holds the healthy sensors' residuals).
+FIT_BYTES = 8 << 20
+#: Bytes of leave-two-out consensus matrices kept (an (n, n - 1) matrix per sensor).
+REFERENCE_CACHE_BYTES = 8 << 20
 
-class EpisodeBuilder:
+
+class _Cache:
+    """Values computed from a key on demand, the least recently used dropped once the
+    arrays they hold pass ``limit`` bytes (shared by the builders of one calibration)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.values: OrderedDict[int, Any] = OrderedDict()
+        self.size = 0
+
+    def get(self, key: int, make: Any) -> Any:
+        if key in self.values:
+            self.values.move_to_end(key)
+            return self.values[key]
+        value = make(key)
+        self.values[key] = value
+        self.size += _nbytes(value)
+        while self.size > self.limit and len(self.values) > 1:
+            _, dropped = self.values.popitem(last=False)
+            self.size -= _nbytes(dropped)
+        return value
+
+
+def _nbytes(value: Any) -> int:
+    if value is None:
+        return 0
+    return sum(int(getattr(item, "nbytes", 0)) for item in value)
+
+
+class EpisodeBuilder(SampleExplanations):
     """Builds explained episodes from a detector's status rows while a log streams by.
 
     The builder keeps the last ``margin`` samples of the sensor type's measurements (the
@@ -98,6 +142,11 @@ class EpisodeBuilder:
     variance_drop_window_s, variance_drop_alpha : float
         The monitor's window and the probability that one healthy sensor's window falls
         below its threshold.
+    sample_explanations : bool
+        Explain an episode of one alarmed sample by that sample alone
+        (:meth:`_explain_samples`: ``spikes`` or ``none``) instead of the fits: what
+        ``detect`` does for a per-sample test, whose chance alarms are most of its episodes
+        and carry nothing a fit over a margin could tell apart from chance.
     """
 
     def __init__(
@@ -122,6 +171,7 @@ class EpisodeBuilder:
         variance_drop: bool = False,
         variance_drop_window_s: float = 1.0,
         variance_drop_alpha: float = 1e-7,
+        sample_explanations: bool = False,
     ) -> None:
         self.detector = detector
         self.sensor_type = sensor_type
@@ -134,6 +184,14 @@ class EpisodeBuilder:
         self.max_window = max(4, round(max_window_s * rate_hz))
         self.confidence = confidence
         self.explain = explain
+        #: one-sample episodes explained by their sample alone (:meth:`_explain_samples`)
+        self.sample_explanations = sample_explanations
+        #: episodes closed and waiting to be explained, in order; of them, the one-sample
+        #: episodes explained by their sample (its row) and those fitted (their problems)
+        self._waiting_episodes: list[Episode] = []
+        self._samples: list[tuple[Episode, np.ndarray, int]] = []
+        self._fits: list[tuple[Episode, FitProblem]] = []
+        self._fit_bytes = 0  # what the waiting fits hold
         self.calibration_samples = calibration_samples
         self.calibration_mean = (
             None if calibration_mean is None else np.asarray(calibration_mean, np.float64)
@@ -153,6 +211,7 @@ class EpisodeBuilder:
             "white_excess": white_excess,
             "variance_drop_window_s": variance_drop_window_s,
             "variance_drop_alpha": variance_drop_alpha,
+            "sample_explanations": sample_explanations,
         }
         self.white_sigma = (
             None
@@ -160,7 +219,11 @@ class EpisodeBuilder:
             else np.broadcast_to(np.asarray(white_sigma, np.float64), (self.H.shape[0],))
         )
         self._gains: dict[int, tuple[np.ndarray, float]] = {}
-        self._references: dict[int, Any] = {}  # k -> _reference_matrix(k)
+        #: (residual matrix (n, n), calibrated bias (n,), sigma_r (n,)) of every sensor
+        self._sample_matrix: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # k -> _reference_matrix(k): (n, n - 1) each, so a bounded cache (memory linear
+        # in the sensor count, not cubic)
+        self._references: _Cache = _Cache(REFERENCE_CACHE_BYTES)
         self.white_excess = float(white_excess)
         self._white_cov: np.ndarray | None = None  # white_sigma_covariance, once
         self._estimators: dict[int, np.ndarray] = {}  # k -> _estimator(k)
@@ -181,7 +244,11 @@ class EpisodeBuilder:
             window = max(2, round(variance_drop_window_s * rate_hz))
             self._drop = (
                 self._variance_monitor(window, variance_drop_alpha),
-                EpisodeBuilder(VARIANCE_DROP, *self._arguments, **self._options),
+                EpisodeBuilder(
+                    VARIANCE_DROP,
+                    *self._arguments,
+                    **{**self._options, "sample_explanations": False},
+                ),
             )
 
     # measurements arrive with the input blocks, rows when the detector emits them
@@ -204,7 +271,9 @@ class EpisodeBuilder:
 
     def rows(self, t_ns: np.ndarray, decided_ns: np.ndarray, out: Any) -> list[Episode]:
         """Status rows (a DetectionBlock ``out`` with sample and decision times, in order);
-        returns the episodes that closed within them (ordered by their decision time)."""
+        returns episodes closed within them or before, explained (a batch of them at a
+        time, :meth:`_explain_jobs`; the rest by :meth:`finish`), ordered by their decision
+        time."""
         n = len(t_ns)
         t_ns = np.asarray(t_ns, dtype=np.int64)
         m = self._take(n)
@@ -245,13 +314,14 @@ class EpisodeBuilder:
         tail = max(0, n - self.margin)
         self._history = np.concatenate([self._history, m[tail:]])[-self.margin :]
         self._history_t = np.concatenate([self._history_t, t_ns[tail:]])[-self.margin :]
+        done = self._explain_jobs()
         if self._drop is not None:
             monitor, builder = self._drop
             builder._gains, builder._references = self._gains, self._references
             builder.feed(m)
-            closed.extend(builder.rows(t_ns, t_ns, monitor.update(m)))
-        closed.sort(key=lambda e: e.decided_end_ns)
-        return closed
+            done.extend(builder.rows(t_ns, t_ns, monitor.update(m)))
+        done.sort(key=lambda e: e.decided_end_ns)
+        return done
 
     def _end_quiet_run(self, closed: list[Episode]) -> None:
         """Close the open alarm run once more than ``merge_gap`` quiet rows follow it."""
@@ -267,7 +337,7 @@ class EpisodeBuilder:
         ``decided_ns``), with the last ``margin`` rows before it."""
         # only the last `margin` rows before the alarm are kept: copy no more
         if first >= self.margin:  # all inside the block: one copy (C order, as joined)
-            history = np.ascontiguousarray(m[first - self.margin : first])
+            history = m[first - self.margin : first].copy()
             history_t = t_ns[first - self.margin : first].copy()
         else:
             history = np.concatenate([self._history, m[:first]])[-self.margin :]
@@ -415,8 +485,10 @@ class EpisodeBuilder:
     ) -> None:
         hi = min(hi, lo + max(0, self.max_window - state["kept"]))
         if hi > lo:
-            state["window"].append(m[lo:hi])
-            state["window_t"].append(t_ns[lo:hi])
+            # copies: a view would keep the whole block alive while the episode waits
+            # (6 MB a block at 64 IMUs, per builder)
+            state["window"].append(m[lo:hi].copy())
+            state["window_t"].append(t_ns[lo:hi].copy())
             state["kept"] += hi - lo
 
     def finish(self) -> list[Episode]:
@@ -428,10 +500,11 @@ class EpisodeBuilder:
         for waiting in self._waiting.values():
             closed.append(self._close(waiting))
         self._waiting.clear()
+        done = self._explain_jobs(flush=True)
         if self._drop is not None:
-            closed.extend(self._drop[1].finish())
-        closed.sort(key=lambda e: e.decided_end_ns)
-        return closed
+            done.extend(self._drop[1].finish())
+        done.sort(key=lambda e: e.decided_end_ns)
+        return done
 
     def _close(self, state: dict[str, Any]) -> Episode:
         window_t = np.concatenate(state["window_t"])
@@ -462,9 +535,49 @@ class EpisodeBuilder:
             fragments=state["fragments"],
             amplitude=_sensor_amplitude(state["amplitudes"], self.sensor_ids, names),
         )
+        self._waiting_episodes.append(episode)
         if self.explain and window.shape[0] >= 4:
-            self._explain(episode, window, window_t, state["alarm_index"])
+            single = state["alarms"] == 1 and state["fragments"] == 1
+            alarm_index = state["alarm_index"]
+            if single and self.sample_explanations and self._sample_explains(episode, window):
+                # (only its alarmed sample is kept)
+                self._samples.append((episode, window[alarm_index].copy(), alarm_index))
+            else:
+                problem = self._fit_problem(episode, window, window_t, alarm_index)
+                if problem is not None:
+                    self._fits.append((episode, problem))
+                    reference = problem[1]["reference"]
+                    self._fit_bytes += window.nbytes + (
+                        0 if reference is None else reference.residuals.nbytes
+                    )
         return episode
+
+    def _explain_jobs(self, flush: bool = False) -> list[Episode]:
+        """The episodes closed so far, explained, once enough wait (or with ``flush``):
+        their fits are found together, up to :data:`FIT_BATCH` windows at a time
+        (:func:`~imufdi_cli.episodes.batch.fit_models_batch`), the one-sample episodes of
+        a per-sample test by their sample (:meth:`_explain_samples`). At most
+        :data:`FIT_BATCH` windows wait, whatever the log length."""
+        waiting = len(self._waiting_episodes)
+        held = self._fit_bytes
+        if (
+            not flush
+            and len(self._fits) < FIT_BATCH
+            and waiting < SAMPLE_BATCH
+            and held < FIT_BYTES
+        ):
+            return []
+        if self._samples:
+            self._explain_samples(self._samples)
+        if self._fits:
+            fitted = fit_models_batch([problem for _, problem in self._fits])
+            for (episode, _), fits in zip(self._fits, fitted, strict=True):
+                episode.fits = fits
+                if fits:
+                    episode.explained_by = FITS_EXPLANATION
+        done, self._waiting_episodes = self._waiting_episodes, []
+        self._samples, self._fits, self._fit_bytes = [], [], 0
+        return done
 
     def _isolation_summary(
         self, state: dict[str, Any]
@@ -484,13 +597,13 @@ class EpisodeBuilder:
             return names, None, 0.0
         return names, names[1], float(counts[order[1]] / total)
 
-    def _explain(
+    def _fit_problem(
         self, episode: Episode, window: np.ndarray, window_t: np.ndarray, alarm_index: int
-    ) -> None:
-        """Fit the fault models (:func:`~imufdi_cli.episodes.fits.fit_models`) on the
-        episode's isolated sensor (or, when none was isolated, the loudest) over ``window``
-        (L, n) with times ``window_t`` (L,) ns, its first alarm at ``alarm_index``; sets
-        ``episode.fits`` (left empty when the other sensors give no consensus)."""
+    ) -> FitProblem | None:
+        """The arguments of :func:`~imufdi_cli.episodes.fits.fit_models` on the episode's
+        isolated sensor (or, when none was isolated, the loudest, named in the episode)
+        over ``window`` (L, n) with times ``window_t`` (L,) ns, its first alarm at
+        ``alarm_index``; None when the other sensors give no consensus."""
         names = episode.sensors
         k = self.sensor_ids.index(names[0]) if names else self._loudest(window)
         if not names:
@@ -499,7 +612,7 @@ class EpisodeBuilder:
         try:
             gain, consensus_sigma = self._gain(k)
         except ValueError:
-            return
+            return None
         prediction = window @ gain
         residual = window[:, k] - prediction
         offset_var = None
@@ -514,22 +627,19 @@ class EpisodeBuilder:
                 offset_var = (self.sigma[k] ** 2 + consensus_sigma**2) / self.calibration_samples
         t_s = (window_t - window_t[0]).astype(np.float64) * 1e-9
         alarm_index = min(alarm_index, max(len(window_t) - 2, 0))
-        episode.fits = fit_models(
-            residual,
-            prediction,
-            t_s,
-            float(self.sigma[k]),
-            consensus_sigma,
+        args = (residual, prediction, t_s, float(self.sigma[k]), consensus_sigma)
+        kwargs = {
             # the onset may precede the first alarm (a drift is detected late) or follow
             # it (a chance alarm just before the fault merges into its episode)
-            onset_range=(0, alarm_index + 1 + (len(window_t) - alarm_index) // 2),
-            confidence=self.confidence,
-            raw=window[:, k],
-            calibration_samples=self.calibration_samples,
-            offset_var=offset_var,
-            reference=self._reference(k, window),
-            white=self._white_of(k, gain),
-        )
+            "onset_range": (0, alarm_index + 1 + (len(window_t) - alarm_index) // 2),
+            "confidence": self.confidence,
+            "raw": window[:, k].copy(),
+            "calibration_samples": self.calibration_samples,
+            "offset_var": offset_var,
+            "reference": self._reference(k, window),
+            "white": self._white_of(k, gain),
+        }
+        return args, kwargs
 
     def _white_of(self, k: int, gain: np.ndarray) -> WhiteNoise | None:
         """:meth:`_white` of sensor k (``gain`` its :meth:`_gain`), computed once."""
@@ -554,9 +664,7 @@ class EpisodeBuilder:
     def _reference(self, k: int, window: np.ndarray) -> Reference | None:
         """The other sensors' residuals over ``window`` (:class:`Reference`), each against
         the consensus of the sensors other than itself and ``k``."""
-        if k not in self._references:
-            self._references[k] = self._reference_matrix(k)
-        cached = self._references[k]
+        cached = self._references.get(k, self._reference_matrix)
         if cached is None:
             return None
         A, offset, variance, offset_var = cached
@@ -600,13 +708,21 @@ class EpisodeBuilder:
             found = self._gains[k] = downdated_gain(self.H, self.sigma, k)
         return found
 
-    def for_detector(self, detector: str) -> EpisodeBuilder:
+    def for_detector(
+        self, detector: str, *, sample_explanations: bool | None = None
+    ) -> EpisodeBuilder:
         """A fresh builder with the same calibration, for another detector (it shares the
-        consensus gains, which depend only on the calibration)."""
+        consensus gains, which depend only on the calibration); ``sample_explanations``:
+        whether its one-sample episodes are explained by their sample alone (a per-sample
+        test's chance alarms) or by the fits like the others (a detector under a
+        false-alarm budget, whose episodes are rare; default: this builder's choice)."""
         # the variance-drop monitor is a detection of its own: one builder runs it
         monitor = not self._monitor_issued
         self._monitor_issued = True
-        builder = EpisodeBuilder(detector, *self._arguments, **self._options, variance_drop=monitor)
+        options = dict(self._options)
+        if sample_explanations is not None:
+            options["sample_explanations"] = sample_explanations
+        builder = EpisodeBuilder(detector, *self._arguments, **options, variance_drop=monitor)
         builder._gains = self._gains
         builder._references = self._references
         return builder

@@ -41,6 +41,12 @@ def find_episodes(alarm: np.ndarray, merge_gap: int = 0) -> list[tuple[int, int]
     return [(int(a), int(b)) for a, b in zip(merged_starts, merged_stops)]
 
 
+#: :attr:`Episode.explained_by` of an episode explained by the profile-likelihood fits
+FITS_EXPLANATION = "fits"
+#: :attr:`Episode.explained_by` of a one-sample episode explained by its sample alone
+SAMPLE_EXPLANATION = "sample"
+
+
 @dataclass
 class Episode:
     """One alarm episode of one detector on one sensor type, explained.
@@ -67,6 +73,10 @@ class Episode:
     #: alarms isolating it, from the status' per-sensor amplitudes), SI; None (and no
     #: ``amplitude`` key in :meth:`to_dict`) when none
     amplitude: float | None = None
+    #: how ``fits`` were found: ``fits`` (every fault model by profile likelihood),
+    #: ``sample`` (a one-sample episode of a per-sample test: the sample's residual
+    #: against the consensus, :data:`SAMPLE_EXPLANATION`), None (not explained)
+    explained_by: str | None = None
 
     @property
     def duration_s(self) -> float:

@@ -124,19 +124,23 @@ class VarianceDropMonitor:
             if invalid.any():
                 np.copyto(half_sq, np.broadcast_to(self.variance, half_sq.shape), where=invalid)
         if n:
-            self._last = r[-1]
+            self._last = r[-1].copy()
+        del r  # (the block's residuals are not needed past here: memory)
         cumulative = np.empty((joined.shape[0] + 1, joined.shape[1]))
         cumulative[0] = 0.0
         np.cumsum(joined, axis=0, out=cumulative[1:])
+        tail = joined[-self.window :].copy()
         stop = np.arange(held + 1, held + fresh + 1)  # window of the j-th new difference
         ready = stop >= self.window
         if held + 1 >= self.window:  # every window complete: the same rows as slices
             ratio = np.subtract(
                 cumulative[held + 1 : held + fresh + 1],
                 cumulative[held + 1 - self.window : held + fresh + 1 - self.window],
+                out=joined[:fresh],  # (joined is summed: its buffer holds the ratios)
             )
         else:
             ratio = cumulative[stop] - cumulative[np.maximum(stop - self.window, 0)]
+        del cumulative
         with np.errstate(divide="ignore", invalid="ignore"):
             # each ratio against its own sensor's quantile, expressed against the median
             np.divide(ratio, self.window, out=ratio)
@@ -149,7 +153,7 @@ class VarianceDropMonitor:
         lowest = ratio[np.arange(ratio.shape[0]), worst]
         alarm = ready & (lowest < self.quantile)
         statistic = np.where(ready, -np.log(np.maximum(lowest, 1e-300)), -np.inf)
-        self._tail = joined[-self.window :]
+        self._tail = tail
         pad = n - fresh  # the very first sample of the log: no test yet
         return _Rows(
             alarm=np.concatenate([np.zeros(pad, bool), alarm]),

@@ -23,7 +23,7 @@ import math
 import os
 import struct
 from collections.abc import Iterable, Sequence
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,7 +39,9 @@ from imufdi_cli.mcapio.schemas import (
     FDI_EVENT_SCHEMA_NAME,
 )
 from imufdi_cli.mcapio.source import McapSource, iter_topic
-from imufdi_cli.mcapio.writer import McapWriter
+
+if TYPE_CHECKING:  # the writer is imported where it writes (report only reads events)
+    from imufdi_cli.mcapio.writer import McapWriter
 
 NS_PER_S = 1_000_000_000
 TRUTH_TOPIC = "/imufdi/truth"

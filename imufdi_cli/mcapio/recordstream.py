@@ -14,7 +14,7 @@ from __future__ import annotations
 import bisect
 import io
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import IO
 
 import numpy as np
@@ -44,6 +44,8 @@ from imufdi_cli.mcapio.scan import (
 )
 
 _FOOTER_SIZE = 9 + 20
+#: An entry of a ChunkIndex record's message index offsets: channel id, record offset.
+_INDEX_ENTRY = np.dtype([("channel", "<u2"), ("offset", "<u8")])
 _RECORD_HEAD = struct.Struct("<BQ")
 #: Read-ahead of the data section; larger records are read straight from the stream.
 _READ_AHEAD = 256 << 10
@@ -108,6 +110,11 @@ class RecordStream:
     _ahead: bytes
     _ahead_pos: int
     _chunk_starts: list[int]
+    #: The channel ids of each chunk, by its offset, from the summary's ChunkIndex records
+    #: (their message index offsets; empty when a writer indexed none).
+    _chunk_channels: dict[int, np.ndarray]
+    #: Offsets of chunks to step over without decompressing them (:meth:`skip_chunks_without`).
+    _skipped_chunks: frozenset[int] = frozenset()
     _deferred: list[tuple[bool, str]] | None
     channels: dict[int, ChannelInfo]
     schemas: dict[int, SchemaInfo]
@@ -299,6 +306,7 @@ class RecordStream:
             self.schemas, self.channels, self._pending_channels = saved
             self._known_size = -1
             self._chunk_starts = []
+            self._chunk_channels = {}
             self.summary_channel_counts = None
             self.summary_message_count = None
             self.summary_time_range = None
@@ -333,6 +341,7 @@ class RecordStream:
             raise McapInputError(f"malformed record at byte {end} of the summary")
         metadata_offsets = []
         chunk_starts: list[int] = []
+        self._chunk_channels = {}
         for start, opcode, length in zip(starts.tolist(), opcodes.tolist(), lengths.tolist()):
             content = raw[start + 9 : start + 9 + length]
             if opcode == OP_SCHEMA:
@@ -342,9 +351,16 @@ class RecordStream:
             elif opcode == OP_METADATA_INDEX:
                 offset, record_length = struct.unpack("<QQ", content[:16])
                 metadata_offsets.append((int(offset), int(record_length)))
-            elif opcode == 0x08:  # ChunkIndex: where each chunk starts
+            elif opcode == 0x08:  # ChunkIndex: where each chunk starts, its channels
                 (chunk_start,) = struct.unpack_from("<Q", content, 16)
                 chunk_starts.append(int(chunk_start))
+                (map_bytes,) = struct.unpack_from("<I", content, 32)
+                if map_bytes % 10 or 36 + map_bytes > len(content):
+                    raise McapInputError(
+                        f"malformed ChunkIndex record of the chunk at byte {chunk_start}"
+                    )
+                entries = np.frombuffer(content, _INDEX_ENTRY, map_bytes // 10, 36)
+                self._chunk_channels[int(chunk_start)] = entries["channel"].astype(np.int64)
             elif opcode == 0x0B:  # Statistics
                 cur = _Cursor(content, "Statistics")
                 self.summary_message_count = cur.u64()
@@ -436,7 +452,7 @@ class RecordStream:
                 f" claims {length} bytes but {remaining} remain"
             )
             return None
-        if opcode not in _HELD:
+        if opcode not in _HELD or (opcode == OP_CHUNK and position in self._skipped_chunks):
             skipped = self._discard(length)
             if skipped < length:
                 self._problem(
@@ -480,6 +496,24 @@ class RecordStream:
         else:
             self.warnings.append(message)
         return resume
+
+    def skip_chunks_without(self, wanted: Callable[[ChannelInfo], bool]) -> int:
+        """Step over, undecompressed, every chunk that holds no channel for which
+        ``wanted`` is true, as the summary's chunk index says (the ``mcap`` package's
+        indexed reader filters topics the same way); their messages are never yielded.
+        Chunks the index does not list, or lists without channels (a writer that wrote no
+        message indexes), and chunks with a channel the summary does not declare are read.
+        Call before reading; without a usable summary nothing is skipped. Returns how many
+        chunks will be skipped."""
+        chunk_channels = getattr(self, "_chunk_channels", None) or {}
+        read = np.ones(1 << 16, bool)  # channel ids not declared: read
+        for cid, channel in self.channels.items():
+            read[cid] = bool(wanted(channel))
+        skipped = frozenset(
+            offset for offset, ids in chunk_channels.items() if ids.size and not read[ids].any()
+        )
+        self._skipped_chunks = skipped
+        return len(skipped)
 
     def _records(self) -> Iterator[tuple[int, int, bytes | None, int]]:
         """The data section's records in file order: (opcode, content length, content or

@@ -195,6 +195,7 @@ class McapSource(RecordStream):
         #: Chunk offsets from the summary's ChunkIndex records (seekable files): where
         #: reading resumes after a damaged record.
         self._chunk_starts: list[int] = []
+        self._chunk_channels: dict[int, np.ndarray] = {}
         self._pending_channels: dict[int, tuple[int, str, str, dict[str, str]]] = {}
         if isinstance(source, (str, os.PathLike)) and os.fspath(source) == "-":
             self.name = "<stdin>"
@@ -330,7 +331,8 @@ class McapSource(RecordStream):
                     runs.append((None, 1, pending.n_bytes))
                 pending.add_loose(content, here)
             elif opcode == OP_CHUNK:
-                assert content is not None
+                if content is None:  # stepped over (skip_chunks_without)
+                    continue
                 part = self._chunk_part(content, here, future, pending)
                 if part is not None:
                     if self.keep_raw_chunks:

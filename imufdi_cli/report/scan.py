@@ -186,7 +186,10 @@ def build_report(
             scan = _StatusScan(metadata, window, persist, keep_series, match_budget is not None)
             episodes = _EpisodeCollector(scan.truth, scan.windows_cal, window, scan.origin_ns)
             tracker = LogTimeProgress(progress, getattr(src, "summary_time_range", None))
-            for detector, sensor_type, ids, rows in iter_status(src, others=episodes.batch):
+            # only the chunks of the status and event channels are read (the IMU chunks,
+            # most of the file, are stepped over by the summary's chunk index)
+            status = iter_status(src, others=episodes.batch, others_wanted=episodes.wants)
+            for detector, sensor_type, ids, rows in status:
                 if rows["t_ns"].size:
                     tracker.at(int(rows["t_ns"][-1]))
                 scan.add(detector, sensor_type, ids, rows)
@@ -470,6 +473,13 @@ class _EpisodeCollector:
         self.tallies: dict[tuple[str, str], Any] = {}
         self.counts: dict[tuple[str, str], int] = {}
         self.spans: dict[tuple[str, str], list[tuple[int, int]]] = {}
+
+    @staticmethod
+    def wants(channel: Any) -> bool:
+        """Whether :meth:`batch` reads anything from ``channel`` (the episode events)."""
+        from imufdi_cli.mcapio.events import EVENTS_TOPIC, is_event_channel
+
+        return bool(channel.topic == EVENTS_TOPIC and is_event_channel(channel))
 
     def batch(self, batch: Any, channel: Any) -> None:
         """Match, count and list the episodes of one batch of ``/imufdi/events``; only

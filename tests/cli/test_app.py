@@ -51,6 +51,38 @@ def test_info_does_not_import_what_reading_does_not_need(fresh_imufdi, table4_lo
     )
 
 
+@pytest.fixture(scope="session")
+def detected_clean_log(tmp_path_factory, table4_log):
+    """table4_log through ``detect -d glt``: a report of it has no ground truth (a note)."""
+    path = tmp_path_factory.mktemp("logs") / "detected-clean.mcap"
+    result = invoke(["detect", table4_log, "-d", "glt", "-o", path])
+    assert result.code == 0, result.stderr
+    return path
+
+
+@pytest.mark.parametrize("truth", [False, True])
+def test_report_does_not_import_what_scoring_does_not_need(
+    fresh_imufdi, detected_clean_log, detected_log, truth: bool
+) -> None:
+    """Start-up time: ``imufdi report`` in a pipe imports neither the episode fits, the
+    writer, the detector registry, xml (only --junit writes XML), rich (not even for its
+    "no ground truth" note) nor scipy."""
+    unneeded = (
+        "imufdi_cli.episodes.builder",
+        "imufdi_cli.episodes.fits",
+        "imufdi_cli.mcapio.writer",
+        "imufdi_cli.detectors",
+        "xml",
+        "rich",
+        "scipy",
+    )
+    run = fresh_imufdi(["report", detected_log if truth else detected_clean_log])
+    assert "glt.gyro" in run.stdout
+    assert ("no ground truth" in run.stdout) is not truth
+    loaded = {m for m in run.modules if m.startswith(unneeded)}
+    assert not loaded
+
+
 def test_help_lists_every_command(fresh_imufdi) -> None:
     section = fresh_imufdi(["--help"]).stdout.split("Commands:\n")[1].split("\n\n")[0]
     listed = [line.split()[0] for line in section.splitlines()]

@@ -278,3 +278,39 @@ def test_info_in_a_pipe_does_not_import_rich(fresh_imufdi, table4_log) -> None:
     run = fresh_imufdi(["info", table4_log])
     assert sorted(m for m in run.modules if m.startswith("rich")) == []
     assert "/imu15/data_raw" in run.stdout
+
+
+@pytest.mark.parametrize("product", [False, True])
+def test_notes_and_warnings_in_a_pipe_are_what_rich_prints(monkeypatch, product: bool) -> None:
+    """A note or warning on a stream that is not a terminal is the line rich prints (its
+    markup escaped, never wrapped), written without rich; text rich would change (a
+    backslash, a tab, non-ASCII) goes through rich."""
+    texts = [
+        "no ground truth in this log (inject faults with `imufdi inject`): FAR, MAR [x]",
+        "a long line " + "x" * 300 + " [bold]not markup[/]",
+    ]
+    made = []
+    real = ui.make_console
+    monkeypatch.setattr(ui, "make_console", lambda *a, **k: made.append(a) or real(*a, **k))
+    plain = ui.UI()
+    plain.note(texts, product=product)
+    plain.warn(texts[:1])
+    buffer = plain._product_buffer if product else plain._summary_buffer
+    assert made == []  # no rich console
+    expected = "".join(f"note: {t}\n" for t in texts)
+    if product:
+        assert buffer.getvalue() == expected
+        assert plain._summary_buffer.getvalue() == f"warning: {texts[0]}\n"
+    else:
+        assert buffer.getvalue() == expected + f"warning: {texts[0]}\n"
+    rendered = rich_text(lambda c: [c.print(f"[yellow]note:[/] {ui._escape(t)}") for t in texts])
+    assert rendered == expected
+    unsafe = ui.UI()
+    unsafe.note(["a back\\slash"], product=product)
+    assert made  # through rich
+    assert (unsafe._product_buffer if product else unsafe._summary_buffer).getvalue() == (
+        "note: a back\\slash\n"
+    )
+    quiet = ui.UI(quiet=True)
+    quiet.note(texts)
+    assert quiet._summary_buffer.getvalue() == ""

@@ -195,3 +195,108 @@ def test_real_step_and_noise_growth_are_explained(tmp_path: Path) -> None:
     truth = math.sqrt(s**2 + np.deg2rad(0.3) ** 2) / s
     fit = noise[0]["fits"][0]
     assert fit["low"] <= truth <= fit["high"]
+
+
+def test_one_sample_episodes_are_explained_by_their_sample() -> None:
+    # with sample_explanations (detect's choice for a per-sample test), an episode of one
+    # alarmed sample is a spike when its residual against the consensus is beyond the
+    # spike cut (amplitude |r| and its interval), else no fault (`none`); episodes that
+    # last are fitted; explained_by says which; the same whatever the block size
+    rng = np.random.default_rng(19)
+    n_sensors, length = 12, 2000
+    H = np.tile(np.eye(3), (4, 1))
+    m = rng.normal(0, SIGMA, (length, n_sensors))
+    m[300, 2] += 3.5 * SIGMA  # a chance alarm's sample: z about 3
+    m[700, 4] += 8 * SIGMA  # an outlier: z about 7 against the consensus (sigma_r^2 = 4/3)
+    m[1200:1500, 7] += np.deg2rad(0.9)  # a step that lasts
+    alarm = np.zeros(length, bool)
+    isolated = np.full(length, -1, np.int32)
+    alarm[[300, 700, 1700]] = True  # a chance alarm, the outlier, one without isolation
+    isolated[[300, 700]] = (2, 4)
+    alarm[1205:1500] = True
+    isolated[1205:1500] = 7
+    t_ns = np.arange(length, dtype=np.int64) * 10_000_000
+    results = []
+    for block in (61, 2000):
+        builder = EpisodeBuilder(
+            "glt", "gyro", H, [f"s{i}" for i in range(12)], SIGMA, RATE,
+            calibration_samples=200, sample_explanations=True,
+        )  # fmt: skip
+        episodes = []
+        for start in range(0, length, block):
+            stop = min(start + block, length)
+            builder.feed(m[start:stop])
+            status = status_rows(alarm[start:stop], isolated[start:stop])
+            episodes += builder.rows(t_ns[start:stop], t_ns[start:stop], status)
+        episodes += builder.finish()
+        results.append([e.to_dict() for e in episodes])
+    assert results[0] == results[1]
+    chance, outlier, step, blind = results[0]
+    # (the one without isolation, like every window that shows more than noise before its
+    # alarm, is fitted)
+    assert [e["explained_by"] for e in results[0]] == ["sample", "sample", "fits", "fits"]
+    assert chance["fault_class"] == "none" and 2 < abs(chance["fits"][0]["extra"]["z"]) < 4
+    assert outlier["fault_class"] == "spikes" and outlier["fits"][0]["extra"]["z"] > 4
+    spike = outlier["fits"][0]
+    assert spike["low"] <= 8 * SIGMA <= spike["high"]
+    # +- t(0.95, about 130 dof) sigma_r with sigma_r = sigma sqrt(1 + 1/3)
+    assert spike["high"] - spike["low"] == pytest.approx(
+        2 * 1.657 * SIGMA * math.sqrt(4 / 3), rel=1e-3
+    )
+    assert step["fault_class"] == "step" and step["alarms"] == 295
+    assert blind["isolated_by"] == "residual"
+    # a lone alarm inside noise growth: its margin shows it, so it is fitted (noise)
+    noisy = rng.normal(0, SIGMA, (600, n_sensors))
+    noisy[:, 3] *= 3.0
+    builder = EpisodeBuilder(
+        "glt", "gyro", H, [f"s{i}" for i in range(12)], SIGMA, RATE,
+        calibration_samples=200, sample_explanations=True,
+    )  # fmt: skip
+    builder.feed(noisy)
+    lone = np.zeros(600, bool)
+    lone[450] = True
+    (inside,) = (
+        builder.rows(
+            t_ns[:600], t_ns[:600], status_rows(lone, np.where(lone, 3, -1).astype(np.int32))
+        )
+        + builder.finish()
+    )
+    assert inside.explained_by == "fits" and inside.fault_class == "noise"
+    # a lone alarm whose sample is ordinary (a windowed statistic tipped over): fitted
+    builder = EpisodeBuilder(
+        "glt", "gyro", H, [f"s{i}" for i in range(12)], SIGMA, RATE,
+        calibration_samples=200, sample_explanations=True,
+    )  # fmt: skip
+    quiet = rng.normal(0, SIGMA, (600, n_sensors))
+    quiet[450, 3] = 0.0
+    builder.feed(quiet)
+    (ordinary,) = (
+        builder.rows(
+            t_ns[:600], t_ns[:600], status_rows(lone, np.where(lone, 3, -1).astype(np.int32))
+        )
+        + builder.finish()
+    )
+    assert ordinary.explained_by == "fits"
+    # the same builder without sample explanations fits the one-sample episodes too
+    builder = EpisodeBuilder("glt", "gyro", H, [f"s{i}" for i in range(12)], SIGMA, RATE)
+    builder.feed(m[:1000])
+    fitted = builder.rows(t_ns[:1000], t_ns[:1000], status_rows(alarm[:1000], isolated[:1000]))
+    fitted += builder.finish()
+    assert [e.explained_by for e in fitted] == ["fits", "fits"]
+    assert len(fitted[1].fits) > 1
+
+
+def test_reference_cache_drops_the_least_recently_used_past_its_bytes() -> None:
+    from imufdi_cli.episodes.builder import _Cache
+
+    made: list[int] = []
+
+    def make(key: int) -> tuple[np.ndarray]:
+        made.append(key)
+        return (np.zeros(100),)  # 800 bytes
+
+    cache = _Cache(2000)
+    for key in (0, 1, 0, 2, 1):  # 2 drops 1 (0 was used after it), then 1 is made again
+        cache.get(key, make)
+    assert made == [0, 1, 2, 1]
+    assert cache.size <= 2000 and list(cache.values) == [2, 1]

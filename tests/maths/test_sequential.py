@@ -311,3 +311,33 @@ def test_the_references_learn_at_rest_only_and_resume_after_a_hold() -> None:
     assert alarms[-1] - alarms[0] > 10 * 100  # at least the hold
     assert not out.alarm[-20 * 100 :].any()  # then learnt: quiet for the last 20 s
     assert bank.reference[1] == pytest.approx(2.5, abs=0.3)
+
+
+def test_the_sub_chunked_spans_give_the_one_pass_decisions() -> None:
+    # the bank walks each span in sub-chunks with its sums carried and stops at the
+    # sub-chunk of an alarm or of an episode's end: every output equals one pass per
+    # span (sub-chunks as long as the span), through alarms, episodes that end at once
+    # (a fault far beyond the clip: raised again every few rows), holds and references
+    # that resume
+    rng = np.random.default_rng(21)
+    z = rng.standard_normal((12_000, 6))
+    z[1_500:2_000, 2] += 2.5
+    z[4_000:7_000, 4] += 12.0  # a step far beyond the clip: raised again every few rows
+    z[7_000:, 1] += np.linspace(0.0, 10.0, 5_000)
+    factors = np.ones(12_000)
+    factors[9_000:9_600] = 4.0  # motion: the larger designs come into range
+    outputs = []
+    for first, sub in ((2048, 2048), (8, 512), (1, 3)):
+        bank = _bank(6, 5.0, tau_s=20.0)
+        bank.FIRST_ROWS, bank.SUB_ROWS = first, sub
+        outputs.append(
+            [
+                bank.process(z[a:b], factors=factors[a:b])
+                for a, b in ((0, 4096), (4096, 9000), (9000, 12_000))
+            ]
+        )
+        assert bank.episodes > 100
+    for name in ("statistic", "threshold", "alarm", "isolated", "amplitude", "scores"):
+        whole = [np.concatenate([getattr(p, name) for p in run]) for run in outputs]
+        np.testing.assert_array_equal(whole[0], whole[1])
+        np.testing.assert_array_equal(whole[0], whole[2])

@@ -243,3 +243,118 @@ def test_status_records_write_the_bytes_of_encode_status(tmp_path) -> None:
     got = read_status(tmp_path / "True.mcap")[("d2", "gyro")]
     assert_array_equal(got.amplitudes, with_amplitudes.amplitudes)
     assert_array_equal(got.decided_ns, decided)
+
+
+def _annotated(path, imu_chunks: bool = True) -> tuple[np.ndarray, DetectionBlock]:
+    """A 16-IMU log of 3000 samples with a glt gyro status channel, each in its own
+    chunks (as detect writes them), and a JSON event channel."""
+    from imufdi_cli.array import ArrayConfig
+    from imufdi_cli.log import ImuBlock
+    from imufdi_cli.mcapio import ImuArrayWriter
+
+    rng = np.random.default_rng(3)
+    n = 3000
+    t_ns = 10**18 + np.arange(n, dtype=np.int64) * 10_000_000
+    array = ArrayConfig.co_aligned(16, 100.0)
+    det = _detections(n, 48, seed=4)
+    with McapWriter(path, chunk_size=1 << 16) as writer:
+        imus = ImuArrayWriter(writer, array)
+        cid = register_status_channel(writer, "glt", "gyro", array.sensor_ids("gyro"))
+        events = writer.register_json_channel("/imufdi/events", "imufdi.Event")
+        for start in range(0, n, 1000):
+            part = slice(start, start + 1000)
+            block = ImuBlock(
+                t_ns=t_ns[part],
+                gyro=rng.normal(0, 0.003, (1000, 16, 3)),
+                accel=rng.normal(0, 0.02, (1000, 16, 3)),
+            )
+            imus.write_block(block)
+            fields = ("statistic", "threshold", "alarm", "isolated", "amplitude", "scores")
+            rows = DetectionBlock(**{k: getattr(det, k)[part] for k in fields})
+            writer.add_batch(encode_status(cid, t_ns[part], rows))
+            writer.add_json(events, int(t_ns[start]), {"alarm": "start"})
+    return t_ns, det
+
+
+def test_status_reading_steps_over_the_imu_chunks_and_reads_the_same(tmp_path) -> None:
+    # iter_status / read_status read only the chunks holding a status channel (and, with
+    # others_wanted, the channels asked for): the summary's chunk index says which; the
+    # rows are those of a read of every chunk
+    from imufdi_cli.mcapio import McapSource, iter_status
+
+    path = tmp_path / "a.mcap"
+    t_ns, det = _annotated(path)
+    got = read_status(path)[("glt", "gyro")]
+    assert_array_equal(got.t_ns, t_ns)
+    for name in ("statistic", "threshold", "alarm", "isolated", "amplitude", "scores"):
+        assert_array_equal(getattr(got, name), getattr(det, name))
+    seen: dict[str, int] = {}
+
+    def others(batch, channel) -> None:
+        seen[channel.topic] = seen.get(channel.topic, 0) + len(batch)
+
+    with McapSource(path) as source:
+        rows = list(
+            iter_status(
+                source,
+                others=others,
+                others_wanted=lambda channel: channel.topic == "/imufdi/events",
+            )
+        )
+        skipped = len(source._skipped_chunks)
+    assert sum(r[3]["t_ns"].size for r in rows) == t_ns.size
+    assert seen["/imufdi/events"] == 3
+    # only the Imu messages of the few chunks they share with status rows were read
+    assert sum(v for k, v in seen.items() if k.startswith("/imu")) < 0.1 * 16 * t_ns.size
+    assert skipped >= 100
+    # others without others_wanted: every chunk, as before
+    everything: list[str] = []
+    with McapSource(path) as source:
+        list(iter_status(source, others=lambda batch, channel: everything.append(channel.topic)))
+        assert not source._skipped_chunks
+    assert any(topic.startswith("/imu") for topic in everything)
+
+
+def test_chunks_the_index_does_not_describe_are_read(tmp_path) -> None:
+    # a writer that wrote no message indexes leaves the chunk index's channel map empty:
+    # those chunks are read (nothing says what they hold); so are the chunks of a file
+    # read without its summary (a stream)
+    import io as _io
+
+    from mcap.writer import IndexType, Writer
+
+    from imufdi_cli.mcapio import McapSource
+
+    path = tmp_path / "a.mcap"
+    _annotated(path)
+    copy = tmp_path / "b.mcap"
+    with McapSource(path) as source, open(copy, "wb") as out:
+        writer = Writer(out, index_types=IndexType.NONE, chunk_size=1 << 16)
+        writer.start()
+        schemas = {
+            cid: writer.register_schema(c.schema.name, c.schema.encoding, c.schema.data)
+            for cid, c in source.channels.items()
+            if c.schema is not None
+        }
+        ids = {
+            cid: writer.register_channel(
+                c.topic, c.message_encoding, schemas.get(cid, 0), c.metadata
+            )
+            for cid, c in source.channels.items()
+        }
+        for batch in source.batches():
+            for i in range(len(batch)):
+                writer.add_message(
+                    ids[int(batch.channel_id[i])],
+                    int(batch.log_time[i]),
+                    batch.payload(i),
+                    int(batch.log_time[i]),
+                )
+        writer.finish()
+    assert_array_equal(
+        read_status(copy)[("glt", "gyro")].t_ns, read_status(path)[("glt", "gyro")].t_ns
+    )
+    with McapSource(copy) as source:
+        assert source.skip_chunks_without(lambda channel: False) == 0
+    with McapSource(_io.BytesIO(path.read_bytes())) as source:
+        assert source.skip_chunks_without(lambda channel: False) > 0  # seekable: indexed

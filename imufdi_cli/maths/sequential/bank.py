@@ -20,11 +20,13 @@ effective shift ``mu / s_t`` comes into range. With ``W1 = cumsum(u)`` and
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from imufdi_cli.maths.sequential.design import NO_ISOLATION, NOT_ISOLABLE, CusumDesign
+from imufdi_cli.maths.sequential.walk import _Chunk, _Feed, _History, _Running, _Walk
 
 
 @dataclass
@@ -304,7 +306,7 @@ class CusumBank:
         misalignment errors): ``process`` then takes the state's rows too.
     """
 
-    #: Rows run through the bank at once (an alarm wastes at most this much work).
+    #: Longest run of the cumulative sums (a span; see the span walker below).
     SPAN = 2048
 
     def __init__(
@@ -331,10 +333,8 @@ class CusumBank:
         self.state = np.zeros((self.shifts.size, 2, n))  # S per shift, sign, sensor
         self.hold = max(0, round(design.hold_s * rate_hz))
         self.ref = _Reference(n, design, rate_hz, float(calibration_samples), motion)
-        self.history_length = int(history)
-        self.history_u = np.zeros((0, n))  # clipped, scaled evidence u of (1)
-        self.history_q = np.zeros((0, n))  # z' / s^2
-        self.history_w = np.zeros(0)  # 1 / s^2
+        # the last `history` rows of u of (1), z' / s^2 and 1 / s^2
+        self.history = _History(int(history), n)
         self.samples = 0  # rows handled so far
         self.episode: _Episode | None = None
         self.episodes = 0
@@ -394,42 +394,112 @@ class CusumBank:
         inverse = 1.0 / variance
         return u, zr * inverse[:, None], inverse
 
+    # --- the span walker ------------------------------------------------------------
+    #
+    # A span (at most SPAN rows from the start of a call, an alarm or an episode's end) is
+    # one run of the cumulative sums of (1)-(2). It goes through in sub-chunks with the
+    # sums, minima and statistics carried across them (:class:`_Walk`): the same floats as
+    # one pass over the span, in working arrays that stay in the CPU's cache, and the span
+    # stops at the sub-chunk of its first alarm (or of the episode's end) instead of
+    # computing every row and discarding those after it. The references are applied ahead
+    # of the sub-chunks in pieces that end on their sub-block boundaries (:class:`_Feed`),
+    # which gives them the same sums. A design runs on a sub-chunk when some row's
+    # effective shift is in range or its statistic is not 0 (out of range on every row,
+    # from 0, it stays 0).
+
+    #: Rows of a span's first sub-chunk, doubling up to SUB_ROWS: after an alarm the next
+    #: may be near, and rows past it are work thrown away.
+    FIRST_ROWS = 8
+    SUB_ROWS = 512
+
+    def _chunks(self, n_rows: int) -> Iterator[tuple[int, int]]:
+        """(lo, hi) sub-chunks of the next ``n_rows`` rows."""
+        size, lo = self.FIRST_ROWS, 0
+        while lo < n_rows:
+            hi = min(n_rows, lo + size)
+            yield lo, hi
+            lo = hi
+            size = min(2 * size, self.SUB_ROWS)
+
     def _cusums(
-        self, u: np.ndarray, inverse: np.ndarray, variance: np.ndarray, best: np.ndarray
-    ) -> tuple[dict[int, np.ndarray], np.ndarray]:
-        """Every running CUSUM (1)-(2) over the rows, from the current state: the
-        statistics per (shift, sign) index ``2 d + s`` (designs out of range on every row
-        and at rest in their state are skipped: they stay 0), and per sensor their maximum
-        (written into ``best``)."""
-        total = np.cumsum(u, axis=0)
-        drift = np.cumsum(inverse)[:, None]
-        largest, smallest = float(np.sqrt(variance.max())), float(np.sqrt(variance.min()))
-        clip, least = self.design.clip, self.design.min_shift
-        stats: dict[int, np.ndarray] = {}
-        best[...] = 0.0
-        for d, mu in enumerate(self.shifts):
+        self,
+        walk: _Walk,
+        u: np.ndarray,
+        inverse: np.ndarray,
+        variance: np.ndarray,
+        best: np.ndarray,
+        ran: list[bool] | None = None,
+    ) -> list[bool]:
+        """Every running CUSUM (1)-(2) over the next rows of a span, from the walk's
+        state, and per sensor their maximum (written into ``best``; 0 where no design
+        runs). Advances ``walk`` to the last row; returns which designs ran (``ran``:
+        decided by the caller)."""
+        w1 = walk.carried_sum(u)
+        w2 = walk.carried_drift(inverse)
+        if ran is None:
+            largest = float(np.sqrt(variance.max()))
+            smallest = float(np.sqrt(variance.min()))
+            clip, least = self.design.clip, self.design.min_shift
             # run where some row's effective shift mu / s is in [min_shift, 2 c)
-            in_range = largest > mu / (2.0 * clip) and smallest <= mu / least
-            if not in_range and not self.state[d].any():
+            ran = [
+                (largest > mu / (2.0 * clip) and smallest <= mu / least)
+                or bool(walk.state[2 * d : 2 * d + 2].any())
+                for d, mu in enumerate(self.shifts)
+            ]
+        # fmin skips NaN checks: the same floats as minimum on these sums, since a NaN in
+        # the evidence stays in them (every statistic after it is NaN either way)
+        finite = bool(np.isfinite(walk.state).all())
+        accumulate = np.fmin.accumulate if finite else np.minimum.accumulate
+        best[...] = 0.0
+        cumulative, low = np.empty_like(w1), np.empty_like(w1)
+        drift = w2[:, None]
+        for d, mu in enumerate(self.shifts):
+            if not ran[d]:
+                walk.rest(2 * d)
+                walk.rest(2 * d + 1)
                 continue
             half = drift * (0.5 * mu * mu)
             for s, sign in enumerate((1.0, -1.0)):
-                cumulative = np.multiply(total, sign * mu)
+                k = 2 * d + s
+                np.multiply(w1, sign * mu, out=cumulative)
                 cumulative -= half
                 first = cumulative[0].copy()
-                np.minimum(first, -self.state[d, s], out=cumulative[0])  # seed the minimum
-                statistic = np.minimum.accumulate(cumulative, axis=0)
+                np.minimum(first, walk.minimum(k, sign * mu, 0.5 * mu * mu), out=cumulative[0])
+                accumulate(cumulative, axis=0, out=low)
                 cumulative[0] = first
-                np.subtract(cumulative, statistic, out=statistic)
-                np.maximum(best, statistic, out=best)
-                stats[2 * d + s] = statistic
-        return stats, best
+                minimum = low[-1].copy()
+                np.subtract(cumulative, low, out=low)
+                np.maximum(best, low, out=best)
+                walk.keep(k, low[-1], minimum)
+        walk.advance(w1[-1], float(w2[-1]), u.shape[0])
+        return ran
 
-    def _keep_state(self, stats: dict[int, np.ndarray], row: int) -> None:
-        flat = self.state.reshape(-1, self.n)
-        flat[:] = 0.0
-        for k, statistic in stats.items():
-            flat[k] = statistic[row]
+    def _column(self, origin: np.ndarray, chunks: list[_Chunk], k: int, sensor: int) -> np.ndarray:
+        """The statistic of hypothesis ``k`` on ``sensor`` over the span's rows so far
+        (``chunks``) from the span's ``origin`` state, as :meth:`_cusums` computed it."""
+        walk = _Walk.start(origin[:, :, sensor : sensor + 1])
+        d, s = divmod(k, 2)
+        mu = float(self.shifts[d])
+        factor, half = (1.0 if s == 0 else -1.0) * mu, 0.5 * mu * mu
+        pieces = []
+        for chunk in chunks:
+            w1 = walk.carried_sum(chunk.u[:, sensor : sensor + 1])
+            w2 = walk.carried_drift(chunk.inverse)
+            if chunk.ran[d]:
+                cumulative = np.multiply(w1, factor)
+                cumulative -= w2[:, None] * half
+                first = cumulative[0].copy()
+                np.minimum(first, walk.minimum(k, factor, half), out=cumulative[0])
+                low = np.minimum.accumulate(cumulative, axis=0)
+                cumulative[0] = first
+                statistic = cumulative - low
+                walk.keep(k, statistic[-1], low[-1])
+            else:
+                statistic = np.zeros_like(w1)
+                walk.rest(k)
+            walk.advance(w1[-1], float(w2[-1]), w1.shape[0])
+            pieces.append(statistic[:, 0])
+        return np.concatenate(pieces)
 
     def _watch(
         self, z: np.ndarray, x: np.ndarray | None, factors: np.ndarray, position: int,
@@ -437,52 +507,67 @@ class CusumBank:
     ) -> int:  # fmt: skip
         """No episode open: run the bank over the rows up to the first alarm; returns the
         number of rows handled."""
-        zr, variance, marks = self.ref.apply(z, x, factors, False, self.samples)
-        u, q, inverse = self._terms(zr, variance)
-        # the rows' scores are written in place; those after an alarm are written again
-        stats, best = self._cusums(u, inverse, variance, out.scores[position : position + len(zr)])
-        top = best.max(axis=1) if self.n else np.zeros(len(zr))
-        over = np.flatnonzero(top > self.threshold)
-        stop = len(zr) if over.size == 0 else int(over[0]) + 1
-        out.statistic[position : position + stop] = top[:stop]
-        self._keep_state(stats, stop - 1)
-        if over.size:
-            value = marks[0][1]
-            for start, snap in marks:
-                if start <= stop - 1:
-                    value = snap
-            self.ref.restore(value)
-            self._open(u, q, inverse, stats, stop - 1, position, out)
-        self._remember(u[:stop], q[:stop], inverse[:stop])
-        self.samples += stop
-        return stop
+        origin = self.state.copy()  # the span's starting state
+        walk = _Walk.start(origin)
+        feed = _Feed(self.ref, z, x, factors, self.samples, frozen=False)
+        chunks: list[_Chunk] = []
+        for lo, hi in self._chunks(z.shape[0]):
+            zr, variance = feed.rows(lo, hi)
+            u, q, inverse = self._terms(zr, variance)
+            # the rows' scores are written in place; those after an alarm are written again
+            best = out.scores[position + lo : position + hi]
+            before = walk.copy()
+            ran = self._cusums(walk, u, inverse, variance, best)
+            top = best.max(axis=1) if self.n else np.zeros(hi - lo)
+            over = np.flatnonzero(top > self.threshold)
+            if over.size == 0:
+                out.statistic[position + lo : position + hi] = top
+                chunks.append(_Chunk(u, q, inverse, ran))
+                continue
+            row = int(over[0])  # the alarm, on local row `row` of this sub-chunk
+            out.statistic[position + lo : position + lo + row + 1] = top[: row + 1]
+            # every hypothesis on the alarm row: the sub-chunk again up to it
+            walk = before
+            cut = slice(0, row + 1)
+            scratch = np.empty((row + 1, self.n))
+            self._cusums(walk, u[cut], inverse[cut], variance[cut], scratch, ran)
+            self.state[...] = walk.state.reshape(self.state.shape)
+            feed.rewind(lo + row)
+            chunks.append(_Chunk(u[cut], q[cut], inverse[cut], ran))
+            self._open(origin, chunks, lo + row, position + lo + row, out)
+            self._remember(chunks)
+            self.samples += lo + row + 1
+            return lo + row + 1
+        self.state[...] = walk.state.reshape(self.state.shape)
+        self._remember(chunks)
+        self.samples += z.shape[0]
+        return z.shape[0]
 
     def _open(
-        self,
-        u: np.ndarray,
-        q: np.ndarray,
-        inverse: np.ndarray,
-        stats: dict[int, np.ndarray],
-        row: int,
-        position: int,
-        out: Decisions,
+        self, origin: np.ndarray, chunks: list[_Chunk], row: int, row_out: int, out: Decisions
     ) -> None:
-        """An episode opens at local row ``row`` (output row ``position + row``)."""
-        keys = sorted(stats)
-        values = np.array([stats[k][row] for k in keys])  # (hypotheses, n)
-        index, sensor = np.unravel_index(int(np.argmax(values)), values.shape)
-        shift, sign_index = divmod(keys[int(index)], 2)
+        """An episode opens at the span's row ``row`` (output row ``row_out``; ``chunks``:
+        the span's rows up to it, from the ``origin`` state)."""
+        values = self.state.reshape(-1, self.n)  # (hypotheses, n) on the alarm row
+        k, sensor = np.unravel_index(int(np.argmax(values)), values.shape)
+        shift, sign_index = divmod(int(k), 2)
         sign = 1.0 if sign_index == 0 else -1.0
-        hist_u = np.concatenate([self.history_u, u[: row + 1]])
-        hist_q = np.concatenate([self.history_q, q[: row + 1]])
-        hist_w = np.concatenate([self.history_w, inverse[: row + 1]])
-        count = self._onset_rows(
-            stats[keys[int(index)]][: row + 1, sensor],
-            hist_u[:, sensor] * sign,
-            hist_w,
-            float(self.shifts[shift]),
-        )
-        sums = hist_q[-count:].sum(axis=0)
+        column = self._column(origin, chunks, int(k), int(sensor))
+        span_w = [c.inverse for c in chunks]
+        zeros = np.flatnonzero(column <= 0.0)
+        if zeros.size:  # the onset inside the span (Page's estimate: after its last 0)
+            count = int(column.size - 1 - zeros[-1])
+            hist_w = np.concatenate(span_w)
+        else:  # the hypothesis run again over the kept history too
+            history = self.history
+            hist_w = np.concatenate([history.last_inverse(), *span_w])
+            hist_u = np.concatenate(
+                [history.last_column(int(sensor)), *(c.u[:, sensor] for c in chunks)]
+            )
+            count = self._onset_rows(column, hist_u * sign, hist_w, float(self.shifts[shift]))
+        span_rows = column.size
+        tail = self.history.last_q(max(0, count - span_rows))
+        sums = np.concatenate([tail, *(c.q for c in chunks)])[-count:].sum(axis=0)
         weight = float(hist_w[-count:].sum())
         # isolation by the unclipped evidence since the onset (the step's GLR): the clip
         # saturates a large fault's evidence on every sensor correlated with it, so the
@@ -499,7 +584,6 @@ class CusumBank:
             started=self.samples + row,
         )
         self.episodes += 1
-        row_out = position + row
         out.alarm[row_out] = True
         out.isolated[row_out] = chosen if self.isolable[chosen] else NOT_ISOLABLE
         if self.isolable[chosen] and weight > 0 and self.sensitivity[chosen] > 0:
@@ -535,49 +619,68 @@ class CusumBank:
             z = z[: max(1, episode.started + self.hold - self.samples)]
             factors = factors[: z.shape[0]]
             x = None if x is None else x[: z.shape[0]]
-        zr, variance, _ = self.ref.apply(z, x, factors, frozen, self.samples)
-        u, q, inverse = self._terms(zr, variance)
-        stats, best = self._cusums(u, inverse, variance, out.scores[position : position + len(zr)])
+        walk = _Walk.start(self.state)
+        # not frozen, the references learn from every row of the span, also those after
+        # the episode's end, which the next span learns from again (as the bank has always
+        # done: the same decisions)
+        feed = _Feed(self.ref, z, x, factors, self.samples, frozen=frozen, whole=not frozen)
+        chunks: list[_Chunk] = []
         # evidence that the fault has ended: the log-likelihood ratio of "no fault" against
-        # "the fault as estimated" (its size since the onset), on its sensor and sign
+        # "the fault as estimated" (its size since the onset), on its sensor and sign; its
+        # cumulative sum and running minimum (from -recovery) carried across sub-chunks,
+        # as are the evidence's sums since the span's start
         mu = episode.shift
-        column = episode.sign * u[:, episode.sensor]
-        cumulative = np.cumsum(-(mu * column - 0.5 * mu * mu * inverse))
-        recovery = cumulative - np.minimum(np.minimum.accumulate(cumulative), -episode.recovery)
-        ended = np.flatnonzero(recovery > self.threshold)
-        stop = len(zr) if ended.size == 0 else int(ended[0]) + 1
-        out.statistic[position : position + stop] = best[:stop].max(axis=1)
-        alarmed = stop if ended.size == 0 else stop - 1  # the row that ends it is quiet
-        if alarmed:
-            sums = np.cumsum(q[:alarmed], axis=0)
-            sums += episode.sums
-            weights = episode.weight + np.cumsum(inverse[:alarmed])
-            sensors = np.argmax(np.abs(sums), axis=1)  # the step's GLR, as at the opening
-            isolable = self.isolable[sensors]
-            rows = slice(position, position + alarmed)
-            out.alarm[rows] = True
-            out.isolated[rows] = np.where(isolable, sensors, NOT_ISOLABLE)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                picked = sums[np.arange(alarmed), sensors] / weights
-                amplitude = picked / self.sensitivity[sensors]
-            out.amplitude[rows] = np.where(isolable, amplitude, np.nan)
-            episode.sums = sums[-1]
-            episode.weight = float(weights[-1])
-        if ended.size:
-            self.state[:] = 0.0
-            self.episode = None
-        else:
-            self._keep_state(stats, stop - 1)
-            episode.recovery = float(recovery[stop - 1])
-        self._remember(u[:stop], q[:stop], inverse[:stop])
-        self.samples += stop
-        return stop
+        recovered = _Running(np.zeros(1), -episode.recovery)
+        evidence = _Running(np.zeros(self.n), 0.0)
+        weight = _Running(np.zeros(1), 0.0)
+        sums_before, weight_before = episode.sums, episode.weight
+        last_sums: np.ndarray | None = None
+        last_weight = 0.0
+        for lo, hi in self._chunks(z.shape[0]):
+            zr, variance = feed.rows(lo, hi)
+            u, q, inverse = self._terms(zr, variance)
+            best = out.scores[position + lo : position + hi]
+            ran = self._cusums(walk, u, inverse, variance, best)
+            column = episode.sign * u[:, episode.sensor]
+            increments = -(mu * column - 0.5 * mu * mu * inverse)
+            cumulative = recovered.sum(increments[:, None])[:, 0]
+            recovery = cumulative - recovered.minimum(cumulative)
+            ended = np.flatnonzero(recovery > self.threshold)
+            stop = hi - lo if ended.size == 0 else int(ended[0]) + 1
+            out.statistic[position + lo : position + lo + stop] = best[:stop].max(axis=1)
+            alarmed = stop if ended.size == 0 else stop - 1  # the row that ends it is quiet
+            if alarmed:
+                sums = evidence.sum(q[:alarmed])
+                sums += sums_before
+                weights = weight_before + weight.sum(inverse[:alarmed, None])[:, 0]
+                sensors = np.argmax(np.abs(sums), axis=1)  # the step's GLR, as at the opening
+                isolable = self.isolable[sensors]
+                span = slice(position + lo, position + lo + alarmed)
+                out.alarm[span] = True
+                out.isolated[span] = np.where(isolable, sensors, NOT_ISOLABLE)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    picked = sums[np.arange(alarmed), sensors] / weights
+                    amplitude = picked / self.sensitivity[sensors]
+                out.amplitude[span] = np.where(isolable, amplitude, np.nan)
+                last_sums, last_weight = sums[-1], float(weights[-1])
+            chunks.append(_Chunk(u[:stop], q[:stop], inverse[:stop], ran))
+            if ended.size:
+                if last_sums is not None:
+                    episode.sums, episode.weight = last_sums, last_weight
+                self.state[:] = 0.0
+                self.episode = None
+                self._remember(chunks)
+                self.samples += lo + stop
+                return lo + stop
+            episode.recovery = float(recovery[-1])
+        if last_sums is not None:
+            episode.sums, episode.weight = last_sums, last_weight
+        self.state[...] = walk.state.reshape(self.state.shape)
+        self._remember(chunks)
+        self.samples += z.shape[0]
+        return z.shape[0]
 
-    def _remember(self, u: np.ndarray, q: np.ndarray, inverse: np.ndarray) -> None:
+    def _remember(self, chunks: list[_Chunk]) -> None:
         """Keep the last ``history`` rows (for onsets)."""
-        if self.history_length <= 0 or u.shape[0] == 0:
-            return
-        keep = self.history_length
-        self.history_u = np.concatenate([self.history_u, u])[-keep:]
-        self.history_q = np.concatenate([self.history_q, q])[-keep:]
-        self.history_w = np.concatenate([self.history_w, inverse])[-keep:]
+        for chunk in chunks:
+            self.history.add(chunk.u, chunk.q, chunk.inverse)
