@@ -31,6 +31,13 @@ largest s; with ``reference=others``, the failing IMU with the largest s. The re
 is the isolated IMU's axis with the largest deviation from the mean of the other IMUs (in
 its own frame), which is also the amplitude. ``bias=true`` removes each IMU's offset from
 the array mean on the calibration window (the firmware's sensors are calibrated). Causal.
+
+Under a false-alarm budget (``false_alarms`` > 0) the rule and the hold are unchanged and
+every limit of a type is multiplied by one factor, chosen at fit time so that the IMUs'
+calibrated white noise raises at most half the budget
+(:func:`~imufdi_cli.detectors.firmware_budget.ap_limit_scale`: the exact run model of
+independent differences); ``calibration_warnings`` says when the IMUs disagreed beyond that
+noise on the processed log.
 """
 
 from __future__ import annotations
@@ -42,7 +49,15 @@ from typing import Any, ClassVar
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import DetectionBlock, Param
+from imufdi_cli.detectors.base import FALSE_ALARMS, DetectionBlock, Param
+from imufdi_cli.detectors.firmware_budget import (
+    BUDGET_SHARE,
+    Disagreement,
+    ap_episode_rate,
+    ap_limit_scale,
+    difference_noise,
+    outlier_fraction,
+)
 from imufdi_cli.detectors.vectors import (
     CausalImuCheck,
     TriadLayout,
@@ -50,7 +65,7 @@ from imufdi_cli.detectors.vectors import (
     imu_isolation,
     parse_vector_types,
 )
-from imufdi_cli.errors import DetectorConfigError
+from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 
 REFERENCES: tuple[str, ...] = ("primary", "others")
@@ -107,6 +122,9 @@ class _TypeState:
     primary: int  # compared-IMU index of the primary
     history: np.ndarray  # (<= h - 1, m) normalised deviations of the last samples
     seen: int = 0
+    scale: float = 1.0  # factor on the firmware limits (a false-alarm budget)
+    budget: dict[str, Any] | None = None  # what set it
+    disagreement: Disagreement | None = None  # the budget's model, checked on the data
 
 
 class ApConsistencyDetector(CausalImuCheck):
@@ -151,6 +169,7 @@ class ApConsistencyDetector(CausalImuCheck):
         ),
         "primary": Param("int", 0, "array index of the primary IMU", low=0),
         "bias": Param("bool", True, "remove per-IMU offsets found in the calibration window"),
+        "false_alarms": FALSE_ALARMS,
         "types": Param("str", "gyro,accel", "sensor types tested: gyro, accel or both"),
     }
 
@@ -164,8 +183,10 @@ class ApConsistencyDetector(CausalImuCheck):
         reference: str = "primary",
         primary: int = 0,
         bias: bool = True,
+        false_alarms: float = 0.0,
         types: str = "gyro,accel",
     ) -> None:
+        self.false_alarms = float(false_alarms)
         self.accel_threshold = float(accel_threshold)
         self.gyro_threshold = float(gyro_threshold)
         self.hold = float(hold)
@@ -212,7 +233,7 @@ class ApConsistencyDetector(CausalImuCheck):
                 if self.remove_bias
                 else np.zeros((m, 3))
             )
-            self._states[sensor_type] = _TypeState(
+            state = _TypeState(
                 layout=layout,
                 limits=limits,
                 weight=weight,
@@ -220,6 +241,71 @@ class ApConsistencyDetector(CausalImuCheck):
                 primary=int(where[0]),
                 history=np.zeros((0, m)),
             )
+            if self.false_alarms > 0:
+                self._fit_budget(state, calibration, array.rate_hz)
+            self._states[sensor_type] = state
+
+    def _failing(self, state: _TypeState) -> np.ndarray:
+        """The compared IMUs whose difference can fail (all but the primary, which is its
+        own reference, with ``reference=primary``)."""
+        m = state.layout.n_imus
+        if self.reference == "primary":
+            return np.delete(np.arange(m), state.primary)
+        return np.arange(m)
+
+    def _difference(self, state: _TypeState, vectors: np.ndarray) -> np.ndarray:
+        """Each IMU's difference from its reference (N, m, 3), body frame."""
+        if self.reference == "primary":
+            return vectors - vectors[:, state.primary : state.primary + 1, :]
+        total = vectors.sum(axis=1, keepdims=True)
+        return vectors - (total - vectors) / (vectors.shape[1] - 1)
+
+    def _fit_budget(self, state: _TypeState, calibration: ImuBlock, rate_hz: float) -> None:
+        """Scale every limit of the type so that white noise of the calibrated variances
+        raises the budget's share of false episodes (:func:`ap_limit_scale`)."""
+        per_sample = BUDGET_SHARE * self.false_alarms / rate_hz
+        if not 0.0 < per_sample < 0.5:
+            raise DetectorConfigError(
+                f"{self.name}: false-alarm budget {self.false_alarms * 3600:g}/h is not"
+                f" below half the sample rate ({rate_hz:g} Hz); give a rate such as 1/h"
+            )
+        vectors = state.layout.body(calibration, self.name) - state.offsets[None, :, :]
+        failing = self._failing(state)
+        differences = self._difference(state, vectors)[:, failing, :]
+        variances, dof = difference_noise(differences)
+        if self.remove_bias:
+            # the calibrated offsets' error stays in every difference: over calibrations it
+            # adds 1/N of the difference's variance (two IMUs' means of N samples)
+            variances = variances * (1.0 + 1.0 / vectors.shape[0])
+        if not np.all(variances > 0):
+            raise CalibrationError(
+                f"{self.name}: a {state.layout.sensor_type} difference does not change in the"
+                " calibration window (a stuck or constant output); choose a fault-free window"
+                " with --calibrate START:END"
+            )
+        limits = state.limits[failing]
+        # outliers: a sample far outside the noise fails whatever the limit (one hold of
+        # them is an episode when the hold is short)
+        centred = differences - differences.mean(axis=0, keepdims=True)
+        contamination = outlier_fraction(centred, variances)
+        scale = ap_limit_scale(
+            variances, state.weight, limits, self.hold_samples, per_sample, dof, contamination
+        )
+        state.scale = scale
+        state.limits = state.limits * scale
+        state.disagreement = Disagreement(variances.sum(axis=1), round(rate_hz))
+        state.budget = {
+            "false_alarms_per_hour": self.false_alarms * 3600.0,
+            "limit_scale": scale,
+            "outlier_share": contamination,
+            "model_episodes_per_hour": ap_episode_rate(
+                scale, variances, state.weight, limits, self.hold_samples, dof, contamination
+            )
+            * rate_hz
+            * 3600.0,
+            "difference_sigma": np.sqrt(variances).tolist(),
+            "calibration_dof": dof,
+        }
 
     def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
         """One row per input sample for every tested sensor type."""
@@ -235,10 +321,9 @@ class ApConsistencyDetector(CausalImuCheck):
             return DetectionBlock.empty(0, layout.n_sensors)
         total = vectors.sum(axis=1, keepdims=True)
         versus_others = vectors - (total - vectors) / (m - 1)  # x_i - mean_{j != i} x_j
-        if self.reference == "primary":
-            difference = vectors - vectors[:, state.primary : state.primary + 1, :]
-        else:
-            difference = versus_others
+        difference = self._difference(state, vectors)
+        if state.disagreement is not None:
+            state.disagreement.add(difference[:, self._failing(state), :])
         normalised = np.linalg.norm(difference * state.weight, axis=2) / state.limits  # (N, m)
         held = trailing_minimum(state.history, normalised, self.hold_samples)
         # before h samples have been seen the window is not full: no decision yet
@@ -280,6 +365,7 @@ class ApConsistencyDetector(CausalImuCheck):
                 "reference": self.reference,
                 "primary": self.primary,
                 "bias": self.remove_bias,
+                "false_alarms_per_hour": self.false_alarms * 3600.0,
                 "types": ",".join(self.types),
             },
             "hold_samples": self.hold_samples,
@@ -290,10 +376,29 @@ class ApConsistencyDetector(CausalImuCheck):
                     "isolable": bool(s.layout.n_imus >= 3),
                     "limits": s.limits.tolist(),
                     "offsets": s.offsets.tolist(),
+                    **({} if s.budget is None else {"budget": self._budget_metadata(s)}),
                 }
                 for t, s in self._states.items()
             },
         }
+
+    @staticmethod
+    def _budget_metadata(state: _TypeState) -> dict[str, Any]:
+        assert state.budget is not None and state.disagreement is not None
+        return {**state.budget, **state.disagreement.metadata()}
+
+    def calibration_warnings(self) -> list[str]:
+        """Under a budget, one warning per sensor type whose IMUs disagreed, over part of
+        the processed log, clearly more than the calibrated white noise the limits were
+        scaled for."""
+        messages = []
+        for sensor_type, state in self._states.items():
+            if state.disagreement is None:
+                continue
+            note = state.disagreement.warning(self.name, sensor_type, "limits")
+            if note is not None:
+                messages.append(note)
+        return messages
 
 
 __all__ = ["ApConsistencyDetector", "trailing_minimum"]

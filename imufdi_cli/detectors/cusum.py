@@ -21,6 +21,12 @@ estimated, so the textbook i.i.d. tail ``P(S > h) ~ C exp(-h)`` does not apply e
 transform of white Gaussian noise, with each simulated channel's scale drawn with the
 calibration's own estimation error), and extrapolates the simulated exceedance probability,
 which decays exponentially in h, to the required per-sample level.
+
+This is the per-sample test's CUSUM (a level per sample, correlated local-mean terms: the
+health detector's variance checks and cnn-map's input test at ``alpha``). Under a
+false-alarm budget every variance CUSUM (noise-glr, cnn-map's input test) is the bank of
+:mod:`imufdi_cli.maths.variance` instead, on independent Helmert contrasts, with thresholds
+from the Brook-Evans run lengths of its exact increments rather than a simulation.
 """
 
 from __future__ import annotations

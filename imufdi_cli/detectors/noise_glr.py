@@ -84,11 +84,26 @@ Per sensor type with H (n, 3) and sensor j on IMU k(j) at position r_k (body fra
    the estimated noise-standard-deviation ratio sigma1/sigma0 (dimensionless, the one
    exception to SI amplitudes; relative to the calibration window's tau, not
    kappa_eff tau).
+8. Under a false-alarm budget (``false_alarms`` > 0, ``imufdi detect --false-alarms``) steps
+   4-5 are replaced by a sequential test (:class:`NoiseBudget`): each residual is bounded at
+   4 sigma from its running level (:class:`~imufdi_cli.maths.contrasts.Winsorizer`: an
+   outlier or a bias step adds about one term), cut into Helmert contrasts in blocks of 4
+   samples (independent N(0, tau_j) terms, blind to the residual's mean; 3/4 of the
+   samples' variance information, against 2/3 for differences), standardized by tau_j
+   (Huber's proposal 2 on the calibration's contrasts, times kappa_eff_j with a healthy
+   spread) and by the jitter model's ``sqrt(1 + A_t)`` in motion when the array has one
+   (:mod:`imufdi_cli.maths.jitter`), and fed to a bank of variance-growth CUSUMs
+   (:class:`~imufdi_cli.maths.variance.VarianceCusumBank`, design ratios 3 and 9, clip 4)
+   whose threshold holds the budget's half by the Brook-Evans run lengths of the exact
+   clipped chi-square increments and the union bound, with the error of the tracked
+   variance (a running mean from the calibration on) as it learns. The per-sample options
+   (window, release, release_window, clip, level_confidence) are refused with a budget.
+   ``amplitude`` is the isolated residual's standard deviation ratio since the episode's
+   onset.
 """
 
 from __future__ import annotations
 
-import functools
 from dataclasses import replace
 from typing import Any, ClassVar
 
@@ -97,6 +112,7 @@ import numpy as np
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
     ALPHA,
+    FALSE_ALARMS,
     NO_ISOLATION,
     TYPES,
     DetectionBlock,
@@ -106,10 +122,18 @@ from imufdi_cli.detectors.base import (
     parse_sensor_types,
 )
 from imufdi_cli.detectors.moving import MovingWindow
-from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
+from imufdi_cli.detectors.noise_budget import NoiseBudget, budget_warning
+from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
-from imufdi_cli.maths.quantiles import chi2, norm
+from imufdi_cli.maths.jitter import MotionInflation, array_inflation
+from imufdi_cli.maths.quantiles import chi2
 from imufdi_cli.maths.quantiles import f as f_distribution
+from imufdi_cli.maths.robust import (
+    clipped_square_moments,
+    equivalent_dof,
+    robust_scale,
+    scale_estimator_dof,
+)
 
 #: Sensors whose leverage P_jj exceeds this are not redundant (their leave-one-out
 #: residual is undefined or dominated by the estimate) and are not tested.
@@ -180,100 +204,6 @@ WARN_CALIBRATION_FACTOR = 1.25
 #: The factor a calibration window long enough for this detector gives (named in the warning).
 GOOD_CALIBRATION_FACTOR = 1.1
 
-#: Lag-1 correlation of the differences of a white sequence.
-DIFFERENCE_CORRELATION = -0.5
-
-
-def _truncated_square_mean(mean: np.ndarray, std: float, clip: float) -> np.ndarray:
-    """``E[min(Y^2, c^2)]`` for Y ~ N(mean, std^2) (elementwise in ``mean``)."""
-    lo, hi = (-clip - mean) / std, (clip - mean) / std
-    inside = norm.cdf(hi) - norm.cdf(lo)
-    pdf_lo, pdf_hi = norm.pdf(lo), norm.pdf(hi)
-    # E[(m + s Z)^2 ; lo < Z < hi]
-    square = (
-        mean**2 * inside
-        + 2.0 * mean * std * (pdf_lo - pdf_hi)
-        + std**2 * (inside + lo * pdf_lo - hi * pdf_hi)
-    )
-    return square + clip**2 * (1.0 - inside)
-
-
-@functools.lru_cache(maxsize=64)
-def clipped_square_moments(clip: float, rho: float = DIFFERENCE_CORRELATION) -> tuple[float, ...]:
-    """Null moments of ``q = min(z^2, c^2)`` for standard normal z.
-
-    A pure function of ``(clip, rho)``, memoised per process (the same tuple of floats):
-    each fit asks for it three times and :func:`samples_for_factor` once per bisection
-    step, and the lag-1 integral over 24 001 grid points costs about 8 ms of CPU.
-
-    Parameters
-    ----------
-    clip : float
-        c, in standard deviations; ``inf`` for plain squares.
-    rho : float
-        Correlation of consecutive z (differences of white noise: -1/2).
-
-    Returns
-    -------
-    mean, variance, lag1_covariance : float
-        ``E q``, ``Var q`` (truncated normal moments, closed form) and
-        ``Cov(q_t, q_{t+1})`` (one integral over z_t of ``E[q_{t+1} | z_t]``, with
-        ``z_{t+1} | z_t ~ N(rho z_t, 1 - rho^2)``; for c = inf it is ``2 rho^2``).
-    """
-    if not np.isfinite(clip):
-        return 1.0, 2.0, 2.0 * rho**2
-    tail = 2.0 * norm.sf(clip)
-    inside = 1.0 - tail
-    pdf = norm.pdf(clip)
-    second = inside - 2.0 * clip * pdf  # E[z^2 ; |z| < c]
-    fourth = 3.0 * inside - 2.0 * pdf * (clip**3 + 3.0 * clip)  # E[z^4 ; |z| < c]
-    mean = second + clip**2 * tail
-    variance = fourth + clip**4 * tail - mean**2
-    grid = np.linspace(-12.0, 12.0, 24001)
-    weight = norm.pdf(grid) * np.minimum(grid**2, clip**2)
-    conditional = _truncated_square_mean(rho * grid, float(np.sqrt(1.0 - rho**2)), clip)
-    joint = float(np.sum(weight * conditional) * (grid[1] - grid[0]))
-    return float(mean), float(variance), joint - float(mean) ** 2
-
-
-def equivalent_dof(counts: np.ndarray, moments: tuple[float, ...]) -> np.ndarray:
-    """Satterthwaite degrees of freedom of a sum of k consecutive q (lag-1 dependent).
-
-    ``nu_k = 2 (k mu)^2 / (k v + 2 (k - 1) c1)``, so that ``sum(q)/(k mu)`` has the mean and
-    variance of ``chi2(nu_k)/nu_k``.
-    """
-    mean, variance, lag1 = moments
-    k = np.asarray(counts, dtype=np.float64)
-    return 2.0 * (k * mean) ** 2 / (k * variance + 2.0 * np.maximum(k - 1.0, 0.0) * lag1)
-
-
-def scale_estimator_dof(count: int, clip: float) -> float:
-    """Equivalent degrees of freedom of the calibrated scale tau (``robust_scale``).
-
-    Parameters
-    ----------
-    count : int
-        N, the number of calibration differences (lag-1 correlated, rho = -1/2).
-    clip : float
-        c, in standard deviations (``inf``: the plain mean square).
-
-    Returns
-    -------
-    float
-        ``nu_cal = 2 / Var(ln tau_hat)``, so that ``tau_hat / tau ~ chi2(nu_cal)/nu_cal``
-        to two moments. Linearizing the estimating equation ``mean(min(d^2/tau, c^2)) = mu``
-        gives ``Var(ln tau_hat) = Var(mean q) / s^2`` with ``s = E[z^2 ; |z| < c]`` (the
-        derivative of the clipped square; Huber, *Robust Statistics*, 1981, §5.3) and
-        ``Var(mean q) = (N v + 2 (N - 1) c1) / N^2`` (lag-1 dependent q). Hence
-        ``nu_cal = nu_N (s / mu)^2`` with ``nu_N`` of :func:`equivalent_dof`: clipping at
-        c = 3 costs 5 % of the calibration's degrees of freedom (``s/mu = 0.976``).
-    """
-    moments = clipped_square_moments(clip)
-    mean = moments[0]
-    inner = mean - clip**2 * 2.0 * norm.sf(clip) if np.isfinite(clip) else 1.0
-    dof = float(equivalent_dof(np.array([max(count, 1)]), moments)[0])
-    return dof * (inner / mean) ** 2
-
 
 def calibration_factor(calibration_dof: float, confidence: float) -> float:
     """Factor on a variance threshold that covers the calibrated scale's error.
@@ -287,34 +217,6 @@ def calibration_factor(calibration_dof: float, confidence: float) -> float:
     *Scand. J. Statist.* 40(4), 2013). ``confidence = 0.5`` is about 1 + 2/(3 nu).
     """
     return float(calibration_dof / chi2.ppf(1.0 - confidence, calibration_dof))
-
-
-def robust_scale(differences: np.ndarray, clip: float, mean: float) -> np.ndarray:
-    """Per-column tau with ``mean(min(d^2/tau, c^2)) = E q`` (Huber's proposal 2).
-
-    Parameters
-    ----------
-    differences : ndarray, shape (N, n)
-    clip, mean : float
-        c and the null mean of q for that c.
-
-    Returns
-    -------
-    tau : ndarray, shape (n,)
-        Variance of d (for Gaussian d, an estimate of Var d).
-    """
-    squares = differences**2
-    tau = np.mean(squares, axis=0)
-    if not np.isfinite(clip):
-        return tau
-    tau = np.maximum(np.median(squares, axis=0) / 0.4549364231195724, 1e-300)
-    for _ in range(200):  # fixed point, monotone convergence
-        updated = tau * np.mean(np.minimum(squares / tau, clip**2), axis=0) / mean
-        done = np.all(np.abs(updated - tau) <= 1e-12 * np.abs(tau))
-        tau = np.maximum(updated, 1e-300)
-        if done:
-            break
-    return tau
 
 
 def samples_for_factor(factor: float, clip: float, confidence: float) -> int:
@@ -388,6 +290,8 @@ class _TypeModel:
         self.bias = bias
         self.scale = scale  # tau_j = Var(d_j), (n,), times kappa_j when given
         self.spread: np.ndarray | None = None  # kappa_j of the scale, (n,), or None
+        self.budget: NoiseBudget | None = None  # sequential decisions under a budget
+        self.inflation: MotionInflation | None = None  # the jitter model, under a budget
         self.n_train = n_train
         self.clip = clip
         self.moments = clipped_square_moments(clip)
@@ -514,6 +418,13 @@ class NoiseGlrDetector(DetectorBase):
             "test growth beyond the array's healthy noise-variance spread (ArrayConfig"
             " <type>_noise_spread from calibrate) when it carries one",
         ),
+        "false_alarms": FALSE_ALARMS,
+        "jitter": Param(
+            "bool",
+            True,
+            "under a false-alarm budget, widen the test in motion by the array config's"
+            " sampling-time jitter (if any)",
+        ),
         "types": TYPES,
     }
 
@@ -527,8 +438,27 @@ class NoiseGlrDetector(DetectorBase):
         lever_arm: bool = True,
         level_confidence: float = DEFAULT_LEVEL_CONFIDENCE,
         noise_spread: bool = True,
+        false_alarms: float = 0.0,
+        jitter: bool = True,
         types: str = "gyro,accel",
     ) -> None:
+        self.false_alarms = float(false_alarms)
+        self.jitter = bool(jitter)
+        if self.false_alarms > 0:
+            fixed = {
+                "window": window != 0.4,
+                "release": release != 0.01,
+                "release_window": release_window != 0.1,
+                "clip": clip != 3.0,
+                "level_confidence": level_confidence != DEFAULT_LEVEL_CONFIDENCE,
+            }
+            given = [name for name, changed in fixed.items() if changed]
+            if given:
+                raise DetectorConfigError(
+                    f"noise-glr.{given[0]} applies to the per-sample test; with a false-alarm"
+                    " budget noise-glr decides sequentially (docs/algorithms/noise-glr.md):"
+                    " leave it out"
+                )
         self.alpha = float(alpha)
         self.noise_spread = bool(noise_spread)
         self.level_confidence = float(level_confidence)
@@ -644,6 +574,14 @@ class NoiseGlrDetector(DetectorBase):
                 spread = np.where(testable, spread, 1.0)
                 model.spread = spread
                 model.scale = model.scale * spread
+            if self.false_alarms > 0:
+                model.budget = NoiseBudget(
+                    operator, testable, array.rate_hz, self.false_alarms, spread=model.spread
+                )
+                model.budget.fit(residuals)
+                if self.jitter:
+                    design = self._model_matrix(sensor_type, array, lever_arm)
+                    model.inflation = array_inflation(array, sensor_type, design)
             self.models[sensor_type] = model
         if not self.models:
             raise ArrayTooSmallError(
@@ -663,11 +601,24 @@ class NoiseGlrDetector(DetectorBase):
             if block.get(sensor_type) is None:
                 out[sensor_type] = DetectionBlock.empty(len(block), n_sensors)
                 continue
-            out[sensor_type] = self._process_type(model, self._residuals(sensor_type, model, block))
+            out[sensor_type] = self._decide(sensor_type, model, block)
         return out
+
+    def _decide(self, sensor_type: str, model: _TypeModel, block: ImuBlock) -> DetectionBlock:
+        """One sensor type's rows of a block (per sample, or under the budget)."""
+        residuals = self._residuals(sensor_type, model, block)
+        if model.budget is None or model.inflation is None:
+            return self._process_type(model, residuals)
+        assert self.array is not None
+        triads = block.get(sensor_type)
+        assert triads is not None
+        values = self.array.select(triads, sensor_type)
+        return model.budget.process(residuals, model.inflation.factors(values, block.t_ns))
 
     @staticmethod
     def _process_type(model: _TypeModel, residuals: np.ndarray) -> DetectionBlock:
+        if model.budget is not None:
+            return model.budget.process(residuals)
         n_samples = residuals.shape[0]
         z = model.differences(residuals)  # (N, n)
         mean_q = model.moments[0]
@@ -731,6 +682,11 @@ class NoiseGlrDetector(DetectorBase):
             return []
         messages = []
         for sensor_type, model in self.models.items():
+            if model.budget is not None:
+                note = budget_warning(self.name, sensor_type, model.budget)
+                if note is not None:
+                    messages.append(note)
+                continue
             if model.calibration_factor <= WARN_CALIBRATION_FACTOR:
                 continue
             needed = samples_for_factor(
@@ -772,6 +728,12 @@ class NoiseGlrDetector(DetectorBase):
                 "threshold": float(model.threshold[-1]),
                 **({"noise_spread": model.spread.tolist()} if model.spread is not None else {}),
             }
+            if model.budget is not None:
+                types[sensor_type]["threshold"] = model.budget.threshold
+                types[sensor_type]["budget"] = {
+                    **model.budget.metadata(),
+                    "jitter_s": 0.0 if model.inflation is None else model.inflation.jitter_s,
+                }
         return {
             "detector": self.name,
             "params": {
@@ -784,11 +746,16 @@ class NoiseGlrDetector(DetectorBase):
                 "lever_arm": self.lever_arm,
                 "level_confidence": self.level_confidence,
                 "noise_spread": self.noise_spread,
+                "false_alarms_per_hour": self.false_alarms * 3600.0,
+                "jitter": self.jitter,
                 "types": ",".join(self.sensor_types),
             },
             "statistic": (
-                "max_j nu/2 (u_j - 1 - ln u_j), u_j = mean(min(z^2, c^2))/E0, z = standardized"
-                " residual differences"
+                "largest variance-growth CUSUM of the residuals' Helmert contrasts (a"
+                " false-alarm budget)"
+                if self.false_alarms > 0
+                else "max_j nu/2 (u_j - 1 - ln u_j), u_j = mean(min(z^2, c^2))/E0, z ="
+                " standardized residual differences"
             ),
             "amplitude": "noise standard-deviation ratio sqrt(u) of the isolated sensor",
             "types": types,

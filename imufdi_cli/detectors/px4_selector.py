@@ -32,6 +32,13 @@ offset from the array mean on the calibration window, standing in for that calib
 The smoothing constant c acts per sample, as in the firmware per update: at the log's rate
 its time constant is ``dt / c`` (0.2 s at 100 Hz). Causal: one row per input sample, no
 look-ahead. Lever-arm effects on accelerometers are not compensated (nor are they in PX4).
+
+Under a false-alarm budget (``false_alarms`` > 0) the rule is unchanged and both
+thresholds of a type are multiplied by one factor, chosen at fit time so that the IMUs'
+calibrated white noise raises at most half the budget
+(:func:`~imufdi_cli.detectors.firmware_budget.px4_scale`: the Lundberg exponent of the
+smoothed norm's Markov kernel, the calibrated offsets' error bounded);
+``calibration_warnings`` says when the IMUs disagreed beyond that noise on the processed log.
 """
 
 from __future__ import annotations
@@ -43,7 +50,15 @@ from typing import Any, ClassVar
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import DetectionBlock, Param
+from imufdi_cli.detectors.base import FALSE_ALARMS, DetectionBlock, Param
+from imufdi_cli.detectors.firmware_budget import (
+    BUDGET_SHARE,
+    Disagreement,
+    accumulate_excess,
+    difference_noise,
+    imu_noise,
+    px4_scale,
+)
 from imufdi_cli.detectors.vectors import (
     CausalImuCheck,
     TriadLayout,
@@ -52,31 +67,8 @@ from imufdi_cli.detectors.vectors import (
     imu_isolation,
     parse_vector_types,
 )
-from imufdi_cli.errors import DetectorConfigError
+from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
-
-
-def accumulate_excess(excess: np.ndarray, start: np.ndarray) -> np.ndarray:
-    """``E_t = max(0, E_{t-1} + x_t)`` for every column, vectorised (Lindley's recursion).
-
-    With ``C_t = x_1 + ... + x_t``: ``E_t = C_t - min(-E_0, min_{s<=t} C_s)``.
-
-    Parameters
-    ----------
-    excess : ndarray, shape (N, m)
-        Increments x_t.
-    start : ndarray, shape (m,)
-        E_0 (>= 0).
-
-    Returns
-    -------
-    ndarray, shape (N, m)
-    """
-    if excess.shape[0] == 0:
-        return np.zeros_like(excess)
-    cumulative = np.cumsum(excess, axis=0)
-    floor = np.minimum(np.minimum.accumulate(cumulative, axis=0), -start[None, :])
-    return np.maximum(cumulative - floor, 0.0)
 
 
 def smooth_deviation(deviation: np.ndarray, start: np.ndarray, gain: float) -> np.ndarray:
@@ -115,6 +107,9 @@ class _TypeState:
     accumulated: np.ndarray  # (m,) E_i
     last_ns: int | None = None
     first_alarm_sample: int | None = None
+    scale: float = 1.0  # factor on the firmware thresholds (a false-alarm budget)
+    budget: dict[str, Any] | None = None  # what set it
+    disagreement: Disagreement | None = None  # the budget's model, checked on the data
 
 
 class Px4SelectorDetector(CausalImuCheck):
@@ -166,6 +161,10 @@ class Px4SelectorDetector(CausalImuCheck):
             low_open=True,
         ),
         "bias": Param("bool", True, "remove per-IMU offsets found in the calibration window"),
+        "false_alarms": FALSE_ALARMS,
+        "seed": Param(
+            "int", 0, "seed of the simulated null that scales the thresholds to a budget", low=0
+        ),
         "types": Param("str", "gyro,accel", "sensor types tested: gyro, accel or both"),
     }
 
@@ -178,8 +177,12 @@ class Px4SelectorDetector(CausalImuCheck):
         smoothing: float = 0.05,
         max_step: float = 0.02,
         bias: bool = True,
+        false_alarms: float = 0.0,
+        seed: int = 0,
         types: str = "gyro,accel",
     ) -> None:
+        self.false_alarms = float(false_alarms)
+        self.seed = int(seed)
         self.rate_threshold = float(rate_threshold)
         self.angle_threshold = float(angle_threshold)
         self.accel_threshold = float(accel_threshold)
@@ -211,7 +214,7 @@ class Px4SelectorDetector(CausalImuCheck):
             else:
                 offsets = np.zeros((layout.n_imus, 3))
             gyro = sensor_type == "gyro"
-            self._states[sensor_type] = _TypeState(
+            state = _TypeState(
                 layout=layout,
                 rate_threshold=self.rate_threshold if gyro else self.accel_threshold,
                 accumulated_threshold=self.angle_threshold if gyro else self.velocity_threshold,
@@ -219,6 +222,50 @@ class Px4SelectorDetector(CausalImuCheck):
                 smoothed=np.zeros((layout.n_imus, 3)),
                 accumulated=np.zeros(layout.n_imus),
             )
+            if self.false_alarms > 0:
+                self._fit_budget(state, calibration, array.rate_hz)
+            self._states[sensor_type] = state
+
+    def _fit_budget(self, state: _TypeState, calibration: ImuBlock, rate_hz: float) -> None:
+        """Scale the type's two thresholds by one factor so that white noise of the
+        calibrated per-IMU sigma raises the budget's share of false episodes
+        (:func:`~imufdi_cli.detectors.firmware_budget.px4_scale`)."""
+        per_sample = BUDGET_SHARE * self.false_alarms / rate_hz
+        if not 0.0 < per_sample < 0.5:
+            raise DetectorConfigError(
+                f"{self.name}: false-alarm budget {self.false_alarms * 3600:g}/h is not"
+                f" below half the sample rate ({rate_hz:g} Hz); give a rate such as 1/h"
+            )
+        if not (state.rate_threshold > 0 and state.accumulated_threshold > 0):
+            raise DetectorConfigError(
+                f"{self.name}: a false-alarm budget scales the firmware thresholds; the"
+                f" {state.layout.sensor_type} rate threshold must be > 0"
+            )
+        vectors = state.layout.body(calibration, self.name) - state.offsets[None, :, :]
+        deviation = vectors - vectors.mean(axis=1, keepdims=True)
+        # the plain variance: outliers pass the filter as impulses, their power counts
+        variances, dof = difference_noise(deviation, robust=False)
+        if not np.all(variances > 0):
+            raise CalibrationError(
+                f"{self.name}: a {state.layout.sensor_type} deviation does not change in the"
+                " calibration window (a stuck or constant output); choose a fault-free window"
+                " with --calibrate START:END"
+            )
+        noise = imu_noise(variances)
+        step = min(1.0 / rate_hz, self.max_step)
+        r0, a0 = state.rate_threshold, state.accumulated_threshold
+        samples = float(vectors.shape[0]) if self.remove_bias else math.inf
+        scale = px4_scale(noise, self.smoothing, step, r0, a0, per_sample, dof, samples, self.seed)
+        state.scale = scale
+        state.rate_threshold = r0 * scale
+        state.accumulated_threshold = a0 * scale
+        state.disagreement = Disagreement(variances.sum(axis=1), round(rate_hz))
+        state.budget = {
+            "false_alarms_per_hour": self.false_alarms * 3600.0,
+            "threshold_scale": scale,
+            "noise_sigma": np.sqrt(noise).tolist(),
+            "calibration_dof": dof,
+        }
 
     def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
         """One row per input sample for every tested sensor type."""
@@ -235,6 +282,8 @@ class Px4SelectorDetector(CausalImuCheck):
         if n_samples == 0:
             return DetectionBlock.empty(0, layout.n_sensors)
         deviation = vectors - vectors.mean(axis=1, keepdims=True)
+        if state.disagreement is not None:
+            state.disagreement.add(deviation)
         smoothed = smooth_deviation(deviation, state.smoothed, self.smoothing)
         inconsistency = np.linalg.norm(smoothed, axis=2)  # (N, m)
         steps = np.minimum(
@@ -277,6 +326,8 @@ class Px4SelectorDetector(CausalImuCheck):
                 "smoothing": self.smoothing,
                 "max_step": self.max_step,
                 "bias": self.remove_bias,
+                "false_alarms_per_hour": self.false_alarms * 3600.0,
+                "seed": self.seed,
                 "types": ",".join(self.types),
             },
             "lookahead_samples": self.lookahead_samples,
@@ -286,11 +337,35 @@ class Px4SelectorDetector(CausalImuCheck):
                     "isolable": bool(s.layout.n_imus >= 3),
                     "offsets": s.offsets.tolist(),
                     "threshold": s.accumulated_threshold,
+                    "rate_threshold": s.rate_threshold,
                     "first_alarm_sample": s.first_alarm_sample,
+                    **(
+                        {}
+                        if s.budget is None or s.disagreement is None
+                        else {
+                            "budget": {
+                                **s.budget,
+                                **s.disagreement.metadata(),
+                            }
+                        }
+                    ),
                 }
                 for t, s in self._states.items()
             },
         }
+
+    def calibration_warnings(self) -> list[str]:
+        """Under a budget, one warning per sensor type whose IMUs disagreed, over part of
+        the processed log, clearly more than the calibrated white noise the thresholds were
+        scaled for."""
+        messages = []
+        for sensor_type, state in self._states.items():
+            if state.disagreement is None:
+                continue
+            note = state.disagreement.warning(self.name, sensor_type, "thresholds")
+            if note is not None:
+                messages.append(note)
+        return messages
 
 
 __all__ = ["Px4SelectorDetector", "accumulate_excess", "smooth_deviation"]

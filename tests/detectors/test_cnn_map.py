@@ -150,11 +150,16 @@ def test_fewer_than_two_accelerometer_triads_are_rejected():
         make(FAST).fit(block, array)
 
 
+# The mapping test computed (report) so that the network, its training record and the GLT
+# gyro screen are in the run; off by default, where none of them exist.
+REPORT = {**FAST, "mapping_test": "report"}
+
+
 @pytest.mark.slow  # 12 s: three trainings and three passes over 8 s of wearable12
 def test_block_size_invariance_and_json_metadata(short_log):
     array, block = short_log
-    a = run(make(FAST), array, block, (0.0, 6.0), block_size=97)
-    b = run(make(FAST), array, block, (0.0, 6.0), block_size=1000)
+    a = run(make(REPORT), array, block, (0.0, 6.0), block_size=97)
+    b = run(make(REPORT), array, block, (0.0, 6.0), block_size=1000)
     assert len(a) == len(block)
     assert_allclose(a.statistic, b.statistic, rtol=1e-9, atol=1e-12)
     assert_array_equal(a.alarm, b.alarm)
@@ -169,7 +174,7 @@ def test_block_size_invariance_and_json_metadata(short_log):
     # with the input test, the statistic is normalised by the thresholds (threshold 1)
     assert_allclose(a.threshold, 1.0)
     assert np.all(a.statistic[:30] < 1.0)
-    detector = make(FAST)
+    detector = make(REPORT)
     run(detector, array, block, (0.0, 6.0))
     meta = json.loads(json.dumps(detector.metadata()))
     assert meta["detector"] == "cnn-map"
@@ -184,12 +189,15 @@ def test_block_size_invariance_and_json_metadata(short_log):
 
 @pytest.mark.slow
 def test_alarm_episode_isolation_does_not_depend_on_block_size(tmp_path):
+    """Both tests deciding (mapping_test=alarm), so that the network loaded by the second
+    run takes part in the alarms compared."""
     array, block = wearable12(2, duration=16.0)  # fault from 12 s to the end
-    first = make(FAST)  # trained once; the second run loads the same network
+    both = {"mapping_test": "alarm"}
+    first = make({**FAST, **both})  # trained once; the second run loads the same network
     a = run(first, array, block, (0.0, 6.0), block_size=37)
     model = tmp_path / "model.npz"
     first.save_model(model)
-    b = run(make({"model": str(model)}), array, block, (0.0, 6.0), block_size=1000)
+    b = run(make({"model": str(model), **both}), array, block, (0.0, 6.0), block_size=1000)
     fault = block.t_s() >= 12.0
     assert a.alarm[fault].mean() > 0.5  # episodes cross many block boundaries
     assert_array_equal(a.alarm, b.alarm)
@@ -303,7 +311,7 @@ def test_noise_growth_on_y_and_z_accelerometers_is_detected_by_the_input_test(se
     assert detector.metadata()["input_test"]["status"] == "on"
 
 
-# --- the mapping test reports by default; the input test's level -----------------
+# --- the mapping test's modes (off by default); the input test's level -----------
 
 
 def test_mapping_test_modes(short_log, trained):
@@ -326,7 +334,7 @@ def test_mapping_test_modes(short_log, trained):
         outs = [detector.process(b) for b in iter_blocks(block, block_size)]
         return DetectionBlock.concatenate([o["accel"] for o in outs])
 
-    report = make({"model": path})
+    report = make({"model": path, "mapping_test": "report"})
     a = fit_and_run(report, free, block_size=333)
     off = make({"mapping_test": "off"})
     b = fit_and_run(off, free)
@@ -520,14 +528,17 @@ def test_real_recording_motion_accepted_and_rest_refused(mimu4444_cut, window, m
 
 
 def test_turntable_calibration_without_rotation_change_is_refused_with_exit_3(tmp_path):
-    """paper-table4 turns at a constant rate: nothing for the mapping to learn."""
+    """paper-table4 turns at a constant rate: nothing for the mapping to learn. Without the
+    mapping (the default) the input test needs no motion and runs."""
     from tests.cli.conftest import assert_one_line_error, invoke
 
     log = tmp_path / "t4.mcap"
     assert invoke(["simulate", "--preset", "paper-table4", "--seed", "1", "-o", log]).code == 0
-    result = invoke(["detect", log, "-d", "cnn-map", "-o", tmp_path / "out.mcap"])
+    args = ["detect", log, "-d", "cnn-map", "-o", tmp_path / "out.mcap"]
+    result = invoke([*args, "--param", "cnn-map.mapping_test=report"])
     assert_one_line_error(result, 3, "lacks the motion the mapping needs: no rotation")
     assert not (tmp_path / "out.mcap").exists()
+    assert invoke(args).code == 0
 
 
 class _ScriptedScreen:
@@ -580,3 +591,51 @@ def test_gyro_screen_readmits_a_gyro_after_its_alarms_stop(short_log, block_size
     full = gyro @ least_squares_matrix(H).T
     assert_allclose(rate[:100], full[:100], atol=1e-12)
     assert_allclose(rate[130 + readmit : 500], full[130 + readmit : 500], atol=1e-12)
+
+
+# --- under a false-alarm budget ----------------------------------------------------------
+
+
+def test_a_budget_refuses_the_mapping_test_as_a_decision():
+    for raw in ({"mapping_test": "alarm"}, {"input_test": "false", "mapping_test": "alarm"}):
+        with pytest.raises(DetectorConfigError, match="cannot decide under a false-alarm budget"):
+            make({"false_alarms": "1/h", **raw})
+
+
+def test_under_a_budget_the_input_test_is_noise_glrs_sequential_test():
+    """One implementation: cnn-map's rows under a budget are noise-glr's accelerometer rows
+    at the same budget, sample for sample; a x3 growth is found within 0.4 s."""
+    from imufdi_cli.detectors.noise_glr import NoiseGlrDetector
+
+    array, block = wearable12(103, duration=20.0)
+    det = make({"false_alarms": "1/h", "mapping_test": "off"})
+    out = run(det, array, block, calibrate=(0.0, 2.0), block_size=333)
+    glr = NoiseGlrDetector(**parse_params(
+        NoiseGlrDetector.PARAMS, {"false_alarms": "1/h", "types": "accel"}, "noise-glr"
+    ))  # fmt: skip
+    t = block.t_s()
+    glr.fit(block.mask(t < 2.0), array)
+    expected = DetectionBlock.concatenate(
+        [glr.process(b)["accel"] for b in iter_blocks(block, 250)]
+    )
+    assert_array_equal(out.alarm, expected.alarm)
+    assert_array_equal(out.isolated, expected.isolated)
+    # the block sizes differ (333 and 250): the CUSUMs' cumulative sums round differently
+    assert_allclose(out.statistic, expected.statistic, rtol=1e-9, atol=1e-9)
+    first = t[np.flatnonzero(out.alarm)[0]]
+    assert 12.0 <= first <= 12.4 and np.all(out.isolated[out.alarm] == 0)
+    meta = json.loads(json.dumps(det.metadata()))
+    assert meta["input_test"]["budget"]["false_alarms_per_hour"] == pytest.approx(1.0)
+    assert "variance-growth CUSUM" in meta["statistic"]
+    assert det.calibration_warnings() == []
+
+
+def test_under_a_budget_the_mapping_test_still_only_reports(short_log, trained):
+    array, block = short_log
+    reported = make({"false_alarms": "1/h", "model": trained[1], "mapping_test": "report"})
+    a = run(reported, array, block, calibrate=(0.0, 6.0))
+    off = make({"false_alarms": "1/h", "mapping_test": "off"})
+    b = run(off, array, block, calibrate=(0.0, 6.0))
+    assert reported.network is not None and off.network is None
+    assert_array_equal(a.alarm, b.alarm)
+    assert reported.metadata()["mapping_report"]["samples"] == len(block)

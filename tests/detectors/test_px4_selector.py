@@ -185,3 +185,46 @@ def test_cli_detect_and_report(tmp_path: Any) -> None:
     assert "px4-selector" in result.out
     bad = invoke(["detect", faulty, "-d", "px4-selector", "--param", "px4-selector.smoothing=2"])
     assert_one_line_error(bad, 2, "px4-selector.smoothing")
+
+
+# --- under a false-alarm budget ----------------------------------------------------------
+
+
+def test_a_budget_scales_both_thresholds_by_one_factor() -> None:
+    from imufdi_cli.faults import FaultInjector, parse_fault_spec
+    from imufdi_cli.simulate import preset, simulate_block
+
+    array, log = simulate_block(preset("paper-table4", seed=5, duration=30.0))
+    fault = parse_fault_spec("step:imu3.gyro.y,at=10s,amp=0.9deg/s", array)
+    log = FaultInjector([fault], array, seed=5, t0_ns=int(log.t_ns[0])).apply_block(log)
+    det = make(false_alarms="1/h")
+    det.fit(log.slice(0, 200), array)
+    meta = det.metadata()["types"]["gyro"]
+    scale = meta["budget"]["threshold_scale"]
+    assert 0 < scale < 0.05  # the firmware's 7 deg/s comes down to the noise's level
+    assert meta["rate_threshold"] == pytest.approx(math.radians(7.0) * scale)
+    assert meta["threshold"] == pytest.approx(math.radians(15.0) * scale)
+    # the scaled rate threshold sits above the smoothed deviation's mean (|d| ~ 1.6 x
+    # 0.16 sigma of the deviation from the 16-IMU mean): E does not drift up
+    sigma = math.radians(0.15) * math.sqrt(15 / 16)
+    assert meta["rate_threshold"] > 1.6 * math.sqrt(0.05 / 1.95) * sigma
+    out = det.process(log)["gyro"]
+    t = (log.t_ns - log.t_ns[0]) * 1e-9
+    assert not out.alarm[t < 10.0].any()
+    first = t[np.flatnonzero(out.alarm)[0]]
+    assert 10.0 < first < 11.0  # measured ~0.4 s on tuning seeds
+    assert (out.isolated[out.alarm] == 3 * 3 + 1).mean() > 0.99
+    assert det.calibration_warnings() == []
+    assert make().metadata()["params"]["false_alarms_per_hour"] == 0.0
+
+
+def test_a_budget_warns_where_the_imus_disagree_beyond_their_noise() -> None:
+    from imufdi_cli.simulate import preset, simulate_block
+
+    array, log = simulate_block(preset("wearable12", seed=6, duration=20.0))
+    det = make(false_alarms="1/h")
+    det.fit(log.slice(0, 200), array)
+    det.process(log)
+    notes = det.calibration_warnings()
+    assert len(notes) == 1 and notes[0].startswith("px4-selector: accel:")
+    assert "lever arms" in notes[0] and "\n" not in notes[0]

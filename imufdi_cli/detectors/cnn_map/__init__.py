@@ -79,19 +79,26 @@ devices (§2-3): accelerometer noise increase in a 12-IMU array. The paper's met
    at 25, cap ``INPUT_RELEASE_S`` of null drift above h). The threshold h is the
    per-channel Šidák share of ``alpha``, from a seeded simulation of the null
    (:func:`imufdi_cli.detectors.cusum.cusum_threshold`).
-9. Output. By default (``mapping_test=report``) the mapping test (steps 1-7) does not
-   alarm: its threshold, fitted in-sample on the calibration window, does not hold its
-   level out of sample (alone at alpha: 5.05 alpha mean, 24.5 alpha worst of 10 fresh seeds; see
-   docs/algorithms/cnn-map.md), so it is computed and the samples over its threshold are
-   counted in the metadata (``mapping_report``), and the output is the input test's:
+9. Output. By default (``mapping_test=off``) no network is trained and the input test
+   alone decides; the mapping test (steps 1-7), with ``mapping_test=report``, is trained
+   and computed but does not alarm: its threshold, fitted in-sample on the calibration
+   window, does not hold its level out of sample (alone at alpha: 5.05 alpha mean, 24.5
+   alpha worst of 10 fresh seeds; see docs/algorithms/cnn-map.md), so the samples over its
+   threshold are counted in the metadata (``mapping_report``). The output is the input
+   test's:
    ``statistic = max_j S_j / h``, threshold 1, an alarm isolates its channel (the axis
    itself) with ``amplitude`` = the variance ratio of its recent residuals (mean z^2 over
    ``window``). With ``mapping_test=alarm`` both tests alarm, each at ``alpha / 2``
    (Bonferroni): ``statistic = max(max_k R_k / T_map, max_j S_j / h)``, the mapping's
-   isolation and amplitude where only it alarms. ``mapping_test=off`` trains no network
-   (the output is the same as with ``report``). ``scores`` = the added noise standard
+   isolation and amplitude where only it alarms (refused under a false-alarm budget).
+   ``off`` and ``report`` give the same output. ``scores`` = the added noise standard
    deviation of every axis, ``sqrt(max(mean z^2 - 1, 0) s^2)`` with s^2 the nominal
    residual variance, m/s^2.
+
+10. Under a false-alarm budget (``false_alarms`` > 0) the input test is noise-glr's
+    sequential test of the accelerometers
+    (:class:`~imufdi_cli.detectors.noise_glr.NoiseBudget`: Helmert contrasts of the same
+    residuals, a bank of variance-growth CUSUMs whose threshold holds half the budget).
 
 Only ``accel`` is reported (the gyros are the reference; their screening is in
 :meth:`CnnMapDetector.metadata`). The first ``L - 1 + p`` samples of the log have no

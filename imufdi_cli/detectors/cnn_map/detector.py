@@ -13,6 +13,7 @@ import numpy as np
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
     ALPHA,
+    FALSE_ALARMS,
     NO_ISOLATION,
     DetectionBlock,
     DetectorBase,
@@ -30,6 +31,7 @@ from imufdi_cli.detectors.cnn_map.signals import (
 )
 from imufdi_cli.detectors.glt import GltDetector
 from imufdi_cli.detectors.nn import ACTIVATIONS
+from imufdi_cli.detectors.noise_glr import budget_warning
 from imufdi_cli.errors import (
     CalibrationError,
     DetectorConfigError,
@@ -65,13 +67,18 @@ class CnnMapDetector(_MappingTest, DetectorBase):
         Path of a saved model (:meth:`save_model`): reuse it instead of training.
     input_test : bool
         Also run the input test (step 8, beyond the paper).
-    mapping_test : {"report", "alarm", "off"}
-        ``report`` (default): the mapping test is computed but does not alarm; samples over
-        its threshold are counted in the metadata (``mapping_report``), the input test
-        alarms at ``alpha``. ``alarm``: both tests alarm, each at ``alpha / 2``
-        (Bonferroni); with ``input_test=false`` the mapping test alone at ``alpha``.
-        ``off``: no network is trained, the input test alone. If the input test cannot run
-        on the array, ``report`` falls back to the mapping test alarming at ``alpha``.
+    mapping_test : {"off", "report", "alarm"}
+        ``off`` (default): no network is trained, the input test alone decides.
+        ``report``: the network is trained and the mapping test computed, but it does not
+        alarm; samples over its threshold are counted in the metadata (``mapping_report``),
+        the input test alarms at ``alpha`` (the same alarms as ``off``). ``alarm``: both
+        tests alarm, each at ``alpha / 2`` (Bonferroni); with ``input_test=false`` the
+        mapping test alone at ``alpha``; refused under a false-alarm budget. If the input
+        test cannot run on the array, ``report`` falls back to the mapping test alarming
+        at ``alpha``.
+    false_alarms : float
+        False-alarm budget, episodes per second (0: the per-sample tests at ``alpha``):
+        the input test is then noise-glr's sequential test of the accelerometers.
     """
 
     name: ClassVar[str] = "cnn-map"
@@ -110,12 +117,14 @@ class CnnMapDetector(_MappingTest, DetectorBase):
         ),
         "mapping_test": Param(
             "choice",
-            "report",
-            "the mapping test: report (computed and counted in the metadata, no alarm: its"
-            " threshold does not hold out of sample), alarm (alarms at alpha/2 beside the"
-            " input test), off (no network trained)",
+            "off",
+            "the paper's mapping test: off (no network trained; the alarms are the same as"
+            " with report), report (trained, computed and counted in the metadata, no alarm:"
+            " its threshold does not hold out of sample), alarm (alarms at alpha/2 beside"
+            " the input test; refused under a false-alarm budget)",
             choices=MAPPING_MODES,
         ),
+        "false_alarms": FALSE_ALARMS,
     }
 
     def __init__(
@@ -135,8 +144,17 @@ class CnnMapDetector(_MappingTest, DetectorBase):
         model: str | None = None,
         whiten: int = 8,
         input_test: bool = True,
-        mapping_test: str = "report",
+        mapping_test: str = "off",
+        false_alarms: float = 0.0,
     ) -> None:
+        self.false_alarms = float(false_alarms)
+        if self.false_alarms > 0 and (mapping_test == "alarm" or not input_test):
+            raise DetectorConfigError(
+                "cnn-map: the mapping test cannot decide under a false-alarm budget (its"
+                " threshold is fitted on the calibration window and does not hold its level"
+                " out of sample, docs/algorithms/cnn-map.md); with --false-alarms use"
+                " mapping_test=off or report and input_test=true"
+            )
         self.alpha = float(alpha)
         self.window_s = float(window)
         self.input_length_s = float(input_length)
@@ -194,7 +212,7 @@ class CnnMapDetector(_MappingTest, DetectorBase):
         if not (np.all(np.isfinite(calibration.gyro)) and np.all(np.isfinite(calibration.accel))):
             raise CalibrationError("cnn-map: the calibration window has non-finite samples")
         self._glt = None
-        if array.n_sensors("gyro") >= 4:
+        if array.n_sensors("gyro") >= 4 and self.mapping_test != "off":  # the mapping's
             glt = GltDetector(types="gyro")
             glt.fit(ImuBlock(t_ns=calibration.t_ns, gyro=calibration.gyro), array)
             self._glt = glt
@@ -266,6 +284,11 @@ class CnnMapDetector(_MappingTest, DetectorBase):
         if self._input is None:  # the mapping test alone (it alarms, see fit)
             assert mapped is not None
             return {"accel": mapped}
+        if self.false_alarms > 0:  # the input test decides under the budget
+            decisions = self._budget_statistics(block)
+            if mapped is not None:
+                self.mapping_report.add(mapped.statistic / mapped.threshold, mapped.isolated)
+            return {"accel": decisions}
         # Step 9: the input test, with the mapping test alarming or only reporting
         rows = np.arange(n_samples)
         cusum, energy, added = self._input_statistics(block)
@@ -298,6 +321,16 @@ class CnnMapDetector(_MappingTest, DetectorBase):
         """Causal detector: nothing is held back."""
         return {"accel": DetectionBlock.empty(0, self.n_accel if self.array else 0)}
 
+    def calibration_warnings(self) -> list[str]:
+        """Under a budget, one line when the accelerometers' residual variance over the
+        processed log was clearly above the calibrated one on most sensors (the input
+        test's level does not hold there; :func:`~imufdi_cli.detectors.noise_glr.budget_warning`)."""
+        if self._input is None or self.false_alarms <= 0:
+            return []
+        budget = self._input.models["accel"].budget
+        note = None if budget is None else budget_warning(self.name, "accel", budget)
+        return [] if note is None else [note]
+
     def metadata(self) -> dict[str, Any]:
         """Parameters, training figures, weights (base64 npz), residual calibration."""
         params = {
@@ -317,6 +350,7 @@ class CnnMapDetector(_MappingTest, DetectorBase):
             "whiten": self.whiten,
             "input_test": self.input_test,
             "mapping_test": self.mapping_test,
+            "false_alarms_per_hour": self.false_alarms * 3600.0,
         }
         out: dict[str, Any] = {"detector": self.name, "params": params}
         if self.array is None:
@@ -332,6 +366,12 @@ class CnnMapDetector(_MappingTest, DetectorBase):
         )
         if self._input is None:
             out["statistic"] = "mapping: max_k R_k against its threshold"
+        elif self.false_alarms > 0:
+            out["statistic"] = (
+                "input: largest variance-growth CUSUM of the leave-one-out residuals' Helmert"
+                " contrasts (a false-alarm budget; noise-glr's test); the mapping test only"
+                " reports"
+            )
         elif self.mapping_alarms:
             out["statistic"] = "max(mapping: max_k R_k / T_map, input: max_j S_j / h); threshold 1"
         else:

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
+from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.detectors.cnn_map.reference import _ReferenceRate
 from imufdi_cli.detectors.cnn_map.signals import INPUT_DESIGN, INPUT_MEAN_S, INPUT_RELEASE_S
 from imufdi_cli.detectors.cusum import (
@@ -71,7 +72,7 @@ class _InputTest(_ReferenceRate):
         self.mapping_alpha = self.alpha
         if not self.input_test:
             return
-        glr = NoiseGlrDetector(alpha=self.alpha, types="accel")
+        glr = NoiseGlrDetector(alpha=self.alpha, types="accel", false_alarms=self.false_alarms)
         try:
             glr.fit(calibration, array)
         except CalibrationError as err:
@@ -81,6 +82,10 @@ class _InputTest(_ReferenceRate):
             self.input_note = "not run: no redundant accelerometers"
             return
         model = glr.models["accel"]
+        if model.budget is not None:  # the sequential test decides; no simulated threshold
+            self._input = glr
+            self.input_note = "on"
+            return
         share = self.alpha / 2.0 if self.mapping_alarms else self.alpha
         self.input_mean_window = max(1, round(INPUT_MEAN_S * array.rate_hz))
         residuals = glr._residuals("accel", model, calibration)
@@ -114,6 +119,12 @@ class _InputTest(_ReferenceRate):
             max(1, round(self.window_s * array.rate_hz)), model.operator.shape[0]
         )
 
+    def _budget_statistics(self, block: ImuBlock) -> DetectionBlock:
+        """The input test under a false-alarm budget: noise-glr's sequential test of the
+        accelerometers (:class:`~imufdi_cli.detectors.noise_glr.NoiseBudget`)."""
+        assert self._input is not None
+        return self._input._decide("accel", self._input.models["accel"], block)
+
     def _input_statistics(self, block: ImuBlock) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Step 8 on one block: CUSUM (N, n_accel) (NaN for untested channels), windowed
         mean of z^2 (N, n_accel) and the added noise std estimate (N, n_accel), m/s^2."""
@@ -143,6 +154,9 @@ class _InputTest(_ReferenceRate):
         if self._input is None:
             return info
         model = self._input.models["accel"]
+        if model.budget is not None:
+            info.update({"lever_arm": bool(model.lever_arm), "budget": model.budget.metadata()})
+            return info
         info.update(
             {
                 "design_variance_ratio": INPUT_DESIGN.ratio,

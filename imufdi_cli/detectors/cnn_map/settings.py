@@ -24,6 +24,7 @@ class _Settings:
 
     # parameters
     alpha: float
+    false_alarms: float
     window_s: float
     input_length_s: float
     filters: int
