@@ -18,11 +18,13 @@ calibration window's evidence widens it for correlated noise.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
 import numpy as np
 
+from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.errors import DetectorConfigError
 from imufdi_cli.maths.sequential import (
@@ -43,6 +45,9 @@ MIN_ENERGY = 1e-9
 MOTION_ERROR = 1e-3
 #: Time constant of the motion model's forgetting, seconds (chip scale errors are stable).
 SLOPE_TAU_S = 600.0
+#: Long-run variance factor above which evidence counts as correlated (no variance
+#: reference: it would learn the per-sample variance, not the long-run one).
+CORRELATED = 1.5
 #: The threshold is set for this share of the budget: the union bound is close to the
 #: rate for white Gaussian evidence (0.9 of it measured), and what the model knows only
 #: approximately -- each log's own sigma errors, outliers, the correlated noise and wander
@@ -53,6 +58,53 @@ BUDGET_SHARE = 0.5
 def reference_tau(track_bias: float | None) -> float:
     """The bank's reference time constant: ``track_bias`` when given, else the default."""
     return REFERENCE_TAU_S if track_bias is None else float(track_bias)
+
+
+def configured_noise(array: ArrayConfig, sensor_type: str) -> np.ndarray | None:
+    """Per-sensor noise sigma (n_s,) of the array config when every IMU carrying the type
+    has its own ``<type>_noise`` (what ``imufdi calibrate`` measures over many
+    orientations), else None; times ``sqrt(kappa_i)`` when every IMU also carries the
+    healthy noise-variance spread kappa (``<type>_noise_spread``): a chip whose noise grows
+    with the orientation keeps the budget at the top of its healthy range (the evidence
+    would otherwise be wider than N(0, 1) there, and a CUSUM is exponentially sensitive to
+    that)."""
+    configured = array.sensor_noise(sensor_type)
+    imus, _ = array.sensor_index(sensor_type)
+    if configured is None or not all(
+        sensor_type in array.imus[k].noise for k in set(imus.tolist())
+    ):
+        return None
+    sigma = np.asarray(configured, float)
+    spread = array.sensor_noise_spread(sensor_type)
+    return sigma if spread is None else sigma * np.sqrt(np.asarray(spread, float))
+
+
+class MotionState:
+    """The tested state of the motion model for any detector's evidence: the weighted
+    least-squares body-frame estimate ``x = (H^T W H)^-1 H^T W m`` (first three
+    components: the rate, or the specific force at the reference point), SI.
+
+    Weighted (``W = 1 / sigma^2``): its noise is then uncorrelated with the parity
+    residuals of independent sensors, so that the calibration's fit of the model does not
+    read the noise of a noisy sensor, which the unweighted estimate carries, as a scale
+    error.
+
+    Parameters
+    ----------
+    design : ndarray, shape (n, q)
+        H (lever-arm columns after the first three).
+    sigma : ndarray, shape (n,)
+        Per-sensor noise sigma, SI.
+    """
+
+    def __init__(self, design: np.ndarray, sigma: np.ndarray) -> None:
+        sigma = np.asarray(sigma, float)
+        weighted = np.linalg.pinv(np.asarray(design, float) / sigma[:, None]) / sigma[None, :]
+        self.estimator_t = weighted[:3].T.copy()  # (n, 3): x = m @ it
+
+    def __call__(self, measurements: np.ndarray) -> np.ndarray:
+        """States (N, 3) of rows of measurements (N, n), SI."""
+        return np.asarray(measurements, float) @ self.estimator_t
 
 
 class ParityBudget:
@@ -207,3 +259,188 @@ class ParityBudget:
             if bank is None
             else (bank.reference * math.sqrt(bank.kappa) * self.residual_sd).tolist(),
         }
+
+
+class EvidenceBudget:
+    """Budgeted sequential decisions over one status channel's standardized evidence.
+
+    What every detector shares under a budget: the detector computes, per sample and
+    sensor, signed evidence z standardized at rest (N(0, 1) without fault, shifted by
+    ``g_i f`` by a step f on sensor i); this class sets the bank's threshold for
+    :data:`BUDGET_SHARE` of the budget from the calibration window's evidence (its long-run
+    variance factor and outlier share), starts the motion model from the calibration
+    window's states, and reports the bank's decisions as a DetectionBlock.
+    :class:`ParityBudget` is the same for glt's parity evidence.
+
+    Parameters
+    ----------
+    sensitivity : ndarray, shape (n,)
+        ``g_i``, z units per SI unit of a step on sensor i (0: sensor not testable).
+    isolable : ndarray, shape (n,), bool
+    rate_hz, budget_per_s : float
+    tau_s : float
+        Time constant of the slow bias reference (0: none).
+    design : CusumDesign, optional
+    scale_variance : float, optional
+        Variance of ``sigma_hat^2 / sigma^2`` of the evidence's scale when it was estimated
+        (None: known); the threshold allows for it.
+    calibration_samples : int, optional
+        Samples the biases were estimated from (None: known biases).
+    motion_error : float
+        Relative scale and misalignment error of each sensor: the prior of the motion
+        model, whose slopes are then ``motion_error`` times the typical sensitivity per SI
+        unit of the state (a relative error e on a sensor puts ``e |x|`` into it, ``g e |x|``
+        into its evidence); 0: no model.
+    """
+
+    def __init__(
+        self,
+        sensitivity: np.ndarray,
+        isolable: np.ndarray,
+        rate_hz: float,
+        budget_per_s: float,
+        tau_s: float,
+        design: CusumDesign | None = None,
+        *,
+        scale_variance: float | None = None,
+        calibration_samples: int | None = None,
+        motion_error: float = MOTION_ERROR,
+    ) -> None:
+        if not rate_hz > 0:
+            raise DetectorConfigError("a false-alarm budget needs the array's sample rate")
+        per_sample = BUDGET_SHARE * budget_per_s / rate_hz
+        if not 0.0 < per_sample < 0.5:
+            raise DetectorConfigError(
+                f"false-alarm budget {budget_per_s * 3600:g}/h is not below half the sample"
+                f" rate ({rate_hz:g} Hz); give a rate such as 1/h"
+            )
+        self.design = design or CusumDesign(tau_s=tau_s)
+        self.rate_hz = float(rate_hz)
+        self.budget_per_s = float(budget_per_s)
+        self.sensitivity = np.asarray(sensitivity, float)
+        self.isolable = np.asarray(isolable, bool) & (self.sensitivity > 0)
+        self.n = int(self.sensitivity.size)
+        self.scale_variance = float(scale_variance or 0.0)
+        self.calibration_samples = math.inf if calibration_samples is None else calibration_samples
+        self.motion_error = float(motion_error)
+        testable = self.sensitivity[self.sensitivity > 0]
+        self.motion_prior = float(np.median(testable)) if testable.size else 0.0
+        self.per_sample = per_sample
+        self.contamination = 0.0
+        self.threshold = math.nan  # set by fit()
+        self.bank: CusumBank | None = None
+
+    @property
+    def testable(self) -> np.ndarray:
+        """(n,) bool: sensors with evidence."""
+        return self.sensitivity > 0
+
+    def fit(
+        self,
+        z: np.ndarray,
+        state: np.ndarray | None = None,
+        long_run: float | None = None,
+    ) -> None:
+        """Start the bank from the calibration window's evidence ``z`` (N, n): its
+        long-run variance factor, outlier share and the threshold; with ``state`` (N, p),
+        the window's tested states, the motion model (:class:`MotionModel`). ``long_run``:
+        the evidence's long-run variance factor when the detector knows it (None: measured
+        on ``z``, :func:`~imufdi_cli.maths.sequential.long_run_factor`); ``z`` may then have
+        no rows (no outliers counted)."""
+        z = np.nan_to_num(np.asarray(z, float))
+        modelled = state is not None and self.motion_error > 0 and z.shape[0] > 1
+        free = z
+        if modelled:
+            # the long-run factor and outliers of the evidence without the motion the model
+            # explains: a leak in the calibration window is slow, and would read as
+            # correlated noise (a factor of 4-6 on conical6, which then hides small steps)
+            first = MotionModel.from_calibration(
+                np.asarray(state, float), z, self.motion_error * self.motion_prior, 1.0
+            )
+            free = z - (np.asarray(state, float) - first.centre) @ first.slopes
+        tested = free[:, self.testable]
+        kappa = long_run_factor(tested, self.design.block) if long_run is None else float(long_run)
+        if long_run is not None or kappa > CORRELATED:
+            # the variance reference learns the per-sample variance, which for correlated
+            # evidence is not what the long-run factor standardized: keep the calibrated scale
+            self.design = dataclasses.replace(self.design, scale_tau_s=0.0)
+        self.contamination = outlier_share(tested / math.sqrt(kappa))
+        self.threshold = budget_threshold(
+            self.design, self.n, self.per_sample, self.scale_variance, self.contamination
+        )
+        motion = None
+        if modelled:
+            scale = 1.0 / math.sqrt(kappa)  # the bank's own units
+            motion = MotionModel.from_calibration(
+                np.asarray(state, float),
+                z * scale,
+                self.motion_error * self.motion_prior * scale,
+                SLOPE_TAU_S * self.rate_hz,
+            )
+        self.bank = CusumBank(
+            self.design,
+            self.threshold,
+            self.sensitivity,
+            self.isolable,
+            self.rate_hz,
+            kappa=kappa,
+            calibration_samples=self.calibration_samples,
+            motion=motion,
+        )
+
+    def decide(
+        self,
+        z: np.ndarray,
+        state: np.ndarray | None = None,
+        factors: np.ndarray | None = None,
+    ) -> DetectionBlock:
+        """Decisions on evidence ``z`` (N, n) standardized at rest, with the rows' tested
+        states (N, p) when the bank has a motion model and their motion variance factors
+        ``v_t >= 1`` (None: 1)."""
+        if self.bank is None:
+            raise DetectorConfigError("call fit() before process()")
+        decisions = self.bank.process(z, state, factors)
+        return DetectionBlock(
+            statistic=decisions.statistic,
+            threshold=decisions.threshold,
+            alarm=decisions.alarm,
+            isolated=decisions.isolated,
+            amplitude=decisions.amplitude,
+            scores=decisions.scores,
+        )
+
+    def metadata(self) -> dict[str, Any]:
+        """The budget, the threshold and what sets it; per sensor the sensitivity (z
+        units per SI unit of a step: the reference delays need it)."""
+        bank = self.bank
+        return {
+            "false_alarms_per_hour": self.budget_per_s * 3600.0,
+            "threshold": self.threshold,
+            "design_shifts": list(self.design.shifts),
+            "clip": self.design.clip,
+            "scale_variance": self.scale_variance,
+            "motion_error": self.motion_error,
+            "outlier_share": self.contamination,
+            "reference_tau_s": self.design.tau_s,
+            "long_run_factor": None if bank is None else bank.kappa,
+            "hypotheses": 2 * self.n,
+            "run_length_samples": self.rate_hz / self.budget_per_s,
+            "sensitivity": (self.sensitivity if bank is None else bank.sensitivity).tolist(),
+            "episodes": 0 if bank is None else bank.episodes,
+            "reference": [] if bank is None else (bank.reference * math.sqrt(bank.kappa)).tolist(),
+            "tracked_variance": self.design.scale_tau_s > 0,
+            **({} if bank is None else _motion_metadata(bank)),
+        }
+
+
+def _motion_metadata(bank: CusumBank) -> dict[str, Any]:
+    """The motion model's slopes (z units per SI unit of the state, per sensor) and their
+    posterior standard deviations, when the bank has one."""
+    model = bank.ref.motion
+    if model is None:
+        return {}
+    scale = math.sqrt(bank.kappa)
+    return {
+        "motion_slopes": (model.slopes * scale).tolist(),
+        "motion_slope_sd": (np.sqrt(np.diag(model.covariance)) * scale).tolist(),
+    }

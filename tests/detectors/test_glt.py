@@ -360,3 +360,14 @@ def test_a_budget_refuses_the_per_sample_options() -> None:
     for raw in ({"persistence": "3"}, {"confirm": "2"}, {"reconfigure": "true"}, {"window": "5"}):
         with pytest.raises(DetectorConfigError, match="per-sample test"):
             make_detector(false_alarms="1/h", **raw)
+
+
+def test_a_budget_keeps_a_fault_beyond_the_clip_in_one_episode() -> None:
+    # a 3 deg/s step is 19 sigma: the "fault has ended" test sized at the unclipped mean
+    # used to release it at once and raise it again (200 episodes in 10 s, alarmed on a
+    # fifth of the faulty samples)
+    out, skipped, det = table4_budget_run(2, "step:imu3.gyro.y,at=30s,amp=3deg/s")
+    onset = int(30.0 * RATE) - skipped
+    assert out.alarm[onset + 5 :].all()
+    assert det.metadata()["types"]["gyro"]["budget"]["episodes"] == 1
+    assert (out.isolated[out.alarm] == 3 * 3 + 1).all()

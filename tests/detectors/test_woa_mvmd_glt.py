@@ -651,3 +651,151 @@ def test_lowest_rule_reaches_the_tuning_and_the_detector():
         for rule in ("inner", "lowest")
     }
     assert found["inner"] != found["lowest"]
+
+
+# --- in motion and under a false-alarm budget ----------------------------------------------
+
+BUDGET = {"false_alarms": "1/h"}
+FIXED = {"K": "2", "mvmd_alpha": "550"}  # the tuning's usual choice (skips the search)
+DEG = np.pi / 180.0
+
+
+def _fault_free_alarm_share(preset_name: str, params: dict, seed: int) -> tuple[dict, list]:
+    from imufdi_cli.simulate import preset as make_preset
+    from imufdi_cli.simulate import simulate_block
+
+    array, block = simulate_block(make_preset(preset_name, seed=seed, duration=60.0))
+    detector = make(params)
+    detector.fit(block.slice(0, 200), array)
+    outputs = [detector.process(b) for b in iter_blocks(block.slice(200, len(block)), 997)]
+    outputs.append(detector.flush())
+    shares = {
+        t: float(np.mean(np.concatenate([o[t].alarm for o in outputs if t in o])))
+        for t in outputs[0]
+    }
+    return shares, detector.calibration_warnings()
+
+
+def test_accelerometers_with_lever_arms_hold_the_level_in_motion():
+    # wearable12: IMUs 3 cm apart on a swinging limb; without the rigid-body design the
+    # lever-arm accelerations (a few m/s^2 apart) were alarmed on all samples
+    shares, warnings = _fault_free_alarm_share("wearable12", FIXED, 36001)
+    assert shares["accel"] < 0.03 and shares["gyro"] < 0.03
+    assert warnings == []
+    plain, _ = _fault_free_alarm_share("wearable12", {**FIXED, "lever_arm": "false"}, 36001)
+    assert plain["accel"] > 0.5
+
+
+def test_the_per_sample_test_says_when_the_motion_leaks_into_its_parity():
+    # conical6: scale-factor and misalignment errors leak the swing into the parity vector;
+    # u_best keeps the motion and averages the noise down, so the per-sample test alarms on
+    # most samples: it says so (one line, detect prints it), and not where it holds
+    shares, warnings = _fault_free_alarm_share("conical6", FIXED, 36002)
+    assert shares["gyro"] > 0.5
+    (message,) = warnings
+    assert "follows the motion" in message and "--false-alarms" in message
+    assert f"{shares['gyro']:.0%}"[:-1] in message or "alarmed on" in message
+    for preset_name in ("paper-table4", "wearable12"):
+        assert _fault_free_alarm_share(preset_name, FIXED, 36003)[1] == []
+
+
+def test_detect_prints_the_motion_warning(tmp_path):
+    from tests.cli.conftest import invoke
+
+    log = tmp_path / "c6.mcap"
+    simulated = ["simulate", "--preset", "conical6", "--seed", "5", "--duration", "30s"]
+    assert invoke([*simulated, "-o", log]).code == 0
+    args = ["detect", log, "-d", "woa-mvmd-glt", "--no-explain", "-o", tmp_path / "a.mcap"]
+    ok = invoke([*args, "--param", "woa-mvmd-glt.K=2", "--param", "woa-mvmd-glt.mvmd_alpha=550"])
+    assert ok.code == 0
+    lines = [line for line in (ok.stderr + ok.out).splitlines() if "follows the motion" in line]
+    assert len(lines) == 1
+
+
+@pytest.mark.parametrize(("amplitude", "within_s"), [(0.9, 0.3), (0.3, 0.6)])
+def test_budget_detects_and_isolates_a_step(amplitude: float, within_s: float):
+    from tests.detectors.budget_support import faulted_run, first_alarm_after
+
+    spec = f"step:imu3.gyro.y,at=30s,amp={amplitude}deg/s"
+    array, out, detector = faulted_run("woa-mvmd-glt", BUDGET, "paper-table4", (spec,), 36011, 40)
+    gyro = out["gyro"]
+    onset = 3000 - 200
+    hop = detector.hop
+    # a row is decided at the end of its window: rows up to hop - 1 before the onset may be
+    # decided with fault samples in view, never earlier ones
+    assert not gyro.alarm[: onset - hop].any()
+    first = first_alarm_after(gyro, onset - hop)
+    assert first is not None
+    decided = detector.decision_index(np.array([first + 200]), 10**9)[0] - 200
+    assert onset <= decided <= onset + within_s * 100
+    target = array.sensor_ids("gyro").index("imu3.gyro.y")
+    assert np.mean(gyro.isolated[gyro.alarm] == target) > 0.99
+    assert np.median(gyro.amplitude[gyro.alarm]) == pytest.approx(amplitude * DEG, rel=0.15)
+    budget = detector.metadata()["types"]["gyro"]["budget"]
+    # the u_best filter's rows are correlated: the long-run factor of its filters (~L_eff)
+    assert 5.0 < budget["long_run_factor"] < 60.0
+
+
+def test_budget_learns_the_motion_leak_on_conical6():
+    from tests.detectors.budget_support import faulted_run, first_alarm_after
+
+    spec = "step:imu5.gyro.z,at=300s,amp=0.15deg/s"
+    _, out, detector = faulted_run(
+        "woa-mvmd-glt", {**BUDGET, **FIXED}, "conical6", (spec,), 36012, 310
+    )
+    gyro = out["gyro"]
+    onset = 30000 - 200
+    assert not gyro.alarm[: onset - detector.hop].any()
+    first = first_alarm_after(gyro, onset - detector.hop)
+    assert first is not None and first <= onset + 60
+    assert np.mean(gyro.isolated[gyro.alarm] == 5) > 0.99
+    assert detector.calibration_warnings() == []  # the bank learns the leak: nothing to say
+
+
+def test_budget_refuses_combine_min_and_keeps_the_per_sample_metadata():
+    import json
+
+    with pytest.raises(DetectorConfigError, match="combine=min"):
+        make({**BUDGET, "combine": "min"})
+    block = synthetic_block(6, 400)
+    for params in ({**FIXED}, {**FIXED, **BUDGET}):
+        det = make(params)
+        det.fit(block.slice(0, 200), coaligned(6))
+        det.process(block.slice(200, 400))
+        meta = det.metadata()
+        json.dumps(meta)
+        assert ("false_alarms" in meta["params"]) == ("false_alarms" in params)
+        assert "lever_arm" not in meta["params"]  # at its default: not listed
+        assert ("budget" in meta["types"]["gyro"]) == ("false_alarms" in params)
+
+
+def test_long_run_factor_of_u_best_filters():
+    from imufdi_cli.detectors.woa_mvmd_glt.budget import long_run
+
+    length, hop, windows = 50, 10, 8
+    rows = np.arange(length - hop, length)
+    # no smoothing (each row its own sample): independent rows, factor 1
+    identity = np.zeros((windows, hop, length))
+    identity[:, np.arange(hop), rows] = 1.0
+    assert long_run(identity, np.ones((windows, hop)), length - hop, hop) == pytest.approx(1.0)
+    # a causal moving average of 10 samples: each row sums 10, the factor is 10
+    average = np.zeros((windows, hop, length))
+    for k, row in enumerate(rows):
+        average[:, k, row - 9 : row + 1] = 1.0 / 10.0
+    scale = np.full((windows, hop), np.sqrt(0.1))  # ||F[t]||
+    assert long_run(average, scale, length - hop, hop) == pytest.approx(10.0, rel=1e-9)
+
+
+@pytest.mark.slow
+def test_budget_holds_on_hours_of_fault_free_logs_of_every_preset():
+    from tests.detectors.budget_support import fault_free_episodes, poisson_upper
+
+    pooled: dict[str, list[float]] = {}
+    for preset_name in ("paper-table4", "conical6", "wearable12"):
+        counts, hours = fault_free_episodes("woa-mvmd-glt", BUDGET, preset_name, 2.0, 36021)
+        for sensor_type, episodes in counts.items():
+            pooled.setdefault(sensor_type, [0, 0.0])
+            pooled[sensor_type][0] += episodes
+            pooled[sensor_type][1] += hours
+    for sensor_type, (episodes, hours) in pooled.items():
+        assert poisson_upper(int(episodes), hours) <= 2.0, (sensor_type, episodes, hours)

@@ -313,16 +313,46 @@ def test_the_references_learn_at_rest_only_and_resume_after_a_hold() -> None:
     assert bank.reference[1] == pytest.approx(2.5, abs=0.3)
 
 
+def test_a_fault_beyond_the_clip_stays_one_episode() -> None:
+    # a step of 10 sd: the clipped increments of a "fault has ended" test sized at the
+    # unclipped mean (10) would be negative while the fault lasts, and release it at once
+    rng = np.random.default_rng(17)
+    bank = _bank(8)
+    z = rng.standard_normal((3000, 8))
+    z[1000:2000, 5] += 10.0
+    out = bank.process(z)
+    assert bank.episodes == 1
+    assert out.alarm[1010:2000].all() and not out.alarm[2010:].any()
+    assert set(out.isolated[out.alarm].tolist()) == {5}
+    assert np.nanmedian(out.amplitude[out.alarm]) == pytest.approx(10.0, rel=0.05)
+
+
+def test_the_amplitude_is_at_the_evidence_scale_when_the_variance_is_tracked() -> None:
+    # sigma calibrated 15 % too small: the tracked variance (1.32) standardizes z' but a
+    # step of 3 z units must still read 3 (the amplitude back at the evidence's scale)
+    rng = np.random.default_rng(18)
+    bank = _bank(8, 1.0)
+    for _ in range(10):
+        bank.process(1.15 * rng.standard_normal((6000, 8)))
+    assert bank.ref.variance.mean() == pytest.approx(1.15**2, rel=0.05)
+    z = 1.15 * rng.standard_normal((3000, 8))
+    z[1000:, 2] += 3.0
+    out = bank.process(z)
+    assert np.nanmedian(out.amplitude[out.alarm]) == pytest.approx(3.0, rel=0.05)
+
+
 def test_the_sub_chunked_spans_give_the_one_pass_decisions() -> None:
     # the bank walks each span in sub-chunks with its sums carried and stops at the
     # sub-chunk of an alarm or of an episode's end: every output equals one pass per
-    # span (sub-chunks as long as the span), through alarms, episodes that end at once
-    # (a fault far beyond the clip: raised again every few rows), holds and references
-    # that resume
+    # span (sub-chunks as long as the span), through alarms, many short episodes that
+    # end inside sub-chunks (bursts of 25 rows), a fault far beyond the clip (one episode:
+    # the end test's size is at most c s_t), holds and references that resume
     rng = np.random.default_rng(21)
     z = rng.standard_normal((12_000, 6))
     z[1_500:2_000, 2] += 2.5
-    z[4_000:7_000, 4] += 12.0  # a step far beyond the clip: raised again every few rows
+    z[4_000:7_000, 4] += 12.0  # a step far beyond the clip
+    for start in range(2_200, 3_900, 50):
+        z[start : start + 25, 3] += 6.0  # bursts: an episode each
     z[7_000:, 1] += np.linspace(0.0, 10.0, 5_000)
     factors = np.ones(12_000)
     factors[9_000:9_600] = 4.0  # motion: the larger designs come into range
@@ -336,7 +366,7 @@ def test_the_sub_chunked_spans_give_the_one_pass_decisions() -> None:
                 for a, b in ((0, 4096), (4096, 9000), (9000, 12_000))
             ]
         )
-        assert bank.episodes > 100
+        assert bank.episodes > 20
     for name in ("statistic", "threshold", "alarm", "isolated", "amplitude", "scores"):
         whole = [np.concatenate([getattr(p, name) for p in run]) for run in outputs]
         np.testing.assert_array_equal(whole[0], whole[1])

@@ -39,10 +39,15 @@ array mode sigma and bias are estimated from the calibration window, so the quan
 F(1, nu) one with nu from the variance of those estimates (``estimated_threshold``): with
 chi-square(1) the level was 1.2-1.5 alpha on paper-table4 (48 gyros, 200 samples).
 
+Under a false-alarm budget (``false_alarms``, ``imufdi detect --false-alarms 1/h``) the
+same residuals are decided sequentially, several simultaneous faults isolated by exclusion
+(:mod:`.budget`).
+
 Modules, by concern: :mod:`.thresholds` (robust scale, estimated and Bonferroni
 thresholds), :mod:`.array_mode` (leave-one-out estimators of an array), :mod:`.marg` (the
 bank of attitude estimators of one MARG IMU), :mod:`.gyro` (the gyro test of marg mode),
-:mod:`.detector` (parameters, fit, the accelerometer/magnetometer test, metadata). Every
+:mod:`.budget` (the sequential tests under a budget), :mod:`.detector` (parameters, fit,
+the accelerometer/magnetometer test, metadata). Every
 public name is importable from this package, as before the split into modules.
 """
 

@@ -170,7 +170,12 @@ class _ArrayTest:
 
 
 def _fit_array_test(
-    values: np.ndarray, H: np.ndarray, sensor_type: str, alpha: float, max_faults: int
+    values: np.ndarray,
+    H: np.ndarray,
+    sensor_type: str,
+    alpha: float,
+    max_faults: int,
+    sigma: np.ndarray | None = None,
 ) -> _ArrayTest:
     n = H.shape[0]
     if n < H.shape[1] + 1:
@@ -180,7 +185,8 @@ def _fit_array_test(
             + ("" if H.shape[1] == 3 else " with the lever-arm terms of these IMU positions")
         )
     calibration_stats(values)  # checks the window length
-    sigma = residual_sigma(H, values)
+    if sigma is None:  # (given: the array config's per-sensor noise, under a budget)
+        sigma = residual_sigma(H, values)
     if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
         raise CalibrationError(
             f"bank: {sensor_type} noise sigma from the calibration window is not positive"

@@ -14,19 +14,23 @@ from imufdi_cli.detectors.attitude import (
     make_continuous,
 )
 from imufdi_cli.detectors.bank.array_mode import _ArrayTest, _fit_array_test
+from imufdi_cli.detectors.bank.budget import ArrayBudget
 from imufdi_cli.detectors.bank.gyro import _GyroTest
 from imufdi_cli.detectors.bank.marg import FULL_ESTIMATOR, BankDetails, _MargModel
 from imufdi_cli.detectors.bank.thresholds import _empty_block, bonferroni_threshold, robust_std
 from imufdi_cli.detectors.base import (
     ALPHA,
+    FALSE_ALARMS,
     NO_ISOLATION,
     DetectionBlock,
     DetectorBase,
     Param,
     calibration_stats,
 )
+from imufdi_cli.detectors.budget import REFERENCE_TAU_S, EvidenceBudget, configured_noise
 from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.jitter import array_inflation
 from imufdi_cli.maths.rigid import accel_design
 
 
@@ -45,6 +49,10 @@ class BankDetector(_GyroTest, DetectorBase):
         array mode: most simultaneous faulty sensors isolated per sensor type.
     iterations : int
         marg mode: most Gauss-Newton iterations per block.
+    false_alarms : float
+        False-alarm budget, episodes per second per status channel (0: the per-sample
+        test at ``alpha``); positive: sequential decisions on the same residuals
+        (:mod:`.budget`), several simultaneous faults isolated by exclusion.
     """
 
     name: ClassVar[str] = "bank"
@@ -65,6 +73,7 @@ class BankDetector(_GyroTest, DetectorBase):
             "int", 2, "array: simultaneous faulty sensors isolated per type", low=1, high=5
         ),
         "iterations": Param("int", 20, "marg: maximum Gauss-Newton iterations", low=1, high=50),
+        "false_alarms": FALSE_ALARMS,
     }
 
     def __init__(
@@ -74,7 +83,9 @@ class BankDetector(_GyroTest, DetectorBase):
         tau: float = 0.5,
         max_faults: int = 2,
         iterations: int = 20,
+        false_alarms: float = 0.0,
     ) -> None:
+        self.false_alarms = float(false_alarms)
         self.alpha = float(alpha)
         self.mode = mode
         self.tau = float(tau)
@@ -83,6 +94,7 @@ class BankDetector(_GyroTest, DetectorBase):
         self.array: ArrayConfig | None = None
         self.resolved_mode: str | None = None
         self.tests: dict[str, _ArrayTest] = {}
+        self.budgets: dict[str, ArrayBudget] = {}  # array mode under a budget
         self.last_details: BankDetails | None = None
         # marg state
         self._model: _MargModel | None = None
@@ -95,6 +107,9 @@ class BankDetector(_GyroTest, DetectorBase):
         self._sample_period = 0.0
         self._gyro_H: np.ndarray | None = None
         self._gyro_chosen = np.zeros(0, dtype=np.intp)
+        self._marg_budget: EvidenceBudget | None = None  # marg under a budget
+        self._marg_offset = np.zeros(6)
+        self._gyro_budget: EvidenceBudget | None = None
         self._reset_stream()
 
     # --- streaming state ---------------------------------------------------------------
@@ -105,6 +120,8 @@ class BankDetector(_GyroTest, DetectorBase):
         self._t_last: int | None = None
         self._filter_state: np.ndarray | None = None  # (7, 1, n_g)
         self._episode_counts = np.zeros(6)  # accel/mag isolations in the current alarm
+        # under a budget: fit-cost sums and counts of the current accel/mag episode
+        self._episode_cost = (np.zeros(6), np.zeros(6))
         self._variance_state: np.ndarray | None = None  # (7, 1, n_g)
         self._gyro_integral = np.zeros(0)  # (n_g,) running gyro integral, rad
         self._t_origin = 0  # ns, origin of the float times below
@@ -123,6 +140,7 @@ class BankDetector(_GyroTest, DetectorBase):
             mode = "marg" if array.has("mag") and array.n_imus == 1 else "array"
         self.resolved_mode = mode
         self.tests = {}
+        self.budgets = {}
         self._reset_stream()
         if mode == "marg":
             self._fit_marg(calibration, array)
@@ -145,6 +163,33 @@ class BankDetector(_GyroTest, DetectorBase):
                 self.alpha,
                 self.max_faults,
             )
+            if self.false_alarms > 0:
+                self.budgets[sensor_type] = self._array_budget(values, array, sensor_type)
+
+    def _array_budget(
+        self, values: np.ndarray, array: ArrayConfig, sensor_type: str
+    ) -> ArrayBudget:
+        """The array-mode test under a budget: the per-sample test's residuals, weighted by
+        the array config's per-IMU noise when every IMU has one (as glt; with the healthy
+        noise spread folded in, :func:`~imufdi_cli.detectors.budget.configured_noise`),
+        with its jitter model when it has one."""
+        test = self.tests[sensor_type]
+        configured = configured_noise(array, sensor_type)
+        known = configured is not None
+        if configured is not None:
+            test = _fit_array_test(
+                values, test.H, sensor_type, self.alpha, self.max_faults, sigma=configured
+            )
+        budget = ArrayBudget(
+            test,
+            array.rate_hz,
+            self.false_alarms,
+            None,
+            inflation=array_inflation(array, sensor_type, test.H),
+            sigma_known=known,
+        )
+        budget.fit(values)
+        return budget
 
     def _fit_marg(self, calibration: ImuBlock, array: ArrayConfig) -> None:
         imu = array.imus[0]
@@ -200,6 +245,24 @@ class BankDetector(_GyroTest, DetectorBase):
         )
         solution = self._model.solve(y_calibration, self.iterations)
         self._marg_threshold = bonferroni_threshold(self.alpha, 6)
+        self._marg_budget = None
+        self._gyro_budget = None
+        if self.false_alarms > 0:
+            # the evidence: the full estimator's residual linearised (the blind residuals'
+            # first order, without the heavy tails of weakly observable blind estimators)
+            z, energy = solution.parity_evidence(self._model.noise)
+            self._marg_offset = np.nan_to_num(np.nanmean(z, axis=0))
+            # z per SI unit of a step on a component: sqrt(P_jj) / (its norm x its noise)
+            sensitivity = np.median(energy, axis=0) / (scale * self._model.noise)
+            self._marg_budget = EvidenceBudget(
+                sensitivity,
+                np.ones(6, dtype=bool),
+                array.rate_hz,
+                self.false_alarms,
+                REFERENCE_TAU_S,
+                calibration_samples=len(calibration),
+            )
+            self._marg_budget.fit(np.nan_to_num(z - self._marg_offset))
 
         self._gyro_H = None
         if array.has("gyro") and calibration.gyro is not None:
@@ -246,7 +309,13 @@ class BankDetector(_GyroTest, DetectorBase):
             data = block.get(sensor_type)
             if data is None:
                 raise CalibrationError(f"bank: block has no {sensor_type} data")
-            out[sensor_type], isolated_sets[sensor_type] = test.run(array.select(data, sensor_type))
+            values = array.select(data, sensor_type)
+            budget = self.budgets.get(sensor_type)
+            if budget is not None:
+                out[sensor_type], isolated_sets[sensor_type] = budget.process(values, block.t_ns)
+                out[sensor_type].amplitudes = budget.amplitudes(values, isolated_sets[sensor_type])
+            else:
+                out[sensor_type], isolated_sets[sensor_type] = test.run(values)
             out[sensor_type].isolated_set = isolated_sets[sensor_type]
         self.last_details = BankDetails(isolated_sets=isolated_sets)
         return out
@@ -264,22 +333,38 @@ class BankDetector(_GyroTest, DetectorBase):
             solution.fit_cost,
         )
         blind_z2 = (blind / solution.blind_std) ** 2  # (N, 6), chi-square(1) when fault-free
-        statistic = np.max(np.nan_to_num(blind_z2, nan=0.0), axis=1)
-        alarm = statistic > self._marg_threshold
-        # Table 1: the faulty component j is the one whose blind residual exceeds the
-        # threshold while its estimator (blind to j) fits the other five: argmin of the
-        # fit cost among the components above threshold.
-        with np.errstate(invalid="ignore"):
-            candidates = np.where(blind_z2 > self._marg_threshold, fit_cost, np.inf)
-        best = np.argmin(candidates, axis=1)
-        isolated = np.where(alarm, best, NO_ISOLATION).astype(np.int32)
         scale = np.array([model.gravity_norm] * 3 + [model.field_norm] * 3)
         rows = np.arange(n_samples)
-        amplitude = np.where(alarm, blind[rows, best] * scale[best], np.nan)
+        if self._marg_budget is not None:
+            # under a budget: one bank of CUSUM tests over the six standardized blind
+            # residuals; each episode goes to the channel of the component it isolates
+            evidence, _ = solution.parity_evidence(model.noise)
+            decided = self._marg_budget.decide(evidence - self._marg_offset)
+            statistic, alarm = decided.statistic, decided.alarm
+            # Table 1 decides which component: the one whose blind estimator fits the other
+            # five best, on average since the episode began (the linearised evidence cannot
+            # tell a large fault on a weakly observable component from its neighbours)
+            best = self._episode_fit(alarm, fit_cost)
+            isolated = np.where(alarm, best, NO_ISOLATION).astype(np.int32)
+            amplitude = np.where(alarm, blind[rows, best] * scale[best], np.nan)
+            threshold = decided.threshold
+            scores = decided.scores
+        else:
+            statistic = np.max(np.nan_to_num(blind_z2, nan=0.0), axis=1)
+            alarm = statistic > self._marg_threshold
+            # Table 1: the faulty component j is the one whose blind residual exceeds the
+            # threshold while its estimator (blind to j) fits the other five: argmin of the
+            # fit cost among the components above threshold.
+            with np.errstate(invalid="ignore"):
+                candidates = np.where(blind_z2 > self._marg_threshold, fit_cost, np.inf)
+            best = np.argmin(candidates, axis=1)
+            isolated = np.where(alarm, best, NO_ISOLATION).astype(np.int32)
+            amplitude = np.where(alarm, blind[rows, best] * scale[best], np.nan)
+            threshold = np.full(n_samples, self._marg_threshold)
+            scores = blind_z2
 
         out: dict[str, DetectionBlock] = {}
         isolated_sets: dict[str, np.ndarray] = {}
-        threshold = np.full(n_samples, self._marg_threshold)
         for sensor_type, offset in (("accel", 0), ("mag", 3)):
             mine = alarm & (isolated >= offset) & (isolated < offset + 3)
             out[sensor_type] = DetectionBlock(
@@ -288,7 +373,7 @@ class BankDetector(_GyroTest, DetectorBase):
                 alarm=mine,
                 isolated=np.where(mine, isolated - offset, NO_ISOLATION).astype(np.int32),
                 amplitude=np.where(mine, amplitude, np.nan),
-                scores=blind_z2[:, offset : offset + 3].copy(),
+                scores=scores[:, offset : offset + 3].copy(),
             )
             isolated_sets[sensor_type] = np.zeros((n_samples, 3), dtype=bool)
             isolated_sets[sensor_type][mine, isolated[mine] - offset] = True
@@ -317,6 +402,40 @@ class BankDetector(_GyroTest, DetectorBase):
                 det.isolated_set = chosen_set
         return out
 
+    def _episode_fit(self, alarm: np.ndarray, fit_cost: np.ndarray) -> np.ndarray:
+        """marg under a budget: per row (N,), the component of smallest mean fit cost of its
+        blind estimator over the rows of the current alarm episode so far (state carried
+        over blocks; 0 outside alarms)."""
+        n = alarm.size
+        if n == 0:
+            return np.zeros(0, dtype=np.intp)
+        cost = np.where(np.isfinite(fit_cost), fit_cost, np.nan)
+        seen = np.isfinite(cost).astype(float)
+        cost = np.nan_to_num(cost)
+        previous = np.concatenate([[self._episode_cost[1].any()], alarm[:-1]])
+        starts = alarm & ~previous
+        segment = np.cumsum(starts)  # 0: the episode carried over from the last block
+        sums = np.cumsum(cost * alarm[:, None], axis=0)
+        counts = np.cumsum(seen * alarm[:, None], axis=0)
+        start_rows = np.flatnonzero(starts)
+        base_sums = np.empty((start_rows.size + 1, 6))
+        base_counts = np.empty((start_rows.size + 1, 6))
+        base_sums[0] = -self._episode_cost[0]
+        base_counts[0] = -self._episode_cost[1]
+        before = np.maximum(start_rows - 1, 0)
+        first = (start_rows == 0)[:, None]
+        base_sums[1:] = np.where(first, 0.0, sums[before])
+        base_counts[1:] = np.where(first, 0.0, counts[before])
+        total = sums - base_sums[segment]
+        count = counts - base_counts[segment]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(count > 0, total / count, np.inf)
+        if alarm[-1]:
+            self._episode_cost = (total[-1].copy(), count[-1].copy())
+        else:
+            self._episode_cost = (np.zeros(6), np.zeros(6))
+        return np.where(alarm, np.argmin(mean, axis=1), 0)  # type: ignore[no-any-return]
+
     def flush(self) -> dict[str, DetectionBlock]:
         """Causal detector: nothing is held back."""
         array = self._require_fit()
@@ -337,8 +456,13 @@ class BankDetector(_GyroTest, DetectorBase):
             },
             "mode": self.resolved_mode,
         }
+        if self.false_alarms > 0:  # (the per-sample test's metadata is unchanged)
+            meta["params"]["false_alarms_per_hour"] = self.false_alarms * 3600.0
         if self.resolved_mode == "array":
             meta["calibration"] = {s: t.metadata() for s, t in self.tests.items()}
+            for sensor_type, budget in self.budgets.items():
+                meta["calibration"][sensor_type]["threshold"] = budget.first.threshold  # type: ignore[union-attr]
+                meta["calibration"][sensor_type]["budget"] = budget.metadata()
         elif self.resolved_mode == "marg" and self._model is not None:
             calibration: dict[str, Any] = {
                 "gravity_norm": self._model.gravity_norm,
@@ -354,5 +478,11 @@ class BankDetector(_GyroTest, DetectorBase):
                     gyro_threshold=self._gyro_threshold,
                     filter_pole=self._filter_pole,
                 )
+            if self._marg_budget is not None:
+                calibration["accel_mag_threshold"] = self._marg_budget.threshold
+                calibration["accel_mag_budget"] = self._marg_budget.metadata()
+            if self._gyro_budget is not None:
+                calibration["gyro_threshold"] = self._gyro_budget.threshold
+                calibration["gyro_budget"] = self._gyro_budget.metadata()
             meta["calibration"] = calibration
         return meta

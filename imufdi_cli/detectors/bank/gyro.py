@@ -25,6 +25,7 @@ from imufdi_cli.detectors.base import (
     NO_ISOLATION,
     DetectionBlock,
 )
+from imufdi_cli.detectors.budget import REFERENCE_TAU_S, EvidenceBudget
 from imufdi_cli.errors import CalibrationError
 from imufdi_cli.log import ImuBlock
 
@@ -42,6 +43,8 @@ class _GyroTest:
     _filter_state: np.ndarray | None
     _variance_state: np.ndarray | None
     _episode_counts: np.ndarray
+    false_alarms: float
+    _gyro_budget: EvidenceBudget | None
 
     def _fit_gyro(self, calibration: ImuBlock, array: ArrayConfig, q_full: np.ndarray) -> None:
         """Gyro residual bias and white-noise variance (Table 2 residuals)."""
@@ -80,6 +83,22 @@ class _GyroTest:
             )
         self._gyro_threshold = bonferroni_threshold(self.alpha, H_gyro.shape[0])
         self._gyro_H = H_gyro
+        self._gyro_budget = None
+        if self.false_alarms > 0:
+            # under a budget the evidence is the filtered residual over the gyro's white
+            # noise sigma: the attitude's finite-difference noise telescopes in its sums, so
+            # its long-run variance is sigma_g^2 (the filter keeps sums) and the long-run
+            # factor is 1 by construction (a window of 2 s is too short to measure it for a
+            # filter of time constant tau)
+            self._gyro_budget = EvidenceBudget(
+                1.0 / np.sqrt(self._gyro_variance),
+                np.ones(H_gyro.shape[0], dtype=bool),
+                array.rate_hz,
+                self.false_alarms,
+                REFERENCE_TAU_S,
+                calibration_samples=n,
+            )
+            self._gyro_budget.fit(np.zeros((0, H_gyro.shape[0])), long_run=1.0)
 
     def _gyro_candidates(
         self, solution: _MargSolution, noise: np.ndarray, alarm: np.ndarray, best: np.ndarray
@@ -309,6 +328,19 @@ class _GyroTest:
         residual = filtered[chosen, rows]  # (N, n_g)
         z2 = z2_all[chosen, rows]
         z2[abstain] = 0.0
+        if self._gyro_budget is not None:
+            assert self._gyro_variance is not None
+            evidence = residual / np.sqrt(self._gyro_variance)
+            evidence[abstain] = np.nan
+            decided = self._gyro_budget.decide(evidence)
+            # a gyro fault shows in its own residual only (Table 2): every gyro whose own
+            # CUSUM is over the threshold during an episode is isolated
+            isolated_set = decided.alarm[:, None] & (decided.scores > decided.threshold[:, None])
+            on = np.flatnonzero(decided.isolated >= 0)
+            isolated_set[on, decided.isolated[on]] = True
+            decided.isolated_set = isolated_set
+            decided.amplitudes = np.where(isolated_set, residual, np.nan)
+            return decided, isolated_set, residual
         statistic = z2.max(axis=1)
         alarm = statistic > self._gyro_threshold
         best = np.argmax(z2, axis=1)

@@ -142,6 +142,7 @@ class _MargModel:
             fit_cost=np.where(observable, fit_cost, np.inf),
             covariance=own_covariance,
             usable=np.concatenate([observable, converged[:, 6:]], axis=1),
+            full_jacobian=jacobian[FULL_ESTIMATOR],
         )
 
 
@@ -154,3 +155,21 @@ class _MargSolution:
     fit_cost: np.ndarray  # (N, 6) weighted SSR of estimator j on its 5 components
     covariance: np.ndarray  # (7, N, 3, 3) linearised attitude covariance, rad^2
     usable: np.ndarray  # (N, 7) estimator observable and converged
+    full_jacobian: np.ndarray | None = None  # (N, 6, 3) of the full estimator, rad^-1
+
+    def parity_evidence(self, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per component j, the standardized residual of the full estimator linearised at
+        its attitude, ``z_j = r_w,j / sqrt(P_jj)`` (N, 6), and ``sqrt(P_jj)`` (N, 6).
+
+        ``r_w = (y - y_hat(q_full)) / noise``, ``P = I - J_w (J_w^T J_w)^-1 J_w^T`` the
+        projector on the residual space (``J_w`` the Jacobian over the noise): the parity
+        evidence of glt for this nonlinear model (to first order the blind residual
+        ``R_j[j]`` over its standard deviation, but from the well-determined full attitude,
+        so without the heavy tails of a weakly observable blind estimator)."""
+        assert self.full_jacobian is not None
+        white = self.residuals[FULL_ESTIMATOR] / noise
+        jacobian = self.full_jacobian / noise[None, :, None]
+        # (J_w^T J_w)^-1 is the full estimator's attitude covariance
+        spread = np.einsum("nji,nik,njk->nj", jacobian, self.covariance[FULL_ESTIMATOR], jacobian)
+        energy = np.sqrt(np.clip(1.0 - spread, 1e-12, 1.0))
+        return white / energy, energy

@@ -75,6 +75,10 @@ Beyond the paper:
   parity vectors (a "traditional" PCA monitor). Motion is not cancelled, so it alarms as
   soon as the motion departs from the training window: use it to see why the parity space
   matters. No isolation in that mode (NOT_ISOLABLE).
+- ``false_alarms`` (a budget, ``imufdi detect --false-alarms 1/h``): sequential decisions
+  on the GLR evidence of each sensor under the parity covariance learnt in training (a
+  spiked model of the correlated noise), with the motion leak learnt online
+  (:mod:`.budget`); the moving-mean test's own options do not apply then.
 """
 
 from imufdi_cli.detectors.moving import MovingWindow

@@ -10,6 +10,7 @@ import numpy as np
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
     ALPHA,
+    FALSE_ALARMS,
     NO_ISOLATION,
     NOT_ISOLABLE,
     TYPES,
@@ -19,7 +20,9 @@ from imufdi_cli.detectors.base import (
     calibration_stats,
     parse_sensor_types,
 )
+from imufdi_cli.detectors.budget import configured_noise, reference_tau
 from imufdi_cli.detectors.pca_parity import choices
+from imufdi_cli.detectors.pca_parity.budget import PcaBudget
 from imufdi_cli.detectors.pca_parity.components import (
     _lag_one_autocorrelation,
     plug_in_quantile,
@@ -27,7 +30,7 @@ from imufdi_cli.detectors.pca_parity.components import (
 )
 from imufdi_cli.detectors.pca_parity.model import _MotionDesign, _TypeModel, lever_arm_spread
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
-from imufdi_cli.errors import ArrayTooSmallError, CalibrationError
+from imufdi_cli.errors import ArrayTooSmallError, CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.maths.jitter import MotionInflation, array_inflation
 from imufdi_cli.maths.parity import isolable_sensors, parity_matrix
@@ -56,6 +59,13 @@ class PcaParityDetector(DetectorBase):
     types : str
         Comma-separated sensor types to test (those present with enough sensors are used);
         ``sensors``, its old name, is still accepted with a warning.
+    track_bias : float or None
+        Slow bias tracking time constant, s (per-sample test: off by default; under a
+        budget the time constant of the sequential test's own reference, 60 s by default).
+    false_alarms : float
+        False-alarm budget, episodes per second per status channel (0: the per-sample
+        test at ``alpha``); positive: sequential decisions on the GLR evidence of each
+        sensor under the learnt parity covariance (:mod:`.budget`).
     """
 
     name: ClassVar[str] = "pca-parity"
@@ -80,6 +90,7 @@ class PcaParityDetector(DetectorBase):
         ),
         "types": TYPES,
         "track_bias": TRACK_BIAS,
+        "false_alarms": FALSE_ALARMS,
     }
 
     def __init__(
@@ -92,7 +103,24 @@ class PcaParityDetector(DetectorBase):
         leak: str = "regress",
         types: str = "gyro,accel",
         track_bias: float | None = None,
+        false_alarms: float = 0.0,
     ) -> None:
+        self.false_alarms = float(false_alarms)
+        if self.false_alarms > 0:
+            fixed = {
+                "window": window != 0.2,
+                "components": components != 2,
+                "residual_test": not residual_test,
+                "space": space != "parity",
+            }
+            given = [name for name, changed in fixed.items() if changed]
+            if given:
+                raise DetectorConfigError(
+                    f"pca-parity.{given[0]} applies to the per-sample test; with a false-alarm"
+                    " budget pca-parity decides sequentially on the GLR evidence of each sensor"
+                    " (docs/algorithms/pca-parity.md): leave it out"
+                )
+        self.track_bias = track_bias
         self.alpha = float(alpha)
         self.components = int(components)
         self.window_s = float(window)
@@ -100,7 +128,9 @@ class PcaParityDetector(DetectorBase):
         self.residual_test = bool(residual_test)
         self.leak = leak
         self.sensor_types = parse_sensor_types(types, self.name)
-        self.tracker = BiasTracker(track_bias)
+        # under a budget the bank's own reference follows the biases (frozen in alarms)
+        self.tracker = BiasTracker(0.0 if self.false_alarms > 0 else track_bias)
+        self.budgets: dict[str, PcaBudget] = {}
         self.array: ArrayConfig | None = None
         self.models: dict[str, _TypeModel] = {}
         self.untested: dict[str, str] = {}
@@ -126,6 +156,7 @@ class PcaParityDetector(DetectorBase):
         self.models = {}
         self.untested = {}
         self.inflations = {}
+        self.budgets = {}
         minimum = 3 if self.space == "parity" else 0
         for sensor_type in self.sensor_types:
             triads = calibration.get(sensor_type)
@@ -142,6 +173,20 @@ class PcaParityDetector(DetectorBase):
             self.models[sensor_type] = self._fit_type(measurements, design, sensor_type)
             inflation = array_inflation(array, sensor_type, design, self.window_samples)
             self.inflations[sensor_type] = inflation if self.space == "parity" else None
+            if self.false_alarms > 0:
+                model = self.models[sensor_type]
+                budget = PcaBudget(
+                    model.projection,
+                    design,
+                    model.isolable,
+                    array.rate_hz,
+                    self.false_alarms,
+                    self.track_bias,
+                    leak=self.leak == "regress",
+                    sensor_noise=self._configured_noise(array, sensor_type),
+                )
+                budget.fit(measurements, self.window_samples)
+                self.budgets[sensor_type] = budget
         if not self.models:
             need = "at least 4 sensors of a type" if self.space == "parity" else "sensors"
             if self.untested:
@@ -150,6 +195,15 @@ class PcaParityDetector(DetectorBase):
                 f"{self.name}: nothing to test: the calibration block has no "
                 f"{'/'.join(self.sensor_types)} data with {need}"
             )
+
+    @staticmethod
+    def _configured_noise(array: ArrayConfig, sensor_type: str) -> np.ndarray | None:
+        """The per-sensor noise sigma of the array config when every IMU carrying the type
+        has its own ``<type>_noise`` (what ``imufdi calibrate`` measures), else None; times
+        ``sqrt(kappa_i)`` when the array carries the healthy noise-variance spread kappa
+        (``<type>_noise_spread``): the level is held at the top of each chip's healthy
+        range (as woa-mvmd-glt's ``noise_spread``)."""
+        return configured_noise(array, sensor_type)
 
     @staticmethod
     def _design(array: ArrayConfig, sensor_type: str) -> np.ndarray:
@@ -277,6 +331,10 @@ class PcaParityDetector(DetectorBase):
             measurements = self.array.select(triads, sensor_type)
             inflation = self.inflations.get(sensor_type)
             factors = None if inflation is None else inflation.factors(measurements, block.t_ns)
+            budget = self.budgets.get(sensor_type)
+            if budget is not None:
+                out[sensor_type] = budget.process(measurements, factors)
+                continue
             out[sensor_type] = self._process_type(model, measurements, factors)
         return out
 
@@ -409,7 +467,10 @@ class PcaParityDetector(DetectorBase):
                 "samples_beyond_calibrated_motion": int(model.samples_beyond),
                 "max_leverage_ratio": float(model.max_leverage_ratio),
             }
-        return {
+            budget = self.budgets.get(sensor_type)
+            if budget is not None:
+                types[sensor_type]["budget"] = budget.metadata()
+        meta: dict[str, Any] = {
             "detector": self.name,
             "params": {
                 "alpha": self.alpha,
@@ -435,3 +496,9 @@ class PcaParityDetector(DetectorBase):
             " deviation, rad (smallest = isolated)",
             "types": types,
         }
+        if self.false_alarms > 0:  # (the per-sample test's metadata is unchanged)
+            meta["params"]["false_alarms_per_hour"] = self.false_alarms * 3600.0
+            meta["params"]["track_bias"] = reference_tau(self.track_bias)
+            meta["statistic"] = "largest CUSUM of the GLR evidence per sensor (budget)"
+            meta["scores"] = "largest CUSUM statistic of each sensor over signs and shifts"
+        return meta

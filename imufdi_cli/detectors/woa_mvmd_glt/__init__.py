@@ -32,6 +32,11 @@ For one sensor type (n sensors, measurement matrix H, measurements m (N, n)):
    The output depends only on the sample index in the log, not on how the pipeline cuts
    blocks; :attr:`WoaMvmdGltDetector.lookahead_samples` is the longest hold-back.
 
+Beyond the paper: accelerometers at different positions are tested on the rigid-body design
+with lever-arm columns (``lever_arm``, as glt); under a false-alarm budget (``false_alarms``)
+the rows are decided sequentially, the motion leak learnt online; the per-sample test says
+when the motion leaks into its parity space, which it does not model (:mod:`.budget`).
+
 (K, alpha) come from the ``params`` JSON file written by ``imufdi tune`` (:func:`tune`), from
 the ``K`` and ``mvmd_alpha`` parameters, or, by default, are tuned by the whale optimization
 algorithm (:mod:`imufdi_cli.detectors.woa`) on the calibration window, minimising the
@@ -39,8 +44,9 @@ composite fitness CFV (§2.6, :func:`cfv_components` for the exact definitions).
 
 Modules, by concern: :mod:`.fitness` (CFV, the validation fault), :mod:`.tuning` (the WOA
 search and its JSON result), :mod:`.windows` (per-window u_best filters and the stream of
-overlapping windows), :mod:`.detector` (parameters, construction and the GLT decision).
-Every public name is importable from this package, as before the split into modules.
+overlapping windows), :mod:`.budget` (the long-run factor of the u_best filters, the motion
+check of the per-sample test), :mod:`.detector` (parameters, construction and the GLT
+decision). Every public name is importable from this package, as before the split into modules.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from typing import Any, ClassVar
 
 import numpy as np
@@ -14,6 +14,7 @@ import numpy as np
 from imufdi_cli.array import ArrayConfig
 from imufdi_cli.detectors.base import (
     ALPHA,
+    FALSE_ALARMS,
     NO_ISOLATION,
     NOT_ISOLABLE,
     TYPES,
@@ -22,9 +23,16 @@ from imufdi_cli.detectors.base import (
     Param,
     parse_sensor_types,
 )
+from imufdi_cli.detectors.budget import REFERENCE_TAU_S, EvidenceBudget, MotionState
 from imufdi_cli.detectors.mvmd import (
     MIN_SAMPLES,
     check_mvmd_params,
+)
+from imufdi_cli.detectors.woa_mvmd_glt.budget import (
+    LeakMonitor,
+    decide_rows,
+    long_run,
+    motion_warning,
 )
 from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
     DEFAULT_WEIGHTS,
@@ -34,6 +42,7 @@ from imufdi_cli.detectors.woa_mvmd_glt.fitness import (
     cfv,
     cfv_components,
 )
+from imufdi_cli.detectors.woa_mvmd_glt.state import _row_scales, _TypeState
 from imufdi_cli.detectors.woa_mvmd_glt.tuning import (
     TuneResult,
     make_validation,
@@ -51,6 +60,7 @@ from imufdi_cli.detectors.woa_mvmd_glt.windows import (
     filter_matrices,
 )
 from imufdi_cli.errors import (
+    ArrayConfigError,
     ArrayTooSmallError,
     CalibrationError,
     DetectorConfigError,
@@ -58,15 +68,18 @@ from imufdi_cli.errors import (
     InputDataError,
 )
 from imufdi_cli.log import ImuBlock
+from imufdi_cli.maths.jitter import MotionInflation, array_inflation
 from imufdi_cli.maths.parity import (
     isolable_sensors,
     isolation_statistics,
     parity_matrix,
     residual_sigma,
     residuals,
+    sigma_estimate_variance,
     whiten,
 )
 from imufdi_cli.maths.quantiles import chi2
+from imufdi_cli.maths.rigid import accel_design
 
 # --- the detector ----------------------------------------------------------------------
 
@@ -90,88 +103,6 @@ def _weights_check(value: Any) -> str | None:
     if len(parts) != 3 or any(not np.isfinite(p) or p < 0 for p in parts):
         return "weights must be three comma-separated non-negative numbers, e.g. 1,1,1"
     return None
-
-
-@dataclass
-class _TypeState:
-    sensor_type: str
-    n: int
-    K: int
-    alpha: float
-    tuned: dict[str, Any] | None
-    sigma: np.ndarray
-    bias: np.ndarray
-    V: np.ndarray  # whitened parity matrix (n-3, n)
-    isolable: np.ndarray
-    threshold: float
-    stream: _WindowStream
-    n_calibration: int = 0  # samples the biases were averaged over
-    outlier_variance: float = (
-        0.0  # variance added for outliers (variance: SI^2; clip: sigma^2 units)
-    )
-    outlier_cut: float | None = None  # outliers=clip: level of the standardised residual
-    clipped: int = 0  # residual entries clipped so far
-    spread: np.ndarray | None = None  # kappa_i folded into sigma (noise_spread), or None
-
-    @staticmethod
-    def clip_probe(
-        values: np.ndarray, bias: np.ndarray, sigma: np.ndarray, V: np.ndarray, cut: float
-    ) -> np.ndarray:
-        """(N, n) bool: the residuals :meth:`clip` cuts."""
-        return _TypeState._clip_shift(values, bias, sigma, V, cut)[1]
-
-    @staticmethod
-    def _clip_shift(
-        values: np.ndarray, bias: np.ndarray, sigma: np.ndarray, V: np.ndarray, cut: float
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The move of each sensor by :meth:`clip`, (N, n) in the units of ``values``, and
-        which entries were cut, (N, n) bool."""
-        projector = V.T @ V
-        scale = np.sqrt(np.diag(projector))
-        current = np.array(values, dtype=np.float64)
-        shift = np.zeros_like(current)
-        cut_mask = np.zeros(current.shape, dtype=bool)
-        active = np.arange(current.shape[0])
-        for _ in range(current.shape[1]):  # one sensor per sample and round
-            z = (((current[active] - bias) / sigma) @ projector) / scale
-            largest = np.argmax(np.abs(z), axis=1)
-            top = z[np.arange(active.size), largest]
-            over = np.abs(top) > cut
-            if not over.any():
-                break
-            rows, cols, top = active[over], largest[over], top[over]
-            delta = np.sign(top) * (np.abs(top) - cut) * sigma[cols] / scale[cols]
-            current[rows, cols] -= delta
-            shift[rows, cols] += delta
-            cut_mask[rows, cols] = True
-            active = rows
-        return shift, cut_mask
-
-    def clip(self, values: np.ndarray) -> np.ndarray:
-        """Clip each sample's standardised parity residuals at ``outlier_cut``, (N, n).
-
-        Whitened residual ``r = P x_w`` (``P = V^T V``, ``x_w = (x - bias) / sigma``),
-        standardised ``z_i = r_i / sqrt(P_ii)`` (``z_i^2`` is the GLT isolation statistic
-        of sensor i, eq. 6, since V V^T = I). Per sample, the sensor with the largest
-        ``|z_i|``, when it exceeds c, is moved by ``(|z_i| - c) sigma_i / sqrt(P_ii)``
-        toward the others, so that ``|z_i| = c``; the residuals are computed again and the
-        next largest is cut if still beyond c, until none is (two spikes in one sample are
-        both cut). A one-sample spike on one sensor is cut to c; a step larger than c sigma
-        is cut too, sample by sample, but stays far above the threshold once u_best
-        averages it (the amplitude is estimated on the unclipped signal). Gaussian noise is
-        left alone but with probability about 2 n Phi(-c) per sample (3e-3 at c = 4, n = 48).
-
-        One at a time: a fault of hundreds of sigma on one sensor also pushes every other
-        sensor's residual past c (by about 1/n of it); cutting them all at once moved the
-        healthy sensors toward the faulty one and erased the fault (a 10 deg/s^2 drift went
-        undetected from about 1.5 s after its onset). Once the faulty sensor is cut, the
-        others' residuals are back under c.
-        """
-        if self.outlier_cut is None:
-            return values
-        shift, cut_mask = self._clip_shift(values, self.bias, self.sigma, self.V, self.outlier_cut)
-        self.clipped += int(np.count_nonzero(cut_mask))
-        return np.asarray(values - shift)
 
 
 class WoaMvmdGltDetector(DetectorBase):
@@ -255,6 +186,24 @@ class WoaMvmdGltDetector(DetectorBase):
         "types": TYPES,
         "tol": Param("float", 1e-6, "MVMD relative convergence tolerance", low=0, low_open=True),
         "max_iter": Param("int", 300, "MVMD iteration cap", low=1),
+        "lever_arm": Param(
+            "bool",
+            True,
+            "model rigid-body lever arms between accelerometers (IMU positions)",
+        ),
+        "false_alarms": FALSE_ALARMS,
+        "jitter": Param(
+            "bool",
+            True,
+            "widen the test in motion by the array config's sampling-time jitter (if any)",
+        ),
+    }
+    #: Parameters added after the paper's set: listed in the metadata only when not at
+    #: their defaults, so that the per-sample test's metadata keeps its bytes.
+    LATER_PARAMS: ClassVar[dict[str, Any]] = {
+        "lever_arm": True,
+        "false_alarms": 0.0,
+        "jitter": True,
     }
 
     def __init__(
@@ -285,6 +234,9 @@ class WoaMvmdGltDetector(DetectorBase):
         types: str = "gyro,accel",
         tol: float = 1e-6,
         max_iter: int = 300,
+        lever_arm: bool = True,
+        false_alarms: float = 0.0,
+        jitter: bool = True,
     ) -> None:
         arguments = locals()
         values = {key: arguments[key] for key in self.PARAMS}  # each PARAMS name, typed
@@ -303,6 +255,13 @@ class WoaMvmdGltDetector(DetectorBase):
             raise DetectorConfigError(f"{self.name}: give both K and mvmd_alpha, or neither")
         if values["K"] is not None:
             check_mvmd_params(values["K"], values["mvmd_alpha"])
+        self.false_alarms = float(values["false_alarms"])
+        if self.false_alarms > 0 and values["combine"] == "min":
+            raise DetectorConfigError(
+                f"{self.name}.combine=min takes the window with the smallest statistic, whose"
+                " evidence is not N(0, 1): with a false-alarm budget use combine=end (or"
+                " centre)"
+            )
         self.window = window
         self.hop = window - overlap
         self.weights = tuple(float(v) for v in str(values["weights"]).split(","))
@@ -509,8 +468,15 @@ class WoaMvmdGltDetector(DetectorBase):
             decompose = self._decompose(K, alpha)
             # sigma and biases of the raw sensors (many degrees of freedom), carried into the
             # u_best domain exactly through each window's filter matrix (filter_matrix)
-            H = array.measurement_matrix(sensor_type)
+            H = self._design(array, sensor_type)
+            if n <= H.shape[1]:
+                raise ArrayTooSmallError(
+                    f"{self.name}: {sensor_type} has {n} sensors; with the lever-arm terms of"
+                    f" these IMU positions the GLT needs at least {H.shape[1] + 1}"
+                    f" (or {self.name}.lever_arm=false)"
+                )
             sigma = residual_sigma(H, values)
+            raw_sigma = sigma
             if np.any(~np.isfinite(sigma)) or np.any(sigma <= 0):
                 raise CalibrationError(
                     f"{self.name}: {sensor_type} noise sigma is zero or not finite;"
@@ -555,40 +521,118 @@ class WoaMvmdGltDetector(DetectorBase):
                 bias=bias,
                 V=V,
                 isolable=isolable_sensors(V),
-                threshold=float(chi2.ppf(1.0 - float(self.params["alpha"]), n - 3)),
+                threshold=float(chi2.ppf(1.0 - float(self.params["alpha"]), V.shape[0])),
                 stream=_WindowStream(self.window, self.hop, self.params["combine"]),
                 n_calibration=int(values.shape[0]),
                 outlier_variance=outlier_variance,
                 outlier_cut=outlier_cut,
                 spread=kappa,
+                lever_arm_columns=int(H.shape[1] - 3),
+                motion=MotionState(H, sigma),
+                inflation=array_inflation(array, sensor_type, H) if self.params["jitter"] else None,
             )
+            state.motion_centre = state.motion(values).mean(axis=0)  # type: ignore[misc]
             self._states[sensor_type] = state
             self._evaluators[sensor_type] = self._evaluator(state, decompose)
+            if self.false_alarms > 0:
+                self._fit_budget(state, values, decompose, H, raw_sigma, calibration.t_ns)
+            else:
+                state.monitor = LeakMonitor(n)
         if not self._states:
             raise CalibrationError(
                 f"{self.name}: no tested sensor type ({', '.join(self.types)}) in the log"
             )
 
+    def _design(self, array: ArrayConfig, sensor_type: str) -> np.ndarray:
+        """H (n, 3); for accelerometers with ``lever_arm``, the rigid-body design [H | B]
+        (:mod:`.rigid`): the filter of u_best is the same on every channel, so the parity
+        space of the design cancels the lever-arm terms in the u_best domain too."""
+        if sensor_type == "accel" and self.params["lever_arm"]:
+            try:
+                return accel_design(array, sensor_type)
+            except ArrayConfigError:
+                pass
+        return array.measurement_matrix(sensor_type)
+
+    @staticmethod
+    def _carried(
+        state: _TypeState, values: np.ndarray, t_ns: np.ndarray, inflation: MotionInflation | None
+    ) -> np.ndarray:
+        """The stream's columns for rows of measurements (N, n): clipped, raw and, with the
+        jitter model, each sample's motion variance factor ``1 + A_t``."""
+        columns = [state.clip(values), values]
+        if inflation is not None:
+            columns.append(inflation.factors(values, t_ns)[:, None])
+        return np.concatenate(columns, axis=1)
+
+    def _fit_budget(
+        self,
+        state: _TypeState,
+        values: np.ndarray,
+        decompose: Any,
+        H: np.ndarray,
+        raw_sigma: np.ndarray,
+        t_ns: np.ndarray,
+    ) -> None:
+        """The budget's bank for one type: the calibration window's rows decided as online
+        (its windows one hop apart, their last hop rows), their evidence and regressors,
+        the long-run factor of the u_best filters, the sensitivities."""
+        n = state.n
+        starts = np.arange(0, values.shape[0] - self.window + 1, self.hop)
+        first_row = self.window - self.hop
+        inflation = None
+        if state.inflation is not None and self._array is not None:
+            inflation = array_inflation(self._array, state.sensor_type, H)  # its own stream
+        carried = self._carried(state, values, t_ns, inflation)
+        state.clipped = 0  # (calibration rows are not the log's)
+        stack = carried[starts[:, None] + np.arange(self.window)]  # (W, L, 2n)
+        rows = self._evaluators[state.sensor_type](stack, first_row)
+        _, F = decompose(stack[..., :n], first_row)
+        _, dc_gain, row_scale = _row_scales(F, state.n_calibration)
+        kappa = long_run(F, row_scale, first_row, self.hop)
+        evidence = rows["evidence"].reshape(-1, n)
+        energy = np.einsum("ki,ki->i", state.V, state.V)  # P_ii, whitened
+        # z per SI unit of a step on sensor i: the filter passes it with its DC gain
+        gain = float(np.mean(dc_gain / row_scale))
+        # the state in the unit where a relative scale error e leaks e g |x| into z_i
+        state.state_gain = gain
+        regressors = rows["regressors"].reshape(-1, 3) / gain
+        sensitivity = np.where(energy > 1e-12, np.sqrt(np.maximum(energy, 0.0)), 0.0)
+        state.budget = EvidenceBudget(
+            sensitivity * gain / state.sigma,
+            state.isolable,
+            self._array.rate_hz if self._array is not None else 0.0,
+            self.false_alarms,
+            REFERENCE_TAU_S,
+            scale_variance=float(np.mean(sigma_estimate_variance(H, raw_sigma, len(values)))),
+            calibration_samples=state.n_calibration,
+        )
+        state.budget.fit(np.nan_to_num(evidence), regressors, long_run=kappa)
+
     def _evaluator(self, state: _TypeState, decompose: Any) -> Any:
         def evaluate(windows: np.ndarray, first_row: int) -> dict[str, np.ndarray]:
             # windows (W, L, 2n); the stream carries [clipped | raw] side by side (process);
             # rows first_row .. L - 1 of each window: R = L - first_row
-            raw = windows[..., state.n :]
+            raw = windows[..., state.n : 2 * state.n]
             u, F = decompose(windows[..., : state.n], first_row)  # (W, R, n), (W, R, L)
-            noise_gain = np.sqrt(np.einsum("wij,wij->wi", F, F))  # sigma_u = sigma * gain
-            dc_gain = F.sum(axis=-1)  # (W, L): bias_u = bias * dc_gain
-            # the calibration bias (mean of n_cal samples) is off by N(0, sigma^2 / n_cal),
-            # carried as dc_gain * error: its variance against the filtered noise is
-            # dc_gain^2 / (gain^2 n_cal) (the filter's effective length over n_cal), not
-            # negligible once u_best has averaged the noise down
-            inflation = 1.0 + (dc_gain / noise_gain) ** 2 / max(state.n_calibration, 1)
-            row_scale = noise_gain * np.sqrt(inflation)
+            noise_gain, dc_gain, row_scale = _row_scales(F, state.n_calibration)
+            motion_factor = None
+            if state.inflation is not None:
+                # sampling-time jitter in motion (maths/jitter.py): a row's noise
+                # variance grows by the filter's weighted mean of the samples' factors
+                factors = windows[..., 2 * state.n]  # (W, L)
+                motion_factor = np.einsum("wrl,wl->wr", F**2, factors) / noise_gain**2
             whitened = (u - dc_gain[..., None] * state.bias) / (
                 state.sigma[None, :] * row_scale[..., None]
             )
             p = whitened @ state.V.T
             statistic = np.einsum("...j,...j->...", p, p)  # eq. 5, V V^T = I
-            d_fi, _ = isolation_statistics(p, state.V)  # eq. 6
+            d_fi, signed = isolation_statistics(p, state.V)  # eq. 6
+            # eq. 6 with its sign, standardized at rest: the budget's evidence
+            evidence = np.sign(signed) * np.sqrt(d_fi)
+            if motion_factor is not None:
+                statistic = statistic / motion_factor
+                d_fi = d_fi / motion_factor[..., None]
             if state.outlier_cut is not None:  # eq. 7 on the unclipped signal
                 raw_white = (F @ raw - dc_gain[..., None] * state.bias) / (
                     state.sigma[None, :] * row_scale[..., None]
@@ -601,13 +645,24 @@ class WoaMvmdGltDetector(DetectorBase):
                 state.sigma[None, :]
                 * (row_scale / np.where(dc_gain != 0, dc_gain, np.nan))[..., None]
             )
-            return {"statistic": statistic, "scores": d_fi, "amplitude": amplitude * scale}
+            out = {"statistic": statistic, "scores": d_fi, "amplitude": amplitude * scale}
+            out["evidence"] = evidence
+            out["factor"] = np.ones(statistic.shape) if motion_factor is None else motion_factor
+            # the u_best of the body-frame estimate, centred, in the evidence's row scale
+            motion = state.motion
+            assert motion is not None
+            out["regressors"] = (
+                u @ motion.estimator_t - dc_gain[..., None] * state.motion_centre
+            ) / (row_scale[..., None] * state.state_gain)
+            return out
 
         return evaluate
 
     # -- streaming ------------------------------------------------------------------
 
     def _rows(self, state: _TypeState, parts: list[dict[str, np.ndarray] | int]) -> DetectionBlock:
+        if state.budget is not None:
+            return self._budget_rows(state, parts)
         blocks = []
         for part in parts:
             if isinstance(part, int):  # rows no window decides
@@ -623,6 +678,9 @@ class WoaMvmdGltDetector(DetectorBase):
                 alarm, np.where(state.isolable[best], best, NOT_ISOLABLE), NO_ISOLATION
             ).astype(np.int32)
             amplitude = np.where(isolated >= 0, part["amplitude"][np.arange(count), best], np.nan)
+            if state.monitor is not None:
+                root = np.sqrt(part["factor"])[:, None]  # the test's own standardization
+                state.monitor.add(part["evidence"] / root, part["regressors"] / root, alarm)
             blocks.append(
                 DetectionBlock(
                     statistic=statistic,
@@ -637,6 +695,25 @@ class WoaMvmdGltDetector(DetectorBase):
             return DetectionBlock.empty(0, state.n)
         return DetectionBlock.concatenate(blocks)
 
+    def _budget_rows(
+        self, state: _TypeState, parts: list[dict[str, np.ndarray] | int]
+    ) -> DetectionBlock:
+        """The rows of ``parts`` decided by the budget's bank (:func:`.budget.decide_rows`)."""
+        assert state.budget is not None
+        return decide_rows(state.budget, state.n, parts)
+
+    def calibration_warnings(self) -> list[str]:
+        """The per-sample test in motion: one warning per sensor type whose evidence
+        followed the motion on the rows processed (a scale-factor or misalignment leak
+        that test does not model, :mod:`.budget`), with the share of its variance the
+        motion explains and the alarm rate; none under a budget (the bank learns it)."""
+        alpha = float(self.params["alpha"])
+        messages = (
+            motion_warning(self.name, sensor_type, state.monitor, alpha)
+            for sensor_type, state in self._states.items()
+        )
+        return [m for m in messages if m is not None]
+
     def process(self, block: ImuBlock) -> dict[str, DetectionBlock]:
         if not self._states or self._array is None:
             raise CalibrationError(f"{self.name}: fit() must be called before process()")
@@ -646,7 +723,7 @@ class WoaMvmdGltDetector(DetectorBase):
             if triads is None:
                 raise InputDataError(f"{self.name}: block has no {sensor_type} data")
             values = self._array.select(triads, sensor_type)
-            carried = np.concatenate([state.clip(values), values], axis=1)
+            carried = self._carried(state, values, block.t_ns, state.inflation)
             evaluate = self._evaluators[sensor_type]
             out[sensor_type] = self._rows(state, state.stream.push(carried, evaluate))
         return out
@@ -657,7 +734,11 @@ class WoaMvmdGltDetector(DetectorBase):
         }
 
     def metadata(self) -> dict[str, Any]:
-        params = {k: v for k, v in self.params.items()}
+        params = {
+            k: v
+            for k, v in self.params.items()
+            if k not in self.LATER_PARAMS or v != self.LATER_PARAMS[k]
+        }
         return {
             "params": params,
             "types": {
@@ -674,6 +755,8 @@ class WoaMvmdGltDetector(DetectorBase):
                     "outlier_variance": s.outlier_variance,
                     "clipped_residuals": s.clipped,
                     **({"noise_spread": s.spread.tolist()} if s.spread is not None else {}),
+                    **({"lever_arm_columns": s.lever_arm_columns} if s.lever_arm_columns else {}),
+                    **({"budget": s.budget.metadata()} if s.budget is not None else {}),
                 }
                 for t, s in self._states.items()
             },

@@ -46,7 +46,8 @@ class Decisions:
         elsewhere.
     amplitude : ndarray (N,)
         On alarm rows, the isolated sensor's mean evidence since the episode's estimated
-        onset (weighted by the inverse noise variance), in SI units; NaN elsewhere.
+        onset (weighted by the inverse noise variance, at the evidence's scale: times the
+        sd its variance reference divided by), in SI units; NaN elsewhere.
     scores : ndarray (N, n)
         Per sensor, its largest statistic over signs and design shifts.
     """
@@ -587,7 +588,9 @@ class CusumBank:
         out.alarm[row_out] = True
         out.isolated[row_out] = chosen if self.isolable[chosen] else NOT_ISOLABLE
         if self.isolable[chosen] and weight > 0 and self.sensitivity[chosen] > 0:
-            out.amplitude[row_out] = sums[chosen] / weight / self.sensitivity[chosen]
+            # z' is over the column's tracked sd: back to the evidence's scale, then SI
+            scale = math.sqrt(self.ref.variance[chosen])
+            out.amplitude[row_out] = sums[chosen] / weight * scale / self.sensitivity[chosen]
 
     def _onset_rows(
         self, statistic: np.ndarray, signed_u: np.ndarray, inverse: np.ndarray, mu: float
@@ -628,8 +631,10 @@ class CusumBank:
         # evidence that the fault has ended: the log-likelihood ratio of "no fault" against
         # "the fault as estimated" (its size since the onset), on its sensor and sign; its
         # cumulative sum and running minimum (from -recovery) carried across sub-chunks,
-        # as are the evidence's sums since the span's start
-        mu = episode.shift
+        # as are the evidence's sums since the span's start. The size at most c s_t on each
+        # row: beyond 2 c s_t the clipped increment of a fault that lasts,
+        # mu c / s - mu^2 / (2 s^2), is negative, and a fault larger than the clip would be
+        # released at once and raised again, sample after sample
         recovered = _Running(np.zeros(1), -episode.recovery)
         evidence = _Running(np.zeros(self.n), 0.0)
         weight = _Running(np.zeros(1), 0.0)
@@ -641,6 +646,7 @@ class CusumBank:
             u, q, inverse = self._terms(zr, variance)
             best = out.scores[position + lo : position + hi]
             ran = self._cusums(walk, u, inverse, variance, best)
+            mu = np.minimum(episode.shift, self.design.clip / np.sqrt(inverse))
             column = episode.sign * u[:, episode.sensor]
             increments = -(mu * column - 0.5 * mu * mu * inverse)
             cumulative = recovered.sum(increments[:, None])[:, 0]
@@ -660,7 +666,8 @@ class CusumBank:
                 out.isolated[span] = np.where(isolable, sensors, NOT_ISOLABLE)
                 with np.errstate(divide="ignore", invalid="ignore"):
                     picked = sums[np.arange(alarmed), sensors] / weights
-                    amplitude = picked / self.sensitivity[sensors]
+                    scale = np.sqrt(self.ref.variance[sensors])
+                    amplitude = picked * scale / self.sensitivity[sensors]
                 out.amplitude[span] = np.where(isolable, amplitude, np.nan)
                 last_sums, last_weight = sums[-1], float(weights[-1])
             chunks.append(_Chunk(u[:stop], q[:stop], inverse[:stop], ran))
