@@ -57,6 +57,7 @@ from functools import lru_cache
 import numpy as np
 
 from imufdi_cli.maths.sequential import NO_ISOLATION, NOT_ISOLABLE, Decisions
+from imufdi_cli.maths.sequential.thresholds import threshold_root
 
 #: Gauss-Hermite nodes and weights (probabilists', 3 points) for the sigma error average.
 _HERMITE_NODES = (-math.sqrt(3.0), 0.0, math.sqrt(3.0))
@@ -233,50 +234,11 @@ def variance_threshold(
         rate = variance_false_alarm_rate(design, sensors, h, scale_variance, contamination)
         return math.log(rate) - target
 
-    low, g_low = 0.25, gap(0.25)
-    if g_low <= 0:
-        return low
-    h_a = max(1.0, 0.9 * math.log(sensors * len(design.ratios) / per_term))
-    h_b = h_a + 1.0
-    g_a, g_b = gap(h_a), gap(h_b)
-    high, g_high = math.inf, -math.inf
-    for h, g in ((h_a, g_a), (h_b, g_b)):
-        if g > 0:
-            low, g_low = max((low, g_low), (h, g))
-        elif h < high:
-            high, g_high = h, g
-    for _ in range(12):
-        if math.isfinite(high):
-            break
-        step = (h_b - h_a) / (g_a - g_b) * g_b if g_a != g_b else 2.0
-        h_a, g_a = h_b, g_b
-        h_b = h_b + min(max(step, 0.5), 20.0)
-        g_b = gap(h_b)
-        if g_b > 0:
-            low, g_low = h_b, g_b
-        else:
-            high, g_high = h_b, g_b
-    if not math.isfinite(high):
-        raise ValueError(f"no threshold below {h_b:.0f} meets {per_term:g} per term")
-    side = 0
-    for _ in range(100):
-        if high - low < 1e-4:
-            break
-        h = high - g_high * (high - low) / (g_high - g_low)
-        g = gap(h)
-        if g > 0:
-            low, g_low = h, g
-            if side == 1:
-                g_high /= 2.0
-            side = 1
-        else:
-            high, g_high = h, g
-            if side == -1:
-                g_low /= 2.0
-            side = -1
-        if abs(g) < 1e-7:
-            break
-    return math.ceil(high * 1000.0) / 1000.0
+    guess = max(1.0, 0.9 * math.log(sensors * len(design.ratios) / per_term))
+    try:
+        return threshold_root(gap, 0.25, guess, 12)
+    except ValueError:
+        raise ValueError(f"no threshold meets {per_term:g} per term") from None
 
 
 def threshold_schedule(

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from functools import lru_cache
 
 import numpy as np
@@ -179,12 +180,23 @@ def budget_threshold(
         rate = false_alarm_rate(design, sensors, h, scale_variance, contamination)
         return math.log(rate) - target
 
-    # log rate(h) is close to linear in h: secant steps from a first guess, each new
-    # point kept as a bracket end, then regula falsi (Illinois) inside the bracket
-    low, g_low = 0.5, gap(0.5)
+    return threshold_root(gap, 0.5, max(1.0, 0.9 * math.log(4.0 * sensors / per_sample)), 8)
+
+
+def threshold_root(gap: Callable[[float], float], floor: float, guess: float, tries: int) -> float:
+    """The h where a decreasing ``gap(h)`` (log false-alarm rate less its target's log)
+    crosses 0, rounded up to 1e-3 (a slightly lower rate than asked); ``floor`` when the
+    rate there already meets the target.
+
+    ``log rate(h)`` is close to linear in h (the run length grows like ``exp(theta h)``):
+    secant steps from ``guess`` (at most ``tries``), each new point kept as a bracket end,
+    then regula falsi (Illinois) inside the bracket. Raises ValueError when no bracket is
+    found.
+    """
+    low, g_low = floor, gap(floor)
     if g_low <= 0:  # even a tiny threshold meets the budget
         return low
-    h_a = max(1.0, 0.9 * math.log(4.0 * sensors / per_sample))
+    h_a = guess
     h_b = h_a + 1.0
     g_a, g_b = gap(h_a), gap(h_b)
     high, g_high = math.inf, -math.inf
@@ -193,7 +205,7 @@ def budget_threshold(
             low, g_low = max((low, g_low), (h, g))
         elif h < high:
             high, g_high = h, g
-    for _ in range(8):  # secant from the last two points, until bracketed
+    for _ in range(tries):  # secant from the last two points, until bracketed
         if math.isfinite(high):
             break
         step = (h_b - h_a) / (g_a - g_b) * g_b if g_a != g_b else 2.0
@@ -204,6 +216,8 @@ def budget_threshold(
             low, g_low = h_b, g_b
         else:
             high, g_high = h_b, g_b
+    if not math.isfinite(high):
+        raise ValueError(f"no threshold below {h_b:.0f} meets the target rate")
     side = 0
     for _ in range(100):
         if high - low < 1e-4:
