@@ -79,6 +79,19 @@ def configured_noise(array: ArrayConfig, sensor_type: str) -> np.ndarray | None:
     return sigma if spread is None else sigma * np.sqrt(np.asarray(spread, float))
 
 
+def _per_sample(rate_hz: float, budget_per_s: float) -> float:
+    """The bank's share of the budget per sample; DetectorConfigError where none exists."""
+    if not rate_hz > 0:
+        raise DetectorConfigError("a false-alarm budget needs the array's sample rate")
+    per_sample = BUDGET_SHARE * budget_per_s / rate_hz
+    if not 0.0 < per_sample < 0.5:
+        raise DetectorConfigError(
+            f"false-alarm budget {budget_per_s * 3600:g}/h is not below half the sample"
+            f" rate ({rate_hz:g} Hz); give a rate such as 1/h"
+        )
+    return per_sample
+
+
 class MotionState:
     """The tested state of the motion model for any detector's evidence: the weighted
     least-squares body-frame estimate ``x = (H^T W H)^-1 H^T W m`` (first three
@@ -149,14 +162,7 @@ class ParityBudget:
         calibration_samples: int | None = None,
         motion_error: float = MOTION_ERROR,
     ) -> None:
-        if not rate_hz > 0:
-            raise DetectorConfigError("a false-alarm budget needs the array's sample rate")
-        per_sample = BUDGET_SHARE * budget_per_s / rate_hz
-        if not 0.0 < per_sample < 0.5:
-            raise DetectorConfigError(
-                f"false-alarm budget {budget_per_s * 3600:g}/h is not below half the sample"
-                f" rate ({rate_hz:g} Hz); give a rate such as 1/h"
-            )
+        per_sample = _per_sample(rate_hz, budget_per_s)
         self.design = design or CusumDesign(tau_s=tau_s)
         self.rate_hz = float(rate_hz)
         self.budget_per_s = float(budget_per_s)
@@ -306,14 +312,7 @@ class EvidenceBudget:
         calibration_samples: int | None = None,
         motion_error: float = MOTION_ERROR,
     ) -> None:
-        if not rate_hz > 0:
-            raise DetectorConfigError("a false-alarm budget needs the array's sample rate")
-        per_sample = BUDGET_SHARE * budget_per_s / rate_hz
-        if not 0.0 < per_sample < 0.5:
-            raise DetectorConfigError(
-                f"false-alarm budget {budget_per_s * 3600:g}/h is not below half the sample"
-                f" rate ({rate_hz:g} Hz); give a rate such as 1/h"
-            )
+        per_sample = _per_sample(rate_hz, budget_per_s)
         self.design = design or CusumDesign(tau_s=tau_s)
         self.rate_hz = float(rate_hz)
         self.budget_per_s = float(budget_per_s)
