@@ -120,7 +120,88 @@ class MotionState:
         return np.asarray(measurements, float) @ self.estimator_t
 
 
-class ParityBudget:
+class _BankBudget:
+    """What both budgeted evidence models share: the budget's settings, the bank once
+    fitted, its decisions as a DetectionBlock and the common part of the metadata."""
+
+    def __init__(
+        self,
+        sensitivity: np.ndarray,
+        isolable: np.ndarray,
+        rate_hz: float,
+        budget_per_s: float,
+        tau_s: float,
+        design: CusumDesign | None,
+        scale_variance: float | None,
+        calibration_samples: int | None,
+        motion_error: float,
+    ) -> None:
+        self.per_sample = _per_sample(rate_hz, budget_per_s)
+        self.design = design or CusumDesign(tau_s=tau_s)
+        self.rate_hz = float(rate_hz)
+        self.budget_per_s = float(budget_per_s)
+        self.sensitivity = np.asarray(sensitivity, float)
+        self.isolable = np.asarray(isolable, bool)
+        self.n = int(self.sensitivity.size)
+        self.scale_variance = float(scale_variance or 0.0)
+        self.calibration_samples = math.inf if calibration_samples is None else calibration_samples
+        self.motion_error = float(motion_error)
+        self.contamination = 0.0
+        self.threshold = math.nan  # set by fit()
+        self.bank: CusumBank | None = None
+
+    def _start(self, kappa: float, motion: MotionModel | None) -> None:
+        """The threshold for the evidence's outlier share (``self.contamination``), then
+        the bank."""
+        self.threshold = budget_threshold(
+            self.design, self.n, self.per_sample, self.scale_variance, self.contamination
+        )
+        self.bank = CusumBank(
+            self.design,
+            self.threshold,
+            self.sensitivity,
+            self.isolable,
+            self.rate_hz,
+            kappa=kappa,
+            calibration_samples=self.calibration_samples,
+            motion=motion,
+        )
+
+    def _decide(
+        self, z: np.ndarray, state: np.ndarray | None, factors: np.ndarray | None
+    ) -> DetectionBlock:
+        if self.bank is None:
+            raise DetectorConfigError("call fit() before process()")
+        decisions = self.bank.process(z, state, factors)
+        return DetectionBlock(
+            statistic=decisions.statistic,
+            threshold=decisions.threshold,
+            alarm=decisions.alarm,
+            isolated=decisions.isolated,
+            amplitude=decisions.amplitude,
+            scores=decisions.scores,
+        )
+
+    def _metadata(self) -> dict[str, Any]:
+        bank = self.bank
+        return {
+            "false_alarms_per_hour": self.budget_per_s * 3600.0,
+            "threshold": self.threshold,
+            "design_shifts": list(self.design.shifts),
+            "clip": self.design.clip,
+            "scale_variance": self.scale_variance,
+            "motion_error": self.motion_error,
+            "outlier_share": self.contamination,
+            "reference_tau_s": self.design.tau_s,
+            "long_run_factor": None if bank is None else bank.kappa,
+            "hypotheses": 2 * self.n,
+            "run_length_samples": self.rate_hz / self.budget_per_s,
+            "sensitivity": (self.sensitivity if bank is None else bank.sensitivity).tolist(),
+            "episodes": 0 if bank is None else bank.episodes,
+        }
+
+
+class ParityBudget(_BankBudget):
     """Budgeted sequential decisions over one sensor type's parity residual.
 
     Parameters
@@ -162,30 +243,27 @@ class ParityBudget:
         calibration_samples: int | None = None,
         motion_error: float = MOTION_ERROR,
     ) -> None:
-        per_sample = _per_sample(rate_hz, budget_per_s)
-        self.design = design or CusumDesign(tau_s=tau_s)
-        self.rate_hz = float(rate_hz)
-        self.budget_per_s = float(budget_per_s)
         h_white = np.asarray(h_white, float)
-        self.estimator_t = np.linalg.pinv(h_white).T.copy()  # (n, q): x_hat = m_w @ it
-        self.h_t = h_white.T.copy()
         energy = 1.0 - np.einsum("ij,ji->i", h_white, np.linalg.pinv(h_white))
         testable = energy > MIN_ENERGY
+        super().__init__(
+            np.where(testable, np.sqrt(np.maximum(energy, 0.0)), 0.0) / sigma,
+            np.asarray(isolable, bool) & testable,
+            rate_hz,
+            budget_per_s,
+            tau_s,
+            design,
+            scale_variance,
+            calibration_samples,
+            motion_error,
+        )
+        self.estimator_t = np.linalg.pinv(h_white).T.copy()  # (n, q): x_hat = m_w @ it
+        self.h_t = h_white.T.copy()
         self.z_scale = np.where(testable, 1.0 / np.sqrt(np.where(testable, energy, 1.0)), 0.0)
-        self.sensitivity = np.where(testable, np.sqrt(np.maximum(energy, 0.0)), 0.0) / sigma
-        self.isolable = np.asarray(isolable, bool) & testable
         self.residual_sd = np.sqrt(np.maximum(energy, 0.0)) * sigma  # SI, per unit z
-        self.motion_error = float(motion_error)
         # a relative error e on sensor i's axis puts e |x| / sigma_i into its whitened
         # measurement, sqrt(P_ii) of it into z_i: the prior sd per unit of the state
         self.motion_prior = float(np.median(np.sqrt(np.maximum(energy, 0.0)) / sigma))
-        self.n = int(h_white.shape[0])
-        self.scale_variance = float(scale_variance or 0.0)
-        self.calibration_samples = math.inf if calibration_samples is None else calibration_samples
-        self.per_sample = per_sample
-        self.contamination = 0.0
-        self.threshold = math.nan  # set by fit()
-        self.bank: CusumBank | None = None
 
     def evidence(self, white: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """z (N, n) of whitened, bias-free measurements ``white`` (N, n), standardized at
@@ -202,9 +280,6 @@ class ParityBudget:
         z = evidence[:, self.z_scale > 0]
         kappa = long_run_factor(z, self.design.block)
         self.contamination = outlier_share(z / math.sqrt(kappa))
-        self.threshold = budget_threshold(
-            self.design, self.n, self.per_sample, self.scale_variance, self.contamination
-        )
         motion = None
         if self.motion_error > 0:
             scale = 1.0 / math.sqrt(kappa)  # the bank's own units
@@ -214,31 +289,14 @@ class ParityBudget:
                 self.motion_error * self.motion_prior * scale,
                 SLOPE_TAU_S * self.rate_hz,
             )
-        self.bank = CusumBank(
-            self.design,
-            self.threshold,
-            self.sensitivity,
-            self.isolable,
-            self.rate_hz,
-            kappa=kappa,
-            calibration_samples=self.calibration_samples,
-            motion=motion,
-        )
+        self._start(kappa, motion)
 
     def process(self, white: np.ndarray, factors: np.ndarray | None = None) -> DetectionBlock:
         """Decisions on whitened, bias-free measurements (N, n)."""
         if self.bank is None:
             raise DetectorConfigError("call fit() before process()")
         evidence, state = self.evidence(white)
-        decisions = self.bank.process(evidence, state, factors)
-        return DetectionBlock(
-            statistic=decisions.statistic,
-            threshold=decisions.threshold,
-            alarm=decisions.alarm,
-            isolated=decisions.isolated,
-            amplitude=decisions.amplitude,
-            scores=decisions.scores,
-        )
+        return self._decide(evidence, state, factors)
 
     def metadata(self) -> dict[str, Any]:
         """The budget, the threshold and what sets it; what the optimal test's reference
@@ -247,19 +305,7 @@ class ParityBudget:
         ``delta`` a step's size times the sensor's ``sensitivity``, z units per SI unit)."""
         bank = self.bank
         return {
-            "false_alarms_per_hour": self.budget_per_s * 3600.0,
-            "threshold": self.threshold,
-            "design_shifts": list(self.design.shifts),
-            "clip": self.design.clip,
-            "scale_variance": self.scale_variance,
-            "motion_error": self.motion_error,
-            "outlier_share": self.contamination,
-            "reference_tau_s": self.design.tau_s,
-            "long_run_factor": None if bank is None else bank.kappa,
-            "hypotheses": 2 * self.n,
-            "run_length_samples": self.rate_hz / self.budget_per_s,
-            "sensitivity": (self.sensitivity if bank is None else bank.sensitivity).tolist(),
-            "episodes": 0 if bank is None else bank.episodes,
+            **self._metadata(),
             # the reference's offsets, as residuals in SI (what the bank removed at the end)
             "reference_residual": []
             if bank is None
@@ -267,7 +313,7 @@ class ParityBudget:
         }
 
 
-class EvidenceBudget:
+class EvidenceBudget(_BankBudget):
     """Budgeted sequential decisions over one status channel's standardized evidence.
 
     What every detector shares under a budget: the detector computes, per sample and
@@ -312,22 +358,20 @@ class EvidenceBudget:
         calibration_samples: int | None = None,
         motion_error: float = MOTION_ERROR,
     ) -> None:
-        per_sample = _per_sample(rate_hz, budget_per_s)
-        self.design = design or CusumDesign(tau_s=tau_s)
-        self.rate_hz = float(rate_hz)
-        self.budget_per_s = float(budget_per_s)
-        self.sensitivity = np.asarray(sensitivity, float)
-        self.isolable = np.asarray(isolable, bool) & (self.sensitivity > 0)
-        self.n = int(self.sensitivity.size)
-        self.scale_variance = float(scale_variance or 0.0)
-        self.calibration_samples = math.inf if calibration_samples is None else calibration_samples
-        self.motion_error = float(motion_error)
-        testable = self.sensitivity[self.sensitivity > 0]
+        sensitivity = np.asarray(sensitivity, float)
+        super().__init__(
+            sensitivity,
+            np.asarray(isolable, bool) & (sensitivity > 0),
+            rate_hz,
+            budget_per_s,
+            tau_s,
+            design,
+            scale_variance,
+            calibration_samples,
+            motion_error,
+        )
+        testable = sensitivity[sensitivity > 0]
         self.motion_prior = float(np.median(testable)) if testable.size else 0.0
-        self.per_sample = per_sample
-        self.contamination = 0.0
-        self.threshold = math.nan  # set by fit()
-        self.bank: CusumBank | None = None
 
     @property
     def testable(self) -> np.ndarray:
@@ -364,9 +408,6 @@ class EvidenceBudget:
             # evidence is not what the long-run factor standardized: keep the calibrated scale
             self.design = dataclasses.replace(self.design, scale_tau_s=0.0)
         self.contamination = outlier_share(tested / math.sqrt(kappa))
-        self.threshold = budget_threshold(
-            self.design, self.n, self.per_sample, self.scale_variance, self.contamination
-        )
         motion = None
         if modelled:
             scale = 1.0 / math.sqrt(kappa)  # the bank's own units
@@ -376,16 +417,7 @@ class EvidenceBudget:
                 self.motion_error * self.motion_prior * scale,
                 SLOPE_TAU_S * self.rate_hz,
             )
-        self.bank = CusumBank(
-            self.design,
-            self.threshold,
-            self.sensitivity,
-            self.isolable,
-            self.rate_hz,
-            kappa=kappa,
-            calibration_samples=self.calibration_samples,
-            motion=motion,
-        )
+        self._start(kappa, motion)
 
     def decide(
         self,
@@ -396,36 +428,14 @@ class EvidenceBudget:
         """Decisions on evidence ``z`` (N, n) standardized at rest, with the rows' tested
         states (N, p) when the bank has a motion model and their motion variance factors
         ``v_t >= 1`` (None: 1)."""
-        if self.bank is None:
-            raise DetectorConfigError("call fit() before process()")
-        decisions = self.bank.process(z, state, factors)
-        return DetectionBlock(
-            statistic=decisions.statistic,
-            threshold=decisions.threshold,
-            alarm=decisions.alarm,
-            isolated=decisions.isolated,
-            amplitude=decisions.amplitude,
-            scores=decisions.scores,
-        )
+        return self._decide(z, state, factors)
 
     def metadata(self) -> dict[str, Any]:
         """The budget, the threshold and what sets it; per sensor the sensitivity (z
         units per SI unit of a step: the reference delays need it)."""
         bank = self.bank
         return {
-            "false_alarms_per_hour": self.budget_per_s * 3600.0,
-            "threshold": self.threshold,
-            "design_shifts": list(self.design.shifts),
-            "clip": self.design.clip,
-            "scale_variance": self.scale_variance,
-            "motion_error": self.motion_error,
-            "outlier_share": self.contamination,
-            "reference_tau_s": self.design.tau_s,
-            "long_run_factor": None if bank is None else bank.kappa,
-            "hypotheses": 2 * self.n,
-            "run_length_samples": self.rate_hz / self.budget_per_s,
-            "sensitivity": (self.sensitivity if bank is None else bank.sensitivity).tolist(),
-            "episodes": 0 if bank is None else bank.episodes,
+            **self._metadata(),
             "reference": [] if bank is None else (bank.reference * math.sqrt(bank.kappa)).tolist(),
             "tracked_variance": self.design.scale_tau_s > 0,
             **({} if bank is None else _motion_metadata(bank)),
