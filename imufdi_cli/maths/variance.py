@@ -57,11 +57,13 @@ from functools import lru_cache
 import numpy as np
 
 from imufdi_cli.maths.sequential import NO_ISOLATION, NOT_ISOLABLE, Decisions
-from imufdi_cli.maths.sequential.thresholds import threshold_root
+from imufdi_cli.maths.sequential.thresholds import (
+    _HERMITE_NODES,
+    _HERMITE_WEIGHTS,
+    chain_run_lengths,
+    threshold_root,
+)
 
-#: Gauss-Hermite nodes and weights (probabilists', 3 points) for the sigma error average.
-_HERMITE_NODES = (-math.sqrt(3.0), 0.0, math.sqrt(3.0))
-_HERMITE_WEIGHTS = (1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0)
 #: Winsorizing level of the tracked variance (squared evidence above 16 variances counts 16).
 WINSOR = 16.0
 
@@ -120,23 +122,6 @@ def _increment_cdf(
     if contamination <= 0:
         return gaussian
     return (1.0 - contamination) * gaussian + contamination * top
-
-
-def chain_run_lengths(cdf_at_edges: np.ndarray, states: int) -> np.ndarray:
-    """Average run lengths from 0 of CUSUMs on ``[0, h)`` in ``states`` cells (Brook &
-    Evans), one per row of ``cdf_at_edges`` (k, 2 states + 1): the increment's CDF at
-    ``(e - states - 1/2) w`` for ``e = 0 .. 2 states``, ``w = 2h / (2 states - 1)`` (cell 0
-    holds ``[0, w/2)`` and the atom at 0, cell j is centred on ``j w``; the chain is
-    absorbed at ``S >= h``)."""
-    cdf_at_edges = np.atleast_2d(cdf_at_edges)
-    j = np.arange(states)[:, None]
-    edges = np.arange(states + 1)[None, :]
-    cdf = cdf_at_edges[:, edges - j + states]  # (k, states, states + 1)
-    cdf[:, :, 0] = 0.0
-    transition = np.diff(cdf, axis=2)
-    system = np.eye(states)[None, :, :] - transition
-    lengths = np.linalg.solve(system, np.ones((cdf.shape[0], states, 1)))
-    return lengths[:, 0, 0]
 
 
 @lru_cache(maxsize=4096)

@@ -73,17 +73,27 @@ def average_run_length(
     # evaluated once per offset; l = 0 takes everything at or below 0 (the atom)
     offsets = np.arange(-states, states + 1)
     values = _increment_cdf(shift, clip, (offsets - 0.5) * width, scale, contamination)
-    j = np.arange(states)[:, None]
-    l_edges = np.arange(states + 1)[None, :]
-    cdf = values[l_edges - j + states]
-    cdf[:, 0] = 0.0
-    transition = np.diff(cdf, axis=1)  # (states, states), rows sum to P(S' < h)
-    system = np.eye(states) - transition
     try:
-        lengths = np.linalg.solve(system, np.ones(states))
+        return float(chain_run_lengths(values, states)[0])
     except np.linalg.LinAlgError:  # absorption too unlikely to resolve: no false alarm
         return math.inf
-    return float(lengths[0])
+
+
+def chain_run_lengths(cdf_at_edges: np.ndarray, states: int) -> np.ndarray:
+    """Average run lengths from 0 of CUSUMs on ``[0, h)`` in ``states`` cells (Brook &
+    Evans), one per row of ``cdf_at_edges`` (k, 2 states + 1): the increment's CDF at
+    ``(e - states - 1/2) w`` for ``e = 0 .. 2 states``, ``w = 2h / (2 states - 1)`` (cell 0
+    holds ``[0, w/2)`` and the atom at 0, cell j is centred on ``j w``; the chain is
+    absorbed at ``S >= h``)."""
+    cdf_at_edges = np.atleast_2d(cdf_at_edges)
+    j = np.arange(states)[:, None]
+    edges = np.arange(states + 1)[None, :]
+    cdf = cdf_at_edges[:, edges - j + states]  # (k, states, states + 1)
+    cdf[:, :, 0] = 0.0
+    transition = np.diff(cdf, axis=2)
+    system = np.eye(states)[None, :, :] - transition
+    lengths = np.linalg.solve(system, np.ones((cdf.shape[0], states, 1)))
+    return lengths[:, 0, 0]
 
 
 #: Gauss-Hermite nodes and weights (probabilists', 3 points: exact for polynomials of
