@@ -56,6 +56,7 @@ from imufdi_cli.detectors.firmware_budget import (
     ap_episode_rate,
     ap_limit_scale,
     difference_noise,
+    disagreement_warnings,
     outlier_fraction,
 )
 from imufdi_cli.detectors.vectors import (
@@ -391,14 +392,7 @@ class ApConsistencyDetector(CausalImuCheck):
         """Under a budget, one warning per sensor type whose IMUs disagreed, over part of
         the processed log, clearly more than the calibrated white noise the limits were
         scaled for."""
-        messages = []
-        for sensor_type, state in self._states.items():
-            if state.disagreement is None:
-                continue
-            note = state.disagreement.warning(self.name, sensor_type, "limits")
-            if note is not None:
-                messages.append(note)
-        return messages
+        return disagreement_warnings(self.name, self._states, "limits")
 
 
 __all__ = ["ApConsistencyDetector", "trailing_minimum"]

@@ -37,7 +37,9 @@ misalignment errors in motion, the wander of real chips) the level does not hold
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -511,3 +513,16 @@ class Disagreement:
             "seconds_checked": float(self.check.windows),
             "worst_disagreement_ratio": self.check.worst,
         }
+
+
+def disagreement_warnings(detector: str, states: Mapping[str, Any], what: str) -> list[str]:
+    """:meth:`Disagreement.warning` of every sensor type's state (its ``disagreement``,
+    None when the type runs without a budget) that has one to give."""
+    messages = []
+    for sensor_type, state in states.items():
+        if state.disagreement is None:
+            continue
+        note = state.disagreement.warning(detector, sensor_type, what)
+        if note is not None:
+            messages.append(note)
+    return messages

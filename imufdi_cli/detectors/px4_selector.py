@@ -56,6 +56,7 @@ from imufdi_cli.detectors.firmware_budget import (
     Disagreement,
     accumulate_excess,
     difference_noise,
+    disagreement_warnings,
     imu_noise,
     px4_scale,
 )
@@ -358,14 +359,7 @@ class Px4SelectorDetector(CausalImuCheck):
         """Under a budget, one warning per sensor type whose IMUs disagreed, over part of
         the processed log, clearly more than the calibrated white noise the thresholds were
         scaled for."""
-        messages = []
-        for sensor_type, state in self._states.items():
-            if state.disagreement is None:
-                continue
-            note = state.disagreement.warning(self.name, sensor_type, "thresholds")
-            if note is not None:
-                messages.append(note)
-        return messages
+        return disagreement_warnings(self.name, self._states, "thresholds")
 
 
 __all__ = ["Px4SelectorDetector", "accumulate_excess", "smooth_deviation"]
