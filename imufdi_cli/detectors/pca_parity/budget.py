@@ -55,7 +55,7 @@ from imufdi_cli.detectors.budget import (
 )
 from imufdi_cli.detectors.pca_parity.components import fold_labels
 from imufdi_cli.errors import CalibrationError
-from imufdi_cli.maths.parity import sigma_estimate_variance
+from imufdi_cli.maths.parity import nonnegative_least_squares, sigma_estimate_variance
 
 #: Tracy-Widom scales above the Marchenko-Pastur edge for an eigenvalue to count as
 #: correlated noise (the largest eigenvalue of white noise exceeds mu + 3 sigma with
@@ -95,15 +95,13 @@ def sensor_variances(
     variances : ndarray, shape (n,)
         Residual variances, SI^2.
     """
-    from scipy.optimize import nnls  # imported at the first calibration, not on import
-
     mixing = (projection.T @ projection) ** 2
     if common is None:
         common = float(variances.sum() / max(projection.shape[0], 1))
     singular = np.linalg.svd(mixing, compute_uv=False)
     if not singular[-1] > 1e-8 * singular[0]:
         return np.full(projection.shape[1], common)
-    values, _ = nnls(mixing, variances)
+    values = nonnegative_least_squares(mixing, variances)
     return np.where(values > 1e-6 * common, values, common)  # type: ignore[no-any-return]
 
 
