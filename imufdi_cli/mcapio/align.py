@@ -323,21 +323,34 @@ class _Aligner:
         sample of each stream, in stream order, with the same stamp, and slots are more
         than the tolerance apart (what an array logger writes). Then slot k is rows
         ``k * S .. k * S + S - 1`` and no sorting is needed; the result and the statistics
-        are those of the general path. None when the samples are not regular."""
+        are those of the general path. Before the end of the log the newest slot may be
+        incomplete (a chunk of the file ends inside a slot): its first streams, in order,
+        with one stamp. None when the samples are not regular."""
         n_streams = len(self.names)
         n = all_t.shape[0]
-        if n == 0 or n % n_streams:
+        k_all, tail = divmod(n, n_streams)
+        if k_all == 0 or (tail and final):
             return None
-        k_all = n // n_streams
-        if not bool((all_s.reshape(k_all, n_streams) == np.arange(n_streams)).all()):
+        whole = k_all * n_streams
+        if not bool((all_s[:whole].reshape(k_all, n_streams) == np.arange(n_streams)).all()):
             return None
-        table = all_t.reshape(k_all, n_streams)
+        table = all_t[:whole].reshape(k_all, n_streams)
         stamps = table[:, 0]
         if not bool((table == stamps[:, None]).all()):
             return None
         if k_all > 1 and not bool((np.diff(stamps) > self.tolerance).all()):
             return None
-        # Not final: the newest slot may still gain samples (the general path's horizon).
+        if tail:
+            # the incomplete newest slot: streams 0 .. tail - 1 at one stamp, after the rest
+            newest = all_t[whole:]
+            if not (
+                bool((all_s[whole:] == np.arange(tail)).all())
+                and bool((newest == newest[0]).all())
+                and int(newest[0]) - int(stamps[-1]) > self.tolerance
+            ):
+                return None
+        # Not final: the newest complete slot may still gain samples (the general path's
+        # horizon is its stamp: the streams after the incomplete slot's have none newer).
         k = k_all if final else k_all - 1
         if k == 0:
             return self.empty()
@@ -345,7 +358,7 @@ class _Aligner:
         self.boundary = boundary if self.boundary is None else max(self.boundary, boundary)
         self.stats.n_aligned += k
         self._note_complete(stamps[:k])
-        by_slot = all_v.reshape(k_all, n_streams, all_v.shape[1])
+        by_slot = all_v[:whole].reshape(k_all, n_streams, all_v.shape[1])
         values = [by_slot[:k, s, : self.widths[s]] for s in range(n_streams)]
         self.last_joint = by_slot[:k]
         done = k * n_streams

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -80,3 +81,61 @@ def test_fast_path_matches_the_general_path(irregular):
     assert fast_aligner.boundary == slow_aligner.boundary
     total = sum(t.size for t, _ in fast)
     assert total == (66 - (1 if irregular else 0))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_fast_path_takes_pieces_that_end_inside_a_slot(seed):
+    """A file's chunks end anywhere inside a time slot: the fast path still resolves every
+    piece (the incomplete newest slot waits for the next one) and gives what the general
+    path gives."""
+    rng = np.random.default_rng(seed)
+    names = [f"/imu{k}" for k in range(4)] + ["/imu0/mag"]
+    widths = [6, 6, 6, 6, 3]
+    streams, t, values = _regular(rng, 60, len(names), 0)
+    cuts = np.sort(rng.choice(np.arange(1, streams.size), size=6, replace=False))
+    cuts = np.r_[cuts[cuts % len(names) != 0], streams.size - 2]  # every cut inside a slot
+    edges = np.r_[0, cuts, streams.size]
+    parts = [(streams[a:b], t[a:b], values[a:b]) for a, b in itertools.pairwise(edges)]
+    finals = [False] * (len(parts) - 1) + [True]
+    _Counting.fast = 0
+    fast, fast_aligner = _run(_Counting, parts, names, widths, finals)
+    assert _Counting.fast == len(parts)
+    slow, slow_aligner = _run(_General, parts, names, widths, finals)
+    for (t_fast, v_fast), (t_slow, v_slow) in zip(fast, slow):
+        np.testing.assert_array_equal(t_fast, t_slow)
+        for a, b in zip(v_fast, v_slow):
+            np.testing.assert_array_equal(a, b)
+    assert dataclasses.asdict(fast_aligner.stats) == dataclasses.asdict(slow_aligner.stats)
+    assert fast_aligner.boundary == slow_aligner.boundary
+    assert sum(t.size for t, _ in fast) == 60
+
+
+def test_an_incomplete_newest_slot_out_of_order_is_left_to_the_general_path():
+    rng = np.random.default_rng(3)
+    names = ["/imu0", "/imu1", "/imu2"]
+    streams, t, values = _regular(rng, 5, 3, 0)
+    streams = np.r_[streams, 1]  # the next slot starts with the second stream
+    t = np.r_[t, t[-1] + 10_000_000]
+    values = np.r_[values, values[:1]]
+    _Counting.fast = 0
+    (stamps, _), *_ = _run(_Counting, [(streams, t, values)], names, [6, 6, 6], [False])[0]
+    assert _Counting.fast == 0
+    np.testing.assert_array_equal(stamps, np.arange(4) * 10_000_000)
+
+
+def test_a_log_that_ends_inside_a_slot_ends_as_the_general_path_ends_it():
+    rng = np.random.default_rng(5)
+    names = [f"/imu{k}" for k in range(4)]
+    streams, t, values = _regular(rng, 30, 4, 0)
+    streams, t, values = streams[:-2], t[:-2], values[:-2]  # the last slot lacks two IMUs
+    parts = [(streams[a:b], t[a:b], values[a:b]) for a, b in ((0, 41), (41, 87), (87, 118))]
+    finals = [False, False, True]
+    _Counting.fast = 0
+    fast, fast_aligner = _run(_Counting, parts, names, [6] * 4, finals)
+    assert _Counting.fast == 2  # the final resolution is the general path's
+    slow, slow_aligner = _run(_General, parts, names, [6] * 4, finals)
+    for (t_fast, v_fast), (t_slow, v_slow) in zip(fast, slow):
+        np.testing.assert_array_equal(t_fast, t_slow)
+        for a, b in zip(v_fast, v_slow):
+            np.testing.assert_array_equal(a, b)
+    assert dataclasses.asdict(fast_aligner.stats) == dataclasses.asdict(slow_aligner.stats)
