@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import math
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
@@ -486,3 +490,27 @@ def test_a_statistic_that_grew_in_a_fault_is_not_a_false_episode_at_a_higher_thr
     assert counts[(scale > 1.5) & (scale < 19)].tolist() == [1] * int(np.sum((scale > 1.5) & (scale < 19)))  # fmt: skip
     assert counts[scale > 21].sum() == 0
     assert acc.result().false_episodes == 1  # the detector's own: the excursion at 3000
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 7, 10, 101, 1000])
+def test_the_amplitude_median_is_numpys(n: int) -> None:
+    """metrics.accumulator._median gives np.median's float (not a close one)."""
+    from imufdi_cli.metrics.accumulator import _median
+
+    rng = np.random.default_rng(n)
+    for values in (rng.normal(size=n), rng.integers(-3, 3, size=n).astype(float)):
+        assert _median(values) == float(np.median(values))
+    assert math.isnan(_median(np.array([1.0, np.nan, 2.0])))
+    assert math.isnan(_median(np.array([])))
+
+
+def test_the_amplitude_median_does_not_import_numpy_ma() -> None:
+    probe = (
+        "import sys\n"
+        "import numpy as np\n"
+        "from imufdi_cli.metrics.accumulator import _median\n"
+        "_median(np.arange(10.0))\n"
+        "print('numpy.ma' in sys.modules)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "False"
