@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -189,7 +190,7 @@ def test_the_outputs_do_not_depend_on_how_the_rows_are_split(cuts: list[int]) ->
     whole = _bank(6, 50.0).process(z)
     pieces = _bank(6, 50.0)
     bounds = [0, *cuts, 9000]
-    parts = [pieces.process(z[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+    parts = [pieces.process(z[a:b]) for a, b in itertools.pairwise(bounds)]
     assert whole.alarm[2000:4000].mean() > 0.9 and whole.alarm[6000:6050].any()
     for name in ("alarm", "isolated"):
         assert np.array_equal(
