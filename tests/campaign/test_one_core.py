@@ -63,9 +63,7 @@ def _same(a: Any, b: Any, where: str) -> None:
         assert a == b, (where, a, b)
 
 
-@pytest.mark.parametrize(
-    "budget", ["", pytest.param('false_alarms = "1/h"', marks=BUDGET)]
-)
+@pytest.mark.parametrize("budget", ["", pytest.param('false_alarms = "1/h"', marks=BUDGET)])
 def test_a_campaign_run_scores_what_inject_detect_report_score(
     mimu4444_cut_log: Path, tmp_path: Path, budget: str
 ) -> None:
