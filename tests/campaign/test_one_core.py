@@ -43,16 +43,8 @@ name = "glt"
 {budget}
 """
 
-#: The sequential test (maths.sequential.CusumBank) re-designs its "fault has ended" test
-#: once per call, so where the rows are cut into calls moves the end of an episode on the
-#: real accelerometers (4096-row blocks against 1000: 1,237 of 18,750 rows alarm
-#: differently, 6 gyro rows); until that is fixed the budget run cannot agree row for row.
-BLOCK_DEPENDENT = [
-    pytest.mark.xfail(
-        strict=True, reason="CusumBank's recovery test depends on the call partition"
-    ),
-    pytest.mark.slow,  # 2 s of CPU for the bank alone
-]
+#: The sequential test's bank is slow: 2 s of CPU for the budget run alone.
+BUDGET = [pytest.mark.slow]
 
 
 def _same(a: Any, b: Any, where: str) -> None:
@@ -71,9 +63,7 @@ def _same(a: Any, b: Any, where: str) -> None:
         assert a == b, (where, a, b)
 
 
-@pytest.mark.parametrize(
-    "budget", ["", pytest.param('false_alarms = "1/h"', marks=BLOCK_DEPENDENT)]
-)
+@pytest.mark.parametrize("budget", ["", pytest.param('false_alarms = "1/h"', marks=BUDGET)])
 def test_a_campaign_run_scores_what_inject_detect_report_score(
     mimu4444_cut_log: Path, tmp_path: Path, budget: str
 ) -> None:

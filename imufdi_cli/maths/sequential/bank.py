@@ -623,10 +623,10 @@ class CusumBank:
             factors = factors[: z.shape[0]]
             x = None if x is None else x[: z.shape[0]]
         walk = _Walk.start(self.state)
-        # not frozen, the references learn from every row of the span, also those after
-        # the episode's end, which the next span learns from again (as the bank has always
-        # done: the same decisions)
-        feed = _Feed(self.ref, z, x, factors, self.samples, frozen=frozen, whole=not frozen)
+        # the references learn up to the sub-block boundaries the sub-chunks reach; at the
+        # episode's end they go back to the open sub-block's start (as at an alarm), so
+        # that no row is learnt twice and the rows' partition into calls changes nothing
+        feed = _Feed(self.ref, z, x, factors, self.samples, frozen=frozen)
         chunks: list[_Chunk] = []
         # evidence that the fault has ended: the log-likelihood ratio of "no fault" against
         # "the fault as estimated" (its size since the onset), on its sensor and sign; its
@@ -665,8 +665,9 @@ class CusumBank:
                 out.alarm[span] = True
                 out.isolated[span] = np.where(isolable, sensors, NOT_ISOLABLE)
                 with np.errstate(divide="ignore", invalid="ignore"):
-                    picked = sums[np.arange(alarmed), sensors] / weights
-                    scale = np.sqrt(self.ref.variance[sensors])
+                    rows = np.arange(alarmed)
+                    picked = sums[rows, sensors] / weights
+                    scale = np.sqrt(feed.reference_variance(lo, lo + alarmed)[rows, sensors])
                     amplitude = picked * scale / self.sensitivity[sensors]
                 out.amplitude[span] = np.where(isolable, amplitude, np.nan)
                 last_sums, last_weight = sums[-1], float(weights[-1])
@@ -674,6 +675,8 @@ class CusumBank:
             if ended.size:
                 if last_sums is not None:
                     episode.sums, episode.weight = last_sums, last_weight
+                if not frozen:
+                    feed.rewind(lo + stop)
                 self.state[:] = 0.0
                 self.episode = None
                 self._remember(chunks)

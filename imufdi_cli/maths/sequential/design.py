@@ -41,8 +41,9 @@ class CusumDesign:
         alarms of the others at h ~ 17.
     hold_s : float
         Longest time the references stay frozen in an episode, seconds: after it they
-        resume (a fault that lasts is then absorbed over about ``tau`` ln(size)), so that
-        a false alarm raised by bias wander does not latch.
+        resume (a fault that lasts is then absorbed, at the rate the innovation gate
+        allows: ``gate sqrt(b) / (tau f_s)`` standard deviations per sub-block of b
+        samples), so that a false alarm raised by bias wander does not latch.
     rest_factor : float
         Rows whose motion variance factor exceeds this are in motion: they teach the offset
         and variance references nothing (the noise model covers them).

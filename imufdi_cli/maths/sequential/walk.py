@@ -63,6 +63,13 @@ class _Feed:
             self._apply(end)
         return self.zr[lo:hi], self.variance[lo:hi]
 
+    def reference_variance(self, lo: int, hi: int) -> np.ndarray:
+        """(hi - lo, n): the references' variance ``w`` each of rows ``lo:hi`` of the span
+        was standardized by (it moves at the sub-block boundaries the feed has passed)."""
+        starts = np.array([start for start, _ in self.marks])
+        table = np.stack([snap[1] for _, snap in self.marks])
+        return table[np.searchsorted(starts, np.arange(lo, hi), side="right") - 1]
+
     def rewind(self, row: int) -> None:
         """The references as they were on the span's row ``row`` (an episode opens there)."""
         value = self.marks[0][1]
