@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.array import ArrayConfig
-from imufdi_cli.detectors.base import DetectionBlock
-from imufdi_cli.errors import DetectorConfigError
+from imufdi_cli.detectors.base import DetectionBlock, Param
+from imufdi_cli.errors import DetectorConfigError, UnitError
 from imufdi_cli.maths.sequential import (
     CusumBank,
     CusumDesign,
@@ -38,6 +38,56 @@ from imufdi_cli.maths.sequential import (
 
 #: Default time constant of the slow bias reference under a budget, seconds.
 REFERENCE_TAU_S = 60.0
+#: Default longest time an episode keeps the references frozen, seconds.
+HOLD_S = 10.0
+#: The ``hold`` value that keeps them frozen until the episode ends.
+LATCH = "latch"
+
+
+def hold_seconds(value: str) -> float:
+    """An episode's hold in seconds from a ``hold`` parameter: a time (``10s``) or
+    ``latch`` (infinite); UnitError for anything else."""
+    from imufdi_cli.units import parse_quantity
+
+    if value.strip().lower() == LATCH:
+        return math.inf
+    seconds = parse_quantity(value, "time", name="hold")
+    if not (math.isfinite(seconds) and seconds >= 0):
+        raise UnitError(f"hold: must be a time >= 0 or {LATCH}, got {value!r}")
+    return seconds
+
+
+def _check_hold(value: str) -> str | None:
+    try:
+        hold_seconds(value)
+    except UnitError:
+        return f"{value!r} is not a time (e.g. 10s) or {LATCH}"
+    return None
+
+
+HOLD = Param(
+    "str",
+    "10s",
+    "under a false-alarm budget: how long an episode keeps the bias references frozen (a"
+    " time), or latch: until the fault ends (a fault that lasts is never absorbed; a false"
+    " alarm raised by bias wander lasts until the wander goes back)",
+    check=_check_hold,
+)
+"""The ``hold`` parameter of the detectors whose sequential test tracks the biases."""
+
+
+def check_hold(name: str, hold: str, false_alarms: float) -> float:
+    """``hold`` in seconds; DetectorConfigError when it is set without a budget (the
+    per-sample test has no episodes to hold)."""
+    seconds = hold_seconds(hold)
+    if false_alarms <= 0 and seconds != HOLD_S:
+        raise DetectorConfigError(
+            f"{name}.hold applies to the sequential test under a false-alarm budget: give"
+            " --false-alarms (e.g. 1/h) or leave it out"
+        )
+    return seconds
+
+
 #: Sensors whose parity energy P_ii is below this carry no evidence (not testable).
 MIN_ENERGY = 1e-9
 #: Default relative scale and misalignment error of each sensor left by calibration: the
@@ -135,9 +185,10 @@ class _BankBudget:
         scale_variance: float | None,
         calibration_samples: int | None,
         motion_error: float,
+        hold_s: float = HOLD_S,
     ) -> None:
         self.per_sample = _per_sample(rate_hz, budget_per_s)
-        self.design = design or CusumDesign(tau_s=tau_s)
+        self.design = design or CusumDesign(tau_s=tau_s, hold_s=hold_s)
         self.rate_hz = float(rate_hz)
         self.budget_per_s = float(budget_per_s)
         self.sensitivity = np.asarray(sensitivity, float)
@@ -193,6 +244,7 @@ class _BankBudget:
             "motion_error": self.motion_error,
             "outlier_share": self.contamination,
             "reference_tau_s": self.design.tau_s,
+            "hold_s": None if math.isinf(self.design.hold_s) else self.design.hold_s,
             "long_run_factor": None if bank is None else bank.kappa,
             "hypotheses": 2 * self.n,
             "run_length_samples": self.rate_hz / self.budget_per_s,
@@ -242,6 +294,7 @@ class ParityBudget(_BankBudget):
         scale_variance: float | None = None,
         calibration_samples: int | None = None,
         motion_error: float = MOTION_ERROR,
+        hold_s: float = HOLD_S,
     ) -> None:
         h_white = np.asarray(h_white, float)
         energy = 1.0 - np.einsum("ij,ji->i", h_white, np.linalg.pinv(h_white))
@@ -256,6 +309,7 @@ class ParityBudget(_BankBudget):
             scale_variance,
             calibration_samples,
             motion_error,
+            hold_s,
         )
         self.estimator_t = np.linalg.pinv(h_white).T.copy()  # (n, q): x_hat = m_w @ it
         self.h_t = h_white.T.copy()
@@ -357,6 +411,7 @@ class EvidenceBudget(_BankBudget):
         scale_variance: float | None = None,
         calibration_samples: int | None = None,
         motion_error: float = MOTION_ERROR,
+        hold_s: float = HOLD_S,
     ) -> None:
         sensitivity = np.asarray(sensitivity, float)
         super().__init__(
@@ -369,6 +424,7 @@ class EvidenceBudget(_BankBudget):
             scale_variance,
             calibration_samples,
             motion_error,
+            hold_s,
         )
         testable = sensitivity[sensitivity > 0]
         self.motion_prior = float(np.median(testable)) if testable.size else 0.0

@@ -69,7 +69,7 @@ from imufdi_cli.detectors.base import (
     DetectorBase,
     Param,
 )
-from imufdi_cli.detectors.budget import ParityBudget, reference_tau
+from imufdi_cli.detectors.budget import HOLD, ParityBudget, check_hold, reference_tau
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
 from imufdi_cli.errors import (
     ArrayConfigError,
@@ -292,6 +292,7 @@ class GltDetector(DetectorBase):
         "bias": Param("bool", True, "remove per-sensor biases found in the calibration window"),
         "track_bias": TRACK_BIAS,
         "false_alarms": FALSE_ALARMS,
+        "hold": HOLD,
         "lever_arm": Param(
             "bool",
             True,
@@ -321,8 +322,10 @@ class GltDetector(DetectorBase):
         false_alarms: float = 0.0,
         lever_arm: bool = True,
         jitter: bool = True,
+        hold: str = "10s",
     ) -> None:
         self.false_alarms = float(false_alarms)
+        self.hold_s = check_hold("glt", hold, self.false_alarms)
         if self.false_alarms > 0:
             fixed = {
                 "persistence": persistence != 1,
@@ -485,6 +488,7 @@ class GltDetector(DetectorBase):
                 self.reference_tau_s,
                 scale_variance=None if scale_variance is None else float(np.mean(scale_variance)),
                 calibration_samples=values.shape[0],
+                hold_s=self.hold_s,
             )
             budget.fit(values / sigma - bias / sigma)
         return _TypeState(

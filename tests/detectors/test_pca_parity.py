@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
@@ -584,6 +586,26 @@ def test_budget_detects_isolates_and_sizes_a_step_fast(amplitude: float, within_
     assert np.mean(alarmed == array.sensor_ids("gyro").index("imu3.gyro.y")) > 0.99
     assert np.median(gyro.amplitude[gyro.alarm]) == pytest.approx(amplitude * DEG, rel=0.1)
     assert not out["accel"].alarm.any()
+
+
+def test_budget_hold_is_a_time_or_latch_and_only_under_a_budget() -> None:
+    assert make({**BUDGET, "hold": "latch"}).hold_s == math.inf
+    assert make({**BUDGET, "hold": "0s"}).hold_s == 0.0
+    with pytest.raises(DetectorConfigError, match="under a false-alarm budget"):
+        make({"hold": "20s"})
+    with pytest.raises(DetectorConfigError, match=r"hold: '-1s' is not a time"):
+        make({**BUDGET, "hold": "-1s"})
+
+
+def test_a_latched_budget_keeps_a_lasting_step_in_alarm() -> None:
+    # the 0.3 deg/s step for 80 s: latched, one episode to the end of the log
+    spec = "step:imu3.gyro.y,at=20s,amp=0.3deg/s"
+    params = {**BUDGET, "hold": "latch"}
+    _, out, det = faulted_run("pca-parity", params, "paper-table4", (spec,), 35001, 100.0)
+    gyro = out["gyro"]
+    first = first_alarm_after(gyro, 2000 - 200)
+    assert first is not None and gyro.alarm[first:].all()
+    assert det.metadata()["types"]["gyro"]["budget"]["hold_s"] is None
 
 
 def _common_mode_log(seed: int, onset_s: float | None):

@@ -328,6 +328,25 @@ def test_the_references_learn_at_rest_only_and_resume_after_a_hold() -> None:
     assert bank.reference[1] == pytest.approx(2.5, abs=0.3)
 
 
+def test_a_latched_episode_keeps_the_references_until_the_fault_ends() -> None:
+    # the same lasting jump with hold_s = inf (glt.hold=latch): one episode while it lasts,
+    # the reference never learns it, and the episode ends when the jump goes away
+    rng = np.random.default_rng(16)
+    bank = _bank(4, 1.0, tau_s=20.0, hold_s=math.inf)
+    bank.process(rng.standard_normal((1000, 4)))
+    before = bank.reference.copy()
+    z = rng.standard_normal((180 * 100, 4))
+    z[1000:15000, 1] += 2.5
+    out = bank.process(z)
+    alarms = np.flatnonzero(out.alarm)
+    assert 1000 <= alarms[0] < 1100 and bank.episodes == 1
+    assert out.alarm[1100:15000].all()  # no sample of the fault is missed once detected
+    assert 15000 <= alarms[-1] < 15100 and not out.alarm[15100:].any()
+    # frozen through the episode: what it learnt is what 0.2 s of rest before the alarm
+    # and the rest after the end taught it (at most 3 sub-block gates of 3 sd / 20 s)
+    assert abs(bank.reference[1] - before[1]) < 0.5
+
+
 def test_a_fault_beyond_the_clip_stays_one_episode() -> None:
     # a step of 10 sd: the clipped increments of a "fault has ended" test sized at the
     # unclipped mean (10) would be negative while the fault lasts, and release it at once

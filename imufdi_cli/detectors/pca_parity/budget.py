@@ -48,6 +48,7 @@ import numpy as np
 
 from imufdi_cli.detectors.base import DetectionBlock
 from imufdi_cli.detectors.budget import (
+    HOLD_S,
     MOTION_ERROR,
     EvidenceBudget,
     MotionState,
@@ -201,7 +202,9 @@ class PcaBudget:
         track_bias: float | None,
         leak: bool = True,
         sensor_noise: np.ndarray | None = None,
+        hold_s: float = HOLD_S,
     ) -> None:
+        self.hold_s = float(hold_s)
         self.known = None if sensor_noise is None else np.asarray(sensor_noise, float) ** 2
         self.projection = np.asarray(projection, float)
         self.design_matrix = np.asarray(design_matrix, float)
@@ -285,6 +288,7 @@ class PcaBudget:
             self.tau_s,
             scale_variance=scale_variance,
             calibration_samples=measurements.shape[0],
+            hold_s=self.hold_s,
         )
         self.sequential.fit(z, motion if self.learn_leak else None)
 

@@ -20,7 +20,7 @@ from imufdi_cli.detectors.base import (
     calibration_stats,
     parse_sensor_types,
 )
-from imufdi_cli.detectors.budget import configured_noise, reference_tau
+from imufdi_cli.detectors.budget import HOLD, check_hold, configured_noise, reference_tau
 from imufdi_cli.detectors.pca_parity import choices
 from imufdi_cli.detectors.pca_parity.budget import PcaBudget
 from imufdi_cli.detectors.pca_parity.components import (
@@ -90,6 +90,7 @@ class PcaParityDetector(DetectorBase):
         ),
         "types": TYPES,
         "track_bias": TRACK_BIAS,
+        "hold": HOLD,
         "false_alarms": FALSE_ALARMS,
     }
 
@@ -104,8 +105,10 @@ class PcaParityDetector(DetectorBase):
         types: str = "gyro,accel",
         track_bias: float | None = None,
         false_alarms: float = 0.0,
+        hold: str = "10s",
     ) -> None:
         self.false_alarms = float(false_alarms)
+        self.hold_s = check_hold("pca-parity", hold, self.false_alarms)
         if self.false_alarms > 0:
             fixed = {
                 "window": window != 0.2,
@@ -184,6 +187,7 @@ class PcaParityDetector(DetectorBase):
                     self.track_bias,
                     leak=self.leak == "regress",
                     sensor_noise=self._configured_noise(array, sensor_type),
+                    hold_s=self.hold_s,
                 )
                 budget.fit(measurements, self.window_samples)
                 self.budgets[sensor_type] = budget

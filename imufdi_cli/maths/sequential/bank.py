@@ -20,6 +20,7 @@ effective shift ``mu / s_t`` comes into range. With ``W1 = cumsum(u)`` and
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -332,7 +333,10 @@ class CusumBank:
         self.n = n
         self.shifts = np.asarray(design.shifts, float)
         self.state = np.zeros((self.shifts.size, 2, n))  # S per shift, sign, sensor
-        self.hold = max(0, round(design.hold_s * rate_hz))
+        # an infinite hold (latched episodes): frozen until the episode ends
+        self.hold = (
+            sys.maxsize if math.isinf(design.hold_s) else max(0, round(design.hold_s * rate_hz))
+        )
         self.ref = _Reference(n, design, rate_hz, float(calibration_samples), motion)
         # the last `history` rows of u of (1), z' / s^2 and 1 / s^2
         self.history = _History(int(history), n)
