@@ -3,7 +3,8 @@
 Each recording's static stretches (every gyro below 3 deg/s, 1 s trimmed at each end, at
 least 5 s long) are the fault-free data: health is calibrated on the first 10 s of the
 first stretch, then every stretch (the first after those 10 s) is tested from a fresh
-state at ``--false-alarms`` (1/h by default); the alarm runs are counted per sensor type
+state at ``--false-alarms`` (1/h by default); the episodes (alarm runs merged across
+gaps of up to 0.1 s, as ``imufdi report`` merges them) are counted per sensor type
 (docs/algorithms/health.md, "Real MEMS data").
 
 The recordings are not in the repository (github hcarlsso/Self-Calibration-Inertial-
@@ -29,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from imufdi_cli.detectors import make_detector  # noqa: E402
+from imufdi_cli.episodes.episode import find_episodes  # noqa: E402
 from imufdi_cli.mcapio import read_array  # noqa: E402
 from studies.budget_real import prepare  # noqa: E402
 
@@ -36,6 +38,7 @@ STILL_DEG_S = 3.0
 TRIM_S = 1.0
 SHORTEST_S = 5.0
 CALIBRATION_S = 10.0
+MERGE_GAP_S = 0.1
 
 
 def stretches(t: np.ndarray, gyro: np.ndarray) -> list[tuple[int, int]]:
@@ -69,9 +72,9 @@ def run(log: Path, budget: str) -> dict[str, object]:
         out = fresh.process(block.slice(start, b))
         tested += float(t[b - 1] - t[start])
         for sensor_type, decisions in out.items():
-            alarm = decisions.alarm
-            runs = int(np.count_nonzero(alarm & ~np.r_[False, alarm[:-1]]))
-            counts[sensor_type] = counts.get(sensor_type, 0) + runs
+            # alarm runs merged across gaps of up to 0.1 s, as report merges episodes
+            runs = find_episodes(decisions.alarm, merge_gap=round(MERGE_GAP_S * array.rate_hz))
+            counts[sensor_type] = counts.get(sensor_type, 0) + len(runs)
     return {"stretches": len(spans), "tested_s": tested, "episodes": counts}
 
 
