@@ -634,9 +634,7 @@ MIN_BLOCKS = 5
 OUTLIER_BLOCK = 2.0
 
 
-def _difference_scale(
-    d: np.ndarray, valid: np.ndarray, rate_hz: float
-) -> tuple[np.ndarray, float]:
+def _difference_scale(d: np.ndarray, valid: np.ndarray, rate_hz: float) -> tuple[np.ndarray, float]:
     """``sigma_d`` (n,) of the calibration's first differences ``d`` (N, n) and the share
     of the window's degrees of freedom it rests on.
 
