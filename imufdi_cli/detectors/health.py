@@ -311,8 +311,7 @@ class HealthDetector(DetectorBase):
                     f" {sensor_type} differences; at least 10 are needed (use --calibrate"
                     " START:END to choose a longer fault-free window)"
                 )
-            sq = np.where(valid, d, 0.0) ** 2
-            sigma_d = np.sqrt(sq.sum(axis=0) / (2.0 * m))
+            sigma_d, dof_share = _difference_scale(d, valid, self.rate_hz)
             ids = array.sensor_ids(sensor_type)
             if np.any(sigma_d <= 0):
                 bad = ids[int(np.argmin(sigma_d))]
@@ -333,7 +332,7 @@ class HealthDetector(DetectorBase):
                 p = min(p, 0.999)
                 repeat_p[k] = p
                 repeats[k] = max(2, math.ceil(math.log(level) / math.log(p)))
-            dof = _rounded_dof(_successive_dof(int(m.min()) + 1))
+            dof = _rounded_dof(dof_share * _successive_dof(int(m.min()) + 1))
             from imufdi_cli.maths.quantiles import norm
 
             # the null of the variance tests: Gaussian white differences, and the
@@ -624,6 +623,51 @@ class HealthDetector(DetectorBase):
                 for t, m in self.models.items()
             },
         }
+
+
+#: Fewest one-second blocks of differences for leaving blocks out (fewer: all are used).
+MIN_BLOCKS = 5
+#: A block whose mean squared difference exceeds this many times the blocks' median is
+#: left out: for white Gaussian noise a 100-sample block does so with a probability of
+#: about 1e-6 (chi-square of 66 degrees of freedom), a second of motion (differences
+#: several times the noise) always.
+OUTLIER_BLOCK = 2.0
+
+
+def _difference_scale(d: np.ndarray, valid: np.ndarray, rate_hz: float) -> tuple[np.ndarray, float]:
+    """``sigma_d`` (n,) of the calibration's first differences ``d`` (N, n) and the share
+    of the window's degrees of freedom it rests on.
+
+    ``mean(d^2) / 2`` over the window's one-second blocks, leaving out the blocks whose own
+    mean square exceeds :data:`OUTLIER_BLOCK` times the blocks' median: a few seconds of
+    motion inside the window (a quadrotor's attitude changes) inflate the mean of the
+    squares and would make the steady state after them look like a variance drop. The
+    blocks kept are averaged, not their median taken, so the estimate stays unbiased
+    whatever the noise's distribution (a quantised output's many zero differences
+    included). Fewer than :data:`MIN_BLOCKS` blocks: every difference is used."""
+    m = valid.sum(axis=0)
+    sq = np.where(valid, d, 0.0) ** 2
+    size = max(20, round(rate_hz)) if rate_hz > 0 else 20
+    blocks = d.shape[0] // size
+    if blocks < MIN_BLOCKS:
+        return np.sqrt(sq.sum(axis=0) / (2.0 * np.maximum(m, 1))), 1.0
+    counts = valid[: blocks * size].reshape(blocks, size, -1).sum(axis=1)
+    sums = sq[: blocks * size].reshape(blocks, size, -1).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_block = np.where(counts > 0, sums / counts, np.nan)
+        median = np.nanmedian(per_block, axis=0)
+    keep = (per_block <= OUTLIER_BLOCK * median) & (counts > 0)
+    # the rows after the last whole block, and every row of an axis none of whose blocks
+    # qualifies (a constant output: median 0), stay in
+    tail = sq[blocks * size :].sum(axis=0), valid[blocks * size :].sum(axis=0)
+    kept_sums = np.where(keep, sums, 0.0).sum(axis=0) + tail[0]
+    kept_counts = np.where(keep, counts, 0).sum(axis=0) + tail[1]
+    fallback = ~keep.any(axis=0)
+    kept_sums = np.where(fallback, sq.sum(axis=0), kept_sums)
+    kept_counts = np.where(fallback, m, kept_counts)
+    sigma_d = np.sqrt(kept_sums / (2.0 * np.maximum(kept_counts, 1)))
+    share = float(np.min(kept_counts / np.maximum(m, 1))) if m.size else 1.0
+    return sigma_d, share
 
 
 def _successive_dof(n: int) -> float:
