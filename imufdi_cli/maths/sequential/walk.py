@@ -18,8 +18,7 @@ if TYPE_CHECKING:
 class _Feed:
     """The references applied to a span's rows ahead of its sub-chunks: in pieces that end
     on the references' sub-block boundaries while they learn (so that each sub-block's
-    sums are those of one pass), as the sub-chunks need them; ``whole``: to every row of
-    the span at once."""
+    sums are those of one pass), as the sub-chunks need them."""
 
     def __init__(
         self,
@@ -30,7 +29,6 @@ class _Feed:
         samples: int,
         *,
         frozen: bool,
-        whole: bool = False,
     ) -> None:
         self.reference, self.z, self.x, self.factors = reference, z, x, factors
         self.samples, self.frozen = samples, frozen
@@ -38,9 +36,6 @@ class _Feed:
         self.variance = np.empty(z.shape[0])
         self.marks: list[tuple[int, tuple[np.ndarray, ...]]] = []
         self.done = 0
-        self.size = 0
-        if whole:
-            self._apply(z.shape[0])
 
     def _apply(self, hi: int) -> None:
         lo = self.done
