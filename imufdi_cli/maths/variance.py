@@ -58,9 +58,8 @@ import numpy as np
 
 from imufdi_cli.maths.sequential import NO_ISOLATION, NOT_ISOLABLE, Decisions
 from imufdi_cli.maths.sequential.thresholds import (
-    _HERMITE_NODES,
-    _HERMITE_WEIGHTS,
     chain_run_lengths,
+    scale_points,
     threshold_root,
 )
 
@@ -159,18 +158,6 @@ def variance_run_length(
     return _run_lengths(ratio, clip, threshold, (float(scale),), contamination, states)[0]
 
 
-def _scale_points(scale_variance: float) -> tuple[tuple[float, float], ...]:
-    """(evidence standard deviation, weight) of the Gauss-Hermite average over a variance
-    estimate whose relative error has variance ``scale_variance``."""
-    if scale_variance <= 0:
-        return ((1.0, 1.0),)
-    spread = math.sqrt(scale_variance)
-    return tuple(
-        (round(1.0 / math.sqrt(max(0.2, 1.0 + spread * node)), 5), weight)
-        for node, weight in zip(_HERMITE_NODES, _HERMITE_WEIGHTS)
-    )
-
-
 def variance_false_alarm_rate(
     design: VarianceDesign,
     sensors: int,
@@ -186,7 +173,7 @@ def variance_false_alarm_rate(
     beyond the clip."""
     if threshold <= 0:
         return float(sensors * len(design.ratios))
-    points = _scale_points(scale_variance)
+    points = scale_points(scale_variance, 5)
     scales = tuple(scale for scale, _ in points)
     weights = np.array([weight for _, weight in points])
     total = 0.0

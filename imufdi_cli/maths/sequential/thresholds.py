@@ -102,6 +102,21 @@ _HERMITE_NODES = (-math.sqrt(3.0), 0.0, math.sqrt(3.0))
 _HERMITE_WEIGHTS = (1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0)
 
 
+def scale_points(scale_variance: float, digits: int) -> tuple[tuple[float, float], ...]:
+    """(evidence standard deviation, weight) of the Gauss-Hermite average over a variance
+    estimate whose relative error ``sigma_hat^2 / sigma^2 - 1`` has variance
+    ``scale_variance``: the evidence's standard deviation is ``(sigma_hat^2 /
+    sigma^2)^-1/2`` (at least 0.2 under the root), rounded to ``digits`` (the run lengths'
+    cache keys)."""
+    if scale_variance <= 0:
+        return ((1.0, 1.0),)
+    spread = math.sqrt(scale_variance)
+    return tuple(
+        (round(1.0 / math.sqrt(max(0.2, 1.0 + spread * node)), digits), weight)
+        for node, weight in zip(_HERMITE_NODES, _HERMITE_WEIGHTS)
+    )
+
+
 #: Motion scales s over which the union bound is maximised (one octave of the design grid
 #: is enough when the shifts are a geometric grid of ratio 2: the sum is periodic in log s).
 _SCALES = (1.0, 2.0**0.5)
@@ -138,14 +153,7 @@ def false_alarm_rate(
     (Gauss-Hermite quadrature), as for CUSUM charts with estimated parameters (Jones,
     Champ & Rigdon, Technometrics 43, 2001). ``contamination``: the share of samples that
     are outliers (:func:`outlier_share`)."""
-    if scale_variance <= 0:
-        points: tuple[tuple[float, float], ...] = ((1.0, 1.0),)
-    else:
-        spread = math.sqrt(scale_variance)
-        points = tuple(
-            (round(1.0 / math.sqrt(max(0.2, 1.0 + spread * node)), 6), weight)
-            for node, weight in zip(_HERMITE_NODES, _HERMITE_WEIGHTS)
-        )
+    points = scale_points(scale_variance, 6)
     octaves = max(0, math.ceil(math.log2(max(design.shifts) / design.min_shift)))
     worst = 0.0
     for octave in range(octaves + 1):
