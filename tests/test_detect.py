@@ -300,7 +300,7 @@ def test_one_sample_episodes_of_a_per_sample_test_are_explained_by_their_sample(
     assert chosen == [False, False, True, True]  # (gyro and accel builders of each run)
 
 
-def test_glt_loads_scipy_special_only(tmp_path):
+def test_glt_loads_scipy_special_only(tmp_path, fresh_python):
     """``detect -d glt`` imports no scipy package beyond ``scipy.special`` (its thresholds'
     chi-square and F quantiles) and what ``scipy.special`` itself imports (scipy 1.13's
     brings ``scipy.linalg`` and ``scipy.sparse``, 1.17's neither): the noise calibration's
@@ -308,8 +308,6 @@ def test_glt_loads_scipy_special_only(tmp_path):
     without ``scipy.optimize`` (about 0.23 s of CPU), and nothing else pulls in
     ``scipy.linalg``, ``scipy.sparse`` or ``scipy.stats``."""
     import ast
-    import subprocess
-    import sys
     from pathlib import Path
 
     sample = Path(__file__).resolve().parents[1] / "imufdi_cli/sample_logs/paper-table4.mcap"
@@ -324,14 +322,11 @@ def test_glt_loads_scipy_special_only(tmp_path):
         "try:\n    runpy.run_module('imufdi_cli', run_name='__main__')\n"
         "except SystemExit as done:\n    assert done.code in (0, 1, None), done.code\n"
     ) + packages
-    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    done = fresh_python(probe)
+    assert done.returncode == 0, done.stderr
     loaded = set(ast.literal_eval(done.stdout.strip().splitlines()[-1]))
-    alone = subprocess.run(
-        [sys.executable, "-c", "import sys\nimport scipy.special\n" + packages],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
+    alone = fresh_python("import sys\nimport scipy.special\n" + packages)
+    assert alone.returncode == 0, alone.stderr
     special = set(ast.literal_eval(alone.stdout.strip().splitlines()[-1]))
     assert "special" in loaded
     heavy = {"optimize", "linalg", "sparse", "stats", "signal", "fft", "spatial", "integrate"}

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -504,7 +502,7 @@ def test_the_amplitude_median_is_numpys(n: int) -> None:
     assert math.isnan(_median(np.array([])))
 
 
-def test_the_amplitude_median_does_not_import_numpy_ma() -> None:
+def test_the_amplitude_median_does_not_import_numpy_ma(fresh_python) -> None:
     probe = (
         "import sys\n"
         "import numpy as np\n"
@@ -512,5 +510,6 @@ def test_the_amplitude_median_does_not_import_numpy_ma() -> None:
         "_median(np.arange(10.0))\n"
         "print('numpy.ma' in sys.modules)\n"
     )
-    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    done = fresh_python(probe)
+    assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "False"

@@ -12,9 +12,6 @@ to scipy's solver, so the results are equal.
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
@@ -82,7 +79,7 @@ def test_the_noise_calibration_matches_scipys_nnls() -> None:
     assert_allclose(got, np.sqrt(expected), rtol=_tolerance(mixing))
 
 
-def test_a_white_noise_calibration_does_not_import_scipy_optimize() -> None:
+def test_a_white_noise_calibration_does_not_import_scipy_optimize(fresh_python) -> None:
     probe = (
         "import sys\n"
         "import numpy as np\n"
@@ -93,5 +90,6 @@ def test_a_white_noise_calibration_does_not_import_scipy_optimize() -> None:
         "residual_sigma(H, m)\n"
         "print('scipy.optimize' in sys.modules)\n"
     )
-    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    done = fresh_python(probe)
+    assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "False"
