@@ -37,7 +37,7 @@ misalignment errors in motion, the wander of real chips) the level does not hold
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from functools import lru_cache
 from typing import Any
 
@@ -196,6 +196,21 @@ def ap_episode_rate(
     return total
 
 
+def _smallest_scale(too_small: Callable[[float], bool], low: float, high: float) -> float:
+    """The scale at the bisected boundary of ``too_small`` (a predicate on log s) between
+    ``low`` (too small) and ``high`` (not), to 1e-5 in log s: the upper end, so the
+    scale returned is never one the predicate refuses."""
+    for _ in range(60):
+        middle = 0.5 * (low + high)
+        if too_small(middle):
+            low = middle
+        else:
+            high = middle
+        if high - low < 1e-5:
+            break
+    return math.exp(high)
+
+
 def ap_limit_scale(
     variances: np.ndarray,
     weights: np.ndarray,
@@ -245,15 +260,7 @@ def ap_limit_scale(
         high += 1.0
     else:  # outliers alone exceed the budget: the largest scale tried
         return math.exp(high)
-    for _ in range(60):
-        middle = 0.5 * (low + high)
-        if gap(middle) > 0:
-            low = middle
-        else:
-            high = middle
-        if high - low < 1e-5:
-            break
-    return math.exp(high)
+    return _smallest_scale(lambda log_scale: gap(log_scale) > 0, low, high)
 
 
 # --- px4-selector ----------------------------------------------------------------------
@@ -458,16 +465,14 @@ def px4_scale(
     high = low + 0.5
     while log_total(math.exp(high)) > target or permanent(math.exp(high)) > PERMANENT_SHARE:
         high += 0.5
-    for _ in range(60):
-        middle = 0.5 * (low + high)
-        scale = math.exp(middle)
-        if log_total(scale) > target or permanent(scale) > PERMANENT_SHARE:
-            low = middle
-        else:
-            high = middle
-        if high - low < 1e-5:
-            break
-    return math.exp(high)
+    return _smallest_scale(
+        lambda log_scale: (
+            log_total(math.exp(log_scale)) > target
+            or permanent(math.exp(log_scale)) > PERMANENT_SHARE
+        ),
+        low,
+        high,
+    )
 
 
 # --- what the model assumes, checked on the data ---------------------------------------
