@@ -447,6 +447,9 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
     has_amplitudes = "amplitudes" in codec.layout.leaves
     paths = [p for p, _ in scalars.values()] + ["scores", "isolated_set"]
     paths += ["amplitudes"] if has_amplitudes else []
+    uniform = codec.uniform_rows(batch, paths)
+    if uniform is not None:
+        return _decode_uniform(*uniform, scalars)
     little, positions, sizes = codec.positions(batch, paths)
     raw = {
         key: codec.read(batch, little, positions[path], code, 1)[:, 0]
@@ -483,6 +486,56 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
         isolated_set = codec.read(batch, little, positions["isolated_set"], "u1", width) != 0
     out["isolated_set"] = isolated_set
     out["amplitudes"] = _amplitudes(batch, codec, little, positions, sizes, out, width)
+    return out
+
+
+def _decode_uniform(
+    rows: np.ndarray,
+    at: dict[str, int],
+    sizes: dict[str, int],
+    scalars: dict[str, tuple[str, str]],
+) -> dict[str, np.ndarray]:
+    """:func:`_decode_status` of messages that all have their fields at the same offsets
+    (:meth:`~imufdi_cli.mcapio.cdr.CdrCodec.uniform_rows`: the same length, little-endian,
+    the same frame id length and sequence counts; what ``detect`` writes): each field is
+    one strided copy out of the (N, L) payload bytes ``rows``, at its offset ``at``. The
+    same arrays as the general path, every one a copy (``rows`` may view a buffer that
+    is reused)."""
+    n = rows.shape[0]
+
+    def column(path: str, code: str, count: int = 1) -> np.ndarray:
+        width = int(np.dtype(code).itemsize) * count
+        return rows[:, at[path] : at[path] + width].view("<" + code)
+
+    raw = {key: column(path, code)[:, 0] for key, (path, code) in scalars.items()}
+    out: dict[str, np.ndarray] = {
+        "t_ns": raw["sec"].astype(np.int64) * NS_PER_S + raw["nanosec"].astype(np.int64),
+        "statistic": raw["statistic"].astype(np.float64),
+        "threshold": raw["threshold"].astype(np.float64),
+        "alarm": raw["alarm"] != 0,
+        "isolated": raw["isolated"].astype(np.int32),
+        "amplitude": raw["amplitude"].astype(np.float64),
+    }
+    if "decided_sec" in raw:
+        out["decided_ns"] = raw["decided_sec"].astype(np.int64) * NS_PER_S + raw[
+            "decided_nanosec"
+        ].astype(np.int64)
+    width = sizes["scores"]
+    if width:
+        out["scores"] = column("scores", "f8", width).astype(np.float64)
+    else:
+        out["scores"] = np.full((n, 0), np.nan)
+    if width and sizes["isolated_set"] == width:
+        out["isolated_set"] = column("isolated_set", "u1", width) != 0
+    else:
+        out["isolated_set"] = np.zeros((n, width), dtype=bool)
+    amplitudes = np.full((n, width), np.nan)
+    isolated = out["isolated"]
+    one = np.flatnonzero((isolated >= 0) & (isolated < width))
+    amplitudes[one, isolated[one]] = out["amplitude"][one]
+    if width and sizes.get("amplitudes") == width:
+        amplitudes = column("amplitudes", "f8", width).astype(np.float64)
+    out["amplitudes"] = amplitudes
     return out
 
 
