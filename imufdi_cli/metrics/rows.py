@@ -71,9 +71,18 @@ def judged_isolation(
     judged = has_iso.copy()
     if scores is not None and n_sensors:
         sc = np.asarray(scores, dtype=np.float64).reshape(k, n_sensors)
-        finite = np.isfinite(sc).any(axis=1)
-        best = np.argmax(np.where(np.isfinite(sc), sc, -np.inf), axis=1)
-        use = ~has_iso & (isolated != -2) & finite
+        # the first largest score: argmax of the scores themselves where that score is
+        # finite (then no NaN or +inf comes before it, and -inf never wins); rows whose
+        # argmax lands on NaN or +inf (or -inf: nothing finite) take the largest finite
+        # score, if any, by the masked argmax (one pass over the scores, not three)
+        best = np.argmax(sc, axis=1)
+        use = ~has_iso & (isolated != -2)
+        odd = np.flatnonzero(use & ~np.isfinite(sc[np.arange(k), best]))
+        if odd.size:
+            part = sc[odd]
+            masked = np.where(np.isfinite(part), part, -np.inf)
+            best[odd] = np.argmax(masked, axis=1)
+            use[odd] = masked[np.arange(odd.size), best[odd]] > -np.inf
         column = np.where(use, best, column)
         judged |= use
     return judged, column
