@@ -246,10 +246,10 @@ def reference_delays(
     faulty sensor (``sensitivity``: z units per SI unit, whitened parity noise and the
     long-run factor included). None without a budget, for other fault models, or without
     the fault's size."""
-    from imufdi_cli.maths.sequential import lorden_delay_samples, lorden_drift_samples
-
     if budget is None or not rate_hz:
         return
+    from imufdi_cli.maths.sequential import lorden_delay_samples, lorden_drift_samples
+
     meta, sensor_ids = budget
     try:
         per_hour = float(meta["false_alarms_per_hour"])
