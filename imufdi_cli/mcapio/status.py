@@ -428,7 +428,9 @@ def _is_status(channel: ChannelInfo) -> bool:
     )
 
 
-def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.ndarray]:
+def _decode_status(
+    batch: MessageBatch, channel: ChannelInfo, amplitude_columns: bool = True
+) -> dict[str, np.ndarray]:
     assert channel.schema is not None
     codec = codec_for(channel.schema.name, channel.schema.data)
     stamp = "header.stamp" if "header.stamp.sec" in codec.layout.leaves else "stamp"
@@ -449,7 +451,7 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
     paths += ["amplitudes"] if has_amplitudes else []
     uniform = codec.uniform_rows(batch, paths)
     if uniform is not None:
-        return _decode_uniform(*uniform, scalars)
+        return _decode_uniform(*uniform, scalars, amplitude_columns)
     little, positions, sizes = codec.positions(batch, paths)
     raw = {
         key: codec.read(batch, little, positions[path], code, 1)[:, 0]
@@ -494,13 +496,15 @@ def _decode_uniform(
     at: dict[str, int],
     sizes: dict[str, int],
     scalars: dict[str, tuple[str, str]],
+    amplitude_columns: bool = True,
 ) -> dict[str, np.ndarray]:
     """:func:`_decode_status` of messages that all have their fields at the same offsets
     (:meth:`~imufdi_cli.mcapio.cdr.CdrCodec.uniform_rows`: the same length, little-endian,
     the same frame id length and sequence counts; what ``detect`` writes): each field is
     one strided copy out of the (N, L) payload bytes ``rows``, at its offset ``at``. The
     same arrays as the general path, every one a copy (``rows`` may view a buffer that
-    is reused)."""
+    is reused); without ``amplitude_columns``, no ``amplitudes`` when the messages carry
+    none per sensor (:func:`iter_status`)."""
     n = rows.shape[0]
 
     def column(path: str, code: str, count: int = 1) -> np.ndarray:
@@ -529,13 +533,14 @@ def _decode_uniform(
         out["isolated_set"] = column("isolated_set", "u1", width) != 0
     else:
         out["isolated_set"] = np.zeros((n, width), dtype=bool)
-    amplitudes = np.full((n, width), np.nan)
-    isolated = out["isolated"]
-    one = np.flatnonzero((isolated >= 0) & (isolated < width))
-    amplitudes[one, isolated[one]] = out["amplitude"][one]
     if width and sizes.get("amplitudes") == width:
-        amplitudes = column("amplitudes", "f8", width).astype(np.float64)
-    out["amplitudes"] = amplitudes
+        out["amplitudes"] = column("amplitudes", "f8", width).astype(np.float64)
+    elif amplitude_columns:
+        amplitudes = np.full((n, width), np.nan)
+        isolated = out["isolated"]
+        one = np.flatnonzero((isolated >= 0) & (isolated < width))
+        amplitudes[one, isolated[one]] = out["amplitude"][one]
+        out["amplitudes"] = amplitudes
     return out
 
 
@@ -581,6 +586,7 @@ def iter_status(
     *,
     others: Callable[[MessageBatch, ChannelInfo], None] | None = None,
     others_wanted: Callable[[ChannelInfo], bool] | None = None,
+    amplitude_columns: bool = True,
 ) -> Iterator[tuple[str, str, list[str], dict[str, np.ndarray]]]:
     """Stream the status channels batch by batch (memory: one chunk). ``others`` is called
     with the messages of every other channel, batch by batch, in the same pass.
@@ -597,7 +603,11 @@ def iter_status(
         ``rows`` maps ``t_ns``, ``statistic``, ``threshold``, ``alarm``, ``isolated``,
         ``amplitude``, ``scores`` (k, n), ``isolated_set`` (k, n), ``amplitudes`` (k, n)
         and, when the channel carries it, ``decided_ns`` to the next k rows of that
-        channel, in file order.
+        channel, in file order. With ``amplitude_columns`` False, ``amplitudes`` is
+        left out of rows whose messages carry no per-sensor amplitudes (the
+        single-isolation detectors'): ``amplitude`` on the ``isolated`` column is the
+        whole of it (:meth:`~imufdi_cli.metrics.MetricsAccumulator.update` takes
+        either), and the (k, n) array of NaN is not made.
     """
     if others is None or others_wanted is not None:
 
@@ -623,7 +633,7 @@ def iter_status(
                 det,
                 channel.topic.split("/")[3],
                 _channel_ids(channel),
-                _decode_status(sub, channel),
+                _decode_status(sub, channel, amplitude_columns),
             )
 
 

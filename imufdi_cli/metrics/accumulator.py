@@ -216,6 +216,7 @@ class MetricsAccumulator:
         faulty: np.ndarray | None = None,
         amplitudes: np.ndarray | None = None,
         scored: np.ndarray | None = None,
+        amplitude: np.ndarray | None = None,
     ) -> None:
         """Add k consecutive rows.
 
@@ -234,6 +235,11 @@ class MetricsAccumulator:
         amplitudes : (k, n) float64, optional
             Estimated amplitude of every sensor, SI, NaN where none (the status'
             ``amplitudes``), for the per-fault :class:`AmplitudeFigure`
+        amplitude : (k,) float64, optional
+            Without ``amplitudes``: the estimated amplitude on the isolated sensor of
+            each row (the status' ``amplitude``), the same as ``amplitudes`` holding it
+            on the column of ``isolated`` and NaN elsewhere (what a single-isolation
+            detector records), without making that (k, n) array
         scored : (k,) bool, optional
             The rows scored (default: all). The others (samples ``detect`` excluded as
             clipped or invalid, rows outside ``report --start/--end``) count in no figure,
@@ -282,6 +288,8 @@ class MetricsAccumulator:
                 isolated_set = np.asarray(isolated_set, dtype=bool).reshape(-1, n_s)[rows]
             if amplitudes is not None:
                 amplitudes = np.asarray(amplitudes, dtype=np.float64).reshape(-1, n_s)[rows]
+            elif amplitude is not None:
+                amplitude = np.asarray(amplitude, dtype=np.float64).reshape(-1)[rows]
             if bins is not None:
                 bins, judged, column = bins[rows], judged[rows], column[rows]  # type: ignore[index]
         evaluated = ~in_cal
@@ -326,13 +334,20 @@ class MetricsAccumulator:
         else:
             iso_set = np.asarray(isolated_set, dtype=bool).reshape(k, n_s)
         in_faults = [self._update_fault(st, t_ns, decided, alarm, iso_set) for st in self.states]
-        if amplitudes is not None:
-            values = np.asarray(amplitudes, dtype=np.float64).reshape(k, n_s)
+        if amplitudes is not None or amplitude is not None:
+            if amplitudes is not None:
+                values = np.asarray(amplitudes, dtype=np.float64).reshape(k, n_s)
+            else:
+                one = np.asarray(amplitude, dtype=np.float64).reshape(k)
             for st, inside in zip(self.states, in_faults):
                 for sensor, track in st.amplitudes.items():
-                    use = inside & alarm & iso_set[:, sensor] & np.isfinite(values[:, sensor])
+                    if amplitudes is not None:
+                        estimate = values[:, sensor]
+                    else:
+                        estimate = np.where(isolated == sensor, one, np.nan)
+                    use = inside & alarm & iso_set[:, sensor] & np.isfinite(estimate)
                     t_s = (t_ns[use] - st.window.start_ns).astype(np.float64) * 1e-9
-                    track.add(t_s, values[use, sensor])
+                    track.add(t_s, estimate[use])
 
         if sweeping and self.sweep is not None:
             assert bins is not None and judged is not None and column is not None

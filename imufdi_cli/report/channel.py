@@ -168,8 +168,9 @@ class ChannelScore:
             statistic=rows["statistic"],
             threshold=rows["threshold"],
             scores=rows["scores"],
-            amplitudes=rows["amplitudes"],
+            amplitudes=rows.get("amplitudes"),
             scored=keep,
+            amplitude=rows.get("amplitude"),
         )
         if self.series is not None:
             from imufdi_cli.report.scan import SERIES_FIELDS
