@@ -383,6 +383,11 @@ class CdrCodec:
         self.root = normalize_type(schema_name, schema_name.split("/")[0])
         self.layout = CdrLayout.compile(self.defs, self.root, limits)
         self._decoders: dict[ReaderLimits, MessageDecoder] = {}
+        #: the last uniform layout met per (payload length, paths): the (offset, value)
+        #: of the counts its walk read, the field offsets and sizes (:meth:`uniform_rows`)
+        self._uniform: dict[
+            tuple[int, tuple[str, ...]], tuple[list[tuple[int, int]], dict[str, int], dict[str, int]]
+        ] = {}
 
     def decoder(self, limits: ReaderLimits | None = None) -> MessageDecoder:
         """The per-message decoder of this schema (compiled once per ``limits``)."""
@@ -467,22 +472,35 @@ class CdrCodec:
         # (2- and 4-byte fields compared as one integer each, not byte by byte)
         if not bool(np.all(rows[:, 0:2].view("<u2") == 0x0100)):
             return None  # big-endian or malformed encapsulations: the general walk
+        key = (size, tuple(paths))
+        known = self._uniform.get(key)
+        if known is not None and all(
+            bool(np.all(rows[:, rel : rel + 4].view("<u4") == value)) for rel, value in known[0]
+        ):
+            # the counts the last walk read, where it read them: the same walk
+            return rows, known[1], known[2]
         counts_at: dict[str, np.ndarray] = {}
         first = batch.select(slice(0, 1))
         positions, sizes = self.layout.locate(
             first.data, first.offset, first.length, paths, counts_at=counts_at
         )
         start = int(first.offset[0])
+        checks = []
         for at in counts_at.values():
             rel = int(at[0]) - start
             counts = rows[:, rel : rel + 4].view("<u4")
             if not bool(np.all(counts == counts[0, 0])):
                 return None
-        return (
-            rows,
-            {path: int(value[0]) - start for path, value in positions.items()},
-            {path: int(value[0]) for path, value in sizes.items()},
-        )
+            checks.append((rel, int(counts[0, 0])))
+        offsets = {path: int(value[0]) - start for path, value in positions.items()}
+        lengths = {path: int(value[0]) for path, value in sizes.items()}
+        # (the walk reads the first count at a fixed place, and each later one where
+        # the counts before it put it: messages of this length with these counts at
+        # these places have every field where this walk found it)
+        if len(self._uniform) >= 64:  # (bounded whatever lengths a file holds)
+            self._uniform.clear()
+        self._uniform[key] = (checks, offsets, lengths)
+        return rows, offsets, lengths
 
     def read(
         self, batch: MessageBatch, little: np.ndarray, position: np.ndarray, code: str, count: int
