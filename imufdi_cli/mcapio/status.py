@@ -429,7 +429,10 @@ def _is_status(channel: ChannelInfo) -> bool:
 
 
 def _decode_status(
-    batch: MessageBatch, channel: ChannelInfo, amplitude_columns: bool = True
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    amplitude_columns: bool = True,
+    score_columns: bool = True,
 ) -> dict[str, np.ndarray]:
     assert channel.schema is not None
     codec = codec_for(channel.schema.name, channel.schema.data)
@@ -451,7 +454,7 @@ def _decode_status(
     paths += ["amplitudes"] if has_amplitudes else []
     uniform = codec.uniform_rows(batch, paths)
     if uniform is not None:
-        return _decode_uniform(*uniform, scalars, amplitude_columns)
+        return _decode_uniform(*uniform, scalars, amplitude_columns, score_columns)
     little, positions, sizes = codec.positions(batch, paths)
     raw = {
         key: codec.read(batch, little, positions[path], code, 1)[:, 0]
@@ -497,6 +500,7 @@ def _decode_uniform(
     sizes: dict[str, int],
     scalars: dict[str, tuple[str, str]],
     amplitude_columns: bool = True,
+    score_columns: bool = True,
 ) -> dict[str, np.ndarray]:
     """:func:`_decode_status` of messages that all have their fields at the same offsets
     (:meth:`~imufdi_cli.mcapio.cdr.CdrCodec.uniform_rows`: the same length, little-endian,
@@ -504,7 +508,8 @@ def _decode_uniform(
     one strided copy out of the (N, L) payload bytes ``rows``, at its offset ``at``. The
     same arrays as the general path, every one a copy (``rows`` may view a buffer that
     is reused); without ``amplitude_columns``, no ``amplitudes`` when the messages carry
-    none per sensor (:func:`iter_status`)."""
+    none per sensor, without ``score_columns`` ``best_score`` instead of ``scores``
+    (:func:`iter_status`)."""
     n = rows.shape[0]
 
     def column(path: str, code: str, count: int = 1) -> np.ndarray:
@@ -525,7 +530,13 @@ def _decode_uniform(
             "decided_nanosec"
         ].astype(np.int64)
     width = sizes["scores"]
-    if width:
+    if not score_columns:
+        from imufdi_cli.sweep import best_columns
+
+        # read in place: the (k, n) scores are not copied
+        scores = column("scores", "f8", width) if width else np.full((n, 0), np.nan)
+        out["best_score"] = best_columns(scores)
+    elif width:
         out["scores"] = column("scores", "f8", width).astype(np.float64)
     else:
         out["scores"] = np.full((n, 0), np.nan)
@@ -587,6 +598,7 @@ def iter_status(
     others: Callable[[MessageBatch, ChannelInfo], None] | None = None,
     others_wanted: Callable[[ChannelInfo], bool] | None = None,
     amplitude_columns: bool = True,
+    score_columns: bool = True,
 ) -> Iterator[tuple[str, str, list[str], dict[str, np.ndarray]]]:
     """Stream the status channels batch by batch (memory: one chunk). ``others`` is called
     with the messages of every other channel, batch by batch, in the same pass.
@@ -607,7 +619,12 @@ def iter_status(
         left out of rows whose messages carry no per-sensor amplitudes (the
         single-isolation detectors'): ``amplitude`` on the ``isolated`` column is the
         whole of it (:meth:`~imufdi_cli.metrics.MetricsAccumulator.update` takes
-        either), and the (k, n) array of NaN is not made.
+        either), and the (k, n) array of NaN is not made. With ``score_columns`` False,
+        rows of channels laid out alike (what ``detect`` writes) carry ``best_score``
+        (k,) int64 instead of ``scores``: the column of each row's first largest finite
+        score, -1 where none is finite (:func:`imufdi_cli.sweep.best_columns`, all the
+        scoring reads of the scores), found in the payloads without copying the (k, n)
+        scores out; other rows still carry ``scores``.
     """
     if others is None or others_wanted is not None:
 
@@ -633,7 +650,7 @@ def iter_status(
                 det,
                 channel.topic.split("/")[3],
                 _channel_ids(channel),
-                _decode_status(sub, channel, amplitude_columns),
+                _decode_status(sub, channel, amplitude_columns, score_columns),
             )
 
 

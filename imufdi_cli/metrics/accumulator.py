@@ -235,6 +235,7 @@ class MetricsAccumulator:
         amplitudes: np.ndarray | None = None,
         scored: np.ndarray | None = None,
         amplitude: np.ndarray | None = None,
+        best_score: np.ndarray | None = None,
     ) -> None:
         """Add k consecutive rows.
 
@@ -258,6 +259,10 @@ class MetricsAccumulator:
             each row (the status' ``amplitude``), the same as ``amplitudes`` holding it
             on the column of ``isolated`` and NaN elsewhere (what a single-isolation
             detector records), without making that (k, n) array
+        best_score : (k,) int64, optional
+            In place of ``scores``: the column of each row's first largest finite score,
+            -1 where none is finite (:func:`imufdi_cli.sweep.best_columns`), all the
+            sweeps read of the scores
         scored : (k,) bool, optional
             The rows scored (default: all). The others (samples ``detect`` excluded as
             clipped or invalid, rows outside ``report --start/--end``) count in no figure,
@@ -287,7 +292,7 @@ class MetricsAccumulator:
             from imufdi_cli.sweep import ratio_bins
 
             bins = ratio_bins(statistic, threshold)  # type: ignore[arg-type]
-            judged, column = judged_isolation(isolated, scores, n_s)
+            judged, column = judged_isolation(isolated, scores, n_s, best_score)
         eligible = keep & ~any_fault & ~in_cal
         if self.episodes is not None:
             self.episodes.update(alarm, isolated, eligible)

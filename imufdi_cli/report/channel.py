@@ -167,10 +167,11 @@ class ChannelScore:
             isolated_set=rows["isolated_set"],
             statistic=rows["statistic"],
             threshold=rows["threshold"],
-            scores=rows["scores"],
+            scores=rows.get("scores"),
             amplitudes=rows.get("amplitudes"),
             scored=keep,
             amplitude=rows.get("amplitude"),
+            best_score=rows.get("best_score"),
         )
         if self.series is not None:
             from imufdi_cli.report.scan import SERIES_FIELDS

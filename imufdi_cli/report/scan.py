@@ -189,7 +189,11 @@ def build_report(
             # only the chunks of the status and event channels are read (the IMU chunks,
             # most of the file, are stepped over by the summary's chunk index)
             status = iter_status(
-                src, others=episodes.batch, others_wanted=episodes.wants, amplitude_columns=False
+                src,
+                others=episodes.batch,
+                others_wanted=episodes.wants,
+                amplitude_columns=False,
+                score_columns=keep_series,  # (the plots draw the scores)
             )
             for detector, sensor_type, ids, rows in status:
                 if rows["t_ns"].size:
