@@ -386,7 +386,8 @@ class CdrCodec:
         #: the last uniform layout met per (payload length, paths): the (offset, value)
         #: of the counts its walk read, the field offsets and sizes (:meth:`uniform_rows`)
         self._uniform: dict[
-            tuple[int, tuple[str, ...]], tuple[list[tuple[int, int]], dict[str, int], dict[str, int]]
+            tuple[int, tuple[str, ...]],
+            tuple[list[tuple[int, int]], dict[str, int], dict[str, int]],
         ] = {}
 
     def decoder(self, limits: ReaderLimits | None = None) -> MessageDecoder:
