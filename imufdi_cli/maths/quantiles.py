@@ -1,7 +1,7 @@
-"""Normal, chi-square, F and gamma distribution functions without ``scipy.stats``.
+"""Normal, chi-square, F, gamma and t distribution functions without ``scipy.stats``.
 
 The detectors' thresholds, the calibration's noise checks and the episode intervals need a
-handful of tail probabilities and quantiles of four laws. ``scipy.stats`` gives them, but
+handful of tail probabilities and quantiles of five laws. ``scipy.stats`` gives them, but
 its import costs about 0.8 s of CPU (it pulls in ``scipy.linalg``, ``scipy.optimize`` and
 ``scipy.sparse``), paid by every ``imufdi detect`` for a few numbers, and its generic
 ``rv_continuous`` wrapper adds tens of microseconds a call. The laws are closed forms of
@@ -15,11 +15,13 @@ documented special functions (Abramowitz & Stegun 26.2, 26.4, 26.6)::
            ppf d y / (n (1 - y)), y = I^-1_q(n/2, d/2)     isf the same at 1 - q
     gamma  cdf gammainc(a, x)          sf gammaincc(a, x)
            ppf P^-1(a, q)              isf Q^-1(a, q)
+    t      cdf stdtr(k, x)             sf stdtr(k, -x)
+           ppf -+sqrt(F quantile(1, k) at upper tail 2 min(q, 1 - q))    isf ppf(1 - q)
 
 The distribution functions and the normal quantiles are ``scipy.special``'s compiled
-ufuncs (``ndtr``, ``chdtr``, ``fdtr``, ``gammainc`` families), imported at the first call,
+ufuncs (``ndtr``, ``chdtr``, ``fdtr``, ``gammainc``, ``stdtr`` families), imported at the first call,
 never on import of this module: ``imufdi --help`` and ``imufdi info`` do not load it. The
-chi-square, F and gamma quantiles, which are what the detectors' thresholds need, are
+chi-square, F, gamma and t quantiles, which are what the detectors' thresholds need, are
 :mod:`~imufdi_cli.maths.incomplete`'s inverses of the incomplete gamma and beta
 functions, in pure Python (importing ``scipy.special`` for them would cost 0.27 s of CPU,
 a fifth of ``imufdi detect -d glt`` on a 10-minute log), element by element (about
@@ -110,6 +112,18 @@ def _f_quantile(lower: float, upper: float, dfn: float, dfd: float) -> float:
         return float(_special().fdtri(dfn, dfd, lower))
     y, w = incomplete.beta_inverse(dfn / 2.0, dfd / 2.0, lower, upper)
     return dfd * y / (dfn * w) if w > 0.0 else math.inf
+
+
+def _t_quantile(lower: float, upper: float, dof: float) -> float:
+    """The t quantile with lower tail ``lower``: ``+-sqrt`` of the F(1, dof) quantile whose
+    upper tail is twice the smaller of ``lower`` and ``upper`` (exact in floating point)."""
+    if not _valid(lower, dof):
+        return math.nan
+    if lower == upper:
+        return 0.0
+    two_tails = 2.0 * min(lower, upper)
+    size = math.sqrt(_f_quantile(1.0 - two_tails, two_tails, 1.0, dof))
+    return size if lower > upper else -size
 
 
 class _Law:
@@ -203,6 +217,23 @@ class _F(_Law):
         return _elementwise(_f_quantile, q, shapes[0], shapes[1], upper=True)
 
 
+class _T(_Law):
+    """Student's t law with ``df`` degrees of freedom (> 0): ``cdf(x, df)``, ``sf``,
+    ``ppf(q, df)``, ``isf``; its quantiles from F(1, df), ``t^2 ~ F(1, df)`` (A&S 26.7.1)."""
+
+    def _cdf(self, x: Any, *shapes: Any) -> Any:
+        return _special().stdtr(shapes[0], x)
+
+    def _sf(self, x: Any, *shapes: Any) -> Any:
+        return _special().stdtr(shapes[0], -np.asarray(x))
+
+    def _ppf(self, q: Any, *shapes: Any) -> Any:
+        return _elementwise(_t_quantile, q, shapes[0], upper=False)
+
+    def _isf(self, q: Any, *shapes: Any) -> Any:
+        return _elementwise(_t_quantile, q, shapes[0], upper=True)
+
+
 class _Gamma(_Law):
     """The gamma law with shape ``a`` (> 0): ``cdf(x, a)``, ``sf``, ``ppf(q, a)``, ``isf``
     (mean ``a * scale``); support [0, inf)."""
@@ -228,5 +259,7 @@ chi2 = _Chi2()
 f = _F()
 #: the gamma law
 gamma = _Gamma()
+#: Student's t law
+t = _T()
 
-__all__ = ["chi2", "f", "gamma", "norm"]
+__all__ = ["chi2", "f", "gamma", "norm", "t"]

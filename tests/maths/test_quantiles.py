@@ -1,4 +1,4 @@
-"""imufdi_cli.maths.quantiles: the normal, chi-square, F and gamma laws.
+"""imufdi_cli.maths.quantiles: the normal, chi-square, F, gamma and t laws.
 
 scipy.stats is the independent oracle here, imported at first use through the session
 fixture ``scipy_stats`` (tests/conftest.py), so that only the worker running these tests
@@ -10,7 +10,7 @@ Tolerance of the comparisons with scipy.stats, ``rtol = 1e-12``:
   tolerance leaves room for a scipy release that computes the standardisation
   ``(x - loc) / scale`` or a complement ``1 - q`` in another order (one ulp of the
   argument, times the function's condition number on these grids: below 1e-13);
-- the chi-square, F and gamma quantiles are this project's own (maths/incomplete.py),
+- the chi-square, F, gamma and t quantiles are this project's own (maths/incomplete.py),
   within 2e-13 of scipy's on these grids (tests/maths/test_incomplete.py bounds the
   difference over wider ones);
 and none for a wrong law, tail or degree-of-freedom convention (those are off by more
@@ -21,7 +21,10 @@ than 1e-3). Two exceptions, where scipy's F quantiles are not accurate:
   symmetry (A&S 26.6.3), which scipy computes without that complement;
 - at ``q = 1e-300`` scipy's ``f.ppf`` returns values near the smallest normal float where
   the quantile underflows: that level is checked against the F law's closed forms with
-  two numerator degrees of freedom instead.
+  two numerator degrees of freedom instead. There scipy's ``t.ppf`` has the wrong sign
+  (``+inf`` at 5 degrees of freedom, where the quantile is -1.6e60) and ours, the root of
+  an F quantile, is infinite where that square passes the float range (below 2 degrees
+  of freedom): the level is left out for t.
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ LOC_SCALE = [(0.0, 1.0), (0.5, 2.0)]
 
 FUNCTIONS = [("norm", 0, method) for method in ("pdf", "cdf", "sf", "ppf", "isf")] + [
     (name, n, method)
-    for name, n in (("chi2", 1), ("f", 2), ("gamma", 1))
+    for name, n in (("chi2", 1), ("f", 2), ("gamma", 1), ("t", 1))
     for method in ("cdf", "sf", "ppf", "isf")
 ]
 
@@ -67,8 +70,8 @@ def test_every_function_agrees_with_scipy_stats_over_a_grid(
             with np.errstate(divide="ignore", over="ignore"):  # 1/0 and 1/tiny: inf
                 return loc + scale / scipy_stats.f.ppf(q, d, n)
 
-    # scipy's F quantiles at the 1e-300 tail are not accurate (module docstring)
-    compared = (values != 1e-300) if name == "f" and method in ("ppf", "isf") else ...
+    # scipy's F and t quantiles at the 1e-300 tail are not accurate (module docstring)
+    compared = (values != 1e-300) if name in ("f", "t") and method in ("ppf", "isf") else ...
     for loc, scale in LOC_SCALE:
         got = ours(x, *shapes, loc=loc, scale=scale)
         want = theirs(x, *shapes, loc=loc, scale=scale)
@@ -155,6 +158,14 @@ def test_known_values() -> None:
     assert quantiles.gamma.ppf(0.5, 1, scale=3.0) == pytest.approx(3 * np.log(2), rel=1e-14)
     assert quantiles.norm.pdf(0.0) == pytest.approx(1 / np.sqrt(2 * np.pi), rel=1e-15)
     assert quantiles.norm.sf(1.0, loc=1.0, scale=5.0) == 0.5
+    # t: the Cauchy law at 1 dof, tan(pi (q - 1/2)) = -1 / tan(pi q) (the second form for
+    # a small q, where q - 1/2 would round); t_0.975(10) = 2.228139 (tables)
+    for q in (1e-12, 0.01, 0.3, 0.5, 0.9, 0.999):
+        cauchy = -1 / np.tan(np.pi * q) if q < 0.25 else np.tan(np.pi * (q - 0.5))
+        assert quantiles.t.ppf(q, 1.0) == pytest.approx(cauchy, rel=1e-12)
+    assert quantiles.t.ppf(0.975, 10) == pytest.approx(2.228138851986274, rel=1e-13)
+    # (1 - 0.975 is 0.025 to 1e-15: the two differ by that much)
+    assert quantiles.t.isf(0.025, 10) == pytest.approx(quantiles.t.ppf(0.975, 10), rel=1e-14)
 
 
 def test_importing_it_imports_no_scipy_and_using_it_not_scipy_stats(fresh_python) -> None:
