@@ -133,6 +133,20 @@ def log_gamma_tails(a: float, t: float) -> tuple[float, float]:
     return math.log1p(-math.exp(log_q)), log_q
 
 
+def _log_gamma_shift(a: float, b: float) -> float:
+    """``log Gamma(a + b) - log Gamma(b)`` for ``b >= 10``, by Stirling's series:
+    ``a log(a + b) + (b - 1/2) log(1 + a/b) - a`` plus the two series' difference (terms
+    of order ``a``, where the two log-gammas are of order ``b log b``)."""
+    s = a + b
+    return (
+        a * math.log(s)
+        + (b - 0.5) * math.log1p(a / b)
+        - a
+        + _stirling_correction(s)
+        - _stirling_correction(b)
+    )
+
+
 def _log_beta_front(a: float, b: float, t: float, y: float, w: float) -> float:
     """``log(y^a (1 - y)^b / B(a, b))`` at ``y = e^t``, ``w = 1 - y``."""
     # each of y and w is accurate to its own rounding; log(w) by log1p(-y) for a small y
@@ -156,26 +170,9 @@ def _log_beta_front(a: float, b: float, t: float, y: float, w: float) -> float:
             - corrections
         )
     if b >= _STIRLING:
-        # log Gamma(a + b) - log Gamma(b) = a log(a + b) + (b - 1/2) log(1 + a/b) - a + ...
-        s = a + b
-        ratio = (
-            a * math.log(s)
-            + (b - 0.5) * math.log1p(a / b)
-            - a
-            + _stirling_correction(s)
-            - _stirling_correction(b)
-        )
-        return a * t + b * log_w - math.lgamma(a) + ratio
+        return a * t + b * log_w - math.lgamma(a) + _log_gamma_shift(a, b)
     if a >= _STIRLING:
-        s = a + b
-        ratio = (
-            b * math.log(s)
-            + (a - 0.5) * math.log1p(b / a)
-            - b
-            + _stirling_correction(s)
-            - _stirling_correction(a)
-        )
-        return a * t + b * log_w - math.lgamma(b) + ratio
+        return a * t + b * log_w - math.lgamma(b) + _log_gamma_shift(b, a)
     return a * t + b * log_w - (math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b))
 
 
