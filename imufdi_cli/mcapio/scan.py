@@ -161,7 +161,7 @@ def scan_records(
         walked: list[tuple[int, int, int]] = []
         p = pos
         while p + 9 <= size and len(walked) < probe:
-            opcode, length = unpack(buf, p)  # type: ignore[call-overload]
+            opcode, length = unpack(buf, p)  # type: ignore[arg-type]
             if p + 9 + length > size or opcode not in allowed:
                 break
             walked.append((p, opcode, length))

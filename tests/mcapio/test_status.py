@@ -422,9 +422,7 @@ def _frame_ids_of_one_length(n_a: int, n_b: int) -> tuple[str, str]:
     raise AssertionError("no such frame ids")
 
 
-def test_status_messages_laid_out_differently_are_walked_one_by_one(
-    tmp_path, monkeypatch
-) -> None:
+def test_status_messages_laid_out_differently_are_walked_one_by_one(tmp_path, monkeypatch) -> None:
     # the same length but another frame id length and sensor count, a big-endian
     # message, or another length: uniform_rows declines, and the walk reads each message
     from imufdi_cli.mcapio import McapSource
@@ -501,7 +499,7 @@ class _CountingFile:
     """A binary file that counts the bytes read from it."""
 
     def __init__(self, path) -> None:
-        self._file = open(path, "rb")  # noqa: SIM115 (closed by close())
+        self._file = open(path, "rb")  # closed by close()
         self.read_bytes = 0
 
     def read(self, n: int = -1) -> bytes:
