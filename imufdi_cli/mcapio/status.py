@@ -634,6 +634,7 @@ def iter_status(
             return others_wanted is not None and others_wanted(channel)
 
         source.skip_chunks_without(wanted)
+    ids_of: dict[int, tuple[ChannelInfo, list[str]]] = {}  # sensor ids, parsed once
     for batch in source.batches():
         # (np.flatnonzero(bincount): np.unique's first call imports numpy.ma, 20 ms)
         for cid in np.flatnonzero(np.bincount(batch.channel_id)).tolist():
@@ -646,10 +647,13 @@ def iter_status(
             if detector is not None and det != detector:
                 continue
             sub = batch.select(batch.channel_id == cid)
+            known = ids_of.get(cid)
+            if known is None or known[0] is not channel:
+                known = ids_of[cid] = (channel, _channel_ids(channel))
             yield (
                 det,
                 channel.topic.split("/")[3],
-                _channel_ids(channel),
+                list(known[1]),
                 _decode_status(sub, channel, amplitude_columns, score_columns),
             )
 
