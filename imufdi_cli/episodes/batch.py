@@ -343,7 +343,8 @@ class _Windows(LinearSizes):
             self.motion[e, : n[e]] = ref.motion  # type: ignore[index]
         # the healthy sensors' white variances over each window (successive differences)
         diff = self.ref[:, 1:] - self.ref[:, :-1]
-        diff *= self.valid[:, 1:, None]
+        for e in np.flatnonzero(n < L).tolist():  # beyond the window: zero
+            diff[e, n[e] - 1 :] = 0.0  # (what the valid mask's product gives: ±0, squared 0)
         self.ref_white = np.einsum("elm,elm->em", diff, diff) / (
             2 * np.maximum(self.nf - 1, 1)[:, None]
         )
