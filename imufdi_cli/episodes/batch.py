@@ -424,6 +424,8 @@ class _Windows(LinearSizes):
         ``np.nanmedian`` of the rows with NaN beyond each window takes it (a tenth of its
         CPU: nanmedian masks each row)."""
         t = self.t
+        if self.L < 2:
+            return np.zeros(self.E)
         steps = np.where(self.valid[:, 1:], t[:, 1:] - t[:, :-1], np.inf)
         steps.sort(axis=1)  # each window's intervals first, the padding (inf) after
         count = self.n - 1
@@ -484,7 +486,7 @@ class _Windows(LinearSizes):
         (:func:`~imufdi_cli.episodes.fits._drift_search`)."""
         E, L = self.E, self.L
         t, n = self.t, self.n_after
-        dt = self._median_steps() if L > 1 else np.zeros(E)
+        dt = self._median_steps()
         t0 = t
         s_u = self.s_t - n * t0
         s_uu = self.s_tt - 2 * t0 * self.s_t + n * t0**2

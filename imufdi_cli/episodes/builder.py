@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Sequence
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -791,10 +792,8 @@ class _BlockAlarms:
             alarmed = amplitudes[np.concatenate(groups)]
             rows, columns = np.nonzero(np.isfinite(alarmed))
             values = alarmed[rows, columns]
-            bounds = np.searchsorted(rows, [*starts.tolist(), len(which)])
-            self.amplitudes = [
-                (columns[a:b], values[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)
-            ]
+            bounds = np.searchsorted(rows, [*starts.tolist(), len(which)]).tolist()
+            self.amplitudes = [(columns[a:b], values[a:b]) for a, b in pairwise(bounds)]
 
     def add(self, state: dict[str, Any], g: int) -> None:
         """Group ``g``'s alarms counted in the run ``state``."""
