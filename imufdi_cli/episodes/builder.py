@@ -444,7 +444,7 @@ class EpisodeBuilder(SampleExplanations):
             for other in list(self._waiting):  # no longer held by this run
                 self._expire(other, closed)
             return
-        sensor = int(np.argmax(run["counts"]))
+        sensor = int(run["counts"].argmax())  # (the array method: what np.argmax calls)
         waiting = self._waiting.get(sensor)
         if waiting is not None:
             # the rows of the run, and its quiet rows since, are in the waiting window
@@ -513,7 +513,7 @@ class EpisodeBuilder(SampleExplanations):
         window_t = np.concatenate(state["window_t"])
         # drop the quiet rows after the last alarm (they are not part of the fault): only
         # the pieces before them are joined (the same C-ordered rows as joining all)
-        last = int(np.searchsorted(window_t, state["end_ns"], side="right"))
+        last = int(window_t.searchsorted(state["end_ns"], side="right"))
         window_t = window_t[:last]
         pieces, need = [], last
         for piece in state["window"]:
@@ -594,7 +594,7 @@ class EpisodeBuilder(SampleExplanations):
             raise IndexError(f"isolated sensor index out of range ({len(counts)} sensors)")
         if total == 0:
             return [], None, None
-        isolated = np.flatnonzero(state["counts"]).tolist()
+        isolated = state["counts"].nonzero()[0].tolist()
         order = sorted(isolated, key=lambda i: -counts[i]) if len(isolated) > 1 else isolated
         names = [self.sensor_ids[i] for i in order]
         if len(order) < 2:
