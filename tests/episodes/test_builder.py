@@ -306,7 +306,7 @@ def test_block_alarms_count_each_group_as_its_rows_say() -> None:
     # a block's alarms counted per group at once: the alarms, the rows that isolated a
     # sensor (an index past the sensors included: the summary reports it), the count per
     # sensor, the finite amplitudes in row order and the largest finite statistic ratio
-    from imufdi_cli.episodes.builder import _BlockAlarms
+    from imufdi_cli.episodes.block_alarms import BlockAlarms
 
     rng = np.random.default_rng(5)
     n, rows = 6, 400
@@ -319,7 +319,7 @@ def test_block_alarms_count_each_group_as_its_rows_say() -> None:
     ratios[rng.random(idx.size) < 0.05] = np.inf
     ratios[: groups[0].size] = np.nan  # a group without a finite ratio
     amplitudes = np.where(rng.random((rows, n)) < 0.3, rng.normal(size=(rows, n)), np.nan)
-    found = _BlockAlarms(groups, isolated[idx], ratios, amplitudes, n)
+    found = BlockAlarms(groups, isolated[idx], ratios, amplitudes, n)
     offset = 0
     for g, group in enumerate(groups):
         state = {
