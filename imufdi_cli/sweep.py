@@ -67,6 +67,36 @@ def ratio_bins(statistic: np.ndarray, threshold: np.ndarray) -> np.ndarray:
     return index
 
 
+def best_columns(scores: np.ndarray) -> np.ndarray:
+    """The column of each row's first largest finite score, -1 where none is finite: the
+    sensor a row the detector left unisolated is judged isolated to at any threshold
+    (:func:`imufdi_cli.metrics.rows.judged_isolation`).
+
+    Parameters
+    ----------
+    scores : ndarray, shape (k, n), float64
+        Isolation scores (any strides: a view into the status payloads is read in place).
+
+    Returns
+    -------
+    ndarray, shape (k,), int64
+    """
+    k, n = scores.shape
+    if n == 0:
+        return np.full(k, -1, np.int64)
+    # argmax of the scores themselves is the answer where the score it picks is finite
+    # (then no NaN or +inf comes before it, and -inf never wins); the other rows (NaN,
+    # +inf, or nothing finite) take the masked argmax: one pass over the scores, not three
+    best = np.argmax(scores, axis=1).astype(np.int64, copy=False)
+    odd = np.flatnonzero(~np.isfinite(scores[np.arange(k), best]))
+    if odd.size:
+        part = np.asarray(scores[odd], dtype=np.float64)
+        masked = np.where(np.isfinite(part), part, -np.inf)
+        column = np.argmax(masked, axis=1)
+        best[odd] = np.where(masked[np.arange(odd.size), column] > -np.inf, column, -1)
+    return best
+
+
 def _first_at_levels(
     first: np.ndarray, level: int, bins: np.ndarray, decided_ns: np.ndarray, mask: np.ndarray
 ) -> int:

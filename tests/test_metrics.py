@@ -513,3 +513,124 @@ def test_the_amplitude_median_does_not_import_numpy_ma(fresh_python) -> None:
     done = fresh_python(probe)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "False"
+
+
+def _loop_recovery(t, decided, alarm, persist, merge_gap_ns, state):
+    """The recovery bookkeeping as a plain loop over the rows (reference): ``state`` is
+    [quiet_from_ns, quiet_from_t, quiet, recovered_ns]."""
+    position = 0
+    size = int(t.size)
+    for a in [*np.flatnonzero(alarm).tolist(), size]:
+        if a > position:
+            if state[0] is None:
+                state[0], state[1], state[2] = int(decided[position]), int(t[position]), 0
+            state[2] += a - position
+        if a == size:
+            return
+        if state[1] is not None and state[2] >= persist and t[a] - state[1] > merge_gap_ns:
+            state[3] = state[0]
+            return
+        state[0] = state[1] = None
+        state[2] = 0
+        position = a + 1
+
+
+def _loop_detection(decided, on, persist, run):
+    """The first row where a run of alarms reaches ``persist`` (reference loop)."""
+    for j, flag in enumerate(on.tolist()):
+        run = run + 1 if flag else 0
+        if run >= persist:
+            return int(decided[j]), run
+    return None, run
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_recovery_and_detection_runs_are_those_of_a_loop_over_the_rows(seed):
+    # the accumulator finds them with numpy, block by block: the same rows as a loop
+    from imufdi_cli.metrics import MetricsAccumulator
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(5, 120))
+    t = np.cumsum(rng.integers(1, 3, n)).astype(np.int64) * MS10
+    decided = t + rng.integers(0, 3, n) * MS10
+    alarm = rng.random(n) < rng.choice([0.05, 0.3, 0.7, 0.95])
+    persist = int(rng.integers(1, 5))
+    start, end = int(t[n // 4]), int(t[n // 2])
+    fault = FaultWindow("f", (0,), start, end)
+    acc = MetricsAccumulator(1, [fault], persist=persist)
+    cuts = np.sort(rng.choice(np.arange(1, n), size=min(n - 1, 4), replace=False))
+    for part in np.split(np.arange(n), cuts):
+        acc.update(t[part], alarm[part], np.zeros(part.size, int), decided_ns=decided[part])
+    st = acc.states[0]
+    inside = (t >= start) & (t < end)
+    want_detected, _ = _loop_detection(decided[inside], alarm[inside], persist, 0)
+    assert st.detected_ns == want_detected
+    state = [None, None, 0, None]
+    after = t >= end
+    _loop_recovery(t[after], decided[after], alarm[after], persist, acc.merge_gap_ns, state)
+    assert st.recovered_ns == state[3]
+    if state[3] is None:
+        assert (st.quiet_from_ns, st.quiet_from_t, st.quiet) == tuple(state[:3])
+
+
+def _scored(seed: int, **options):
+    """Metrics of one random channel with three faults, fed in blocks of 37 rows."""
+    from imufdi_cli.metrics import MetricsAccumulator
+
+    rng = np.random.default_rng(seed)
+    n, n_s = 400, 5
+    t = _t(n)
+    alarm = rng.random(n) < 0.4
+    isolated = np.where(alarm, rng.integers(-2, n_s, n), -1)
+    scores = rng.normal(size=(n, n_s))
+    scores[rng.random((n, n_s)) < 0.1] = np.nan
+    scores[rng.random((n, n_s)) < 0.05] = np.inf
+    amplitude = np.where(isolated >= 0, rng.normal(size=n), np.nan)
+    faults = [
+        FaultWindow("a", (1,), 50 * MS10, 150 * MS10, "step", 1.0),
+        FaultWindow("b", (3, 4), 200 * MS10, 300 * MS10, "drift", 0.5),
+    ]
+    acc = MetricsAccumulator(n_s, faults, episode_gaps=(10, 100))
+    statistic = rng.gamma(2.0, size=n)
+    for s in range(0, n, 37):
+        part = slice(s, s + 37)
+        k = len(t[part])
+        amplitudes = np.full((k, n_s), np.nan)
+        rows = np.flatnonzero(isolated[part] >= 0)
+        amplitudes[rows, isolated[part][rows]] = amplitude[part][rows]
+        given = {
+            "amplitudes": amplitudes,
+            "amplitude": amplitude[part],
+            "scores": scores[part],
+            "best_score": None,
+        }
+        if options.get("compact_amplitudes"):
+            given["amplitudes"] = None
+        else:
+            given["amplitude"] = None
+        if options.get("best_score"):
+            from imufdi_cli.sweep import best_columns
+
+            given["best_score"] = best_columns(scores[part])
+            given["scores"] = None
+        acc.update(
+            t[part],
+            alarm[part],
+            isolated[part],
+            statistic=statistic[part],
+            threshold=np.ones(k),
+            scored=rng.random(k) < 0.95,
+            **given,
+        )
+    return acc.result()
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_amplitude_on_the_isolated_column_and_best_score_give_the_same_figures(seed):
+    # update(amplitude=) in place of the (k, n) amplitudes holding it on the isolated
+    # column, and update(best_score=) in place of the scores: the same metrics
+    reference = _scored(seed)
+    for options in ({"compact_amplitudes": True}, {"best_score": True}):
+        got = _scored(seed, **options)
+        assert repr(got) == repr(reference)
+    assert any(f.amplitudes for f in reference.faults)

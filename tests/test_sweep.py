@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -277,3 +279,27 @@ def test_budget_match_says_when_it_cannot():
     top = match_budget(counts, 2.0, 1.0)
     assert top.scale is None and "stay above 1/h" in (top.note or "")
     assert read_budget(BudgetCurve.from_dict({"hours": 2.0}), top)["mar"] is None
+
+
+def _best_by_hand(row: list[float]) -> int:
+    finite = [(v, -j) for j, v in enumerate(row) if math.isfinite(v)]
+    return -max(finite)[1] if finite else -1
+
+
+def test_best_columns_is_the_first_largest_finite_score():
+    # NaN, +inf and -inf never win; ties go to the first; no finite score: -1; any strides
+    from imufdi_cli.sweep import best_columns
+
+    rng = np.random.default_rng(4)
+    for n in range(0, 6):
+        scores = rng.normal(size=(300, n)).round(1)
+        pick = rng.random((300, n))
+        scores[pick < 0.2] = np.nan
+        scores[(pick >= 0.2) & (pick < 0.3)] = np.inf
+        scores[(pick >= 0.3) & (pick < 0.4)] = -np.inf
+        want = [_best_by_hand(row) for row in scores.tolist()]
+        assert best_columns(scores).tolist() == want
+        wide = np.zeros((300, 2 * n + 1))
+        wide[:, 1 : 2 * n + 1 : 2] = scores
+        assert best_columns(wide[:, 1 : 2 * n + 1 : 2]).tolist() == want
+        assert best_columns(scores).dtype == np.int64

@@ -31,29 +31,67 @@ Modules: :mod:`~imufdi_cli.faults.models` (:class:`Fault`, model names),
 :mod:`~imufdi_cli.faults.truth` (ground truth, metadata record),
 :mod:`~imufdi_cli.faults.injector` (:class:`FaultInjector`) and
 :mod:`~imufdi_cli.faults.inject` (:func:`inject_file`). Everything public is re-exported
-here: import from ``imufdi_cli.faults``.
+here: import from ``imufdi_cli.faults``. Each name is imported from its submodule on first
+use (PEP 562 ``__getattr__``): reading the ground truth of a log (``report``) loads the
+models, not the injector.
 """
 
 from __future__ import annotations
 
-from imufdi_cli.faults.inject import InjectResult, inject_file
-from imufdi_cli.faults.injector import FaultInjector
-from imufdi_cli.faults.models import (
-    METADATA_FORMAT,
-    METADATA_NAME,
-    MODEL_KEYS,
-    MODELS,
-    TRUTH_SCHEMA,
-    TRUTH_TOPIC,
-    Fault,
-)
-from imufdi_cli.faults.spec import (
-    fault_from_table,
-    load_fault_file,
-    parse_fault_spec,
-    validate_faults,
-)
-from imufdi_cli.faults.truth import active_mask, faults_from_metadata
+from importlib import import_module
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from imufdi_cli.faults.inject import InjectResult, inject_file
+    from imufdi_cli.faults.injector import FaultInjector
+    from imufdi_cli.faults.models import (
+        METADATA_FORMAT,
+        METADATA_NAME,
+        MODEL_KEYS,
+        MODELS,
+        TRUTH_SCHEMA,
+        TRUTH_TOPIC,
+        Fault,
+    )
+    from imufdi_cli.faults.spec import (
+        fault_from_table,
+        load_fault_file,
+        parse_fault_spec,
+        validate_faults,
+    )
+    from imufdi_cli.faults.truth import active_mask, faults_from_metadata
+
+#: the submodule of each public name
+_WHERE = {
+    "InjectResult": "imufdi_cli.faults.inject",
+    "inject_file": "imufdi_cli.faults.inject",
+    "FaultInjector": "imufdi_cli.faults.injector",
+    "METADATA_FORMAT": "imufdi_cli.faults.models",
+    "METADATA_NAME": "imufdi_cli.faults.models",
+    "MODEL_KEYS": "imufdi_cli.faults.models",
+    "MODELS": "imufdi_cli.faults.models",
+    "TRUTH_SCHEMA": "imufdi_cli.faults.models",
+    "TRUTH_TOPIC": "imufdi_cli.faults.models",
+    "Fault": "imufdi_cli.faults.models",
+    "fault_from_table": "imufdi_cli.faults.spec",
+    "load_fault_file": "imufdi_cli.faults.spec",
+    "parse_fault_spec": "imufdi_cli.faults.spec",
+    "validate_faults": "imufdi_cli.faults.spec",
+    "active_mask": "imufdi_cli.faults.truth",
+    "faults_from_metadata": "imufdi_cli.faults.truth",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import the submodule of a public name on first access (PEP 562)."""
+    try:
+        module = _WHERE[name]
+    except KeyError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    value = getattr(import_module(module), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "METADATA_FORMAT",

@@ -11,7 +11,6 @@ from typing import Any, Final
 
 import numpy as np
 
-from imufdi_cli.array import AXES
 from imufdi_cli.errors import TruthError
 
 #: Name of the MCAP metadata record describing injected faults.
@@ -88,6 +87,8 @@ class Fault:
     @property
     def axes(self) -> tuple[int, ...]:
         """Axis indices (0..2 for x, y, z) in the IMU frame."""
+        from imufdi_cli.array import AXES  # (the array module is not needed to read truth)
+
         return tuple(AXES.index(s.split(".")[2]) for s in self.sensors)
 
     @property

@@ -30,7 +30,7 @@ from imufdi_cli.mcapio.msgdef import (
     normalize_type,
     parse_ros2msg,
 )
-from imufdi_cli.mcapio.records import MessageBatch, gather_bytes
+from imufdi_cli.mcapio.records import MessageBatch, byte_rows, gather_bytes
 
 # --- layout program ---------------------------------------------------------------------
 
@@ -89,6 +89,7 @@ class CdrLayout:
         lengths: np.ndarray,
         paths: Sequence[str],
         valid: np.ndarray | None = None,
+        counts_at: dict[str, np.ndarray] | None = None,
     ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Byte positions of fields in N messages of the same endianness.
 
@@ -110,6 +111,8 @@ class CdrLayout:
         A message whose length fields point past its end makes this raise McapInputError,
         unless ``valid`` (N,) bool is given: then that message's entry is set False (its
         positions are meaningless but every read made here stays inside its payload).
+        ``counts_at``, when given, receives the position of the u32 length of every string
+        and sequence walked (path -> (N,) int64): the bytes the later positions depend on.
         """
         wanted = {}
         for path in paths:
@@ -142,6 +145,8 @@ class CdrLayout:
                 rel = position - origin
                 position = origin + (-(-rel // 4)) * 4
                 count = self._u32(data, position, payload_end, valid, origin)
+                if counts_at is not None:
+                    counts_at[step.path] = position
                 if step.kind in ("string", "wstring"):
                     width = 4 if step.kind == "wstring" else 1
                     sizes[step.path] = count
@@ -378,6 +383,12 @@ class CdrCodec:
         self.root = normalize_type(schema_name, schema_name.split("/")[0])
         self.layout = CdrLayout.compile(self.defs, self.root, limits)
         self._decoders: dict[ReaderLimits, MessageDecoder] = {}
+        #: the last uniform layout met per (payload length, paths): the (offset, value)
+        #: of the counts its walk read, the field offsets and sizes (:meth:`uniform_rows`)
+        self._uniform: dict[
+            tuple[int, tuple[str, ...]],
+            tuple[list[tuple[int, int]], dict[str, int], dict[str, int]],
+        ] = {}
 
     def decoder(self, limits: ReaderLimits | None = None) -> MessageDecoder:
         """The per-message decoder of this schema (compiled once per ``limits``)."""
@@ -436,6 +447,61 @@ class CdrCodec:
                 else:
                     sizes[path][mask] = value
         return little, positions, sizes
+
+    def uniform_rows(
+        self, batch: MessageBatch, paths: Sequence[str]
+    ) -> tuple[np.ndarray, dict[str, int], dict[str, int]] | None:
+        """The payloads of ``batch`` as one (N, L) uint8 array, the offsets of ``paths`` in
+        each row and the sizes of the strings and sequences before them, when every
+        message has its fields at the same place: all L bytes long, little-endian CDR and
+        with the same string lengths and sequence counts (each checked on every message),
+        so that one walk of the first message places the fields of all. None when they do
+        not (:meth:`positions` then places each message's fields; a malformed first
+        message raises the McapInputError :meth:`positions` would).
+
+        The array is a read-only view of ``batch.data`` when the messages are evenly
+        spaced in it (:func:`~imufdi_cli.mcapio.records.byte_rows`), else a copy: copy the
+        fields read before the buffer changes.
+        """
+        n = len(batch)
+        if n == 0:
+            return None
+        size = int(batch.length[0])
+        if size < 4 or not bool(np.all(batch.length == size)):
+            return None
+        rows = byte_rows(batch.data, batch.offset, size)
+        # (2- and 4-byte fields compared as one integer each, not byte by byte)
+        if not bool(np.all(rows[:, 0:2].view("<u2") == 0x0100)):
+            return None  # big-endian or malformed encapsulations: the general walk
+        key = (size, tuple(paths))
+        known = self._uniform.get(key)
+        if known is not None and all(
+            bool(np.all(rows[:, rel : rel + 4].view("<u4") == value)) for rel, value in known[0]
+        ):
+            # the counts the last walk read, where it read them: the same walk
+            return rows, known[1], known[2]
+        counts_at: dict[str, np.ndarray] = {}
+        first = batch.select(slice(0, 1))
+        positions, sizes = self.layout.locate(
+            first.data, first.offset, first.length, paths, counts_at=counts_at
+        )
+        start = int(first.offset[0])
+        checks = []
+        for at in counts_at.values():
+            rel = int(at[0]) - start
+            counts = rows[:, rel : rel + 4].view("<u4")
+            if not bool(np.all(counts == counts[0, 0])):
+                return None
+            checks.append((rel, int(counts[0, 0])))
+        offsets = {path: int(value[0]) - start for path, value in positions.items()}
+        lengths = {path: int(value[0]) for path, value in sizes.items()}
+        # (the walk reads the first count at a fixed place, and each later one where
+        # the counts before it put it: messages of this length with these counts at
+        # these places have every field where this walk found it)
+        if len(self._uniform) >= 64:  # (bounded whatever lengths a file holds)
+            self._uniform.clear()
+        self._uniform[key] = (checks, offsets, lengths)
+        return rows, offsets, lengths
 
     def read(
         self, batch: MessageBatch, little: np.ndarray, position: np.ndarray, code: str, count: int

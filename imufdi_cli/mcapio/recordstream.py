@@ -115,6 +115,11 @@ class RecordStream:
     _chunk_channels: dict[int, np.ndarray]
     #: Offsets of chunks to step over without decompressing them (:meth:`skip_chunks_without`).
     _skipped_chunks: frozenset[int] = frozenset()
+    #: Per chunk offset, from its ChunkIndex record: the Chunk record's length and the
+    #: length of the MessageIndex records right after it, where the two agree with the
+    #: index's message index offsets (a skipped chunk and its indexes are stepped over in
+    #: one seek: :meth:`_step_over`).
+    _chunk_spans: dict[int, tuple[int, int]]
     _deferred: list[tuple[bool, str]] | None
     channels: dict[int, ChannelInfo]
     schemas: dict[int, SchemaInfo]
@@ -307,6 +312,7 @@ class RecordStream:
             self._known_size = -1
             self._chunk_starts = []
             self._chunk_channels = {}
+            self._chunk_spans = {}
             self.summary_channel_counts = None
             self.summary_message_count = None
             self.summary_time_range = None
@@ -342,6 +348,7 @@ class RecordStream:
         metadata_offsets = []
         chunk_starts: list[int] = []
         self._chunk_channels = {}
+        self._chunk_spans = {}
         for start, opcode, length in zip(starts.tolist(), opcodes.tolist(), lengths.tolist()):
             content = raw[start + 9 : start + 9 + length]
             if opcode == OP_SCHEMA:
@@ -361,6 +368,7 @@ class RecordStream:
                     )
                 entries = np.frombuffer(content, _INDEX_ENTRY, map_bytes // 10, 36)
                 self._chunk_channels[int(chunk_start)] = entries["channel"].astype(np.int64)
+                self._note_span(content, int(chunk_start), map_bytes, entries["offset"])
             elif opcode == 0x0B:  # Statistics
                 cur = _Cursor(content, "Statistics")
                 self.summary_message_count = cur.u64()
@@ -374,6 +382,24 @@ class RecordStream:
                 self.summary_channel_counts = counts
         self._chunk_starts = sorted(chunk_starts)
         return metadata_offsets
+
+    def _note_span(
+        self, content: bytes, chunk_start: int, map_bytes: int, index_offsets: np.ndarray
+    ) -> None:
+        """Remember the bytes of a chunk and of its MessageIndex records (a ChunkIndex
+        record's ``chunk_length`` and ``message_index_length``) when the index's message
+        index offsets all lie in that span right after the chunk (else nothing: such a
+        chunk is stepped over record by record)."""
+        if len(content) < 36 + map_bytes + 8:
+            return
+        (chunk_length,) = struct.unpack_from("<Q", content, 24)
+        (index_length,) = struct.unpack_from("<Q", content, 36 + map_bytes)
+        end = chunk_start + chunk_length
+        if chunk_length < 9 or not index_offsets.size:
+            return
+        if int(index_offsets.min()) != end or int(index_offsets.max()) + 9 > end + index_length:
+            return
+        self._chunk_spans[chunk_start] = (int(chunk_length), int(index_length))
 
     # --- data section --------------------------------------------------------------------
 
@@ -477,6 +503,31 @@ class RecordStream:
             return None
         return opcode, length, content
 
+    def _step_over(self, position: int, chunk_length: int, index_length: int) -> int:
+        """Step over a skipped chunk at ``position`` and the MessageIndex records after it
+        (``chunk_length`` and ``index_length`` bytes, from the summary's chunk index) without
+        reading them: only the chunk's record head is read (9 bytes, not a read-ahead
+        buffer) and checked against the index. Returns the bytes stepped over, or 0 when
+        the head does not match or the span runs past the end of the file (the record is
+        then read as any other)."""
+        if self._file_size is None or position + chunk_length + index_length > self._file_size:
+            return 0
+        available = len(self._ahead) - self._ahead_pos
+        if available >= 9:
+            head = self._ahead[self._ahead_pos : self._ahead_pos + 9]
+        else:
+            head = self._ahead[self._ahead_pos :] + self._read_exact(9 - available)
+            self._ahead, self._ahead_pos = head, 0
+        if len(head) < 9:
+            return 0
+        opcode, length = _RECORD_HEAD.unpack(head)
+        if opcode != OP_CHUNK or 9 + length != chunk_length:
+            return 0
+        total = chunk_length + index_length
+        if self._discard(total) != total:  # the file is as long as the summary said
+            return 0
+        return total
+
     def _resume_after(self, position: int) -> int | None:
         """After a damaged record at ``position``: the next chunk the summary's chunk index
         knows (seekable files with a usable summary), positioned to read; else None."""
@@ -521,7 +572,14 @@ class RecordStream:
         chunk the summary knows. Ends after a DataEnd or Footer record."""
         self._ahead, self._ahead_pos = b"", 0
         position = len(MAGIC)
+        spans = getattr(self, "_chunk_spans", None) if self._skipped_chunks else None
         while True:
+            if spans and position in self._skipped_chunks and position in spans:
+                stepped = self._step_over(position, *spans[position])
+                if stepped:
+                    yield OP_CHUNK, spans[position][0] - 9, None, position
+                    position += stepped
+                    continue
             record = self._next_record(position)
             if record is None:
                 resume = self._resume_after(position)

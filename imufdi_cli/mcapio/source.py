@@ -196,6 +196,7 @@ class McapSource(RecordStream):
         #: reading resumes after a damaged record.
         self._chunk_starts: list[int] = []
         self._chunk_channels: dict[int, np.ndarray] = {}
+        self._chunk_spans: dict[int, tuple[int, int]] = {}
         self._pending_channels: dict[int, tuple[int, str, str, dict[str, str]]] = {}
         if isinstance(source, (str, os.PathLike)) and os.fspath(source) == "-":
             self.name = "<stdin>"

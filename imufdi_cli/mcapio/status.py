@@ -428,7 +428,12 @@ def _is_status(channel: ChannelInfo) -> bool:
     )
 
 
-def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.ndarray]:
+def _decode_status(
+    batch: MessageBatch,
+    channel: ChannelInfo,
+    amplitude_columns: bool = True,
+    score_columns: bool = True,
+) -> dict[str, np.ndarray]:
     assert channel.schema is not None
     codec = codec_for(channel.schema.name, channel.schema.data)
     stamp = "header.stamp" if "header.stamp.sec" in codec.layout.leaves else "stamp"
@@ -447,6 +452,9 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
     has_amplitudes = "amplitudes" in codec.layout.leaves
     paths = [p for p, _ in scalars.values()] + ["scores", "isolated_set"]
     paths += ["amplitudes"] if has_amplitudes else []
+    uniform = codec.uniform_rows(batch, paths)
+    if uniform is not None:
+        return _decode_uniform(*uniform, scalars, amplitude_columns, score_columns)
     little, positions, sizes = codec.positions(batch, paths)
     raw = {
         key: codec.read(batch, little, positions[path], code, 1)[:, 0]
@@ -483,6 +491,67 @@ def _decode_status(batch: MessageBatch, channel: ChannelInfo) -> dict[str, np.nd
         isolated_set = codec.read(batch, little, positions["isolated_set"], "u1", width) != 0
     out["isolated_set"] = isolated_set
     out["amplitudes"] = _amplitudes(batch, codec, little, positions, sizes, out, width)
+    return out
+
+
+def _decode_uniform(
+    rows: np.ndarray,
+    at: dict[str, int],
+    sizes: dict[str, int],
+    scalars: dict[str, tuple[str, str]],
+    amplitude_columns: bool = True,
+    score_columns: bool = True,
+) -> dict[str, np.ndarray]:
+    """:func:`_decode_status` of messages that all have their fields at the same offsets
+    (:meth:`~imufdi_cli.mcapio.cdr.CdrCodec.uniform_rows`: the same length, little-endian,
+    the same frame id length and sequence counts; what ``detect`` writes): each field is
+    one strided copy out of the (N, L) payload bytes ``rows``, at its offset ``at``. The
+    same arrays as the general path, every one a copy (``rows`` may view a buffer that
+    is reused); without ``amplitude_columns``, no ``amplitudes`` when the messages carry
+    none per sensor, without ``score_columns`` ``best_score`` instead of ``scores``
+    (:func:`iter_status`)."""
+    n = rows.shape[0]
+
+    def column(path: str, code: str, count: int = 1) -> np.ndarray:
+        width = int(np.dtype(code).itemsize) * count
+        return rows[:, at[path] : at[path] + width].view("<" + code)
+
+    raw = {key: column(path, code)[:, 0] for key, (path, code) in scalars.items()}
+    out: dict[str, np.ndarray] = {
+        "t_ns": raw["sec"].astype(np.int64) * NS_PER_S + raw["nanosec"].astype(np.int64),
+        "statistic": raw["statistic"].astype(np.float64),
+        "threshold": raw["threshold"].astype(np.float64),
+        "alarm": raw["alarm"] != 0,
+        "isolated": raw["isolated"].astype(np.int32),
+        "amplitude": raw["amplitude"].astype(np.float64),
+    }
+    if "decided_sec" in raw:
+        out["decided_ns"] = raw["decided_sec"].astype(np.int64) * NS_PER_S + raw[
+            "decided_nanosec"
+        ].astype(np.int64)
+    width = sizes["scores"]
+    if not score_columns:
+        from imufdi_cli.sweep import best_columns
+
+        # read in place: the (k, n) scores are not copied
+        scores = column("scores", "f8", width) if width else np.full((n, 0), np.nan)
+        out["best_score"] = best_columns(scores)
+    elif width:
+        out["scores"] = column("scores", "f8", width).astype(np.float64)
+    else:
+        out["scores"] = np.full((n, 0), np.nan)
+    if width and sizes["isolated_set"] == width:
+        out["isolated_set"] = column("isolated_set", "u1", width) != 0
+    else:
+        out["isolated_set"] = np.zeros((n, width), dtype=bool)
+    if width and sizes.get("amplitudes") == width:
+        out["amplitudes"] = column("amplitudes", "f8", width).astype(np.float64)
+    elif amplitude_columns:
+        amplitudes = np.full((n, width), np.nan)
+        isolated = out["isolated"]
+        one = np.flatnonzero((isolated >= 0) & (isolated < width))
+        amplitudes[one, isolated[one]] = out["amplitude"][one]
+        out["amplitudes"] = amplitudes
     return out
 
 
@@ -528,6 +597,8 @@ def iter_status(
     *,
     others: Callable[[MessageBatch, ChannelInfo], None] | None = None,
     others_wanted: Callable[[ChannelInfo], bool] | None = None,
+    amplitude_columns: bool = True,
+    score_columns: bool = True,
 ) -> Iterator[tuple[str, str, list[str], dict[str, np.ndarray]]]:
     """Stream the status channels batch by batch (memory: one chunk). ``others`` is called
     with the messages of every other channel, batch by batch, in the same pass.
@@ -544,7 +615,16 @@ def iter_status(
         ``rows`` maps ``t_ns``, ``statistic``, ``threshold``, ``alarm``, ``isolated``,
         ``amplitude``, ``scores`` (k, n), ``isolated_set`` (k, n), ``amplitudes`` (k, n)
         and, when the channel carries it, ``decided_ns`` to the next k rows of that
-        channel, in file order.
+        channel, in file order. With ``amplitude_columns`` False, ``amplitudes`` is
+        left out of rows whose messages carry no per-sensor amplitudes (the
+        single-isolation detectors'): ``amplitude`` on the ``isolated`` column is the
+        whole of it (:meth:`~imufdi_cli.metrics.MetricsAccumulator.update` takes
+        either), and the (k, n) array of NaN is not made. With ``score_columns`` False,
+        rows of channels laid out alike (what ``detect`` writes) carry ``best_score``
+        (k,) int64 instead of ``scores``: the column of each row's first largest finite
+        score, -1 where none is finite (:func:`imufdi_cli.sweep.best_columns`, all the
+        scoring reads of the scores), found in the payloads without copying the (k, n)
+        scores out; other rows still carry ``scores``.
     """
     if others is None or others_wanted is not None:
 
@@ -554,6 +634,7 @@ def iter_status(
             return others_wanted is not None and others_wanted(channel)
 
         source.skip_chunks_without(wanted)
+    ids_of: dict[int, tuple[ChannelInfo, list[str]]] = {}  # sensor ids, parsed once
     for batch in source.batches():
         # (np.flatnonzero(bincount): np.unique's first call imports numpy.ma, 20 ms)
         for cid in np.flatnonzero(np.bincount(batch.channel_id)).tolist():
@@ -566,11 +647,14 @@ def iter_status(
             if detector is not None and det != detector:
                 continue
             sub = batch.select(batch.channel_id == cid)
+            known = ids_of.get(cid)
+            if known is None or known[0] is not channel:
+                known = ids_of[cid] = (channel, _channel_ids(channel))
             yield (
                 det,
                 channel.topic.split("/")[3],
-                _channel_ids(channel),
-                _decode_status(sub, channel),
+                list(known[1]),
+                _decode_status(sub, channel, amplitude_columns, score_columns),
             )
 
 

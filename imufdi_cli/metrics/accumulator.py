@@ -93,6 +93,24 @@ class _AmplitudeTrack:
         return float((n * sta - st * sa) / spread)
 
 
+def _run_lengths(on: np.ndarray, carried: int) -> np.ndarray:
+    """The length of the run of True ending at each element of ``on`` (k,) bool (0 where
+    False), the first run continuing ``carried`` True before it."""
+    k = int(on.size)
+    index = np.arange(k, dtype=np.int64)
+    last_off = np.maximum.accumulate(np.where(on, -1, index)) if k else index
+    return np.where(last_off >= 0, index - last_off, carried + index + 1)
+
+
+def _among(column: np.ndarray, sensors: tuple[int, ...]) -> np.ndarray:
+    """``np.isin(column, sensors)`` for a few sensor indices (one comparison each: the
+    generic isin costs 20 times more on these sizes)."""
+    out = np.zeros(column.shape, dtype=bool)
+    for sensor in sensors:
+        out |= column == sensor
+    return out
+
+
 def _median(values: np.ndarray) -> float:
     """``np.median`` of a 1-D float array (NaN if it holds a NaN or nothing), the same
     float: the middle element, or the mean of the two middle ones, of a partition. numpy's
@@ -216,6 +234,8 @@ class MetricsAccumulator:
         faulty: np.ndarray | None = None,
         amplitudes: np.ndarray | None = None,
         scored: np.ndarray | None = None,
+        amplitude: np.ndarray | None = None,
+        best_score: np.ndarray | None = None,
     ) -> None:
         """Add k consecutive rows.
 
@@ -234,6 +254,15 @@ class MetricsAccumulator:
         amplitudes : (k, n) float64, optional
             Estimated amplitude of every sensor, SI, NaN where none (the status'
             ``amplitudes``), for the per-fault :class:`AmplitudeFigure`
+        amplitude : (k,) float64, optional
+            Without ``amplitudes``: the estimated amplitude on the isolated sensor of
+            each row (the status' ``amplitude``), the same as ``amplitudes`` holding it
+            on the column of ``isolated`` and NaN elsewhere (what a single-isolation
+            detector records), without making that (k, n) array
+        best_score : (k,) int64, optional
+            In place of ``scores``: the column of each row's first largest finite score,
+            -1 where none is finite (:func:`imufdi_cli.sweep.best_columns`), all the
+            sweeps read of the scores
         scored : (k,) bool, optional
             The rows scored (default: all). The others (samples ``detect`` excluded as
             clipped or invalid, rows outside ``report --start/--end``) count in no figure,
@@ -263,7 +292,7 @@ class MetricsAccumulator:
             from imufdi_cli.sweep import ratio_bins
 
             bins = ratio_bins(statistic, threshold)  # type: ignore[arg-type]
-            judged, column = judged_isolation(isolated, scores, n_s)
+            judged, column = judged_isolation(isolated, scores, n_s, best_score)
         eligible = keep & ~any_fault & ~in_cal
         if self.episodes is not None:
             self.episodes.update(alarm, isolated, eligible)
@@ -282,6 +311,8 @@ class MetricsAccumulator:
                 isolated_set = np.asarray(isolated_set, dtype=bool).reshape(-1, n_s)[rows]
             if amplitudes is not None:
                 amplitudes = np.asarray(amplitudes, dtype=np.float64).reshape(-1, n_s)[rows]
+            elif amplitude is not None:
+                amplitude = np.asarray(amplitude, dtype=np.float64).reshape(-1)[rows]
             if bins is not None:
                 bins, judged, column = bins[rows], judged[rows], column[rows]  # type: ignore[index]
         evaluated = ~in_cal
@@ -326,13 +357,20 @@ class MetricsAccumulator:
         else:
             iso_set = np.asarray(isolated_set, dtype=bool).reshape(k, n_s)
         in_faults = [self._update_fault(st, t_ns, decided, alarm, iso_set) for st in self.states]
-        if amplitudes is not None:
-            values = np.asarray(amplitudes, dtype=np.float64).reshape(k, n_s)
+        if amplitudes is not None or amplitude is not None:
+            if amplitudes is not None:
+                values = np.asarray(amplitudes, dtype=np.float64).reshape(k, n_s)
+            else:
+                one = np.asarray(amplitude, dtype=np.float64).reshape(k)
             for st, inside in zip(self.states, in_faults):
                 for sensor, track in st.amplitudes.items():
-                    use = inside & alarm & iso_set[:, sensor] & np.isfinite(values[:, sensor])
+                    if amplitudes is not None:
+                        estimate = values[:, sensor]
+                    else:
+                        estimate = np.where(isolated == sensor, one, np.nan)
+                    use = inside & alarm & iso_set[:, sensor] & np.isfinite(estimate)
                     t_s = (t_ns[use] - st.window.start_ns).astype(np.float64) * 1e-9
-                    track.add(t_s, values[use, sensor])
+                    track.add(t_s, estimate[use])
 
         if sweeping and self.sweep is not None:
             assert bins is not None and judged is not None and column is not None
@@ -342,7 +380,7 @@ class MetricsAccumulator:
             iso_class[faulty_eval & judged & ~right] = 2
             iso_class[faulty_eval & ~judged] = 3
             isolated_to = [
-                inside & judged & np.isin(column, st.window.sensors)
+                inside & judged & _among(column, st.window.sensors)
                 for st, inside in zip(self.states, in_faults)
             ]
             self.sweep.update(bins, decided, free, iso_class, in_faults, isolated_to)
@@ -388,14 +426,16 @@ class MetricsAccumulator:
                 st.after_first += int(idx.size)
                 st.alarmed_after_first += int(np.count_nonzero(on))
             if st.detected_ns is None:
-                # run length ending at each row, carried over from the previous rows
-                run = st.run
-                for j, flag in enumerate(on.tolist()):
-                    run = run + 1 if flag else 0
-                    if run >= self.persist:
-                        st.detected_ns = int(decided[idx[j]])
-                        break
-                st.run = run
+                # run length ending at each row, carried over from the previous rows: the
+                # first row where it reaches persist detects the fault
+                runs = _run_lengths(on, st.run)
+                reached = np.flatnonzero(runs >= self.persist)
+                if reached.size:
+                    j = int(reached[0])
+                    st.detected_ns = int(decided[idx[j]])
+                    st.run = int(runs[j])
+                else:
+                    st.run = int(runs[-1])
         if w.end_ns is not None and st.recovered_ns is None:
             after = t_ns >= w.end_ns
             if st.episode_end_ns is not None:
@@ -412,27 +452,43 @@ class MetricsAccumulator:
         a candidate quiet sample r is confirmed when an alarm comes back more than
         ``merge_gap_s`` after it with at least ``persist`` quiet samples in between, or when
         the episode ends quiet after at least ``persist`` samples."""
-        position = 0
         size = int(t_ns.size)
-        for a in [*np.flatnonzero(alarm).tolist(), size]:
-            if a > position:
-                if st.quiet_from_ns is None:
-                    st.quiet_from_ns = int(decided[position])
-                    st.quiet_from_t = int(t_ns[position])
-                    st.quiet = 0
-                st.quiet += a - position
-            if a == size:
-                return
-            if (
-                st.quiet_from_t is not None
-                and st.quiet >= self.persist
-                and t_ns[a] - st.quiet_from_t > self.merge_gap_ns
-            ):
-                st.recovered_ns = st.quiet_from_ns  # the alarm is a new episode
-                return
-            st.quiet_from_ns = st.quiet_from_t = None
-            st.quiet = 0
-            position = a + 1
+        alarms = np.flatnonzero(alarm)
+        first = int(alarms[0]) if alarms.size else size
+        if first > 0:  # the quiet rows before the first alarm continue the carried run
+            if st.quiet_from_ns is None:
+                st.quiet_from_ns = int(decided[0])
+                st.quiet_from_t = int(t_ns[0])
+                st.quiet = 0
+            st.quiet += first
+        if first == size:
+            return
+        if (
+            st.quiet_from_t is not None
+            and st.quiet >= self.persist
+            and t_ns[first] - st.quiet_from_t > self.merge_gap_ns
+        ):
+            st.recovered_ns = st.quiet_from_ns  # the alarm is a new episode
+            return
+        # each later alarm: the quiet run before it starts right after the alarm before
+        # it (a candidate only when it holds persist rows: persist >= 1)
+        start = alarms[:-1] + 1
+        quiet = alarms[1:] - start
+        new = (quiet >= self.persist) & (t_ns[alarms[1:]] - t_ns[start] > self.merge_gap_ns)
+        hit = np.flatnonzero(new)
+        if hit.size:
+            i = int(hit[0])
+            st.quiet_from_ns = st.recovered_ns = int(decided[start[i]])
+            st.quiet_from_t = int(t_ns[start[i]])
+            st.quiet = int(quiet[i])
+            return
+        last = int(alarms[-1])
+        st.quiet_from_ns = st.quiet_from_t = None
+        st.quiet = 0
+        if last + 1 < size:  # quiet rows after the last alarm: a run carried on
+            st.quiet_from_ns = int(decided[last + 1])
+            st.quiet_from_t = int(t_ns[last + 1])
+            st.quiet = size - last - 1
 
     def result(self) -> Metrics:
         """The figures of every row fed so far."""

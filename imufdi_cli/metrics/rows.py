@@ -53,11 +53,18 @@ def persistent(alarm: np.ndarray, persist: int) -> np.ndarray:
 
 
 def judged_isolation(
-    isolated: np.ndarray, scores: np.ndarray | None, n_sensors: int
+    isolated: np.ndarray,
+    scores: np.ndarray | None,
+    n_sensors: int,
+    best: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The sensor each row is judged isolated to at any threshold (the sweeps): its
     isolated sensor, or for a row the detector left unisolated (not ``-2``, not
-    isolable) the sensor of its largest finite score.
+    isolable) the sensor of its largest finite score (the first of equal ones).
+
+    ``best``, when given, is that sensor per row, already found from the scores
+    (:func:`imufdi_cli.sweep.best_columns`, -1 where none is finite); ``scores`` is then
+    not read.
 
     Returns
     -------
@@ -65,15 +72,16 @@ def judged_isolation(
     column : ndarray, shape (k,), int64
         The sensor where judged (0 elsewhere).
     """
-    k = int(isolated.size)
     has_iso = isolated >= 0
     column = np.clip(np.where(has_iso, isolated, 0), 0, max(n_sensors - 1, 0))
     judged = has_iso.copy()
-    if scores is not None and n_sensors:
-        sc = np.asarray(scores, dtype=np.float64).reshape(k, n_sensors)
-        finite = np.isfinite(sc).any(axis=1)
-        best = np.argmax(np.where(np.isfinite(sc), sc, -np.inf), axis=1)
-        use = ~has_iso & (isolated != -2) & finite
+    if best is None and scores is not None and n_sensors:
+        from imufdi_cli.sweep import best_columns
+
+        k = int(isolated.size)
+        best = best_columns(np.asarray(scores, dtype=np.float64).reshape(k, n_sensors))
+    if best is not None and n_sensors:
+        use = ~has_iso & (isolated != -2) & (best >= 0)
         column = np.where(use, best, column)
         judged |= use
     return judged, column

@@ -167,9 +167,11 @@ class ChannelScore:
             isolated_set=rows["isolated_set"],
             statistic=rows["statistic"],
             threshold=rows["threshold"],
-            scores=rows["scores"],
-            amplitudes=rows["amplitudes"],
+            scores=rows.get("scores"),
+            amplitudes=rows.get("amplitudes"),
             scored=keep,
+            amplitude=rows.get("amplitude"),
+            best_score=rows.get("best_score"),
         )
         if self.series is not None:
             from imufdi_cli.report.scan import SERIES_FIELDS
@@ -246,10 +248,10 @@ def reference_delays(
     faulty sensor (``sensitivity``: z units per SI unit, whitened parity noise and the
     long-run factor included). None without a budget, for other fault models, or without
     the fault's size."""
-    from imufdi_cli.maths.sequential import lorden_delay_samples, lorden_drift_samples
-
     if budget is None or not rate_hz:
         return
+    from imufdi_cli.maths.sequential import lorden_delay_samples, lorden_drift_samples
+
     meta, sensor_ids = budget
     try:
         per_hour = float(meta["false_alarms_per_hour"])

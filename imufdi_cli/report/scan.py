@@ -188,7 +188,13 @@ def build_report(
             tracker = LogTimeProgress(progress, getattr(src, "summary_time_range", None))
             # only the chunks of the status and event channels are read (the IMU chunks,
             # most of the file, are stepped over by the summary's chunk index)
-            status = iter_status(src, others=episodes.batch, others_wanted=episodes.wants)
+            status = iter_status(
+                src,
+                others=episodes.batch,
+                others_wanted=episodes.wants,
+                amplitude_columns=False,
+                score_columns=keep_series,  # (the plots draw the scores)
+            )
             for detector, sensor_type, ids, rows in status:
                 if rows["t_ns"].size:
                     tracker.at(int(rows["t_ns"][-1]))

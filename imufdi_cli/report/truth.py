@@ -32,7 +32,7 @@ def truth_windows(metadata: dict[str, dict[str, str]]) -> Truth | None:
     Each injection run records its log start ``t0_ns``; fault times are relative to it.
     """
     from imufdi_cli.errors import TruthError
-    from imufdi_cli.faults import METADATA_NAME
+    from imufdi_cli.faults.models import METADATA_NAME
     from imufdi_cli.metadata import faults_record
 
     record = faults_record(metadata)  # checked against its schema
@@ -51,7 +51,7 @@ def truth_of_runs(runs: list[dict[str, Any]]) -> Truth:
     dicts]}`` (what ``imufdi inject`` records, and what a campaign run applied in memory).
 
     Raises KeyError, TypeError or ValueError on a malformed run."""
-    from imufdi_cli.faults import Fault
+    from imufdi_cli.faults.models import Fault
 
     windows = []
     descriptions = []

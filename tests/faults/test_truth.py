@@ -129,3 +129,24 @@ def test_apply_leaves_unfaulted_streams_and_empty_blocks(array: ArrayConfig) -> 
     assert injector.apply(1, "gyro", t_ns[:0], values[:0]).shape == (0, 3)
     assert_array_equal(injector.apply(1, "gyro", t_ns, values), values + np.array([0.0, 1.0, 0.0]))
     assert injector.affects(1, "gyro") and not injector.affects(1, "accel")
+
+
+def test_reading_truth_loads_the_fault_models_only(fresh_python) -> None:
+    # imufdi_cli.faults imports its submodules on first use: report reads the truth
+    # (Fault, METADATA_NAME) without the injector, the spec grammar or the array model
+    done = fresh_python(
+        "import sys\n"
+        "from imufdi_cli.faults import METADATA_NAME, Fault\n"
+        "import imufdi_cli.report.truth\n"
+        "print(sorted(m for m in sys.modules if m.startswith('imufdi_cli.faults')))\n"
+        "print('imufdi_cli.array' in sys.modules)\n"
+    )
+    assert done.returncode == 0, done.stderr
+    modules, array = done.stdout.split("\n")[:2]
+    assert modules == "['imufdi_cli.faults', 'imufdi_cli.faults.models']"
+    assert array == "False"
+    import imufdi_cli.faults as faults
+
+    assert all(getattr(faults, name) is not None for name in faults.__all__)
+    with pytest.raises(AttributeError):
+        faults.no_such_name  # noqa: B018

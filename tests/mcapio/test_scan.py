@@ -209,3 +209,52 @@ def test_fill_float_columns_copies_the_bytes(offsets: tuple[int, ...], regular: 
         for k, offset in enumerate(offsets):
             expected[i, k] = buf[start + offset : start + offset + 8].view("<u8")[0]
     assert got.view(np.uint64).tolist() == expected.tolist()
+
+
+def _walk(buf: bytes, allowed: frozenset[int]) -> tuple[list[int], list[int], list[int], int]:
+    """The records of ``buf`` one by one (the reference of scan_records)."""
+    starts, opcodes, lengths = [], [], []
+    pos = 0
+    while pos + 9 <= len(buf):
+        opcode, length = struct.unpack_from("<BQ", buf, pos)
+        if pos + 9 + length > len(buf) or opcode not in allowed:
+            break
+        starts.append(pos)
+        opcodes.append(opcode)
+        lengths.append(length)
+        pos += 9 + length
+    return starts, opcodes, lengths, pos
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_scan_records_finds_the_records_a_walk_finds(seed: int) -> None:
+    # runs of repeating patterns (found and checked in bulk) between records of varied
+    # lengths (walked), as a chunk of status channels and episode events holds them; a
+    # pattern broken by one record, a cut end and a foreign opcode stop where a walk does
+    rng = np.random.default_rng(seed)
+    parts: list[bytes] = []
+    for _ in range(int(rng.integers(1, 8))):
+        kind = rng.integers(0, 3)
+        if kind == 0:  # a pattern run of 1 to 4 record lengths
+            period = rng.integers(9, 60, int(rng.integers(1, 5))).tolist()
+            count = int(rng.integers(1, 200))
+            lengths = [period[i % len(period)] for i in range(count)]
+            if rng.random() < 0.3:
+                lengths[int(rng.integers(0, count))] += 1
+        else:  # varied lengths
+            lengths = rng.integers(0, 80, int(rng.integers(1, 150))).tolist()
+        opcode = 0x05 if rng.random() < 0.9 else 0x04
+        parts.append(records(lengths, opcode))
+    buf = b"".join(parts)
+    if rng.random() < 0.3:
+        buf = buf[: int(rng.integers(1, len(buf)))]
+    if rng.random() < 0.2:
+        at = int(rng.integers(0, len(buf)))
+        buf = buf[:at] + b"\x70" + buf[at + 1 :]
+    allowed = frozenset(range(0x01, 0x10))
+    starts, opcodes, lengths, end = scan_records(np.frombuffer(buf, np.uint8), allowed)
+    want = _walk(buf, allowed)
+    assert starts.tolist() == want[0]
+    assert opcodes.tolist() == want[1]
+    assert lengths.tolist() == want[2]
+    assert end == want[3]

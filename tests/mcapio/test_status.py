@@ -358,3 +358,201 @@ def test_chunks_the_index_does_not_describe_are_read(tmp_path) -> None:
         assert source.skip_chunks_without(lambda channel: False) == 0
     with McapSource(_io.BytesIO(path.read_bytes())) as source:
         assert source.skip_chunks_without(lambda channel: False) > 0  # seekable: indexed
+
+
+def _general_walk_only(monkeypatch) -> None:
+    """Read every status batch through the per-message walk (no fixed-offset read)."""
+    from imufdi_cli.mcapio.cdr import CdrCodec
+
+    monkeypatch.setattr(CdrCodec, "uniform_rows", lambda self, batch, paths: None)
+
+
+def _rows_of(path, **options) -> list[tuple[str, str, list[str], dict[str, np.ndarray]]]:
+    from imufdi_cli.mcapio import McapSource, iter_status
+
+    with McapSource(path) as source:
+        return list(iter_status(source, **options))
+
+
+def _assert_same_rows(got, expected) -> None:
+    assert [r[:3] for r in got] == [r[:3] for r in expected]
+    for (_, _, _, a), (_, _, _, b) in zip(got, expected):
+        assert a.keys() == b.keys()
+        for key in a:
+            assert a[key].dtype == b[key].dtype and a[key].shape == b[key].shape, key
+            assert a[key].tobytes() == b[key].tobytes(), key  # NaN payloads too
+
+
+def test_status_laid_out_alike_is_read_at_fixed_offsets_as_the_walk_reads_it(
+    tmp_path, monkeypatch
+) -> None:
+    # what detect writes (one length, one frame id, one sensor count per channel) is read
+    # through CdrCodec.uniform_rows: the same arrays, bit for bit, as the per-message walk
+    from imufdi_cli.mcapio.cdr import CdrCodec
+
+    path = tmp_path / "a.mcap"
+    _annotated(path)
+    calls: list[bool] = []
+    uniform = CdrCodec.uniform_rows
+
+    def counted(self, batch, paths):
+        found = uniform(self, batch, paths)
+        calls.append(found is not None)
+        return found
+
+    monkeypatch.setattr(CdrCodec, "uniform_rows", counted)
+    fast = _rows_of(path)
+    assert calls and all(calls)
+    _general_walk_only(monkeypatch)
+    _assert_same_rows(fast, _rows_of(path))
+
+
+def _frame_ids_of_one_length(n_a: int, n_b: int) -> tuple[str, str]:
+    """Two frame ids whose status messages of n_a and n_b sensors have the same length."""
+    from imufdi_cli.mcapio.status import _status_template
+
+    for a in range(1, 40):
+        for b in range(1, 40):
+            frame_a, frame_b = "f" * a, "g" * b
+            if (
+                _status_template(1, frame_a.encode() + b"\0", n_a, 0)[1]["length"]
+                == _status_template(1, frame_b.encode() + b"\0", n_b, 0)[1]["length"]
+            ):
+                return frame_a, frame_b
+    raise AssertionError("no such frame ids")
+
+
+def test_status_messages_laid_out_differently_are_walked_one_by_one(tmp_path, monkeypatch) -> None:
+    # the same length but another frame id length and sensor count, a big-endian
+    # message, or another length: uniform_rows declines, and the walk reads each message
+    from imufdi_cli.mcapio import McapSource
+    from imufdi_cli.mcapio.cdr import codec_for
+    from imufdi_cli.mcapio.records import MessageBatch
+    from imufdi_cli.mcapio.status import _decode_status
+
+    t_ns = 10**18 + np.arange(6, dtype=np.int64) * 10_000_000
+    frame_a, frame_b = _frame_ids_of_one_length(3, 2)
+    path = tmp_path / "m.mcap"
+    with McapWriter(path) as writer:
+        cid = register_status_channel(writer, "glt", "gyro", ["a", "b", "c"])
+        writer.add_batch(encode_status(cid, t_ns[:3], _detections(3, 3), frame_id=frame_a))
+        writer.add_batch(encode_status(cid, t_ns[3:], _detections(3, 2, 1), frame_id=frame_b))
+    with McapSource(path) as source:
+        channel = source.channels[cid]
+        batch = MessageBatch.concatenate(list(source.batches()))
+    codec = codec_for(channel.schema.name, channel.schema.data)
+    paths = ["statistic", "scores", "isolated_set"]
+    assert len(set(batch.length.tolist())) == 1
+    assert codec.uniform_rows(batch, paths) is None  # the counts differ
+    assert codec.uniform_rows(batch.select(slice(0, 3)), paths) is not None
+    mixed = _decode_status(batch, channel)
+    assert mixed["scores"].shape == (6, 3) and np.isnan(mixed["scores"][3:, 2]).all()
+    assert_array_equal(mixed["scores"][3:, :2], _detections(3, 2, 1).scores)
+    assert_array_equal(mixed["statistic"][3:], _detections(3, 2, 1).statistic)
+    # a big-endian first message (not written by imufdi): declined
+    flipped = MessageBatch(**{**batch.__dict__, "data": batch.data.copy()})
+    flipped.data[int(flipped.offset[0]) + 1] = 0
+    assert codec.uniform_rows(flipped.select(slice(0, 3)), paths) is None
+    # other lengths: declined
+    longer = tmp_path / "l.mcap"
+    with McapWriter(longer) as writer:
+        cid = register_status_channel(writer, "glt", "gyro", ["a", "b", "c"])
+        writer.add_batch(encode_status(cid, t_ns[:3], _detections(3, 3)))
+        writer.add_batch(encode_status(cid, t_ns[3:], _detections(3, 3), frame_id="other"))
+    with McapSource(longer) as source:
+        both = MessageBatch.concatenate(list(source.batches()))
+    assert codec.uniform_rows(both, paths) is None
+    fast = _rows_of(longer)
+    _general_walk_only(monkeypatch)
+    _assert_same_rows(fast, _rows_of(longer))
+
+
+def test_rows_for_scoring_leave_out_the_amplitude_and_score_matrices(tmp_path) -> None:
+    # iter_status(amplitude_columns=False, score_columns=False), what report reads: no
+    # (k, n) NaN amplitudes where the messages carry none per sensor, and each row's
+    # best_score (the column of its first largest finite score) instead of the scores
+    from imufdi_cli.sweep import best_columns
+
+    path = tmp_path / "a.mcap"
+    t_ns = 10**18 + np.arange(40, dtype=np.int64) * 10_000_000
+    single = _detections(40, 4, seed=1)
+    single.scores[3] = np.nan
+    single.scores[5, :2] = np.inf
+    per_sensor = _detections(40, 4, seed=2)
+    per_sensor.amplitudes = np.random.default_rng(5).normal(size=(40, 4))
+    with McapWriter(path) as writer:
+        ids = [f"imu{k}.gyro.x" for k in range(4)]
+        for name, det in (("one", single), ("all", per_sensor)):
+            cid = register_status_channel(writer, name, "gyro", ids)
+            writer.add_batch(encode_status(cid, t_ns, det))
+    full = {r[0]: r[3] for r in _rows_of(path)}
+    lean = {r[0]: r[3] for r in _rows_of(path, amplitude_columns=False, score_columns=False)}
+    assert "amplitudes" not in lean["one"] and "scores" not in lean["one"]
+    assert_array_equal(lean["all"]["amplitudes"], per_sensor.amplitudes)
+    for name in ("one", "all"):
+        assert_array_equal(lean[name]["best_score"], best_columns(full[name]["scores"]))
+        assert_array_equal(lean[name]["amplitude"], full[name]["amplitude"])
+    assert lean["one"]["best_score"][3] == -1 and lean["one"]["best_score"][5] >= 2
+
+
+class _CountingFile:
+    """A binary file that counts the bytes read from it."""
+
+    def __init__(self, path) -> None:
+        self._file = open(path, "rb")  # closed by close()
+        self.read_bytes = 0
+
+    def read(self, n: int = -1) -> bytes:
+        out = self._file.read(n)
+        self.read_bytes += len(out)
+        return out
+
+    def readinto(self, view) -> int:
+        got = self._file.readinto(view)
+        self.read_bytes += got or 0
+        return got
+
+    def seek(self, *args) -> int:
+        return self._file.seek(*args)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def seekable(self) -> bool:
+        return True
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def test_skipped_chunks_and_their_message_indexes_are_stepped_over_unread(
+    tmp_path, monkeypatch
+) -> None:
+    # a chunk iter_status skips is stepped over with its message indexes in one seek
+    # (the summary's chunk index gives both lengths); only its 9-byte head is read (when
+    # the read-ahead after the record before does not hold it already). A span that does
+    # not match the head is read record by record, with the same rows.
+    from imufdi_cli.mcapio import McapSource, iter_status
+
+    path = tmp_path / "a.mcap"
+    t_ns, det = _annotated(path)
+    stream = _CountingFile(path)
+    try:
+        with McapSource(stream) as source:
+            rows = list(iter_status(source))
+            spans = dict(source._chunk_spans)
+            skipped = sorted(source._skipped_chunks)
+            read = stream.read_bytes
+    finally:
+        stream.close()
+    assert sum(r[3]["t_ns"].size for r in rows) == t_ns.size
+    skipped_bytes = sum(spans[c][0] + spans[c][1] for c in skipped)
+    assert len(skipped) >= 100 and skipped_bytes > 0.5 * path.stat().st_size
+    assert read < path.stat().st_size - 0.5 * skipped_bytes
+    # spans the heads contradict (a stale or damaged index): read as any record
+    with McapSource(path) as source:
+        source._chunk_spans = {c: (n + 1, m) for c, (n, m) in source._chunk_spans.items()}
+        wrong = list(iter_status(source))
+        assert not source.warnings
+    _assert_same_rows(wrong, rows)
+    assert_array_equal(read_status(path)[("glt", "gyro")].scores, det.scores)
