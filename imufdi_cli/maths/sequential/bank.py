@@ -89,6 +89,7 @@ class MotionModel:
     covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
     def __post_init__(self) -> None:
+        self._prior_precision = np.eye(self.centre.size) / self.prior_sd**2
         self.solve()
 
     @classmethod
@@ -113,8 +114,7 @@ class MotionModel:
         )
 
     def solve(self) -> None:
-        p = self.centre.size
-        precision = self.sxx + np.eye(p) / self.prior_sd**2
+        precision = self.sxx + self._prior_precision
         self.covariance = np.linalg.inv(precision)
         self.slopes = self.covariance @ self.sxz
 
@@ -198,11 +198,13 @@ class _Reference:
         factors: np.ndarray,
         frozen: bool,
         samples: int,
+        out: np.ndarray | None = None,
+        variance: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, tuple[np.ndarray, ...]]]]:
         """``z'`` and the rows' noise variance factors ``s^2`` for the next rows of the
         stream (after ``samples`` rows), learning at every completed sub-block unless
         ``frozen``; also, for a rewind, the local rows from which each state held, with a
-        snapshot of it.
+        snapshot of it. ``out`` and ``variance``: arrays to write them into (None: new).
 
         What does not depend on the references (the rows at rest, the weights and the
         weighted states) is computed once for all the rows, in the same floats as per
@@ -210,8 +212,12 @@ class _Reference:
         the weights, which change nothing there."""
         motion = self.motion
         n_rows = z.shape[0]
-        out = np.empty_like(z)
-        variance = factors.copy()
+        if out is None:
+            out = np.empty_like(z)
+        if variance is None:
+            variance = factors.copy()
+        else:
+            variance[...] = factors
         marks = [(0, self.snapshot())]
         learn = not frozen
         rest = factors <= self.rest_factor
@@ -266,7 +272,8 @@ class _Reference:
             if self.step > 0.0:
                 gain = max(self.step, start)
                 limit = self.gate * np.sqrt(self.count * self.variance)
-                self.offset = self.offset + gain * np.clip(self.pending, -limit, limit)
+                clipped = np.minimum(np.maximum(self.pending, -limit), limit)  # np.clip's floats
+                self.offset = self.offset + gain * clipped
             if self.scale_step > 0.0:
                 gain = max(self.scale_step, start)
                 change = self.pending_squares - self.count * self.variance
@@ -764,6 +771,11 @@ class CusumBank:
         return z.shape[0]
 
     def _remember(self, chunks: list[_Chunk]) -> None:
-        """Keep the last ``history`` rows (for onsets)."""
-        for chunk in chunks:
+        """Keep the last ``history`` rows (for onsets): only the chunks that reach into
+        them are copied into the ring."""
+        first, rows = len(chunks), 0
+        while first > 0 and rows < self.history.length:
+            first -= 1
+            rows += chunks[first].u.shape[0]
+        for chunk in chunks[first:]:
             self.history.add(chunk.u, chunk.q, chunk.inverse)

@@ -84,16 +84,28 @@ def chain_run_lengths(cdf_at_edges: np.ndarray, states: int) -> np.ndarray:
     Evans), one per row of ``cdf_at_edges`` (k, 2 states + 1): the increment's CDF at
     ``(e - states - 1/2) w`` for ``e = 0 .. 2 states``, ``w = 2h / (2 states - 1)`` (cell 0
     holds ``[0, w/2)`` and the atom at 0, cell j is centred on ``j w``; the chain is
-    absorbed at ``S >= h``)."""
-    cdf_at_edges = np.atleast_2d(cdf_at_edges)
-    j = np.arange(states)[:, None]
-    edges = np.arange(states + 1)[None, :]
-    cdf = cdf_at_edges[:, edges - j + states]  # (k, states, states + 1)
-    cdf[:, :, 0] = 0.0
-    transition = np.diff(cdf, axis=2)
-    system = np.eye(states)[None, :, :] - transition
-    lengths = np.linalg.solve(system, np.ones((cdf.shape[0], states, 1)))
+    absorbed at ``S >= h``).
+
+    The transition from cell j to cell l >= 1 is the CDF's step between l's edges seen
+    from j, ``F(l - j + 1/2) - F(l - j - 1/2)`` (in cells): one difference per offset,
+    laid out as a Toeplitz matrix; to cell 0 it is everything up to its upper edge."""
+    cdf_at_edges = np.atleast_2d(np.asarray(cdf_at_edges, float))
+    offset, first, identity = _chain_layout(states)
+    steps = np.diff(cdf_at_edges, axis=1)  # (k, 2 states): F(e + 1) - F(e)
+    transition = steps[:, offset]  # (k, states, states)
+    transition[:, :, 0] = cdf_at_edges[:, first]
+    system = np.subtract(identity, transition, out=transition)
+    lengths = np.linalg.solve(system, np.ones((cdf_at_edges.shape[0], states, 1)))
     return lengths[:, 0, 0]
+
+
+@lru_cache(maxsize=8)
+def _chain_layout(states: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The chain's index arrays: the CDF step of each (cell, cell) pair (states, states),
+    the upper edge of cell 0 seen from each cell (states,), and the identity."""
+    cells = np.arange(states)
+    offset = cells[None, :] - cells[:, None] + states
+    return offset, states + 1 - cells, np.eye(states)[None, :, :]
 
 
 #: Gauss-Hermite nodes and weights (probabilists', 3 points: exact for polynomials of
