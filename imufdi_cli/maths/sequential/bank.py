@@ -420,7 +420,8 @@ class CusumBank:
         """u of (1), z'/s^2 and 1/s^2 of the rows."""
         scale = np.sqrt(variance)[:, None]
         clip = self.design.clip
-        u = np.clip(zr / scale, -clip, clip)
+        u = np.divide(zr, scale)
+        np.clip(u, -clip, clip, out=u)
         u /= scale
         inverse = 1.0 / variance
         return u, zr * inverse[:, None], inverse
