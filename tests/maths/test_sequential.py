@@ -451,3 +451,31 @@ def test_sub_chunks_taken_together_give_the_decisions_of_one_at_a_time() -> None
     for name in ("statistic", "threshold", "alarm", "isolated", "amplitude", "scores"):
         whole = [np.concatenate([getattr(p, name) for p in run]) for run in runs]
         np.testing.assert_array_equal(whole[0], whole[1])
+
+
+def test_run_lengths_solved_together_are_those_of_one_chain_at_a_time(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from imufdi_cli.maths.sequential import thresholds
+
+    keys = [
+        (shift, 3.5, h, 100, scale, contamination)
+        for shift in (0.354, 2.0, 5.66, 8.0)  # 8: no positive increment (ARL inf)
+        for h in (0.0, 4.0, 19.1)  # 0: ARL 1
+        for scale in (0.9, 1.05)
+        for contamination in (0.0, 1e-4)
+    ]
+    monkeypatch.setattr(thresholds, "_RUN_LENGTHS", type(thresholds._RUN_LENGTHS)())
+    together = thresholds.run_lengths(keys)
+    alone = []
+    for key in keys:
+        thresholds._RUN_LENGTHS.clear()
+        alone.append(thresholds.average_run_length(*key))
+    assert together == alone  # the same floats
+    assert math.inf in together and 1.0 in together
+    # a cache smaller than one call's keys: every one returned, the last used kept
+    thresholds._RUN_LENGTHS.clear()
+    monkeypatch.setattr(thresholds, "_CACHED", 3)
+    assert thresholds.run_lengths(keys[:8]) == alone[:8]
+    assert thresholds.run_lengths(keys[:2] + keys[20:21]) == [*alone[:2], alone[20]]
+    assert list(thresholds._RUN_LENGTHS) == [*keys[:2], keys[20]]
