@@ -1,27 +1,35 @@
-"""Normal, chi-square, F and gamma distribution functions on ``scipy.special``'s public ufuncs.
+"""Normal, chi-square, F, gamma and t distribution functions without ``scipy.stats``.
 
 The detectors' thresholds, the calibration's noise checks and the episode intervals need a
-handful of tail probabilities and quantiles of four laws. ``scipy.stats`` gives them, but
+handful of tail probabilities and quantiles of five laws. ``scipy.stats`` gives them, but
 its import costs about 0.8 s of CPU (it pulls in ``scipy.linalg``, ``scipy.optimize`` and
 ``scipy.sparse``), paid by every ``imufdi detect`` for a few numbers, and its generic
 ``rv_continuous`` wrapper adds tens of microseconds a call. The laws are closed forms of
-documented special functions (Abramowitz & Stegun 26.2, 26.4, 26.6; scipy.special's
-``ndtr``, ``chdtr``, ``fdtr``, ``gammainc`` families), which ``scipy.special`` exports as
-compiled ufuncs for about a third of that import::
+documented special functions (Abramowitz & Stegun 26.2, 26.4, 26.6)::
 
     norm   pdf exp(-x^2/2)/sqrt(2 pi)  cdf ndtr(x)              sf ndtr(-x)
            ppf ndtri(q)                isf -ndtri(q)
     chi2   cdf chdtr(k, x)             sf chdtrc(k, x)
-           ppf 2 gammaincinv(k/2, q)   isf chdtri(k, q)
+           ppf 2 P^-1(k/2, q)          isf 2 Q^-1(k/2, q)
     f      cdf fdtr(n, d, x)           sf fdtrc(n, d, x)
-           ppf fdtri(n, d, q)          isf fdtri(n, d, 1 - q)
+           ppf d y / (n (1 - y)), y = I^-1_q(n/2, d/2)     isf the same at 1 - q
     gamma  cdf gammainc(a, x)          sf gammaincc(a, x)
-           ppf gammaincinv(a, q)       isf gammainccinv(a, q)
+           ppf P^-1(a, q)              isf Q^-1(a, q)
+    t      cdf stdtr(k, x)             sf stdtr(k, -x)
+           ppf -+sqrt(F quantile(1, k) at upper tail 2 min(q, 1 - q))    isf ppf(1 - q)
 
-These are the expressions ``scipy.stats`` evaluates for the same laws, so the values agree
-with it to rounding (``tests/maths/test_quantiles.py`` compares them over grids).
-``scipy.special`` is imported at the first call, never on import of this module: ``imufdi
---help`` and ``imufdi info`` do not load it.
+The distribution functions and the normal quantiles are ``scipy.special``'s compiled
+ufuncs (``ndtr``, ``chdtr``, ``fdtr``, ``gammainc``, ``stdtr`` families), imported at the first call,
+never on import of this module: ``imufdi --help`` and ``imufdi info`` do not load it. The
+chi-square, F, gamma and t quantiles, which are what the detectors' thresholds need, are
+:mod:`~imufdi_cli.maths.incomplete`'s inverses of the incomplete gamma and beta
+functions, in pure Python (importing ``scipy.special`` for them would cost 0.27 s of CPU,
+a fifth of ``imufdi detect -d glt`` on a 10-minute log), element by element (about
+0.05-0.15 ms each: meant for the few values a run needs), each tail computed directly
+(an upper-tail quantile at ``q = 1e-300`` is accurate); shapes above
+``incomplete.MAX_SHAPE`` go to ``scipy.special``. The values agree with ``scipy.stats``'s
+to rounding (``tests/maths/test_quantiles.py`` compares them over grids, and
+``tests/maths/test_incomplete.py`` bounds the inverses' error).
 
 Every method takes array_like arguments that broadcast, plus keyword ``loc`` (default 0)
 and ``scale`` (default 1, > 0): ``x`` is standardised as ``(x - loc) / scale``, a quantile
@@ -37,6 +45,8 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
+
+from imufdi_cli.maths import incomplete
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
@@ -58,6 +68,62 @@ def _out(value: Any) -> Any:
     """A NumPy float64 scalar for a zero-dimensional result, else the array."""
     array = np.asarray(value, dtype=np.float64)
     return array[()] if array.ndim == 0 else array
+
+
+def _elementwise(function: Any, q: Any, *shapes: Any, upper: bool) -> Any:
+    """``function(lower, upper, *shapes)`` of every element of the broadcast arguments, with
+    ``(lower, upper) = (1 - q, q)`` for an upper-tail quantile, else ``(q, 1 - q)``."""
+    arrays = np.broadcast_arrays(np.asarray(q, dtype=np.float64), *shapes)
+    out = np.empty(arrays[0].shape, dtype=np.float64)
+    flat = out.reshape(-1)
+    columns = [np.asarray(a, dtype=np.float64).reshape(-1).tolist() for a in arrays]
+    for i, (p, *values) in enumerate(zip(*columns)):
+        flat[i] = function(1.0 - p, p, *values) if upper else function(p, 1.0 - p, *values)
+    return out
+
+
+def _valid(lower: float, *shapes: float) -> bool:
+    """A probability in [0, 1] and positive shapes (False for NaN)."""
+    return 0.0 <= lower <= 1.0 and all(s > 0.0 for s in shapes)
+
+
+def _gamma_quantile(lower: float, upper: float, a: float) -> float:
+    """The standard gamma quantile with lower tail ``lower`` (``upper = 1 - lower``)."""
+    if not _valid(lower, a):
+        return math.nan
+    if lower == 0.0 or upper == 0.0:
+        return 0.0 if lower == 0.0 else math.inf
+    if a > incomplete.MAX_SHAPE:
+        special = _special()
+        return float(
+            special.gammaincinv(a, lower) if lower <= upper else special.gammainccinv(a, upper)
+        )
+    return incomplete.gamma_inverse(a, lower, upper)
+
+
+def _f_quantile(lower: float, upper: float, dfn: float, dfd: float) -> float:
+    """The F quantile with lower tail ``lower``: ``d y / (n (1 - y))`` for the beta law's
+    ``y`` of shapes ``(n/2, d/2)`` (A&S 26.6.2)."""
+    if not _valid(lower, dfn, dfd):
+        return math.nan
+    if lower == 0.0 or upper == 0.0:
+        return 0.0 if lower == 0.0 else math.inf
+    if max(dfn, dfd) / 2.0 > incomplete.MAX_SHAPE:
+        return float(_special().fdtri(dfn, dfd, lower))
+    y, w = incomplete.beta_inverse(dfn / 2.0, dfd / 2.0, lower, upper)
+    return dfd * y / (dfn * w) if w > 0.0 else math.inf
+
+
+def _t_quantile(lower: float, upper: float, dof: float) -> float:
+    """The t quantile with lower tail ``lower``: ``+-sqrt`` of the F(1, dof) quantile whose
+    upper tail is twice the smaller of ``lower`` and ``upper`` (exact in floating point)."""
+    if not _valid(lower, dof):
+        return math.nan
+    if lower == upper:
+        return 0.0
+    two_tails = 2.0 * min(lower, upper)
+    size = math.sqrt(_f_quantile(1.0 - two_tails, two_tails, 1.0, dof))
+    return size if lower > upper else -size
 
 
 class _Law:
@@ -128,10 +194,10 @@ class _Chi2(_Law):
         return _special().chdtrc(shapes[0], np.maximum(x, 0.0))
 
     def _ppf(self, q: Any, *shapes: Any) -> Any:
-        return 2.0 * _special().gammaincinv(np.asarray(shapes[0], dtype=np.float64) / 2.0, q)
+        return 2.0 * _elementwise(_gamma_quantile, q, np.asarray(shapes[0]) / 2.0, upper=False)
 
     def _isf(self, q: Any, *shapes: Any) -> Any:
-        return _special().chdtri(shapes[0], q)
+        return 2.0 * _elementwise(_gamma_quantile, q, np.asarray(shapes[0]) / 2.0, upper=True)
 
 
 class _F(_Law):
@@ -144,15 +210,28 @@ class _F(_Law):
     def _sf(self, x: Any, *shapes: Any) -> Any:
         return _special().fdtrc(shapes[0], shapes[1], np.maximum(x, 0.0))
 
-    # the quantile at probability 0 is the support's end, 0, for valid degrees of freedom
-    # (scipy 1.13's fdtri returns NaN there)
     def _ppf(self, q: Any, *shapes: Any) -> Any:
-        at_zero = (np.asarray(q) == 0.0) & (np.asarray(shapes[0]) > 0) & (np.asarray(shapes[1]) > 0)
-        return np.where(at_zero, 0.0, _special().fdtri(shapes[0], shapes[1], q))
+        return _elementwise(_f_quantile, q, shapes[0], shapes[1], upper=False)
 
     def _isf(self, q: Any, *shapes: Any) -> Any:
-        at_one = (np.asarray(q) == 1.0) & (np.asarray(shapes[0]) > 0) & (np.asarray(shapes[1]) > 0)
-        return np.where(at_one, 0.0, _special().fdtri(shapes[0], shapes[1], 1.0 - q))
+        return _elementwise(_f_quantile, q, shapes[0], shapes[1], upper=True)
+
+
+class _T(_Law):
+    """Student's t law with ``df`` degrees of freedom (> 0): ``cdf(x, df)``, ``sf``,
+    ``ppf(q, df)``, ``isf``; its quantiles from F(1, df), ``t^2 ~ F(1, df)`` (A&S 26.7.1)."""
+
+    def _cdf(self, x: Any, *shapes: Any) -> Any:
+        return _special().stdtr(shapes[0], x)
+
+    def _sf(self, x: Any, *shapes: Any) -> Any:
+        return _special().stdtr(shapes[0], -np.asarray(x))
+
+    def _ppf(self, q: Any, *shapes: Any) -> Any:
+        return _elementwise(_t_quantile, q, shapes[0], upper=False)
+
+    def _isf(self, q: Any, *shapes: Any) -> Any:
+        return _elementwise(_t_quantile, q, shapes[0], upper=True)
 
 
 class _Gamma(_Law):
@@ -166,10 +245,10 @@ class _Gamma(_Law):
         return _special().gammaincc(shapes[0], np.maximum(x, 0.0))
 
     def _ppf(self, q: Any, *shapes: Any) -> Any:
-        return _special().gammaincinv(shapes[0], q)
+        return _elementwise(_gamma_quantile, q, shapes[0], upper=False)
 
     def _isf(self, q: Any, *shapes: Any) -> Any:
-        return _special().gammainccinv(shapes[0], q)
+        return _elementwise(_gamma_quantile, q, shapes[0], upper=True)
 
 
 #: the normal law
@@ -180,5 +259,7 @@ chi2 = _Chi2()
 f = _F()
 #: the gamma law
 gamma = _Gamma()
+#: Student's t law
+t = _T()
 
-__all__ = ["chi2", "f", "gamma", "norm"]
+__all__ = ["chi2", "f", "gamma", "norm", "t"]

@@ -115,8 +115,11 @@ class ImuArrayReader:
         Stamp used for alignment and output: ``header.stamp``, the MCAP log time, or
         (``auto``) the header stamp unless the Imu has no header or its stamps are all
         zero, in which case the log time is used with a warning.
-    block_size : int
-        Samples per block yielded by :meth:`blocks`.
+    block_size : int, optional
+        Samples per block yielded by :meth:`blocks`, and the samples the aligner gathers
+        before it resolves a block for :meth:`stream`. Default: ``block_samples(n)`` for
+        the ``n`` IMU topics read, 4096 samples up to 16 IMUs and fewer above (the
+        samples of a block, and so the memory of a run, scale with samples x IMUs).
     tolerance_ns : int, optional
         Stamps of different topics closer than this are the same sample (default: 30 % of
         the sample period).
@@ -156,7 +159,7 @@ class ImuArrayReader:
         topics: Sequence[str] | None = None,
         strict: bool = False,
         time_source: str = "auto",
-        block_size: int = 4096,
+        block_size: int | None = None,
         tolerance_ns: int | None = None,
         keep_raw_chunks: bool = False,
         validate_crcs: bool = True,
@@ -164,7 +167,7 @@ class ImuArrayReader:
     ) -> None:
         if time_source not in ("auto", "header", "log_time"):
             raise UsageError(f"unknown time source {time_source!r}; valid: auto, header, log_time")
-        if block_size < 1:
+        if block_size is not None and block_size < 1:
             raise UsageError(f"block_size must be >= 1, got {block_size}")
         self.source = (
             source
@@ -177,7 +180,7 @@ class ImuArrayReader:
             )
         )
         self.time_source = time_source
-        self.block_size = block_size
+        self.block_size = 4096 if block_size is None else block_size  # set below if None
         self.warnings = self.source.warnings
         self._batches = self.source.batches()
         self._prefetched: deque[MessageBatch] = deque()
@@ -218,6 +221,9 @@ class ImuArrayReader:
                 "array config has magnetometers but not every IMU topic has a <ns>/mag topic;"
                 " magnetometers are not read"
             )
+        if block_size is None:
+            self.block_size = block_samples(len(self.imu_topics))
+        block_size = self.block_size
         period_ns = NS_PER_S / self.array.rate_hz
         tolerance = int(0.3 * period_ns) if tolerance_ns is None else int(tolerance_ns)
         names = list(self.imu_topics) + list(self.mag_topics)
@@ -613,6 +619,18 @@ class ImuArrayReader:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+#: array samples x IMUs in a default block: 4096 samples of 16 IMUs
+BLOCK_VALUES = 4096 * 16
+
+
+def block_samples(n_imus: int) -> int:
+    """The default samples per block for ``n_imus`` IMUs: 4096 up to 16 IMUs, then
+    ``BLOCK_VALUES / n_imus`` (at least 256), so that a block holds about as many values
+    whatever the array's size and a run's memory does not grow with the IMU count beyond
+    the per-IMU state."""
+    return int(min(4096, max(256, BLOCK_VALUES // max(n_imus, 1))))
 
 
 def recut(blocks: Iterable[ImuBlock], block_size: int) -> Iterator[ImuBlock]:

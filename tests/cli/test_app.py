@@ -104,7 +104,7 @@ def test_detect_with_every_detector_imports_scipy_only_as_the_detectors_use_it(
     fresh_imufdi, moving_log, tmp_path_factory
 ) -> None:
     """Start-up time: scipy is imported where it is used, through its public API: the
-    quantiles (scipy.special), the NNLS of the noise calibration and the jitter root
+    normal and F distribution functions (scipy.special), the NNLS of the noise calibration and the jitter root
     (scipy.optimize), the bank's and the px4 selector's filters and woa's envelope
     (scipy.signal); nothing imports a private scipy module by itself. One interpreter runs every detector, the costly ones
     reduced (woa-mvmd-glt's search to its initial two whales: it still computes their

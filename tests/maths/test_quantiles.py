@@ -1,15 +1,30 @@
-"""imufdi_cli.maths.quantiles: the normal, chi-square, F and gamma laws on scipy.special.
+"""imufdi_cli.maths.quantiles: the normal, chi-square, F, gamma and t laws.
 
 scipy.stats is the independent oracle here, imported at first use through the session
 fixture ``scipy_stats`` (tests/conftest.py), so that only the worker running these tests
 pays its import.
 
-Tolerance of the comparisons with scipy.stats: both evaluate the same compiled special
-function on the same standardised argument, so they agree to rounding; ``rtol = 1e-12``
-leaves room for a scipy release that computes the standardisation ``(x - loc) / scale`` or
-a complement ``1 - q`` in another order (one ulp of the argument, times the function's
-condition number on these grids: below 1e-13), and none for a wrong law, tail or
-degree-of-freedom convention (those are off by more than 1e-3).
+Tolerance of the comparisons with scipy.stats, ``rtol = 1e-12``:
+- the densities, distribution functions and normal quantiles evaluate the same compiled
+  special function on the same standardised argument, so they agree to rounding; the
+  tolerance leaves room for a scipy release that computes the standardisation
+  ``(x - loc) / scale`` or a complement ``1 - q`` in another order (one ulp of the
+  argument, times the function's condition number on these grids: below 1e-13);
+- the chi-square, F, gamma and t quantiles are this project's own (maths/incomplete.py),
+  within 2e-13 of scipy's on these grids (tests/maths/test_incomplete.py bounds the
+  difference over wider ones);
+and none for a wrong law, tail or degree-of-freedom convention (those are off by more
+than 1e-3). Two exceptions, where scipy's F quantiles are not accurate:
+- ``scipy.stats.f.isf(q, n, d)`` inverts the distribution function at ``1 - q``, which
+  loses the small tail (2e-5 relative at ``q = 1e-12``, infinite at ``q = 1e-300``): ours
+  is compared with ``1 / f.ppf(q, d, n)``, the same quantile by the F law's reciprocal
+  symmetry (A&S 26.6.3), which scipy computes without that complement;
+- at ``q = 1e-300`` scipy's ``f.ppf`` returns values near the smallest normal float where
+  the quantile underflows: that level is checked against the F law's closed forms with
+  two numerator degrees of freedom instead. There scipy's ``t.ppf`` has the wrong sign
+  (``+inf`` at 5 degrees of freedom, where the quantile is -1.6e60) and ours, the root of
+  an F quantile, is infinite where that square passes the float range (below 2 degrees
+  of freedom): the level is left out for t.
 """
 
 from __future__ import annotations
@@ -32,7 +47,7 @@ LOC_SCALE = [(0.0, 1.0), (0.5, 2.0)]
 
 FUNCTIONS = [("norm", 0, method) for method in ("pdf", "cdf", "sf", "ppf", "isf")] + [
     (name, n, method)
-    for name, n in (("chi2", 1), ("f", 2), ("gamma", 1))
+    for name, n in (("chi2", 1), ("f", 2), ("gamma", 1), ("t", 1))
     for method in ("cdf", "sf", "ppf", "isf")
 ]
 
@@ -49,11 +64,41 @@ def test_every_function_agrees_with_scipy_stats_over_a_grid(
     ]
     ours = getattr(getattr(quantiles, name), method)
     theirs = getattr(getattr(scipy_stats, name), method)
+    if (name, method) == ("f", "isf"):  # 1 / F_q(d, n) (module docstring)
+
+        def theirs(q, n, d, loc, scale):
+            with np.errstate(divide="ignore", over="ignore"):  # 1/0 and 1/tiny: inf
+                return loc + scale / scipy_stats.f.ppf(q, d, n)
+
+    # scipy's F and t quantiles at the 1e-300 tail are not accurate (module docstring)
+    compared = (values != 1e-300) if name in ("f", "t") and method in ("ppf", "isf") else ...
     for loc, scale in LOC_SCALE:
         got = ours(x, *shapes, loc=loc, scale=scale)
         want = theirs(x, *shapes, loc=loc, scale=scale)
         assert got.shape == want.shape == (len(values),) + (len(SHAPES),) * n_shapes
-        assert_allclose(got, want, rtol=RTOL, atol=0.0, err_msg=f"{name}.{method} {loc} {scale}")
+        assert_allclose(
+            got[compared],
+            want[compared],
+            rtol=RTOL,
+            atol=0.0,
+            err_msg=f"{name}.{method} {loc} {scale}",
+        )
+
+
+def test_f_quantiles_far_in_the_tails_match_the_closed_forms() -> None:
+    # F(2, d): sf(x) = (1 + 2x/d)^(-d/2), so isf(q) = d/2 (q^(-2/d) - 1) and
+    # ppf(q) = d/2 (expm1(-(2/d) log1p(-q))); both well conditioned at q = 1e-300
+    # (tolerance: the closed forms' own rounding, a few ulps, times log(1e300) ~ 690 at
+    # most for the power)
+    d = np.array([0.3, 1.0, 2.0, 5.0, 47.0, 1000.0])
+    for q in (1e-300, 1e-100, 1e-12):
+        with np.errstate(over="ignore"):  # beyond the largest float: inf, as ours gives
+            isf = d / 2 * np.expm1(-(2 / d) * np.log(q))
+        ppf = d / 2 * np.expm1(-(2 / d) * np.log1p(-q))
+        assert_allclose(f.isf(q, 2.0, d), isf, rtol=1e-13, atol=0.0)
+        assert_allclose(f.ppf(q, 2.0, d), ppf, rtol=1e-13, atol=0.0)
+    # and where the quantile underflows it is 0, not a tiny positive number
+    assert f.ppf(1e-300, 0.3, 5.0) == 0.0
 
 
 def test_the_detectors_array_calls_agree_with_scipy_stats(scipy_stats) -> None:
@@ -113,6 +158,14 @@ def test_known_values() -> None:
     assert quantiles.gamma.ppf(0.5, 1, scale=3.0) == pytest.approx(3 * np.log(2), rel=1e-14)
     assert quantiles.norm.pdf(0.0) == pytest.approx(1 / np.sqrt(2 * np.pi), rel=1e-15)
     assert quantiles.norm.sf(1.0, loc=1.0, scale=5.0) == 0.5
+    # t: the Cauchy law at 1 dof, tan(pi (q - 1/2)) = -1 / tan(pi q) (the second form for
+    # a small q, where q - 1/2 would round); t_0.975(10) = 2.228139 (tables)
+    for q in (1e-12, 0.01, 0.3, 0.5, 0.9, 0.999):
+        cauchy = -1 / np.tan(np.pi * q) if q < 0.25 else np.tan(np.pi * (q - 0.5))
+        assert quantiles.t.ppf(q, 1.0) == pytest.approx(cauchy, rel=1e-12)
+    assert quantiles.t.ppf(0.975, 10) == pytest.approx(2.228138851986274, rel=1e-13)
+    # (1 - 0.975 is 0.025 to 1e-15: the two differ by that much)
+    assert quantiles.t.isf(0.025, 10) == pytest.approx(quantiles.t.ppf(0.975, 10), rel=1e-14)
 
 
 def test_importing_it_imports_no_scipy_and_using_it_not_scipy_stats(fresh_python) -> None:

@@ -60,6 +60,26 @@ def test_round_trip_with_magnetometer_and_blocks(tmp_path) -> None:
     assert_array_equal(joined.gyro, data.gyro)  # type: ignore[arg-type]
 
 
+def test_the_default_block_holds_about_the_same_values_whatever_the_imu_count(tmp_path) -> None:
+    # 4096 samples up to 16 IMUs, then fewer (a run's memory scales with samples x IMUs)
+    from imufdi_cli.mcapio.imu import block_samples
+
+    assert [block_samples(n) for n in (1, 8, 16, 17, 32, 64, 256, 1000)] == [
+        4096, 4096, 4096, 3855, 2048, 1024, 256, 256,
+    ]  # fmt: skip
+    array = ArrayConfig.co_aligned(32, 100.0)
+    data = make_block(2500, 32)
+    path = tmp_path / "wide.mcap"
+    write_array(path, array, data)
+    with ImuArrayReader(path) as reader:
+        assert reader.block_size == 2048
+        blocks = list(reader.blocks())
+    assert [len(b) for b in blocks] == [2048, 452]
+    assert_array_equal(ImuBlock.concatenate(blocks).gyro, data.gyro)  # type: ignore[arg-type]
+    with ImuArrayReader(path, block_size=4096) as reader:  # an explicit size is kept
+        assert reader.block_size == 4096
+
+
 def test_independent_readers_agree(tmp_path, array4) -> None:
     # 100 samples (not the 500 of block4): mcap-ros2-support decodes each in Python
     block = make_block(100, 4)
