@@ -5,7 +5,7 @@ Log (made at run time, simulation seed 1, a tuning seed): paper-table4, 16 IMUs,
 ``--minutes`` long (10 by default), with a 0.9 deg/s gyro step from 30 % of it and a
 0.01 deg/s^2 gyro drift from 50 % (added to the simulated samples). Each child process
 fits glt (``false_alarms=1/h``) on the first 2 s, as ``imufdi detect`` does by default, then
-streams the rest in blocks of 4,431 samples (the engine's block on this log); it prints the
+streams the rest in blocks of 4,096 samples (the reader's default block up to 16 IMUs); it prints the
 process CPU of the fit (threshold search, calibration) and of the stream (the bank), and a
 digest of every output array.
 
@@ -36,7 +36,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 TREE = HERE.parent
-BLOCK = 4431
+BLOCK = 4096
 CALIBRATION_S = 2.0
 
 
