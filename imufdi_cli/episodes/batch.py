@@ -38,7 +38,12 @@ from imufdi_cli.episodes.batch_linear import (
 )
 from imufdi_cli.episodes.fault_fit import MODELS, FaultFit
 from imufdi_cli.episodes.fits import _fault_end, _fit_window
-from imufdi_cli.episodes.model_fits import SPIKE_CUT, _spike_set, _stuck_fit
+from imufdi_cli.episodes.model_fits import (
+    SPIKE_CUT,
+    _refined_spike_set,
+    _spike_set,
+    _stuck_fit,
+)
 from imufdi_cli.episodes.reference import Reference
 from imufdi_cli.episodes.white_noise import _calibration_dof, successive_difference_dof
 
@@ -338,7 +343,8 @@ class _Windows(LinearSizes):
             self.motion[e, : n[e]] = ref.motion  # type: ignore[index]
         # the healthy sensors' white variances over each window (successive differences)
         diff = self.ref[:, 1:] - self.ref[:, :-1]
-        diff *= self.valid[:, 1:, None]
+        for e in np.flatnonzero(n < L).tolist():  # beyond the window: zero
+            diff[e, n[e] - 1 :] = 0.0  # (what the valid mask's product gives: ±0, squared 0)
         self.ref_white = np.einsum("elm,elm->em", diff, diff) / (
             2 * np.maximum(self.nf - 1, 1)[:, None]
         )
@@ -412,6 +418,22 @@ class _Windows(LinearSizes):
             out[e] = fit
         return out
 
+    def _median_steps(self) -> np.ndarray:
+        """Each window's median sample interval (E,; 0 for a window of one sample): the
+        middle of its sorted intervals, or the middle two's sum halved, as
+        ``np.nanmedian`` of the rows with NaN beyond each window takes it (a tenth of its
+        CPU: nanmedian masks each row)."""
+        t = self.t
+        if self.L < 2:
+            return np.zeros(self.E)
+        steps = np.where(self.valid[:, 1:], t[:, 1:] - t[:, :-1], np.inf)
+        steps.sort(axis=1)  # each window's intervals first, the padding (inf) after
+        count = self.n - 1
+        rows = np.arange(self.E)
+        low = steps[rows, np.maximum((count - 1) // 2, 0)]
+        high = steps[rows, np.maximum(count // 2, 0)]
+        return np.where(count > 0, (low + high) / 2, 0.0)
+
     def _argmin(self, total: np.ndarray) -> np.ndarray:
         """Per row, the first candidate onset of the smallest ``total`` (E,)."""
         return np.where(self.cand, total, np.inf).argmin(axis=1)  # type: ignore[no-any-return]
@@ -464,8 +486,7 @@ class _Windows(LinearSizes):
         (:func:`~imufdi_cli.episodes.fits._drift_search`)."""
         E, L = self.E, self.L
         t, n = self.t, self.n_after
-        diffs = np.where(self.valid[:, 1:], t[:, 1:] - t[:, :-1], np.nan)
-        dt = np.where(self.n > 1, np.nanmedian(diffs, axis=1) if L > 1 else 0.0, 0.0)
+        dt = self._median_steps()
         t0 = t
         s_u = self.s_t - n * t0
         s_uu = self.s_tt - 2 * t0 * self.s_t + n * t0**2
@@ -632,9 +653,20 @@ class _Windows(LinearSizes):
         r_s = (r - gamma_s[:, None] * o) * self.valid
         var_gs = self.sigma_k**2 + (1 + gamma_s) ** 2 * self.cs**2
         nll_before_s = _nll(self._prefix(r_s * r_s), self.taus, var_gs[:, None])
+        # the spike sets (_spike_set of each row): the first set, the cut against the
+        # running median of five, for all rows at once where _local_level takes its
+        # selection network (five samples or more, no sum that could overflow), then
+        # refined row by row where it holds a spike
+        first = np.abs(r_s - self._local_levels(r_s)) > SPIKE_CUT * sigma_r[:, None]
+        first &= self.valid
+        networked = (self.n >= 5) & (np.abs(r_s).max(axis=1) < 1e300 / self.L)
         flagged = np.zeros((E, self.L), bool)
         for e in range(E):
-            flagged[e, : self.n[e]] = _spike_set(r_s[e, : self.n[e]], float(sigma_r[e]))
+            ne = int(self.n[e])
+            if not networked[e]:
+                flagged[e, :ne] = _spike_set(r_s[e, :ne], float(sigma_r[e]))
+            elif first[e].any():
+                flagged[e, :ne] = _refined_spike_set(r_s[e, :ne], first[e, :ne], float(sigma_r[e]))
         any_after = (flagged & (self.cols[None, :] >= self.lo[:, None])).any(axis=1)
         out: list[FaultFit | None] = [None] * E
         if not any_after.any():

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.episodes.batch import FitProblem, fit_models_batch
+from imufdi_cli.episodes.block_alarms import BlockAlarms
 from imufdi_cli.episodes.episode import (
     FITS_EXPLANATION,
     Episode,
@@ -233,6 +234,8 @@ class EpisodeBuilder(SampleExplanations):
         self._whites: dict[int, WhiteNoise | None] = {}  # k -> _white(k, gain of k)
         self._biases: dict[int, Any] = {}  # k -> calibrated bias against the consensus
         self._pending: list[np.ndarray] = []  # measurements fed but not yet paired with rows
+        #: the block :meth:`rows` is appending (measurements, times), while it does
+        self._block: tuple[np.ndarray, np.ndarray] | None = None
         self._history: np.ndarray = np.zeros((0, self.H.shape[0]))  # last `margin` rows
         self._history_t: np.ndarray = np.zeros(0, np.int64)
         self._open: dict[str, Any] | None = None  # the alarm run under way
@@ -289,8 +292,13 @@ class EpisodeBuilder(SampleExplanations):
             # the statistic ratio of the alarmed rows, elementwise as per group
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratios = np.asarray(out.statistic)[idx] / np.asarray(out.threshold)[idx]
-        offset = 0  # where the group starts in idx (and in ratios)
-        for group in groups if idx.size else []:
+        self._block = (m, t_ns)
+        if idx.size:
+            assert ratios is not None
+            alarms = BlockAlarms(
+                groups, isolated_rows[idx], ratios, amplitudes, len(self.sensor_ids)
+            )
+        for g, group in enumerate(groups if idx.size else []):
             first, last = int(group[0]), int(group[-1])
             self._advance(m, t_ns, first, closed)
             self._end_quiet_run(closed)
@@ -300,17 +308,15 @@ class EpisodeBuilder(SampleExplanations):
             self._advance(m, t_ns, last + 1, closed, alarmed=True)
             state["end_ns"] = int(t_ns[last])
             state["decided_end_ns"] = int(decided_ns[last])
-            assert ratios is not None
-            self._add_alarms(
-                state,
-                group,
-                isolated_rows[group],
-                ratios[offset : offset + group.size],
-                amplitudes,
-            )
-            offset += group.size
+            alarms.add(state, g)
         self._advance(m, t_ns, n, closed)
         self._end_quiet_run(closed)
+        # the rows the open run and the waiting episodes keep of this block, copied (a
+        # view would keep the whole block alive while they wait)
+        for state in (self._open, *self._waiting.values()):
+            if state is not None:
+                self._keep(state)
+        self._block = None
         tail = max(0, n - self.margin)
         self._history = np.concatenate([self._history, m[tail:]])[-self.margin :]
         self._history_t = np.concatenate([self._history_t, t_ns[tail:]])[-self.margin :]
@@ -348,6 +354,7 @@ class EpisodeBuilder(SampleExplanations):
             "window": [history],
             "window_t": [history_t],
             "kept": history.shape[0],
+            "span": None,  # rows [lo, hi) of the block not yet copied into "window"
             "alarm_index": history.shape[0],
             "alarms": 0,
             # alarmed rows that isolated a sensor (negative: none); those isolating one
@@ -361,31 +368,6 @@ class EpisodeBuilder(SampleExplanations):
             # episodes this run may still join: they wait until it has ended
             "may_join": set(self._waiting),
         }
-
-    def _add_alarms(
-        self,
-        state: dict[str, Any],
-        group: np.ndarray,
-        group_isolated: np.ndarray,
-        ratio: np.ndarray,
-        amplitudes: np.ndarray | None,
-    ) -> None:
-        """Count the alarmed rows ``group`` of the block (isolating ``group_isolated``,
-        statistic / threshold ``ratio``) in the run ``state``: alarms, isolated sensors,
-        amplitudes, peak statistic ratio."""
-        state["quiet"] = 0
-        state["alarms"] += int(group.size)
-        nonnegative = group_isolated >= 0
-        state["isolated_rows"] += int(np.count_nonzero(nonnegative))
-        if amplitudes is not None:
-            group_amplitudes = amplitudes[group]
-            found = np.nonzero(np.isfinite(group_amplitudes))
-            state["amplitudes"].append((found[1], group_amplitudes[found]))
-        valid = group_isolated[nonnegative & (group_isolated < len(self.sensor_ids))]
-        state["counts"] += np.bincount(valid, minlength=len(self.sensor_ids))
-        ratio = ratio[np.isfinite(ratio)]
-        if ratio.size:
-            state["peak"] = max(state["peak"], float(ratio.max()))
 
     def _variance_monitor(self, window: int, alpha: float) -> VarianceDropMonitor:
         """The :class:`VarianceDropMonitor` of this sensor type (white sigma, leave-one-out
@@ -462,7 +444,7 @@ class EpisodeBuilder(SampleExplanations):
             for other in list(self._waiting):  # no longer held by this run
                 self._expire(other, closed)
             return
-        sensor = int(np.argmax(run["counts"]))
+        sensor = int(run["counts"].argmax())  # (the array method: what np.argmax calls)
         waiting = self._waiting.get(sensor)
         if waiting is not None:
             # the rows of the run, and its quiet rows since, are in the waiting window
@@ -483,13 +465,33 @@ class EpisodeBuilder(SampleExplanations):
     def _append(
         self, state: dict[str, Any], m: np.ndarray, t_ns: np.ndarray, lo: int, hi: int
     ) -> None:
+        """Rows ``[lo, hi)`` of the block (``m``, ``t_ns``) into the state's window, up to
+        ``max_window`` rows: noted as a span of the block, copied by :meth:`_keep` once
+        the block's rows are appended or the state closes (the spans a state gets in a
+        block are consecutive: one copy)."""
         hi = min(hi, lo + max(0, self.max_window - state["kept"]))
         if hi > lo:
-            # copies: a view would keep the whole block alive while the episode waits
-            # (6 MB a block at 64 IMUs, per builder)
+            span = state["span"]
+            if span is not None and span[1] == lo:
+                state["span"] = (span[0], hi)
+            else:
+                if span is not None:
+                    self._keep(state)
+                state["span"] = (lo, hi)
+            state["kept"] += hi - lo
+
+    def _keep(self, state: dict[str, Any]) -> None:
+        """The state's span of the current block, copied into its window: a view would
+        keep the whole block alive while the episode waits (6 MB a block at 64 IMUs, per
+        builder)."""
+        span = state["span"]
+        if span is not None:
+            assert self._block is not None
+            m, t_ns = self._block
+            lo, hi = span
             state["window"].append(m[lo:hi].copy())
             state["window_t"].append(t_ns[lo:hi].copy())
-            state["kept"] += hi - lo
+            state["span"] = None
 
     def finish(self) -> list[Episode]:
         """The episodes still open or waiting at the end of the log, explained."""
@@ -507,10 +509,11 @@ class EpisodeBuilder(SampleExplanations):
         return done
 
     def _close(self, state: dict[str, Any]) -> Episode:
+        self._keep(state)
         window_t = np.concatenate(state["window_t"])
         # drop the quiet rows after the last alarm (they are not part of the fault): only
         # the pieces before them are joined (the same C-ordered rows as joining all)
-        last = int(np.searchsorted(window_t, state["end_ns"], side="right"))
+        last = int(window_t.searchsorted(state["end_ns"], side="right"))
         window_t = window_t[:last]
         pieces, need = [], last
         for piece in state["window"]:
@@ -591,7 +594,8 @@ class EpisodeBuilder(SampleExplanations):
             raise IndexError(f"isolated sensor index out of range ({len(counts)} sensors)")
         if total == 0:
             return [], None, None
-        order = sorted((i for i, c in enumerate(counts) if c > 0), key=lambda i: -counts[i])
+        isolated = state["counts"].nonzero()[0].tolist()
+        order = sorted(isolated, key=lambda i: -counts[i]) if len(isolated) > 1 else isolated
         names = [self.sensor_ids[i] for i in order]
         if len(order) < 2:
             return names, None, 0.0

@@ -104,7 +104,10 @@ def _sensor_amplitude(
     if not names or not pairs:
         return None
     k = sensor_ids.index(names[0])
-    values = np.concatenate([v[c == k] for c, v in pairs])
+    if len(pairs) == 1:  # one alarm run
+        values = pairs[0][1][pairs[0][0] == k]
+    else:
+        values = np.concatenate([v[c == k] for c, v in pairs])
     return _median(values) if values.size else None
 
 

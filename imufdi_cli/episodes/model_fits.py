@@ -214,7 +214,12 @@ def _spike_set(r: np.ndarray, sigma_r: float) -> np.ndarray:
     A / 2 can flip as A moves), so the passes stop at a fixed point or after
     SPIKE_SET_PASSES, and the last set is used.
     """
-    spikes = np.abs(r - _local_level(r)) > SPIKE_CUT * sigma_r
+    return _refined_spike_set(r, np.abs(r - _local_level(r)) > SPIKE_CUT * sigma_r, sigma_r)
+
+
+def _refined_spike_set(r: np.ndarray, spikes: np.ndarray, sigma_r: float) -> np.ndarray:
+    """:func:`_spike_set` from its first set ``spikes`` (the cut against the running
+    median of five, bool of r's shape): the set made consistent with the amplitude."""
     if not spikes.any() or not math.isfinite(float(np.add.reduce(r))):
         return spikes
     index = np.arange(r.shape[0])

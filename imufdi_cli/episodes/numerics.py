@@ -91,6 +91,8 @@ def _median(values: np.ndarray) -> float:
     the mean of the middle two as numpy takes it: their sum halved); numpy's own for
     non-finite values."""
     n = values.shape[0]
+    if n == 1 and math.isfinite(only := float(values[0])):
+        return only  # (one value: itself)
     if n == 0 or not math.isfinite(float(np.add.reduce(values))):
         return float(np.median(values))
     ordered = np.sort(values)

@@ -107,7 +107,7 @@ class SampleExplanations:
             return False
         margin = window[:-1]
         raw = margin[:, k]
-        if bool(np.any(raw[1:] == raw[:-1])):
+        if bool((raw[1:] == raw[:-1]).any()):  # (the method: what np.any calls)
             return False
         r = raw - margin @ gain
         sample = float(window[-1, k] - window[-1] @ gain)

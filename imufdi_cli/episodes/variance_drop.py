@@ -120,8 +120,9 @@ class VarianceDropMonitor:
             np.multiply(0.5, half_sq, out=half_sq)
             # an invalid sample gives no evidence either way: its difference counts as
             # expected
-            invalid = ~np.isfinite(half_sq)
-            if invalid.any():
+            if not math.isfinite(float(np.add.reduce(half_sq, axis=None))):
+                # (a finite sum: every value finite; else look, overflow included)
+                invalid = ~np.isfinite(half_sq)
                 np.copyto(half_sq, np.broadcast_to(self.variance, half_sq.shape), where=invalid)
         if n:
             self._last = r[-1].copy()
@@ -146,9 +147,8 @@ class VarianceDropMonitor:
             np.divide(ratio, self.window, out=ratio)
             np.divide(ratio, self.variance, out=ratio)
             np.multiply(ratio, self._rescale, out=ratio)
-        invalid = ~np.isfinite(ratio)
-        if invalid.any():
-            ratio[invalid] = np.inf
+        if not math.isfinite(float(np.add.reduce(ratio, axis=None))):
+            ratio[~np.isfinite(ratio)] = np.inf
         worst = np.argmin(ratio, axis=1) if ratio.shape[0] else np.zeros(0, np.int64)
         lowest = ratio[np.arange(ratio.shape[0]), worst]
         alarm = ready & (lowest < self.quantile)

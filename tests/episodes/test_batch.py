@@ -124,3 +124,65 @@ def test_batches_are_cut_by_spread_count_and_values() -> None:
     for chunk in cut:
         assert len(chunk) * max(lengths[i] for i in chunk) * wide <= batch.BATCH_VALUES
     assert len(cut) > 2
+
+
+def test_median_sample_interval_is_nanmedian_of_each_window() -> None:
+    # irregular times (odd and even interval counts, a window past 600 samples, where
+    # nanmedian takes another path, and one of a single sample) against np.nanmedian of
+    # the intervals with NaN beyond each window: the same float (a selection, no sum)
+    from imufdi_cli.episodes.batch import Window, _Windows
+
+    rng = np.random.default_rng(3)
+    options = {"sigma_k": 1.0, "consensus_sigma": 0.1, "white": (1.0, 0.1, 100.0)}
+    lengths = [4, 5, 8, 9, 650, 651]
+    windows = []
+    for n in lengths:
+        t = np.cumsum(rng.choice([0.01, 0.0099, 0.0101, 0.02], size=n))
+        r = rng.normal(size=n)
+        windows.append(Window(r, r, t, r, (0, n), None, options))
+    batch = _Windows(windows)
+    steps = np.where(batch.valid[:, 1:], batch.t[:, 1:] - batch.t[:, :-1], np.nan)
+    assert np.array_equal(batch._median_steps(), np.nanmedian(steps, axis=1))
+    one = _Windows([Window(*(np.ones(1),) * 4, (0, 1), None, options)])
+    assert one._median_steps().tolist() == [0.0]
+
+
+def test_batched_spike_sets_are_each_windows_own(problems) -> None:
+    # the first cut of the spike sets is taken for the whole batch, the refinement row by
+    # row: the same sets as _spike_set on each window (a window of four samples, without
+    # the selection network, takes _spike_set whole)
+    from imufdi_cli.episodes import batch as batch_module
+    from imufdi_cli.episodes.model_fits import _spike_set
+
+    seen: list[tuple[np.ndarray, np.ndarray, float]] = []
+    inner = batch_module._refined_spike_set
+
+    def spy(r: np.ndarray, first: np.ndarray, sigma_r: float) -> np.ndarray:
+        out = inner(r, first, sigma_r)
+        seen.append((r.copy(), out.copy(), sigma_r))
+        return out
+
+    args, kwargs = next(p for p in problems if p[1]["reference"] is not None)
+    r = np.asarray(args[0], dtype=np.float64).copy()
+    r[[5, 40, 41]] += 50 * math.sqrt(args[3] ** 2 + args[4] ** 2)  # spikes, one pair
+    reference = kwargs["reference"]
+    four = reference.__class__(
+        reference.residuals[:4], reference.variance, reference.offset_var,
+        reference.motion[:4], reference.correlation_sq,
+    )  # fmt: skip
+    short = (
+        tuple(a[:4] if i < 3 else a for i, a in enumerate(args)),
+        {**kwargs, "raw": kwargs["raw"][:4], "onset_range": (0, 2), "reference": four},
+    )
+    cases = [*problems, ((r, *args[1:]), kwargs), short, short]
+    assert batch_module._batch_key(batch_module._Problem(*short).window()) is not None
+    batch_module._refined_spike_set = spy  # type: ignore[assignment]
+    try:
+        fitted = fit_models_batch(cases)
+    finally:
+        batch_module._refined_spike_set = inner  # type: ignore[assignment]
+    assert len(fitted) == len(cases) and len(seen) >= 2
+    for values, found, sigma_r in seen:
+        assert np.array_equal(found, _spike_set(values, sigma_r))
+    assert any(found.sum() >= 3 for _, found, _ in seen)
+    _agree(fit_models(*short[0], **short[1]), fitted[-1])

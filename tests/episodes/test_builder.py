@@ -300,3 +300,45 @@ def test_reference_cache_drops_the_least_recently_used_past_its_bytes() -> None:
         cache.get(key, make)
     assert made == [0, 1, 2, 1]
     assert cache.size <= 2000 and list(cache.values) == [2, 1]
+
+
+def test_block_alarms_count_each_group_as_its_rows_say() -> None:
+    # a block's alarms counted per group at once: the alarms, the rows that isolated a
+    # sensor (an index past the sensors included: the summary reports it), the count per
+    # sensor, the finite amplitudes in row order and the largest finite statistic ratio
+    from imufdi_cli.episodes.block_alarms import BlockAlarms
+
+    rng = np.random.default_rng(5)
+    n, rows = 6, 400
+    alarm = rng.random(rows) < 0.3
+    idx = np.flatnonzero(alarm)
+    groups = np.split(idx, np.flatnonzero(np.diff(idx) - 1 > 2) + 1)
+    isolated = rng.integers(-1, n + 1, size=rows)  # -1: none; n: past the sensors
+    ratios = rng.normal(1.0, 1.0, size=idx.size)
+    ratios[rng.random(idx.size) < 0.2] = np.nan
+    ratios[rng.random(idx.size) < 0.05] = np.inf
+    ratios[: groups[0].size] = np.nan  # a group without a finite ratio
+    amplitudes = np.where(rng.random((rows, n)) < 0.3, rng.normal(size=(rows, n)), np.nan)
+    found = BlockAlarms(groups, isolated[idx], ratios, amplitudes, n)
+    offset = 0
+    for g, group in enumerate(groups):
+        state = {
+            "quiet": 3, "alarms": 1, "isolated_rows": 2, "amplitudes": [],
+            "counts": np.zeros(n, np.int64), "peak": -math.inf,
+        }  # fmt: skip
+        found.add(state, g)
+        iso = isolated[group]
+        ratio = ratios[offset : offset + group.size]
+        offset += group.size
+        assert state["quiet"] == 0 and state["alarms"] == 1 + group.size
+        assert state["isolated_rows"] == 2 + int(np.count_nonzero(iso >= 0))
+        assert (
+            state["counts"].tolist()
+            == np.bincount(iso[(iso >= 0) & (iso < n)], minlength=n).tolist()
+        )
+        finite = ratio[np.isfinite(ratio)]
+        assert state["peak"] == (float(finite.max()) if finite.size else -math.inf)
+        ((columns, values),) = state["amplitudes"]
+        where = np.nonzero(np.isfinite(amplitudes[group]))
+        assert columns.tolist() == where[1].tolist()
+        assert values.tolist() == amplitudes[group][where].tolist()
