@@ -323,7 +323,8 @@ class ParityBudget(_BankBudget):
         """z (N, n) of whitened, bias-free measurements ``white`` (N, n), standardized at
         rest, and the tested state (N, 3): the least-squares rate or specific force."""
         state = white @ self.estimator_t
-        residual = white - state @ self.h_t
+        residual = state @ self.h_t
+        np.subtract(white, residual, out=residual)  # in place: no second (N, n) array
         residual *= self.z_scale
         return residual, state[:, :3]
 

@@ -405,3 +405,77 @@ def test_the_sub_chunked_spans_give_the_one_pass_decisions() -> None:
         whole = [np.concatenate([getattr(p, name) for p in run]) for run in outputs]
         np.testing.assert_array_equal(whole[0], whole[1])
         np.testing.assert_array_equal(whole[0], whole[2])
+
+
+def test_sub_chunks_taken_together_give_the_decisions_of_one_at_a_time() -> None:
+    # away from alarms the bank takes consecutive sub-chunks that run the same designs in
+    # one pass; against the walk one sub-chunk at a time every output is equal, through
+    # motion that takes designs in and out of range on single rows (the smallest design's
+    # effective shift below min_shift at a factor of 100, the largest at or above 2 c at
+    # rest), statistics held by a design that has gone out of range, alarms and episodes
+    rng = np.random.default_rng(23)
+    n_rows = 16_000
+    factors = np.exp(rng.uniform(0.0, np.log(120.0), n_rows)) * (rng.random(n_rows) < 0.01)
+    factors = np.maximum(factors, 1.0)  # rest, with a motion spike on 1 % of the rows
+    factors[3_000:4_000] = 16.0  # motion: designs 16 and 32 in range ...
+    factors[4_000:6_000] = 1.0  # ... and out of range again, from a statistic held
+    factors[9_000:9_500] = 100.0
+    z = rng.standard_normal((n_rows, 6)) * np.sqrt(factors)[:, None]
+    z[3_500:4_100, 1] += 30.0  # a fault in motion, lasting into the rest after it
+    z[7_000:7_400, 4] -= 2.5
+    z[12_000:, 2] += np.linspace(0.0, 6.0, 4_000)
+    # the call from row 10_000 ends its second sub-chunk with evidence on sensor 3 at rest,
+    # then violent motion: the designs 2 to 16 out of range (effective shifts below
+    # min_shift), the smaller ones running on from their statistics
+    z[10_023, 3] = 3.0
+    factors[10_024:10_200] = 1e4
+    z[10_024:10_200] *= 100.0
+    grouped, plain = _bank(6, 5.0, tau_s=20.0), _bank(6, 5.0, tau_s=20.0)
+    plain._groups = lambda walk, feed, n: ((lo, hi, None) for lo, hi in plain._chunks(n))  # type: ignore[method-assign]
+    taken = []
+    groups = grouped._groups
+
+    def counted(walk, feed, n):  # type: ignore[no-untyped-def]
+        for lo, hi, ran in groups(walk, feed, n):
+            taken.append(hi - lo)
+            yield lo, hi, ran
+
+    grouped._groups = counted  # type: ignore[method-assign]
+    bounds = [0, 1_000, 3_333, 3_334, 5_000, 8_192, 10_000, 12_500, n_rows]
+    runs = [
+        [bank.process(z[a:b], factors=factors[a:b]) for a, b in itertools.pairwise(bounds)]
+        for bank in (grouped, plain)
+    ]
+    assert grouped.episodes == plain.episodes >= 3
+    assert 8 + 16 + 32 + 64 + 128 + 256 in taken  # a span's short sub-chunks together
+    for name in ("statistic", "threshold", "alarm", "isolated", "amplitude", "scores"):
+        whole = [np.concatenate([getattr(p, name) for p in run]) for run in runs]
+        np.testing.assert_array_equal(whole[0], whole[1])
+
+
+def test_run_lengths_solved_together_are_those_of_one_chain_at_a_time(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from imufdi_cli.maths.sequential import thresholds
+
+    keys = [
+        (shift, 3.5, h, 100, scale, contamination)
+        for shift in (0.354, 2.0, 5.66, 8.0)  # 8: no positive increment (ARL inf)
+        for h in (0.0, 4.0, 19.1)  # 0: ARL 1
+        for scale in (0.9, 1.05)
+        for contamination in (0.0, 1e-4)
+    ]
+    monkeypatch.setattr(thresholds, "_RUN_LENGTHS", type(thresholds._RUN_LENGTHS)())
+    together = thresholds.run_lengths(keys)
+    alone = []
+    for key in keys:
+        thresholds._RUN_LENGTHS.clear()
+        alone.append(thresholds.average_run_length(*key))
+    assert together == alone  # the same floats
+    assert math.inf in together and 1.0 in together
+    # a cache smaller than one call's keys: every one returned, the last used kept
+    thresholds._RUN_LENGTHS.clear()
+    monkeypatch.setattr(thresholds, "_CACHED", 3)
+    assert thresholds.run_lengths(keys[:8]) == alone[:8]
+    assert thresholds.run_lengths(keys[:2] + keys[20:21]) == [*alone[:2], alone[20]]
+    assert list(thresholds._RUN_LENGTHS) == [*keys[:2], keys[20]]

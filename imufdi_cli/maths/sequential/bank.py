@@ -89,6 +89,7 @@ class MotionModel:
     covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
     def __post_init__(self) -> None:
+        self._prior_precision = np.eye(self.centre.size) / self.prior_sd**2
         self.solve()
 
     @classmethod
@@ -113,8 +114,7 @@ class MotionModel:
         )
 
     def solve(self) -> None:
-        p = self.centre.size
-        precision = self.sxx + np.eye(p) / self.prior_sd**2
+        precision = self.sxx + self._prior_precision
         self.covariance = np.linalg.inv(precision)
         self.slopes = self.covariance @ self.sxz
 
@@ -198,45 +198,69 @@ class _Reference:
         factors: np.ndarray,
         frozen: bool,
         samples: int,
+        out: np.ndarray | None = None,
+        variance: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, tuple[np.ndarray, ...]]]]:
         """``z'`` and the rows' noise variance factors ``s^2`` for the next rows of the
         stream (after ``samples`` rows), learning at every completed sub-block unless
         ``frozen``; also, for a rewind, the local rows from which each state held, with a
-        snapshot of it."""
+        snapshot of it. ``out`` and ``variance``: arrays to write them into (None: new).
+
+        What does not depend on the references (the rows at rest, the weights and the
+        weighted states) is computed once for all the rows, in the same floats as per
+        sub-block; rows all at rest with unit factors (no motion term) skip the masks and
+        the weights, which change nothing there."""
         motion = self.motion
         n_rows = z.shape[0]
-        out = np.empty_like(z)
-        variance = factors.copy()
+        if out is None:
+            out = np.empty_like(z)
+        if variance is None:
+            variance = factors.copy()
+        else:
+            variance[...] = factors
         marks = [(0, self.snapshot())]
         learn = not frozen
+        rest = factors <= self.rest_factor
+        all_rest = bool(rest.all())
+        unit = bool((factors == 1.0).all())
+        weight = weighted_x = factors  # (replaced where used)
+        if motion is not None and x is not None and learn:
+            if unit:  # rows laid out as the products by the weights would be
+                x = np.ascontiguousarray(x)
+            else:
+                weight = 1.0 / factors
+                weighted_x = weight[:, None] * x
+        stride = self.stride
         row = 0
         while row < n_rows:
-            phase = (samples + row) % self.stride
-            stop = min(n_rows, row + self.stride - phase)
+            stop = min(n_rows, row + stride - (samples + row) % stride)
             rows = slice(row, stop)
             part = np.subtract(z[rows], self.offset, out=out[rows])
-            rest = factors[rows] <= self.rest_factor
             if motion is not None and x is not None:
                 centred = x[rows] - self.state_mean
                 if learn:
-                    weight = 1.0 / factors[rows]
-                    self.pending_x += (weight[:, None] * x[rows]).sum(axis=0)
-                    self.motion_count += float(weight.sum())
-                    weighted = centred * weight[:, None]
+                    if unit:  # weights 1: the weighted sums are the plain ones
+                        self.pending_x += x[rows].sum(axis=0)
+                        self.motion_count += float(stop - row)
+                        weighted = centred
+                    else:
+                        self.pending_x += weighted_x[rows].sum(axis=0)
+                        self.motion_count += float(weight[rows].sum())
+                        weighted = centred * weight[rows, None]
                     self.pending_xx += weighted.T @ centred
                     self.pending_xz += weighted.T @ part
                 part -= centred @ motion.slopes
                 spread = np.einsum("ij,jk,ik->i", centred, motion.covariance, centred)
                 variance[rows] *= 1.0 + motion.inflation * spread
             if learn:
-                at_rest = part[rest]
+                at_rest = part if all_rest else part[rest[rows]]
                 self.pending += at_rest.sum(axis=0)
                 self.pending_squares += np.minimum(np.square(at_rest), 16.0 * self.variance).sum(
                     axis=0
                 )
-                self.count += int(np.count_nonzero(rest))
+                self.count += stop - row if all_rest else int(np.count_nonzero(rest[rows]))
             part /= np.sqrt(self.variance)
-            if learn and (samples + stop) % self.stride == 0:  # the sub-block is complete
+            if learn and (samples + stop) % stride == 0:  # the sub-block is complete
                 self._complete()
                 marks.append((stop, self.snapshot()))
             row = stop
@@ -248,7 +272,8 @@ class _Reference:
             if self.step > 0.0:
                 gain = max(self.step, start)
                 limit = self.gate * np.sqrt(self.count * self.variance)
-                self.offset = self.offset + gain * np.clip(self.pending, -limit, limit)
+                clipped = np.minimum(np.maximum(self.pending, -limit), limit)  # np.clip's floats
+                self.offset = self.offset + gain * clipped
             if self.scale_step > 0.0:
                 gain = max(self.scale_step, start)
                 change = self.pending_squares - self.count * self.variance
@@ -343,6 +368,7 @@ class CusumBank:
         self.samples = 0  # rows handled so far
         self.episode: _Episode | None = None
         self.episodes = 0
+        self._event: int | None = None  # the sample of the last alarm or episode end
 
     @property
     def reference(self) -> np.ndarray:
@@ -394,7 +420,8 @@ class CusumBank:
         """u of (1), z'/s^2 and 1/s^2 of the rows."""
         scale = np.sqrt(variance)[:, None]
         clip = self.design.clip
-        u = np.clip(zr / scale, -clip, clip)
+        u = np.divide(zr, scale)
+        np.clip(u, -clip, clip, out=u)
         u /= scale
         inverse = 1.0 / variance
         return u, zr * inverse[:, None], inverse
@@ -425,6 +452,54 @@ class CusumBank:
             yield lo, hi
             lo = hi
             size = min(2 * size, self.SUB_ROWS)
+
+    def _groups(
+        self, walk: _Walk, feed: _Feed, n_rows: int
+    ) -> Iterator[tuple[int, int, list[bool] | None]]:
+        """The sub-chunks of the next ``n_rows`` rows, those that would run the same
+        designs taken together (at most SUB_ROWS rows) when the last alarm or episode end
+        is at least SUB_ROWS rows back (the short sub-chunks after one are kept: the next
+        may be near): (lo, hi, the designs run, or None for one sub-chunk, which decides
+        them itself). Consecutive sub-chunks run the same designs when every design is in
+        range on all of them, or out of range on all of them from a statistic of 0 (it
+        stays 0): the walk carries the sums across sub-chunks, so one pass over their rows
+        gives the same floats. Lazy: each group is decided from the walk's state after the
+        previous one."""
+        bounds = list(self._chunks(n_rows))
+        event = self._event
+        if event is not None and self.samples - event < self.SUB_ROWS:
+            for lo, hi in bounds:
+                yield lo, hi, None
+            return
+        clip, least = self.design.clip, self.design.min_shift
+        low_edge, high_edge = self.shifts / (2.0 * clip), self.shifts / least
+        index = 0
+        while index < len(bounds):
+            lo = bounds[index][0]
+            last = index
+            while last + 1 < len(bounds) and bounds[last + 1][1] - lo <= self.SUB_ROWS:
+                last += 1
+            if last == index:
+                yield lo, bounds[index][1], None
+                index += 1
+                continue
+            _, variance = feed.rows(lo, bounds[last][1])
+            starts = [b[0] - lo for b in bounds[index : last + 1]]
+            largest = np.sqrt(np.maximum.reduceat(variance, starts))
+            smallest = np.sqrt(np.minimum.reduceat(variance, starts))
+            # as _cusums decides per sub-chunk: some row's effective shift in range
+            in_range = (largest[:, None] > low_edge) & (smallest[:, None] <= high_edge)
+            first = in_range[0]
+            held = walk.state.reshape(self.shifts.size, -1).any(axis=1)
+            if (held & ~first).any():  # a design out of range runs on from its statistic
+                yield lo, bounds[index][1], None
+                index += 1
+                continue
+            same = 1
+            while same < in_range.shape[0] and (in_range[same] == first).all():
+                same += 1
+            yield lo, bounds[index + same - 1][1], [bool(on) for on in first]
+            index += same
 
     def _cusums(
         self,
@@ -516,13 +591,13 @@ class CusumBank:
         walk = _Walk.start(origin)
         feed = _Feed(self.ref, z, x, factors, self.samples, frozen=False)
         chunks: list[_Chunk] = []
-        for lo, hi in self._chunks(z.shape[0]):
+        for lo, hi, decided in self._groups(walk, feed, z.shape[0]):
             zr, variance = feed.rows(lo, hi)
             u, q, inverse = self._terms(zr, variance)
             # the rows' scores are written in place; those after an alarm are written again
             best = out.scores[position + lo : position + hi]
             before = walk.copy()
-            ran = self._cusums(walk, u, inverse, variance, best)
+            ran = self._cusums(walk, u, inverse, variance, best, decided)
             top = best.max(axis=1) if self.n else np.zeros(hi - lo)
             over = np.flatnonzero(top > self.threshold)
             if over.size == 0:
@@ -589,6 +664,7 @@ class CusumBank:
             started=self.samples + row,
         )
         self.episodes += 1
+        self._event = self.samples + row
         out.alarm[row_out] = True
         out.isolated[row_out] = chosen if self.isolable[chosen] else NOT_ISOLABLE
         if self.isolable[chosen] and weight > 0 and self.sensitivity[chosen] > 0:
@@ -645,11 +721,11 @@ class CusumBank:
         sums_before, weight_before = episode.sums, episode.weight
         last_sums: np.ndarray | None = None
         last_weight = 0.0
-        for lo, hi in self._chunks(z.shape[0]):
+        for lo, hi, decided in self._groups(walk, feed, z.shape[0]):
             zr, variance = feed.rows(lo, hi)
             u, q, inverse = self._terms(zr, variance)
             best = out.scores[position + lo : position + hi]
-            ran = self._cusums(walk, u, inverse, variance, best)
+            ran = self._cusums(walk, u, inverse, variance, best, decided)
             mu = np.minimum(episode.shift, self.design.clip / np.sqrt(inverse))
             column = episode.sign * u[:, episode.sensor]
             increments = -(mu * column - 0.5 * mu * mu * inverse)
@@ -683,6 +759,7 @@ class CusumBank:
                     feed.rewind(lo + stop)
                 self.state[:] = 0.0
                 self.episode = None
+                self._event = self.samples + lo + stop
                 self._remember(chunks)
                 self.samples += lo + stop
                 return lo + stop
@@ -695,6 +772,11 @@ class CusumBank:
         return z.shape[0]
 
     def _remember(self, chunks: list[_Chunk]) -> None:
-        """Keep the last ``history`` rows (for onsets)."""
-        for chunk in chunks:
+        """Keep the last ``history`` rows (for onsets): only the chunks that reach into
+        them are copied into the ring."""
+        first, rows = len(chunks), 0
+        while first > 0 and rows < self.history.length:
+            first -= 1
+            rows += chunks[first].u.shape[0]
+        for chunk in chunks[first:]:
             self.history.add(chunk.u, chunk.q, chunk.inverse)

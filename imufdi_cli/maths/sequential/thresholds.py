@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from functools import lru_cache
 
@@ -44,7 +46,13 @@ def increments(shift: float, clip: float, signed: np.ndarray) -> np.ndarray:
     return shift * np.clip(signed, -clip, clip) - 0.5 * shift * shift
 
 
-@lru_cache(maxsize=2048)
+_Key = tuple[float, float, float, int, float, float]
+#: Run lengths computed so far, least recently used first (at most _CACHED of them).
+_RUN_LENGTHS: OrderedDict[_Key, float] = OrderedDict()
+_CACHED = 2048
+_LOCK = threading.Lock()
+
+
 def average_run_length(
     shift: float,
     clip: float,
@@ -64,15 +72,55 @@ def average_run_length(
     0.5 (ARL 336 at h = 4 and 930 at h = 5: twice the two-sided 168 and 465 of the
     tables, e.g. Montgomery, *Statistical Quality Control*, Table 9.3).
     """
-    if threshold <= 0:
-        return 1.0
-    if shift * clip - 0.5 * shift * shift <= 0.0:
-        return math.inf  # no increment is positive: the statistic never leaves 0
-    width = 2.0 * threshold / (2 * states - 1)
-    # cell l's lower edge seen from cell j's centre is (l - j - 1/2) w: a Toeplitz CDF,
-    # evaluated once per offset; l = 0 takes everything at or below 0 (the atom)
-    offsets = np.arange(-states, states + 1)
-    values = _increment_cdf(shift, clip, (offsets - 0.5) * width, scale, contamination)
+    return run_lengths([(shift, clip, threshold, states, scale, contamination)])[0]
+
+
+def run_lengths(keys: list[_Key]) -> list[float]:
+    """:func:`average_run_length` of each ``(shift, clip, threshold, states, scale,
+    contamination)``: those not computed before in one stacked solve of their chains (per
+    number of states), the same floats as one at a time. Thread-safe (one lock around the
+    cache)."""
+    with _LOCK:
+        return _run_lengths(keys)
+
+
+def _run_lengths(keys: list[_Key]) -> list[float]:
+    found: dict[_Key, float] = {}
+    chains: dict[int, list[tuple[_Key, np.ndarray]]] = {}
+    for key in dict.fromkeys(keys):
+        cached = _RUN_LENGTHS.get(key)
+        if cached is not None:
+            _RUN_LENGTHS.move_to_end(key)  # recently used
+            found[key] = cached
+            continue
+        shift, clip, threshold, states, scale, contamination = key
+        if threshold <= 0:
+            found[key] = 1.0
+        elif shift * clip - 0.5 * shift * shift <= 0.0:
+            found[key] = math.inf  # no increment is positive: the statistic never leaves 0
+        else:
+            width = 2.0 * threshold / (2 * states - 1)
+            # cell l's lower edge seen from cell j's centre is (l - j - 1/2) w: a Toeplitz
+            # CDF, evaluated once per offset; l = 0 takes everything at or below 0 (the atom)
+            offsets = np.arange(-states, states + 1)
+            values = _increment_cdf(shift, clip, (offsets - 0.5) * width, scale, contamination)
+            chains.setdefault(states, []).append((key, values))
+    for states, pending in chains.items():
+        try:
+            lengths = chain_run_lengths(np.stack([values for _, values in pending]), states)
+        except np.linalg.LinAlgError:  # one at a time: the singular ones have no false alarm
+            lengths = np.array([_one_chain(values, states) for _, values in pending])
+        for (key, _), length in zip(pending, lengths, strict=True):
+            found[key] = float(length)
+    for key, length in found.items():
+        _RUN_LENGTHS[key] = length
+        _RUN_LENGTHS.move_to_end(key)
+    while len(_RUN_LENGTHS) > _CACHED:
+        _RUN_LENGTHS.popitem(last=False)
+    return [found[key] for key in keys]
+
+
+def _one_chain(values: np.ndarray, states: int) -> float:
     try:
         return float(chain_run_lengths(values, states)[0])
     except np.linalg.LinAlgError:  # absorption too unlikely to resolve: no false alarm
@@ -84,16 +132,28 @@ def chain_run_lengths(cdf_at_edges: np.ndarray, states: int) -> np.ndarray:
     Evans), one per row of ``cdf_at_edges`` (k, 2 states + 1): the increment's CDF at
     ``(e - states - 1/2) w`` for ``e = 0 .. 2 states``, ``w = 2h / (2 states - 1)`` (cell 0
     holds ``[0, w/2)`` and the atom at 0, cell j is centred on ``j w``; the chain is
-    absorbed at ``S >= h``)."""
-    cdf_at_edges = np.atleast_2d(cdf_at_edges)
-    j = np.arange(states)[:, None]
-    edges = np.arange(states + 1)[None, :]
-    cdf = cdf_at_edges[:, edges - j + states]  # (k, states, states + 1)
-    cdf[:, :, 0] = 0.0
-    transition = np.diff(cdf, axis=2)
-    system = np.eye(states)[None, :, :] - transition
-    lengths = np.linalg.solve(system, np.ones((cdf.shape[0], states, 1)))
+    absorbed at ``S >= h``).
+
+    The transition from cell j to cell l >= 1 is the CDF's step between l's edges seen
+    from j, ``F(l - j + 1/2) - F(l - j - 1/2)`` (in cells): one difference per offset,
+    laid out as a Toeplitz matrix; to cell 0 it is everything up to its upper edge."""
+    cdf_at_edges = np.atleast_2d(np.asarray(cdf_at_edges, float))
+    offset, first, identity = _chain_layout(states)
+    steps = np.diff(cdf_at_edges, axis=1)  # (k, 2 states): F(e + 1) - F(e)
+    transition = steps[:, offset]  # (k, states, states)
+    transition[:, :, 0] = cdf_at_edges[:, first]
+    system = np.subtract(identity, transition, out=transition)
+    lengths = np.linalg.solve(system, np.ones((cdf_at_edges.shape[0], states, 1)))
     return lengths[:, 0, 0]
+
+
+@lru_cache(maxsize=8)
+def _chain_layout(states: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The chain's index arrays: the CDF step of each (cell, cell) pair (states, states),
+    the upper edge of cell 0 seen from each cell (states,), and the identity."""
+    cells = np.arange(states)
+    offset = cells[None, :] - cells[:, None] + states
+    return offset, states + 1 - cells, np.eye(states)[None, :, :]
 
 
 #: Gauss-Hermite nodes and weights (probabilists', 3 points: exact for polynomials of
@@ -155,6 +215,16 @@ def false_alarm_rate(
     are outliers (:func:`outlier_share`)."""
     points = scale_points(scale_variance, 6)
     octaves = max(0, math.ceil(math.log2(max(design.shifts) / design.min_shift)))
+    scales = [base * 2.0**octave for octave in range(octaves + 1) for base in _SCALES]
+    # every chain this rate needs, solved together (the sums below find them computed)
+    run_lengths(
+        [
+            (round(mu, 9), design.clip, threshold, 100, error, round(contamination, 7))
+            for scale in scales
+            for mu in effective_shifts(design, scale)
+            for error, _ in points
+        ]
+    )
     worst = 0.0
     for octave in range(octaves + 1):
         for base in _SCALES:

@@ -41,10 +41,15 @@ class _Feed:
         lo = self.done
         rows = slice(lo, hi)
         x = None if self.x is None else self.x[rows]
-        zr, variance, marks = self.reference.apply(
-            self.z[rows], x, self.factors[rows], self.frozen, self.samples + lo
+        _, _, marks = self.reference.apply(
+            self.z[rows],
+            x,
+            self.factors[rows],
+            self.frozen,
+            self.samples + lo,
+            out=self.zr[rows],
+            variance=self.variance[rows],
         )
-        self.zr[rows], self.variance[rows] = zr, variance
         self.marks.extend((lo + start, snap) for start, snap in marks)
         self.done = hi
 
