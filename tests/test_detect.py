@@ -300,17 +300,21 @@ def test_one_sample_episodes_of_a_per_sample_test_are_explained_by_their_sample(
     assert chosen == [False, False, True, True]  # (gyro and accel builders of each run)
 
 
-@pytest.mark.parametrize("budget", [[], ["--false-alarms", "1/h"]], ids=["per-sample", "budget"])
-def test_glt_imports_no_scipy(tmp_path, fresh_python, budget):
-    """``detect -d glt`` (per-sample and under a budget) imports no scipy module at all
-    (about 0.27 s of CPU for scipy.special alone): its thresholds' chi-square and F
-    quantiles are maths/incomplete.py's, and the noise calibration's non-negative least
-    squares is the unconstrained solution on a white-noise calibration, without
-    ``scipy.optimize``."""
+@pytest.mark.parametrize(
+    "options",
+    [["--no-explain"], ["--no-explain", "--false-alarms", "1/h"], [], ["--false-alarms", "1/h"]],
+    ids=["per-sample", "budget", "per-sample-explained", "budget-explained"],
+)
+def test_glt_imports_no_scipy(tmp_path, fresh_python, options):
+    """``detect -d glt`` (per-sample and under a budget, with and without explanations)
+    imports no scipy module at all (about 0.27 s of CPU for scipy.special alone): its
+    thresholds' and the episode intervals' chi-square, F and t quantiles are
+    maths/incomplete.py's, and the noise calibration's non-negative least squares is the
+    unconstrained solution on a white-noise calibration, without ``scipy.optimize``."""
     from pathlib import Path
 
     sample = Path(__file__).resolve().parents[1] / "imufdi_cli/sample_logs/paper-table4.mcap"
-    argv = ["imufdi", "detect", "-d", "glt", "--no-explain", *budget, str(sample)]
+    argv = ["imufdi", "detect", "-d", "glt", *options, str(sample)]
     argv += ["-o", str(tmp_path / "out.mcap"), "-q"]
     probe = (
         "import runpy, sys\n"

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from imufdi_cli.maths import quantiles
+
 
 def _finite(value: Any) -> Any:
     """``value`` with every non-finite float replaced by None, recursively."""
@@ -28,34 +30,26 @@ def _finite(value: Any) -> Any:
     return value
 
 
-# Quantiles through scipy.special's inverse distribution functions (ufuncs: microseconds a
-# call, where scipy.stats' ppf checks its arguments for tens of microseconds, and every
-# episode length is a new degree of freedom); cached for the lengths that repeat.
-# scipy.special is imported at the first quantile, not on import.
+# Quantiles of maths.quantiles (pure Python: no scipy import for a few hundred values a
+# run), cached for the episode lengths that repeat.
 
 
 @functools.lru_cache(maxsize=4096)
 def _chi2_quantile(p: float, dof: float) -> float:
-    """Chi-square quantile: ``chdtri`` inverts the upper tail."""
-    from scipy.special import chdtri
-
-    return float(chdtri(dof, 1.0 - p))
+    """Chi-square quantile at lower tail ``p``."""
+    return float(quantiles.chi2.ppf(p, dof))
 
 
 @functools.lru_cache(maxsize=4096)
 def _f_quantile(p: float, dof1: float, dof2: float) -> float:
     """F(dof1, dof2) quantile."""
-    from scipy.special import fdtri
-
-    return float(fdtri(dof1, dof2, p))
+    return float(quantiles.f.ppf(p, dof1, dof2))
 
 
 @functools.lru_cache(maxsize=4096)
 def _t_quantile(p: float, dof: float) -> float:
     """Student t quantile."""
-    from scipy.special import stdtrit
-
-    return float(stdtrit(dof, p))
+    return float(quantiles.t.ppf(p, dof))
 
 
 def _gaussian_nll(ss: Any, n: Any, var: Any) -> Any:
