@@ -184,16 +184,20 @@ def _beta_fraction(a: float, b: float, y: float) -> float:
     fraction = d
     for m in range(1, _MAX_TERMS):
         m2 = 2 * m
-        for coefficient in (
-            m * (b - m) * y / ((a - 1.0 + m2) * (a + m2)),
-            -(a + m) * (a + b + m) * y / ((a + m2) * (a + 1.0 + m2)),
-        ):
-            d = 1.0 + coefficient * d
-            d = 1.0 / (d if abs(d) >= _TINY else _TINY)
-            c = 1.0 + coefficient / c
-            c = c if abs(c) >= _TINY else _TINY
-            delta = d * c
-            fraction *= delta
+        # the even and the odd term of step m
+        coefficient = m * (b - m) * y / ((a - 1.0 + m2) * (a + m2))
+        d = 1.0 + coefficient * d
+        d = 1.0 / (d if abs(d) >= _TINY else _TINY)
+        c = 1.0 + coefficient / c
+        c = c if abs(c) >= _TINY else _TINY
+        fraction *= d * c
+        coefficient = -(a + m) * (a + b + m) * y / ((a + m2) * (a + 1.0 + m2))
+        d = 1.0 + coefficient * d
+        d = 1.0 / (d if abs(d) >= _TINY else _TINY)
+        c = 1.0 + coefficient / c
+        c = c if abs(c) >= _TINY else _TINY
+        delta = d * c
+        fraction *= delta
         if abs(delta - 1.0) < _EPS:
             return fraction
     raise ArithmeticError(  # pragma: no cover - bounded by MAX_SHAPE
@@ -216,14 +220,22 @@ def log_beta_tails(a: float, b: float, t: float) -> tuple[float, float]:
     (float, float)
         ``log I_y(a, b)`` and ``log(1 - I_y(a, b))``.
     """
+    log_i, log_j, _ = _beta_tails(a, b, t)
+    return log_i, log_j
+
+
+def _beta_tails(a: float, b: float, t: float) -> tuple[float, float, float]:
+    """``log_beta_tails`` and ``log(y^a (1 - y)^(b - 1) / B(a, b))``, the log of the lower
+    tail's derivative in ``t``."""
     y = math.exp(t)
     w = -math.expm1(t)
     log_front = _log_beta_front(a, b, t, y, w)
+    log_slope = log_front - (math.log1p(-y) if y < 0.5 else math.log(w))
     if y < (a + 1.0) / (a + b + 2.0):
         log_i = log_front + math.log(_beta_fraction(a, b, y) / a)
-        return log_i, math.log1p(-math.exp(log_i))
+        return log_i, math.log1p(-math.exp(log_i)), log_slope
     log_j = log_front + math.log(_beta_fraction(b, a, w) / b)
-    return math.log1p(-math.exp(log_j)), log_j
+    return math.log1p(-math.exp(log_j)), log_j, log_slope
 
 
 def _rough_normal_quantile(lower: float, upper: float) -> float:
@@ -263,14 +275,17 @@ def _solve(
             lo = max(lo, t)
         else:
             hi = min(hi, t)
+        tolerance = 8.0 * _EPS * max(abs(t), floor)
         new = t - f / slope if slope > 0.0 else math.nan
+        if abs(new - t) <= tolerance:  # converged (a step below rounding lands on t)
+            return new
         if not lo < new < hi:
             if math.isfinite(lo) and math.isfinite(hi):
                 new = 0.5 * (lo + hi)
             else:
                 new = t + (_STEP_LIMIT if f < 0.0 else -_STEP_LIMIT)
-        if abs(new - t) <= 8.0 * _EPS * max(abs(t), floor) or new in (lo, hi):
-            return new
+            if abs(new - t) <= tolerance:
+                return new
         t = new
     raise ArithmeticError("quantile iteration did not converge")  # pragma: no cover
 
@@ -331,17 +346,25 @@ def beta_inverse(a: float, b: float, lower: float, upper: float) -> tuple[float,
     if upper < lower:  # the upper tail of B(a, b) is the lower tail of B(b, a) at 1 - y
         w, y = beta_inverse(b, a, upper, lower)
         return y, w
-    # start: the series' leading term, y ~ (lower a B(a, b))^(1/a), at most the mean
+    # start: the series' leading term, y ~ (lower a B(a, b))^(1/a), at most the mean;
+    # with both shapes above 0.6, A&S 26.5.22's normal approximation where it is smaller
+    # in t (the leading term overshoots there)
     log_beta = math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)
     t = min((math.log(lower) + math.log(a) + log_beta) / a, math.log(a / (a + b)))
-
-    def tails(t: float) -> tuple[float, float, float]:
-        log_i, log_j = log_beta_tails(a, b, t)
-        y, w = math.exp(t), -math.expm1(t)
-        return log_i, log_j, _log_beta_front(a, b, t, y, w) - math.log(w)
+    if a > 0.6 and b > 0.6:
+        z = -_rough_normal_quantile(lower, upper)  # the upper normal quantile at lower
+        lam = (z * z - 3.0) / 6.0
+        h = 2.0 / (1.0 / (2.0 * a - 1.0) + 1.0 / (2.0 * b - 1.0))
+        if h + lam > 0.0:
+            w = z * math.sqrt(h + lam) / h - (1.0 / (2.0 * b - 1.0) - 1.0 / (2.0 * a - 1.0)) * (
+                lam + 5.0 / 6.0 - 2.0 / (3.0 * h)
+            )
+            # y = a / (a + b e^(2w)): t = -log(1 + e^x), x = log(b/a) + 2w, without overflow
+            x = math.log(b / a) + 2.0 * w
+            t = -(x + math.log1p(math.exp(-x))) if x > 0.0 else -math.log1p(math.exp(x))
 
     # relative to |t| alone: near y = 1, 1 - y = -expm1(t) needs t to its own accuracy
-    t = _solve(tails, math.log(lower), True, t, 0.0, 0.0)
+    t = _solve(lambda t: _beta_tails(a, b, t), math.log(lower), True, t, 0.0, 0.0)
     return math.exp(t), -math.expm1(t)
 
 

@@ -179,3 +179,31 @@ def test_the_quantiles_of_a_detector_run_need_no_scipy(fresh_python) -> None:
     )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
+
+
+def test_newton_stops_when_its_step_is_below_rounding(monkeypatch) -> None:
+    # a last step smaller than an ulp of t lands on t itself: that is convergence, not a
+    # bracket violation to bisect from (which had taken some quantiles 50 evaluations)
+    calls = {"beta": 0, "gamma": 0}
+    beta_tails, gamma_tails = incomplete._beta_tails, incomplete.log_gamma_tails
+
+    def counted_beta(*args):
+        calls["beta"] += 1
+        return beta_tails(*args)
+
+    def counted_gamma(*args):
+        calls["gamma"] += 1
+        return gamma_tails(*args)
+
+    monkeypatch.setattr(incomplete, "_beta_tails", counted_beta)
+    monkeypatch.setattr(incomplete, "log_gamma_tails", counted_gamma)
+    for n, d in ((2.909090909090909, 119.041773166947), (1.6, 106.9), (66.9, 300.0)):
+        for p in (0.05, 0.95):
+            calls["beta"] = 0
+            quantiles.f.ppf(p, n, d)
+            assert calls["beta"] <= 8, (n, d, p, calls)
+    for k in (2.0, 5.3, 44.0):
+        for p in (1e-5, 0.05, 0.95):
+            calls["gamma"] = 0
+            quantiles.chi2.isf(p, k)
+            assert calls["gamma"] <= 8, (k, p, calls)
