@@ -14,17 +14,20 @@ Tolerance of the comparisons with scipy.stats, ``rtol = 1e-12``:
   within 2e-13 of scipy's on these grids (tests/maths/test_incomplete.py bounds the
   difference over wider ones);
 and none for a wrong law, tail or degree-of-freedom convention (those are off by more
-than 1e-3). Two exceptions, where scipy's F quantiles are not accurate:
-- ``scipy.stats.f.isf(q, n, d)`` inverts the distribution function at ``1 - q``, which
-  loses the small tail (2e-5 relative at ``q = 1e-12``, infinite at ``q = 1e-300``): ours
-  is compared with ``1 / f.ppf(q, d, n)``, the same quantile by the F law's reciprocal
-  symmetry (A&S 26.6.3), which scipy computes without that complement;
-- at ``q = 1e-300`` scipy's ``f.ppf`` returns values near the smallest normal float where
-  the quantile underflows: that level is checked against the F law's closed forms with
-  two numerator degrees of freedom instead. There scipy's ``t.ppf`` has the wrong sign
-  (``+inf`` at 5 degrees of freedom, where the quantile is -1.6e60) and ours, the root of
-  an F quantile, is infinite where that square passes the float range (below 2 degrees
-  of freedom): the level is left out for t.
+than 1e-3).
+
+The F and t quantiles are checked through scipy's distribution functions instead of its
+quantiles, which are not accurate enough to be an oracle: scipy 1.13's ``f.ppf`` and
+``t.ppf`` are off by up to 1e-4 relative (``f.ppf(1e-12, 2, 2)`` is 2.0e-24 exactly, scipy
+1.13 gives 1.99991e-24; ``t.ppf(0.05, 1)`` is ``-cot(pi/20)``, 2e-11 away from scipy
+1.13's), ``f.isf`` inverts the distribution function at ``1 - q`` and loses the small
+tail, and at 1e-300 ``t.ppf`` has the wrong sign. The round trip takes an upper tail as
+the lower tail of the reflected law (``-X`` for t, ``1/X ~ F(d, n)`` for F), as scipy's
+``sf`` also loses it far out, and measures the quantile's
+relative error as ``|tail(x) - q| / (|x| pdf(x))``, the distribution function's error
+``(about 1e-15 of the tail) mapped through its slope``, against ``1e-11`` (which leaves a
+factor 10 for the slope's amplification in the far tails of these grids). The F law's
+closed forms with two numerator degrees of freedom check the 1e-300 tail directly.
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ LOC_SCALE = [(0.0, 1.0), (0.5, 2.0)]
 FUNCTIONS = [("norm", 0, method) for method in ("pdf", "cdf", "sf", "ppf", "isf")] + [
     (name, n, method)
     for name, n in (("chi2", 1), ("f", 2), ("gamma", 1), ("t", 1))
-    for method in ("cdf", "sf", "ppf", "isf")
+    for method in (("cdf", "sf", "ppf", "isf") if name in ("chi2", "gamma") else ("cdf", "sf"))
 ]
 
 
@@ -64,25 +67,56 @@ def test_every_function_agrees_with_scipy_stats_over_a_grid(
     ]
     ours = getattr(getattr(quantiles, name), method)
     theirs = getattr(getattr(scipy_stats, name), method)
-    if (name, method) == ("f", "isf"):  # 1 / F_q(d, n) (module docstring)
-
-        def theirs(q, n, d, loc, scale):
-            with np.errstate(divide="ignore", over="ignore"):  # 1/0 and 1/tiny: inf
-                return loc + scale / scipy_stats.f.ppf(q, d, n)
-
-    # scipy's F and t quantiles at the 1e-300 tail are not accurate (module docstring)
-    compared = (values != 1e-300) if name in ("f", "t") and method in ("ppf", "isf") else ...
     for loc, scale in LOC_SCALE:
         got = ours(x, *shapes, loc=loc, scale=scale)
         want = theirs(x, *shapes, loc=loc, scale=scale)
         assert got.shape == want.shape == (len(values),) + (len(SHAPES),) * n_shapes
         assert_allclose(
-            got[compared],
-            want[compared],
+            got,
+            want,
             rtol=RTOL,
             atol=0.0,
             err_msg=f"{name}.{method} {loc} {scale}",
         )
+
+
+@pytest.mark.parametrize(("name", "method"), [(n, m) for n in ("f", "t") for m in ("ppf", "isf")])
+def test_f_and_t_quantiles_invert_scipys_distribution_functions(
+    scipy_stats, name: str, method: str
+) -> None:
+    law, theirs = getattr(quantiles, name), getattr(scipy_stats, name)
+    n_shapes = 2 if name == "f" else 1
+
+    def upper_tail(x: float, *shapes: float) -> float:
+        # P(X > x) = P(-X < -x) for t, P(1/X < 1/x) with 1/X ~ F(d, n) (A&S 26.6.3)
+        if name == "t":
+            return float(theirs.cdf(-x, *shapes))
+        return float(theirs.cdf(1.0 / x, shapes[1], shapes[0]))
+
+    worst = 0.0
+    for q in LEVELS:
+        for shapes in np.broadcast(*([SHAPES[:, None], SHAPES[None, :]][:n_shapes])):
+            x = float(getattr(law, method)(q, *shapes))
+            if q in (0.0, 1.0):  # the support's ends
+                assert x == float(getattr(theirs, method)(q, *shapes)), (q, shapes)
+                continue
+            if x == 0.0 or not np.isfinite(x):  # underflow or overflow of the quantile
+                continue
+            # the smaller tail, its level given exactly (q itself when q <= 0.5)
+            small, level = (method == "ppf") == (q <= 0.5), min(q, 1.0 - q)
+            # (the upper tail as a lower one: scipy's sf loses it far out)
+            tail = float(theirs.cdf(x, *shapes)) if small else upper_tail(x, *shapes)
+            if tail == 0.0:  # scipy's function underflows there (1e-300, large shapes)
+                continue
+            error = tail - level
+            density = abs(x) * float(theirs.pdf(x, *shapes))
+            if density > 0.0:
+                worst = max(worst, abs(error) / density)
+    assert worst < 1e-11, worst
+    # loc and scale: the standard quantile moved and stretched
+    assert law.ppf(0.9, *[5.0] * n_shapes, loc=0.5, scale=2.0) == 0.5 + 2.0 * law.ppf(
+        0.9, *[5.0] * n_shapes
+    )
 
 
 def test_f_quantiles_far_in_the_tails_match_the_closed_forms() -> None:
