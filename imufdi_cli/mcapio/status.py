@@ -460,18 +460,7 @@ def _decode_status(
         key: codec.read(batch, little, positions[path], code, 1)[:, 0]
         for key, (path, code) in scalars.items()
     }
-    out: dict[str, np.ndarray] = {
-        "t_ns": raw["sec"].astype(np.int64) * NS_PER_S + raw["nanosec"].astype(np.int64),
-        "statistic": raw["statistic"].astype(np.float64),
-        "threshold": raw["threshold"].astype(np.float64),
-        "alarm": raw["alarm"] != 0,
-        "isolated": raw["isolated"].astype(np.int32),
-        "amplitude": raw["amplitude"].astype(np.float64),
-    }
-    if "decided_sec" in raw:
-        out["decided_ns"] = raw["decided_sec"].astype(np.int64) * NS_PER_S + raw[
-            "decided_nanosec"
-        ].astype(np.int64)
+    out = _scalar_fields(raw)
     counts = sizes["scores"]
     n = len(batch)
     width = int(counts.max()) if n else 0
@@ -491,6 +480,23 @@ def _decode_status(
         isolated_set = codec.read(batch, little, positions["isolated_set"], "u1", width) != 0
     out["isolated_set"] = isolated_set
     out["amplitudes"] = _amplitudes(batch, codec, little, positions, sizes, out, width)
+    return out
+
+
+def _scalar_fields(raw: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The per-message fields of a status batch from its raw scalar columns (copies)."""
+    out: dict[str, np.ndarray] = {
+        "t_ns": raw["sec"].astype(np.int64) * NS_PER_S + raw["nanosec"].astype(np.int64),
+        "statistic": raw["statistic"].astype(np.float64),
+        "threshold": raw["threshold"].astype(np.float64),
+        "alarm": raw["alarm"] != 0,
+        "isolated": raw["isolated"].astype(np.int32),
+        "amplitude": raw["amplitude"].astype(np.float64),
+    }
+    if "decided_sec" in raw:
+        out["decided_ns"] = raw["decided_sec"].astype(np.int64) * NS_PER_S + raw[
+            "decided_nanosec"
+        ].astype(np.int64)
     return out
 
 
@@ -517,18 +523,7 @@ def _decode_uniform(
         return rows[:, at[path] : at[path] + width].view("<" + code)
 
     raw = {key: column(path, code)[:, 0] for key, (path, code) in scalars.items()}
-    out: dict[str, np.ndarray] = {
-        "t_ns": raw["sec"].astype(np.int64) * NS_PER_S + raw["nanosec"].astype(np.int64),
-        "statistic": raw["statistic"].astype(np.float64),
-        "threshold": raw["threshold"].astype(np.float64),
-        "alarm": raw["alarm"] != 0,
-        "isolated": raw["isolated"].astype(np.int32),
-        "amplitude": raw["amplitude"].astype(np.float64),
-    }
-    if "decided_sec" in raw:
-        out["decided_ns"] = raw["decided_sec"].astype(np.int64) * NS_PER_S + raw[
-            "decided_nanosec"
-        ].astype(np.int64)
+    out = _scalar_fields(raw)
     width = sizes["scores"]
     if not score_columns:
         from imufdi_cli.sweep import best_columns
