@@ -31,8 +31,9 @@ episodes are measured in ``tests/episodes/``, ``studies/episodes.py`` and docs/e
 
 from __future__ import annotations
 
-from importlib import import_module
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from imufdi_cli.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from imufdi_cli.episodes.builder import EpisodeBuilder, episode_builders
@@ -145,14 +146,7 @@ _WHERE: dict[str, str] = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    try:
-        module = _WHERE[name]
-    except KeyError:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
-    value = getattr(import_module(module), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _WHERE, globals())
 
 
 __all__ = [

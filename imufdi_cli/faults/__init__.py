@@ -38,8 +38,9 @@ models, not the injector.
 
 from __future__ import annotations
 
-from importlib import import_module
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from imufdi_cli.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from imufdi_cli.faults.inject import InjectResult, inject_file
@@ -82,15 +83,7 @@ _WHERE = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    """Import the submodule of a public name on first access (PEP 562)."""
-    try:
-        module = _WHERE[name]
-    except KeyError:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
-    value = getattr(import_module(module), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _WHERE, globals())
 
 
 __all__ = [
