@@ -11,28 +11,20 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.episodes.fault_fit import FaultFit
-from imufdi_cli.episodes.numerics import _chi2_quantile, _f_quantile, _t_quantile
 from imufdi_cli.episodes.reference import DISPERSION_LEVEL
-
-
-def _elementwise(function: Any, *args: Any) -> np.ndarray:
-    """``function`` (a cached scalar quantile of ``numerics``) over broadcast arguments."""
-    arrays = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in args))
-    columns = [a.reshape(-1).tolist() for a in arrays]
-    values = [function(*row) for row in zip(*columns)]
-    return np.asarray(values, dtype=np.float64).reshape(arrays[0].shape)
+from imufdi_cli.maths import quantiles
 
 
 def _t_quantiles(p: float, dof: np.ndarray) -> np.ndarray:
-    return _elementwise(_t_quantile, p, dof)
+    return np.asarray(quantiles.t.ppf(p, dof), dtype=np.float64)
 
 
 def _f_quantiles(p: float, dof1: Any, dof2: Any) -> np.ndarray:
-    return _elementwise(_f_quantile, p, dof1, dof2)
+    return np.asarray(quantiles.f.ppf(p, dof1, dof2), dtype=np.float64)
 
 
 def _chi2_quantiles(p: float, dof: Any) -> np.ndarray:
-    return _elementwise(_chi2_quantile, p, dof)
+    return np.asarray(quantiles.chi2.ppf(p, dof), dtype=np.float64)
 
 
 def _nll(ss: Any, n: Any, var: Any) -> Any:

@@ -43,6 +43,7 @@ special functions give it. A scalar call returns a NumPy float64 scalar.
 
 from __future__ import annotations
 
+import functools
 import math
 from types import ModuleType
 from typing import Any
@@ -90,6 +91,7 @@ def _valid(lower: float, *shapes: float) -> bool:
     return 0.0 <= lower <= 1.0 and all(s > 0.0 for s in shapes)
 
 
+@functools.lru_cache(maxsize=4096)  # the degrees of freedom that repeat in a run
 def _gamma_quantile(lower: float, upper: float, a: float) -> float:
     """The standard gamma quantile with lower tail ``lower`` (``upper = 1 - lower``)."""
     if not _valid(lower, a):
@@ -104,6 +106,7 @@ def _gamma_quantile(lower: float, upper: float, a: float) -> float:
     return incomplete.gamma_inverse(a, lower, upper)
 
 
+@functools.lru_cache(maxsize=4096)  # the degrees of freedom that repeat in a run
 def _f_quantile(lower: float, upper: float, dfn: float, dfd: float) -> float:
     """The F quantile with lower tail ``lower``: ``d y / (n (1 - y))`` for the beta law's
     ``y`` of shapes ``(n/2, d/2)`` (A&S 26.6.2)."""
@@ -117,6 +120,7 @@ def _f_quantile(lower: float, upper: float, dfn: float, dfd: float) -> float:
     return dfd * y / (dfn * w) if w > 0.0 else math.inf
 
 
+@functools.lru_cache(maxsize=4096)  # the degrees of freedom that repeat in a run
 def _t_quantile(lower: float, upper: float, dof: float) -> float:
     """The t quantile with lower tail ``lower``: ``+-sqrt`` of the F(1, dof) quantile whose
     upper tail is twice the smaller of ``lower`` and ``upper`` (exact in floating point)."""
