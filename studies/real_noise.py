@@ -736,6 +736,32 @@ def physical(res: Residual) -> np.ndarray:
     return res.z * res.scale[None, :] * UNIT[res.sensor_type][1]
 
 
+def section_spatial(pairs: dict, recs: dict) -> None:
+    """The motion residual scaled by each row's own spread over the sensors (what the
+    budgeted accelerometer bank does in motion, docs/algorithms/sequential.md)."""
+    rows = []
+    for (cal, test, s), res in pairs.items():
+        if cal == test:
+            continue
+        moving = recs[test].motion & res.valid
+        z = res.z[moving]
+        spread = np.median(z * z, axis=1) / 0.4549364231195724
+        e = z / np.sqrt(spread)[:, None]
+        acf = [float(np.mean(e[lag:] * e[:-lag]) / np.mean(e * e)) for lag in (1, 2, 5, 10)]
+        blocks = e[: e.shape[0] // 10 * 10].reshape(-1, 10, e.shape[1]).mean(axis=1)
+        jitter = np.sqrt(res.inflation[moving])
+        rows.append([f"{cal} -> {test}", s, f"{np.median(jitter) / np.median(np.sqrt(spread)):.2f}",
+                     f"{np.mean(z * z / jitter[:, None] ** 2):.2f}",
+                     f"{np.mean(z**4) / np.mean(z * z) ** 2:.0f}",
+                     " ".join(f"{a:+.3f}" for a in acf),
+                     f"{10 * np.mean(blocks**2) / np.mean(e * e):.2f}",
+                     f"{np.mean(np.abs(e) > 3.5):.4f}"])  # fmt: skip
+    table("The motion residual scaled by each row's spread (median_i z^2 / 0.4549)",
+          ["pair", "type", "jitter sd / row spread (medians)", "E[z^2 / (1+A)]", "kurtosis",
+           "autocorrelation, lags 1 2 5 10", "long-run factor (10)", "share beyond 3.5"],
+          rows)  # fmt: skip
+
+
 def section_windows(pairs: dict, recs: dict) -> None:
     rows_out = []
     for (cal, test, s), res in pairs.items():
@@ -1333,6 +1359,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         orientation_repeat(pairs, recs)
         section_reference(pairs, recs)
         models = section_motion(pairs, recs)
+        section_spatial(pairs, recs)
         section_windows(pairs, recs)
         scaled = motion_models(pairs, recs, models)
         section_cusum(pairs, recs, scaled, np.random.default_rng(args.seed))

@@ -45,6 +45,16 @@ HOLD_S = 10.0
 LATCH = "latch"
 
 
+#: Sensor types whose noise variance in motion the bank takes from each row's own evidence
+#: (``CusumBank(spatial=True)``) when the array has a jitter model: the MIMU4444
+#: accelerometers' motion residual is white in time with a size that changes from row to
+#: row alike on every sensor (autocorrelation -0.05 to -0.03 at lag 1, within 0.013 at lags
+#: 2-10, once each row is scaled by its own spread); the gyros' is correlated over tens of
+#: rows (lag-1 autocorrelation 0.29-0.33), which a per-row scale does not cover, so they
+#: keep the jitter model (docs/real-arrays.md).
+SPATIAL_TYPES = frozenset({"accel"})
+
+
 def hold_seconds(value: str) -> float:
     """An episode's hold in seconds from a ``hold`` parameter: a time (``10s``) or
     ``latch`` (infinite); UnitError for anything else."""
@@ -187,8 +197,10 @@ class _BankBudget:
         calibration_samples: int | None,
         motion_error: float,
         hold_s: float = HOLD_S,
+        moving: bool = False,
     ) -> None:
         self.per_sample = _per_sample(rate_hz, budget_per_s)
+        self.moving = bool(moving)  # the detector passes motion factors (a jitter model)
         self.design = design or CusumDesign(tau_s=tau_s, hold_s=hold_s)
         self.rate_hz = float(rate_hz)
         self.budget_per_s = float(budget_per_s)
@@ -203,11 +215,20 @@ class _BankBudget:
         self.threshold = math.nan  # set by fit()
         self.bank: CusumBank | None = None
 
+    @property
+    def threshold_contamination(self) -> float:
+        """The outlier share the threshold allows for: the calibration's, and with motion
+        factors at least ``design.motion_outliers`` (the bank's noise variance in motion
+        is then the evidence's own, with heavy tails)."""
+        if self.moving:
+            return max(self.contamination, self.design.motion_outliers)
+        return self.contamination
+
     def _start(self, kappa: float, motion: MotionModel | None) -> None:
-        """The threshold for the evidence's outlier share (``self.contamination``), then
-        the bank."""
+        """The threshold for the evidence's outlier share (``threshold_contamination``),
+        then the bank."""
         self.threshold = budget_threshold(
-            self.design, self.n, self.per_sample, self.scale_variance, self.contamination
+            self.design, self.n, self.per_sample, self.scale_variance, self.threshold_contamination
         )
         self.bank = CusumBank(
             self.design,
@@ -218,6 +239,7 @@ class _BankBudget:
             kappa=kappa,
             calibration_samples=self.calibration_samples,
             motion=motion,
+            spatial=self.moving,
         )
 
     def _decide(
@@ -246,6 +268,8 @@ class _BankBudget:
             "motion_error": self.motion_error,
             "outlier_share": self.contamination,
             "outlier_size": self.outlier,
+            "motion_scale": "spatial" if self.moving else None,
+            "motion_outliers": self.design.motion_outliers if self.moving else None,
             "reference_tau_s": self.design.tau_s,
             "hold_s": None if math.isinf(self.design.hold_s) else self.design.hold_s,
             "long_run_factor": None if bank is None else bank.kappa,
@@ -282,6 +306,11 @@ class ParityBudget(_BankBudget):
         the motion model, which learns and removes the part of each sensor's evidence that
         is proportional to the tested state (rate for gyros, specific force for
         accelerometers) and widens the test by what it does not know yet; 0: no model.
+    moving : bool
+        The detector passes the rows' motion variance factors (its array has a jitter
+        model): the bank then takes the noise variance of the rows in motion from the
+        evidence (``CusumBank(spatial=True)``) and the threshold allows for
+        ``design.motion_outliers``.
     """
 
     def __init__(
@@ -298,6 +327,7 @@ class ParityBudget(_BankBudget):
         calibration_samples: int | None = None,
         motion_error: float = MOTION_ERROR,
         hold_s: float = HOLD_S,
+        moving: bool = False,
     ) -> None:
         h_white = np.asarray(h_white, float)
         energy = 1.0 - np.einsum("ij,ji->i", h_white, np.linalg.pinv(h_white))
@@ -313,6 +343,7 @@ class ParityBudget(_BankBudget):
             calibration_samples,
             motion_error,
             hold_s,
+            moving,
         )
         self.estimator_t = np.linalg.pinv(h_white).T.copy()  # (n, q): x_hat = m_w @ it
         self.h_t = h_white.T.copy()
@@ -402,6 +433,11 @@ class EvidenceBudget(_BankBudget):
         model, whose slopes are then ``motion_error`` times the typical sensitivity per SI
         unit of the state (a relative error e on a sensor puts ``e |x|`` into it, ``g e |x|``
         into its evidence); 0: no model.
+    moving : bool
+        The detector passes the rows' motion variance factors (its array has a jitter
+        model): the bank then takes the noise variance of the rows in motion from the
+        evidence (``CusumBank(spatial=True)``) and the threshold allows for
+        ``design.motion_outliers``.
     """
 
     def __init__(
@@ -417,6 +453,7 @@ class EvidenceBudget(_BankBudget):
         calibration_samples: int | None = None,
         motion_error: float = MOTION_ERROR,
         hold_s: float = HOLD_S,
+        moving: bool = False,
     ) -> None:
         sensitivity = np.asarray(sensitivity, float)
         super().__init__(
@@ -430,6 +467,7 @@ class EvidenceBudget(_BankBudget):
             calibration_samples,
             motion_error,
             hold_s,
+            moving,
         )
         testable = sensitivity[sensitivity > 0]
         self.motion_prior = float(np.median(testable)) if testable.size else 0.0

@@ -69,7 +69,13 @@ from imufdi_cli.detectors.base import (
     DetectorBase,
     Param,
 )
-from imufdi_cli.detectors.budget import HOLD, ParityBudget, check_hold, reference_tau
+from imufdi_cli.detectors.budget import (
+    HOLD,
+    SPATIAL_TYPES,
+    ParityBudget,
+    check_hold,
+    reference_tau,
+)
 from imufdi_cli.detectors.tracking import TRACK_BIAS, BiasTracker
 from imufdi_cli.errors import (
     ArrayConfigError,
@@ -489,6 +495,7 @@ class GltDetector(DetectorBase):
                 scale_variance=None if scale_variance is None else float(np.mean(scale_variance)),
                 calibration_samples=values.shape[0],
                 hold_s=self.hold_s,
+                moving=inflation is not None and sensor_type in SPATIAL_TYPES,
             )
             budget.fit(values / sigma - bias / sigma)
         return _TypeState(

@@ -405,3 +405,26 @@ def test_a_budget_keeps_a_fault_beyond_the_clip_in_one_episode() -> None:
     assert out.alarm[onset + 5 :].all()
     assert det.metadata()["types"]["gyro"]["budget"]["episodes"] == 1
     assert (out.isolated[out.alarm] == 3 * 3 + 1).all()
+
+
+def test_with_a_jitter_model_the_accelerometers_take_their_motion_scale_from_the_rows() -> None:
+    # budget.SPATIAL_TYPES: the accelerometers' bank standardizes rows in motion by their
+    # own spread (and its threshold allows for motion outliers); the gyros keep the jitter
+    # model; without a jitter model neither changes
+    from imufdi_cli.maths.sequential import CusumDesign
+    from imufdi_cli.simulate import preset, simulate_block
+
+    array, block = simulate_block(preset("wearable12", seed=5, duration="12s"))
+    calibration = block.slice(0, 1000)
+    budgets = {}
+    for jitter in ({}, {"gyro": 0.001, "accel": 0.002}):
+        det = make_detector(false_alarms="1/h", types="gyro,accel")
+        det.fit(calibration, array.with_jitter(jitter))
+        budgets[bool(jitter)] = det.metadata()["types"]
+    accel, gyro = budgets[True]["accel"]["budget"], budgets[True]["gyro"]["budget"]
+    assert accel["motion_scale"] == "spatial" and gyro["motion_scale"] is None
+    assert accel["motion_outliers"] == CusumDesign().motion_outliers
+    assert budgets[False]["accel"]["budget"]["motion_scale"] is None
+    # the same evidence and outliers: only the allowance for motion outliers moves h
+    assert accel["threshold"] > budgets[False]["accel"]["budget"]["threshold"]
+    assert gyro["threshold"] == budgets[False]["gyro"]["budget"]["threshold"]

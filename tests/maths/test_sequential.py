@@ -22,6 +22,7 @@ from imufdi_cli.maths.sequential import (
     lorden_drift_samples,
     outlier_share,
     outlier_size,
+    spatial_inflation,
     step_information,
 )
 
@@ -367,6 +368,117 @@ def test_a_step_in_motion_is_caught_by_a_design_of_its_physical_size() -> None:
     assert 2000 <= first <= 2000 + 2 * lorden_delay_samples(4.0, 3600 * 100, 12)
     assert (out.isolated[out.alarm] == 4).mean() > 0.99
     assert np.nanmedian(out.amplitude[out.alarm]) == pytest.approx(16.0, rel=0.1)
+
+
+def _spatial_ville(columns: int, c: float, order: bool = True) -> float:
+    # an independent route to the largest E[exp(a clip(r e) - a^2/2)] over the shifts:
+    # Monte Carlo over the rows' spread (300 000 rows; the order statistic ceil(n/2) that
+    # spatial_inflation takes, or numpy's median, the mean of the two middle ones for an
+    # even n) and scipy's normal law for e
+    from scipy import stats
+
+    rng = np.random.default_rng(21)
+    squares = rng.standard_normal((300_000, columns)) ** 2
+    if order:
+        middle = np.partition(squares, (columns + 1) // 2 - 1, axis=1)[:, (columns + 1) // 2 - 1]
+    else:
+        middle = np.median(squares, axis=1)
+    m = middle / 0.4549364231195724
+    r = 1.0 / np.sqrt(c * m)
+    worst = 0.0
+    for a in np.geomspace(0.25, 7.0, 25):  # (rows whose closed form overflows carry ~0)
+        edge = 3.5 / r
+        with np.errstate(over="ignore", invalid="ignore"):
+            inside = np.exp(0.5 * a * a * (r * r - 1.0)) * (
+                stats.norm.cdf(edge - a * r) - stats.norm.cdf(-edge - a * r)
+            )
+        beyond = (np.exp(3.5 * a) + np.exp(-3.5 * a)) * np.exp(-0.5 * a * a) * stats.norm.sf(edge)
+        worst = max(worst, float(np.mean(np.where(np.isfinite(inside), inside, 0.0) + beyond)))
+    return worst
+
+
+@pytest.mark.parametrize(("columns", "want"), [(12, 2.689), (24, 1.546), (96, 1.084)])
+def test_spatial_inflation_is_where_the_increments_exponential_moment_reaches_one(
+    columns: int, want: float
+) -> None:
+    c = spatial_inflation(columns)
+    assert c == pytest.approx(want, abs=2e-3)
+    # Ville's condition holds at c and fails 5 % below it (the Monte Carlo's sd is about
+    # 0.2 % of the moment: well inside the 5 % step, whose moment moves by 2-4 %)
+    assert _spatial_ville(columns, c) < 1.005
+    assert _spatial_ville(columns, 0.95 * c) > 1.005
+    # the bank's median (for an even n the mean of the two middle squares) is larger than
+    # the lower one: the margin errs on the safe side
+    assert _spatial_ville(columns, c, order=False) < 1.0
+    assert spatial_inflation(48) < spatial_inflation(24) < spatial_inflation(12)
+
+
+def _scale_mixture(rng: np.random.Generator, rows: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    # a motion residual as the MIMU4444 accelerometers show it: white in time, its size
+    # changing from row to row alike on every sensor (log-normal, median 30 rest sd)
+    scale = 30.0 * np.exp(rng.standard_normal(rows))
+    return scale[:, None] * rng.standard_normal((rows, n)), scale
+
+
+def test_the_spatial_variance_holds_the_budget_on_a_row_scaled_motion_residual() -> None:
+    # 1 hour of 24 channels in motion at 360/h: a jitter-style factor that covers the
+    # largest rows (60 x the median variance) raises almost nothing, and the rows' own
+    # spatial variance also stays within the budget's union bound of 360
+    rng = np.random.default_rng(22)
+    cusum = CusumDesign()
+    h = budget_threshold(cusum, 24, 360.0 / 3600.0 / RATE_HZ / 2.0, 0.0, cusum.motion_outliers)
+    spatial = CusumBank(cusum, h, np.ones(24), np.ones(24, bool), RATE_HZ, spatial=True)
+    for _ in range(3600 * 100 // 4000):
+        z, _ = _scale_mixture(rng, 4000, 24)
+        spatial.process(z, factors=np.full(4000, 60.0 * 900.0))
+    assert spatial.episodes <= 360
+
+
+def test_the_spatial_variance_finds_a_step_the_jitter_margin_hides() -> None:
+    rng = np.random.default_rng(23)
+    cusum = CusumDesign()
+    h = budget_threshold(cusum, 24, 1.0 / 3600.0 / RATE_HZ / 2.0, 0.0, cusum.motion_outliers)
+    z, _ = _scale_mixture(rng, 3000, 24)
+    z[1000:, 7] += 45.0  # 1.5 times the motion residual's median size
+    factors = np.full(3000, 60.0 * 900.0)
+    found = {}
+    for spatial in (False, True):
+        bank = CusumBank(cusum, h, np.ones(24), np.ones(24, bool), RATE_HZ, spatial=spatial)
+        out = bank.process(z, factors=factors)
+        alarms = np.flatnonzero(out.alarm)
+        found[spatial] = int(alarms[0]) - 1000 if alarms.size else None
+        if alarms.size:
+            assert alarms[0] >= 1000 and (out.isolated[alarms] == 7).mean() > 0.95
+    assert found[True] is not None and found[True] < 100
+    assert found[False] is None or found[False] > 4 * found[True]
+
+
+def test_the_spatial_variance_is_a_function_of_each_row() -> None:
+    # the same decisions however the rows are split into calls, and rows at rest (factor
+    # at most rest_factor) keep their factor: at rest the bank is the one without it
+    rng = np.random.default_rng(24)
+    cusum = CusumDesign()
+    h = budget_threshold(cusum, 24, 50.0 / 3600.0 / RATE_HZ)
+    z, _ = _scale_mixture(rng, 6000, 24)
+    z[:2000] /= 30.0 * np.exp(rng.standard_normal((2000, 1)))  # back to unit noise at rest
+    z[3000:3400, 3] += 60.0
+    factors = np.r_[np.ones(2000), np.full(4000, 5e4)]
+
+    def bank(spatial: bool) -> CusumBank:
+        return CusumBank(cusum, h, np.ones(24), np.ones(24, bool), RATE_HZ, spatial=spatial)
+
+    whole = bank(True).process(z, factors=factors)
+    pieces = bank(True)
+    bounds = [0, 1, 1999, 2001, 3100, 4500, 6000]
+    parts = [pieces.process(z[a:b], factors=factors[a:b]) for a, b in itertools.pairwise(bounds)]
+    assert whole.alarm[3000:3400].any()
+    assert np.array_equal(whole.alarm, np.concatenate([p.alarm for p in parts]))
+    # cumulative sums restart at each call: rounding of sums of ~1e3 terms
+    np.testing.assert_allclose(
+        whole.statistic, np.concatenate([p.statistic for p in parts]), rtol=1e-9, atol=1e-9
+    )
+    rest = bank(False).process(z[:2000], factors=factors[:2000])
+    np.testing.assert_array_equal(rest.statistic, whole.statistic[:2000])
 
 
 def test_the_references_learn_at_rest_only_and_resume_after_a_hold() -> None:

@@ -107,6 +107,7 @@ class ArrayBudget:
     track_bias: float | None
     inflation: MotionInflation | None = None  # the array config's jitter model, or None
     sigma_known: bool = False  # the test's sigma is the array config's (no estimation error)
+    spatial: bool = False  # in motion, each row's own noise variance (budget.SPATIAL_TYPES)
     first: EvidenceBudget | None = None
     motion: MotionState | None = None
     stage: _Stage | None = None
@@ -144,6 +145,7 @@ class ArrayBudget:
             reference_tau(self.track_bias),
             scale_variance=scale_variance,
             calibration_samples=values.shape[0],
+            moving=self.inflation is not None and self.spatial,
         )
         self.motion = MotionState(test.H, test.sigma)
         self.first.fit(np.nan_to_num(z), self.motion(values))
@@ -162,7 +164,7 @@ class ArrayBudget:
                 max(first.n - excluded, 1),
                 BUDGET_SHARE * self.budget_per_s / self.rate_hz,
                 first.scale_variance,
-                first.contamination,
+                first.threshold_contamination,
             )
         return self.thresholds[excluded]
 
@@ -204,6 +206,7 @@ class ArrayBudget:
             isolable,
             self.rate_hz,
             kappa=first.bank.kappa,
+            spatial=first.moving,
         )
         return _Stage(excluded, bank)
 

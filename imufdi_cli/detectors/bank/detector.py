@@ -27,7 +27,12 @@ from imufdi_cli.detectors.base import (
     Param,
     calibration_stats,
 )
-from imufdi_cli.detectors.budget import REFERENCE_TAU_S, EvidenceBudget, configured_noise
+from imufdi_cli.detectors.budget import (
+    REFERENCE_TAU_S,
+    SPATIAL_TYPES,
+    EvidenceBudget,
+    configured_noise,
+)
 from imufdi_cli.errors import CalibrationError, DetectorConfigError
 from imufdi_cli.log import ImuBlock
 from imufdi_cli.maths.jitter import array_inflation
@@ -187,6 +192,7 @@ class BankDetector(_GyroTest, DetectorBase):
             None,
             inflation=array_inflation(array, sensor_type, test.H),
             sigma_known=known,
+            spatial=sensor_type in SPATIAL_TYPES,
         )
         budget.fit(values)
         return budget

@@ -203,8 +203,10 @@ class PcaBudget:
         leak: bool = True,
         sensor_noise: np.ndarray | None = None,
         hold_s: float = HOLD_S,
+        moving: bool = False,
     ) -> None:
         self.hold_s = float(hold_s)
+        self.moving = bool(moving)  # motion factors come with the rows (EvidenceBudget)
         self.known = None if sensor_noise is None else np.asarray(sensor_noise, float) ** 2
         self.projection = np.asarray(projection, float)
         self.design_matrix = np.asarray(design_matrix, float)
@@ -289,6 +291,7 @@ class PcaBudget:
             scale_variance=scale_variance,
             calibration_samples=measurements.shape[0],
             hold_s=self.hold_s,
+            moving=self.moving,
         )
         self.sequential.fit(z, motion if self.learn_leak else None)
 

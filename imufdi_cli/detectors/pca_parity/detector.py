@@ -20,7 +20,13 @@ from imufdi_cli.detectors.base import (
     calibration_stats,
     parse_sensor_types,
 )
-from imufdi_cli.detectors.budget import HOLD, check_hold, configured_noise, reference_tau
+from imufdi_cli.detectors.budget import (
+    HOLD,
+    SPATIAL_TYPES,
+    check_hold,
+    configured_noise,
+    reference_tau,
+)
 from imufdi_cli.detectors.pca_parity import choices
 from imufdi_cli.detectors.pca_parity.budget import PcaBudget
 from imufdi_cli.detectors.pca_parity.components import (
@@ -188,6 +194,8 @@ class PcaParityDetector(DetectorBase):
                     leak=self.leak == "regress",
                     sensor_noise=self._configured_noise(array, sensor_type),
                     hold_s=self.hold_s,
+                    moving=self.inflations[sensor_type] is not None
+                    and sensor_type in SPATIAL_TYPES,
                 )
                 budget.fit(measurements, self.window_samples)
                 self.budgets[sensor_type] = budget

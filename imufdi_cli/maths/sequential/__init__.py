@@ -70,6 +70,7 @@ importable from here.
 
 from imufdi_cli.maths.sequential.bank import CusumBank, Decisions, MotionModel
 from imufdi_cli.maths.sequential.design import NO_ISOLATION, NOT_ISOLABLE, CusumDesign
+from imufdi_cli.maths.sequential.spatial import spatial_inflation, spatial_variance
 from imufdi_cli.maths.sequential.thresholds import (
     OUTLIER_LEVEL,
     average_run_length,
@@ -103,5 +104,7 @@ __all__ = [
     "lorden_drift_samples",
     "outlier_share",
     "outlier_size",
+    "spatial_inflation",
+    "spatial_variance",
     "step_information",
 ]

@@ -27,6 +27,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from imufdi_cli.maths.sequential.design import NO_ISOLATION, NOT_ISOLABLE, CusumDesign
+from imufdi_cli.maths.sequential.spatial import (
+    MIN_SPATIAL_COLUMNS,
+    spatial_inflation,
+    spatial_variance,
+)
 from imufdi_cli.maths.sequential.walk import _Chunk, _Feed, _History, _Running, _Walk
 
 
@@ -331,6 +336,9 @@ class CusumBank:
     motion : MotionModel, optional
         The linear model of the evidence on the tested state (residual scale and
         misalignment errors): ``process`` then takes the state's rows too.
+    spatial : bool
+        In motion (rows whose ``v_t`` exceeds ``design.rest_factor``), each row's noise
+        variance from the row's own evidence (:mod:`.spatial`) instead of ``v_t``.
     """
 
     #: Longest run of the cumulative sums (a span; see the span walker below).
@@ -347,6 +355,7 @@ class CusumBank:
         history: int = 512,
         calibration_samples: float = math.inf,
         motion: MotionModel | None = None,
+        spatial: bool = False,
     ) -> None:
         self.design = design
         self.threshold = float(threshold)
@@ -369,6 +378,10 @@ class CusumBank:
         self.episode: _Episode | None = None
         self.episodes = 0
         self._event: int | None = None  # the sample of the last alarm or episode end
+        self._spatial_columns = self.sensitivity > 0
+        columns = int(np.count_nonzero(self._spatial_columns))
+        self.spatial = bool(spatial) and columns >= MIN_SPATIAL_COLUMNS
+        self.spatial_inflation = spatial_inflation(columns, design.clip) if self.spatial else 1.0
 
     @property
     def reference(self) -> np.ndarray:
@@ -394,6 +407,10 @@ class CusumBank:
             z = np.nan_to_num(z, nan=0.0, posinf=0.0, neginf=0.0)
         n_rows = z.shape[0]
         v = np.ones(n_rows) if factors is None else np.maximum(np.asarray(factors, float), 1.0)
+        if self.spatial and factors is not None:
+            v = spatial_variance(
+                z, v, self._spatial_columns, self.spatial_inflation, self.design.rest_factor
+            )
         out = Decisions(
             statistic=np.zeros(n_rows),
             threshold=np.full(n_rows, self.threshold),

@@ -50,6 +50,11 @@ class CusumDesign:
     min_shift : float
         Effective shifts below this are not run (they would need more than ``2 h /
         min_shift^2`` samples).
+    motion_outliers : float
+        Share of outliers beyond the clip that the threshold allows for when the noise
+        variance of the rows in motion is the rows' own (``CusumBank(spatial=True)``):
+        hand motion leaves 2.0-2.3 % of the MIMU4444 accelerometers' evidence beyond 3.5
+        of the rows' own spread (fewer beyond the clip, applied after the margin).
     """
 
     shifts: tuple[float, ...] = (2.0, 4.0, 8.0, 16.0, 32.0)
@@ -61,3 +66,4 @@ class CusumDesign:
     hold_s: float = 10.0
     rest_factor: float = 2.0
     min_shift: float = 0.25
+    motion_outliers: float = 0.02
