@@ -40,12 +40,14 @@ removed before it starts (outside its time), the CPU (user + system of the child
 4. the same with ``--with-cli``
 
 then floor/info, detect/info and (detect - floor)/info, what the detection itself costs.
+``--parts`` also times the floor without the status rows and without the copy (``--skip``
+of the child), and prints what the verbatim copy and the status rows each add to reading.
 The log is made at run time as ``bench_targets.py`` makes it (paper-table4, 16 IMUs,
 ``--minutes`` long, simulation and injection seed 1, a tuning seed) unless ``--log`` is
 given. Children read compiled bytecode from a cache made once (``bench_targets.py``).
 
     python benchmarks/bench_detect_floor.py                  # 10-minute log, 3 rounds
-    python benchmarks/bench_detect_floor.py --repeat 5 --log faulty.mcap
+    python benchmarks/bench_detect_floor.py --repeat 5 --log faulty.mcap --parts
 """
 
 from __future__ import annotations
@@ -111,9 +113,18 @@ def floor_rows(rng: np.random.Generator, n_rows: int, n_sensors: int) -> FloorRo
     return FloorRows(statistic=draws[:, 0], scores=draws[:, 1:])
 
 
-def floor_detect(log: str | os.PathLike[str], out: str | os.PathLike[str]) -> dict[str, int]:
+def floor_detect(
+    log: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    *,
+    copy: bool = True,
+    status: bool = True,
+) -> dict[str, int]:
     """Read ``log`` as detect does, copy it into ``out`` verbatim and write a status
     channel of random rows per glt sensor type; returns the rows written per topic.
+
+    ``copy=False`` leaves out the copy (input channels, messages and metadata records),
+    ``status=False`` the status channels: the parts of the floor (``--parts``).
 
     Raises
     ------
@@ -129,14 +140,17 @@ def floor_detect(log: str | os.PathLike[str], out: str | os.PathLike[str]) -> di
         rng = np.random.default_rng(1)
         with McapWriter(str(out), compression="zstd") as writer:
             copier = ChannelCopier(writer)
-            copier.ensure(source.channels, set(source.channels))
+            if copy:
+                copier.ensure(source.channels, set(source.channels))
+            if not status:
+                types = []
             channels = {
                 t: register_status_channel(writer, DETECTOR, t, array.sensor_ids(t)) for t in types
             }
             sizes = {t: array.n_sensors(t) for t in types}
             rows_written = {status_topic(DETECTOR, t): 0 for t in types}
             for batch, block in reader.stream():
-                if len(batch):
+                if copy and len(batch):
                     seen = np.flatnonzero(np.bincount(batch.channel_id.astype(np.intp)))
                     new = set(seen.tolist()) - copier.known
                     if new:
@@ -153,7 +167,7 @@ def floor_detect(log: str | os.PathLike[str], out: str | os.PathLike[str]) -> di
                         status_records(channel, t_ns, rows, t_ns), np.full(n, channel), t_ns
                     )
                     rows_written[status_topic(DETECTOR, t)] += n
-            for name, data in source.metadata.items():
+            for name, data in source.metadata.items() if copy else ():
                 writer.add_metadata(name, data)
     finally:
         source.close()
@@ -177,12 +191,12 @@ def _copy(source: McapSource, writer: McapWriter, copier: ChannelCopier, batch: 
         start += count
 
 
-def _floor_child(log: str, out: str, with_cli: bool) -> int:
+def _floor_child(log: str, out: str, with_cli: bool, skip: list[str]) -> int:
     if with_cli:  # what the command line adds to a start: click and the commands' modules
         import imufdi_cli.cli  # noqa: F401
 
     try:
-        floor_detect(log, out)
+        floor_detect(log, out, copy="copy" not in skip, status="status" not in skip)
     except ImufdiError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
@@ -253,6 +267,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--with-cli", action="store_true", help="with --floor-child: import imufdi_cli.cli first"
     )
+    parser.add_argument(
+        "--skip",
+        action="append",
+        choices=("copy", "status"),
+        default=[],
+        help="with --floor-child: leave out the copy of the input or the status rows",
+    )
+    parser.add_argument(
+        "--parts",
+        action="store_true",
+        help="also time the floor's parts: reading alone, with the copy, with the status rows",
+    )
     parser.add_argument("--log", type=Path, help="the log to time (default: made at run time)")
     parser.add_argument("--minutes", type=float, default=10.0, help="length of the made log")
     parser.add_argument("--repeat", type=int, default=3, help="interleaved rounds (min kept)")
@@ -262,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.floor_child:
         log, out = args.floor_child
-        return _floor_child(log, out, with_cli=args.with_cli)
+        return _floor_child(log, out, with_cli=args.with_cli, skip=args.skip)
     if args.repeat < 1:
         parser.error(f"--repeat must be >= 1, got {args.repeat}")
     return _benchmark(args)
@@ -320,6 +346,15 @@ def _measure(args: argparse.Namespace, workdir: Path) -> int:
             cli_out,
         ),
     ]
+    #: the floor's parts: (name, --skip arguments)
+    parts = [
+        ("floor: read only", ["--skip", "copy", "--skip", "status"]),
+        ("floor: read + copy", ["--skip", "status"]),
+        ("floor: read + status", ["--skip", "copy"]),
+    ]
+    for name, skip in parts if args.parts else ():
+        part = workdir / f"part-{len(commands)}.mcap"
+        commands.append((name, [script, "--floor-child", str(log), str(part), *skip], part))
     # one untimed run of each first: the bytecode cache is filled outside the timings
     for _, argv, out in commands:
         if out is not None:
@@ -343,7 +378,7 @@ def _measure(args: argparse.Namespace, workdir: Path) -> int:
         best = min(cpu[name])
         paired = statistics.median(c / i for c, i in zip(cpu[name], cpu["info"], strict=True))
         print(
-            f"  {name:22s} CPU {best:6.3f} s  wall {min(wall[name]):6.3f} s"
+            f"  {name:22s}  CPU {best:6.3f} s  wall {min(wall[name]):6.3f} s"
             f"  = {best / info:5.2f}x info (median of rounds {paired:5.2f}x)"
         )
     floor, detect = min(cpu["floor"]), min(cpu["detect --no-explain"])
@@ -354,6 +389,12 @@ def _measure(args: argparse.Namespace, workdir: Path) -> int:
     )
     print(f"  detect / info            {detect / info:5.2f}x")
     print(f"  (detect - floor) / info  {(detect - floor) / info:5.2f}x  (the detection itself)")
+    if args.parts:
+        read = min(cpu["floor: read only"])
+        copying = min(cpu["floor: read + copy"]) - read
+        rows = min(cpu["floor: read + status"]) - read
+        print(f"  of the floor, the verbatim copy   {copying / info:5.2f}x info")
+        print(f"  of the floor, the status rows     {rows / info:5.2f}x info")
     counts = {"detect": _status_counts(detect_out), "floor": _status_counts(floor_out)}
     draws = _draw_seconds(log, args.repeat)
     print(

@@ -102,3 +102,27 @@ def test_floor_child_bad_input_is_one_line_exit_3(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ")
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("skip", "copied", "status"),
+    [(["copy"], False, True), (["status"], True, False), (["copy", "status"], False, False)],
+)
+def test_floor_parts_leave_out_what_they_skip(
+    bench: ModuleType,
+    floor_run: tuple[Path, Path],
+    tmp_path: Path,
+    skip: list[str],
+    copied: bool,
+    status: bool,
+) -> None:
+    log, _ = floor_run
+    out = tmp_path / "part.mcap"
+    argv = ["--floor-child", str(log), str(out)]
+    assert bench.main([*argv, *(a for s in skip for a in ("--skip", s))]) == 0
+    given, _ = _messages(log)
+    written, _ = _messages(out)
+    expected = set(given) if copied else set()
+    if status:
+        expected |= {"/imufdi/glt/accel", "/imufdi/glt/gyro"}
+    assert set(written) == expected
