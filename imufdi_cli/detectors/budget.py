@@ -34,6 +34,7 @@ from imufdi_cli.maths.sequential import (
     budget_threshold,
     long_run_factor,
     outlier_share,
+    outlier_size,
 )
 
 #: Default time constant of the slow bias reference under a budget, seconds.
@@ -198,6 +199,7 @@ class _BankBudget:
         self.calibration_samples = math.inf if calibration_samples is None else calibration_samples
         self.motion_error = float(motion_error)
         self.contamination = 0.0
+        self.outlier = 0.0  # the outliers' median size, z units (the reference delays')
         self.threshold = math.nan  # set by fit()
         self.bank: CusumBank | None = None
 
@@ -243,6 +245,7 @@ class _BankBudget:
             "scale_variance": self.scale_variance,
             "motion_error": self.motion_error,
             "outlier_share": self.contamination,
+            "outlier_size": self.outlier,
             "reference_tau_s": self.design.tau_s,
             "hold_s": None if math.isinf(self.design.hold_s) else self.design.hold_s,
             "long_run_factor": None if bank is None else bank.kappa,
@@ -335,6 +338,7 @@ class ParityBudget(_BankBudget):
         z = evidence[:, self.z_scale > 0]
         kappa = long_run_factor(z, self.design.block)
         self.contamination = outlier_share(z / math.sqrt(kappa))
+        self.outlier = outlier_size(z / math.sqrt(kappa))
         motion = None
         if self.motion_error > 0:
             scale = 1.0 / math.sqrt(kappa)  # the bank's own units
@@ -465,6 +469,7 @@ class EvidenceBudget(_BankBudget):
             # evidence is not what the long-run factor standardized: keep the calibrated scale
             self.design = dataclasses.replace(self.design, scale_tau_s=0.0)
         self.contamination = outlier_share(tested / math.sqrt(kappa))
+        self.outlier = outlier_size(tested / math.sqrt(kappa))
         motion = None
         if modelled:
             scale = 1.0 / math.sqrt(kappa)  # the bank's own units

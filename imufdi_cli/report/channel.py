@@ -246,7 +246,10 @@ def reference_delays(
     budget (an average run length of ``rate_hz x 3600 / budget`` samples between false
     alarms) over the bank's hypotheses, for the evidence of the fault's most sensitive
     faulty sensor (``sensitivity``: z units per SI unit, whitened parity noise and the
-    long-run factor included). None without a budget, for other fault models, or without
+    long-run factor included), whose fault-free noise has the outliers the detector
+    measured on its calibration window (``outlier_share``, ``outlier_size``: Lorden's
+    information of a step in that noise, :func:`~imufdi_cli.maths.sequential.step_information`;
+    Gaussian when the channel has none). None without a budget, for other fault models, or without
     the fault's size."""
     if budget is None or not rate_hz:
         return
@@ -257,6 +260,10 @@ def reference_delays(
         per_hour = float(meta["false_alarms_per_hour"])
         hypotheses = int(meta["hypotheses"])
         sensitivity = [float(g) for g in meta["sensitivity"]]
+        # the evidence's outliers (written since the reference counts them; a status
+        # channel without them is taken as Gaussian, the reference it was reported with)
+        contamination = float(meta.get("outlier_share") or 0.0)
+        outlier = float(meta.get("outlier_size") or 0.0)
     except (KeyError, TypeError, ValueError):
         return
     if not per_hour > 0 or hypotheses < 1:
@@ -277,9 +284,13 @@ def reference_delays(
             continue
         size = abs(float(window.size)) * gain
         if window.model == "step":
-            samples = lorden_delay_samples(size * size, run_length, hypotheses)
+            samples = lorden_delay_samples(
+                size * size, run_length, hypotheses, contamination, outlier
+            )
         else:
-            samples = lorden_drift_samples(size / rate_hz, run_length, hypotheses)
+            samples = lorden_drift_samples(
+                size / rate_hz, run_length, hypotheses, contamination, outlier
+            )
         if not math.isfinite(samples):
             continue
         figure.reference_delay_s = samples / rate_hz

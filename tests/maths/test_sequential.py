@@ -21,6 +21,8 @@ from imufdi_cli.maths.sequential import (
     lorden_delay_samples,
     lorden_drift_samples,
     outlier_share,
+    outlier_size,
+    step_information,
 )
 
 RATE_HZ = 100.0
@@ -111,6 +113,68 @@ def test_outlier_share_counts_what_a_gaussian_does_not_explain() -> None:
     assert outlier_share(z) < 1e-4
     z[rng.random(z.shape) < 0.002] = 7.0
     assert outlier_share(z) == pytest.approx(0.002, rel=0.15)
+
+
+def test_outlier_size_is_the_median_magnitude_beyond_the_level() -> None:
+    z = np.zeros(100)
+    z[:3] = (6.0, -7.0, 9.0)
+    assert outlier_size(z) == 7.0
+    assert outlier_size(np.zeros(10)) == 0.0
+
+
+def _mixture_information(delta: float, p: float, o: float) -> float:
+    # an independent route: scipy's adaptive quadrature of f1 ln(f1 / f0) in log space,
+    # breakpoints at the components' centres, over f1's mass (12 sd beyond its outliers)
+    from scipy import integrate, special, stats
+
+    def log_f0(x: float) -> float:
+        terms = [stats.norm.logpdf(x), stats.norm.logpdf(x - o), stats.norm.logpdf(x + o)]
+        return float(special.logsumexp(terms, b=[1 - p, p / 2, p / 2]))
+
+    def integrand(y: float) -> float:
+        log_f1 = log_f0(y - delta)
+        return math.exp(log_f1) * (log_f1 - log_f0(y))
+
+    points = sorted({0.0, delta, o, -o, o + delta, delta - o})
+    lo, hi = delta - o - 12.0, delta + o + 12.0
+    value, _ = integrate.quad(integrand, lo, hi, points=points, limit=500)
+    return value
+
+
+@pytest.mark.parametrize("delta", [0.5, 1.94, 3.0, 5.81, 6.45, 8.0, 12.0])
+def test_step_information_in_noise_with_outliers(delta: float) -> None:
+    # Gaussian evidence: delta^2 / 2 exactly
+    assert step_information(delta**2) == pytest.approx(delta**2 / 2, rel=1e-15)
+    assert step_information(delta**2, 0.001, 0.0) == pytest.approx(delta**2 / 2, rel=1e-15)
+    # paper-table4's gyros: 0.1 % outliers of 6.45 standard deviations of the evidence.
+    # 1e-5: the 96-node Gauss-Hermite rule and the adaptive quadrature agree to within
+    # 6e-7 over this grid (the integrand's transitions are on the noise's own scale)
+    got = float(step_information(delta**2, 0.001, 6.45))
+    assert got == pytest.approx(_mixture_information(delta, 0.001, 6.45), rel=1e-5)
+    assert got <= delta**2 / 2  # data processing: outliers added to both laws
+
+
+def test_a_step_the_size_of_the_outliers_carries_half_the_gaussian_information() -> None:
+    # 0.9 deg/s on paper-table4 (delta 5.81) against outliers of 1 deg/s (6.45): each
+    # sample carries about ln(phi(0) / (p/2 phi(delta - o))) = 7.8 nats, not 16.9
+    information = float(step_information(5.81**2, 0.001, 6.45))
+    assert 7.0 < information < 7.9
+    gaussian = lorden_delay_samples(5.81**2, 360000.0, 96)
+    assert lorden_delay_samples(5.81**2, 360000.0, 96, 0.001, 6.45) == pytest.approx(
+        gaussian * 5.81**2 / 2 / information, rel=1e-12
+    )
+
+
+def test_the_drift_reference_accumulates_the_information() -> None:
+    target = math.log(1e7)
+    gaussian = lorden_drift_samples(0.1, 1e6, 10)
+    m = lorden_drift_samples(0.1, 1e6, 10, 0.002, 5.0)
+    assert m > gaussian
+    # the information accumulated over the ramp's first m samples (trapezoids, 20001
+    # points: their error is far below the 1e-6 asked) reaches ln(gamma K)
+    t = np.linspace(0.0, m, 20001)
+    info = step_information((0.1 * t) ** 2, 0.002, 5.0)
+    assert float(np.sum((info[1:] + info[:-1]) / 2 * np.diff(t))) == pytest.approx(target, rel=1e-6)
 
 
 def _bank(n: int = 8, budget_per_hour: float = 1.0, **design: float) -> CusumBank:

@@ -81,6 +81,8 @@ from imufdi_cli.maths.sequential.thresholds import (
     lorden_delay_samples,
     lorden_drift_samples,
     outlier_share,
+    outlier_size,
+    step_information,
 )
 
 __all__ = [
@@ -100,4 +102,6 @@ __all__ = [
     "lorden_delay_samples",
     "lorden_drift_samples",
     "outlier_share",
+    "outlier_size",
+    "step_information",
 ]

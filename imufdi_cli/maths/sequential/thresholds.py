@@ -327,22 +327,117 @@ def threshold_root(gap: Callable[[float], float], floor: float, guess: float, tr
     return math.ceil(high * 1000.0) / 1000.0
 
 
-def lorden_delay_samples(noncentrality: float, run_length: float, hypotheses: int) -> float:
-    """``2 ln(gamma K) / delta^2``: samples an optimal test needs, asymptotically, to detect
-    a step of per-sample non-centrality ``delta^2`` at an average run length ``gamma``
-    between false alarms among K hypotheses (Lorden 1971)."""
+def step_information(
+    noncentrality: np.ndarray | float, contamination: float = 0.0, outlier: float = 0.0
+) -> np.ndarray:
+    """Kullback-Leibler information per sample (nats) of a step in standardized evidence.
+
+    Parameters
+    ----------
+    noncentrality : float or ndarray, any shape
+        ``delta^2``, the step's squared size in standard deviations of the evidence.
+    contamination : float
+        Share p of outliers in the fault-free evidence (:func:`outlier_share`).
+    outlier : float
+        Their size o, standard deviations (:func:`outlier_size`).
+
+    Returns
+    -------
+    ndarray, the shape of ``noncentrality``
+        ``I(delta) = E[ln f1(y) / f0(y)]`` for ``y ~ f1``, the information Lorden's bound
+        divides by. Fault-free evidence has the density ``f0 = (1 - p) N(0, 1) + p/2
+        (N(o, 1) + N(-o, 1))``, a faulty sample is the same noise plus delta, ``f1(y) =
+        f0(y - delta)``. Without outliers ``I = delta^2 / 2``. With them I is smaller
+        (the step is added to noise that is no longer Gaussian: by the data-processing
+        inequality it never exceeds ``delta^2 / 2``): a step about the outliers' size
+        looks like a run of outliers, and each sample of it carries about
+        ``ln(phi(0) / (p/2 phi(delta - o)))`` nats instead of ``delta^2 / 2``. The
+        expectation is a 96-node Gauss-Hermite quadrature over each of the three
+        components (a smooth integrand: the log of a sum of Gaussians).
+    """
+    shift = np.sqrt(np.maximum(np.asarray(noncentrality, float), 0.0))
+    if not contamination > 0 or not outlier > 0:
+        return 0.5 * shift * shift
+    p = min(float(contamination), 0.5)
+    nodes, weights = _hermite_nodes()
+    logs = (math.log1p(-p), math.log(0.5 * p), math.log(0.5 * p))
+    centres = (0.0, float(outlier), -float(outlier))
+
+    def log_f0(x: np.ndarray) -> np.ndarray:
+        parts = [w - 0.5 * (x - c) ** 2 for w, c in zip(logs, centres)]
+        return np.logaddexp(np.logaddexp(parts[0], parts[1]), parts[2])
+
+    total = np.zeros(shift.shape)
+    for w, c in zip(logs, centres):
+        x = c + nodes  # the noise X, of component c; the sample is X + delta
+        gap = log_f0(x) - log_f0(x + shift[..., None])
+        total += math.exp(w) * (gap @ weights)
+    return np.maximum(total, 0.0)
+
+
+@lru_cache(maxsize=1)
+def _hermite_nodes() -> tuple[np.ndarray, np.ndarray]:
+    """Probabilists' Gauss-Hermite nodes and weights normalised to the N(0, 1) mean."""
+    nodes, weights = np.polynomial.hermite_e.hermegauss(96)
+    return nodes, weights / math.sqrt(2.0 * math.pi)
+
+
+def lorden_delay_samples(
+    noncentrality: float,
+    run_length: float,
+    hypotheses: int,
+    contamination: float = 0.0,
+    outlier: float = 0.0,
+) -> float:
+    """``ln(gamma K) / I``: samples an optimal test needs, asymptotically, to detect a step
+    of per-sample non-centrality ``delta^2`` at an average run length ``gamma`` between
+    false alarms among K hypotheses (Lorden 1971), with I the step's information per
+    sample (:func:`step_information`): ``delta^2 / 2`` for Gaussian evidence, so
+    ``2 ln(gamma K) / delta^2``; less with the evidence's outliers."""
     if noncentrality <= 0:
         return math.inf
-    return 2.0 * math.log(max(run_length * hypotheses, 1.0)) / noncentrality
+    information = float(step_information(noncentrality, contamination, outlier))
+    if not information > 0:
+        return math.inf
+    return math.log(max(run_length * hypotheses, 1.0)) / information
 
 
-def lorden_drift_samples(slope: float, run_length: float, hypotheses: int) -> float:
+def lorden_drift_samples(
+    slope: float,
+    run_length: float,
+    hypotheses: int,
+    contamination: float = 0.0,
+    outlier: float = 0.0,
+) -> float:
     """The same for a drift whose evidence grows by ``slope`` z units per sample: the
-    number m of samples whose accumulated non-centrality ``slope^2 m^3 / 3`` reaches
-    ``2 ln(gamma K)`` (the matched test of a ramp from a known onset)."""
+    number m of samples whose accumulated information ``int_0^m I(slope t) dt`` reaches
+    ``ln(gamma K)`` (the matched test of a ramp from a known onset): for Gaussian evidence
+    ``slope^2 m^3 / 6``, so ``m = (6 ln(gamma K) / slope^2)^(1/3)``."""
     if slope <= 0:
         return math.inf
-    return (3.0 * 2.0 * math.log(max(run_length * hypotheses, 1.0)) / slope**2) ** (1.0 / 3.0)
+    target = math.log(max(run_length * hypotheses, 1.0))
+    gaussian = (6.0 * target / slope**2) ** (1.0 / 3.0)
+    if not contamination > 0 or not outlier > 0:
+        return gaussian
+    nodes, weights = np.polynomial.legendre.leggauss(48)
+
+    def accumulated(m: float) -> float:
+        t = 0.5 * m * (nodes + 1.0)
+        return 0.5 * m * float(step_information((slope * t) ** 2, contamination, outlier) @ weights)
+
+    # the information never exceeds the Gaussian one, so m is at least the Gaussian m;
+    # widen until the accumulated information passes the target, then bisect
+    low, high = gaussian, 2.0 * gaussian
+    while accumulated(high) < target:
+        low, high = high, 2.0 * high
+        if high > 1e12:
+            return math.inf
+    for _ in range(60):
+        mid = 0.5 * (low + high)
+        low, high = (mid, high) if accumulated(mid) < target else (low, mid)
+        if high - low <= 1e-9 * high:
+            break
+    return high
 
 
 #: |z| beyond which a calibration sample counts as an outlier (Gaussian share 6.8e-6).
@@ -359,6 +454,14 @@ def outlier_share(z: np.ndarray, level: float = OUTLIER_LEVEL) -> float:
         return 0.0
     beyond = int(np.count_nonzero(np.abs(z[finite]) > level))
     return max(0.0, beyond / total - math.erfc(level / math.sqrt(2.0)))
+
+
+def outlier_size(z: np.ndarray, level: float = OUTLIER_LEVEL) -> float:
+    """Median magnitude of the outliers of standardized evidence ``z`` (any shape): the
+    samples beyond ``level``; 0 when there are none."""
+    z = np.abs(np.asarray(z, float))
+    beyond = z[np.isfinite(z) & (z > level)]
+    return float(np.median(beyond)) if beyond.size else 0.0
 
 
 def long_run_factor(z: np.ndarray, block: int) -> float:
