@@ -103,9 +103,13 @@ class Runner:
 
     def run(self, args: list[str]) -> tuple[float, float, float]:
         """(CPU s, wall s, peak RSS MiB) of ``python -m imufdi_cli ARGS`` (output discarded)."""
+        return self.run_python(["-m", "imufdi_cli", *args])
+
+    def run_python(self, args: list[str]) -> tuple[float, float, float]:
+        """(CPU s, wall s, peak RSS MiB) of ``python ARGS`` in the tree (output discarded)."""
         start = time.perf_counter()
         process = subprocess.Popen(
-            [sys.executable, "-m", "imufdi_cli", *args],
+            [sys.executable, *args],
             env=self.env,
             # ``-m`` puts the working directory first on sys.path: run in the tree, so that
             # each tree imports its own package
@@ -120,7 +124,7 @@ class Runner:
         if process.stderr:
             process.stderr.close()
         if process.returncode not in (0, 1):
-            raise RuntimeError(f"imufdi {' '.join(args)} failed ({process.returncode}):\n{stderr}")
+            raise RuntimeError(f"python {' '.join(args)} failed ({process.returncode}):\n{stderr}")
         return usage.ru_utime + usage.ru_stime, wall, usage.ru_maxrss / 1024
 
 
