@@ -205,21 +205,9 @@ def _floor_child(log: str, out: str, with_cli: bool, skip: list[str]) -> int:
 
 def _make_log(runner: Any, workdir: Path, minutes: float) -> Path:
     """The faulty paper-table4 log of ``bench_targets.py`` (seed 1)."""
-    from bench_targets import FAULTS
+    from bench_targets import make_log
 
-    clean, faulty = workdir / "clean.mcap", workdir / "faulty.mcap"
-    seconds = minutes * 60
-    runner.run(
-        [
-            *("simulate", "--preset", "paper-table4", "--duration", f"{seconds:g}s"),
-            *("--seed", "1", "-o", str(clean), "-q"),
-        ]
-    )
-    times = {"a": 0.3 * seconds, "b": 0.5 * seconds, "c": 0.7 * seconds}
-    faults = [arg for f in FAULTS for arg in ("--fault", f.format(**times))]
-    runner.run(["inject", str(clean), *faults, "--seed", "1", "-o", str(faulty), "-q"])
-    clean.unlink()
-    return faulty
+    return make_log(runner, workdir, minutes)
 
 
 def _status_counts(path: Path) -> dict[str, int]:

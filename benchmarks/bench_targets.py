@@ -128,25 +128,30 @@ class Runner:
         return usage.ru_utime + usage.ru_stime, wall, usage.ru_maxrss / 1024
 
 
+def make_log(runner: Runner, workdir: Path, minutes: float, key: str = "log") -> Path:
+    """The faulty paper-table4 log of ``minutes`` (seed 1), ``faulty-KEY.mcap``."""
+    clean = workdir / f"clean-{key}.mcap"
+    faulty = workdir / f"faulty-{key}.mcap"
+    seconds = minutes * 60
+    runner.run(
+        [
+            *("simulate", "--preset", "paper-table4", "--duration", f"{seconds:g}s"),
+            *("--seed", "1", "-o", str(clean), "-q"),
+        ]
+    )
+    times = {"a": 0.3 * seconds, "b": 0.5 * seconds, "c": 0.7 * seconds}
+    faults = [arg for f in FAULTS for arg in ("--fault", f.format(**times))]
+    runner.run(["inject", str(clean), *faults, "--seed", "1", "-o", str(faulty), "-q"])
+    clean.unlink()
+    return faulty
+
+
 def make_logs(runner: Runner, workdir: Path, minutes: float) -> dict[str, Path]:
     """The faulty paper-table4 logs of ``minutes`` and of 1 minute."""
-    logs = {}
-    for key, length in (("log", minutes), ("short", 1.0)):
-        clean = workdir / f"clean-{key}.mcap"
-        faulty = workdir / f"faulty-{key}.mcap"
-        seconds = length * 60
-        runner.run(
-            [
-                *("simulate", "--preset", "paper-table4", "--duration", f"{seconds:g}s"),
-                *("--seed", "1", "-o", str(clean), "-q"),
-            ]
-        )
-        times = {"a": 0.3 * seconds, "b": 0.5 * seconds, "c": 0.7 * seconds}
-        faults = [arg for f in FAULTS for arg in ("--fault", f.format(**times))]
-        runner.run(["inject", str(clean), *faults, "--seed", "1", "-o", str(faulty), "-q"])
-        clean.unlink()
-        logs[key] = faulty
-    return logs
+    return {
+        key: make_log(runner, workdir, length, key)
+        for key, length in (("log", minutes), ("short", 1.0))
+    }
 
 
 def main() -> int:
