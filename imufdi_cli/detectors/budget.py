@@ -268,7 +268,9 @@ class _BankBudget:
             "motion_error": self.motion_error,
             "outlier_share": self.contamination,
             "outlier_size": self.outlier,
-            "motion_scale": "spatial" if self.moving else None,
+            # the rows' own spread in motion (the bank keeps the jitter model below
+            # MIN_SPATIAL_COLUMNS sensors)
+            "motion_scale": "spatial" if bank is not None and bank.spatial else None,
             "motion_outliers": self.design.motion_outliers if self.moving else None,
             "reference_tau_s": self.design.tau_s,
             "hold_s": None if math.isinf(self.design.hold_s) else self.design.hold_s,
