@@ -655,3 +655,19 @@ def test_run_lengths_solved_together_are_those_of_one_chain_at_a_time(
     assert thresholds.run_lengths(keys[:8]) == alone[:8]
     assert thresholds.run_lengths(keys[:2] + keys[20:21]) == [*alone[:2], alone[20]]
     assert list(thresholds._RUN_LENGTHS) == [*keys[:2], keys[20]]
+
+
+def test_the_spatial_variance_leaves_out_sensors_without_evidence() -> None:
+    # a row in motion with a third of its sensors missing (NaN): its spread is the median
+    # over the other 16 with their own margin, not dragged down by zeros; a row with
+    # fewer than 12 keeps the jitter factor; rows at rest keep theirs
+    from imufdi_cli.maths.sequential import spatial_variance
+
+    z = np.full((3, 24), 30.0)
+    z[1, :8] = np.nan
+    z[2, :14] = np.nan
+    v = spatial_variance(z, np.full(3, 50.0), np.ones(24, bool), 3.5, 2.0)
+    assert v[0] == pytest.approx(spatial_inflation(24) * 900.0 / 0.4549364231195724)
+    assert v[1] == pytest.approx(spatial_inflation(16) * 900.0 / 0.4549364231195724)
+    assert v[2] == 50.0
+    assert spatial_variance(z, np.ones(3), np.ones(24, bool), 3.5, 2.0).tolist() == [1.0] * 3

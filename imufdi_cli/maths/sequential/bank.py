@@ -27,11 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from imufdi_cli.maths.sequential.design import NO_ISOLATION, NOT_ISOLABLE, CusumDesign
-from imufdi_cli.maths.sequential.spatial import (
-    MIN_SPATIAL_COLUMNS,
-    spatial_inflation,
-    spatial_variance,
-)
+from imufdi_cli.maths.sequential.spatial import MIN_SPATIAL_COLUMNS, spatial_variance
 from imufdi_cli.maths.sequential.walk import _Chunk, _Feed, _History, _Running, _Walk
 
 
@@ -381,7 +377,6 @@ class CusumBank:
         self._spatial_columns = self.sensitivity > 0
         columns = int(np.count_nonzero(self._spatial_columns))
         self.spatial = bool(spatial) and columns >= MIN_SPATIAL_COLUMNS
-        self.spatial_inflation = spatial_inflation(columns, design.clip) if self.spatial else 1.0
 
     @property
     def reference(self) -> np.ndarray:
@@ -403,14 +398,14 @@ class CusumBank:
             raise ValueError(f"evidence must be (N, {self.n}), got {z.shape}")
         if self.inverse_scale != 1.0:
             z = z * self.inverse_scale
-        if not np.isfinite(z).all():
-            z = np.nan_to_num(z, nan=0.0, posinf=0.0, neginf=0.0)
         n_rows = z.shape[0]
         v = np.ones(n_rows) if factors is None else np.maximum(np.asarray(factors, float), 1.0)
-        if self.spatial and factors is not None:
+        if self.spatial and factors is not None:  # over the sensors with evidence on the row
             v = spatial_variance(
-                z, v, self._spatial_columns, self.spatial_inflation, self.design.rest_factor
+                z, v, self._spatial_columns, self.design.clip, self.design.rest_factor
             )
+        if not np.isfinite(z).all():
+            z = np.nan_to_num(z, nan=0.0, posinf=0.0, neginf=0.0)
         out = Decisions(
             statistic=np.zeros(n_rows),
             threshold=np.full(n_rows, self.threshold),

@@ -30,21 +30,35 @@ _ERF = np.frompyfunc(math.erf, 1, 1)
 
 
 def spatial_variance(
-    z: np.ndarray, v: np.ndarray, columns: np.ndarray, inflation: float, rest_factor: float
+    z: np.ndarray, v: np.ndarray, columns: np.ndarray, clip: float, rest_factor: float
 ) -> np.ndarray:
     """The rows' noise variance factors (N,), those of the rows in motion (``v_t >
-    rest_factor``) replaced by ``inflation x m_t`` over the ``columns`` (n,) bool of ``z``
-    (N, n), at least just above ``rest_factor`` (so the rows still count as in motion: they
-    teach the references nothing). A function of each row alone: the same whatever the
+    rest_factor``) replaced by ``c_k m_t`` over the ``columns`` (n,) bool of ``z`` (N, n)
+    that have evidence on the row (k of them, finite; ``c_k = spatial_inflation(k,
+    clip)``), at least just above ``rest_factor`` (so the rows still count as in motion:
+    they teach the references nothing). A row with fewer than MIN_SPATIAL_COLUMNS sensors
+    with evidence keeps ``v_t``. A function of each row alone: the same whatever the
     decisions and however the rows are split into calls."""
     moving = v > rest_factor
     if not moving.any():
         return v
     rows = np.flatnonzero(moving)
     squares = np.square(z[np.ix_(rows, np.flatnonzero(columns))])
-    spread = np.median(squares, axis=1) * (inflation / CHI2_1_MEDIAN)
     out = v.copy()
-    out[rows] = np.maximum(spread, math.nextafter(rest_factor, math.inf))
+    floor = math.nextafter(rest_factor, math.inf)
+    if np.isfinite(squares).all():
+        inflation = spatial_inflation(squares.shape[1], clip)
+        out[rows] = np.maximum(np.median(squares, axis=1) * (inflation / CHI2_1_MEDIAN), floor)
+        return out
+    # a sensor without evidence on a row (NaN) is left out of its spread and its margin
+    finite = np.isfinite(squares)
+    counts = finite.sum(axis=1)
+    squares[~finite] = np.nan
+    for count in np.unique(counts[counts >= MIN_SPATIAL_COLUMNS]):
+        these = counts == count
+        middle = np.nanmedian(squares[these], axis=1)
+        inflation = spatial_inflation(int(count), clip)
+        out[rows[these]] = np.maximum(middle * (inflation / CHI2_1_MEDIAN), floor)
     return out
 
 
