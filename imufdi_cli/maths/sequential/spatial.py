@@ -2,8 +2,8 @@
 True)``, :mod:`imufdi_cli.maths.sequential`).
 
 In hand motion the MIMU4444 accelerometers' parity residual is white in time, and its size
-changes from row to row alike on every sensor (a scale mixture: kurtosis in the hundreds
-over the motion, but near Gaussian given the row's scale). A jitter model driven by the
+changes from row to row alike on every sensor (a scale mixture: kurtosis 50-90 over the
+motion, but near Gaussian given the row's scale). A jitter model driven by the
 motion has to cover its largest rows; a row's own spread ``m_t = median_i(z_t,i^2) /
 0.4549`` over the sensors follows it, and a fault on a few sensors leaves it. The test
 standardizes the row by ``c_n m_t``, ``c_n`` (:func:`spatial_inflation`) the margin for
@@ -72,8 +72,8 @@ def spatial_inflation(columns: int, clip: float = 3.5) -> float:
     variables of one degree of freedom over its median, a law of its own (taken as the
     order statistic ``ceil(n/2)``: the lower of the two middle ones for an even n, which
     errs on the safe side). ``c`` is the smallest value for which, for every effective
-    shift a of the bank (0.25 to 2 clip), ``E[exp(a clip(r e, -c, c) - a^2/2)] <= 1``
-    averaged over ``r = (c m / s^2)^-1/2``: Ville's condition, under which an excursion of
+    shift a of the bank (0.25 to 2 C, C = ``clip``), ``E[exp(a clip(r e, -C, C) - a^2/2)]
+    <= 1`` averaged over ``r = (c m / s^2)^-1/2``: Ville's condition, under which an excursion of
     the CUSUM reaches h with probability at most ``exp(-h)``, the bound the threshold is
     designed on. Expectation over m: its density (that of the order statistic) by a
     400-point Gauss-Legendre rule in log m; over e: 64-point Gauss-Legendre inside the
