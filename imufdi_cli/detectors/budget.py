@@ -224,6 +224,12 @@ class _BankBudget:
             return max(self.contamination, self.design.motion_outliers)
         return self.contamination
 
+    def _measure_outliers(self, z: np.ndarray) -> None:
+        """The outlier share (the threshold's) and size (the reference delays') of the
+        calibration window's evidence ``z``, standardized by the long-run factor."""
+        self.contamination = outlier_share(z)
+        self.outlier = outlier_size(z)
+
     def _start(self, kappa: float, motion: MotionModel | None) -> None:
         """The threshold for the evidence's outlier share (``threshold_contamination``),
         then the bank."""
@@ -370,8 +376,7 @@ class ParityBudget(_BankBudget):
         evidence, state = self.evidence(white)
         z = evidence[:, self.z_scale > 0]
         kappa = long_run_factor(z, self.design.block)
-        self.contamination = outlier_share(z / math.sqrt(kappa))
-        self.outlier = outlier_size(z / math.sqrt(kappa))
+        self._measure_outliers(z / math.sqrt(kappa))
         motion = None
         if self.motion_error > 0:
             scale = 1.0 / math.sqrt(kappa)  # the bank's own units
@@ -508,8 +513,7 @@ class EvidenceBudget(_BankBudget):
             # the variance reference learns the per-sample variance, which for correlated
             # evidence is not what the long-run factor standardized: keep the calibrated scale
             self.design = dataclasses.replace(self.design, scale_tau_s=0.0)
-        self.contamination = outlier_share(tested / math.sqrt(kappa))
-        self.outlier = outlier_size(tested / math.sqrt(kappa))
+        self._measure_outliers(tested / math.sqrt(kappa))
         motion = None
         if modelled:
             scale = 1.0 / math.sqrt(kappa)  # the bank's own units

@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from imufdi_cli.maths.robust import clipped_square_moments, robust_scale, scale_estimator_dof
+from imufdi_cli.maths.sequential.thresholds import bisect_boundary
 
 #: The thresholds are set for this share of the budget (the parity detectors' margin).
 BUDGET_SHARE = 0.5
@@ -200,15 +201,7 @@ def _smallest_scale(too_small: Callable[[float], bool], low: float, high: float)
     """The scale at the bisected boundary of ``too_small`` (a predicate on log s) between
     ``low`` (too small) and ``high`` (not), to 1e-5 in log s: the upper end, so the
     scale returned is never one the predicate refuses."""
-    for _ in range(60):
-        middle = 0.5 * (low + high)
-        if too_small(middle):
-            low = middle
-        else:
-            high = middle
-        if high - low < 1e-5:
-            break
-    return math.exp(high)
+    return math.exp(bisect_boundary(too_small, low, high, 1e-5))
 
 
 def ap_limit_scale(

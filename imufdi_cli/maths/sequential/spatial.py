@@ -17,7 +17,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from imufdi_cli.maths.sequential.thresholds import _ERFC, _normal_cdf
+from imufdi_cli.maths.sequential.thresholds import _ERFC, _normal_cdf, bisect_boundary
 
 #: Median of a chi-square variable of one degree of freedom.
 CHI2_1_MEDIAN = 0.4549364231195724
@@ -128,15 +128,10 @@ def spatial_inflation(columns: int, clip: float = 3.5) -> float:
         beyond = (np.exp(a * clip - 0.5 * a * a) + np.exp(-a * clip - 0.5 * a * a)) * tail
         return float(np.max((inside + beyond) @ mass))
 
-    low, high = 1.0, 64.0
-    if worst(high) > 1.0:
+    if worst(64.0) > 1.0:
         return math.inf
-    for _ in range(60):
-        mid = math.sqrt(low * high)
-        if worst(mid) <= 1.0:
-            high = mid
-        else:
-            low = mid
-        if high / low - 1.0 < 1e-4:
-            break
-    return high
+    # on log c, to 1e-4 relative
+    boundary = bisect_boundary(
+        lambda log_c: worst(math.exp(log_c)) > 1.0, 0.0, math.log(64.0), math.log1p(1e-4)
+    )
+    return math.exp(boundary)

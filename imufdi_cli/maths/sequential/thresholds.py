@@ -271,6 +271,24 @@ def budget_threshold(
     return threshold_root(gap, 0.5, max(1.0, 0.9 * math.log(4.0 * sensors / per_sample)), 8)
 
 
+def bisect_boundary(
+    fails: Callable[[float], bool], low: float, high: float, tolerance: float
+) -> float:
+    """The boundary of a predicate by bisection: ``fails(low)`` true, ``fails(high)``
+    false, halved until ``high - low < tolerance`` (at most 60 times); returns the upper
+    end, so the value returned is never one the predicate refuses. Callers bisect on a log
+    scale for a relative tolerance."""
+    for _ in range(60):
+        middle = 0.5 * (low + high)
+        if fails(middle):
+            low = middle
+        else:
+            high = middle
+        if high - low < tolerance:
+            break
+    return high
+
+
 def threshold_root(gap: Callable[[float], float], floor: float, guess: float, tries: int) -> float:
     """The h where a decreasing ``gap(h)`` (log false-alarm rate less its target's log)
     crosses 0, rounded up to 1e-3 (a slightly lower rate than asked); ``floor`` when the
@@ -426,18 +444,20 @@ def lorden_drift_samples(
         return 0.5 * m * float(step_information((slope * t) ** 2, contamination, outlier) @ weights)
 
     # the information never exceeds the Gaussian one, so m is at least the Gaussian m;
-    # widen until the accumulated information passes the target, then bisect
+    # widen until the accumulated information passes the target, then bisect (on log m)
     low, high = gaussian, 2.0 * gaussian
     while accumulated(high) < target:
         low, high = high, 2.0 * high
         if high > 1e12:
             return math.inf
-    for _ in range(60):
-        mid = 0.5 * (low + high)
-        low, high = (mid, high) if accumulated(mid) < target else (low, mid)
-        if high - low <= 1e-9 * high:
-            break
-    return high
+    return math.exp(
+        bisect_boundary(
+            lambda log_m: accumulated(math.exp(log_m)) < target,
+            math.log(low),
+            math.log(high),
+            1e-9,
+        )
+    )
 
 
 #: |z| beyond which a calibration sample counts as an outlier (Gaussian share 6.8e-6).
